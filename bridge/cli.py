@@ -1,0 +1,54 @@
+"""The ``scmbridge`` command.
+
+Subcommands are resolved lazily: only the module of the command asked for is imported (``import casadi`` or
+``pymavlink`` cost a noticeable fraction of a second each). Every command module exposes
+``main(argv: list[str]) -> int`` with its own argparse parser.
+"""
+
+from __future__ import annotations
+
+import importlib
+import sys
+
+#: command -> (module, one-line help). ``bench`` and ``sim`` take a second word.
+COMMANDS: dict[str, tuple[str, str]] = {
+    "demo": ("bridge.demo", "station + driver host + emulated learner over Zenoh on 127.0.0.1 (MPC S-path)"),
+    "station": ("bridge.station", "the base-station service: teacher + transfer loop publishing commands"),
+    "driver": ("bridge.driver_host", "the driver host: Zenoh commands -> vehicle link, telemetry -> state"),
+    "learner": ("sim_learner.emulator", "a software learner behind a vehicle link (can, mavlink, udp)"),
+    "sim": ("sim_learner.experiments", "the paper's simulations: sim primitives|mpc|grid --out DIR"),
+    "bench scm": ("bridge.bench.scm", "Schwarz-Christoffel map build/evaluate timings (JSON)"),
+    "bench transfer": ("bridge.bench.transfer", "transfer policy per-command cost (JSON)"),
+    "bench mpc": ("bridge.bench.mpc", "MPC closed-loop solve times (JSON)"),
+    "bench bridge": ("bridge.bench.bridge", "end-to-end latency and 50 Hz loop jitter over Zenoh (JSON)"),
+}
+
+
+def _usage() -> str:
+    lines = ["usage: scmbridge COMMAND [ARGS...]", "", "commands:"]
+    lines += [f"  {name:<16} {text}" for name, (_, text) in COMMANDS.items()]
+    lines += ["", "Run `scmbridge COMMAND --help` for a command's options."]
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Dispatch to the command module; returns the process exit code."""
+    args = list(sys.argv[1:] if argv is None else argv)
+    if not args or args[0] in ("-h", "--help", "help"):
+        print(_usage())
+        return 0
+    name, rest = args[0], args[1:]
+    if name == "bench":
+        if not rest or rest[0].startswith("-"):
+            print("usage: scmbridge bench {scm,transfer,mpc,bridge} [OPTIONS]", file=sys.stderr)
+            return 2
+        name, rest = f"bench {rest[0]}", rest[1:]
+    if name not in COMMANDS:
+        print(f"scmbridge: unknown command {name!r}\n\n{_usage()}", file=sys.stderr)
+        return 2
+    module = importlib.import_module(COMMANDS[name][0])
+    return int(module.main(rest) or 0)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,33 @@
+"""Vehicle links behind one small :class:`drivers.base.Driver` protocol, picked by name like python-can interfaces.
+
+``open_driver("can", config)`` imports only the module of the link asked for, so a station machine without
+pymavlink on its path (say) can still run the CAN link.
+"""
+
+from __future__ import annotations
+
+import importlib
+from typing import Any
+
+from drivers.base import Driver, DriverError
+
+#: link name -> "module:Class"; each class takes the link's config mapping as its only argument.
+LINKS: dict[str, str] = {
+    "can": "drivers.can:CanDriver",
+    "mavlink": "drivers.mavlink:MavlinkDriver",
+    "udp": "drivers.udp:UdpDriver",
+}
+
+
+def open_driver(name: str, config: dict[str, Any] | None = None) -> Driver:
+    """Build (not yet open) the driver registered under ``name`` with its config section."""
+    try:
+        target = LINKS[name]
+    except KeyError:
+        raise ValueError(f"unknown link {name!r}; known links: {', '.join(sorted(LINKS))}") from None
+    module_name, cls_name = target.split(":")
+    cls = getattr(importlib.import_module(module_name), cls_name)
+    return cls(dict(config or {}))
+
+
+__all__ = ["Driver", "DriverError", "LINKS", "open_driver"]

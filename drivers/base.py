@@ -1,0 +1,67 @@
+"""The one protocol every vehicle link implements.
+
+A driver owns the wire to one vehicle. It never decides *what* to send (the driver host checks freshness,
+finiteness and hard limits, and owns the deadman); it only turns an already-checked learner command (v, omega)
+into the link's own frames and turns the vehicle's telemetry back into poses.
+
+All times are the driver host's ``time.monotonic()`` seconds, passed in, so that the pose stamps and the
+applied-command echo the station pairs with each other come from one clock.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any, Protocol, runtime_checkable
+
+
+class DriverError(RuntimeError):
+    """The link cannot do what was asked (not connected, vehicle refused to arm, bus down...)."""
+
+
+@dataclass(frozen=True, slots=True)
+class Pose:
+    """One telemetry sample in the ENU unicycle frame (x east, y north, theta counter-clockwise from x)."""
+
+    stamp: float  # driver-host monotonic seconds when the sample was received / computed
+    x: float
+    y: float
+    theta: float
+    v: float | None = None  # body forward speed, m/s, where the link reports it
+    omega: float | None = None  # yaw rate, rad/s, counter-clockwise positive
+
+
+@dataclass(slots=True)
+class LinkHealth:
+    """What a driver reports about its link; counters only grow."""
+
+    connected: bool = False
+    frames_sent: int = 0
+    frames_received: int = 0
+    malformed: int = 0  # frames/messages that failed to decode or validate, dropped
+    errors: int = 0  # link-level errors (send failures, vehicle faults)
+    detail: dict[str, Any] = field(default_factory=dict)
+
+
+@runtime_checkable
+class Driver(Protocol):
+    """A vehicle link. Construction takes the link's config mapping and does no I/O; ``open`` connects."""
+
+    name: str
+
+    def open(self, now: float) -> None:
+        """Connect and bring the vehicle to a state where it accepts velocity commands (may block, bounded)."""
+
+    def send(self, v: float, omega: float, now: float) -> None:
+        """Command forward speed ``v`` (m/s) and yaw rate ``omega`` (rad/s, CCW+). Inputs are already checked."""
+
+    def stop(self, now: float) -> None:
+        """Command zero velocity now (deadman, estop, shutdown). Must be safe to call at any time."""
+
+    def poll(self, now: float) -> list[Pose]:
+        """Read what arrived since the last call, without blocking long; return new poses, oldest first."""
+
+    def health(self) -> LinkHealth:
+        """Counters and link state for ``status``."""
+
+    def close(self) -> None:
+        """Stop the vehicle if possible and release the link. Idempotent."""

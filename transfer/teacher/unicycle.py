@@ -1,0 +1,35 @@
+"""The teacher's model: the paper's Euler-discretised unicycle (Eq. motion_primitives_dynamicmodel).
+
+State ``(x, y, theta)``, command ``(v, omega)``: x_{k+1} = x_k + dt * (v cos theta, v sin theta, omega).
+Vectorised over leading axes so a batch of poses or commands steps at once.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+
+def wrap_angle(a: ArrayLike) -> NDArray[np.float64] | float:
+    """Angle(s) wrapped to [-pi, pi)."""
+    out = (np.asarray(a, dtype=float) + np.pi) % (2.0 * np.pi) - np.pi
+    return float(out) if out.ndim == 0 else out
+
+
+def step(state: ArrayLike, u: ArrayLike, dt: float) -> NDArray[np.float64]:
+    """One Euler step of the unicycle; ``state[..., 3]``, ``u[..., 2]`` broadcast against each other."""
+    s = np.asarray(state, dtype=float)
+    c = np.asarray(u, dtype=float)
+    x, y, th = s[..., 0], s[..., 1], s[..., 2]
+    v, w = c[..., 0], c[..., 1]
+    return np.stack([x + dt * v * np.cos(th), y + dt * v * np.sin(th), th + dt * w], axis=-1)
+
+
+def rollout(state: ArrayLike, u: ArrayLike, dt: float, steps: int) -> NDArray[np.float64]:
+    """Hold command ``u`` for ``steps`` Euler steps from ``state``; returns ``(steps + 1, ..., 3)`` poses."""
+    s = np.asarray(state, dtype=float)
+    out = [s]
+    for _ in range(int(steps)):
+        s = step(s, u, dt)
+        out.append(s)
+    return np.stack(out, axis=0)
