@@ -158,7 +158,8 @@ def decode(data: bytes | bytearray | memoryview, kind: type[M]) -> M:
         dec = _decoders[kind] = msgspec.msgpack.Decoder(kind)
     try:
         return dec.decode(data)
-    except (msgspec.ValidationError, msgspec.DecodeError) as exc:
+    except (msgspec.ValidationError, msgspec.DecodeError, UnicodeDecodeError) as exc:
+        # msgspec lets invalid UTF-8 in a str field escape as UnicodeDecodeError (found by hypothesis)
         raise MessageError(f"bad {kind.__name__}: {exc}") from exc
 
 
