@@ -507,3 +507,60 @@ def points_in_polygon(p: np.ndarray, w: np.ndarray, tol: float) -> np.ndarray:
                     inside = not inside
         out[i] = inside or on_edge
     return out
+
+
+# ------------------------------------------------------------------------------------- fused teacher -> learner
+_SQ = np.array([0.0 + 0.0j, 1.0 + 0.0j, 1.0 + 1.0j, 0.0 + 1.0j])
+_RT = np.array([1.0 + 0.0j, 1.0j, -1.0 + 0.0j, -1.0j])
+
+
+@njit(cache=True)
+def transfer_many(wps, T, Lm, near: float) -> np.ndarray:
+    """u_T -> u_L for many points in one compiled call (the hot path of the transfer policy).
+
+    ``T`` and ``Lm`` are the two maps' parameter tuples (see ``RectangleMap._ktuple``). Teacher points outside the
+    teacher polygon give NaN (the caller checks and reports). Near a corner the unit-square offset is handed over
+    exactly: user corner + offset, never rounded to a float next to 1.
+    """
+    (m, kp, K, Kp, z, beta, sig, qx, qw, lx, lw, w, cc, ic, alpha_c, tol, radius, r, tu, tw, verts, ptol) = T
+    (m2, kp2, K2, Kp2, z2, beta2, sig2, qx2, qw2, lx2, lw2, w2, cc2, ic2, ac2, tol2, rad2, r2, tu2, tw2, verts2,
+     ptol2) = Lm
+    n = wps.shape[0]
+    out = np.empty(n, dtype=np.complex128)
+    inside = points_in_polygon(wps, verts, ptol)
+    for i in range(n):
+        if not inside[i]:
+            out[i] = complex(np.nan, np.nan)
+            continue
+        cs, ds, _ = inverse_many(wps[i:i + 1], tu, tw, m, kp, K, Kp, z, beta, sig, qx, qw, lx, lw, w, cc, ic,
+                                 alpha_c, tol, radius)
+        c = cs[0]
+        d = ds[0]
+        if c >= 0:
+            uc = (c + r) % 4
+            dprime = d.imag / Kp - 1j * d.real / (2.0 * K)
+            dd = _RT[r] * dprime  # user unit-square offset from user corner uc
+        else:
+            pprime = d.imag / Kp + 1j * (K - d.real) / (2.0 * K)
+            p = _SQ[r] + _RT[r] * pprime
+            # is it close to a user corner after all? then hand over as corner + offset
+            uc = -1
+            best = near
+            for k in range(4):
+                dk = abs(p - _SQ[k])
+                if dk < best:
+                    best = dk
+                    uc = k
+            dd = p - _SQ[uc] if uc >= 0 else p
+        # learner side
+        if uc >= 0:
+            dpl = dd / _RT[r2]
+            cl = (uc - r2) % 4
+            dl = -2.0 * K2 * dpl.imag + 1j * Kp2 * dpl.real
+        else:
+            pp = (dd - _SQ[r2]) / _RT[r2]
+            pp = min(max(pp.real, 0.0), 1.0) + 1j * min(max(pp.imag, 0.0), 1.0)
+            cl = -1
+            dl = K2 - 2.0 * K2 * pp.imag + 1j * Kp2 * pp.real
+        out[i] = forward_one(cl, dl, m2, kp2, K2, Kp2, z2, beta2, sig2, qx2, qw2, lx2, lw2, w2, cc2, ic2)[0]
+    return out

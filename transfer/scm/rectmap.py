@@ -295,6 +295,15 @@ class RectangleMap:
             w, tu, tw, *self._args(), self._alpha_c, self.tol * max(self.scale, 1e-300), self._radius
         )
 
+    def _ktuple(self) -> tuple:
+        """Everything the compiled transfer kernel needs about this map (builds the start table if needed)."""
+        tu, tw = self._ensure_table()
+        return (
+            self._m, self._kp, self._K, self._Kp, self._z, self._beta, self._sig, self._qx, self._qw, self._lx,
+            self._lw, self._w, self._c, self._ic, self._alpha_c, self.tol * max(self.scale, 1e-300), self._radius,
+            self._r, tu, tw, self.vertices, 1e-10 * max(self.scale, 1e-300),
+        )
+
     def _inside(self, w: NDArray[np.complex128]) -> NDArray[np.bool_]:
         return kern.points_in_polygon(w, self.vertices, 1e-10 * max(self.scale, 1e-300))
 
@@ -398,18 +407,25 @@ class QuadTransfer:
             raise ValueError(f"teacher and learner polygons need the same number of vertices ({wt.size} != {wl.size})")
         self.teacher = RectangleMap(wt, corners)
         self.learner = RectangleMap(wl, corners)
+        self._kt: tuple | None = None
 
     def __call__(self, u_T: ArrayLike, *, outside: str = "raise") -> NDArray:
+        if outside not in ("raise", "nan"):
+            raise ValueError(f"outside must be 'raise' or 'nan', not {outside!r}")
         a = np.asarray(u_T)
         pairs = not np.iscomplexobj(a) and a.ndim >= 1 and a.shape[-1] == 2
         z = as_complex(a) if pairs else a.astype(np.complex128)
         shape = z.shape
-        cs, ds, ok = self.teacher._to_parts(z.ravel(), outside)
-        uc, dd = self.teacher._user_parts(cs, ds)
-        dd[~ok] = 0.5 + 0.5j
-        uc[~ok] = -1
-        out = self.learner._from_user_parts(uc, dd)
-        out[~ok] = complex(np.nan, np.nan)
+        flat = np.ascontiguousarray(z.ravel())
+        if outside == "raise" and not np.all(np.isfinite(flat)):
+            raise ValueError("points contain non-finite numbers (NaN or inf)")
+        if self._kt is None:
+            self._kt = (self.teacher._ktuple(), self.learner._ktuple())
+        safe = np.where(np.isfinite(flat), flat, self.teacher.vertices[0] * 0 + 1e300)
+        out = kern.transfer_many(safe, self._kt[0], self._kt[1], _NEAR_CORNER)
+        if outside == "raise" and not np.all(np.isfinite(out)):
+            bad = flat[~np.isfinite(out)][0]
+            raise ValueError(f"point {bad} lies outside the teacher polygon; it is not mapped")
         out = out.reshape(shape)
         if pairs:
             return np.stack([out.real, out.imag], axis=-1)
