@@ -41,6 +41,7 @@ from transfer.scm.geometry import as_complex, check_corners, check_polygon, turn
 SQUARE_CORNERS = np.array([0.0, 1.0, 1.0 + 1.0j, 1.0j], dtype=np.complex128)
 _ROT = np.array([1.0, 1.0j, -1.0, -1.0j], dtype=np.complex128)  # i**r
 _NEAR_CORNER = 0.2  # unit-square distance below which a point is carried relative to its corner
+_SIG4 = np.array([1.0, 1.0, -1.0, -1.0])
 
 
 class RectangleMap:
@@ -140,6 +141,8 @@ class RectangleMap:
         n = self._w.size
         ic = self._ic
         L = math.exp(min(y[0], 700.0 / (2 * math.pi)))
+        if n == 4:  # the quadrilateral: only the corners, the common case on the control path
+            return np.array([0.0, L, L + 1j, 1j]), _SIG4
         z = np.empty(n, dtype=np.complex128)
         z[ic[0]], z[ic[1]], z[ic[2]], z[ic[3]] = 0.0, L, L + 1j, 1j
         pos = 1
@@ -295,9 +298,13 @@ class RectangleMap:
             w, tu, tw, *self._args(), self._alpha_c, self.tol * max(self.scale, 1e-300), self._radius
         )
 
-    def _ktuple(self) -> tuple:
-        """Everything the compiled transfer kernel needs about this map (builds the start table if needed)."""
-        tu, tw = self._ensure_table()
+    def _ktuple(self, inverse: bool = True) -> tuple:
+        """Everything the compiled transfer kernel needs about this map; the inverse's start table only when the
+        map will be inverted (the learner side of a transfer is only evaluated forward)."""
+        if inverse:
+            tu, tw = self._ensure_table()
+        else:
+            tu = tw = np.zeros(1, dtype=np.complex128)
         return (
             self._m, self._kp, self._K, self._Kp, self._z, self._beta, self._sig, self._qx, self._qw, self._lx,
             self._lw, self._w, self._c, self._ic, self._alpha_c, self.tol * max(self.scale, 1e-300), self._radius,
@@ -401,12 +408,11 @@ class QuadTransfer:
     def __init__(
         self, teacher_vertices: ArrayLike, learner_vertices: ArrayLike, corners: Sequence[int] = (0, 1, 2, 3)
     ) -> None:
-        wt = check_polygon(teacher_vertices)
-        wl = check_polygon(learner_vertices)
-        if wt.size != wl.size:
-            raise ValueError(f"teacher and learner polygons need the same number of vertices ({wt.size} != {wl.size})")
-        self.teacher = RectangleMap(wt, corners)
-        self.learner = RectangleMap(wl, corners)
+        self.teacher = RectangleMap(teacher_vertices, corners)  # each validates its polygon
+        self.learner = RectangleMap(learner_vertices, corners)
+        nt, nl = self.teacher.vertices.size, self.learner.vertices.size
+        if nt != nl:
+            raise ValueError(f"teacher and learner polygons need the same number of vertices ({nt} != {nl})")
         self._kt: tuple | None = None
 
     def __call__(self, u_T: ArrayLike, *, outside: str = "raise") -> NDArray:
@@ -420,7 +426,7 @@ class QuadTransfer:
         if outside == "raise" and not np.all(np.isfinite(flat)):
             raise ValueError("points contain non-finite numbers (NaN or inf)")
         if self._kt is None:
-            self._kt = (self.teacher._ktuple(), self.learner._ktuple())
+            self._kt = (self.teacher._ktuple(), self.learner._ktuple(inverse=False))
         safe = np.where(np.isfinite(flat), flat, self.teacher.vertices[0] * 0 + 1e300)
         out = kern.transfer_many(safe, self._kt[0], self._kt[1], _NEAR_CORNER)
         if outside == "raise" and not np.all(np.isfinite(out)):

@@ -1,0 +1,143 @@
+"""The learner's limits on the teacher's command domain (paper Section 4.2, Eq. learn_capability).
+
+The teacher's controller and planner must only ask for what the learner can do. The learner's limits are known
+in the *learner's* command units (its hard bounds), but what matters is where they land on the *teacher's*
+domain: the teacher equivalents of the learner's extreme commands. Two ways to learn them, both here:
+
+- **Calibration**: drive the learner's extreme commands first (:func:`calibration_commands`); every pair whose
+  learner part lies on the learner's boundary marks the bound directly.
+- **Online adaptation**: start from the teacher's full range; a pair whose learner part is a new outlier (beyond
+  every learner part seen so far on that axis and side) updates the bound on that side: on the learner's
+  boundary it *is* the bound (averaged over all boundary pairs of that side, to tame noise); inside, the bound is
+  the proportional extrapolation of the paper's Eq. learn_capability, ``u_T,norm|max = u_T,norm / u_L,norm``
+  (and its mirror ``1 - (1 - u_T,norm) / (1 - u_L,norm)`` for the lower side), until a boundary pair arrives.
+
+All arithmetic is on normalised coordinates: the teacher side by the teacher's bounds, the learner side by the
+learner's. Exposed as the axis-aligned ``box`` (what bounds the MPC inputs and filters primitives) and the convex
+``hull`` of the boundary pairs' teacher parts (the paper's dashed envelope).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+from scipy.spatial import ConvexHull, QhullError
+
+from transfer.domain import Bounds
+
+_MIN_PROPORTIONAL = 0.2  # below this normalised learner level a proportional extrapolation is too noisy to use
+
+
+def calibration_commands(learner_bounds: Bounds, n: int = 5) -> NDArray[np.float64]:
+    """An n x n grid of learner commands spanning the learner's box, extremes included (calibration stage)."""
+    if n < 2:
+        raise ValueError("a calibration grid needs n >= 2 to reach both extremes")
+    g = np.linspace(0.0, 1.0, n)
+    V, W = np.meshgrid(g, g, indexing="ij")
+    return learner_bounds.denormalise(np.stack([V.ravel(), W.ravel()], axis=-1))
+
+
+class LearnerLimits:
+    """Per-axis lower/upper bounds on the normalised teacher domain plus the boundary points for the hull."""
+
+    def __init__(self, teacher_bounds: Bounds, learner_bounds: Bounds, grid: tuple[int, int], boundary_tol: float):
+        self.teacher_bounds = teacher_bounds
+        self.learner_bounds = learner_bounds
+        self.grid = grid
+        self.boundary_tol = float(boundary_tol)
+        self.lo = np.zeros(2)  # normalised teacher-domain bounds
+        self.hi = np.ones(2)
+        self.ext_lo = np.full(2, np.inf)  # most extreme normalised learner parts seen
+        self.ext_hi = np.full(2, -np.inf)
+        self.bsum_lo = np.zeros(2)  # running sums of boundary pairs' teacher parts per axis side
+        self.bsum_hi = np.zeros(2)
+        self.bcnt_lo = np.zeros(2, dtype=np.int64)
+        self.bcnt_hi = np.zeros(2, dtype=np.int64)
+        gv, gw = grid
+        self.hull_sum = np.zeros((gv, gw, 2))  # boundary cells: running mean of teacher parts on the boundary
+        self.hull_cnt = np.zeros((gv, gw), dtype=np.int64)
+        self.version = 0
+        self._box_cache: Bounds | None = None
+        self._hull_cache: NDArray[np.float64] | None = None
+
+    # ------------------------------------------------------------------------------------------- updating
+    def update(self, t_n: NDArray[np.float64], l_n: NDArray[np.float64], cell: tuple[int, int]) -> bool:
+        """Take one pair (normalised teacher part, normalised learner part); return True if the limits moved."""
+        old = (self.lo.copy(), self.hi.copy())
+        tol = self.boundary_tol
+        on_boundary = False
+        for a in range(2):
+            if l_n[a] >= 1.0 - tol:
+                on_boundary = True
+                self.bsum_hi[a] += t_n[a]
+                self.bcnt_hi[a] += 1
+                self.hi[a] = self.bsum_hi[a] / self.bcnt_hi[a]
+            elif l_n[a] > self.ext_hi[a] and self.bcnt_hi[a] == 0 and l_n[a] >= _MIN_PROPORTIONAL:
+                self.hi[a] = t_n[a] / l_n[a]  # Eq. learn_capability
+            if l_n[a] <= tol:
+                on_boundary = True
+                self.bsum_lo[a] += t_n[a]
+                self.bcnt_lo[a] += 1
+                self.lo[a] = self.bsum_lo[a] / self.bcnt_lo[a]
+            elif l_n[a] < self.ext_lo[a] and self.bcnt_lo[a] == 0 and 1.0 - l_n[a] >= _MIN_PROPORTIONAL:
+                self.lo[a] = 1.0 - (1.0 - t_n[a]) / (1.0 - l_n[a])  # its mirror for the lower side
+            self.ext_hi[a] = max(self.ext_hi[a], l_n[a])
+            self.ext_lo[a] = min(self.ext_lo[a], l_n[a])
+            # the teacher's own range is the outer limit; keep lo < hi
+            self.lo[a] = min(max(self.lo[a], 0.0), 1.0)
+            self.hi[a] = min(max(self.hi[a], 0.0), 1.0)
+            if self.hi[a] - self.lo[a] < 1e-6:
+                mid = 0.5 * (self.hi[a] + self.lo[a])
+                self.lo[a], self.hi[a] = mid - 5e-7, mid + 5e-7
+        if on_boundary:
+            self.hull_sum[cell] += t_n
+            self.hull_cnt[cell] += 1
+            self._hull_cache = None
+        changed = not (np.array_equal(old[0], self.lo) and np.array_equal(old[1], self.hi))
+        if changed or on_boundary:
+            self.version += 1
+            self._box_cache = None
+        return changed
+
+    # -------------------------------------------------------------------------------------------- queries
+    @property
+    def box(self) -> Bounds:
+        """The axis-aligned teacher-domain box the teacher's controller and planner are bounded by."""
+        if self._box_cache is None:
+            tb = self.teacher_bounds
+            lo = tb.denormalise(self.lo)
+            hi = tb.denormalise(self.hi)
+            self._box_cache = Bounds((float(lo[0]), float(hi[0])), (float(lo[1]), float(hi[1])))
+        return self._box_cache
+
+    @property
+    def hull(self) -> NDArray[np.float64]:
+        """Convex hull (counter-clockwise (K, 2) vertices, teacher units) of the boundary pairs' teacher parts; the
+        box's corners while fewer than three non-collinear boundary points are known."""
+        if self._hull_cache is None:
+            mask = self.hull_cnt > 0
+            pts = self.hull_sum[mask] / self.hull_cnt[mask][:, None]
+            hull_n = None
+            if pts.shape[0] >= 3:
+                try:
+                    h = ConvexHull(pts)
+                    hull_n = pts[h.vertices]
+                except QhullError:
+                    hull_n = None
+            self._hull_cache = (
+                self.box.corners() if hull_n is None else self.teacher_bounds.denormalise(hull_n)
+            )
+        return self._hull_cache
+
+    def contains(self, u_T: ArrayLike, *, use_hull: bool = False, tol: float = 1e-9) -> bool | NDArray[np.bool_]:
+        """Is the teacher command inside the learned limits (the box, or the hull)?"""
+        u = np.asarray(u_T, dtype=float)
+        if not use_hull:
+            return self.box.contains(u, tol)
+        h = self.hull
+        edges = np.roll(h, -1, axis=0) - h
+        rel = u[..., None, :] - h
+        cross = edges[:, 0] * rel[..., 1] - edges[:, 1] * rel[..., 0]
+        scale = tol * float(np.max(self.teacher_bounds.span))
+        inside = np.all(cross >= -scale * np.linalg.norm(edges, axis=1), axis=-1)
+        return bool(inside) if np.ndim(inside) == 0 else inside

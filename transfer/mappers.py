@@ -1,0 +1,210 @@
+"""Mappers from a teacher command to a learner command built on the refined pairs of a :class:`PairStore`.
+
+All mappers work in normalised coordinates (teacher side by the teacher's bounds, learner side by the learner's)
+and share one interface, so the SC map can be compared honestly with simpler alternatives:
+
+- :class:`ScmMapper`: the paper's method. Delaunay triangulation of the refined pairs' teacher parts; the triangle
+  holding u_T joined with one neighbour gives the teacher quadrilateral, the same pairs the learner
+  quadrilateral; both must be simple and counter-clockwise; among the valid neighbours the one whose two
+  quadrilaterals have the largest smallest interior angle wins (the best-conditioned SC problem). The
+  ``QuadTransfer`` of a triangle is cached and rebuilt when one of its pairs changes version.
+- :class:`BarycentricMapper`: piecewise-linear interpolation on the same triangles.
+- :class:`AffineMapper`: one least-squares affine map fitted on all refined pairs (used on the same region).
+- :class:`IdentityMapper`: the paper's baseline, the teacher command applied as it is.
+
+``map_normalised(t)`` returns ``(l, region)`` with ``l`` the normalised learner command, or ``None`` when the
+mapper has no region for ``t`` (the policy then falls back).
+"""
+
+from __future__ import annotations
+
+from collections import OrderedDict
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.spatial import Delaunay, QhullError
+
+from transfer.scm import QuadTransfer, is_simple_ccw
+from transfer.store import PairStore
+
+Region = tuple[int, ...]
+
+
+class _Triangulated:
+    """Shared Delaunay triangulation of the refined pairs' normalised teacher parts, rebuilt on store revision."""
+
+    name = "base"
+
+    def __init__(self, store: PairStore) -> None:
+        self.store = store
+        self._rev = -1
+        self.tri: Delaunay | None = None
+        self.ids = np.zeros(0, dtype=np.int64)
+        self.vers = np.zeros(0, dtype=np.int64)
+        self.T = np.zeros((0, 2))
+        self.L = np.zeros((0, 2))
+
+    def _sync(self) -> None:
+        if self._rev == self.store.revision:
+            return
+        self._rev = self.store.revision
+        self.ids, self.vers, self.T, self.L = self.store.refined_arrays()
+        self.tri = None
+        if self.ids.size >= 3:
+            try:
+                self.tri = Delaunay(self.T)
+            except QhullError:  # all collinear: no triangle yet
+                self.tri = None
+        self._rebuilt()
+
+    def _rebuilt(self) -> None:
+        """Hook: the triangulation changed."""
+
+    def _simplex(self, t: NDArray[np.float64]) -> int:
+        if self.tri is None:
+            return -1
+        return int(self.tri.find_simplex(t.reshape(1, 2))[0])
+
+    def map_normalised(self, t: NDArray[np.float64]) -> tuple[NDArray[np.float64], Region] | None:
+        raise NotImplementedError
+
+
+def _min_angle(q: NDArray[np.float64]) -> float:
+    """Smallest interior angle (radians) of a counter-clockwise polygon."""
+    prev = q - np.roll(q, 1, axis=0)
+    nxt = np.roll(q, -1, axis=0) - q
+    turn = np.arctan2(prev[:, 0] * nxt[:, 1] - prev[:, 1] * nxt[:, 0], (prev * nxt).sum(axis=1))
+    return float(np.min(np.pi - turn))
+
+
+class ScmMapper(_Triangulated):
+    """The paper's SC transfer on quadrilateral mapping regions (see the module docstring)."""
+
+    name = "scm"
+
+    def __init__(self, store: PairStore, cache_size: int = 512) -> None:
+        super().__init__(store)
+        self.cache_size = int(cache_size)
+        # pair ids of a quadrilateral (in ccw order) + their versions -> QuadTransfer (None: not usable)
+        self._quads: OrderedDict[tuple, QuadTransfer | None] = OrderedDict()
+        self._by_simplex: dict[int, list[tuple[Region, tuple]]] = {}
+        self.builds = 0  # QuadTransfers constructed (for benchmarks and tests)
+
+    def _rebuilt(self) -> None:
+        self._by_simplex = {}
+
+    def _candidates(self, s: int) -> list[tuple[Region, tuple]]:
+        """Valid quadrilaterals around simplex s, best first: (local vertex indices, cache key)."""
+        tri = self.tri
+        assert tri is not None
+        a, b, c = (int(v) for v in tri.simplices[s])
+        P = self.T
+        if (P[b, 0] - P[a, 0]) * (P[c, 1] - P[a, 1]) - (P[b, 1] - P[a, 1]) * (P[c, 0] - P[a, 0]) < 0:
+            b, c = c, b  # make (a, b, c) counter-clockwise
+        verts = (a, b, c)
+        scored = []
+        for k, nb in enumerate(tri.neighbors[s]):
+            if nb < 0:
+                continue
+            opp = int(tri.simplices[s][k])  # the vertex of s opposite the neighbour
+            i = verts.index(opp)
+            x, y, z = verts[i], verts[(i + 1) % 3], verts[(i + 2) % 3]  # shared edge is (y, z)
+            d = next(int(v) for v in tri.simplices[nb] if int(v) not in (y, z))
+            quad = (x, y, d, z)
+            qt, ql = self.T[list(quad)], self.L[list(quad)]
+            if not (is_simple_ccw(qt) and is_simple_ccw(ql)):
+                continue
+            score = min(_min_angle(qt), _min_angle(ql))
+            key = tuple((int(self.ids[v]), int(self.vers[v])) for v in quad)
+            scored.append((score, quad, key))
+        scored.sort(key=lambda e: -e[0])
+        return [(q, key) for _, q, key in scored]
+
+    def _transfer(self, quad: Region, key: tuple) -> QuadTransfer | None:
+        if key in self._quads:
+            self._quads.move_to_end(key)
+            return self._quads[key]
+        try:
+            qt: QuadTransfer | None = QuadTransfer(self.T[list(quad)], self.L[list(quad)])
+            self.builds += 1
+        except ValueError:
+            qt = None
+        self._quads[key] = qt
+        if len(self._quads) > self.cache_size:
+            self._quads.popitem(last=False)
+        return qt
+
+    def map_normalised(self, t: NDArray[np.float64]) -> tuple[NDArray[np.float64], Region] | None:
+        self._sync()
+        s = self._simplex(t)
+        if s < 0:
+            return None
+        cands = self._by_simplex.get(s)
+        if cands is None:
+            cands = self._by_simplex[s] = self._candidates(s)
+        for quad, key in cands:
+            qt = self._transfer(quad, key)
+            if qt is None:
+                continue
+            out = qt(t.reshape(1, 2), outside="nan")[0]
+            if np.all(np.isfinite(out)):
+                return out, tuple(int(self.ids[v]) for v in quad)
+        return None
+
+
+class BarycentricMapper(_Triangulated):
+    """Piecewise-linear interpolation on the Delaunay triangles of the refined pairs."""
+
+    name = "barycentric"
+
+    def map_normalised(self, t: NDArray[np.float64]) -> tuple[NDArray[np.float64], Region] | None:
+        self._sync()
+        s = self._simplex(t)
+        if s < 0:
+            return None
+        assert self.tri is not None
+        T = self.tri.transform[s]
+        lam = T[:2].dot(t - T[2])
+        bary = np.array([lam[0], lam[1], 1.0 - lam.sum()])
+        verts = self.tri.simplices[s]
+        return bary @ self.L[verts], tuple(int(self.ids[v]) for v in verts)
+
+
+class AffineMapper(_Triangulated):
+    """A single least-squares affine map l = A t + b fitted on all refined pairs, used where the others are."""
+
+    name = "affine"
+
+    def _rebuilt(self) -> None:
+        self._coef = None
+        if self.ids.size >= 3:
+            X = np.hstack([self.T, np.ones((self.T.shape[0], 1))])
+            coef, _, rank, _ = np.linalg.lstsq(X, self.L, rcond=None)
+            if rank == 3:
+                self._coef = coef
+
+    def map_normalised(self, t: NDArray[np.float64]) -> tuple[NDArray[np.float64], Region] | None:
+        self._sync()
+        if self._coef is None or self._simplex(t) < 0:
+            return None
+        return np.append(t, 1.0) @ self._coef, tuple(int(i) for i in self.ids)
+
+
+class IdentityMapper:
+    """The paper's baseline: the teacher command is applied to the learner as it is."""
+
+    name = "identity"
+
+    def __init__(self, store: PairStore) -> None:
+        self.store = store
+
+
+MAPPERS = {"scm": ScmMapper, "barycentric": BarycentricMapper, "affine": AffineMapper, "identity": IdentityMapper}
+
+
+def make_mapper(name: str, store: PairStore):
+    """A mapper by name: ``scm``, ``barycentric``, ``affine`` or ``identity``."""
+    try:
+        return MAPPERS[name](store)
+    except KeyError:
+        raise ValueError(f"unknown mapper {name!r}; known: {', '.join(MAPPERS)}") from None

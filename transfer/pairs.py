@@ -1,0 +1,49 @@
+"""Command pairing: the teacher command that reproduces an observed learner motion (paper Eq. commandPairs).
+
+A command pair is ``<u_T_bar, u_L>``: the learner command ``u_L`` applied from ``x_L(t)`` to ``x_L(t + dt)`` and
+``u_T_bar = f_T^-1(x_L(t), x_L(t + dt))``, the command under which the teacher (the Euler unicycle of
+:mod:`transfer.teacher.unicycle`) would have made the same move.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from transfer.teacher.unicycle import wrap_angle
+
+
+def teacher_equivalent(x0: ArrayLike, x1: ArrayLike, dt: float) -> NDArray[np.float64]:
+    """f_T^-1 of one Euler step: the (v, omega) minimising the teacher's one-step pose error to ``x1``.
+
+    The Euler unicycle moves along its *initial* heading, so the heading rate is matched exactly,
+    ``omega = wrap(theta1 - theta0) / dt``, and v is the least-squares fit of the displacement onto the heading,
+    ``v = <p1 - p0, (cos theta0, sin theta0)> / dt``: a backward move gives a negative v (reversing), a sideways
+    drift that no unicycle command reproduces is the least-squares residual. Exact for teacher-generated motion.
+    """
+    if not (dt > 0 and math.isfinite(dt)):
+        raise ValueError(f"dt must be a positive finite number, got {dt}")
+    a = np.asarray(x0, dtype=float)
+    b = np.asarray(x1, dtype=float)
+    if a.shape[-1] != 3 or b.shape[-1] != 3:
+        raise ValueError("poses must be (..., 3) arrays of (x, y, theta)")
+    if not (np.all(np.isfinite(a)) and np.all(np.isfinite(b))):
+        raise ValueError("poses must be finite")
+    th = a[..., 2]
+    d = b[..., :2] - a[..., :2]
+    v = (d[..., 0] * np.cos(th) + d[..., 1] * np.sin(th)) / dt
+    w = np.asarray(wrap_angle(b[..., 2] - th)) / dt
+    return np.stack([v, w], axis=-1)
+
+
+def pairing_residual(x0: ArrayLike, x1: ArrayLike, dt: float) -> NDArray[np.float64] | float:
+    """Lateral displacement (m) the teacher model cannot explain: a quality measure for a pair."""
+    a = np.asarray(x0, dtype=float)
+    b = np.asarray(x1, dtype=float)
+    th = a[..., 2]
+    d = b[..., :2] - a[..., :2]
+    lat = -d[..., 0] * np.sin(th) + d[..., 1] * np.cos(th)
+    out = np.abs(lat)
+    return float(out) if np.ndim(out) == 0 else out
