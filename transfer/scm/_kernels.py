@@ -336,6 +336,9 @@ def _nearest_corner(u: complex, K: float, Kp: float, radius: float) -> int:
     return best
 
 
+_INTO = np.array([-1.0 + 1.0j, -1.0 - 1.0j, 1.0 - 1.0j, 1.0 + 1.0j]) / math.sqrt(2.0)  # into the rectangle
+
+
 @njit(cache=True)
 def _project(u: complex, K: float, Kp: float) -> complex:
     return min(max(u.real, -K), K) + 1j * min(max(u.imag, 0.0), Kp)
@@ -379,6 +382,19 @@ def inverse_one(
         if cn_ != c:
             c = cn_
             d = u - corner_u(c, K, Kp) if c >= 0 else u
+            if c >= 0 and d == 0.0:
+                d = 1e-8 * radius * _INTO[c]
+            # the residual must be judged in the representation the steps are taken in: next to a corner the
+            # absolute evaluation is off by ~size * eps^alpha, which would pass for an improvement
+            val, der = forward_one(c, d, m, kp, K, Kp, z, beta, sig, qx, qw, lx, lw, w, cc, corner_vtx)
+            F = wp - val
+            r = abs(F)
+        elif c >= 0 and d == 0.0:
+            # exactly on the corner, where f' vanishes or blows up: step a little way into the rectangle
+            d = 1e-8 * radius * _INTO[c]
+            val, der = forward_one(c, d, m, kp, K, Kp, z, beta, sig, qx, qw, lx, lw, w, cc, corner_vtx)
+            F = wp - val
+            r = abs(F)
         improved = False
         lam = 1.0
         for _h in range(40):
@@ -461,10 +477,16 @@ def inverse_many(
                 uc = corner_u(c, K, Kp)
                 dref = u0 - uc
                 if dref != 0.0 and _nearest_corner(u0, K, Kp, radius) == c:
-                    A = (table_w[best] - w[corner_vtx[c]]) / np.exp(p * np.log(dref))
+                    # angles measured inside this corner's quadrant of the rectangle (no branch-cut surprises)
+                    lo = 0.5 * PI if c == 0 else (-PI if c == 1 else (-0.5 * PI if c == 2 else 0.0))
+                    th_ref = math.atan2(dref.imag, dref.real)
+                    while th_ref > lo + 0.5 * PI + 1e-12:
+                        th_ref -= 2.0 * PI
+                    while th_ref < lo - 1e-12:
+                        th_ref += 2.0 * PI
+                    A = (table_w[best] - w[corner_vtx[c]]) / np.exp(p * (math.log(abs(dref)) + 1j * th_ref))
                     lz = np.log((wp - w[corner_vtx[c]]) / A)
                     # the branch of the p-th root that points into the rectangle from this corner
-                    lo = 0.5 * PI if c == 0 else (-PI if c == 1 else (-0.5 * PI if c == 2 else 0.0))
                     for kb in range(-3, 4):
                         th = (lz.imag + 2.0 * PI * kb) / p
                         if lo - 1e-12 <= th <= lo + 0.5 * PI + 1e-12:

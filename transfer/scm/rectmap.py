@@ -42,6 +42,7 @@ SQUARE_CORNERS = np.array([0.0, 1.0, 1.0 + 1.0j, 1.0j], dtype=np.complex128)
 _ROT = np.array([1.0, 1.0j, -1.0, -1.0j], dtype=np.complex128)  # i**r
 _NEAR_CORNER = 0.2  # unit-square distance below which a point is carried relative to its corner
 _SIG4 = np.array([1.0, 1.0, -1.0, -1.0])
+_CROWDING = 1e-7  # smallest prevertex separation that float64 strip coordinates resolve well enough
 
 
 class RectangleMap:
@@ -118,6 +119,12 @@ class RectangleMap:
 
         y = self._solve(residual, y0)
         z, sig = self._prevertices(y)
+        sep = np.abs(z[:, None] - z[None, :])[np.triu_indices(n, 1)].min()
+        if sep < _CROWDING:
+            # prevertices this close cannot be told apart in float64 strip coordinates: the map would be
+            # wrong at the 1e-9 level near them. The SC Toolbox shares this limit; re-choose the region instead.
+            raise ValueError(f"SC prevertices crowd (separation {sep:.1e} < {_CROWDING:.0e}): polygon too elongated "
+                             "between its corners for an accurate rectangle map")
         self._z, self._sig = z, sig
         I0 = kern.side_integrals(z, beta, sig, self._qx, self._qw, self._lx, self._lw, 1)[0]
         self._c = complex((wi[1] - wi[0]) / I0)
@@ -241,7 +248,7 @@ class RectangleMap:
                     sol.x, err = ls.x, err2
             if err < best_err:
                 best, best_err = sol.x, err
-            if best_err <= 1e-10:
+            if best_err <= 1e-8:
                 return best
         raise ValueError(f"SC parameter problem did not converge (residual {best_err:.1e})")
 
