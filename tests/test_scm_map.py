@@ -14,7 +14,7 @@ from hypothesis import strategies as st
 from transfer.scm import QuadTransfer, RectangleMap, is_simple_ccw
 from transfer.scm import _kernels as kern
 
-PROPS = settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+PROPS = settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow, HealthCheck.filter_too_much])
 
 
 # ------------------------------------------------------------------------------------------ elliptic functions
