@@ -250,6 +250,11 @@ class RectangleMap:
                 best, best_err = sol.x, err
             if best_err <= 1e-8:
                 return best
+        z, _ = self._prevertices(best)
+        sep = np.abs(z[:, None] - z[None, :])[np.triu_indices(z.size, 1)].min()
+        if sep < 1e3 * _CROWDING:  # the usual reason: crowding makes the side integrals too inaccurate to solve
+            raise ValueError(f"SC prevertices crowd (separation {sep:.1e}): polygon too elongated between its "
+                             f"corners for an accurate rectangle map (parameter residual {best_err:.1e})")
         raise ValueError(f"SC parameter problem did not converge (residual {best_err:.1e})")
 
     def _args(self) -> tuple:
