@@ -47,11 +47,12 @@ def s_path(length: float = 8.0, amplitude: float = 1.2, n: int = 400) -> NDArray
     return np.stack([x, amplitude * np.sin(2 * math.pi * x / length)], axis=-1)
 
 
-def mpc_world() -> World:
-    """The MPC case: an 8 m S-path (about 10 m of arc), obstacles on the outside of both bends and one in the
-    middle, a start 0.3 m beside the path facing 45 degrees away from it."""
-    pts = s_path(8.0, 1.2)
+def mpc_world(scale: float = 1.0) -> World:
+    """The MPC case: an 8 m S-path (about 10 m of arc), obstacles on the outside of both bends and beside the
+    middle, a start 0.3 m beside the path facing 45 degrees away from it. ``scale`` < 1 shortens it (tests)."""
+    pts = s_path(8.0 * scale, 1.2 * scale)
     obstacles = np.array([[2.0, 1.9, 0.35], [6.0, -1.9, 0.35], [4.0, 0.75, 0.25], [3.1, -0.4, 0.2]])
+    obstacles *= scale  # positions and radii: the same geometry, smaller
     return World("mpc-s-path", Path(pts), obstacles, np.array([0.0, -0.3, -math.pi / 4 + 0.0]), 0.25)
 
 

@@ -68,6 +68,23 @@ class _Triangulated:
     def map_normalised(self, t: NDArray[np.float64]) -> tuple[NDArray[np.float64], Region] | None:
         raise NotImplementedError
 
+    def nearest_on_hull(self, t: NDArray[np.float64]) -> tuple[NDArray[np.float64], float] | None:
+        """The point of the triangulated region nearest to t (just inside its hull), and its distance."""
+        self._sync()
+        if self.tri is None:
+            return None
+        P = self.T
+        e = self.tri.convex_hull
+        a, b = P[e[:, 0]], P[e[:, 1]]
+        d = b - a
+        tt = np.clip(((t - a) * d).sum(axis=1) / np.maximum((d * d).sum(axis=1), 1e-300), 0.0, 1.0)
+        q = a + tt[:, None] * d
+        dist = np.hypot(*(q - t).T)
+        i = int(np.argmin(dist))
+        centre = P.mean(axis=0)
+        inside = q[i] + 1e-9 * (centre - q[i])  # a hair inside, so the point location finds its triangle
+        return inside, float(dist[i])
+
 
 def _min_angle(q: NDArray[np.float64]) -> float:
     """Smallest interior angle (radians) of a counter-clockwise polygon."""

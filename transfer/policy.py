@@ -2,11 +2,17 @@
 
 ``TransferPolicy.map(u_T)`` returns a :class:`Mapped` whose ``method`` is
 
-- ``"scm"`` (or the alternative mapper's name): a mapping region holds u_T;
+- ``"scm"`` (or the alternative mapper's name): a mapping region holds u_T; or u_T lies inside the learned
+  limits but just outside the triangulated region (within ``saturate``, normalised units, default 0.1 ~ one grid
+  cell), as a saturated controller's commands at the edge of the limits do: then the nearest point of the
+  learned region is mapped (otherwise such commands would be perturbed forever, since the refined pairs of the
+  outermost cells are cell means and lie inside the limits);
 - ``"direct"``: no region, and the learner cell of u_T (u_T read as a learner command, clipped into the learner's
   box) holds no refined pair yet: apply the teacher command as it is, clipped (explore; the pair it creates fills
   that cell);
-- ``"perturb"``: no region, but that cell is already configured: sample a command uniformly inside the nearest
+- ``"perturb"`` (exploration): u_T sits at a learned limit whose learner boundary has never been driven: the
+  learner's extreme command on that axis is sent once so the limit is measured, not extrapolated; or
+  no region, but the cell of u_T is already configured: sample a command uniformly inside the nearest
   unconfigured cell around it (ring by ring; ties broken by the policy's random generator) so that pairs are
   learned where they are missing. With every cell configured it falls back to ``"direct"``.
 
@@ -38,8 +44,10 @@ class TransferPolicy:
     """Maps teacher commands to learner commands with a mapper over a :class:`PairStore` (see module docstring)."""
 
     def __init__(self, store: PairStore, mapper: str | object = "scm", rng: np.random.Generator | None = None,
-                 *, seed: int | None = None) -> None:
+                 *, seed: int | None = None, saturate: float = 0.1, probe_tol: float = 0.02) -> None:
         self.store = store
+        self.saturate = float(saturate)
+        self.probe_tol = float(probe_tol)
         self.mapper = make_mapper(mapper, store) if isinstance(mapper, str) else mapper
         if rng is None:
             rng = np.random.default_rng(seed)
@@ -52,7 +60,17 @@ class TransferPolicy:
         lb = self.store.learner_bounds
         if isinstance(self.mapper, IdentityMapper):
             return Mapped(lb.clip(t), "direct")
-        res = self.mapper.map_normalised(self.store.teacher_bounds.normalise(t))
+        t_n = self.store.teacher_bounds.normalise(t)
+        probe = self._probe_limits(t, t_n)
+        if probe is not None:
+            return Mapped(probe, "perturb")
+        res = self.mapper.map_normalised(t_n)
+        if res is None and self.saturate > 0 and self.store.limits.contains(t):
+            # inside the learned limits but just outside the learned region: a command at the edge of what the
+            # learner can do (a saturated controller) maps through the nearest learned command, not by exploring
+            near = self.mapper.nearest_on_hull(t_n)
+            if near is not None and near[1] <= self.saturate:
+                res = self.mapper.map_normalised(near[0])
         if res is not None:
             l_n, region = res
             u = lb.clip(lb.denormalise(l_n))
@@ -68,6 +86,24 @@ class TransferPolicy:
         gv, gw = self.store.grid
         n = (np.array(target, dtype=float) + self.rng.random(2)) / np.array([gv, gw], dtype=float)
         return Mapped(lb.clip(lb.denormalise(n)), "perturb")
+
+    def _probe_limits(self, t: NDArray[np.float64], t_n: NDArray[np.float64]) -> NDArray[np.float64] | None:
+        """A teacher command saturated at a learned limit whose learner boundary has never been seen: send the
+        learner's extreme command on that axis once, so the boundary pair fixes the limit (paper: a new outlier on
+        the boundary moves the bound). Without it a proportional estimate from an interior outlier, which
+        underestimates a convex learner response (the paper's h_v = v^3), would bound the teacher for good."""
+        lim = self.store.limits
+        lb = self.store.learner_bounds
+        u = lb.clip(t)
+        probed = False
+        for a in range(2):
+            if lim.bcnt_hi[a] == 0 and t_n[a] >= lim.hi[a] - self.probe_tol:
+                u[a] = lb.hi[a]
+                probed = True
+            elif lim.bcnt_lo[a] == 0 and t_n[a] <= lim.lo[a] + self.probe_tol:
+                u[a] = lb.lo[a]
+                probed = True
+        return u if probed else None
 
     def _nearest_unconfigured(self, cell: tuple[int, int]) -> tuple[int, int] | None:
         gv, gw = self.store.grid

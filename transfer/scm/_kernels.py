@@ -24,7 +24,7 @@ EPS = 2.220446049250313e-16
 
 
 # ----------------------------------------------------------------------------------------------- quadrature rules
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def gauss_jacobi(nq: int, b: float) -> tuple[np.ndarray, np.ndarray]:
     """Gauss-Jacobi nodes/weights on [-1, 1] for the weight (1 + x)^b (Golub-Welsch); b = 0 gives Legendre."""
     a = 0.0
@@ -47,7 +47,7 @@ def gauss_jacobi(nq: int, b: float) -> tuple[np.ndarray, np.ndarray]:
     return lam, w
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def jacobi_table(beta: np.ndarray, nq: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """One Gauss-Jacobi rule per prevertex (singularity at the left end, power beta_j) and one Legendre rule."""
     n = beta.shape[0]
@@ -62,7 +62,15 @@ def jacobi_table(beta: np.ndarray, nq: int) -> tuple[np.ndarray, np.ndarray, np.
 
 
 # ------------------------------------------------------------------------------------------- strip integrand
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
+def _sdiv(a: complex, b: complex) -> complex:
+    """a / b, NaN (not an exception: numba raises on complex division by zero) when b == 0."""
+    if b == 0.0:
+        return complex(np.nan, np.nan)
+    return a / b
+
+
+@njit(cache=True, error_model="numpy")
 def _logfac(t: complex) -> complex:
     """log(-i sinh t), continuous for t = sig pi/2 (s - z) with s in the closed strip; asymptotic for |Re t| > 40."""
     if t.real > 40.0:
@@ -72,7 +80,7 @@ def _logfac(t: complex) -> complex:
     return np.log(-1j * np.sinh(t))
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def log_fprime(s: complex, z: np.ndarray, beta: np.ndarray, sig: np.ndarray, k: int, dk: complex) -> complex:
     """log F'(s). If ``k >= 0`` the factor of prevertex k is evaluated from the exact offset ``dk = s - z_k`` and
     divided by |dk|^beta_k (the Gauss-Jacobi weight carries that part)."""
@@ -85,7 +93,7 @@ def log_fprime(s: complex, z: np.ndarray, beta: np.ndarray, sig: np.ndarray, k: 
     return acc
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def log_fprime_at(z: np.ndarray, beta: np.ndarray, sig: np.ndarray, k: int, dk: complex) -> complex:
     """log F'(z_k + dk) without normalisation, the factor of k taken from the exact offset dk."""
     acc = 0.0 + 0.0j
@@ -98,7 +106,7 @@ def log_fprime_at(z: np.ndarray, beta: np.ndarray, sig: np.ndarray, k: int, dk: 
     return acc
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def _min_dist(p: complex, z: np.ndarray, skip: int) -> float:
     d = np.inf
     for j in range(z.shape[0]):
@@ -109,7 +117,7 @@ def _min_dist(p: complex, z: np.ndarray, skip: int) -> float:
     return d
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def _legendre(za: complex, zb: complex, z, beta, sig, lx, lw) -> complex:
     h = 0.5 * (zb - za)
     mid = 0.5 * (za + zb)
@@ -119,7 +127,7 @@ def _legendre(za: complex, zb: complex, z, beta, sig, lx, lw) -> complex:
     return h * acc
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def quad_regular(za: complex, zb: complex, z, beta, sig, lx, lw) -> complex:
     """Integral of F' from za to zb along the segment, no singular end: compound Legendre, pieces no longer than
     the distance of their left end to the nearest prevertex (the toolbox's 1/2 rule, made stricter)."""
@@ -138,7 +146,7 @@ def quad_regular(za: complex, zb: complex, z, beta, sig, lx, lw) -> complex:
     return acc
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def quad_from(k: int, D: complex, z, beta, sig, qx, qw, lx, lw) -> complex:
     """Integral of F' from prevertex k to z_k + D: a Gauss-Jacobi piece at the singular end (its singular factor
     computed from the exact offsets), then compound Legendre."""
@@ -159,7 +167,7 @@ def quad_from(k: int, D: complex, z, beta, sig, qx, qw, lx, lw) -> complex:
     return acc
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def side_integrals(z, beta, sig, qx, qw, lx, lw, count: int) -> np.ndarray:
     """Integrals of F' between consecutive prevertices j -> j+1 for j < count (along an edge through the midpoint,
     or across the strip's middle line when they sit on different edges)."""
@@ -185,7 +193,7 @@ def side_integrals(z, beta, sig, qx, qw, lx, lw, count: int) -> np.ndarray:
 
 
 # ----------------------------------------------------------------------------------------- complex sn, cn, dn
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def ellipjc(u: complex, m: float, kp: float, Kp: float) -> tuple[complex, complex, complex]:
     """Jacobi sn, cn, dn of complex u for parameter m (kp = sqrt(1 - m) given accurately, Kp = K(1 - m)).
 
@@ -223,10 +231,10 @@ def ellipjc(u: complex, m: float, kp: float, Kp: float) -> tuple[complex, comple
     for i in range(nk - 1, -1, -1):
         kap = kappas[i]
         den = 1.0 + kap * sn * sn
-        sn, cn, dn = (1.0 + kap) * sn / den, cn * dn / den, (1.0 - kap * sn * sn) / den
+        sn, cn, dn = _sdiv((1.0 + kap) * sn, den), _sdiv(cn * dn, den), _sdiv(1.0 - kap * sn * sn, den)
     if high:
         k = math.sqrt(m)
-        sn, cn, dn = -1.0 / (k * sn), 1j * dn / (k * sn), 1j * cn / sn
+        sn, cn, dn = _sdiv(-1.0, k * sn), _sdiv(1j * dn, k * sn), _sdiv(1j * cn, sn)
     if lower:
         return sn.conjugate(), cn.conjugate(), dn.conjugate()
     return sn, cn, dn
@@ -237,7 +245,7 @@ def ellipjc(u: complex, m: float, kp: float, Kp: float) -> tuple[complex, comple
 # A rectangle point is carried as (corner, delta): u = U_c + delta for corner c in 0..3, or u = delta for c = -1.
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def corner_u(c: int, K: float, Kp: float) -> complex:
     if c == 0:
         return K + 0j
@@ -248,7 +256,7 @@ def corner_u(c: int, K: float, Kp: float) -> complex:
     return -K + 0j
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def _log1p_c(e: complex) -> complex:
     """log(1 + e) for complex e without cancellation."""
     re = e.real
@@ -256,17 +264,17 @@ def _log1p_c(e: complex) -> complex:
     return 0.5 * math.log1p(2.0 * re + re * re + im * im) + 1j * math.atan2(im, 1.0 + re)
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def rect_to_strip(c: int, delta: complex, m: float, kp: float, K: float, Kp: float) -> tuple[int, complex, complex]:
     """Strip point of a rectangle point and ds/du. Returns (k, D, dsdu): s = z_k + D with k the strip corner index
     (0..3, exact offset) when c >= 0, or k = -1 and D = s (absolute) otherwise."""
     if c >= 0:
         sn, cn, dn = ellipjc(delta, m, kp, Kp)
         omm = kp * kp
-        e = -omm * sn * sn / (dn * (cn + dn))  # cd(delta) - 1 without cancellation
+        e = _sdiv(-omm * sn * sn, dn * (cn + dn))  # cd(delta) - 1 without cancellation
         sgn = 1.0 if (c == 0 or c == 3) else -1.0
         D = sgn * _log1p_c(e) / PI
-        dsdu = -sgn * omm * sn / (PI * cn * dn)
+        dsdu = _sdiv(-sgn * omm * sn, PI * cn * dn)
         # keep the point inside the closed strip (the offset from a bottom corner has Im >= 0, top corner Im <= 0)
         if c == 0 or c == 1:
             if D.imag < 0.0:
@@ -289,11 +297,11 @@ def rect_to_strip(c: int, delta: complex, m: float, kp: float, K: float, Kp: flo
         s = s.real + 0j
     if s.imag > 1.0:
         s = s.real + 1j
-    dsdu = cn * dn / (PI * sn)
+    dsdu = _sdiv(cn * dn, PI * sn)
     return -1, s, dsdu
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def forward_one(
     c: int, delta: complex, m, kp, K, Kp, z, beta, sig, qx, qw, lx, lw, w, cc, corner_vtx
 ) -> tuple[complex, complex]:
@@ -324,7 +332,7 @@ def forward_one(
     return val, deriv
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def _nearest_corner(u: complex, K: float, Kp: float, radius: float) -> int:
     best = -1
     bd = radius
@@ -339,12 +347,12 @@ def _nearest_corner(u: complex, K: float, Kp: float, radius: float) -> int:
 _INTO = np.array([-1.0 + 1.0j, -1.0 - 1.0j, 1.0 - 1.0j, 1.0 + 1.0j]) / math.sqrt(2.0)  # into the rectangle
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def _project(u: complex, K: float, Kp: float) -> complex:
     return min(max(u.real, -K), K) + 1j * min(max(u.imag, 0.0), Kp)
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def _project_delta(c: int, d: complex, K: float, Kp: float) -> complex:
     """Keep corner offset d inside the rectangle seen from corner c."""
     re = d.real
@@ -360,7 +368,7 @@ def _project_delta(c: int, d: complex, K: float, Kp: float) -> complex:
     return re + 1j * im
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def inverse_one(
     wp: complex, c0: int, d0: complex, m, kp, K, Kp, z, beta, sig, qx, qw, lx, lw, w, cc, corner_vtx, alpha_c,
     tol: float, radius: float
@@ -400,7 +408,7 @@ def inverse_one(
         for _h in range(40):
             if c >= 0 and d != 0.0 and der != 0.0 and np.isfinite(der.real) and np.isfinite(der.imag):
                 p = 2.0 * alpha_c[c]
-                ratio = 1.0 + lam * p * F / (der * d)
+                ratio = 1.0 + lam * p * _sdiv(F, der * d)
                 dn_ = d * np.exp(np.log(ratio) / p) if ratio != 0.0 else d * 0.5
                 dn_ = _project_delta(c, dn_, K, Kp)
                 cn2 = c
@@ -410,7 +418,7 @@ def inverse_one(
                     uc = u + 1e-9 * (0.5j * Kp - u)
                     dn_ = uc
                 else:
-                    dn_ = _project(u + lam * F / der, K, Kp)
+                    dn_ = _project(u + lam * _sdiv(F, der), K, Kp)
                 cn2 = -1
             if not (np.isfinite(dn_.real) and np.isfinite(dn_.imag)):
                 lam *= 0.5
@@ -428,7 +436,7 @@ def inverse_one(
     return c, d, r
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def forward_many(cs, ds, m, kp, K, Kp, z, beta, sig, qx, qw, lx, lw, w, cc, corner_vtx) -> np.ndarray:
     out = np.empty(ds.shape[0], dtype=np.complex128)
     for i in range(ds.shape[0]):
@@ -436,7 +444,7 @@ def forward_many(cs, ds, m, kp, K, Kp, z, beta, sig, qx, qw, lx, lw, w, cc, corn
     return out
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def inverse_many(
     wps, table_u, table_w, m, kp, K, Kp, z, beta, sig, qx, qw, lx, lw, w, cc, corner_vtx, alpha_c, tol, radius
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -485,7 +493,7 @@ def inverse_many(
                     while th_ref < lo - 1e-12:
                         th_ref += 2.0 * PI
                     A = (table_w[best] - w[corner_vtx[c]]) / np.exp(p * (math.log(abs(dref)) + 1j * th_ref))
-                    lz = np.log((wp - w[corner_vtx[c]]) / A)
+                    lz = np.log(_sdiv(wp - w[corner_vtx[c]], A))
                     # the branch of the p-th root that points into the rectangle from this corner
                     for kb in range(-3, 4):
                         th = (lz.imag + 2.0 * PI * kb) / p
@@ -503,7 +511,7 @@ def inverse_many(
     return cs, ds, rs
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def points_in_polygon(p: np.ndarray, w: np.ndarray, tol: float) -> np.ndarray:
     """True where p is inside the closed polygon w (points within tol of an edge count as inside)."""
     n = w.shape[0]
@@ -536,7 +544,7 @@ _SQ = np.array([0.0 + 0.0j, 1.0 + 0.0j, 1.0 + 1.0j, 0.0 + 1.0j])
 _RT = np.array([1.0 + 0.0j, 1.0j, -1.0 + 0.0j, -1.0j])
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def transfer_many(wps, T, Lm, near: float) -> np.ndarray:
     """u_T -> u_L for many points in one compiled call (the hot path of the transfer policy).
 

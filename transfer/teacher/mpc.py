@@ -44,6 +44,7 @@ class MpcConfig:
     state_box: tuple[float, float, float, float] = (-50.0, 50.0, -50.0, 50.0)  # x_min, x_max, y_min, y_max
     solver: str = "ipopt"  # IPOPT (mumps); fatrop needs a different constraint order, not wired up
     max_iter: int = 60
+    slack_weight: float = 1e5  # penalty on obstacle-constraint violation (m^2), exact for large enough weights
 
 
 @dataclass
@@ -87,11 +88,16 @@ class MpcTeacher:
             qp = cfg.q_terminal if k == N else cfg.q_pos
             cost += qp * (ex**2 + ey**2) + cfg.q_heading * eth
             if k >= 1:
+                # obstacle constraints are softened by one slack per stage (exact L1 penalty): a vehicle that
+                # cannot stop (v_min > 0) must still get the least-bad plan, not an infeasible problem
+                sk = ca.SX.sym(f"s{k}")
+                w.append(sk)
+                cost += cfg.slack_weight * sk + cfg.slack_weight * sk**2
                 for j in range(K):
                     d2 = (X[0, k] - obs[0, j]) ** 2 + (X[1, k] - obs[1, j]) ** 2
                     rr = obs[2, j] + cfg.obstacle_margin
                     # an unused slot has radius <= 0: the constraint becomes d2 >= -1 (always true)
-                    g.append(d2 - ca.if_else(obs[2, j] > 0, rr**2, -1.0))
+                    g.append(d2 + sk - ca.if_else(obs[2, j] > 0, rr**2, -1.0))
                     lbg.append(0.0)
                     ubg.append(ca.inf)
             if k < N:
@@ -106,7 +112,7 @@ class MpcTeacher:
                 g.append(X[:, k + 1] - xn)
                 lbg += [0.0] * 3
                 ubg += [0.0] * 3
-        self._nx = 3 * (N + 1) + 2 * N
+        self._nx = 3 * (N + 1) + 2 * N + N
         p = ca.vertcat(x0, ca.vec(refs), u_prev, ca.vec(obs))
         nlp = {"x": ca.vertcat(*w), "f": cost, "g": ca.vertcat(*g), "p": p}
         if cfg.solver == "ipopt":
@@ -119,15 +125,19 @@ class MpcTeacher:
         self._lbg = np.array(lbg)
         self._ubg = np.array(ubg)
         # index of every state / input in the stage-wise vector
-        idx_x, idx_u, pos = [], [], 0
+        idx_x, idx_u, idx_s, pos = [], [], [], 0
         for k in range(N + 1):
             idx_x.append(np.arange(pos, pos + 3))
             pos += 3
+            if k >= 1:
+                idx_s.append(pos)
+                pos += 1
             if k < N:
                 idx_u.append(np.arange(pos, pos + 2))
                 pos += 2
         self._ix = np.array(idx_x)
         self._iu = np.array(idx_u)
+        self._is = np.array(idx_s)
         self._prev: NDArray[np.float64] | None = None
         self._prev_pred: NDArray[np.float64] | None = None
         self._prev_u: NDArray[np.float64] | None = None
@@ -177,6 +187,7 @@ class MpcTeacher:
         lbx[self._ix[:, 1]], ubx[self._ix[:, 1]] = xb[2], xb[3]
         lbx[self._iu[:, 0]], ubx[self._iu[:, 0]] = limits.v
         lbx[self._iu[:, 1]], ubx[self._iu[:, 1]] = limits.w
+        lbx[self._is] = 0.0
         x_init = self._warm(state, refs, limits)
         args = {"x0": x_init, "p": p, "lbx": lbx, "ubx": ubx, "lbg": self._lbg, "ubg": self._ubg}
         if self._lam_g is not None and cfg.solver == "ipopt":

@@ -1,0 +1,123 @@
+"""Figures like the paper's: trajectories, deviation over progress, command domains with pairs, error maps."""
+
+from __future__ import annotations
+
+from pathlib import Path as FsPath
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+from matplotlib.patches import Circle, Rectangle  # noqa: E402
+
+from transfer.domain import Bounds  # noqa: E402
+from transfer.store import PairStore  # noqa: E402
+
+COLORS = {"teacher": "tab:green", "scm": "tab:blue", "baseline": "tab:red"}
+
+
+def _world(ax, world) -> None:
+    p = world.path.points
+    ax.plot(p[:, 0], p[:, 1], "k--", lw=1, label="desired path")
+    for ox, oy, r in world.obstacles:
+        ax.add_patch(Circle((ox, oy), r, color="0.5", alpha=0.6))
+    ax.plot(*world.goal, "k*", ms=12)
+    ax.set_aspect("equal")
+    ax.set_xlabel("x (m)")
+    ax.set_ylabel("y (m)")
+
+
+def _box(ax, b: Bounds, **kw) -> None:
+    ax.add_patch(Rectangle((b.v[0], b.w[0]), b.v[1] - b.v[0], b.w[1] - b.w[0], fill=False, **kw))
+
+
+def _pairs(ax_t, ax_l, store: PairStore, normalised: bool) -> None:
+    ids, _, T, L = store.refined_arrays()
+    if not normalised:
+        T = store.teacher_bounds.denormalise(T)
+        L = store.learner_bounds.denormalise(L)
+    colors = plt.cm.viridis(np.linspace(0, 1, max(len(ids), 1)))
+    ax_t.scatter(T[:, 0], T[:, 1], c=colors[: len(ids)], s=14)
+    ax_l.scatter(L[:, 0], L[:, 1], c=colors[: len(ids)], s=14)
+
+
+def mpc_figures(out: FsPath, world, runs, store: PairStore, true_box: Bounds, TB: Bounds, LB: Bounds) -> list[str]:
+    files = []
+    fig, ax = plt.subplots(figsize=(9, 4))
+    _world(ax, world)
+    for r in runs:
+        P = np.array(r.poses)
+        ax.plot(P[:, 0], P[:, 1], color=COLORS.get(r.name), label=f"{r.name} ({'goal' if r.reached else 'no goal'})")
+    ax.legend(loc="upper right", fontsize=8)
+    ax.set_title("MPC transfer: trajectories")
+    fig.tight_layout()
+    fig.savefig(out / "mpc_trajectories.png", dpi=120)
+    plt.close(fig)
+    files.append("mpc_trajectories.png")
+
+    fig, ax = plt.subplots(figsize=(7, 3.5))
+    for r in runs:
+        prog, dev = [], []
+        for p in r.poses:
+            s, d = world.path.project(p[:2])
+            prog.append(s / world.path.length)
+            dev.append(d)
+        ax.plot(prog, dev, color=COLORS.get(r.name), label=r.name)
+    ax.set_xlabel("task progress")
+    ax.set_ylabel("deviation from path (m)")
+    ax.legend()
+    fig.tight_layout()
+    fig.savefig(out / "mpc_deviation.png", dpi=120)
+    plt.close(fig)
+    files.append("mpc_deviation.png")
+
+    fig, axs = plt.subplots(2, 2, figsize=(9, 8))
+    _pairs(axs[0, 0], axs[0, 1], store, normalised=False)
+    _box(axs[0, 0], store.limits.box, ec="red", lw=1.5, label="learned limits")
+    _box(axs[0, 0], true_box, ec="k", ls="--", label="true learner range")
+    axs[0, 0].set_xlim(TB.v)
+    axs[0, 0].set_ylim(TB.w)
+    axs[0, 0].set_title("teacher command domain")
+    axs[0, 0].legend(fontsize=7)
+    axs[0, 1].set_xlim(LB.v)
+    axs[0, 1].set_ylim(LB.w)
+    axs[0, 1].set_title("learner command domain")
+    _pairs(axs[1, 0], axs[1, 1], store, normalised=True)
+    axs[1, 0].set_title("teacher domain (normalised)")
+    axs[1, 1].set_title("learner domain (normalised)")
+    for a in axs.ravel():
+        a.set_xlabel("v")
+        a.set_ylabel("omega")
+    fig.tight_layout()
+    fig.savefig(out / "mpc_command_domains.png", dpi=120)
+    plt.close(fig)
+    files.append("mpc_command_domains.png")
+    return files
+
+
+def grid_figures(out: FsPath, store: PairStore, cmds, n: int, method, pos_err, ang_err) -> list[str]:
+    box = store.limits.box
+    ext = [box.v[0], box.v[1], box.w[0], box.w[1]]
+    names = list(pos_err)
+    fig, axs = plt.subplots(2, len(names) + 1, figsize=(4 * (len(names) + 1), 7))
+    codes = np.array([{"scm": 2, "direct": 0, "perturb": 1}.get(m, 0) for m in method]).reshape(n, n)
+    axs[0, 0].imshow(codes.T, origin="lower", extent=ext, aspect="auto", cmap="viridis")
+    axs[0, 0].set_title("method (yellow: scm, purple: direct)")
+    axs[1, 0].axis("off")
+    vmax = max(float(np.percentile(pos_err["identity"], 99)), 1e-9)
+    for j, k in enumerate(names):
+        im = axs[0, j + 1].imshow(pos_err[k].reshape(n, n).T, origin="lower", extent=ext, aspect="auto",
+                                  vmin=0, vmax=vmax)
+        axs[0, j + 1].set_title(f"{k}: position error (m)")
+        fig.colorbar(im, ax=axs[0, j + 1])
+        im = axs[1, j + 1].imshow(ang_err[k].reshape(n, n).T, origin="lower", extent=ext, aspect="auto")
+        axs[1, j + 1].set_title(f"{k}: heading error (rad)")
+        fig.colorbar(im, ax=axs[1, j + 1])
+    for a in axs.ravel():
+        a.set_xlabel("teacher v (m/s)")
+        a.set_ylabel("teacher omega (rad/s)")
+    fig.tight_layout()
+    fig.savefig(out / "grid_errors.png", dpi=110)
+    plt.close(fig)
+    return ["grid_errors.png"]

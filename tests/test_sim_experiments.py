@@ -1,0 +1,59 @@
+"""Shortened paper simulations (``scmbridge sim ... --quick``), checked on their JSON summaries.
+
+Where the issue's inequality is not met, the test is a strict xfail that states the measured figures and why:
+it fails the suite the day the inequality starts to hold, so the xfail cannot outlive the gap.
+"""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from sim_learner.experiments import main, run_grid, run_mpc
+
+
+@pytest.fixture(scope="module")
+def mpc_summary() -> dict:
+    return run_mpc(seed=0, quick=True, out=None, progress=False)
+
+
+def test_mpc_scm_learner_reaches_the_goal_safely_and_learns_its_limits(mpc_summary: dict) -> None:
+    s = mpc_summary
+    assert s["teacher_time_s"] is not None and s["scm_time_s"] is not None
+    assert not s["collisions"]["scm"] and not s["collisions"]["teacher"]
+    assert s["limits_rel_err"] <= 0.10
+    assert s["scm_time_s"] <= 1.25 * s["teacher_time_s"]
+    assert sum(s["method_counts"].values()) > 0 and s["method_counts"]["scm"] > s["method_counts"]["direct"]
+
+
+@pytest.mark.xfail(strict=True, reason="measured (quick, seed 0): baseline 28.3 s vs ideal teacher 29.6 s. The "
+                   "baseline's MPC, bounded by the teacher's own range, asks for 0.6 m/s and the learner clips that "
+                   "to its top speed, so it drives flat out; the 'ideal' teacher tracks references spaced at its "
+                   "top speed and lags them. The paper's >= 2x slowdown is not reproduced by this reference design.")
+def test_mpc_baseline_is_at_least_twice_as_slow_or_fails(mpc_summary: dict) -> None:
+    s = mpc_summary
+    assert s["baseline_time_s"] is None or s["baseline_time_s"] >= 2 * s["teacher_time_s"]
+
+
+@pytest.mark.xfail(strict=True, reason="measured (quick, seed 0): SCM 0.022 m vs teacher 0.0115 m mean deviation "
+                   "over the last half (1.9x > 1.5x): on the shortened path the learner still explores "
+                   "(61 direct, 76 perturb of 358 commands) when the second half begins.")
+def test_mpc_scm_deviation_last_half_within_1_5x_teacher(mpc_summary: dict) -> None:
+    s = mpc_summary
+    assert s["scm_dev_last_half_m"] <= 1.5 * s["teacher_dev_last_half_m"]
+
+
+def test_grid_scm_region_error_is_at_most_a_fifth_of_the_baseline(mpc_summary: dict) -> None:
+    g = run_grid(seed=0, quick=True, out=None, progress=False, store=mpc_summary["_store"])
+    assert g["scm_region_fraction"] > 0.5
+    assert g["scm_region_median_pos_err_m"] <= 0.2 * g["baseline_median_pos_err_m"]
+    assert set(g["mappers"]) == {"scm", "identity", "affine", "barycentric"}
+
+
+def test_cli_writes_json_figures_and_trajectories(tmp_path, capsys, mpc_summary) -> None:
+    assert main(["grid", "--quick", "--out", str(tmp_path)]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["experiment"] == "grid" and "scm_region_median_pos_err_m" in out
+    assert (tmp_path / "grid_errors.png").stat().st_size > 10_000
+    assert (tmp_path / "grid.npz").exists()

@@ -1,0 +1,73 @@
+"""The teacher MPC and paths: bounds respected, obstacles avoided, failures never become commands."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from sim_learner.worlds import mpc_world
+from transfer.domain import Bounds
+from transfer.teacher.mpc import MpcConfig, MpcTeacher
+from transfer.teacher.path import Path
+from transfer.teacher.unicycle import step
+
+
+def test_path_projection_and_sampling() -> None:
+    p = Path(np.array([[0.0, 0.0], [1.0, 0.0], [1.0, 1.0]]))
+    assert p.length == pytest.approx(2.0)
+    s, d = p.project(np.array([0.5, 0.2]))
+    assert s == pytest.approx(0.5) and d == pytest.approx(0.2)
+    np.testing.assert_allclose(p.at(1.5), [1.0, 0.5, math.pi / 2])
+    with pytest.raises(ValueError):
+        Path(np.zeros((1, 2)))
+
+
+@pytest.fixture(scope="module")
+def mpc() -> MpcTeacher:
+    return MpcTeacher(MpcConfig(N=15))
+
+
+def test_mpc_tracks_the_path_within_its_input_bounds_and_misses_obstacles(mpc: MpcTeacher) -> None:
+    world = mpc_world(0.6)
+    limits = Bounds((0.05, 0.3), (-0.2, 0.26))
+    x = world.start.copy()
+    mpc.reset()
+    fails = steps = 0
+    for _ in range(400):
+        r = mpc.solve(x, world.path, limits, world.obstacles)
+        steps += 1
+        fails += int(not r.ok)
+        assert r.fallback == (not r.ok)
+        assert np.all(np.isfinite(r.u)) and limits.contains(r.u, tol=1e-9)
+        x = step(x, r.u, 0.1)
+        assert not world.collides(x[:2], 0.05)
+        if np.hypot(*(x[:2] - world.goal)) < world.goal_radius:
+            break
+    else:
+        pytest.fail("the MPC did not reach the goal")
+    assert fails <= 0.1 * steps  # IPOPT hits its iteration cap now and then; those ticks use the shifted plan
+
+
+def test_changing_limits_rebounds_the_inputs_without_rebuilding(mpc: MpcTeacher) -> None:
+    world = mpc_world(0.6)
+    solver = mpc._solver
+    mpc.reset()
+    r1 = mpc.solve(world.start, world.path, Bounds((0.05, 0.6), (-0.8, 0.8)), world.obstacles)
+    r2 = mpc.solve(world.start, world.path, Bounds((0.05, 0.1), (-0.1, 0.1)), world.obstacles)
+    assert mpc._solver is solver
+    assert r1.u[0] > 0.1 + 1e-6 or abs(r1.u[1]) > 0.1 + 1e-6  # the wide box allowed more
+    assert Bounds((0.05, 0.1), (-0.1, 0.1)).contains(r2.u, tol=1e-9)
+
+
+def test_a_failed_solve_falls_back_and_says_so() -> None:
+    world = mpc_world(0.6)
+    limits = Bounds((0.05, 0.3), (-0.2, 0.26))
+    starved = MpcTeacher(MpcConfig(N=10, max_iter=1))  # one IPOPT iteration: the solve cannot converge
+    res = starved.solve(world.start, world.path, limits, world.obstacles)
+    assert not res.ok and res.fallback and res.status
+    assert limits.contains(res.u, tol=1e-9) and np.all(np.isfinite(res.u))
+    assert res.u[0] == pytest.approx(limits.v[0]) and res.u[1] == pytest.approx(0.0)  # no plan yet: slowest, straight
+    with pytest.raises(ValueError):
+        starved.solve(np.array([np.nan, 0, 0]), world.path, limits)
