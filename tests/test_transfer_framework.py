@@ -191,6 +191,9 @@ def test_policy_falls_back_exactly_as_specified() -> None:
     assert m.method == "direct" and np.allclose(m.u_L, LB.clip(uT))
     far = np.array([0.55, 0.7])
     assert np.allclose(p.map(far).u_L, LB.clip(far))
+    # measure the learner's limits first (its four extreme commands), so no limit is probed below
+    for corner in LB.corners():
+        s.add(corner, corner)
     # configure the cell of uT: no region yet (one pair), so the policy perturbs into a neighbouring empty cell
     for _ in range(2):
         s.add([0.1, 0.0], uT)
@@ -208,6 +211,18 @@ def test_policy_falls_back_exactly_as_specified() -> None:
     assert base.map(uT).method == "direct"
     with pytest.raises(ValueError, match="finite"):
         p.map([np.nan, 0.0])
+
+
+def test_policy_probes_a_limit_whose_learner_boundary_was_never_driven() -> None:
+    s = PairStore(LB, TB, k_min=5)
+    s.add(TB.denormalise([0.1, 0.5]), LB.denormalise([0.5, 0.5]))  # interior outlier: proportional estimate
+    p = TransferPolicy(s, "scm", seed=0)
+    box = s.limits.box
+    m = p.map([box.v[1], 0.0])  # the teacher saturates at the estimated top speed
+    assert m.method == "perturb" and m.u_L[0] == LB.v[1]  # the learner's top speed is driven once
+    x0 = np.zeros(3)
+    s.add(teacher_equivalent(x0, step(x0, [0.3, m.u_L[1]], 0.1), 0.1), m.u_L)  # the learner really does 0.3
+    assert s.limits.box.v[1] == pytest.approx(0.3)  # measured, not extrapolated
 
 
 @settings(max_examples=150, deadline=None)

@@ -13,7 +13,8 @@
 - ``"perturb"`` (exploration): u_T sits at a learned limit whose learner boundary has never been driven: the
   learner's extreme command on that axis is sent once so the limit is measured, not extrapolated; or
   no region, but the cell of u_T is already configured: sample a command uniformly inside the nearest
-  unconfigured cell around it (ring by ring; ties broken by the policy's random generator) so that pairs are
+  unconfigured cell around it (ring by ring; in the ring, the cell nearest to where the least-squares affine
+  fit of the refined pairs puts u_T; ties broken by the policy's random generator) so that pairs are
   learned where they are missing. With every cell configured it falls back to ``"direct"``.
 
 With the ``identity`` mapper (the paper's baseline) every command is ``"direct"``. The result is always finite and
@@ -27,7 +28,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from transfer.mappers import IdentityMapper, make_mapper
+from transfer.mappers import AffineMapper, IdentityMapper, make_mapper
 from transfer.store import PairStore
 
 
@@ -44,11 +45,12 @@ class TransferPolicy:
     """Maps teacher commands to learner commands with a mapper over a :class:`PairStore` (see module docstring)."""
 
     def __init__(self, store: PairStore, mapper: str | object = "scm", rng: np.random.Generator | None = None,
-                 *, seed: int | None = None, saturate: float = 0.1, probe_tol: float = 0.02) -> None:
+                 *, seed: int | None = None, saturate: float = 0.1, probe_tol: float = 1e-6) -> None:
         self.store = store
         self.saturate = float(saturate)
         self.probe_tol = float(probe_tol)
         self.mapper = make_mapper(mapper, store) if isinstance(mapper, str) else mapper
+        self._affine = None if isinstance(self.mapper, IdentityMapper) else AffineMapper(store)
         if rng is None:
             rng = np.random.default_rng(seed)
         self.rng = rng
@@ -80,7 +82,7 @@ class TransferPolicy:
         cell = self.store.cell_of(direct)
         if not self.store.is_configured(cell):
             return Mapped(direct, "direct")
-        target = self._nearest_unconfigured(cell)
+        target = self._nearest_unconfigured(cell, self._predict(t_n, direct))
         if target is None:
             return Mapped(direct, "direct")
         gv, gw = self.store.grid
@@ -105,10 +107,25 @@ class TransferPolicy:
                 probed = True
         return u if probed else None
 
-    def _nearest_unconfigured(self, cell: tuple[int, int]) -> tuple[int, int] | None:
+    def _predict(self, t_n: NDArray[np.float64], direct: NDArray[np.float64]) -> NDArray[np.float64]:
+        """Where the learner command for t_n probably is (normalised): the least-squares affine map of the refined
+        pairs, or the teacher command itself while there are too few pairs for one."""
+        res = self._affine.map_normalised(t_n) if self._affine is not None else None
+        if res is None and self._affine is not None:
+            self._affine._sync()
+            if self._affine._coef is not None:
+                res = (np.append(t_n, 1.0) @ self._affine._coef, ())
+        if res is None:
+            return self.store.learner_bounds.normalise(direct)
+        return np.clip(res[0], 0.0, 1.0)
+
+    def _nearest_unconfigured(self, cell: tuple[int, int], towards: NDArray[np.float64]) -> tuple[int, int] | None:
+        """The unconfigured cell of the nearest ring around ``cell`` closest to ``towards`` (normalised learner
+        point; ties broken by the random generator): exploring where the command probably maps, not anywhere."""
         gv, gw = self.store.grid
         configured = self.store.pub_version > 0
         i0, j0 = cell
+        goal = np.asarray(towards) * np.array([gv, gw], dtype=float)
         for r in range(1, max(gv, gw)):
             ring = [
                 (i, j)
@@ -117,5 +134,7 @@ class TransferPolicy:
                 if max(abs(i - i0), abs(j - j0)) == r and not configured[i, j]
             ]
             if ring:
-                return ring[int(self.rng.integers(len(ring)))]
+                d = np.array([np.hypot(i + 0.5 - goal[0], j + 0.5 - goal[1]) for i, j in ring])
+                best = np.flatnonzero(d <= d.min() + 1e-9)
+                return ring[int(best[self.rng.integers(best.size)])]
         return None
