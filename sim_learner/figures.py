@@ -121,3 +121,38 @@ def grid_figures(out: FsPath, store: PairStore, cmds, n: int, method, pos_err, a
     fig.savefig(out / "grid_errors.png", dpi=110)
     plt.close(fig)
     return ["grid_errors.png"]
+
+
+def primitives_figures(out: FsPath, world, scm: dict, base: dict, lib, kept, store: PairStore) -> list[str]:
+    fig, ax = plt.subplots(figsize=(10, 4.5))
+    _world(ax, world)
+    for name, r in (("scm", scm), ("baseline", base)):
+        ax.plot(r["poses"][:, 0], r["poses"][:, 1], color=COLORS[name],
+                label=f"{name} ({'goal' if r['reached'] else 'no goal'}, max dev {r['max_dev_m']:.2f} m)")
+    ax.legend(loc="upper right", fontsize=8)
+    ax.set_title("motion primitives: trajectories")
+    fig.tight_layout()
+    fig.savefig(out / "primitives_trajectories.png", dpi=120)
+    plt.close(fig)
+
+    fig, axs = plt.subplots(1, 2, figsize=(11, 4.5))
+    rel = lib.relative_trajectories()
+    for i in range(len(lib)):
+        axs[0].plot(rel[i, :, 0], rel[i, :, 1], color="tab:blue" if kept[i] else "0.8", lw=1)
+    axs[0].set_aspect("equal")
+    axs[0].set_title(f"teacher primitives: {int(kept.sum())} of {len(lib)} within the learner's limits")
+    c = lib.commands
+    axs[1].scatter(c[~kept, 0], c[~kept, 1], c="0.8", marker="x", label="excluded")
+    axs[1].scatter(c[kept, 0], c[kept, 1], c="tab:blue", s=12, label="kept")
+    hull = store.limits.hull
+    axs[1].fill(hull[:, 0], hull[:, 1], fill=False, ec="red", label="learner limits (calibration)")
+    ids, _, T, _ = store.refined_arrays()
+    Tt = store.teacher_bounds.denormalise(T)
+    axs[1].scatter(Tt[:, 0], Tt[:, 1], c="k", s=8, label="calibration pairs")
+    axs[1].set_xlabel("v (m/s)")
+    axs[1].set_ylabel("omega (rad/s)")
+    axs[1].legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(out / "primitives_library.png", dpi=120)
+    plt.close(fig)
+    return ["primitives_trajectories.png", "primitives_library.png"]

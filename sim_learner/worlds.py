@@ -57,7 +57,11 @@ def mpc_world(scale: float = 1.0) -> World:
 
 
 def primitives_world() -> World:
-    """The motion-primitive case: the same S scaled by 4 (32 m), for 1 s primitives at up to ~1.5 m/s."""
+    """The motion-primitive case: the same S scaled by 4 (32 m), for 1 s primitives at up to ~1.2 m/s; the start
+    is on the path, heading 45 degrees off it."""
     pts = s_path(32.0, 4.8)
     obstacles = np.array([[8.0, 7.4, 1.2], [24.0, -7.4, 1.2], [16.0, 2.9, 0.9], [12.4, -1.6, 0.7]])
-    return World("primitives-s-path", Path(pts), obstacles, np.array([0.0, -1.0, -math.pi / 4]), 1.0)
+    path = Path(pts)
+    # like the paper's Jackal run: on the path's start, heading pi/4 off the desired orientation
+    start = np.array([0.0, 0.0, path.heading[0] - math.pi / 4])
+    return World("primitives-s-path", path, obstacles, start, 1.0)

@@ -55,3 +55,13 @@ def test_cli_writes_json_figures_and_trajectories(tmp_path, capsys, mpc_summary)
     assert out["experiment"] == "grid" and "scm_region_median_pos_err_m" in out
     assert (tmp_path / "grid_errors.png").stat().st_size > 10_000
     assert (tmp_path / "grid.npz").exists()
+
+
+def test_primitives_scm_learner_reaches_the_goal_and_the_baseline_deviates_3x_more() -> None:
+    from sim_learner.primitives_sim import run_primitives
+
+    s = run_primitives(seed=0, quick=True, out=None, progress=False)
+    assert s["kept_primitives"] == 35  # as in the paper: 5 speeds x 7 turn rates within the 5 x 5 calibration
+    assert s["scm_reached_goal"] and not s["scm_collisions"]
+    assert (not s["baseline_reached_goal"]) or s["baseline_collisions"] or (
+        s["baseline_max_dev_m"] >= 3 * s["scm_max_dev_m"])
