@@ -51,6 +51,8 @@ class SimVehicle:
         self.cmd = (0.0, 0.0)
         self.moving = False  # False: the wheels are held (zero velocity), whatever the last command was
         self.t = float(now)
+        self.distance = 0.0  # signed path length travelled (what wheel encoders integrate)
+        self.theta0 = self.state.theta
         self.max_dt = float(max_dt)
         self.pos_noise = float(pos_noise)
         self.rng = rng
@@ -88,6 +90,7 @@ class SimVehicle:
             y += h * v * np.sin(th)
             th += h * w
         s.x, s.y, s.theta, s.v, s.omega = float(x), float(y), float(th), v, w
+        self.distance += v * dt_total
         self.t = float(now)
         return s
 
