@@ -63,7 +63,9 @@ class SimVehicle:
         if not (np.isfinite(v) and np.isfinite(omega)):
             raise ValueError(f"non-finite command ({v}, {omega}) reached the vehicle")
         self.cmd = (float(v), float(omega))
-        self.moving = True
+        # an exact zero is a stop (wheels held), not a command in the learner's range: the paper's learner maps
+        # every command through d(h(n(.))) and would creep at v_min
+        self.moving = not (v == 0.0 and omega == 0.0)
 
     def stop(self, now: float) -> None:
         """Hold the wheels from ``now`` on."""

@@ -1,0 +1,169 @@
+"""The driver host over a real Zenoh session on 127.0.0.1: commands reach the emulated CAN vehicle, telemetry
+comes back as state, the deadman stops it, bad commands never reach it. The driver host runs as a real process
+(``scmbridge driver --link can --emulate``), bounded by --duration and always killed."""
+
+from __future__ import annotations
+
+import math
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+
+import msgspec
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from bridge import messages as M
+from bridge.driver_host import CommandGate
+from bridge.keys import Keys, status_key
+from bridge.zsession import free_port, make_config, open_session, tcp
+from transfer.domain import Bounds
+
+LIMITS = Bounds((-0.5, 0.5), (-1.0, 1.0))
+
+
+def _cmd(seq: int, v: float, w: float, valid_ms: int = 300) -> M.Command:
+    return M.Command(stamp=time.monotonic(), seq=seq, v=v, omega=w, method="scm", valid_ms=valid_ms)
+
+
+# ------------------------------------------------------------------------------------------- the pure gate
+def test_gate_applies_fresh_commands_clamps_and_trips_the_deadman() -> None:
+    g = CommandGate(LIMITS, cmd_timeout=0.3)
+    assert g.decide(0.0).reason == "start"
+    g.offer(_cmd(1, 0.2, 0.1), 1.0)
+    assert g.decide(1.1) == type(g.decide(1.1))(0.2, 0.1, "cmd", 1)
+    g.offer(_cmd(2, 3.0, -5.0), 1.2)
+    d = g.decide(1.25)
+    assert (d.v, d.omega, d.reason) == (0.5, -1.0, "clamped")
+    assert not g.offer(_cmd(2, 0.1, 0.0), 1.3)  # replayed / out of order
+    assert g.decide(1.2 + 0.31).reason == "deadman" and g.counters["deadman_trips"] == 1
+    g.offer(_cmd(3, 0.1, 0.0, valid_ms=50), 2.0)
+    assert g.decide(2.1).reason == "stale"  # older than its validity: never applied
+    g.offer(_cmd(4, 0.1, 0.0), 3.0)
+    g.estop(True)
+    assert g.decide(3.05).reason == "estop"
+    g.offer(_cmd(5, 0.1, 0.0), 3.1)
+    assert g.decide(3.15).reason == "estop"  # latched
+    g.estop(False)
+    assert g.decide(3.2).reason == "cmd"
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.floats(allow_nan=True, allow_infinity=True), st.floats(allow_nan=True, allow_infinity=True))
+def test_whatever_arrives_the_gate_only_ever_emits_finite_bounded_commands(v: float, w: float) -> None:
+    raw = msgspec.msgpack.encode({"stamp": 1.0, "seq": 1, "v": v, "omega": w, "method": "scm"})
+    g = CommandGate(LIMITS)
+    try:
+        g.offer(M.decode(raw, M.Command), 0.0)
+    except M.MessageError:
+        pass
+    d = g.decide(0.01)
+    assert math.isfinite(d.v) and math.isfinite(d.omega) and LIMITS.contains([d.v, d.omega])
+
+
+# -------------------------------------------------------------------------------- the process over Zenoh
+class Listener:
+    """Collects decoded applied / state / status messages from a real Zenoh session."""
+
+    def __init__(self, session, robot: str) -> None:
+        k = Keys(robot)
+        self.applied: list[M.Applied] = []
+        self.states: list[M.LearnerState] = []
+        self.status: list[M.Status] = []
+        self.lock = threading.Lock()
+        self.subs = [
+            session.declare_subscriber(k.applied, lambda s: self._add(self.applied, s, M.Applied)),
+            session.declare_subscriber(k.state, lambda s: self._add(self.states, s, M.LearnerState)),
+            session.declare_subscriber(status_key(robot, "driver"), lambda s: self._add(self.status, s, M.Status)),
+        ]
+
+    def _add(self, bucket, sample, kind) -> None:
+        msg = M.decode(sample.payload.to_bytes(), kind)
+        with self.lock:
+            bucket.append(msg)
+
+    def wait(self, pred, timeout: float) -> bool:
+        t_end = time.monotonic() + timeout
+        while time.monotonic() < t_end:
+            with self.lock:
+                if pred(self):
+                    return True
+            time.sleep(0.02)
+        return False
+
+
+@pytest.fixture
+def driver_host():
+    port = free_port()
+    robot = f"t{os.getpid()}"
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "bridge.cli", "driver", "--link", "can", "--emulate", "--robot", robot,
+         "--listen", tcp(port), "--duration", "40", "--x0", "0,0,0"],
+        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, start_new_session=True,
+    )
+    try:
+        with open_session(make_config(connect=[tcp(port)])) as session:
+            yield session, robot, Listener(session, robot)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGTERM)
+            try:
+                proc.wait(timeout=5)
+            except subprocess.TimeoutExpired:
+                os.killpg(proc.pid, signal.SIGKILL)
+                proc.wait(timeout=5)
+
+
+def test_commands_drive_the_vehicle_and_the_deadman_stops_it(driver_host) -> None:
+    session, robot, lis = driver_host
+    keys = Keys(robot)
+    assert lis.wait(lambda s: len(s.status) > 0 and s.status[-1].ok, 15.0), "driver host did not come up"
+    pub = session.declare_publisher(keys.cmd)
+    seq = 0
+    t0 = time.monotonic()
+    while time.monotonic() - t0 < 1.5:
+        seq += 1
+        pub.put(M.encode(_cmd(seq, 0.25, 0.1)))
+        time.sleep(0.05)
+    assert lis.wait(lambda s: any(a.reason == "cmd" and a.v == 0.25 and a.omega == 0.1 for a in s.applied), 2.0)
+    with lis.lock:
+        xs = [s.x for s in lis.states]
+    assert len(xs) > 20 and xs[-1] > xs[0] + 0.05  # the learner moved forward (state came back over Zenoh)
+    # the station dies: the deadman must stop the vehicle within cmd_timeout + one tick
+    t_last = time.monotonic()
+    assert lis.wait(lambda s: any(a.reason == "deadman" for a in s.applied), 2.0)
+    with lis.lock:
+        first_stop = min(a.stamp for a in lis.applied if a.reason == "deadman")
+        last_cmd = max(a.stamp for a in lis.applied if a.reason == "cmd")
+    assert first_stop - last_cmd <= 0.3 + 0.02 + 0.02  # timeout + one 50 Hz tick (+ one tick of slack)
+    assert first_stop - t_last < 0.5
+    time.sleep(0.5)
+    with lis.lock:
+        late = [s for s in lis.states if s.stamp > first_stop + 0.2]
+    assert late and all(abs(s.v or 0.0) < 1e-9 for s in late)  # the wheels are held
+
+
+def test_bad_commands_never_reach_the_vehicle_and_are_counted(driver_host) -> None:
+    session, robot, lis = driver_host
+    keys = Keys(robot)
+    assert lis.wait(lambda s: len(s.status) > 0, 15.0)
+    pub = session.declare_publisher(keys.cmd)
+    bad = [
+        msgspec.msgpack.encode({"stamp": 1.0, "seq": 1, "v": float("nan"), "omega": 0.0, "method": "scm"}),
+        msgspec.msgpack.encode({"stamp": 1.0, "seq": 2, "v": float("inf"), "omega": 0.0, "method": "scm"}),
+        msgspec.msgpack.encode({"stamp": 1.0, "seq": 3, "v": 0.1, "omega": 0.0, "method": "scm", "x": 1}),
+        b"\xff\x00garbage",
+    ]
+    for raw in bad:
+        pub.put(raw)
+    pub.put(M.encode(_cmd(10, 7.5, -9.0)))  # in wire range, beyond the hard limits: clamped
+    assert lis.wait(lambda s: any(a.reason == "clamped" for a in s.applied), 3.0)
+    assert lis.wait(lambda s: s.status and s.status[-1].counters.get("malformed_cmd", 0) >= 4, 3.0)
+    with lis.lock:
+        assert all(math.isfinite(a.v) and LIMITS.contains([a.v, a.omega]) for a in lis.applied)
+        clamped = [a for a in lis.applied if a.reason == "clamped"]
+    assert (clamped[0].v, clamped[0].omega) == (0.5, -1.0)
