@@ -1,15 +1,20 @@
-"""``scmbridge demo``: the SC transfer at work on the paper's nonlinear learner, in-process.
+"""``scmbridge demo``: the hardware-in-the-loop demo over Zenoh, or ``--inprocess`` the SC transfer alone.
 
-It learns command pairs from the MPC case's learner (Eq. mpc_dynamicmodel_learner, Table 2 ranges) on an
-11 x 11 grid of learner commands, then maps a set of teacher commands three ways (SCM, the identity baseline,
-the barycentric alternative), drives the learner with each for 0.1 s from the same pose and prints how far each
-lands from where the teacher would be. (The hardware-in-the-loop demo over Zenoh replaces this once the station
-and the drivers land.)
+Default: three separate processes on 127.0.0.1 (free port, no multicast scouting): the driver host with the
+learner's emulated CAN motor controllers on a python-can ``virtual`` channel inside it, the station (teacher MPC +
+transfer policy, starting with no command pairs) and this monitor. The learner drives the MPC S-path; a live
+one-line status shows rate, method counts, deviation and progress; at the end a summary and a figure
+(``--out``, default ``demo_out/``). It ends on its own at the goal or at ``--timeout``, and on Ctrl-C, leaving no
+process behind.
+
+``--inprocess``: learn pairs from the paper's nonlinear learner, map teacher commands with SCM, the identity
+baseline and the barycentric alternative, drive the learner 0.1 s with each and print how far each lands.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import math
 import sys
 import time
@@ -17,11 +22,7 @@ import time
 import numpy as np
 
 
-def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="scmbridge demo", description=__doc__)
-    ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--commands", type=int, default=8, help="teacher commands to show")
-    args = ap.parse_args(argv)
+def inprocess(args: argparse.Namespace) -> int:
 
     from sim_learner.dynamics import MPC_TEACHER_V, MPC_TEACHER_W, mpc_learner
     from transfer.domain import Bounds
@@ -77,3 +78,158 @@ def main(argv: list[str] | None = None) -> int:
     print(f"done in {time.perf_counter() - t0:.1f} s")
     sys.stdout.flush()
     return 0
+
+
+def _kill(proc) -> None:
+    """Terminate a child's whole process group, then kill it if it does not go (bounded waits)."""
+    import os
+    import signal
+    import subprocess
+
+    if proc.poll() is not None:
+        return
+    try:
+        os.killpg(proc.pid, signal.SIGTERM)
+        proc.wait(timeout=8)
+    except (ProcessLookupError, subprocess.TimeoutExpired):
+        try:
+            os.killpg(proc.pid, signal.SIGKILL)
+        except ProcessLookupError:
+            pass
+        proc.wait(timeout=5)
+
+
+def hil(args: argparse.Namespace) -> int:
+    import subprocess
+    import threading
+    from pathlib import Path
+
+    from bridge import messages as M
+    from bridge.keys import Keys, status_key
+    from bridge.zsession import free_port, make_config, open_session, tcp
+    from sim_learner.worlds import mpc_world
+
+    if args.link != "can":
+        print(f"the {args.link} link is not available yet in this build; use --link can", file=sys.stderr)
+        return 2
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    store = out / "pairs.bin"
+    if store.exists():
+        store.unlink()  # the demo starts from scratch
+    world = mpc_world()
+    robot = "demo"
+    port = free_port()
+    x0 = ",".join(f"{a:.6f}" for a in world.start)
+    py = [sys.executable, "-m", "bridge.cli"]
+    logs = {name: open(out / f"{name}.log", "w") for name in ("driver", "station")}  # noqa: SIM115
+    procs = []
+    states: list = []
+    status: dict = {}
+    lock = threading.Lock()
+    t0 = time.monotonic()
+    keys = Keys(robot)
+    try:
+        # this monitor is the hub: a Zenoh router on 127.0.0.1 that the driver host and the station connect to
+        # (peers do not forward between other peers, so a station-to-monitor path needs a router in between)
+        with open_session(make_config(mode="router", listen=[tcp(port)])) as session:
+            def on_state(sample) -> None:
+                st = M.decode(sample.payload.to_bytes(), M.LearnerState)
+                with lock:
+                    states.append((st.stamp, st.x, st.y, st.theta))
+
+            def on_status(sample) -> None:
+                st = M.decode(sample.payload.to_bytes(), M.Status)
+                with lock:
+                    status[st.node] = st
+
+            procs.append(subprocess.Popen(py + ["driver", "--link", "can", "--emulate", "--robot", robot,
+                                                "--mode", "client", "--connect", tcp(port), "--x0", x0,
+                                                "--duration", str(args.timeout + 15)],
+                                          stdout=logs["driver"], stderr=subprocess.STDOUT, start_new_session=True))
+            procs.append(subprocess.Popen(py + ["station", "--robot", robot, "--mode", "client", "--connect", tcp(port),
+                                                "--store", str(store), "--exit-at-goal",
+                                                "--duration", str(args.timeout)],
+                                          stdout=logs["station"], stderr=subprocess.STDOUT, start_new_session=True))
+            session.declare_subscriber(keys.state, on_state)
+            session.declare_subscriber(status_key(robot, "station"), on_status)
+            session.declare_subscriber(status_key(robot, "driver"), on_status)
+            tty = sys.stdout.isatty()
+            last_print = 0.0
+            while time.monotonic() - t0 < args.timeout + 20:
+                if procs[1].poll() is not None:
+                    break
+                if any(p.poll() is not None for p in procs):
+                    break
+                time.sleep(0.1)
+                now = time.monotonic()
+                if now - last_print >= (0.5 if tty else 5.0):
+                    last_print = now
+                    with lock:
+                        st = status.get("station")
+                        pos = states[-1] if states else None
+                    if st is None or pos is None:
+                        line = f"t={now - t0:5.1f}s waiting for station and driver..."
+                    else:
+                        c = st.counters
+                        s_arc, dev = world.path.project(np.array(pos[1:3]))
+                        line = (f"t={now - t0:5.1f}s rate={st.rates_hz.get('loop', 0):.0f}Hz "
+                                f"scm={c.get('method_scm', 0)} direct={c.get('method_direct', 0)} "
+                                f"perturb={c.get('method_perturb', 0)} pairs={c.get('refined_pairs', 0)} "
+                                f"dev={100 * dev:5.1f}cm progress={100 * s_arc / world.path.length:5.1f}%")
+                    print(("\r" + line.ljust(110)) if tty else line, end="" if tty else "\n", flush=True)
+            if tty:
+                print()
+    except KeyboardInterrupt:
+        print("\ninterrupted: stopping the demo's processes", file=sys.stderr)
+    finally:
+        for p in reversed(procs):
+            _kill(p)
+        for f in logs.values():
+            f.close()
+    with lock:
+        traj = np.array([s[1:] for s in states]) if states else np.zeros((0, 3))
+        st = status.get("station")
+    if traj.shape[0] == 0 or st is None:
+        print("the demo produced no telemetry; see the logs in", out, file=sys.stderr)
+        return 1
+    devs = np.array([world.path.project(p[:2])[1] for p in traj])
+    c = st.counters
+    reached = bool(c.get("goal_reached", 0))
+    elapsed = states[-1][0] - states[0][0]
+    summary = {"reached_goal": reached, "time_s": round(elapsed, 1), "mean_dev_m": round(float(devs.mean()), 4),
+               "max_dev_m": round(float(devs.max()), 4),
+               "methods": {k[7:]: v for k, v in c.items() if k.startswith("method_")},
+               "refined_pairs": c.get("refined_pairs"), "raw_pairs": c.get("raw_pairs"),
+               "missed_deadlines": c.get("missed_deadlines"), "solve_ms_median": st.latencies_ms.get("solve_median")}
+    print("summary:", json.dumps(summary))
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from sim_learner.figures import _world
+
+    fig, ax = plt.subplots(figsize=(9, 4))
+    _world(ax, world)
+    ax.plot(traj[:, 0], traj[:, 1], color="tab:blue", label="learner over Zenoh + CAN")
+    ax.legend(loc="upper right", fontsize=8)
+    ax.set_title("HIL demo: SCM transfer of the teacher MPC")
+    fig.tight_layout()
+    fig.savefig(out / "demo_trajectory.png", dpi=120)
+    plt.close(fig)
+    print(f"figure: {out / 'demo_trajectory.png'}; pair store: {store}; logs: {out}/*.log")
+    return 0 if reached else 1
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="scmbridge demo", description=__doc__,
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--link", choices=["can", "mavlink", "udp"], default="can")
+    ap.add_argument("--out", default="demo_out")
+    ap.add_argument("--timeout", type=float, default=120.0, help="seconds before the demo gives up")
+    ap.add_argument("--inprocess", action="store_true", help="the in-process SC transfer example instead")
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--commands", type=int, default=8, help="(--inprocess) teacher commands to show")
+    args = ap.parse_args(argv)
+    return inprocess(args) if args.inprocess else hil(args)

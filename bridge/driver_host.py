@@ -111,6 +111,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--robot", default=None)
     ap.add_argument("--listen", action="append", default=[], help="Zenoh endpoint to listen on (repeatable)")
     ap.add_argument("--connect", action="append", default=[], help="Zenoh endpoint to connect to (repeatable)")
+    ap.add_argument("--mode", choices=["peer", "client", "router"], default="peer", help="Zenoh session mode")
     ap.add_argument("--zenoh-config", help="a Zenoh JSON5 config file (deploy/), endpoints above override it")
     ap.add_argument("--rate", type=float, default=None, help="control loop rate, Hz (default 50)")
     ap.add_argument("--duration", type=float, default=None, help="stop after this many seconds")
@@ -180,7 +181,7 @@ def main(argv: list[str] | None = None) -> int:
                              left_node=int(link_cfg.get("left_node", 0)), right_node=int(link_cfg.get("right_node", 1)),
                              wheel_radius=float(link_cfg.get("wheel_radius", 0.1)),
                              track_width=float(link_cfg.get("track_width", 0.4))).start()
-    zconf = make_config(listen=args.listen, connect=args.connect, config_file=args.zenoh_config)
+    zconf = make_config(mode=args.mode, listen=args.listen, connect=args.connect, config_file=args.zenoh_config)
     t_start = time.monotonic()
     try:
         with open_session(zconf) as session:

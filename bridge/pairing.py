@@ -1,0 +1,79 @@
+"""Command pairs from live telemetry: which learner command really moved the vehicle between two poses.
+
+The driver host echoes every command the vehicle got (``applied``) and publishes poses (``state``), both stamped
+with its own monotonic clock. Events are fed in time order. A *segment* is a run of echoes carrying the same
+driving command (reason ``cmd`` or ``clamped``); the first and the latest pose inside a segment bracket an interval
+over which that one command was in force. A pair ``<f_T^-1(x(t1), x(t2)), u_L>`` is formed when the segment ends
+(the command changes, or the vehicle is stopped) or when its bracketed span reaches ``dt`` (long segments give one
+pair per ``dt``), and only if the span is at least ``min_span`` (half of ``dt`` by default). Deadman stops, estops
+and telemetry gaps longer than ``max_gap`` never produce a pair. Pure: times are arguments.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import NDArray
+
+from transfer.pairs import teacher_equivalent
+
+DRIVING = ("cmd", "clamped")
+Pair = tuple[NDArray[np.float64], NDArray[np.float64]]
+
+
+class IntervalPairer:
+    """Turns time-ordered applied echoes and poses into command pairs (see the module docstring)."""
+
+    def __init__(self, dt: float, min_span: float | None = None, max_gap: float | None = None) -> None:
+        if dt <= 0:
+            raise ValueError("dt must be positive")
+        self.dt = float(dt)
+        self.min_span = 0.5 * self.dt if min_span is None else float(min_span)
+        self.max_gap = 2.0 * self.dt if max_gap is None else float(max_gap)
+        self.segment: tuple[float, float] | None = None  # the command in force, None when not driving
+        self.first: tuple[float, NDArray[np.float64]] | None = None
+        self.last: tuple[float, NDArray[np.float64]] | None = None
+        self.last_event = -np.inf
+        self.rejected = 0
+        self.formed = 0
+
+    def applied(self, stamp: float, v: float, omega: float, reason: str) -> Pair | None:
+        if stamp < self.last_event:
+            return None  # out of order
+        self.last_event = stamp
+        key = (float(v), float(omega)) if reason in DRIVING else None
+        if key == self.segment:
+            return None
+        out = self._close()
+        self.segment, self.first, self.last = key, None, None
+        return out
+
+    def state(self, stamp: float, pose: NDArray[np.float64]) -> Pair | None:
+        if stamp < self.last_event:
+            return None
+        self.last_event = stamp
+        if self.segment is None:
+            return None
+        p = np.asarray(pose, dtype=float)
+        if self.last is not None and stamp - self.last[0] > self.max_gap:
+            self.rejected += 1  # a telemetry gap: restart the interval here
+            self.first, self.last = (stamp, p), None
+            return None
+        if self.first is None:
+            self.first = (stamp, p)
+            return None
+        self.last = (stamp, p)
+        if stamp - self.first[0] >= self.dt:
+            out = self._close()
+            self.first, self.last = (stamp, p), None
+            return out
+        return None
+
+    def _close(self) -> Pair | None:
+        if self.segment is None or self.first is None or self.last is None:
+            return None
+        (t1, x1), (t2, x2) = self.first, self.last
+        if t2 - t1 < self.min_span:
+            self.rejected += 1
+            return None
+        self.formed += 1
+        return teacher_equivalent(x1, x2, t2 - t1), np.array(self.segment)
