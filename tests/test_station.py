@@ -1,0 +1,135 @@
+"""Station pieces: pairing from stamps, atomic persistence, restart with reload over a real Zenoh query, and the
+whole HIL demo (three processes, bounded, nothing left behind)."""
+
+from __future__ import annotations
+
+import math
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+
+from bridge import messages as M
+from bridge.keys import Keys
+from bridge.pairing import IntervalPairer
+from bridge.station import load_store, save_atomic
+from bridge.zsession import free_port, make_config, open_session, tcp
+from sim_learner.dynamics import MPC_LEARNER_V, MPC_LEARNER_W, MPC_TEACHER_V, MPC_TEACHER_W
+from transfer.domain import Bounds
+from transfer.store import PairStore
+from transfer.teacher.unicycle import step
+
+TB = Bounds(MPC_TEACHER_V, MPC_TEACHER_W)
+LB = Bounds(MPC_LEARNER_V, MPC_LEARNER_W)
+
+
+def test_pairs_come_only_from_intervals_with_one_command_in_force() -> None:
+    p = IntervalPairer(dt=0.1)
+    x = np.zeros(3)
+    pairs = []
+    t = 0.0
+    u = np.array([0.2, 0.1])
+    p.applied(t, *u, "cmd")
+    for _ in range(27):  # poses every 10 ms under one command: a pair every dt
+        t += 0.01
+        x = step(x, u, 0.01)
+        out = p.state(t, x)
+        if out:
+            pairs.append(out)
+    assert len(pairs) == 2
+    for ut, ul in pairs:
+        np.testing.assert_allclose(ut, u, atol=1e-4)  # one Euler step over 0.1 s vs ten of 0.01 s: the chord
+        np.testing.assert_allclose(ul, u)
+    # a command change closes the open interval (0.07 s >= dt / 2): one more pair, of the old command
+    out = p.applied(t + 0.001, 0.3, 0.0, "cmd")
+    assert out is not None and np.allclose(out[1], u)
+    # deadman and telemetry gaps never pair
+    p.applied(t + 0.01, 0.0, 0.0, "deadman")
+    assert p.state(t + 0.05, x) is None and p.state(t + 0.2, x) is None
+    q = IntervalPairer(dt=0.1)
+    q.applied(0.0, 0.2, 0.0, "cmd")
+    q.state(0.01, np.zeros(3))
+    assert q.state(0.5, np.array([0.1, 0, 0])) is None and q.rejected == 1
+    assert q.applied(0.52, 0.1, 0.0, "cmd") is None  # only one pose since the gap: nothing to pair
+
+
+def test_atomic_save_and_corrupt_store_is_set_aside(tmp_path) -> None:
+    s = PairStore(LB, TB, k_min=1)
+    s.add([0.2, 0.0], [0.2, 0.0])
+    f = tmp_path / "pairs.bin"
+    save_atomic(f, s.to_bytes())
+    loaded, how = load_store(f, LB, TB, (11, 11), 1)
+    assert "reloaded 1" in how and len(loaded.refined()) == 1
+    f.write_bytes(f.read_bytes()[:-5])  # a torn write from some other tool
+    fresh, how = load_store(f, LB, TB, (11, 11), 1)
+    assert how == "new pair store" and fresh.raw_count == 0
+    assert any(p.name.startswith("pairs.bin.corrupt-") for p in tmp_path.iterdir())  # nothing is lost
+    assert not list(tmp_path.glob(".pairs.bin.*.tmp"))
+
+
+def _spawn(args: list[str]) -> subprocess.Popen:
+    return subprocess.Popen([sys.executable, "-m", "bridge.cli", *args], stdout=subprocess.PIPE,
+                            stderr=subprocess.STDOUT, start_new_session=True)
+
+
+def _stop(proc: subprocess.Popen) -> None:
+    if proc.poll() is None:
+        os.killpg(proc.pid, signal.SIGTERM)
+        try:
+            proc.wait(timeout=10)
+        except subprocess.TimeoutExpired:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait(timeout=5)
+
+
+def _query_pairs(session, robot: str, timeout: float = 15.0) -> M.Pairs | None:
+    t_end = time.monotonic() + timeout
+    while time.monotonic() < t_end:
+        for reply in session.get(Keys(robot).pairs, timeout=1.0):
+            if reply.ok is not None:
+                return M.decode(reply.ok.payload.to_bytes(), M.Pairs)
+        time.sleep(0.2)
+    return None
+
+
+def test_station_restarts_and_reloads_its_pairs(tmp_path) -> None:
+    store = tmp_path / "pairs.bin"
+    seeded = PairStore(LB, TB, k_min=1)
+    for uL in ([0.1, 0.0], [0.2, 0.1], [0.25, -0.1]):
+        seeded.add(uL, uL)
+    save_atomic(store, seeded.to_bytes())
+    port = free_port()
+    robot = f"st{os.getpid()}"
+    with open_session(make_config(mode="router", listen=[tcp(port)])) as session:
+        for _round in range(2):  # start, query, kill; start again: the pairs are still there
+            proc = _spawn(["station", "--robot", robot, "--mode", "client", "--connect", tcp(port), "--store",
+                           str(store), "--duration", "30"])
+            try:
+                reply = _query_pairs(session, robot)
+            finally:
+                _stop(proc)
+            assert reply is not None, "the station did not answer the pairs query"
+            assert sorted(p.id for p in reply.pairs) == sorted(p.id for p in seeded.refined())
+            assert reply.limits_box is not None and len(reply.limits_box) == 4
+        assert PairStore.from_bytes(store.read_bytes()).raw_count == 3
+
+
+@pytest.mark.slow
+def test_the_hil_demo_reaches_the_goal_and_leaves_no_process(tmp_path) -> None:
+    out = tmp_path / "demo"
+    res = subprocess.run([sys.executable, "-m", "bridge.cli", "demo", "--out", str(out), "--timeout", "100"],
+                         capture_output=True, text=True, timeout=160)
+    assert res.returncode == 0, res.stdout[-2000:] + res.stderr[-2000:]
+    line = next(ln for ln in res.stdout.splitlines() if ln.startswith("summary:"))
+    import json
+
+    summary = json.loads(line[len("summary:"):])
+    assert summary["reached_goal"] and summary["raw_pairs"] > 100 and summary["methods"]["scm"] > 0
+    assert summary["max_dev_m"] < 1.0 and math.isfinite(summary["mean_dev_m"])
+    assert (out / "demo_trajectory.png").stat().st_size > 10_000
+    left = subprocess.run(["pgrep", "-f", f"--store {out}"], capture_output=True, text=True)
+    assert left.stdout.strip() == ""
