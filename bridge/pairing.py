@@ -54,7 +54,8 @@ class IntervalPairer:
         if self.segment is None:
             return None
         p = np.asarray(pose, dtype=float)
-        if self.last is not None and stamp - self.last[0] > self.max_gap:
+        prev = self.last if self.last is not None else self.first
+        if prev is not None and stamp - prev[0] > self.max_gap:
             self.rejected += 1  # a telemetry gap: restart the interval here
             self.first, self.last = (stamp, p), None
             return None
