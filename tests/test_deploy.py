@@ -1,0 +1,43 @@
+"""What deploy/ ships must load: every Zenoh config, the example station and driver configurations."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+import zenoh
+
+from bridge.driver_host import load_config
+from drivers import open_driver
+from transfer.domain import Bounds
+
+DEPLOY = Path(__file__).resolve().parent.parent / "deploy"
+
+
+@pytest.mark.parametrize("path", sorted((DEPLOY / "zenoh").glob("*.json5")), ids=lambda p: p.name)
+def test_zenoh_configs_parse(path: Path) -> None:
+    zenoh.Config.from_file(str(path))
+
+
+def test_no_shipped_config_listens_on_every_interface_or_scouts_by_multicast() -> None:
+    for path in (DEPLOY / "zenoh").glob("*.json5"):
+        text = path.read_text()
+        assert "0.0.0.0" not in text and "[::]" not in text, path
+        assert "multicast: { enabled: false }" in text, path
+
+
+def test_example_station_and_driver_configs_are_consistent() -> None:
+    st = load_config(str(DEPLOY / "station.example.toml"))
+    tb = Bounds(tuple(st["teacher_bounds"]["v"]), tuple(st["teacher_bounds"]["w"]))
+    lb = Bounds(tuple(st["learner_bounds"]["v"]), tuple(st["learner_bounds"]["w"]))
+    assert tb.contains(lb.lo) and tb.contains(lb.hi)  # the learner is less capable than the teacher
+    dr = load_config(str(DEPLOY / "driver.example.toml"))
+    assert dr["robot"] == st["robot"] and dr["driver"]["cmd_timeout"] == pytest.approx(0.3)
+    drv = open_driver("can", dr["link"]["can"])  # constructing does no I/O
+    assert drv.channel == "can0" and drv.interface == "socketcan"
+
+
+def test_systemd_units_run_the_installed_commands() -> None:
+    for unit in (DEPLOY / "systemd").glob("*.service"):
+        text = unit.read_text()
+        assert "ExecStart=/opt/scmbridge/.venv/bin/scmbridge " in text and "Restart=on-failure" in text
