@@ -1,0 +1,50 @@
+"""``scmbridge learner``: a software learner behind a vehicle link, as its own process.
+
+``--link can``: the learner's two emulated ODrive motor controllers on a python-can bus given by ``--interface`` /
+``--channel`` (``udp_multicast`` inside a private network namespace to reach a driver host in another process,
+``socketcan`` on a vcan device where the kernel has one). The MAVLink and UDP emulators are not in this build yet.
+Runs until ``--duration`` or SIGINT/SIGTERM.
+"""
+
+from __future__ import annotations
+
+import argparse
+import signal
+import threading
+import time
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="scmbridge learner", description=__doc__,
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--link", choices=["can"], required=True)
+    ap.add_argument("--interface", default="udp_multicast")
+    ap.add_argument("--channel", default="239.74.163.2")
+    ap.add_argument("--model", default="mpc", help="learner model: mpc, experiment, scaled")
+    ap.add_argument("--x0", default="0,0,0", help="start pose x,y,theta")
+    ap.add_argument("--noise", type=float, default=0.0, help="position measurement noise std (m)")
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--duration", type=float, default=None)
+    ap.add_argument("--wheel-radius", type=float, default=0.1)
+    ap.add_argument("--track-width", type=float, default=0.4)
+    args = ap.parse_args(argv)
+
+    import numpy as np
+
+    from sim_learner.can_ecu import DiffDriveEcus
+    from sim_learner.dynamics import model_by_name
+    from sim_learner.vehicle import SimVehicle
+
+    stop = threading.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: stop.set())
+    x0 = tuple(float(a) for a in args.x0.split(","))
+    rng = np.random.default_rng(args.seed) if args.noise > 0 else None
+    vehicle = SimVehicle(model_by_name(args.model), x0, now=time.monotonic(), pos_noise=args.noise, rng=rng)
+    bus_kwargs = {"interface": args.interface, "channel": args.channel}
+    if args.interface == "udp_multicast":
+        bus_kwargs["fd"] = False
+    with DiffDriveEcus(bus_kwargs, vehicle, wheel_radius=args.wheel_radius, track_width=args.track_width):
+        print(f"learner on {args.interface}:{args.channel}, model {args.model}", flush=True)
+        stop.wait(args.duration)
+    return 0

@@ -1,0 +1,67 @@
+"""Run inside a private network namespace (see test_can_cross_process.py): driver host and learner emulator in
+separate processes over python-can ``udp_multicast``, commands over Zenoh on the namespace's loopback.
+Exit 0 when the commanded learner moved and the deadman stopped it, 1 otherwise."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+
+from bridge import messages as M
+from bridge.keys import Keys
+from bridge.zsession import free_port, make_config, open_session, tcp
+
+
+def main() -> int:
+    channel = "239.74.163.7"
+    port = free_port()
+    with tempfile.NamedTemporaryFile("w", suffix=".toml", delete=False) as f:
+        f.write(f'robot = "ns"\n[link.can]\ninterface = "udp_multicast"\nchannel = "{channel}"\n')
+        cfg = f.name
+    py = [sys.executable, "-m", "bridge.cli"]
+    procs = [
+        subprocess.Popen(py + ["learner", "--link", "can", "--interface", "udp_multicast", "--channel", channel,
+                               "--duration", "40"], start_new_session=True),
+        subprocess.Popen(py + ["driver", "--link", "can", "--config", cfg, "--listen", tcp(port), "--duration", "40"],
+                         start_new_session=True),
+    ]
+    states: list[M.LearnerState] = []
+    applied: list[M.Applied] = []
+    ok = False
+    try:
+        with open_session(make_config(connect=[tcp(port)])) as s:
+            k = Keys("ns")
+            s.declare_subscriber(k.state, lambda x: states.append(M.decode(x.payload.to_bytes(), M.LearnerState)))
+            s.declare_subscriber(k.applied, lambda x: applied.append(M.decode(x.payload.to_bytes(), M.Applied)))
+            pub = s.declare_publisher(k.cmd)
+            t_end = time.monotonic() + 20
+            while not states and time.monotonic() < t_end:
+                time.sleep(0.1)
+            x_start = states[-1].x if states else None
+            for seq in range(1, 31):
+                pub.put(M.encode(M.Command(stamp=time.monotonic(), seq=seq, v=0.3, omega=0.0, method="scm")))
+                time.sleep(0.05)
+            time.sleep(0.6)
+            moved = x_start is not None and states[-1].x > x_start + 0.1
+            stopped = any(a.reason == "deadman" for a in applied)
+            print(f"states={len(states)} moved={moved} deadman={stopped}", flush=True)
+            ok = moved and stopped
+    finally:
+        for p in procs:
+            if p.poll() is None:
+                os.killpg(p.pid, signal.SIGTERM)
+        for p in procs:
+            try:
+                p.wait(timeout=10)
+            except subprocess.TimeoutExpired:
+                os.killpg(p.pid, signal.SIGKILL)
+        os.unlink(cfg)
+    return 0 if ok else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())
