@@ -19,8 +19,11 @@ import logging
 import signal
 import threading
 import time
+from collections import deque
 from dataclasses import dataclass, field
 from typing import Any
+
+import numpy as np
 
 from bridge import messages as M
 from bridge.keys import Keys, status_key
@@ -145,6 +148,7 @@ def main(argv: list[str] | None = None) -> int:
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
     lock = threading.Lock()
+    wake = threading.Event()
     malformed = {"cmd": 0, "estop": 0}
 
     def on_cmd(sample) -> None:
@@ -158,6 +162,7 @@ def main(argv: list[str] | None = None) -> int:
             return
         with lock:
             gate.offer(cmd, now)
+        wake.set()  # apply it now, not at the next tick: command latency is not a multiple of the period
 
     def on_estop(sample) -> None:
         try:
@@ -197,8 +202,12 @@ def main(argv: list[str] | None = None) -> int:
             seq_a = seq_s = seq_st = 0
             t_status = t_next
             missed = 0
+            ticks: deque[float] = deque(maxlen=500)  # start times of the periodic ticks (jitter)
+            periodic = True
             while not stop.is_set():
                 now = time.monotonic()
+                if periodic:
+                    ticks.append(now)
                 if args.duration is not None and now - t_start >= args.duration:
                     break
                 with lock:
@@ -224,19 +233,29 @@ def main(argv: list[str] | None = None) -> int:
                         counters = dict(gate.counters)
                         counters.update({f"malformed_{k}": v for k, v in malformed.items()})
                     counters.update({"link_malformed": h.malformed, "link_errors": h.errors, "missed_deadlines": missed,
-                                     "frames_sent": h.frames_sent, "frames_received": h.frames_received})
+                                     "frames_sent": h.frames_sent, "frames_received": h.frames_received,
+                                     "ticks": len(ticks)})
+                    lat = {}
+                    if len(ticks) > 2:
+                        dev = np.abs(np.diff(np.asarray(ticks)) - period) * 1e3
+                        lat = {"jitter_p50": float(np.percentile(dev, 50)), "jitter_p99": float(np.percentile(dev, 99)),
+                               "jitter_max": float(dev.max())}
                     pub_status.put(M.encode(M.Status(stamp=now, seq=seq_st, node="driver", ok=h.connected,
-                                                     rates_hz={"loop": rate}, counters=counters,
+                                                     rates_hz={"loop": rate}, latencies_ms=lat, counters=counters,
                                                      text=f"link {args.link}")))
                     seq_st += 1
                     t_status = now + 1.0
-                t_next += period
+                if periodic:
+                    t_next += period
                 delay = t_next - time.monotonic()
                 if delay > 0:
-                    stop.wait(delay)
+                    periodic = not wake.wait(delay)  # woken by a command: an extra, immediate tick
+                    wake.clear()
                 else:
-                    missed += 1
-                    t_next = time.monotonic()
+                    if periodic:
+                        missed += 1
+                        t_next = time.monotonic()
+                    periodic = True
     finally:
         driver.close()
         if ecus is not None:

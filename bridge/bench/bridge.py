@@ -1,0 +1,129 @@
+"""``scmbridge bench bridge``: end-to-end latency and loop timing of the bridge over Zenoh on loopback (JSON).
+
+A Zenoh router on a free 127.0.0.1 port (this process, standing in for the station) and the driver host as its own
+process (``--emulate``: the learner's motor controllers on a python-can virtual channel inside it). Commands are
+published at 50 Hz; the latency is from the publish to the driver host handing the frames to the bus (its
+``applied`` echo carries the command's sequence number and the time, on the same monotonic clock since both run
+on this machine). The driver host's loop runs at 50 Hz for the whole run: jitter and missed deadlines come from
+its ``status``; memory is the driver host's RSS at the start and the end of the run. Links: ``can`` (the MAVLink
+and UDP links are not in this build).
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+
+import numpy as np
+
+from bridge.bench.common import emit
+
+
+def _rss_kb(pid: int) -> int | None:
+    try:
+        with open(f"/proc/{pid}/status") as f:
+            for line in f:
+                if line.startswith("VmRSS:"):
+                    return int(line.split()[1])
+    except OSError:
+        return None
+    return None
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="scmbridge bench bridge", description=__doc__)
+    ap.add_argument("--seconds", type=float, default=60.0)
+    args = ap.parse_args(argv)
+    from bridge import messages as M
+    from bridge.keys import Keys, status_key
+    from bridge.zsession import free_port, make_config, open_session, tcp
+
+    port = free_port()
+    robot = "bench"
+    keys = Keys(robot)
+    sent: dict[int, float] = {}
+    lat: list[float] = []
+    status: list[M.Status] = []
+    lock = threading.Lock()
+    with open_session(make_config(mode="router", listen=[tcp(port)])) as session:
+        def on_applied(sample) -> None:
+            a = M.decode(sample.payload.to_bytes(), M.Applied)
+            if a.cmd_seq is not None and a.reason in ("cmd", "clamped"):
+                with lock:
+                    t = sent.pop(a.cmd_seq, None)
+                    if t is not None:
+                        lat.append(a.stamp - t)
+
+        def on_status(sample) -> None:
+            st = M.decode(sample.payload.to_bytes(), M.Status)
+            with lock:
+                status.append(st)
+
+        session.declare_subscriber(keys.applied, on_applied)
+        session.declare_subscriber(status_key(robot, "driver"), on_status)
+        proc = subprocess.Popen([sys.executable, "-m", "bridge.cli", "driver", "--link", "can", "--emulate",
+                                 "--robot", robot, "--mode", "client", "--connect", tcp(port), "--rate", "50",
+                                 "--duration", str(args.seconds + 30)],
+                                stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
+        try:
+            t_end = time.monotonic() + 30
+            while time.monotonic() < t_end:
+                with lock:
+                    if status:
+                        break
+                time.sleep(0.05)
+            rss0 = _rss_kb(proc.pid)
+            pub = session.declare_publisher(keys.cmd)
+            seq = 0
+            t0 = time.monotonic()
+            t_next = t0
+            while time.monotonic() - t0 < args.seconds:
+                seq += 1
+                now = time.monotonic()
+                with lock:
+                    sent[seq] = now
+                w = float(0.05 * np.sin(seq / 50))
+                pub.put(M.encode(M.Command(stamp=now, seq=seq, v=0.2, omega=w, method="scm")))
+                t_next += 0.02
+                time.sleep(max(0.0, t_next - time.monotonic()))
+            time.sleep(1.2)
+            rss1 = _rss_kb(proc.pid)
+        finally:
+            if proc.poll() is None:
+                os.killpg(proc.pid, signal.SIGTERM)
+                try:
+                    proc.wait(timeout=10)
+                except subprocess.TimeoutExpired:
+                    os.killpg(proc.pid, signal.SIGKILL)
+    with lock:
+        ms = np.array(lat) * 1e3
+        last = status[-1] if status else None
+    c = last.counters if last else {}
+    out = {
+        "links": {
+            "can": {
+                "publish_to_driver_send_ms": {"median": float(np.median(ms)), "p99": float(np.percentile(ms, 99)),
+                                              "max": float(ms.max()), "n": int(ms.size)},
+                "commands_sent": seq,
+                "commands_applied": int(ms.size),
+            }
+        },
+        "driver_loop_50hz": {
+            "jitter_ms": dict(last.latencies_ms) if last else None,
+            "missed_deadlines": c.get("missed_deadlines"),
+            "ticks_in_window": c.get("ticks"),
+        },
+        "driver_rss_kb": {"start": rss0, "end": rss1},
+        "seconds": args.seconds,
+        "targets": {"p99_ms": 5.0, "missed_deadlines_fraction": 0.01, "memory": "no growth"},
+    }
+    if last:
+        ticks = 50.0 * (args.seconds + 1)
+        out["driver_loop_50hz"]["missed_fraction"] = c.get("missed_deadlines", 0) / ticks
+    emit(out)
+    return 0
