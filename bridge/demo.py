@@ -80,25 +80,6 @@ def inprocess(args: argparse.Namespace) -> int:
     return 0
 
 
-def _kill(proc) -> None:
-    """Terminate a child's whole process group, then kill it if it does not go (bounded waits)."""
-    import os
-    import signal
-    import subprocess
-
-    if proc.poll() is not None:
-        return
-    try:
-        os.killpg(proc.pid, signal.SIGTERM)
-        proc.wait(timeout=8)
-    except (ProcessLookupError, subprocess.TimeoutExpired):
-        try:
-            os.killpg(proc.pid, signal.SIGKILL)
-        except ProcessLookupError:
-            pass
-        proc.wait(timeout=5)
-
-
 def hil(args: argparse.Namespace) -> int:
     import subprocess
     import threading
@@ -106,6 +87,7 @@ def hil(args: argparse.Namespace) -> int:
 
     from bridge import messages as M
     from bridge.keys import Keys, status_key
+    from bridge.procs import stop_group
     from bridge.zsession import free_port, make_config, open_session, tcp
     from sim_learner.worlds import mpc_world
 
@@ -184,7 +166,7 @@ def hil(args: argparse.Namespace) -> int:
         print("\ninterrupted: stopping the demo's processes", file=sys.stderr)
     finally:
         for p in reversed(procs):
-            _kill(p)
+            stop_group(p)
         for f in logs.values():
             f.close()
     with lock:

@@ -5,7 +5,6 @@ Exit 0 when the commanded learner moved and the deadman stopped it, 1 otherwise.
 from __future__ import annotations
 
 import os
-import signal
 import subprocess
 import sys
 import tempfile
@@ -13,6 +12,7 @@ import time
 
 from bridge import messages as M
 from bridge.keys import Keys
+from bridge.procs import stop_group
 from bridge.zsession import free_port, make_config, open_session, tcp
 
 
@@ -52,13 +52,7 @@ def main() -> int:
             ok = moved and stopped
     finally:
         for p in procs:
-            if p.poll() is None:
-                os.killpg(p.pid, signal.SIGTERM)
-        for p in procs:
-            try:
-                p.wait(timeout=10)
-            except subprocess.TimeoutExpired:
-                os.killpg(p.pid, signal.SIGKILL)
+            stop_group(p)
         os.unlink(cfg)
     return 0 if ok else 1
 

@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import math
 import os
-import signal
 import subprocess
 import sys
 import threading
@@ -20,6 +19,7 @@ from hypothesis import strategies as st
 from bridge import messages as M
 from bridge.driver_host import CommandGate
 from bridge.keys import Keys, status_key
+from bridge.procs import stop_group
 from bridge.zsession import free_port, make_config, open_session, tcp
 from transfer.domain import Bounds
 
@@ -109,13 +109,7 @@ def driver_host():
         with open_session(make_config(connect=[tcp(port)])) as session:
             yield session, robot, Listener(session, robot)
     finally:
-        if proc.poll() is None:
-            os.killpg(proc.pid, signal.SIGTERM)
-            try:
-                proc.wait(timeout=5)
-            except subprocess.TimeoutExpired:
-                os.killpg(proc.pid, signal.SIGKILL)
-                proc.wait(timeout=5)
+        stop_group(proc)
 
 
 def test_commands_drive_the_vehicle_and_the_deadman_stops_it(driver_host) -> None:

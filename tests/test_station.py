@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import math
 import os
-import signal
 import subprocess
 import sys
 import time
@@ -16,6 +15,7 @@ import pytest
 from bridge import messages as M
 from bridge.keys import Keys
 from bridge.pairing import IntervalPairer
+from bridge.procs import stop_group
 from bridge.station import load_store, save_atomic
 from bridge.zsession import free_port, make_config, open_session, tcp
 from sim_learner.dynamics import MPC_LEARNER_V, MPC_LEARNER_W, MPC_TEACHER_V, MPC_TEACHER_W
@@ -76,16 +76,6 @@ def _spawn(args: list[str]) -> subprocess.Popen:
                             stderr=subprocess.STDOUT, start_new_session=True)
 
 
-def _stop(proc: subprocess.Popen) -> None:
-    if proc.poll() is None:
-        os.killpg(proc.pid, signal.SIGTERM)
-        try:
-            proc.wait(timeout=10)
-        except subprocess.TimeoutExpired:
-            os.killpg(proc.pid, signal.SIGKILL)
-            proc.wait(timeout=5)
-
-
 def _query_pairs(session, robot: str, timeout: float = 15.0) -> M.Pairs | None:
     t_end = time.monotonic() + timeout
     while time.monotonic() < t_end:
@@ -111,7 +101,7 @@ def test_station_restarts_and_reloads_its_pairs(tmp_path) -> None:
             try:
                 reply = _query_pairs(session, robot)
             finally:
-                _stop(proc)
+                stop_group(proc)
             assert reply is not None, "the station did not answer the pairs query"
             assert sorted(p.id for p in reply.pairs) == sorted(p.id for p in seeded.refined())
             assert reply.limits_box is not None and len(reply.limits_box) == 4

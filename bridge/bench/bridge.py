@@ -12,8 +12,6 @@ and UDP links are not in this build).
 from __future__ import annotations
 
 import argparse
-import os
-import signal
 import subprocess
 import sys
 import threading
@@ -22,6 +20,7 @@ import time
 import numpy as np
 
 from bridge.bench.common import emit
+from bridge.procs import stop_group
 
 
 def _rss_kb(pid: int) -> int | None:
@@ -94,12 +93,7 @@ def main(argv: list[str] | None = None) -> int:
             time.sleep(1.2)
             rss1 = _rss_kb(proc.pid)
         finally:
-            if proc.poll() is None:
-                os.killpg(proc.pid, signal.SIGTERM)
-                try:
-                    proc.wait(timeout=10)
-                except subprocess.TimeoutExpired:
-                    os.killpg(proc.pid, signal.SIGKILL)
+            stop_group(proc)
     with lock:
         ms = np.array(lat) * 1e3
         last = status[-1] if status else None
