@@ -118,7 +118,8 @@ class MpcTeacher:
         if cfg.solver == "ipopt":
             opts = {"print_time": False, "ipopt": {"print_level": 0, "max_iter": cfg.max_iter, "tol": 1e-6,
                     "acceptable_tol": 1e-4, "warm_start_init_point": "yes", "sb": "yes",
-                    "mu_strategy": "adaptive"}}
+                    "mu_strategy": "adaptive", "warm_start_bound_push": 1e-6,
+                    "warm_start_mult_bound_push": 1e-6, "mu_init": 1e-3}}
             self._solver = ca.nlpsol("mpc", "ipopt", nlp, opts)
         else:
             raise ValueError(f"unknown MPC solver {cfg.solver!r}: only ipopt is wired up")
