@@ -26,7 +26,7 @@ Rate = Annotated[float, Meta(ge=-100.0, le=100.0)]  # rad/s
 Name = Annotated[str, Meta(max_length=64)]
 Text = Annotated[str, Meta(max_length=1024)]
 
-Method = Literal["scm", "direct", "perturb", "stop", "calibrate", "manual"]
+Method = Literal["scm", "affine", "barycentric", "direct", "perturb", "stop", "calibrate", "manual"]
 
 
 class _Msg(Struct, forbid_unknown_fields=True, omit_defaults=True):

@@ -204,7 +204,7 @@ def main(argv: list[str] | None = None) -> int:
                             m = policy.map(res.u)
                         counts[m.method] = counts.get(m.method, 0) + 1
                         cmd = M.Command(stamp=now, seq=seq, v=float(m.u_L[0]), omega=float(m.u_L[1]),
-                                        method=m.method if m.method in ("scm", "direct", "perturb") else "scm",
+                                        method=m.method,
                                         valid_ms=int(3000 * period), region=list(m.region)[:8])
                         pub_cmd.put(M.encode(M.validated(cmd)))
                         pred = res.predicted

@@ -26,7 +26,13 @@ def open_driver(name: str, config: dict[str, Any] | None = None) -> Driver:
     except KeyError:
         raise ValueError(f"unknown link {name!r}; known links: {', '.join(sorted(LINKS))}") from None
     module_name, cls_name = target.split(":")
-    cls = getattr(importlib.import_module(module_name), cls_name)
+    try:
+        module = importlib.import_module(module_name)
+    except ModuleNotFoundError as exc:
+        if exc.name != module_name:
+            raise
+        raise DriverError(f"the {name} link is not in this build yet (no module {module_name})") from None
+    cls = getattr(module, cls_name)
     return cls(dict(config or {}))
 
 

@@ -41,3 +41,13 @@ def test_systemd_units_run_the_installed_commands() -> None:
     for unit in (DEPLOY / "systemd").glob("*.service"):
         text = unit.read_text()
         assert "ExecStart=/opt/scmbridge/.venv/bin/scmbridge " in text and "Restart=on-failure" in text
+
+
+def test_a_link_missing_from_this_build_is_a_clear_error() -> None:
+    from drivers import DriverError
+
+    for name in ("mavlink", "udp"):
+        with pytest.raises(DriverError, match="not in this build"):
+            open_driver(name, {})
+    with pytest.raises(ValueError, match="unknown link"):
+        open_driver("carrier-pigeon", {})
