@@ -206,6 +206,11 @@ class AffineMapper(_Triangulated):
             return None
         return np.append(t, 1.0) @ self._coef, tuple(int(i) for i in self.ids)
 
+    def extrapolate(self, t: NDArray[np.float64]) -> NDArray[np.float64] | None:
+        """The affine fit at t wherever t is (None before there is a fit): a guess, not a mapping."""
+        self._sync()
+        return None if self._coef is None else np.append(t, 1.0) @ self._coef
+
 
 class IdentityMapper:
     """The paper's baseline: the teacher command is applied to the learner as it is."""

@@ -110,14 +110,10 @@ class TransferPolicy:
     def _predict(self, t_n: NDArray[np.float64], direct: NDArray[np.float64]) -> NDArray[np.float64]:
         """Where the learner command for t_n probably is (normalised): the least-squares affine map of the refined
         pairs, or the teacher command itself while there are too few pairs for one."""
-        res = self._affine.map_normalised(t_n) if self._affine is not None else None
-        if res is None and self._affine is not None:
-            self._affine._sync()
-            if self._affine._coef is not None:
-                res = (np.append(t_n, 1.0) @ self._affine._coef, ())
-        if res is None:
+        guess = self._affine.extrapolate(t_n) if self._affine is not None else None
+        if guess is None:
             return self.store.learner_bounds.normalise(direct)
-        return np.clip(res[0], 0.0, 1.0)
+        return np.clip(guess, 0.0, 1.0)
 
     def _nearest_unconfigured(self, cell: tuple[int, int], towards: NDArray[np.float64]) -> tuple[int, int] | None:
         """The unconfigured cell of the nearest ring around ``cell`` closest to ``towards`` (normalised learner
