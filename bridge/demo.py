@@ -91,8 +91,8 @@ def hil(args: argparse.Namespace) -> int:
     from bridge.zsession import free_port, make_config, open_session, tcp
     from sim_learner.worlds import mpc_world
 
-    if args.link != "can":
-        print(f"the {args.link} link is not available yet in this build; use --link can", file=sys.stderr)
+    if args.link == "mavlink":
+        print("the mavlink link is not in this build yet; use --link can or --link udp", file=sys.stderr)
         return 2
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -125,9 +125,23 @@ def hil(args: argparse.Namespace) -> int:
                 with lock:
                     status[st.node] = st
 
-            procs.append(subprocess.Popen(py + ["driver", "--link", "can", "--emulate", "--robot", robot,
-                                                "--mode", "client", "--connect", tcp(port), "--x0", x0,
-                                                "--duration", str(args.timeout + 15)],
+            if args.link == "can":  # the emulated motor controllers live inside the driver host
+                driver_args = ["--link", "can", "--emulate", "--x0", x0]
+            else:  # the UDP robot is its own process, like the microcontroller it stands in for
+                import socket
+
+                with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+                    s.bind(("127.0.0.1", 0))
+                    udp_port = s.getsockname()[1]
+                cfg = out / "driver-udp.toml"
+                cfg.write_text(f"[link.udp]\nrobot_host = \"127.0.0.1\"\nrobot_port = {udp_port}\n")
+                procs.append(subprocess.Popen(py + ["learner", "--link", "udp", "--port", str(udp_port), "--x0", x0,
+                                                    "--duration", str(args.timeout + 15)],
+                                              stdout=logs["driver"], stderr=subprocess.STDOUT,
+                                              start_new_session=True))
+                driver_args = ["--link", "udp", "--config", str(cfg)]
+            procs.append(subprocess.Popen(py + ["driver", *driver_args, "--robot", robot, "--mode", "client",
+                                                "--connect", tcp(port), "--duration", str(args.timeout + 15)],
                                           stdout=logs["driver"], stderr=subprocess.STDOUT, start_new_session=True))
             procs.append(subprocess.Popen(py + ["station", "--robot", robot, "--mode", "client", "--connect", tcp(port),
                                                 "--store", str(store), "--exit-at-goal",
@@ -139,7 +153,7 @@ def hil(args: argparse.Namespace) -> int:
             tty = sys.stdout.isatty()
             last_print = 0.0
             while time.monotonic() - t0 < args.timeout + 20:
-                if procs[1].poll() is not None:
+                if procs[-1].poll() is not None:
                     break
                 if any(p.poll() is not None for p in procs):
                     break
@@ -194,7 +208,7 @@ def hil(args: argparse.Namespace) -> int:
 
     fig, ax = plt.subplots(figsize=(9, 4))
     _world(ax, world)
-    ax.plot(traj[:, 0], traj[:, 1], color="tab:blue", label="learner over Zenoh + CAN")
+    ax.plot(traj[:, 0], traj[:, 1], color="tab:blue", label=f"learner over Zenoh + {args.link.upper()}")
     ax.legend(loc="upper right", fontsize=8)
     ax.set_title("HIL demo: SCM transfer of the teacher MPC")
     fig.tight_layout()
@@ -207,7 +221,7 @@ def hil(args: argparse.Namespace) -> int:
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="scmbridge demo", description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--link", choices=["can", "mavlink", "udp"], default="can")
+    ap.add_argument("--link", choices=["can", "udp", "mavlink"], default="can", help="vehicle link (mavlink: not yet)")
     ap.add_argument("--out", default="demo_out")
     ap.add_argument("--timeout", type=float, default=120.0, help="seconds before the demo gives up")
     ap.add_argument("--inprocess", action="store_true", help="the in-process SC transfer example instead")

@@ -20,15 +20,17 @@ def main() -> int:
     channel = "239.74.163.7"
     port = free_port()
     with tempfile.NamedTemporaryFile("w", suffix=".toml", delete=False) as f:
-        f.write(f'robot = "ns"\n[link.can]\ninterface = "udp_multicast"\nchannel = "{channel}"\n')
+        f.write(f'robot = "ns"\n[link.can]\ninterface = "udp_multicast"\nchannel = "{channel}"\nopen_timeout = 10.0\n')
         cfg = f.name
     py = [sys.executable, "-m", "bridge.cli"]
-    procs = [
-        subprocess.Popen(py + ["learner", "--link", "can", "--interface", "udp_multicast", "--channel", channel,
-                               "--duration", "40"], start_new_session=True),
-        subprocess.Popen(py + ["driver", "--link", "can", "--config", cfg, "--listen", tcp(port), "--duration", "40"],
-                         start_new_session=True),
-    ]
+    # the motor controllers first (they must answer the driver's arming), then the driver host
+    learner = subprocess.Popen(py + ["learner", "--link", "can", "--interface", "udp_multicast", "--channel", channel,
+                                     "--duration", "60"], stdout=subprocess.PIPE, text=True, start_new_session=True)
+    procs = [learner]
+    assert learner.stdout is not None
+    learner.stdout.readline()  # "learner on ...": its bus is up
+    procs.append(subprocess.Popen(py + ["driver", "--link", "can", "--config", cfg, "--listen", tcp(port),
+                                        "--duration", "60"], start_new_session=True))
     states: list[M.LearnerState] = []
     applied: list[M.Applied] = []
     ok = False
