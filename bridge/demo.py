@@ -91,9 +91,6 @@ def hil(args: argparse.Namespace) -> int:
     from bridge.zsession import free_port, make_config, open_session, tcp
     from sim_learner.worlds import mpc_world
 
-    if args.link == "mavlink":
-        print("the mavlink link is not in this build yet; use --link can or --link udp", file=sys.stderr)
-        return 2
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     store = out / "pairs.bin"
@@ -127,19 +124,22 @@ def hil(args: argparse.Namespace) -> int:
 
             if args.link == "can":  # the emulated motor controllers live inside the driver host
                 driver_args = ["--link", "can", "--emulate", "--x0", x0]
-            else:  # the UDP robot is its own process, like the microcontroller it stands in for
+            else:  # the UDP robot / the rover is its own process, like the device it stands in for
                 import socket
 
                 with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
                     s.bind(("127.0.0.1", 0))
-                    udp_port = s.getsockname()[1]
-                cfg = out / "driver-udp.toml"
-                cfg.write_text(f"[link.udp]\nrobot_host = \"127.0.0.1\"\nrobot_port = {udp_port}\n")
-                procs.append(subprocess.Popen(py + ["learner", "--link", "udp", "--port", str(udp_port), "--x0", x0,
-                                                    "--duration", str(args.timeout + 15)],
+                    dev_port = s.getsockname()[1]
+                cfg = out / f"driver-{args.link}.toml"
+                if args.link == "udp":
+                    cfg.write_text(f"[link.udp]\nrobot_host = \"127.0.0.1\"\nrobot_port = {dev_port}\n")
+                else:
+                    cfg.write_text(f"[link.mavlink]\nurl = \"udpout:127.0.0.1:{dev_port}\"\nrate_hz = 20\n")
+                procs.append(subprocess.Popen(py + ["learner", "--link", args.link, "--port", str(dev_port),
+                                                    "--x0", x0, "--duration", str(args.timeout + 15)],
                                               stdout=logs["driver"], stderr=subprocess.STDOUT,
                                               start_new_session=True))
-                driver_args = ["--link", "udp", "--config", str(cfg)]
+                driver_args = ["--link", args.link, "--config", str(cfg)]
             procs.append(subprocess.Popen(py + ["driver", *driver_args, "--robot", robot, "--mode", "client",
                                                 "--connect", tcp(port), "--duration", str(args.timeout + 15)],
                                           stdout=logs["driver"], stderr=subprocess.STDOUT, start_new_session=True))
@@ -221,7 +221,7 @@ def hil(args: argparse.Namespace) -> int:
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="scmbridge demo", description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--link", choices=["can", "udp", "mavlink"], default="can", help="vehicle link (mavlink: not yet)")
+    ap.add_argument("--link", choices=["can", "udp", "mavlink"], default="can", help="vehicle link")
     ap.add_argument("--out", default="demo_out")
     ap.add_argument("--timeout", type=float, default=120.0, help="seconds before the demo gives up")
     ap.add_argument("--inprocess", action="store_true", help="the in-process SC transfer example instead")

@@ -3,7 +3,7 @@
 ``--link can``: the learner's two emulated ODrive motor controllers on a python-can bus given by ``--interface`` /
 ``--channel`` (``udp_multicast`` inside a private network namespace to reach a driver host in another process,
 ``socketcan`` on a vcan device where the kernel has one). ``--link udp``: the UDP-shim robot on ``--host:--port``.
-The MAVLink emulator is not in this build yet.
+``--link mavlink``: the ArduPilot-Rover-like vehicle listening for a GCS on UDP ``--host:--port``.
 Runs until ``--duration`` or SIGINT/SIGTERM.
 """
 
@@ -18,9 +18,9 @@ import time
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="scmbridge learner", description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--link", choices=["can", "udp"], required=True)
-    ap.add_argument("--port", type=int, default=47800, help="(udp) the robot's UDP port on --host")
-    ap.add_argument("--host", default="127.0.0.1", help="(udp) the robot's address")
+    ap.add_argument("--link", choices=["can", "udp", "mavlink"], required=True)
+    ap.add_argument("--port", type=int, default=None, help="(udp, mavlink) UDP port on --host (47800 / 14550)")
+    ap.add_argument("--host", default="127.0.0.1", help="(udp, mavlink) the address to listen on")
     ap.add_argument("--interface", default="udp_multicast")
     ap.add_argument("--channel", default="239.74.163.2")
     ap.add_argument("--model", default="mpc", help="learner model: mpc, experiment, scaled")
@@ -44,10 +44,19 @@ def main(argv: list[str] | None = None) -> int:
     x0 = tuple(float(a) for a in args.x0.split(","))
     rng = np.random.default_rng(args.seed) if args.noise > 0 else None
     vehicle = SimVehicle(model_by_name(args.model), x0, now=time.monotonic(), pos_noise=args.noise, rng=rng)
+    if args.link == "mavlink":
+        from sim_learner.mavlink_rover import MavlinkRover
+
+        port = 14550 if args.port is None else args.port
+        with MavlinkRover(vehicle, args.host, port) as rover:
+            print(f"learner on mavlink udp {args.host}:{rover.port}, model {args.model}", flush=True)
+            stop.wait(args.duration)
+        return 0
     if args.link == "udp":
         from sim_learner.udp_robot import UdpRobot
 
-        with UdpRobot(vehicle, args.host, args.port) as robot:
+        port = 47800 if args.port is None else args.port
+        with UdpRobot(vehicle, args.host, port) as robot:
             print(f"learner on udp {args.host}:{robot.port}, model {args.model}", flush=True)
             stop.wait(args.duration)
         return 0

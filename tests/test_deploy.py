@@ -46,3 +46,10 @@ def test_systemd_units_run_the_installed_commands() -> None:
 def test_an_unknown_link_is_a_clear_error() -> None:
     with pytest.raises(ValueError, match="unknown link"):
         open_driver("carrier-pigeon", {})
+
+
+@pytest.mark.parametrize("link", ["udp", "mavlink"])
+def test_example_link_configs_construct_their_drivers(link: str) -> None:
+    cfg = load_config(str(DEPLOY / f"driver.{link}.example.toml"))
+    drv = open_driver(link, cfg["link"][link])
+    assert drv.name == link and cfg["driver"]["cmd_timeout"] == pytest.approx(0.3)

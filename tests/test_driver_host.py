@@ -96,13 +96,37 @@ class Listener:
         return False
 
 
-@pytest.fixture
-def driver_host():
+@pytest.fixture(params=["can", "udp", "mavlink"])
+def driver_host(request, tmp_path):
+    """The driver host process on each link: CAN with the emulated controllers inside it; the UDP robot and the
+    ArduPilot-like rover hosted by this test process, as separate devices on loopback."""
+    link = request.param
     port = free_port()
-    robot = f"t{os.getpid()}"
+    robot = f"t{os.getpid()}{link}"
+    device = None
+    args = ["--link", link]
+    if link == "can":
+        args += ["--emulate", "--x0", "0,0,0"]
+    else:
+        from sim_learner.dynamics import mpc_learner
+        from sim_learner.vehicle import SimVehicle
+
+        vehicle = SimVehicle(mpc_learner(), (0.0, 0.0, 0.0), now=time.monotonic())
+        cfg = tmp_path / "driver.toml"
+        if link == "udp":
+            from sim_learner.udp_robot import UdpRobot
+
+            device = UdpRobot(vehicle).start()
+            cfg.write_text(f"[link.udp]\nrobot_port = {device.port}\n")
+        else:
+            from sim_learner.mavlink_rover import MavlinkRover
+
+            device = MavlinkRover(vehicle).start()
+            cfg.write_text(f'[link.mavlink]\nurl = "udpout:127.0.0.1:{device.port}"\nrate_hz = 50\n')
+        args += ["--config", str(cfg)]
     proc = subprocess.Popen(
-        [sys.executable, "-m", "bridge.cli", "driver", "--link", "can", "--emulate", "--robot", robot,
-         "--listen", tcp(port), "--duration", "40", "--x0", "0,0,0"],
+        [sys.executable, "-m", "bridge.cli", "driver", *args, "--robot", robot, "--listen", tcp(port),
+         "--duration", "40"],
         stdout=subprocess.PIPE, stderr=subprocess.STDOUT, start_new_session=True,
     )
     try:
@@ -110,12 +134,14 @@ def driver_host():
             yield session, robot, Listener(session, robot)
     finally:
         stop_group(proc)
+        if device is not None:
+            device.stop()
 
 
 def test_commands_drive_the_vehicle_and_the_deadman_stops_it(driver_host) -> None:
     session, robot, lis = driver_host
     keys = Keys(robot)
-    assert lis.wait(lambda s: len(s.status) > 0 and s.status[-1].ok, 15.0), "driver host did not come up"
+    assert lis.wait(lambda s: len(s.status) > 0 and s.status[-1].ok, 20.0), "driver host did not come up"
     pub = session.declare_publisher(keys.cmd)
     seq = 0
     t0 = time.monotonic()
@@ -144,7 +170,7 @@ def test_commands_drive_the_vehicle_and_the_deadman_stops_it(driver_host) -> Non
 def test_bad_commands_never_reach_the_vehicle_and_are_counted(driver_host) -> None:
     session, robot, lis = driver_host
     keys = Keys(robot)
-    assert lis.wait(lambda s: len(s.status) > 0, 15.0)
+    assert lis.wait(lambda s: len(s.status) > 0 and s.status[-1].ok, 20.0)
     pub = session.declare_publisher(keys.cmd)
     bad = [
         msgspec.msgpack.encode({"stamp": 1.0, "seq": 1, "v": float("nan"), "omega": 0.0, "method": "scm"}),
