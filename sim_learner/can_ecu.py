@@ -21,6 +21,7 @@ from typing import Any
 import can
 
 from drivers.can import AXIS_ERROR_WATCHDOG, AXIS_STATE_CLOSED_LOOP, AXIS_STATE_IDLE, decode, encode
+from sim_learner.device import ThreadedDevice
 from sim_learner.vehicle import SimVehicle
 
 
@@ -36,13 +37,16 @@ class _EcuAxis:
     vel: float = 0.0  # rev/s
 
 
-class DiffDriveEcus:
+class DiffDriveEcus(ThreadedDevice):
     """Both wheels' controllers on one bus, driving a SimVehicle (see the module docstring)."""
+
+    thread_name = "odrive-ecus"
 
     def __init__(self, bus_kwargs: dict[str, Any], vehicle: SimVehicle, *, left_node: int = 0, right_node: int = 1,
                  left_sign: float = 1.0, right_sign: float = -1.0, wheel_radius: float = 0.1,
                  track_width: float = 0.4, watchdog: float = 0.5, encoder_period: float = 0.01,
                  heartbeat_period: float = 0.1, clock=time.monotonic) -> None:
+        super().__init__()
         self.bus_kwargs = dict(bus_kwargs)
         self.vehicle = vehicle
         self.axes = {left_node: _EcuAxis(left_node, left_sign), right_node: _EcuAxis(right_node, right_sign)}
@@ -52,30 +56,16 @@ class DiffDriveEcus:
         self.clock = clock
         self.malformed = 0
         self.received: list[tuple[float, int, str, dict]] = []  # (time, node, name, signals), last 1000
-        self._stop = threading.Event()
-        self._thread: threading.Thread | None = None
         self._lock = threading.Lock()
         self.bus: can.BusABC | None = None
 
-    def start(self) -> DiffDriveEcus:
+    def _open(self) -> None:
         self.bus = can.Bus(**self.bus_kwargs)
-        self._thread = threading.Thread(target=self._run, name="odrive-ecus", daemon=True)
-        self._thread.start()
-        return self
 
-    def stop(self) -> None:
-        self._stop.set()
-        if self._thread is not None:
-            self._thread.join(timeout=2.0)
+    def _close(self) -> None:
         if self.bus is not None:
             self.bus.shutdown()
             self.bus = None
-
-    def __enter__(self) -> DiffDriveEcus:
-        return self.start()
-
-    def __exit__(self, *exc: object) -> None:
-        self.stop()
 
     # ------------------------------------------------------------------------------------------------ loop
     def _run(self) -> None:

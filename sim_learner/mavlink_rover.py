@@ -14,12 +14,12 @@ from __future__ import annotations
 
 import math
 import os
-import threading
 import time
 
 os.environ.setdefault("MAVLINK20", "1")
 from pymavlink import mavutil  # noqa: E402
 
+from sim_learner.device import ThreadedDevice  # noqa: E402
 from sim_learner.vehicle import SimVehicle  # noqa: E402
 
 GUIDED = 15
@@ -27,11 +27,14 @@ HOLD = 4
 VELOCITY_YAWRATE_MASK = 0x05E7  # ArduPilot's documented "velocity + yaw rate" type_mask
 
 
-class MavlinkRover:
+class MavlinkRover(ThreadedDevice):
     """See the module docstring. Listens on UDP ``host:port`` (0: a free port, read ``.port`` after start)."""
+
+    thread_name = "mavlink-rover"
 
     def __init__(self, vehicle: SimVehicle, host: str = "127.0.0.1", port: int = 0, *, wp_speed: float = 2.0,
                  str_rat_max: float = 2.0, target_timeout: float = 3.0, init_s: float = 0.0) -> None:
+        super().__init__()
         self.vehicle = vehicle
         self.host, self.port = host, int(port)
         self.wp_speed, self.str_rat_max = float(wp_speed), float(str_rat_max)
@@ -46,11 +49,9 @@ class MavlinkRover:
         self.lost_mode_sets = 0
         self.statustexts: list[str] = []
         self.bad = 0
-        self._stop = threading.Event()
-        self._thread: threading.Thread | None = None
         self.conn = None
 
-    def start(self) -> MavlinkRover:
+    def _open(self) -> None:
         if self.port == 0:
             import socket
 
@@ -60,23 +61,11 @@ class MavlinkRover:
         self.conn = mavutil.mavlink_connection(f"udpin:{self.host}:{self.port}", source_system=1,
                                                source_component=1, dialect="ardupilotmega")
         self.t0 = time.monotonic()
-        self._thread = threading.Thread(target=self._run, name="mavlink-rover", daemon=True)
-        self._thread.start()
-        return self
 
-    def stop(self) -> None:
-        self._stop.set()
-        if self._thread is not None:
-            self._thread.join(timeout=2.0)
+    def _close(self) -> None:
         if self.conn is not None:
             self.conn.close()
             self.conn = None
-
-    def __enter__(self) -> MavlinkRover:
-        return self.start()
-
-    def __exit__(self, *exc: object) -> None:
-        self.stop()
 
     # ------------------------------------------------------------------------------------------------ loop
     def _run(self) -> None:

@@ -9,18 +9,21 @@ streams its pose at ``rate`` Hz to whoever sent the last valid command. The body
 from __future__ import annotations
 
 import socket
-import threading
 import time
 
 from bridge import messages as M
+from sim_learner.device import ThreadedDevice
 from sim_learner.vehicle import SimVehicle
 
 
-class UdpRobot:
+class UdpRobot(ThreadedDevice):
     """See the module docstring. ``port`` 0 picks a free port (read ``.port`` after ``start``)."""
+
+    thread_name = "udp-robot"
 
     def __init__(self, vehicle: SimVehicle, host: str = "127.0.0.1", port: int = 0, *, watchdog: float = 0.5,
                  rate: float = 50.0) -> None:
+        super().__init__()
         self.vehicle = vehicle
         self.addr = (host, int(port))
         self.watchdog = float(watchdog)
@@ -32,32 +35,18 @@ class UdpRobot:
         self.peer: tuple[str, int] | None = None
         self.port = 0
         self._seq = 0
-        self._stop = threading.Event()
-        self._thread: threading.Thread | None = None
         self.sock: socket.socket | None = None
 
-    def start(self) -> UdpRobot:
+    def _open(self) -> None:
         self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         self.sock.bind(self.addr)
         self.sock.settimeout(0.005)
         self.port = self.sock.getsockname()[1]
-        self._thread = threading.Thread(target=self._run, name="udp-robot", daemon=True)
-        self._thread.start()
-        return self
 
-    def stop(self) -> None:
-        self._stop.set()
-        if self._thread is not None:
-            self._thread.join(timeout=2.0)
+    def _close(self) -> None:
         if self.sock is not None:
             self.sock.close()
             self.sock = None
-
-    def __enter__(self) -> UdpRobot:
-        return self.start()
-
-    def __exit__(self, *exc: object) -> None:
-        self.stop()
 
     def _run(self) -> None:
         assert self.sock is not None

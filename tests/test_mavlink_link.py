@@ -10,7 +10,6 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from bridge import messages as M
 from drivers import open_driver
 from drivers.mavlink import TYPE_MASK_VEL_YAWRATE
 from sim_learner.dynamics import mpc_learner
@@ -93,37 +92,3 @@ def test_random_bytes_on_the_link_are_counted_and_dropped(data: bytes) -> None:
         time.sleep(0.03)
         assert rover._thread is not None and rover._thread.is_alive()
         assert rover.setpoints == []
-
-
-def test_driver_host_process_over_zenoh_drives_the_rover(tmp_path) -> None:
-    import subprocess
-    import sys
-
-    from bridge.keys import Keys
-    from bridge.procs import stop_group
-    from bridge.zsession import free_port, make_config, open_session, tcp
-
-    vehicle = SimVehicle(mpc_learner(), (0.0, 0.0, 0.0), now=time.monotonic())
-    with MavlinkRover(vehicle) as rover:
-        cfg = tmp_path / "driver.toml"
-        cfg.write_text(f'robot = "m1"\n[link.mavlink]\nurl = "udpout:127.0.0.1:{rover.port}"\nrate_hz = 20\n')
-        port = free_port()
-        proc = subprocess.Popen([sys.executable, "-m", "bridge.cli", "driver", "--link", "mavlink", "--config",
-                                 str(cfg), "--listen", tcp(port), "--duration", "30"],
-                                stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
-        try:
-            states: list = []
-            with open_session(make_config(connect=[tcp(port)])) as s:
-                k = Keys("m1")
-                s.declare_subscriber(k.state, lambda x: states.append(M.decode(x.payload.to_bytes(), M.LearnerState)))
-                pub = s.declare_publisher(k.cmd)
-                t_end = time.monotonic() + 20
-                while not states and time.monotonic() < t_end:
-                    time.sleep(0.05)
-                for seq in range(1, 31):
-                    pub.put(M.encode(M.Command(stamp=time.monotonic(), seq=seq, v=0.2, omega=0.1, method="scm")))
-                    time.sleep(0.05)
-                assert rover.setpoints and rover.setpoints[-1]["vx"] == pytest.approx(0.2)
-                assert states and states[-1].x > 0.05 and states[-1].source == "mavlink"
-        finally:
-            stop_group(proc)

@@ -85,37 +85,3 @@ def test_random_state_datagrams_never_crash_the_driver(data: bytes) -> None:
         assert h.frames_received <= 1 and len(poses) + h.malformed == h.frames_received
     finally:
         driver.sock.close()
-
-
-def test_driver_host_process_over_zenoh_drives_the_udp_robot(tmp_path) -> None:
-    import subprocess
-    import sys
-
-    from bridge.keys import Keys
-    from bridge.procs import stop_group
-    from bridge.zsession import free_port, make_config, open_session, tcp
-
-    vehicle = SimVehicle(mpc_learner(), (0.0, 0.0, 0.0), now=time.monotonic())
-    with UdpRobot(vehicle) as robot:
-        cfg = tmp_path / "driver.toml"
-        cfg.write_text(f'robot = "u1"\n[link.udp]\nrobot_port = {robot.port}\nopen_timeout = 10.0\n')
-        port = free_port()
-        proc = subprocess.Popen([sys.executable, "-m", "bridge.cli", "driver", "--link", "udp", "--config", str(cfg),
-                                 "--listen", tcp(port), "--duration", "30"],
-                                stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
-        try:
-            states: list = []
-            with open_session(make_config(connect=[tcp(port)])) as s:
-                k = Keys("u1")
-                s.declare_subscriber(k.state, lambda x: states.append(M.decode(x.payload.to_bytes(), M.LearnerState)))
-                pub = s.declare_publisher(k.cmd)
-                t_end = time.monotonic() + 15
-                while not states and time.monotonic() < t_end:
-                    time.sleep(0.05)
-                for seq in range(1, 21):
-                    pub.put(M.encode(M.Command(stamp=time.monotonic(), seq=seq, v=0.2, omega=-0.1, method="scm")))
-                    time.sleep(0.05)
-                assert robot.last_cmd is not None and (robot.last_cmd.v, robot.last_cmd.omega) == (0.2, -0.1)
-                assert states and states[-1].x > 0.05 and states[-1].source == "udp"
-        finally:
-            stop_group(proc)
