@@ -2,7 +2,9 @@
 
 Subcommands are resolved lazily: only the module of the command asked for is imported (``import casadi`` or
 ``pymavlink`` cost a noticeable fraction of a second each). Every command module exposes
-``main(argv: list[str]) -> int`` with its own argparse parser.
+``main(argv: list[str]) -> int`` with its own argparse parser. A configuration mistake
+(:class:`bridge.config.ConfigError`) ends the command with exit status 2 and one line naming the file, the key and
+the problem; commands read their configuration before they open any link or session.
 """
 
 from __future__ import annotations
@@ -17,6 +19,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "driver": ("bridge.driver_host", "the driver host: Zenoh commands -> vehicle link, telemetry -> state"),
     "learner": ("sim_learner.emulator", "a software learner behind a vehicle link (can, mavlink, udp)"),
     "sim": ("sim_learner.experiments", "the paper's simulations: sim primitives|mpc|grid --out DIR"),
+    "config": ("bridge.config", "config check FILE | config show --kind station|driver|mission"),
     "bench scm": ("bridge.bench.scm", "Schwarz-Christoffel map build/evaluate timings (JSON)"),
     "bench transfer": ("bridge.bench.transfer", "transfer policy per-command cost (JSON)"),
     "bench mpc": ("bridge.bench.mpc", "MPC closed-loop solve times (JSON)"),
@@ -46,8 +49,14 @@ def main(argv: list[str] | None = None) -> int:
     if name not in COMMANDS:
         print(f"scmbridge: unknown command {name!r}\n\n{_usage()}", file=sys.stderr)
         return 2
+    from bridge.config import ConfigError
+
     module = importlib.import_module(COMMANDS[name][0])
-    return int(module.main(rest) or 0)
+    try:
+        return int(module.main(rest) or 0)
+    except ConfigError as exc:  # a user's mistake: one line, no traceback
+        print(f"scmbridge {name}: error: {exc}", file=sys.stderr)
+        return 2
 
 
 if __name__ == "__main__":

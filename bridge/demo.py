@@ -85,9 +85,9 @@ def hil(args: argparse.Namespace) -> int:
     import threading
     from pathlib import Path
 
-    from bridge import messages as M
-    from bridge.keys import Keys, status_key
+    from bridge import wire as M
     from bridge.procs import stop_group
+    from bridge.wire import Keys, status_key
     from bridge.zsession import free_port, make_config, open_session, tcp
     from sim_learner.worlds import mpc_world
 

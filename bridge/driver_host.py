@@ -21,12 +21,14 @@ import threading
 import time
 from collections import deque
 from dataclasses import dataclass, field
-from typing import Any
 
+import msgspec
 import numpy as np
 
-from bridge import messages as M
-from bridge.keys import Keys, status_key
+from bridge import wire as M
+from bridge.cliutil import pose_arg
+from bridge.config import load_driver
+from bridge.wire import Keys, status_key
 from bridge.zsession import make_config, open_session
 from transfer.domain import Bounds
 
@@ -94,18 +96,6 @@ class CommandGate:
         return Decision(v, w, "cmd", cmd.seq)
 
 
-def load_config(path: str | None) -> dict[str, Any]:
-    """A TOML config file as a dict (empty without a path)."""
-    if not path:
-        return {}
-    try:
-        import tomllib  # type: ignore[import-not-found]
-    except ModuleNotFoundError:  # Python 3.10
-        import tomli as tomllib  # type: ignore[no-redef]
-    with open(path, "rb") as f:
-        return tomllib.load(f)
-
-
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="scmbridge driver", description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -120,26 +110,23 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--duration", type=float, default=None, help="stop after this many seconds")
     ap.add_argument("--emulate", action="store_true", help="host emulated CAN motor controllers in-process")
     ap.add_argument("--model", default="mpc", help="learner model for --emulate (mpc, experiment, scaled)")
-    ap.add_argument("--x0", default="0,0,0", help="start pose x,y,theta for --emulate")
+    ap.add_argument("--x0", type=pose_arg, default=(0.0, 0.0, 0.0), help="start pose x,y,theta for --emulate")
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s driver %(levelname)s %(message)s")
 
-    cfg = load_config(args.config)
-    robot = args.robot or cfg.get("robot", "learner")
+    cfg = load_driver(args.config)
+    robot = args.robot or cfg.robot
     keys = Keys(robot)
-    dcfg = cfg.get("driver", {})
-    rate = float(args.rate or dcfg.get("rate_hz", 50.0))
-    hard = dcfg.get("hard_limits", {})
-    limits = Bounds(tuple(hard.get("v", (-0.5, 0.5))), tuple(hard.get("w", (-1.0, 1.0))))
-    gate = CommandGate(limits, float(dcfg.get("cmd_timeout", 0.3)))
-    link_cfg = dict(cfg.get("link", {}).get(args.link, {}))
-    x0 = tuple(float(a) for a in args.x0.split(","))
+    dcfg = cfg.driver
+    rate = float(args.rate or dcfg.rate_hz)
+    limits = dcfg.hard_limits.bounds()
+    gate = CommandGate(limits, dcfg.cmd_timeout)
+    link_cfg = getattr(cfg.link, args.link)
+    x0 = args.x0
     if args.emulate:
         if args.link != "can":
             ap.error("--emulate hosts CAN motor controllers; run `scmbridge learner` for the other links")
-        link_cfg.setdefault("interface", "virtual")
-        link_cfg.setdefault("channel", f"scm-{robot}")
-        link_cfg.setdefault("initial_pose", list(x0))
+        link_cfg = msgspec.structs.replace(link_cfg, interface="virtual", channel=f"scm-{robot}", initial_pose=x0)
 
     from drivers import open_driver
 
@@ -182,10 +169,10 @@ def main(argv: list[str] | None = None) -> int:
         from sim_learner.vehicle import SimVehicle
 
         vehicle = SimVehicle(model_by_name(args.model), x0, now=time.monotonic())
-        ecus = DiffDriveEcus({"interface": "virtual", "channel": link_cfg["channel"]}, vehicle,
-                             left_node=int(link_cfg.get("left_node", 0)), right_node=int(link_cfg.get("right_node", 1)),
-                             wheel_radius=float(link_cfg.get("wheel_radius", 0.1)),
-                             track_width=float(link_cfg.get("track_width", 0.4))).start()
+        ecus = DiffDriveEcus({"interface": "virtual", "channel": link_cfg.channel}, vehicle,
+                             left_node=link_cfg.left_node, right_node=link_cfg.right_node,
+                             left_sign=link_cfg.left_sign, right_sign=link_cfg.right_sign,
+                             wheel_radius=link_cfg.wheel_radius, track_width=link_cfg.track_width).start()
     zconf = make_config(mode=args.mode, listen=args.listen, connect=args.connect, config_file=args.zenoh_config)
     t_start = time.monotonic()
     try:

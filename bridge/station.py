@@ -22,10 +22,11 @@ from typing import Any
 
 import numpy as np
 
-from bridge import messages as M
-from bridge.driver_host import load_config
-from bridge.keys import Keys, status_key
+from bridge import wire as M
+from bridge.cliutil import positive_float
+from bridge.config import load_mission, load_station
 from bridge.pairing import IntervalPairer
+from bridge.wire import Keys, status_key
 from bridge.zsession import make_config, open_session
 from transfer.domain import Bounds
 from transfer.store import PairStore
@@ -83,37 +84,33 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--connect", action="append", default=[])
     ap.add_argument("--mode", choices=["peer", "client", "router"], default="peer", help="Zenoh session mode")
     ap.add_argument("--zenoh-config")
-    ap.add_argument("--rate", type=float, default=None)
+    ap.add_argument("--rate", type=positive_float, default=None, help="control tick rate, Hz (overrides the config)")
+    ap.add_argument("--mission", default=None, help="mission file (TOML; overrides the config)")
     ap.add_argument("--store", default=None, help="pair store file (persisted atomically, reloaded at start)")
     ap.add_argument("--duration", type=float, default=None)
     ap.add_argument("--exit-at-goal", action="store_true", help="stop the service once the goal is reached")
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s station %(levelname)s %(message)s")
-    cfg: dict[str, Any] = load_config(args.config)
-    scfg = cfg.get("station", {})
-    robot = args.robot or cfg.get("robot", "learner")
+    cfg = load_station(args.config)
+    scfg = cfg.station
+    robot = args.robot or cfg.robot
     keys = Keys(robot)
-    rate = float(args.rate or scfg.get("rate_hz", 10.0))
+    rate = float(args.rate or scfg.rate_hz)
     period = 1.0 / rate
-    dt_pair = float(scfg.get("pair_dt", 0.1))
+    dt_pair = scfg.pair_dt
+    world = load_mission(args.mission or scfg.mission or None)
 
-    from sim_learner.dynamics import MPC_LEARNER_V, MPC_LEARNER_W, MPC_TEACHER_V, MPC_TEACHER_W
-    from sim_learner.worlds import mpc_world
     from transfer.policy import TransferPolicy
     from transfer.scm import warmup
     from transfer.teacher.mpc import MpcConfig, MpcTeacher
 
-    tb = cfg.get("teacher_bounds", {})
-    lb = cfg.get("learner_bounds", {})
-    TB = Bounds(tuple(tb.get("v", MPC_TEACHER_V)), tuple(tb.get("w", MPC_TEACHER_W)))
-    LB = Bounds(tuple(lb.get("v", MPC_LEARNER_V)), tuple(lb.get("w", MPC_LEARNER_W)))
-    tcfg = cfg.get("transfer", {})
-    store_path = FsPath(args.store or scfg.get("store_path", f"pairs-{robot}.bin"))
-    store, how = load_store(store_path, LB, TB, tcfg.get("grid", (11, 11)), int(tcfg.get("k_min", 5)))
+    TB, LB = cfg.teacher_bounds.bounds(), cfg.learner_bounds.bounds()
+    tcfg = cfg.transfer
+    store_path = FsPath(args.store) if args.store else cfg.store_file()
+    store, how = load_store(store_path, LB, TB, tcfg.grid, tcfg.k_min)
     log.info("%s", how)
-    policy = TransferPolicy(store, tcfg.get("mapper", "scm"), rng=np.random.default_rng(int(tcfg.get("seed", 0))))
-    world = mpc_world(float(scfg.get("world_scale", 1.0)))
-    mpc = MpcTeacher(MpcConfig(N=int(scfg.get("horizon", 20)), dt=period))
+    policy = TransferPolicy(store, tcfg.mapper, rng=np.random.default_rng(tcfg.seed))
+    mpc = MpcTeacher(MpcConfig(N=scfg.horizon, dt=period))
     warmup()  # compile / load the SC kernels before the first tick
     pairer = IntervalPairer(dt_pair)
 
@@ -167,7 +164,7 @@ def main(argv: list[str] | None = None) -> int:
             solve_ms: list[float] = []
             t_next = time.monotonic()
             t_status = t_persist = t_next
-            persist_every = float(scfg.get("persist_every_s", 5.0))
+            persist_every = scfg.persist_every_s
             log.info("station for %s at %.0f Hz, world %s", robot, rate, world.name)
             while not stop.is_set():
                 now = time.monotonic()
@@ -189,8 +186,7 @@ def main(argv: list[str] | None = None) -> int:
                             store.add(*pair)
                 if state is not None and not reached:
                     x = np.array([state.x, state.y, state.theta])
-                    s, _ = world.path.project(x[:2])
-                    if np.hypot(*(x[:2] - world.goal)) < world.goal_radius and s > 0.9 * world.path.length:
+                    if world.reached(x):
                         reached = True
                         t_status = now  # say so at once
                         log.info("goal reached after %.1f s", now - t_start)

@@ -11,7 +11,8 @@ from typing import Any
 
 from drivers.base import Driver, DriverError
 
-#: link name -> "module:Class"; each class takes the link's config mapping as its only argument.
+#: link name -> "module:Class"; each class takes its link's typed configuration (``bridge.config``) as its only
+#: argument.
 LINKS: dict[str, str] = {
     "can": "drivers.can:CanDriver",
     "mavlink": "drivers.mavlink:MavlinkDriver",
@@ -19,8 +20,8 @@ LINKS: dict[str, str] = {
 }
 
 
-def open_driver(name: str, config: dict[str, Any] | None = None) -> Driver:
-    """Build (not yet open) the driver registered under ``name`` with its config section."""
+def open_driver(name: str, config: Any = None) -> Driver:
+    """Build (not yet open) the driver registered under ``name`` with its link configuration (``None``: defaults)."""
     try:
         target = LINKS[name]
     except KeyError:
@@ -33,7 +34,11 @@ def open_driver(name: str, config: dict[str, Any] | None = None) -> Driver:
             raise
         raise DriverError(f"the {name} link is not in this build yet (no module {module_name})") from None
     cls = getattr(module, cls_name)
-    return cls(dict(config or {}))
+    if config is None:
+        from bridge.config import LINK_CONFIGS
+
+        config = LINK_CONFIGS[name]()
+    return cls(config)
 
 
 __all__ = ["Driver", "DriverError", "LINKS", "open_driver"]

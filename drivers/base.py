@@ -32,9 +32,18 @@ class Pose:
 
 @dataclass(slots=True)
 class LinkHealth:
-    """What a driver reports about its link; counters only grow."""
+    """What a driver reports about its link; counters only grow.
+
+    ``ok`` is the truth the whole system acts on: True only while the link is up *and* the vehicle accepts and
+    executes velocity commands (MAVLink: heartbeat fresh, GUIDED, armed, position ready; CAN: both controllers'
+    heartbeats fresh, closed loop, no axis error; UDP: the robot's state fresh). When it is False, ``text`` says why
+    in words a person can act on (``"operator took control: mode HOLD"``, ``"left axis error: ..."``), the driver
+    host stops, and the station stops pairing and planning for that robot.
+    """
 
     connected: bool = False
+    ok: bool = False
+    text: str = "not opened"
     frames_sent: int = 0
     frames_received: int = 0
     malformed: int = 0  # frames/messages that failed to decode or validate, dropped
@@ -52,7 +61,11 @@ class Driver(Protocol):
         """Connect and bring the vehicle to a state where it accepts velocity commands (may block, bounded)."""
 
     def send(self, v: float, omega: float, now: float) -> None:
-        """Command forward speed ``v`` (m/s) and yaw rate ``omega`` (rad/s, CCW+). Inputs are already checked."""
+        """Command forward speed ``v`` (m/s) and yaw rate ``omega`` (rad/s, CCW+). Inputs are already checked.
+
+        The driver host calls it only while ``health().ok``; a driver still never sends a set-point the vehicle's
+        state forbids (the operator took control, an axis is in error) and never changes the vehicle's mode,
+        re-arms it or clears its faults by itself."""
 
     def stop(self, now: float) -> None:
         """Command zero velocity now (deadman, estop, shutdown). Must be safe to call at any time."""
@@ -62,6 +75,11 @@ class Driver(Protocol):
 
     def health(self) -> LinkHealth:
         """Counters and link state for ``status``."""
+
+    def clear_faults(self, now: float) -> None:
+        """An explicit operator action (an estop release, ``scmbridge estop --release``): clear what the vehicle's
+        controllers latched (axis errors) and bring them back to accepting commands. Never called automatically;
+        a link with nothing to clear (MAVLink: the operator changes the mode) does nothing."""
 
     def close(self) -> None:
         """Stop the vehicle if possible and release the link. Idempotent."""

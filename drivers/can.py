@@ -5,9 +5,7 @@ added at run time: arbitration id = node_id << 5 | cmd_id, 11-bit, little endian
 both axes in closed-loop velocity control, turns (v, omega) into wheel turn rates with the wheel radius and track
 width, and integrates odometry from the encoder estimates the controllers send.
 
-Config keys (``[link.can]`` in the driver config): interface (``socketcan``, ``virtual``, ``udp_multicast``...),
-channel, bitrate, left_node, right_node, wheel_radius (m), track_width (m), left_sign / right_sign (+1 or -1:
-mirrored motors), initial_pose [x, y, theta] (odometry origin), open_timeout (s).
+Configuration: :class:`bridge.config.CanLinkConfig` (``[link.can]`` in the driver host's file).
 """
 
 from __future__ import annotations
@@ -21,6 +19,7 @@ from typing import Any
 import can
 import cantools
 
+from bridge.config import CanLinkConfig
 from drivers.base import DriverError, LinkHealth, Pose
 
 AXIS_STATE_IDLE = 1
@@ -84,20 +83,14 @@ class CanDriver:
 
     name = "can"
 
-    def __init__(self, config: dict[str, Any]) -> None:
-        self.interface = str(config.get("interface", "virtual"))
-        self.channel = str(config.get("channel", "scm0"))
-        self.bitrate = int(config.get("bitrate", 500_000))
-        self.radius = float(config.get("wheel_radius", 0.1))
-        self.track = float(config.get("track_width", 0.4))
-        if self.radius <= 0 or self.track <= 0:
-            raise ValueError("wheel_radius and track_width must be positive")
-        self.left = _Axis(int(config.get("left_node", 0)), float(config.get("left_sign", 1.0)))
-        self.right = _Axis(int(config.get("right_node", 1)), float(config.get("right_sign", -1.0)))
-        self.open_timeout = float(config.get("open_timeout", 2.0))
-        x, y, th = (float(a) for a in config.get("initial_pose", (0.0, 0.0, 0.0)))
-        self.pose = [x, y, th]
-        self.extra = {k: v for k, v in config.items() if k in ("fd", "receive_own_messages")}
+    def __init__(self, config: CanLinkConfig) -> None:
+        self.config = config
+        self.interface, self.channel, self.bitrate = config.interface, config.channel, config.bitrate
+        self.radius, self.track = config.wheel_radius, config.track_width
+        self.left = _Axis(config.left_node, config.left_sign)
+        self.right = _Axis(config.right_node, config.right_sign)
+        self.open_timeout = config.open_timeout
+        self.pose = [float(a) for a in config.initial_pose]
         self.bus: can.BusABC | None = None
         self._health = LinkHealth()
 
@@ -107,7 +100,7 @@ class CanDriver:
         if self.interface == "socketcan":
             pass  # the bitrate of a SocketCAN device is set with `ip link`, not here
         elif self.interface == "udp_multicast":
-            kwargs["fd"] = bool(self.extra.get("fd", False))
+            kwargs["fd"] = self.config.fd
         else:
             kwargs["bitrate"] = self.bitrate
         try:
@@ -126,6 +119,7 @@ class CanDriver:
         while time.monotonic() < t_end:
             self.poll(time.monotonic(), block=0.02)
             if self.left.state == AXIS_STATE_CLOSED_LOOP and self.right.state == AXIS_STATE_CLOSED_LOOP:
+                self._health.ok, self._health.text = True, "ready"
                 return
         raise DriverError(f"motor controllers not in closed loop after {self.open_timeout} s "
                           f"(left state {self.left.state} error 0x{self.left.error:x}, "
@@ -222,6 +216,11 @@ class CanDriver:
                                "left_error": self.left.error, "right_error": self.right.error}
         return self._health
 
+    def clear_faults(self, now: float) -> None:
+        for ax in (self.left, self.right):
+            self._send(encode(ax.node, "Clear_Errors", {"Identify": 0}))
+            self._send(encode(ax.node, "Set_Axis_State", {"Axis_Requested_State": AXIS_STATE_CLOSED_LOOP}))
+
     def close(self) -> None:
         if self.bus is None:
             return
@@ -232,5 +231,6 @@ class CanDriver:
         finally:
             self.bus.shutdown()
             self.bus = None
-            self._health.connected = False
+            self._health.connected = self._health.ok = False
+            self._health.text = "closed"
 

@@ -8,9 +8,7 @@ acceleration and yaw ignored), vx = v, yaw_rate = -omega (NED is clockwise-posit
 whose custom mode is not GUIDED re-asserts GUIDED (a mode set while the autopilot initialises can be lost).
 poll(): LOCAL_POSITION_NED + ATTITUDE -> ENU poses (x_enu = y_ned, y_enu = x_ned, theta = pi/2 - yaw).
 
-Config keys (``[link.mavlink]``): url (pymavlink connection string: ``udpout:127.0.0.1:14550``,
-``tcp:127.0.0.1:5760`` for SITL, ``serial:/dev/ttyUSB0:57600`` is ``/dev/ttyUSB0`` with baud), baud,
-target_system, target_component, source_system (255, a GCS), rate_hz (telemetry), open_timeout, disarm_on_close.
+Configuration: :class:`bridge.config.MavlinkLinkConfig` (``[link.mavlink]`` in the driver host's file).
 """
 
 from __future__ import annotations
@@ -18,11 +16,11 @@ from __future__ import annotations
 import math
 import os
 import time
-from typing import Any
 
 os.environ.setdefault("MAVLINK20", "1")
 from pymavlink import mavutil  # noqa: E402
 
+from bridge.config import MavlinkLinkConfig  # noqa: E402
 from drivers.base import DriverError, LinkHealth, Pose  # noqa: E402
 
 GUIDED = 15
@@ -34,14 +32,14 @@ class MavlinkDriver:
 
     name = "mavlink"
 
-    def __init__(self, config: dict[str, Any]) -> None:
-        self.url = str(config.get("url", "udpout:127.0.0.1:14550"))
-        self.baud = int(config.get("baud", 57600))
-        self.target = (int(config.get("target_system", 1)), int(config.get("target_component", 1)))
-        self.source_system = int(config.get("source_system", 255))
-        self.rate_hz = float(config.get("rate_hz", 20.0))
-        self.open_timeout = float(config.get("open_timeout", 10.0))
-        self.disarm_on_close = bool(config.get("disarm_on_close", True))
+    def __init__(self, config: MavlinkLinkConfig) -> None:
+        self.config = config
+        self.url, self.baud = config.url, config.baud
+        self.target = (config.target_system, config.target_component)
+        self.source_system = config.source_system
+        self.rate_hz = config.rate_hz
+        self.open_timeout = config.open_timeout
+        self.disarm_on_close = config.disarm_on_close
         self.conn = None
         self.custom_mode: int | None = None
         self.armed = False
@@ -81,7 +79,8 @@ class MavlinkDriver:
             if time.monotonic() > t_end:
                 raise DriverError(f"vehicle not GUIDED and armed within {self.open_timeout} s "
                                   f"(mode {self.custom_mode}, armed {self.armed})")
-        self._health.connected = True
+        self._health.connected = self._health.ok = True
+        self._health.text = "ready"
 
     def _command(self, command: int, p1: float = 0, p2: float = 0) -> None:
         self.conn.mav.command_long_send(self.target[0], self.target[1], command, 0, p1, p2, 0, 0, 0, 0, 0)
@@ -152,6 +151,9 @@ class MavlinkDriver:
         self._health.detail = {"custom_mode": self.custom_mode, "armed": self.armed}
         return self._health
 
+    def clear_faults(self, now: float) -> None:
+        """Nothing to clear on this link (see :meth:`drivers.base.Driver.clear_faults`)."""
+
     def close(self) -> None:
         if self.conn is None:
             return
@@ -162,4 +164,5 @@ class MavlinkDriver:
         finally:
             self.conn.close()
             self.conn = None
-            self._health.connected = False
+            self._health.connected = self._health.ok = False
+            self._health.text = "closed"

@@ -1,22 +1,21 @@
 """UDP shim link for small microcontroller robots: MessagePack datagrams of the same msgspec structs.
 
-The driver sends :class:`bridge.messages.Command` datagrams (its own increasing ``seq``) to the robot; the robot
-answers with :class:`bridge.messages.LearnerState` datagrams carrying the robot's own ``seq``. Every datagram is
+The driver sends :class:`bridge.wire.Command` datagrams (its own increasing ``seq``) to the robot; the robot
+answers with :class:`bridge.wire.LearnerState` datagrams carrying the robot's own ``seq``. Every datagram is
 decoded and validated; malformed ones are counted and dropped, duplicated or reordered states (seq not above the
 last one) are dropped, and gaps in the robot's sequence are counted. The robot stops on its own watchdog when
 commands stop (see :mod:`sim_learner.udp_robot`).
 
-Config keys (``[link.udp]``): robot_host, robot_port, bind_host (default 127.0.0.1), bind_port (0: any free),
-open_timeout (s).
+Configuration: :class:`bridge.config.UdpLinkConfig` (``[link.udp]`` in the driver host's file).
 """
 
 from __future__ import annotations
 
 import socket
 import time
-from typing import Any
 
-from bridge import messages as M
+from bridge import wire as M
+from bridge.config import UdpLinkConfig
 from drivers.base import DriverError, LinkHealth, Pose
 
 
@@ -25,10 +24,11 @@ class UdpDriver:
 
     name = "udp"
 
-    def __init__(self, config: dict[str, Any]) -> None:
-        self.robot = (str(config.get("robot_host", "127.0.0.1")), int(config.get("robot_port", 47800)))
-        self.bind = (str(config.get("bind_host", "127.0.0.1")), int(config.get("bind_port", 0)))
-        self.open_timeout = float(config.get("open_timeout", 2.0))
+    def __init__(self, config: UdpLinkConfig) -> None:
+        self.config = config
+        self.robot = (config.robot_host, config.robot_port)
+        self.bind = (config.bind_host, config.bind_port)
+        self.open_timeout = config.open_timeout
         self.sock: socket.socket | None = None
         self.seq = 0
         self.last_state_seq = -1
@@ -40,7 +40,8 @@ class UdpDriver:
         self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         self.sock.bind(self.bind)
         self.sock.setblocking(False)
-        self._health.connected = True
+        self._health.connected = self._health.ok = True
+        self._health.text = "ready"
         t_end = time.monotonic() + self.open_timeout
         while time.monotonic() < t_end:
             self.stop(time.monotonic())  # a stop is also the hello that tells the robot where we are
@@ -98,6 +99,9 @@ class UdpDriver:
         self._health.detail = {"state_gaps": self.gaps, "state_out_of_order": self.out_of_order}
         return self._health
 
+    def clear_faults(self, now: float) -> None:
+        """Nothing to clear on this link (see :meth:`drivers.base.Driver.clear_faults`)."""
+
     def close(self) -> None:
         if self.sock is None:
             return
@@ -106,4 +110,5 @@ class UdpDriver:
         finally:
             self.sock.close()
             self.sock = None
-            self._health.connected = False
+            self._health.connected = self._health.ok = False
+            self._health.text = "closed"

@@ -10,12 +10,25 @@ the learner's hard range (a real motor controller cannot do more than it can).
 
 from __future__ import annotations
 
-import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
+
+from transfer.paper import (  # noqa: F401  (re-exported: the sims' learners use the paper's ranges)
+    EXP_LEARNER_V,
+    EXP_LEARNER_W,
+    MPC_LEARNER_V,
+    MPC_LEARNER_W,
+    MPC_TEACHER_V,
+    MPC_TEACHER_W,
+    PRIM_LEARNER_V,
+    PRIM_LEARNER_W,
+    PRIM_TEACHER_V,
+    PRIM_TEACHER_W,
+)
+from transfer.teacher.unicycle import step as unicycle_step
 
 Shape = Callable[[NDArray[np.float64]], NDArray[np.float64]]
 
@@ -91,35 +104,12 @@ class LearnerModel:
         pos_noise: float = 0.0,
     ) -> NDArray[np.float64]:
         """One Euler step under command ``u``; optional Gaussian position noise (std ``pos_noise`` m)."""
-        s = np.asarray(state, dtype=float)
-        vel = self.response(u)
-        th = s[..., 2]
-        out = np.stack(
-            [
-                s[..., 0] + dt * vel[..., 0] * np.cos(th),
-                s[..., 1] + dt * vel[..., 0] * np.sin(th),
-                th + dt * vel[..., 1],
-            ],
-            axis=-1,
-        )
+        out = unicycle_step(state, self.response(u), dt)  # the unicycle moving with the learner's real response
         if pos_noise > 0.0:
             if rng is None:
                 raise ValueError("position noise needs an explicit random generator")
             out[..., :2] += rng.normal(0.0, pos_noise, size=out[..., :2].shape)
         return out
-
-
-# The paper's command ranges (Tables 1 and 2), (low, high).
-MPC_TEACHER_V = (0.05, 0.6)
-MPC_TEACHER_W = (-math.pi / 4, math.pi / 4)
-MPC_LEARNER_V = (0.05, 0.3)
-MPC_LEARNER_W = (-math.pi / 16, math.pi / 12)
-EXP_LEARNER_V = (0.05, 0.2)
-EXP_LEARNER_W = (-math.pi / 8, math.pi / 8)
-PRIM_TEACHER_V = (0.0, 3.0)
-PRIM_TEACHER_W = (-math.pi / 3, math.pi / 3)
-PRIM_LEARNER_V = (0.0, 1.0)
-PRIM_LEARNER_W = (-math.pi / 8, math.pi / 8)
 
 
 def mpc_learner() -> LearnerModel:

@@ -11,7 +11,7 @@ from __future__ import annotations
 import socket
 import time
 
-from bridge import messages as M
+from bridge import wire as M
 from sim_learner.device import ThreadedDevice
 from sim_learner.vehicle import SimVehicle
 

@@ -10,9 +10,9 @@ import sys
 import tempfile
 import time
 
-from bridge import messages as M
-from bridge.keys import Keys
+from bridge import wire as M
 from bridge.procs import stop_group
+from bridge.wire import Keys
 from bridge.zsession import free_port, make_config, open_session, tcp
 
 

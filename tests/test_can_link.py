@@ -11,6 +11,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from bridge.config import CanLinkConfig
 from drivers import open_driver
 from drivers.can import AXIS_ERROR_WATCHDOG, AXIS_STATE_CLOSED_LOOP, AXIS_STATE_IDLE, decode, encode
 from sim_learner.can_ecu import DiffDriveEcus
@@ -37,7 +38,7 @@ def rig():
     channel = f"test-{uuid.uuid4().hex[:8]}"
     vehicle = SimVehicle(mpc_learner(), (1.0, 2.0, 0.5), now=time.monotonic())
     ecus = DiffDriveEcus({"interface": "virtual", "channel": channel}, vehicle, watchdog=0.3).start()
-    driver = open_driver("can", {"interface": "virtual", "channel": channel, "initial_pose": [1.0, 2.0, 0.5]})
+    driver = open_driver("can", CanLinkConfig(interface="virtual", channel=channel, initial_pose=(1.0, 2.0, 0.5)))
     spy = can.Bus(interface="virtual", channel=channel)
     try:
         driver.open(time.monotonic())

@@ -7,9 +7,8 @@ from pathlib import Path
 import pytest
 import zenoh
 
-from bridge.driver_host import load_config
+from bridge.config import load_driver, load_station
 from drivers import open_driver
-from transfer.domain import Bounds
 
 DEPLOY = Path(__file__).resolve().parent.parent / "deploy"
 
@@ -27,13 +26,12 @@ def test_no_shipped_config_listens_on_every_interface_or_scouts_by_multicast() -
 
 
 def test_example_station_and_driver_configs_are_consistent() -> None:
-    st = load_config(str(DEPLOY / "station.example.toml"))
-    tb = Bounds(tuple(st["teacher_bounds"]["v"]), tuple(st["teacher_bounds"]["w"]))
-    lb = Bounds(tuple(st["learner_bounds"]["v"]), tuple(st["learner_bounds"]["w"]))
+    st = load_station(DEPLOY / "station.example.toml")
+    tb, lb = st.teacher_bounds.bounds(), st.learner_bounds.bounds()
     assert tb.contains(lb.lo) and tb.contains(lb.hi)  # the learner is less capable than the teacher
-    dr = load_config(str(DEPLOY / "driver.example.toml"))
-    assert dr["robot"] == st["robot"] and dr["driver"]["cmd_timeout"] == pytest.approx(0.3)
-    drv = open_driver("can", dr["link"]["can"])  # constructing does no I/O
+    dr = load_driver(DEPLOY / "driver.example.toml")
+    assert dr.robot == st.robot and dr.driver.cmd_timeout == pytest.approx(0.3)
+    drv = open_driver("can", dr.link.can)  # constructing does no I/O
     assert drv.channel == "can0" and drv.interface == "socketcan"
 
 
@@ -45,11 +43,11 @@ def test_systemd_units_run_the_installed_commands() -> None:
 
 def test_an_unknown_link_is_a_clear_error() -> None:
     with pytest.raises(ValueError, match="unknown link"):
-        open_driver("carrier-pigeon", {})
+        open_driver("carrier-pigeon")
 
 
 @pytest.mark.parametrize("link", ["udp", "mavlink"])
 def test_example_link_configs_construct_their_drivers(link: str) -> None:
-    cfg = load_config(str(DEPLOY / f"driver.{link}.example.toml"))
-    drv = open_driver(link, cfg["link"][link])
-    assert drv.name == link and cfg["driver"]["cmd_timeout"] == pytest.approx(0.3)
+    cfg = load_driver(DEPLOY / f"driver.{link}.example.toml")
+    drv = open_driver(link, getattr(cfg.link, link))
+    assert drv.name == link and cfg.driver.cmd_timeout == pytest.approx(0.3)

@@ -16,10 +16,10 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from bridge import messages as M
+from bridge import wire as M
 from bridge.driver_host import CommandGate
-from bridge.keys import Keys, status_key
 from bridge.procs import stop_group
+from bridge.wire import Keys, status_key
 from bridge.zsession import free_port, make_config, open_session, tcp
 from transfer.domain import Bounds
 

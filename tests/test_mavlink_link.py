@@ -10,6 +10,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from bridge.config import MavlinkLinkConfig
 from drivers import open_driver
 from drivers.mavlink import TYPE_MASK_VEL_YAWRATE
 from sim_learner.dynamics import mpc_learner
@@ -21,7 +22,7 @@ from sim_learner.vehicle import SimVehicle
 def rig():
     vehicle = SimVehicle(mpc_learner(), (1.0, 2.0, 0.3), now=time.monotonic())
     rover = MavlinkRover(vehicle, init_s=0.3, target_timeout=0.6).start()
-    driver = open_driver("mavlink", {"url": f"udpout:127.0.0.1:{rover.port}", "rate_hz": 20, "open_timeout": 15})
+    driver = open_driver("mavlink", MavlinkLinkConfig(url=f"udpout:127.0.0.1:{rover.port}", rate_hz=20, open_timeout=15))
     try:
         driver.open(time.monotonic())
         yield driver, rover, vehicle

@@ -9,11 +9,11 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from bridge.keys import Keys, key, status_key
-from bridge.messages import (
+from bridge.wire import (
     Applied,
     Command,
     Estop,
+    Keys,
     LearnerState,
     MessageError,
     PairRecord,
@@ -22,6 +22,8 @@ from bridge.messages import (
     TeacherCommand,
     decode,
     encode,
+    key,
+    status_key,
     validated,
 )
 

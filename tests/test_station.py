@@ -12,11 +12,11 @@ import time
 import numpy as np
 import pytest
 
-from bridge import messages as M
-from bridge.keys import Keys
+from bridge import wire as M
 from bridge.pairing import IntervalPairer
 from bridge.procs import stop_group
 from bridge.station import load_store, save_atomic
+from bridge.wire import Keys
 from bridge.zsession import free_port, make_config, open_session, tcp
 from sim_learner.dynamics import MPC_LEARNER_V, MPC_LEARNER_W, MPC_TEACHER_V, MPC_TEACHER_W
 from transfer.domain import Bounds

@@ -11,7 +11,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from bridge import messages as M
+from bridge import wire as M
+from bridge.config import UdpLinkConfig
 from drivers import open_driver
 from sim_learner.dynamics import mpc_learner
 from sim_learner.udp_robot import UdpRobot
@@ -22,7 +23,7 @@ from sim_learner.vehicle import SimVehicle
 def rig():
     vehicle = SimVehicle(mpc_learner(), (0.0, 0.0, 0.0), now=time.monotonic())
     robot = UdpRobot(vehicle, watchdog=0.3).start()
-    driver = open_driver("udp", {"robot_port": robot.port})
+    driver = open_driver("udp", UdpLinkConfig(robot_port=robot.port))
     try:
         driver.open(time.monotonic())
         yield driver, robot, vehicle
@@ -72,7 +73,7 @@ def test_replayed_commands_and_garbage_are_dropped_and_counted(rig) -> None:
 @settings(max_examples=40, deadline=None)
 @given(st.binary(min_size=1, max_size=64))
 def test_random_state_datagrams_never_crash_the_driver(data: bytes) -> None:
-    driver = open_driver("udp", {"robot_port": 9})
+    driver = open_driver("udp", UdpLinkConfig(robot_port=9))
     driver.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     driver.sock.bind(("127.0.0.1", 0))
     driver.sock.setblocking(False)

@@ -39,8 +39,8 @@ def run_link(link: str, seconds: float, workdir: str) -> dict:
     """Commands at 50 Hz for ``seconds`` through the driver host on ``link``; latency, loop timing, memory."""
     import socket
 
-    from bridge import messages as M
-    from bridge.keys import Keys, status_key
+    from bridge import wire as M
+    from bridge.wire import Keys, status_key
     from bridge.zsession import free_port, make_config, open_session, tcp
 
     port = free_port()

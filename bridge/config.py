@@ -1,0 +1,453 @@
+"""Typed configuration: the station's, the driver host's and each link's settings as msgspec Structs, from TOML.
+
+Every command that takes a configuration decodes it here before it opens any link or session. A mistake is refused
+with :class:`ConfigError`, whose text is one line naming the file, the key path and the problem (for an unknown
+key, the nearest valid name): ``driver.toml: driver.cmd_timout: unknown key (did you mean 'cmd_timeout'?)``.
+Numbers are finite and within the ranges written in their types; cross-field rules (``min < max``, distinct CAN
+nodes) are checked in ``__post_init__``. ``scmbridge config check FILE`` validates a file and ``scmbridge config
+show --kind station|driver|mission`` prints a commented default made from these types (docs/ARCHITECTURE.md,
+"Configuration").
+"""
+
+from __future__ import annotations
+
+import difflib
+import math
+import re
+import sys
+import types
+from importlib import resources
+from pathlib import Path
+from typing import Annotated, Any, Literal, TypeVar, Union, get_args, get_origin, get_type_hints
+
+import msgspec
+from msgspec import Meta, Struct, field
+
+from bridge.wire import MissionSpec
+from transfer import paper
+from transfer.domain import Bounds
+from transfer.mission import Mission
+from transfer.teacher.path import Path as Polyline
+
+
+class ConfigError(ValueError):
+    """A configuration the user has to fix; ``str()`` is the one line to print."""
+
+    def __init__(self, source: str, where: str, problem: str) -> None:
+        self.source, self.where, self.problem = source, where, problem
+        super().__init__(f"{source}: {where}: {problem}" if where else f"{source}: {problem}")
+
+
+def _m(description: str, **bounds: float) -> Meta:
+    return Meta(description=description, **bounds)
+
+
+Finite = Annotated[float, Meta(ge=-1e9, le=1e9)]  # a NaN or inf fails the comparison and is refused
+Range = tuple[Finite, Finite]
+RobotName = Annotated[str, Meta(pattern=r"^[A-Za-z0-9_\-]{1,64}$", description="one Zenoh key chunk")]
+Port = Annotated[int, Meta(ge=0, le=65535)]
+
+
+class _Cfg(Struct, forbid_unknown_fields=True, kw_only=True, frozen=True):
+    """Base: unknown keys are errors."""
+
+
+class BoundsConfig(_Cfg):
+    """A (v, omega) command box."""
+
+    v: Annotated[Range, _m("linear speed [min, max], m/s")]
+    w: Annotated[Range, _m("yaw rate [min, max], rad/s (counter-clockwise positive)")]
+
+    def __post_init__(self) -> None:
+        for name, (lo, hi) in (("v", self.v), ("w", self.w)):
+            if not lo < hi:
+                raise ValueError(f"{name} = [{lo}, {hi}]: min must be < max")
+
+    def bounds(self) -> Bounds:
+        return Bounds(tuple(self.v), tuple(self.w))
+
+
+# ------------------------------------------------------------------------------------------------------ links
+class CanLinkConfig(_Cfg):
+    """``[link.can]``: a differential-drive base with one ODrive 0.6 (CANSimple) controller per wheel."""
+
+    interface: Annotated[str, _m("python-can interface: socketcan, virtual, udp_multicast, pcan, ...")] = "socketcan"
+    channel: Annotated[str, _m("bus channel: can0, a virtual channel name, a multicast group")] = "can0"
+    bitrate: Annotated[int, _m("bit/s (ignored by socketcan: set it with `ip link`)", ge=10_000, le=8_000_000)] = (
+        500_000)
+    fd: Annotated[bool, _m("CAN FD (udp_multicast needs an explicit false)")] = False
+    left_node: Annotated[int, _m("left wheel's CANSimple node id", ge=0, le=63)] = 0
+    right_node: Annotated[int, _m("right wheel's CANSimple node id", ge=0, le=63)] = 1
+    left_sign: Annotated[float, _m("+1 or -1: -1 for a mirrored motor")] = 1.0
+    right_sign: Annotated[float, _m("+1 or -1: -1 for a mirrored motor")] = -1.0
+    wheel_radius: Annotated[float, _m("m", gt=0.0, le=10.0)] = 0.1
+    track_width: Annotated[float, _m("distance between the wheels, m", gt=0.0, le=100.0)] = 0.4
+    initial_pose: Annotated[tuple[Finite, Finite, Finite], _m("odometry origin [x, y, theta]")] = (0.0, 0.0, 0.0)
+    open_timeout: Annotated[float, _m("s to wait for both axes in closed loop", gt=0.0, le=120.0)] = 2.0
+
+    def __post_init__(self) -> None:
+        if self.left_node == self.right_node:
+            raise ValueError(f"left_node and right_node are both {self.left_node}; each wheel needs its own node")
+        for name in ("left_sign", "right_sign"):
+            if getattr(self, name) not in (1.0, -1.0):
+                raise ValueError(f"{name} = {getattr(self, name)}: must be 1 or -1")
+
+
+class MavlinkLinkConfig(_Cfg):
+    """``[link.mavlink]``: an ArduPilot Rover in GUIDED mode."""
+
+    url: Annotated[str, _m("pymavlink connection: tcp:HOST:5760 (SITL), udpout:HOST:PORT, /dev/ttyUSB0")] = (
+        "udpout:127.0.0.1:14550")
+    baud: Annotated[int, _m("serial baud rate", ge=1200, le=4_000_000)] = 57600
+    target_system: Annotated[int, _m("the vehicle's MAVLink system id", ge=1, le=255)] = 1
+    target_component: Annotated[int, _m("the autopilot's component id", ge=0, le=255)] = 1
+    source_system: Annotated[int, _m("our system id (a ground control station)", ge=1, le=255)] = 255
+    rate_hz: Annotated[float, _m("LOCAL_POSITION_NED and ATTITUDE rate requested, Hz", gt=0.0, le=100.0)] = 20.0
+    open_timeout: Annotated[float, _m("s for heartbeat, GUIDED and arming", gt=0.0, le=300.0)] = 10.0
+    disarm_on_close: Annotated[bool, _m("disarm when the driver host stops")] = True
+
+
+class UdpLinkConfig(_Cfg):
+    """``[link.udp]``: MessagePack datagrams to a small robot (the UDP shim)."""
+
+    robot_host: Annotated[str, _m("the robot's address")] = "127.0.0.1"
+    robot_port: Annotated[Port, _m("the robot's UDP port")] = 47800
+    bind_host: Annotated[str, _m("our address (127.0.0.1 for loopback tests)")] = "127.0.0.1"
+    bind_port: Annotated[Port, _m("our UDP port, 0: any free")] = 0
+    open_timeout: Annotated[float, _m("s to wait for the robot's first state", gt=0.0, le=120.0)] = 2.0
+
+    def __post_init__(self) -> None:
+        if self.robot_port == 0:
+            raise ValueError("robot_port must be the robot's port (1-65535)")
+
+
+class LinkSection(_Cfg):
+    """``[link.<name>]``: the settings of each link this driver host may use (``--link`` picks one)."""
+
+    can: CanLinkConfig = field(default_factory=CanLinkConfig)
+    mavlink: MavlinkLinkConfig = field(default_factory=MavlinkLinkConfig)
+    udp: UdpLinkConfig = field(default_factory=UdpLinkConfig)
+
+
+LINK_CONFIGS: dict[str, type[_Cfg]] = {"can": CanLinkConfig, "mavlink": MavlinkLinkConfig, "udp": UdpLinkConfig}
+
+# ---------------------------------------------------------------------------------------------- driver host
+DEFAULT_HARD_LIMITS = BoundsConfig(v=(-0.5, 0.5), w=(-1.0, 1.0))
+
+
+class DriverSection(_Cfg):
+    """``[driver]``: the driver host's loop and safety settings."""
+
+    rate_hz: Annotated[float, _m("control loop rate, Hz", ge=1.0, le=1000.0)] = 50.0
+    cmd_timeout: Annotated[float, _m("deadman: no valid command for this long stops the vehicle, s", gt=0.0,
+                                     le=10.0)] = 0.3
+    hard_limits: Annotated[BoundsConfig, _m("every command is clamped into this box before a vehicle sees it")] = (
+        DEFAULT_HARD_LIMITS)
+
+
+class DriverConfig(_Cfg):
+    """A driver host's configuration file."""
+
+    robot: RobotName = "learner"
+    driver: DriverSection = field(default_factory=DriverSection)
+    link: LinkSection = field(default_factory=LinkSection)
+
+
+# -------------------------------------------------------------------------------------------------- station
+class StationSection(_Cfg):
+    """``[station]``: the loop, persistence and the mission."""
+
+    rate_hz: Annotated[float, _m("control tick rate, Hz (the paper's 10 Hz)", ge=0.5, le=200.0)] = 10.0
+    pair_dt: Annotated[float, _m("pairing interval, s", ge=0.01, le=10.0)] = 0.1
+    horizon: Annotated[int, _m("MPC horizon N, steps", ge=2, le=200)] = 20
+    persist_every_s: Annotated[float, _m("save the pair store this often, s", ge=0.1, le=86400.0)] = 5.0
+    store_path: Annotated[str, _m("pair store file; empty: pairs-<robot>.bin in the working directory")] = ""
+    mission: Annotated[str, _m("mission file (TOML); empty: the paper's S-path shipped with scmbridge")] = ""
+
+
+class TransferSection(_Cfg):
+    """``[transfer]``: refinement grid and the mapper."""
+
+    grid: Annotated[tuple[Annotated[int, Meta(ge=2, le=100)], Annotated[int, Meta(ge=2, le=100)]],
+                    _m("cells of the normalised learner domain [n_v, n_omega]")] = (11, 11)
+    k_min: Annotated[int, _m("pairs a cell needs before it holds a refined pair", ge=1, le=1000)] = 5
+    mapper: Annotated[Literal["scm", "affine", "barycentric", "identity"], _m("how a region maps commands")] = "scm"
+    seed: Annotated[int, _m("random generator seed of the exploration", ge=0, le=2**32 - 1)] = 0
+
+
+DEFAULT_TEACHER_BOUNDS = BoundsConfig(v=paper.MPC_TEACHER_V, w=paper.MPC_TEACHER_W)
+DEFAULT_LEARNER_BOUNDS = BoundsConfig(v=paper.MPC_LEARNER_V, w=paper.MPC_LEARNER_W)
+
+
+class StationConfig(_Cfg):
+    """A station's configuration file."""
+
+    robot: RobotName = "learner"
+    station: StationSection = field(default_factory=StationSection)
+    teacher_bounds: Annotated[BoundsConfig, _m("the teacher's command range (the paper's MPC teacher by default)")] = (
+        DEFAULT_TEACHER_BOUNDS)
+    learner_bounds: Annotated[BoundsConfig, _m("the learner's own command range")] = DEFAULT_LEARNER_BOUNDS
+    transfer: TransferSection = field(default_factory=TransferSection)
+
+    def store_file(self) -> Path:
+        return Path(self.station.store_path or f"pairs-{self.robot}.bin")
+
+
+KINDS: dict[str, type[Struct]] = {"station": StationConfig, "driver": DriverConfig, "mission": MissionSpec}
+C = TypeVar("C", bound=Struct)
+
+
+# ------------------------------------------------------------------------------------------------- decoding
+def _unwrap(tp: Any) -> Any:
+    """The Struct class behind ``Annotated[...]`` / ``X | None``, else None."""
+    while get_origin(tp) is Annotated:
+        tp = get_args(tp)[0]
+    if get_origin(tp) in (Union, types.UnionType):
+        inner = [a for a in get_args(tp) if a is not type(None)]
+        tp = inner[0] if len(inner) == 1 else None
+        return _unwrap(tp) if tp is not None else None
+    return tp if isinstance(tp, type) and issubclass(tp, Struct) else None
+
+
+def _struct_at(kind: type[Struct], path: list[str]) -> type[Struct] | None:
+    tp: type[Struct] | None = kind
+    for name in path:
+        if tp is None:
+            return None
+        hints = get_type_hints(tp, include_extras=True)
+        tp = _unwrap(hints[name]) if name in hints else None
+    return tp
+
+
+_AT = re.compile(r"^(?P<msg>.*?)(?: - at `\$(?P<path>[^`]*)`)?$", re.S)
+
+
+def _explain(kind: type[Struct], err: msgspec.ValidationError) -> tuple[str, str]:
+    """(key path, problem) from msgspec's message, with the nearest valid name for an unknown key."""
+    m = _AT.match(str(err))
+    msg = m.group("msg") if m else str(err)
+    raw = (m.group("path") or "") if m else ""
+    parts = [p for p in re.split(r"\.|(?=\[)", raw) if p]
+    keys = [p for p in parts if not p.startswith("[")]
+    where = "".join(p if p.startswith("[") else ("." + p) for p in parts).lstrip(".")
+    unknown = re.match(r"Object contains unknown field `([^`]*)`", msg)
+    if unknown:
+        name = unknown.group(1)
+        owner = _struct_at(kind, keys)
+        valid = list(owner.__struct_fields__) if owner is not None else []
+        close = difflib.get_close_matches(name, valid, n=1, cutoff=0.5)
+        hint = f" (did you mean '{close[0]}'?)" if close else (f" (valid: {', '.join(valid)})" if valid else "")
+        return (f"{where}.{name}" if where else name), f"unknown key{hint}"
+    missing = re.match(r"Object missing required field `([^`]*)`", msg)
+    if missing:
+        return (f"{where}.{missing.group(1)}" if where else missing.group(1)), "required key is missing"
+    msg = msg.replace("Expected `float`", "expected a finite number").replace("`", "'")
+    msg = msg[:1].lower() + msg[1:]
+    if "<= 1000000000.0" in msg or ">= -1000000000.0" in msg:
+        msg = "expected a finite number"
+    return where, msg
+
+
+def decode_toml(data: bytes | str, kind: type[C], source: str = "<config>") -> C:
+    """Decode TOML text into ``kind``; raise :class:`ConfigError` (one line) on any problem."""
+    raw = data.encode() if isinstance(data, str) else data
+    try:
+        return msgspec.toml.decode(raw, type=kind)
+    except msgspec.ValidationError as exc:
+        where, problem = _explain(kind, exc)
+        raise ConfigError(source, where, problem) from None
+    except msgspec.DecodeError as exc:
+        raise ConfigError(source, "", f"not valid TOML: {str(exc).splitlines()[0]}") from None
+
+
+def load(path: str | Path | None, kind: type[C]) -> C:
+    """The configuration in ``path`` (the defaults when ``path`` is None), or :class:`ConfigError`."""
+    if path is None:
+        return msgspec.convert({}, kind)
+    p = Path(path)
+    try:
+        data = p.read_bytes()
+    except FileNotFoundError:
+        raise ConfigError(str(p), "", "no such file") from None
+    except IsADirectoryError:
+        raise ConfigError(str(p), "", "is a directory, not a configuration file") from None
+    except OSError as exc:
+        raise ConfigError(str(p), "", f"cannot read: {exc.strerror or exc}") from None
+    return decode_toml(data, kind, str(p))
+
+
+def load_station(path: str | Path | None) -> StationConfig:
+    return load(path, StationConfig)
+
+
+def load_driver(path: str | Path | None) -> DriverConfig:
+    return load(path, DriverConfig)
+
+
+def guess_kind(data: dict[str, Any]) -> str:
+    """Which kind of file a decoded TOML table is, from its top-level keys."""
+    if "path" in data:
+        return "mission"
+    if "driver" in data or "link" in data:
+        return "driver"
+    return "station"
+
+
+# ---------------------------------------------------------------------------------------------------- missions
+SHIPPED_MISSIONS = {"paper-s-path": "paper_s_path.toml", "paper-primitives-s-path": "paper_primitives_s_path.toml"}
+
+
+def mission_from_spec(spec: MissionSpec) -> Mission:
+    """The method's :class:`transfer.mission.Mission` for a validated spec (file or message)."""
+    return Mission(spec.name, Polyline(spec.path), spec.obstacles or [], spec.goal_tolerance, spec.start, spec.frame)
+
+
+def load_mission_spec(path: str | Path | None = None) -> MissionSpec:
+    """A mission file (TOML), or a shipped mission by name (``paper-s-path``, the default)."""
+    name = str(path) if path else "paper-s-path"
+    if name in SHIPPED_MISSIONS:
+        text = resources.files("bridge").joinpath("missions", SHIPPED_MISSIONS[name]).read_bytes()
+        return decode_toml(text, MissionSpec, f"<shipped mission {name}>")
+    return load(name, MissionSpec)
+
+
+def load_mission(path: str | Path | None = None) -> Mission:
+    """See :func:`load_mission_spec`; geometry problems (a degenerate path) are ConfigErrors too."""
+    spec = load_mission_spec(path)
+    try:
+        return mission_from_spec(spec)
+    except ValueError as exc:
+        raise ConfigError(str(path or "paper-s-path"), "", str(exc)) from None
+
+
+# --------------------------------------------------------------------------------------------------- show
+def _toml_value(v: Any) -> str:
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, float):
+        return repr(v) if math.isfinite(v) else "nan"
+    if isinstance(v, int):
+        return str(v)
+    if isinstance(v, str):
+        return '"' + v.replace("\\", "\\\\").replace('"', '\\"') + '"'
+    if isinstance(v, (list, tuple)):
+        return "[" + ", ".join(_toml_value(a) for a in v) + "]"
+    raise TypeError(f"no TOML form for {v!r}")
+
+
+def _describe(tp: Any) -> str:
+    parts: list[str] = []
+    while get_origin(tp) is Annotated:
+        args = get_args(tp)
+        for meta in args[1:]:
+            if isinstance(meta, Meta):
+                if meta.description:
+                    parts.append(meta.description)
+                rng = [f"{op} {getattr(meta, k)}" for k, op in (("gt", ">"), ("ge", ">="), ("lt", "<"), ("le", "<="))
+                       if getattr(meta, k) is not None and abs(getattr(meta, k)) != 1e9]
+                if rng:
+                    parts.append(", ".join(rng))
+        tp = args[0]
+    if get_origin(tp) is Literal:
+        parts.append("one of " + ", ".join(repr(a) for a in get_args(tp)))
+    return "; ".join(parts)
+
+
+def _show(obj: Struct, prefix: str, out: list[str]) -> None:
+    hints = get_type_hints(type(obj), include_extras=True)
+    tables = []
+    for name in obj.__struct_fields__:
+        val = getattr(obj, name)
+        if isinstance(val, Struct):
+            tables.append((name, val, _describe(hints[name])))
+            continue
+        if val is None:
+            out.append(f"# {name} =  # {_describe(hints[name])} (unset)")
+            continue
+        text = f"{name} = {_toml_value(val)}"
+        desc = _describe(hints[name])
+        out.append(f"{text:<40} # {desc}" if desc else text)
+    for name, val, desc in tables:
+        if any(not isinstance(getattr(val, f), Struct) for f in val.__struct_fields__):
+            out.append("")
+            out.append(f"[{prefix}{name}]")
+            doc = (type(val).__doc__ or "").strip().splitlines()
+            out.append(f"# {desc}" if desc else f"# {doc[0].replace('``', '')}" if doc else "#")
+        _show(val, f"{prefix}{name}.", out)
+
+
+def show(kind: str) -> str:
+    """A commented TOML file holding every default of ``kind`` (station, driver or mission)."""
+    if kind == "mission":
+        text = resources.files("bridge").joinpath("missions", SHIPPED_MISSIONS["paper-s-path"]).read_text()
+        return text
+    obj = msgspec.convert({}, KINDS[kind])
+    out = [f"# scmbridge {kind} configuration: every key with its default (scmbridge config show --kind {kind})"]
+    _show(obj, "", out)
+    return "\n".join(out) + "\n"
+
+
+def check(path: str, kind: str | None = None) -> str:
+    """Validate a file; returns a one-line description of what it is. Raises ConfigError."""
+    p = Path(path)
+    if kind is None:
+        try:
+            table = msgspec.toml.decode(p.read_bytes())
+        except FileNotFoundError:
+            raise ConfigError(str(p), "", "no such file") from None
+        except OSError as exc:
+            raise ConfigError(str(p), "", f"cannot read: {exc.strerror or exc}") from None
+        except msgspec.DecodeError as exc:
+            raise ConfigError(str(p), "", f"not valid TOML: {str(exc).splitlines()[0]}") from None
+        kind = guess_kind(table if isinstance(table, dict) else {})
+    if kind == "mission":
+        m = load_mission(p)
+        return f"{p}: a valid mission '{m.name}': {len(m.path.points)} waypoints, {m.path.length:.2f} m, " \
+               f"{len(m.obstacles)} obstacles"
+    cfg = load(p, KINDS[kind])
+    return f"{p}: a valid {kind} configuration for robot '{cfg.robot}'"
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``scmbridge config check FILE [--kind K]`` / ``scmbridge config show --kind station|driver|mission``."""
+    import argparse
+
+    ap = argparse.ArgumentParser(prog="scmbridge config", description="validate or show configuration files")
+    sub = ap.add_subparsers(dest="what", required=True)
+    c = sub.add_parser("check", help="validate a station, driver or mission file (exit 2 with the problem)")
+    c.add_argument("file")
+    c.add_argument("--kind", choices=sorted(KINDS), help="default: guessed from the file's keys")
+    s = sub.add_parser("show", help="print a commented default")
+    s.add_argument("--kind", choices=sorted(KINDS), required=True)
+    args = ap.parse_args(argv)
+    if args.what == "show":
+        sys.stdout.write(show(args.kind))
+        return 0
+    print(check(args.file, args.kind))
+    return 0
+
+
+__all__ = [
+    "KINDS",
+    "LINK_CONFIGS",
+    "BoundsConfig",
+    "CanLinkConfig",
+    "ConfigError",
+    "DriverConfig",
+    "DriverSection",
+    "MavlinkLinkConfig",
+    "StationConfig",
+    "StationSection",
+    "TransferSection",
+    "UdpLinkConfig",
+    "check",
+    "decode_toml",
+    "load",
+    "load_driver",
+    "load_mission",
+    "load_mission_spec",
+    "load_station",
+    "main",
+    "mission_from_spec",
+    "show",
+]

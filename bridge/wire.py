@@ -1,0 +1,326 @@
+"""The wire contract: Zenoh keys and one msgspec Struct per key, MessagePack on the wire (docs/ARCHITECTURE.md).
+
+This module is a leaf: it imports nothing of the project, so drivers, emulators, the station and a lab's own tools
+(an external teacher, a motion-capture bridge, a recorder) can all depend on it while it depends on nothing.
+
+Constructing or encoding a Struct does not validate; *decoding* does (types, ``Meta`` ranges, NaN/inf against
+the bounds, unknown fields). So every trust boundary decodes with :func:`decode`, which raises
+:class:`MessageError` with the reason; callers count and drop. The bounds below are sanity bounds of the wire
+format (a command of 1000 m/s is not a command), not the vehicle's hard limits, which the driver host applies.
+
+Stamps are ``time.monotonic()`` seconds of the *sender's* clock. Pairing in the station only compares stamps that
+come from one clock (the driver host's ``state`` and ``applied``), so base station and robot need no clock sync.
+
+Senders of sequenced streams (``cmd``, ``state``) carry an ``epoch``: a number the sender picks once per start
+(:func:`new_epoch`). A receiver follows one ``(epoch, seq)`` stream; a new epoch is recognised at once when the
+stream it follows has gone silent (a restarted station or robot), so an old, replayed or forged sequence number
+cannot lock anyone out for longer than a silence timeout (see ``bridge.gate.SeqGate``).
+"""
+
+from __future__ import annotations
+
+import re
+import secrets
+from typing import Annotated, Literal, TypeVar
+
+import msgspec
+from msgspec import Meta, Struct
+
+# ------------------------------------------------------------------------------------------------------- keys
+PREFIX = "scm"
+#: every topic of one robot's namespace ``scm/<robot>/<topic>``; who publishes each is in docs/ARCHITECTURE.md
+TOPICS = ("state", "cmd", "teacher", "applied", "pairs", "limits", "mission", "mocap", "status", "estop")
+_ROBOT = re.compile(r"^[A-Za-z0-9_\-]{1,64}$")
+
+
+def check_robot(robot: str) -> str:
+    """A robot name is one key chunk: letters, digits, ``_`` and ``-`` (no ``/``, ``*``, ``$``, ``?``, ``#``)."""
+    if not isinstance(robot, str) or not _ROBOT.match(robot):
+        raise ValueError(f"robot name {robot!r} must be 1-64 characters of [A-Za-z0-9_-]")
+    return robot
+
+
+def key(robot: str, topic: str) -> str:
+    """The key of ``topic`` for ``robot``, e.g. ``key("rover1", "cmd") == "scm/rover1/cmd"``."""
+    if topic not in TOPICS:
+        raise ValueError(f"unknown topic {topic!r}; topics: {', '.join(TOPICS)}")
+    return f"{PREFIX}/{check_robot(robot)}/{topic}"
+
+
+def status_key(robot: str, node: str) -> str:
+    """Each node publishes its health under its own sub-key so several nodes' status do not overwrite."""
+    return f"{key(robot, 'status')}/{check_robot(node)}"
+
+
+class Keys:
+    """All keys of one robot, as attributes: ``Keys("rover1").cmd == "scm/rover1/cmd"``."""
+
+    state: str
+    cmd: str
+    teacher: str
+    applied: str
+    pairs: str
+    limits: str
+    mission: str
+    mocap: str
+    status: str
+    estop: str
+
+    def __init__(self, robot: str) -> None:
+        self.robot = check_robot(robot)
+        for topic in TOPICS:
+            setattr(self, topic, key(robot, topic))
+
+
+def new_epoch() -> int:
+    """A sender's epoch for this start: random, positive, 62 bits (collisions between two starts are negligible)."""
+    return secrets.randbits(62) + 1
+
+
+# --------------------------------------------------------------------------------------------------- messages
+
+# Finite floats: a NaN or inf fails the ge/le comparison at decode time and is rejected.
+Stamp = Annotated[float, Meta(ge=0.0, le=1e12)]
+Seq = Annotated[int, Meta(ge=0, le=2**63 - 1)]
+Coord = Annotated[float, Meta(ge=-1e6, le=1e6)]  # metres
+Angle = Annotated[float, Meta(ge=-1e3, le=1e3)]  # radians (not necessarily wrapped)
+Speed = Annotated[float, Meta(ge=-100.0, le=100.0)]  # m/s
+Rate = Annotated[float, Meta(ge=-100.0, le=100.0)]  # rad/s
+Name = Annotated[str, Meta(max_length=64)]
+Epoch = Annotated[int, Meta(ge=0, le=2**63 - 1)]  # 0: a sender that does not say (tests, old tools)
+Text = Annotated[str, Meta(max_length=1024)]
+
+Method = Literal["scm", "affine", "barycentric", "direct", "perturb", "stop", "calibrate", "manual"]
+
+
+class _Msg(Struct, forbid_unknown_fields=True, omit_defaults=True):
+    """Base: unknown fields are an error, defaults are not sent."""
+
+
+class LearnerState(_Msg, kw_only=True):
+    """``scm/<robot>/state``: the learner's pose in ENU (x east, y north, theta CCW from x), from its telemetry."""
+
+    stamp: Stamp
+    seq: Seq
+    x: Coord
+    y: Coord
+    theta: Angle
+    v: Speed | None = None
+    omega: Rate | None = None
+    source: Name = ""
+    epoch: Epoch = 0
+
+
+class Command(_Msg, kw_only=True):
+    """``scm/<robot>/cmd``: the learner command to apply, how it was obtained and for how long it is valid.
+
+    ``valid_ms`` counts from the moment the driver host receives the message (clocks need not agree). ``sender``
+    and ``epoch`` identify the station run that sent it (see the module docstring). A ``stop`` is a stop: the
+    driver host applies exactly zero for it, whatever ``v`` and ``omega`` say.
+    """
+
+    stamp: Stamp
+    seq: Seq
+    v: Speed
+    omega: Rate
+    method: Method
+    valid_ms: Annotated[int, Meta(ge=1, le=10_000)] = 300
+    region: Annotated[list[Annotated[int, Meta(ge=0)]], Meta(max_length=8)] = []
+    sender: Name = ""
+    epoch: Epoch = 0
+
+
+class TeacherCommand(_Msg, kw_only=True):
+    """``scm/<robot>/teacher``: the teacher's own command and the prediction behind it (logging and plots)."""
+
+    stamp: Stamp
+    seq: Seq
+    v: Speed
+    omega: Rate
+    solver: Name = ""
+    ok: bool = True
+    predicted_x: Annotated[list[Coord], Meta(max_length=512)] = []
+    predicted_y: Annotated[list[Coord], Meta(max_length=512)] = []
+    sender: Name = ""
+    epoch: Epoch = 0
+
+
+class Applied(_Msg, kw_only=True):
+    """``scm/<robot>/applied``: what the vehicle really got and when (driver-host clock).
+
+    ``cmd_seq`` is the ``Command.seq`` it came from, or absent for a stop the driver host decided itself
+    (``reason`` says why: deadman, estop, stale, shutdown, fault (a controller error), operator (the vehicle's
+    operator took control), link_down).
+    """
+
+    stamp: Stamp
+    seq: Seq
+    v: Speed
+    omega: Rate
+    reason: Literal["cmd", "clamped", "stop", "deadman", "estop", "stale", "shutdown", "start", "fault", "operator",
+                    "link_down"]
+    cmd_seq: Seq | None = None
+
+
+class PairRecord(_Msg, kw_only=True, array_like=True):
+    """One refined command pair ``<u_T, u_L>`` with its stable id, version and cluster size."""
+
+    id: Annotated[int, Meta(ge=0)]
+    version: Annotated[int, Meta(ge=0)]
+    count: Annotated[int, Meta(ge=0)]
+    teacher_v: Speed
+    teacher_omega: Rate
+    learner_v: Speed
+    learner_omega: Rate
+
+
+class Pairs(_Msg, kw_only=True):
+    """``scm/<robot>/pairs``: the refined pairs and the learned limits on the teacher domain (query reply)."""
+
+    stamp: Stamp
+    robot: Name
+    pairs: Annotated[list[PairRecord], Meta(max_length=100_000)] = []
+    limits_box: Annotated[list[Annotated[float, Meta(ge=-100, le=100)]], Meta(min_length=4, max_length=4)] | None = (
+        None  # [v_min, v_max, omega_min, omega_max] on the teacher domain
+    )
+    limits_hull: Annotated[list[Annotated[list[Annotated[float, Meta(ge=-100, le=100)]], Meta(min_length=2, max_length=2)]], Meta(max_length=10_000)] = []  # noqa: E501
+
+
+Bound = Annotated[float, Meta(ge=-100, le=100)]
+
+
+class Limits(_Msg, kw_only=True):
+    """``scm/<robot>/limits``: the learned learner limits on the teacher domain, for a teacher that bounds itself.
+
+    ``box`` is [v_min, v_max, omega_min, omega_max]; ``hull`` the convex hull's vertices (counter-clockwise, teacher
+    units). ``version`` grows whenever the limits change. Published by the station when they change and each second.
+    """
+
+    stamp: Stamp
+    robot: Name
+    version: Annotated[int, Meta(ge=0)]
+    box: Annotated[list[Bound], Meta(min_length=4, max_length=4)]
+    hull: Annotated[list[Annotated[list[Bound], Meta(min_length=2, max_length=2)]], Meta(max_length=10_000)] = []
+
+
+XY = Annotated[list[Coord], Meta(min_length=2, max_length=2)]
+Radius = Annotated[float, Meta(gt=0.0, le=1e4)]
+
+
+class MissionSpec(_Msg, kw_only=True):
+    """A mission: a path to follow to its goal, the obstacles, the frame the poses are in.
+
+    The same Struct is a mission file (TOML, ``scmbridge station --mission FILE``) and the ``scm/<robot>/mission``
+    message that gives a running station a new mission. ``path`` is a polyline of waypoints (>= 2, metres, in
+    ``frame``); the goal is its last point, reached within ``goal_tolerance``; ``obstacles`` are discs
+    ``[x, y, r]``; ``start`` is the pose a simulation starts from (a real robot starts where it is).
+    """
+
+    name: Name = "mission"
+    frame: Name = "world"
+    path: Annotated[list[XY], Meta(min_length=2, max_length=100_000)]
+    goal_tolerance: Annotated[float, Meta(gt=0.0, le=1e3)] = 0.25
+    obstacles: Annotated[list[Annotated[list[Coord], Meta(min_length=3, max_length=3)]], Meta(max_length=10_000)] = []
+    start: Annotated[list[Coord], Meta(min_length=3, max_length=3)] | None = None
+    stamp: Stamp = 0.0
+
+    def __post_init__(self) -> None:
+        for i, (_, _, r) in enumerate(self.obstacles):
+            if not r > 0.0:
+                raise ValueError(f"obstacle {i} has radius {r}; a radius must be > 0")
+        pts = self.path
+        if all(pts[i] == pts[i + 1] for i in range(len(pts) - 1)):
+            raise ValueError("the path has no length (all waypoints are the same point)")
+
+
+class Status(_Msg, kw_only=True):
+    """``scm/<robot>/status``: health of one node; counters only grow."""
+
+    stamp: Stamp
+    seq: Seq
+    node: Name
+    ok: bool = True
+    rates_hz: dict[Name, Annotated[float, Meta(ge=0, le=1e6)]] = {}
+    latencies_ms: dict[Name, Annotated[float, Meta(ge=0, le=1e9)]] = {}
+    counters: dict[Name, Annotated[int, Meta(ge=0)]] = {}
+    text: Text = ""
+
+
+class Estop(_Msg, kw_only=True):
+    """``scm/<robot>/estop``: stop now. ``engaged=False`` releases a latched estop, but only from a ``source`` the
+    driver host's configuration names (releasing is as deliberate as engaging). The key is also a queryable: a
+    ``get`` on it returns each driver host's :class:`EstopState`."""
+
+    stamp: Stamp
+    seq: Seq = 0
+    engaged: bool = True
+    source: Name = ""
+    reason: Text = ""
+
+
+class EstopState(_Msg, kw_only=True):
+    """A driver host's answer to a query on ``scm/<robot>/estop``: is the estop latched there, and by whom."""
+
+    stamp: Stamp
+    node: Name
+    latched: bool
+    source: Name = ""
+    reason: Text = ""
+
+
+class MessageError(ValueError):
+    """A payload that failed to decode or validate; the receiver counts it and drops it."""
+
+
+M = TypeVar("M", bound=Struct)
+
+_encoder = msgspec.msgpack.Encoder()
+_decoders: dict[type, msgspec.msgpack.Decoder] = {}
+
+
+def encode(msg: Struct) -> bytes:
+    """MessagePack bytes of ``msg`` (no validation: senders build messages from checked values)."""
+    return _encoder.encode(msg)
+
+
+def decode(data: bytes | bytearray | memoryview, kind: type[M]) -> M:
+    """Decode *and validate* ``data`` as ``kind``; raise :class:`MessageError` naming the problem."""
+    dec = _decoders.get(kind)
+    if dec is None:
+        dec = _decoders[kind] = msgspec.msgpack.Decoder(kind)
+    try:
+        return dec.decode(data)
+    except (msgspec.ValidationError, msgspec.DecodeError, UnicodeDecodeError) as exc:
+        # msgspec lets invalid UTF-8 in a str field escape as UnicodeDecodeError (found by hypothesis)
+        raise MessageError(f"bad {kind.__name__}: {exc}") from exc
+
+
+def validated(msg: M) -> M:
+    """Round-trip a locally built message through the decoder: the cheap way to check it before sending."""
+    return decode(encode(msg), type(msg))
+
+
+__all__ = [
+    "TOPICS",
+    "Applied",
+    "Command",
+    "Estop",
+    "EstopState",
+    "Keys",
+    "LearnerState",
+    "Limits",
+    "MessageError",
+    "Method",
+    "MissionSpec",
+    "PairRecord",
+    "Pairs",
+    "Status",
+    "TeacherCommand",
+    "check_robot",
+    "decode",
+    "encode",
+    "key",
+    "new_epoch",
+    "status_key",
+    "validated",
+]
