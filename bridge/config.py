@@ -143,6 +143,18 @@ class DriverSection(_Cfg):
                                      le=10.0)] = 0.3
     hard_limits: Annotated[BoundsConfig, _m("every command is clamped into this box before a vehicle sees it")] = (
         DEFAULT_HARD_LIMITS)
+    max_send_hz: Annotated[float, _m("the most commands per second handed to the link (a command is sent as it "
+                                     "arrives, but never sooner than 1/max_send_hz after the last)", ge=1.0,
+                                     le=1000.0)] = 100.0
+    max_telemetry_age_s: Annotated[float, _m("no pose from the link for this long stops the vehicle (it would drive "
+                                             "blind), s", gt=0.0, le=60.0)] = 0.5
+    estop_release_sources: Annotated[tuple[Annotated[str, Meta(max_length=64)], ...],
+                                     _m("Estop sources allowed to release a latched estop (scmbridge estop "
+                                        "--release --source NAME)")] = ("operator",)
+
+    def __post_init__(self) -> None:
+        if self.max_send_hz < self.rate_hz:
+            raise ValueError(f"max_send_hz = {self.max_send_hz} is below rate_hz = {self.rate_hz}: every tick sends")
 
 
 class DriverConfig(_Cfg):

@@ -1,250 +1,266 @@
-"""``scmbridge driver``: the driver host, between Zenoh and one vehicle link (DESIGN.md sections 1, 5, 6).
+"""``scmbridge driver``: the driver host, between Zenoh and one vehicle link (docs/ARCHITECTURE.md).
 
-It subscribes to ``scm/<robot>/cmd`` and ``scm/<robot>/estop``, checks every command (decoded and validated:
-finite and in wire range; fresh: received less than min(valid_ms, cmd_timeout) ago; not older than the last one
-applied; clamped to the configured hard limits), hands it to the link driver and echoes what the vehicle really
-got on ``applied``; it publishes the link's telemetry as ``state`` and its own health on ``status``. It owns the
-deadman: no valid command for ``cmd_timeout`` (0.3 s default) stops the vehicle. An estop latches a stop until an
-``Estop(engaged=False)``. All stamps are this host's ``time.monotonic()``, so the station can pair ``applied`` with
-``state`` without any clock synchronisation.
+It subscribes to ``scm/<robot>/cmd`` and ``scm/<robot>/estop`` and answers queries on the estop key with its latch
+state. Every command is decoded (so validated: finite, in wire range) and goes through the pure
+:class:`bridge.gate.CommandGate`: the next of its sender's ``(epoch, seq)`` stream, fresh (received less than
+min(valid_ms, cmd_timeout) ago), a stop applied as exactly zero, anything else clamped to the configured hard
+limits. The host hands the result to the link driver only while the link says the vehicle is fit to drive
+(``health().ok``) and its telemetry is fresh; otherwise it stops the vehicle and says why. Each tick it echoes what
+the vehicle really got on ``applied``, publishes the link's poses as ``state`` (its own epoch and sequence) and,
+each second, a truthful ``status``. Commands are applied as they arrive (latency is not a multiple of the period),
+but the link never gets more than ``max_send_hz`` of them. An estop latches a stop; only a source named in
+``estop_release_sources`` releases it, and a release is the operator action that lets the link clear its
+controllers' latched faults. All stamps are this host's ``time.monotonic()``, so the station pairs ``applied``
+with ``state`` without any clock synchronisation.
 
 ``--emulate`` (CAN only) hosts the emulated motor controllers on the same python-can ``virtual`` channel inside
-this process: the wire between driver and controllers is python-can, not a shortcut (this machine has no vcan).
+this process: the wire between driver and controllers is python-can, not a shortcut.
 """
 
 from __future__ import annotations
 
 import argparse
 import logging
-import signal
+import math
 import threading
 import time
 from collections import deque
-from dataclasses import dataclass, field
 
 import msgspec
 import numpy as np
+import zenoh
 
 from bridge import wire as M
-from bridge.cliutil import pose_arg
-from bridge.config import load_driver
-from bridge.wire import Keys, status_key
-from bridge.zsession import make_config, open_session
-from transfer.domain import Bounds
+from bridge.cliutil import pose_arg, positive_float
+from bridge.config import DriverConfig, load_driver
+from bridge.gate import CommandGate, Decision
+from bridge.node import Inputs, add_zenoh_args, stop_on_signals, zenoh_config
+from bridge.zsession import open_session
+from drivers.base import Driver, LinkHealth
 
 log = logging.getLogger("scmbridge.driver")
 
 
-@dataclass(frozen=True)
-class Decision:
-    """What the vehicle gets this tick."""
-
-    v: float
-    omega: float
-    reason: str  # cmd | clamped | deadman | estop | stale | start
-    cmd_seq: int | None = None
+def blocked_reason(health: LinkHealth) -> str:
+    """The ``applied`` reason for a vehicle the link says is not fit to drive."""
+    if not health.connected:
+        return "link_down"
+    return "operator" if health.text.startswith("operator") else "fault"
 
 
-@dataclass
-class CommandGate:
-    """Freshness, clamping, deadman and estop latch: the driver host's safety logic, pure (times are arguments)."""
+class DriverHost:
+    """One robot's driver host: the gate, the link and the Zenoh side (see the module docstring)."""
 
-    limits: Bounds
-    cmd_timeout: float = 0.3
-    latest: M.Command | None = None
-    received_at: float = -float("inf")
-    last_seq: int = -1
-    estopped: bool = False
-    counters: dict[str, int] = field(default_factory=lambda: {
-        "accepted": 0, "out_of_order": 0, "deadman_trips": 0, "stale": 0, "clamped": 0, "estops": 0})
-    _deadman_active: bool = True
+    def __init__(self, cfg: DriverConfig, link: str, driver: Driver, robot: str, rate_hz: float) -> None:
+        d = cfg.driver
+        self.link, self.driver, self.robot = link, driver, robot
+        self.keys = M.Keys(robot)
+        self.period = 1.0 / rate_hz
+        self.min_gap = 1.0 / d.max_send_hz
+        self.max_telemetry_age = d.max_telemetry_age_s
+        self.gate = CommandGate(d.hard_limits.bounds(), d.cmd_timeout, tuple(d.estop_release_sources))
+        self.inputs = Inputs()
+        self.lock = threading.Lock()  # the gate is shared with Zenoh's callback threads
+        self.wake = threading.Event()
+        self.clear_requested = False
+        self.epoch = M.new_epoch()
+        self.seq = {"applied": 0, "state": 0, "status": 0}
+        self.last_pose = -math.inf
+        self.last_decision = Decision(0.0, 0.0, "start")
+        self.health = LinkHealth()
+        self.missed = 0
+        self.ticks: deque[float] = deque(maxlen=500)  # start times of the periodic ticks (jitter)
+        self.pubs: dict[str, zenoh.Publisher] = {}
 
-    def offer(self, cmd: M.Command, now: float) -> bool:
-        """A decoded command arrived at ``now``; False if it is older than what was already applied."""
-        if cmd.seq <= self.last_seq:
-            self.counters["out_of_order"] += 1
-            return False
-        self.latest, self.received_at, self.last_seq = cmd, now, cmd.seq
-        self.counters["accepted"] += 1
-        return True
+    # ---------------------------------------------------------------------------------------------- inputs
+    def on_cmd(self, cmd: M.Command, now: float) -> None:
+        with self.lock:
+            accepted = self.gate.offer(cmd, now)
+        if accepted:
+            self.wake.set()  # apply it now, not at the next tick
 
-    def estop(self, engaged: bool) -> None:
-        if engaged and not self.estopped:
-            self.counters["estops"] += 1
-        self.estopped = engaged
+    def on_estop(self, e: M.Estop, now: float) -> None:
+        with self.lock:
+            changed = self.gate.estop(e)
+            if changed and not e.engaged:
+                self.clear_requested = True
+        if changed:
+            log.warning("estop %s by %r: %s", "engaged" if e.engaged else "released", e.source, e.reason)
+        self.wake.set()
 
+    def on_estop_query(self, query: zenoh.Query) -> None:
+        with self.lock:
+            st = M.EstopState(stamp=time.monotonic(), node=f"driver-{self.link}", latched=self.gate.estopped,
+                              source=self.gate.estop_source, reason=self.gate.estop_reason)
+        query.reply(self.keys.estop, M.encode(st))
+
+    # ------------------------------------------------------------------------------------------------ tick
     def decide(self, now: float) -> Decision:
-        if self.estopped:
-            return Decision(0.0, 0.0, "estop")
-        cmd = self.latest
-        age = now - self.received_at
-        if cmd is None or age >= self.cmd_timeout:
-            if not self._deadman_active and cmd is not None:
-                self.counters["deadman_trips"] += 1
-                log.warning("deadman: no valid command for %.3f s, vehicle stopped", age)
-            self._deadman_active = True
-            return Decision(0.0, 0.0, "deadman" if cmd is not None else "start")
-        if age >= cmd.valid_ms / 1000.0:
-            self.counters["stale"] += 1
-            return Decision(0.0, 0.0, "stale", cmd.seq)
-        self._deadman_active = False
-        v = min(max(cmd.v, self.limits.v[0]), self.limits.v[1])
-        w = min(max(cmd.omega, self.limits.w[0]), self.limits.w[1])
-        if (v, w) != (cmd.v, cmd.omega):
-            self.counters["clamped"] += 1
-            return Decision(v, w, "clamped", cmd.seq)
-        return Decision(v, w, "cmd", cmd.seq)
+        """The gate's decision, overruled by the link's health and the telemetry's age."""
+        self.health = self.driver.health()
+        with self.lock:
+            d = self.gate.decide(now)
+            clear, self.clear_requested = self.clear_requested, False
+        if clear:
+            log.warning("operator released the estop: clearing the link's latched faults")
+            self.driver.clear_faults(now)
+        if d.driving and not self.health.ok:
+            return Decision(0.0, 0.0, blocked_reason(self.health), d.cmd_seq)
+        if d.driving and now - self.last_pose > self.max_telemetry_age:
+            return Decision(0.0, 0.0, "no_telemetry", d.cmd_seq)
+        return d
+
+    def tick(self, now: float) -> None:
+        d = self.decide(now)
+        if d.driving:
+            self.driver.send(d.v, d.omega, now)
+        else:
+            self.driver.stop(now)
+        if d.reason != self.last_decision.reason and not d.driving:
+            log.info("vehicle stopped: %s", d.reason)
+        self.last_decision = d
+        self._put("applied", M.Applied(stamp=now, seq=self.seq["applied"], v=d.v, omega=d.omega, reason=d.reason,
+                                       cmd_seq=d.cmd_seq))
+        self.seq["applied"] += 1
+        for p in self.driver.poll(now):
+            st = M.LearnerState(stamp=p.stamp, seq=self.seq["state"], x=p.x, y=p.y, theta=p.theta, v=p.v,
+                                omega=p.omega, source=self.link, epoch=self.epoch)
+            try:
+                self._put("state", M.validated(st))
+            except M.MessageError:
+                self.inputs.count("telemetry_out_of_range")
+                log.warning("telemetry out of range, not published: %s", st)
+                continue
+            self.seq["state"] += 1
+            self.last_pose = max(self.last_pose, now)
+
+    def status(self, now: float) -> M.Status:
+        """Health as it is: ok only if the link is fit, the telemetry fresh and no estop is latched."""
+        h = self.health
+        with self.lock:
+            counters = dict(self.gate.counters)
+            estop = (self.gate.estopped, self.gate.estop_source)
+        counters.update(self.inputs.snapshot())
+        counters.update({"link_malformed": h.malformed, "link_errors": h.errors, "missed_deadlines": self.missed,
+                         "frames_sent": h.frames_sent, "frames_received": h.frames_received, "ticks": len(self.ticks)})
+        counters.update({f"link_{k}": int(v) for k, v in h.detail.items()
+                         if isinstance(v, (int, bool)) and v is not None and int(v) >= 0})
+        pose_age = now - self.last_pose
+        problems = []
+        if not h.ok:
+            problems.append(h.text)
+        if pose_age > self.max_telemetry_age:
+            problems.append("no telemetry yet" if math.isinf(pose_age) else f"no telemetry for {pose_age:.1f} s")
+        if estop[0]:
+            problems.append(f"estop latched by {estop[1] or 'unknown'}")
+        lat = {"telemetry_age": min(pose_age, 1e6) * 1e3}
+        if len(self.ticks) > 2:
+            dev = np.abs(np.diff(np.asarray(self.ticks)) - self.period) * 1e3
+            lat.update({"jitter_p50": float(np.percentile(dev, 50)), "jitter_p99": float(np.percentile(dev, 99)),
+                        "jitter_max": float(dev.max())})
+        text = f"link {self.link}: " + ("; ".join(problems) if problems else f"driving ({self.last_decision.reason})")
+        msg = M.Status(stamp=now, seq=self.seq["status"], node="driver", ok=not problems,
+                       rates_hz={"loop": 1.0 / self.period}, latencies_ms=lat, counters=counters, text=text[:1024])
+        self.seq["status"] += 1
+        return msg
+
+    # ------------------------------------------------------------------------------------------------ run
+    def _put(self, topic: str, msg: msgspec.Struct) -> None:
+        self.pubs[topic].put(M.encode(msg))
+
+    def serve(self, session: zenoh.Session, stop: threading.Event, duration: float | None) -> None:
+        """Declare the host's keys, open the link and run the loop until ``stop`` or ``duration``."""
+        k = self.keys
+        self.inputs.subscribe(session, k.cmd, M.Command, "cmd", self.on_cmd)
+        self.inputs.subscribe(session, k.estop, M.Estop, "estop", self.on_estop)
+        session.declare_queryable(k.estop, self.on_estop_query)
+        self.pubs = {"applied": session.declare_publisher(k.applied), "state": session.declare_publisher(k.state),
+                     "status": session.declare_publisher(M.status_key(self.robot, "driver"))}
+        self.driver.open(time.monotonic())
+        log.info("driver host for %s on link %s at %.0f Hz (epoch %x)", self.robot, self.link, 1 / self.period,
+                 self.epoch)
+        self.loop(stop, duration)
+
+    def loop(self, stop: threading.Event, duration: float | None) -> None:
+        """Periodic ticks, plus an immediate tick for each accepted command; ticks are never closer than
+        ``1 / max_send_hz``, so the link's send rate is bounded whatever arrives."""
+        t_start = t_next = time.monotonic()
+        t_status = t_start
+        last_tick = -math.inf
+        while not stop.is_set():
+            gap = last_tick + self.min_gap - time.monotonic()
+            if gap > 0:
+                stop.wait(gap)
+            now = time.monotonic()
+            if duration is not None and now - t_start >= duration:
+                return
+            periodic = now >= t_next
+            if periodic:
+                self.ticks.append(now)
+            self.tick(now)
+            last_tick = now
+            if now >= t_status:
+                self._put("status", self.status(now))
+                t_status = now + 1.0
+            if periodic:
+                t_next += self.period
+                if t_next <= time.monotonic():
+                    self.missed += 1
+                    t_next = time.monotonic() + self.period
+            delay = t_next - time.monotonic()
+            if delay > 0 and self.wake.wait(delay):
+                self.wake.clear()
 
 
-def main(argv: list[str] | None = None) -> int:
+def _args(argv: list[str] | None) -> argparse.Namespace:
     ap = argparse.ArgumentParser(prog="scmbridge driver", description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--link", choices=["can", "mavlink", "udp"], required=True)
-    ap.add_argument("--config", help="driver TOML (see deploy/driver.example.toml)")
-    ap.add_argument("--robot", default=None)
-    ap.add_argument("--listen", action="append", default=[], help="Zenoh endpoint to listen on (repeatable)")
-    ap.add_argument("--connect", action="append", default=[], help="Zenoh endpoint to connect to (repeatable)")
-    ap.add_argument("--mode", choices=["peer", "client", "router"], default="peer", help="Zenoh session mode")
-    ap.add_argument("--zenoh-config", help="a Zenoh JSON5 config file (deploy/), endpoints above override it")
-    ap.add_argument("--rate", type=float, default=None, help="control loop rate, Hz (default 50)")
-    ap.add_argument("--duration", type=float, default=None, help="stop after this many seconds")
+    ap.add_argument("--config", help="driver TOML (scmbridge config show --kind driver; deploy/driver*.example.toml)")
+    ap.add_argument("--robot", default=None, help="robot name (overrides the config)")
+    add_zenoh_args(ap)
+    ap.add_argument("--rate", type=positive_float, default=None, help="control loop rate, Hz (overrides the config)")
+    ap.add_argument("--duration", type=positive_float, default=None, help="stop after this many seconds")
     ap.add_argument("--emulate", action="store_true", help="host emulated CAN motor controllers in-process")
     ap.add_argument("--model", default="mpc", help="learner model for --emulate (mpc, experiment, scaled)")
     ap.add_argument("--x0", type=pose_arg, default=(0.0, 0.0, 0.0), help="start pose x,y,theta for --emulate")
     args = ap.parse_args(argv)
+    if args.emulate and args.link != "can":
+        ap.error("--emulate hosts CAN motor controllers; run `scmbridge learner` for the other links")
+    return args
+
+
+def _emulated_ecus(cfg, model: str, x0: tuple[float, float, float]):
+    """The learner's two emulated motor controllers on the driver's virtual CAN channel (``--emulate``)."""
+    from sim_learner.can_ecu import DiffDriveEcus
+    from sim_learner.dynamics import model_by_name
+    from sim_learner.vehicle import SimVehicle
+
+    vehicle = SimVehicle(model_by_name(model), x0, now=time.monotonic())
+    return DiffDriveEcus({"interface": "virtual", "channel": cfg.channel}, vehicle, left_node=cfg.left_node,
+                         right_node=cfg.right_node, left_sign=cfg.left_sign, right_sign=cfg.right_sign,
+                         wheel_radius=cfg.wheel_radius, track_width=cfg.track_width).start()
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = _args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s driver %(levelname)s %(message)s")
-
-    cfg = load_driver(args.config)
-    robot = args.robot or cfg.robot
-    keys = Keys(robot)
-    dcfg = cfg.driver
-    rate = float(args.rate or dcfg.rate_hz)
-    limits = dcfg.hard_limits.bounds()
-    gate = CommandGate(limits, dcfg.cmd_timeout)
+    cfg = load_driver(args.config)  # a mistake ends here, before any link or session opens
+    robot = M.check_robot(args.robot or cfg.robot)
     link_cfg = getattr(cfg.link, args.link)
-    x0 = args.x0
     if args.emulate:
-        if args.link != "can":
-            ap.error("--emulate hosts CAN motor controllers; run `scmbridge learner` for the other links")
-        link_cfg = msgspec.structs.replace(link_cfg, interface="virtual", channel=f"scm-{robot}", initial_pose=x0)
-
+        link_cfg = msgspec.structs.replace(link_cfg, interface="virtual", channel=f"scm-{robot}",
+                                           initial_pose=args.x0)
     from drivers import open_driver
 
-    driver = open_driver(args.link, link_cfg)
-    stop = threading.Event()
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, lambda *_: stop.set())
-    lock = threading.Lock()
-    wake = threading.Event()
-    malformed = {"cmd": 0, "estop": 0}
-
-    def on_cmd(sample) -> None:
-        now = time.monotonic()
-        try:
-            cmd = M.decode(sample.payload.to_bytes(), M.Command)
-        except M.MessageError as exc:
-            with lock:
-                malformed["cmd"] += 1
-            log.debug("dropped command: %s", exc)
-            return
-        with lock:
-            gate.offer(cmd, now)
-        wake.set()  # apply it now, not at the next tick: command latency is not a multiple of the period
-
-    def on_estop(sample) -> None:
-        try:
-            e = M.decode(sample.payload.to_bytes(), M.Estop)
-        except M.MessageError:
-            with lock:
-                malformed["estop"] += 1
-            return
-        with lock:
-            gate.estop(e.engaged)
-        log.warning("estop %s by %s: %s", "engaged" if e.engaged else "released", e.source, e.reason)
-
-    ecus = None
-    if args.emulate:
-        from sim_learner.can_ecu import DiffDriveEcus
-        from sim_learner.dynamics import model_by_name
-        from sim_learner.vehicle import SimVehicle
-
-        vehicle = SimVehicle(model_by_name(args.model), x0, now=time.monotonic())
-        ecus = DiffDriveEcus({"interface": "virtual", "channel": link_cfg.channel}, vehicle,
-                             left_node=link_cfg.left_node, right_node=link_cfg.right_node,
-                             left_sign=link_cfg.left_sign, right_sign=link_cfg.right_sign,
-                             wheel_radius=link_cfg.wheel_radius, track_width=link_cfg.track_width).start()
-    zconf = make_config(mode=args.mode, listen=args.listen, connect=args.connect, config_file=args.zenoh_config)
-    t_start = time.monotonic()
+    host = DriverHost(cfg, args.link, open_driver(args.link, link_cfg), robot, args.rate or cfg.driver.rate_hz)
+    stop = stop_on_signals()
+    ecus = _emulated_ecus(link_cfg, args.model, args.x0) if args.emulate else None
     try:
-        with open_session(zconf) as session:
-            session.declare_subscriber(keys.cmd, on_cmd)
-            session.declare_subscriber(keys.estop, on_estop)
-            pub_applied = session.declare_publisher(keys.applied)
-            pub_state = session.declare_publisher(keys.state)
-            pub_status = session.declare_publisher(status_key(robot, "driver"))
-            driver.open(time.monotonic())
-            log.info("driver host for %s on link %s at %.0f Hz", robot, args.link, rate)
-            period = 1.0 / rate
-            t_next = time.monotonic()
-            seq_a = seq_s = seq_st = 0
-            t_status = t_next
-            missed = 0
-            ticks: deque[float] = deque(maxlen=500)  # start times of the periodic ticks (jitter)
-            periodic = True
-            while not stop.is_set():
-                now = time.monotonic()
-                if periodic:
-                    ticks.append(now)
-                if args.duration is not None and now - t_start >= args.duration:
-                    break
-                with lock:
-                    d = gate.decide(now)
-                if d.reason in ("cmd", "clamped"):
-                    driver.send(d.v, d.omega, now)
-                else:
-                    driver.stop(now)
-                pub_applied.put(M.encode(M.Applied(stamp=now, seq=seq_a, v=d.v, omega=d.omega, reason=d.reason,
-                                                   cmd_seq=d.cmd_seq)))
-                seq_a += 1
-                for p in driver.poll(now):
-                    st = M.LearnerState(stamp=p.stamp, seq=seq_s, x=p.x, y=p.y, theta=p.theta, v=p.v, omega=p.omega,
-                                        source=args.link)
-                    try:
-                        pub_state.put(M.encode(M.validated(st)))
-                        seq_s += 1
-                    except M.MessageError:
-                        log.warning("telemetry out of range, not published: %s", st)
-                if now >= t_status:
-                    h = driver.health()
-                    with lock:
-                        counters = dict(gate.counters)
-                        counters.update({f"malformed_{k}": v for k, v in malformed.items()})
-                    counters.update({"link_malformed": h.malformed, "link_errors": h.errors, "missed_deadlines": missed,
-                                     "frames_sent": h.frames_sent, "frames_received": h.frames_received,
-                                     "ticks": len(ticks)})
-                    lat = {}
-                    if len(ticks) > 2:
-                        dev = np.abs(np.diff(np.asarray(ticks)) - period) * 1e3
-                        lat = {"jitter_p50": float(np.percentile(dev, 50)), "jitter_p99": float(np.percentile(dev, 99)),
-                               "jitter_max": float(dev.max())}
-                    pub_status.put(M.encode(M.Status(stamp=now, seq=seq_st, node="driver", ok=h.connected,
-                                                     rates_hz={"loop": rate}, latencies_ms=lat, counters=counters,
-                                                     text=f"link {args.link}")))
-                    seq_st += 1
-                    t_status = now + 1.0
-                if periodic:
-                    t_next += period
-                delay = t_next - time.monotonic()
-                if delay > 0:
-                    periodic = not wake.wait(delay)  # woken by a command: an extra, immediate tick
-                    wake.clear()
-                else:
-                    if periodic:
-                        missed += 1
-                        t_next = time.monotonic()
-                    periodic = True
+        with open_session(zenoh_config(args)) as session:
+            host.serve(session, stop, args.duration)
     finally:
-        driver.close()
+        host.driver.close()
         if ecus is not None:
             ecus.stop()
     return 0

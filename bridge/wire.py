@@ -149,8 +149,8 @@ class Applied(_Msg, kw_only=True):
     """``scm/<robot>/applied``: what the vehicle really got and when (driver-host clock).
 
     ``cmd_seq`` is the ``Command.seq`` it came from, or absent for a stop the driver host decided itself
-    (``reason`` says why: deadman, estop, stale, shutdown, fault (a controller error), operator (the vehicle's
-    operator took control), link_down).
+    (``reason`` says why: stop (a stop command), deadman, estop, stale, shutdown, fault (a controller error),
+    operator (the vehicle's operator took control), link_down, no_telemetry (no pose from the vehicle lately)).
     """
 
     stamp: Stamp
@@ -158,7 +158,7 @@ class Applied(_Msg, kw_only=True):
     v: Speed
     omega: Rate
     reason: Literal["cmd", "clamped", "stop", "deadman", "estop", "stale", "shutdown", "start", "fault", "operator",
-                    "link_down"]
+                    "link_down", "no_telemetry"]
     cmd_seq: Seq | None = None
 
 

@@ -38,7 +38,8 @@ class LinkHealth:
     executes velocity commands (MAVLink: heartbeat fresh, GUIDED, armed, position ready; CAN: both controllers'
     heartbeats fresh, closed loop, no axis error; UDP: the robot's state fresh). When it is False, ``text`` says why
     in words a person can act on (``"operator took control: mode HOLD"``, ``"left axis error: ..."``), the driver
-    host stops, and the station stops pairing and planning for that robot.
+    host stops, and the station stops pairing and planning for that robot. A ``text`` that starts with
+    ``"operator"`` means a person has the vehicle (the host reports reason ``operator``, not ``fault``).
     """
 
     connected: bool = False

@@ -13,11 +13,8 @@ import time
 
 import msgspec
 import pytest
-from hypothesis import given, settings
-from hypothesis import strategies as st
 
 from bridge import wire as M
-from bridge.driver_host import CommandGate
 from bridge.procs import stop_group
 from bridge.wire import Keys, status_key
 from bridge.zsession import free_port, make_config, open_session, tcp
@@ -28,41 +25,6 @@ LIMITS = Bounds((-0.5, 0.5), (-1.0, 1.0))
 
 def _cmd(seq: int, v: float, w: float, valid_ms: int = 300) -> M.Command:
     return M.Command(stamp=time.monotonic(), seq=seq, v=v, omega=w, method="scm", valid_ms=valid_ms)
-
-
-# ------------------------------------------------------------------------------------------- the pure gate
-def test_gate_applies_fresh_commands_clamps_and_trips_the_deadman() -> None:
-    g = CommandGate(LIMITS, cmd_timeout=0.3)
-    assert g.decide(0.0).reason == "start"
-    g.offer(_cmd(1, 0.2, 0.1), 1.0)
-    assert g.decide(1.1) == type(g.decide(1.1))(0.2, 0.1, "cmd", 1)
-    g.offer(_cmd(2, 3.0, -5.0), 1.2)
-    d = g.decide(1.25)
-    assert (d.v, d.omega, d.reason) == (0.5, -1.0, "clamped")
-    assert not g.offer(_cmd(2, 0.1, 0.0), 1.3)  # replayed / out of order
-    assert g.decide(1.2 + 0.31).reason == "deadman" and g.counters["deadman_trips"] == 1
-    g.offer(_cmd(3, 0.1, 0.0, valid_ms=50), 2.0)
-    assert g.decide(2.1).reason == "stale"  # older than its validity: never applied
-    g.offer(_cmd(4, 0.1, 0.0), 3.0)
-    g.estop(True)
-    assert g.decide(3.05).reason == "estop"
-    g.offer(_cmd(5, 0.1, 0.0), 3.1)
-    assert g.decide(3.15).reason == "estop"  # latched
-    g.estop(False)
-    assert g.decide(3.2).reason == "cmd"
-
-
-@settings(max_examples=200, deadline=None)
-@given(st.floats(allow_nan=True, allow_infinity=True), st.floats(allow_nan=True, allow_infinity=True))
-def test_whatever_arrives_the_gate_only_ever_emits_finite_bounded_commands(v: float, w: float) -> None:
-    raw = msgspec.msgpack.encode({"stamp": 1.0, "seq": 1, "v": v, "omega": w, "method": "scm"})
-    g = CommandGate(LIMITS)
-    try:
-        g.offer(M.decode(raw, M.Command), 0.0)
-    except M.MessageError:
-        pass
-    d = g.decide(0.01)
-    assert math.isfinite(d.v) and math.isfinite(d.omega) and LIMITS.contains([d.v, d.omega])
 
 
 # -------------------------------------------------------------------------------- the process over Zenoh

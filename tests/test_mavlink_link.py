@@ -22,7 +22,8 @@ from sim_learner.vehicle import SimVehicle
 def rig():
     vehicle = SimVehicle(mpc_learner(), (1.0, 2.0, 0.3), now=time.monotonic())
     rover = MavlinkRover(vehicle, init_s=0.3, target_timeout=0.6).start()
-    driver = open_driver("mavlink", MavlinkLinkConfig(url=f"udpout:127.0.0.1:{rover.port}", rate_hz=20, open_timeout=15))
+    cfg = MavlinkLinkConfig(url=f"udpout:127.0.0.1:{rover.port}", rate_hz=20, open_timeout=15)
+    driver = open_driver("mavlink", cfg)
     try:
         driver.open(time.monotonic())
         yield driver, rover, vehicle

@@ -1,0 +1,160 @@
+"""The driver host's safety logic, pure (times are arguments): which command the vehicle gets this tick.
+
+:class:`SeqGate` follows one sender's ``(epoch, seq)`` stream (docs/ARCHITECTURE.md, "Senders, epochs and
+sequence numbers"):
+
+- within the epoch it follows, a message is new only if its ``seq`` is above the last one, and not further above it
+  than a sender could have counted since (``max_rate_hz`` per second plus ``slack``): one forged or corrupted
+  message with ``seq = 2**63 - 1`` cannot lock the real sender out;
+- a message of another epoch is taken (the sender restarted: a new station run, a rebooted robot) once the stream
+  it follows has been silent for ``silence_s``; while that stream is alive, a second sender is refused (counted);
+- an epoch it has left is never taken again, so a replayed or reordered message of an earlier run is refused.
+
+:class:`CommandGate` is the driver host's gate for ``cmd``: freshness (validity and the deadman), the estop latch
+(released only by a source the configuration names), clamping to the hard limits, and "a stop is a stop": a
+``stop`` method, an exact zero command, the deadman or an estop reach the vehicle as exactly zero, whatever the
+limits say.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections import deque
+from dataclasses import dataclass, field
+
+from bridge import wire as M
+from transfer.domain import Bounds
+
+log = logging.getLogger("scmbridge.gate")
+
+#: reasons under which the vehicle is driven (pairs may be formed); every other reason is a stop
+DRIVING = ("cmd", "clamped")
+
+
+class SeqGate:
+    """Follows one ``(epoch, seq)`` stream; see the module docstring. ``accept`` returns None or why not."""
+
+    def __init__(self, silence_s: float, max_rate_hz: float = 1000.0, slack: int = 50, remember: int = 64) -> None:
+        self.silence_s = float(silence_s)
+        self.max_rate_hz = float(max_rate_hz)
+        self.slack = int(slack)
+        self.epoch: int | None = None
+        self.last_seq = -1
+        self.last_time = -math.inf
+        self.retired: deque[int] = deque(maxlen=remember)
+
+    def accept(self, epoch: int, seq: int, now: float) -> str | None:
+        """Take ``(epoch, seq)`` received at ``now`` if it is the next of the stream; else the reason it is not."""
+        if epoch != self.epoch:
+            if epoch in self.retired:
+                return "old_epoch"
+            if self.epoch is not None and now - self.last_time < self.silence_s:
+                return "foreign_epoch"
+            if self.epoch is not None:
+                self.retired.append(self.epoch)
+                log.info("sender epoch %x replaced by %x after %.2f s of silence", self.epoch, epoch,
+                         now - self.last_time)
+            self.epoch, self.last_seq = epoch, seq
+            self.last_time = now
+            return None
+        if seq <= self.last_seq:
+            return "out_of_order"
+        if seq - self.last_seq > self.slack + self.max_rate_hz * max(0.0, now - self.last_time):
+            return "seq_jump"
+        self.last_seq, self.last_time = seq, now
+        return None
+
+
+@dataclass(frozen=True)
+class Decision:
+    """What the vehicle gets this tick, and why."""
+
+    v: float
+    omega: float
+    reason: str  # cmd | clamped | stop | deadman | estop | stale | start
+    cmd_seq: int | None = None
+
+    @property
+    def driving(self) -> bool:
+        return self.reason in DRIVING
+
+
+@dataclass
+class CommandGate:
+    """Freshness, clamping, the deadman and the estop latch (see the module docstring)."""
+
+    limits: Bounds
+    cmd_timeout: float = 0.3
+    release_sources: tuple[str, ...] = ("operator",)
+    seq: SeqGate | None = None
+    latest: M.Command | None = None
+    received_at: float = -math.inf
+    estopped: bool = False
+    estop_source: str = ""
+    estop_reason: str = ""
+    counters: dict[str, int] = field(default_factory=lambda: {
+        "accepted": 0, "out_of_order": 0, "old_epoch": 0, "foreign_epoch": 0, "seq_jump": 0, "deadman_trips": 0,
+        "stale": 0, "clamped": 0, "stops": 0, "estops": 0, "estop_releases": 0, "estop_release_refused": 0})
+    _deadman_active: bool = True
+
+    def __post_init__(self) -> None:
+        if self.seq is None:
+            self.seq = SeqGate(silence_s=self.cmd_timeout)
+
+    def offer(self, cmd: M.Command, now: float) -> bool:
+        """A decoded command arrived at ``now``; False (and counted) if it is not the next of its sender's stream."""
+        why = self.seq.accept(cmd.epoch, cmd.seq, now)
+        if why is not None:
+            self.counters[why] += 1
+            return False
+        self.latest, self.received_at = cmd, now
+        self.counters["accepted"] += 1
+        return True
+
+    def estop(self, e: M.Estop) -> bool:
+        """Engage (anyone allowed) or release (only a configured source) the latch. True if the latch changed."""
+        if e.engaged:
+            changed = not self.estopped
+            if changed:
+                self.counters["estops"] += 1
+            self.estopped, self.estop_source, self.estop_reason = True, e.source, e.reason
+            return changed
+        if not self.estopped:
+            return False
+        if e.source not in self.release_sources:
+            self.counters["estop_release_refused"] += 1
+            log.warning("estop release from %r refused: not one of the configured release sources %s", e.source,
+                        list(self.release_sources))
+            return False
+        self.counters["estop_releases"] += 1
+        self.estopped, self.estop_source, self.estop_reason = False, e.source, e.reason
+        return True
+
+    def decide(self, now: float) -> Decision:
+        if self.estopped:
+            return Decision(0.0, 0.0, "estop")
+        cmd = self.latest
+        age = now - self.received_at
+        if cmd is None or age >= self.cmd_timeout:
+            if not self._deadman_active and cmd is not None:
+                self.counters["deadman_trips"] += 1
+                log.warning("deadman: no valid command for %.3f s, vehicle stopped", age)
+            self._deadman_active = True
+            return Decision(0.0, 0.0, "deadman" if cmd is not None else "start")
+        self._deadman_active = False
+        if age >= cmd.valid_ms / 1000.0:
+            self.counters["stale"] += 1
+            return Decision(0.0, 0.0, "stale", cmd.seq)
+        if cmd.method == "stop" or (cmd.v == 0.0 and cmd.omega == 0.0):
+            self.counters["stops"] += 1
+            return Decision(0.0, 0.0, "stop", cmd.seq)  # a stop is a stop, whatever the limits
+        v = min(max(cmd.v, self.limits.v[0]), self.limits.v[1])
+        w = min(max(cmd.omega, self.limits.w[0]), self.limits.w[1])
+        if (v, w) != (cmd.v, cmd.omega):
+            self.counters["clamped"] += 1
+            return Decision(v, w, "clamped", cmd.seq)
+        return Decision(v, w, "cmd", cmd.seq)
+
+
+__all__ = ["DRIVING", "CommandGate", "Decision", "SeqGate"]

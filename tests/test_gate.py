@@ -1,0 +1,121 @@
+"""The driver host's pure safety logic: sender epochs and sequence numbers, a stop is a stop, the deadman, the
+estop latch and who may release it. Each test names the finding it guards against."""
+
+from __future__ import annotations
+
+import math
+
+import msgspec
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from bridge import wire as M
+from bridge.gate import CommandGate, Decision, SeqGate
+from transfer.domain import Bounds
+
+LIMITS = Bounds((-0.5, 0.5), (-1.0, 1.0))
+STATION = 0x5EED
+
+
+def _cmd(seq: int, v: float, w: float, *, epoch: int = STATION, valid_ms: int = 300, method: str = "scm"):
+    return M.Command(stamp=1.0, seq=seq, v=v, omega=w, method=method, valid_ms=valid_ms, epoch=epoch, sender="st")
+
+
+def test_gate_applies_fresh_commands_clamps_and_trips_the_deadman() -> None:
+    g = CommandGate(LIMITS, cmd_timeout=0.3)
+    assert g.decide(0.0).reason == "start"
+    g.offer(_cmd(1, 0.2, 0.1), 1.0)
+    assert g.decide(1.1) == Decision(0.2, 0.1, "cmd", 1)
+    g.offer(_cmd(2, 3.0, -5.0), 1.2)
+    d = g.decide(1.25)
+    assert (d.v, d.omega, d.reason) == (0.5, -1.0, "clamped")
+    assert not g.offer(_cmd(2, 0.1, 0.0), 1.3)  # replayed / out of order
+    assert g.decide(1.2 + 0.31).reason == "deadman" and g.counters["deadman_trips"] == 1
+    g.offer(_cmd(3, 0.1, 0.0, valid_ms=50), 2.0)
+    assert g.decide(2.1).reason == "stale"  # older than its validity: never applied
+
+
+def test_one_forged_huge_seq_does_not_lock_the_station_out() -> None:
+    """Finding: Command(seq=2**63-1) made the driver host drop every later legitimate command, forever."""
+    g = CommandGate(LIMITS, cmd_timeout=0.3)
+    t = 0.0
+    for seq in range(1, 11):
+        assert g.offer(_cmd(seq, 0.2, 0.0), t)
+        t += 0.1
+    assert not g.offer(_cmd(2**63 - 1, 0.4, 0.0), t)  # too far ahead of what the sender could have counted
+    assert g.counters["seq_jump"] == 1
+    for seq in range(11, 21):
+        t += 0.1
+        assert g.offer(_cmd(seq, 0.2, 0.0), t), seq
+        assert g.decide(t).reason == "cmd"
+
+
+def test_a_restarted_station_is_followed_at_once_and_old_commands_stay_refused() -> None:
+    """Finding: a restarted station counted from 0 and was ignored for as long as it had run before."""
+    g = CommandGate(LIMITS, cmd_timeout=0.3)
+    for seq in range(1, 500):
+        g.offer(_cmd(seq, 0.2, 0.0), seq * 0.1)
+    t = 500 * 0.1 + 1.5  # kill -9, restart: 1.5 s of silence
+    assert g.offer(_cmd(0, 0.1, 0.0, epoch=0xBEEF), t)  # new epoch, seq from 0: followed at once
+    assert g.decide(t + 0.01) == Decision(0.1, 0.0, "cmd", 0)
+    assert not g.offer(_cmd(600, 0.4, 0.0), t + 0.05)  # the old run's epoch, replayed: never again
+    assert g.counters["old_epoch"] == 1
+    assert g.offer(_cmd(1, 0.1, 0.0, epoch=0xBEEF), t + 0.1)
+
+
+def test_a_second_sender_cannot_take_over_a_live_stream() -> None:
+    g = CommandGate(LIMITS, cmd_timeout=0.3)
+    g.offer(_cmd(1, 0.2, 0.0), 0.0)
+    assert not g.offer(_cmd(1, 0.4, 0.0, epoch=0xBAD), 0.1)
+    assert g.counters["foreign_epoch"] == 1
+    assert g.offer(_cmd(2, 0.2, 0.0), 0.2)
+
+
+def test_seq_gate_allows_gaps_from_lost_messages() -> None:
+    s = SeqGate(silence_s=0.5)
+    assert s.accept(7, 1, 0.0) is None
+    assert s.accept(7, 40, 0.1) is None  # 38 lost: within slack + rate
+    assert s.accept(7, 40, 0.2) == "out_of_order"
+
+
+def test_a_stop_is_a_stop_whatever_the_limits() -> None:
+    """Findings: Command(method="stop", v=0.4) was applied as 0.4 m/s; with hard limits v = [0.2, 0.5] a zero
+    command was clamped up to 0.2 m/s."""
+    g = CommandGate(Bounds((0.2, 0.5), (-1.0, 1.0)), cmd_timeout=0.3)
+    g.offer(_cmd(1, 0.4, 0.3, method="stop"), 0.0)
+    assert g.decide(0.01) == Decision(0.0, 0.0, "stop", 1)
+    g.offer(_cmd(2, 0.0, 0.0), 0.02)
+    assert g.decide(0.03) == Decision(0.0, 0.0, "stop", 2)
+    g.offer(_cmd(3, 0.1, 0.0), 0.04)  # not a stop: clamped into the limits
+    assert g.decide(0.05) == Decision(0.2, 0.0, "clamped", 3)
+
+
+def test_only_a_configured_source_releases_a_latched_estop() -> None:
+    """Finding: Estop(engaged=False, stamp=0, seq=0) from an unrelated session released a latched estop."""
+    g = CommandGate(LIMITS, cmd_timeout=0.3, release_sources=("operator",))
+    g.offer(_cmd(1, 0.2, 0.0), 0.0)
+    assert g.estop(M.Estop(stamp=0.0, source="anyone", reason="button"))  # anyone may stop the robot
+    g.offer(_cmd(2, 0.2, 0.0), 0.05)
+    assert g.decide(0.06).reason == "estop"
+    assert not g.estop(M.Estop(stamp=0.0, engaged=False))
+    assert not g.estop(M.Estop(stamp=0.0, engaged=False, source="fuzzer"))
+    assert g.decide(0.07).reason == "estop" and g.counters["estop_release_refused"] == 2
+    assert g.estop(M.Estop(stamp=0.0, engaged=False, source="operator", reason="area clear"))
+    g.offer(_cmd(3, 0.2, 0.0), 0.08)
+    assert g.decide(0.09).reason == "cmd"
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.floats(allow_nan=True, allow_infinity=True), st.floats(allow_nan=True, allow_infinity=True),
+       st.sampled_from(["scm", "stop", "direct"]))
+def test_whatever_arrives_the_gate_only_ever_emits_finite_bounded_commands(v: float, w: float, method: str) -> None:
+    raw = msgspec.msgpack.encode({"stamp": 1.0, "seq": 1, "v": v, "omega": w, "method": method})
+    g = CommandGate(LIMITS)
+    try:
+        g.offer(M.decode(raw, M.Command), 0.0)
+    except M.MessageError:
+        pass
+    d = g.decide(0.01)
+    assert math.isfinite(d.v) and math.isfinite(d.omega) and LIMITS.contains([d.v, d.omega])
+    if method == "stop":
+        assert (d.v, d.omega) == (0.0, 0.0)
