@@ -175,6 +175,8 @@ class StationSection(_Cfg):
     persist_every_s: Annotated[float, _m("save the pair store this often, s", ge=0.1, le=86400.0)] = 5.0
     store_path: Annotated[str, _m("pair store file; empty: pairs-<robot>.bin in the working directory")] = ""
     mission: Annotated[str, _m("mission file (TOML); empty: the paper's S-path shipped with scmbridge")] = ""
+    max_pose_age_s: Annotated[float, _m("a pose older than this stops planning (the station publishes stops), s",
+                                        gt=0.0, le=60.0)] = 0.5
 
 
 class TransferSection(_Cfg):

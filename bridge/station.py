@@ -1,12 +1,21 @@
 """``scmbridge station``: the base-station service, the teacher and the transfer policy in a fixed-rate loop.
 
-Each tick (10 Hz default; absolute deadlines, missed ones counted) it takes the latest learner state, forms the
-command pairs the driver's applied-command echo and the poses really bracket (:mod:`bridge.pairing`), updates the
-pair store (and so the learned limits), runs the teacher MPC bounded by the learned limits, maps its command with
-the transfer policy and publishes ``cmd`` (with the method and a validity of three periods) and ``teacher``. At the
-goal it publishes stops. The pair store is persisted atomically (write, fsync, rename) every ``persist_every_s``
-and at exit, and reloaded at start; ``scm/<robot>/pairs`` answers queries with the refined pairs and limits;
-``status`` carries rates, counts and solve times. Callbacks only decode and store; all work is in the loop.
+Each tick (10 Hz default; absolute deadlines, missed ones counted) it takes the learner states and applied-command
+echoes that arrived, forms the command pairs they really bracket (:mod:`bridge.pairing`), updates the pair store
+(and so the learned limits), and then either drives or says why not:
+
+- it drives only while the robot is fit: the driver host's status is fresh and ``ok`` (link up, vehicle in the
+  operator's hands or not, no fault, no estop), and the latest pose arrived less than ``max_pose_age_s`` ago;
+- otherwise, and at the goal, it publishes stops and its status says why (``robot not ready: ...``,
+  ``no pose for 0.8 s``, ``goal reached``).
+
+Driving: the teacher MPC, bounded by the learned limits and given the obstacles that matter, proposes a command;
+the transfer policy maps it; ``cmd`` carries it (with the method, a validity of three periods, this run's sender
+name and epoch) and ``teacher`` the teacher's own command and plan. ``limits`` is published when the learned
+limits change and each second; ``pairs`` answers queries; ``mission`` takes a new mission (the goal state resets).
+The pair store is persisted atomically every ``persist_every_s`` and at exit, and reloaded at start; a failed save
+(a full disk) is logged, reported on status and retried, and never stops the loop. Callbacks only decode and
+store; all work is in the loop (docs/ARCHITECTURE.md).
 """
 
 from __future__ import annotations
@@ -14,36 +23,45 @@ from __future__ import annotations
 import argparse
 import logging
 import os
-import signal
 import threading
 import time
 from pathlib import Path as FsPath
 from typing import Any
 
 import numpy as np
+import zenoh
 
 from bridge import wire as M
 from bridge.cliutil import positive_float
-from bridge.config import load_mission, load_station
+from bridge.config import StationConfig, load_mission, load_station, mission_from_spec
+from bridge.node import FixedRate, Inputs, add_zenoh_args, stop_on_signals, zenoh_config
 from bridge.pairing import IntervalPairer
-from bridge.wire import Keys, status_key
-from bridge.zsession import make_config, open_session
+from bridge.zsession import open_session
 from transfer.domain import Bounds
+from transfer.mission import Mission
 from transfer.store import PairStore
 
 log = logging.getLogger("scmbridge.station")
 
+#: a driver host publishes status each second: after this long without one, the robot is not known to be fit
+DRIVER_STATUS_MAX_AGE = 3.0
+
 
 def save_atomic(path: FsPath, data: bytes) -> None:
-    """Write ``data`` so that ``path`` holds either the old or the new content, never a torn file."""
+    """Write ``data`` so that ``path`` holds either the old or the new content, never a torn file; on failure
+    (a full disk) the temporary file is removed and the error raised."""
     path = FsPath(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    with open(tmp, "wb") as f:
-        f.write(data)
-        f.flush()
-        os.fsync(f.fileno())
-    os.replace(tmp, path)
+    try:
+        with open(tmp, "wb") as f:
+            f.write(data)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
     dfd = os.open(path.parent, os.O_DIRECTORY)
     try:
         os.fsync(dfd)
@@ -75,176 +93,264 @@ def pairs_message(store: PairStore, robot: str, now: float) -> M.Pairs:
                    limits_hull=[[float(a), float(b)] for a, b in store.limits.hull])
 
 
+class Station:
+    """One robot's station: pairing, the teacher, the policy, persistence and the Zenoh side."""
+
+    def __init__(self, cfg: StationConfig, robot: str, rate_hz: float, store_path: FsPath, mission: Mission) -> None:
+        from transfer.policy import TransferPolicy
+        from transfer.teacher.mpc import MpcConfig, MpcTeacher
+
+        scfg, tcfg = cfg.station, cfg.transfer
+        self.robot, self.keys = robot, M.Keys(robot)
+        self.period = 1.0 / rate_hz
+        self.store_path = store_path
+        self.persist_every = scfg.persist_every_s
+        self.max_pose_age = scfg.max_pose_age_s
+        self.store, how = load_store(store_path, cfg.learner_bounds.bounds(), cfg.teacher_bounds.bounds(),
+                                     tcfg.grid, tcfg.k_min)
+        log.info("%s", how)
+        self.policy = TransferPolicy(self.store, tcfg.mapper, rng=np.random.default_rng(tcfg.seed))
+        self.mpc = MpcTeacher(MpcConfig(N=scfg.horizon, dt=self.period))
+        self.pairer = IntervalPairer(scfg.pair_dt)
+        self.mission = mission
+        self.inputs = Inputs()
+        self.lock = threading.Lock()  # the inbox, the store (read by the pairs queryable) and the mission
+        self.inbox: dict[str, Any] = {"state": None, "state_at": -np.inf, "events": [], "driver": None,
+                                      "driver_at": -np.inf, "mission": None}
+        self.epoch = M.new_epoch()
+        self.seq = {"cmd": 0, "status": 0}
+        self.counts: dict[str, int] = {"scm": 0, "direct": 0, "perturb": 0, "affine": 0, "barycentric": 0, "stop": 0}
+        self.extra = {"obstacles_dropped": 0, "persist_failures": 0, "missions": 0}
+        self.reached = False
+        self.why = "starting"
+        self.persist_error = ""
+        self.limits_sent: tuple[list[float], int] | None = None
+        self.limits_version = 0
+        self.solve_ms: list[float] = []
+        self.pubs: dict[str, zenoh.Publisher] = {}
+        self.ticker: FixedRate | None = None
+
+    # ---------------------------------------------------------------------------------------------- inputs
+    def on_state(self, st: M.LearnerState, now: float) -> None:
+        with self.lock:
+            self.inbox["state"], self.inbox["state_at"] = st, now
+            self.inbox["events"].append((st.stamp, 1, st))
+
+    def on_applied(self, a: M.Applied, now: float) -> None:
+        with self.lock:
+            self.inbox["events"].append((a.stamp, 0, a))
+
+    def on_driver_status(self, st: M.Status, now: float) -> None:
+        with self.lock:
+            self.inbox["driver"], self.inbox["driver_at"] = st, now
+
+    def on_mission(self, spec: M.MissionSpec, now: float) -> None:
+        try:
+            mission = mission_from_spec(spec)
+        except ValueError as exc:
+            self.inputs.count("malformed_mission")
+            log.warning("mission %r refused: %s", spec.name, exc)
+            return
+        with self.lock:
+            self.inbox["mission"] = mission
+
+    def on_pairs_query(self, query: zenoh.Query) -> None:
+        with self.lock:
+            msg = pairs_message(self.store, self.robot, time.monotonic())
+        query.reply(self.keys.pairs, M.encode(msg))
+
+    # ------------------------------------------------------------------------------------------------ tick
+    def ingest(self) -> tuple[M.LearnerState | None, float, M.Status | None, float]:
+        """Pairs from the echoes and poses that arrived (time order), a new mission if one came; returns the
+        latest state and driver status with their receipt times."""
+        with self.lock:
+            events, self.inbox["events"] = self.inbox["events"], []
+            mission, self.inbox["mission"] = self.inbox["mission"], None
+            for _, kind, e in sorted(events, key=lambda e: (e[0], e[1])):
+                if kind == 0:
+                    pair = self.pairer.applied(e.stamp, e.v, e.omega, e.reason)
+                else:
+                    pair = self.pairer.state(e.stamp, np.array([e.x, e.y, e.theta]))
+                if pair is not None:
+                    self.store.add(*pair)
+            inbox = dict(self.inbox)
+        if mission is not None:
+            self.mission, self.reached = mission, False
+            self.mpc.reset()
+            self.extra["missions"] += 1
+            log.info("new mission %r: %d waypoints, %.1f m, %d obstacles", mission.name, len(mission.path.points),
+                     mission.path.length, len(mission.obstacles))
+        return inbox["state"], inbox["state_at"], inbox["driver"], inbox["driver_at"]
+
+    def fit_to_drive(self, now: float, state, state_at: float, driver, driver_at: float) -> str:
+        """Empty if the station may drive the robot now, else why not (for status and the log)."""
+        if driver is None or now - driver_at > DRIVER_STATUS_MAX_AGE:
+            return "robot not ready: no driver host status"
+        if not driver.ok:
+            return f"robot not ready: {driver.text}"
+        if state is None:
+            return "no pose yet"
+        if now - state_at > self.max_pose_age:
+            return f"no pose for {now - state_at:.1f} s"
+        return ""
+
+    def drive(self, now: float, state: M.LearnerState) -> None:
+        """One teacher command, mapped and published."""
+        x = np.array([state.x, state.y, state.theta])
+        t0 = time.perf_counter()
+        with self.lock:
+            limits = self.store.limits.box
+        res = self.mpc.solve(x, self.mission.path, limits, self.mission.obstacles)
+        self.solve_ms.append((time.perf_counter() - t0) * 1e3)
+        del self.solve_ms[:-100]
+        self.extra["obstacles_dropped"] += res.obstacles_dropped
+        with self.lock:
+            m = self.policy.map(res.u)
+        self.counts[m.method] = self.counts.get(m.method, 0) + 1
+        self._command(now, float(m.u_L[0]), float(m.u_L[1]), m.method, list(m.region)[:8])
+        pred = res.predicted
+        self._put("teacher", M.TeacherCommand(
+            stamp=now, seq=self.seq["cmd"] - 1, v=float(res.u[0]), omega=float(res.u[1]), solver=res.solver,
+            ok=res.ok, predicted_x=[float(a) for a in pred[:, 0]], predicted_y=[float(a) for a in pred[:, 1]],
+            sender="station", epoch=self.epoch))
+
+    def _command(self, now: float, v: float, omega: float, method: str, region: list[int] | None = None) -> None:
+        cmd = M.Command(stamp=now, seq=self.seq["cmd"], v=v, omega=omega, method=method,
+                        valid_ms=int(3000 * self.period), region=region or [], sender="station", epoch=self.epoch)
+        self._put("cmd", M.validated(cmd))
+        self.seq["cmd"] += 1
+
+    def tick(self, now: float) -> None:
+        state, state_at, driver, driver_at = self.ingest()
+        why = self.fit_to_drive(now, state, state_at, driver, driver_at)
+        if not why and not self.reached and self.mission.reached([state.x, state.y]):
+            self.reached = True
+            log.info("goal of mission %r reached", self.mission.name)
+        if self.reached:
+            why = "goal reached"
+        if why:
+            if why != self.why:
+                log.info("not driving: %s", why)
+            self._command(now, 0.0, 0.0, "stop")
+            self.counts["stop"] += 1
+        else:
+            self.drive(now, state)
+        self.why = why or "driving"
+
+    # ---------------------------------------------------------------------------------------- publications
+    def publish_limits(self, now: float, force: bool) -> None:
+        with self.lock:
+            box = self.store.limits.box.as_list()
+            hull = [[float(a), float(b)] for a, b in self.store.limits.hull]
+        key = (box, len(hull))
+        if self.limits_sent is None or self.limits_sent != key:
+            self.limits_version += 1
+        elif not force:
+            return
+        self.limits_sent = key
+        self._put("limits", M.Limits(stamp=now, robot=self.robot, version=self.limits_version, box=box, hull=hull))
+
+    def status(self, now: float) -> M.Status:
+        sm = np.array(self.solve_ms) if self.solve_ms else np.zeros(1)
+        with self.lock:
+            npairs = len(self.store.refined())
+        counters = {**{f"method_{k}": v for k, v in self.counts.items()}, **self.extra, **self.inputs.snapshot(),
+                    "missed_deadlines": self.ticker.missed if self.ticker else 0, "refined_pairs": npairs,
+                    "raw_pairs": self.store.raw_count,
+                    "pairs_rejected": self.pairer.rejected, "pairs_formed": self.pairer.formed,
+                    "goal_reached": int(self.reached)}
+        ok = self.why in ("driving", "goal reached") and not self.persist_error
+        text = self.why + (f"; {self.persist_error}" if self.persist_error else "")
+        msg = M.Status(stamp=now, seq=self.seq["status"], node="station", ok=ok, rates_hz={"loop": 1 / self.period},
+                       latencies_ms={"solve_median": float(np.median(sm)), "solve_max": float(sm.max())},
+                       counters=counters, text=text[:1024])
+        self.seq["status"] += 1
+        return msg
+
+    def persist(self) -> None:
+        """Save the store; a failure (disk full, permissions) is reported and retried at the next period."""
+        with self.lock:
+            blob = self.store.to_bytes()
+        try:
+            save_atomic(self.store_path, blob)
+        except OSError as exc:
+            self.extra["persist_failures"] += 1
+            self.persist_error = f"pair store not saved: {exc.strerror or exc}"
+            log.error("%s (%s); driving on, retrying in %.0f s", self.persist_error, self.store_path,
+                      self.persist_every)
+            return
+        if self.persist_error:
+            log.info("pair store saved again to %s", self.store_path)
+        self.persist_error = ""
+
+    def _put(self, topic: str, msg: Any) -> None:
+        self.pubs[topic].put(M.encode(msg))
+
+    # ------------------------------------------------------------------------------------------------- run
+    def serve(self, session: zenoh.Session, stop: threading.Event, duration: float | None,
+              exit_at_goal: bool) -> None:
+        k = self.keys
+        self.inputs.subscribe(session, k.state, M.LearnerState, "state", self.on_state)
+        self.inputs.subscribe(session, k.applied, M.Applied, "applied", self.on_applied)
+        self.inputs.subscribe(session, M.status_key(self.robot, "driver"), M.Status, "driver_status",
+                              self.on_driver_status)
+        self.inputs.subscribe(session, k.mission, M.MissionSpec, "mission", self.on_mission)
+        session.declare_queryable(k.pairs, self.on_pairs_query)
+        self.pubs = {t: session.declare_publisher(getattr(k, t)) for t in ("cmd", "teacher", "limits")}
+        self.pubs["status"] = session.declare_publisher(M.status_key(self.robot, "station"))
+        log.info("station for %s at %.0f Hz, mission %s (epoch %x)", self.robot, 1 / self.period, self.mission.name,
+                 self.epoch)
+        self.ticker = FixedRate(1 / self.period, stop)
+        t_start = time.monotonic()
+        t_status = t_persist = t_start
+        while not stop.is_set():
+            now = time.monotonic()
+            if duration is not None and now - t_start >= duration:
+                break
+            self.tick(now)
+            if now >= t_status:
+                self._put("status", self.status(now))
+                self.publish_limits(now, force=True)
+                t_status = now + 1.0
+            else:
+                self.publish_limits(now, force=False)
+            if now >= t_persist:
+                self.persist()
+                t_persist = now + self.persist_every
+            if self.reached and exit_at_goal:
+                self._put("status", self.status(now))
+                time.sleep(3 * self.period)
+                break
+            self.ticker.wait()
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="scmbridge station", description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--config", help="station TOML (see deploy/station.example.toml)")
-    ap.add_argument("--robot", default=None)
-    ap.add_argument("--listen", action="append", default=[])
-    ap.add_argument("--connect", action="append", default=[])
-    ap.add_argument("--mode", choices=["peer", "client", "router"], default="peer", help="Zenoh session mode")
-    ap.add_argument("--zenoh-config")
-    ap.add_argument("--rate", type=positive_float, default=None, help="control tick rate, Hz (overrides the config)")
+    ap.add_argument("--config", help="station TOML (scmbridge config show --kind station)")
+    ap.add_argument("--robot", default=None, help="robot name (overrides the config)")
     ap.add_argument("--mission", default=None, help="mission file (TOML; overrides the config)")
+    add_zenoh_args(ap)
+    ap.add_argument("--rate", type=positive_float, default=None, help="control tick rate, Hz (overrides the config)")
     ap.add_argument("--store", default=None, help="pair store file (persisted atomically, reloaded at start)")
-    ap.add_argument("--duration", type=float, default=None)
+    ap.add_argument("--duration", type=positive_float, default=None)
     ap.add_argument("--exit-at-goal", action="store_true", help="stop the service once the goal is reached")
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s station %(levelname)s %(message)s")
-    cfg = load_station(args.config)
-    scfg = cfg.station
-    robot = args.robot or cfg.robot
-    keys = Keys(robot)
-    rate = float(args.rate or scfg.rate_hz)
-    period = 1.0 / rate
-    dt_pair = scfg.pair_dt
-    world = load_mission(args.mission or scfg.mission or None)
-
-    from transfer.policy import TransferPolicy
-    from transfer.scm import warmup
-    from transfer.teacher.mpc import MpcConfig, MpcTeacher
-
-    TB, LB = cfg.teacher_bounds.bounds(), cfg.learner_bounds.bounds()
-    tcfg = cfg.transfer
+    cfg = load_station(args.config)  # mistakes end here, before any session opens
+    mission = load_mission(args.mission or cfg.station.mission or None)
+    robot = M.check_robot(args.robot or cfg.robot)
     store_path = FsPath(args.store) if args.store else cfg.store_file()
-    store, how = load_store(store_path, LB, TB, tcfg.grid, tcfg.k_min)
-    log.info("%s", how)
-    policy = TransferPolicy(store, tcfg.mapper, rng=np.random.default_rng(tcfg.seed))
-    mpc = MpcTeacher(MpcConfig(N=scfg.horizon, dt=period))
+
+    from transfer.scm import warmup
+
+    station = Station(cfg, robot, args.rate or cfg.station.rate_hz, store_path, mission)
     warmup()  # compile / load the SC kernels before the first tick
-    pairer = IntervalPairer(dt_pair)
-
-    lock = threading.Lock()
-    inbox: dict[str, Any] = {"state": None, "applied": [], "malformed": 0}
-    stop = threading.Event()
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, lambda *_: stop.set())
-
-    def on_state(sample) -> None:
-        try:
-            st = M.decode(sample.payload.to_bytes(), M.LearnerState)
-        except M.MessageError:
-            with lock:
-                inbox["malformed"] += 1
-            return
-        with lock:
-            inbox["state"] = st
-            inbox.setdefault("states", []).append(st)
-
-    def on_applied(sample) -> None:
-        try:
-            a = M.decode(sample.payload.to_bytes(), M.Applied)
-        except M.MessageError:
-            with lock:
-                inbox["malformed"] += 1
-            return
-        with lock:
-            inbox["applied"].append(a)
-
-    zconf = make_config(mode=args.mode, listen=args.listen, connect=args.connect, config_file=args.zenoh_config)
-    counts = {"scm": 0, "direct": 0, "perturb": 0, "affine": 0, "barycentric": 0, "stop": 0}
-    t_start = time.monotonic()
-    reached = False
+    stop = stop_on_signals()
     try:
-        with open_session(zconf) as session:
-            session.declare_subscriber(keys.state, on_state)
-            session.declare_subscriber(keys.applied, on_applied)
-
-            def on_query(query) -> None:
-                with lock:
-                    msg = pairs_message(store, robot, time.monotonic())
-                query.reply(keys.pairs, M.encode(msg))
-
-            session.declare_queryable(keys.pairs, on_query)
-            pub_cmd = session.declare_publisher(keys.cmd)
-            pub_teacher = session.declare_publisher(keys.teacher)
-            pub_status = session.declare_publisher(status_key(robot, "station"))
-            seq = seq_st = 0
-            missed = 0
-            solve_ms: list[float] = []
-            t_next = time.monotonic()
-            t_status = t_persist = t_next
-            persist_every = scfg.persist_every_s
-            log.info("station for %s at %.0f Hz, world %s", robot, rate, world.name)
-            while not stop.is_set():
-                now = time.monotonic()
-                if args.duration is not None and now - t_start >= args.duration:
-                    break
-                with lock:
-                    applied, inbox["applied"] = inbox["applied"], []
-                    states = inbox.pop("states", [])
-                    state = inbox["state"]
-                events = sorted([(a.stamp, 0, a) for a in applied] + [(st.stamp, 1, st) for st in states],
-                                key=lambda e: (e[0], e[1]))
-                with lock:  # the queryable reads the store from Zenoh's thread
-                    for _, kind, e in events:
-                        if kind == 0:
-                            pair = pairer.applied(e.stamp, e.v, e.omega, e.reason)
-                        else:
-                            pair = pairer.state(e.stamp, np.array([e.x, e.y, e.theta]))
-                        if pair is not None:
-                            store.add(*pair)
-                if state is not None and not reached:
-                    x = np.array([state.x, state.y, state.theta])
-                    if world.reached(x):
-                        reached = True
-                        t_status = now  # say so at once
-                        log.info("goal reached after %.1f s", now - t_start)
-                    else:
-                        t0 = time.perf_counter()
-                        with lock:
-                            limits = store.limits.box
-                        res = mpc.solve(x, world.path, limits, world.obstacles)
-                        solve_ms.append((time.perf_counter() - t0) * 1e3)
-                        with lock:
-                            m = policy.map(res.u)
-                        counts[m.method] = counts.get(m.method, 0) + 1
-                        cmd = M.Command(stamp=now, seq=seq, v=float(m.u_L[0]), omega=float(m.u_L[1]),
-                                        method=m.method,
-                                        valid_ms=int(3000 * period), region=list(m.region)[:8])
-                        pub_cmd.put(M.encode(M.validated(cmd)))
-                        pred = res.predicted
-                        pub_teacher.put(M.encode(M.TeacherCommand(
-                            stamp=now, seq=seq, v=float(res.u[0]), omega=float(res.u[1]), solver=res.solver,
-                            ok=res.ok, predicted_x=[float(a) for a in pred[:, 0]],
-                            predicted_y=[float(a) for a in pred[:, 1]])))
-                        seq += 1
-                if reached:
-                    pub_cmd.put(M.encode(M.Command(stamp=now, seq=seq, v=0.0, omega=0.0, method="stop",
-                                                   valid_ms=int(3000 * period))))
-                    seq += 1
-                    counts["stop"] += 1
-                if now >= t_status:
-                    sm = np.array(solve_ms[-100:]) if solve_ms else np.zeros(1)
-                    with lock:
-                        mal = inbox["malformed"]
-                        npairs = len(store.refined())
-                    pub_status.put(M.encode(M.Status(
-                        stamp=now, seq=seq_st, node="station", ok=True, rates_hz={"loop": rate},
-                        latencies_ms={"solve_median": float(np.median(sm)), "solve_max": float(sm.max())},
-                        counters={**{f"method_{k}": v for k, v in counts.items()}, "missed_deadlines": missed,
-                                  "malformed": mal, "refined_pairs": npairs, "raw_pairs": store.raw_count,
-                                  "pairs_rejected": pairer.rejected, "pairs_formed": pairer.formed,
-                                  "goal_reached": int(reached)},
-                        text="goal reached" if reached else "driving")))
-                    seq_st += 1
-                    t_status = now + 1.0
-                if now >= t_persist:
-                    with lock:
-                        blob = store.to_bytes()
-                    save_atomic(store_path, blob)
-                    t_persist = now + persist_every
-                if reached and args.exit_at_goal:
-                    time.sleep(3 * period)
-                    break
-                t_next += period
-                delay = t_next - time.monotonic()
-                if delay > 0:
-                    stop.wait(delay)
-                else:
-                    missed += 1
-                    t_next = time.monotonic()
+        with open_session(zenoh_config(args)) as session:
+            station.serve(session, stop, args.duration, args.exit_at_goal)
     finally:
-        save_atomic(store_path, store.to_bytes())
-        log.info("pair store saved to %s (%d refined pairs)", store_path, len(store.refined()))
+        station.persist()
+        log.info("pair store saved to %s (%d refined pairs)", store_path, len(station.store.refined()))
     return 0

@@ -58,6 +58,7 @@ class MpcResult:
     fallback: bool = False
     solver: str = ""
     iterations: int = 0
+    obstacles_dropped: int = 0  # obstacles within the horizon's reach that did not fit the NLP's slots
     refs: NDArray[np.float64] = field(default_factory=lambda: np.zeros((0, 3)))
 
 
@@ -159,6 +160,21 @@ class MpcTeacher:
         r[:, 2] = state[2] + rel - 2 * math.pi * np.round(rel[0] / (2 * math.pi))
         return r
 
+    def obstacles_that_matter(self, state: NDArray[np.float64], obstacles: NDArray[np.float64] | None,
+                              limits: Bounds) -> tuple[NDArray[np.float64], int]:
+        """The obstacles the NLP's ``max_obstacles`` slots hold: the nearest (by clearance) of those within reach
+        of this horizon (the distance the top speed covers in N steps, plus the margin), and how many obstacles
+        within reach did not fit (the caller reports them; none is ever dropped silently)."""
+        if obstacles is None or len(obstacles) == 0:
+            return np.zeros((0, 3)), 0
+        o = np.asarray(obstacles, dtype=float).reshape(-1, 3)
+        clearance = np.hypot(o[:, 0] - state[0], o[:, 1] - state[1]) - o[:, 2]
+        reach = self.cfg.N * self.cfg.dt * max(abs(limits.v[0]), abs(limits.v[1])) + self.cfg.obstacle_margin
+        near = np.flatnonzero(clearance <= reach)
+        near = near[np.argsort(clearance[near], kind="stable")]
+        keep = near[: self.cfg.max_obstacles]
+        return o[keep], int(near.size - keep.size)
+
     def solve(
         self,
         state: NDArray[np.float64],
@@ -176,9 +192,8 @@ class MpcTeacher:
         refs = self.references(state, path, limits.v[1] if v_ref is None else v_ref)
         obs = np.zeros((3, cfg.max_obstacles))
         obs[2, :] = -1.0
-        if obstacles is not None and len(obstacles):
-            o = np.asarray(obstacles, dtype=float)[: cfg.max_obstacles]
-            obs[:, : o.shape[0]] = o.T
+        o, dropped = self.obstacles_that_matter(state, obstacles, limits)
+        obs[:, : o.shape[0]] = o.T
         u_prev = np.clip(self.u_last, limits.lo, limits.hi)
         p = np.concatenate([state, refs.T.ravel(order="F"), u_prev, obs.ravel(order="F")])
         lbx = np.full(self._nx, -np.inf)
@@ -212,7 +227,7 @@ class MpcTeacher:
             self._prev_u, self._prev_pred = U, Xp
             self._lam_g = np.asarray(sol["lam_g"]).ravel()
             self.u_last = u
-            return MpcResult(u, True, status, Xp, False, cfg.solver, iters, refs)
+            return MpcResult(u, True, status, Xp, False, cfg.solver, iters, dropped, refs)
         # fallback: the previous plan shifted by one step, or a stop
         if self._prev_u is not None and self._prev_u.shape[0] > 1:
             u = np.clip(self._prev_u[1], limits.lo, limits.hi)
@@ -220,11 +235,12 @@ class MpcTeacher:
             pred = np.vstack([self._prev_pred[1:], self._prev_pred[-1:]])
             self._prev_pred = pred
             self.u_last = u
-            return MpcResult(u, False, status, pred, True, cfg.solver, iters, refs)
+            return MpcResult(u, False, status, pred, True, cfg.solver, iters, dropped, refs)
         stop = np.array([max(limits.v[0], 0.0) if limits.v[0] > 0 else 0.0, 0.0])
         stop = np.clip(stop, limits.lo, limits.hi)
         self.u_last = stop
-        return MpcResult(stop, False, status, np.repeat(state[None], N + 1, axis=0), True, cfg.solver, iters, refs)
+        return MpcResult(stop, False, status, np.repeat(state[None], N + 1, axis=0), True, cfg.solver, iters, dropped,
+                         refs)
 
     def _warm(self, state: NDArray[np.float64], refs: NDArray[np.float64], limits: Bounds) -> NDArray[np.float64]:
         """Initial guess: the previous solution shifted one step, or a rollout along the references."""
