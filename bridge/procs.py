@@ -4,7 +4,11 @@ from __future__ import annotations
 
 import os
 import signal
+import socket
 import subprocess
+import sys
+from pathlib import Path
+from typing import Any
 
 
 def stop_group(proc: subprocess.Popen, term_timeout: float = 10.0) -> None:
@@ -24,3 +28,56 @@ def stop_group(proc: subprocess.Popen, term_timeout: float = 10.0) -> None:
         proc.wait(timeout=5)
     except ProcessLookupError:
         proc.wait(timeout=5)
+
+
+def spawn(args: list[str], out: Any = subprocess.PIPE, **kwargs: Any) -> subprocess.Popen:
+    """``scmbridge ARGS...`` as a child in its own process group (so :func:`stop_group` takes all of it), with
+    stdout and stderr together into ``out`` (a pipe, a file, or ``subprocess.DEVNULL``)."""
+    return subprocess.Popen([sys.executable, "-m", "bridge.cli", *args], stdout=out, stderr=subprocess.STDOUT,
+                            start_new_session=True, **kwargs)
+
+
+class Children:
+    """The children of one run: ``with Children() as kids: kids.spawn([...])``; all stopped on exit, newest first."""
+
+    def __init__(self) -> None:
+        self.procs: list[subprocess.Popen] = []
+
+    def spawn(self, args: list[str], out: Any = subprocess.PIPE, **kwargs: Any) -> subprocess.Popen:
+        proc = spawn(args, out, **kwargs)
+        self.procs.append(proc)
+        return proc
+
+    def any_exited(self) -> bool:
+        return any(p.poll() is not None for p in self.procs)
+
+    def __enter__(self) -> Children:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        for p in reversed(self.procs):
+            stop_group(p)
+
+
+def free_udp_port(host: str = "127.0.0.1") -> int:
+    """A UDP port the OS says is free right now on ``host`` (never a fixed port)."""
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind((host, 0))
+        return int(s.getsockname()[1])
+
+
+def emulated_link(kids: Children, link: str, workdir: Path, x0: str, duration: float, out: Any = subprocess.DEVNULL,
+                  rate_hz: float = 20.0) -> list[str]:
+    """Start the emulated learner for ``link`` the way a real robot would sit on it, and return the driver host's
+    ``--link ...`` arguments that reach it: CAN controllers live inside the driver host (``--emulate``: this
+    machine has no CAN across processes), the UDP robot and the rover are processes of their own on loopback."""
+    if link == "can":
+        return ["--link", "can", "--emulate", "--x0", x0]
+    port = free_udp_port()
+    cfg = Path(workdir) / f"driver-{link}.toml"
+    if link == "udp":
+        cfg.write_text(f'[link.udp]\nrobot_host = "127.0.0.1"\nrobot_port = {port}\n')
+    else:
+        cfg.write_text(f'[link.mavlink]\nurl = "udpout:127.0.0.1:{port}"\nrate_hz = {rate_hz}\n')
+    kids.spawn(["learner", "--link", link, "--port", str(port), "--x0", x0, "--duration", str(duration)], out)
+    return ["--link", link, "--config", str(cfg)]

@@ -7,11 +7,13 @@ is passed in (``now`` seconds, any monotonic clock) so tests can drive it determ
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
 
 from sim_learner.dynamics import LearnerModel
+from transfer.teacher.unicycle import euler
 
 
 @dataclass(slots=True)
@@ -88,9 +90,7 @@ class SimVehicle:
         h = dt_total / n
         x, y, th = s.x, s.y, s.theta
         for _ in range(n):
-            x += h * v * np.cos(th)
-            y += h * v * np.sin(th)
-            th += h * w
+            x, y, th = euler(x, y, th, v, w, h, math.cos, math.sin)
         s.x, s.y, s.theta, s.v, s.omega = float(x), float(y), float(th), v, w
         self.distance += v * dt_total
         self.t = float(now)

@@ -6,8 +6,6 @@ from __future__ import annotations
 
 import math
 import os
-import subprocess
-import sys
 import threading
 import time
 
@@ -15,7 +13,7 @@ import msgspec
 import pytest
 
 from bridge import wire as M
-from bridge.procs import stop_group
+from bridge.procs import spawn, stop_group
 from bridge.wire import Keys, status_key
 from bridge.zsession import free_port, make_config, open_session, tcp
 from transfer.domain import Bounds
@@ -86,11 +84,7 @@ def driver_host(request, tmp_path):
             device = MavlinkRover(vehicle).start()
             cfg.write_text(f'[link.mavlink]\nurl = "udpout:127.0.0.1:{device.port}"\nrate_hz = 50\n')
         args += ["--config", str(cfg)]
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "bridge.cli", "driver", *args, "--robot", robot, "--listen", tcp(port),
-         "--duration", "40"],
-        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, start_new_session=True,
-    )
+    proc = spawn(["driver", *args, "--robot", robot, "--listen", tcp(port), "--duration", "40"])
     try:
         with open_session(make_config(connect=[tcp(port)])) as session:
             yield session, robot, Listener(session, robot)

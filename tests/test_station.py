@@ -14,7 +14,7 @@ import pytest
 
 from bridge import wire as M
 from bridge.pairing import IntervalPairer
-from bridge.procs import stop_group
+from bridge.procs import spawn, stop_group
 from bridge.station import load_store, save_atomic
 from bridge.wire import Keys
 from bridge.zsession import free_port, make_config, open_session, tcp
@@ -71,9 +71,7 @@ def test_atomic_save_and_corrupt_store_is_set_aside(tmp_path) -> None:
     assert not list(tmp_path.glob(".pairs.bin.*.tmp"))
 
 
-def _spawn(args: list[str]) -> subprocess.Popen:
-    return subprocess.Popen([sys.executable, "-m", "bridge.cli", *args], stdout=subprocess.PIPE,
-                            stderr=subprocess.STDOUT, start_new_session=True)
+_spawn = spawn
 
 
 def _query_pairs(session, robot: str, timeout: float = 15.0) -> M.Pairs | None:

@@ -14,14 +14,14 @@ from __future__ import annotations
 
 import argparse
 import subprocess
-import sys
 import threading
 import time
+from pathlib import Path
 
 import numpy as np
 
 from bridge.bench.common import emit
-from bridge.procs import stop_group
+from bridge.procs import Children, emulated_link
 
 
 def _rss_kb(pid: int) -> int | None:
@@ -37,7 +37,6 @@ def _rss_kb(pid: int) -> int | None:
 
 def run_link(link: str, seconds: float, workdir: str) -> dict:
     """Commands at 50 Hz for ``seconds`` through the driver host on ``link``; latency, loop timing, memory."""
-    import socket
 
     from bridge import wire as M
     from bridge.wire import Keys, status_key
@@ -50,9 +49,7 @@ def run_link(link: str, seconds: float, workdir: str) -> dict:
     lat: list[float] = []
     status: list = []
     lock = threading.Lock()
-    py = [sys.executable, "-m", "bridge.cli"]
-    procs: list[subprocess.Popen] = []
-    with open_session(make_config(mode="router", listen=[tcp(port)])) as session:
+    with open_session(make_config(mode="router", listen=[tcp(port)])) as session, Children() as kids:
         def on_applied(sample) -> None:
             a = M.decode(sample.payload.to_bytes(), M.Applied)
             if a.cmd_seq is not None and a.reason in ("cmd", "clamped"):
@@ -68,52 +65,31 @@ def run_link(link: str, seconds: float, workdir: str) -> dict:
 
         session.declare_subscriber(keys.applied, on_applied)
         session.declare_subscriber(status_key(robot, "driver"), on_status)
-        if link == "can":
-            driver_args = ["--link", "can", "--emulate"]
-        else:
-            with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-                s.bind(("127.0.0.1", 0))
-                dev_port = s.getsockname()[1]
-            cfg = f"{workdir}/driver-{link}.toml"
-            with open(cfg, "w") as f:
-                if link == "udp":
-                    f.write(f"[link.udp]\nrobot_port = {dev_port}\n")
-                else:
-                    f.write(f'[link.mavlink]\nurl = "udpout:127.0.0.1:{dev_port}"\nrate_hz = 50\n')
-            procs.append(subprocess.Popen(py + ["learner", "--link", link, "--port", str(dev_port), "--duration",
-                                                str(seconds + 40)], stdout=subprocess.DEVNULL,
-                                          stderr=subprocess.DEVNULL, start_new_session=True))
-            driver_args = ["--link", link, "--config", cfg]
-        procs.append(subprocess.Popen(py + ["driver", *driver_args, "--robot", robot, "--mode", "client",
-                                            "--connect", tcp(port), "--rate", "50", "--duration", str(seconds + 30)],
-                                      stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True))
-        driver = procs[-1]
-        try:
-            t_end = time.monotonic() + 30
-            while time.monotonic() < t_end:
-                with lock:
-                    if status:
-                        break
-                time.sleep(0.05)
-            rss0 = _rss_kb(driver.pid)
-            pub = session.declare_publisher(keys.cmd)
-            seq = 0
-            t0 = time.monotonic()
-            t_next = t0
-            while time.monotonic() - t0 < seconds:
-                seq += 1
-                now = time.monotonic()
-                with lock:
-                    sent[seq] = now
-                w = float(0.05 * np.sin(seq / 50))
-                pub.put(M.encode(M.Command(stamp=now, seq=seq, v=0.2, omega=w, method="scm")))
-                t_next += 0.02
-                time.sleep(max(0.0, t_next - time.monotonic()))
-            time.sleep(1.2)
-            rss1 = _rss_kb(driver.pid)
-        finally:
-            for p in reversed(procs):
-                stop_group(p)
+        driver_args = emulated_link(kids, link, Path(workdir), "0,0,0", seconds + 40, rate_hz=50)
+        driver = kids.spawn(["driver", *driver_args, "--robot", robot, "--mode", "client", "--connect", tcp(port),
+                             "--rate", "50", "--duration", str(seconds + 30)], subprocess.DEVNULL)
+        t_end = time.monotonic() + 30
+        while time.monotonic() < t_end:
+            with lock:
+                if status:
+                    break
+            time.sleep(0.05)
+        rss0 = _rss_kb(driver.pid)
+        pub = session.declare_publisher(keys.cmd)
+        seq = 0
+        t0 = time.monotonic()
+        t_next = t0
+        while time.monotonic() - t0 < seconds:
+            seq += 1
+            now = time.monotonic()
+            with lock:
+                sent[seq] = now
+            w = float(0.05 * np.sin(seq / 50))
+            pub.put(M.encode(M.Command(stamp=now, seq=seq, v=0.2, omega=w, method="scm")))
+            t_next += 0.02
+            time.sleep(max(0.0, t_next - time.monotonic()))
+        time.sleep(1.2)
+        rss1 = _rss_kb(driver.pid)
     with lock:
         ms = np.array(lat) * 1e3
         last = status[-1] if status else None

@@ -25,6 +25,7 @@ from numpy.typing import NDArray
 
 from transfer.domain import Bounds
 from transfer.teacher.path import Path
+from transfer.teacher.unicycle import euler, step
 
 
 @dataclass(frozen=True)
@@ -109,7 +110,7 @@ class MpcTeacher:
                 g.append(du)
                 lbg += [-cfg.du_max[0], -cfg.du_max[1]]
                 ubg += [cfg.du_max[0], cfg.du_max[1]]
-                xn = X[:, k] + cfg.dt * ca.vertcat(U[0, k] * ca.cos(X[2, k]), U[0, k] * ca.sin(X[2, k]), U[1, k])
+                xn = ca.vertcat(*euler(X[0, k], X[1, k], X[2, k], U[0, k], U[1, k], cfg.dt, ca.cos, ca.sin))
                 g.append(X[:, k + 1] - xn)
                 lbg += [0.0] * 3
                 ubg += [0.0] * 3
@@ -253,8 +254,7 @@ class MpcTeacher:
         X = np.zeros((self.cfg.N + 1, 3))
         X[0] = state
         for k in range(self.cfg.N):
-            th = X[k, 2]
-            X[k + 1] = X[k] + self.cfg.dt * np.array([U[k, 0] * math.cos(th), U[k, 0] * math.sin(th), U[k, 1]])
+            X[k + 1] = step(X[k], U[k], self.cfg.dt)
         x[self._ix] = X
         x[self._iu] = U
         return x

@@ -21,7 +21,7 @@ from numpy.typing import NDArray
 
 from transfer.domain import Bounds
 from transfer.teacher.path import Path
-from transfer.teacher.unicycle import wrap_angle
+from transfer.teacher.unicycle import step, wrap_angle
 
 
 @dataclass(frozen=True)
@@ -53,10 +53,7 @@ class PrimitiveLibrary:
         c = self.commands if idx is None else self.commands[idx]
         out = np.zeros((c.shape[0], self.steps + 1, 3))
         for k in range(self.steps):
-            th = out[:, k, 2]
-            out[:, k + 1, 0] = out[:, k, 0] + self.dt * c[:, 0] * np.cos(th)
-            out[:, k + 1, 1] = out[:, k, 1] + self.dt * c[:, 0] * np.sin(th)
-            out[:, k + 1, 2] = th + self.dt * c[:, 1]
+            out[:, k + 1] = step(out[:, k], c, self.dt)
         return out
 
 

@@ -6,6 +6,9 @@ Vectorised over leading axes so a batch of poses or commands steps at once.
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from typing import Any
+
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
@@ -16,13 +19,18 @@ def wrap_angle(a: ArrayLike) -> NDArray[np.float64] | float:
     return float(out) if out.ndim == 0 else out
 
 
+def euler(x: Any, y: Any, th: Any, v: Any, w: Any, dt: Any, cos: Callable = np.cos, sin: Callable = np.sin
+          ) -> tuple[Any, Any, Any]:
+    """The one Euler step of the unicycle, on anything with arithmetic: floats, numpy arrays, CasADi symbols
+    (pass ``ca.cos``/``ca.sin``). Every model in the project (teacher, learner, MPC, emulated vehicle) steps here."""
+    return x + dt * v * cos(th), y + dt * v * sin(th), th + dt * w
+
+
 def step(state: ArrayLike, u: ArrayLike, dt: float) -> NDArray[np.float64]:
     """One Euler step of the unicycle; ``state[..., 3]``, ``u[..., 2]`` broadcast against each other."""
     s = np.asarray(state, dtype=float)
     c = np.asarray(u, dtype=float)
-    x, y, th = s[..., 0], s[..., 1], s[..., 2]
-    v, w = c[..., 0], c[..., 1]
-    return np.stack([x + dt * v * np.cos(th), y + dt * v * np.sin(th), th + dt * w], axis=-1)
+    return np.stack(euler(s[..., 0], s[..., 1], s[..., 2], c[..., 0], c[..., 1], dt), axis=-1)
 
 
 def rollout(state: ArrayLike, u: ArrayLike, dt: float, steps: int) -> NDArray[np.float64]:
