@@ -17,9 +17,13 @@ import argparse
 import json
 import math
 import sys
+import threading
 import time
+from contextlib import ExitStack
 
 import numpy as np
+
+from bridge.node import Inputs
 
 
 def inprocess(args: argparse.Namespace) -> int:
@@ -80,148 +84,145 @@ def inprocess(args: argparse.Namespace) -> int:
     return 0
 
 
-def hil(args: argparse.Namespace) -> int:
-    import subprocess
-    import threading
-    from pathlib import Path
+class Monitor:
+    """The demo's view of the run: the learner's states and each node's latest status, from Zenoh callbacks."""
 
-    from bridge import wire as M
-    from bridge.procs import stop_group
-    from bridge.wire import Keys, status_key
-    from bridge.zsession import free_port, make_config, open_session, tcp
-    from sim_learner.worlds import mpc_world
+    def __init__(self, session, robot: str) -> None:
+        from bridge import wire as M
 
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    store = out / "pairs.bin"
-    if store.exists():
-        store.unlink()  # the demo starts from scratch
-    world = mpc_world()
-    robot = "demo"
-    port = free_port()
-    x0 = ",".join(f"{a:.6f}" for a in world.start)
-    py = [sys.executable, "-m", "bridge.cli"]
-    logs = {name: open(out / f"{name}.log", "w") for name in ("driver", "station")}  # noqa: SIM115
-    procs = []
-    states: list = []
-    status: dict = {}
-    lock = threading.Lock()
-    t0 = time.monotonic()
-    keys = Keys(robot)
-    try:
-        # this monitor is the hub: a Zenoh router on 127.0.0.1 that the driver host and the station connect to
-        # (peers do not forward between other peers, so a station-to-monitor path needs a router in between)
-        with open_session(make_config(mode="router", listen=[tcp(port)])) as session:
-            def on_state(sample) -> None:
-                st = M.decode(sample.payload.to_bytes(), M.LearnerState)
-                with lock:
-                    states.append((st.stamp, st.x, st.y, st.theta))
+        self.states: list[tuple[float, float, float, float]] = []
+        self.status: dict = {}
+        self.lock = threading.Lock()
+        self.inputs = Inputs()
+        keys = M.Keys(robot)
+        self.inputs.subscribe(session, keys.state, M.LearnerState, "state", self._state)
+        for node in ("station", "driver"):
+            self.inputs.subscribe(session, M.status_key(robot, node), M.Status, "status", self._status)
 
-            def on_status(sample) -> None:
-                st = M.decode(sample.payload.to_bytes(), M.Status)
-                with lock:
-                    status[st.node] = st
+    def _state(self, st, now: float) -> None:
+        with self.lock:
+            self.states.append((st.stamp, st.x, st.y, st.theta))
 
-            if args.link == "can":  # the emulated motor controllers live inside the driver host
-                driver_args = ["--link", "can", "--emulate", "--x0", x0]
-            else:  # the UDP robot / the rover is its own process, like the device it stands in for
-                import socket
+    def _status(self, st, now: float) -> None:
+        with self.lock:
+            self.status[st.node] = st
 
-                with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-                    s.bind(("127.0.0.1", 0))
-                    dev_port = s.getsockname()[1]
-                cfg = out / f"driver-{args.link}.toml"
-                if args.link == "udp":
-                    cfg.write_text(f"[link.udp]\nrobot_host = \"127.0.0.1\"\nrobot_port = {dev_port}\n")
-                else:
-                    cfg.write_text(f"[link.mavlink]\nurl = \"udpout:127.0.0.1:{dev_port}\"\nrate_hz = 20\n")
-                procs.append(subprocess.Popen(py + ["learner", "--link", args.link, "--port", str(dev_port),
-                                                    "--x0", x0, "--duration", str(args.timeout + 15)],
-                                              stdout=logs["driver"], stderr=subprocess.STDOUT,
-                                              start_new_session=True))
-                driver_args = ["--link", args.link, "--config", str(cfg)]
-            procs.append(subprocess.Popen(py + ["driver", *driver_args, "--robot", robot, "--mode", "client",
-                                                "--connect", tcp(port), "--duration", str(args.timeout + 15)],
-                                          stdout=logs["driver"], stderr=subprocess.STDOUT, start_new_session=True))
-            procs.append(subprocess.Popen(py + ["station", "--robot", robot, "--mode", "client", "--connect", tcp(port),
-                                                "--store", str(store), "--exit-at-goal",
-                                                "--duration", str(args.timeout)],
-                                          stdout=logs["station"], stderr=subprocess.STDOUT, start_new_session=True))
-            session.declare_subscriber(keys.state, on_state)
-            session.declare_subscriber(status_key(robot, "station"), on_status)
-            session.declare_subscriber(status_key(robot, "driver"), on_status)
-            tty = sys.stdout.isatty()
-            last_print = 0.0
-            while time.monotonic() - t0 < args.timeout + 20:
-                if procs[-1].poll() is not None:
-                    break
-                if any(p.poll() is not None for p in procs):
-                    break
-                time.sleep(0.1)
-                now = time.monotonic()
-                if now - last_print >= (0.5 if tty else 5.0):
-                    last_print = now
-                    with lock:
-                        st = status.get("station")
-                        pos = states[-1] if states else None
-                    if st is None or pos is None:
-                        line = f"t={now - t0:5.1f}s waiting for station and driver..."
-                    else:
-                        c = st.counters
-                        s_arc, dev = world.path.project(np.array(pos[1:3]))
-                        line = (f"t={now - t0:5.1f}s rate={st.rates_hz.get('loop', 0):.0f}Hz "
-                                f"scm={c.get('method_scm', 0)} direct={c.get('method_direct', 0)} "
-                                f"perturb={c.get('method_perturb', 0)} pairs={c.get('refined_pairs', 0)} "
-                                f"dev={100 * dev:5.1f}cm progress={100 * s_arc / world.path.length:5.1f}%")
-                    print(("\r" + line.ljust(110)) if tty else line, end="" if tty else "\n", flush=True)
-            if tty:
-                print()
-    except KeyboardInterrupt:
-        print("\ninterrupted: stopping the demo's processes", file=sys.stderr)
-    finally:
-        for p in reversed(procs):
-            stop_group(p)
-        for f in logs.values():
-            f.close()
-    with lock:
-        traj = np.array([s[1:] for s in states]) if states else np.zeros((0, 3))
-        st = status.get("station")
-    if traj.shape[0] == 0 or st is None:
-        print("the demo produced no telemetry; see the logs in", out, file=sys.stderr)
-        return 1
-    devs = np.array([world.path.project(p[:2])[1] for p in traj])
-    c = st.counters
-    reached = bool(c.get("goal_reached", 0))
-    elapsed = states[-1][0] - states[0][0]
-    summary = {"reached_goal": reached, "time_s": round(elapsed, 1), "mean_dev_m": round(float(devs.mean()), 4),
-               "max_dev_m": round(float(devs.max()), 4),
-               "methods": {k[7:]: v for k, v in c.items() if k.startswith("method_")},
-               "refined_pairs": c.get("refined_pairs"), "raw_pairs": c.get("raw_pairs"),
-               "missed_deadlines": c.get("missed_deadlines"), "solve_ms_median": st.latencies_ms.get("solve_median")}
-    print("summary:", json.dumps(summary))
+    def line(self, world, t: float) -> str:
+        """One line of live progress."""
+        with self.lock:
+            st = self.status.get("station")
+            pos = self.states[-1] if self.states else None
+        if st is None or pos is None:
+            return f"t={t:5.1f}s waiting for station and driver..."
+        c = st.counters
+        s_arc, dev = world.path.project(np.array(pos[1:3]))
+        return (f"t={t:5.1f}s rate={st.rates_hz.get('loop', 0):.0f}Hz scm={c.get('method_scm', 0)} "
+                f"direct={c.get('method_direct', 0)} perturb={c.get('method_perturb', 0)} "
+                f"pairs={c.get('refined_pairs', 0)} dev={100 * dev:5.1f}cm "
+                f"progress={100 * s_arc / world.path.length:5.1f}% [{st.text}]")
+
+    def summary(self, world) -> dict | None:
+        """The run's figures, or None if it produced no telemetry."""
+        with self.lock:
+            traj = np.array([s[1:] for s in self.states]) if self.states else np.zeros((0, 3))
+            st = self.status.get("station")
+            elapsed = self.states[-1][0] - self.states[0][0] if self.states else 0.0
+        if traj.shape[0] == 0 or st is None:
+            return None
+        devs = np.array([world.path.project(p[:2])[1] for p in traj])
+        c = st.counters
+        return {"reached_goal": bool(c.get("goal_reached", 0)), "time_s": round(elapsed, 1),
+                "mean_dev_m": round(float(devs.mean()), 4), "max_dev_m": round(float(devs.max()), 4),
+                "methods": {k[7:]: v for k, v in c.items() if k.startswith("method_")},
+                "refined_pairs": c.get("refined_pairs"), "raw_pairs": c.get("raw_pairs"),
+                "missed_deadlines": c.get("missed_deadlines"), "solve_ms_median": st.latencies_ms.get("solve_median"),
+                "_traj": traj}
+
+
+def _figure(out, world, traj, link: str) -> None:
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from sim_learner.figures import _world
+    from sim_learner.figures import draw_mission
 
     fig, ax = plt.subplots(figsize=(9, 4))
-    _world(ax, world)
-    ax.plot(traj[:, 0], traj[:, 1], color="tab:blue", label=f"learner over Zenoh + {args.link.upper()}")
+    draw_mission(ax, world)
+    ax.plot(traj[:, 0], traj[:, 1], color="tab:blue", label=f"learner over Zenoh + {link.upper()}")
     ax.legend(loc="upper right", fontsize=8)
     ax.set_title("HIL demo: SCM transfer of the teacher MPC")
     fig.tight_layout()
     fig.savefig(out / "demo_trajectory.png", dpi=120)
     plt.close(fig)
+
+
+def _watch(mon: Monitor, kids, world, timeout: float) -> None:
+    """Print progress until the station exits (at the goal), a child dies, or the timeout."""
+    t0 = time.monotonic()
+    tty = sys.stdout.isatty()
+    last_print = 0.0
+    while time.monotonic() - t0 < timeout + 20 and not kids.any_exited():
+        time.sleep(0.1)
+        now = time.monotonic()
+        if now - last_print >= (0.5 if tty else 5.0):
+            last_print = now
+            line = mon.line(world, now - t0)
+            print(("\r" + line.ljust(130)) if tty else line, end="" if tty else "\n", flush=True)
+    if tty:
+        print()
+
+
+def hil(args: argparse.Namespace) -> int:
+    """Three processes over Zenoh on a free loopback port, watched by this one (see the module docstring)."""
+    from pathlib import Path
+
+    from bridge.config import load_mission
+    from bridge.procs import Children, emulated_link
+    from bridge.zsession import free_port, make_config, open_session, tcp
+
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    store = out / "pairs.bin"
+    store.unlink(missing_ok=True)  # the demo starts from scratch
+    world = load_mission(args.mission)
+    if world.start is None:
+        raise SystemExit(f"scmbridge demo: error: mission {world.name!r} has no start pose for the emulated learner")
+    robot, port = "demo", free_port()
+    x0 = ",".join(f"{a:.6f}" for a in world.start)
+    client = ["--robot", robot, "--mode", "client", "--connect", tcp(port)]
+    mon = None
+    with ExitStack() as stack:
+        logs = {name: stack.enter_context(open(out / f"{name}.log", "w")) for name in ("driver", "station")}
+        # this monitor is the hub: a Zenoh router the driver host and the station connect to as clients
+        # (peers do not forward between other peers)
+        session = stack.enter_context(open_session(make_config(mode="router", listen=[tcp(port)])))
+        kids = stack.enter_context(Children())
+        mon = Monitor(session, robot)
+        try:
+            driver_args = emulated_link(kids, args.link, out, x0, args.timeout + 15, logs["driver"])
+            kids.spawn(["driver", *driver_args, *client, "--duration", str(args.timeout + 15)], logs["driver"])
+            kids.spawn(["station", *client, "--store", str(store), "--exit-at-goal", "--duration", str(args.timeout),
+                        *(["--mission", args.mission] if args.mission else [])], logs["station"])
+            _watch(mon, kids, world, args.timeout)
+        except KeyboardInterrupt:
+            print("\ninterrupted: stopping the demo's processes", file=sys.stderr)
+    summary = mon.summary(world) if mon is not None else None
+    if summary is None:
+        print("the demo produced no telemetry; see the logs in", out, file=sys.stderr)
+        return 1
+    traj = summary.pop("_traj")
+    print("summary:", json.dumps(summary))
+    _figure(out, world, traj, args.link)
     print(f"figure: {out / 'demo_trajectory.png'}; pair store: {store}; logs: {out}/*.log")
-    return 0 if reached else 1
+    return 0 if summary["reached_goal"] else 1
 
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="scmbridge demo", description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--link", choices=["can", "udp", "mavlink"], default="can", help="vehicle link")
+    ap.add_argument("--mission", default=None, help="mission file (default: the paper's S-path)")
     ap.add_argument("--out", default="demo_out")
     ap.add_argument("--timeout", type=float, default=120.0, help="seconds before the demo gives up")
     ap.add_argument("--inprocess", action="store_true", help="the in-process SC transfer example instead")

@@ -1,4 +1,4 @@
-"""Opening Zenoh sessions the way this project needs them (DESIGN.md section 7).
+"""Opening Zenoh sessions the way this project needs them (docs/ARCHITECTURE.md section 8).
 
 Every endpoint is explicit (the defaults listen on all interfaces and scout by multicast), multicast scouting
 is off, and connect retries are short so a late peer is found in ~0.1 s. Always use the session as a context

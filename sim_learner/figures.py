@@ -17,7 +17,7 @@ from transfer.store import PairStore  # noqa: E402
 COLORS = {"teacher": "tab:green", "scm": "tab:blue", "baseline": "tab:red"}
 
 
-def _world(ax, world) -> None:
+def draw_mission(ax, world) -> None:
     p = world.path.points
     ax.plot(p[:, 0], p[:, 1], "k--", lw=1, label="desired path")
     for ox, oy, r in world.obstacles:
@@ -45,7 +45,7 @@ def _pairs(ax_t, ax_l, store: PairStore, normalised: bool) -> None:
 def mpc_figures(out: FsPath, world, runs, store: PairStore, true_box: Bounds, TB: Bounds, LB: Bounds) -> list[str]:
     files = []
     fig, ax = plt.subplots(figsize=(9, 4))
-    _world(ax, world)
+    draw_mission(ax, world)
     for r in runs:
         P = np.array(r.poses)
         ax.plot(P[:, 0], P[:, 1], color=COLORS.get(r.name), label=f"{r.name} ({'goal' if r.reached else 'no goal'})")
@@ -125,7 +125,7 @@ def grid_figures(out: FsPath, store: PairStore, cmds, n: int, method, pos_err, a
 
 def primitives_figures(out: FsPath, world, scm: dict, base: dict, lib, kept, store: PairStore) -> list[str]:
     fig, ax = plt.subplots(figsize=(10, 4.5))
-    _world(ax, world)
+    draw_mission(ax, world)
     for name, r in (("scm", scm), ("baseline", base)):
         ax.plot(r["poses"][:, 0], r["poses"][:, 1], color=COLORS[name],
                 label=f"{name} ({'goal' if r['reached'] else 'no goal'}, max dev {r['max_dev_m']:.2f} m)")

@@ -98,7 +98,7 @@ def test_modulus_of_a_quadrilateral_symmetric_under_a_swap_of_its_sides_is_one(v
 
 @pytest.mark.parametrize(
     "v,mu",
-    [  # independent 40-digit values (SCM_SPEC.md section 4)
+    [  # independent 40-digit values (docs/ARCHITECTURE.md section 9, tests with known answers)
         ([0, 2, 2.3 + 1.1j, -0.4 + 0.8j], 2.416377988898426),
         ([0, 2, 2 + 2j, 1.2 + 0.6j], 1.176018257653179),
         ([0, 5, 4.6 + 1.1j, 0.3 + 0.7j], 5.18538681452495),
@@ -113,7 +113,7 @@ def test_known_moduli(v: list[complex], mu: float) -> None:
 
 
 def test_general_n_against_sc_toolbox_goldens() -> None:
-    """N = 6 polygon; forward values computed by the MATLAB SC Toolbox at tol 1e-12 (SCM_SPEC.md 1.9)."""
+    """N = 6 polygon; forward values computed by the MATLAB SC Toolbox at tol 1e-12."""
     f = RectangleMap([4, 2j, -2 + 4j, -3, -3 - 1j, 2 - 2j], (0, 1, 2, 3))
     assert f.modulus == pytest.approx(1.017604968385, abs=1e-11)
     # the toolbox's rectangle coordinates u (its L = 0.578457153936, corners at K, K+iK', -K+iK', -K in order)

@@ -2,8 +2,8 @@
 
 Everything here is scalar arithmetic on small arrays; the Python layer (``rectmap.py``) validates input, solves
 the parameter problem with these kernels and vectorises evaluation over points. The maths follows the SC Toolbox
-(Driscoll) as read in ``SCM_SPEC.md``, with two changes: corner-local evaluation (a point near a rectangle corner
-is carried as the corner plus an offset, so no digits are lost to cancellation) and our own, simpler
+(Driscoll; docs/ARCHITECTURE.md section 9), with two changes: corner-local evaluation (a point near a rectangle
+corner is carried as the corner plus an offset, so no digits are lost to cancellation) and our own, simpler
 parametrisation of the strip prevertices (see ``rectmap.py``).
 
 Notation: strip S = {0 <= Im s <= 1}; prevertices ``z[j]`` on its edges (``sig[j] = +1`` bottom, ``-1`` top) with

@@ -2,7 +2,7 @@
 
 ``RectangleMap(vertices, corners)`` is the conformal map f of the rectangle [-K, K] x [0, K'] onto the polygon,
 corner vertices to rectangle corners, computed as in the SC Toolbox's ``rectmap``: f = F o R with
-R(u) = log(sn(u | m)) / pi onto the strip {0 <= Im s <= 1} and F the strip SC map (SCM_SPEC.md section 1).
+R(u) = log(sn(u | m)) / pi onto the strip {0 <= Im s <= 1} and F the strip SC map (docs/ARCHITECTURE.md section 9).
 
 The user-facing coordinates are those of the *unit square*: the rectangle scaled per axis so that corners[0]
 -> 0, corners[1] -> 1, corners[2] -> 1 + 1j, corners[3] -> 1j. The conformal image is ``modulus * a + 1j * b``.
@@ -17,9 +17,9 @@ Numerical choices (each re-derived and tested, see tests/test_scm_*.py):
 - Quadrature: compound Gauss-Jacobi (rules by Golub-Welsch, compiled), pieces no longer than the distance to the
   nearest other prevertex.
 - Corner-local evaluation: a point near a rectangle corner is carried as (corner, offset) end to end, its strip
-  offset computed from cd(delta) - 1 without cancellation (SCM_SPEC.md 2.4); Newton steps near a corner are taken
-  in the corner's power variable. Round trips therefore hold near acute vertices too, down to what a float64
-  unit-square coordinate can hold (see ``to_unit_square``).
+  offset computed from cd(delta) - 1 without cancellation (docs/ARCHITECTURE.md section 9); Newton steps near a
+  corner are taken in the corner's power variable. Round trips therefore hold near acute vertices too, down to
+  what a float64 unit-square coordinate can hold (see ``to_unit_square``).
 - Inverse: start from the nearest of a small table of forward images (built on the first inverse call), then a
   safeguarded Newton that accepts only finite, improving steps.
 """
@@ -79,7 +79,7 @@ class RectangleMap:
         r_long = 0 if lens[0] + lens[2] >= lens[1] + lens[3] else 1
         for r in (r_long, r_long + 2, 1 - r_long, 3 - r_long):
             if abs(beta_all[(cs[r] - 1) % n]) >= 1e-12:
-                break  # the vertex preceding the first corner must not be straight (SCM_SPEC.md 1.4)
+                break  # the vertex preceding the first corner must not be straight (the toolbox's convention)
         else:
             raise ValueError("every corner is preceded by a straight angle: the polygon is degenerate")
         self._r = r % 4
