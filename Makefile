@@ -12,7 +12,7 @@ LOCK := requirements/dev.txt
 ROBOT_LOCK := requirements/robot.txt
 
 # One line, exit 1, when the interpreter given as $(1) is not CPython $(LOCKED_PY).
-check_python = $(1) -c 'import sys; v = "%d.%d" % sys.version_info[:2]; ok = v == "$(LOCKED_PY)" and sys.implementation.name == "cpython"; sys.exit(0 if ok else f"make: $(1) is {sys.implementation.name} {v}; the lock ($(LOCK)) is for CPython $(LOCKED_PY): rm -rf $(VENV) and run make PYTHON=python$(LOCKED_PY)")'
+check_python = $(1) -c 'import sys; v = "%d.%d" % sys.version_info[:2]; ok = v == "$(LOCKED_PY)" and sys.implementation.name == "cpython"; sys.exit(0 if ok else f"make: $(1) is {sys.implementation.name} {v}; the lock ($(LOCK)) is for CPython $(LOCKED_PY): make PYTHON=path/to/python$(LOCKED_PY) (rm -rf $(VENV) first if it exists)")'
 
 # pip-compile options shared by both locks; see README "Set-up".
 PIP_COMPILE := CUSTOM_COMPILE_COMMAND="make lock" $(VENV)/bin/pip-compile --quiet --generate-hashes --allow-unsafe \
