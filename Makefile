@@ -1,18 +1,35 @@
 # Two entry points for a fresh clone: `make demo` and `make test`.
-# Both create .venv with pip when it is missing and install the project (with its test extra) into it.
-PYTHON ?= python3
+# Both create .venv when it is missing and install exactly the lock into it: requirements/dev.txt, pinned with
+# hashes (pip --require-hashes), then the project itself with --no-deps --no-build-isolation (setuptools comes
+# from the lock, so nothing unpinned or unhashed is fetched). `make lock` regenerates the locks from pyproject.toml.
+# The locks are for CPython 3.11 on Linux x86_64: the bootstrap refuses any other Python in one line.
+LOCKED_PY := 3.11
+PYTHON ?= $(shell command -v python$(LOCKED_PY) 2>/dev/null || echo python3)
 VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
+LOCK := requirements/dev.txt
+ROBOT_LOCK := requirements/robot.txt
 
-.PHONY: demo test lint bench install clean
+# One line, exit 1, when the interpreter given as $(1) is not CPython $(LOCKED_PY).
+check_python = $(1) -c 'import sys; v = "%d.%d" % sys.version_info[:2]; ok = v == "$(LOCKED_PY)" and sys.implementation.name == "cpython"; sys.exit(0 if ok else f"make: $(1) is {sys.implementation.name} {v}; the lock ($(LOCK)) is for CPython $(LOCKED_PY): make PYTHON=path/to/python$(LOCKED_PY) (rm -rf $(VENV) first if it exists)")'
+
+# pip-compile options shared by both locks; see README "Set-up".
+PIP_COMPILE := CUSTOM_COMPILE_COMMAND="make lock" $(VENV)/bin/pip-compile --quiet --generate-hashes --allow-unsafe \
+	--strip-extras --all-build-deps --no-emit-index-url --no-emit-find-links --no-emit-trusted-host \
+	$(if $(UPGRADE),--upgrade,)
+LOCK_NOTE := \# Locked for CPython $(LOCKED_PY) on Linux x86_64 (hashes: every file PyPI has for each pinned version).
+
+.PHONY: demo test lint bench install lock clean
 
 $(PY):
+	@$(call check_python,$(PYTHON))
 	$(PYTHON) -m venv $(VENV)
-	$(PY) -m pip install --upgrade pip
 
-$(STAMP): $(PY) pyproject.toml
-	$(PY) -m pip install -e '.[test]'
+$(STAMP): $(PY) $(LOCK) pyproject.toml
+	@$(call check_python,$(PY))
+	$(PY) -m pip install --quiet --require-hashes --only-binary=:all: -r $(LOCK)
+	$(PY) -m pip install --quiet --no-deps --no-build-isolation -e .
 	touch $(STAMP)
 
 install: $(STAMP)
@@ -26,6 +43,13 @@ test: $(STAMP)
 
 lint: $(STAMP)
 	$(VENV)/bin/ruff check .
+
+# Keeps every pin pyproject.toml still allows; `make lock UPGRADE=1` moves all pins to the newest allowed.
+# The robot lock is resolved first and constrains the dev lock, so both pin the same versions where they overlap.
+lock: $(STAMP)
+	$(PIP_COMPILE) -o $(ROBOT_LOCK) pyproject.toml
+	$(PIP_COMPILE) --extra dev -c $(ROBOT_LOCK) -o $(LOCK) pyproject.toml
+	sed -i '2i $(LOCK_NOTE)' $(ROBOT_LOCK) $(LOCK)
 
 bench: $(STAMP)
 	$(VENV)/bin/scmbridge bench scm
