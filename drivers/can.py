@@ -1,4 +1,4 @@
-"""CAN link: a differential-drive base with one ODrive-style CANSimple motor controller per wheel (DESIGN.md 5).
+"""CAN link: a differential-drive base with one ODrive-style CANSimple motor controller per wheel.
 
 Frames as ODrive firmware 0.6.x defines them, from ``odrive_cansimple.dbc`` (node 0 layout; the node offset is
 added at run time: arbitration id = node_id << 5 | cmd_id, 11-bit, little endian, IEEE float32). The driver puts

@@ -1,4 +1,4 @@
-"""MAVLink link: an ArduPilot Rover in GUIDED mode (pymavlink, MAVLink 2, ardupilotmega; DESIGN.md section 5).
+"""MAVLink link: an ArduPilot Rover in GUIDED mode (pymavlink, MAVLink 2, ardupilotmega).
 
 open(): wait for the vehicle's HEARTBEAT, ask for LOCAL_POSITION_NED and ATTITUDE at the control rate
 (MAV_CMD_SET_MESSAGE_INTERVAL), set GUIDED (MAV_CMD_DO_SET_MODE, base mode 1, custom mode 15) and arm

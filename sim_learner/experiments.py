@@ -25,6 +25,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from sim_learner.dynamics import MPC_TEACHER_V, MPC_TEACHER_W, LearnerModel, mpc_learner
+from sim_learner.runs import DT, Progress
 from sim_learner.worlds import World, mpc_world
 from transfer.domain import Bounds
 from transfer.pairs import teacher_equivalent
@@ -33,26 +34,7 @@ from transfer.store import PairStore
 from transfer.teacher.mpc import MpcConfig, MpcTeacher
 from transfer.teacher.unicycle import step as teacher_step
 
-DT = 0.1
 VEHICLE_RADIUS = 0.1  # m, for collision checks
-
-
-class Progress:
-    """A one-line progress bar on stderr when it is a terminal; silent otherwise."""
-
-    def __init__(self, label: str) -> None:
-        self.label = label
-        self.tty = sys.stderr.isatty()
-
-    def __call__(self, frac: float, text: str = "") -> None:
-        if self.tty:
-            n = int(30 * min(max(frac, 0.0), 1.0))
-            sys.stderr.write(f"\r{self.label:>10} [{'#' * n}{'.' * (30 - n)}] {100 * frac:5.1f}% {text:<30}")
-            sys.stderr.flush()
-
-    def done(self) -> None:
-        if self.tty:
-            sys.stderr.write("\n")
 
 
 @dataclass

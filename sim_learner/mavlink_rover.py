@@ -1,4 +1,4 @@
-"""An emulated ArduPilot Rover (4.x) on MAVLink 2, driving the software learner (DESIGN.md section 5).
+"""An emulated ArduPilot Rover (4.x) on MAVLink 2, driving the software learner.
 
 What it honours, as ArduPilot Rover does: HEARTBEAT at 1 Hz (GROUND_ROVER, ARDUPILOTMEGA, custom mode, armed flag);
 MAV_CMD_DO_SET_MODE (custom mode 15 = GUIDED; a mode set during the first ``init_s`` seconds is lost, as while the
@@ -104,7 +104,7 @@ class MavlinkRover(ThreadedDevice):
                     due[30] = now + self.intervals[30]
 
     def _peer_known(self) -> bool:
-        """pymavlink's udpin answers only peers it has heard from (DESIGN.md section 7)."""
+        """pymavlink's udpin answers only peers it has heard from."""
         return bool(getattr(self.conn, "clients", None)) or getattr(self.conn, "last_address", None) is not None
 
     def _text(self, text: str) -> None:

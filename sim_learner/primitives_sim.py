@@ -15,7 +15,7 @@ from pathlib import Path as FsPath
 import numpy as np
 
 from sim_learner.dynamics import PRIM_TEACHER_V, PRIM_TEACHER_W, LearnerModel, scaled_learner
-from sim_learner.experiments import DT, Progress
+from sim_learner.runs import DT, Progress
 from sim_learner.worlds import World, primitives_world
 from transfer.domain import Bounds
 from transfer.limits import calibration_commands

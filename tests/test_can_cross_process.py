@@ -45,7 +45,7 @@ def test_driver_and_learner_in_separate_processes_over_udp_multicast_in_a_namesp
 def test_socketcan_vcan_where_the_kernel_has_it() -> None:
     r = subprocess.run(["ip", "link", "show", "vcan0"], capture_output=True, text=True)
     if r.returncode != 0:
-        pytest.skip("no vcan0 here: the kernel of this machine has no vcan module (DESIGN.md section 5)")
+        pytest.skip("no vcan0 here: the kernel of this machine has no vcan module")
     import can
 
     from drivers.can import decode, encode
