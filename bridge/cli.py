@@ -19,6 +19,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "driver": ("bridge.driver_host", "the driver host: Zenoh commands -> vehicle link, telemetry -> state"),
     "learner": ("sim_learner.emulator", "a software learner behind a vehicle link (can, mavlink, udp)"),
     "sim": ("sim_learner.experiments", "the paper's simulations: sim primitives|mpc|grid --out DIR"),
+    "estop": ("bridge.estop", "estop --robot R|--all [--release --source NAME]: stop now, or release, and confirm"),
     "config": ("bridge.config", "config check FILE | config show --kind station|driver|mission"),
     "bench scm": ("bridge.bench.scm", "Schwarz-Christoffel map build/evaluate timings (JSON)"),
     "bench transfer": ("bridge.bench.transfer", "transfer policy per-command cost (JSON)"),

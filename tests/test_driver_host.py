@@ -6,6 +6,8 @@ from __future__ import annotations
 
 import math
 import os
+import subprocess
+import sys
 import threading
 import time
 
@@ -87,7 +89,9 @@ def driver_host(request, tmp_path):
     proc = spawn(["driver", *args, "--robot", robot, "--listen", tcp(port), "--duration", "40"])
     try:
         with open_session(make_config(connect=[tcp(port)])) as session:
-            yield session, robot, Listener(session, robot)
+            lis = Listener(session, robot)
+            lis.endpoint = tcp(port)
+            yield session, robot, lis
     finally:
         stop_group(proc)
         if device is not None:
@@ -143,3 +147,45 @@ def test_bad_commands_never_reach_the_vehicle_and_are_counted(driver_host) -> No
         assert all(math.isfinite(a.v) and LIMITS.contains([a.v, a.omega]) for a in lis.applied)
         clamped = [a for a in lis.applied if a.reason == "clamped"]
     assert (clamped[0].v, clamped[0].omega) == (0.5, -1.0)
+
+
+@pytest.mark.parametrize("driver_host", ["can"], indirect=True)
+def test_estop_command_latches_confirms_and_only_the_operator_releases(driver_host) -> None:
+    """`scmbridge estop` stops the vehicle and names the driver hosts that latched; an unrelated source cannot
+    release it; the operator can, and driving resumes."""
+    session, robot, lis = driver_host
+    keys = Keys(robot)
+    assert lis.wait(lambda s: len(s.status) > 0 and s.status[-1].ok, 20.0)
+    ep = lis.endpoint
+    pub = session.declare_publisher(keys.cmd)
+    stop = threading.Event()
+
+    def drive() -> None:
+        seq = 0
+        while not stop.is_set():
+            seq += 1
+            pub.put(M.encode(_cmd(seq, 0.2, 0.0)))
+            time.sleep(0.05)
+
+    t = threading.Thread(target=drive, daemon=True)
+    t.start()
+    try:
+        assert lis.wait(lambda s: any(a.reason == "cmd" for a in s.applied), 3.0)
+        cli = [sys.executable, "-m", "bridge.cli", "estop", "--robot", robot, "--connect", ep, "--mode", "client"]
+        res = subprocess.run(cli + ["--reason", "test"], capture_output=True, text=True, timeout=30)
+        assert res.returncode == 0, res.stderr
+        assert f"{robot}/driver-can: LATCHED by operator" in res.stdout
+        t_latched = time.monotonic()
+        time.sleep(0.3)
+        with lis.lock:
+            recent = [a for a in lis.applied if a.stamp > t_latched + 0.1]
+        assert recent and all(a.reason == "estop" and a.v == 0.0 for a in recent)
+        res = subprocess.run(cli + ["--release", "--source", "fuzzer"], capture_output=True, text=True, timeout=30)
+        assert res.returncode == 1 and "LATCHED" in res.stdout  # not a configured release source
+        res = subprocess.run(cli + ["--release"], capture_output=True, text=True, timeout=30)
+        assert res.returncode == 0 and "released" in res.stdout, res.stdout + res.stderr
+        t_rel = time.monotonic()
+        assert lis.wait(lambda s: any(a.reason == "cmd" and a.stamp > t_rel for a in s.applied), 3.0)
+    finally:
+        stop.set()
+        t.join(timeout=2)
