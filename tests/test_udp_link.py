@@ -3,8 +3,10 @@
 Two halves. The driver against a scripted robot (a bare socket the test drives datagram by datagram, so the
 sequence numbers, epochs and timing are exact): the robot's address is pinned, its ``(epoch, seq)`` stream goes
 through ``SeqGate`` (a forged seq cannot lock the robot out, a rebooted robot is taken after a silence), health is
-ok only while the robot's state is fresh, commands carry the driver's epoch. The driver is fuzzed (seeded, ~2000
-datagrams). Every test binds port 0 (or a port the OS just said is free) and closes what it
+ok only while the robot's state is fresh, commands carry the driver's epoch. The emulated robot against the real
+driver: it obeys only its configured peer, applies its own hard limits, follows the driver's epoch (a restarted
+driver host is taken after a silence, a replayed command is refused) and keeps its watchdog. Both sides are fuzzed
+(seeded, ~2000 datagrams each). Every test binds port 0 (or a port the OS just said is free) and closes what it
 opened.
 """
 
@@ -15,6 +17,8 @@ import math
 import random
 import re
 import socket
+import subprocess
+import sys
 import threading
 import time
 from collections.abc import Iterator
@@ -24,8 +28,12 @@ import pytest
 
 from bridge import wire as M
 from bridge.config import UdpLinkConfig
+from bridge.procs import stop_group
 from drivers import open_driver
 from drivers.base import DriverError
+from sim_learner.dynamics import mpc_learner
+from sim_learner.udp_robot import DEFAULT_PEER, UdpRobot
+from sim_learner.vehicle import SimVehicle
 
 LOCAL = "127.0.0.1"
 
@@ -253,6 +261,187 @@ def test_robot_host_is_resolved_once_at_open() -> None:
         robot.close()
 
 
+# ====================================================================== the emulated robot against the driver
+@pytest.fixture
+def rig():
+    """The emulated robot pinned to the driver's port, and the driver, opened."""
+    port = free_udp_port()
+    vehicle = SimVehicle(mpc_learner(), (0.0, 0.0, 0.0), now=time.monotonic())
+    robot = UdpRobot(vehicle, peer=(LOCAL, port), watchdog=0.3).start()
+    driver = open_driver("udp", UdpLinkConfig(robot_port=robot.port, bind_port=port))
+    try:
+        driver.open(time.monotonic())
+        yield driver, robot, vehicle
+    finally:
+        driver.close()
+        robot.stop()
+
+
+def test_command_reaches_the_robot_and_state_comes_back(rig) -> None:
+    driver, robot, vehicle = rig
+    poses = []
+    t0 = time.monotonic()
+    while time.monotonic() - t0 < 1.0:
+        driver.send(0.25, 0.1, time.monotonic())
+        poses += driver.poll(time.monotonic())
+        time.sleep(0.02)
+    assert robot.last_cmd is not None and (robot.last_cmd.v, robot.last_cmd.omega) == (0.25, 0.1)
+    assert robot.last_cmd.seq == driver.seq and robot.last_cmd.epoch == driver.epoch
+    body = vehicle.advance(time.monotonic())
+    assert poses and body.x > 0.05 and abs(poses[-1].x - body.x) < 0.02
+    assert driver.health().ok
+
+
+def test_robot_watchdog_stops_it_when_commands_stop(rig) -> None:
+    driver, robot, vehicle = rig
+    for _ in range(10):
+        driver.send(0.3, 0.0, time.monotonic())
+        time.sleep(0.02)
+    assert vehicle.advance(time.monotonic()).v > 0
+    time.sleep(0.6)
+    assert vehicle.advance(time.monotonic()).v == 0.0
+    assert robot.counters["watchdog_stops"] >= 1
+
+
+def test_replayed_commands_and_garbage_are_dropped_and_counted(rig) -> None:
+    driver, robot, vehicle = rig
+    driver.send(0.2, 0.0, time.monotonic())
+    time.sleep(0.05)
+    to = (LOCAL, robot.port)
+    old = M.Command(stamp=1.0, seq=1, v=0.3, omega=0.2, method="scm", epoch=driver.epoch)  # a replay
+    driver.sock.sendto(M.encode(old), to)
+    driver.sock.sendto(msgspec.msgpack.encode({"stamp": 1.0, "seq": 10**6, "v": float("nan"), "omega": 0.0,
+                                               "method": "scm"}), to)
+    driver.sock.sendto(b"\x00garbage", to)
+    assert wait_for(lambda: robot.counters["out_of_order"] >= 1 and robot.counters["malformed"] >= 2, 1.0)
+    assert (robot.last_cmd.v, robot.last_cmd.omega) == (0.2, 0.0)
+
+
+def test_the_robot_obeys_and_answers_only_its_configured_peer(rig) -> None:
+    driver, robot, vehicle = rig
+    driver.stop(time.monotonic())
+    with udp_socket() as stranger:
+        for seq in range(1, 6):  # a well-formed command stream of its own, and the next seq of the driver's
+            stranger.sendto(M.encode(M.Command(stamp=1.0, seq=seq, v=0.3, omega=0.0, method="scm", epoch=77)),
+                            (LOCAL, robot.port))
+        stranger.sendto(M.encode(M.Command(stamp=1.0, seq=driver.seq + 1, v=0.3, omega=0.0, method="scm",
+                                           epoch=driver.epoch)), (LOCAL, robot.port))
+        assert wait_for(lambda: robot.counters["foreign"] >= 6, 1.0)
+        time.sleep(0.1)
+        assert vehicle.advance(time.monotonic()).v == 0.0 and robot.last_cmd.v == 0.0
+        stranger.settimeout(0.1)
+        with pytest.raises(TimeoutError):  # the robot's telemetry goes to its peer only
+            stranger.recvfrom(65536)
+    assert driver.poll(time.monotonic())  # ... which still gets it
+
+
+def test_first_sender_mode_pins_the_first_valid_sender() -> None:
+    vehicle = SimVehicle(mpc_learner(), (0.0, 0.0, 0.0), now=time.monotonic())
+    with UdpRobot(vehicle, peer="first", watchdog=0.3) as robot:
+        driver = open_driver("udp", UdpLinkConfig(robot_port=robot.port, bind_port=0))
+        try:
+            with udp_socket() as stranger:
+                stranger.sendto(b"\x01not a command", (LOCAL, robot.port))  # garbage does not pin anyone
+                assert wait_for(lambda: robot.counters["malformed"] == 1, 1.0) and robot.peer is None
+                driver.open(time.monotonic())
+                assert robot.peer == driver.sock.getsockname()
+                stranger.sendto(M.encode(M.Command(stamp=1.0, seq=1, v=0.3, omega=0.0, method="scm", epoch=5)),
+                                (LOCAL, robot.port))
+                assert wait_for(lambda: robot.counters["foreign"] == 1, 1.0)
+                assert robot.last_cmd.epoch == driver.epoch
+        finally:
+            driver.close()
+
+
+def test_the_robot_refuses_commands_beyond_its_own_limits_and_holds_still(rig) -> None:
+    driver, robot, vehicle = rig
+    assert (robot.v_max, robot.omega_max) == (1.0, 2.0)
+    calls: list[tuple[float, float]] = []
+    real = vehicle.command
+    vehicle.command = lambda v, w, now: (calls.append((v, w)), real(v, w, now))  # type: ignore[method-assign]
+    for _ in range(5):
+        driver.send(0.3, 0.0, time.monotonic())
+        time.sleep(0.01)
+    driver.send(100.0, 0.0, time.monotonic())  # the link does not clamp (the driver host does): the robot must
+    driver.send(0.5, -2.5, time.monotonic())
+    assert wait_for(lambda: robot.counters["over_limits"] == 2, 1.0)
+    assert all(abs(v) <= 1.0 and abs(w) <= 2.0 for v, w in calls) and (0.3, 0.0) in calls
+    assert vehicle.advance(time.monotonic()).v == 0.0  # refused means stopped, not "keep the last one"
+    assert robot.last_cmd.v == 0.3
+
+
+def test_a_restarted_driver_host_is_recognised_after_a_silence_and_old_commands_are_refused() -> None:
+    port = free_udp_port()
+    vehicle = SimVehicle(mpc_learner(), (0.0, 0.0, 0.0), now=time.monotonic())
+    with UdpRobot(vehicle, peer=(LOCAL, port), watchdog=0.3) as robot:
+        cfg = UdpLinkConfig(robot_port=robot.port, bind_port=port)
+        first = open_driver("udp", cfg)
+        first.open(time.monotonic())
+        for _ in range(20):
+            first.send(0.2, 0.0, time.monotonic())
+            time.sleep(0.01)
+        replay = M.Command(stamp=1.0, seq=first.seq + 1, v=0.4, omega=0.0, method="scm", epoch=first.epoch)
+        first.close()
+        second = open_driver("udp", cfg)  # a restarted driver host: the same address, a new epoch, seq from 1
+        try:
+            second.open(time.monotonic())
+            assert second.epoch != first.epoch
+            t0 = time.monotonic()
+            while time.monotonic() - t0 < 1.5 and not (robot.last_cmd and robot.last_cmd.epoch == second.epoch
+                                                       and robot.last_cmd.v == 0.25):
+                second.send(0.25, 0.0, time.monotonic())
+                time.sleep(0.01)
+            assert robot.last_cmd.epoch == second.epoch and robot.last_cmd.v == 0.25
+            assert time.monotonic() - t0 < 0.3 + 0.3  # the robot's silence (its watchdog), then at once
+            second.sock.sendto(M.encode(replay), (LOCAL, robot.port))  # the old run's next command, replayed
+            assert wait_for(lambda: robot.counters["old_epoch"] == 1, 1.0)
+            assert robot.last_cmd.epoch == second.epoch
+        finally:
+            second.close()
+
+
+def test_a_robot_reboot_and_a_telemetry_pause_do_not_lock_the_link(rig) -> None:
+    driver, robot, vehicle = rig
+    old_epoch = robot.epoch
+    robot.pause_telemetry(0.8)  # the driver's state_timeout_s is 0.5
+    assert wait_for(lambda: (driver.poll(time.monotonic()), not driver.health().ok)[1], 1.0)
+    assert "no state from the robot" in driver.health().text
+    assert wait_for(lambda: len(driver.poll(time.monotonic())) > 0, 1.0) and driver.health().ok
+    robot.reboot()
+    assert robot.epoch != old_epoch
+    t0 = time.monotonic()
+    while time.monotonic() - t0 < 2.0 and driver.health().detail["robot_restarts"] == 0:
+        driver.poll(time.monotonic())
+        time.sleep(0.01)
+    assert driver.health().detail["robot_restarts"] == 1
+    assert wait_for(lambda: len(driver.poll(time.monotonic())) > 0, 0.5) and driver.health().ok
+
+
+def test_the_learner_command_serves_its_peer_only_and_refuses_a_bad_peer(tmp_path) -> None:
+    """``scmbridge learner --link udp --peer HOST:PORT``: a real process the driver reaches from that port."""
+    port = free_udp_port()
+    with udp_socket() as s:
+        robot_port = s.getsockname()[1]
+    py = [sys.executable, "-m", "bridge.cli", "learner", "--link", "udp"]
+    bad = subprocess.run(py + ["--peer", "nowhere", "--duration", "1"], capture_output=True, text=True, timeout=60)
+    assert bad.returncode == 2 and "expected HOST:PORT" in bad.stderr
+    proc = subprocess.Popen(py + ["--port", str(robot_port), "--peer", f"{LOCAL}:{port}", "--v-max", "0.5",
+                                  "--duration", "30"], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                            start_new_session=True)
+    driver = open_driver("udp", UdpLinkConfig(robot_port=robot_port, bind_port=port, open_timeout=20.0))
+    try:
+        driver.open(time.monotonic())
+        assert driver.health().ok
+    finally:
+        driver.close()
+        stop_group(proc)
+
+
+def test_the_robot_default_peer_is_the_drivers_default_port() -> None:
+    cfg = UdpLinkConfig()
+    assert (cfg.bind_host, cfg.bind_port) == DEFAULT_PEER and cfg.bind_port != cfg.robot_port
+
+
 # ================================================================================================ fuzzing
 def _mutations(rng: random.Random, valid: dict, kind: type) -> bytes:
     """One datagram: random bytes, a valid message with one field made wrong, or a valid one with flipped bytes."""
@@ -303,3 +492,34 @@ def test_fuzzing_the_driver_with_2000_datagrams(scripted) -> None:
     assert len(poses) + (h.malformed - base[1]) + (d["foreign"] - base[2]) + refused == sent
     assert d["foreign"] - base[2] > 200 and h.malformed - base[1] > 500 and len(poses) > 300
     assert all(math.isfinite(v) for p in poses for v in (p.x, p.y, p.theta, p.v or 0.0, p.omega or 0.0))
+
+
+def test_fuzzing_the_robot_with_2000_datagrams() -> None:
+    rng = random.Random(77)
+    vehicle = SimVehicle(mpc_learner(), (0.0, 0.0, 0.0), now=time.monotonic())
+    calls: list[tuple[float, float]] = []
+    real = vehicle.command
+    vehicle.command = lambda v, w, now: (calls.append((v, w)), real(v, w, now))  # type: ignore[method-assign]
+    with udp_socket() as peer, udp_socket() as stranger, \
+            UdpRobot(vehicle, peer=peer.getsockname(), watchdog=0.3, v_max=1.0, omega_max=2.0) as robot:
+        to = (LOCAL, robot.port)
+        epoch, seq, sent = 0xD21, 0, 0
+        for _ in range(40):
+            for _ in range(50):
+                seq += 1
+                valid = {"stamp": 1.0, "seq": seq, "v": rng.uniform(-3, 3), "omega": rng.uniform(-5, 5),
+                         "method": rng.choice(["scm", "direct", "stop", "perturb"]), "epoch": epoch,
+                         "sender": "driver"}
+                data = M.encode(msgspec.convert(valid, M.Command)) if rng.random() < 0.4 else \
+                    _mutations(rng, valid, M.Command)
+                (stranger if rng.random() < 0.2 else peer).sendto(data, to)
+                sent += 1
+            assert wait_for(lambda n=sent: robot.counters["received"] >= n, 2.0, step=0.002)
+        c = dict(robot.counters)
+    assert c["received"] == sent
+    refused = sum(c[k] for k in ("malformed", "foreign", "out_of_order", "seq_jump", "old_epoch", "foreign_epoch",
+                                 "over_limits"))
+    assert c["applied"] + refused == sent
+    assert c["foreign"] > 200 and c["malformed"] > 500 and c["over_limits"] > 50 and c["applied"] > 100
+    assert calls and all(math.isfinite(v) and math.isfinite(w) and abs(v) <= 1.0 and abs(w) <= 2.0
+                         for v, w in calls)
