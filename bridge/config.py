@@ -108,13 +108,25 @@ class MavlinkLinkConfig(_Cfg):
 
 
 class UdpLinkConfig(_Cfg):
-    """``[link.udp]``: MessagePack datagrams to a small robot (the UDP shim)."""
+    """``[link.udp]``: MessagePack datagrams to a small robot (the UDP shim).
 
-    robot_host: Annotated[str, _m("the robot's address")] = "127.0.0.1"
+    Both ends pin each other: the driver takes datagrams only from ``robot_host:robot_port`` and the robot obeys
+    (and streams its state to) only its configured peer, which is this driver's ``bind_host:bind_port``. So the
+    driver's port is fixed (``bind_port``), and the robot's firmware is configured with it.
+    """
+
+    robot_host: Annotated[str, _m("the robot's address (resolved once, when the link opens)")] = "127.0.0.1"
     robot_port: Annotated[Port, _m("the robot's UDP port")] = 47800
     bind_host: Annotated[str, _m("our address (127.0.0.1 for loopback tests)")] = "127.0.0.1"
-    bind_port: Annotated[Port, _m("our UDP port, 0: any free")] = 0
+    bind_port: Annotated[Port, _m("our UDP port: the robot's configured peer, so fixed; 0: any free (only for a "
+                                  "robot that pins its first sender)")] = 47801
     open_timeout: Annotated[float, _m("s to wait for the robot's first state", gt=0.0, le=120.0)] = 2.0
+    state_timeout_s: Annotated[float, _m("the robot's state older than this: the link is not ok (the host stops); "
+                                         "also the silence after which a new robot epoch (a reboot) is taken, s",
+                                         gt=0.0, le=60.0)] = 0.5
+    max_state_rate_hz: Annotated[float, _m("the fastest the robot may count its state seq (it streams at ~50 Hz): "
+                                           "a state whose seq jumps further ahead than this allows is refused, Hz",
+                                           gt=0.0, le=100_000.0)] = 200.0
 
     def __post_init__(self) -> None:
         if self.robot_port == 0:

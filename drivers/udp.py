@@ -1,22 +1,57 @@
 """UDP shim link for small microcontroller robots: MessagePack datagrams of the same msgspec structs.
 
-The driver sends :class:`bridge.wire.Command` datagrams (its own increasing ``seq``) to the robot; the robot
-answers with :class:`bridge.wire.LearnerState` datagrams carrying the robot's own ``seq``. Every datagram is
-decoded and validated; malformed ones are counted and dropped, duplicated or reordered states (seq not above the
-last one) are dropped, and gaps in the robot's sequence are counted. The robot stops on its own watchdog when
-commands stop (see :mod:`sim_learner.udp_robot`).
+The driver sends :class:`bridge.wire.Command` datagrams to the robot, each carrying the driver's ``epoch`` (picked
+once per driver, :func:`bridge.wire.new_epoch`), ``sender = "driver"`` and the driver's own increasing ``seq``;
+the robot answers with :class:`bridge.wire.LearnerState` datagrams carrying the robot's epoch (picked at boot) and
+its own ``seq``. The robot obeys only its configured peer, stops on its own watchdog when commands stop and applies
+its own hard limits (see :mod:`sim_learner.udp_robot`).
+
+What the driver trusts, in order:
+
+1. the source address: only datagrams from ``robot_host:robot_port`` (resolved once, at ``open``) are read; all
+   others are counted as ``foreign`` and dropped undecoded;
+2. the payload: a datagram that does not decode and validate as a ``LearnerState`` is ``malformed``;
+3. the robot's ``(epoch, seq)`` stream, through :class:`bridge.gate.SeqGate`: within the epoch it follows, a
+   state is taken only if its seq is above the last one (``state_out_of_order`` otherwise) and not further above
+   it than the robot could have counted since (``state_seq_jump``: one forged seq of ``2**63 - 1`` cannot lock the
+   real robot out); a new epoch (a rebooted robot) is taken once the followed stream has been silent for
+   ``state_timeout_s`` (``state_foreign_epoch`` until then, ``robot_restarts`` counts the changes); an epoch left
+   behind is never taken again (``state_old_epoch``). Seqs skipped inside an epoch are counted as ``state_gaps``.
+
+Health is truthful: ``ok`` only while the socket is open and the robot's last accepted state is younger than
+``state_timeout_s`` (so False until the first state); ``text`` says how long the robot has been silent.
 
 Configuration: :class:`bridge.config.UdpLinkConfig` (``[link.udp]`` in the driver host's file).
 """
 
 from __future__ import annotations
 
+import math
 import socket
 import time
 
 from bridge import wire as M
 from bridge.config import UdpLinkConfig
+from bridge.gate import SeqGate
 from drivers.base import DriverError, LinkHealth, Pose
+
+#: seqs a state may jump ahead of the last one beyond what ``max_state_rate_hz`` allows for the time elapsed
+STATE_SEQ_SLACK = 10
+#: datagrams read per ``poll`` at most, so a flood cannot hold the driver host's loop (the rest waits a tick)
+MAX_DATAGRAMS_PER_POLL = 512
+#: how long a command may be applied after the robot receives it (the robot's watchdog usually acts first)
+CMD_VALID_MS = 300
+_REFUSALS = ("out_of_order", "seq_jump", "old_epoch", "foreign_epoch")
+
+
+def resolve_ipv4(host: str, port: int) -> tuple[str, int]:
+    """``(ip, port)`` of ``host`` as the source address ``recvfrom`` reports it (numeric IPv4)."""
+    try:
+        infos = socket.getaddrinfo(host, port, socket.AF_INET, socket.SOCK_DGRAM)
+    except socket.gaierror as exc:
+        raise DriverError(f"cannot resolve the UDP robot's address {host!r}: {exc.strerror or exc}") from None
+    ip, p = infos[0][4][:2]
+    return str(ip), int(p)
 
 
 class UdpDriver:
@@ -26,40 +61,55 @@ class UdpDriver:
 
     def __init__(self, config: UdpLinkConfig) -> None:
         self.config = config
-        self.robot = (config.robot_host, config.robot_port)
         self.bind = (config.bind_host, config.bind_port)
         self.open_timeout = config.open_timeout
+        self.state_timeout = config.state_timeout_s
+        self.epoch = M.new_epoch()  # this driver's run: a restarted driver host is a new epoch to the robot
+        self.robot_addr: tuple[str, int] | None = None  # resolved at open
         self.sock: socket.socket | None = None
         self.seq = 0
-        self.last_state_seq = -1
-        self.gaps = 0
-        self.out_of_order = 0
+        self.gate = SeqGate(silence_s=config.state_timeout_s, max_rate_hz=config.max_state_rate_hz,
+                            slack=STATE_SEQ_SLACK)
+        self.last_state_time = -math.inf  # driver-host monotonic time of the last accepted state
+        self.counters = {"foreign": 0, "state_gaps": 0, "robot_restarts": 0,
+                         **{f"state_{r}": 0 for r in _REFUSALS}}
         self._health = LinkHealth()
 
+    @property
+    def robot_text(self) -> str:
+        return f"{self.config.robot_host}:{self.config.robot_port}"
+
     def open(self, now: float) -> None:
-        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        self.sock.bind(self.bind)
-        self.sock.setblocking(False)
-        self._health.connected = self._health.ok = True
-        self._health.text = "ready"
+        """Resolve the robot's address, bind, and greet the robot with stops until its first state arrives."""
+        self.robot_addr = resolve_ipv4(self.config.robot_host, self.config.robot_port)
+        sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        try:
+            sock.bind(self.bind)
+        except OSError as exc:
+            sock.close()
+            raise DriverError(f"cannot bind the UDP link to {self.bind[0]}:{self.bind[1]}: "
+                              f"{exc.strerror or exc}") from None
+        sock.setblocking(False)  # send() and poll() never wait
+        self.sock = sock
+        self._health.connected = True
         t_end = time.monotonic() + self.open_timeout
         while time.monotonic() < t_end:
-            self.stop(time.monotonic())  # a stop is also the hello that tells the robot where we are
+            self.stop(time.monotonic())  # a stop is also the hello (a robot in first-sender mode pins us)
             time.sleep(0.02)
             if self.poll(time.monotonic()):
                 return
-        raise DriverError(f"no state from the UDP robot at {self.robot[0]}:{self.robot[1]} "
-                          f"within {self.open_timeout} s")
+        raise DriverError(f"no state from the UDP robot at {self.robot_text} within {self.open_timeout} s")
 
     def _send_cmd(self, v: float, omega: float, method: str, now: float) -> None:
-        if self.sock is None:
+        if self.sock is None or self.robot_addr is None:
             return
         self.seq += 1
-        msg = M.Command(stamp=now, seq=self.seq, v=v, omega=omega, method=method, valid_ms=300)
+        msg = M.Command(stamp=max(0.0, now), seq=self.seq, v=v, omega=omega, method=method, valid_ms=CMD_VALID_MS,
+                        sender="driver", epoch=self.epoch)
         try:
-            self.sock.sendto(M.encode(msg), self.robot)
+            self.sock.sendto(M.encode(msg), self.robot_addr)
             self._health.frames_sent += 1
-        except OSError:
+        except OSError:  # a full socket buffer (non-blocking) or an unreachable network: dropped, counted
             self._health.errors += 1
 
     def send(self, v: float, omega: float, now: float) -> None:
@@ -72,32 +122,57 @@ class UdpDriver:
         out: list[Pose] = []
         if self.sock is None:
             return out
-        while True:
+        for _ in range(MAX_DATAGRAMS_PER_POLL):
             try:
-                data, _ = self.sock.recvfrom(65536)
+                data, src = self.sock.recvfrom(65536)
             except (BlockingIOError, InterruptedError):
                 break
-            except OSError:
+            except OSError:  # e.g. an ICMP error reported on the socket
                 self._health.errors += 1
                 break
             self._health.frames_received += 1
+            if src[:2] != self.robot_addr:
+                self.counters["foreign"] += 1
+                continue
             try:
                 st = M.decode(data, M.LearnerState)
             except M.MessageError:
                 self._health.malformed += 1
                 continue
-            if st.seq <= self.last_state_seq:
-                self.out_of_order += 1
-                continue
-            if self.last_state_seq >= 0 and st.seq > self.last_state_seq + 1:
-                self.gaps += st.seq - self.last_state_seq - 1
-            self.last_state_seq = st.seq
-            out.append(Pose(now, st.x, st.y, st.theta, st.v, st.omega))
+            pose = self._take(st, now)
+            if pose is not None:
+                out.append(pose)
         return out
 
+    def _take(self, st: M.LearnerState, now: float) -> Pose | None:
+        """The pose of ``st`` if it is the next of the robot's stream (see the module docstring), else None."""
+        prev_epoch, prev_seq = self.gate.epoch, self.gate.last_seq
+        why = self.gate.accept(st.epoch, st.seq, now)
+        if why is not None:
+            self.counters[f"state_{why}"] += 1
+            return None
+        if prev_epoch is not None and st.epoch != prev_epoch:
+            self.counters["robot_restarts"] += 1
+        elif prev_epoch is not None and st.seq > prev_seq + 1:
+            self.counters["state_gaps"] += st.seq - prev_seq - 1
+        self.last_state_time = now
+        return Pose(now, st.x, st.y, st.theta, st.v, st.omega)
+
     def health(self) -> LinkHealth:
-        self._health.detail = {"state_gaps": self.gaps, "state_out_of_order": self.out_of_order}
-        return self._health
+        h = self._health
+        h.detail = dict(self.counters)
+        if self.sock is None:
+            h.ok = False
+            return h
+        age = time.monotonic() - self.last_state_time
+        h.ok = age <= self.state_timeout
+        if h.ok:
+            h.text = "ready"
+        elif math.isinf(age):
+            h.text = f"no state from the robot yet ({self.robot_text})"
+        else:
+            h.text = f"no state from the robot for {age:.1f} s"
+        return h
 
     def clear_faults(self, now: float) -> None:
         """Nothing to clear on this link (see :meth:`drivers.base.Driver.clear_faults`)."""

@@ -2,7 +2,10 @@
 
 ``--link can``: the learner's two emulated ODrive motor controllers on a python-can bus given by ``--interface`` /
 ``--channel`` (``udp_multicast`` inside a private network namespace to reach a driver host in another process,
-``socketcan`` on a vcan device where the kernel has one). ``--link udp``: the UDP-shim robot on ``--host:--port``.
+``socketcan`` on a vcan device where the kernel has one). ``--link udp``: the UDP-shim robot on ``--host:--port``,
+obeying and answering only ``--peer`` (the driver host's ``bind_host:bind_port``, 127.0.0.1:47801 by default; ``first``
+pins the first valid sender instead), refusing commands beyond ``--v-max`` / ``--omega-max`` and stopping on its
+``--watchdog``.
 ``--link mavlink``: the ArduPilot-Rover-like vehicle listening for a GCS on UDP ``--host:--port``.
 Runs until ``--duration`` or SIGINT/SIGTERM.
 """
@@ -13,6 +16,20 @@ import argparse
 import signal
 import threading
 import time
+
+
+def _peer_arg(ap: argparse.ArgumentParser, text: str | None) -> tuple[str, int] | str:
+    """``--peer``: ``HOST:PORT`` or ``first``; None is the robot's default (the driver host's default address)."""
+    from sim_learner.udp_robot import DEFAULT_PEER
+
+    if text is None:
+        return DEFAULT_PEER
+    if text == "first":
+        return "first"
+    host, _, port = text.rpartition(":")
+    if not host or not port.isdigit() or not 0 < int(port) < 65536:
+        ap.error(f"--peer {text!r}: expected HOST:PORT (the driver host's bind address) or 'first'")
+    return host.strip("[]"), int(port)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -30,7 +47,16 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--duration", type=float, default=None)
     ap.add_argument("--wheel-radius", type=float, default=0.1)
     ap.add_argument("--track-width", type=float, default=0.4)
+    ap.add_argument("--peer", default=None, help="(udp) the driver host's HOST:PORT, the only sender obeyed and "
+                    "answered (default 127.0.0.1:47801, the driver's default bind), or 'first': pin the first "
+                    "valid sender")
+    ap.add_argument("--v-max", type=float, default=1.0, help="(udp) the robot's own limit |v|, m/s: refused beyond")
+    ap.add_argument("--omega-max", type=float, default=2.0, help="(udp) the robot's own limit |omega|, rad/s")
+    ap.add_argument("--watchdog", type=float, default=0.5, help="(udp) no command for this long stops it, s")
     args = ap.parse_args(argv)
+    peer = _peer_arg(ap, args.peer) if args.link == "udp" else None
+    if args.link == "udp" and not (0 < args.v_max < 1e3 and 0 < args.omega_max < 1e3 and 0 < args.watchdog < 60):
+        ap.error("--v-max, --omega-max and --watchdog must be positive (and finite)")
 
     import numpy as np
 
@@ -56,8 +82,10 @@ def main(argv: list[str] | None = None) -> int:
         from sim_learner.udp_robot import UdpRobot
 
         port = 47800 if args.port is None else args.port
-        with UdpRobot(vehicle, args.host, port) as robot:
-            print(f"learner on udp {args.host}:{robot.port}, model {args.model}", flush=True)
+        with UdpRobot(vehicle, args.host, port, peer=peer, v_max=args.v_max, omega_max=args.omega_max,
+                      watchdog=args.watchdog) as robot:
+            shown = "the first valid sender" if peer == "first" else f"{peer[0]}:{peer[1]}"
+            print(f"learner on udp {args.host}:{robot.port}, model {args.model}, peer {shown}", flush=True)
             stop.wait(args.duration)
         return 0
     bus_kwargs = {"interface": args.interface, "channel": args.channel}
