@@ -8,7 +8,8 @@ sequence numbers"):
   message with ``seq = 2**63 - 1`` cannot lock the real sender out;
 - a message of another epoch is taken (the sender restarted: a new station run, a rebooted robot) once the stream
   it follows has been silent for ``silence_s``; while that stream is alive, a second sender is refused (counted);
-- an epoch it has left is never taken again, so a replayed or reordered message of an earlier run is refused.
+- a message of an epoch it has left is refused unless its seq is above the last one seen from that epoch: a
+  replayed or reordered message of an earlier run is refused, while a sender that was only silent can come back.
 
 :class:`CommandGate` is the driver host's gate for ``cmd``: freshness (validity and the deadman), the estop latch
 (released only by a source the configuration names), clamping to the hard limits, and "a stop is a stop": a
@@ -20,7 +21,6 @@ from __future__ import annotations
 
 import logging
 import math
-from collections import deque
 from dataclasses import dataclass, field
 
 from bridge import wire as M
@@ -33,28 +33,38 @@ DRIVING = ("cmd", "clamped")
 
 
 class SeqGate:
-    """Follows one ``(epoch, seq)`` stream; see the module docstring. ``accept`` returns None or why not."""
+    """Follows one ``(epoch, seq)`` stream; see the module docstring. ``accept`` returns None or why not.
+
+    It remembers the last seq of the last ``remember`` epochs it followed: a message of an epoch it has left is a
+    replay (refused, ``old_epoch``) unless its seq is above that epoch's last one, in which case that sender is
+    simply back (after the usual silence). So a forged new epoch slipped in during a dropout holds the vehicle
+    only until it goes silent; it cannot lock the real sender out.
+    """
 
     def __init__(self, silence_s: float, max_rate_hz: float = 1000.0, slack: int = 50, remember: int = 64) -> None:
         self.silence_s = float(silence_s)
         self.max_rate_hz = float(max_rate_hz)
         self.slack = int(slack)
+        self.remember = int(remember)
         self.epoch: int | None = None
         self.last_seq = -1
         self.last_time = -math.inf
-        self.retired: deque[int] = deque(maxlen=remember)
+        self.left: dict[int, int] = {}  # epoch -> its last seq, for the epochs followed before (oldest first)
 
     def accept(self, epoch: int, seq: int, now: float) -> str | None:
         """Take ``(epoch, seq)`` received at ``now`` if it is the next of the stream; else the reason it is not."""
         if epoch != self.epoch:
-            if epoch in self.retired:
+            if seq <= self.left.get(epoch, -1):
                 return "old_epoch"
             if self.epoch is not None and now - self.last_time < self.silence_s:
                 return "foreign_epoch"
             if self.epoch is not None:
-                self.retired.append(self.epoch)
-                log.info("sender epoch %x replaced by %x after %.2f s of silence", self.epoch, epoch,
+                self.left[self.epoch] = self.last_seq
+                while len(self.left) > self.remember:
+                    del self.left[next(iter(self.left))]
+                log.info("sender epoch %x followed instead of %x after %.2f s of silence", epoch, self.epoch,
                          now - self.last_time)
+            self.left.pop(epoch, None)
             self.epoch, self.last_seq = epoch, seq
             self.last_time = now
             return None

@@ -75,9 +75,13 @@ def emulated_link(kids: Children, link: str, workdir: Path, x0: str, duration: f
         return ["--link", "can", "--emulate", "--x0", x0]
     port = free_udp_port()
     cfg = Path(workdir) / f"driver-{link}.toml"
-    if link == "udp":
-        cfg.write_text(f'[link.udp]\nrobot_host = "127.0.0.1"\nrobot_port = {port}\n')
+    extra = []
+    if link == "udp":  # the robot and the driver host each answer only the other's configured address
+        bind = free_udp_port()
+        cfg.write_text(f'[link.udp]\nrobot_host = "127.0.0.1"\nrobot_port = {port}\nbind_port = {bind}\n')
+        extra = ["--peer", f"127.0.0.1:{bind}"]
     else:
         cfg.write_text(f'[link.mavlink]\nurl = "udpout:127.0.0.1:{port}"\nrate_hz = {rate_hz}\n')
-    kids.spawn(["learner", "--link", link, "--port", str(port), "--x0", x0, "--duration", str(duration)], out)
+    kids.spawn(["learner", "--link", link, "--port", str(port), "--x0", x0, "--duration", str(duration), *extra],
+               out)
     return ["--link", link, "--config", str(cfg)]

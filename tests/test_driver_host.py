@@ -76,10 +76,12 @@ def driver_host(request, tmp_path):
         vehicle = SimVehicle(mpc_learner(), (0.0, 0.0, 0.0), now=time.monotonic())
         cfg = tmp_path / "driver.toml"
         if link == "udp":
+            from bridge.procs import free_udp_port
             from sim_learner.udp_robot import UdpRobot
 
-            device = UdpRobot(vehicle).start()
-            cfg.write_text(f"[link.udp]\nrobot_port = {device.port}\n")
+            bind = free_udp_port()
+            device = UdpRobot(vehicle, peer=("127.0.0.1", bind)).start()
+            cfg.write_text(f"[link.udp]\nrobot_port = {device.port}\nbind_port = {bind}\n")
         else:
             from sim_learner.mavlink_rover import MavlinkRover
 

@@ -58,7 +58,7 @@ def test_a_restarted_station_is_followed_at_once_and_old_commands_stay_refused()
     t = 500 * 0.1 + 1.5  # kill -9, restart: 1.5 s of silence
     assert g.offer(_cmd(0, 0.1, 0.0, epoch=0xBEEF), t)  # new epoch, seq from 0: followed at once
     assert g.decide(t + 0.01) == Decision(0.1, 0.0, "cmd", 0)
-    assert not g.offer(_cmd(600, 0.4, 0.0), t + 0.05)  # the old run's epoch, replayed: never again
+    assert not g.offer(_cmd(300, 0.4, 0.0), t + 0.05)  # a command of the old run, replayed: refused
     assert g.counters["old_epoch"] == 1
     assert g.offer(_cmd(1, 0.1, 0.0, epoch=0xBEEF), t + 0.1)
 
@@ -119,3 +119,12 @@ def test_whatever_arrives_the_gate_only_ever_emits_finite_bounded_commands(v: fl
     assert math.isfinite(d.v) and math.isfinite(d.omega) and LIMITS.contains([d.v, d.omega])
     if method == "stop":
         assert (d.v, d.omega) == (0.0, 0.0)
+
+
+def test_a_forged_new_epoch_during_a_dropout_does_not_lock_the_real_sender_out() -> None:
+    s = SeqGate(silence_s=0.3)
+    assert s.accept(1, 10, 0.0) is None
+    assert s.accept(666, 0, 0.5) is None  # forged, while the real sender was silent: followed for now
+    assert s.accept(1, 11, 0.6) == "foreign_epoch"  # the forger's stream is alive
+    assert s.accept(1, 10, 1.0) == "old_epoch"  # a replay of the real sender's past is still refused
+    assert s.accept(1, 12, 1.0) is None  # the forger went silent: the real sender is back
