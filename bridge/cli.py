@@ -19,6 +19,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "driver": ("bridge.driver_host", "the driver host: Zenoh commands -> vehicle link, telemetry -> state"),
     "learner": ("sim_learner.emulator", "a software learner behind a vehicle link (can, mavlink, udp)"),
     "sim": ("sim_learner.experiments", "the paper's simulations: sim primitives|mpc|grid --out DIR"),
+    "calibrate": ("bridge.calibrate", "the calibration stage: a bounded grid of learner commands into the store"),
     "estop": ("bridge.estop", "estop --robot R|--all [--release --source NAME]: stop now, or release, and confirm"),
     "config": ("bridge.config", "config check FILE | config show --kind station|driver|mission"),
     "bench scm": ("bridge.bench.scm", "Schwarz-Christoffel map build/evaluate timings (JSON)"),

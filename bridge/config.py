@@ -201,6 +201,34 @@ class TransferSection(_Cfg):
     seed: Annotated[int, _m("random generator seed of the exploration", ge=0, le=2**32 - 1)] = 0
 
 
+class TeacherSection(_Cfg):
+    """``[teacher]``: who computes the teacher commands the station maps."""
+
+    kind: Annotated[Literal["mpc", "external"], _m("mpc: the built-in MPC follows the mission; external: a lab's "
+                                                   "own teacher publishes scm/<robot>/teacher and the station only "
+                                                   "maps (transfer-only service)")] = "mpc"
+    timeout_s: Annotated[float, _m("external: no teacher command for this long makes the station publish stops, s",
+                                   gt=0.0, le=10.0)] = 0.3
+
+
+class CalibrationSection(_Cfg):
+    """``[calibration]``: the calibration stage (``scmbridge calibrate``), bounded in time and distance."""
+
+    grid: Annotated[tuple[Annotated[int, Meta(ge=2, le=21)], Annotated[int, Meta(ge=2, le=21)]],
+                    _m("learner commands [n_v, n_omega] spanning the learner's box, extremes included")] = (5, 5)
+    hold_s: Annotated[float, _m("each command is held this long, s", gt=0.0, le=60.0)] = 1.0
+    max_distance_m: Annotated[float, _m("stop calibrating when the robot is this far from where it started, m",
+                                        gt=0.0, le=1000.0)] = 2.0
+    return_radius_m: Annotated[float, _m("beyond this distance the robot drives back toward the start between "
+                                         "commands, m", gt=0.0, le=1000.0)] = 0.8
+    max_time_s: Annotated[float, _m("stop calibrating after this long, s", gt=0.0, le=36000.0)] = 300.0
+
+    def __post_init__(self) -> None:
+        if self.return_radius_m >= self.max_distance_m:
+            raise ValueError(f"return_radius_m = {self.return_radius_m} must be below max_distance_m = "
+                             f"{self.max_distance_m}")
+
+
 DEFAULT_TEACHER_BOUNDS = BoundsConfig(v=paper.MPC_TEACHER_V, w=paper.MPC_TEACHER_W)
 DEFAULT_LEARNER_BOUNDS = BoundsConfig(v=paper.MPC_LEARNER_V, w=paper.MPC_LEARNER_W)
 
@@ -214,6 +242,8 @@ class StationConfig(_Cfg):
         DEFAULT_TEACHER_BOUNDS)
     learner_bounds: Annotated[BoundsConfig, _m("the learner's own command range")] = DEFAULT_LEARNER_BOUNDS
     transfer: TransferSection = field(default_factory=TransferSection)
+    teacher: TeacherSection = field(default_factory=TeacherSection)
+    calibration: CalibrationSection = field(default_factory=CalibrationSection)
 
     def store_file(self) -> Path:
         return Path(self.station.store_path or f"pairs-{self.robot}.bin")
@@ -457,6 +487,7 @@ __all__ = [
     "KINDS",
     "LINK_CONFIGS",
     "BoundsConfig",
+    "CalibrationSection",
     "CanLinkConfig",
     "ConfigError",
     "DriverConfig",
@@ -464,6 +495,7 @@ __all__ = [
     "MavlinkLinkConfig",
     "StationConfig",
     "StationSection",
+    "TeacherSection",
     "TransferSection",
     "UdpLinkConfig",
     "check",

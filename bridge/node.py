@@ -69,15 +69,27 @@ class FixedRate:
         self.stop = stop
         self.t_next = time.monotonic()
         self.missed = 0
+        self.pending = False  # woken before the deadline: the next wait keeps the same deadline
 
-    def wait(self) -> None:
-        self.t_next += self.period
+    def wait(self, wake: threading.Event | None = None) -> bool:
+        """Sleep to the next deadline; True when it is reached, False when ``wake`` was set first (an input that
+        should be handled now: the deadline stays where it is, call ``wait`` again after handling it)."""
+        if not self.pending:
+            self.t_next += self.period
         delay = self.t_next - time.monotonic()
-        if delay > 0:
-            self.stop.wait(delay)
-        else:
+        if delay <= 0:
             self.missed += 1
             self.t_next = time.monotonic()
+            self.pending = False
+            return True
+        if wake is not None and wake.wait(delay):
+            wake.clear()
+            self.pending = True
+            return False
+        if wake is None:
+            self.stop.wait(delay)
+        self.pending = False
+        return True
 
 
 def stop_on_signals() -> threading.Event:

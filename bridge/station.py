@@ -37,6 +37,7 @@ from bridge.config import StationConfig, load_mission, load_station, mission_fro
 from bridge.node import FixedRate, Inputs, add_zenoh_args, stop_on_signals, zenoh_config
 from bridge.pairing import IntervalPairer
 from bridge.zsession import open_session
+from transfer.calibration import CalibrationPlan
 from transfer.domain import Bounds
 from transfer.mission import Mission
 from transfer.store import PairStore
@@ -113,13 +114,19 @@ class Station:
         self.mpc = MpcTeacher(MpcConfig(N=scfg.horizon, dt=self.period))
         self.pairer = IntervalPairer(scfg.pair_dt)
         self.mission = mission
+        self.teacher_kind = cfg.teacher.kind
+        self.teacher_timeout = cfg.teacher.timeout_s
+        self.calibration: CalibrationPlan | None = None
+        self.wake = threading.Event()  # an external teacher's command is mapped as it arrives
         self.inputs = Inputs()
         self.lock = threading.Lock()  # the inbox, the store (read by the pairs queryable) and the mission
         self.inbox: dict[str, Any] = {"state": None, "state_at": -np.inf, "events": [], "driver": None,
-                                      "driver_at": -np.inf, "mission": None}
+                                      "driver_at": -np.inf, "mission": None, "teacher": None, "teacher_at": -np.inf,
+                                      "teacher_new": False}
         self.epoch = M.new_epoch()
         self.seq = {"cmd": 0, "status": 0}
         self.counts: dict[str, int] = {"scm": 0, "direct": 0, "perturb": 0, "affine": 0, "barycentric": 0, "stop": 0}
+        self.calib_progress: tuple[int, int, str] | None = None
         self.extra = {"obstacles_dropped": 0, "persist_failures": 0, "missions": 0}
         self.reached = False
         self.why = "starting"
@@ -153,6 +160,11 @@ class Station:
             return
         with self.lock:
             self.inbox["mission"] = mission
+
+    def on_teacher(self, t: M.TeacherCommand, now: float) -> None:
+        with self.lock:
+            self.inbox["teacher"], self.inbox["teacher_at"], self.inbox["teacher_new"] = t, now, True
+        self.wake.set()
 
     def on_pairs_query(self, query: zenoh.Query) -> None:
         with self.lock:
@@ -194,8 +206,57 @@ class Station:
             return f"no pose for {now - state_at:.1f} s"
         return ""
 
-    def drive(self, now: float, state: M.LearnerState) -> None:
-        """One teacher command, mapped and published."""
+    def drive(self, now: float, state: M.LearnerState) -> str:
+        """Drive by the configured teacher; returns why it did not, or an empty string."""
+        if self.calibration is not None:
+            return self.calibrate(now, state)
+        if self.teacher_kind == "external":
+            return self.map_external(now)
+        self.drive_mpc(now, state)
+        return ""
+
+    def map_external(self, now: float) -> str:
+        """Transfer-only service: map the external teacher's latest command once, as it arrives. A teacher that
+        says stop (``ok`` false or an exact zero) or falls silent for ``timeout_s`` gets the robot stopped."""
+        with self.lock:
+            t, t_at, new = self.inbox["teacher"], self.inbox["teacher_at"], self.inbox["teacher_new"]
+            self.inbox["teacher_new"] = False
+        if t is None:
+            return "waiting for the external teacher"
+        if now - t_at > self.teacher_timeout:
+            return f"no teacher command for {now - t_at:.1f} s"
+        if not t.ok or (t.v == 0.0 and t.omega == 0.0):
+            return "the teacher says stop"
+        if new:
+            self.map_and_send(now, np.array([t.v, t.omega]))
+        return ""
+
+    def calibrate(self, now: float, state: M.LearnerState) -> str:
+        """The calibration stage: the plan's learner commands go out as they are (method ``calibrate``)."""
+        step = self.calibration.step(now, [state.x, state.y, state.theta])
+        if step.done:
+            if self.why != f"calibration: {step.reason}":
+                log.info("calibration finished: %s; %d refined pairs", step.reason, len(self.store.refined()))
+            return f"calibration: {step.reason}"
+        self.counts["calibrate"] = self.counts.get("calibrate", 0) + 1
+        self._command(now, float(step.u_L[0]), float(step.u_L[1]), "calibrate")
+        if self.calib_progress is None or self.calib_progress[:1] + self.calib_progress[2:] != (step.index,
+                                                                                                step.phase):
+            dist = float(np.hypot(state.x - self.calibration.start[0], state.y - self.calibration.start[1]))
+            log.info("calibration %d/%d %s (v %.3f, omega %.3f): %d raw / %d refined pairs, %.2f m from the start",
+                     step.index + 1, step.total, step.phase, step.u_L[0], step.u_L[1], self.store.raw_count,
+                     len(self.store.refined()), dist)
+        self.calib_progress = (step.index, step.total, step.phase)
+        return ""
+
+    def map_and_send(self, now: float, u_T) -> None:
+        with self.lock:
+            m = self.policy.map(u_T)
+        self.counts[m.method] = self.counts.get(m.method, 0) + 1
+        self._command(now, float(m.u_L[0]), float(m.u_L[1]), m.method, list(m.region)[:8])
+
+    def drive_mpc(self, now: float, state: M.LearnerState) -> None:
+        """One teacher command of the built-in MPC, mapped and published."""
         x = np.array([state.x, state.y, state.theta])
         t0 = time.perf_counter()
         with self.lock:
@@ -204,10 +265,7 @@ class Station:
         self.solve_ms.append((time.perf_counter() - t0) * 1e3)
         del self.solve_ms[:-100]
         self.extra["obstacles_dropped"] += res.obstacles_dropped
-        with self.lock:
-            m = self.policy.map(res.u)
-        self.counts[m.method] = self.counts.get(m.method, 0) + 1
-        self._command(now, float(m.u_L[0]), float(m.u_L[1]), m.method, list(m.region)[:8])
+        self.map_and_send(now, res.u)
         pred = res.predicted
         self._put("teacher", M.TeacherCommand(
             stamp=now, seq=self.seq["cmd"] - 1, v=float(res.u[0]), omega=float(res.u[1]), solver=res.solver,
@@ -223,18 +281,19 @@ class Station:
     def tick(self, now: float) -> None:
         state, state_at, driver, driver_at = self.ingest()
         why = self.fit_to_drive(now, state, state_at, driver, driver_at)
-        if not why and not self.reached and self.mission.reached([state.x, state.y]):
+        follows_mission = self.teacher_kind == "mpc" and self.calibration is None
+        if follows_mission and not why and not self.reached and self.mission.reached([state.x, state.y]):
             self.reached = True
             log.info("goal of mission %r reached", self.mission.name)
-        if self.reached:
+        if follows_mission and self.reached:
             why = "goal reached"
+        if not why:
+            why = self.drive(now, state)
         if why:
             if why != self.why:
                 log.info("not driving: %s", why)
             self._command(now, 0.0, 0.0, "stop")
             self.counts["stop"] += 1
-        else:
-            self.drive(now, state)
         self.why = why or "driving"
 
     # ---------------------------------------------------------------------------------------- publications
@@ -259,7 +318,10 @@ class Station:
                     "raw_pairs": self.store.raw_count,
                     "pairs_rejected": self.pairer.rejected, "pairs_formed": self.pairer.formed,
                     "goal_reached": int(self.reached)}
-        ok = self.why in ("driving", "goal reached") and not self.persist_error
+        if self.calib_progress is not None:
+            i, n, phase = self.calib_progress
+            counters.update({"calibration_index": i, "calibration_total": n})
+        ok = (self.why in ("driving", "goal reached") or self.why.startswith("calibration:")) and not self.persist_error
         text = self.why + (f"; {self.persist_error}" if self.persist_error else "")
         msg = M.Status(stamp=now, seq=self.seq["status"], node="station", ok=ok, rates_hz={"loop": 1 / self.period},
                        latencies_ms={"solve_median": float(np.median(sm)), "solve_max": float(sm.max())},
@@ -295,18 +357,28 @@ class Station:
         self.inputs.subscribe(session, M.status_key(self.robot, "driver"), M.Status, "driver_status",
                               self.on_driver_status)
         self.inputs.subscribe(session, k.mission, M.MissionSpec, "mission", self.on_mission)
+        if self.teacher_kind == "external":
+            self.inputs.subscribe(session, k.teacher, M.TeacherCommand, "teacher", self.on_teacher)
         session.declare_queryable(k.pairs, self.on_pairs_query)
-        self.pubs = {t: session.declare_publisher(getattr(k, t)) for t in ("cmd", "teacher", "limits")}
+        self.pubs = {t: session.declare_publisher(getattr(k, t)) for t in ("cmd", "limits")}
+        if self.teacher_kind == "mpc":
+            self.pubs["teacher"] = session.declare_publisher(k.teacher)
         self.pubs["status"] = session.declare_publisher(M.status_key(self.robot, "station"))
-        log.info("station for %s at %.0f Hz, mission %s (epoch %x)", self.robot, 1 / self.period, self.mission.name,
-                 self.epoch)
+        what = "calibration" if self.calibration else (
+            "external teacher" if self.teacher_kind == "external" else f"mission {self.mission.name}")
+        log.info("station for %s at %.0f Hz, %s (epoch %x)", self.robot, 1 / self.period, what, self.epoch)
         self.ticker = FixedRate(1 / self.period, stop)
         t_start = time.monotonic()
         t_status = t_persist = t_start
+        periodic = True
         while not stop.is_set():
             now = time.monotonic()
             if duration is not None and now - t_start >= duration:
                 break
+            if not periodic:  # woken by an external teacher's command: map it now, nothing else
+                self.tick(now)
+                periodic = self.ticker.wait(self.wake)
+                continue
             self.tick(now)
             if now >= t_status:
                 self._put("status", self.status(now))
@@ -317,11 +389,11 @@ class Station:
             if now >= t_persist:
                 self.persist()
                 t_persist = now + self.persist_every
-            if self.reached and exit_at_goal:
+            if exit_at_goal and (self.reached or (self.calibration is not None and self.calibration.finished)):
                 self._put("status", self.status(now))
                 time.sleep(3 * self.period)
                 break
-            self.ticker.wait()
+            periodic = self.ticker.wait(self.wake if self.teacher_kind == "external" else None)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -28,12 +28,13 @@ from transfer.domain import Bounds
 _MIN_PROPORTIONAL = 0.2  # below this normalised learner level a proportional extrapolation is too noisy to use
 
 
-def calibration_commands(learner_bounds: Bounds, n: int = 5) -> NDArray[np.float64]:
-    """An n x n grid of learner commands spanning the learner's box, extremes included (calibration stage)."""
-    if n < 2:
-        raise ValueError("a calibration grid needs n >= 2 to reach both extremes")
-    g = np.linspace(0.0, 1.0, n)
-    V, W = np.meshgrid(g, g, indexing="ij")
+def calibration_commands(learner_bounds: Bounds, n: int | tuple[int, int] = 5) -> NDArray[np.float64]:
+    """An n x n (or n_v x n_omega) grid of learner commands spanning the learner's box, extremes included
+    (calibration stage)."""
+    nv, nw = (n, n) if isinstance(n, int) else (int(n[0]), int(n[1]))
+    if nv < 2 or nw < 2:
+        raise ValueError("a calibration grid needs n >= 2 on each axis to reach both extremes")
+    V, W = np.meshgrid(np.linspace(0.0, 1.0, nv), np.linspace(0.0, 1.0, nw), indexing="ij")
     return learner_bounds.denormalise(np.stack([V.ravel(), W.ravel()], axis=-1))
 
 

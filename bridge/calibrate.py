@@ -1,0 +1,78 @@
+"""``scmbridge calibrate``: the paper's calibration stage on a real robot, through its driver host over Zenoh.
+
+It runs the station's loop with a calibration plan instead of a teacher (:mod:`transfer.calibration`): a grid of
+learner commands (the paper's 5 x 5 by default, extremes included, so the learned limits are measured), each held
+for ``hold_s``, driving back toward the start between commands, and stopping at the distance or time bound. The
+pairs it makes go into the station's pair store (the same file, persisted atomically), so a mission started
+afterwards with that store begins from calibrated pairs and measured limits. It uses the station's configuration
+(``[calibration]``, bounds, store) and its identity on the wire: do not run it while a station drives the same
+robot (the driver host follows one sender at a time and would refuse it). Progress is logged per command.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+from pathlib import Path
+
+import msgspec
+
+from bridge import wire as M
+from bridge.cliutil import positive_float
+from bridge.config import load_mission, load_station
+from bridge.node import add_zenoh_args, stop_on_signals, zenoh_config
+from bridge.station import Station
+from bridge.zsession import open_session
+from transfer.calibration import CalibrationPlan
+
+
+def grid_arg(text: str) -> tuple[int, int]:
+    """``5x5`` / ``3x7``: at least two commands per axis."""
+    try:
+        nv, nw = (int(a) for a in text.lower().split("x"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not NVxNW (e.g. 5x5)") from None
+    if not (2 <= nv <= 21 and 2 <= nw <= 21):
+        raise argparse.ArgumentTypeError(f"{text!r}: each axis needs 2 to 21 commands")
+    return nv, nw
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="scmbridge calibrate", description=__doc__,
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--config", help="station TOML ([calibration], bounds, store)")
+    ap.add_argument("--robot", default=None, help="robot name (overrides the config)")
+    ap.add_argument("--store", default=None, help="pair store file (overrides the config)")
+    ap.add_argument("--grid", type=grid_arg, default=None, help="commands per axis, e.g. 5x5 (overrides the config)")
+    ap.add_argument("--hold", type=positive_float, default=None, help="seconds each command is held")
+    ap.add_argument("--max-distance", type=positive_float, default=None, help="m from the start before stopping")
+    ap.add_argument("--max-time", type=positive_float, default=None, help="s before stopping")
+    add_zenoh_args(ap)
+    args = ap.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s calibrate %(levelname)s %(message)s")
+    cfg = load_station(args.config)
+    c = cfg.calibration
+    overrides = {k: v for k, v in (("grid", args.grid), ("hold_s", args.hold), ("max_distance_m", args.max_distance),
+                                   ("max_time_s", args.max_time)) if v is not None}
+    if overrides:
+        c = msgspec.convert({**msgspec.structs.asdict(c), **overrides}, type(c))
+        if c.return_radius_m >= c.max_distance_m:
+            c = msgspec.structs.replace(c, return_radius_m=0.4 * c.max_distance_m)
+    robot = M.check_robot(args.robot or cfg.robot)
+    store = Path(args.store) if args.store else cfg.store_file()
+    station = Station(cfg, robot, cfg.station.rate_hz, store, load_mission(cfg.station.mission or None))
+    station.calibration = CalibrationPlan(cfg.learner_bounds.bounds(), c.grid, hold_s=c.hold_s,
+                                          max_distance=c.max_distance_m, return_radius=c.return_radius_m,
+                                          max_time_s=c.max_time_s)
+    stop = stop_on_signals()
+    try:
+        with open_session(zenoh_config(args)) as session:
+            station.serve(session, stop, c.max_time_s + 30.0, exit_at_goal=True)
+    finally:
+        station.persist()
+    done = station.calibration.finished
+    box = station.store.limits.box
+    print(f"calibration: {done.reason if done else 'interrupted'}; {station.store.raw_count} raw / "
+          f"{len(station.store.refined())} refined pairs in {store}; learned limits v [{box.v[0]:.3f}, "
+          f"{box.v[1]:.3f}] m/s, omega [{box.w[0]:.3f}, {box.w[1]:.3f}] rad/s")
+    return 0 if done is not None else 1
