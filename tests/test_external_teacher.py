@@ -1,0 +1,73 @@
+"""A lab's own teacher, end to end over real Zenoh: the shipped example external teacher (its own process, using
+only the wire schema) drives the emulated CAN learner through a transfer-only station and a driver host."""
+
+from __future__ import annotations
+
+import os
+import sys
+import threading
+import time
+from pathlib import Path
+
+import pytest
+
+from bridge import wire as M
+from bridge.config import load_mission
+from bridge.procs import Children
+from bridge.zsession import free_port, make_config, open_session, tcp
+
+ROOT = Path(__file__).resolve().parent.parent
+MISSION = ROOT / "bridge" / "missions" / "paper_s_path.toml"
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(150)
+def test_the_example_external_teacher_drives_the_robot_through_the_transfer_service(tmp_path) -> None:
+    port, robot = free_port(), f"ext{os.getpid()}"
+    mission = load_mission(MISSION)
+    x0 = ",".join(f"{a:.6f}" for a in mission.start)
+    client = ["--robot", robot, "--mode", "client", "--connect", tcp(port)]
+    cfg = tmp_path / "station.toml"
+    cfg.write_text('[teacher]\nkind = "external"\n')
+    got: dict[str, list] = {"state": [], "cmd": [], "limits": [], "status": []}
+    lock = threading.Lock()
+
+    def keep(kind, name):
+        def cb(sample) -> None:
+            with lock:
+                got[name].append(M.decode(sample.payload.to_bytes(), kind))
+        return cb
+
+    with open_session(make_config(mode="router", listen=[tcp(port)])) as session, Children() as kids:
+        k = M.Keys(robot)
+        session.declare_subscriber(k.state, keep(M.LearnerState, "state"))
+        session.declare_subscriber(k.cmd, keep(M.Command, "cmd"))
+        session.declare_subscriber(k.limits, keep(M.Limits, "limits"))
+        session.declare_subscriber(M.status_key(robot, "station"), keep(M.Status, "status"))
+        kids.spawn(["driver", "--link", "can", "--emulate", "--x0", x0, *client, "--duration", "140"])
+        kids.spawn(["station", "--config", str(cfg), *client, "--store", str(tmp_path / "p.bin"), "--duration", "130"])
+        import subprocess
+
+        teacher = subprocess.Popen([sys.executable, str(ROOT / "deploy" / "examples" / "external_teacher.py"),
+                                    "--robot", robot, "--connect", tcp(port), "--mission", str(MISSION),
+                                    "--duration", "120"], start_new_session=True, stdout=subprocess.DEVNULL)
+        kids.procs.append(teacher)
+        t_end = time.monotonic() + 110
+        progress = 0.0
+        while time.monotonic() < t_end:
+            time.sleep(0.5)
+            with lock:
+                last = got["state"][-1] if got["state"] else None
+            if last is not None:
+                progress = max(progress, mission.progress([last.x, last.y]))
+            if progress > 0.6:
+                break
+    with lock:
+        methods = {c.method for c in got["cmd"]}
+        limits = list(got["limits"])
+        status = got["status"][-1] if got["status"] else None
+    assert progress > 0.6, f"the robot covered only {progress:.0%} of the path"
+    assert "scm" in methods  # the station mapped the external teacher's commands, not passed them through
+    assert limits and limits[-1].version >= 2  # the learned limits reached the teacher as they changed
+    assert status is not None and status.counters.get("malformed_teacher", 0) == 0
+    assert not any(c.method not in ("scm", "direct", "perturb", "stop") for c in got["cmd"])
