@@ -164,6 +164,12 @@ class DriverSection(_Cfg):
                                      _m("Estop sources allowed to release a latched estop (scmbridge estop "
                                         "--release --source NAME)")] = ("operator",)
 
+    pose_source: Annotated[Literal["link", "mocap"], _m(
+        "where the published state comes from: the link's own telemetry, or a motion-capture bridge publishing "
+        "scm/<robot>/mocap (restamped onto this host's clock)")] = "link"
+    mocap_window_s: Annotated[float, _m("mocap: the clock-offset estimate is the least (receipt - stamp) over this "
+                                        "window, s", gt=0.1, le=600.0)] = 5.0
+
     def __post_init__(self) -> None:
         if self.max_send_hz < self.rate_hz:
             raise ValueError(f"max_send_hz = {self.max_send_hz} is below rate_hz = {self.rate_hz}: every tick sends")

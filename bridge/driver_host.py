@@ -32,6 +32,7 @@ import zenoh
 
 from bridge import wire as M
 from bridge.cliutil import pose_arg, positive_float
+from bridge.clock import ClockOffset
 from bridge.config import DriverConfig, load_driver
 from bridge.gate import CommandGate, Decision
 from bridge.node import Inputs, add_zenoh_args, stop_on_signals, zenoh_config
@@ -71,8 +72,18 @@ class DriverHost:
         self.missed = 0
         self.ticks: deque[float] = deque(maxlen=500)  # start times of the periodic ticks (jitter)
         self.pubs: dict[str, zenoh.Publisher] = {}
+        self.pose_source = d.pose_source
+        self.mocap_clock = ClockOffset(d.mocap_window_s)
+        self.mocap: list[M.LearnerState] = []  # restamped samples waiting for the loop
 
     # ---------------------------------------------------------------------------------------------- inputs
+    def on_mocap(self, st: M.LearnerState, now: float) -> None:
+        """A motion-capture sample: its own stamp put on this host's clock (:mod:`bridge.clock`)."""
+        with self.lock:
+            t = self.mocap_clock.restamp(st.stamp, now)
+            if t > 0:
+                self.mocap.append(msgspec.structs.replace(st, stamp=t))
+
     def on_cmd(self, cmd: M.Command, now: float) -> None:
         with self.lock:
             accepted = self.gate.offer(cmd, now)
@@ -122,9 +133,7 @@ class DriverHost:
         self._put("applied", M.Applied(stamp=now, seq=self.seq["applied"], v=d.v, omega=d.omega, reason=d.reason,
                                        cmd_seq=d.cmd_seq))
         self.seq["applied"] += 1
-        for p in self.driver.poll(now):
-            st = M.LearnerState(stamp=p.stamp, seq=self.seq["state"], x=p.x, y=p.y, theta=p.theta, v=p.v,
-                                omega=p.omega, source=self.link, epoch=self.epoch)
+        for st in self.poses(now):
             try:
                 self._put("state", M.validated(st))
             except M.MessageError:
@@ -133,6 +142,18 @@ class DriverHost:
                 continue
             self.seq["state"] += 1
             self.last_pose = max(self.last_pose, now)
+
+    def poses(self, now: float) -> list[M.LearnerState]:
+        """This tick's poses: the link's telemetry, or the motion-capture samples (the link is polled either way:
+        its frames carry the vehicle's health)."""
+        link = self.driver.poll(now)
+        if self.pose_source == "mocap":
+            with self.lock:
+                samples, self.mocap = self.mocap, []
+            return [msgspec.structs.replace(s, seq=self.seq["state"] + i, epoch=self.epoch, source="mocap")
+                    for i, s in enumerate(sorted(samples, key=lambda s: s.stamp))]
+        return [M.LearnerState(stamp=p.stamp, seq=self.seq["state"] + i, x=p.x, y=p.y, theta=p.theta, v=p.v,
+                               omega=p.omega, source=self.link, epoch=self.epoch) for i, p in enumerate(link)]
 
     def status(self, now: float) -> M.Status:
         """Health as it is: ok only if the link is fit, the telemetry fresh and no estop is latched."""
@@ -174,6 +195,8 @@ class DriverHost:
         self.inputs.subscribe(session, k.cmd, M.Command, "cmd", self.on_cmd)
         self.inputs.subscribe(session, k.estop, M.Estop, "estop", self.on_estop)
         session.declare_queryable(k.estop, self.on_estop_query)
+        if self.pose_source == "mocap":
+            self.inputs.subscribe(session, k.mocap, M.LearnerState, "mocap", self.on_mocap)
         self.pubs = {"applied": session.declare_publisher(k.applied), "state": session.declare_publisher(k.state),
                      "status": session.declare_publisher(M.status_key(self.robot, "driver"))}
         self.driver.open(time.monotonic())

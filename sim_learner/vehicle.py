@@ -8,6 +8,7 @@ is passed in (``now`` seconds, any monotonic clock) so tests can drive it determ
 from __future__ import annotations
 
 import math
+import threading
 from dataclasses import dataclass
 
 import numpy as np
@@ -58,9 +59,14 @@ class SimVehicle:
         self.max_dt = float(max_dt)
         self.pos_noise = float(pos_noise)
         self.rng = rng
+        self._lock = threading.RLock()  # a link emulator's thread commands it while a test or mocap thread reads it
 
     def command(self, v: float, omega: float, now: float) -> None:
         """Integrate up to ``now`` under the old command, then take the new one."""
+        with self._lock:
+            self._command(v, omega, now)
+
+    def _command(self, v: float, omega: float, now: float) -> None:
         self.advance(now)
         if not (np.isfinite(v) and np.isfinite(omega)):
             raise ValueError(f"non-finite command ({v}, {omega}) reached the vehicle")
@@ -71,6 +77,10 @@ class SimVehicle:
 
     def stop(self, now: float) -> None:
         """Hold the wheels from ``now`` on."""
+        with self._lock:
+            self._stop(now)
+
+    def _stop(self, now: float) -> None:
         self.advance(now)
         self.moving = False
         self.state.v = 0.0
@@ -78,6 +88,10 @@ class SimVehicle:
 
     def advance(self, now: float) -> BodyState:
         """Integrate the dynamics from the last update to ``now`` (no-op if ``now`` is not later)."""
+        with self._lock:
+            return self._advance(now)
+
+    def _advance(self, now: float) -> BodyState:
         dt_total = float(now) - self.t
         if dt_total <= 0.0:
             return self.state
@@ -98,6 +112,10 @@ class SimVehicle:
 
     def measured_pose(self, now: float) -> tuple[float, float, float]:
         """The pose a sensor would report at ``now`` (with the configured position noise)."""
+        with self._lock:
+            return self._measured_pose(now)
+
+    def _measured_pose(self, now: float) -> tuple[float, float, float]:
         s = self.advance(now)
         x, y = s.x, s.y
         if self.pos_noise > 0.0 and self.rng is not None:

@@ -1,0 +1,41 @@
+"""Putting a pose source's own timestamps onto this host's clock (motion capture, docs/ARCHITECTURE.md section 4).
+
+Pairing needs the applied command and the poses on one time base. A motion-capture bridge stamps each sample with
+its own clock (the time the camera exposure happened, in whatever epoch), and delivers it over the network with a
+variable delay. :class:`ClockOffset` keeps, over a sliding window, the least ``receipt - stamp`` seen: that is the
+offset between the two clocks plus the *minimum* transport latency, so ``stamp + offset`` puts each sample at its
+true time on this host's clock shifted by that small constant, without the delivery jitter (a late sample keeps its
+own time). The constant shifts both ends of a pairing interval alike. Requirements: the minimum latency should be
+small next to the pairing interval (a few ms against 100 ms), at least one sample in each window must arrive with
+close to that minimum, and the two clocks' drift over the window must be negligible (5 s default: crystal clocks
+drift ~50 ppm, 0.25 ms). Rate: at least twice the pairing rate (>= 20 Hz for 0.1 s pairs; mocap gives 100-240 Hz).
+Pure: times are arguments.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+
+
+class ClockOffset:
+    """Sliding-window minimum of ``receipt - stamp`` (see the module docstring)."""
+
+    def __init__(self, window_s: float = 5.0) -> None:
+        if not window_s > 0:
+            raise ValueError("the window must be positive")
+        self.window_s = float(window_s)
+        self._d: deque[tuple[float, float]] = deque()  # (receipt, receipt - stamp), offsets increasing
+
+    def restamp(self, stamp: float, receipt: float) -> float:
+        """The sample's time on the receiver's clock, after learning from this sample too."""
+        d = receipt - stamp
+        while self._d and self._d[-1][1] >= d:  # a monotone deque: the window's minimum is at the front
+            self._d.pop()
+        self._d.append((receipt, d))
+        while self._d[0][0] < receipt - self.window_s:
+            self._d.popleft()
+        return stamp + self._d[0][1]
+
+    @property
+    def offset(self) -> float | None:
+        return self._d[0][1] if self._d else None
