@@ -25,6 +25,7 @@ import logging
 import os
 import threading
 import time
+from collections import deque
 from pathlib import Path as FsPath
 from typing import Any
 
@@ -134,6 +135,7 @@ class Station:
         self.limits_sent: tuple[list[float], int] | None = None
         self.limits_version = 0
         self.solve_ms: list[float] = []
+        self.tick_ms: deque[float] = deque(maxlen=600)  # the last minute of periodic ticks' durations
         self.pubs: dict[str, zenoh.Publisher] = {}
         self.ticker: FixedRate | None = None
 
@@ -323,8 +325,12 @@ class Station:
             counters.update({"calibration_index": i, "calibration_total": n})
         ok = (self.why in ("driving", "goal reached") or self.why.startswith("calibration:")) and not self.persist_error
         text = self.why + (f"; {self.persist_error}" if self.persist_error else "")
+        tk = np.array(self.tick_ms) if self.tick_ms else np.zeros(1)
+        counters["ticks"] = len(self.tick_ms)
         msg = M.Status(stamp=now, seq=self.seq["status"], node="station", ok=ok, rates_hz={"loop": 1 / self.period},
-                       latencies_ms={"solve_median": float(np.median(sm)), "solve_max": float(sm.max())},
+                       latencies_ms={"solve_median": float(np.median(sm)), "solve_max": float(sm.max()),
+                                     "tick_p50": float(np.percentile(tk, 50)), "tick_p99": float(np.percentile(tk, 99)),
+                                     "tick_max": float(tk.max())},
                        counters=counters, text=text[:1024])
         self.seq["status"] += 1
         return msg
@@ -380,6 +386,7 @@ class Station:
                 periodic = self.ticker.wait(self.wake)
                 continue
             self.tick(now)
+            self.tick_ms.append((time.monotonic() - now) * 1e3)
             if now >= t_status:
                 self._put("status", self.status(now))
                 self.publish_limits(now, force=True)
