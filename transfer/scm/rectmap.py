@@ -57,18 +57,24 @@ class RectangleMap:
 
     def __init__(self, vertices: ArrayLike, corners: Sequence[int] = (0, 1, 2, 3), *, tol: float = 1e-13) -> None:
         w = check_polygon(vertices)
-        n = w.size
-        cs = check_corners(corners, n)
+        cs = check_corners(corners, w.size)
         beta_all = turning_exponents(w)
         for k, c in enumerate(cs):
-            if n == 4 and abs(beta_all[c]) < 1e-12:  # a quadrilateral with a straight corner is a triangle
+            if w.size == 4 and abs(beta_all[c]) < 1e-12:  # a quadrilateral with a straight corner is a triangle
                 raise ValueError(f"corner {k} (vertex {c}) has a straight angle: it cannot be a rectangle corner")
         self.vertices = w
         self.corners = cs
         self.tol = float(tol)
         self.scale = float(np.max(np.abs(w - w.mean())))
+        lens = self._label(w, cs, beta_all)
+        y = self._solve_parameters(lens)
+        self._set_rectangle(float(math.exp(y[0])))
 
-        # --- labelling: rotate the corner list so that the first side is long, the vertex before it not straight
+    def _label(self, w: NDArray[np.complex128], cs: tuple[int, ...], beta_all: NDArray[np.float64]) -> list[float]:
+        """Rotate the corner list so that the first side is long and the vertex before it not straight (the
+        toolbox's convention); set the internal vertex order, corner indices, angles and quadrature rules.
+        Returns the boundary length between consecutive corners (user order)."""
+        n = w.size
         arc = np.abs(np.roll(w, -1) - w)
 
         def chain(a: int, b: int) -> float:
@@ -84,30 +90,27 @@ class RectangleMap:
             raise ValueError("every corner is preceded by a straight angle: the polygon is degenerate")
         self._r = r % 4
         start = cs[self._r]
-        order = (np.arange(n) + start) % n  # internal index -> user vertex index
-        self._order = order
-        wi = w[order]
-        ic = [(cs[(self._r + k) % 4] - start) % n for k in range(4)]  # internal corner vertex indices, ic[0] = 0
-        self._ic = np.array(ic, dtype=np.int64)
-        beta = beta_all[order]
-        self._w = wi
-        self._beta = beta
-        nq = 14
-        self._qx, self._qw, self._lx, self._lw = kern.jacobi_table(beta, nq)
+        self._order = (np.arange(n) + start) % n  # internal index -> user vertex index
+        self._ic = np.array([(cs[(self._r + k) % 4] - start) % n for k in range(4)], dtype=np.int64)  # ic[0] = 0
+        self._w = w[self._order]
+        self._beta = beta_all[self._order]
+        self._qx, self._qw, self._lx, self._lw = kern.jacobi_table(self._beta, 14)
+        return lens
 
-        # --- parameter problem
-        groups = (
+    def _solve_parameters(self, lens: list[float]) -> NDArray[np.float64]:
+        """The parameter problem: prevertices whose side integrals have the polygon's side ratios; sets the
+        prevertices and the map's constant. Refuses crowded prevertices by name."""
+        wi, beta, ic, n = self._w, self._beta, self._ic, self._w.size
+        self._groups = (
             ic[1] - 1,  # bottom side between corners 0 and 1
             ic[2] - ic[1] - 1,  # right end
             ic[3] - ic[2] - 1,  # top side
             n - ic[3] - 1,  # left end
         )
-        self._groups = groups
         ratios = np.log(np.abs(wi[2 : n - 1] - wi[1 : n - 2]) / abs(wi[1] - wi[0]))  # sides 1..n-3 vs side 0
         length = 0.5 * (lens[self._r] + lens[(self._r + 2) % 4])
         width = 0.5 * (lens[(self._r + 1) % 4] + lens[(self._r + 3) % 4])
         L0 = max(min(length / width, 100.0) - math.log(4.0) / math.pi, 0.05)
-        y0 = self._initial_guess(L0, True)
 
         def residual(y: NDArray[np.float64]) -> NDArray[np.float64]:
             z, sig = self._prevertices(y)
@@ -117,7 +120,7 @@ class RectangleMap:
             # a configuration where quadrature breaks down (crowding) is far from the solution: say so finitely
             return np.where(np.isfinite(F), F, 1e3)
 
-        y = self._solve(residual, y0)
+        y = self._solve(residual, self._initial_guess(L0, True))
         z, sig = self._prevertices(y)
         sep = np.abs(z[:, None] - z[None, :])[np.triu_indices(n, 1)].min()
         if sep < _CROWDING:
@@ -128,7 +131,10 @@ class RectangleMap:
         self._z, self._sig = z, sig
         I0 = kern.side_integrals(z, beta, sig, self._qx, self._qw, self._lx, self._lw, 1)[0]
         self._c = complex((wi[1] - wi[0]) / I0)
-        L = float(math.exp(y[0]))
+        return y
+
+    def _set_rectangle(self, L: float) -> None:
+        """The rectangle of strip length L: elliptic parameter, K and K', the conformal modulus."""
         self.L = L
         m = math.exp(-2.0 * math.pi * L)
         if L > 10.0:
@@ -136,7 +142,7 @@ class RectangleMap:
         else:
             K, Kp = float(scipy.special.ellipk(m)), float(scipy.special.ellipkm1(m))
         self._m, self._kp, self._K, self._Kp = m, math.sqrt(-math.expm1(-2.0 * math.pi * L)), K, Kp
-        self._alpha_c = beta[self._ic] + 1.0
+        self._alpha_c = self._beta[self._ic] + 1.0
         self._radius = 0.25 * min(2.0 * K, Kp)
         self._table: tuple[NDArray[np.complex128], NDArray[np.complex128]] | None = None
         internal_mod = Kp / (2.0 * K)

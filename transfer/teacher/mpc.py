@@ -63,84 +63,98 @@ class MpcResult:
     refs: NDArray[np.float64] = field(default_factory=lambda: np.zeros((0, 3)))
 
 
+class _Rows:
+    """Constraint rows g with their bounds, appended stage by stage."""
+
+    def __init__(self) -> None:
+        self.g: list = []
+        self.lb: list[float] = []
+        self.ub: list[float] = []
+
+    def add(self, expr, lo, hi) -> None:
+        self.g.append(expr)
+        self.lb += list(lo)
+        self.ub += list(hi)
+
+
+def _build_nlp(cfg: MpcConfig) -> tuple[dict, _Rows]:
+    """The NLP in stage-wise variable order [x0, u0, x1, s1, u1, ..., xN, sN] (banded KKT systems for the sparse
+    solver): tracking cost, input-rate cost and bounds, Euler dynamics, softened obstacle constraints."""
+    N, K = cfg.N, cfg.max_obstacles
+    X = ca.SX.sym("X", 3, N + 1)
+    U = ca.SX.sym("U", 2, N)
+    x0 = ca.SX.sym("x0", 3)
+    refs = ca.SX.sym("refs", 3, N + 1)
+    u_prev = ca.SX.sym("u_prev", 2)
+    obs = ca.SX.sym("obs", 3, K)  # x, y, radius (radius <= 0: unused slot)
+    w, rows, cost = [], _Rows(), 0
+    for k in range(N + 1):
+        w.append(X[:, k])
+        if k == 0:
+            rows.add(X[:, 0] - x0, [0.0] * 3, [0.0] * 3)
+        eth = 1 - ca.cos(X[2, k] - refs[2, k])
+        qp = cfg.q_terminal if k == N else cfg.q_pos
+        cost += qp * ((X[0, k] - refs[0, k]) ** 2 + (X[1, k] - refs[1, k]) ** 2) + cfg.q_heading * eth
+        if k >= 1:
+            sk = ca.SX.sym(f"s{k}")
+            w.append(sk)
+            cost += cfg.slack_weight * sk + cfg.slack_weight * sk**2
+            _obstacle_rows(rows, cfg, X[:, k], sk, obs)
+        if k < N:
+            w.append(U[:, k])
+            du = U[:, k] - (u_prev if k == 0 else U[:, k - 1])
+            cost += cfg.r_u * ca.sumsqr(U[:, k]) + cfg.r_du * ca.sumsqr(du)
+            rows.add(du, [-cfg.du_max[0], -cfg.du_max[1]], [cfg.du_max[0], cfg.du_max[1]])
+            xn = ca.vertcat(*euler(X[0, k], X[1, k], X[2, k], U[0, k], U[1, k], cfg.dt, ca.cos, ca.sin))
+            rows.add(X[:, k + 1] - xn, [0.0] * 3, [0.0] * 3)
+    p = ca.vertcat(x0, ca.vec(refs), u_prev, ca.vec(obs))
+    return {"x": ca.vertcat(*w), "f": cost, "g": ca.vertcat(*rows.g), "p": p}, rows
+
+
+def _obstacle_rows(rows: _Rows, cfg: MpcConfig, xk, sk, obs) -> None:
+    """Obstacle constraints of one stage, softened by the stage's slack (an exact L1 penalty): a vehicle that
+    cannot stop (v_min > 0) must still get the least-bad plan, not an infeasible problem. An unused slot has
+    radius <= 0 and its row becomes d2 >= -1 (always true)."""
+    for j in range(cfg.max_obstacles):
+        d2 = (xk[0] - obs[0, j]) ** 2 + (xk[1] - obs[1, j]) ** 2
+        rr = obs[2, j] + cfg.obstacle_margin
+        rows.add(d2 + sk - ca.if_else(obs[2, j] > 0, rr**2, -1.0), [0.0], [ca.inf])
+
+
+def _layout(N: int) -> tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.int64]]:
+    """Indices of every state, input and slack in the stage-wise variable vector."""
+    idx_x, idx_u, idx_s, pos = [], [], [], 0
+    for k in range(N + 1):
+        idx_x.append(np.arange(pos, pos + 3))
+        pos += 3
+        if k >= 1:
+            idx_s.append(pos)
+            pos += 1
+        if k < N:
+            idx_u.append(np.arange(pos, pos + 2))
+            pos += 2
+    return np.array(idx_x), np.array(idx_u), np.array(idx_s)
+
+
+def _solver(cfg: MpcConfig, nlp: dict):
+    if cfg.solver != "ipopt":
+        raise ValueError(f"unknown MPC solver {cfg.solver!r}: only ipopt is wired up")
+    opts = {"print_time": False, "ipopt": {"print_level": 0, "max_iter": cfg.max_iter, "tol": 1e-6,
+            "acceptable_tol": 1e-4, "warm_start_init_point": "yes", "sb": "yes", "mu_strategy": "adaptive",
+            "warm_start_bound_push": 1e-6, "warm_start_mult_bound_push": 1e-6, "mu_init": 1e-3}}
+    return ca.nlpsol("mpc", "ipopt", nlp, opts)
+
+
 class MpcTeacher:
     """Step-wise MPC: ``solve(state, path, limits)`` each control tick (see the module docstring)."""
 
     def __init__(self, config: MpcConfig | None = None) -> None:
         self.cfg = cfg = config or MpcConfig()
-        N, K = cfg.N, cfg.max_obstacles
-        X = ca.SX.sym("X", 3, N + 1)
-        U = ca.SX.sym("U", 2, N)
-        x0 = ca.SX.sym("x0", 3)
-        refs = ca.SX.sym("refs", 3, N + 1)
-        u_prev = ca.SX.sym("u_prev", 2)
-        obs = ca.SX.sym("obs", 3, K)  # x, y, radius (radius <= 0: unused slot)
-        # stage-wise variable order [x0, u0, x1, u1, ..., xN]: banded KKT systems for the sparse solver
-        w, g, lbg, ubg = [], [], [], []
-        cost = 0
-        for k in range(N + 1):
-            w.append(X[:, k])
-            if k == 0:
-                g.append(X[:, 0] - x0)
-                lbg += [0.0] * 3
-                ubg += [0.0] * 3
-            ex = X[0, k] - refs[0, k]
-            ey = X[1, k] - refs[1, k]
-            eth = 1 - ca.cos(X[2, k] - refs[2, k])
-            qp = cfg.q_terminal if k == N else cfg.q_pos
-            cost += qp * (ex**2 + ey**2) + cfg.q_heading * eth
-            if k >= 1:
-                # obstacle constraints are softened by one slack per stage (exact L1 penalty): a vehicle that
-                # cannot stop (v_min > 0) must still get the least-bad plan, not an infeasible problem
-                sk = ca.SX.sym(f"s{k}")
-                w.append(sk)
-                cost += cfg.slack_weight * sk + cfg.slack_weight * sk**2
-                for j in range(K):
-                    d2 = (X[0, k] - obs[0, j]) ** 2 + (X[1, k] - obs[1, j]) ** 2
-                    rr = obs[2, j] + cfg.obstacle_margin
-                    # an unused slot has radius <= 0: the constraint becomes d2 >= -1 (always true)
-                    g.append(d2 + sk - ca.if_else(obs[2, j] > 0, rr**2, -1.0))
-                    lbg.append(0.0)
-                    ubg.append(ca.inf)
-            if k < N:
-                w.append(U[:, k])
-                up = u_prev if k == 0 else U[:, k - 1]
-                du = U[:, k] - up
-                cost += cfg.r_u * ca.sumsqr(U[:, k]) + cfg.r_du * ca.sumsqr(du)
-                g.append(du)
-                lbg += [-cfg.du_max[0], -cfg.du_max[1]]
-                ubg += [cfg.du_max[0], cfg.du_max[1]]
-                xn = ca.vertcat(*euler(X[0, k], X[1, k], X[2, k], U[0, k], U[1, k], cfg.dt, ca.cos, ca.sin))
-                g.append(X[:, k + 1] - xn)
-                lbg += [0.0] * 3
-                ubg += [0.0] * 3
-        self._nx = 3 * (N + 1) + 2 * N + N
-        p = ca.vertcat(x0, ca.vec(refs), u_prev, ca.vec(obs))
-        nlp = {"x": ca.vertcat(*w), "f": cost, "g": ca.vertcat(*g), "p": p}
-        if cfg.solver == "ipopt":
-            opts = {"print_time": False, "ipopt": {"print_level": 0, "max_iter": cfg.max_iter, "tol": 1e-6,
-                    "acceptable_tol": 1e-4, "warm_start_init_point": "yes", "sb": "yes",
-                    "mu_strategy": "adaptive", "warm_start_bound_push": 1e-6,
-                    "warm_start_mult_bound_push": 1e-6, "mu_init": 1e-3}}
-            self._solver = ca.nlpsol("mpc", "ipopt", nlp, opts)
-        else:
-            raise ValueError(f"unknown MPC solver {cfg.solver!r}: only ipopt is wired up")
-        self._lbg = np.array(lbg)
-        self._ubg = np.array(ubg)
-        # index of every state / input in the stage-wise vector
-        idx_x, idx_u, idx_s, pos = [], [], [], 0
-        for k in range(N + 1):
-            idx_x.append(np.arange(pos, pos + 3))
-            pos += 3
-            if k >= 1:
-                idx_s.append(pos)
-                pos += 1
-            if k < N:
-                idx_u.append(np.arange(pos, pos + 2))
-                pos += 2
-        self._ix = np.array(idx_x)
-        self._iu = np.array(idx_u)
-        self._is = np.array(idx_s)
+        nlp, rows = _build_nlp(cfg)
+        self._solver = _solver(cfg, nlp)
+        self._nx = 3 * (cfg.N + 1) + 2 * cfg.N + cfg.N
+        self._lbg, self._ubg = np.array(rows.lb), np.array(rows.ub)
+        self._ix, self._iu, self._is = _layout(cfg.N)
         self._prev: NDArray[np.float64] | None = None
         self._prev_pred: NDArray[np.float64] | None = None
         self._prev_u: NDArray[np.float64] | None = None
