@@ -19,7 +19,7 @@ import msgspec
 
 from bridge import wire as M
 from bridge.cliutil import positive_float
-from bridge.config import load_mission, load_station
+from bridge.config import ConfigError, load_mission, load_station
 from bridge.node import add_zenoh_args, stop_on_signals, zenoh_config
 from bridge.station import Station
 from bridge.zsession import open_session
@@ -54,10 +54,13 @@ def main(argv: list[str] | None = None) -> int:
     c = cfg.calibration
     overrides = {k: v for k, v in (("grid", args.grid), ("hold_s", args.hold), ("max_distance_m", args.max_distance),
                                    ("max_time_s", args.max_time)) if v is not None}
+    if "max_distance_m" in overrides and c.return_radius_m >= overrides["max_distance_m"]:
+        overrides["return_radius_m"] = 0.4 * overrides["max_distance_m"]
     if overrides:
-        c = msgspec.convert({**msgspec.structs.asdict(c), **overrides}, type(c))
-        if c.return_radius_m >= c.max_distance_m:
-            c = msgspec.structs.replace(c, return_radius_m=0.4 * c.max_distance_m)
+        try:
+            c = msgspec.convert({**msgspec.structs.asdict(c), **overrides}, type(c))
+        except msgspec.ValidationError as exc:
+            raise ConfigError("command line", "calibration", str(exc)) from None
     robot = M.check_robot(args.robot or cfg.robot)
     store = Path(args.store) if args.store else cfg.store_file()
     station = Station(cfg, robot, cfg.station.rate_hz, store, load_mission(cfg.station.mission or None))

@@ -210,9 +210,12 @@ class TransferSection(_Cfg):
 class TeacherSection(_Cfg):
     """``[teacher]``: who computes the teacher commands the station maps."""
 
-    kind: Annotated[Literal["mpc", "external"], _m("mpc: the built-in MPC follows the mission; external: a lab's "
-                                                   "own teacher publishes scm/<robot>/teacher and the station only "
-                                                   "maps (transfer-only service)")] = "mpc"
+    kind: Annotated[Literal["mpc", "primitives", "external"], _m(
+        "mpc: the built-in MPC follows the mission; primitives: the paper's motion-primitive planner (Section 5.1) "
+        "over the primitives the learned limits allow (calibrate first); external: a lab's own teacher publishes "
+        "scm/<robot>/teacher and the station only maps (transfer-only service)")] = "mpc"
+    primitives_grid: Annotated[int, _m("primitives: an n x n library over the teacher's range", ge=2, le=31)] = 11
+    primitive_s: Annotated[float, _m("primitives: each primitive's duration, s", gt=0.0, le=60.0)] = 1.0
     timeout_s: Annotated[float, _m("external: no teacher command for this long makes the station publish stops, s",
                                    gt=0.0, le=10.0)] = 0.3
 

@@ -42,6 +42,7 @@ from transfer.calibration import CalibrationPlan
 from transfer.domain import Bounds
 from transfer.mission import Mission
 from transfer.store import PairStore
+from transfer.teacher.primitives import PrimitiveFollower, PrimitiveLibrary, PrimitivePlanner
 
 log = logging.getLogger("scmbridge.station")
 
@@ -112,12 +113,17 @@ class Station:
                                      tcfg.grid, tcfg.k_min)
         log.info("%s", how)
         self.policy = TransferPolicy(self.store, tcfg.mapper, rng=np.random.default_rng(tcfg.seed))
-        self.mpc = MpcTeacher(MpcConfig(N=scfg.horizon, dt=self.period))
+        self.mpc = MpcTeacher(MpcConfig(N=scfg.horizon, dt=self.period)) if cfg.teacher.kind == "mpc" else None
         self.pairer = IntervalPairer(scfg.pair_dt)
         self.mission = mission
         self.teacher_kind = cfg.teacher.kind
         self.teacher_timeout = cfg.teacher.timeout_s
         self.calibration: CalibrationPlan | None = None
+        self.primitives: PrimitiveFollower | None = None
+        if self.teacher_kind == "primitives":
+            lib = PrimitiveLibrary(cfg.teacher_bounds.bounds(), cfg.teacher.primitives_grid,
+                                   duration=cfg.teacher.primitive_s, dt=self.period)
+            self.primitives = PrimitiveFollower(PrimitivePlanner(lib, k_d=1.0, k_theta=2.0, horizon=2))
         self.wake = threading.Event()  # an external teacher's command is mapped as it arrives
         self.inputs = Inputs()
         self.lock = threading.Lock()  # the inbox, the store (read by the pairs queryable) and the mission
@@ -190,7 +196,10 @@ class Station:
             inbox = dict(self.inbox)
         if mission is not None:
             self.mission, self.reached = mission, False
-            self.mpc.reset()
+            if self.mpc is not None:
+                self.mpc.reset()
+            if self.primitives is not None:
+                self.primitives.reset()
             self.extra["missions"] += 1
             log.info("new mission %r: %d waypoints, %.1f m, %d obstacles", mission.name, len(mission.path.points),
                      mission.path.length, len(mission.obstacles))
@@ -214,7 +223,24 @@ class Station:
             return self.calibrate(now, state)
         if self.teacher_kind == "external":
             return self.map_external(now)
+        if self.primitives is not None:
+            return self.drive_primitives(now, state)
         self.drive_mpc(now, state)
+        return ""
+
+    def drive_primitives(self, now: float, state: M.LearnerState) -> str:
+        """The paper's motion-primitive teacher: only the primitives inside the learned limits (hull) are planned
+        with, so it needs calibrated pairs first; each tick's command is the current primitive's, mapped."""
+        lib = self.primitives.planner.lib
+        with self.lock:
+            allowed = np.asarray(self.store.limits.contains(lib.commands, use_hull=True, tol=1e-6))
+        if not allowed.any():
+            return "no primitive within the learned limits: calibrate first (scmbridge calibrate)"
+        x = np.array([state.x, state.y, state.theta])
+        u_T = self.primitives.step(x, self.mission.path, allowed, self.mission.obstacles)
+        self.extra["primitive_replans"] = self.primitives.replans
+        self.extra["primitives_allowed"] = int(allowed.sum())
+        self.map_and_send(now, u_T)
         return ""
 
     def map_external(self, now: float) -> str:
@@ -283,7 +309,7 @@ class Station:
     def tick(self, now: float) -> None:
         state, state_at, driver, driver_at = self.ingest()
         why = self.fit_to_drive(now, state, state_at, driver, driver_at)
-        follows_mission = self.teacher_kind == "mpc" and self.calibration is None
+        follows_mission = self.teacher_kind != "external" and self.calibration is None
         if follows_mission and not why and not self.reached and self.mission.reached([state.x, state.y]):
             self.reached = True
             log.info("goal of mission %r reached", self.mission.name)
@@ -367,7 +393,7 @@ class Station:
             self.inputs.subscribe(session, k.teacher, M.TeacherCommand, "teacher", self.on_teacher)
         session.declare_queryable(k.pairs, self.on_pairs_query)
         self.pubs = {t: session.declare_publisher(getattr(k, t)) for t in ("cmd", "limits")}
-        if self.teacher_kind == "mpc":
+        if self.teacher_kind != "external":
             self.pubs["teacher"] = session.declare_publisher(k.teacher)
         self.pubs["status"] = session.declare_publisher(M.status_key(self.robot, "station"))
         what = "calibration" if self.calibration else (

@@ -7,6 +7,7 @@ import os
 import subprocess
 import sys
 import threading
+import time
 
 import numpy as np
 import pytest
@@ -82,3 +83,40 @@ def test_scmbridge_calibrate_drives_the_robot_through_its_driver_host_into_the_s
     assert far < 1.2 + 0.1
     true_v = [float(LEARNER.response(LB.lo)[0]), float(LEARNER.response(LB.hi)[0])]
     assert np.allclose(learned.limits.box.v, true_v, atol=0.02)  # measured through CAN odometry
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(150)
+def test_the_motion_primitive_teacher_drives_from_calibrated_pairs(tmp_path) -> None:
+    """The paper's Section 5.1 on the bridge: calibrate, then the station's motion-primitive teacher plans with
+    the primitives inside the calibrated limits and drives the emulated learner along the S-path."""
+    from bridge.config import load_mission
+
+    mission = load_mission()
+    port, robot = free_port(), f"prim{os.getpid()}"
+    client = ["--robot", robot, "--mode", "client", "--connect", tcp(port)]
+    store, cfg = tmp_path / "pairs.bin", tmp_path / "station.toml"
+    cfg.write_text('[teacher]\nkind = "primitives"\n')
+    x0 = ",".join(f"{a:.6f}" for a in mission.start)
+    states: list[M.LearnerState] = []
+    lock = threading.Lock()
+
+    def keep(sample) -> None:
+        with lock:
+            states.append(M.decode(sample.payload.to_bytes(), M.LearnerState))
+
+    with open_session(make_config(mode="router", listen=[tcp(port)])) as session, Children() as kids:
+        session.declare_subscriber(M.key(robot, "state"), keep)
+        kids.spawn(["driver", "--link", "can", "--emulate", "--x0", x0, *client, "--duration", "140"])
+        res = subprocess.run([sys.executable, "-m", "bridge.cli", "calibrate", *client, "--store", str(store),
+                              "--grid", "3x3", "--hold", "0.5", "--max-distance", "0.8", "--max-time", "60"],
+                             capture_output=True, text=True, timeout=90)
+        assert res.returncode == 0, res.stderr[-2000:]
+        kids.spawn(["station", "--config", str(cfg), *client, "--store", str(store), "--duration", "80"])
+        t_end, progress = time.monotonic() + 70, 0.0
+        while time.monotonic() < t_end and progress < 0.2:
+            time.sleep(0.5)
+            with lock:
+                last = states[-1]
+            progress = max(progress, mission.progress([last.x, last.y]))
+    assert progress >= 0.2, f"the primitive teacher covered only {progress:.0%} of the path"

@@ -133,3 +133,34 @@ def replan_threshold(pose: NDArray[np.float64], obstacles: NDArray[np.float64], 
     if not seen.any():
         return eps_max
     return float(min(eps_max, eta * max(float(dist[seen].min()), 0.0)))
+
+
+class PrimitiveFollower:
+    """The paper's execution of primitive plans, one control tick at a time (Section 5.1): plan, send the first
+    primitive's command for its duration, replan at its end or as soon as the vehicle strays from the local plan
+    by more than the event threshold (:func:`replan_threshold`, plus ``noise_margin`` for pose noise)."""
+
+    def __init__(self, planner: PrimitivePlanner, noise_margin: float = 0.0) -> None:
+        self.planner = planner
+        self.noise_margin = float(noise_margin)
+        self.plan: Plan | None = None
+        self.j = 0  # control ticks of the current primitive already sent
+        self.replans = self.events = 0
+
+    def reset(self) -> None:
+        self.plan, self.j = None, 0
+
+    def step(self, state: NDArray[np.float64], path: Path, allowed: NDArray[np.bool_],
+             obstacles: NDArray[np.float64]) -> NDArray[np.float64]:
+        """The teacher command for this tick (replanning first when the primitive ended or the vehicle strayed)."""
+        x = np.asarray(state, dtype=float)
+        strayed = False
+        if self.plan is not None and self.j < self.planner.lib.steps:
+            planned = self.plan.trajectory[min(self.j, len(self.plan.trajectory) - 1), :2]
+            strayed = float(np.hypot(*(x[:2] - planned))) > replan_threshold(x, obstacles) + self.noise_margin
+            self.events += int(strayed)
+        if self.plan is None or self.j >= self.planner.lib.steps or strayed:
+            self.plan, self.j = self.planner.plan(x, path, allowed), 0
+            self.replans += 1
+        self.j += 1
+        return self.plan.commands[0].copy()
