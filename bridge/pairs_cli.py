@@ -106,6 +106,15 @@ class Learned:
         except QhullError:
             return None
 
+    def summary(self) -> str:
+        """One line: how many pairs and cells, and the latest command with its region."""
+        n = len(self.ids)
+        out = f"{n} refined pairs, {n}/{self.cells} cells configured"
+        if self.latest is not None:
+            c = self.latest
+            out += f"; latest command: {c.method}" + (f", region {list(c.region)}" if c.region else "")
+        return out
+
     def region_points(self) -> tuple[list[int], list[int]]:
         """The latest command's region split into (ids among the pairs, ids missing from them)."""
         if self.latest is None:
@@ -287,12 +296,11 @@ def ask_station(args: argparse.Namespace, robot: str, timeout: float,
             if msg is None:
                 raise PairsError(f"no station answered for robot {robot!r} on {keys.pairs} within {timeout:g} s "
                                  f"(tried {endpoints_tried(args)})")
-            if listener.got_cmd.wait(command_wait):
-                cmd = listener.latest()
-                if cmd is not None and cmd.method != "stop":
-                    t_end = time.monotonic() + TEACHER_WAIT_S
-                    while time.monotonic() < t_end and listener.latest().teacher is None:  # type: ignore[union-attr]
-                        time.sleep(0.02)
+            if listener.got_cmd.wait(command_wait):  # then a moment for the teacher command of the same tick
+                t_end = time.monotonic() + TEACHER_WAIT_S
+                while ((c := listener.latest()) is not None and c.method != "stop" and c.teacher is None
+                       and time.monotonic() < t_end):
+                    time.sleep(0.02)
             latest = listener.latest()
             if latest is not None and not set(latest.region) <= {r.id for r in msg.pairs}:
                 msg = _get_pairs(session, robot, time.monotonic() + 1.0) or msg
@@ -361,21 +369,18 @@ def draw(view: Learned, out_png: str | Path, region: tuple[int, ...] | list[int]
     c = view.latest
     if region is None:
         region = view.region_points()[0]
-    what = f"{len(view.ids)} refined pairs, {len(view.ids)}/{view.cells} cells configured"
-    if c is not None:
-        what += f"; latest command: {c.method}" + (f", region {list(c.region)}" if c.region else "")
     fig = command_domains_figure(
         ids=view.ids, teacher=view.teacher, learner=view.learner, teacher_bounds=view.teacher_bounds,
         learner_bounds=view.learner_bounds, limits_box=view.limits_box, hull=view.hull, triangles=view.triangles(),
         grid=view.grid, region=list(region),
         teacher_cmd=c.teacher if c is not None and c.teacher is not None and c.method != "stop" else None,
         learner_cmd=(c.v, c.omega) if c is not None and c.method != "stop" else None,
-        title=f"{view.source}: {what}")
+        title=f"{view.source}: {view.summary()}")
     out = Path(out_png)
-    out.parent.mkdir(parents=True, exist_ok=True)
     import matplotlib.pyplot as plt
 
     try:
+        out.parent.mkdir(parents=True, exist_ok=True)
         fig.savefig(out, dpi=120)
     except (ValueError, OSError) as exc:
         raise PairsError(f"{out}: cannot write the figure: {exc}") from None
@@ -429,7 +434,7 @@ def main(argv: list[str] | None = None) -> int:
             print(json.dumps(view.as_json()) if args.json else table(view))
         else:
             out = draw(view, args.out)
-            print(f"figure: {out}")
+            print(f"figure: {out} ({view.summary()})")
             for w in view.warnings:
                 print(f"warning: {w}", file=sys.stderr)
     except PairsError as exc:
