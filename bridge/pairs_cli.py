@@ -21,8 +21,8 @@ pairs' learner parts, with the region that mapped the latest command highlighted
 draws the same from a store file, for the demo's output.
 
 The triangulation drawn is the one the station's mappers use (``transfer.mappers``): Delaunay on the refined
-pairs' teacher parts normalised by the teacher's bounds, in pair-id order. So a region's pair ids (``Command.region``,
-the quadrilateral of two triangles for ``scm``) are edges of what is drawn.
+pairs' teacher parts normalised by the teacher's bounds, in pair-id order. So a region (``Command.region``: the
+quadrilateral of two adjacent triangles for ``scm``, one triangle for ``barycentric``) is made of drawn triangles.
 """
 
 from __future__ import annotations
