@@ -22,6 +22,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "calibrate": ("bridge.calibrate", "the calibration stage: a bounded grid of learner commands into the store"),
     "estop": ("bridge.estop", "estop --robot R|--all [--release --source NAME]: stop now, or release, and confirm"),
     "config": ("bridge.config", "config check FILE | config show --kind station|driver|mission"),
+    "pairs": ("bridge.pairs_cli", "see what was learned: pairs show|plot --robot R | --store FILE"),
     "bench scm": ("bridge.bench.scm", "Schwarz-Christoffel map build/evaluate timings (JSON)"),
     "bench transfer": ("bridge.bench.transfer", "transfer policy per-command cost (JSON)"),
     "bench mpc": ("bridge.bench.mpc", "MPC closed-loop solve times (JSON)"),

@@ -9,8 +9,10 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
-from matplotlib.patches import Circle, Rectangle  # noqa: E402
+from matplotlib.patches import Circle  # noqa: E402
 
+from bridge.plots import draw_box as _box  # noqa: E402  (shared with the station-side `scmbridge pairs plot`)
+from bridge.plots import draw_pairs  # noqa: E402
 from transfer.domain import Bounds  # noqa: E402
 from transfer.store import PairStore  # noqa: E402
 
@@ -28,18 +30,12 @@ def draw_mission(ax, world) -> None:
     ax.set_ylabel("y (m)")
 
 
-def _box(ax, b: Bounds, **kw) -> None:
-    ax.add_patch(Rectangle((b.v[0], b.w[0]), b.v[1] - b.v[0], b.w[1] - b.w[0], fill=False, **kw))
-
-
 def _pairs(ax_t, ax_l, store: PairStore, normalised: bool) -> None:
-    ids, _, T, L = store.refined_arrays()
+    _, _, T, L = store.refined_arrays()
     if not normalised:
         T = store.teacher_bounds.denormalise(T)
         L = store.learner_bounds.denormalise(L)
-    colors = plt.cm.viridis(np.linspace(0, 1, max(len(ids), 1)))
-    ax_t.scatter(T[:, 0], T[:, 1], c=colors[: len(ids)], s=14)
-    ax_l.scatter(L[:, 0], L[:, 1], c=colors[: len(ids)], s=14)
+    draw_pairs(ax_t, ax_l, T, L)
 
 
 def mpc_figures(out: FsPath, world, runs, store: PairStore, true_box: Bounds, TB: Bounds, LB: Bounds) -> list[str]:
