@@ -20,6 +20,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "learner": ("sim_learner.emulator", "a software learner behind a vehicle link (can, mavlink, udp)"),
     "sim": ("sim_learner.experiments", "the paper's simulations: sim primitives|mpc|grid --out DIR"),
     "calibrate": ("bridge.calibrate", "the calibration stage: a bounded grid of learner commands into the store"),
+    "view": ("bridge.live", "a live view of robots in Foxglove (WebSocket server; --mcap writes the same)"),
     "estop": ("bridge.estop", "estop --robot R|--all [--release --source NAME]: stop now, or release, and confirm"),
     "config": ("bridge.config", "config check FILE | config show --kind station|driver|mission"),
     "pairs": ("bridge.pairs_cli", "see what was learned: pairs show|plot --robot R | --store FILE"),

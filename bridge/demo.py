@@ -214,7 +214,10 @@ def hil(args: argparse.Namespace) -> int:
     traj = summary.pop("_traj")
     print("summary:", json.dumps(summary))
     _figure(out, world, traj, args.link)
-    print(f"figure: {out / 'demo_trajectory.png'}; pair store: {store}; logs: {out}/*.log")
+    from bridge.pairs_cli import pairs_figure
+
+    pairs_figure(store, out / "demo_pairs.png")  # what was learned: command domains, limits, refined pairs
+    print(f"figures: {out / 'demo_trajectory.png'}, {out / 'demo_pairs.png'}; pair store: {store}; logs: {out}/*.log")
     return 0 if summary["reached_goal"] else 1
 
 

@@ -320,8 +320,12 @@ def gather(args: argparse.Namespace) -> Learned:
     robot = args.robot
     bounds_from = f"config {args.config}" if args.config else "the station defaults (no --config)"
     msg, latest = ask_station(args, robot, args.timeout)
-    return from_message(msg, cfg.teacher_bounds.bounds(), cfg.learner_bounds.bounds(), tuple(cfg.transfer.grid),
-                        bounds_from, f"station for robot {robot!r} ({M.Keys(robot).pairs})", latest)
+    tb, lb, grid = cfg.teacher_bounds.bounds(), cfg.learner_bounds.bounds(), tuple(cfg.transfer.grid)
+    if msg.teacher_bounds and msg.learner_bounds and msg.grid:  # a station that says its own bounds and grid
+        tb, lb = Bounds.from_list(msg.teacher_bounds), Bounds.from_list(msg.learner_bounds)
+        grid, bounds_from = (msg.grid[0], msg.grid[1]), "the station"
+    return from_message(msg, tb, lb, grid, bounds_from, f"station for robot {robot!r} ({M.Keys(robot).pairs})",
+                        latest)
 
 
 # ------------------------------------------------------------------------------------------------- outputs

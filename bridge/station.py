@@ -93,7 +93,9 @@ def pairs_message(store: PairStore, robot: str, now: float) -> M.Pairs:
                          teacher_omega=float(p.u_T[1]), learner_v=float(p.u_L[0]), learner_omega=float(p.u_L[1]))
             for p in store.refined()]
     return M.Pairs(stamp=now, robot=robot, pairs=recs, limits_box=store.limits.box.as_list(),
-                   limits_hull=[[float(a), float(b)] for a, b in store.limits.hull])
+                   limits_hull=[[float(a), float(b)] for a, b in store.limits.hull],
+                   teacher_bounds=store.teacher_bounds.as_list(), learner_bounds=store.learner_bounds.as_list(),
+                   grid=[int(store.grid[0]), int(store.grid[1])])
 
 
 class Station:

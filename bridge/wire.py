@@ -184,6 +184,11 @@ class Pairs(_Msg, kw_only=True):
         None  # [v_min, v_max, omega_min, omega_max] on the teacher domain
     )
     limits_hull: Annotated[list[Annotated[list[Annotated[float, Meta(ge=-100, le=100)]], Meta(min_length=2, max_length=2)]], Meta(max_length=10_000)] = []  # noqa: E501
+    # the station's command bounds [v_min, v_max, omega_min, omega_max] and refinement grid [n_v, n_omega], so a
+    # reader can draw and index the pairs without the station's configuration (absent from older stations)
+    teacher_bounds: Annotated[list[Annotated[float, Meta(ge=-100, le=100)]], Meta(min_length=4, max_length=4)] | None = None  # noqa: E501
+    learner_bounds: Annotated[list[Annotated[float, Meta(ge=-100, le=100)]], Meta(min_length=4, max_length=4)] | None = None  # noqa: E501
+    grid: Annotated[list[Annotated[int, Meta(ge=1, le=1000)]], Meta(min_length=2, max_length=2)] | None = None
 
 
 Bound = Annotated[float, Meta(ge=-100, le=100)]

@@ -1,0 +1,85 @@
+"""The live view, checked in a real client: `scmbridge view` as its own process serves the Foxglove WebSocket
+protocol (subprotocol foxglove.sdk.v1); a WebSocket client subscribes the way Foxglove does and receives the robot's
+pose, its scene and its commands and health as they are published on Zenoh."""
+
+from __future__ import annotations
+
+import json
+import os
+import struct
+import time
+
+import pytest
+
+from bridge import wire as M
+from bridge.procs import spawn, stop_group
+from bridge.zsession import free_port, make_config, open_session, tcp
+
+websockets = pytest.importorskip("websockets.sync.client")
+
+
+def _port(proc, timeout: float = 30.0) -> int:
+    t_end = time.monotonic() + timeout
+    while time.monotonic() < t_end:
+        line = proc.stdout.readline().decode()
+        if "ws://" in line:
+            return int(line.split("ws://", 1)[1].split()[0].rsplit(":", 1)[1])
+    raise AssertionError("scmbridge view did not say where it serves")
+
+
+@pytest.mark.timeout(90)
+def test_a_foxglove_client_sees_pose_scene_commands_and_health_live(tmp_path) -> None:
+    zport, robot = free_port(), f"lv{os.getpid()}"
+    with open_session(make_config(mode="router", listen=[tcp(zport)])) as session:
+        view = spawn(["view", "--robot", robot, "--port", "0", "--mode", "client", "--connect", tcp(zport),
+                      "--duration", "60"])
+        try:
+            port = _port(view)
+            with websockets.connect(f"ws://127.0.0.1:{port}", subprotocols=["foxglove.sdk.v1"],
+                                    open_timeout=10) as ws:
+                keys = M.Keys(robot)
+                channels: dict[str, dict] = {}
+                subscribed: dict[int, str] = {}
+                got: dict[str, list[bytes]] = {}
+                t_end = time.monotonic() + 30
+                seq = 0
+                while time.monotonic() < t_end:
+                    # the robot drives: publish what a station and a driver host publish
+                    now = time.monotonic()
+                    session.put(keys.state, M.encode(M.LearnerState(stamp=now, seq=seq, x=0.01 * seq, y=0.5,
+                                                                    theta=0.1)))
+                    session.put(keys.cmd, M.encode(M.Command(stamp=now, seq=seq, v=0.25, omega=-0.1,
+                                                             method="scm")))
+                    session.put(M.status_key(robot, "driver"), M.encode(M.Status(
+                        stamp=now, seq=seq, node="driver", ok=False, text="operator took control: mode HOLD")))
+                    seq += 1
+                    try:
+                        frame = ws.recv(timeout=0.05)
+                    except TimeoutError:
+                        continue
+                    if isinstance(frame, str):
+                        msg = json.loads(frame)
+                        if msg.get("op") == "advertise":
+                            for ch in msg["channels"]:
+                                channels[ch["topic"]] = ch
+                                if ch["topic"] not in subscribed.values():
+                                    sid = len(subscribed) + 1
+                                    subscribed[sid] = ch["topic"]
+                                    ws.send(json.dumps({"op": "subscribe",
+                                                        "subscriptions": [{"id": sid, "channelId": ch["id"]}]}))
+                    elif frame[0] == 0x01:  # messageData: opcode, subscription id u32, timestamp u64, payload
+                        sid = struct.unpack_from("<I", frame, 1)[0]
+                        got.setdefault(subscribed[sid], []).append(bytes(frame[13:]))
+                    wanted = [f"/{robot}/pose", f"/{robot}/scene", f"/{robot}/cmd", f"/{robot}/status/driver"]
+                    if all(len(got.get(t, [])) >= 2 for t in wanted):
+                        break
+        finally:
+            stop_group(view)
+    for t in wanted:
+        assert got.get(t), f"no {t} reached the client (advertised: {sorted(channels)})"
+    assert channels[f"/{robot}/pose"]["schemaName"] == "foxglove.PoseInFrame"
+    assert channels[f"/{robot}/scene"]["schemaName"] == "foxglove.SceneUpdate"
+    cmd = json.loads(got[f"/{robot}/cmd"][-1])
+    assert (cmd["v"], cmd["omega"], cmd["method"]) == (0.25, -0.1, "scm")
+    health = json.loads(got[f"/{robot}/status/driver"][-1])
+    assert health["ok"] is False and "operator took control" in health["text"]
