@@ -20,6 +20,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "learner": ("sim_learner.emulator", "a software learner behind a vehicle link (can, mavlink, udp)"),
     "sim": ("sim_learner.experiments", "the paper's simulations: sim primitives|mpc|grid --out DIR"),
     "config": ("bridge.config", "config check FILE | config show --kind station|driver|mission"),
+    "deploy": ("bridge.deploy", "deploy acl|client|certs: the lab's TLS + access-control Zenoh configs"),
     "bench scm": ("bridge.bench.scm", "Schwarz-Christoffel map build/evaluate timings (JSON)"),
     "bench transfer": ("bridge.bench.transfer", "transfer policy per-command cost (JSON)"),
     "bench mpc": ("bridge.bench.mpc", "MPC closed-loop solve times (JSON)"),
