@@ -250,8 +250,9 @@ def _openssl(args: Sequence[str]) -> None:
 
 
 def make_ca(out: Path, *, cn: str = "scmbridge-lab-ca", days: int = 30) -> None:
-    """A throwaway CA (``ca.key``, ``ca.crt``) in ``out``: EC P-256, valid ``days``."""
-    out.mkdir(parents=True, exist_ok=True)
+    """A throwaway CA (``ca.key``, ``ca.crt``) in ``out``: EC P-256, valid ``days``. A new ``out`` is made
+    private (0700) so no key is readable by others even before it is chmod-ed 0600."""
+    out.mkdir(mode=0o700, parents=True, exist_ok=True)
     _openssl(["req", "-x509", *_EC, "-keyout", str(out / "ca.key"), "-out", str(out / "ca.crt"), "-days", str(days),
               "-subj", f"/CN={cn}", "-addext", "basicConstraints=critical,CA:TRUE",
               "-addext", "keyUsage=critical,keyCertSign,cRLSign"])
