@@ -24,6 +24,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "estop": ("bridge.estop", "estop --robot R|--all [--release --source NAME]: stop now, or release, and confirm"),
     "config": ("bridge.config", "config check FILE | config show --kind station|driver|mission"),
     "pairs": ("bridge.pairs_cli", "see what was learned: pairs show|plot --robot R | --store FILE"),
+    "deploy": ("bridge.deploy", "deploy acl|client|certs: the lab's TLS + access-control Zenoh configs"),
     "bench scm": ("bridge.bench.scm", "Schwarz-Christoffel map build/evaluate timings (JSON)"),
     "bench transfer": ("bridge.bench.transfer", "transfer policy per-command cost (JSON)"),
     "bench mpc": ("bridge.bench.mpc", "MPC closed-loop solve times (JSON)"),

@@ -1,0 +1,363 @@
+"""``scmbridge deploy``: generate the lab's TLS + access-control router config, and throwaway certificates.
+
+The access control is generated from the wire contract (:mod:`bridge.wire`), never written by hand, so every robot
+gets exactly the same rules and a new topic cannot be forgotten in one robot's block. The router (the base
+station's Zenoh session in ``router`` mode) identifies each client by the common name (CN) of the certificate it
+presents over mutual TLS, and with ``default_permission: "deny"`` lets through only what a rule allows:
+
+* **a robot** ``R`` publishes its own ``state``, ``applied`` and ``status/driver``; it subscribes to and receives
+  only its own ``cmd`` and ``estop``, and answers ``estop`` queries (its latch state) with replies on that key;
+* **the station** publishes ``cmd``, ``teacher``, ``limits``, ``mission`` and its ``status/station`` for every
+  robot, receives the robots' ``state``, ``applied``, ``status/driver`` (and ``mission``), and answers ``pairs``
+  queries;
+* **the operator** publishes ``estop`` (engage and release: one key) for every robot and may query ``estop`` and
+  ``pairs``;
+* **any other certificate** of the lab's CA connects but gets nothing: no rule names it, so every message it
+  sends or would receive is denied. A client without a certificate, with another CA's, or speaking plain TCP is
+  refused by the TLS listener itself (``enable_mtls``, ``protocols: ["tls"]``).
+
+Rules are written per direction as the router sees them: ``ingress`` is what a client sends to the router,
+``egress`` what the router forwards to it. Besides the data (``put``, ``query``, ``reply``) a client's
+*declarations* are filtered too: a robot cannot even declare a subscriber on another robot's ``cmd``. The router
+also tells a publishing client which subscribers exist (declarations, egress), because a Zenoh 1.x client with a
+declared publisher sends only when it knows of a matching subscriber; those are allowed only on the keys that
+client may publish. Keys are listed one by one (no wildcards): a wildcard key expression in a rule matches only
+messages whose key it includes, and exact keys are also the fastest to check. Everything else (``delete``,
+liveliness, queries on the admin space ``@/**``) falls to the default, deny.
+
+As deployed, the station runs inside the router (``scmbridge station --zenoh-config station-router-tls-acl.json5``).
+The access control filters what crosses a link, so the station's own session is not subject to it (what it
+publishes is still filtered on the way out to each robot: ``rover1`` never receives ``scm/rover2/cmd``). The
+``station`` certificate is the router's TLS identity and, as a client, that of a station on another host or a
+station-side tool.
+
+``scmbridge deploy certs`` makes a CA and one certificate per name with ``openssl``, for tests and a lab's first
+try. A lab should issue the certificates from its own PKI: a throwaway CA's key lying next to the certificates
+is not a security boundary.
+"""
+
+from __future__ import annotations
+
+import argparse
+import ipaddress
+import json
+import shlex
+import shutil
+import subprocess
+import sys
+from collections.abc import Iterable, Sequence
+from pathlib import Path
+from typing import Any
+
+from bridge import wire as M
+
+#: what a robot's driver host publishes, and what it listens to (docs/ARCHITECTURE.md section 3)
+ROBOT_PUBLISHES = ("state", "applied")
+ROBOT_RECEIVES = ("cmd", "estop")
+#: what the station publishes for each robot, and what it listens to
+STATION_PUBLISHES = ("cmd", "teacher", "limits", "mission")
+STATION_RECEIVES = ("state", "applied", "mission")
+
+#: the lab address placeholder of the shipped files (deploy/README.md: replace it with the lab interface's)
+LAB_LISTEN = "tls/192.168.50.10:7447"
+#: where the shipped files expect the certificates on the base station
+LAB_CERTS = "/etc/scmbridge/tls"
+
+
+def _rule(rid: str, flow: str, messages: Sequence[str], keys: Iterable[str]) -> dict[str, Any]:
+    """One ``allow`` rule of the access control: ``messages`` on ``keys`` in one ``flow``."""
+    if flow not in ("ingress", "egress"):
+        raise ValueError(f"flow must be ingress or egress, not {flow!r}")
+    return {"id": rid, "permission": "allow", "flows": [flow], "messages": list(messages), "key_exprs": list(keys)}
+
+
+def _check_names(robots: Sequence[str], station_cn: str, operator_cn: str) -> None:
+    """Robot names are key chunks; every identity is distinct (one certificate, one role)."""
+    if not robots:
+        raise ValueError("at least one robot is needed")
+    for r in robots:
+        M.check_robot(r)
+    names = [*robots, station_cn, operator_cn]
+    for n in (station_cn, operator_cn):
+        if not n or any(c in n for c in "/\\\n\r\t\"'"):
+            raise ValueError(f"common name {n!r} must be a plain non-empty name")
+    dupes = sorted({n for n in names if names.count(n) > 1})
+    if dupes:
+        raise ValueError(f"each identity must have its own common name; repeated: {', '.join(dupes)}")
+
+
+def access_control(robots: Sequence[str], *, station_cn: str = "station",
+                   operator_cn: str = "operator") -> dict[str, Any]:
+    """The ``access_control`` section for ``robots``: default deny, one set of allow rules per identity."""
+    robots = list(robots)
+    _check_names(robots, station_cn, operator_cn)
+    rules: list[dict[str, Any]] = []
+    subjects: list[dict[str, Any]] = []
+    policies: list[dict[str, Any]] = []
+
+    for r in robots:
+        k = M.Keys(r)
+        pubs = [getattr(k, t) for t in ROBOT_PUBLISHES] + [M.status_key(r, "driver")]
+        recv = [getattr(k, t) for t in ROBOT_RECEIVES]
+        rid = f"robot/{r}"  # a robot name has no "/", so these ids never collide with the station's or operator's
+        mine = [
+            _rule(f"{rid}/publishes", "ingress", ["put"], pubs),
+            _rule(f"{rid}/publishes-matching", "egress", ["declare_subscriber"], pubs),
+            _rule(f"{rid}/subscribes", "ingress", ["declare_subscriber"], recv),
+            _rule(f"{rid}/receives", "egress", ["put"], recv),
+            _rule(f"{rid}/answers-estop", "ingress", ["declare_queryable", "reply"], [k.estop]),
+            _rule(f"{rid}/estop-queries", "egress", ["query"], [k.estop]),
+        ]
+        rules += mine
+        subjects.append({"id": rid, "cert_common_names": [r]})
+        policies.append({"id": rid, "subjects": [rid], "rules": [x["id"] for x in mine]})
+
+    each = [M.Keys(r) for r in robots]
+    s_pubs = [getattr(k, t) for k in each for t in STATION_PUBLISHES] + [M.status_key(r, "station") for r in robots]
+    s_recv = [getattr(k, t) for k in each for t in STATION_RECEIVES] + [M.status_key(r, "driver") for r in robots]
+    pairs = [k.pairs for k in each]
+    estops = [k.estop for k in each]
+    station = [
+        _rule("station/publishes", "ingress", ["put"], s_pubs),
+        _rule("station/publishes-matching", "egress", ["declare_subscriber"], s_pubs),
+        _rule("station/subscribes", "ingress", ["declare_subscriber"], s_recv),
+        _rule("station/receives", "egress", ["put"], s_recv),
+        _rule("station/answers-pairs", "ingress", ["declare_queryable", "reply"], pairs),
+        _rule("station/pairs-queries", "egress", ["query"], pairs),
+        _rule("station/queries-pairs", "ingress", ["query"], pairs),
+        _rule("station/pairs-replies", "egress", ["reply"], pairs),
+    ]
+    operator = [
+        _rule("operator/estop", "ingress", ["put", "query"], estops),
+        _rule("operator/estop-matching", "egress", ["declare_subscriber", "declare_queryable"], estops),
+        _rule("operator/estop-replies", "egress", ["reply"], estops),
+        _rule("operator/queries-pairs", "ingress", ["query"], pairs),
+        _rule("operator/pairs-replies", "egress", ["reply"], pairs),
+    ]
+    rules += station + operator
+    subjects += [{"id": "station", "cert_common_names": [station_cn]},
+                 {"id": "operator", "cert_common_names": [operator_cn]}]
+    policies += [{"id": "station", "subjects": ["station"], "rules": [x["id"] for x in station]},
+                 {"id": "operator", "subjects": ["operator"], "rules": [x["id"] for x in operator]}]
+    return {"enabled": True, "default_permission": "deny", "rules": rules, "subjects": subjects, "policies": policies}
+
+
+def router_config(robots: Sequence[str], *, station_cn: str = "station", operator_cn: str = "operator",
+                  listen: str = LAB_LISTEN, certs: str | Path = LAB_CERTS) -> dict[str, Any]:
+    """The base station's router config: mutual TLS only on ``listen``, no scouting, the generated access control.
+
+    The router presents the station's certificate (``<certs>/<station_cn>.crt``) and accepts only clients whose
+    certificate the CA in ``<certs>/ca.crt`` signed.
+    """
+    if not listen.startswith("tls/"):
+        raise ValueError(f"the router listens on TLS only: --listen must be tls/ADDR:PORT, not {listen!r}")
+    host = listen[4:].rsplit(":", 1)[0]
+    if host in ("0.0.0.0", "[::]", "::", ""):
+        raise ValueError(f"listen on the lab interface's address, not on every interface ({listen!r})")
+    d = str(certs).rstrip("/")
+    return {
+        "mode": "router",
+        "listen": {"endpoints": [listen]},
+        "connect": {"endpoints": []},
+        "scouting": {"multicast": {"enabled": False}, "gossip": {"enabled": False}},
+        "transport": {
+            "link": {
+                "protocols": ["tls"],
+                "tls": {
+                    "root_ca_certificate": f"{d}/ca.crt",
+                    "listen_private_key": f"{d}/{station_cn}.key",
+                    "listen_certificate": f"{d}/{station_cn}.crt",
+                    "enable_mtls": True,
+                },
+            },
+        },
+        "access_control": access_control(robots, station_cn=station_cn, operator_cn=operator_cn),
+    }
+
+
+def client_config(name: str, *, connect: str = LAB_LISTEN, certs: str | Path = LAB_CERTS) -> dict[str, Any]:
+    """A client's config (a robot's driver host, a station-side tool, the operator's console): mutual TLS to the
+    router at ``connect`` with ``<certs>/<name>.key`` and ``<certs>/<name>.crt``, trusting ``<certs>/ca.crt``.
+
+    The client checks the router's certificate against the address in ``connect`` (``verify_name_on_connect``), so
+    the station's certificate must name that address (``scmbridge deploy certs --station-address``).
+    """
+    if not connect.startswith("tls/"):
+        raise ValueError(f"clients reach the router over TLS only: --connect must be tls/ADDR:PORT, not {connect!r}")
+    d = str(certs).rstrip("/")
+    return {
+        "mode": "client",
+        "connect": {"endpoints": [connect]},
+        "scouting": {"multicast": {"enabled": False}, "gossip": {"enabled": False}},
+        "transport": {
+            "link": {
+                "protocols": ["tls"],
+                "tls": {
+                    "root_ca_certificate": f"{d}/ca.crt",
+                    "enable_mtls": True,
+                    "connect_private_key": f"{d}/{name}.key",
+                    "connect_certificate": f"{d}/{name}.crt",
+                    "verify_name_on_connect": True,
+                },
+            },
+        },
+    }
+
+
+ROUTER_HEADER = (
+    "Lab network with mutual TLS and access control on the base station's router.",
+    "Default deny: a robot publishes only its own state/applied/status/driver and receives only its own cmd/estop;",
+    "the station publishes cmd/teacher/limits/mission; the operator publishes estop; a certificate not named below",
+    "connects but neither sends nor receives anything.",
+)
+CLIENT_HEADER = (
+    "Lab network with mutual TLS, a client of the base station's router (a robot's driver host, or the operator).",
+    "If the link drops, the driver host's deadman stops the robot within cmd_timeout; the client reconnects.",
+)
+
+
+def render(config: dict[str, Any], command: str, header: Sequence[str] = ROUTER_HEADER) -> str:
+    """JSON5 text of ``config`` (plain JSON is JSON5) under comments saying what it is and how it was made."""
+    lines = [f"// {x}" for x in header]
+    lines.append(f"// Generated by `{command}`; regenerate it instead of editing it (deploy/README.md).")
+    return "\n".join(lines) + "\n" + _dump(config) + "\n"
+
+
+def _dump(obj: Any, indent: str = "", used: int = 0, width: int = 118) -> str:
+    """JSON, each value on one line where it fits in ``width`` (``used``: columns taken before it), nested
+    otherwise: a rule reads as a few lines, not one line per key."""
+    flat = json.dumps(obj)
+    if len(indent) + used + len(flat) <= width or not isinstance(obj, (dict, list)) or not obj:
+        return flat
+    inner = indent + "  "
+    if isinstance(obj, dict):
+        items = [f"{inner}{json.dumps(k)}: {_dump(v, inner, len(json.dumps(k)) + 2, width)}" for k, v in obj.items()]
+        return "{\n" + ",\n".join(items) + "\n" + indent + "}"
+    return "[\n" + ",\n".join(inner + _dump(v, inner, 0, width) for v in obj) + "\n" + indent + "]"
+
+
+# ----------------------------------------------------------------------------------------------- certificates
+_EC = ["-newkey", "ec", "-pkeyopt", "ec_paramgen_curve:prime256v1", "-nodes"]
+
+
+def _openssl(args: Sequence[str]) -> None:
+    exe = shutil.which("openssl")
+    if exe is None:
+        raise RuntimeError("openssl is not installed (apt-get install openssl)")
+    res = subprocess.run([exe, *args], capture_output=True, text=True, timeout=60)
+    if res.returncode != 0:
+        raise RuntimeError(f"openssl {args[0]} failed: {res.stderr.strip()}")
+
+
+def make_ca(out: Path, *, cn: str = "scmbridge-lab-ca", days: int = 30) -> None:
+    """A throwaway CA (``ca.key``, ``ca.crt``) in ``out``: EC P-256, valid ``days``. A new ``out`` is made
+    private (0700) so no key is readable by others even before it is chmod-ed 0600."""
+    out.mkdir(mode=0o700, parents=True, exist_ok=True)
+    _openssl(["req", "-x509", *_EC, "-keyout", str(out / "ca.key"), "-out", str(out / "ca.crt"), "-days", str(days),
+              "-subj", f"/CN={cn}", "-addext", "basicConstraints=critical,CA:TRUE",
+              "-addext", "keyUsage=critical,keyCertSign,cRLSign"])
+    (out / "ca.key").chmod(0o600)
+
+
+def make_cert(out: Path, name: str, *, sans: Sequence[str] = (), days: int = 30, ca_dir: Path | None = None) -> None:
+    """``<name>.key`` and ``<name>.crt`` (CN = ``name``) signed by the CA in ``ca_dir`` (default ``out``).
+
+    ``sans`` are subjectAltName entries (``IP:192.168.50.10``, ``DNS:station``): a client checks the router's
+    certificate against the address it connects to, so the station's certificate carries the router's address.
+    The certificate serves as client and as server (the station's is both).
+    """
+    ca = out if ca_dir is None else ca_dir
+    key, csr, crt, ext = (out / f"{name}.{x}" for x in ("key", "csr", "crt", "ext"))
+    _openssl(["req", "-new", *_EC, "-keyout", str(key), "-out", str(csr), "-subj", f"/CN={name}"])
+    key.chmod(0o600)
+    lines = ["basicConstraints=critical,CA:FALSE", "keyUsage=critical,digitalSignature",
+             "extendedKeyUsage=serverAuth,clientAuth", "subjectAltName=" + ",".join([f"DNS:{name}", *sans])]
+    ext.write_text("\n".join(lines) + "\n")
+    try:
+        _openssl(["x509", "-req", "-in", str(csr), "-CA", str(ca / "ca.crt"), "-CAkey", str(ca / "ca.key"),
+                  "-CAcreateserial", "-out", str(crt), "-days", str(days), "-extfile", str(ext)])
+    finally:
+        csr.unlink(missing_ok=True)
+        ext.unlink(missing_ok=True)
+
+
+def make_certs(out: Path, names: Sequence[str], *, station_cn: str = "station",
+               station_sans: Sequence[str] = ("IP:127.0.0.1",), days: int = 30) -> None:
+    """A throwaway CA and one certificate per name in ``out``; the station's carries ``station_sans``."""
+    make_ca(out, days=days)
+    for n in names:
+        make_cert(out, n, sans=station_sans if n == station_cn else (), days=days)
+
+
+# ------------------------------------------------------------------------------------------------------- CLI
+def _names(text: str) -> list[str]:
+    return [x.strip() for x in text.split(",") if x.strip()]
+
+
+def _sans(addresses: Sequence[str]) -> list[str]:
+    """subjectAltName entries for the router's addresses: ``IP:`` for an IPv4/IPv6 address, else ``DNS:``."""
+    out = []
+    for a in addresses:
+        try:
+            ipaddress.ip_address(a)
+            out.append(f"IP:{a}")
+        except ValueError:
+            out.append(f"DNS:{a}")
+    return out
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``scmbridge deploy acl|client|certs``; configs go to stdout, errors are one line and exit status 2."""
+    argv = list(sys.argv[1:] if argv is None else argv)
+    ap = argparse.ArgumentParser(prog="scmbridge deploy", description=__doc__,
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    sub = ap.add_subparsers(dest="what", required=True)
+    acl = sub.add_parser("acl", help="the base station router's TLS + access-control config (JSON5, to stdout)")
+    acl.add_argument("--robots", required=True, help="comma-separated robot names (= their certificates' CN)")
+    acl.add_argument("--station-cn", default="station", help="the station's certificate CN (default station)")
+    acl.add_argument("--operator-cn", default="operator", help="the operator's certificate CN (default operator)")
+    acl.add_argument("--listen", default=LAB_LISTEN, help=f"router endpoint tls/ADDR:PORT (default {LAB_LISTEN})")
+    acl.add_argument("--certs", default=LAB_CERTS,
+                     help=f"directory of ca.crt and the station's key and certificate (default {LAB_CERTS})")
+    cli = sub.add_parser("client", help="a client's TLS config (a robot's driver host, the operator; to stdout)")
+    cli.add_argument("--name", required=True, help="the client's certificate CN (a robot's name, operator, ...)")
+    cli.add_argument("--connect", default=LAB_LISTEN, help=f"the router's endpoint (default {LAB_LISTEN})")
+    cli.add_argument("--certs", default=LAB_CERTS, help=f"directory of ca.crt and <name>.key/.crt "
+                                                       f"(default {LAB_CERTS})")
+    crt = sub.add_parser("certs", help="a throwaway CA and certificates made with openssl (tests, a first try)")
+    crt.add_argument("--robots", required=True, help="comma-separated robot names")
+    crt.add_argument("--station-cn", default="station")
+    crt.add_argument("--operator-cn", default="operator")
+    crt.add_argument("--extra", default="", help="more comma-separated names to certify")
+    crt.add_argument("--station-address", action="append", default=[],
+                     help="an address clients use to reach the router, written into the station's certificate "
+                          "(repeatable; default 127.0.0.1)")
+    crt.add_argument("--days", type=int, default=30, help="validity in days (default 30)")
+    crt.add_argument("--out", required=True, help="output directory")
+    args = ap.parse_args(argv)
+    command = " ".join(["scmbridge deploy", *(shlex.quote(a) for a in argv)])
+
+    try:
+        if args.what == "acl":
+            conf = router_config(_names(args.robots), station_cn=args.station_cn, operator_cn=args.operator_cn,
+                                 listen=args.listen, certs=args.certs)
+            sys.stdout.write(render(conf, command))
+        elif args.what == "client":
+            sys.stdout.write(render(client_config(args.name, connect=args.connect, certs=args.certs), command,
+                                    CLIENT_HEADER))
+        else:
+            robots = _names(args.robots)
+            _check_names(robots, args.station_cn, args.operator_cn)
+            names = [args.station_cn, args.operator_cn, *robots, *_names(args.extra)]
+            make_certs(Path(args.out), names, station_cn=args.station_cn,
+                       station_sans=_sans(args.station_address or ["127.0.0.1"]), days=args.days)
+            print(f"wrote a throwaway CA and certificates for {', '.join(names)} to {args.out}: for tests and a "
+                  "first try only, a lab issues its own (deploy/README.md)", file=sys.stderr)
+    except (ValueError, RuntimeError) as exc:
+        print(f"scmbridge deploy {args.what}: error: {exc}", file=sys.stderr)
+        return 2
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
