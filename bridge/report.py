@@ -16,9 +16,11 @@ latency, solve times and loop jitter, missed deadlines). ``report.json`` holds t
 - *by stamps*: ``applied.stamp - cmd.stamp``. The station stamps ``cmd`` and the driver host stamps ``applied``,
   each with its own ``time.monotonic()``: they are one clock only when both run on one machine (Linux's
   CLOCK_MONOTONIC is per boot). The report says whether the numbers look like one clock (none below -1 ms, median
-  under 1 s) and otherwise discards them.
-- *by receipt*: the difference of the recorder's receive times, always one clock; it adds the difference between
-  the two messages' paths to the recorder (station -> recorder vs driver host -> recorder) to the latency.
+  under 1 s) and otherwise discards them. ``cmd.stamp`` is the start of the station's tick, before the teacher's
+  solve and the transfer, so this is tick-to-vehicle: solve + map + transport + the driver host's gate.
+- *by receipt*: the difference of the recorder's receive times, always one clock: publish-to-applied (no solve),
+  plus the difference between the two messages' paths to the recorder (station -> recorder vs driver host ->
+  recorder).
 """
 
 from __future__ import annotations
@@ -145,9 +147,10 @@ def command_latency(entries: list[Entry], robot: str) -> tuple[dict[str, Any], l
            "by_stamps_ms": _stats_ms(by_stamps) if one_clock else None,
            "stamps_one_clock": one_clock,
            "by_receipt_ms": _stats_ms([r[2] for r in rows]),
-           "note": "by_stamps: applied.stamp - cmd.stamp, valid only when the station and the driver host share a "
-                   "monotonic clock (one machine); by_receipt: the recorder's receive times (one clock, plus the "
-                   "difference of the two paths to the recorder)"}
+           "note": "by_stamps: applied.stamp - cmd.stamp, from the station's tick start (before its solve) to the "
+                   "driver host applying it; valid only when the station and the driver host share a monotonic clock "
+                   "(one machine). by_receipt: the recorder's receive times of cmd and applied (one clock; no solve, "
+                   "plus the difference of the two paths to the recorder)"}
     return out, rows
 
 
@@ -211,8 +214,10 @@ def _figures(out: Path, entries: list[Entry], robot: str, mission: Any, traj: np
     if latency_rows:
         t = [secs(r[0]) for r in latency_rows]
         if one_clock:
-            axs[1].plot(t, [1e3 * r[1] for r in latency_rows], ".", ms=3, label="by stamps (one machine's clock)")
-        axs[1].plot(t, [1e3 * r[2] for r in latency_rows], ".", ms=3, alpha=0.6, label="by the recorder's receipt")
+            axs[1].plot(t, [1e3 * r[1] for r in latency_rows], ".", ms=3,
+                        label="by stamps: station tick (before the solve) to applied")
+        axs[1].plot(t, [1e3 * r[2] for r in latency_rows], ".", ms=3, alpha=0.6,
+                    label="by the recorder's receipt of cmd and applied")
         axs[1].legend(fontsize=8)
     axs[1].set_ylabel("ms")
     axs[1].set_title("command to applied latency")
@@ -220,7 +225,8 @@ def _figures(out: Path, entries: list[Entry], robot: str, mission: Any, traj: np
     for series, name, keys in ((station, "station", ("solve_median", "solve_max")),
                                (driver, "driver", ("jitter_p99", "telemetry_age"))):
         for k in keys:
-            pts = [(secs(t), s.latencies_ms[k]) for t, s in series if k in s.latencies_ms]
+            # a driver host with no pose yet reports telemetry_age 1e9 ms ("never"): not a point on this scale
+            pts = [(secs(t), s.latencies_ms[k]) for t, s in series if s.latencies_ms.get(k, 1e9) < 1e8]
             if pts:
                 axs[2].plot(*zip(*pts), marker=".", label=f"{name} {k}")
     axs[2].set_ylabel("ms")
@@ -300,10 +306,13 @@ def main(argv: list[str] | None = None) -> int:
         print(f"note: {t} (read up to its last complete chunk)", file=sys.stderr)
     print("summary:", json.dumps(result["summary"]))
     lat = result["cmd_to_applied"]
-    which = "by_stamps_ms" if lat["stamps_one_clock"] else "by_receipt_ms"
-    if lat[which]:
-        print(f"command to applied ({which[:-3].replace('_', ' ')}): median {lat[which]['median']} ms, "
-              f"p99 {lat[which]['p99']} ms over {lat['paired']} commands")
+    parts = [f"{label} median {lat[k]['median']} ms, p99 {lat[k]['p99']} ms" for k, label in
+             (("by_stamps_ms", "by stamps (from the station's tick, solve included)"),
+              ("by_receipt_ms", "by the recorder's receipt")) if lat[k]]
+    if parts:
+        print(f"command to applied over {lat['paired']} commands: " + "; ".join(parts)
+              + ("" if lat["stamps_one_clock"] else " (the stamps are not one clock: station and driver host on "
+                 "different machines)"))
     print(f"report: {out / 'report.json'}" + (f"; figures: {', '.join(result['figures'])}" if "figures" in result
                                               else ""))
     return 0 if result["summary"] is not None else 1
