@@ -29,6 +29,9 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "bench transfer": ("bridge.bench.transfer", "transfer policy per-command cost (JSON)"),
     "bench mpc": ("bridge.bench.mpc", "MPC closed-loop solve times (JSON)"),
     "bench bridge": ("bridge.bench.bridge", "end-to-end latency and 50 Hz loop jitter over Zenoh (JSON)"),
+    "record": ("bridge.record", "record scm/** (or one robot) into an MCAP file, with schemas"),
+    "replay": ("bridge.replay", "republish a recording on its Zenoh keys at the recorded pace (or faster)"),
+    "report": ("bridge.report", "figures and the demo's summary figures from a recording"),
 }
 
 

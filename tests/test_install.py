@@ -135,7 +135,7 @@ def test_extras_nest_and_the_tools_are_pinned() -> None:
     names = {g: {canonicalize_name(r.name) for r in _group(g)} for g in ("station", "sims", "test", "dev")}
     assert names["station"] <= names["sims"] <= names["dev"]
     assert names["test"] <= names["dev"]
-    assert {"scipy", "casadi", "numba", "foxglove-sdk"} == names["station"]
+    assert {"scipy", "casadi", "numba", "foxglove-sdk", "mcap"} == names["station"]
     assert "matplotlib" in names["sims"] and not names["sims"] & {"pytest", "pip-tools"}
     dev = _lock_pins(DEV_LOCK)
     for tool in ("ruff", "pytest", "hypothesis", "pytest-timeout", "mpmath", "pip-tools", "pip", "setuptools"):
