@@ -12,6 +12,9 @@ presents over mutual TLS, and with ``default_permission: "deny"`` lets through o
   queries;
 * **the operator** publishes ``estop`` (engage and release: one key) for every robot and may query ``estop`` and
   ``pairs``;
+* optionally **a motion-capture bridge** (``--mocap-cn``) publishes ``mocap`` for every robot (which each robot's
+  driver host receives), and **an external teacher** (``--teacher-cn``) publishes ``teacher`` for every robot and
+  receives ``state`` and ``limits`` (``[teacher] kind = "external"``);
 * **any other certificate** of the lab's CA connects but gets nothing: no rule names it, so every message it
   sends or would receive is denied. A client without a certificate, with another CA's, or speaking plain TCP is
   refused by the TLS listener itself (``enable_mtls``, ``protocols: ["tls"]``).
@@ -71,14 +74,14 @@ def _rule(rid: str, flow: str, messages: Sequence[str], keys: Iterable[str]) -> 
     return {"id": rid, "permission": "allow", "flows": [flow], "messages": list(messages), "key_exprs": list(keys)}
 
 
-def _check_names(robots: Sequence[str], station_cn: str, operator_cn: str) -> None:
+def _check_names(robots: Sequence[str], station_cn: str, operator_cn: str, *others: str) -> None:
     """Robot names are key chunks; every identity is distinct (one certificate, one role)."""
     if not robots:
         raise ValueError("at least one robot is needed")
     for r in robots:
         M.check_robot(r)
-    names = [*robots, station_cn, operator_cn]
-    for n in (station_cn, operator_cn):
+    names = [*robots, station_cn, operator_cn, *others]
+    for n in (station_cn, operator_cn, *others):
         if not n or any(c in n for c in "/\\\n\r\t\"'"):
             raise ValueError(f"common name {n!r} must be a plain non-empty name")
     dupes = sorted({n for n in names if names.count(n) > 1})
@@ -86,11 +89,11 @@ def _check_names(robots: Sequence[str], station_cn: str, operator_cn: str) -> No
         raise ValueError(f"each identity must have its own common name; repeated: {', '.join(dupes)}")
 
 
-def access_control(robots: Sequence[str], *, station_cn: str = "station",
-                   operator_cn: str = "operator") -> dict[str, Any]:
+def access_control(robots: Sequence[str], *, station_cn: str = "station", operator_cn: str = "operator",
+                   mocap_cn: str | None = None, teacher_cn: str | None = None) -> dict[str, Any]:
     """The ``access_control`` section for ``robots``: default deny, one set of allow rules per identity."""
     robots = list(robots)
-    _check_names(robots, station_cn, operator_cn)
+    _check_names(robots, station_cn, operator_cn, *(n for n in (mocap_cn, teacher_cn) if n))
     rules: list[dict[str, Any]] = []
     subjects: list[dict[str, Any]] = []
     policies: list[dict[str, Any]] = []
@@ -98,7 +101,7 @@ def access_control(robots: Sequence[str], *, station_cn: str = "station",
     for r in robots:
         k = M.Keys(r)
         pubs = [getattr(k, t) for t in ROBOT_PUBLISHES] + [M.status_key(r, "driver")]
-        recv = [getattr(k, t) for t in ROBOT_RECEIVES]
+        recv = [getattr(k, t) for t in ROBOT_RECEIVES] + ([k.mocap] if mocap_cn else [])
         rid = f"robot/{r}"  # a robot name has no "/", so these ids never collide with the station's or operator's
         mine = [
             _rule(f"{rid}/publishes", "ingress", ["put"], pubs),
@@ -134,16 +137,29 @@ def access_control(robots: Sequence[str], *, station_cn: str = "station",
         _rule("operator/queries-pairs", "ingress", ["query"], pairs),
         _rule("operator/pairs-replies", "egress", ["reply"], pairs),
     ]
-    rules += station + operator
-    subjects += [{"id": "station", "cert_common_names": [station_cn]},
-                 {"id": "operator", "cert_common_names": [operator_cn]}]
-    policies += [{"id": "station", "subjects": ["station"], "rules": [x["id"] for x in station]},
-                 {"id": "operator", "subjects": ["operator"], "rules": [x["id"] for x in operator]}]
+    roles = {"station": (station_cn, station), "operator": (operator_cn, operator)}
+    if mocap_cn:
+        mocaps = [k.mocap for k in each]
+        roles["mocap"] = (mocap_cn, [_rule("mocap/publishes", "ingress", ["put"], mocaps),
+                                     _rule("mocap/publishes-matching", "egress", ["declare_subscriber"], mocaps)])
+    if teacher_cn:
+        teach = [k.teacher for k in each]
+        seen = [k.state for k in each] + [k.limits for k in each]
+        roles["teacher"] = (teacher_cn, [
+            _rule("teacher/publishes", "ingress", ["put"], teach),
+            _rule("teacher/publishes-matching", "egress", ["declare_subscriber"], teach),
+            _rule("teacher/subscribes", "ingress", ["declare_subscriber"], seen),
+            _rule("teacher/receives", "egress", ["put"], seen)])
+    for role, (cn, mine) in roles.items():
+        rules += mine
+        subjects.append({"id": role, "cert_common_names": [cn]})
+        policies.append({"id": role, "subjects": [role], "rules": [x["id"] for x in mine]})
     return {"enabled": True, "default_permission": "deny", "rules": rules, "subjects": subjects, "policies": policies}
 
 
 def router_config(robots: Sequence[str], *, station_cn: str = "station", operator_cn: str = "operator",
-                  listen: str = LAB_LISTEN, certs: str | Path = LAB_CERTS) -> dict[str, Any]:
+                  listen: str = LAB_LISTEN, certs: str | Path = LAB_CERTS, mocap_cn: str | None = None,
+                  teacher_cn: str | None = None) -> dict[str, Any]:
     """The base station's router config: mutual TLS only on ``listen``, no scouting, the generated access control.
 
     The router presents the station's certificate (``<certs>/<station_cn>.crt``) and accepts only clients whose
@@ -171,7 +187,8 @@ def router_config(robots: Sequence[str], *, station_cn: str = "station", operato
                 },
             },
         },
-        "access_control": access_control(robots, station_cn=station_cn, operator_cn=operator_cn),
+        "access_control": access_control(robots, station_cn=station_cn, operator_cn=operator_cn, mocap_cn=mocap_cn,
+                                         teacher_cn=teacher_cn),
     }
 
 
@@ -316,6 +333,9 @@ def main(argv: list[str] | None = None) -> int:
     acl.add_argument("--robots", required=True, help="comma-separated robot names (= their certificates' CN)")
     acl.add_argument("--station-cn", default="station", help="the station's certificate CN (default station)")
     acl.add_argument("--operator-cn", default="operator", help="the operator's certificate CN (default operator)")
+    acl.add_argument("--mocap-cn", default=None, help="a motion-capture bridge's CN (may publish every robot's mocap)")
+    acl.add_argument("--teacher-cn", default=None, help="an external teacher's CN (publishes teacher, sees state "
+                                                        "and limits)")
     acl.add_argument("--listen", default=LAB_LISTEN, help=f"router endpoint tls/ADDR:PORT (default {LAB_LISTEN})")
     acl.add_argument("--certs", default=LAB_CERTS,
                      help=f"directory of ca.crt and the station's key and certificate (default {LAB_CERTS})")
@@ -340,7 +360,8 @@ def main(argv: list[str] | None = None) -> int:
     try:
         if args.what == "acl":
             conf = router_config(_names(args.robots), station_cn=args.station_cn, operator_cn=args.operator_cn,
-                                 listen=args.listen, certs=args.certs)
+                                 listen=args.listen, certs=args.certs, mocap_cn=args.mocap_cn,
+                                 teacher_cn=args.teacher_cn)
             sys.stdout.write(render(conf, command))
         elif args.what == "client":
             sys.stdout.write(render(client_config(args.name, connect=args.connect, certs=args.certs), command,

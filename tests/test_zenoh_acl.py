@@ -436,3 +436,21 @@ def test_an_unnamed_certificate_publishes_nothing(lab: Lab) -> None:
     finally:
         for q in qs:
             q.undeclare()
+
+
+def test_optional_mocap_and_teacher_identities_get_only_their_keys() -> None:
+    from bridge.deploy import access_control
+
+    acl = access_control(["rover1", "rover2"], mocap_cn="mocap", teacher_cn="teacher")
+    rules = {r["id"]: r for r in acl["rules"]}
+    assert rules["mocap/publishes"]["key_exprs"] == ["scm/rover1/mocap", "scm/rover2/mocap"]
+    assert rules["mocap/publishes"]["messages"] == ["put"] and rules["mocap/publishes"]["flows"] == ["ingress"]
+    assert rules["teacher/publishes"]["key_exprs"] == ["scm/rover1/teacher", "scm/rover2/teacher"]
+    assert set(rules["teacher/receives"]["key_exprs"]) == {"scm/rover1/state", "scm/rover2/state",
+                                                           "scm/rover1/limits", "scm/rover2/limits"}
+    assert "scm/rover1/mocap" in rules["robot/rover1/receives"]["key_exprs"]
+    assert "scm/rover2/mocap" not in rules["robot/rover1/receives"]["key_exprs"]
+    assert not any("cmd" in k for r in acl["rules"] if r["id"].startswith(("mocap", "teacher"))
+                   for k in r["key_exprs"])
+    without = access_control(["rover1"])
+    assert "scm/rover1/mocap" not in {k for r in without["rules"] for k in r["key_exprs"]}
