@@ -27,7 +27,7 @@ from bridge.wire import MissionSpec
 from transfer import paper
 from transfer.domain import Bounds
 from transfer.mission import Mission
-from transfer.teacher.path import Path as Polyline
+from transfer.teacher.path import Polyline
 
 
 class ConfigError(ValueError):

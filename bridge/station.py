@@ -26,7 +26,7 @@ import os
 import threading
 import time
 from collections import deque
-from pathlib import Path as FsPath
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -50,10 +50,10 @@ log = logging.getLogger("scmbridge.station")
 DRIVER_STATUS_MAX_AGE = 3.0
 
 
-def save_atomic(path: FsPath, data: bytes) -> None:
+def save_atomic(path: Path, data: bytes) -> None:
     """Write ``data`` so that ``path`` holds either the old or the new content, never a torn file; on failure
     (a full disk) the temporary file is removed and the error raised."""
-    path = FsPath(path)
+    path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
     try:
@@ -72,9 +72,9 @@ def save_atomic(path: FsPath, data: bytes) -> None:
         os.close(dfd)
 
 
-def load_store(path: FsPath, learner: Bounds, teacher: Bounds, grid, k_min: int) -> tuple[PairStore, str]:
+def load_store(path: Path, learner: Bounds, teacher: Bounds, grid, k_min: int) -> tuple[PairStore, str]:
     """The persisted store if there is a valid one, else a new one (a corrupt file is kept aside, not lost)."""
-    path = FsPath(path)
+    path = Path(path)
     if path.exists():
         try:
             store = PairStore.from_bytes(path.read_bytes())
@@ -101,7 +101,7 @@ def pairs_message(store: PairStore, robot: str, now: float) -> M.Pairs:
 class Station:
     """One robot's station: pairing, the teacher, the policy, persistence and the Zenoh side."""
 
-    def __init__(self, cfg: StationConfig, robot: str, rate_hz: float, store_path: FsPath, mission: Mission) -> None:
+    def __init__(self, cfg: StationConfig, robot: str, rate_hz: float, store_path: Path, mission: Mission) -> None:
         from transfer.policy import TransferPolicy
         from transfer.teacher.mpc import MpcConfig, MpcTeacher
 
@@ -447,7 +447,7 @@ def main(argv: list[str] | None = None) -> int:
     cfg = load_station(args.config)  # mistakes end here, before any session opens
     mission = load_mission(args.mission or cfg.station.mission or None)
     robot = M.check_robot(args.robot or cfg.robot)
-    store_path = FsPath(args.store) if args.store else cfg.store_file()
+    store_path = Path(args.store) if args.store else cfg.store_file()
 
     from transfer.scm import warmup
 

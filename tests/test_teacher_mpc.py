@@ -10,18 +10,18 @@ import pytest
 from sim_learner.worlds import mpc_world
 from transfer.domain import Bounds
 from transfer.teacher.mpc import MpcConfig, MpcTeacher
-from transfer.teacher.path import Path
+from transfer.teacher.path import Polyline
 from transfer.teacher.unicycle import step
 
 
 def test_path_projection_and_sampling() -> None:
-    p = Path(np.array([[0.0, 0.0], [1.0, 0.0], [1.0, 1.0]]))
+    p = Polyline(np.array([[0.0, 0.0], [1.0, 0.0], [1.0, 1.0]]))
     assert p.length == pytest.approx(2.0)
     s, d = p.project(np.array([0.5, 0.2]))
     assert s == pytest.approx(0.5) and d == pytest.approx(0.2)
     np.testing.assert_allclose(p.at(1.5), [1.0, 0.5, math.pi / 2])
     with pytest.raises(ValueError):
-        Path(np.zeros((1, 2)))
+        Polyline(np.zeros((1, 2)))
 
 
 @pytest.fixture(scope="module")

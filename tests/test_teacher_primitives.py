@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from transfer.domain import Bounds
-from transfer.teacher.path import Path
+from transfer.teacher.path import Polyline
 from transfer.teacher.primitives import PrimitiveLibrary, PrimitivePlanner, dtw, replan_threshold
 from transfer.teacher.unicycle import rollout
 
@@ -31,7 +31,7 @@ def test_dtw_is_zero_for_identical_sequences_and_grows_with_offset() -> None:
 
 def test_planner_picks_the_primitive_that_follows_a_straight_path() -> None:
     lib = PrimitiveLibrary(TB, 11, 1.0, 0.1)
-    path = Path(np.stack([np.linspace(0, 20, 100), np.zeros(100)], axis=-1))
+    path = Polyline(np.stack([np.linspace(0, 20, 100), np.zeros(100)], axis=-1))
     plan = PrimitivePlanner(lib, horizon=2).plan(np.zeros(3), path, np.ones(len(lib), dtype=bool))
     assert plan.commands[0, 1] == pytest.approx(0.0, abs=1e-12) and plan.commands[0, 0] > 2.0
     # restricted to slow primitives, it still goes straight, as fast as allowed

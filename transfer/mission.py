@@ -11,7 +11,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from transfer.teacher.path import Path
+from transfer.teacher.path import Polyline
 
 #: the fraction of the path a vehicle must have covered before it can be at the goal (a path may loop back)
 GOAL_MIN_PROGRESS = 0.9
@@ -22,7 +22,7 @@ class Mission:
     """A polyline path, obstacles ``(K, 3)`` as rows ``(x, y, r)``, the goal tolerance and an optional start."""
 
     name: str
-    path: Path
+    path: Polyline
     obstacles: NDArray[np.float64]
     goal_tolerance: float
     start: NDArray[np.float64] | None = None
@@ -93,7 +93,7 @@ class Mission:
         start = None
         if self.start is not None:
             start = np.array([self.start[0] * k, self.start[1] * k, self.start[2]])
-        return Mission(name or self.name, Path(self.path.points * k), self.obstacles * k, self.goal_tolerance,
+        return Mission(name or self.name, Polyline(self.path.points * k), self.obstacles * k, self.goal_tolerance,
                        start, self.frame)
 
     # the simulations' older name for the tolerance

@@ -24,7 +24,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from transfer.domain import Bounds
-from transfer.teacher.path import Path
+from transfer.teacher.path import Polyline
 from transfer.teacher.unicycle import euler, step
 
 
@@ -165,7 +165,7 @@ class MpcTeacher:
         self._prev = self._prev_pred = self._prev_u = self._lam_g = None
         self.u_last = np.zeros(2)
 
-    def references(self, state: NDArray[np.float64], path: Path, v_ref: float) -> NDArray[np.float64]:
+    def references(self, state: NDArray[np.float64], path: Polyline, v_ref: float) -> NDArray[np.float64]:
         """N + 1 references from the closest path point, spaced by ``v_ref * dt`` (headings unwrapped)."""
         s0, _ = path.project(state[:2])
         ss = s0 + v_ref * self.cfg.dt * np.arange(self.cfg.N + 1)
@@ -193,7 +193,7 @@ class MpcTeacher:
     def solve(
         self,
         state: NDArray[np.float64],
-        path: Path,
+        path: Polyline,
         limits: Bounds,
         obstacles: NDArray[np.float64] | None = None,
         v_ref: float | None = None,

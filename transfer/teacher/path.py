@@ -1,4 +1,7 @@
-"""Desired paths as polylines with arc length: closest point, progress, deviation and reference sampling."""
+"""Desired paths as polylines with arc length: closest point, progress, deviation and reference sampling.
+
+The class is ``Polyline``, not ``Path``, so it never shadows :class:`pathlib.Path` where both are used.
+"""
 
 from __future__ import annotations
 
@@ -6,7 +9,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 
-class Path:
+class Polyline:
     """A polyline path with arc length: closest point, progress and sampling of references."""
 
     def __init__(self, points: NDArray[np.float64]) -> None:

@@ -20,7 +20,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from transfer.domain import Bounds
-from transfer.teacher.path import Path
+from transfer.teacher.path import Polyline
 from transfer.teacher.unicycle import step, wrap_angle
 
 
@@ -89,7 +89,7 @@ class PrimitivePlanner:
         self.horizon = int(horizon)
         self.samples = int(samples)
 
-    def plan(self, state: NDArray[np.float64], path: Path, allowed: NDArray[np.bool_]) -> Plan:
+    def plan(self, state: NDArray[np.float64], path: Polyline, allowed: NDArray[np.bool_]) -> Plan:
         """The best sequence of allowed primitives from ``state``."""
         idx = np.flatnonzero(allowed)
         if idx.size == 0:
@@ -150,7 +150,7 @@ class PrimitiveFollower:
     def reset(self) -> None:
         self.plan, self.j = None, 0
 
-    def step(self, state: NDArray[np.float64], path: Path, allowed: NDArray[np.bool_],
+    def step(self, state: NDArray[np.float64], path: Polyline, allowed: NDArray[np.bool_],
              obstacles: NDArray[np.float64]) -> NDArray[np.float64]:
         """The teacher command for this tick (replanning first when the primitive ended or the vehicle strayed)."""
         x = np.asarray(state, dtype=float)
