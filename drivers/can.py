@@ -66,9 +66,6 @@ from bridge.config import CanLinkConfig
 from drivers.base import DriverError, LinkHealth, Pose
 from drivers.odrive import AxisState, ControlMode, InputMode, error_names, state_name
 
-AXIS_STATE_IDLE = AxisState.IDLE
-AXIS_STATE_CLOSED_LOOP = AxisState.CLOSED_LOOP_CONTROL
-
 #: error class bit of a bus-off error frame (Linux ``include/uapi/linux/can/error.h``: ``CAN_ERR_BUSOFF``); python-can's
 #: socketcan interface puts the error class into the error frame's ``arbitration_id``.
 CAN_ERR_BUSOFF = 0x40
