@@ -131,8 +131,13 @@ class DiffDriveEcus(ThreadedDevice):
             frame = self.bus.recv(timeout=0.002)
             with self._lock:
                 now = self.clock()
-                if frame is not None:
+                # everything that arrived is handled before the watchdog looks: a device takes frames as they
+                # come, so a thread that was not scheduled for a while must not trip on feeds still queued
+                handled = 0
+                while frame is not None:
                     self._handle(frame, now)
+                    handled += 1
+                    frame = self.bus.recv(timeout=0.0) if handled < 1000 else None
                 self._watchdog(now)
                 if now >= t_enc:
                     self._integrate(now)

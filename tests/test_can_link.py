@@ -286,11 +286,13 @@ def test_commands_reach_the_bus_as_wheel_speeds_and_odometry_returns_the_pose(ri
     k = 1 / (2 * math.pi * 0.1)
     assert seen[0] == pytest.approx((v - w * 0.2) * k, rel=1e-6)
     assert seen[1] == pytest.approx(-(v + w * 0.2) * k, rel=1e-6)
-    # odometry follows the learner body (its degraded response, not the command)
+    # odometry follows the learner body (its degraded response, not the command), up to the motion since the
+    # last pose's own stamp
     body = rig.body()
     last = poses[-1]
-    assert math.hypot(last.x - body.x, last.y - body.y) < 0.01
-    assert abs(last.theta - body.theta) < 0.01
+    lag = max(0.0, time.monotonic() - last.stamp)
+    assert math.hypot(last.x - body.x, last.y - body.y) < 0.01 + abs(body.v) * lag
+    assert abs(last.theta - body.theta) < 0.01 + abs(body.omega) * lag
     assert body.x > 1.1  # it moved
     assert all(b.stamp >= a.stamp for a, b in zip(poses, poses[1:]))
 
@@ -387,8 +389,10 @@ def test_a_failed_bus_is_reported_and_reopened_with_bounded_backoff(rig: Rig, mo
     assert not h.ok and not h.connected and "CAN bus down" in h.text and "interface gone" in h.text
     assert h.detail["counters"]["bus_failures"] == 1
     gaps = [b - a for a, b in zip(attempts, attempts[1:])]
-    assert 3 <= len(attempts) <= 9, attempts  # 0.05, 0.1, 0.2, 0.2, ... s: doubling, bounded by 0.2 s
-    assert all(g <= 0.2 + 0.06 for g in gaps) and gaps[-1] >= 0.15
+    # waits 0.05, 0.1, 0.2, 0.2, ... s: doubling, bounded by reopen_backoff_max (+ up to a tick or two of delay on
+    # a loaded machine)
+    assert 4 <= len(attempts) <= 9, attempts
+    assert gaps[0] < gaps[2] and all(0.09 <= g <= 0.2 + 0.15 for g in gaps[1:]) and d._backoff == 0.2, gaps
     monkeypatch.setattr(d, "_open_bus", real_open)
     # back: the controllers' frames flow again; their watchdogs (0.3 s) tripped during the 1 s outage, which
     # the driver reports and leaves to the operator
@@ -440,7 +444,8 @@ def test_implausible_encoder_estimates_never_reach_the_pose(rig: Rig) -> None:
     poses += rig.run(0.5, 0.25, 0.0)
     assert all(math.isfinite(p.x) and math.isfinite(p.y) and abs(p.x - 1.0) < 2.0 for p in poses)
     body = rig.body()
-    assert math.hypot(poses[-1].x - body.x, poses[-1].y - body.y) < 0.01
+    lag = max(0.0, time.monotonic() - poses[-1].stamp)
+    assert math.hypot(poses[-1].x - body.x, poses[-1].y - body.y) < 0.01 + abs(body.v) * lag
     assert d.health().detail["counters"]["rejected_estimates"] >= 2 * len(garbage)
     assert d.health().malformed >= 2 * len(garbage) + 2
 
