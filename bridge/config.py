@@ -83,9 +83,22 @@ class CanLinkConfig(_Cfg):
     wheel_radius: Annotated[float, _m("m", gt=0.0, le=10.0)] = 0.1
     track_width: Annotated[float, _m("distance between the wheels, m", gt=0.0, le=100.0)] = 0.4
     initial_pose: Annotated[tuple[Finite, Finite, Finite], _m("odometry origin [x, y, theta]")] = (0.0, 0.0, 0.0)
-    open_timeout: Annotated[float, _m("s to wait for both axes in closed loop", gt=0.0, le=120.0)] = 2.0
+    open_timeout: Annotated[float, _m("s to wait for both axes in closed loop (at open and after clear_faults)",
+                                      gt=0.0, le=120.0)] = 2.0
+    heartbeat_timeout: Annotated[float, _m("s without a controller's Heartbeat before the link is reported lost and "
+                                           "the other wheel stopped (ODrive sends one every 0.1 s by default; keep it "
+                                           "at or below the controllers' watchdog_timeout)", ge=0.05, le=10.0)] = 0.5
+    max_wheel_speed: Annotated[float, _m("rev/s: an encoder estimate faster than this, or a position step it cannot "
+                                         "explain, is rejected as implausible", gt=0.0, le=1000.0)] = 5.0
+    reopen_backoff: Annotated[float, _m("s before the first attempt to reopen a failed bus; doubles per failed "
+                                        "attempt", gt=0.0, le=10.0)] = 0.1
+    reopen_backoff_max: Annotated[float, _m("s: the longest wait between two attempts to reopen a failed bus",
+                                            gt=0.0, le=60.0)] = 2.0
 
     def __post_init__(self) -> None:
+        if self.reopen_backoff_max < self.reopen_backoff:
+            raise ValueError(f"reopen_backoff_max = {self.reopen_backoff_max} < reopen_backoff = "
+                             f"{self.reopen_backoff}: the longest wait cannot be shorter than the first")
         if self.left_node == self.right_node:
             raise ValueError(f"left_node and right_node are both {self.left_node}; each wheel needs its own node")
         for name in ("left_sign", "right_sign"):

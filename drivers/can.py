@@ -1,18 +1,61 @@
-"""CAN link: a differential-drive base with one ODrive-style CANSimple motor controller per wheel.
+"""CAN link: a differential-drive base with one ODrive motor controller (firmware 0.6, CANSimple) per wheel.
 
-Frames as ODrive firmware 0.6.x defines them, from ``odrive_cansimple.dbc`` (node 0 layout; the node offset is
-added at run time: arbitration id = node_id << 5 | cmd_id, 11-bit, little endian, IEEE float32). The driver puts
-both axes in closed-loop velocity control, turns (v, omega) into wheel turn rates with the wheel radius and track
-width, and integrates odometry from the encoder estimates the controllers send.
+Frames as ODrive firmware 0.6 defines them, from ``odrive_cansimple.dbc`` (node 0 layout; the node offset is added
+at run time: arbitration id = node_id << 5 | cmd_id, 11-bit, little endian, IEEE float32); enumerations and error
+names in :mod:`drivers.odrive`, with the ODrive sources they were checked against. The driver turns (v, omega) into
+wheel turn rates with the wheel radius and track width, and integrates odometry from the controllers' encoder
+estimates. Configuration: :class:`bridge.config.CanLinkConfig` (``[link.can]`` in the driver host's file).
 
-Configuration: :class:`bridge.config.CanLinkConfig` (``[link.can]`` in the driver host's file).
+**Start-up** (``open``), the one time the driver arms the controllers, because starting the driver host is the
+operator's act: per axis Clear_Errors (what a previous session left, typically the watchdog error of its stop),
+Set_Controller_Mode(VELOCITY_CONTROL, PASSTHROUGH), Set_Input_Vel(0), Set_Axis_State(CLOSED_LOOP_CONTROL); then it
+waits, at most ``open_timeout``, feeding the watchdogs with zero set-points, until both Heartbeats report closed loop
+without error. Velocity control must be set explicitly: an ODrive's factory control mode is POSITION_CONTROL, in
+which Set_Input_Vel is only a feed-forward and the wheel holds its position. The input mode is PASSTHROUGH, not
+VEL_RAMP: the set-point the driver host applies is the one it echoes on ``applied`` and the one the station's learner
+model is identified on; a ramp inside the controller would add a lag nothing upstream models (acceleration is
+bounded by the driver host's hard limits and the transfer's bounds instead).
+
+**Supervision** (in ``poll``, ``send`` and ``health``):
+
+- *controller fault*, latched: a Heartbeat with a non-zero ``Axis_Error``, or an axis that left closed loop (its
+  watchdog, an Estop frame from another bus node, an operator's tool). Both axes get zero set-points at once (the
+  healthy wheel must not keep driving: the robot would pivot), ``ok`` is False and ``text`` names the axis and the
+  errors (``"left axis error: WATCHDOG_TIMER_EXPIRED"``). Only :meth:`CanDriver.clear_faults` (the operator) clears
+  and re-arms; the driver never does it by itself.
+- *heartbeat lost*: no Heartbeat from a controller for ``heartbeat_timeout`` -> ``ok`` False, ``text`` names the
+  node. Not latched: when Heartbeats return, what they report decides (a controller whose own watchdog tripped
+  meanwhile reports WATCHDOG_TIMER_EXPIRED, which is a latched fault).
+- *bus failure*: a python-can error on receive (``can.CanOperationError`` and the other ``can.CanError``), three
+  send failures in a row, or a bus-off error frame -> the bus is shut down and reopened with a backoff that doubles
+  from ``reopen_backoff`` up to ``reopen_backoff_max`` (retried for as long as the link runs); ``ok`` is False while
+  it is down. Error frames are counted apart from malformed frames. On SocketCAN the controller itself leaves bus-off
+  only if the interface restarts it: ``ip link set can0 type can bitrate 500000 restart-ms 100``.
+
+``send`` while not ``ok`` sends nothing but zero set-points.
+
+**Odometry.** Every decoded estimate is validated before it touches the pose: finite (``decode``), ``|Vel_Estimate|``
+at most ``max_wheel_speed``, ``|Pos_Estimate|`` at most :data:`MAX_ABS_POSITION`, and a position step no larger than
+``max_wheel_speed`` times the time between the two frames (plus :data:`JUMP_SLACK`). A rejected estimate is counted
+(``malformed``, and ``rejected_estimates``) and never integrated. When :data:`RESYNC_AFTER` rejected steps in a row
+agree with each other, the encoder really moved (a controller reboot, a Set_Absolute_Position): the reference is
+re-anchored there without integrating the step (``resyncs``).
+
+**Time stamps.** A pose carries the time its encoder frames were received on the bus (``msg.timestamp``, which
+python-can fills on receive), not the time ``poll`` ran. python-can stamps with the wall clock: ``time.time()`` for
+the ``virtual`` and ``udp_multicast`` interfaces, the kernel's receive time (CLOCK_REALTIME) for ``socketcan``. The
+driver host's clock is ``time.monotonic()``; each ``poll`` measures the offset between the two and maps every frame
+onto the monotonic base. A stamp that is missing, in the future of its receipt (beyond :data:`STAMP_SLACK`) or older
+than :data:`STAMP_MAX_AGE` (a wall-clock step, NTP) is replaced by the receive time and counted
+(``stamp_fallbacks``).
 """
 
 from __future__ import annotations
 
+import contextlib
 import math
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from importlib import resources
 from typing import Any
 
@@ -21,10 +64,26 @@ import cantools
 
 from bridge.config import CanLinkConfig
 from drivers.base import DriverError, LinkHealth, Pose
+from drivers.odrive import AxisState, ControlMode, InputMode, error_names, state_name
 
-AXIS_STATE_IDLE = 1
-AXIS_STATE_CLOSED_LOOP = 8
-AXIS_ERROR_WATCHDOG = 0x800  # ODrive 0.6 AxisError.WATCHDOG_TIMER_EXPIRED
+#: error class bit of a bus-off error frame (Linux ``include/uapi/linux/can/error.h``: ``CAN_ERR_BUSOFF``); python-can's
+#: socketcan interface puts the error class into the error frame's ``arbitration_id``.
+CAN_ERR_BUSOFF = 0x40
+#: rev: a position estimate beyond this is garbage (float32 resolution there is ~1 rev; 1e7 rev of a 0.1 m wheel is
+#: 6000 km).
+MAX_ABS_POSITION = 1e7
+#: s of motion at ``max_wheel_speed`` tolerated on top of the interval between two encoder frames (stamp jitter).
+JUMP_SLACK = 0.02
+#: consecutive rejected position steps that agree with each other before the encoder reference is re-anchored.
+RESYNC_AFTER = 3
+#: s a frame's stamp may lie after its receipt (clock granularity) and still be believed.
+STAMP_SLACK = 0.05
+#: s a frame's stamp may lie before its receipt (it waited in the socket buffer) and still be believed.
+STAMP_MAX_AGE = 1.0
+#: consecutive send failures that mean the bus is down (one can be a full transmit queue).
+SEND_FAILURES_DOWN = 3
+#: frames read in one ``poll`` at most, so a flooded bus cannot hold the driver host's loop.
+MAX_FRAMES_PER_POLL = 2000
 
 _DB: cantools.database.can.Database | None = None
 
@@ -48,7 +107,8 @@ def encode(node: int, name: str, signals: dict[str, float] | None = None) -> can
 
 
 def decode(frame: can.Message) -> tuple[int, str, dict[str, Any]]:
-    """(node, message name, signals) of a CANSimple frame; ValueError for anything that is not one."""
+    """(node, message name, signals) of a CANSimple frame; ValueError for anything that is not one (wrong length,
+    non-finite float, unknown command, extended id, error frame)."""
     if frame.is_extended_id or frame.is_error_frame:
         raise ValueError("not a CANSimple frame (extended id or error frame)")
     node, cmd = frame.arbitration_id >> 5, frame.arbitration_id & 0x1F
@@ -69,13 +129,34 @@ def decode(frame: can.Message) -> tuple[int, str, dict[str, Any]]:
 
 @dataclass
 class _Axis:
+    """What the driver knows of one wheel's controller. Stamps are driver-host monotonic seconds."""
+
+    side: str  # "left" / "right": the word the status text uses
     node: int
     sign: float
-    state: int = 0
-    error: int = 0
-    pos: float | None = None  # rev
+    state: int = AxisState.UNDEFINED  # from the last Heartbeat
+    error: int = 0  # ODriveError word of the last Heartbeat
+    procedure_result: int = 0
+    heartbeat_at: float | None = None
+    fault: bool = False  # latched controller fault (cleared only by clear_faults)
+    fault_error: int = 0  # union of the error bits seen since the fault latched
+    fault_state: int = AxisState.UNDEFINED  # the state the axis was in when it latched
+    pos: float | None = None  # rev: the odometry reference (last estimate integrated, or the anchor)
     vel: float = 0.0  # rev/s
-    fresh: bool = False
+    stamp: float | None = None  # of ``pos``
+    new: tuple[float, float, float] | None = None  # (pos, vel, stamp) accepted, waiting for the other wheel
+    jumps: list[tuple[float, float]] = field(default_factory=list)  # rejected steps in a row: (pos, stamp)
+
+    def ready(self, now: float, heartbeat_timeout: float) -> bool:
+        """Heartbeat fresh, closed loop, no error: the axis executes velocity set-points."""
+        return (self.heartbeat_at is not None and now - self.heartbeat_at <= heartbeat_timeout
+                and self.state == AxisState.CLOSED_LOOP_CONTROL and self.error == 0)
+
+    def describe(self) -> str:
+        """The controller's condition in words (for a latched fault)."""
+        if self.fault_error:
+            return f"{self.side} axis error: {', '.join(error_names(self.fault_error))}"
+        return f"{self.side} axis not in closed loop ({state_name(self.fault_state)})"
 
 
 class CanDriver:
@@ -87,15 +168,29 @@ class CanDriver:
         self.config = config
         self.interface, self.channel, self.bitrate = config.interface, config.channel, config.bitrate
         self.radius, self.track = config.wheel_radius, config.track_width
-        self.left = _Axis(config.left_node, config.left_sign)
-        self.right = _Axis(config.right_node, config.right_sign)
+        self.left = _Axis("left", config.left_node, config.left_sign)
+        self.right = _Axis("right", config.right_node, config.right_sign)
+        self.axes = (self.left, self.right)
         self.open_timeout = config.open_timeout
+        self.heartbeat_timeout = config.heartbeat_timeout
+        self.max_wheel_speed = config.max_wheel_speed
         self.pose = [float(a) for a in config.initial_pose]
         self.bus: can.BusABC | None = None
         self._health = LinkHealth()
+        self._phase = "closed"  # closed -> arming -> running (-> arming again on clear_faults)
+        self._arm_deadline = 0.0
+        self._down_reason: str | None = None
+        self._reopen_at = 0.0
+        self._backoff = config.reopen_backoff
+        self._send_failures = 0
+        self.counters: dict[str, int] = {
+            "error_frames": 0, "bus_failures": 0, "reopens": 0, "send_failures": 0, "faults": 0,
+            "heartbeat_losses": 0, "rejected_estimates": 0, "resyncs": 0, "stamp_fallbacks": 0,
+        }
+        self._hb_lost = {ax.side: False for ax in self.axes}
 
     # ----------------------------------------------------------------------------------------------- link
-    def open(self, now: float) -> None:
+    def _open_bus(self) -> can.BusABC:
         kwargs: dict[str, Any] = {"interface": self.interface, "channel": self.channel}
         if self.interface == "socketcan":
             pass  # the bitrate of a SocketCAN device is set with `ip link`, not here
@@ -103,27 +198,41 @@ class CanDriver:
             kwargs["fd"] = self.config.fd
         else:
             kwargs["bitrate"] = self.bitrate
+        return can.Bus(**kwargs)
+
+    def open(self, now: float) -> None:
         try:
-            self.bus = can.Bus(**kwargs)
+            self.bus = self._open_bus()
         except (can.CanError, OSError, ValueError) as exc:
             raise DriverError(f"cannot open CAN bus {self.interface}:{self.channel}: {exc}") from exc
-        for ax in (self.left, self.right):
-            self._send(encode(ax.node, "Clear_Errors", {"Identify": 0}))
-            self._send(encode(ax.node, "Set_Axis_State", {"Axis_Requested_State": AXIS_STATE_CLOSED_LOOP}))
         self._health.connected = True
-        self._wait_ready()
+        self._arm(time.monotonic(), every_axis=True)
+        t_feed = 0.0
+        while True:
+            t = time.monotonic()
+            if t >= t_feed:  # the watchdogs count from arming: feed them while the axes come up
+                self._zero()
+                t_feed = t + 0.05
+            self.poll(t, block=0.02)
+            if self._phase == "running":
+                if self._health.ok:
+                    return
+                raise DriverError(f"motor controllers not ready after {self.open_timeout} s: {self._health.text}")
 
-    def _wait_ready(self) -> None:
-        """Block (at most ``open_timeout``) until both axes report closed-loop control in their heartbeats."""
-        t_end = time.monotonic() + self.open_timeout
-        while time.monotonic() < t_end:
-            self.poll(time.monotonic(), block=0.02)
-            if self.left.state == AXIS_STATE_CLOSED_LOOP and self.right.state == AXIS_STATE_CLOSED_LOOP:
-                self._health.ok, self._health.text = True, "ready"
-                return
-        raise DriverError(f"motor controllers not in closed loop after {self.open_timeout} s "
-                          f"(left state {self.left.state} error 0x{self.left.error:x}, "
-                          f"right state {self.right.state} error 0x{self.right.error:x})")
+    def _arm(self, now: float, every_axis: bool) -> None:
+        """Clear errors, velocity control + passthrough, zero set-point, closed loop; then wait (phase arming) until
+        both Heartbeats confirm or ``open_timeout`` passes. Only ``open`` and ``clear_faults`` call this."""
+        for ax in self.axes:
+            self._send(encode(ax.node, "Clear_Errors", {"Identify": 0}))
+            self._send(encode(ax.node, "Set_Controller_Mode", {"Control_Mode": ControlMode.VELOCITY_CONTROL,
+                                                               "Input_Mode": InputMode.PASSTHROUGH}))
+            self._send(encode(ax.node, "Set_Input_Vel", {"Input_Vel": 0.0, "Input_Torque_FF": 0.0}))
+            if every_axis or ax.state != AxisState.CLOSED_LOOP_CONTROL or ax.error:
+                self._send(encode(ax.node, "Set_Axis_State",
+                                  {"Axis_Requested_State": AxisState.CLOSED_LOOP_CONTROL}))
+            ax.fault, ax.fault_error = False, 0
+        self._phase = "arming"
+        self._arm_deadline = now + self.open_timeout
 
     def wheel_turn_rates(self, v: float, omega: float) -> tuple[float, float]:
         """(left, right) Input_Vel in rev/s for body speed v (m/s) and yaw rate omega (rad/s), signs applied."""
@@ -133,65 +242,131 @@ class CanDriver:
         return self.left.sign * vl * k, self.right.sign * vr * k
 
     def send(self, v: float, omega: float, now: float) -> None:
+        self._evaluate(now)
+        if not self._health.ok:
+            self._zero()  # a fault, a lost controller, arming: nothing but zero set-points
+            return
         ql, qr = self.wheel_turn_rates(v, omega)
-        if self.left.state != AXIS_STATE_CLOSED_LOOP or self.right.state != AXIS_STATE_CLOSED_LOOP:
-            # an axis fell out of closed loop (its watchdog, an error): clear and re-arm it
-            for ax in (self.left, self.right):
-                if ax.state != AXIS_STATE_CLOSED_LOOP:
-                    self._send(encode(ax.node, "Clear_Errors", {"Identify": 0}))
-                    self._send(encode(ax.node, "Set_Axis_State", {"Axis_Requested_State": AXIS_STATE_CLOSED_LOOP}))
         self._send(encode(self.left.node, "Set_Input_Vel", {"Input_Vel": ql, "Input_Torque_FF": 0.0}))
         self._send(encode(self.right.node, "Set_Input_Vel", {"Input_Vel": qr, "Input_Torque_FF": 0.0}))
 
     def stop(self, now: float) -> None:
-        if self.bus is None:
-            return
-        for ax in (self.left, self.right):
+        self._zero()
+
+    def _zero(self) -> None:
+        """Zero set-points to both axes (holds a healthy wheel in closed loop; harmless to an idle one)."""
+        for ax in self.axes:
             self._send(encode(ax.node, "Set_Input_Vel", {"Input_Vel": 0.0, "Input_Torque_FF": 0.0}))
 
+    # ----------------------------------------------------------------------------------------------- receive
     def poll(self, now: float, block: float = 0.0) -> list[Pose]:
-        if self.bus is None:
-            return []
         out: list[Pose] = []
-        timeout = block
-        while True:
-            frame = self.bus.recv(timeout=timeout)
-            timeout = 0.0
-            if frame is None:
-                break
-            self._health.frames_received += 1
-            try:
-                node, name, sig = decode(frame)
-            except ValueError:
-                self._health.malformed += 1
-                continue
-            ax = self.left if node == self.left.node else self.right if node == self.right.node else None
-            if ax is None or sig.get("_rtr"):
-                continue
-            if name == "Heartbeat":
-                ax.state, ax.error = int(sig["Axis_State"]), int(sig["Axis_Error"])
-            elif name == "Get_Encoder_Estimates":
-                pose = self._encoder(ax, float(sig["Pos_Estimate"]), float(sig["Vel_Estimate"]), now)
+        if self.bus is None and self._phase != "closed" and now >= self._reopen_at:
+            self._reopen(now)
+        if self.bus is not None:
+            offset = time.monotonic() - time.time()  # wall clock (python-can stamps) -> driver-host monotonic
+            timeout = block
+            for _ in range(MAX_FRAMES_PER_POLL):
+                try:
+                    frame = self.bus.recv(timeout=timeout)
+                except (can.CanError, OSError) as exc:
+                    self._bus_failed(f"receive failed: {exc}", now)
+                    break
+                timeout = 0.0
+                if frame is None:
+                    break
+                pose = self._frame(frame, time.monotonic(), offset, now)
                 if pose is not None:
                     out.append(pose)
+                if self.bus is None:  # a bus-off error frame
+                    break
+        self._evaluate(now)
         return out
 
-    def _encoder(self, ax: _Axis, pos: float, vel: float, now: float) -> Pose | None:
-        if ax.pos is None:
-            ax.pos, ax.vel = pos, vel
+    def _frame(self, frame: can.Message, received: float, offset: float, now: float) -> Pose | None:
+        self._health.frames_received += 1
+        if frame.is_error_frame:
+            self._health.errors += 1
+            self.counters["error_frames"] += 1
+            if frame.arbitration_id & CAN_ERR_BUSOFF:
+                self._bus_failed("bus-off (error frame)", now)
             return None
-        ax.fresh = True
-        ax._new = (pos, vel)  # type: ignore[attr-defined]
-        if not (self.left.fresh and self.right.fresh):
+        try:
+            node, name, sig = decode(frame)
+        except ValueError:
+            self._health.malformed += 1
+            return None
+        ax = self.left if node == self.left.node else self.right if node == self.right.node else None
+        if ax is None or sig.get("_rtr"):
+            return None  # another device on the bus, or a request
+        stamp = self._stamp(frame, received, offset)
+        if name == "Heartbeat":
+            self._heartbeat(ax, sig, stamp)
+        elif name == "Get_Encoder_Estimates":
+            return self._encoder(ax, float(sig["Pos_Estimate"]), float(sig["Vel_Estimate"]), stamp)
+        return None
+
+    def _stamp(self, frame: can.Message, received: float, offset: float) -> float:
+        """The frame's own receive stamp on the driver host's monotonic base (see the module docstring)."""
+        ts = frame.timestamp
+        if ts and math.isfinite(ts):
+            mono = ts + offset
+            if received - STAMP_MAX_AGE <= mono <= received + STAMP_SLACK:
+                return min(mono, received)
+        self.counters["stamp_fallbacks"] += 1
+        return received
+
+    def _heartbeat(self, ax: _Axis, sig: dict[str, Any], stamp: float) -> None:
+        ax.state, ax.error = int(sig["Axis_State"]), int(sig["Axis_Error"])
+        ax.procedure_result = int(sig["Procedure_Result"])
+        ax.heartbeat_at = stamp if ax.heartbeat_at is None else max(ax.heartbeat_at, stamp)
+        self._backoff = self.config.reopen_backoff  # the bus carries the controllers' frames again
+        if self._phase != "running":
+            return  # arming: old Heartbeats (from before the request) still report the fault being cleared
+        if ax.error or ax.state != AxisState.CLOSED_LOOP_CONTROL:
+            if not ax.fault:
+                ax.fault, ax.fault_state = True, ax.state
+                self.counters["faults"] += 1
+                self._zero()  # both wheels, now: not at the driver host's next tick
+            ax.fault_error |= ax.error
+
+    def _encoder(self, ax: _Axis, pos: float, vel: float, stamp: float) -> Pose | None:
+        """Validate one estimate; integrate one odometry step once both wheels have a new accepted one."""
+        if abs(vel) > self.max_wheel_speed or abs(pos) > MAX_ABS_POSITION:
+            self._reject()
+            return None
+        if ax.pos is None or ax.stamp is None:
+            ax.pos, ax.vel, ax.stamp = pos, vel, stamp  # the anchor: nothing to integrate yet
+            return None
+        ref_pos, _, ref_stamp = ax.new if ax.new is not None else (ax.pos, ax.vel, ax.stamp)
+        if not self._plausible_step(ref_pos, ref_stamp, pos, stamp):
+            self._reject()
+            ax.jumps.append((pos, stamp))
+            del ax.jumps[:-RESYNC_AFTER]
+            if len(ax.jumps) == RESYNC_AFTER and all(
+                    self._plausible_step(p0, t0, p1, t1) for (p0, t0), (p1, t1) in zip(ax.jumps, ax.jumps[1:])):
+                # the encoder really moved: re-anchor both wheels there, without integrating the step
+                self.counters["resyncs"] += 1
+                ax.pos, ax.vel, ax.stamp, ax.new = pos, vel, stamp, None
+                ax.jumps.clear()
+                other = self.right if ax is self.left else self.left
+                if other.new is not None:
+                    other.pos, other.vel, other.stamp = other.new
+                    other.new = None
+            return None
+        ax.jumps.clear()
+        ax.new = (pos, vel, stamp)
+        if self.left.new is None or self.right.new is None:
             return None
         # both wheels have a new estimate: one odometry step (midpoint heading)
+        assert self.left.pos is not None and self.right.pos is not None
         circ = 2.0 * math.pi * self.radius
-        (pl, vl_), (pr, vr_) = self.left._new, self.right._new  # type: ignore[attr-defined]
+        (pl, vl_, tl), (pr, vr_, tr) = self.left.new, self.right.new
         dl = (pl - self.left.pos) * circ * self.left.sign
         dr = (pr - self.right.pos) * circ * self.right.sign
-        self.left.pos, self.right.pos = pl, pr
-        self.left.vel, self.right.vel = vl_, vr_
-        self.left.fresh = self.right.fresh = False
+        self.left.pos, self.left.vel, self.left.stamp = pl, vl_, tl
+        self.right.pos, self.right.vel, self.right.stamp = pr, vr_, tr
+        self.left.new = self.right.new = None
         ds = 0.5 * (dl + dr)
         dth = (dr - dl) / self.track
         x, y, th = self.pose
@@ -201,36 +376,130 @@ class CanDriver:
         self.pose = [x, y, th]
         v = 0.5 * circ * (vl_ * self.left.sign + vr_ * self.right.sign)
         w = circ * (vr_ * self.right.sign - vl_ * self.left.sign) / self.track
-        return Pose(now, x, y, th, v, w)
+        return Pose(max(tl, tr), x, y, th, v, w)
 
-    def _send(self, frame: can.Message) -> None:
-        assert self.bus is not None
+    def _plausible_step(self, p0: float, t0: float, p1: float, t1: float) -> bool:
+        return abs(p1 - p0) <= self.max_wheel_speed * (max(t1 - t0, 0.0) + JUMP_SLACK)
+
+    def _reject(self) -> None:
+        self._health.malformed += 1
+        self.counters["rejected_estimates"] += 1
+
+    # ----------------------------------------------------------------------------------------------- bus
+    def _send(self, frame: can.Message) -> bool:
+        if self.bus is None:
+            return False
         try:
             self.bus.send(frame, timeout=0.05)
-            self._health.frames_sent += 1
-        except can.CanError:
+        except (can.CanError, OSError) as exc:
             self._health.errors += 1
+            self.counters["send_failures"] += 1
+            self._send_failures += 1
+            if self._send_failures >= SEND_FAILURES_DOWN:
+                self._bus_failed(f"send failed: {exc}", time.monotonic())
+            return False
+        self._health.frames_sent += 1
+        self._send_failures = 0
+        return True
+
+    def _bus_failed(self, reason: str, now: float) -> None:
+        """Release the bus and schedule a reopen (backoff doubles per failed attempt, up to its bound)."""
+        self.counters["bus_failures"] += 1
+        self._health.errors += 1
+        bus, self.bus = self.bus, None
+        if bus is not None:
+            with contextlib.suppress(Exception):
+                bus.shutdown()
+        self._health.connected = False
+        self._down_reason = reason
+        self._send_failures = 0
+        self._reopen_at = now + self._backoff
+
+    def _reopen(self, now: float) -> None:
+        try:
+            self.bus = self._open_bus()
+        except (can.CanError, OSError, ValueError) as exc:
+            self._down_reason = f"reopen failed: {exc}"
+            self._backoff = min(2.0 * self._backoff, self.config.reopen_backoff_max)
+            self._reopen_at = now + self._backoff
+            return
+        self.counters["reopens"] += 1
+        self._health.connected = True
+        self._down_reason = None
+        # until a controller's frame arrives on the new bus, the next failure waits longer
+        self._backoff = min(2.0 * self._backoff, self.config.reopen_backoff_max)
+
+    # ----------------------------------------------------------------------------------------------- state
+    def _evaluate(self, now: float) -> None:
+        """``ok`` and ``text`` from the bus, the latched faults, the Heartbeats' age and the arming phase."""
+        h = self._health
+        if self._phase == "closed":
+            h.ok = False
+            return
+        reasons: list[str] = []
+        if self.bus is None:
+            reasons.append(f"CAN bus down ({self._down_reason}); reopening in {max(0.0, self._reopen_at - now):.2f} s")
+        if self._phase == "arming":
+            if all(ax.ready(now, self.heartbeat_timeout) for ax in self.axes):
+                self._phase = "running"
+            elif now > self._arm_deadline:
+                self._phase = "running"
+                for ax in self.axes:  # (an axis that is silent is reported below, as a lost heartbeat)
+                    if ax.heartbeat_at is not None and (ax.error or ax.state != AxisState.CLOSED_LOOP_CONTROL):
+                        ax.fault, ax.fault_error, ax.fault_state = True, ax.error, ax.state
+                        self.counters["faults"] += 1
+            else:
+                reasons.append("arming: waiting for both axes in closed loop")
+        reasons += [ax.describe() for ax in self.axes if ax.fault]
+        for ax in self.axes:
+            age = None if ax.heartbeat_at is None else now - ax.heartbeat_at
+            lost = age is None or age > self.heartbeat_timeout
+            if lost and self._phase == "running":
+                reasons.append(f"{ax.side} controller (node {ax.node}): "
+                               + ("no heartbeat" if age is None else f"no heartbeat for {age:.2f} s"))
+                if not self._hb_lost[ax.side]:
+                    self.counters["heartbeat_losses"] += 1
+            self._hb_lost[ax.side] = lost and self._phase == "running"
+        h.ok = not reasons
+        h.text = "; ".join(reasons) if reasons else "ready"
 
     def health(self) -> LinkHealth:
-        self._health.detail = {"left_state": self.left.state, "right_state": self.right.state,
-                               "left_error": self.left.error, "right_error": self.right.error}
+        now = time.monotonic()
+        self._evaluate(now)
+        self._health.detail = {
+            "counters": dict(self.counters),
+            "axes": {ax.side: {"node": ax.node, "state": state_name(ax.state), "error": ax.error,
+                               "errors": error_names(ax.error), "procedure_result": ax.procedure_result,
+                               "heartbeat_age": None if ax.heartbeat_at is None else now - ax.heartbeat_at,
+                               "fault": ax.fault}
+                     for ax in self.axes},
+        }
         return self._health
 
     def clear_faults(self, now: float) -> None:
-        for ax in (self.left, self.right):
-            self._send(encode(ax.node, "Clear_Errors", {"Identify": 0}))
-            self._send(encode(ax.node, "Set_Axis_State", {"Axis_Requested_State": AXIS_STATE_CLOSED_LOOP}))
+        """The operator's act: Clear_Errors to both controllers, velocity control again, zero set-point, closed loop
+        for an axis that is not in it. Returns at once; ``ok`` comes back when both Heartbeats confirm (at most
+        ``open_timeout``), else the axis that did not re-arm is a latched fault again."""
+        if self._phase == "closed" or self.bus is None:
+            return  # nothing reachable: the text still says why
+        self._arm(now, every_axis=False)
+        self._evaluate(now)
 
     def close(self) -> None:
         if self.bus is None:
+            self._phase = "closed"
+            self._health.connected = self._health.ok = False
+            self._health.text = "closed"
             return
         try:
             self.stop(0.0)
-            for ax in (self.left, self.right):
-                self._send(encode(ax.node, "Set_Axis_State", {"Axis_Requested_State": AXIS_STATE_IDLE}))
+            for ax in self.axes:
+                self._send(encode(ax.node, "Set_Axis_State", {"Axis_Requested_State": AxisState.IDLE}))
         finally:
-            self.bus.shutdown()
+            if self.bus is not None:
+                with contextlib.suppress(Exception):
+                    self.bus.shutdown()
             self.bus = None
+            self._phase = "closed"
             self._health.connected = self._health.ok = False
             self._health.text = "closed"
-
