@@ -164,8 +164,8 @@ class DriverHost:
         counters.update(self.inputs.snapshot())
         counters.update({"link_malformed": h.malformed, "link_errors": h.errors, "missed_deadlines": self.missed,
                          "frames_sent": h.frames_sent, "frames_received": h.frames_received, "ticks": len(self.ticks)})
-        counters.update({f"link_{k}": int(v) for k, v in h.detail.items()
-                         if isinstance(v, (int, bool)) and v is not None and int(v) >= 0})
+        flat = {**h.detail, **h.detail.get("counters", {})}  # a link may group its counters under "counters"
+        counters.update({f"link_{k}": int(v) for k, v in flat.items() if isinstance(v, (int, bool)) and int(v) >= 0})
         pose_age = now - self.last_pose
         problems = []
         if not h.ok:
