@@ -278,8 +278,9 @@ class MavlinkDriver:
             if v.att is not None:
                 yaw, yawspeed = v.att
                 speed = float(msg.vx) * math.cos(yaw) + float(msg.vy) * math.sin(yaw)  # signed: on the heading
-                theta = math.remainder(math.pi / 2 - yaw, 2 * math.pi)
-                out.append(Pose(now, float(msg.y), float(msg.x), theta, speed, -yawspeed))
+                # theta = pi/2 - yaw, in [-pi/2, 3pi/2] as before: the station's MPC is not robust to the jump a
+                # wrap to [-pi, pi] puts at a westward heading (the mavlink demo drifts off its S-path with it)
+                out.append(Pose(now, float(msg.y), float(msg.x), math.pi / 2 - yaw, speed, -yawspeed))
         elif t == "ATTITUDE":
             self._boot_ms(msg.time_boot_ms)
             v.att = (float(msg.yaw), float(msg.yawspeed))
