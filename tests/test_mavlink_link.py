@@ -166,7 +166,8 @@ def test_close_leaves_a_vehicle_the_operator_has_taken_alone() -> None:
         wait_for(driver, lambda: driver.custom_mode == MODES["MANUAL"], 2.0)
         t = time.monotonic()
         driver.close()
-        assert rover.armed and commands_after(rover, t) == []
+        time.sleep(0.2)  # anything the driver sent has reached the vehicle by now
+        assert rover.armed and rover.mode_name == "MANUAL" and commands_after(rover, t) == []
 
 
 # ----------------------------------------------------------------------------------------- acknowledgements
