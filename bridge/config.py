@@ -116,8 +116,28 @@ class MavlinkLinkConfig(_Cfg):
     target_component: Annotated[int, _m("the autopilot's component id", ge=0, le=255)] = 1
     source_system: Annotated[int, _m("our system id (a ground control station)", ge=1, le=255)] = 255
     rate_hz: Annotated[float, _m("LOCAL_POSITION_NED and ATTITUDE rate requested, Hz", gt=0.0, le=100.0)] = 20.0
-    open_timeout: Annotated[float, _m("s for heartbeat, GUIDED and arming", gt=0.0, le=300.0)] = 10.0
-    disarm_on_close: Annotated[bool, _m("disarm when the driver host stops")] = True
+    setpoint_rate_hz: Annotated[float, _m("set-points repeating an unchanged command, Hz (a changed command and a stop "
+                                          "go at once; 50 Hz set-points fill 56 % of a 57600-baud radio)",
+                                          gt=0.0, le=50.0)] = 10.0
+    open_timeout: Annotated[float, _m("s for heartbeat, EKF position, GUIDED and arming", gt=0.0, le=300.0)] = 30.0
+    heartbeat_timeout: Annotated[float, _m("s without the vehicle's 1 Hz HEARTBEAT before the link counts as down",
+                                           ge=1.5, le=60.0)] = 3.0
+    position_timeout: Annotated[float, _m("s without LOCAL_POSITION_NED before the vehicle counts as not ready "
+                                          "(ArduPilot sends none without an EKF origin)", gt=0.0, le=60.0)] = 1.0
+    ack_timeout: Annotated[float, _m("s to wait for each COMMAND_ACK before sending the command again", gt=0.0,
+                                     le=30.0)] = 1.0
+    command_retries: Annotated[int, _m("times a command without COMMAND_ACK is sent again", ge=0, le=10)] = 3
+    close_timeout: Annotated[float, _m("s close() waits for the disarm to be acknowledged", gt=0.0, le=60.0)] = 3.0
+    reconnect_max_s: Annotated[float, _m("longest wait between attempts to re-open a failed connection, s (the "
+                                         "wait doubles from 0.25 s)", ge=0.25, le=300.0)] = 5.0
+    statustext_keep: Annotated[int, _m("the vehicle's last STATUSTEXTs kept for health() and error texts", ge=1,
+                                       le=100)] = 8
+    disarm_on_close: Annotated[bool, _m("disarm when the driver host stops (only a vehicle still in GUIDED)")] = True
+
+    def __post_init__(self) -> None:
+        if self.position_timeout < 2.0 / self.rate_hz:
+            raise ValueError(f"position_timeout = {self.position_timeout} s is shorter than two LOCAL_POSITION_NED "
+                             f"periods at rate_hz = {self.rate_hz}")
 
 
 class UdpLinkConfig(_Cfg):

@@ -1,21 +1,62 @@
 """MAVLink link: an ArduPilot Rover in GUIDED mode (pymavlink, MAVLink 2, ardupilotmega).
 
-open(): wait for the vehicle's HEARTBEAT, ask for LOCAL_POSITION_NED and ATTITUDE at the control rate
-(MAV_CMD_SET_MESSAGE_INTERVAL), set GUIDED (MAV_CMD_DO_SET_MODE, base mode 1, custom mode 15) and arm
-(MAV_CMD_COMPONENT_ARM_DISARM), retrying until the HEARTBEAT says so, all bounded. send(v, omega):
-SET_POSITION_TARGET_LOCAL_NED in MAV_FRAME_BODY_NED with type_mask 0x05E7 (velocity + yaw rate; position, vz,
-acceleration and yaw ignored), vx = v, yaw_rate = -omega (NED is clockwise-positive). While driving, a HEARTBEAT
-whose custom mode is not GUIDED re-asserts GUIDED (a mode set while the autopilot initialises can be lost).
-poll(): LOCAL_POSITION_NED + ATTITUDE -> ENU poses (x_enu = y_ned, y_enu = x_ned, theta = pi/2 - yaw).
+The operator always wins. ``open()`` is the only place this driver changes the vehicle's mode or arms it; afterwards
+it never does either again. When the vehicle leaves GUIDED (an RC mode switch, a failsafe) the driver stops sending
+set-points and says so in :meth:`MavlinkDriver.health` (``ok`` False, ``"operator took control: mode HOLD"``); it
+drives again only when the operator has put the vehicle back in GUIDED (and armed), with no action on our side.
+
+open(), bounded by ``open_timeout``:
+
+1. connect (a TCP or serial connection that fails is tried again with backoff) and wait for a HEARTBEAT from
+   ``target_system``/``target_component`` whose mode is not INITIALISING;
+2. ask for LOCAL_POSITION_NED and ATTITUDE at ``rate_hz`` (MAV_CMD_SET_MESSAGE_INTERVAL);
+3. wait until LOCAL_POSITION_NED streams. This is the readiness test: ArduPilot sends LOCAL_POSITION_NED only once
+   its EKF has an origin (GCS_Common.cpp ``send_local_position``), and it silently ignores every set-point until then
+   (Rover/GCS_Mavlink.cpp ``handle_set_position_target_local_ned``: "need ekf origin"). A rover without GPS can have a
+   position estimate, pass its arming checks and accept GUIDED, and still ignore us: commands would be "applied"
+   while it does not move;
+4. MAV_CMD_DO_SET_MODE GUIDED (custom mode from pymavlink's Rover table), confirmed by a HEARTBEAT (a mode set while
+   the vehicle boots is acknowledged and then lost);
+5. MAV_CMD_COMPONENT_ARM_DISARM (ArduPilot acks it only once armed); a refusal is retried until the timeout
+   (pre-arm checks can clear), and reported with the vehicle's own explanation: ``"arming refused:
+   MAV_RESULT_FAILED (PreArm: Hardware safety switch)"``.
+
+Every command waits for its COMMAND_ACK (``ack_timeout``, ``command_retries``): the ACK must name the command and,
+when MAVLink 2 carries them, address our system and component. ArduPilot sends the STATUSTEXT that explains a
+refusal after the ACK (its text queue), so a refusal waits briefly for it.
+
+send(v, omega): SET_POSITION_TARGET_LOCAL_NED in MAV_FRAME_BODY_NED, type_mask 0x05E7 ("Use Vel+Yaw Rate" in
+ArduPilot's "Rover Commands in Guided Mode"), vx = v (negative: backwards), yaw_rate = -omega (NED is clockwise).
+Only while the vehicle is GUIDED, armed, heard from and streaming its position; a changed command (a stop always)
+goes at once, an unchanged one is repeated at ``setpoint_rate_hz`` (ArduPilot stops after GUID_TIMEOUT, 3 s,
+without one). poll(): LOCAL_POSITION_NED + ATTITUDE -> ENU poses (x_enu = y_ned, y_enu = x_ned, theta = pi/2 - yaw,
+v = the NED velocity projected on the heading, so reversing is negative). Every message is filtered by the vehicle's
+system and component ids; the others are counted (``detail["foreign"]``).
+
+Supervision: no HEARTBEAT for ``heartbeat_timeout`` -> ``connected`` and ``ok`` False, ``"no heartbeat for 3.2 s"``;
+a connection that failed (TCP EOF, a serial error) is re-opened with backoff, UDP just keeps listening. When
+heartbeats return the message intervals are asked again (a rebooted autopilot forgot them) and ``ok`` comes back
+only if the vehicle is GUIDED and armed. STATUSTEXTs are logged and the last ``statustext_keep`` are in
+``health().detail``.
+
+close(): if the vehicle is still ours (GUIDED), a zero set-point, then disarm and wait (``close_timeout``) for the ACK
+or the HEARTBEAT's armed flag, then close: ArduPilot's TCP port drops a command that arrives just before its peer
+closes (libraries/AP_HAL_SITL/UARTDriver.cpp), so closing at once would leave the vehicle armed. A vehicle the
+operator has taken over is left alone.
 
 Configuration: :class:`bridge.config.MavlinkLinkConfig` (``[link.mavlink]`` in the driver host's file).
 """
 
 from __future__ import annotations
 
+import logging
 import math
 import os
 import time
+from collections import deque
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
 
 os.environ.setdefault("MAVLINK20", "1")
 from pymavlink import mavutil  # noqa: E402
@@ -23,8 +64,61 @@ from pymavlink import mavutil  # noqa: E402
 from bridge.config import MavlinkLinkConfig  # noqa: E402
 from drivers.base import DriverError, LinkHealth, Pose  # noqa: E402
 
-GUIDED = 15
+log = logging.getLogger("scmbridge.driver.mavlink")
+
+mavutil.set_dialect("ardupilotmega")
+MAV = mavutil.mavlink
+ROVER_MODES: dict[int, str] = mavutil.mode_mapping_bynumber(MAV.MAV_TYPE_GROUND_ROVER)
+GUIDED = mavutil.mode_mapping_byname(MAV.MAV_TYPE_GROUND_ROVER)["GUIDED"]
+INITIALISING = mavutil.mode_mapping_byname(MAV.MAV_TYPE_GROUND_ROVER)["INITIALISING"]
 TYPE_MASK_VEL_YAWRATE = 0x05E7
+SOURCE_COMPONENT = MAV.MAV_COMP_ID_MISSIONPLANNER
+NO_ACK = -1  # a command that got no COMMAND_ACK after all its tries
+_BACKOFF0 = 0.25
+
+
+def mode_name(custom_mode: int | None) -> str:
+    """Rover's name for a custom mode number (``"HOLD"``), ``"unknown"`` before the first HEARTBEAT."""
+    if custom_mode is None:
+        return "unknown"
+    return ROVER_MODES.get(custom_mode, f"mode {custom_mode}")
+
+
+def result_name(result: int) -> str:
+    """``"MAV_RESULT_FAILED"`` for 4; ``"no COMMAND_ACK"`` for :data:`NO_ACK`."""
+    if result == NO_ACK:
+        return "no COMMAND_ACK"
+    entry = MAV.enums["MAV_RESULT"].get(result)
+    return entry.name if entry is not None else f"MAV_RESULT {result}"
+
+
+@dataclass
+class _Command:
+    """One COMMAND_LONG in flight: sent, re-sent without an ACK, then done with a result."""
+
+    command: int
+    params: tuple[float, ...]
+    what: str  # "arming", "mode change to GUIDED", "LOCAL_POSITION_NED interval"
+    tries: int = 0
+    next_try: float = 0.0
+    first_sent: float = math.inf
+    result: int | None = None
+    on_done: Callable[[_Command], None] | None = None
+
+
+@dataclass
+class _Vehicle:
+    """What the vehicle last told us."""
+
+    custom_mode: int | None = None
+    armed: bool = False
+    hb_time: float | None = None
+    pos_time: float | None = None
+    att: tuple[float, float] | None = None  # yaw (NED, rad), yaw rate (clockwise, rad/s)
+    boot_ms: int = 0
+    rebooted: bool = False
+    texts: deque[tuple[float, str]] = field(default_factory=deque)  # (receive time, text), bounded
+    text_count: int = 0
 
 
 class MavlinkDriver:
@@ -40,129 +134,484 @@ class MavlinkDriver:
         self.rate_hz = config.rate_hz
         self.open_timeout = config.open_timeout
         self.disarm_on_close = config.disarm_on_close
-        self.conn = None
-        self.custom_mode: int | None = None
-        self.armed = False
-        self.driving = False
-        self._pos: tuple[float, float] | None = None
-        self._att: tuple[float, float] | None = None
-        self._vel = 0.0
-        self._t0 = time.monotonic()
-        self._hb_due = 0.0
-        self.statustexts: list[str] = []
+        self.conn: Any = None
+        self.v = _Vehicle(texts=deque(maxlen=config.statustext_keep))
         self._health = LinkHealth()
+        self._t0 = time.monotonic()
+        self._opened = False  # open() succeeded: from now on the mode and arming are the operator's
+        self._closed = False
+        self._hb_due = 0.0
+        self._queue: deque[_Command] = deque()  # commands, one at a time (an ACK names only the command)
+        self._sp_last: tuple[float, float] | None = None
+        self._sp_time = -math.inf
+        self._sp_period = 1.0 / config.setpoint_rate_hz
+        self._link_up = False
+        self._conn_failed: str | None = None
+        self._lost_reason = ""
+        self._conn_time = math.inf
+        self._reconnect_due = 0.0
+        self._backoff = _BACKOFF0
+        self._state: tuple[bool, bool, str, str] = (False, False, "not opened", "closed")
+        self._counts = {"foreign": 0, "setpoints_sent": 0, "setpoints_withheld": 0, "stray_acks": 0,
+                        "reconnects": 0, "link_losses": 0}
+        self._foreign_ids: deque[tuple[int, int]] = deque(maxlen=8)
+        self._last_refusal = ""
 
-    # ---------------------------------------------------------------------------------------------- link
-    def open(self, now: float) -> None:
+    # ------------------------------------------------------------------------------------------ properties
+    @property
+    def custom_mode(self) -> int | None:
+        return self.v.custom_mode
+
+    @property
+    def armed(self) -> bool:
+        return self.v.armed
+
+    @property
+    def statustexts(self) -> list[str]:
+        """The vehicle's last STATUSTEXTs (at most ``statustext_keep``), oldest first."""
+        return [t for _, t in self.v.texts]
+
+    # ---------------------------------------------------------------------------------------- connection
+    def _connect(self) -> None:
+        """Open the pymavlink connection once (no retries inside pymavlink: the caller backs off)."""
+        conn = mavutil.mavlink_connection(self.url, baud=self.baud, source_system=self.source_system,
+                                          source_component=SOURCE_COMPONENT, dialect="ardupilotmega",
+                                          autoreconnect=False, retries=0)
+        if hasattr(conn, "handle_eof"):  # TCP: pymavlink prints and would reconnect itself on EOF; we do it
+            def failed() -> None:
+                self._conn_failed = "connection closed by the vehicle"
+            conn.handle_eof = failed
+            conn.handle_disconnect = failed
+        self.conn = conn
+        self._conn_failed = None
+        self._conn_time = time.monotonic()  # the vehicle counts as heard only once it speaks on this connection
+
+    def _drop_connection(self, reason: str, now: float) -> None:
+        log.warning("MAVLink connection %s lost: %s; re-opening in %.2f s", self.url, reason, self._backoff)
+        self._health.errors += 1
+        self._lost_reason = reason
         try:
-            self.conn = mavutil.mavlink_connection(self.url, baud=self.baud, source_system=self.source_system,
-                                                   source_component=mavutil.mavlink.MAV_COMP_ID_MISSIONPLANNER,
-                                                   dialect="ardupilotmega")
-        except Exception as exc:  # pymavlink raises plain OSError/SerialException/...
-            raise DriverError(f"cannot open MAVLink connection {self.url}: {exc}") from exc
-        t_end = time.monotonic() + self.open_timeout
-        while self.custom_mode is None:
-            self._heartbeat(time.monotonic(), force=True)
-            self._pump(0.1)
-            if time.monotonic() > t_end:
-                raise DriverError(f"no HEARTBEAT from the vehicle on {self.url} within {self.open_timeout} s")
-        period_us = 1e6 / self.rate_hz
-        for mid in (mavutil.mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED, mavutil.mavlink.MAVLINK_MSG_ID_ATTITUDE):
-            self._command(mavutil.mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, mid, period_us)
-        while not (self.custom_mode == GUIDED and self.armed):
-            if self.custom_mode != GUIDED:
-                self._command(mavutil.mavlink.MAV_CMD_DO_SET_MODE, mavutil.mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED,
-                              GUIDED)
-            elif not self.armed:
-                self._command(mavutil.mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1)
-            self._pump(0.3)
-            if time.monotonic() > t_end:
-                raise DriverError(f"vehicle not GUIDED and armed within {self.open_timeout} s "
-                                  f"(mode {self.custom_mode}, armed {self.armed})")
-        self._health.connected = self._health.ok = True
-        self._health.text = "ready"
+            if self.conn is not None:
+                self.conn.close()
+        except OSError:
+            pass
+        self.conn = None
+        self._conn_failed = None
+        self._reconnect_due = now + self._backoff
+        self._backoff = min(2 * self._backoff, self.config.reconnect_max_s)
 
-    def _command(self, command: int, p1: float = 0, p2: float = 0) -> None:
-        self.conn.mav.command_long_send(self.target[0], self.target[1], command, 0, p1, p2, 0, 0, 0, 0, 0)
-        self._health.frames_sent += 1
+    def _try_reconnect(self, now: float) -> None:
+        if self.conn is not None or now < self._reconnect_due:
+            return
+        try:
+            self._connect()
+        except Exception as exc:  # pymavlink raises OSError, SerialException, ConnectionRefusedError...
+            log.debug("re-opening %s failed: %s", self.url, exc)
+            self._reconnect_due = now + self._backoff
+            self._backoff = min(2 * self._backoff, self.config.reconnect_max_s)
+            return
+        self._counts["reconnects"] += 1
+        log.info("MAVLink connection %s re-opened", self.url)
+        self._heartbeat(now, force=True)
 
     def _heartbeat(self, now: float, force: bool = False) -> None:
-        if force or now >= self._hb_due:
-            self.conn.mav.heartbeat_send(mavutil.mavlink.MAV_TYPE_GCS, mavutil.mavlink.MAV_AUTOPILOT_INVALID, 0, 0, 0)
-            self._hb_due = now + 1.0
-
-    def _setpoint(self, v: float, omega: float) -> None:
-        boot_ms = int((time.monotonic() - self._t0) * 1000) & 0xFFFFFFFF
-        self.conn.mav.set_position_target_local_ned_send(
-            boot_ms, self.target[0], self.target[1], mavutil.mavlink.MAV_FRAME_BODY_NED, TYPE_MASK_VEL_YAWRATE,
-            0, 0, 0, float(v), 0, 0, 0, 0, 0, 0, float(-omega))
-        self._health.frames_sent += 1
-
-    def send(self, v: float, omega: float, now: float) -> None:
-        self._heartbeat(now)
-        if self.custom_mode != GUIDED:  # the mode changed under us (or a set was lost): re-assert GUIDED
-            mav = mavutil.mavlink
-            self._command(mav.MAV_CMD_DO_SET_MODE, mav.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, GUIDED)
-        self._setpoint(v, omega)
-        self.driving = True
-
-    def stop(self, now: float) -> None:
-        if self.conn is None:
+        """Our GCS HEARTBEAT, 1 Hz (ArduPilot's GCS failsafe and a udp peer's address depend on it)."""
+        if self.conn is None or not (force or now >= self._hb_due):
             return
-        self._heartbeat(now)
-        self._setpoint(0.0, 0.0)
+        try:
+            self.conn.mav.heartbeat_send(MAV.MAV_TYPE_GCS, MAV.MAV_AUTOPILOT_INVALID, 0, 0, MAV.MAV_STATE_ACTIVE)
+            self._health.frames_sent += 1
+        except OSError as exc:
+            self._conn_failed = str(exc)
+        self._hb_due = now + 1.0
 
+    def _service(self, now: float) -> None:
+        """Housekeeping every call does: reconnect, our heartbeat, commands in flight, link supervision."""
+        if self._conn_failed is not None and self.conn is not None:
+            self._drop_connection(self._conn_failed, now)
+        self._try_reconnect(now)
+        self._heartbeat(now)
+        self._service_commands(now)
+
+    # -------------------------------------------------------------------------------------------- receive
     def _pump(self, block: float) -> list[Pose]:
+        """Read what arrived (waiting up to ``block`` s for the first message); update the vehicle's state."""
         out: list[Pose] = []
+        if self.conn is None:
+            if block > 0:
+                time.sleep(block)
+            return out
         t_end = time.monotonic() + block
-        while True:
-            msg = self.conn.recv_match(blocking=block > 0, timeout=max(0.0, t_end - time.monotonic()) or 0.001)
+        while self.conn is not None and self._conn_failed is None:
+            remaining = t_end - time.monotonic()
+            try:
+                msg = self.conn.recv_match(blocking=remaining > 0, timeout=max(remaining, 0.0) or None)
+            except Exception as exc:  # a serial port unplugged, a socket reset
+                self._conn_failed = f"{type(exc).__name__}: {exc}"
+                break
             if msg is None:
                 break
-            self._health.frames_received += 1
-            t = msg.get_type()
-            if t == "BAD_DATA":
-                self._health.malformed += 1
-            elif t == "HEARTBEAT" and msg.get_srcSystem() == self.target[0]:
-                self.custom_mode = int(msg.custom_mode)
-                self.armed = bool(msg.base_mode & mavutil.mavlink.MAV_MODE_FLAG_SAFETY_ARMED)
-            elif t == "LOCAL_POSITION_NED":
-                self._pos = (float(msg.y), float(msg.x))  # ENU
-                self._vel = math.hypot(msg.vx, msg.vy)
-                if self._att is not None:
-                    yaw, rate = self._att
-                    out.append(Pose(time.monotonic(), self._pos[0], self._pos[1], math.pi / 2 - yaw, self._vel,
-                                    -rate))
-            elif t == "ATTITUDE":
-                self._att = (float(msg.yaw), float(msg.yawspeed))
-            elif t == "STATUSTEXT":
-                self.statustexts.append(str(msg.text))
-            if time.monotonic() >= t_end and block > 0:
-                break
+            self._handle(msg, out)
         return out
 
+    def _handle(self, msg: Any, out: list[Pose]) -> None:
+        t = msg.get_type()
+        if t == "BAD_DATA":
+            self._health.malformed += 1
+            return
+        self._health.frames_received += 1
+        src = (msg.get_srcSystem(), msg.get_srcComponent())
+        if src != self.target:  # another vehicle, another ground station, a camera: not ours
+            self._counts["foreign"] += 1
+            if src not in self._foreign_ids:
+                self._foreign_ids.append(src)
+            return
+        now = time.monotonic()
+        v = self.v
+        if t == "HEARTBEAT":
+            v.custom_mode = int(msg.custom_mode)
+            v.armed = bool(msg.base_mode & MAV.MAV_MODE_FLAG_SAFETY_ARMED)
+            v.hb_time = now
+        elif t == "LOCAL_POSITION_NED":
+            self._boot_ms(msg.time_boot_ms)
+            v.pos_time = now
+            if v.att is not None:
+                yaw, yawspeed = v.att
+                speed = float(msg.vx) * math.cos(yaw) + float(msg.vy) * math.sin(yaw)  # signed: on the heading
+                # theta = pi/2 - yaw, in [-pi/2, 3pi/2] as before: the station's MPC is not robust to the jump a
+                # wrap to [-pi, pi] puts at a westward heading (the mavlink demo drifts off its S-path with it)
+                out.append(Pose(now, float(msg.y), float(msg.x), math.pi / 2 - yaw, speed, -yawspeed))
+        elif t == "ATTITUDE":
+            self._boot_ms(msg.time_boot_ms)
+            v.att = (float(msg.yaw), float(msg.yawspeed))
+        elif t == "COMMAND_ACK":
+            self._ack(msg)
+        elif t == "STATUSTEXT":
+            text = str(msg.text).rstrip("\x00")
+            v.texts.append((now, text))
+            v.text_count += 1
+            sev = int(msg.severity)
+            level = (logging.ERROR if sev <= MAV.MAV_SEVERITY_ERROR else logging.WARNING
+                     if sev == MAV.MAV_SEVERITY_WARNING else logging.INFO if sev < MAV.MAV_SEVERITY_DEBUG
+                     else logging.DEBUG)
+            log.log(level, "vehicle: %s", text)
+
+    def _boot_ms(self, boot_ms: int) -> None:
+        """A vehicle clock that jumps back by more than a second rebooted: it forgot our message intervals."""
+        if boot_ms + 1000 < self.v.boot_ms:
+            self.v.rebooted = True
+            log.warning("the vehicle rebooted (time since boot %d ms, was %d ms)", boot_ms, self.v.boot_ms)
+            self._request_streams()
+        self.v.boot_ms = int(boot_ms)
+
+    def _ack(self, msg: Any) -> None:
+        ours = (getattr(msg, "target_system", 0) in (0, self.source_system)
+                and getattr(msg, "target_component", 0) in (0, SOURCE_COMPONENT))
+        head = self._queue[0] if self._queue else None
+        if ours and head is not None and head.tries > 0 and head.result is None and msg.command == head.command:
+            head.result = int(msg.result)
+        else:
+            self._counts["stray_acks"] += 1
+
+    # -------------------------------------------------------------------------------------------- commands
+    def _submit(self, command: int, params: tuple[float, ...], what: str,
+                on_done: Callable[[_Command], None] | None = None) -> _Command:
+        c = _Command(command, tuple(float(p) for p in params) + (0.0,) * (7 - len(params)), what, on_done=on_done)
+        self._queue.append(c)
+        self._service_commands(time.monotonic())
+        return c
+
+    def _service_commands(self, now: float) -> None:
+        while self._queue:
+            c = self._queue[0]
+            if c.result is not None:
+                self._queue.popleft()
+                if c.on_done is not None:
+                    c.on_done(c)
+                continue
+            if now < c.next_try or self.conn is None:
+                return
+            if c.tries > self.config.command_retries:
+                c.result = NO_ACK
+                continue
+            try:  # confirmation counts the re-sends, as the MAVLink command protocol asks
+                self.conn.mav.command_long_send(self.target[0], self.target[1], c.command, c.tries, *c.params)
+                self._health.frames_sent += 1
+            except OSError as exc:
+                self._conn_failed = str(exc)
+                return
+            c.first_sent = min(c.first_sent, now)
+            c.tries += 1
+            c.next_try = now + self.config.ack_timeout
+            return
+
+    def _wait(self, done: Callable[[], bool], t_end: float) -> bool:
+        """Pump and service until ``done()`` or ``t_end``."""
+        while True:
+            now = time.monotonic()
+            self._service(now)
+            if done():
+                return True
+            if now >= t_end:
+                return False
+            self._pump(min(0.05, max(0.0, t_end - now)))
+
+    def _run(self, command: int, params: tuple[float, ...], what: str, t_end: float,
+             done: Callable[[], bool] | None = None) -> int:
+        """Send a command and wait for its ACK (or ``done()``, or ``t_end``); the MAV_RESULT, or NO_ACK."""
+        c = self._submit(command, params, what)
+        self._wait(lambda: c.result is not None or (done is not None and done()), t_end)
+        by_state = c.result is None and done is not None and done()
+        if c.result is None:  # out of time (or confirmed by the vehicle's state) before an ACK
+            c.result = NO_ACK
+            self._service_commands(time.monotonic())
+        return MAV.MAV_RESULT_ACCEPTED if by_state else c.result
+
+    def _refusal(self, what: str, result: int, since: float, wait_text: bool = True) -> str:
+        """``"arming refused: MAV_RESULT_FAILED (PreArm: ...)"``, waiting briefly (``wait_text``, in blocking
+        calls only) for the STATUSTEXT that explains it."""
+        texts = [t for ts, t in self.v.texts if ts >= since]
+        if wait_text and not texts and result != NO_ACK:  # ArduPilot queues the text: it follows the ACK
+            n = self.v.text_count
+            self._wait(lambda: self.v.text_count != n, time.monotonic() + min(0.5, self.config.ack_timeout))
+            texts = [t for ts, t in self.v.texts if ts >= since]
+        text = f"{what} refused: {result_name(result)}" + (f" ({'; '.join(texts)})" if texts else "")
+        self._last_refusal = text
+        log.warning("%s", text)
+        return text
+
+    def _request_streams(self) -> None:
+        """Ask for LOCAL_POSITION_NED and ATTITUDE at ``rate_hz`` (non-blocking; refusals are logged)."""
+        period_us = 1e6 / self.rate_hz
+        for mid, name in ((MAV.MAVLINK_MSG_ID_LOCAL_POSITION_NED, "LOCAL_POSITION_NED"),
+                          (MAV.MAVLINK_MSG_ID_ATTITUDE, "ATTITUDE")):
+            if any(c.command == MAV.MAV_CMD_SET_MESSAGE_INTERVAL and c.params[0] == mid for c in self._queue):
+                continue
+
+            def done(c: _Command) -> None:
+                if c.result != MAV.MAV_RESULT_ACCEPTED:
+                    self._refusal(c.what, c.result if c.result is not None else NO_ACK, c.first_sent, False)
+
+            self._submit(MAV.MAV_CMD_SET_MESSAGE_INTERVAL, (mid, period_us), f"{name} interval", done)
+
+    # ------------------------------------------------------------------------------------------------ open
+    def open(self, now: float) -> None:
+        """Connect, wait for the vehicle to be ready, put it in GUIDED and arm it (see the module docstring)."""
+        t_end = time.monotonic() + self.open_timeout
+        self._closed = False
+        while self.conn is None:
+            try:
+                self._connect()
+            except Exception as exc:  # pymavlink raises plain OSError/SerialException/...
+                if time.monotonic() + self._backoff > t_end:
+                    raise DriverError(f"cannot open MAVLink connection {self.url}: {exc}") from exc
+                time.sleep(self._backoff)
+                self._backoff = min(2 * self._backoff, self.config.reconnect_max_s)
+        self._heartbeat(time.monotonic(), force=True)
+        v = self.v
+        if not self._wait(lambda: v.hb_time is not None and v.custom_mode != INITIALISING, t_end):
+            if v.hb_time is None:
+                others = f" (heard other systems: {sorted(set(self._foreign_ids))})" if self._foreign_ids else ""
+                raise DriverError(f"no HEARTBEAT from system {self.target[0]} component {self.target[1]} on "
+                                  f"{self.url} within {self.open_timeout} s{others}")
+            raise DriverError(f"the vehicle is still initialising after {self.open_timeout} s")
+        self._backoff = _BACKOFF0
+        self._request_streams()
+        if not self._wait(lambda: self._position_fresh(time.monotonic()) and v.att is not None, t_end):
+            raise DriverError(f"vehicle position not ready within {self.open_timeout} s: no LOCAL_POSITION_NED "
+                              f"(ArduPilot sends it only once its EKF has an origin){self._texts_note()}")
+        self._enter_guided(t_end)
+        self._arm(t_end)
+        if v.custom_mode != GUIDED:
+            raise DriverError(f"operator took control while opening: mode {mode_name(v.custom_mode)}")
+        self._opened = True
+        self._link_up = True
+        self._update_state(time.monotonic())
+        log.info("vehicle ready on %s: GUIDED, armed, position streaming", self.url)
+
+    def _texts_note(self) -> str:
+        return f"; vehicle said: {'; '.join(self.statustexts)}" if self.v.texts else ""
+
+    def _enter_guided(self, t_end: float) -> None:
+        v = self.v
+        while v.custom_mode != GUIDED:
+            sent = time.monotonic()
+            r = self._run(MAV.MAV_CMD_DO_SET_MODE, (MAV.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, GUIDED),
+                          "mode change to GUIDED", t_end)
+            if r == MAV.MAV_RESULT_ACCEPTED:  # the HEARTBEAT says whether it held
+                self._wait(lambda: v.custom_mode == GUIDED, min(t_end, time.monotonic() + 2.5))
+                if v.custom_mode != GUIDED:
+                    log.warning("GUIDED accepted but the vehicle reports mode %s; asking again",
+                                mode_name(v.custom_mode))
+            else:
+                text = self._refusal("mode change to GUIDED", r, sent)
+                if time.monotonic() + 1.0 >= t_end:
+                    raise DriverError(text + self._texts_note())
+                self._wait(lambda: False, time.monotonic() + 1.0)
+            if time.monotonic() >= t_end and v.custom_mode != GUIDED:
+                raise DriverError(f"vehicle not in GUIDED within {self.open_timeout} s (mode "
+                                  f"{mode_name(v.custom_mode)}){self._texts_note()}")
+
+    def _arm(self, t_end: float) -> None:
+        v = self.v
+        while not v.armed:
+            if v.custom_mode != GUIDED:
+                raise DriverError(f"operator took control while opening: mode {mode_name(v.custom_mode)}")
+            sent = time.monotonic()
+            r = self._run(MAV.MAV_CMD_COMPONENT_ARM_DISARM, (1, 0), "arming", t_end)
+            if r == MAV.MAV_RESULT_ACCEPTED:  # ArduPilot acks arming only once armed; HEARTBEATs say so from now on
+                v.armed = True
+                return
+            text = self._refusal("arming", r, sent)
+            if time.monotonic() + 1.0 >= t_end:
+                raise DriverError(text)
+            self._wait(lambda: False, time.monotonic() + 1.0)  # pre-arm checks can clear (the EKF settling)
+
+    # --------------------------------------------------------------------------------------------- state
+    def _position_fresh(self, now: float) -> bool:
+        return self.v.pos_time is not None and now - self.v.pos_time <= self.config.position_timeout
+
+    def _update_state(self, now: float) -> None:
+        """(connected, ok, text, reason) from what the vehicle last said; log when the reason changes."""
+        v = self.v
+        hb_age = math.inf if v.hb_time is None else now - v.hb_time
+        connected = (self.conn is not None and hb_age <= self.config.heartbeat_timeout
+                     and v.hb_time is not None and v.hb_time >= self._conn_time)
+        if self._closed:
+            state = (False, False, "closed", "closed")
+        elif not self._opened:
+            state = (connected, False, "not opened", "closed")
+        elif not connected:
+            if self.conn is None:
+                text = f"connection lost ({self._lost_reason}), re-opening {self.url}; no heartbeat for {hb_age:.1f} s"
+            else:
+                text = f"no heartbeat for {hb_age:.1f} s"
+            state = (False, False, text, "link")
+        elif v.custom_mode != GUIDED:
+            who = "vehicle rebooted" if v.rebooted else "operator took control"
+            state = (True, False, f"{who}: mode {mode_name(v.custom_mode)}{'' if v.armed else ', disarmed'}", "mode")
+        elif not v.armed:
+            state = (True, False, "vehicle disarmed in GUIDED: waiting for the operator to arm it", "disarmed")
+        elif not self._position_fresh(now):
+            age = math.inf if v.pos_time is None else now - v.pos_time
+            state = (True, False, f"no LOCAL_POSITION_NED for {age:.1f} s (EKF origin lost?)", "position")
+        else:
+            v.rebooted = False
+            state = (True, True, "driving: GUIDED, armed", "ok")
+        if self._opened and not self._closed:
+            if state[3] != self._state[3]:
+                if state[1]:
+                    log.info("vehicle accepts commands: %s", state[2])
+                else:
+                    log.warning("vehicle does not accept commands: %s", state[2])
+            if state[3] == "link" and self._link_up:
+                self._link_up = False
+                self._counts["link_losses"] += 1
+            elif connected and not self._link_up:
+                self._link_up = True
+                self._backoff = _BACKOFF0
+                log.info("heartbeat back from the vehicle (mode %s, %s)", mode_name(v.custom_mode),
+                         "armed" if v.armed else "disarmed")
+                self._request_streams()  # a rebooted autopilot forgot them; never the mode or arming
+        self._state = state
+        self._health.connected, self._health.ok, self._health.text = state[0], state[1], state[2]
+
+    # ----------------------------------------------------------------------------------------- the protocol
+    def _setpoint(self, v: float, omega: float, now: float) -> None:
+        boot_ms = int((now - self._t0) * 1000) & 0xFFFFFFFF
+        try:
+            self.conn.mav.set_position_target_local_ned_send(
+                boot_ms, self.target[0], self.target[1], MAV.MAV_FRAME_BODY_NED, TYPE_MASK_VEL_YAWRATE,
+                0, 0, 0, float(v), 0, 0, 0, 0, 0, 0, float(-omega))
+        except OSError as exc:
+            self._conn_failed = str(exc)
+            return
+        self._health.frames_sent += 1
+        self._counts["setpoints_sent"] += 1
+        self._sp_last, self._sp_time = (float(v), float(omega)), now
+
+    def _setpoint_due(self, cmd: tuple[float, float], now: float) -> bool:
+        return cmd != self._sp_last or now - self._sp_time >= self._sp_period
+
+    def send(self, v: float, omega: float, now: float) -> None:
+        """A set-point, only while :meth:`health` is ok (never a mode change or an arming: the operator's)."""
+        if self._closed or not self._opened:
+            raise DriverError("MAVLink link not open")
+        self._service(now)
+        self._update_state(now)
+        if not self._state[1]:
+            self._counts["setpoints_withheld"] += 1
+            return
+        cmd = (float(v), float(omega))
+        if self._setpoint_due(cmd, now):
+            self._setpoint(*cmd, now)
+
+    def stop(self, now: float) -> None:
+        """A zero set-point at once (then repeated at ``setpoint_rate_hz``) while the vehicle is GUIDED; nothing
+        when the operator has it."""
+        if self._closed or self.conn is None:
+            return
+        self._service(now)
+        if self.conn is None or self.v.custom_mode != GUIDED:
+            return
+        if self._setpoint_due((0.0, 0.0), now):
+            self._setpoint(0.0, 0.0, now)
+
     def poll(self, now: float) -> list[Pose]:
-        if self.conn is None:
+        if self._closed or not self._opened:
             return []
-        self._heartbeat(now)
-        return self._pump(0.0)
+        self._service(now)
+        poses = self._pump(0.0)
+        self._update_state(now)
+        return poses
 
     def health(self) -> LinkHealth:
-        self._health.detail = {"custom_mode": self.custom_mode, "armed": self.armed}
+        now = time.monotonic()
+        self._update_state(now)
+        v = self.v
+        self._health.detail = {
+            "mode": mode_name(v.custom_mode), "custom_mode": v.custom_mode, "armed": v.armed,
+            "heartbeat_age": None if v.hb_time is None else round(now - v.hb_time, 3),
+            "position_age": None if v.pos_time is None else round(now - v.pos_time, 3),
+            "statustexts": self.statustexts, "last_refusal": self._last_refusal,
+            "foreign_ids": list(self._foreign_ids), **self._counts,
+        }
         return self._health
 
     def clear_faults(self, now: float) -> None:
-        """Nothing to clear on this link (see :meth:`drivers.base.Driver.clear_faults`)."""
+        """Nothing to clear on this link: the operator puts the vehicle back in GUIDED and arms it himself."""
 
     def close(self) -> None:
+        """Stop and disarm a vehicle that is still ours, wait for the disarm to be acknowledged, then close."""
+        if self._closed:
+            return
         if self.conn is None:
+            self._closed = True
+            self._update_state(time.monotonic())
             return
         try:
-            self._setpoint(0.0, 0.0)
-            if self.disarm_on_close:
-                self._command(mavutil.mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 0)
+            now = time.monotonic()
+            self._pump(0.0)
+            v = self.v
+            if v.custom_mode == GUIDED:
+                self._setpoint(0.0, 0.0, now)
+                if self.disarm_on_close and v.armed:
+                    t_end = now + self.config.close_timeout
+                    r = self._run(MAV.MAV_CMD_COMPONENT_ARM_DISARM, (0, 0), "disarm", t_end,
+                                  done=lambda: v.hb_time is not None and v.hb_time >= now and not v.armed)
+                    if r == MAV.MAV_RESULT_ACCEPTED:
+                        log.info("vehicle disarmed")
+                    else:
+                        self._health.errors += 1
+                        log.error("%s; the vehicle may still be armed", self._refusal("disarm", r, now))
+            elif v.custom_mode is not None and self._opened:
+                log.warning("vehicle in mode %s (the operator's): left as it is", mode_name(v.custom_mode))
         finally:
-            self.conn.close()
+            try:
+                if self.conn is not None:
+                    self.conn.close()
+            except OSError:
+                pass
             self.conn = None
-            self._health.connected = self._health.ok = False
-            self._health.text = "closed"
+            self._closed = True
+            self._update_state(time.monotonic())

@@ -1,20 +1,66 @@
-"""An emulated ArduPilot Rover (4.x) on MAVLink 2, driving the software learner.
+"""An emulated ArduPilot Rover (4.x) on MAVLink 2, driving the software learner (DESIGN.md section 5).
 
-What it honours, as ArduPilot Rover does: HEARTBEAT at 1 Hz (GROUND_ROVER, ARDUPILOTMEGA, custom mode, armed flag);
-MAV_CMD_DO_SET_MODE (custom mode 15 = GUIDED; a mode set during the first ``init_s`` seconds is lost, as while the
-vehicle is still initialising), MAV_CMD_COMPONENT_ARM_DISARM and MAV_CMD_SET_MESSAGE_INTERVAL, each answered with
-COMMAND_ACK; SET_POSITION_TARGET_LOCAL_NED honoured only in GUIDED, armed, in MAV_FRAME_BODY_NED with a velocity
-type_mask (acceleration ignored), silently dropped otherwise (no ACK, like ArduPilot); speed capped by WP_SPEED and
-turn rate by ATC_STR_RAT_MAX; a set-point is kept ``target_timeout`` (3 s) after the last one, then STATUSTEXT
-"target not received last 3secs, stopping" and a stop; LOCAL_POSITION_NED and ATTITUDE streamed at the requested
-intervals (1 Hz until asked). NED frame: x north, y east, yaw clockwise from north.
+It is written from ArduPilot's published source and documentation, not from our driver, so that a test catches a
+driver that is wrong about the vehicle. Paths are in github.com/ArduPilot/ardupilot; what it does and where from:
+
+* Boot (Rover/system.cpp ``init_ardupilot``, AP_Vehicle.cpp ``scheduler_delay_callback``): the vehicle reports mode
+  INITIALISING (16) for ``init_s`` seconds while it still answers MAVLink from its delay callback, then switches to
+  INITIAL_MODE (0, MANUAL) whatever a ground station set meanwhile: a GUIDED set during boot is acknowledged and lost.
+* Position (Rover/ekf_check.cpp ``ekf_position_ok``, GCS_Common.cpp ``send_local_position``): the EKF has a position
+  estimate ``ekf_position_s`` after boot and an origin ``ekf_origin_s`` after boot (default: the same moment, the
+  GPS case; ``math.inf``: never, a rover without GPS whose origin nobody sets). LOCAL_POSITION_NED is only sent once
+  there is an origin.
+* MAV_CMD_DO_SET_MODE (GCS_Common.cpp ``_set_mode_common``, Rover/system.cpp ``Rover::set_mode``, Rover/mode.cpp
+  ``Mode::enter``): param1 needs MAV_MODE_FLAG_CUSTOM_MODE_ENABLED (else MAV_RESULT_DENIED); a number Rover has no mode
+  for -> MAV_RESULT_FAILED and STATUSTEXT "No such mode N" (AP_Vehicle::notify_no_such_mode); while armed a mode that
+  needs a position is refused without one (FAILED, "Flight mode change failed"); while disarmed every mode is entered
+  ("we rely on the arming check"). A mode change sends a HEARTBEAT at once. Entering GUIDED starts stopped
+  (Rover/mode_guided.cpp ``_enter`` -> ``start_stop``).
+* MAV_CMD_COMPONENT_ARM_DISARM (GCS_Common.cpp ``handle_command_component_arm_disarm``, Rover/AP_Arming.cpp): already
+  in the asked state -> ACCEPTED; arming runs the pre-arm checks and a failure is MAV_RESULT_FAILED with a STATUSTEXT
+  "PreArm: ..." ("Hardware safety switch" while ``safety_switch`` is on, "Mode not armable" while initialising, "Need
+  Position Estimate" when the mode needs a position the EKF does not have). The STATUSTEXT leaves through
+  ArduPilot's text queue, i.e. *after* the COMMAND_ACK. Success says "Throttle armed" / "Throttle disarmed".
+* MAV_CMD_SET_MESSAGE_INTERVAL (GCS_Common.cpp ``set_message_interval``): microseconds -> milliseconds, -1 stops the
+  message, 0 restores its default, a message the vehicle cannot stream -> MAV_RESULT_FAILED. Streams start at the
+  SRx defaults (1 Hz, Rover/GCS_Mavlink.cpp).
+* Every COMMAND_LONG / COMMAND_INT gets one COMMAND_ACK addressed to its sender (target_system / target_component, as
+  ArduPilot fills them since PR #21720); other commands -> MAV_RESULT_UNSUPPORTED. Commands and set-points addressed to
+  another system or component are not for this vehicle (MAVLink routing) and are ignored.
+* SET_POSITION_TARGET_LOCAL_NED (Rover/GCS_Mavlink.cpp ``handle_set_position_target_local_ned``; "Rover Commands in
+  Guided Mode", https://ardupilot.org/dev/docs/mavlink-rover-commands.html): silently ignored outside GUIDED and
+  until the EKF has an origin; frames LOCAL_NED, LOCAL_OFFSET_NED, BODY_NED, BODY_OFFSET_NED; Rover/defines.h masks
+  (position bits 0-1, velocity bits 3-4, acceleration bits 6-7, yaw bit 10, yaw rate bit 11). Velocity + yaw rate:
+  speed |(vx, vy)| capped at WP_SPEED, driving backwards when vx < 0; turn rate yaw_rate (clockwise positive), capped
+  here at ATC_STR_RAT_MAX (``str_rat_max``, rad/s). Disarmed, the target is taken but the motors do not turn.
+* GUID_TIMEOUT (Rover/mode_guided.cpp): no new target for ``guid_timeout`` s (3 by default) -> STATUSTEXT "target not
+  received last 3.0 secs, stopping" and a stop.
+* HEARTBEAT at 1 Hz: GROUND_ROVER, ARDUPILOTMEGA, base_mode and system_status as Rover/GCS_Mavlink.cpp ``base_mode``
+  / ``vehicle_system_status`` (CUSTOM_MODE_ENABLED, GUIDED_ENABLED in autopilot modes, SAFETY_ARMED; CALIBRATING while
+  initialising, STANDBY in HOLD, else ACTIVE).
+* Transport. ``udp``: answers the last peer it heard from, like a telemetry bridge (pymavlink udpin). ``tcp``: like
+  SITL's TCP serial port (libraries/AP_HAL_SITL/UARTDriver.cpp): one client at a time, the next accepted when it
+  leaves; bytes move from the socket into a read buffer whenever they arrive, but the GCS code parses that buffer only
+  at its scheduler tick (``GCS::update_receive``, 400 Hz in Rover/Rover.cpp) and only while the port is connected, and
+  EOF marks the port disconnected at once. So a command that arrives just before its sender closes the socket is
+  never handled (a disarm sent by a driver that closes without waiting for the ACK).
+
+The operator's side: :meth:`rc_mode_switch` and :meth:`rc_arm` do what a transmitter's mode switch and arming switch
+do; :meth:`radio_blackout` cuts the link both ways; :meth:`foreign` sends as another system on the same link. Frames:
+NED (x north, y east, yaw clockwise from north) on the wire, ENU in :class:`sim_learner.vehicle.SimVehicle`.
 """
 
 from __future__ import annotations
 
 import math
 import os
+import queue
+import select
+import socket
+import threading
 import time
+from collections.abc import Callable
+from typing import Any
 
 os.environ.setdefault("MAVLINK20", "1")
 from pymavlink import mavutil  # noqa: E402
@@ -22,144 +68,434 @@ from pymavlink import mavutil  # noqa: E402
 from sim_learner.device import ThreadedDevice  # noqa: E402
 from sim_learner.vehicle import SimVehicle  # noqa: E402
 
-GUIDED = 15
-HOLD = 4
-VELOCITY_YAWRATE_MASK = 0x05E7  # ArduPilot's documented "velocity + yaw rate" type_mask
+mavutil.set_dialect("ardupilotmega")
+MAV = mavutil.mavlink
+
+#: Rover's mode numbers (Rover/mode.h), by name, from pymavlink's table.
+MODES: dict[str, int] = mavutil.mode_mapping_byname(MAV.MAV_TYPE_GROUND_ROVER)
+MODE_NAMES: dict[int, str] = mavutil.mode_mapping_bynumber(MAV.MAV_TYPE_GROUND_ROVER)
+MANUAL, HOLD, GUIDED, INITIALISING = MODES["MANUAL"], MODES["HOLD"], MODES["GUIDED"], MODES["INITIALISING"]
+#: Modes ``Rover::mode_from_mode_num`` knows (2, LEARNING, is gone from Rover 4).
+ROVER_MODES = frozenset(n for n in MODE_NAMES if n != 2)
+#: ``requires_position()`` in Rover/mode.h.
+NEEDS_POSITION = frozenset(MODES[n] for n in ("AUTO", "GUIDED", "LOITER", "FOLLOW", "RTL", "SMART_RTL", "CIRCLE",
+                                              "DOCK") if n in MODES)
+#: ``is_autopilot_mode()``: HEARTBEAT base_mode carries MAV_MODE_FLAG_GUIDED_ENABLED.
+AUTOPILOT_MODES = NEEDS_POSITION
+#: ``has_manual_input()``: MAV_MODE_FLAG_MANUAL_INPUT_ENABLED.
+MANUAL_INPUT_MODES = frozenset(MODES[n] for n in ("MANUAL", "ACRO", "STEERING", "HOLD", "SIMPLE") if n in MODES)
+
+VELOCITY_YAWRATE_MASK = 0x05E7  # the docs' "Use Vel+Yaw Rate"
+_POS_IGNORE, _VEL_IGNORE, _ACC_IGNORE = 0x0003, 0x0018, 0x00C0  # Rover/defines.h MAVLINK_SET_POS_TYPE_MASK_*
+_YAW_IGNORE, _YAW_RATE_IGNORE = 0x0400, 0x0800
+_FRAMES = (MAV.MAV_FRAME_LOCAL_NED, MAV.MAV_FRAME_LOCAL_OFFSET_NED, MAV.MAV_FRAME_BODY_NED,
+           MAV.MAV_FRAME_BODY_OFFSET_NED)
+#: Messages this vehicle can stream at a requested interval (the others ArduPilot knows are accepted but not sent
+#: here); anything else is refused like a message ArduPilot has no ``ap_message`` for.
+_STREAMED = {MAV.MAVLINK_MSG_ID_LOCAL_POSITION_NED: 1.0, MAV.MAVLINK_MSG_ID_ATTITUDE: 1.0}
+_KNOWN = {MAV.MAVLINK_MSG_ID_HEARTBEAT, MAV.MAVLINK_MSG_ID_SYS_STATUS, MAV.MAVLINK_MSG_ID_GPS_RAW_INT,
+          MAV.MAVLINK_MSG_ID_GLOBAL_POSITION_INT, MAV.MAVLINK_MSG_ID_VFR_HUD, MAV.MAVLINK_MSG_ID_EKF_STATUS_REPORT,
+          MAV.MAVLINK_MSG_ID_RC_CHANNELS, MAV.MAVLINK_MSG_ID_SERVO_OUTPUT_RAW, *_STREAMED}
+GCS_TICK = 1.0 / 400.0  # GCS::update_receive in Rover's scheduler table
+
+
+class _Tx:
+    """The file pymavlink's encoder writes to: the rover's transport."""
+
+    def __init__(self, rover: MavlinkRover) -> None:
+        self.rover = rover
+
+    def write(self, data: bytes) -> None:
+        self.rover._transmit(bytes(data))
 
 
 class MavlinkRover(ThreadedDevice):
-    """See the module docstring. Listens on UDP ``host:port`` (0: a free port, read ``.port`` after start)."""
+    """See the module docstring. Listens on ``host:port`` (0: a free port, read ``.port`` after ``start()``)."""
 
     thread_name = "mavlink-rover"
 
-    def __init__(self, vehicle: SimVehicle, host: str = "127.0.0.1", port: int = 0, *, wp_speed: float = 2.0,
-                 str_rat_max: float = 2.0, target_timeout: float = 3.0, init_s: float = 0.0) -> None:
+    def __init__(self, vehicle: SimVehicle, host: str = "127.0.0.1", port: int = 0, *, transport: str = "udp",
+                 sysid: int = 1, compid: int = 1, wp_speed: float = 2.0, str_rat_max: float = 2.0,
+                 guid_timeout: float = 3.0, init_s: float = 0.3, ekf_position_s: float = 1.0,
+                 ekf_origin_s: float | None = None, initial_mode: str = "MANUAL") -> None:
         super().__init__()
+        if transport not in ("udp", "tcp"):
+            raise ValueError(f"transport {transport!r}: udp or tcp")
         self.vehicle = vehicle
-        self.host, self.port = host, int(port)
-        self.wp_speed, self.str_rat_max = float(wp_speed), float(str_rat_max)
-        self.target_timeout, self.init_s = float(target_timeout), float(init_s)
-        self.custom_mode = HOLD
+        self.host, self.port, self.transport = host, int(port), transport
+        self.sysid, self.compid = int(sysid), int(compid)
+        self.wp_speed, self.str_rat_max, self.guid_timeout = float(wp_speed), float(str_rat_max), float(guid_timeout)
+        self.init_s, self.ekf_position_s = float(init_s), float(ekf_position_s)
+        self.ekf_origin_s = self.ekf_position_s if ekf_origin_s is None else float(ekf_origin_s)
+        self.initial_mode = MODES[initial_mode]
+        self.custom_mode = INITIALISING
         self.armed = False
-        self.intervals = {32: 1.0, 30: 1.0}  # message id -> period (s)
-        self.last_target: tuple[float, float] | None = None
-        self.last_target_time = -math.inf
-        self.setpoints: list[dict] = []  # accepted SET_POSITION_TARGET_LOCAL_NED fields, last 200
-        self.dropped_setpoints = 0
-        self.lost_mode_sets = 0
-        self.statustexts: list[str] = []
-        self.bad = 0
-        self.conn = None
+        self.safety_switch = False  # True: the hardware safety switch is still on, arming refused
+        self.intervals: dict[int, float] = dict(_STREAMED)  # message id -> period (s); inf: stopped
+        self.target: tuple[float, float] | None = None  # GUIDED turn rate and speed target (ENU v, omega)
+        self.target_time = -math.inf
+        # what happened, for tests (bounded)
+        self.setpoints: list[dict[str, Any]] = []  # accepted SET_POSITION_TARGET_LOCAL_NED, last 200
+        self.ignored_setpoints: dict[str, int] = {}  # reason -> count (ArduPilot ignores them silently)
+        self.commands: list[dict[str, Any]] = []  # every command handled, last 500: t, name, params, result
+        self.statustexts: list[str] = []  # every STATUSTEXT sent, last 200
+        self.bad = 0  # bytes that did not parse
+        self.dropped_on_disconnect = 0  # tcp: bytes never parsed because their sender had gone
+        self.blackout = False
+        self._texts: list[tuple[int, str]] = []  # queued for the next send phase (after the ACKs)
+        self._calls: queue.SimpleQueue[tuple[Callable[[], Any], threading.Event, list[Any]]] = queue.SimpleQueue()
+        self._tx_lock = threading.Lock()
+        self._rx = bytearray()
+        self._sock: socket.socket | None = None  # udp socket, or tcp listening socket
+        self._client: socket.socket | None = None  # tcp client
+        self._peer: tuple[str, int] | None = None  # udp peer
+        self._initialised = False
+        self._due: dict[Any, float] = {"hb": 0.0, **{mid: 0.0 for mid in _STREAMED}}
+        self.mav = MAV.MAVLink(_Tx(self), srcSystem=self.sysid, srcComponent=self.compid)
+        self.mav.robust_parsing = True
+        self._parser = MAV.MAVLink(None, srcSystem=self.sysid, srcComponent=self.compid)
+        self._parser.robust_parsing = True
+        self.t0 = time.monotonic()
 
+    # ------------------------------------------------------------------------------------------- transport
     def _open(self) -> None:
-        if self.port == 0:
-            import socket
-
-            with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-                s.bind((self.host, 0))
-                self.port = s.getsockname()[1]
-        self.conn = mavutil.mavlink_connection(f"udpin:{self.host}:{self.port}", source_system=1,
-                                               source_component=1, dialect="ardupilotmega")
+        if self.transport == "udp":
+            s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        else:
+            s = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+            s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # as SITL: a restarted vehicle rebinds at once
+        s.bind((self.host, self.port))
+        if self.transport == "tcp":
+            s.listen(5)
+        s.setblocking(False)
+        self._sock = s
+        self.port = s.getsockname()[1]
         self.t0 = time.monotonic()
 
     def _close(self) -> None:
-        if self.conn is not None:
-            self.conn.close()
-            self.conn = None
+        for s in (self._client, self._sock):
+            if s is not None:
+                s.close()
+        self._client = self._sock = None
 
-    # ------------------------------------------------------------------------------------------------ loop
-    def _run(self) -> None:
-        conn = self.conn
-        m = conn.mav
-        due = {32: 0.0, 30: 0.0, 0: 0.0}
-        while not self._stop.is_set():
-            msg = conn.recv_match(blocking=True, timeout=0.005)
-            now = time.monotonic()
-            if msg is not None:
-                self._handle(msg, now)
-            if self.last_target is not None and now - self.last_target_time > self.target_timeout:
-                self.last_target = None
-                self.vehicle.stop(now)
-                self._text("target not received last 3secs, stopping")
-            if not self._peer_known():
-                continue
-            if now >= due[0]:
-                base = mavutil.mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED
-                if self.armed:
-                    base |= mavutil.mavlink.MAV_MODE_FLAG_SAFETY_ARMED
-                m.heartbeat_send(mavutil.mavlink.MAV_TYPE_GROUND_ROVER, mavutil.mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA,
-                                 base, self.custom_mode, mavutil.mavlink.MAV_STATE_ACTIVE)
-                due[0] = now + 1.0
-            if now >= due[32] or now >= due[30]:
-                x, y, th = self.vehicle.measured_pose(now)
-                st = self.vehicle.state
-                boot_ms = int((now - self.t0) * 1000) & 0xFFFFFFFF
-                if now >= due[32]:
-                    # ENU (x east, y north) -> NED (x north, y east); body speed projected on the axes
-                    m.local_position_ned_send(boot_ms, y, x, 0.0, st.v * math.sin(th), st.v * math.cos(th), 0.0)
-                    due[32] = now + self.intervals[32]
-                if now >= due[30]:
-                    yaw = math.remainder(math.pi / 2 - th, 2 * math.pi)
-                    m.attitude_send(boot_ms, 0.0, 0.0, yaw, 0.0, 0.0, -st.omega)
-                    due[30] = now + self.intervals[30]
+    @property
+    def connected(self) -> bool:
+        """tcp: a client is connected; udp: a peer has been heard."""
+        return self._client is not None if self.transport == "tcp" else self._peer is not None
 
-    def _peer_known(self) -> bool:
-        """pymavlink's udpin answers only peers it has heard from."""
-        return bool(getattr(self.conn, "clients", None)) or getattr(self.conn, "last_address", None) is not None
+    def _transmit(self, data: bytes) -> None:
+        if self.blackout:
+            return
+        with self._tx_lock:
+            try:
+                if self.transport == "tcp":
+                    if self._client is not None:
+                        self._client.sendall(data)
+                elif self._peer is not None and self._sock is not None:
+                    self._sock.sendto(data, self._peer)
+            except OSError:
+                pass  # the peer went away; the receive side notices
 
-    def _text(self, text: str) -> None:
+    def _drain(self) -> None:
+        """The serial driver's timer: move what arrived into the read buffer; accept/notice tcp clients."""
+        if self._sock is None:
+            return
+        if self.transport == "udp":
+            while True:
+                try:
+                    data, addr = self._sock.recvfrom(65536)
+                except (BlockingIOError, InterruptedError):
+                    return
+                except OSError:  # ICMP port unreachable from a peer that left
+                    continue
+                if not self.blackout:
+                    self._peer = addr
+                    self._rx += data
+        if self._client is None:
+            try:
+                self._client, _ = self._sock.accept()
+                self._client.setblocking(False)
+                self._client.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+            except (BlockingIOError, InterruptedError):
+                return
+        while self._client is not None:
+            try:
+                data = self._client.recv(65536)
+            except (BlockingIOError, InterruptedError):
+                return
+            except OSError:
+                data = b""
+            if not data:  # EOF: the port is disconnected now; what is still in the buffer is not parsed
+                self.dropped_on_disconnect += len(self._rx)
+                self._rx.clear()  # (SITL keeps it for the next client; it is never parsed for this one)
+                with self._tx_lock:
+                    self._client.close()
+                    self._client = None
+                return
+            if not self.blackout:
+                self._rx += data
+
+    def _fds(self) -> list[socket.socket]:
+        return [s for s in (self._sock, self._client) if s is not None]
+
+    # ---------------------------------------------------------------------------------------- operator side
+    def _call(self, fn: Callable[[], Any], timeout: float = 2.0) -> Any:
+        """Run ``fn`` on the rover's thread (state belongs to it) and return its result."""
+        if self._thread is None or not self._thread.is_alive():
+            return fn()
+        done, out = threading.Event(), []
+        self._calls.put((fn, done, out))
+        if not done.wait(timeout):
+            raise TimeoutError("the rover thread did not run the call")
+        return out[0]
+
+    def rc_mode_switch(self, mode: str) -> bool:
+        """The transmitter's mode switch (``Rover::set_mode(..., RC_COMMAND)``); False if the vehicle refused."""
+        return self._call(lambda: self._set_mode(MODES[mode], time.monotonic()))
+
+    def rc_arm(self, armed: bool = True) -> bool:
+        """The transmitter's arming switch (with the pre-arm checks); False if refused."""
+        return self._call(lambda: self._arm(armed, time.monotonic()) == MAV.MAV_RESULT_ACCEPTED)
+
+    def radio_blackout(self, on: bool) -> None:
+        """Out of radio range: nothing in, nothing out (the vehicle itself runs on)."""
+        self.blackout = bool(on)
+
+    def foreign(self, sysid: int, compid: int = 1) -> Any:
+        """A pymavlink encoder sending as another system on this link (a second vehicle, another ground station)."""
+        m = MAV.MAVLink(_Tx(self), srcSystem=int(sysid), srcComponent=int(compid))
+        return m
+
+    def text(self, text: str, severity: int = MAV.MAV_SEVERITY_WARNING) -> None:
+        """Queue a STATUSTEXT as the autopilot would (sent at its next send phase)."""
+        self._call(lambda: self._text(text, severity))
+
+    # ------------------------------------------------------------------------------------------- state
+    @property
+    def mode_name(self) -> str:
+        return MODE_NAMES.get(self.custom_mode, str(self.custom_mode))
+
+    def has_position(self, now: float) -> bool:
+        return self._initialised and now - self.t0 >= self.ekf_position_s
+
+    def has_origin(self, now: float) -> bool:
+        return self._initialised and now - self.t0 >= self.ekf_origin_s
+
+    def _text(self, text: str, severity: int = MAV.MAV_SEVERITY_WARNING) -> None:
+        self._texts.append((severity, text[:50]))
+        del self._texts[:-32]  # ArduPilot's text queue is bounded too
         self.statustexts.append(text)
-        if self._peer_known():
-            self.conn.mav.statustext_send(mavutil.mavlink.MAV_SEVERITY_WARNING, text.encode()[:50])
+        del self.statustexts[:-200]
 
-    def _ack(self, command: int, result: int) -> None:
-        self.conn.mav.command_ack_send(command, result)
+    def _set_mode(self, mode: int, now: float) -> bool:
+        """``Rover::set_mode``: False (with its STATUSTEXT) if refused."""
+        if mode not in ROVER_MODES:
+            self._text(f"No such mode {mode}")
+            return False
+        if mode == self.custom_mode:
+            return True
+        if self.armed and mode in NEEDS_POSITION and not self.has_position(now):
+            self._text("Flight mode change failed")
+            return False
+        self.custom_mode = mode
+        self.target = None  # leaving or entering GUIDED: no target (GUIDED starts in its Stop submode)
+        self.vehicle.stop(now)
+        self._heartbeat()  # gcs().send_message(MSG_HEARTBEAT) on every change
+        return True
 
-    def _handle(self, msg, now: float) -> None:
+    def _prearm_failure(self, now: float) -> str | None:
+        if self.safety_switch:
+            return "Hardware safety switch"
+        if self.custom_mode == INITIALISING:
+            return "Mode not armable"
+        if self.custom_mode in NEEDS_POSITION and not self.has_position(now):
+            return "Need Position Estimate"
+        return None
+
+    def _arm(self, arm: bool, now: float) -> int:
+        if arm == self.armed:
+            return MAV.MAV_RESULT_ACCEPTED
+        if arm:
+            failure = self._prearm_failure(now)
+            if failure is not None:
+                self._text(f"PreArm: {failure}", MAV.MAV_SEVERITY_CRITICAL)
+                return MAV.MAV_RESULT_FAILED
+            self.armed = True
+            self._text("Throttle armed", MAV.MAV_SEVERITY_INFO)
+            self._drive(now)
+        else:
+            self.armed = False
+            self.vehicle.stop(now)
+            self._text("Throttle disarmed", MAV.MAV_SEVERITY_INFO)
+        return MAV.MAV_RESULT_ACCEPTED
+
+    def _set_interval(self, msg_id: int, interval_us: float) -> int:
+        if msg_id not in _KNOWN:
+            return MAV.MAV_RESULT_FAILED
+        if interval_us == 0:
+            period = _STREAMED.get(msg_id, 1.0)
+        elif interval_us == -1:
+            period = math.inf
+        else:
+            period = min(max(interval_us, 1000.0), 60e6) / 1e6
+        if msg_id in self.intervals:
+            self.intervals[msg_id] = period
+            self._due[msg_id] = time.monotonic()  # the new interval applies from now
+        return MAV.MAV_RESULT_ACCEPTED
+
+    # ------------------------------------------------------------------------------------------- messages
+    def _for_us(self, msg: Any) -> bool:
+        return msg.target_system in (0, self.sysid) and msg.target_component in (0, self.compid)
+
+    def _handle(self, msg: Any, now: float) -> None:
         t = msg.get_type()
         if t == "BAD_DATA":
             self.bad += 1
             return
-        mav = mavutil.mavlink
-        if t == "COMMAND_LONG":
-            if msg.command == mav.MAV_CMD_DO_SET_MODE:
-                if now - self.t0 < self.init_s:
-                    self.lost_mode_sets += 1  # still initialising: the mode set is lost
-                    return
-                self.custom_mode = int(msg.param2)
-                if self.custom_mode != GUIDED and self.last_target is not None:
-                    self.last_target = None
-                    self.vehicle.stop(now)
-                self._ack(msg.command, mav.MAV_RESULT_ACCEPTED)
-            elif msg.command == mav.MAV_CMD_COMPONENT_ARM_DISARM:
-                self.armed = msg.param1 >= 0.5
-                if not self.armed:
-                    self.vehicle.stop(now)
-                self._ack(msg.command, mav.MAV_RESULT_ACCEPTED)
-            elif msg.command == mav.MAV_CMD_SET_MESSAGE_INTERVAL:
-                mid, us = int(msg.param1), float(msg.param2)
-                if mid in self.intervals and us > 0:
-                    self.intervals[mid] = us / 1e6
-                    self._ack(msg.command, mav.MAV_RESULT_ACCEPTED)
-                else:
-                    self._ack(msg.command, mav.MAV_RESULT_DENIED)
-            else:
-                self._ack(msg.command, mav.MAV_RESULT_UNSUPPORTED)
-        elif t == "SET_POSITION_TARGET_LOCAL_NED":
-            ok = (self.custom_mode == GUIDED and self.armed and msg.coordinate_frame == mav.MAV_FRAME_BODY_NED
-                  and msg.type_mask & 0x0007 == 0x0007 and msg.type_mask & 0x01C0 == 0x01C0
-                  and not msg.type_mask & 0x0008)  # position and acceleration ignored, vx used
-            if not ok:
-                self.dropped_setpoints += 1  # ArduPilot drops it silently
+        if t in ("COMMAND_LONG", "COMMAND_INT"):
+            if not self._for_us(msg):
                 return
-            v = max(-self.wp_speed, min(self.wp_speed, msg.vx))
-            yaw_rate = 0.0 if msg.type_mask & 0x0800 else msg.yaw_rate
-            w = -max(-self.str_rat_max, min(self.str_rat_max, yaw_rate))  # NED clockwise -> ENU counter-clockwise
-            self.last_target, self.last_target_time = (v, w), now
-            self.setpoints.append({"vx": msg.vx, "vy": msg.vy, "yaw_rate": msg.yaw_rate, "frame": msg.coordinate_frame,
-                                   "type_mask": msg.type_mask})
-            del self.setpoints[:-200]
-            if v == 0.0 and w == 0.0:
-                self.vehicle.stop(now)
+            if t == "COMMAND_LONG":
+                p = (msg.param1, msg.param2, msg.param3, msg.param4, msg.param5, msg.param6, msg.param7)
             else:
-                self.vehicle.command(v, w, now)
+                p = (msg.param1, msg.param2, msg.param3, msg.param4, float(msg.x), float(msg.y), msg.z)
+            result = self._command(int(msg.command), p, now)
+            self.commands.append({"t": now, "command": int(msg.command), "params": p, "result": result,
+                                  "from": (msg.get_srcSystem(), msg.get_srcComponent())})
+            del self.commands[:-500]
+            self.mav.command_ack_send(msg.command, result, 0, 0, msg.get_srcSystem(), msg.get_srcComponent())
+        elif t == "SET_POSITION_TARGET_LOCAL_NED" and self._for_us(msg):
+            self._setpoint(msg, now)
+
+    def _command(self, command: int, p: tuple[float, ...], now: float) -> int:
+        if command == MAV.MAV_CMD_DO_SET_MODE:
+            if not int(p[0]) & MAV.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED:
+                return MAV.MAV_RESULT_DENIED
+            return MAV.MAV_RESULT_ACCEPTED if self._set_mode(int(p[1]), now) else MAV.MAV_RESULT_FAILED
+        if command == MAV.MAV_CMD_COMPONENT_ARM_DISARM:
+            if p[0] == 1.0:
+                return self._arm(True, now)
+            if p[0] == 0.0:
+                return self._arm(False, now)
+            return MAV.MAV_RESULT_UNSUPPORTED
+        if command == MAV.MAV_CMD_SET_MESSAGE_INTERVAL:
+            return self._set_interval(int(p[0]), float(p[1]))
+        return MAV.MAV_RESULT_UNSUPPORTED
+
+    def _ignore(self, reason: str) -> None:
+        self.ignored_setpoints[reason] = self.ignored_setpoints.get(reason, 0) + 1
+
+    def _setpoint(self, msg: Any, now: float) -> None:
+        if self.custom_mode != GUIDED:
+            return self._ignore("not GUIDED")
+        if not self.has_origin(now):
+            return self._ignore("no EKF origin")
+        if msg.coordinate_frame not in _FRAMES:
+            return self._ignore("frame")
+        mask = msg.type_mask
+        pos_ignore, vel_ignore, acc_ignore = mask & _POS_IGNORE, mask & _VEL_IGNORE, mask & _ACC_IGNORE
+        yaw_ignore, yaw_rate_ignore = mask & _YAW_IGNORE, mask & _YAW_RATE_IGNORE
+        speed = 0.0
+        if not vel_ignore:
+            speed = min(math.hypot(msg.vx, msg.vy), self.wp_speed)
+            if (not yaw_ignore or not yaw_rate_ignore) and msg.vx < 0:
+                speed = -speed
+        rate = 0.0 if yaw_rate_ignore else max(-self.str_rat_max, min(self.str_rat_max, msg.yaw_rate))
+        if not pos_ignore or not acc_ignore or not yaw_ignore or (vel_ignore and yaw_rate_ignore):
+            return self._ignore("unsupported type_mask")  # position / heading targets: not modelled here
+        self.target, self.target_time = (speed, -rate), now  # NED clockwise -> ENU counter-clockwise
+        self.setpoints.append({"t": now, "vx": msg.vx, "vy": msg.vy, "yaw_rate": msg.yaw_rate,
+                               "frame": msg.coordinate_frame, "type_mask": msg.type_mask, "armed": self.armed})
+        del self.setpoints[:-200]
+        self._drive(now)
+
+    def _drive(self, now: float) -> None:
+        if self.target is None or not self.armed or self.target == (0.0, 0.0):
+            self.vehicle.stop(now)
+        else:
+            self.vehicle.command(self.target[0], self.target[1], now)
+
+    # ------------------------------------------------------------------------------------------- output
+    def _heartbeat(self) -> None:
+        base = MAV.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED
+        if self.custom_mode in AUTOPILOT_MODES:
+            base |= MAV.MAV_MODE_FLAG_GUIDED_ENABLED
+        if self.custom_mode in MANUAL_INPUT_MODES:
+            base |= MAV.MAV_MODE_FLAG_MANUAL_INPUT_ENABLED
+        if self.armed and self.custom_mode != INITIALISING:
+            base |= MAV.MAV_MODE_FLAG_SAFETY_ARMED
+        status = (MAV.MAV_STATE_CALIBRATING if self.custom_mode == INITIALISING else
+                  MAV.MAV_STATE_STANDBY if self.custom_mode == HOLD else MAV.MAV_STATE_ACTIVE)
+        self.mav.heartbeat_send(MAV.MAV_TYPE_GROUND_ROVER, MAV.MAV_AUTOPILOT_ARDUPILOTMEGA, base, self.custom_mode,
+                                status)
+
+    def _run(self) -> None:
+        due = self._due
+        while not self._stop.is_set():
+            now = time.monotonic()
+            if self._rx:  # bytes wait for the next scheduler tick on the 400 Hz grid
+                wake = self.t0 + (math.floor((now - self.t0) / GCS_TICK) + 1) * GCS_TICK
+            else:
+                wake = min(due.values()) if self.connected else now + 0.05
+            try:
+                select.select(self._fds(), [], [], min(max(0.0, wake - now), 0.05))
+            except (OSError, ValueError):
+                time.sleep(0.001)
+            self._drain()  # the UART timer runs whenever bytes arrive (and notices EOF at once)
+            while True:
+                try:
+                    fn, done, out = self._calls.get_nowait()
+                except queue.Empty:
+                    break
+                out.append(fn())
+                done.set()
+            now = time.monotonic()
+            if now < wake:
+                continue
+            self._update(now)
+            if self._rx and self.connected:  # GCS::update_receive
+                data, self._rx = bytes(self._rx), bytearray()
+                try:
+                    msgs = self._parser.parse_buffer(data) or []
+                except Exception:  # pymavlink can raise on some malformed frames even when robust
+                    self.bad += 1
+                    msgs = []
+                for msg in msgs:
+                    self._handle(msg, now)
+            if not self.connected:
+                continue
+            if now >= due["hb"]:
+                self._heartbeat()
+                due["hb"] = now + 1.0
+            self._telemetry(now, due)
+            for severity, text in self._texts:  # GCS::service_statustext, after this tick's ACKs
+                self.mav.statustext_send(severity, text.encode())
+            self._texts.clear()
+
+    def _update(self, now: float) -> None:
+        if not self._initialised and now - self.t0 >= self.init_s:
+            self._initialised = True
+            self.custom_mode = INITIALISING
+            self._set_mode(self.initial_mode, now)  # INITIAL_MODE, whatever was set during boot
+        if self.target is not None and now - self.target_time > self.guid_timeout:
+            self.target = None
+            self._text(f"target not received last {self.guid_timeout:.1f} secs, stopping")
+            self.vehicle.stop(now)
+
+    def _telemetry(self, now: float, due: dict[Any, float]) -> None:
+        lpn, att = MAV.MAVLINK_MSG_ID_LOCAL_POSITION_NED, MAV.MAVLINK_MSG_ID_ATTITUDE
+        if now < due[lpn] and now < due[att]:
+            return
+        x, y, th = self.vehicle.measured_pose(now)
+        st = self.vehicle.state
+        boot_ms = int((now - self.t0) * 1000) & 0xFFFFFFFF
+        if now >= due[lpn]:
+            if self.has_origin(now):  # send_local_position: nothing without an origin
+                # ENU (x east, y north) -> NED (x north, y east); the body speed projected on the axes
+                self.mav.local_position_ned_send(boot_ms, y, x, 0.0, st.v * math.sin(th), st.v * math.cos(th), 0.0)
+            due[lpn] = now + self.intervals[lpn] if math.isfinite(self.intervals[lpn]) else now + 0.5
+        if now >= due[att]:
+            if math.isfinite(self.intervals[att]):
+                yaw = math.remainder(math.pi / 2 - th, 2 * math.pi)
+                self.mav.attitude_send(boot_ms, 0.0, 0.0, yaw, 0.0, 0.0, -st.omega)
+            due[att] = now + self.intervals[att] if math.isfinite(self.intervals[att]) else now + 0.5

@@ -1,87 +1,372 @@
-"""The MAVLink link against the emulated ArduPilot Rover, real pymavlink framing over UDP on 127.0.0.1."""
+"""The MAVLink link against the emulated ArduPilot Rover: real pymavlink framing over UDP or TCP on 127.0.0.1.
+
+The emulator (:mod:`sim_learner.mavlink_rover`) follows ArduPilot's source, so each test here states something the
+real vehicle does and checks the driver copes with it: the operator's RC switch wins, commands are acknowledged or
+refused with a reason, a disarm can be lost on close, the EKF origin comes late, the radio drops out, the vehicle
+reboots, other systems share the link.
+"""
 
 from __future__ import annotations
 
+import logging
 import math
 import socket
+import threading
 import time
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from typing import Any
 
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from pymavlink import mavutil
 
 from bridge.config import MavlinkLinkConfig
-from drivers import open_driver
+from drivers import DriverError, open_driver
 from drivers.mavlink import TYPE_MASK_VEL_YAWRATE
-from sim_learner.dynamics import mpc_learner
-from sim_learner.mavlink_rover import GUIDED, HOLD, MavlinkRover
+from sim_learner.dynamics import LearnerModel, mpc_learner
+from sim_learner.mavlink_rover import GUIDED, MODES, MavlinkRover
 from sim_learner.vehicle import SimVehicle
 
+MAV = mavutil.mavlink
+MODE_OR_ARM = (MAV.MAV_CMD_DO_SET_MODE, MAV.MAV_CMD_COMPONENT_ARM_DISARM)
+REVERSIBLE = LearnerModel((-0.5, 0.5), (-1.0, 1.0), name="reversible")
 
-@pytest.fixture
-def rig():
-    vehicle = SimVehicle(mpc_learner(), (1.0, 2.0, 0.3), now=time.monotonic())
-    rover = MavlinkRover(vehicle, init_s=0.3, target_timeout=0.6).start()
-    cfg = MavlinkLinkConfig(url=f"udpout:127.0.0.1:{rover.port}", rate_hz=20, open_timeout=15)
+
+@contextmanager
+def rig(transport: str = "udp", *, model: LearnerModel | None = None, open_link: bool = True,
+        rover_kw: dict[str, Any] | None = None, **cfg_kw: Any) -> Iterator[tuple[Any, MavlinkRover, SimVehicle]]:
+    """A rover (fast boot: 0.2 s, EKF ready at 0.4 s, GUID_TIMEOUT 0.6 s) and a driver on it; both cleaned up."""
+    vehicle = SimVehicle(model or mpc_learner(), (1.0, 2.0, 0.3), now=time.monotonic())
+    rover = MavlinkRover(vehicle, transport=transport,
+                         **({"init_s": 0.2, "ekf_position_s": 0.4, "guid_timeout": 0.6} | (rover_kw or {}))).start()
+    url = f"udpout:127.0.0.1:{rover.port}" if transport == "udp" else f"tcp:127.0.0.1:{rover.port}"
+    cfg = MavlinkLinkConfig(url=url, **({"open_timeout": 10.0, "ack_timeout": 0.3, "heartbeat_timeout": 1.5}
+                                        | cfg_kw))
     driver = open_driver("mavlink", cfg)
     try:
-        driver.open(time.monotonic())
+        if open_link:
+            driver.open(time.monotonic())
         yield driver, rover, vehicle
     finally:
         driver.close()
         rover.stop()
 
 
-def test_open_reaches_guided_and_armed_even_if_the_first_mode_set_is_lost(rig) -> None:
-    driver, rover, _ = rig
-    assert driver.custom_mode == GUIDED and driver.armed and rover.armed
-    assert rover.lost_mode_sets >= 1  # the first DO_SET_MODE arrived while the autopilot was initialising
-    assert rover.intervals[32] == pytest.approx(0.05) and rover.intervals[30] == pytest.approx(0.05)
+def drive(driver: Any, seconds: float, v: float, w: float, poses: list | None = None) -> None:
+    """What the driver host does at 50 Hz: send, then poll."""
+    t_end = time.monotonic() + seconds
+    while time.monotonic() < t_end:
+        driver.send(v, w, time.monotonic())
+        got = driver.poll(time.monotonic())
+        if poses is not None:
+            poses += got
+        time.sleep(0.02)
 
 
-def test_velocity_set_points_follow_ardupilot_semantics_and_the_pose_comes_back_in_enu(rig) -> None:
-    driver, rover, vehicle = rig
-    poses = []
-    t0 = time.monotonic()
-    while time.monotonic() - t0 < 1.2:
-        driver.send(0.25, 0.1, time.monotonic())
-        poses += driver.poll(time.monotonic())
-        time.sleep(0.03)
-    sp = rover.setpoints[-1]
-    assert sp["frame"] == 8 and sp["type_mask"] == TYPE_MASK_VEL_YAWRATE == 0x05E7
-    assert sp["vx"] == pytest.approx(0.25) and sp["yaw_rate"] == pytest.approx(-0.1)  # NED is clockwise
-    body = vehicle.advance(time.monotonic())
-    last = poses[-1]
-    assert math.hypot(last.x - body.x, last.y - body.y) < 0.03 and abs(last.theta - body.theta) < 0.02
-    assert body.x > 1.1
-
-
-def test_set_points_outside_guided_are_dropped_silently(rig) -> None:
-    driver, rover, vehicle = rig
-    rover.custom_mode = HOLD
-    before = rover.dropped_setpoints
-    driver._setpoint(0.3, 0.0)  # what an unguarded sender would do
-    time.sleep(0.1)
-    assert rover.dropped_setpoints == before + 1
-    t_end = time.monotonic() + 4  # driving on, the driver sees the mode in the next HEARTBEAT and re-asserts GUIDED
-    while rover.custom_mode != GUIDED and time.monotonic() < t_end:
-        driver.send(0.3, 0.0, time.monotonic())
+def wait_for(driver: Any, pred: Callable[[], bool], timeout: float) -> bool:
+    """Poll the driver (as the host does) until ``pred()``."""
+    t_end = time.monotonic() + timeout
+    while time.monotonic() < t_end:
         driver.poll(time.monotonic())
+        if pred():
+            return True
+        time.sleep(0.02)
+    return False
+
+
+def commands_after(rover: MavlinkRover, t: float, kinds: tuple[int, ...] = MODE_OR_ARM) -> list[dict]:
+    return [c for c in rover.commands if c["t"] > t and c["command"] in kinds]
+
+
+# ------------------------------------------------------------------------------------------------ basics
+def test_open_reaches_guided_and_armed_with_position_streaming() -> None:
+    with rig() as (driver, rover, _):
+        h = driver.health()
+        assert h.ok and h.connected and h.text == "driving: GUIDED, armed"
+        assert rover.custom_mode == GUIDED and rover.armed
+        assert rover.intervals[32] == pytest.approx(0.05) and rover.intervals[30] == pytest.approx(0.05)
+        assert all(c["result"] == MAV.MAV_RESULT_ACCEPTED for c in rover.commands)  # each one acked
+
+
+def test_velocity_set_points_follow_ardupilot_semantics_and_the_pose_comes_back_in_enu() -> None:
+    with rig() as (driver, rover, vehicle):
+        poses: list = []
+        drive(driver, 1.2, 0.25, 0.1, poses)
+        sp = rover.setpoints[-1]
+        assert sp["frame"] == MAV.MAV_FRAME_BODY_NED and sp["type_mask"] == TYPE_MASK_VEL_YAWRATE == 0x05E7
+        assert sp["vx"] == pytest.approx(0.25) and sp["yaw_rate"] == pytest.approx(-0.1)  # NED is clockwise
+        body = vehicle.advance(time.monotonic())
+        last = poses[-1]
+        assert math.hypot(last.x - body.x, last.y - body.y) < 0.03 and abs(last.theta - body.theta) < 0.02
+        assert body.x > 1.1 and last.v == pytest.approx(body.v, abs=1e-3)
+
+
+def test_reverse_speed_keeps_its_sign() -> None:
+    """Finding: ``_vel = hypot(vx, vy)`` reported a rover backing up as driving forward."""
+    with rig(model=REVERSIBLE) as (driver, _, vehicle):
+        poses: list = []
+        drive(driver, 1.0, -0.2, 0.0, poses)
+        assert vehicle.state.v == pytest.approx(-0.2)
+        assert poses[-1].v == pytest.approx(-0.2, abs=0.01)
+
+
+def test_rover_stops_when_set_points_stop() -> None:
+    with rig() as (driver, rover, vehicle):
+        drive(driver, 0.3, 0.3, 0.0)
+        assert vehicle.advance(time.monotonic()).v > 0
+        wait_for(driver, lambda: False, 1.0)  # > GUID_TIMEOUT (0.6 s here; ArduPilot's 3 s by default)
+        assert vehicle.advance(time.monotonic()).v == 0.0
+        assert "target not received last 0.6 secs, stopping" in rover.statustexts
+        assert MavlinkRover(vehicle).guid_timeout == 3.0
+
+
+# ---------------------------------------------------------------------------------------- the operator wins
+def test_an_rc_mode_switch_is_never_fought_and_driving_resumes_when_the_operator_gives_guided_back() -> None:
+    """Finding: a HEARTBEAT outside GUIDED made send() switch the vehicle back to GUIDED at the command rate."""
+    with rig() as (driver, rover, vehicle):
+        t_open = time.monotonic()
+        drive(driver, 0.3, 0.25, 0.0)
+        assert rover.rc_mode_switch("HOLD")  # ArduPilot sends a HEARTBEAT at once on a mode change
+        drive(driver, 0.1, 0.25, 0.0)  # (a set-point already on its way when the switch came is ignored)
+        ignored = rover.ignored_setpoints.get("not GUIDED", 0)
+        drive(driver, 1.5, 0.25, 0.0)  # a host that keeps calling send(): over a second of HEARTBEATs
+        for _ in range(5):  # and what the new host does when health() is not ok
+            driver.stop(time.monotonic())
         time.sleep(0.05)
-    assert rover.custom_mode == GUIDED
+        assert rover.mode_name == "HOLD" and commands_after(rover, t_open) == []
+        assert rover.ignored_setpoints.get("not GUIDED", 0) == ignored  # none sent: withheld, not ignored
+        h = driver.health()
+        assert not h.ok and h.connected and h.text == "operator took control: mode HOLD"
+        assert vehicle.advance(time.monotonic()).v == 0.0
+        assert rover.rc_mode_switch("GUIDED")
+        assert wait_for(driver, lambda: driver.health().ok, 2.0), driver.health().text
+        n = len(rover.setpoints)
+        drive(driver, 0.3, 0.25, 0.0)
+        assert len(rover.setpoints) > n and vehicle.advance(time.monotonic()).v > 0
+        assert commands_after(rover, t_open) == []
 
 
-def test_rover_stops_when_set_points_stop(rig) -> None:
-    driver, rover, vehicle = rig
-    for _ in range(10):
-        driver.send(0.3, 0.0, time.monotonic())
-        time.sleep(0.03)
-    assert vehicle.advance(time.monotonic()).v > 0
-    time.sleep(1.0)  # > target_timeout (0.6 s here; ArduPilot's 3 s by default)
-    driver.poll(time.monotonic())
-    assert vehicle.advance(time.monotonic()).v == 0.0
-    assert "target not received last 3secs, stopping" in rover.statustexts
-    assert MavlinkRover(vehicle).target_timeout == 3.0
+def test_an_operator_disarm_is_reported_and_never_undone() -> None:
+    with rig() as (driver, rover, _):
+        t_open = time.monotonic()
+        assert rover.rc_arm(False)
+        drive(driver, 1.2, 0.25, 0.0)
+        h = driver.health()
+        assert not h.ok and h.text == "vehicle disarmed in GUIDED: waiting for the operator to arm it"
+        assert not rover.armed and commands_after(rover, t_open) == []
+        assert rover.rc_arm(True)
+        assert wait_for(driver, lambda: driver.health().ok, 2.0), driver.health().text
+
+
+def test_close_leaves_a_vehicle_the_operator_has_taken_alone() -> None:
+    with rig() as (driver, rover, _):
+        assert rover.rc_mode_switch("MANUAL")
+        wait_for(driver, lambda: driver.custom_mode == MODES["MANUAL"], 2.0)
+        t = time.monotonic()
+        driver.close()
+        time.sleep(0.2)  # anything the driver sent has reached the vehicle by now
+        assert rover.armed and rover.mode_name == "MANUAL" and commands_after(rover, t) == []
+
+
+# ----------------------------------------------------------------------------------------- acknowledgements
+def test_arming_refused_is_reported_with_its_mav_result_and_the_prearm_text() -> None:
+    """Finding: commands were fire-and-forget; a refusal was only 'not armed within N s'. The ACK must also be ours:
+    another ground station's ACCEPTED for the same command (same vehicle, target 42/190) must not count."""
+    vehicle = SimVehicle(mpc_learner(), (0.0, 0.0, 0.0), now=time.monotonic())
+    with MavlinkRover(vehicle, init_s=0.2, ekf_position_s=0.3) as rover:
+        rover.safety_switch = True
+        stop = threading.Event()
+
+        def other_gcs_acks() -> None:
+            m = rover.foreign(1, 1)  # the vehicle itself answering a second ground station
+            while not stop.wait(0.05):
+                m.command_ack_send(MAV.MAV_CMD_COMPONENT_ARM_DISARM, MAV.MAV_RESULT_ACCEPTED, 0, 0, 42, 190)
+
+        th = threading.Thread(target=other_gcs_acks, daemon=True)
+        driver = open_driver("mavlink", MavlinkLinkConfig(url=f"udpout:127.0.0.1:{rover.port}", open_timeout=3.0,
+                                                          ack_timeout=0.3))
+        th.start()
+        t0 = time.monotonic()
+        try:
+            with pytest.raises(DriverError, match=r"arming refused: MAV_RESULT_FAILED \(PreArm: Hardware safety "
+                                                  r"switch\)"):
+                driver.open(t0)
+        finally:
+            stop.set()
+            th.join(1.0)
+            driver.close()
+        assert time.monotonic() - t0 < 3.0 + 2.0  # bounded by open_timeout
+        arms = [c for c in rover.commands if c["command"] == MAV.MAV_CMD_COMPONENT_ARM_DISARM]
+        assert arms and all(c["result"] == MAV.MAV_RESULT_FAILED for c in arms)
+        assert not rover.armed and "arming refused: MAV_RESULT_FAILED" in driver.health().detail["last_refusal"]
+
+
+def test_open_waits_for_the_ekf_origin_before_reporting_ready() -> None:
+    """Finding: a rover without GPS has a position estimate (it accepts GUIDED and arms) but no EKF origin, and
+    ArduPilot silently ignores every set-point until it has one: the first commands were 'applied' to a vehicle that
+    did not move. LOCAL_POSITION_NED only streams once there is an origin."""
+    with rig(rover_kw={"ekf_position_s": 0.0, "ekf_origin_s": 1.5}) as (driver, rover, vehicle):
+        assert rover.has_origin(time.monotonic())  # open() returned only once set-points count
+        drive(driver, 0.5, 0.25, 0.0)
+        assert rover.ignored_setpoints.get("no EKF origin", 0) == 0
+        assert rover.setpoints and vehicle.advance(time.monotonic()).v > 0
+
+
+def test_close_stops_disarms_and_waits_for_the_ack_over_tcp() -> None:
+    """Finding: close() sent the disarm and closed at once. ArduPilot's TCP port drops what arrives just before its
+    peer closes (SITL UARTDriver), so the vehicle stayed armed after `scmbridge driver` exited."""
+    with rig("tcp") as (driver, rover, _):
+        drive(driver, 0.3, 0.25, 0.0)
+        t0 = time.monotonic()
+        driver.close()
+        assert time.monotonic() - t0 < 3.0
+        assert not rover.armed
+        disarm = [c for c in rover.commands if c["command"] == MAV.MAV_CMD_COMPONENT_ARM_DISARM][-1]
+        assert disarm["params"][0] == 0.0 and disarm["result"] == MAV.MAV_RESULT_ACCEPTED
+        before = [s for s in rover.setpoints if s["t"] <= disarm["t"]]
+        assert before[-1]["vx"] == 0.0 and before[-1]["yaw_rate"] == 0.0  # stopped first
+
+
+def test_close_over_udp_returns_only_once_the_disarm_is_acknowledged() -> None:
+    with rig() as (driver, rover, _):
+        drive(driver, 0.2, 0.25, 0.0)
+        driver.close()
+        assert not rover.armed  # no sleep: close() waited for the vehicle's answer
+
+
+# ------------------------------------------------------------------------------------------ supervision
+def test_heartbeat_loss_is_reported_and_recovery_touches_neither_mode_nor_arming() -> None:
+    """Finding: `connected` never turned false."""
+    with rig(heartbeat_timeout=1.5) as (driver, rover, _):
+        t_open = time.monotonic()
+        drive(driver, 0.2, 0.2, 0.0)
+        rover.radio_blackout(True)
+        assert wait_for(driver, lambda: not driver.health().connected, 3.0)
+        h = driver.health()
+        assert not h.ok and h.text.startswith("no heartbeat for ") and float(h.text.split()[3]) >= 1.5
+        n = len(rover.setpoints)
+        drive(driver, 0.3, 0.2, 0.0)  # the host keeps calling: nothing goes out while the link is down
+        rover.radio_blackout(False)
+        assert wait_for(driver, lambda: driver.health().ok, 3.0), driver.health().text
+        assert len(rover.setpoints) == n and commands_after(rover, t_open) == []
+        assert driver.health().detail["link_losses"] == 1
+
+
+def test_tcp_reconnects_after_a_reboot_and_waits_for_the_operator() -> None:
+    """A rebooted vehicle comes back in INITIAL_MODE, disarmed: the driver re-opens the connection, asks for its
+    streams again, says so, and waits for the operator instead of changing the mode or arming."""
+    with rig("tcp", heartbeat_timeout=1.5, reconnect_max_s=0.5) as (driver, rover, vehicle):
+        drive(driver, 0.2, 0.2, 0.0)
+        port = rover.port
+        rover.stop()
+        assert wait_for(driver, lambda: not driver.health().connected, 3.0)
+        rover2 = MavlinkRover(vehicle, port=port, transport="tcp", init_s=0.2, ekf_position_s=0.4).start()
+        try:
+            assert wait_for(driver, lambda: driver.health().connected and rover2.intervals[32] == 0.05
+                            and rover2.intervals[30] == 0.05, 6.0)
+            assert wait_for(driver, lambda: driver.health().text.startswith("vehicle rebooted: mode MANUAL"), 2.0)
+            assert "disarmed" in driver.health().text and not driver.health().ok
+            assert {c["command"] for c in rover2.commands} == {MAV.MAV_CMD_SET_MESSAGE_INTERVAL}  # streams only
+            assert driver.health().detail["reconnects"] >= 1
+            assert rover2.rc_mode_switch("GUIDED")
+            assert wait_for(driver, lambda: rover2.rc_arm(True), 2.0)
+            assert wait_for(driver, lambda: driver.health().ok, 3.0), driver.health().text
+            drive(driver, 0.3, 0.2, 0.0)
+            assert rover2.setpoints
+        finally:
+            driver.close()
+            rover2.stop()
+
+
+def test_statustexts_are_logged_and_the_last_few_are_in_health(caplog: pytest.LogCaptureFixture) -> None:
+    """Finding: STATUSTEXT went to an unbounded list nobody read."""
+    with rig(statustext_keep=3) as (driver, rover, _), caplog.at_level(logging.INFO, "scmbridge.driver.mavlink"):
+        for i in range(6):
+            rover.text(f"PreArm: check {i}")
+        assert wait_for(driver, lambda: driver.statustexts[-1:] == ["PreArm: check 5"], 2.0)
+        assert driver.health().detail["statustexts"] == ["PreArm: check 3", "PreArm: check 4", "PreArm: check 5"]
+        assert "vehicle: PreArm: check 0" in caplog.text
+
+
+def test_other_systems_on_the_link_are_ignored_and_counted() -> None:
+    """Finding: only HEARTBEAT was filtered by system id; a second vehicle's position was taken as ours."""
+    with rig() as (driver, rover, vehicle):
+        other, gcs = rover.foreign(2, 1), rover.foreign(200, 190)
+        poses: list = []
+        for _ in range(10):
+            other.heartbeat_send(MAV.MAV_TYPE_GROUND_ROVER, MAV.MAV_AUTOPILOT_ARDUPILOTMEGA, 0, MODES["HOLD"], 4)
+            other.attitude_send(0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0)
+            other.local_position_ned_send(0, 100.0, 100.0, 0.0, 1.0, 0.0, 0.0)
+            gcs.command_ack_send(MAV.MAV_CMD_COMPONENT_ARM_DISARM, MAV.MAV_RESULT_ACCEPTED, 0, 0, 255, 190)
+            drive(driver, 0.05, 0.2, 0.0, poses)
+        h = driver.health()
+        assert h.ok and driver.custom_mode == GUIDED and driver.armed
+        body = vehicle.advance(time.monotonic())
+        assert poses and all(math.hypot(p.x - body.x, p.y - body.y) < 0.5 for p in poses)
+        assert h.detail["foreign"] >= 40 and (2, 1) in h.detail["foreign_ids"]
+
+
+def test_set_points_repeat_at_the_set_point_rate_but_a_change_goes_at_once() -> None:
+    """Finding: one set-point per send() call, 50 Hz: 56 % of a 57600-baud radio."""
+    with rig(setpoint_rate_hz=10.0) as (driver, rover, _):
+        drive(driver, 0.2, 0.2, 0.0)
+        n0 = len(rover.setpoints)
+        drive(driver, 1.0, 0.2, 0.0)  # 50 calls, one unchanged command
+        assert 8 <= len(rover.setpoints) - n0 <= 13
+        n1 = len(rover.setpoints)
+        driver.send(0.1, 0.05, time.monotonic())  # a new command: now, not at the next period
+        driver.stop(time.monotonic())  # and a stop right after it
+        time.sleep(0.05)
+        assert [(s["vx"], s["yaw_rate"]) for s in rover.setpoints[n1:]] == [(pytest.approx(0.1), pytest.approx(-0.05)),
+                                                                             (0.0, 0.0)]
+
+
+# ------------------------------------------------------------------------------------------ the emulator
+def test_the_emulated_rover_answers_like_ardupilot() -> None:
+    """The emulator itself (raw pymavlink, no driver): ACKs addressed to the sender, refusals with their texts,
+    set-points ignored silently outside GUIDED and without an EKF origin."""
+    vehicle = SimVehicle(mpc_learner(), (0.0, 0.0, 0.0), now=time.monotonic())
+    with MavlinkRover(vehicle, init_s=0.1, ekf_position_s=60.0) as rover:
+        c = mavutil.mavlink_connection(f"udpout:127.0.0.1:{rover.port}", source_system=250, source_component=190)
+        try:
+            c.mav.heartbeat_send(MAV.MAV_TYPE_GCS, MAV.MAV_AUTOPILOT_INVALID, 0, 0, 0)
+
+            def ask(command: int, *p: float) -> tuple[Any, list[str]]:
+                c.mav.command_long_send(1, 1, command, 0, *p, *([0.0] * (7 - len(p))))
+                ack, texts, t_end = None, [], time.monotonic() + 1.0
+                while time.monotonic() < t_end:
+                    m = c.recv_match(type=["COMMAND_ACK", "STATUSTEXT"], blocking=True, timeout=0.1)
+                    if m is not None and m.get_type() == "COMMAND_ACK":
+                        ack = m
+                    elif m is not None:
+                        texts.append(m.text)
+                        if ack is not None:
+                            break
+                return ack, texts
+
+            assert c.recv_match(type="HEARTBEAT", blocking=True, timeout=2.0) is not None
+            time.sleep(0.2)  # boot over: INITIAL_MODE
+            ack, texts = ask(MAV.MAV_CMD_DO_SET_MODE, MAV.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, 99)
+            assert ack.result == MAV.MAV_RESULT_FAILED and "No such mode 99" in texts
+            assert (ack.target_system, ack.target_component) == (250, 190)
+            c.mav.set_position_target_local_ned_send(0, 1, 1, MAV.MAV_FRAME_BODY_NED, 0x05E7, 0, 0, 0, 0.3, 0, 0,
+                                                     0, 0, 0, 0, 0)
+            ack, _ = ask(MAV.MAV_CMD_DO_SET_MODE, MAV.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, GUIDED)  # disarmed: ok
+            assert ack.result == MAV.MAV_RESULT_ACCEPTED and rover.ignored_setpoints == {"not GUIDED": 1}
+            ack, texts = ask(MAV.MAV_CMD_COMPONENT_ARM_DISARM, 1)
+            assert ack.result == MAV.MAV_RESULT_FAILED and "PreArm: Need Position Estimate" in texts
+            ack, _ = ask(MAV.MAV_CMD_SET_MESSAGE_INTERVAL, 9999, 1e5)
+            assert ack.result == MAV.MAV_RESULT_FAILED
+            ack, _ = ask(MAV.MAV_CMD_SET_MESSAGE_INTERVAL, MAV.MAVLINK_MSG_ID_ATTITUDE, 1e5)
+            assert ack.result == MAV.MAV_RESULT_ACCEPTED and rover.intervals[30] == pytest.approx(0.1)
+            c.mav.set_position_target_local_ned_send(0, 1, 1, MAV.MAV_FRAME_BODY_NED, 0x05E7, 0, 0, 0, 0.3, 0, 0,
+                                                     0, 0, 0, 0, 0)
+            time.sleep(0.05)
+            assert rover.ignored_setpoints.get("no EKF origin") == 1 and rover.setpoints == []
+        finally:
+            c.close()
 
 
 @settings(max_examples=25, deadline=None)
