@@ -1,4 +1,4 @@
-"""An emulated ArduPilot Rover (4.x) on MAVLink 2, driving the software learner (DESIGN.md section 5).
+"""An emulated ArduPilot Rover (4.x) on MAVLink 2, driving the software learner.
 
 It is written from ArduPilot's published source and documentation, not from our driver, so that a test catches a
 driver that is wrong about the vehicle. Paths are in github.com/ArduPilot/ardupilot; what it does and where from:
