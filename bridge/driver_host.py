@@ -199,7 +199,10 @@ class DriverHost:
             self.inputs.subscribe(session, k.mocap, M.LearnerState, "mocap", self.on_mocap)
         self.pubs = {"applied": session.declare_publisher(k.applied), "state": session.declare_publisher(k.state),
                      "status": session.declare_publisher(M.status_key(self.robot, "driver"))}
-        self.driver.open(time.monotonic())
+        self._put("status", M.Status(stamp=time.monotonic(), seq=self.seq["status"], node="driver", ok=False,
+                                     text=f"link {self.link}: opening (vehicle not yet ready)"))
+        self.seq["status"] += 1
+        self.driver.open(time.monotonic())  # may block up to the link's open_timeout (MAVLink: EKF, arming)
         log.info("driver host for %s on link %s at %.0f Hz (epoch %x)", self.robot, self.link, 1 / self.period,
                  self.epoch)
         self.loop(stop, duration)

@@ -465,6 +465,13 @@ def test_a_recorded_demo_reports_the_live_demos_figures(tmp_path: Path) -> None:
         time.sleep(0.5)
         text = finish(rec)
     live = json.loads(line[len("summary: "):])
+    # the demo itself (make demo's job): the goal from no pairs, its figures, nothing left behind
+    assert live["reached_goal"] and live["raw_pairs"] > 100 and live["methods"]["scm"] > 0
+    assert live["max_dev_m"] < 1.0 and math.isfinite(live["mean_dev_m"])
+    for fig in ("demo_trajectory.png", "demo_pairs.png"):
+        assert (demo_out / fig).stat().st_size > 10_000, fig
+    left = subprocess.run(["pgrep", "-f", f"--store {demo_out}"], capture_output=True, text=True)
+    assert left.stdout.strip() == "", "the demo left a process behind"
     assert "stopped: signal" in text, text
     proc = subprocess.run([sys.executable, "-m", "bridge.cli", "report", str(out), "--out", str(tmp_path / "rep")],
                           capture_output=True, text=True, timeout=300)
