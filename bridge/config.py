@@ -341,6 +341,13 @@ def _explain(kind: type[Struct], err: msgspec.ValidationError) -> tuple[str, str
         return (f"{where}.{missing.group(1)}" if where else missing.group(1)), "required key is missing"
     msg = msg.replace("Expected `float`", "expected a finite number").replace("`", "'")
     msg = msg[:1].lower() + msg[1:]
+    if msg.startswith("invalid enum value") and keys:
+        owner = _struct_at(kind, keys[:-1])
+        tp = get_type_hints(owner, include_extras=True).get(keys[-1]) if owner is not None else None
+        while tp is not None and get_origin(tp) is Annotated:
+            tp = get_args(tp)[0]
+        if tp is not None and get_origin(tp) is Literal:
+            msg += " (one of: " + ", ".join(repr(a) for a in get_args(tp)) + ")"
     if "<= 1000000000.0" in msg or ">= -1000000000.0" in msg:
         msg = "expected a finite number"
     return where, msg

@@ -1,0 +1,93 @@
+"""Typed configuration: every mistake a user can make in a station, driver or mission file is refused with exit
+status 2 and one line naming the file, the key path and the problem, before anything opens; the commented default
+`scmbridge config show` prints is itself a valid file holding exactly the defaults."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import msgspec
+import pytest
+
+from bridge import config as C
+
+STATION_BAD = [
+    ("[station]\nhorizn = 5\n", "station.horizn", "did you mean 'horizon'"),
+    ('[station]\nrate_hz = "10"\n', "station.rate_hz", "expected a finite number"),
+    ("[station]\nrate_hz = -50\n", "station.rate_hz", ">= 0.5"),
+    ("[station]\npersist_every_s = nan\n", "station.persist_every_s", ">= 0.1"),
+    ("[station]\nmax_pose_age_s = inf\n", "station.max_pose_age_s", "<= 60.0"),
+    ("[teacher_bounds]\nv = [0.6, 0.05]\nw = [-1, 1]\n", "teacher_bounds", "min must be < max"),
+    ("[learner_bounds]\nv = [0.1]\nw = [-1, 1]\n", "learner_bounds.v", "length 2"),
+    ('[transfer]\nmapper = "magic"\n', "transfer.mapper", "scm"),
+    ("[transfer]\ngrid = [1, 11]\n", "transfer.grid[0]", ">= 2"),
+    ('[teacher]\nkind = "oracle"\n', "teacher.kind", "external"),
+    ("[calibration]\nreturn_radius_m = 3.0\nmax_distance_m = 2.0\n", "calibration", "must be below"),
+    ('robot = "a/b"\n', "robot", "regex"),
+    ("[stations]\nrate_hz = 10\n", "stations", "did you mean 'station'"),
+]
+DRIVER_BAD = [
+    ("[driver]\ncmd_timout = 0.05\n", "driver.cmd_timout", "did you mean 'cmd_timeout'"),
+    ("[driver.hard_limit]\nv = [0, 1]\nw = [-1, 1]\n", "driver.hard_limit", "did you mean 'hard_limits'"),
+    ("[driver]\ncmd_timeout = nan\n", "driver.cmd_timeout", "> 0.0"),
+    ("[driver]\ncmd_timeout = inf\n", "driver.cmd_timeout", "<= 10.0"),
+    ("[driver]\nrate_hz = 200\nmax_send_hz = 100\n", "driver", "below rate_hz"),
+    ("[link.can]\nleft_nod = 5\n", "link.can.left_nod", "did you mean 'left_node'"),
+    ("[link.can]\nwheel_radus = 0.1\n", "link.can.wheel_radus", "did you mean 'wheel_radius'"),
+    ("[link.can]\nwheel_radius = nan\n", "link.can.wheel_radius", "> 0.0"),
+    ("[link.can]\nleft_node = 1\nright_node = 1\n", "link.can", "each wheel needs its own node"),
+    ("[link.can]\nleft_sign = 0.5\n", "link.can", "must be 1 or -1"),
+    ("[link.udp]\nrobot_port = 70000\n", "link.udp.robot_port", "<= 65535"),
+    ('[driver]\npose_source = "gps"\n', "driver.pose_source", "mocap"),
+]
+
+
+@pytest.mark.parametrize(("text", "where", "problem"), STATION_BAD + DRIVER_BAD)
+def test_every_mistake_is_one_line_naming_the_key(tmp_path, text: str, where: str, problem: str) -> None:
+    f = tmp_path / "bad.toml"
+    f.write_text(text)
+    kind = "driver" if (text.startswith(("[driver", "[link"))) else "station"
+    with pytest.raises(C.ConfigError) as err:
+        C.check(str(f), kind)
+    line = str(err.value)
+    assert "\n" not in line and line.startswith(f"{f}: {where}"), line
+    assert problem in line, line
+
+
+def test_missing_and_malformed_files_are_one_line_too(tmp_path) -> None:
+    with pytest.raises(C.ConfigError, match="no such file"):
+        C.load_station(tmp_path / "none.toml")
+    bad = tmp_path / "broken.toml"
+    bad.write_text("[station\nrate_hz = 1\n")
+    with pytest.raises(C.ConfigError, match="not valid TOML"):
+        C.load_driver(bad)
+
+
+@pytest.mark.parametrize("kind", ["station", "driver", "mission"])
+def test_the_commented_default_is_a_valid_file_of_exactly_the_defaults(tmp_path, kind: str) -> None:
+    f = tmp_path / f"{kind}.toml"
+    f.write_text(C.show(kind))
+    got = C.load(f, C.KINDS[kind])
+    if kind != "mission":
+        assert got == msgspec.convert({}, C.KINDS[kind])
+
+
+@pytest.mark.parametrize("command", [["driver", "--link", "can"], ["driver", "--link", "udp"], ["station"],
+                                     ["calibrate"], ["config", "check"]])
+def test_every_command_that_reads_a_config_refuses_a_typo_before_opening_anything(tmp_path, command) -> None:
+    f = tmp_path / "typo.toml"
+    f.write_text("[driver]\ncmd_timout = 0.05\n" if command[0] == "driver" else "[station]\nhorizn = 5\n")
+    res = subprocess.run([sys.executable, "-m", "bridge.cli", *command, *(["--config"] if command[0] != "config"
+                                                                         else []), str(f)],
+                         capture_output=True, text=True, timeout=60)
+    assert res.returncode == 2
+    lines = res.stderr.strip().splitlines()
+    assert len(lines) == 1 and "unknown key (did you mean" in lines[0] and str(f) in lines[0], res.stderr
+    assert "Traceback" not in res.stderr
+
+
+def test_a_non_finite_start_pose_is_an_argument_error() -> None:
+    res = subprocess.run([sys.executable, "-m", "bridge.cli", "driver", "--link", "can", "--x0", "nan,0,0"],
+                         capture_output=True, text=True, timeout=60)
+    assert res.returncode == 2 and "three finite numbers" in res.stderr and "Traceback" not in res.stderr
