@@ -11,10 +11,13 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 from matplotlib.patches import Circle, Rectangle  # noqa: E402
 
+from sim_learner.runs import deviation_profile  # noqa: E402
 from transfer.domain import Bounds  # noqa: E402
 from transfer.store import PairStore  # noqa: E402
 
-COLORS = {"teacher": "tab:green", "scm": "tab:blue", "baseline": "tab:red"}
+COLORS = {"teacher": "tab:green", "scm": "tab:blue", "baseline": "tab:red", "baseline_true": "tab:orange"}
+#: grid-figure codes of the policy's methods (anything else: 0, with "direct")
+METHOD_CODES = {"direct": 0, "perturb": 1, "barycentric": 1.5, "scm": 2}
 
 
 def _world(ax, world) -> None:
@@ -58,11 +61,7 @@ def mpc_figures(out: FsPath, world, runs, store: PairStore, true_box: Bounds, TB
 
     fig, ax = plt.subplots(figsize=(7, 3.5))
     for r in runs:
-        prog, dev = [], []
-        for p in r.poses:
-            s, d = world.path.project(p[:2])
-            prog.append(s / world.path.length)
-            dev.append(d)
+        prog, dev = deviation_profile(r.poses, world)
         ax.plot(prog, dev, color=COLORS.get(r.name), label=r.name)
     ax.set_xlabel("task progress")
     ax.set_ylabel("deviation from path (m)")
@@ -101,9 +100,10 @@ def grid_figures(out: FsPath, store: PairStore, cmds, n: int, method, pos_err, a
     ext = [box.v[0], box.v[1], box.w[0], box.w[1]]
     names = list(pos_err)
     fig, axs = plt.subplots(2, len(names) + 1, figsize=(4 * (len(names) + 1), 7))
-    codes = np.array([{"scm": 2, "direct": 0, "perturb": 1}.get(m, 0) for m in method]).reshape(n, n)
-    axs[0, 0].imshow(codes.T, origin="lower", extent=ext, aspect="auto", cmap="viridis")
-    axs[0, 0].set_title("method (yellow: scm, purple: direct)")
+    codes = np.array([METHOD_CODES.get(m, 0) for m in method]).reshape(n, n)
+    axs[0, 0].imshow(codes.T, origin="lower", extent=ext, aspect="auto", cmap="viridis", vmin=0, vmax=2)
+    axs[0, 0].set_title("method (yellow: scm, green: barycentric,\nblue: perturb, purple: direct)",
+                        fontsize=8)
     axs[1, 0].axis("off")
     vmax = max(float(np.percentile(pos_err["identity"], 99)), 1e-9)
     for j, k in enumerate(names):

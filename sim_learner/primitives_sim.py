@@ -15,7 +15,7 @@ from pathlib import Path as FsPath
 import numpy as np
 
 from sim_learner.dynamics import PRIM_TEACHER_V, PRIM_TEACHER_W, LearnerModel, scaled_learner
-from sim_learner.experiments import DT, Progress
+from sim_learner.runs import DT, Progress
 from sim_learner.worlds import World, primitives_world
 from transfer.domain import Bounds
 from transfer.limits import calibration_commands
@@ -86,7 +86,9 @@ def follow(name: str, world: World, learner: LearnerModel, planner: PrimitivePla
             "max_dev_m": float(dev.max()), "mean_dev_m": float(dev.mean())}
 
 
-def run_primitives(seed: int = 0, quick: bool = False, out: FsPath | None = None, progress: bool = True) -> dict:
+def run_primitives(seed: int = 0, quick: bool = False, out: FsPath | None = None, progress: bool = True,
+                   exploration: str = "guided") -> dict:
+    """Paper Section 5.1: calibration, the learner's limits filter the library, SCM learner vs baseline learner."""
     world = primitives_world()
     learner = scaled_learner()
     TB = Bounds(PRIM_TEACHER_V, PRIM_TEACHER_W)
@@ -96,7 +98,7 @@ def run_primitives(seed: int = 0, quick: bool = False, out: FsPath | None = None
     calibrate(learner, store, lib.duration)
     kept = np.asarray(store.limits.contains(lib.commands, use_hull=True, tol=1e-6))
     planner = PrimitivePlanner(lib, k_d=1.0, k_theta=2.0, horizon=2)
-    policy = TransferPolicy(store, "scm", rng=np.random.default_rng(seed))
+    policy = TransferPolicy(store, "scm", rng=np.random.default_rng(seed), exploration=exploration)
     bar = Progress("primitives") if progress else None
     t_max = 90.0 if quick else 150.0
     rng = np.random.default_rng(seed)
@@ -108,6 +110,7 @@ def run_primitives(seed: int = 0, quick: bool = False, out: FsPath | None = None
     summary = {
         "experiment": "primitives",
         "quick": quick,
+        "exploration": exploration,
         "kept_primitives": int(kept.sum()),
         "total_primitives": len(lib),
         "learned_limits": store.limits.box.as_list(),
