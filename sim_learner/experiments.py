@@ -4,92 +4,99 @@ Each prints one JSON summary on stdout and writes PNG figures and the raw trajec
 learner is a black box here exactly as on a robot: the loop only sends it commands and reads its poses; the
 transfer code (``transfer/``) is the same the live station runs.
 
-- ``mpc``: from no pairs at all, the ideal teacher, the SCM learner and the baseline learner follow the S-path with
-  the teacher's MPC (paper Section 5.2).
+- ``mpc``: from no pairs at all, the ideal teacher, the SCM learner and two baseline learners follow the S-path with
+  the teacher's MPC (paper Section 5.2). ``--seeds 0-9`` (or ``0,3,5``) runs a seed sweep instead (at most two
+  worker processes) and prints, for every claim figure, the median, the spread and the worst seed, for each
+  exploration policy (``--policy guided|paper``, default both).
 - ``grid``: the exhaustive test of the paper: a dense grid of teacher commands inside the learned limits, each
   applied 0.1 s from the same pose to the teacher, the baseline, the SCM learner and each alternative mapper.
 - ``primitives``: the motion-primitive planner (paper Section 5.1) after a 5 x 5 calibration.
+
+The two baselines of the MPC case, both applying the teacher's commands to the learner as they are (clipped by the
+learner): ``teacher_range``, the MPC bounded by the teacher's own range (what the paper's baseline does, since it
+knows nothing of the learner); ``true_range``, the MPC bounded by the learner's true range (the commands the ideal
+teacher sends, closed-loop on the learner's poses). Only the SCM learner depends on the seed: its exploration's
+random samples and tie-breaks, and its start, moved by up to 1 mm and 1 mrad (:data:`START_JITTER`). The guided
+policy uses its random generator only for exact ties, so without the jitter every seed would give the same run; the
+jitter, far below anything physical, makes a sweep sample how the closed loop (its discrete choices: which cell,
+which region) amplifies tiny differences, as another CPU's floating point does. The ideal teacher and the baselines
+start at the world's start, are deterministic and are computed once per process.
 """
 
 from __future__ import annotations
 
 import argparse
+import functools
+import hashlib
 import json
 import math
+import multiprocessing
 import sys
 import time
-from dataclasses import dataclass, field
-from pathlib import Path as FsPath
+from collections.abc import Callable, Sequence
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 from numpy.typing import NDArray
 
 from sim_learner.dynamics import MPC_TEACHER_V, MPC_TEACHER_W, LearnerModel, mpc_learner
-from sim_learner.runs import DT, Progress
+from sim_learner.runs import DT, Progress, Run, explore_here, mean_dev_last_half
 from sim_learner.worlds import World, mpc_world
 from transfer.domain import Bounds
 from transfer.pairs import teacher_equivalent
-from transfer.policy import TransferPolicy
+from transfer.policy import EXPLORATIONS, TransferPolicy, planned_commands
 from transfer.store import PairStore
-from transfer.teacher.mpc import MpcConfig, MpcTeacher
+from transfer.teacher.mpc import MpcConfig, MpcResult, MpcTeacher
 from transfer.teacher.unicycle import step as teacher_step
 
 VEHICLE_RADIUS = 0.1  # m, for collision checks
+START_JITTER = (1e-3, 1e-3)  # m, rad: the seed's offset of the SCM learner's start (module docstring)
+PLAN_HINT = 10  # planned teacher commands passed to the guided policy (1 s of the MPC's plan)
+
+ApplyFn = Callable[[NDArray[np.float64], MpcResult], tuple[NDArray[np.float64], NDArray[np.float64], str]]
 
 
-@dataclass
-class Run:
-    """One closed-loop run: poses, commands sent, methods, whether and when it reached the goal."""
+@dataclass(frozen=True)
+class MpcCase:
+    """The MPC case's fixed parts: world, learner, both command boxes, the learner's true range on the teacher
+    domain and the time limit."""
 
-    name: str
-    poses: list[NDArray[np.float64]] = field(default_factory=list)
-    commands: list[NDArray[np.float64]] = field(default_factory=list)
-    teacher_cmds: list[NDArray[np.float64]] = field(default_factory=list)
-    methods: list[str] = field(default_factory=list)
-    reached: bool = False
-    collided: bool = False
-    time_s: float | None = None
-    solve_s: list[float] = field(default_factory=list)
-    failures: int = 0
-
-    def arrays(self) -> dict[str, NDArray]:
-        return {
-            f"{self.name}_poses": np.array(self.poses),
-            f"{self.name}_commands": np.array(self.commands).reshape(-1, 2),
-            f"{self.name}_teacher": np.array(self.teacher_cmds).reshape(-1, 2),
-        }
+    world: World
+    learner: LearnerModel
+    teacher_bounds: Bounds
+    learner_bounds: Bounds
+    true_box: Bounds
+    t_max: float
 
 
-def _deviation_profile(run: Run, world: World) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    """(progress in [0, 1], distance to the path) for every pose of a run."""
-    prog, dev = [], []
-    for p in run.poses:
-        s, d = world.path.project(p[:2])
-        prog.append(s / world.path.length)
-        dev.append(d)
-    return np.array(prog), np.array(dev)
+def mpc_case(quick: bool) -> MpcCase:
+    """The paper's MPC case, shortened (world scaled by 0.6) when ``quick``."""
+    learner = mpc_learner()
+    LB = Bounds(learner.v_range, learner.w_range)
+    lo, hi = learner.response(LB.lo), learner.response(LB.hi)
+    # the learner's true command range mapped onto the teacher domain: its extremes are fixed points of h, so
+    # the teacher equivalents of the learner's extreme commands are the same numbers
+    true_box = Bounds((float(lo[0]), float(hi[0])), (float(lo[1]), float(hi[1])))
+    return MpcCase(mpc_world(0.6 if quick else 1.0), learner, Bounds(MPC_TEACHER_V, MPC_TEACHER_W), LB, true_box,
+                   60.0 if quick else 120.0)
 
 
-def _mean_dev_last_half(run: Run, world: World) -> float | None:
-    prog, dev = _deviation_profile(run, world)
-    m = prog >= 0.5
-    return float(dev[m].mean()) if m.any() else None
+@functools.lru_cache(maxsize=1)
+def _mpc_teacher() -> MpcTeacher:
+    """One MPC per process (built once; ``reset`` before every run clears its warm start)."""
+    return MpcTeacher(MpcConfig(N=20, dt=DT))
 
 
-def closed_loop_mpc(
-    name: str,
-    world: World,
-    mpc: MpcTeacher,
-    bounds_fn,
-    apply_fn,
-    t_max: float,
-    progress: Progress | None = None,
-) -> Run:
-    """Drive one vehicle along the world's path: each tick the MPC (bounded by ``bounds_fn()``) proposes a
-    teacher command, ``apply_fn(state, u_T)`` turns it into motion and returns (next_state, command, method)."""
+def closed_loop_mpc(name: str, world: World, mpc: MpcTeacher, bounds_fn: Callable[[], Bounds], apply_fn: ApplyFn,
+                    t_max: float, progress: Progress | None = None, start: NDArray[np.float64] | None = None) -> Run:
+    """Drive one vehicle along the world's path from ``start`` (default the world's): each tick the MPC (bounded
+    by ``bounds_fn()``) proposes a teacher command, ``apply_fn(state, result)`` turns it into motion and returns
+    (next_state, command, method)."""
     mpc.reset()
     run = Run(name)
-    x = world.start.astype(float).copy()
+    x = np.array(world.start if start is None else start, dtype=float)
     run.poses.append(x.copy())
     steps = int(round(t_max / DT))
     for k in range(steps):
@@ -97,108 +104,325 @@ def closed_loop_mpc(
         res = mpc.solve(x, world.path, bounds_fn(), world.obstacles)
         run.solve_s.append(time.perf_counter() - t0)
         run.failures += int(not res.ok)
-        x, u_sent, method = apply_fn(x, res.u)
+        x, u_sent, method = apply_fn(x, res)
         run.poses.append(x.copy())
         run.commands.append(u_sent)
         run.teacher_cmds.append(res.u)
         run.methods.append(method)
         if world.collides(x[:2], VEHICLE_RADIUS):
             run.collided = True
-        s, _ = world.path.project(x[:2])
         if progress is not None and k % 10 == 0:
-            progress(s / world.path.length, name)
-        at_end = s >= world.path.length - 1e-6 or np.hypot(*(x[:2] - world.goal)) < world.goal_radius
-        if at_end and s >= 0.9 * world.path.length:
+            progress(world.progress(x[:2]), name)
+        if world.reached(x):  # the one goal rule (transfer.mission)
             run.reached = True
             run.time_s = (k + 1) * DT
             break
     return run
 
 
-def run_mpc(seed: int = 0, quick: bool = False, out: FsPath | None = None, progress: bool = True) -> dict:
-    """Paper Section 5.2: ideal teacher vs SCM learner vs baseline learner, no command pairs at the start."""
-    world = mpc_world(0.6 if quick else 1.0)
-    learner = mpc_learner()
-    TB = Bounds(MPC_TEACHER_V, MPC_TEACHER_W)
-    LB = Bounds(learner.v_range, learner.w_range)
-    # the learner's true command range mapped onto the teacher domain: its extremes are fixed points of h, so
-    # the teacher equivalents of the learner's extreme commands are the same numbers
-    true_box = Bounds(tuple(learner.response(LB.lo)[:1].tolist() + learner.response(LB.hi)[:1].tolist()),
-                      (float(learner.response(LB.lo)[1]), float(learner.response(LB.hi)[1])))
-    mpc = MpcTeacher(MpcConfig(N=20, dt=DT))
-    bar = Progress("mpc") if progress else None
-    t_max = 120.0 if not quick else 60.0
+# ------------------------------------------------------------------------------------------ the MPC case
+@dataclass(frozen=True)
+class References:
+    """The seed-independent runs of the MPC case: the ideal teacher and the two baselines."""
 
-    def ideal(x, u):
-        return teacher_step(x, u, DT), u, "teacher"
+    teacher: Run
+    baseline_teacher_range: Run
+    baseline_true_range: Run
 
-    teacher = closed_loop_mpc("teacher", world, mpc, lambda: true_box, ideal, t_max, bar)
 
-    store = PairStore(LB, TB, k_min=5)
-    policy = TransferPolicy(store, "scm", rng=np.random.default_rng(seed))
+_REFERENCES: dict[bool, References] = {}
 
-    def scm(x, u):
-        m = policy.map(u)
-        x1 = learner.step(x, m.u_L, DT)
-        store.add(teacher_equivalent(x, x1, DT), m.u_L)
-        return x1, m.u_L, m.method
 
-    scm_run = closed_loop_mpc("scm", world, mpc, lambda: store.limits.box, scm, t_max, bar)
+def mpc_references(quick: bool, progress: bool = False) -> References:
+    """Ideal teacher (the teacher model under the MPC bounded by the learner's true range) and the two baselines
+    (module docstring); deterministic, so computed once per process and shared by every seed."""
+    if quick not in _REFERENCES:
+        _REFERENCES[quick] = _compute_references(quick, progress)
+    return _REFERENCES[quick]
 
-    def baseline(x, u):
-        return learner.step(x, u, DT), learner.clamp(u), "direct"
 
-    base_t_max = 2.5 * (teacher.time_s or t_max / 2)
-    base = closed_loop_mpc("baseline", world, mpc, lambda: TB, baseline, base_t_max, bar)
+def _compute_references(quick: bool, progress: bool) -> References:
+    case = mpc_case(quick)
+    world, learner = case.world, case.learner
+    mpc = _mpc_teacher()
+    bar = Progress("refs") if progress else None
+
+    def ideal(x, res):
+        return teacher_step(x, res.u, DT), res.u, "teacher"
+
+    def direct(x, res):
+        return learner.step(x, res.u, DT), learner.clamp(res.u), "direct"
+
+    teacher = closed_loop_mpc("teacher", world, mpc, lambda: case.true_box, ideal, case.t_max, bar)
+    base_t_max = 2.5 * (teacher.time_s or case.t_max / 2)
+    base = closed_loop_mpc("baseline", world, mpc, lambda: case.teacher_bounds, direct, base_t_max, bar)
+    base_true = closed_loop_mpc("baseline_true", world, mpc, lambda: case.true_box, direct, base_t_max, bar)
     if bar:
         bar.done()
+    return References(teacher, base, base_true)
 
-    learned = store.limits.box
-    rel = [
-        abs(learned.v[0] - true_box.v[0]) / (true_box.v[1] - true_box.v[0]),
-        abs(learned.v[1] - true_box.v[1]) / (true_box.v[1] - true_box.v[0]),
-        abs(learned.w[0] - true_box.w[0]) / (true_box.w[1] - true_box.w[0]),
-        abs(learned.w[1] - true_box.w[1]) / (true_box.w[1] - true_box.w[0]),
-    ]
-    counts = {m: scm_run.methods.count(m) for m in ("scm", "direct", "perturb")}
-    solve = np.array(teacher.solve_s + scm_run.solve_s + base.solve_s) * 1e3
-    summary = {
+
+def scm_start(world: World, seed: int, jitter: tuple[float, float] = START_JITTER) -> NDArray[np.float64]:
+    """The SCM learner's start for a seed: the world's, moved uniformly within +-jitter (m in x and y, rad)."""
+    rng = np.random.default_rng(np.random.SeedSequence(seed).spawn(2)[1])
+    j = np.array([jitter[0], jitter[0], jitter[1]], dtype=float)
+    return world.start.astype(float) + rng.uniform(-1.0, 1.0, 3) * j
+
+
+def run_scm(seed: int, quick: bool, exploration: str = "guided",
+            progress: Progress | None = None) -> tuple[Run, PairStore]:
+    """The SCM learner from no pairs at all: the MPC bounded by the learned limits, each command mapped by the
+    transfer policy, each control interval paired and added to the store. The guided policy gets the teacher's
+    plan and may explore only away from obstacles (:func:`explore_here`); the paper's ignores both. The seed
+    drives the policy's random generator and the start's sub-millimetre jitter (:func:`scm_start`)."""
+    case = mpc_case(quick)
+    world, learner = case.world, case.learner
+    store = PairStore(case.learner_bounds, case.teacher_bounds, k_min=5)
+    policy = TransferPolicy(store, "scm", rng=np.random.default_rng(seed), exploration=exploration)
+
+    regions: list[tuple[int, ...]] = []
+
+    def scm(x, res):
+        m = policy.map(res.u, plan=planned_commands(res.predicted, DT, PLAN_HINT), explore=explore_here(world, x[:2]))
+        x1 = learner.step(x, m.u_L, DT)
+        store.add(teacher_equivalent(x, x1, DT), m.u_L)
+        regions.append(m.region)
+        return x1, m.u_L, m.method
+
+    run = closed_loop_mpc("scm", world, _mpc_teacher(), lambda: store.limits.box, scm, case.t_max, progress,
+                          scm_start(world, seed))
+    run.regions = regions
+    return run, store
+
+
+def _run_figures(run: Run, world: World) -> dict:
+    """Time, goal, last-half deviation and collision of one run."""
+    return {"time_s": run.time_s, "reached_goal": run.reached, "dev_last_half_m": mean_dev_last_half(run, world),
+            "collided": run.collided}
+
+
+def _with_ratios(fig: dict, ref: dict) -> dict:
+    """A run's figures with its time and last-half deviation as ratios to the ideal teacher's."""
+    def ratio(num: float | None, den: float | None) -> float | None:
+        return None if num is None or not den else float(num / den)
+
+    return {**fig, "time_ratio": ratio(fig["time_s"], ref["time_s"]),
+            "dev_ratio": ratio(fig["dev_last_half_m"], ref["dev_last_half_m"])}
+
+
+def reference_figures(quick: bool, progress: bool = False) -> dict:
+    """The ideal teacher's and both baselines' figures (JSON-ready; seed-independent)."""
+    refs = mpc_references(quick, progress)
+    world = mpc_case(quick).world
+    teacher = _run_figures(refs.teacher, world)
+    return {"teacher": teacher,
+            "baselines": {"teacher_range": _with_ratios(_run_figures(refs.baseline_teacher_range, world), teacher),
+                          "true_range": _with_ratios(_run_figures(refs.baseline_true_range, world), teacher)}}
+
+
+def scm_figures(run: Run, store: PairStore, quick: bool) -> dict:
+    """The SCM learner's figures (JSON-ready) without the ratios to the teacher."""
+    case = mpc_case(quick)
+    learned, true_box = store.limits.box, case.true_box
+    sv, sw = true_box.span
+    rel = [abs(learned.v[0] - true_box.v[0]) / sv, abs(learned.v[1] - true_box.v[1]) / sv,
+           abs(learned.w[0] - true_box.w[0]) / sw, abs(learned.w[1] - true_box.w[1]) / sw]
+    counts = run.method_counts()
+    solve = np.array(run.solve_s) * 1e3
+    return {**_run_figures(run, case.world),
+            "perturb_share": counts["perturb"] / max(len(run.methods), 1),
+            # guided "direct" anchored on the learned region (the paper's "direct" has no region)
+            "direct_from_region": sum(1 for m, r in zip(run.methods, run.regions) if m == "direct" and r),
+            "limits_rel_err": float(max(rel)),
+            "learned_limits": learned.as_list(),
+            "true_limits": true_box.as_list(),
+            "method_counts": counts,
+            "refined_pairs": len(store.refined()),
+            "raw_pairs": store.raw_count,
+            "mpc_solve_ms": {"median": float(np.median(solve)), "p95": float(np.percentile(solve, 95))},
+            "mpc_failures": run.failures,
+            # a fingerprint of every command sent: equal digests mean bit-identical runs (determinism checks)
+            "commands_digest": hashlib.sha256(np.array(run.commands, dtype=float).tobytes()).hexdigest()[:16]}
+
+
+def mpc_summary(seed: int, quick: bool, exploration: str, scm: dict, refs: dict) -> dict:
+    """The JSON summary of one MPC experiment from the SCM learner's and the references' figures."""
+    s = _with_ratios(scm, refs["teacher"])
+    return {
         "experiment": "mpc",
         "quick": quick,
         "seed": seed,
-        "teacher_time_s": teacher.time_s,
-        "scm_time_s": scm_run.time_s,
-        "baseline_time_s": base.time_s,
-        "baseline_reached_goal": base.reached,
-        "teacher_dev_last_half_m": _mean_dev_last_half(teacher, world),
-        "scm_dev_last_half_m": _mean_dev_last_half(scm_run, world),
-        "baseline_dev_last_half_m": _mean_dev_last_half(base, world),
-        "collisions": {"teacher": teacher.collided, "scm": scm_run.collided, "baseline": base.collided},
-        "limits_rel_err": float(max(rel)),
-        "learned_limits": learned.as_list(),
-        "true_limits": true_box.as_list(),
-        "method_counts": counts,
-        "refined_pairs": len(store.refined()),
-        "raw_pairs": store.raw_count,
-        "mpc_solve_ms": {"median": float(np.median(solve)), "p95": float(np.percentile(solve, 95))},
-        "mpc_failures": teacher.failures + scm_run.failures + base.failures,
+        "exploration": exploration,
+        "teacher_time_s": refs["teacher"]["time_s"],
+        "teacher_dev_last_half_m": refs["teacher"]["dev_last_half_m"],
+        "scm_time_s": s["time_s"],
+        "scm_reached_goal": s["reached_goal"],
+        "scm_dev_last_half_m": s["dev_last_half_m"],
+        "scm_time_ratio": s["time_ratio"],
+        "scm_dev_ratio": s["dev_ratio"],
+        "perturb_share": s["perturb_share"],
+        "collisions": {"teacher": refs["teacher"]["collided"], "scm": s["collided"],
+                       **{f"baseline_{k}": b["collided"] for k, b in refs["baselines"].items()}},
+        "baselines": refs["baselines"],
+        **{k: s[k] for k in ("direct_from_region", "limits_rel_err", "learned_limits", "true_limits",
+                             "method_counts", "refined_pairs", "raw_pairs", "mpc_solve_ms", "mpc_failures",
+                             "commands_digest")},
     }
+
+
+@dataclass(frozen=True)
+class MpcOutcome:
+    """One MPC experiment: its JSON-ready summary and the learned pair store (for the grid test)."""
+
+    summary: dict
+    store: PairStore
+
+
+def run_mpc(seed: int = 0, quick: bool = False, out: Path | None = None, progress: bool = True,
+            exploration: str = "guided") -> MpcOutcome:
+    """Paper Section 5.2: ideal teacher vs SCM learner vs the two baselines, no command pairs at the start."""
+    case = mpc_case(quick)
+    bar = Progress("mpc") if progress else None
+    refs = reference_figures(quick, progress)
+    scm_run, store = run_scm(seed, quick, exploration, bar)
+    if bar:
+        bar.done()
+    summary = mpc_summary(seed, quick, exploration, scm_figures(scm_run, store, quick), refs)
     if out is not None:
         out.mkdir(parents=True, exist_ok=True)
-        np.savez_compressed(out / "mpc_runs.npz", **teacher.arrays(), **scm_run.arrays(), **base.arrays(),
+        r = mpc_references(quick)
+        runs = [r.teacher, scm_run, r.baseline_teacher_range, r.baseline_true_range]
+        np.savez_compressed(out / "mpc_runs.npz", **{k: v for run in runs for k, v in run.arrays().items()},
                             scm_methods=np.array(scm_run.methods), store=np.frombuffer(store.to_bytes(), np.uint8))
         from sim_learner.figures import mpc_figures
 
-        summary["figures"] = mpc_figures(out, world, [teacher, scm_run, base], store, true_box, TB, LB)
-    summary["_store"] = store
-    return summary
+        summary["figures"] = mpc_figures(out, case.world, runs, store, case.true_box, case.teacher_bounds,
+                                         case.learner_bounds)
+    return MpcOutcome(summary, store)
 
 
-def run_grid(seed: int = 0, quick: bool = False, out: FsPath | None = None, progress: bool = True,
-             store: PairStore | None = None) -> dict:
-    """The paper's exhaustive test: a dense grid of teacher commands inside the learned limits, 0.1 s each."""
+# --------------------------------------------------------------------------------------------- the sweep
+#: the per-seed figures a sweep summarises (all "lower is better"; the worst seed is the one with the largest)
+SWEEP_FIGURES = ("scm_time_ratio", "scm_dev_ratio", "perturb_share", "limits_rel_err")
+
+
+def parse_seeds(text: str) -> list[int]:
+    """``"0-9"`` -> 0..9, ``"0,3,5"`` -> [0, 3, 5]; ranges and lists combine (``"0-2,7"``)."""
+    seeds: list[int] = []
+    for part in text.split(","):
+        part = part.strip()
+        if not part:
+            continue
+        if "-" in part:
+            a, b = part.split("-", 1)
+            lo, hi = int(a), int(b)
+            if hi < lo:
+                raise ValueError(f"seed range {part!r} is empty")
+            seeds.extend(range(lo, hi + 1))
+        else:
+            seeds.append(int(part))
+    if not seeds:
+        raise ValueError(f"no seeds in {text!r}")
+    return sorted(set(seeds))
+
+
+def figure_stats(values: dict[int, float | None]) -> dict:
+    """Median, min, max and worst seed of a per-seed figure (None: the run did not produce it, e.g. no goal:
+    counted as worst, listed in ``missing``, and the median is None if they are half or more)."""
+    seeds = sorted(values)
+    arr = np.array([np.inf if values[s] is None else float(values[s]) for s in seeds])
+    med = float(np.median(arr))
+    finite = arr[np.isfinite(arr)]
+    return {"median": med if math.isfinite(med) else None,
+            "min": float(finite.min()) if finite.size else None,
+            "max": float(arr.max()) if np.isfinite(arr.max()) else None,
+            "worst_seed": seeds[int(np.argmax(arr))],
+            "missing": [s for s in seeds if values[s] is None]}
+
+
+def summarise_sweep(per_seed: Sequence[dict]) -> dict:
+    """Statistics over the per-seed summaries of one exploration policy."""
+    stats = {f: figure_stats({s["seed"]: s[f] for s in per_seed}) for f in SWEEP_FIGURES}
+    stats["collided_seeds"] = [s["seed"] for s in per_seed if s["collisions"]["scm"]]
+    stats["no_goal_seeds"] = [s["seed"] for s in per_seed if not s["scm_reached_goal"]]
+    return stats
+
+
+def _sweep_task(task: tuple) -> tuple[dict, bytes | None]:
+    """One unit of a sweep, in a worker: the references' figures, or one seed's SCM figures and learned store."""
+    if task[0] == "refs":
+        return reference_figures(task[1]), None
+    _, seed, quick, exploration = task
+    run, store = run_scm(seed, quick, exploration)
+    return scm_figures(run, store, quick), store.to_bytes()
+
+
+def _compact(s: dict) -> dict:
+    keys = ("seed", "scm_time_s", "scm_reached_goal", "scm_time_ratio", "scm_dev_last_half_m", "scm_dev_ratio",
+            "perturb_share", "limits_rel_err", "method_counts", "direct_from_region", "refined_pairs",
+            "commands_digest")
+    return {**{k: s[k] for k in keys}, "collided": s["collisions"]["scm"]}
+
+
+@dataclass(frozen=True)
+class SweepOutcome:
+    """A seed sweep: its JSON-ready summary and the pair store each (exploration, seed) learned."""
+
+    summary: dict
+    stores: dict[tuple[str, int], PairStore]
+
+
+def sweep_mpc(seeds: Sequence[int], quick: bool = True, explorations: Sequence[str] = EXPLORATIONS,
+              workers: int = 2, progress: bool = True) -> SweepOutcome:
+    """The MPC case for every seed and exploration policy: per-seed figures, their median, spread and worst seed,
+    and the seed-independent references (ideal teacher, both baselines). ``workers`` > 1 uses a process pool
+    (spawned, at most 2 workers; a script calling this needs the ``if __name__ == "__main__"`` guard); 1 runs
+    in this process."""
+    for e in explorations:
+        if e not in EXPLORATIONS:
+            raise ValueError(f"unknown exploration {e!r}; known: {', '.join(EXPLORATIONS)}")
+    tasks: list[tuple] = [("refs", quick)] + [("scm", s, quick, e) for e in explorations for s in seeds]
+    workers = max(1, min(int(workers), 2))
+    bar = Progress("sweep") if progress else None
+    results: list[tuple[dict, bytes | None]] = []
+    if workers == 1:
+        for i, t in enumerate(tasks):
+            results.append(_sweep_task(t))
+            if bar:
+                bar((i + 1) / len(tasks), str(t[1:]))
+    else:
+        ctx = multiprocessing.get_context("spawn")
+        with ProcessPoolExecutor(max_workers=workers, mp_context=ctx) as pool:
+            for i, r in enumerate(pool.map(_sweep_task, tasks)):
+                results.append(r)
+                if bar:
+                    bar((i + 1) / len(tasks), str(tasks[i][1:]))
+    if bar:
+        bar.done()
+    refs = results[0][0]
+    policies = {}
+    for e in explorations:
+        per = [mpc_summary(t[1], quick, e, r[0], refs) for t, r in zip(tasks[1:], results[1:]) if t[3] == e]
+        policies[e] = {"stats": summarise_sweep(per), "per_seed": [_compact(s) for s in per]}
+    summary = {
+        "experiment": "mpc-sweep",
+        "quick": quick,
+        "seeds": list(seeds),
+        "references": {**refs, "note": "deterministic and seed-independent: the same for every seed"},
+        "policies": policies,
+    }
+    stores = {(t[3], t[1]): PairStore.from_bytes(r[1]) for t, r in zip(tasks[1:], results[1:]) if r[1] is not None}
+    return SweepOutcome(summary, stores)
+
+
+# ------------------------------------------------------------------------------------------ the grid test
+def run_grid(seed: int = 0, quick: bool = False, out: Path | None = None, progress: bool = True,
+             store: PairStore | None = None, exploration: str = "guided") -> dict:
+    """The paper's exhaustive test: a dense grid of teacher commands inside the learned limits, 0.1 s each, on
+    the pairs an MPC run (``seed``, ``exploration``) learned, or on ``store``. The SCM region is where the scm
+    policy's method is ``scm``; every mapper is compared on that region."""
     if store is None:
-        store = run_mpc(seed, quick, None, progress)["_store"]
+        store = run_mpc(seed, quick, None, progress, exploration).store
     learner = mpc_learner()
     box = store.limits.box
     n = 25 if quick else 60
@@ -213,7 +437,7 @@ def run_grid(seed: int = 0, quick: bool = False, out: FsPath | None = None, prog
     ang_err = {k: np.zeros(len(cmds)) for k in names}
     method = np.empty(len(cmds), dtype=object)
     for name in names:
-        pol = TransferPolicy(store, name, rng=np.random.default_rng(seed))
+        pol = TransferPolicy(store, name, rng=np.random.default_rng(seed), exploration=exploration)
         for i, u in enumerate(cmds):
             m = pol.map(u)
             if name == "scm":
@@ -229,13 +453,14 @@ def run_grid(seed: int = 0, quick: bool = False, out: FsPath | None = None, prog
         return {"median": float(np.median(a[mask])), "p95": float(np.percentile(a[mask], 95))}
 
     per_method = {}
-    for meth in ("scm", "direct", "perturb"):
+    for meth in sorted(set(method.tolist()) | {"scm", "direct", "perturb"}):
         mask = method == meth
         per_method[meth] = {"count": int(mask.sum()), "scm_pos_err_m": stats(pos_err["scm"], mask),
                             "baseline_pos_err_m": stats(pos_err["identity"], mask)}
     summary = {
         "experiment": "grid",
         "quick": quick,
+        "exploration": exploration,
         "commands": len(cmds),
         "scm_region_fraction": float(region.mean()),
         "scm_region_median_pos_err_m": float(np.median(pos_err["scm"][region])) if region.any() else None,
@@ -266,24 +491,47 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="scmbridge sim", description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("experiment", choices=["mpc", "grid", "primitives"])
-    ap.add_argument("--out", type=FsPath, default=FsPath("out"), help="directory for figures and trajectories")
+    ap.add_argument("--out", type=Path, default=Path("out"), help="directory for figures and trajectories")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--seeds", default=None, help="mpc only: a seed sweep, e.g. 0-9 or 0,3,5 (JSON of statistics)")
+    ap.add_argument("--policy", choices=list(EXPLORATIONS), default=None,
+                    help="the exploration policy (default: guided; a sweep runs both unless one is named)")
+    ap.add_argument("--workers", type=int, default=2, help="sweep worker processes (at most 2)")
     ap.add_argument("--quick", action="store_true", help="a shortened run (what the tests use)")
+    ap.add_argument("--store", type=Path, default=None,
+                    help="grid only: test the pairs of this pair-store file (e.g. one a sweep wrote) instead of a run")
     args = ap.parse_args(argv)
+    if args.store is not None and args.experiment != "grid":
+        ap.error("--store is for the grid experiment")
     t0 = time.perf_counter()
-    if args.experiment == "mpc":
-        summary = run_mpc(args.seed, args.quick, args.out)
+    if args.seeds is not None:
+        if args.experiment != "mpc":
+            ap.error("--seeds is for the mpc experiment")
+        explorations = [args.policy] if args.policy else list(EXPLORATIONS)
+        try:
+            seeds = parse_seeds(args.seeds)
+        except ValueError as exc:
+            ap.error(f"--seeds: {exc}")
+        outcome = sweep_mpc(seeds, args.quick, explorations, args.workers)
+        summary = outcome.summary
+        args.out.mkdir(parents=True, exist_ok=True)
+        for (e, seed), store in outcome.stores.items():
+            (args.out / f"pairs-{e}-{seed}.bin").write_bytes(store.to_bytes())
+        summary["wall_s"] = time.perf_counter() - t0
+        (args.out / "mpc_sweep.json").write_text(json.dumps(summary, indent=2) + "\n")
+    elif args.experiment == "mpc":
+        summary = run_mpc(args.seed, args.quick, args.out, exploration=args.policy or "guided").summary
     elif args.experiment == "grid":
-        summary = run_grid(args.seed, args.quick, args.out)
+        store = PairStore.from_bytes(args.store.read_bytes()) if args.store is not None else None
+        summary = run_grid(args.seed, args.quick, args.out, store=store, exploration=args.policy or "guided")
     else:
         from sim_learner.primitives_sim import run_primitives
 
-        summary = run_primitives(args.seed, args.quick, args.out)
-    summary.pop("_store", None)
+        summary = run_primitives(args.seed, args.quick, args.out, exploration=args.policy or "guided")
     summary["wall_s"] = time.perf_counter() - t0
     json.dump(summary, sys.stdout, indent=2)
     sys.stdout.write("\n")
     return 0
 
 
-__all__ = ["LearnerModel", "main", "run_grid", "run_mpc"]
+__all__ = ["MpcOutcome", "SweepOutcome", "main", "run_grid", "run_mpc", "sweep_mpc"]

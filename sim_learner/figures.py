@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from pathlib import Path as FsPath
+from pathlib import Path
 
 import matplotlib
 
@@ -13,10 +13,13 @@ from matplotlib.patches import Circle  # noqa: E402
 
 from bridge.plots import draw_box as _box  # noqa: E402  (shared with the station-side `scmbridge pairs plot`)
 from bridge.plots import draw_pairs  # noqa: E402
+from sim_learner.runs import deviation_profile  # noqa: E402
 from transfer.domain import Bounds  # noqa: E402
 from transfer.store import PairStore  # noqa: E402
 
-COLORS = {"teacher": "tab:green", "scm": "tab:blue", "baseline": "tab:red"}
+COLORS = {"teacher": "tab:green", "scm": "tab:blue", "baseline": "tab:red", "baseline_true": "tab:orange"}
+#: grid-figure codes of the policy's methods (anything else: 0, with "direct")
+METHOD_CODES = {"direct": 0, "perturb": 1, "barycentric": 1.5, "scm": 2}
 
 
 def draw_mission(ax, world) -> None:
@@ -38,7 +41,7 @@ def _pairs(ax_t, ax_l, store: PairStore, normalised: bool) -> None:
     draw_pairs(ax_t, ax_l, T, L)
 
 
-def mpc_figures(out: FsPath, world, runs, store: PairStore, true_box: Bounds, TB: Bounds, LB: Bounds) -> list[str]:
+def mpc_figures(out: Path, world, runs, store: PairStore, true_box: Bounds, TB: Bounds, LB: Bounds) -> list[str]:
     files = []
     fig, ax = plt.subplots(figsize=(9, 4))
     draw_mission(ax, world)
@@ -54,11 +57,7 @@ def mpc_figures(out: FsPath, world, runs, store: PairStore, true_box: Bounds, TB
 
     fig, ax = plt.subplots(figsize=(7, 3.5))
     for r in runs:
-        prog, dev = [], []
-        for p in r.poses:
-            s, d = world.path.project(p[:2])
-            prog.append(s / world.path.length)
-            dev.append(d)
+        prog, dev = deviation_profile(r.poses, world)
         ax.plot(prog, dev, color=COLORS.get(r.name), label=r.name)
     ax.set_xlabel("task progress")
     ax.set_ylabel("deviation from path (m)")
@@ -92,14 +91,15 @@ def mpc_figures(out: FsPath, world, runs, store: PairStore, true_box: Bounds, TB
     return files
 
 
-def grid_figures(out: FsPath, store: PairStore, cmds, n: int, method, pos_err, ang_err) -> list[str]:
+def grid_figures(out: Path, store: PairStore, cmds, n: int, method, pos_err, ang_err) -> list[str]:
     box = store.limits.box
     ext = [box.v[0], box.v[1], box.w[0], box.w[1]]
     names = list(pos_err)
     fig, axs = plt.subplots(2, len(names) + 1, figsize=(4 * (len(names) + 1), 7))
-    codes = np.array([{"scm": 2, "direct": 0, "perturb": 1}.get(m, 0) for m in method]).reshape(n, n)
-    axs[0, 0].imshow(codes.T, origin="lower", extent=ext, aspect="auto", cmap="viridis")
-    axs[0, 0].set_title("method (yellow: scm, purple: direct)")
+    codes = np.array([METHOD_CODES.get(m, 0) for m in method]).reshape(n, n)
+    axs[0, 0].imshow(codes.T, origin="lower", extent=ext, aspect="auto", cmap="viridis", vmin=0, vmax=2)
+    axs[0, 0].set_title("method (yellow: scm, green: barycentric,\nblue: perturb, purple: direct)",
+                        fontsize=8)
     axs[1, 0].axis("off")
     vmax = max(float(np.percentile(pos_err["identity"], 99)), 1e-9)
     for j, k in enumerate(names):
@@ -119,7 +119,7 @@ def grid_figures(out: FsPath, store: PairStore, cmds, n: int, method, pos_err, a
     return ["grid_errors.png"]
 
 
-def primitives_figures(out: FsPath, world, scm: dict, base: dict, lib, kept, store: PairStore) -> list[str]:
+def primitives_figures(out: Path, world, scm: dict, base: dict, lib, kept, store: PairStore) -> list[str]:
     fig, ax = plt.subplots(figsize=(10, 4.5))
     draw_mission(ax, world)
     for name, r in (("scm", scm), ("baseline", base)):

@@ -10,7 +10,7 @@ with position measurement noise.
 
 from __future__ import annotations
 
-from pathlib import Path as FsPath
+from pathlib import Path
 
 import numpy as np
 
@@ -66,8 +66,7 @@ def follow(name: str, world: World, learner: LearnerModel, planner: PrimitivePla
             cmds.append(u_L)
             if world.collides(x[:2], VEHICLE_RADIUS):
                 collided = True
-            s, _ = world.path.project(x[:2])
-            if np.hypot(*(x[:2] - world.goal)) < world.goal_radius and s > 0.9 * world.path.length:
+            if world.reached(x):  # the one goal rule (transfer.mission)
                 reached, t_goal = True, k * DT
                 break
             # event trigger: the learner left the local plan by more than epsilon
@@ -86,7 +85,9 @@ def follow(name: str, world: World, learner: LearnerModel, planner: PrimitivePla
             "max_dev_m": float(dev.max()), "mean_dev_m": float(dev.mean())}
 
 
-def run_primitives(seed: int = 0, quick: bool = False, out: FsPath | None = None, progress: bool = True) -> dict:
+def run_primitives(seed: int = 0, quick: bool = False, out: Path | None = None, progress: bool = True,
+                   exploration: str = "guided") -> dict:
+    """Paper Section 5.1: calibration, the learner's limits filter the library, SCM learner vs baseline learner."""
     world = primitives_world()
     learner = scaled_learner()
     TB = Bounds(PRIM_TEACHER_V, PRIM_TEACHER_W)
@@ -96,7 +97,7 @@ def run_primitives(seed: int = 0, quick: bool = False, out: FsPath | None = None
     calibrate(learner, store, lib.duration)
     kept = np.asarray(store.limits.contains(lib.commands, use_hull=True, tol=1e-6))
     planner = PrimitivePlanner(lib, k_d=1.0, k_theta=2.0, horizon=2)
-    policy = TransferPolicy(store, "scm", rng=np.random.default_rng(seed))
+    policy = TransferPolicy(store, "scm", rng=np.random.default_rng(seed), exploration=exploration)
     bar = Progress("primitives") if progress else None
     t_max = 90.0 if quick else 150.0
     rng = np.random.default_rng(seed)
@@ -108,6 +109,7 @@ def run_primitives(seed: int = 0, quick: bool = False, out: FsPath | None = None
     summary = {
         "experiment": "primitives",
         "quick": quick,
+        "exploration": exploration,
         "kept_primitives": int(kept.sum()),
         "total_primitives": len(lib),
         "learned_limits": store.limits.box.as_list(),

@@ -1,10 +1,21 @@
-"""What the paper's simulations share: the control interval and a progress line (``sim mpc``, ``sim primitives``)."""
+"""What the paper's simulations share: the control interval, a progress bar, one closed-loop run and its deviation.
+
+Both :mod:`sim_learner.experiments` (the MPC case, the grid test, the seed sweep) and
+:mod:`sim_learner.primitives_sim` (the motion-primitive case) import from here; neither imports the other.
+"""
 
 from __future__ import annotations
 
 import sys
+from dataclasses import dataclass, field
 
-DT = 0.1  # s, the paper's control interval
+import numpy as np
+from numpy.typing import NDArray
+
+from sim_learner.worlds import World
+
+DT = 0.1  # s, the control interval of every simulation (and the pairing interval)
+EXPLORE_CLEARANCE = 0.3  # m: the guided policy explores only this far from every obstacle's edge
 
 
 class Progress:
@@ -23,3 +34,60 @@ class Progress:
     def done(self) -> None:
         if self.tty:
             sys.stderr.write("\n")
+
+
+@dataclass
+class Run:
+    """One closed-loop run: poses, commands sent, the teacher's commands, methods, whether and when it reached
+    the goal."""
+
+    name: str
+    poses: list[NDArray[np.float64]] = field(default_factory=list)
+    commands: list[NDArray[np.float64]] = field(default_factory=list)
+    teacher_cmds: list[NDArray[np.float64]] = field(default_factory=list)
+    methods: list[str] = field(default_factory=list)
+    regions: list[tuple[int, ...]] = field(default_factory=list)  # refined-pair ids behind each command, if any
+    reached: bool = False
+    collided: bool = False
+    time_s: float | None = None
+    solve_s: list[float] = field(default_factory=list)
+    failures: int = 0
+
+    def arrays(self) -> dict[str, NDArray]:
+        """The run as named arrays for an ``.npz`` file."""
+        return {
+            f"{self.name}_poses": np.array(self.poses),
+            f"{self.name}_commands": np.array(self.commands).reshape(-1, 2),
+            f"{self.name}_teacher": np.array(self.teacher_cmds).reshape(-1, 2),
+        }
+
+    def method_counts(self) -> dict[str, int]:
+        """How many commands each method produced (every method that occurred, plus scm/direct/perturb)."""
+        counts = {m: 0 for m in ("scm", "direct", "perturb")}
+        for m in self.methods:
+            counts[m] = counts.get(m, 0) + 1
+        return counts
+
+
+def deviation_profile(poses: list[NDArray[np.float64]] | NDArray[np.float64],
+                      world: World) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """(progress along the path in [0, 1], distance to the path in m) for every pose."""
+    prog, dev = [], []
+    for p in poses:
+        s, d = world.path.project(np.asarray(p, dtype=float)[:2])
+        prog.append(s / world.path.length)
+        dev.append(d)
+    return np.array(prog), np.array(dev)
+
+
+def mean_dev_last_half(run: Run, world: World) -> float | None:
+    """Mean distance to the path over the poses in the second half of the path (by progress); None if the run
+    never got there. The paper's deviation claim is judged on this: the first half holds the misaligned start."""
+    prog, dev = deviation_profile(run.poses, world)
+    m = prog >= 0.5
+    return float(dev[m].mean()) if m.any() else None
+
+
+def explore_here(world: World, xy: NDArray[np.float64], clearance: float = EXPLORE_CLEARANCE) -> bool:
+    """May the guided policy explore at xy? Only at least ``clearance`` from every obstacle's edge."""
+    return world.obstacles.size == 0 or bool(world.clearance(xy).min() >= clearance)

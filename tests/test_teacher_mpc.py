@@ -43,7 +43,7 @@ def test_mpc_tracks_the_path_within_its_input_bounds_and_misses_obstacles(mpc: M
         assert np.all(np.isfinite(r.u)) and limits.contains(r.u, tol=1e-9)
         x = step(x, r.u, 0.1)
         assert not world.collides(x[:2], 0.05)
-        if np.hypot(*(x[:2] - world.goal)) < world.goal_radius:
+        if world.reached(x):
             break
     else:
         pytest.fail("the MPC did not reach the goal")

@@ -96,10 +96,5 @@ class Mission:
         return Mission(name or self.name, Polyline(self.path.points * k), self.obstacles * k, self.goal_tolerance,
                        start, self.frame)
 
-    # the simulations' older name for the tolerance
-    @property
-    def goal_radius(self) -> float:
-        return self.goal_tolerance
-
 
 __all__ = ["GOAL_MIN_PROGRESS", "Mission"]

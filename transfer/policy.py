@@ -1,6 +1,12 @@
 """The transfer policy: teacher command -> learner command, and how it was obtained (paper Section 5.2).
 
-``TransferPolicy.map(u_T)`` returns a :class:`Mapped` whose ``method`` is
+``TransferPolicy(store, mapper, rng, *, exploration=...).map(u_T, *, plan=None, explore=True)`` returns a
+:class:`Mapped` ``(u_L, method, region)``. Two exploration policies decide what happens where no mapping region
+holds u_T; both map through the region the same way where one does. The result is always finite and inside the
+learner's hard bounds; a non-finite u_T is refused with ValueError. With the ``identity`` mapper (the paper's
+baseline) every command is ``"direct"``, the teacher command clipped into the learner's box.
+
+``exploration="paper"``: the paper's algorithm as published (``plan`` and ``explore`` are ignored). ``method`` is
 
 - ``"scm"`` (or the alternative mapper's name): a mapping region holds u_T; or u_T lies inside the learned
   limits but just outside the triangulated region (within ``saturate``, normalised units, default 0.1 ~ one grid
@@ -11,14 +17,44 @@
   box) holds no refined pair yet: apply the teacher command as it is, clipped (explore; the pair it creates fills
   that cell);
 - ``"perturb"`` (exploration): u_T sits at a learned limit whose learner boundary has never been driven: the
-  learner's extreme command on that axis is sent once so the limit is measured, not extrapolated; or
+  learner's extreme command on that axis is sent once so the limit is measured, not extrapolated (the *probe*); or
   no region, but the cell of u_T is already configured: sample a command uniformly inside the nearest
   unconfigured cell around it (ring by ring; in the ring, the cell nearest to where the least-squares affine
   fit of the refined pairs puts u_T; ties broken by the policy's random generator) so that pairs are
   learned where they are missing. With every cell configured it falls back to ``"direct"``.
 
-With the ``identity`` mapper (the paper's baseline) every command is ``"direct"``. The result is always finite and
-inside the learner's hard bounds; a non-finite u_T is refused with ValueError.
+``exploration="guided"`` (the default): exploration should cost the mission as little as possible. Every command
+is the policy's best estimate of the learner command for u_T, or, when it explores, the point of the chosen
+unconfigured cell nearest to that estimate. ``method`` is
+
+- ``"scm"`` (or the alternative mapper's name): a mapping region holds u_T (no saturation: see ``"direct"``);
+- ``"barycentric"``: with the ``scm`` (or ``affine``) mapper, u_T lies in a Delaunay triangle of the refined pairs
+  but the mapper has no usable region there (no neighbour forms a simple counter-clockwise quadrilateral on both
+  sides: the slivers along a row of boundary-cell means): linear interpolation on that triangle, instead of
+  exploring around a command the learned pairs already enclose;
+- ``"direct"``: no region holds u_T, and the teacher command is applied directly *relative to the learned region*:
+  the estimate is the linear interpolation of the region's nearest point ``q`` (on a hull edge, between that
+  edge's two pairs) plus the offset ``u_T - q`` taken one-to-one in physical units, clipped into the learner's
+  box; ``region`` holds the pair ids of the triangle ``q`` lies on. Before there is a triangulated region (fewer
+  than three refined pairs, or all collinear) it is the paper's ``"direct"``, the teacher command itself,
+  clipped, with an empty ``region``. It joins the region's map continuously at the region's edge, so a saturated
+  controller's commands just outside the region of cell means are served without exploring (where the paper
+  maps the nearest point and drops the offset). Sent when ``u_T`` is within ``saturate`` (normalised teacher
+  units) of the region, when the estimate's learner cell holds no refined pair yet (the pair it creates fills that
+  cell), when ``explore`` is False, or when no cell next to it is left to explore;
+- ``"perturb"`` (only when ``explore`` is True): the probe of a never-driven limit, as in the paper but with the
+  other axis at the estimate rather than at the raw teacher command; or u_T is more than ``saturate`` outside the
+  region and the estimate's cell is configured: among the unconfigured cells adjacent to it (ring 1 only), the
+  one with the least ``d(estimate, cell) + d(plan, cell)`` is chosen, where ``d`` is the distance (normalised
+  learner units) to the cell's rectangle and ``d(plan, cell)`` the least distance of the estimates of the teacher's
+  next planned commands ``plan`` (0 without a plan); ties broken by the random generator (the only use of it). The
+  command sent is the point of that cell nearest to the estimate, moved ``inset`` (fraction of a cell) inside it,
+  not a uniform sample: the pair lands where it is missing at the least detour from what the mission needs.
+
+``explore=False`` (the caller's choice, e.g. near obstacles) means no perturbation of any kind in guided mode:
+the command is the region's map or the estimate. ``plan`` is an optional (K, 2) array of the teacher's next
+planned commands (teacher units, after u_T; :func:`planned_commands` recovers them from an MPC's predicted states);
+it only steers which cell is explored. The method names are those of the bridge's ``Command`` message.
 """
 
 from __future__ import annotations
@@ -28,8 +64,20 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from transfer.mappers import AffineMapper, IdentityMapper, make_mapper
+from transfer.mappers import AffineMapper, BarycentricMapper, IdentityMapper, Region, make_mapper
+from transfer.pairs import teacher_equivalent
 from transfer.store import PairStore
+
+EXPLORATIONS = ("paper", "guided")
+
+
+def planned_commands(predicted: ArrayLike, dt: float, k: int = 10) -> NDArray[np.float64]:
+    """The teacher's next ``k`` planned commands after the one it sends, from its predicted states ``(N + 1, 3)``
+    (an MPC's plan of the teacher's own Euler model: f_T^-1 of consecutive predicted states is exactly its input)."""
+    pred = np.asarray(predicted, dtype=float)
+    if pred.ndim != 2 or pred.shape[0] < 3 or pred.shape[1] != 3 or not np.all(np.isfinite(pred)):
+        return np.zeros((0, 2))
+    return teacher_equivalent(pred[:-1], pred[1:], dt)[1:1 + k]
 
 
 @dataclass(frozen=True)
@@ -45,17 +93,35 @@ class TransferPolicy:
     """Maps teacher commands to learner commands with a mapper over a :class:`PairStore` (see module docstring)."""
 
     def __init__(self, store: PairStore, mapper: str | object = "scm", rng: np.random.Generator | None = None,
-                 *, seed: int | None = None, saturate: float = 0.1, probe_tol: float = 1e-6) -> None:
+                 *, seed: int | None = None, saturate: float = 0.1, probe_tol: float = 1e-6,
+                 exploration: str = "guided", inset: float = 0.1) -> None:
+        """``mapper``: a mapper name (``scm``, ``barycentric``, ``affine``, ``identity``) or object; ``rng`` (or
+        ``seed``): the random generator of the exploration; ``saturate``: normalised teacher distance to the
+        learned region below which commands are served from the region instead of explored; ``probe_tol``: how
+        close to a never-driven learned limit a command must be to probe it; ``exploration``: ``"guided"`` or
+        ``"paper"``; ``inset``: how far (fraction of a cell) inside the chosen cell a guided perturbation lands."""
+        if exploration not in EXPLORATIONS:
+            raise ValueError(f"unknown exploration {exploration!r}; known: {', '.join(EXPLORATIONS)}")
+        if not 0.0 <= inset < 0.5:
+            raise ValueError(f"inset must be in [0, 0.5), got {inset}")
         self.store = store
         self.saturate = float(saturate)
         self.probe_tol = float(probe_tol)
+        self.exploration = exploration
+        self.inset = float(inset)
         self.mapper = make_mapper(mapper, store) if isinstance(mapper, str) else mapper
-        self._affine = None if isinstance(self.mapper, IdentityMapper) else AffineMapper(store)
+        identity = isinstance(self.mapper, IdentityMapper)
+        self._affine = None if identity else AffineMapper(store)
+        # guided: a triangle of refined pairs where the mapper has no usable region is interpolated linearly
+        self._fallback = (BarycentricMapper(store)
+                          if exploration == "guided" and not identity
+                          and not isinstance(self.mapper, BarycentricMapper) else None)
         if rng is None:
             rng = np.random.default_rng(seed)
         self.rng = rng
 
-    def map(self, u_T: ArrayLike) -> Mapped:
+    def map(self, u_T: ArrayLike, *, plan: ArrayLike | None = None, explore: bool = True) -> Mapped:
+        """The learner command for teacher command ``u_T`` (see the module docstring for every case)."""
         t = np.asarray(u_T, dtype=float).reshape(2)
         if not np.all(np.isfinite(t)):
             raise ValueError(f"teacher command must be finite, got {t}")
@@ -63,7 +129,14 @@ class TransferPolicy:
         if isinstance(self.mapper, IdentityMapper):
             return Mapped(lb.clip(t), "direct")
         t_n = self.store.teacher_bounds.normalise(t)
-        probe = self._probe_limits(t, t_n)
+        if self.exploration == "paper":
+            return self._map_paper(t, t_n)
+        return self._map_guided(t, t_n, plan, bool(explore))
+
+    # ------------------------------------------------------------------------------------------ the paper
+    def _map_paper(self, t: NDArray[np.float64], t_n: NDArray[np.float64]) -> Mapped:
+        lb = self.store.learner_bounds
+        probe = self._probe_limits(t_n, lb.clip(t))
         if probe is not None:
             return Mapped(probe, "perturb")
         res = self.mapper.map_normalised(t_n)
@@ -89,14 +162,15 @@ class TransferPolicy:
         n = (np.array(target, dtype=float) + self.rng.random(2)) / np.array([gv, gw], dtype=float)
         return Mapped(lb.clip(lb.denormalise(n)), "perturb")
 
-    def _probe_limits(self, t: NDArray[np.float64], t_n: NDArray[np.float64]) -> NDArray[np.float64] | None:
+    def _probe_limits(self, t_n: NDArray[np.float64], base: NDArray[np.float64]) -> NDArray[np.float64] | None:
         """A teacher command saturated at a learned limit whose learner boundary has never been seen: send the
-        learner's extreme command on that axis once, so the boundary pair fixes the limit (paper: a new outlier on
-        the boundary moves the bound). Without it a proportional estimate from an interior outlier, which
-        underestimates a convex learner response (the paper's h_v = v^3), would bound the teacher for good."""
+        learner's extreme command on that axis once (``base``, learner units, on the other), so the boundary pair
+        fixes the limit (paper: a new outlier on the boundary moves the bound). Without it a proportional estimate
+        from an interior outlier, which underestimates a convex learner response (the paper's h_v = v^3), would
+        bound the teacher for good."""
         lim = self.store.limits
         lb = self.store.learner_bounds
-        u = lb.clip(t)
+        u = np.array(base, dtype=float)
         probed = False
         for a in range(2):
             if lim.bcnt_hi[a] == 0 and t_n[a] >= lim.hi[a] - self.probe_tol:
@@ -134,3 +208,106 @@ class TransferPolicy:
                 best = np.flatnonzero(d <= d.min() + 1e-9)
                 return ring[int(best[self.rng.integers(best.size)])]
         return None
+
+    # ---------------------------------------------------------------------------------------------- guided
+    def _map_guided(self, t: NDArray[np.float64], t_n: NDArray[np.float64], plan: ArrayLike | None,
+                    explore: bool) -> Mapped:
+        lb = self.store.learner_bounds
+        region = self._map_chain(t_n)
+        if region is not None:
+            (l_n, method, ids), gap = region, 0.0
+        else:
+            l_n, method, ids, gap = self._estimate(t, t_n)
+        u = lb.clip(lb.denormalise(l_n))
+        if not explore:
+            return Mapped(u, method, ids)
+        probe = self._probe_limits(t_n, u)
+        if probe is not None:
+            return Mapped(probe, "perturb")
+        if gap <= self.saturate:
+            return Mapped(u, method, ids)
+        cell = self.store.cell_of(u)
+        if not self.store.is_configured(cell):
+            return Mapped(u, method, ids)
+        target = self._guided_target(cell, lb.normalise(u), plan)
+        if target is None:
+            return Mapped(u, method, ids)
+        return Mapped(lb.clip(lb.denormalise(self._nearest_in_cell(target, lb.normalise(u)))), "perturb")
+
+    def _map_chain(self, t_n: NDArray[np.float64]) -> tuple[NDArray[np.float64], str, Region] | None:
+        """The mapper's region for t_n, else the barycentric interpolation of its triangle (guided)."""
+        res = self.mapper.map_normalised(t_n)
+        if res is not None and np.all(np.isfinite(res[0])):
+            return res[0], self.mapper.name, res[1]
+        if self._fallback is not None:
+            res = self._fallback.map_normalised(t_n)
+            if res is not None and np.all(np.isfinite(res[0])):
+                return res[0], self._fallback.name, res[1]
+        return None
+
+    def _estimate(self, t: NDArray[np.float64], t_n: NDArray[np.float64]) -> tuple[NDArray[np.float64], str,
+                                                                                  Region, float]:
+        """The best guess outside the triangulated region: (normalised learner command, method, region, gap). It
+        is the linear interpolation of the region's nearest point ``q`` (on a hull edge: between its two pairs)
+        plus the offset ``t - q`` read one-to-one in physical units (the teacher command applied directly, relative
+        to the learned region), and ``gap`` is ``|t - q|`` (normalised teacher units); before there is a region,
+        the teacher command read as a learner command (gap infinite)."""
+        lb, tb = self.store.learner_bounds, self.store.teacher_bounds
+        linear = self._fallback if self._fallback is not None else self.mapper
+        near = linear.nearest_on_hull(t_n)
+        if near is not None:
+            res = linear.map_normalised(near[0])
+            if res is not None and np.all(np.isfinite(res[0])):
+                offset = (t_n - near[0]) * tb.span / lb.span  # normalised teacher step -> normalised learner step
+                return np.clip(res[0] + offset, 0.0, 1.0), "direct", res[1], float(near[1])
+        return lb.normalise(lb.clip(t)), "direct", (), float("inf")
+
+    def _cell_distance(self, cell: tuple[int, int], p: NDArray[np.float64]) -> float:
+        """Distance (normalised learner units) from p to the rectangle of a grid cell."""
+        g = np.array(self.store.grid, dtype=float)
+        lo = np.array(cell, dtype=float) / g
+        hi = lo + 1.0 / g
+        return float(np.hypot(*(np.clip(p, lo, hi) - p)))
+
+    def _nearest_in_cell(self, cell: tuple[int, int], p: NDArray[np.float64]) -> NDArray[np.float64]:
+        """The point of a cell nearest to p, ``inset`` of a cell inside its edges (so it falls in that cell)."""
+        g = np.array(self.store.grid, dtype=float)
+        lo = np.array(cell, dtype=float) / g
+        margin = max(self.inset, 1e-6) / g
+        return np.clip(p, lo + margin, lo + 1.0 / g - margin)
+
+    def _guided_target(self, cell: tuple[int, int], est_n: NDArray[np.float64],
+                       plan: ArrayLike | None) -> tuple[int, int] | None:
+        """The unconfigured neighbour of ``cell`` that costs the least detour now and serves the plan best."""
+        gv, gw = self.store.grid
+        configured = self.store.pub_version > 0
+        i0, j0 = cell
+        cands = [(i, j) for i in range(max(0, i0 - 1), min(gv, i0 + 2)) for j in range(max(0, j0 - 1), min(gw, j0 + 2))
+                 if (i, j) != cell and not configured[i, j]]
+        if not cands:
+            return None
+        plan_est = self._plan_estimates(plan)
+        cost = []
+        for c in cands:
+            k = self._cell_distance(c, est_n)
+            if plan_est:
+                k += min(self._cell_distance(c, p) for p in plan_est)
+            cost.append(k)
+        cost_a = np.array(cost)
+        best = np.flatnonzero(cost_a <= cost_a.min() + 1e-9)
+        return cands[int(best[self.rng.integers(best.size)])]
+
+    def _plan_estimates(self, plan: ArrayLike | None) -> list[NDArray[np.float64]]:
+        """The normalised learner commands the teacher's planned commands would map to (region or estimate)."""
+        if plan is None:
+            return []
+        P = np.asarray(plan, dtype=float).reshape(-1, 2)
+        out = []
+        tb = self.store.teacher_bounds
+        for p in P:
+            if not np.all(np.isfinite(p)):
+                continue
+            p_n = tb.normalise(p)
+            res = self._map_chain(p_n)
+            out.append(res[0] if res is not None else self._estimate(p, p_n)[0])
+        return out

@@ -38,7 +38,7 @@ def main(argv: list[str] | None = None) -> int:
             times.append(time.perf_counter() - t)
             fails += int(not r.ok)
             x = step(x, r.u, mpc.cfg.dt)
-            if np.hypot(*(x[:2] - world.goal)) < world.goal_radius:
+            if world.reached(x):
                 break
         ms = np.array(times) * 1e3
         out["solve_ms"][f"N{N}"] = {"median": float(np.median(ms)), "p95": float(np.percentile(ms, 95))}
