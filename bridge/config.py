@@ -238,6 +238,12 @@ class TransferSection(_Cfg):
     k_min: Annotated[int, _m("pairs a cell needs before it holds a refined pair", ge=1, le=1000)] = 5
     mapper: Annotated[Literal["scm", "affine", "barycentric", "identity"], _m("how a region maps commands")] = "scm"
     seed: Annotated[int, _m("random generator seed of the exploration", ge=0, le=2**32 - 1)] = 0
+    exploration: Annotated[Literal["guided", "paper", "off"], _m(
+        "guided: explore (perturb) only where the command needs a missing pair, at the least detour, steered by "
+        "the teacher's plan; paper: the paper's algorithm as published; off: never perturb (map, or extrapolate "
+        "from the learned region)")] = "guided"
+    explore_clearance_m: Annotated[float, _m("no exploration closer than this to an obstacle's edge, whatever the "
+                                             "exploration setting, m", ge=0.0, le=100.0)] = 0.3
 
 
 class TeacherSection(_Cfg):

@@ -41,6 +41,7 @@ from bridge.zsession import open_session
 from transfer.calibration import CalibrationPlan
 from transfer.domain import Bounds
 from transfer.mission import Mission
+from transfer.policy import TransferPolicy, planned_commands
 from transfer.store import PairStore
 from transfer.teacher.primitives import PrimitiveFollower, PrimitiveLibrary, PrimitivePlanner
 
@@ -102,7 +103,6 @@ class Station:
     """One robot's station: pairing, the teacher, the policy, persistence and the Zenoh side."""
 
     def __init__(self, cfg: StationConfig, robot: str, rate_hz: float, store_path: Path, mission: Mission) -> None:
-        from transfer.policy import TransferPolicy
         from transfer.teacher.mpc import MpcConfig, MpcTeacher
 
         scfg, tcfg = cfg.station, cfg.transfer
@@ -114,7 +114,14 @@ class Station:
         self.store, how = load_store(store_path, cfg.learner_bounds.bounds(), cfg.teacher_bounds.bounds(),
                                      tcfg.grid, tcfg.k_min)
         log.info("%s", how)
-        self.policy = TransferPolicy(self.store, tcfg.mapper, rng=np.random.default_rng(tcfg.seed))
+        rng = np.random.default_rng(tcfg.seed)
+        self.exploration, self.clearance = tcfg.exploration, tcfg.explore_clearance_m
+        self.policy = TransferPolicy(self.store, tcfg.mapper, rng=rng,
+                                     exploration="paper" if tcfg.exploration == "paper" else "guided")
+        # near obstacles (and with exploration off) commands are mapped without perturbing: the paper's algorithm
+        # has no such switch, so it gets a guided twin over the same store for those ticks
+        self.safe_policy = self.policy if self.exploration != "paper" else TransferPolicy(
+            self.store, tcfg.mapper, rng=rng, exploration="guided")
         self.mpc = MpcTeacher(MpcConfig(N=scfg.horizon, dt=self.period)) if cfg.teacher.kind == "mpc" else None
         self.pairer = IntervalPairer(scfg.pair_dt)
         self.mission = mission
@@ -136,7 +143,7 @@ class Station:
         self.seq = {"cmd": 0, "status": 0}
         self.counts: dict[str, int] = {"scm": 0, "direct": 0, "perturb": 0, "affine": 0, "barycentric": 0, "stop": 0}
         self.calib_progress: tuple[int, int, str] | None = None
-        self.extra = {"obstacles_dropped": 0, "persist_failures": 0, "missions": 0}
+        self.extra = {"obstacles_dropped": 0, "persist_failures": 0, "missions": 0, "explore_vetoed": 0}
         self.reached = False
         self.why = "starting"
         self.persist_error = ""
@@ -224,7 +231,7 @@ class Station:
         if self.calibration is not None:
             return self.calibrate(now, state)
         if self.teacher_kind == "external":
-            return self.map_external(now)
+            return self.map_external(now, state)
         if self.primitives is not None:
             return self.drive_primitives(now, state)
         self.drive_mpc(now, state)
@@ -242,10 +249,10 @@ class Station:
         u_T = self.primitives.step(x, self.mission.path, allowed, self.mission.obstacles)
         self.extra["primitive_replans"] = self.primitives.replans
         self.extra["primitives_allowed"] = int(allowed.sum())
-        self.map_and_send(now, u_T)
+        self.map_and_send(now, u_T, x)
         return ""
 
-    def map_external(self, now: float) -> str:
+    def map_external(self, now: float, state: M.LearnerState) -> str:
         """Transfer-only service: map the external teacher's latest command once, as it arrives. A teacher that
         says stop (``ok`` false or an exact zero) or falls silent for ``timeout_s`` gets the robot stopped."""
         with self.lock:
@@ -258,7 +265,7 @@ class Station:
         if not t.ok or (t.v == 0.0 and t.omega == 0.0):
             return "the teacher says stop"
         if new:
-            self.map_and_send(now, np.array([t.v, t.omega]))
+            self.map_and_send(now, np.array([t.v, t.omega]), np.array([state.x, state.y]))
         return ""
 
     def calibrate(self, now: float, state: M.LearnerState) -> str:
@@ -279,9 +286,19 @@ class Station:
         self.calib_progress = (step.index, step.total, step.phase)
         return ""
 
-    def map_and_send(self, now: float, u_T) -> None:
+    def map_and_send(self, now: float, u_T, x=None, predicted=None) -> None:
+        """Map a teacher command and publish it. Exploration is allowed only if configured and, when the pose is
+        known, at least ``explore_clearance_m`` from every obstacle; ``predicted`` (the teacher's plan) steers
+        which missing pair guided exploration fills."""
+        explore = self.exploration != "off" and (x is None or self.mission.may_explore(x[:2], self.clearance))
+        plan = planned_commands(predicted, self.period) if predicted is not None else None
+        if not explore:
+            self.extra["explore_vetoed"] += 1
         with self.lock:
-            m = self.policy.map(u_T)
+            if explore and self.exploration == "paper":
+                m = self.policy.map(u_T)
+            else:
+                m = self.safe_policy.map(u_T, plan=plan, explore=explore)
         self.counts[m.method] = self.counts.get(m.method, 0) + 1
         self._command(now, float(m.u_L[0]), float(m.u_L[1]), m.method, list(m.region)[:8])
 
@@ -295,7 +312,7 @@ class Station:
         self.solve_ms.append((time.perf_counter() - t0) * 1e3)
         del self.solve_ms[:-100]
         self.extra["obstacles_dropped"] += res.obstacles_dropped
-        self.map_and_send(now, res.u)
+        self.map_and_send(now, res.u, x, res.predicted)
         pred = res.predicted
         self._put("teacher", M.TeacherCommand(
             stamp=now, seq=self.seq["cmd"] - 1, v=float(res.u[0]), omega=float(res.u[1]), solver=res.solver,

@@ -42,7 +42,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from sim_learner.dynamics import MPC_TEACHER_V, MPC_TEACHER_W, LearnerModel, mpc_learner
-from sim_learner.runs import DT, Progress, Run, explore_here, mean_dev_last_half
+from sim_learner.runs import DT, Progress, Run, mean_dev_last_half
 from sim_learner.worlds import World, mpc_world
 from transfer.domain import Bounds
 from transfer.pairs import teacher_equivalent
@@ -173,7 +173,7 @@ def run_scm(seed: int, quick: bool, exploration: str = "guided",
             progress: Progress | None = None) -> tuple[Run, PairStore]:
     """The SCM learner from no pairs at all: the MPC bounded by the learned limits, each command mapped by the
     transfer policy, each control interval paired and added to the store. The guided policy gets the teacher's
-    plan and may explore only away from obstacles (:func:`explore_here`); the paper's ignores both. The seed
+    plan and may explore only away from obstacles (``Mission.may_explore``); the paper's ignores both. The seed
     drives the policy's random generator and the start's sub-millimetre jitter (:func:`scm_start`)."""
     case = mpc_case(quick)
     world, learner = case.world, case.learner
@@ -183,7 +183,7 @@ def run_scm(seed: int, quick: bool, exploration: str = "guided",
     regions: list[tuple[int, ...]] = []
 
     def scm(x, res):
-        m = policy.map(res.u, plan=planned_commands(res.predicted, DT, PLAN_HINT), explore=explore_here(world, x[:2]))
+        m = policy.map(res.u, plan=planned_commands(res.predicted, DT, PLAN_HINT), explore=world.may_explore(x[:2]))
         x1 = learner.step(x, m.u_L, DT)
         store.add(teacher_equivalent(x, x1, DT), m.u_L)
         regions.append(m.region)

@@ -15,7 +15,6 @@ from numpy.typing import NDArray
 from sim_learner.worlds import World
 
 DT = 0.1  # s, the control interval of every simulation (and the pairing interval)
-EXPLORE_CLEARANCE = 0.3  # m: the guided policy explores only this far from every obstacle's edge
 
 
 class Progress:
@@ -86,8 +85,3 @@ def mean_dev_last_half(run: Run, world: World) -> float | None:
     prog, dev = deviation_profile(run.poses, world)
     m = prog >= 0.5
     return float(dev[m].mean()) if m.any() else None
-
-
-def explore_here(world: World, xy: NDArray[np.float64], clearance: float = EXPLORE_CLEARANCE) -> bool:
-    """May the guided policy explore at xy? Only at least ``clearance`` from every obstacle's edge."""
-    return world.obstacles.size == 0 or bool(world.clearance(xy).min() >= clearance)

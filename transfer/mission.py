@@ -15,6 +15,8 @@ from transfer.teacher.path import Polyline
 
 #: the fraction of the path a vehicle must have covered before it can be at the goal (a path may loop back)
 GOAL_MIN_PROGRESS = 0.9
+#: m: exploration (perturbing a command to learn a missing pair) happens only this far from every obstacle's edge
+EXPLORE_CLEARANCE = 0.3
 
 
 @dataclass(frozen=True)
@@ -77,6 +79,10 @@ class Mission:
         """Distance to the nearest obstacle's edge (inf without obstacles)."""
         return float(self.clearance(xy).min()) if self.obstacles.size else float("inf")
 
+    def may_explore(self, xy: ArrayLike, clearance: float = EXPLORE_CLEARANCE) -> bool:
+        """May a transfer policy explore (perturb) here? Only at least ``clearance`` from every obstacle's edge."""
+        return self.min_clearance(xy) >= clearance
+
     def nearest_obstacles(self, xy: ArrayLike, radius: float, limit: int) -> tuple[NDArray[np.float64], int]:
         """The obstacles whose edge is within ``radius`` of ``xy``, nearest first, at most ``limit`` of them, and
         how many within ``radius`` were left out (a controller with a fixed number of obstacle slots says so)."""
@@ -97,4 +103,4 @@ class Mission:
                        start, self.frame)
 
 
-__all__ = ["GOAL_MIN_PROGRESS", "Mission"]
+__all__ = ["EXPLORE_CLEARANCE", "GOAL_MIN_PROGRESS", "Mission"]
