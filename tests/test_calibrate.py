@@ -109,7 +109,7 @@ def test_the_motion_primitive_teacher_drives_from_calibrated_pairs(tmp_path) -> 
         session.declare_subscriber(M.key(robot, "state"), keep)
         kids.spawn(["driver", "--link", "can", "--emulate", "--x0", x0, *client, "--duration", "140"])
         res = subprocess.run([sys.executable, "-m", "bridge.cli", "calibrate", *client, "--store", str(store),
-                              "--grid", "3x3", "--hold", "0.5", "--max-distance", "0.8", "--max-time", "60"],
+                              "--grid", "3x3", "--hold", "0.5", "--max-distance", "2.0", "--max-time", "60"],
                              capture_output=True, text=True, timeout=90)
         assert res.returncode == 0, res.stderr[-2000:]
         kids.spawn(["station", "--config", str(cfg), *client, "--store", str(store), "--duration", "80"])

@@ -7,7 +7,8 @@ limits" before the transfer. On a real robot that has to stay inside a lab, so t
   limits are measured, not extrapolated) for ``hold_s``;
 - between commands, when the robot is farther than ``return_radius`` from where it started, steers back toward
   the start with a proportional heading controller on the learner's own commands (slow, turning in place as far
-  as the learner can) until it is within the radius again, or for at most ``return_timeout_s``;
+  as the learner can) until it is within half the radius, or back inside the radius but no longer getting closer
+  for ``stall_s`` (a learner that cannot turn in place circles the start), or for at most ``return_timeout_s``;
 - ends, stopping the robot, when the grid is done, when the robot is farther than ``max_distance`` from the start
   (it says so: the bound was reached), or after ``max_time_s``.
 
@@ -44,14 +45,15 @@ class CalibrationPlan:
 
     def __init__(self, learner_bounds: Bounds, grid: tuple[int, int] = (5, 5), *, hold_s: float = 1.0,
                  max_distance: float = 2.0, return_radius: float | None = None, max_time_s: float = 300.0,
-                 return_timeout_s: float = 20.0, heading_gain: float = 1.5) -> None:
+                 return_timeout_s: float = 20.0, heading_gain: float = 1.5, stall_s: float = 2.0) -> None:
         if hold_s <= 0 or max_distance <= 0 or max_time_s <= 0:
             raise ValueError("hold_s, max_distance and max_time_s must be positive")
         self.lb = learner_bounds
         self.commands = calibration_commands(learner_bounds, grid)
         self.hold_s, self.max_distance, self.max_time_s = float(hold_s), float(max_distance), float(max_time_s)
         self.return_radius = 0.4 * self.max_distance if return_radius is None else float(return_radius)
-        self.return_timeout_s, self.k = float(return_timeout_s), float(heading_gain)
+        self.return_timeout_s, self.k, self.stall_s = float(return_timeout_s), float(heading_gain), float(stall_s)
+        self.phase_best: tuple[float, float] | None = None  # (closest distance so far, when) in a return
         self.start: NDArray[np.float64] | None = None
         self.t0 = self.t_phase = 0.0
         self.index = 0
@@ -85,9 +87,13 @@ class CalibrationPlan:
                 return self._finish(f"all {self.total} commands driven")
             self.phase, self.t_phase = ("return" if dist > self.return_radius else "drive"), now
             return self.step(now, x)
-        # return toward the start
-        if dist <= 0.5 * self.return_radius or now - self.t_phase > self.return_timeout_s:
-            self.phase, self.t_phase = "drive", now
+        # return toward the start, until close enough, or no longer getting closer (a learner that cannot turn in
+        # place circles round the start point), or the return's timeout
+        if self.phase_best is None or dist < self.phase_best[0] - 0.01:
+            self.phase_best = (dist, now)
+        stalled = dist <= self.return_radius and now - self.phase_best[1] > self.stall_s  # back inside, circling
+        if dist <= 0.5 * self.return_radius or stalled or now - self.t_phase > self.return_timeout_s:
+            self.phase, self.t_phase, self.phase_best = "drive", now, None
             return self.step(now, x)
         return CalibrationStep(self._toward_start(x), "return", self.index, self.total)
 
