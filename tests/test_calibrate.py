@@ -6,11 +6,11 @@ from __future__ import annotations
 import os
 import subprocess
 import sys
-import threading
 import time
 
 import numpy as np
 import pytest
+from collect import Collector
 
 from bridge import wire as M
 from bridge.procs import Children
@@ -60,15 +60,9 @@ def test_scmbridge_calibrate_drives_the_robot_through_its_driver_host_into_the_s
     port, robot = free_port(), f"cal{os.getpid()}"
     client = ["--robot", robot, "--mode", "client", "--connect", tcp(port)]
     store = tmp_path / "pairs.bin"
-    states: list[M.LearnerState] = []
-    lock = threading.Lock()
-
-    def keep(sample) -> None:
-        with lock:
-            states.append(M.decode(sample.payload.to_bytes(), M.LearnerState))
-
     with open_session(make_config(mode="router", listen=[tcp(port)])) as session, Children() as kids:
-        session.declare_subscriber(M.key(robot, "state"), keep)
+        col = Collector(session)
+        states, lock = col.listen(M.key(robot, "state"), M.LearnerState), col.lock
         kids.spawn(["driver", "--link", "can", "--emulate", *client, "--duration", "140"])
         res = subprocess.run([sys.executable, "-m", "bridge.cli", "calibrate", *client, "--store", str(store),
                               "--grid", "3x3", "--hold", "0.6", "--max-distance", "1.2", "--max-time", "90"],
@@ -98,15 +92,9 @@ def test_the_motion_primitive_teacher_drives_from_calibrated_pairs(tmp_path) -> 
     store, cfg = tmp_path / "pairs.bin", tmp_path / "station.toml"
     cfg.write_text('[teacher]\nkind = "primitives"\n')
     x0 = ",".join(f"{a:.6f}" for a in mission.start)
-    states: list[M.LearnerState] = []
-    lock = threading.Lock()
-
-    def keep(sample) -> None:
-        with lock:
-            states.append(M.decode(sample.payload.to_bytes(), M.LearnerState))
-
     with open_session(make_config(mode="router", listen=[tcp(port)])) as session, Children() as kids:
-        session.declare_subscriber(M.key(robot, "state"), keep)
+        col = Collector(session)
+        states, lock = col.listen(M.key(robot, "state"), M.LearnerState), col.lock
         kids.spawn(["driver", "--link", "can", "--emulate", "--x0", x0, *client, "--duration", "140"])
         res = subprocess.run([sys.executable, "-m", "bridge.cli", "calibrate", *client, "--store", str(store),
                               "--grid", "3x3", "--hold", "0.5", "--max-distance", "2.0", "--max-time", "60"],

@@ -4,12 +4,13 @@ only the wire schema) drives the emulated CAN learner through a transfer-only st
 from __future__ import annotations
 
 import os
+import subprocess
 import sys
-import threading
 import time
 from pathlib import Path
 
 import pytest
+from collect import Collector
 
 from bridge import wire as M
 from bridge.config import load_mission
@@ -29,25 +30,14 @@ def test_the_example_external_teacher_drives_the_robot_through_the_transfer_serv
     client = ["--robot", robot, "--mode", "client", "--connect", tcp(port)]
     cfg = tmp_path / "station.toml"
     cfg.write_text('[teacher]\nkind = "external"\n')
-    got: dict[str, list] = {"state": [], "cmd": [], "limits": [], "status": []}
-    lock = threading.Lock()
-
-    def keep(kind, name):
-        def cb(sample) -> None:
-            with lock:
-                got[name].append(M.decode(sample.payload.to_bytes(), kind))
-        return cb
-
     with open_session(make_config(mode="router", listen=[tcp(port)])) as session, Children() as kids:
-        k = M.Keys(robot)
-        session.declare_subscriber(k.state, keep(M.LearnerState, "state"))
-        session.declare_subscriber(k.cmd, keep(M.Command, "cmd"))
-        session.declare_subscriber(k.limits, keep(M.Limits, "limits"))
-        session.declare_subscriber(M.status_key(robot, "station"), keep(M.Status, "status"))
+        k, col = M.Keys(robot), Collector(session)
+        lock = col.lock
+        got = {"state": col.listen(k.state, M.LearnerState), "cmd": col.listen(k.cmd, M.Command),
+               "limits": col.listen(k.limits, M.Limits),
+               "status": col.listen(M.status_key(robot, "station"), M.Status)}
         kids.spawn(["driver", "--link", "can", "--emulate", "--x0", x0, *client, "--duration", "140"])
         kids.spawn(["station", "--config", str(cfg), *client, "--store", str(tmp_path / "p.bin"), "--duration", "130"])
-        import subprocess
-
         teacher = subprocess.Popen([sys.executable, str(ROOT / "deploy" / "examples" / "external_teacher.py"),
                                     "--robot", robot, "--connect", tcp(port), "--mission", str(MISSION),
                                     "--duration", "120"], start_new_session=True, stdout=subprocess.DEVNULL)

@@ -6,11 +6,11 @@ from __future__ import annotations
 import errno
 import os
 import signal
-import threading
 import time
 
 import numpy as np
 import pytest
+from collect import Collector
 
 from bridge import wire as M
 from bridge.config import StationConfig, load_mission
@@ -64,23 +64,13 @@ def test_stale_telemetry_stops_the_robot_and_a_killed_driver_host_leaves_it_to_i
     port, robot = free_port(), f"ft{os.getpid()}"
     vehicle = SimVehicle(mpc_learner(), (0.0, 0.0, 0.0), now=time.monotonic())
     bind = free_udp_port()
-    applied: list[M.Applied] = []
-    status: list[M.Status] = []
-    lock = threading.Lock()
-
-    def keep(bucket, kind):
-        def cb(sample) -> None:
-            with lock:
-                bucket.append(M.decode(sample.payload.to_bytes(), kind))
-        return cb
-
     with UdpRobot(vehicle, peer=("127.0.0.1", bind), watchdog=0.5) as dev, \
             open_session(make_config(mode="router", listen=[tcp(port)])) as session, Children() as kids:
         cfg = tmp_path / "driver.toml"
         cfg.write_text(f"[link.udp]\nrobot_port = {dev.port}\nbind_port = {bind}\n")
-        k = M.Keys(robot)
-        session.declare_subscriber(k.applied, keep(applied, M.Applied))
-        session.declare_subscriber(M.status_key(robot, "driver"), keep(status, M.Status))
+        k, col = M.Keys(robot), Collector(session)
+        applied, status = col.listen(k.applied, M.Applied), col.listen(M.status_key(robot, "driver"), M.Status)
+        lock = col.lock
         host = kids.spawn(["driver", "--link", "udp", "--config", str(cfg), "--robot", robot, "--mode", "client",
                            "--connect", tcp(port), "--duration", "80"])
         pub = session.declare_publisher(k.cmd)

@@ -12,6 +12,7 @@ import time
 
 import numpy as np
 import pytest
+from collect import Collector
 
 from bridge import wire as M
 from bridge.clock import ClockOffset
@@ -76,23 +77,13 @@ def test_the_driver_host_publishes_mocap_poses_on_its_clock_and_they_pair_with_t
     vehicle = SimVehicle(learner, (0.0, 0.0, 0.0), now=time.monotonic())
     bind = free_udp_port()
     cfg = tmp_path / "driver.toml"
-    states: list[M.LearnerState] = []
-    applied: list[M.Applied] = []
-    lock = threading.Lock()
-
-    def keep(bucket, kind):
-        def cb(sample) -> None:
-            with lock:
-                bucket.append(M.decode(sample.payload.to_bytes(), kind))
-        return cb
-
     with UdpRobot(vehicle, peer=("127.0.0.1", bind)) as robot_dev, \
             open_session(make_config(mode="router", listen=[tcp(port)])) as session, Children() as kids:
         cfg.write_text(f'[driver]\npose_source = "mocap"\n[link.udp]\nrobot_port = {robot_dev.port}\n'
                        f"bind_port = {bind}\n")
-        k = M.Keys(robot)
-        session.declare_subscriber(k.state, keep(states, M.LearnerState))
-        session.declare_subscriber(k.applied, keep(applied, M.Applied))
+        k, col = M.Keys(robot), Collector(session)
+        states, applied = col.listen(k.state, M.LearnerState), col.listen(k.applied, M.Applied)
+        lock = col.lock
         mocap = MocapBridge(session, robot, vehicle)
         mocap.thread.start()
         kids.spawn(["driver", "--link", "udp", "--config", str(cfg), "--robot", robot, "--mode", "client",

@@ -6,11 +6,11 @@ from __future__ import annotations
 
 import os
 import signal
-import threading
 import time
 
 import numpy as np
 import pytest
+from collect import Collector
 
 from bridge import wire as M
 from bridge.pairing import IntervalPairer
@@ -118,41 +118,21 @@ def test_a_station_killed_and_restarted_drives_the_robot_again_at_once(tmp_path)
     x0 = ",".join(f"{a:.6f}" for a in load_mission().start)
     client = ["--robot", robot, "--mode", "client", "--connect", tcp(port)]
     station = ["station", *client, "--store", str(tmp_path / "pairs.bin"), "--duration", "90"]
-    applied: list[M.Applied] = []
-    cmds: list[tuple[float, M.Command]] = []
-    lock = threading.Lock()
-
-    def wait(pred, timeout: float) -> bool:
-        t_end = time.monotonic() + timeout
-        while time.monotonic() < t_end:
-            with lock:
-                if pred():
-                    return True
-            time.sleep(0.02)
-        return False
-
     with open_session(make_config(mode="router", listen=[tcp(port)])) as session, Children() as kids:
-        keys = Keys(robot)
-        session.declare_subscriber(keys.applied, lambda s: _keep(applied, lock, M.decode(s.payload.to_bytes(),
-                                                                                           M.Applied)))
-        session.declare_subscriber(keys.cmd, lambda s: _keep(cmds, lock, (time.monotonic(), M.decode(
-            s.payload.to_bytes(), M.Command))))
+        keys, col = Keys(robot), Collector(session)
+        applied, commands = col.listen(keys.applied, M.Applied), col.listen(keys.cmd, M.Command)
+        cmd_times, wait = col.times[keys.cmd], col.wait
         kids.spawn(["driver", "--link", "can", "--emulate", "--x0", x0, *client, "--duration", "120"])
         first = kids.spawn(station)
         assert wait(lambda: any(a.reason == "cmd" for a in applied), 90), "the first station never drove"
         os.killpg(first.pid, signal.SIGKILL)
         first.wait(timeout=5)
-        with lock:
-            old_epoch = cmds[-1][1].epoch
+        with col.lock:
+            old_epoch = commands[-1].epoch
         assert wait(lambda: applied[-1].reason == "deadman", 2.0)
         kids.spawn(station)
-        assert wait(lambda: any(c.epoch != old_epoch and c.method != "stop" for _, c in cmds), 90)
-        with lock:
-            t_first = next(t for t, c in cmds if c.epoch != old_epoch and c.method != "stop")
+        assert wait(lambda: any(c.epoch != old_epoch and c.method != "stop" for c in commands), 90)
+        with col.lock:
+            t_first = next(t for t, c in zip(cmd_times, commands) if c.epoch != old_epoch and c.method != "stop")
         assert wait(lambda: any(a.reason in ("cmd", "clamped") and a.stamp >= t_first for a in applied), 1.0), \
             "the restarted station's commands were not applied within 1 s"
-
-
-def _keep(bucket: list, lock: threading.Lock, item) -> None:
-    with lock:
-        bucket.append(item)

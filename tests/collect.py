@@ -1,0 +1,47 @@
+"""What the integration tests share: collecting the decoded messages of Zenoh keys, and waiting on them."""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Callable
+from typing import Any
+
+from bridge import wire as M
+
+
+class Collector:
+    """Subscribes keys on a session and keeps every decoded message (with its receive time) per key."""
+
+    def __init__(self, session: Any) -> None:
+        self.session = session
+        self.lock = threading.Lock()
+        self.got: dict[str, list] = {}
+        self.times: dict[str, list[float]] = {}
+
+    def listen(self, key: str, kind: type) -> list:
+        """Start keeping ``key``'s messages decoded as ``kind``; returns the list they are appended to."""
+        bucket, times = self.got.setdefault(key, []), self.times.setdefault(key, [])
+
+        def cb(sample) -> None:
+            msg = M.decode(sample.payload.to_bytes(), kind)
+            with self.lock:
+                bucket.append(msg)
+                times.append(time.monotonic())
+
+        self.session.declare_subscriber(key, cb)
+        return bucket
+
+    def snapshot(self, key: str) -> list:
+        with self.lock:
+            return list(self.got[key])
+
+    def wait(self, pred: Callable[[], bool], timeout: float) -> bool:
+        """Poll ``pred`` (called under the lock) until it holds or ``timeout`` passes."""
+        t_end = time.monotonic() + timeout
+        while time.monotonic() < t_end:
+            with self.lock:
+                if pred():
+                    return True
+            time.sleep(0.02)
+        return False
