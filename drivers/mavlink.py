@@ -186,16 +186,20 @@ class MavlinkDriver:
         self._conn_failed = None
         self._conn_time = time.monotonic()  # the vehicle counts as heard only once it speaks on this connection
 
-    def _drop_connection(self, reason: str, now: float) -> None:
-        log.warning("MAVLink connection %s lost: %s; re-opening in %.2f s", self.url, reason, self._backoff)
-        self._health.errors += 1
-        self._lost_reason = reason
+    def _close_conn(self) -> None:
+        """Close the pymavlink connection if there is one (a failing close is not an error worth more)."""
         try:
             if self.conn is not None:
                 self.conn.close()
         except OSError:
             pass
         self.conn = None
+
+    def _drop_connection(self, reason: str, now: float) -> None:
+        log.warning("MAVLink connection %s lost: %s; re-opening in %.2f s", self.url, reason, self._backoff)
+        self._health.errors += 1
+        self._lost_reason = reason
+        self._close_conn()
         self._conn_failed = None
         self._reconnect_due = now + self._backoff
         self._backoff = min(2 * self._backoff, self.config.reconnect_max_s)
@@ -607,11 +611,6 @@ class MavlinkDriver:
             elif v.custom_mode is not None and self._opened:
                 log.warning("vehicle in mode %s (the operator's): left as it is", mode_name(v.custom_mode))
         finally:
-            try:
-                if self.conn is not None:
-                    self.conn.close()
-            except OSError:
-                pass
-            self.conn = None
+            self._close_conn()
             self._closed = True
             self._update_state(time.monotonic())
