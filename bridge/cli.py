@@ -51,7 +51,8 @@ def main(argv: list[str] | None = None) -> int:
     name, rest = args[0], args[1:]
     if name == "bench":
         if not rest or rest[0].startswith("-"):
-            print("usage: scmbridge bench {scm,transfer,mpc,bridge} [OPTIONS]", file=sys.stderr)
+            benches = ",".join(n.split()[1] for n in COMMANDS if n.startswith("bench "))
+            print(f"usage: scmbridge bench {{{benches}}} [OPTIONS]", file=sys.stderr)
             return 2
         name, rest = f"bench {rest[0]}", rest[1:]
     if name not in COMMANDS:
