@@ -26,6 +26,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "bench transfer": ("bridge.bench.transfer", "transfer policy per-command cost (JSON)"),
     "bench mpc": ("bridge.bench.mpc", "MPC closed-loop solve times (JSON)"),
     "bench bridge": ("bridge.bench.bridge", "end-to-end latency and 50 Hz loop jitter over Zenoh (JSON)"),
+    "bench fleet": ("bridge.bench.fleet", "how many robots one base station holds at 10 Hz, N stations (JSON)"),
 }
 
 
