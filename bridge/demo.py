@@ -23,6 +23,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import os
 import sys
 import threading
 import time
@@ -314,6 +315,9 @@ def fleet(args: argparse.Namespace) -> int:
     stores = {r: out / f"pairs-{r}.bin" for r in robots}
     for store in stores.values():
         store.unlink(missing_ok=True)  # the demo starts from scratch
+    from bridge.bench.fleet import STATION_ENV
+
+    env = dict(os.environ, **STATION_ENV)  # the stations share the cores: one BLAS thread each, as the units run them
     interrupted = False
     t0 = time.monotonic()
     with ExitStack() as stack:
@@ -330,7 +334,7 @@ def fleet(args: argparse.Namespace) -> int:
                 kids.spawn(["driver", *driver_args, *client, "--duration", str(timeout + 15)], logs["driver"])
                 stations[robot] = kids.spawn(
                     ["station", *client, "--store", str(stores[robot]), "--exit-at-goal", "--duration", str(timeout),
-                     *(["--mission", args.mission] if args.mission else [])], logs["station"])
+                     *(["--mission", args.mission] if args.mission else [])], logs["station"], env=env)
             tty = sys.stdout.isatty()
             last_print = 0.0
             others = [p for p in kids.procs if p not in stations.values()]

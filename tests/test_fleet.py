@@ -17,7 +17,7 @@ from pathlib import Path
 import pytest
 
 from bridge import wire as M
-from bridge.bench.fleet import SimRobot, sweep, write_mission
+from bridge.bench.fleet import STATION_ENV, SimRobot, sweep, write_mission
 from bridge.procs import Children, emulated_link
 from bridge.zsession import free_port, make_config, open_session, tcp
 
@@ -186,6 +186,12 @@ def test_template_units_run_the_installed_command_for_the_instance_robot(kind: s
                               timeout=60).stdout
     for opt in re.findall(r"(?<=\s)--[a-z][a-z0-9-]*", cmd):
         assert opt in helptext, opt
+
+
+@pytest.mark.parametrize("name", ["scmbridge-station@.service", "scmbridge-station.service"])
+def test_station_units_run_one_blas_thread_as_the_fleet_bench_measures(name: str) -> None:
+    env = dict(a.split("=", 1) for line in _unit(name).get("Environment", []) for a in shlex.split(line))
+    assert {k: env.get(k) for k in STATION_ENV} == STATION_ENV
 
 
 def _client_config(path: Path, port: int) -> None:

@@ -2,7 +2,8 @@
 
 For each fleet size N of a sweep (1, 2, 4, 8, 12, 16, 20, 24, ... up to ``--robots``): this process is the Zenoh
 router (a free 127.0.0.1 port), N real ``scmbridge station`` processes (MPC N = 20, transfer, pairing; one per
-robot ``fleet1..fleetN``, each from an empty pair store) are its clients, and one lightweight process
+robot ``fleet1..fleetN``, each from an empty pair store, one BLAS thread each as the shipped units run them) are
+its clients, and one lightweight process
 (``--simulate``, this module) stands in for all N robots' driver hosts: a unicycle per robot integrating the
 commands it accepts (through the driver host's own :class:`bridge.gate.CommandGate`: its (epoch, seq) stream,
 freshness, the deadman, the hard limits), publishing per robot at the driver host's cadence with the emulated CAN
@@ -41,6 +42,11 @@ PERIOD_S = 0.1  # the station's default tick (10 Hz)
 STATE_HZ = 100.0  # the emulated CAN link's poses: each wheel's encoder estimate every 10 ms
 APPLIED_HZ = 50.0  # the driver host's loop
 TILES = 5  # the paper's 8 m S-path laid end to end: 40 m, more than a robot drives in one run
+#: What the shipped station units (deploy/systemd/scmbridge-station*.service) set: one BLAS / OpenMP thread per
+#: station. By default OpenBLAS starts a worker per core and its workers spin between the solver's small BLAS calls:
+#: measured here, 32 ms of CPU per 10 Hz tick of one station by default against 11 ms with these (and the spinning
+#: threads take cores from every other station). ``--blas-threads inherit`` measures the default.
+STATION_ENV = {"OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1"}
 
 
 # ------------------------------------------------------------------------------------------- the robots
@@ -260,7 +266,8 @@ def _load() -> list[float]:
     return [round(a, 2) for a in os.getloadavg()]
 
 
-def run_level(n: int, seconds: float, warmup: float, mission: Path, workdir: Path, log) -> dict:
+def run_level(n: int, seconds: float, warmup: float, mission: Path, workdir: Path, log,
+              env: dict[str, str] | None = None) -> dict:
     """N stations and the simulated robots behind one router; the window's figures (see the module docstring)."""
     from bridge import wire as M
     from bridge.procs import Children
@@ -308,7 +315,7 @@ def run_level(n: int, seconds: float, warmup: float, mission: Path, workdir: Pat
                           str(mission), "--duration", str(life)], log)
         stations = {r: kids.spawn(["station", "--robot", r, "--mode", "client", "--connect", tcp(port), "--store",
                                    str(workdir / f"pairs-{r}.bin"), "--mission", str(mission), "--duration",
-                                   str(life)], log) for r in robots}
+                                   str(life)], log, env=env) for r in robots}
         # up: every station publishes status and says it is driving (the robots are released together)
         while time.monotonic() - t_start < startup_limit:
             sts = [latest(r) for r in robots]
@@ -413,6 +420,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--warmup", type=float, default=10.0, help="seconds of driving before the window")
     ap.add_argument("--sizes", default=None, help="fleet sizes to run, comma-separated (default: the sweep)")
     ap.add_argument("--keep-going", action="store_true", help="run every size even after one is not held")
+    ap.add_argument("--blas-threads", choices=["1", "inherit"], default="1",
+                    help="1: the stations run as the shipped units run them (OPENBLAS_NUM_THREADS=1, "
+                         "OMP_NUM_THREADS=1); inherit: this process's environment (OpenBLAS's default threads)")
     ap.add_argument("--simulate", default=None, help=argparse.SUPPRESS)  # the robots' process: fleet1,fleet2,...
     ap.add_argument("--connect", action="append", default=[], help=argparse.SUPPRESS)
     ap.add_argument("--mission", default=None, help=argparse.SUPPRESS)
@@ -423,9 +433,11 @@ def main(argv: list[str] | None = None) -> int:
     if args.robots < 1:
         ap.error("--robots must be at least 1")
     sizes = [int(a) for a in args.sizes.split(",")] if args.sizes else sweep(args.robots)
+    env = None if args.blas_threads == "inherit" else dict(os.environ, **STATION_ENV)
     out: dict = {"rate_hz": 1 / PERIOD_S, "period_ms": PERIOD_S * 1e3, "mpc_horizon": 20,
                  "criterion": {"missed_fraction_every_station": "< 0.01", "tick_p99_ms_every_station": "< 100"},
                  "seconds": args.seconds, "warmup_s": args.warmup, "cpus": os.cpu_count(), "load_start": _load(),
+                 "station_env": STATION_ENV if env is not None else "inherited",
                  "levels": []}
     held = 0
     with tempfile.TemporaryDirectory(prefix="scm-fleet-") as tmp:
@@ -435,7 +447,7 @@ def main(argv: list[str] | None = None) -> int:
                 wd = Path(tmp) / f"n{n}"
                 wd.mkdir()
                 t0 = time.monotonic()
-                level = run_level(n, args.seconds, args.warmup, mission, wd, log)
+                level = run_level(n, args.seconds, args.warmup, mission, wd, log, env)
                 level["wall_s"] = round(time.monotonic() - t0, 1)
                 out["levels"].append(level)
                 brief = {k: level.get(k) for k in ("robots", "held", "missed_fraction_worst", "tick_p99_ms_worst",
