@@ -269,6 +269,8 @@ def _robot_summary(mon: Monitor, world) -> dict | None:
         devs = np.array([world.path.project(p[:2])[1] for p in traj])
         s.update(time_s=round(float(stamps[at] - stamps[0]), 1), mean_dev_m=round(float(devs.mean()), 4),
                  max_dev_m=round(float(devs.max()), 4))
+    # how far from the goal point it stopped: the goal rule also takes a pose "past the path's end" at any distance
+    s["goal_dist_m"] = round(float(np.hypot(*(traj[-1, :2] - world.goal))), 3) if traj.shape[0] else None
     return s
 
 
@@ -372,6 +374,10 @@ def fleet(args: argparse.Namespace) -> int:
                      "missed_deadlines": {r: summaries[r]["missed_deadlines"] for r in robots if summaries[r]},
                      "interrupted": interrupted}
     print("fleet:", json.dumps(fleet_summary))
+    for r in reached:
+        if summaries[r]["goal_dist_m"] is not None and summaries[r]["goal_dist_m"] > world.goal_tolerance:
+            print(f"note: {r} met the mission's goal rule {summaries[r]['goal_dist_m']:.2f} m from the goal point "
+                  f"(past the path's end; max deviation {summaries[r]['max_dev_m']:.2f} m)")
     if trajs:
         _fleet_figure(out, world, trajs, args.link)
         print(f"figure: {out / 'demo_fleet.png'}; pair stores: {out}/pairs-demo*.bin; logs: {out}/demo*-*.log")
