@@ -32,6 +32,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "record": ("bridge.record", "record scm/** (or one robot) into an MCAP file, with schemas"),
     "replay": ("bridge.replay", "republish a recording on its Zenoh keys at the recorded pace (or faster)"),
     "report": ("bridge.report", "figures and the demo's summary figures from a recording"),
+    "bench fleet": ("bridge.bench.fleet", "how many robots one base station holds at 10 Hz, N stations (JSON)"),
 }
 
 

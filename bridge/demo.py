@@ -7,6 +7,13 @@ one-line status shows rate, method counts, deviation and progress; at the end a 
 (``--out``, default ``demo_out/``). It ends on its own at the goal or at ``--timeout``, and on Ctrl-C, leaving no
 process behind.
 
+``--robots N`` (N > 1): one base station, many robots. N emulated learners ``demo1..demoN`` at once, each its own
+driver host (with its own emulated controllers) and its own station process, all clients of this one router hub,
+each in its own namespace ``scm/demoK/...`` on the same mission from the same start. A live line summarises them
+all; at the end a summary per robot (``summary demoK: {...}``), one line ``fleet: {...}`` and a figure with every
+trajectory (``demo_fleet.png``). Exit 0 when every robot reached its goal, else 1 and the names of those that did
+not.
+
 ``--inprocess``: learn pairs from the paper's nonlinear learner, map teacher commands with SCM, the identity
 baseline and the barycentric alternative, drive the learner 0.1 s with each and print how far each lands.
 """
@@ -16,6 +23,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import os
 import sys
 import threading
 import time
@@ -221,15 +229,185 @@ def hil(args: argparse.Namespace) -> int:
     return 0 if summary["reached_goal"] else 1
 
 
+def _fleet_line(mons: dict[str, Monitor], world, t: float) -> str:
+    """One line for the whole fleet: how many are at the goal, each robot's progress (or the spread of them)."""
+    parts, at_goal, missed, pairs = [], 0, 0, 0
+    progress = []
+    for robot, mon in mons.items():
+        with mon.lock:
+            st = mon.status.get("station")
+            pos = mon.states[-1] if mon.states else None
+        if st is None or pos is None:
+            parts.append(f"{robot} --")
+            continue
+        c = st.counters
+        at_goal += int(bool(c.get("goal_reached", 0)))
+        missed += c.get("missed_deadlines", 0)
+        pairs += c.get("refined_pairs", 0)
+        s_arc, dev = world.path.project(np.array(pos[1:3]))
+        pct = 100 * s_arc / world.path.length
+        progress.append(pct)
+        parts.append(f"{robot} {pct:3.0f}% {100 * dev:4.1f}cm")
+    head = f"t={t:5.1f}s at goal {at_goal}/{len(mons)} pairs={pairs} missed={missed}"
+    if len(mons) <= 6:
+        return head + " | " + " | ".join(parts)
+    if not progress:
+        return head + " | waiting for stations and drivers..."
+    return head + (f" | progress min {min(progress):.0f}% median {float(np.median(progress)):.0f}% "
+                   f"max {max(progress):.0f}% ({len(progress)}/{len(mons)} reporting)")
+
+
+def _robot_summary(mon: Monitor, world) -> dict | None:
+    """:meth:`Monitor.summary` of one robot of the fleet, its time and deviations up to its goal (its driver host
+    keeps publishing poses at the goal while the other robots drive on)."""
+    s = mon.summary(world)
+    if s is None:
+        return None
+    with mon.lock:
+        stamps = np.array([st[0] for st in mon.states])
+    traj = s["_traj"]
+    at = next((i for i, p in enumerate(traj) if world.reached(p[:2])), None)
+    if at is not None:
+        traj = s["_traj"] = traj[: at + 1]
+        devs = np.array([world.path.project(p[:2])[1] for p in traj])
+        s.update(time_s=round(float(stamps[at] - stamps[0]), 1), mean_dev_m=round(float(devs.mean()), 4),
+                 max_dev_m=round(float(devs.max()), 4))
+    # how far from the goal point it stopped: the goal rule also takes a pose "past the path's end" at any distance
+    s["goal_dist_m"] = round(float(np.hypot(*(traj[-1, :2] - world.goal))), 3) if traj.shape[0] else None
+    return s
+
+
+def _fleet_figure(out, world, trajs: dict[str, np.ndarray], link: str) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from sim_learner.figures import draw_mission
+
+    fig, ax = plt.subplots(figsize=(9, 4))
+    draw_mission(ax, world)
+    colors = plt.cm.tab10(np.arange(len(trajs)) % 10)
+    for (robot, traj), color in zip(trajs.items(), colors):
+        if traj.shape[0]:
+            ax.plot(traj[:, 0], traj[:, 1], color=color, lw=1.2, label=robot)
+    ax.legend(loc="upper right", fontsize=7, ncol=max(1, len(trajs) // 6))
+    ax.set_title(f"HIL demo: {len(trajs)} learners over Zenoh + {link.upper()}, one base station")
+    fig.tight_layout()
+    fig.savefig(out / "demo_fleet.png", dpi=120)
+    plt.close(fig)
+
+
+def fleet(args: argparse.Namespace) -> int:
+    """``--robots N``: N robots, each a driver host and a station process, behind this one router hub."""
+    from pathlib import Path
+
+    from bridge.config import load_mission
+    from bridge.procs import Children, emulated_link
+    from bridge.zsession import free_port, make_config, open_session, tcp
+
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    world = load_mission(args.mission)
+    if world.start is None:
+        raise SystemExit(f"scmbridge demo: error: mission {world.name!r} has no start pose for the emulated learner")
+    robots = [f"demo{k + 1}" for k in range(args.robots)]
+    timeout = args.timeout
+    port = free_port()
+    x0 = ",".join(f"{a:.6f}" for a in world.start)  # every robot in its own namespace: the same start for all
+    mons: dict[str, Monitor] = {}
+    stations: dict[str, object] = {}
+    stores = {r: out / f"pairs-{r}.bin" for r in robots}
+    for store in stores.values():
+        store.unlink(missing_ok=True)  # the demo starts from scratch
+    from bridge.bench.fleet import STATION_ENV
+
+    env = dict(os.environ, **STATION_ENV)  # the stations share the cores: one BLAS thread each, as the units run them
+    interrupted = False
+    t0 = time.monotonic()
+    with ExitStack() as stack:
+        session = stack.enter_context(open_session(make_config(mode="router", listen=[tcp(port)])))
+        kids = stack.enter_context(Children())
+        try:
+            for robot in robots:
+                logs = {n: stack.enter_context(open(out / f"{robot}-{n}.log", "w")) for n in ("driver", "station")}
+                mons[robot] = Monitor(session, robot)
+                client = ["--robot", robot, "--mode", "client", "--connect", tcp(port)]
+                wd = out / robot
+                wd.mkdir(exist_ok=True)
+                driver_args = emulated_link(kids, args.link, wd, x0, timeout + 15, logs["driver"])
+                kids.spawn(["driver", *driver_args, *client, "--duration", str(timeout + 15)], logs["driver"])
+                stations[robot] = kids.spawn(
+                    ["station", *client, "--store", str(stores[robot]), "--exit-at-goal", "--duration", str(timeout),
+                     *(["--mission", args.mission] if args.mission else [])], logs["station"], env=env)
+            tty = sys.stdout.isatty()
+            last_print = 0.0
+            others = [p for p in kids.procs if p not in stations.values()]
+            # until every station has ended (each exits at its goal) or a driver host or learner died, or the timeout
+            while time.monotonic() - t0 < timeout + 20:
+                if all(p.poll() is not None for p in stations.values()) or any(p.poll() is not None for p in others):
+                    break
+                time.sleep(0.1)
+                now = time.monotonic()
+                if now - last_print >= (0.5 if tty else 5.0):
+                    last_print = now
+                    line = _fleet_line(mons, world, now - t0)
+                    print(("\r" + line.ljust(150)) if tty else line, end="" if tty else "\n", flush=True)
+            if tty:
+                print()
+        except KeyboardInterrupt:
+            interrupted = True
+            print("\ninterrupted: stopping the demo's processes", file=sys.stderr)
+    summaries: dict[str, dict | None] = {r: _robot_summary(mons[r], world) if r in mons else None
+                                        for r in robots}
+    trajs = {}
+    for robot in robots:
+        s = summaries[robot]
+        if s is None:
+            print(f"summary {robot}: no telemetry; see {out}/{robot}-*.log")
+            continue
+        trajs[robot] = s.pop("_traj")
+        print(f"summary {robot}:", json.dumps(s))
+    reached = [r for r in robots if summaries[r] is not None and summaries[r]["reached_goal"]]
+    missing = [r for r in robots if r not in reached]
+    times = [summaries[r]["time_s"] for r in reached]
+    fleet_summary = {"robots": len(robots), "reached_goal": reached, "not_at_goal": missing,
+                     "wall_s": round(time.monotonic() - t0, 1),
+                     "time_s_max": max(times) if times else None,
+                     "missed_deadlines": {r: summaries[r]["missed_deadlines"] for r in robots if summaries[r]},
+                     "interrupted": interrupted}
+    print("fleet:", json.dumps(fleet_summary))
+    for r in reached:
+        if summaries[r]["goal_dist_m"] is not None and summaries[r]["goal_dist_m"] > world.goal_tolerance:
+            print(f"note: {r} met the mission's goal rule {summaries[r]['goal_dist_m']:.2f} m from the goal point "
+                  f"(past the path's end; max deviation {summaries[r]['max_dev_m']:.2f} m)")
+    if trajs:
+        _fleet_figure(out, world, trajs, args.link)
+        print(f"figure: {out / 'demo_fleet.png'}; pair stores: {out}/pairs-demo*.bin; logs: {out}/demo*-*.log")
+    if missing:
+        print(f"not at the goal: {', '.join(missing)}", file=sys.stderr)
+        return 1
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="scmbridge demo", description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--link", choices=["can", "udp", "mavlink"], default="can", help="vehicle link")
     ap.add_argument("--mission", default=None, help="mission file (default: the paper's S-path)")
     ap.add_argument("--out", default="demo_out")
-    ap.add_argument("--timeout", type=float, default=120.0, help="seconds before the demo gives up")
+    ap.add_argument("--timeout", type=float, default=None,
+                    help="seconds before the demo gives up (default 120; with --robots N, 120 + 30 per extra robot)")
+    ap.add_argument("--robots", type=int, default=1,
+                    help="N emulated learners demo1..demoN at once, each its own driver host and station process")
     ap.add_argument("--inprocess", action="store_true", help="the in-process SC transfer example instead")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--commands", type=int, default=8, help="(--inprocess) teacher commands to show")
     args = ap.parse_args(argv)
-    return inprocess(args) if args.inprocess else hil(args)
+    if args.robots < 1:
+        ap.error("--robots must be at least 1")
+    if args.timeout is None:
+        args.timeout = 120.0 + 30.0 * (args.robots - 1)
+    if args.inprocess:
+        return inprocess(args)
+    return hil(args) if args.robots == 1 else fleet(args)
