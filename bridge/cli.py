@@ -10,7 +10,14 @@ the problem; commands read their configuration before they open any link or sess
 from __future__ import annotations
 
 import importlib
+import os
 import sys
+
+# The numerical work here is small matrices (a 20-step MPC, 2 x 2 maps): OpenBLAS's default worker threads only
+# spin between calls (one station: 22-32 ms of CPU per tick against 9-15 ms single-threaded) and steal the CPU other
+# stations and the driver host need. Set before anything imports numpy; an explicit setting in the environment wins.
+for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_var, "1")
 
 #: command -> (module, one-line help). ``bench`` and ``sim`` take a second word.
 COMMANDS: dict[str, tuple[str, str]] = {

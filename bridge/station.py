@@ -151,6 +151,7 @@ class Station:
         self.limits_version = 0
         self.solve_ms: list[float] = []
         self.tick_ms: deque[float] = deque(maxlen=600)  # the last minute of periodic ticks' durations
+        self.ticks = 0
         self.pubs: dict[str, zenoh.Publisher] = {}
         self.ticker: FixedRate | None = None
 
@@ -371,7 +372,7 @@ class Station:
         ok = (self.why in ("driving", "goal reached") or self.why.startswith("calibration:")) and not self.persist_error
         text = self.why + (f"; {self.persist_error}" if self.persist_error else "")
         tk = np.array(self.tick_ms) if self.tick_ms else np.zeros(1)
-        counters["ticks"] = len(self.tick_ms)
+        counters["ticks"] = self.ticks
         msg = M.Status(stamp=now, seq=self.seq["status"], node="station", ok=ok, rates_hz={"loop": 1 / self.period},
                        latencies_ms={"solve_median": float(np.median(sm)), "solve_max": float(sm.max()),
                                      "tick_p50": float(np.percentile(tk, 50)), "tick_p99": float(np.percentile(tk, 99)),
@@ -432,6 +433,7 @@ class Station:
                 continue
             self.tick(now)
             self.tick_ms.append((time.monotonic() - now) * 1e3)
+            self.ticks += 1
             if now >= t_status:
                 self._put("status", self.status(now))
                 self.publish_limits(now, force=True)

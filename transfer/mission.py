@@ -54,13 +54,11 @@ class Mission:
         return s / self.path.length
 
     def reached(self, x: ArrayLike) -> bool:
-        """The one goal rule: at least ``GOAL_MIN_PROGRESS`` of the path covered, and either within the goal
-        tolerance of the goal or past the path's end (its closest point is the last waypoint)."""
+        """The one goal rule: at least ``GOAL_MIN_PROGRESS`` of the path covered and within the goal tolerance of
+        the goal. (Passing the path's end is not enough: a vehicle 3 m beside the last waypoint is not there.)"""
         xy = np.asarray(x, dtype=float)[:2]
         s, _ = self.path.project(xy)
-        if s < GOAL_MIN_PROGRESS * self.path.length:
-            return False
-        return s >= self.path.length - 1e-6 or float(np.hypot(*(xy - self.goal))) < self.goal_tolerance
+        return s >= GOAL_MIN_PROGRESS * self.path.length and float(np.hypot(*(xy - self.goal))) < self.goal_tolerance
 
     def collides(self, xy: ArrayLike, radius: float = 0.0) -> bool:
         """Does a disc of ``radius`` at ``xy`` touch an obstacle?"""

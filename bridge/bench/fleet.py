@@ -422,7 +422,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--keep-going", action="store_true", help="run every size even after one is not held")
     ap.add_argument("--blas-threads", choices=["1", "inherit"], default="1",
                     help="1: the stations run as the shipped units run them (OPENBLAS_NUM_THREADS=1, "
-                         "OMP_NUM_THREADS=1); inherit: this process's environment (OpenBLAS's default threads)")
+                         "OMP_NUM_THREADS=1); inherit: OpenBLAS's default, one thread per core")
     ap.add_argument("--simulate", default=None, help=argparse.SUPPRESS)  # the robots' process: fleet1,fleet2,...
     ap.add_argument("--connect", action="append", default=[], help=argparse.SUPPRESS)
     ap.add_argument("--mission", default=None, help=argparse.SUPPRESS)
@@ -433,11 +433,15 @@ def main(argv: list[str] | None = None) -> int:
     if args.robots < 1:
         ap.error("--robots must be at least 1")
     sizes = [int(a) for a in args.sizes.split(",")] if args.sizes else sweep(args.robots)
-    env = None if args.blas_threads == "inherit" else dict(os.environ, **STATION_ENV)
+    # `scmbridge` sets one BLAS thread for every command it runs (bridge/cli.py) unless the environment says
+    # otherwise; "inherit" asks for OpenBLAS's own default, a thread per core, explicitly
+    cores = str(os.cpu_count() or 1)
+    env = dict(os.environ, **(STATION_ENV if args.blas_threads == "1" else
+                               {"OPENBLAS_NUM_THREADS": cores, "OMP_NUM_THREADS": cores}))
     out: dict = {"rate_hz": 1 / PERIOD_S, "period_ms": PERIOD_S * 1e3, "mpc_horizon": 20,
                  "criterion": {"missed_fraction_every_station": "< 0.01", "tick_p99_ms_every_station": "< 100"},
                  "seconds": args.seconds, "warmup_s": args.warmup, "cpus": os.cpu_count(), "load_start": _load(),
-                 "station_env": STATION_ENV if env is not None else "inherited",
+                 "station_env": {k: env[k] for k in STATION_ENV},
                  "levels": []}
     held = 0
     with tempfile.TemporaryDirectory(prefix="scm-fleet-") as tmp:
