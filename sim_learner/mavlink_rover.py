@@ -368,6 +368,9 @@ class MavlinkRover(ThreadedDevice):
             self._setpoint(msg, now)
 
     def _command(self, command: int, p: tuple[float, ...], now: float) -> int:
+        used = {MAV.MAV_CMD_DO_SET_MODE: 2, MAV.MAV_CMD_COMPONENT_ARM_DISARM: 1, MAV.MAV_CMD_SET_MESSAGE_INTERVAL: 2}
+        if not all(math.isfinite(float(v)) for v in p[: used.get(command, 0)]):
+            return MAV.MAV_RESULT_DENIED  # a NaN/inf parameter is no mode, message id or arming request
         if command == MAV.MAV_CMD_DO_SET_MODE:
             if not int(p[0]) & MAV.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED:
                 return MAV.MAV_RESULT_DENIED

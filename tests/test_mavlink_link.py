@@ -379,3 +379,24 @@ def test_random_bytes_on_the_link_are_counted_and_dropped(data: bytes) -> None:
         time.sleep(0.03)
         assert rover._thread is not None and rover._thread.is_alive()
         assert rover.setpoints == []
+
+
+def test_the_emulated_rover_denies_non_finite_command_parameters_and_lives() -> None:
+    """Found by the fuzz bench: a COMMAND_LONG whose mode or message id was NaN/inf killed the rover's thread."""
+    from pymavlink import mavutil as mu
+
+    rover = MavlinkRover(SimVehicle(mpc_learner(), (0.0, 0.0, 0.0), now=time.monotonic())).start()
+    conn = mu.mavlink_connection(f"udpout:127.0.0.1:{rover.port}", source_system=255)
+    try:
+        for bad in (float("nan"), float("inf"), float("-inf")):
+            conn.mav.command_long_send(1, 1, mu.mavlink.MAV_CMD_DO_SET_MODE, 0, 1, bad, 0, 0, 0, 0, 0)
+            conn.mav.command_long_send(1, 1, mu.mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, 0, bad, 1e5, 0, 0, 0, 0, 0)
+            conn.mav.command_long_send(1, 1, mu.mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 0, bad, 0, 0, 0, 0, 0, 0)
+        t_end = time.monotonic() + 3.0
+        while time.monotonic() < t_end and len(rover.commands) < 9:
+            time.sleep(0.02)
+        assert rover._thread.is_alive()
+        assert [c["result"] for c in rover.commands[-9:]] == [mu.mavlink.MAV_RESULT_DENIED] * 9
+    finally:
+        conn.close()
+        rover.stop()
