@@ -12,6 +12,7 @@ import threading
 import time
 
 import msgspec
+import numpy as np
 import pytest
 
 from bridge import wire as M
@@ -191,3 +192,24 @@ def test_estop_command_latches_confirms_and_only_the_operator_releases(driver_ho
     finally:
         stop.set()
         t.join(timeout=2)
+
+
+@pytest.mark.parametrize("driver_host", ["can"], indirect=True)
+def test_a_flood_of_commands_reaches_the_link_at_most_at_max_send_hz(driver_host) -> None:
+    """Finding: each accepted command triggered an immediate send: up to 622 sends/s against a nominal 50/s."""
+    session, robot, lis = driver_host
+    assert lis.wait(lambda s: len(s.status) > 0 and s.status[-1].ok, 20.0)
+    pub = session.declare_publisher(Keys(robot).cmd)
+    t0 = time.monotonic()
+    seq = 0
+    while time.monotonic() - t0 < 1.5:  # ~600 commands a second, every one new and valid
+        seq += 1
+        pub.put(M.encode(_cmd(seq, 0.2, 0.05 * (seq % 3))))
+        time.sleep(0.0015)
+    time.sleep(0.2)
+    with lis.lock:
+        window = [a.stamp for a in lis.applied if t0 + 0.25 <= a.stamp <= t0 + 1.25]
+    assert seq > 500
+    assert len(window) <= 100 * 1.0 + 2, f"{len(window)} sends in one second (max_send_hz 100)"
+    gaps = np.diff(window)
+    assert gaps.min() >= 1 / 100 - 1e-3  # never closer than 1 / max_send_hz

@@ -136,3 +136,68 @@ def test_a_station_killed_and_restarted_drives_the_robot_again_at_once(tmp_path)
             t_first = next(t for t, c in zip(cmd_times, commands) if c.epoch != old_epoch and c.method != "stop")
         assert wait(lambda: any(a.reason in ("cmd", "clamped") and a.stamp >= t_first for a in applied), 1.0), \
             "the restarted station's commands were not applied within 1 s"
+
+
+def test_exploration_is_a_setting_and_never_happens_near_an_obstacle(tmp_path) -> None:
+    """Finding: exploration ran mid-mission next to obstacles with no way to bound or stop it."""
+    import msgspec
+
+    from bridge.config import StationConfig, load_mission
+    from bridge.station import Station
+
+    class Sink:
+        def __init__(self) -> None:
+            self.sent: list[bytes] = []
+
+        def put(self, data: bytes) -> None:
+            self.sent.append(data)
+
+    mission = load_mission()
+    ox, oy, r = mission.obstacles[0]
+    near, far = np.array([ox + r + 0.1, oy]), np.array([0.0, -1.0])
+    for exploration, vetoed in (("guided", 1), ("paper", 1), ("off", 2)):
+        cfg = msgspec.convert({"transfer": {"exploration": exploration, "explore_clearance_m": 0.3}}, StationConfig)
+        st = Station(cfg, "r1", 10.0, tmp_path / f"{exploration}.bin", mission)
+        st.pubs = {"cmd": Sink()}
+        st.map_and_send(1.0, np.array([0.3, 0.1]), near)
+        st.map_and_send(1.1, np.array([0.3, 0.1]), far)
+        assert st.extra["explore_vetoed"] == vetoed, exploration
+        cmds = [M.decode(b, M.Command) for b in st.pubs["cmd"].sent]
+        assert len(cmds) == 2 and cmds[0].method != "perturb"
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(120)
+def test_a_running_station_takes_a_new_mission_over_zenoh_and_its_goal_state_resets(tmp_path) -> None:
+    """Finding: the mission was hard-wired and `reached` stayed set after the goal. A new MissionSpec on
+    scm/<robot>/mission replaces it (goal state reset) and the station drives to the new goal."""
+    import math
+
+    from bridge.config import load_mission
+    from bridge.procs import Children
+
+    port, robot = free_port(), f"mi{os.getpid()}"
+    x0 = ",".join(f"{a:.6f}" for a in load_mission().start)
+    client = ["--robot", robot, "--mode", "client", "--connect", tcp(port)]
+    with open_session(make_config(mode="router", listen=[tcp(port)])) as session, Children() as kids:
+        keys, col = Keys(robot), Collector(session)
+        states = col.listen(keys.state, M.LearnerState)
+        status = col.listen(M.status_key(robot, "station"), M.Status)
+        kids.spawn(["driver", "--link", "can", "--emulate", "--x0", x0, *client, "--duration", "100"])
+        kids.spawn(["station", *client, "--store", str(tmp_path / "p.bin"), "--duration", "90"])
+        assert col.wait(lambda: status and status[-1].text == "driving", 60)
+        for goal_no in (1, 2):  # two short missions ahead of the robot: each reached, then the next resets it
+            with col.lock:
+                s = states[-1]
+            ahead = [[s.x + d * math.cos(s.theta), s.y + d * math.sin(s.theta)] for d in (0.0, 0.2, 0.4, 0.6)]
+            session.put(keys.mission, M.encode(M.MissionSpec(name=f"ahead{goal_no}", path=ahead,
+                                                             goal_tolerance=0.2)))
+            assert col.wait(lambda n=goal_no: status and status[-1].counters.get("missions") == n
+                            and status[-1].counters.get("goal_reached") == 0, 10), f"mission {goal_no} not taken"
+            assert col.wait(lambda: status[-1].counters.get("goal_reached") == 1 and status[-1].text ==
+                            "goal reached", 30), f"goal {goal_no} not reached"
+        import msgspec
+
+        bad = msgspec.msgpack.encode({"name": "bad", "path": [[0.0, 0.0], [0.0, 0.0]]})  # no length: refused
+        session.put(keys.mission, bad)
+        assert col.wait(lambda: status[-1].counters.get("malformed_mission", 0) == 1, 5)

@@ -71,3 +71,17 @@ def test_a_failed_solve_falls_back_and_says_so() -> None:
     assert res.u[0] == pytest.approx(limits.v[0]) and res.u[1] == pytest.approx(0.0)  # no plan yet: slowest, straight
     with pytest.raises(ValueError):
         starved.solve(np.array([np.nan, 0, 0]), world.path, limits)
+
+
+def test_the_mpc_keeps_the_nearest_obstacles_within_reach_and_counts_the_ones_it_drops() -> None:
+    """Finding: the MPC silently kept only the first 6 obstacles of a mission, wherever they were."""
+    from transfer.domain import Bounds
+
+    mpc = MpcTeacher(MpcConfig(N=10, dt=0.1, max_obstacles=2))
+    limits = Bounds((0.05, 0.6), (-0.7, 0.7))  # reach: 10 * 0.1 * 0.6 + margin 0.15 = 0.75 m
+    far = [[50.0 + i, 0.0, 0.3] for i in range(6)]  # listed first: the old code kept these
+    near = [[0.9, 0.0, 0.3], [0.0, 0.7, 0.2], [-0.5, -0.5, 0.1]]  # clearances 0.6, 0.5, ~0.61
+    kept, dropped = mpc.obstacles_that_matter(np.zeros(3), np.array(far + near), limits)
+    assert kept.tolist() == [[0.0, 0.7, 0.2], [0.9, 0.0, 0.3]] and dropped == 1
+    kept, dropped = mpc.obstacles_that_matter(np.zeros(3), np.array(far), limits)
+    assert kept.shape == (0, 3) and dropped == 0
