@@ -26,6 +26,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "bench transfer": ("bridge.bench.transfer", "transfer policy per-command cost (JSON)"),
     "bench mpc": ("bridge.bench.mpc", "MPC closed-loop solve times (JSON)"),
     "bench bridge": ("bridge.bench.bridge", "end-to-end latency and 50 Hz loop jitter over Zenoh (JSON)"),
+    "bench fuzz": ("bridge.bench.fuzz", "mutated input at every trust boundary, counts checked exactly; RSS (JSON)"),
 }
 
 
@@ -45,7 +46,7 @@ def main(argv: list[str] | None = None) -> int:
     name, rest = args[0], args[1:]
     if name == "bench":
         if not rest or rest[0].startswith("-"):
-            print("usage: scmbridge bench {scm,transfer,mpc,bridge} [OPTIONS]", file=sys.stderr)
+            print("usage: scmbridge bench {scm,transfer,mpc,bridge,fuzz} [OPTIONS]", file=sys.stderr)
             return 2
         name, rest = f"bench {rest[0]}", rest[1:]
     if name not in COMMANDS:
