@@ -1342,8 +1342,13 @@ class _EcuLife:
     """The emulated controllers on ``channel`` (no cyclic encoder estimates: every estimate on the bus answers a
     remote request, the batch marker), armed by ``arm`` frames from ``bus``."""
 
-    def __init__(self, stack: ExitStack, channel: str, vehicle, bus, arm: list) -> None:
-        self.ecus = _can_rig(stack, channel, vehicle, encoder_period=3600.0)
+    def __init__(self, channel: str, vehicle, bus, arm: list) -> None:
+        from sim_learner.can_ecu import DiffDriveEcus
+
+        while bus.recv(timeout=0) is not None:  # what a pair that died had sent before it died
+            pass
+        self.ecus = DiffDriveEcus({"interface": "virtual", "channel": channel}, vehicle,
+                                  encoder_period=3600.0).start()
         first, t_end = 0, time.monotonic() + 2.0  # the one cyclic pair of estimates, sent at start
         while first < 2 and time.monotonic() < t_end:
             f = bus.recv(timeout=0.05)
@@ -1355,6 +1360,9 @@ class _EcuLife:
     def alive(self) -> bool:
         t = self.ecus._thread
         return t is not None and t.is_alive()
+
+    def close(self) -> None:
+        self.ecus.stop()
 
 
 def can_ecu(n: int, seed: int, workdir: Path | None = None) -> dict:
@@ -1381,7 +1389,8 @@ def can_ecu(n: int, seed: int, workdir: Path | None = None) -> dict:
             _frame(node, SET_CONTROLLER_MODE, struct.pack("<II", VELOCITY_CONTROL, PASSTHROUGH)),
             _frame(node, SET_AXIS_STATE, struct.pack("<I", CLOSED_LOOP).ljust(state_len, b"\0")))
             if (f.arbitration_id & 0x1F) != SET_CONTROLLER_MODE or spec.valid(f)]
-        life = _EcuLife(stack, channel, vehicle, bus, arm)
+        lives = [_EcuLife(channel, vehicle, bus, arm)]
+        stack.callback(lambda: lives[-1].close())
         rss0 = rss_mb()
         mut = CanMutator(rng, _master_frames(rng, own, spec), own)
         tally = Tally()
@@ -1401,6 +1410,7 @@ def can_ecu(n: int, seed: int, workdir: Path | None = None) -> dict:
                 tally.add(kind, cls != "valid")
                 batch.append(f)
             batch.append(_frame(own[0], GET_ENCODER_ESTIMATES, b"", is_remote_frame=True))
+            life = lives[-1]
             m0 = life.ecus.malformed
             answers = got = 0
             for f in batch:
@@ -1416,8 +1426,8 @@ def can_ecu(n: int, seed: int, workdir: Path | None = None) -> dict:
                 if life.alive:
                     crashes.events.append("controllers stopped answering encoder requests")
                 lost += len(batch) - len(arm) - 1
-                life.ecus.stop()
-                life = _EcuLife(stack, channel, vehicle, bus, arm)
+                life.close()
+                lives[-1] = _EcuLife(channel, vehicle, bus, arm)
                 continue
             counted += life.ecus.malformed - m0
             counts.update(classes)
@@ -1720,13 +1730,11 @@ class _RoverLife:
     """One emulated rover and the ground-station socket that talks to it (GUIDED and armed), acknowledgements
     counted."""
 
-    def __init__(self, stack: ExitStack, spy: VehicleSpy) -> None:
+    def __init__(self, spy: VehicleSpy) -> None:
         from sim_learner.mavlink_rover import MavlinkRover
 
         self.rover = MavlinkRover(spy.vehicle, wp_speed=2.0, str_rat_max=2.0).start()
-        stack.callback(self.rover.stop)
         self.gcs = udp_socket()
-        stack.callback(self.gcs.close)
         self.to = (LOCAL, self.rover.port)
         self.enc = mavlink2().MAVLink(None, srcSystem=255, srcComponent=190)
         self.reader = mav_parser()
@@ -1760,6 +1768,10 @@ class _RoverLife:
         t = self.rover._thread
         return t is not None and t.is_alive()
 
+    def close(self) -> None:
+        self.gcs.close()
+        self.rover.stop()
+
 
 def mavlink_rover(n: int, seed: int, workdir: Path | None = None) -> dict:
     """MAVLink datagrams at the emulated rover from a ground-station socket bound here (GUIDED and armed first),
@@ -1775,7 +1787,9 @@ def mavlink_rover(n: int, seed: int, workdir: Path | None = None) -> dict:
     t0, crashes = time.monotonic(), Crashes()
     with crashes, ExitStack() as stack:
         spy = VehicleSpy(new_vehicle(), 2.0, 2.0)
-        life = _RoverLife(stack, spy)
+        lives = [_RoverLife(spy)]
+        stack.callback(lambda: lives[-1].close())
+        life = lives[0]
         rss0 = rss_mb()
         mut, tally = MavMutator(rng, _gcs_templates(rng), sysid=255, compid=190), Tally()
         oracle = MavOracle()
@@ -1798,7 +1812,8 @@ def mavlink_rover(n: int, seed: int, workdir: Path | None = None) -> dict:
             wait_until(lambda w=acks0 + longs, lf=life: lf.read_acks() >= w or not lf.alive, 5.0, 0.001)
             if not life.alive:  # died in this batch: counted as a crash, the batch left out, a new rover
                 lost += batch
-                life = _RoverLife(stack, spy)
+                life.close()
+                life = lives[-1] = _RoverLife(spy)
                 continue
             want, got = want + oracle.bad - bad0, got + life.rover.bad - rbad0
             want_acks, got_acks = want_acks + longs, got_acks + life.acks - acks0
