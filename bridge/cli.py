@@ -27,6 +27,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "bench mpc": ("bridge.bench.mpc", "MPC closed-loop solve times (JSON)"),
     "bench bridge": ("bridge.bench.bridge", "end-to-end latency and 50 Hz loop jitter over Zenoh (JSON)"),
     "bench fuzz": ("bridge.bench.fuzz", "mutated input at every trust boundary, counts checked exactly; RSS (JSON)"),
+    "bench soak": ("bridge.bench.soak", "the HIL loop driving the mission for --minutes: RSS trend, deadlines (JSON)"),
 }
 
 
@@ -46,7 +47,7 @@ def main(argv: list[str] | None = None) -> int:
     name, rest = args[0], args[1:]
     if name == "bench":
         if not rest or rest[0].startswith("-"):
-            print("usage: scmbridge bench {scm,transfer,mpc,bridge,fuzz} [OPTIONS]", file=sys.stderr)
+            print("usage: scmbridge bench {scm,transfer,mpc,bridge,fuzz,soak} [OPTIONS]", file=sys.stderr)
             return 2
         name, rest = f"bench {rest[0]}", rest[1:]
     if name not in COMMANDS:
