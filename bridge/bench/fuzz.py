@@ -821,9 +821,9 @@ def rss_senders(senders: int, per_sender: int, seed: int, workdir: Path, shm: bo
         time.sleep(10.0)
         rows.append({"after_sender": senders, "waited_s": 10, **rss_parts(pid), "zenoh_segments": zenoh_segments(pid)})
         counted = rig.status_after(time.monotonic()).get("malformed_cmd", 0) - before
-    per = [b["rss"] - a["rss"] for a, b in zip(rows[1:], rows[2:-1])]
+    per = sorted(b["rss"] - a["rss"] for a, b in zip(rows[1:], rows[2:-1]))
     return {"shared_memory": shm, "rows": rows, "counted_exactly": counted == senders * per_sender,
-            "rss_per_further_sender_mb": round(sum(per) / len(per), 1) if per else None}
+            "rss_per_further_sender_mb": round(per[len(per) // 2], 1) if per else None}  # the median
 
 
 def rss_verdict(rounds: dict, probe: dict | None, senders_on: dict | None, senders_off: dict | None) -> dict:
@@ -1709,7 +1709,11 @@ def mavlink_driver(n: int, seed: int, workdir: Path | None = None) -> dict:
         f32 = struct.unpack("<ff", struct.pack("<ff", 0.2, -0.1))
         wrong = sum((m.vx, m.yaw_rate) not in (f32, (0.0, 0.0)) for m in setpoints)
         rss1 = rss_mb()
-        kept = {"statustexts": len(getattr(driver, "statustexts", []))}
+        conn = getattr(driver, "conn", None)  # what the driver and its pymavlink connection keep
+        kept = {"statustexts": len(getattr(driver, "statustexts", [])),
+                "pymavlink_message_types": sum(len(st.messages) for st in getattr(conn, "sysid_state", {}).values()),
+                "pymavlink_systems": len(getattr(conn, "sysid_state", {})),
+                "pymavlink_params": sum(len(ps.params) for ps in getattr(conn, "param_state", {}).values())}
         # the vehicle says GUIDED and armed again: the driver's next set-point must reach it as told
         fake.sendto(heartbeat(), addr)
         time.sleep(0.05)

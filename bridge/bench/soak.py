@@ -10,10 +10,11 @@ the unchanged mission again would end the lap at once: the robot stands at its g
 (:meth:`transfer.mission.Mission.reached`) counts a robot past the path's end as arrived. The processes run for the
 whole soak (no restart per lap), so their memory is measured over all of it.
 
-Every ``--sample-s`` (10 s) each process's RSS (``/proc/<pid>/status`` VmRSS) is sampled; the trend is the
-least-squares slope in MB/min over the samples after ``--warmup-s``. Also reported: the laps, the missed deadlines of
-the station and the driver host (their status counters, over the soak and per minute), every counter of their last
-status, and any child that exited or logged a traceback. JSON on stdout.
+Every ``--sample-s`` (10 s) each process's RSS (``/proc/<pid>/status`` VmRSS, with its RssAnon and RssShmem parts)
+is sampled; the trend is the least-squares slope in MB/min over the samples after ``--warmup-s`` (of VmRSS, and of
+RssAnon alone: shared memory mapped once, such as a Zenoh pool, is a step, not a trend). Also reported: the laps,
+the missed deadlines of the station and the driver host (their status counters, over the soak and per minute), every
+counter of their last status, and any child that exited or logged a traceback. JSON on stdout.
 """
 
 from __future__ import annotations
@@ -34,16 +35,20 @@ import numpy as np
 from bridge import wire as M
 
 
-def rss_mb(pid: int) -> float | None:
-    """VmRSS of ``pid`` in MB, or None if it is gone."""
+def rss_mb(pid: int) -> dict[str, float] | None:
+    """VmRSS of ``pid`` and two of its parts (RssAnon: private heap and stacks; RssShmem: shared memory, such as
+    Zenoh's shared-memory pools), MB; None if it is gone."""
+    names = {"VmRSS:": "rss", "RssAnon:": "anon", "RssShmem:": "shmem"}
+    out = {}
     try:
         with open(f"/proc/{pid}/status") as f:
             for line in f:
-                if line.startswith("VmRSS:"):
-                    return round(int(line.split()[1]) / 1024, 2)
+                key = line.split(maxsplit=1)[0] if line.strip() else ""
+                if key in names:
+                    out[names[key]] = round(int(line.split()[1]) / 1024, 2)
     except OSError:
         return None
-    return None
+    return out or None
 
 
 def slope_mb_per_min(times_s: list[float], values: list[float | None], warmup_s: float) -> float | None:
@@ -120,7 +125,7 @@ def run(minutes: float, link: str, workdir: Path, sample_s: float = 10.0, warmup
     x0 = ",".join(f"{a:.6f}" for a in spec.start)
     life = seconds + startup_timeout + 60
     procs: dict[str, Any] = {}
-    samples: dict[str, list[float | None]] = {}
+    samples: dict[str, list[dict | None]] = {}
     times: list[float] = []
     laps: list[dict] = []
     alive = True
@@ -177,12 +182,17 @@ def run(minutes: float, link: str, workdir: Path, sample_s: float = 10.0, warmup
     crashes = {name: _tracebacks(workdir / f"{name}.log") for name in ("driver", "station", "learner")}
     exits = {name: p.returncode for name, p in procs.items()}
     rss = {}
-    for name, vals in samples.items():
+    warm = min(warmup_s, 0.5 * seconds)
+    for name, rows in samples.items():
+        vals = [r["rss"] if r else None for r in rows]
         good = [v for v in vals if v is not None]
+        part = {k: [r.get(k) if r else None for r in rows] for k in ("anon", "shmem")}
         rss[name] = {"first_mb": good[0] if good else None, "last_mb": good[-1] if good else None,
                      "max_mb": max(good) if good else None,
-                     "slope_mb_per_min": slope_mb_per_min(times, vals, min(warmup_s, 0.5 * seconds)),
-                     "samples_mb": vals}
+                     "slope_mb_per_min": slope_mb_per_min(times, vals, warm),
+                     "anon_slope_mb_per_min": slope_mb_per_min(times, part["anon"], warm),
+                     "shmem_last_mb": part["shmem"][-1] if part["shmem"] else None,
+                     "samples_mb": vals, "anon_mb": part["anon"], "shmem_mb": part["shmem"]}
     missed = {}
     for node in ("station", "driver"):
         c0 = (first[node] or {}).get("counters", {})
