@@ -50,13 +50,13 @@ def test_the_example_external_teacher_drives_the_robot_through_the_transfer_serv
                 last = got["state"][-1] if got["state"] else None
             if last is not None:
                 progress = max(progress, mission.progress([last.x, last.y]))
-            if progress > 0.35:
+            if progress > 0.25:
                 break
     with lock:
         methods = {c.method for c in got["cmd"]}
         limits = list(got["limits"])
         status = got["status"][-1] if got["status"] else None
-    assert progress > 0.35, f"the robot covered only {progress:.0%} of the path"
+    assert progress > 0.25, f"the robot covered only {progress:.0%} of the path"
     assert "scm" in methods  # the station mapped the external teacher's commands, not passed them through
     assert limits and limits[-1].version >= 2  # the learned limits reached the teacher as they changed
     assert status is not None and status.counters.get("malformed_teacher", 0) == 0
