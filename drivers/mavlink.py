@@ -75,6 +75,22 @@ TYPE_MASK_VEL_YAWRATE = 0x05E7
 SOURCE_COMPONENT = MAV.MAV_COMP_ID_MISSIONPLANNER
 NO_ACK = -1  # a command that got no COMMAND_ACK after all its tries
 _BACKOFF0 = 0.25
+#: Telemetry a vehicle can really send (the wire's own ranges are wider still): |x|, |y| in m, speeds in m/s, yaw in
+#: rad (ArduPilot sends [-pi, pi]; a full turn either way is tolerated), yaw rate in rad/s. A message outside them,
+#: NaN/inf included, is counted malformed (``detail["invalid_values"]``) and dropped before it can reach a pose.
+POSITION_MAX, SPEED_MAX, YAW_MAX, YAW_RATE_MAX = 1e6, 100.0, 2 * math.pi, 100.0
+
+
+def telemetry_valid(msg: Any) -> bool:
+    """A LOCAL_POSITION_NED or ATTITUDE whose values are finite and within the bounds above (other types: True)."""
+    t = msg.get_type()
+    if t == "LOCAL_POSITION_NED":
+        bounded = ((msg.x, POSITION_MAX), (msg.y, POSITION_MAX), (msg.vx, SPEED_MAX), (msg.vy, SPEED_MAX))
+    elif t == "ATTITUDE":
+        bounded = ((msg.yaw, YAW_MAX), (msg.yawspeed, YAW_RATE_MAX))
+    else:
+        return True
+    return all(math.isfinite(val) and abs(val) <= lim for val, lim in bounded)
 
 
 def mode_name(custom_mode: int | None) -> str:
@@ -153,7 +169,7 @@ class MavlinkDriver:
         self._backoff = _BACKOFF0
         self._state: tuple[bool, bool, str, str] = (False, False, "not opened", "closed")
         self._counts = {"foreign": 0, "setpoints_sent": 0, "setpoints_withheld": 0, "stray_acks": 0,
-                        "reconnects": 0, "link_losses": 0}
+                        "reconnects": 0, "link_losses": 0, "invalid_values": 0}
         self._foreign_ids: deque[tuple[int, int]] = deque(maxlen=8)
         self._last_refusal = ""
 
@@ -263,13 +279,18 @@ class MavlinkDriver:
         if t == "BAD_DATA":
             self._health.malformed += 1
             return
-        self._health.frames_received += 1
         src = (msg.get_srcSystem(), msg.get_srcComponent())
         if src != self.target:  # another vehicle, another ground station, a camera: not ours
+            self._health.frames_received += 1
             self._counts["foreign"] += 1
             if src not in self._foreign_ids:
                 self._foreign_ids.append(src)
             return
+        if not telemetry_valid(msg):  # a NaN yaw would end in math.cos(): the receive loop, and the link, would die
+            self._health.malformed += 1
+            self._counts["invalid_values"] += 1
+            return
+        self._health.frames_received += 1
         now = time.monotonic()
         v = self.v
         if t == "HEARTBEAT":
@@ -291,7 +312,7 @@ class MavlinkDriver:
         elif t == "COMMAND_ACK":
             self._ack(msg)
         elif t == "STATUSTEXT":
-            text = str(msg.text).rstrip("\x00")
+            text = "".join(c if c.isprintable() else "\ufffd" for c in str(msg.text).rstrip("\x00"))  # for logs
             v.texts.append((now, text))
             v.text_count += 1
             sev = int(msg.severity)

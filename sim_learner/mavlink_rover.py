@@ -33,6 +33,11 @@ driver that is wrong about the vehicle. Paths are in github.com/ArduPilot/ardupi
   (position bits 0-1, velocity bits 3-4, acceleration bits 6-7, yaw bit 10, yaw rate bit 11). Velocity + yaw rate:
   speed |(vx, vy)| capped at WP_SPEED, driving backwards when vx < 0; turn rate yaw_rate (clockwise positive), capped
   here at ATC_STR_RAT_MAX (``str_rat_max``, rad/s). Disarmed, the target is taken but the motors do not turn.
+  Non-finite values never reach the motors, as in ArduPilot's arithmetic: the speed is ``safe_sqrt(vx^2 + vy^2)``
+  (AP_Math: a NaN root is 0, so a NaN velocity is a stop; an infinite one is WP_SPEED), and a NaN turn rate goes
+  through ``constrain_float`` (AP_Math: a NaN becomes the middle of its range and raises the internal error
+  ``constraining_nan``; in AR_AttitudeControl ``get_steering_out_rate`` that range is the acceleration limit around
+  the last desired rate, so the last turn rate is kept; +-inf become +-ATC_STR_RAT_MAX).
 * GUID_TIMEOUT (Rover/mode_guided.cpp): no new target for ``guid_timeout`` s (3 by default) -> STATUSTEXT "target not
   received last 3.0 secs, stopping" and a stop.
 * HEARTBEAT at 1 Hz: GROUND_ROVER, ARDUPILOTMEGA, base_mode and system_status as Rover/GCS_Mavlink.cpp ``base_mode``
@@ -99,6 +104,18 @@ _KNOWN = {MAV.MAVLINK_MSG_ID_HEARTBEAT, MAV.MAVLINK_MSG_ID_SYS_STATUS, MAV.MAVLI
 GCS_TICK = 1.0 / 400.0  # GCS::update_receive in Rover's scheduler table
 
 
+def _safe_sqrt(v: float) -> float:
+    """AP_Math ``safe_sqrt``: 0 where the root is NaN (a NaN, or inf - inf, in the sum of squares)."""
+    r = math.sqrt(v) if v >= 0 else math.nan
+    return 0.0 if math.isnan(r) else r
+
+
+def _constrain(v: float, low: float, high: float, nan: float) -> float:
+    """AP_Math ``constrain_float``: a NaN becomes the middle of the range it is constrained to (and an internal
+    error); +-inf become the bounds. ``nan``: that middle, as the caller's range has it."""
+    return nan if math.isnan(v) else max(low, min(high, v))
+
+
 class _Tx:
     """The file pymavlink's encoder writes to: the rover's transport."""
 
@@ -140,6 +157,7 @@ class MavlinkRover(ThreadedDevice):
         self.commands: list[dict[str, Any]] = []  # every command handled, last 500: t, name, params, result
         self.statustexts: list[str] = []  # every STATUSTEXT sent, last 200
         self.bad = 0  # bytes that did not parse
+        self.internal_errors: dict[str, int] = {}  # AP_InternalError flags raised (a NaN constrained)
         self.dropped_on_disconnect = 0  # tcp: bytes never parsed because their sender had gone
         self.blackout = False
         self._texts: list[tuple[int, str]] = []  # queued for the next send phase (after the ACKs)
@@ -400,10 +418,15 @@ class MavlinkRover(ThreadedDevice):
         yaw_ignore, yaw_rate_ignore = mask & _YAW_IGNORE, mask & _YAW_RATE_IGNORE
         speed = 0.0
         if not vel_ignore:
-            speed = min(math.hypot(msg.vx, msg.vy), self.wp_speed)
+            speed = min(_safe_sqrt(msg.vx * msg.vx + msg.vy * msg.vy), self.wp_speed)
             if (not yaw_ignore or not yaw_rate_ignore) and msg.vx < 0:
                 speed = -speed
-        rate = 0.0 if yaw_rate_ignore else max(-self.str_rat_max, min(self.str_rat_max, msg.yaw_rate))
+        rate = 0.0
+        if not yaw_rate_ignore:
+            previous = -self.target[1] if self.target is not None else 0.0
+            rate = _constrain(msg.yaw_rate, -self.str_rat_max, self.str_rat_max, nan=previous)
+            if math.isnan(msg.yaw_rate):
+                self.internal_errors["constraining_nan"] = self.internal_errors.get("constraining_nan", 0) + 1
         if not pos_ignore or not acc_ignore or not yaw_ignore or (vel_ignore and yaw_rate_ignore):
             return self._ignore("unsupported type_mask")  # position / heading targets: not modelled here
         self.target, self.target_time = (speed, -rate), now  # NED clockwise -> ENU counter-clockwise
@@ -440,6 +463,7 @@ class MavlinkRover(ThreadedDevice):
                 wake = self.t0 + (math.floor((now - self.t0) / GCS_TICK) + 1) * GCS_TICK
             else:
                 wake = min(due.values()) if self.connected else now + 0.05
+            wake = min(wake, self._next_event())  # boot and GUID_TIMEOUT run on the vehicle's clock, not ours
             try:
                 select.select(self._fds(), [], [], min(max(0.0, wake - now), 0.05))
             except (OSError, ValueError):
@@ -474,6 +498,15 @@ class MavlinkRover(ThreadedDevice):
             for severity, text in self._texts:  # GCS::service_statustext, after this tick's ACKs
                 self.mav.statustext_send(severity, text.encode())
             self._texts.clear()
+
+    def _next_event(self) -> float:
+        """When :meth:`_update` has something to do next: the end of boot, a GUIDED target's timeout."""
+        events = [math.inf]
+        if not self._initialised:
+            events.append(self.t0 + self.init_s)
+        if self.target is not None:
+            events.append(self.target_time + self.guid_timeout)
+        return min(events)
 
     def _update(self, now: float) -> None:
         if not self._initialised and now - self.t0 >= self.init_s:

@@ -258,7 +258,7 @@ def test_tcp_reconnects_after_a_reboot_and_waits_for_the_operator() -> None:
     """A rebooted vehicle comes back in INITIAL_MODE, disarmed: the driver re-opens the connection, asks for its
     streams again, says so, and waits for the operator instead of changing the mode or arming."""
     with rig("tcp", heartbeat_timeout=1.5, reconnect_max_s=0.5) as (driver, rover, vehicle):
-        drive(driver, 0.2, 0.2, 0.0)
+        drive(driver, 1.5, 0.2, 0.0)  # up long enough that its clock going back to 0 tells a reboot (> 1 s)
         port = rover.port
         rover.stop()
         assert wait_for(driver, lambda: not driver.health().connected, 3.0)
@@ -400,3 +400,52 @@ def test_the_emulated_rover_denies_non_finite_command_parameters_and_lives() -> 
     finally:
         conn.close()
         rover.stop()
+
+
+def test_non_finite_set_points_reach_the_motors_as_ardupilots_arithmetic_leaves_them() -> None:
+    """Found by the fuzz bench: a NaN velocity set-point drove the emulated rover at WP_SPEED (``min``/``max`` of a
+    NaN) and a NaN turn rate reached the vehicle. ArduPilot's speed is ``safe_sqrt(vx^2 + vy^2)`` (NaN -> 0) and a
+    NaN turn rate is constrained to the last one; an infinite speed is WP_SPEED."""
+    vehicle = SimVehicle(mpc_learner(), (0.0, 0.0, 0.0), now=time.monotonic())
+    with MavlinkRover(vehicle, init_s=0.1, ekf_position_s=0.2, wp_speed=0.4) as rover:
+        c = mavutil.mavlink_connection(f"udpout:127.0.0.1:{rover.port}", source_system=250, source_component=190)
+        try:
+            c.mav.heartbeat_send(MAV.MAV_TYPE_GCS, MAV.MAV_AUTOPILOT_INVALID, 0, 0, 0)
+            time.sleep(0.5)  # booted, with an EKF origin
+            assert rover.rc_mode_switch("GUIDED") and rover.rc_arm(True)
+
+            def setpoint(vx: float, yaw_rate: float) -> tuple[float, float]:
+                n = len(rover.setpoints)
+                c.mav.set_position_target_local_ned_send(0, 1, 1, MAV.MAV_FRAME_BODY_NED, TYPE_MASK_VEL_YAWRATE, 0,
+                                                         0, 0, vx, 0, 0, 0, 0, 0, 0, yaw_rate)
+                t_end = time.monotonic() + 2.0
+                while len(rover.setpoints) == n and time.monotonic() < t_end:
+                    time.sleep(0.01)
+                assert len(rover.setpoints) == n + 1
+                return vehicle.cmd if vehicle.moving else (0.0, 0.0)
+
+            assert setpoint(0.3, -0.2) == (pytest.approx(0.3), pytest.approx(0.2))
+            assert setpoint(math.nan, -0.2) == (0.0, pytest.approx(0.2))  # NaN speed: 0, the turn goes on
+            assert setpoint(0.3, math.nan) == (pytest.approx(0.3), pytest.approx(0.2))  # the last turn rate kept
+            assert setpoint(math.inf, 0.0) == (pytest.approx(0.4), 0.0)  # WP_SPEED
+            assert setpoint(0.1, -math.inf) == (pytest.approx(0.1), pytest.approx(2.0))  # ATC_STR_RAT_MAX
+            assert rover.internal_errors == {"constraining_nan": 1}
+            assert rover._thread is not None and rover._thread.is_alive()
+        finally:
+            c.close()
+
+
+def test_telemetry_with_non_finite_or_absurd_values_is_counted_and_dropped() -> None:
+    """Found by the fuzz bench: an ATTITUDE with an infinite yaw raised out of ``poll()`` (math.cos), so every later
+    message went unread; a position of 1e30 m became a pose."""
+    with rig() as (driver, rover, _):
+        me = rover.foreign(1, 1)  # the vehicle's own ids: these are "its" messages
+        before = driver.health().malformed
+        for bad in (math.inf, math.nan, 1e30):
+            me.attitude_send(0, 0.0, 0.0, bad, 0.0, 0.0, 0.0)
+            me.local_position_ned_send(0, bad, 0.0, 0.0, 0.0, 0.0, 0.0)
+        poses: list = []
+        drive(driver, 0.3, 0.2, 0.0, poses)
+        h = driver.health()
+        assert h.malformed - before == 6 and h.detail["invalid_values"] == 6
+        assert h.ok and poses and all(abs(p.x) < 100 and abs(p.y) < 100 and math.isfinite(p.theta) for p in poses)

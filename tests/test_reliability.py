@@ -14,10 +14,12 @@ from bridge.bench import fuzz, soak
 
 N = 2000
 
+
 def check(res: dict, name: str) -> None:
     """Exact counts, the vehicle side, driving afterwards, no crash. (The fuzz found two emulator crashes, a remote
     frame killing the old emulated ODrive controllers and a NaN/inf command parameter killing the emulated rover;
-    both are fixed, so any crash fails.)"""
+    a NaN set-point reaching the rover's vehicle; and an infinite ATTITUDE yaw raising out of the MAVLink driver's
+    ``poll()``. All are fixed, so any crash fails.)"""
     assert res["sent"] == N, res
     assert res["exact"], {k: v for k, v in res.items() if "kinds" not in k}
     assert res.get("contract_violations", 0) == 0, res
@@ -48,11 +50,8 @@ def test_the_estop_latch_counts_follow_the_documented_rule(zenoh_results) -> Non
     assert latch["host"] == latch["rule"] and latch["rule"]["estops"] > 10 and latch["rule"]["estop_releases"] > 10
 
 
-# The MAVLink inputs are not in the suite yet: the harness (bridge/bench/fuzz.py) predates the rewritten driver and
-# rover, and its oracle does not yet match them (measured: the driver counts 776 BAD_DATA where the oracle parser
-# finds 832 in the same 2000 datagrams; the rover's case exceeds its time). `scmbridge bench fuzz` still runs and
-# reports them (exact: false) until the harness follows the new driver's counting.
-@pytest.mark.parametrize("name", ["udp_driver", "udp_robot", "can_decoder", "can_driver", "can_ecu"])
+@pytest.mark.parametrize("name", ["udp_driver", "udp_robot", "can_decoder", "can_driver", "can_ecu", "mavlink_driver",
+                                  "mavlink_rover"])
 def test_in_process_inputs_are_counted_exactly(name, tmp_path) -> None:
     res = fuzz.IN_PROCESS[name](N, 11, tmp_path)
     assert res["counted"] > N // 10, res  # the mutations really are malformed, mostly

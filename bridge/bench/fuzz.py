@@ -1628,14 +1628,30 @@ def _gcs_templates(rng: random.Random):
     return make
 
 
-class MavOracle:
-    """Counts what a receiver's parser must get out of the datagrams sent: messages, BAD_DATA, by type."""
+#: The MAVLink driver's telemetry contract (drivers/mavlink.py module docstring): which fields of a vehicle's
+#: LOCAL_POSITION_NED / ATTITUDE must be finite and within what magnitude, else the message is malformed.
+MAV_TELEMETRY_BOUNDS = {"LOCAL_POSITION_NED": {"x": 1e6, "y": 1e6, "vx": 100.0, "vy": 100.0},
+                        "ATTITUDE": {"yaw": 2 * math.pi, "yawspeed": 100.0}}
 
-    def __init__(self) -> None:
+
+class MavOracle:
+    """Counts what a receiver's parser must get out of the datagrams sent: messages, BAD_DATA, by type; and, when
+    ``vehicle`` (system, component) is given, the telemetry from it that breaks :data:`MAV_TELEMETRY_BOUNDS`
+    (``invalid``) and the COMMAND_LONGs addressed to it (``commands_for_vehicle``: each one gets a COMMAND_ACK)."""
+
+    def __init__(self, vehicle: tuple[int, int] | None = None) -> None:
         self.parser = mav_parser()
-        self.total = self.bad = 0
+        self.vehicle = vehicle
+        self.total = self.bad = self.invalid = self.commands_for_vehicle = 0
         self.types: Counter[str] = Counter()
         self.nonfinite_setpoints = 0
+
+    def is_invalid(self, m) -> bool:
+        t = m.get_type()
+        bounds = MAV_TELEMETRY_BOUNDS.get(t)
+        if bounds is None or (m.get_srcSystem(), m.get_srcComponent()) != self.vehicle:
+            return False
+        return not all(math.isfinite(getattr(m, f)) and abs(getattr(m, f)) <= lim for f, lim in bounds.items())
 
     def feed(self, data: bytes) -> list:
         msgs = mav_parse(self.parser, data)
@@ -1644,6 +1660,11 @@ class MavOracle:
             self.total += 1
             self.bad += t == "BAD_DATA"
             self.types[t] += 1
+            if self.vehicle is not None:
+                self.invalid += self.is_invalid(m)
+                sysid, compid = self.vehicle
+                self.commands_for_vehicle += t == "COMMAND_LONG" and m.target_system in (0, sysid) and \
+                    m.target_component in (0, compid)
             if t == "SET_POSITION_TARGET_LOCAL_NED" and not all(math.isfinite(a) for a in (m.vx, m.vy, m.yaw_rate)):
                 self.nonfinite_setpoints += 1
         return msgs
@@ -1693,13 +1714,13 @@ def mavlink_driver(n: int, seed: int, workdir: Path | None = None) -> dict:
         rss0 = rss_mb()
         h0 = driver.health()
         base = (h0.frames_received, h0.malformed)
-        mut, oracle, tally = MavMutator(rng, _vehicle_templates(rng)), MavOracle(), Tally()
+        mut, oracle, tally = MavMutator(rng, _vehicle_templates(rng)), MavOracle(vehicle=(1, 1)), Tally()
         sent = 0
         while sent < n:
             for _ in range(min(64, n - sent)):
                 kind, data = mut.next()
                 msgs = oracle.feed(data)
-                tally.add(kind, any(m.get_type() == "BAD_DATA" for m in msgs))
+                tally.add(kind, any(m.get_type() == "BAD_DATA" or oracle.is_invalid(m) for m in msgs))
                 fake.sendto(data, addr)
                 sent += 1
             t_end = time.monotonic() + 5.0
@@ -1709,14 +1730,14 @@ def mavlink_driver(n: int, seed: int, workdir: Path | None = None) -> dict:
                 except Exception as exc:
                     crashes.caught("poll", exc)
                     break
-                h = driver.health()  # the driver counts a BAD_DATA as malformed, every other message as received
+                h = driver.health()  # a BAD_DATA or invalid telemetry is malformed, every other message received
                 if h.frames_received - base[0] + h.malformed - base[1] >= oracle.total:
                     break
                 time.sleep(0.001)
             driver.send(0.2, 0.1, time.monotonic())
         h = driver.health()
         got = {"messages": h.frames_received - base[0] + h.malformed - base[1], "bad_data": h.malformed - base[1]}
-        want = {"messages": oracle.total, "bad_data": oracle.bad}
+        want = {"messages": oracle.total, "bad_data": oracle.bad + oracle.invalid}
         out_parser = mav_parser()
         setpoints = [m for b, _ in drain(fake) for m in mav_parse(out_parser, b)
                      if m.get_type() == "SET_POSITION_TARGET_LOCAL_NED"]
@@ -1728,8 +1749,8 @@ def mavlink_driver(n: int, seed: int, workdir: Path | None = None) -> dict:
                 "pymavlink_message_types": sum(len(st.messages) for st in getattr(conn, "sysid_state", {}).values()),
                 "pymavlink_systems": len(getattr(conn, "sysid_state", {})),
                 "pymavlink_params": sum(len(ps.params) for ps in getattr(conn, "param_state", {}).values())}
-        # the vehicle says GUIDED and armed again: the driver's next set-point must reach it as told
-        fake.sendto(heartbeat(), addr)
+        # the vehicle says GUIDED and armed again, with a fresh position: the next set-point must reach it as told
+        fake.sendto(vehicle(b""), addr)
         time.sleep(0.05)
         driver.poll(time.monotonic())
         driver.send(0.25, 0.0, time.monotonic())
@@ -1737,8 +1758,9 @@ def mavlink_driver(n: int, seed: int, workdir: Path | None = None) -> dict:
         last = [m for b, _ in drain(fake) for m in mav_parse(out_parser, b)
                 if m.get_type() == "SET_POSITION_TARGET_LOCAL_NED"]
         drive_ok = bool(last) and (last[-1].vx, last[-1].yaw_rate) == (0.25, 0.0)
-    return _result(sent, got["bad_data"], oracle.bad, got == want, crashes, t0, (rss0, rss1),
-                   "bench (driver in-process)", got=got, want=want, types=dict(oracle.types.most_common(12)),
+    return _result(sent, got["bad_data"], want["bad_data"], got == want, crashes, t0, (rss0, rss1),
+                   "bench (driver in-process)", invalid_telemetry=oracle.invalid, got=got, want=want,
+                   types=dict(oracle.types.most_common(12)),
                    kinds_sent_badly=tally.report(), kept_by_driver=kept,
                    vehicle={"setpoints": len(setpoints), "not_as_told": wrong, "ok": wrong == 0},
                    drives_after={"setpoint": [last[-1].vx, last[-1].yaw_rate] if last else None, "ok": drive_ok})
@@ -1810,11 +1832,11 @@ def mavlink_rover(n: int, seed: int, workdir: Path | None = None) -> dict:
         life = lives[0]
         rss0 = rss_mb()
         mut, tally = MavMutator(rng, _gcs_templates(rng), sysid=255, compid=190), Tally()
-        oracle = MavOracle()
+        oracle = MavOracle(vehicle=(life.rover.sysid, life.rover.compid))
         sent = lost = 0
         want = got = want_acks = got_acks = 0
         while sent < n:
-            bad0, long0, rbad0, acks0 = oracle.bad, oracle.types["COMMAND_LONG"], life.rover.bad, life.acks
+            bad0, long0, rbad0, acks0 = oracle.bad, oracle.commands_for_vehicle, life.rover.bad, life.acks
             batch = 0
             for _ in range(min(64, n - sent)):
                 kind, data = mut.next()
@@ -1826,7 +1848,7 @@ def mavlink_rover(n: int, seed: int, workdir: Path | None = None) -> dict:
             oracle.feed(mark)
             life.send(mark)
             sent += batch
-            longs = oracle.types["COMMAND_LONG"] - long0
+            longs = oracle.commands_for_vehicle - long0  # ArduPilot acknowledges each COMMAND_LONG addressed to it
             wait_until(lambda w=acks0 + longs, lf=life: lf.read_acks() >= w or not lf.alive, 5.0, 0.001)
             if not life.alive:  # died in this batch: counted as a crash, the batch left out, a new rover
                 lost += batch
