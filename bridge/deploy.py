@@ -157,6 +157,17 @@ def access_control(robots: Sequence[str], *, station_cn: str = "station", operat
     return {"enabled": True, "default_permission": "deny", "rules": rules, "subjects": subjects, "policies": policies}
 
 
+def _transport(certs_dir: str, **tls: Any) -> dict[str, Any]:
+    """TLS only, mutual, trusting ``<certs_dir>/ca.crt`` (``tls``: this side's key and certificate), and no
+    shared-memory transport: a same-machine sender's pool otherwise stays mapped in every receiver after the sender
+    has gone (docs/ARCHITECTURE.md, "Zenoh")."""
+    return {
+        "link": {"protocols": ["tls"],
+                 "tls": {"root_ca_certificate": f"{certs_dir}/ca.crt", "enable_mtls": True, **tls}},
+        "shared_memory": {"enabled": False},
+    }
+
+
 def router_config(robots: Sequence[str], *, station_cn: str = "station", operator_cn: str = "operator",
                   listen: str = LAB_LISTEN, certs: str | Path = LAB_CERTS, mocap_cn: str | None = None,
                   teacher_cn: str | None = None) -> dict[str, Any]:
@@ -176,17 +187,8 @@ def router_config(robots: Sequence[str], *, station_cn: str = "station", operato
         "listen": {"endpoints": [listen]},
         "connect": {"endpoints": []},
         "scouting": {"multicast": {"enabled": False}, "gossip": {"enabled": False}},
-        "transport": {
-            "link": {
-                "protocols": ["tls"],
-                "tls": {
-                    "root_ca_certificate": f"{d}/ca.crt",
-                    "listen_private_key": f"{d}/{station_cn}.key",
-                    "listen_certificate": f"{d}/{station_cn}.crt",
-                    "enable_mtls": True,
-                },
-            },
-        },
+        "transport": _transport(d, listen_private_key=f"{d}/{station_cn}.key",
+                                listen_certificate=f"{d}/{station_cn}.crt"),
         "access_control": access_control(robots, station_cn=station_cn, operator_cn=operator_cn, mocap_cn=mocap_cn,
                                          teacher_cn=teacher_cn),
     }
@@ -206,18 +208,8 @@ def client_config(name: str, *, connect: str = LAB_LISTEN, certs: str | Path = L
         "mode": "client",
         "connect": {"endpoints": [connect]},
         "scouting": {"multicast": {"enabled": False}, "gossip": {"enabled": False}},
-        "transport": {
-            "link": {
-                "protocols": ["tls"],
-                "tls": {
-                    "root_ca_certificate": f"{d}/ca.crt",
-                    "enable_mtls": True,
-                    "connect_private_key": f"{d}/{name}.key",
-                    "connect_certificate": f"{d}/{name}.crt",
-                    "verify_name_on_connect": True,
-                },
-            },
-        },
+        "transport": _transport(d, connect_private_key=f"{d}/{name}.key", connect_certificate=f"{d}/{name}.crt",
+                                verify_name_on_connect=True),
     }
 
 

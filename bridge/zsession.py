@@ -43,14 +43,16 @@ def make_config(
         raise ValueError(f"zenoh mode must be peer, client or router, not {mode!r}")
     if config_file is not None:
         conf = zenoh.Config.from_file(str(config_file))
+        if "shared_memory" not in Path(config_file).read_text():  # off unless the lab's file says otherwise
+            conf.insert_json5("transport/shared_memory/enabled", "false")
     else:
         conf = zenoh.Config()
         conf.insert_json5("mode", json.dumps(mode))
         conf.insert_json5("scouting/multicast/enabled", "false")
         conf.insert_json5("listen/endpoints", json.dumps(list(listen)))
         conf.insert_json5("connect/endpoints", json.dumps(list(connect)))
-        # No shared-memory transport: each same-machine sender's 16 MiB pool stayed mapped in the receiver after the
-        # sender closed (bench fuzz: a driver host went 66 -> 153 MB over four senders; 66 -> 68 MB without it).
+        # No shared-memory transport (docs/ARCHITECTURE.md, section 8): each same-machine sender's 16 MiB pool stayed
+        # mapped in the receiver after the sender closed (a driver host: 66 -> 153 MB over four senders).
         conf.insert_json5("transport/shared_memory/enabled", "false")
         # Retry quickly: a peer started a moment later is found in ~0.1 s instead of seconds.
         conf.insert_json5("connect/retry", json.dumps({"period_init_ms": 50, "period_max_ms": 500}))
