@@ -1,5 +1,5 @@
 """What every Zenoh node of scmbridge does the same way: decode-and-count subscriptions, a fixed-rate loop with
-counted missed deadlines, stop on SIGINT/SIGTERM, and the Zenoh command-line options.
+counted missed deadlines, stop on SIGINT/SIGTERM, a memory report on SIGUSR1, and the Zenoh command-line options.
 
 Callbacks run on Zenoh's threads: they only decode, count and hand the message over; all work is in the node's
 loop (docs/ARCHITECTURE.md, "Threads and clocks").
@@ -8,10 +8,14 @@ loop (docs/ARCHITECTURE.md, "Threads and clocks").
 from __future__ import annotations
 
 import argparse
+import gc
+import json
 import logging
+import os
 import signal
 import threading
 import time
+import tracemalloc
 from collections import Counter
 from collections.abc import Callable
 from typing import Any, TypeVar
@@ -93,11 +97,68 @@ class FixedRate:
 
 
 def stop_on_signals() -> threading.Event:
-    """An Event set by SIGINT or SIGTERM (the loop polls it; Zenoh's ``recv`` would ignore SIGINT)."""
+    """An Event set by SIGINT or SIGTERM (the loop polls it; Zenoh's ``recv`` would ignore SIGINT). SIGUSR1 writes
+    a memory report (:class:`MemoryReport`)."""
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
+    report = MemoryReport(os.environ.get(MEMORY_REPORT_ENV))
+    signal.signal(signal.SIGUSR1, lambda *_: report.write())
     return stop
+
+
+MEMORY_REPORT_ENV = "SCMBRIDGE_MEMORY_REPORT"
+
+
+class MemoryReport:
+    """``kill -USR1 <pid>`` on a node: where its Python heap grew. The first report is the baseline; each later one
+    lists the allocation sites (file:line) that grew most since it, after a garbage collection. It needs
+    ``tracemalloc`` on (start the node with ``PYTHONTRACEMALLOC=1``); without it the report says so and gives the
+    RSS only. A report is one JSON line in the log (WARNING: it is asked for), and appended to the file named by
+    ``$SCMBRIDGE_MEMORY_REPORT`` when set (``scmbridge bench soak --trace-memory`` reads it)."""
+
+    def __init__(self, path: str | None, top: int = 12) -> None:
+        self.path, self.top = path, top
+        self.first: tracemalloc.Snapshot | None = None
+
+    def build(self) -> dict[str, Any]:
+        out: dict[str, Any] = {"pid": os.getpid(), "rss_mb": _rss_mb(), "tracing": tracemalloc.is_tracing()}
+        if not tracemalloc.is_tracing():
+            out["note"] = "start the node with PYTHONTRACEMALLOC=1 to see allocation sites"
+            return out
+        gc.collect()
+        snap = tracemalloc.take_snapshot().filter_traces((tracemalloc.Filter(False, tracemalloc.__file__),))
+        out["traced_mb"] = round(tracemalloc.get_traced_memory()[0] / 2**20, 2)
+        if self.first is None:
+            self.first = snap
+            out["baseline"] = True
+            return out
+        diffs = [d for d in snap.compare_to(self.first, "lineno") if d.size_diff > 0][: self.top]
+        out["growth"] = [{"site": f"{d.traceback[0].filename}:{d.traceback[0].lineno}",
+                          "kb": round(d.size_diff / 1024, 1), "blocks": d.count_diff} for d in diffs]
+        return out
+
+    def write(self) -> None:
+        try:
+            rep = self.build()
+            line = json.dumps(rep)
+            log.warning("memory report: %s", line)
+            if self.path:
+                with open(self.path, "a") as f:
+                    f.write(line + "\n")
+        except Exception:  # a diagnostic must never take the node down
+            log.exception("memory report failed")
+
+
+def _rss_mb() -> float | None:
+    try:
+        with open(f"/proc/{os.getpid()}/status") as f:
+            for line in f:
+                if line.startswith("VmRSS:"):
+                    return round(int(line.split()[1]) / 1024, 1)
+    except OSError:
+        pass
+    return None
 
 
 def add_zenoh_args(ap: argparse.ArgumentParser) -> None:
@@ -112,4 +173,4 @@ def zenoh_config(args: argparse.Namespace) -> zenoh.Config:
     return make_config(mode=args.mode, listen=args.listen, connect=args.connect, config_file=args.zenoh_config)
 
 
-__all__ = ["FixedRate", "Inputs", "add_zenoh_args", "stop_on_signals", "zenoh_config"]
+__all__ = ["FixedRate", "Inputs", "MemoryReport", "add_zenoh_args", "stop_on_signals", "zenoh_config"]

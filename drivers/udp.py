@@ -18,6 +18,9 @@ What the driver trusts, in order:
    ``state_timeout_s`` (``state_foreign_epoch`` until then, ``robot_restarts`` counts the changes); an epoch left
    behind is never taken again (``state_old_epoch``). Seqs skipped inside an epoch are counted as ``state_gaps``.
 
+Datagrams the kernel dropped because the socket's receive buffer was full (a flood between two polls) are counted
+too (``dropped_by_kernel``, Linux ``SO_RXQ_OVFL``); the robot's own states lost that way also show as ``state_gaps``.
+
 Health is truthful: ``ok`` only while the socket is open and the robot's last accepted state is younger than
 ``state_timeout_s`` (so False until the first state); ``text`` says how long the robot has been silent.
 
@@ -42,6 +45,9 @@ MAX_DATAGRAMS_PER_POLL = 512
 #: how long a command may be applied after the robot receives it (the robot's watchdog usually acts first)
 CMD_VALID_MS = 300
 _REFUSALS = ("out_of_order", "seq_jump", "old_epoch", "foreign_epoch")
+#: Linux: each datagram carries the socket's count of datagrams dropped for want of buffer space (socket(7))
+SO_RXQ_OVFL = getattr(socket, "SO_RXQ_OVFL", 40)
+_ANC_SPACE = socket.CMSG_SPACE(4)
 
 
 def resolve_ipv4(host: str, port: int) -> tuple[str, int]:
@@ -71,7 +77,7 @@ class UdpDriver:
         self.gate = SeqGate(silence_s=config.state_timeout_s, max_rate_hz=config.max_state_rate_hz,
                             slack=STATE_SEQ_SLACK)
         self.last_state_time = -math.inf  # driver-host monotonic time of the last accepted state
-        self.counters = {"foreign": 0, "state_gaps": 0, "robot_restarts": 0,
+        self.counters = {"foreign": 0, "state_gaps": 0, "robot_restarts": 0, "dropped_by_kernel": 0,
                          **{f"state_{r}": 0 for r in _REFUSALS}}
         self._health = LinkHealth()
 
@@ -90,6 +96,10 @@ class UdpDriver:
             raise DriverError(f"cannot bind the UDP link to {self.bind[0]}:{self.bind[1]}: "
                               f"{exc.strerror or exc}") from None
         sock.setblocking(False)  # send() and poll() never wait
+        try:
+            sock.setsockopt(socket.SOL_SOCKET, SO_RXQ_OVFL, 1)
+        except OSError:  # not Linux: kernel drops are not counted
+            pass
         self.sock = sock
         self._health.connected = True
         t_end = time.monotonic() + self.open_timeout
@@ -124,12 +134,15 @@ class UdpDriver:
             return out
         for _ in range(MAX_DATAGRAMS_PER_POLL):
             try:
-                data, src = self.sock.recvfrom(65536)
+                data, anc, _, src = self.sock.recvmsg(65536, _ANC_SPACE)
             except (BlockingIOError, InterruptedError):
                 break
             except OSError:  # e.g. an ICMP error reported on the socket
                 self._health.errors += 1
                 break
+            for level, kind, value in anc:
+                if level == socket.SOL_SOCKET and kind == SO_RXQ_OVFL and len(value) >= 4:
+                    self.counters["dropped_by_kernel"] = int.from_bytes(value[:4], "little")
             self._health.frames_received += 1
             if src[:2] != self.robot_addr:
                 self.counters["foreign"] += 1

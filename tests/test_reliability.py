@@ -8,6 +8,8 @@ traffic stays on 127.0.0.1 ports bound here and python-can ``virtual`` channels.
 
 from __future__ import annotations
 
+import json
+
 import pytest
 
 from bridge.bench import fuzz, soak
@@ -90,9 +92,40 @@ def test_rss_rounds_and_the_probe_host_report(tmp_path) -> None:
     assert {"anon", "file", "shmem"} <= set(res["parts_mb"][-1])
 
 
+def test_a_memory_report_names_the_sites_that_grew(tmp_path, monkeypatch) -> None:
+    import tracemalloc
+
+    from bridge.node import MemoryReport
+
+    path = tmp_path / "mem.jsonl"
+    untraced = MemoryReport(str(path)).build()
+    assert untraced["tracing"] is False and "PYTHONTRACEMALLOC" in untraced["note"]
+    tracemalloc.start()
+    try:
+        rep = MemoryReport(str(path))
+        rep.write()
+        hoard = [bytearray(4096) for _ in range(500)]  # about 2 MB kept, from this line
+        rep.write()
+    finally:
+        tracemalloc.stop()
+    first, second = (json.loads(line) for line in path.read_text().splitlines())
+    assert first["baseline"] and second["growth"][0]["site"].endswith(f"test_reliability.py:{_line_of('hoard =')}")
+    assert second["growth"][0]["kb"] >= 0.9 * len(hoard) * 4 and second["growth"][0]["blocks"] >= len(hoard)
+
+
+def _line_of(text: str) -> int:
+    from pathlib import Path
+
+    return next(i for i, line in enumerate(Path(__file__).read_text().splitlines(), 1) if text in line)
+
+
 @pytest.mark.slow
 def test_a_short_soak_runs_and_reports(tmp_path) -> None:
-    res = soak.run(0.2, "can", tmp_path, sample_s=2.0, warmup_s=0.0)
+    """With the station and the driver host traced (tracemalloc), each answers SIGUSR1 with its memory report."""
+    res = soak.run(0.2, "can", tmp_path, sample_s=2.0, warmup_s=0.0, trace_memory=True)
+    for node in ("station", "driver"):
+        reports = res["memory_reports"][node]
+        assert len(reports) == 2 and reports[0]["baseline"] and "growth" in reports[1], reports
     assert res["processes_alive"], res
     assert len(res["times_s"]) >= 4
     for name in ("driver", "station", "bench"):

@@ -15,13 +15,21 @@ is sampled; the trend is the least-squares slope in MB/min over the samples afte
 RssAnon alone: shared memory mapped once, such as a Zenoh pool, is a step, not a trend). Also reported: the laps,
 the missed deadlines of the station and the driver host (their status counters, over the soak and per minute), every
 counter of their last status, and any child that exited or logged a traceback. JSON on stdout.
+
+``--trace-memory`` runs the station and the driver host under ``tracemalloc`` and asks each for a memory report
+(SIGUSR1, :class:`bridge.node.MemoryReport`) at the end of warm-up and at the end: ``memory_reports`` lists the
+Python allocation sites that grew most in between. Growth of the RSS that no site accounts for is outside Python's
+heap (native libraries, the allocator keeping freed memory).
 """
 
 from __future__ import annotations
 
 import argparse
 import contextlib
+import json
+import math
 import os
+import signal
 import tempfile
 import threading
 import time
@@ -108,8 +116,31 @@ def _tracebacks(path: Path) -> list[str]:
     return out[:20]
 
 
+def _memory_env(trace: bool, workdir: Path, name: str) -> dict[str, Any]:
+    """Spawn keywords for a node whose Python heap is traced (:class:`bridge.node.MemoryReport`), or none."""
+    if not trace:
+        return {}
+    from bridge.node import MEMORY_REPORT_ENV
+
+    return {"env": {**os.environ, "PYTHONTRACEMALLOC": "1", MEMORY_REPORT_ENV: str(workdir / f"memory-{name}.jsonl")}}
+
+
+def _ask_memory_reports(procs: dict[str, Any], names: tuple[str, ...]) -> None:
+    for name in names:
+        with contextlib.suppress(OSError):
+            os.kill(procs[name].pid, signal.SIGUSR1)
+
+
+def _memory_reports(workdir: Path, names: tuple[str, ...]) -> dict[str, list[dict]]:
+    out: dict[str, list[dict]] = {}
+    for name in names:
+        with contextlib.suppress(OSError):
+            out[name] = [json.loads(line) for line in (workdir / f"memory-{name}.jsonl").read_text().splitlines()]
+    return out
+
+
 def run(minutes: float, link: str, workdir: Path, sample_s: float = 10.0, warmup_s: float = 60.0,
-        mission: str = "paper-s-path", startup_timeout: float = 180.0) -> dict:
+        mission: str = "paper-s-path", startup_timeout: float = 180.0, trace_memory: bool = False) -> dict:
     """The soak (see the module docstring); returns the JSON-ready result."""
     from bridge.config import load_mission_spec
     from bridge.procs import Children, emulated_link
@@ -138,9 +169,12 @@ def run(minutes: float, link: str, workdir: Path, sample_s: float = 10.0, warmup
         driver_args = emulated_link(kids, link, workdir, x0, life, logs["learner"])
         if link != "can":
             procs["learner"] = kids.procs[-1]
-        procs["driver"] = kids.spawn(["driver", *driver_args, *client, "--duration", str(life)], logs["driver"])
+        procs["driver"] = kids.spawn(["driver", *driver_args, *client, "--duration", str(life)], logs["driver"],
+                                     **_memory_env(trace_memory, workdir, "driver"))
         procs["station"] = kids.spawn(["station", *client, "--store", str(workdir / "pairs.bin"), "--mission",
-                                       mission, "--duration", str(life)], logs["station"])
+                                       mission, "--duration", str(life)], logs["station"],
+                                      **_memory_env(trace_memory, workdir, "station"))
+        traced = ("station", "driver") if trace_memory else ()
         t_up = time.monotonic() + startup_timeout
         while time.monotonic() < t_up and not kids.any_exited():
             st = watch.get("station")
@@ -154,11 +188,16 @@ def run(minutes: float, link: str, workdir: Path, sample_s: float = 10.0, warmup
         t0 = time.monotonic()
         t_sample = t0
         lap, lap_t0, published_missions = 0, t0, None
+        warm = min(warmup_s, 0.5 * seconds)
+        baseline_due = t0 + warm if traced else math.inf
         while time.monotonic() - t0 < seconds:
             now = time.monotonic()
             if kids.any_exited():
                 alive = False
                 break
+            if now >= baseline_due:  # the heap after warm-up is the baseline the last report compares with
+                _ask_memory_reports(procs, traced)
+                baseline_due = math.inf
             if now >= t_sample:
                 times.append(round(now - t0, 1))
                 for name, p in [*procs.items(), ("bench", None)]:
@@ -179,10 +218,14 @@ def run(minutes: float, link: str, workdir: Path, sample_s: float = 10.0, warmup
         elapsed = time.monotonic() - t0
         last = {n: watch.get(n) for n in ("station", "driver")}
         pub.undeclare()
+        if traced and alive:
+            _ask_memory_reports(procs, traced)
+            t_end = time.monotonic() + 120.0  # a snapshot of a large traced heap takes a while
+            while time.monotonic() < t_end and any(len(r) < 2 for r in _memory_reports(workdir, traced).values()):
+                time.sleep(0.5)
     crashes = {name: _tracebacks(workdir / f"{name}.log") for name in ("driver", "station", "learner")}
     exits = {name: p.returncode for name, p in procs.items()}
     rss = {}
-    warm = min(warmup_s, 0.5 * seconds)
     for name, rows in samples.items():
         vals = [r["rss"] if r else None for r in rows]
         good = [v for v in vals if v is not None]
@@ -209,6 +252,7 @@ def run(minutes: float, link: str, workdir: Path, sample_s: float = 10.0, warmup
         "times_s": times, "rss": rss, "missed_deadlines": missed,
         "last_status": {n: _status_dict(last[n]) for n in ("station", "driver")},
         "processes_alive": alive, "exit_codes": exits, "log_errors": crashes,
+        **({"memory_reports": _memory_reports(workdir, traced)} if traced else {}),
     }
 
 
@@ -220,12 +264,16 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--sample-s", type=float, default=10.0, help="RSS sampling period, s")
     ap.add_argument("--warmup-s", type=float, default=60.0, help="samples before this are left out of the slope")
     ap.add_argument("--mission", default="paper-s-path", help="mission file or shipped mission name")
+    ap.add_argument("--trace-memory", action="store_true",
+                    help="run the station and the driver host under tracemalloc and report where their Python heap "
+                         "grew between the end of warm-up and the end (slower)")
     args = ap.parse_args(argv)
     if not (args.minutes > 0 and args.sample_s > 0 and args.warmup_s >= 0):
         ap.error("--minutes and --sample-s must be > 0, --warmup-s >= 0")
     from bridge.bench.common import emit
 
     with tempfile.TemporaryDirectory(prefix="scm-soak-") as tmp:
-        out = run(args.minutes, args.link, Path(tmp), args.sample_s, args.warmup_s, args.mission)
+        out = run(args.minutes, args.link, Path(tmp), args.sample_s, args.warmup_s, args.mission,
+                  trace_memory=args.trace_memory)
     emit(out)
     return 0 if out["processes_alive"] else 1
