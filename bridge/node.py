@@ -122,7 +122,7 @@ class MemoryReport:
         self.first: tracemalloc.Snapshot | None = None
 
     def build(self) -> dict[str, Any]:
-        out: dict[str, Any] = {"pid": os.getpid(), "rss_mb": _rss_mb(), "tracing": tracemalloc.is_tracing()}
+        out: dict[str, Any] = {"pid": os.getpid(), "rss_mb": rss_mb(), "tracing": tracemalloc.is_tracing()}
         if not tracemalloc.is_tracing():
             out["note"] = "start the node with PYTHONTRACEMALLOC=1 to see allocation sites"
             return out
@@ -150,15 +150,25 @@ class MemoryReport:
             log.exception("memory report failed")
 
 
-def _rss_mb() -> float | None:
+def rss_mb(pid: int | None = None) -> float | None:
+    """VmRSS of ``pid`` (this process by default) in MB, or None if it is gone."""
+    return rss_parts(pid).get("rss")
+
+
+def rss_parts(pid: int | None = None) -> dict[str, float]:
+    """VmRSS and its parts (RssAnon: private heap and stacks; RssFile: mapped files and code; RssShmem: shared
+    memory, such as Zenoh's shared-memory pools), MB; empty if the process is gone."""
+    out: dict[str, float] = {}
+    names = {"VmRSS:": "rss", "RssAnon:": "anon", "RssFile:": "file", "RssShmem:": "shmem"}
     try:
-        with open(f"/proc/{os.getpid()}/status") as f:
+        with open(f"/proc/{pid or 'self'}/status") as f:
             for line in f:
-                if line.startswith("VmRSS:"):
-                    return round(int(line.split()[1]) / 1024, 1)
+                key = line.split(maxsplit=1)[0] if line.strip() else ""
+                if key in names:
+                    out[names[key]] = round(int(line.split()[1]) / 1024, 1)
     except OSError:
-        pass
-    return None
+        return {}
+    return out
 
 
 def add_zenoh_args(ap: argparse.ArgumentParser) -> None:
@@ -173,4 +183,5 @@ def zenoh_config(args: argparse.Namespace) -> zenoh.Config:
     return make_config(mode=args.mode, listen=args.listen, connect=args.connect, config_file=args.zenoh_config)
 
 
-__all__ = ["FixedRate", "Inputs", "MemoryReport", "add_zenoh_args", "stop_on_signals", "zenoh_config"]
+__all__ = ["FixedRate", "Inputs", "MemoryReport", "add_zenoh_args", "rss_mb", "rss_parts", "stop_on_signals",
+           "zenoh_config"]

@@ -20,7 +20,9 @@ Each wheel is one ODrive with one axis (as an ODrive Pro / S1), answering on its
   INVALID_STATE); Set_Axis_State(IDLE) disarms. Both feed the watchdog.
 - Set_Controller_Mode sets the control and input mode at once. Power-on default: POSITION_CONTROL + PASSTHROUGH
   (the device's factory configuration), so a master that never sets velocity control does not drive the wheel.
-- Set_Input_Vel stores ``input_vel`` and feeds the watchdog; the wheel turns only in CLOSED_LOOP_CONTROL *and*
+- Set_Input_Vel stores ``input_vel`` and feeds the watchdog (the controller clamps what it drives to ``vel_limit``,
+  turns/s: ODrive's ``controller.config.vel_limit``, default 2, with ``enable_vel_limit`` on by default, in
+  ``Controller::update``); the wheel turns only in CLOSED_LOOP_CONTROL *and*
   VELOCITY_CONTROL with an active input mode (PASSTHROUGH, or VEL_RAMP whose ramp is not modelled). In position
   control ``input_vel`` is a feed-forward only and the wheel holds its position.
 - watchdog: in closed loop with no feed for ``watchdog`` s -> IDLE, WATCHDOG_TIMER_EXPIRED, DISARMED.
@@ -100,7 +102,8 @@ class DiffDriveEcus(ThreadedDevice):
     def __init__(self, bus_kwargs: dict[str, Any], vehicle: SimVehicle, *, left_node: int = 0, right_node: int = 1,
                  left_sign: float = 1.0, right_sign: float = -1.0, wheel_radius: float = 0.1,
                  track_width: float = 0.4, watchdog: float = 0.5, encoder_period: float = 0.01,
-                 heartbeat_period: float = 0.1, control_mode: int = POSITION_CONTROL, clock=time.monotonic) -> None:
+                 heartbeat_period: float = 0.1, control_mode: int = POSITION_CONTROL, vel_limit: float = 2.0,
+                 clock=time.monotonic) -> None:
         super().__init__()
         self.bus_kwargs = dict(bus_kwargs)
         self.vehicle = vehicle
@@ -108,6 +111,7 @@ class DiffDriveEcus(ThreadedDevice):
                      right_node: _EcuAxis(right_node, right_sign, control_mode=control_mode)}
         self.left, self.right = self.axes[left_node], self.axes[right_node]
         self.radius, self.track = float(wheel_radius), float(track_width)
+        self.vel_limit = float(vel_limit)
         self.watchdog, self.encoder_period, self.heartbeat_period = watchdog, encoder_period, heartbeat_period
         self.clock = clock
         self.malformed = 0
@@ -219,8 +223,9 @@ class DiffDriveEcus(ThreadedDevice):
     def _apply(self, now: float) -> None:
         """Driven wheel speeds -> body command of the learner (both held: the body stops)."""
         circ = 2.0 * math.pi * self.radius
-        vl = self.left.driven_speed() * self.left.sign * circ
-        vr = self.right.driven_speed() * self.right.sign * circ
+        lim = self.vel_limit  # Controller::update: enable_vel_limit clamps the velocity set-point to vel_limit
+        vl = max(-lim, min(lim, self.left.driven_speed())) * self.left.sign * circ
+        vr = max(-lim, min(lim, self.right.driven_speed())) * self.right.sign * circ
         if vl == 0.0 and vr == 0.0:
             self.vehicle.stop(now)
         else:

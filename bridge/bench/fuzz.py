@@ -65,6 +65,7 @@ import msgspec
 
 from bridge import wire as M
 from bridge.gate import DRIVING
+from bridge.node import rss_mb, rss_parts
 
 #: the driver host's default hard limits (``bridge.config.DEFAULT_HARD_LIMITS``); the host runs with no config file
 HARD_V, HARD_W = (-0.5, 0.5), (-1.0, 1.0)
@@ -76,31 +77,6 @@ GATE_VERDICTS = ("accepted", "out_of_order", "old_epoch", "foreign_epoch", "seq_
 
 
 # ============================================================================================= small helpers
-def rss_mb(pid: int | None = None) -> float | None:
-    """VmRSS of ``pid`` (this process by default) in MB, or None if it is gone."""
-    try:
-        with open(f"/proc/{pid or 'self'}/status") as f:
-            for line in f:
-                if line.startswith("VmRSS:"):
-                    return round(int(line.split()[1]) / 1024, 1)
-    except OSError:
-        return None
-    return None
-
-
-def rss_parts(pid: int | None = None) -> dict[str, float]:
-    """VmRSS and its parts (RssAnon: private heap and stacks; RssFile: mapped files and code; RssShmem: shared
-    memory, such as Zenoh's shared-memory pools), MB."""
-    out: dict[str, float] = {}
-    names = {"VmRSS:": "rss", "RssAnon:": "anon", "RssFile:": "file", "RssShmem:": "shmem"}
-    with contextlib.suppress(OSError), open(f"/proc/{pid or 'self'}/status") as f:
-        for line in f:
-            key = line.split()[0] if line.strip() else ""
-            if key in names:
-                out[names[key]] = round(int(line.split()[1]) / 1024, 1)
-    return out
-
-
 def zenoh_segments(pid: int) -> int:
     """Zenoh shared-memory segments (``/dev/shm/*.zenoh``) mapped by ``pid``."""
     with contextlib.suppress(OSError), open(f"/proc/{pid}/maps") as f:
@@ -1380,7 +1356,8 @@ def can_ecu(n: int, seed: int, workdir: Path | None = None) -> dict:
     with crashes, ExitStack() as stack:
         channel = f"fuzz-{uuid.uuid4().hex[:8]}"
         vehicle = new_vehicle()
-        spy = VehicleSpy(vehicle)
+        wheel = 2.0 * 2.0 * math.pi * 0.1 * (1 + 1e-9)  # the controllers' vel_limit (2 turns/s) x circumference
+        spy = VehicleSpy(vehicle, wheel, 2.0 * wheel / 0.4)  # at most both wheels at the limit (track 0.4 m)
         bus = can.Bus(interface="virtual", channel=channel)
         stack.callback(bus.shutdown)
         state_len = spec.length(SET_AXIS_STATE, 4)

@@ -41,22 +41,7 @@ import msgspec
 import numpy as np
 
 from bridge import wire as M
-
-
-def rss_mb(pid: int) -> dict[str, float] | None:
-    """VmRSS of ``pid`` and two of its parts (RssAnon: private heap and stacks; RssShmem: shared memory, such as
-    Zenoh's shared-memory pools), MB; None if it is gone."""
-    names = {"VmRSS:": "rss", "RssAnon:": "anon", "RssShmem:": "shmem"}
-    out = {}
-    try:
-        with open(f"/proc/{pid}/status") as f:
-            for line in f:
-                key = line.split(maxsplit=1)[0] if line.strip() else ""
-                if key in names:
-                    out[names[key]] = round(int(line.split()[1]) / 1024, 2)
-    except OSError:
-        return None
-    return out or None
+from bridge.node import rss_parts
 
 
 def slope_mb_per_min(times_s: list[float], values: list[float | None], warmup_s: float) -> float | None:
@@ -201,7 +186,7 @@ def run(minutes: float, link: str, workdir: Path, sample_s: float = 10.0, warmup
             if now >= t_sample:
                 times.append(round(now - t0, 1))
                 for name, p in [*procs.items(), ("bench", None)]:
-                    samples.setdefault(name, []).append(rss_mb(p.pid if p is not None else os.getpid()))
+                    samples.setdefault(name, []).append(rss_parts(p.pid if p is not None else None) or None)
                 t_sample += sample_s
             st = watch.get("station")
             if st is not None:
