@@ -115,7 +115,11 @@ class MemoryReport:
     lists the allocation sites (file:line) that grew most since it, after a garbage collection. It needs
     ``tracemalloc`` on (start the node with ``PYTHONTRACEMALLOC=1``); without it the report says so and gives the
     RSS only. A report is one JSON line in the log (WARNING: it is asked for), and appended to the file named by
-    ``$SCMBRIDGE_MEMORY_REPORT`` when set (``scmbridge bench soak --trace-memory`` reads it)."""
+    ``$SCMBRIDGE_MEMORY_REPORT`` when set (``scmbridge bench soak --trace-memory`` reads it).
+
+    The snapshot runs in the node's main thread and pauses its loop for as long as it takes (seconds for a station's
+    heap). Ask a station or a tool, not the driver host of a robot that is driving: its link's own watchdogs (an
+    ODrive's, 0.5 s) stop the vehicle, and the stop waits for the operator."""
 
     def __init__(self, path: str | None, top: int = 12) -> None:
         self.path, self.top = path, top

@@ -16,10 +16,12 @@ RssAnon alone: shared memory mapped once, such as a Zenoh pool, is a step, not a
 the missed deadlines of the station and the driver host (their status counters, over the soak and per minute), every
 counter of their last status, and any child that exited or logged a traceback. JSON on stdout.
 
-``--trace-memory`` runs the station and the driver host under ``tracemalloc`` and asks each for a memory report
+``--trace-memory [station,driver]`` runs those nodes under ``tracemalloc`` and asks each for a memory report
 (SIGUSR1, :class:`bridge.node.MemoryReport`) at the end of warm-up and at the end: ``memory_reports`` lists the
 Python allocation sites that grew most in between. Growth of the RSS that no site accounts for is outside Python's
-heap (native libraries, the allocator keeping freed memory).
+heap (native libraries, the allocator keeping freed memory). Traced nodes are slower, and a report pauses its node
+for its snapshot: traced, the driver host on CAN missed its emulated controllers' watchdog (0.5 s), and they
+stopped until an operator's release, as real ones do. So by default only the station is traced.
 """
 
 from __future__ import annotations
@@ -125,7 +127,7 @@ def _memory_reports(workdir: Path, names: tuple[str, ...]) -> dict[str, list[dic
 
 
 def run(minutes: float, link: str, workdir: Path, sample_s: float = 10.0, warmup_s: float = 60.0,
-        mission: str = "paper-s-path", startup_timeout: float = 180.0, trace_memory: bool = False) -> dict:
+        mission: str = "paper-s-path", startup_timeout: float = 180.0, trace_memory: tuple[str, ...] = ()) -> dict:
     """The soak (see the module docstring); returns the JSON-ready result."""
     from bridge.config import load_mission_spec
     from bridge.procs import Children, emulated_link
@@ -155,11 +157,11 @@ def run(minutes: float, link: str, workdir: Path, sample_s: float = 10.0, warmup
         if link != "can":
             procs["learner"] = kids.procs[-1]
         procs["driver"] = kids.spawn(["driver", *driver_args, *client, "--duration", str(life)], logs["driver"],
-                                     **_memory_env(trace_memory, workdir, "driver"))
+                                     **_memory_env("driver" in trace_memory, workdir, "driver"))
         procs["station"] = kids.spawn(["station", *client, "--store", str(workdir / "pairs.bin"), "--mission",
                                        mission, "--duration", str(life)], logs["station"],
-                                      **_memory_env(trace_memory, workdir, "station"))
-        traced = ("station", "driver") if trace_memory else ()
+                                      **_memory_env("station" in trace_memory, workdir, "station"))
+        traced = tuple(n for n in ("station", "driver") if n in trace_memory)
         t_up = time.monotonic() + startup_timeout
         while time.monotonic() < t_up and not kids.any_exited():
             st = watch.get("station")
@@ -249,16 +251,20 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--sample-s", type=float, default=10.0, help="RSS sampling period, s")
     ap.add_argument("--warmup-s", type=float, default=60.0, help="samples before this are left out of the slope")
     ap.add_argument("--mission", default="paper-s-path", help="mission file or shipped mission name")
-    ap.add_argument("--trace-memory", action="store_true",
-                    help="run the station and the driver host under tracemalloc and report where their Python heap "
-                         "grew between the end of warm-up and the end (slower)")
+    ap.add_argument("--trace-memory", nargs="?", const="station", default="", metavar="NODES",
+                    help="run these nodes (comma-separated: station, driver; default station) under tracemalloc and "
+                         "report where their Python heap grew between the end of warm-up and the end. A report "
+                         "pauses the node while it snapshots its heap (seconds): a driver host on CAN misses its "
+                         "controllers' watchdog, and they stop until the operator releases them")
     args = ap.parse_args(argv)
     if not (args.minutes > 0 and args.sample_s > 0 and args.warmup_s >= 0):
         ap.error("--minutes and --sample-s must be > 0, --warmup-s >= 0")
+    if not set(filter(None, args.trace_memory.split(","))) <= {"station", "driver"}:
+        ap.error(f"--trace-memory: station and/or driver, not {args.trace_memory!r}")
     from bridge.bench.common import emit
 
     with tempfile.TemporaryDirectory(prefix="scm-soak-") as tmp:
         out = run(args.minutes, args.link, Path(tmp), args.sample_s, args.warmup_s, args.mission,
-                  trace_memory=args.trace_memory)
+                  trace_memory=tuple(n for n in args.trace_memory.split(",") if n))
     emit(out)
     return 0 if out["processes_alive"] else 1
