@@ -50,7 +50,9 @@ def test_the_example_external_teacher_drives_the_robot_through_the_transfer_serv
                 last = got["state"][-1] if got["state"] else None
             if last is not None:
                 progress = max(progress, mission.progress([last.x, last.y]))
-            if progress > 0.25:
+            with lock:
+                mapped = any(c.method == "scm" for c in got["cmd"])
+            if progress > 0.25 and mapped:  # how soon the first SC region forms depends on the machine's load
                 break
     with lock:
         methods = {c.method for c in got["cmd"]}
@@ -60,4 +62,6 @@ def test_the_example_external_teacher_drives_the_robot_through_the_transfer_serv
     assert "scm" in methods  # the station mapped the external teacher's commands, not passed them through
     assert limits and limits[-1].version >= 2  # the learned limits reached the teacher as they changed
     assert status is not None and status.counters.get("malformed_teacher", 0) == 0
-    assert not any(c.method not in ("scm", "direct", "perturb", "stop") for c in got["cmd"])
+    # what a transfer-only station sends: mapped (SC, or its affine/barycentric fallback where an SC map fails),
+    # direct, perturbed or a stop; never a calibration or manual command
+    assert {c.method for c in got["cmd"]} <= {"scm", "affine", "barycentric", "direct", "perturb", "stop"}
