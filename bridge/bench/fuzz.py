@@ -343,7 +343,9 @@ class HostRig:
         try:
             port = free_port()
             self.endpoint = tcp(port)
-            self.session = self.stack.enter_context(open_session(make_config(mode="router", listen=[tcp(port)])))
+            conf = make_config(mode="router", listen=[tcp(port)])
+            conf.insert_json5("transport/shared_memory/enabled", json.dumps(self.shm))  # every hop as the host
+            self.session = self.stack.enter_context(open_session(conf))
             kids = self.stack.enter_context(Children())
             k = self.keys
             self.session.declare_subscriber(k.applied, self._on_applied)
@@ -352,11 +354,12 @@ class HostRig:
             self.log_path = self.workdir / f"driver-{self.robot}.log"
             log = self.stack.enter_context(open(self.log_path, "w"))
             client = ["--robot", self.robot, "--mode", "client", "--connect", self.endpoint]
-            if not self.shm:  # the host's session without Zenoh's shared-memory transport (a deploy-style file)
-                conf = self.workdir / f"zenoh-{self.robot}.json5"
-                conf.write_text(json.dumps({"mode": "client", "scouting": {"multicast": {"enabled": False}},
-                                            "transport": {"shared_memory": {"enabled": False}}}))
-                client += ["--zenoh-config", str(conf)]
+            # the host's session with Zenoh's shared-memory transport on (zenoh's default, which scmbridge's
+            # configs turn off) or off, through a lab-style file (a file that sets it is obeyed)
+            conf = self.workdir / f"zenoh-{self.robot}.json5"
+            conf.write_text(json.dumps({"mode": "client", "scouting": {"multicast": {"enabled": False}},
+                                        "transport": {"shared_memory": {"enabled": self.shm}}}))
+            client += ["--zenoh-config", str(conf)]
             if self.probe:  # a driver-host-like process of this module that also reports its heap
                 self.proc = kids.spawn(["bench", "fuzz", "--probe-host", *client], subprocess.PIPE,
                                        stdin=subprocess.PIPE, text=True, bufsize=1)
@@ -773,7 +776,8 @@ def rss_rounds(rounds: int, size: int, seed: int, workdir: Path, probe: bool = F
 def rss_senders(senders: int, per_sender: int, seed: int, workdir: Path, shm: bool = True) -> dict:
     """``senders`` Zenoh sessions one after the other (a station restarted, a tool run on the same machine), each
     putting ``per_sender`` payloads of 4-64 KiB on ``cmd`` (above Zenoh's 3072-byte shared-memory threshold) and
-    closing: the host's RSS, its parts and the Zenoh segments it maps after each, and 10 s after the last."""
+    closing: the host's RSS, its parts and the Zenoh segments it maps after each, and 10 s after the last.
+    ``shm``: every session with Zenoh's shared-memory transport on (zenoh's default) or off (scmbridge's)."""
     import zenoh
 
     from bridge.zsession import make_config, open_session
@@ -785,7 +789,9 @@ def rss_senders(senders: int, per_sender: int, seed: int, workdir: Path, shm: bo
         rows = [{"after_sender": 0, **rss_parts(pid), "zenoh_segments": zenoh_segments(pid)}]
         before = rig.counters().get("malformed_cmd", 0)
         for k in range(senders):
-            with open_session(make_config(mode="client", connect=[rig.endpoint])) as s:
+            conf = make_config(mode="client", connect=[rig.endpoint])
+            conf.insert_json5("transport/shared_memory/enabled", json.dumps(shm))  # as the host's
+            with open_session(conf) as s:
                 pub = s.declare_publisher(rig.keys.cmd, congestion_control=zenoh.CongestionControl.BLOCK)
                 time.sleep(0.3)
                 for _ in range(per_sender):
