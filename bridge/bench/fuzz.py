@@ -839,6 +839,24 @@ class StateStream(Stream):
                 "source": "udp-robot", "epoch": self.epoch}
 
 
+def _udp_burst(mut: MsgMutator, rng: random.Random, tally: Tally, kind: type, peer: socket.socket,
+               stranger: socket.socket, to: tuple, size: int) -> tuple[int, int]:
+    """Send ``size`` mutated payloads to ``to``: 15 % from ``stranger`` (foreign, never judged), the rest from the
+    pinned ``peer``, each judged by the wire contract for ``kind`` and tallied. Returns (foreign, refused)."""
+    foreign = refused_n = 0
+    for _ in range(size):
+        mk, data = mut.next()
+        if rng.random() < 0.15:
+            stranger.sendto(data, to)
+            foreign += 1
+        else:
+            peer.sendto(data, to)
+            refused = not wire_ok(data, kind)
+            tally.add(mk, refused)
+            refused_n += refused
+    return foreign, refused_n
+
+
 @contextlib.contextmanager
 def _answering(sock: socket.socket, reply: Callable[[bytes], bytes]) -> Iterator[dict]:
     """While inside: every datagram arriving on ``sock`` is answered with ``reply(datagram)``; ``peer["addr"]`` is
@@ -903,17 +921,9 @@ def udp_driver(n: int, seed: int, workdir: Path | None = None) -> dict:
         poses = []
         refusals = ("state_out_of_order", "state_seq_jump", "state_old_epoch", "state_foreign_epoch")
         while sent < n:  # bursts the driver's socket buffer holds (it has the kernel's default size)
-            for _ in range(min(64, n - sent)):
-                kind, data = mut.next()
-                if rng.random() < 0.15:
-                    stranger.sendto(data, addr)
-                    foreign += 1
-                else:
-                    fake.sendto(data, addr)
-                    refused = not wire_ok(data, M.LearnerState)
-                    tally.add(kind, refused)
-                    bad += refused
-                sent += 1
+            size = min(64, n - sent)
+            f, b = _udp_burst(mut, rng, tally, M.LearnerState, fake, stranger, addr, size)
+            sent, foreign, bad = sent + size, foreign + f, bad + b
             t_end = time.monotonic() + 5.0
             while time.monotonic() < t_end:
                 try:
@@ -998,17 +1008,9 @@ def udp_robot(n: int, seed: int, workdir: Path | None = None) -> dict:
         tally = Tally()
         sent = foreign = bad = 0
         while sent < n:  # a burst the robot's socket holds even if its thread does not run meanwhile (a loaded
-            for _ in range(min(48, n - sent)):  # machine): 128 of up to 1.4 KB overflowed the kernel's buffer
-                kind, data = mut.next()
-                if rng.random() < 0.15:
-                    stranger.sendto(data, to)
-                    foreign += 1
-                else:
-                    peer.sendto(data, to)
-                    refused = not wire_ok(data, M.Command)
-                    tally.add(kind, refused)
-                    bad += refused
-                sent += 1
+            size = min(48, n - sent)  # machine): 128 of up to 1.4 KB overflowed the kernel's buffer
+            f, b = _udp_burst(mut, rng, tally, M.Command, peer, stranger, to, size)
+            sent, foreign, bad = sent + size, foreign + f, bad + b
             if not wait_until(lambda s=sent: robot.counters["received"] - c0["received"] >= s, 5.0, 0.001):
                 break
         c = {k: v - c0[k] for k, v in robot.counters.items()}
