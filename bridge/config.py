@@ -116,6 +116,8 @@ class MavlinkLinkConfig(_Cfg):
     target_component: Annotated[int, _m("the autopilot's component id", ge=0, le=255)] = 1
     source_system: Annotated[int, _m("our system id (a ground control station)", ge=1, le=255)] = 255
     rate_hz: Annotated[float, _m("LOCAL_POSITION_NED and ATTITUDE rate requested, Hz", gt=0.0, le=100.0)] = 20.0
+    clock_window_s: Annotated[float, _m("window of the vehicle-clock offset estimate that stamps poses at their "
+                                        "time_boot_ms, s", gt=0.0, le=600.0)] = 5.0
     setpoint_rate_hz: Annotated[float, _m("set-points repeating an unchanged command, Hz (a changed command and a stop "
                                           "go at once; 50 Hz set-points fill 56 % of a 57600-baud radio)",
                                           gt=0.0, le=50.0)] = 10.0

@@ -33,6 +33,15 @@ without one). poll(): LOCAL_POSITION_NED + ATTITUDE -> ENU poses (x_enu = y_ned,
 v = the NED velocity projected on the heading, so reversing is negative). Every message is filtered by the vehicle's
 system and component ids; the others are counted (``detail["foreign"]``).
 
+Poses: each is stamped at its LOCAL_POSITION_NED's ``time_boot_ms``, put on the driver host's monotonic clock with
+the sliding-window minimum of ``receipt - time_boot_ms`` (:class:`bridge.clock.ClockOffset`, ``clock_window_s``; a
+reboot starts it again), not at its receipt: the host polls at its tick, so receipt stamps fall on a 20 ms grid and a
+0.05 s interval between two poses read as 0.04 or 0.06 s. Its heading is the ATTITUDE's at the same vehicle time,
+interpolated between the two ATTITUDEs around it (a position waits, usually within the same burst, for the ATTITUDE
+at or after it). Measured with the emulated rover at 20 Hz against 10 Hz commands (docs/ARCHITECTURE.md, section 4):
+the pairs' median error to the learner's true response fell from 0.049 m/s and 0.16 rad/s to 0.002 m/s and
+0.001 rad/s.
+
 Supervision: no HEARTBEAT for ``heartbeat_timeout`` -> ``connected`` and ``ok`` False, ``"no heartbeat for 3.2 s"``;
 a connection that failed (TCP EOF, a serial error) is re-opened with backoff, UDP just keeps listening. When
 heartbeats return the message intervals are asked again (a rebooted autopilot forgot them) and ``ok`` comes back
@@ -61,6 +70,7 @@ from typing import Any
 os.environ.setdefault("MAVLINK20", "1")
 from pymavlink import mavutil  # noqa: E402
 
+from bridge.clock import ClockOffset  # noqa: E402
 from bridge.config import MavlinkLinkConfig  # noqa: E402
 from drivers.base import DriverError, LinkHealth, Pose  # noqa: E402
 
@@ -75,6 +85,9 @@ TYPE_MASK_VEL_YAWRATE = 0x05E7
 SOURCE_COMPONENT = MAV.MAV_COMP_ID_MISSIONPLANNER
 NO_ACK = -1  # a command that got no COMMAND_ACK after all its tries
 _BACKOFF0 = 0.25
+#: the most the ATTITUDE and LOCAL_POSITION_NED samples may be apart for the heading to be carried to the position's
+#: time with the reported yaw rate (two 20 Hz periods); further apart, the last heading is used as it is
+ATTITUDE_MAX_LAG = 0.1
 #: Telemetry a vehicle can really send (the wire's own ranges are wider still): |x|, |y| in m, speeds in m/s, yaw in
 #: rad (ArduPilot sends [-pi, pi]; a full turn either way is tolerated), yaw rate in rad/s. A message outside them,
 #: NaN/inf included, is counted malformed (``detail["invalid_values"]``) and dropped before it can reach a pose.
@@ -122,6 +135,18 @@ class _Command:
     on_done: Callable[[_Command], None] | None = None
 
 
+@dataclass(slots=True)
+class _Position:
+    """One LOCAL_POSITION_NED: the vehicle's time of it, its stamp on our clock, NED position and velocity."""
+
+    ms: int
+    stamp: float
+    x: float
+    y: float
+    vx: float
+    vy: float
+
+
 @dataclass
 class _Vehicle:
     """What the vehicle last told us."""
@@ -131,6 +156,9 @@ class _Vehicle:
     hb_time: float | None = None
     pos_time: float | None = None
     att: tuple[float, float] | None = None  # yaw (NED, rad), yaw rate (clockwise, rad/s)
+    att_ms: int = 0  # the last ATTITUDE's time_boot_ms
+    att_prev: tuple[int, float] | None = None  # the ATTITUDE before it: (time_boot_ms, yaw)
+    pending: _Position | None = None  # a position waiting for the ATTITUDE at or after its time
     boot_ms: int = 0
     rebooted: bool = False
     texts: deque[tuple[float, str]] = field(default_factory=deque)  # (receive time, text), bounded
@@ -171,6 +199,7 @@ class MavlinkDriver:
         self._counts = {"foreign": 0, "setpoints_sent": 0, "setpoints_withheld": 0, "stray_acks": 0,
                         "reconnects": 0, "link_losses": 0, "invalid_values": 0}
         self._foreign_ids: deque[tuple[int, int]] = deque(maxlen=8)
+        self._clock = ClockOffset(config.clock_window_s)  # the vehicle's time_boot_ms -> our monotonic clock
         self._last_refusal = ""
 
     # ------------------------------------------------------------------------------------------ properties
@@ -300,15 +329,24 @@ class MavlinkDriver:
         elif t == "LOCAL_POSITION_NED":
             self._boot_ms(msg.time_boot_ms)
             v.pos_time = now
-            if v.att is not None:
-                yaw, yawspeed = v.att
-                speed = float(msg.vx) * math.cos(yaw) + float(msg.vy) * math.sin(yaw)  # signed: on the heading
-                # theta = pi/2 - yaw, in [-pi/2, 3pi/2] as before: the station's MPC is not robust to the jump a
-                # wrap to [-pi, pi] puts at a westward heading (the mavlink demo drifts off its S-path with it)
-                out.append(Pose(now, float(msg.y), float(msg.x), math.pi / 2 - yaw, speed, -yawspeed))
+            # stamped at the vehicle's own time of the sample, on our clock (module docstring, "Poses")
+            p = _Position(int(msg.time_boot_ms), min(self._clock.restamp(msg.time_boot_ms / 1000.0, now), now),
+                          float(msg.x), float(msg.y), float(msg.vx), float(msg.vy))
+            if v.pending is not None and v.att is not None:
+                out.append(self._pose(v.pending))  # no ATTITUDE came after it: the last one, carried forward
+            v.pending = None
+            if v.att is not None and v.att_ms >= p.ms:
+                out.append(self._pose(p))
+            else:
+                v.pending = p  # its heading comes with the next ATTITUDE (usually in the same burst)
         elif t == "ATTITUDE":
             self._boot_ms(msg.time_boot_ms)
+            v.att_prev = (v.att_ms, v.att[0]) if v.att is not None else None
             v.att = (float(msg.yaw), float(msg.yawspeed))
+            v.att_ms = int(msg.time_boot_ms)
+            if v.pending is not None and v.att_ms >= v.pending.ms:
+                out.append(self._pose(v.pending))
+                v.pending = None
         elif t == "COMMAND_ACK":
             self._ack(msg)
         elif t == "STATUSTEXT":
@@ -321,11 +359,32 @@ class MavlinkDriver:
                      else logging.DEBUG)
             log.log(level, "vehicle: %s", text)
 
+    def _pose(self, p: _Position) -> Pose:
+        """An ENU pose from a position and the heading at its time: interpolated between the ATTITUDEs around it,
+        else carried from the nearest one with its yaw rate (at most ``ATTITUDE_MAX_LAG`` away). The two streams
+        are sent apart (ArduPilot schedules each message on its own interval), and a heading from up to one period
+        earlier turned the pairs' yaw rate by the previous command's (0.25-0.34 rad/s at the 90th percentile)."""
+        v = self.v
+        assert v.att is not None
+        yaw, yawspeed = v.att
+        if v.att_prev is not None and v.att_prev[0] <= p.ms < v.att_ms:
+            t0, yaw0 = v.att_prev
+            yaw = yaw0 + math.remainder(yaw - yaw0, 2.0 * math.pi) * (p.ms - t0) / (v.att_ms - t0)
+        elif abs(p.ms - v.att_ms) <= 1000.0 * ATTITUDE_MAX_LAG:
+            yaw += yawspeed * (p.ms - v.att_ms) / 1000.0
+        yaw = math.remainder(yaw, 2.0 * math.pi)
+        speed = p.vx * math.cos(yaw) + p.vy * math.sin(yaw)  # signed: on the heading
+        # theta = pi/2 - yaw, in [-pi/2, 3pi/2] as before: the station's MPC is not robust to the jump a wrap to
+        # [-pi, pi] puts at a westward heading (the mavlink demo drifts off its S-path with it)
+        return Pose(p.stamp, p.y, p.x, math.pi / 2 - yaw, speed, -yawspeed)
+
     def _boot_ms(self, boot_ms: int) -> None:
         """A vehicle clock that jumps back by more than a second rebooted: it forgot our message intervals."""
         if boot_ms + 1000 < self.v.boot_ms:
             self.v.rebooted = True
             log.warning("the vehicle rebooted (time since boot %d ms, was %d ms)", boot_ms, self.v.boot_ms)
+            self._clock = ClockOffset(self.config.clock_window_s)  # a new vehicle clock: forget the old offset
+            self.v.att, self.v.att_prev, self.v.pending = None, None, None  # times of the old clock
             self._request_streams()
         self.v.boot_ms = int(boot_ms)
 
