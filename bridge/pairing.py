@@ -5,8 +5,13 @@ with its own monotonic clock. Events are fed in time order. A *segment* is a run
 driving command (reason ``cmd`` or ``clamped``); the first and the latest pose inside a segment bracket an interval
 over which that one command was in force. A pair ``<f_T^-1(x(t1), x(t2)), u_L>`` is formed when the segment ends
 (the command changes, or the vehicle is stopped) or when its bracketed span reaches ``dt`` (long segments give one
-pair per ``dt``), and only if the span is at least ``min_span`` (half of ``dt`` by default). Deadman stops, estops
+pair per ``dt``), and only if the span is at least ``min_span`` (0.4 ``dt`` by default). Deadman stops, estops
 and telemetry gaps longer than ``max_gap`` never produce a pair. Pure: times are arguments.
+
+Why 0.4 ``dt``: telemetry at twice the command rate (an ArduPilot vehicle's 20 Hz poses against 10 Hz commands)
+puts two poses, one period apart, inside each command, so the span is ``dt / 2`` give or take the vehicle's
+scheduling jitter. A minimum of exactly ``dt / 2`` rejected about half of those intervals for that jitter alone
+(docs/ARCHITECTURE.md, section 4).
 """
 
 from __future__ import annotations
@@ -27,7 +32,7 @@ class IntervalPairer:
         if dt <= 0:
             raise ValueError("dt must be positive")
         self.dt = float(dt)
-        self.min_span = 0.5 * self.dt if min_span is None else float(min_span)
+        self.min_span = 0.4 * self.dt if min_span is None else float(min_span)
         self.max_gap = 2.0 * self.dt if max_gap is None else float(max_gap)
         self.segment: tuple[float, float] | None = None  # the command in force, None when not driving
         self.first: tuple[float, NDArray[np.float64]] | None = None
