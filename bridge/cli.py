@@ -42,6 +42,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "bench fleet": ("bridge.bench.fleet", "how many robots one base station holds at 10 Hz, N stations (JSON)"),
     "bench fuzz": ("bridge.bench.fuzz", "mutated input at every trust boundary, counts checked exactly; RSS (JSON)"),
     "bench soak": ("bridge.bench.soak", "the HIL loop driving the mission for --minutes: RSS trend, deadlines (JSON)"),
+    "bench pairing": ("bridge.bench.pairing", "a link's command pairs against the learner's true response (JSON)"),
 }
 
 
@@ -63,7 +64,6 @@ def main(argv: list[str] | None = None) -> int:
         if not rest or rest[0].startswith("-"):
             benches = ",".join(n.split()[1] for n in COMMANDS if n.startswith("bench "))
             print(f"usage: scmbridge bench {{{benches}}} [OPTIONS]", file=sys.stderr)
-            print("usage: scmbridge bench {scm,transfer,mpc,bridge,fuzz,soak} [OPTIONS]", file=sys.stderr)
             return 2
         name, rest = f"bench {rest[0]}", rest[1:]
     if name not in COMMANDS:

@@ -113,39 +113,16 @@ def test_reverse_speed_keeps_its_sign() -> None:
 
 
 def test_pairs_from_the_link_recover_the_learners_response() -> None:
-    """The station's pairing on this link's poses, as the driver host feeds it (50 Hz ticks, a new command every
-    0.1 s, 20 Hz telemetry): every command pairs, and each pair is the learner's true response. Findings: poses
-    stamped on receipt fell on the host's 20 ms tick grid (median error 0.049 m/s), a heading from the ATTITUDE of
-    the period before turned the yaw rate by the previous command's (0.16 rad/s median), and a minimum span of
-    exactly dt / 2 rejected half of the intervals."""
-    import numpy as np
+    """The station's pairing on this link's poses as the driver host feeds them (50 Hz ticks, a new command every
+    0.1 s, 20 Hz telemetry): ``scmbridge bench pairing`` for 6 s. Every command pairs, and each pair is the learner's
+    true response. Findings (the bench, 20 s): poses stamped on receipt fell on the host's 20 ms tick grid and took
+    the heading of an ATTITUDE up to a period older, 0.014 m/s and 0.013 rad/s median error; and a minimum span of
+    exactly dt / 2 rejected 117 of 197 intervals."""
+    from bridge.bench.pairing import run
 
-    from bridge.pairing import IntervalPairer
-
-    model = mpc_learner()
-    rng = np.random.default_rng(5)
-    with rig(model=model) as (driver, _, _):
-        events: list[tuple[float, int, Any]] = []
-        u = (0.3, 0.0)
-        t_next = time.monotonic()
-        for k in range(300):  # 6 s: 60 commands
-            now = time.monotonic()
-            events += [(p.stamp, 1, np.array([p.x, p.y, p.theta])) for p in driver.poll(now)]
-            if k % 5 == 0:
-                u = (float(rng.uniform(0.2, 0.5)), float(rng.uniform(-0.6, 0.6)))
-            driver.send(*u, now)
-            events.append((now, 0, u))  # the host's applied echo, stamped when sent
-            t_next += 0.02
-            time.sleep(max(0.0, t_next - time.monotonic()))
-    pairer = IntervalPairer(0.1)
-    pairs = []
-    for t, kind, e in sorted(events, key=lambda e: (e[0], e[1])):
-        out = pairer.applied(t, e[0], e[1], "cmd") if kind == 0 else pairer.state(t, e)
-        if out is not None:
-            pairs.append(out)
-    assert pairer.formed >= 50 and pairer.rejected <= 6, (pairer.formed, pairer.rejected)
-    err = np.array([np.abs(uT - model.response(uL)) for uT, uL in pairs])
-    assert np.median(err[:, 0]) < 0.01 and np.median(err[:, 1]) < 0.01, np.median(err, axis=0)
+    res = run("mavlink", 6.0, seed=5)
+    assert res["formed"] >= 0.9 * res["commands"] and res["rejected"] <= 0.05 * res["commands"], res
+    assert res["error_v_mps"]["median"] < 0.004 and res["error_omega_radps"]["median"] < 0.004, res
 
 
 def test_a_poses_heading_is_the_attitude_at_its_own_vehicle_time_in_either_order() -> None:
