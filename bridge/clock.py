@@ -36,6 +36,17 @@ class ClockOffset:
             self._d.popleft()
         return stamp + self._d[0][1]
 
+    def restamp_checked(self, stamp: float, receipt: float, max_age: float) -> tuple[float, bool]:
+        """:meth:`restamp`, bounded: a result older than ``max_age`` before ``receipt`` means the sender's clock
+        jumped (or one stamp was forged ahead and pulled the minimum), so the estimate starts again from this sample,
+        which then lands at its receipt. Returns ``(time, True)``, or ``(receipt, False)`` after such a restart."""
+        t = min(self.restamp(stamp, receipt), receipt)  # (the sample that sets the minimum: receipt, +- rounding)
+        if t >= receipt - max_age:
+            return t, True
+        self._d.clear()
+        self.restamp(stamp, receipt)
+        return receipt, False
+
     @property
     def offset(self) -> float | None:
         return self._d[0][1] if self._d else None

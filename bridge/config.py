@@ -162,6 +162,8 @@ class UdpLinkConfig(_Cfg):
     max_state_rate_hz: Annotated[float, _m("the fastest the robot may count its state seq (it streams at ~50 Hz): "
                                            "a state whose seq jumps further ahead than this allows is refused, Hz",
                                            gt=0.0, le=100_000.0)] = 200.0
+    clock_window_s: Annotated[float, _m("window of the robot-clock offset estimate that stamps poses at the robot's "
+                                        "own stamps, s", gt=0.0, le=600.0)] = 5.0
 
     def __post_init__(self) -> None:
         if self.robot_port == 0:

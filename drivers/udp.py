@@ -21,6 +21,12 @@ What the driver trusts, in order:
 Datagrams the kernel dropped because the socket's receive buffer was full (a flood between two polls) are counted
 too (``dropped_by_kernel``, Linux ``SO_RXQ_OVFL``); the robot's own states lost that way also show as ``state_gaps``.
 
+Poses are stamped at the robot's own ``stamp`` (its clock at the sample), put on the driver host's monotonic clock
+with the sliding-window minimum of ``receipt - stamp`` (:class:`bridge.clock.ClockOffset`, ``clock_window_s``; a new
+robot epoch, or a stamp more than ``STAMP_MAX_AGE`` before its receipt, starts it again: ``clock_restarts``), not at
+the poll that read them: the driver host polls at its tick, and receipt stamps on that 20 ms grid put 0.0096 m/s of
+median error into the pairs (``scmbridge bench pairing --link udp``).
+
 Health is truthful: ``ok`` only while the socket is open and the robot's last accepted state is younger than
 ``state_timeout_s`` (so False until the first state); ``text`` says how long the robot has been silent.
 
@@ -34,6 +40,7 @@ import socket
 import time
 
 from bridge import wire as M
+from bridge.clock import ClockOffset
 from bridge.config import UdpLinkConfig
 from bridge.gate import SeqGate
 from drivers.base import DriverError, LinkHealth, Pose
@@ -48,6 +55,8 @@ _REFUSALS = ("out_of_order", "seq_jump", "old_epoch", "foreign_epoch")
 #: Linux: each datagram carries the socket's count of datagrams dropped for want of buffer space (socket(7))
 SO_RXQ_OVFL = getattr(socket, "SO_RXQ_OVFL", 40)
 _ANC_SPACE = socket.CMSG_SPACE(4)
+#: a state the robot's clock puts further than this before its receipt restarts the clock estimate
+STAMP_MAX_AGE = 0.5
 
 
 def resolve_ipv4(host: str, port: int) -> tuple[str, int]:
@@ -78,7 +87,8 @@ class UdpDriver:
                             slack=STATE_SEQ_SLACK)
         self.last_state_time = -math.inf  # driver-host monotonic time of the last accepted state
         self.counters = {"foreign": 0, "state_gaps": 0, "robot_restarts": 0, "dropped_by_kernel": 0,
-                         **{f"state_{r}": 0 for r in _REFUSALS}}
+                         "clock_restarts": 0, **{f"state_{r}": 0 for r in _REFUSALS}}
+        self._clock = ClockOffset(config.clock_window_s)  # the robot's stamps -> our monotonic clock
         self._health = LinkHealth()
 
     @property
@@ -143,6 +153,7 @@ class UdpDriver:
             for level, kind, value in anc:
                 if level == socket.SOL_SOCKET and kind == SO_RXQ_OVFL and len(value) >= 4:
                     self.counters["dropped_by_kernel"] = int.from_bytes(value[:4], "little")
+            receipt = time.monotonic()
             self._health.frames_received += 1
             if src[:2] != self.robot_addr:
                 self.counters["foreign"] += 1
@@ -152,12 +163,12 @@ class UdpDriver:
             except M.MessageError:
                 self._health.malformed += 1
                 continue
-            pose = self._take(st, now)
+            pose = self._take(st, now, receipt)
             if pose is not None:
                 out.append(pose)
         return out
 
-    def _take(self, st: M.LearnerState, now: float) -> Pose | None:
+    def _take(self, st: M.LearnerState, now: float, receipt: float) -> Pose | None:
         """The pose of ``st`` if it is the next of the robot's stream (see the module docstring), else None."""
         prev_epoch, prev_seq = self.gate.epoch, self.gate.last_seq
         why = self.gate.accept(st.epoch, st.seq, now)
@@ -166,10 +177,13 @@ class UdpDriver:
             return None
         if prev_epoch is not None and st.epoch != prev_epoch:
             self.counters["robot_restarts"] += 1
+            self._clock = ClockOffset(self.config.clock_window_s)  # a rebooted robot: a new clock
         elif prev_epoch is not None and st.seq > prev_seq + 1:
             self.counters["state_gaps"] += st.seq - prev_seq - 1
         self.last_state_time = now
-        return Pose(now, st.x, st.y, st.theta, st.v, st.omega)
+        stamp, steady = self._clock.restamp_checked(st.stamp, receipt, STAMP_MAX_AGE)
+        self.counters["clock_restarts"] += not steady
+        return Pose(stamp, st.x, st.y, st.theta, st.v, st.omega)
 
     def health(self) -> LinkHealth:
         h = self._health

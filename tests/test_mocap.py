@@ -40,6 +40,20 @@ def test_clock_offset_removes_delivery_jitter_and_follows_the_minimum() -> None:
     assert abs(c.offset - (0.002 - MOCAP_CLOCK)) < 0.0015
 
 
+def test_a_stamp_that_jumped_restarts_the_estimate_instead_of_shifting_every_later_sample() -> None:
+    """One stamp forged (or a sender clock jumped) 0.4 s ahead pulls the window's minimum: every later sample would
+    land 0.4 s early for a whole window. Bounded, the next sample finds its time too old and starts again."""
+    c = ClockOffset(window_s=5.0)
+    for k in range(50):
+        t, ok = c.restamp_checked(k * 0.02 + MOCAP_CLOCK, k * 0.02 + 0.001, 0.25)
+        assert ok and t == pytest.approx(k * 0.02 + 0.001)
+    c.restamp_checked(50 * 0.02 + MOCAP_CLOCK + 0.4, 50 * 0.02 + 0.001, 0.25)  # the forged one: at its receipt
+    t, ok = c.restamp_checked(51 * 0.02 + MOCAP_CLOCK, 51 * 0.02 + 0.001, 0.25)
+    assert not ok and t == pytest.approx(51 * 0.02 + 0.001)  # restarted from this sample
+    t, ok = c.restamp_checked(52 * 0.02 + MOCAP_CLOCK, 52 * 0.02 + 0.003, 0.25)
+    assert ok and t == pytest.approx(52 * 0.02 + 0.001)  # and it follows the minimum again
+
+
 class MocapBridge:
     """Samples the vehicle's true pose at 100 Hz, stamps it with the mocap clock and delivers it late by a random
     delay (out of order at times), like a motion-capture bridge on a busy network."""

@@ -312,6 +312,17 @@ def test_command_reaches_the_robot_and_state_comes_back(rig) -> None:
     assert driver.health().ok
 
 
+def test_poses_carry_the_robots_own_stamps_so_the_pairs_are_its_true_response() -> None:
+    """``scmbridge bench pairing --link udp`` for 4 s: the station's pairing on this link's poses as the driver host
+    feeds them. Finding: poses stamped when the host's 50 Hz tick read them put 0.0096 m/s (median) of error into the
+    pairs; at the robot's own stamps it is below a micrometre per second here."""
+    from bridge.bench.pairing import run
+
+    res = run("udp", 4.0, seed=3)
+    assert res["formed"] >= 0.9 * res["commands"] and res["rejected"] <= 0.05 * res["commands"], res
+    assert res["error_v_mps"]["median"] < 0.002 and res["error_omega_radps"]["median"] < 0.002, res
+
+
 def test_robot_watchdog_stops_it_when_commands_stop(rig) -> None:
     driver, robot, vehicle = rig
     for _ in range(10):

@@ -1,14 +1,14 @@
 """``scmbridge bench pairing``: how good the command pairs from a link's own telemetry are (JSON).
 
-A real driver drives an emulated learner (the MAVLink rover over UDP on 127.0.0.1, or the ODrive controllers on a
-python-can ``virtual`` channel) as the driver host does: a tick every 20 ms (poll, then send), a new random command
-every ``--command-period`` s (the station's 10 Hz), each send echoed as the host's ``applied`` stamp. The poses and
-echoes go through the station's :class:`bridge.pairing.IntervalPairer`, and each pair is compared with the
-learner's true response to its command (``LearnerModel.response``: what a perfect pairing would measure).
+A real driver drives an emulated learner (the MAVLink rover over UDP on 127.0.0.1, the ODrive controllers on a
+python-can ``virtual`` channel, or the UDP shim's robot on 127.0.0.1) as the driver host does: a tick every 20 ms
+(poll, then send), a new random command every ``--command-period`` s (the station's 10 Hz), each send echoed as the
+host's ``applied`` stamp. The poses and echoes go through the station's :class:`bridge.pairing.IntervalPairer`, and
+each pair is compared with the learner's true response to its command (``LearnerModel.response``: what a perfect
+pairing would measure).
 
-Printed: the commands, the pairs formed and rejected, and the pairs' error (median, p90) in
-m/s and rad/s. The pairing is judged on its medians; a loaded machine delays ticks and commands, not the
-vehicle's stamps.
+Printed: the commands, the pairs formed and rejected, and the pairs' error (median, p90) in m/s and rad/s. The
+pairing is judged on its medians; a loaded machine delays ticks and commands, not the vehicle's stamps.
 """
 
 from __future__ import annotations
@@ -52,7 +52,24 @@ def _can(stack: ExitStack, vehicle: Any) -> Any:
     return driver
 
 
-LINKS = {"mavlink": _mavlink, "can": _can}
+def _udp(stack: ExitStack, vehicle: Any) -> Any:
+    import socket
+
+    from bridge.config import UdpLinkConfig
+    from drivers import open_driver
+    from sim_learner.udp_robot import UdpRobot
+
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:  # the driver's port, which the robot is pinned to
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    robot = UdpRobot(vehicle, peer=("127.0.0.1", port)).start()
+    stack.callback(robot.stop)
+    driver = open_driver("udp", UdpLinkConfig(robot_port=robot.port, bind_port=port))
+    stack.callback(driver.close)
+    return driver
+
+
+LINKS = {"mavlink": _mavlink, "can": _can, "udp": _udp}
 
 
 def run(link: str, seconds: float, seed: int = 0, command_period: float = 0.1, pair_dt: float = 0.1,
