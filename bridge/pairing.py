@@ -40,10 +40,12 @@ class IntervalPairer:
         self.last_event = -np.inf
         self.rejected = 0
         self.formed = 0
+        self.out_of_order = 0  # events older than one already fed: ignored
 
     def applied(self, stamp: float, v: float, omega: float, reason: str) -> Pair | None:
         if stamp < self.last_event:
-            return None  # out of order
+            self.out_of_order += 1
+            return None
         self.last_event = stamp
         key = (float(v), float(omega)) if reason in DRIVING else None
         if key == self.segment:
@@ -54,6 +56,7 @@ class IntervalPairer:
 
     def state(self, stamp: float, pose: NDArray[np.float64]) -> Pair | None:
         if stamp < self.last_event:
+            self.out_of_order += 1
             return None
         self.last_event = stamp
         if self.segment is None:

@@ -365,6 +365,7 @@ class Station:
                     "missed_deadlines": self.ticker.missed if self.ticker else 0, "refined_pairs": npairs,
                     "raw_pairs": self.store.raw_count,
                     "pairs_rejected": self.pairer.rejected, "pairs_formed": self.pairer.formed,
+                    "pairs_out_of_order": self.pairer.out_of_order,
                     "goal_reached": int(self.reached)}
         if self.calib_progress is not None:
             i, n, phase = self.calib_progress

@@ -23,6 +23,7 @@ import numpy as np
 from bridge.bench.common import emit
 
 TICK = 0.02  # the driver host's default 50 Hz
+STATION_TICK = 0.1  # the station's default 10 Hz
 
 
 def _mavlink(stack: ExitStack, vehicle: Any) -> Any:
@@ -82,7 +83,7 @@ def run(link: str, seconds: float, seed: int = 0, command_period: float = 0.1, p
     model = mpc_learner()
     rng = np.random.default_rng(seed)
     (v0, v1), (w0, w1) = model.v_range, model.w_range
-    events: list[tuple[float, int, Any]] = []
+    events: list[tuple[float, int, Any, float]] = []  # (stamp, kind, payload, published)
     per_command = max(1, round(command_period / TICK))
     with ExitStack() as stack:
         driver = LINKS[link](stack, SimVehicle(model, (0.0, 0.0, 0.0), now=time.monotonic()))
@@ -92,22 +93,28 @@ def run(link: str, seconds: float, seed: int = 0, command_period: float = 0.1, p
         t_next = t0 = time.monotonic()
         while time.monotonic() - t0 < seconds:
             now = time.monotonic()
-            events += [(p.stamp, 1, np.array([p.x, p.y, p.theta])) for p in driver.poll(now)]
+            events += [(p.stamp, 1, np.array([p.x, p.y, p.theta]), now) for p in driver.poll(now)]
             if k % per_command == 0:  # the middle of the learner's range: no clamping, no standstill
                 u = (float(rng.uniform(v0 + 0.25 * (v1 - v0), v1 - 0.25 * (v1 - v0))),
                      float(rng.uniform(w0 + 0.2 * (w1 - w0), w1 - 0.2 * (w1 - w0))))
                 commands += 1
             driver.send(*u, now)
-            events.append((now, 0, u))  # the host's applied echo, stamped when sent
+            events.append((now, 0, u, now))  # the host's applied echo, stamped when sent
             k += 1
             t_next += TICK
             time.sleep(max(0.0, t_next - time.monotonic()))
+    # as the station takes them: what reached it by each 10 Hz tick (the driver host publishes poses when it polls
+    # them, echoes when it sends), sorted by stamp within the tick
     pairer = IntervalPairer(pair_dt, min_span)
     pairs = []
-    for t, kind, e in sorted(events, key=lambda e: (e[0], e[1])):
-        out = pairer.applied(t, e[0], e[1], "cmd") if kind == 0 else pairer.state(t, e)
-        if out is not None:
-            pairs.append(out)
+    ticks: dict[int, list[tuple[float, int, Any]]] = {}
+    for stamp, kind, e, published in events:
+        ticks.setdefault(int((published - t0) / STATION_TICK) + 1, []).append((stamp, kind, e))
+    for n in sorted(ticks):
+        for t, kind, e in sorted(ticks[n], key=lambda e: (e[0], e[1])):
+            out = pairer.applied(t, e[0], e[1], "cmd") if kind == 0 else pairer.state(t, e)
+            if out is not None:
+                pairs.append(out)
     err = np.array([np.abs(uT - model.response(uL)) for uT, uL in pairs]).reshape(-1, 2)
 
     def stats(a: np.ndarray) -> dict[str, float]:
@@ -116,6 +123,7 @@ def run(link: str, seconds: float, seed: int = 0, command_period: float = 0.1, p
 
     return {"link": link, "seconds": seconds, "seed": seed, "commands": commands, "ticks": k,
             "pair_dt": pair_dt, "min_span": pairer.min_span, "formed": pairer.formed, "rejected": pairer.rejected,
+            "out_of_order": pairer.out_of_order,
             "error_v_mps": stats(err[:, 0]), "error_omega_radps": stats(err[:, 1])}
 
 
