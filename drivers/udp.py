@@ -23,9 +23,10 @@ too (``dropped_by_kernel``, Linux ``SO_RXQ_OVFL``); the robot's own states lost 
 
 Poses are stamped at the robot's own ``stamp`` (its clock at the sample), put on the driver host's monotonic clock
 with the sliding-window minimum of ``receipt - stamp`` (:class:`bridge.clock.ClockOffset`, ``clock_window_s``; a new
-robot epoch, or a stamp more than ``STAMP_MAX_AGE`` before its receipt, starts it again: ``clock_restarts``), not at
-the poll that read them: the driver host polls at its tick, and receipt stamps on that 20 ms grid put 0.0096 m/s of
-median error into the pairs (``scmbridge bench pairing --link udp``).
+robot epoch, or a stamp more than ``STAMP_MAX_AGE`` before its receipt, starts it again: ``clock_restarts``; a stamp
+that does not advance, not being a clock, gives the receipt: ``stamp_fallbacks``), not at the poll that read them:
+the driver host polls at its tick, and receipt stamps on that 20 ms grid put 0.0096 m/s of median error into the
+pairs (``scmbridge bench pairing --link udp``).
 
 Health is truthful: ``ok`` only while the socket is open and the robot's last accepted state is younger than
 ``state_timeout_s`` (so False until the first state); ``text`` says how long the robot has been silent.
@@ -87,8 +88,9 @@ class UdpDriver:
                             slack=STATE_SEQ_SLACK)
         self.last_state_time = -math.inf  # driver-host monotonic time of the last accepted state
         self.counters = {"foreign": 0, "state_gaps": 0, "robot_restarts": 0, "dropped_by_kernel": 0,
-                         "clock_restarts": 0, **{f"state_{r}": 0 for r in _REFUSALS}}
+                         "clock_restarts": 0, "stamp_fallbacks": 0, **{f"state_{r}": 0 for r in _REFUSALS}}
         self._clock = ClockOffset(config.clock_window_s)  # the robot's stamps -> our monotonic clock
+        self._robot_stamp = -math.inf  # the last robot stamp taken in this epoch
         self._health = LinkHealth()
 
     @property
@@ -178,9 +180,14 @@ class UdpDriver:
         if prev_epoch is not None and st.epoch != prev_epoch:
             self.counters["robot_restarts"] += 1
             self._clock = ClockOffset(self.config.clock_window_s)  # a rebooted robot: a new clock
+            self._robot_stamp = -math.inf
         elif prev_epoch is not None and st.seq > prev_seq + 1:
             self.counters["state_gaps"] += st.seq - prev_seq - 1
         self.last_state_time = now
+        if st.stamp <= self._robot_stamp:  # not a running clock (a firmware that sends 0): the receipt it is
+            self.counters["stamp_fallbacks"] += 1
+            return Pose(receipt, st.x, st.y, st.theta, st.v, st.omega)
+        self._robot_stamp = st.stamp
         stamp, steady = self._clock.restamp_checked(st.stamp, receipt, STAMP_MAX_AGE)
         self.counters["clock_restarts"] += not steady
         return Pose(stamp, st.x, st.y, st.theta, st.v, st.omega)

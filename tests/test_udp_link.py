@@ -74,12 +74,12 @@ class ScriptedRobot:
         self.driver_addr: tuple[str, int] | None = None
 
     def state(self, x: float = 0.0, *, seq: int | None = None, epoch: int | None = None,
-              to: tuple[str, int] | None = None, via: socket.socket | None = None) -> None:
+              to: tuple[str, int] | None = None, via: socket.socket | None = None, stamp: float = 1.0) -> None:
         """Send one state; by default the next of this robot's stream (its epoch, seq + 1)."""
         if seq is None:
             self.seq += 1
             seq = self.seq
-        msg = M.LearnerState(stamp=1.0, seq=seq, x=x, y=0.0, theta=0.0, v=0.0, omega=0.0, source="scripted",
+        msg = M.LearnerState(stamp=stamp, seq=seq, x=x, y=0.0, theta=0.0, v=0.0, omega=0.0, source="scripted",
                              epoch=self.epoch if epoch is None else epoch)
         (via or self.sock).sendto(M.encode(msg), to or self.driver_addr)
 
@@ -252,6 +252,31 @@ def test_health_is_not_ok_before_the_first_state() -> None:
         h = driver.health()
         assert not h.ok and "no state from the robot yet" in h.text
         driver.close()
+
+
+def test_poses_are_stamped_at_the_robots_clock_or_at_receipt_when_its_stamp_is_not_a_clock(scripted) -> None:
+    """States read in one poll keep the robot's own spacing (about 0.02 s here), on the driver host's clock; a firmware
+    whose stamp does not advance (this scripted robot's constant 1.0) gets receipt stamps, counted."""
+    driver, robot = scripted
+    robot.state(0.0, stamp=time.monotonic() + 500.0)  # the robot's clock: ours + 500 s, sampled as it sends;
+    time.sleep(0.005)  # read at once, this one sets the offset
+    assert len(driver.poll(time.monotonic())) == 1
+    stamps = []
+    for k in range(5):  # then five that wait in the socket for one poll
+        stamps.append(time.monotonic() + 500.0)
+        robot.state(0.01 * k, stamp=stamps[-1])
+        time.sleep(0.02)
+    poses = driver.poll(time.monotonic())  # all five at once, one receipt time
+    assert len(poses) == 5 and driver.counters["stamp_fallbacks"] == 0
+    assert [b.stamp - a.stamp for a, b in zip(poses, poses[1:])] == pytest.approx(
+        [b - a for a, b in zip(stamps, stamps[1:])], abs=1e-9)
+    assert stamps[-1] - 500.0 <= poses[-1].stamp <= time.monotonic()
+    for _ in range(3):
+        robot.state(0.1, stamp=500.0)  # the clock stopped
+        time.sleep(0.01)
+    poses = driver.poll(time.monotonic())
+    assert len(poses) == 3 and driver.counters["stamp_fallbacks"] == 3
+    assert poses[0].stamp < poses[1].stamp < poses[2].stamp  # their receipts
 
 
 def test_commands_carry_the_drivers_epoch_and_name_and_send_does_not_block(scripted) -> None:
