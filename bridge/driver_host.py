@@ -41,6 +41,9 @@ from drivers.base import Driver, LinkHealth
 
 log = logging.getLogger("scmbridge.driver")
 
+#: a motion-capture sample put further than this before its receipt restarts the clock estimate (a few ms is normal)
+MOCAP_MAX_AGE = 0.5
+
 
 def blocked_reason(health: LinkHealth) -> str:
     """The ``applied`` reason for a vehicle the link says is not fit to drive."""
@@ -78,9 +81,13 @@ class DriverHost:
 
     # ---------------------------------------------------------------------------------------------- inputs
     def on_mocap(self, st: M.LearnerState, now: float) -> None:
-        """A motion-capture sample: its own stamp put on this host's clock (:mod:`bridge.clock`)."""
+        """A motion-capture sample: its own stamp put on this host's clock (:mod:`bridge.clock`). A sample landing
+        more than ``MOCAP_MAX_AGE`` before its receipt (the bridge's clock jumped, or one forged stamp pulled the
+        estimate) restarts the estimate (``mocap_clock_restarts``)."""
         with self.lock:
-            t = self.mocap_clock.restamp(st.stamp, now)
+            t, steady = self.mocap_clock.restamp_checked(st.stamp, now, MOCAP_MAX_AGE)
+            if not steady:
+                self.inputs.count("mocap_clock_restarts")
             if t > 0:
                 self.mocap.append(msgspec.structs.replace(st, stamp=t))
 
