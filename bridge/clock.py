@@ -16,15 +16,23 @@ from __future__ import annotations
 
 from collections import deque
 
+#: a sample that the estimate puts further than this before its receipt restarts it (a few ms is normal)
+MAX_AGE = 0.5
+
 
 class ClockOffset:
-    """Sliding-window minimum of ``receipt - stamp`` (see the module docstring)."""
+    """Sliding-window minimum of ``receipt - stamp`` (see the module docstring); :meth:`restamp_checked` bounds it
+    by ``max_age``."""
 
-    def __init__(self, window_s: float = 5.0) -> None:
-        if not window_s > 0:
-            raise ValueError("the window must be positive")
-        self.window_s = float(window_s)
+    def __init__(self, window_s: float = 5.0, max_age: float = MAX_AGE) -> None:
+        if not (window_s > 0 and max_age > 0):
+            raise ValueError("the window and the maximum age must be positive")
+        self.window_s, self.max_age = float(window_s), float(max_age)
         self._d: deque[tuple[float, float]] = deque()  # (receipt, receipt - stamp), offsets increasing
+
+    def reset(self) -> None:
+        """Forget the estimate (the sender rebooted: a new clock)."""
+        self._d.clear()
 
     def restamp(self, stamp: float, receipt: float) -> float:
         """The sample's time on the receiver's clock, after learning from this sample too."""
@@ -36,14 +44,14 @@ class ClockOffset:
             self._d.popleft()
         return stamp + self._d[0][1]
 
-    def restamp_checked(self, stamp: float, receipt: float, max_age: float) -> tuple[float, bool]:
+    def restamp_checked(self, stamp: float, receipt: float) -> tuple[float, bool]:
         """:meth:`restamp`, bounded: a result older than ``max_age`` before ``receipt`` means the sender's clock
         jumped (or one stamp was forged ahead and pulled the minimum), so the estimate starts again from this sample,
         which then lands at its receipt. Returns ``(time, True)``, or ``(receipt, False)`` after such a restart."""
         t = min(self.restamp(stamp, receipt), receipt)  # (the sample that sets the minimum: receipt, +- rounding)
-        if t >= receipt - max_age:
+        if t >= receipt - self.max_age:
             return t, True
-        self._d.clear()
+        self.reset()
         self.restamp(stamp, receipt)
         return receipt, False
 

@@ -41,9 +41,6 @@ from drivers.base import Driver, LinkHealth
 
 log = logging.getLogger("scmbridge.driver")
 
-#: a motion-capture sample put further than this before its receipt restarts the clock estimate (a few ms is normal)
-MOCAP_MAX_AGE = 0.5
-
 
 def blocked_reason(health: LinkHealth) -> str:
     """The ``applied`` reason for a vehicle the link says is not fit to drive."""
@@ -82,10 +79,10 @@ class DriverHost:
     # ---------------------------------------------------------------------------------------------- inputs
     def on_mocap(self, st: M.LearnerState, now: float) -> None:
         """A motion-capture sample: its own stamp put on this host's clock (:mod:`bridge.clock`). A sample landing
-        more than ``MOCAP_MAX_AGE`` before its receipt (the bridge's clock jumped, or one forged stamp pulled the
+        more than ``bridge.clock.MAX_AGE`` before its receipt (the bridge's clock jumped, or one forged stamp pulled the
         estimate) restarts the estimate (``mocap_clock_restarts``)."""
         with self.lock:
-            t, steady = self.mocap_clock.restamp_checked(st.stamp, now, MOCAP_MAX_AGE)
+            t, steady = self.mocap_clock.restamp_checked(st.stamp, now)
             if not steady:
                 self.inputs.count("mocap_clock_restarts")
             if t > 0:

@@ -35,10 +35,10 @@ system and component ids; the others are counted (``detail["foreign"]``).
 
 Poses: each is stamped at its LOCAL_POSITION_NED's ``time_boot_ms``, put on the driver host's monotonic clock with
 the sliding-window minimum of ``receipt - time_boot_ms`` (:class:`bridge.clock.ClockOffset`, ``clock_window_s``; a
-reboot, or a stamp more than ``STAMP_MAX_AGE`` before its receipt, starts it again), not at its receipt: the host
-polls at its tick, so receipt stamps fall on a 20 ms grid and a 0.05 s interval between two poses read as 0.04 or
-0.06 s. Its heading is the ATTITUDE's at the same vehicle time, interpolated between the two ATTITUDEs around it (a
-position waits, usually within the same burst, for the ATTITUDE at or after it). ``scmbridge bench pairing`` (the
+reboot, or a stamp more than ``bridge.clock.MAX_AGE`` before its receipt, starts it again), not at its receipt: the
+host polls at its tick, so receipt stamps fall on a 20 ms grid and a 0.05 s interval between two poses read as 0.04
+or 0.06 s. Its heading is the ATTITUDE's at the same vehicle time, interpolated between the two ATTITUDEs around it
+(a position waits, usually within the same burst, for the ATTITUDE at or after it). ``scmbridge bench pairing`` (the
 emulated rover, 20 Hz telemetry, 10 Hz commands): the pairs' median error to the learner's true response fell from
 0.014 m/s and 0.013 rad/s to 0.0004 m/s and 0.0001 rad/s.
 
@@ -88,9 +88,6 @@ _BACKOFF0 = 0.25
 #: the most the ATTITUDE and LOCAL_POSITION_NED samples may be apart for the heading to be carried to the position's
 #: time with the reported yaw rate (two 20 Hz periods); further apart, the last heading is used as it is
 ATTITUDE_MAX_LAG = 0.1
-#: a pose the vehicle's clock puts further than this before its receipt restarts the clock estimate (a jumped or
-#: forged time_boot_ms pulled it); counted in ``detail["clock_restarts"]``
-STAMP_MAX_AGE = 0.5
 #: Telemetry a vehicle can really send (the wire's own ranges are wider still): |x|, |y| in m, speeds in m/s, yaw in
 #: rad (ArduPilot sends [-pi, pi]; a full turn either way is tolerated), yaw rate in rad/s. A message outside them,
 #: NaN/inf included, is counted malformed (``detail["invalid_values"]``) and dropped before it can reach a pose.
@@ -333,7 +330,7 @@ class MavlinkDriver:
             self._boot_ms(msg.time_boot_ms)
             v.pos_time = now
             # stamped at the vehicle's own time of the sample, on our clock (module docstring, "Poses")
-            stamp, steady = self._clock.restamp_checked(msg.time_boot_ms / 1000.0, now, STAMP_MAX_AGE)
+            stamp, steady = self._clock.restamp_checked(msg.time_boot_ms / 1000.0, now)
             self._counts["clock_restarts"] += not steady
             p = _Position(int(msg.time_boot_ms), stamp, float(msg.x), float(msg.y), float(msg.vx), float(msg.vy))
             if v.pending is not None and v.att is not None:
@@ -387,7 +384,7 @@ class MavlinkDriver:
         if boot_ms + 1000 < self.v.boot_ms:
             self.v.rebooted = True
             log.warning("the vehicle rebooted (time since boot %d ms, was %d ms)", boot_ms, self.v.boot_ms)
-            self._clock = ClockOffset(self.config.clock_window_s)  # a new vehicle clock: forget the old offset
+            self._clock.reset()  # a new vehicle clock: forget the old offset
             self.v.att, self.v.att_prev, self.v.pending = None, None, None  # times of the old clock
             self._request_streams()
         self.v.boot_ms = int(boot_ms)

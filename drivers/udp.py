@@ -23,10 +23,10 @@ too (``dropped_by_kernel``, Linux ``SO_RXQ_OVFL``); the robot's own states lost 
 
 Poses are stamped at the robot's own ``stamp`` (its clock at the sample), put on the driver host's monotonic clock
 with the sliding-window minimum of ``receipt - stamp`` (:class:`bridge.clock.ClockOffset`, ``clock_window_s``; a new
-robot epoch, or a stamp more than ``STAMP_MAX_AGE`` before its receipt, starts it again: ``clock_restarts``; a stamp
-that does not advance, not being a clock, gives the receipt: ``stamp_fallbacks``), not at the poll that read them:
-the driver host polls at its tick, and receipt stamps on that 20 ms grid put 0.0096 m/s of median error into the
-pairs (``scmbridge bench pairing --link udp``).
+robot epoch, or a stamp more than ``bridge.clock.MAX_AGE`` before its receipt, starts it again: ``clock_restarts``;
+a stamp that does not advance, not being a clock, gives the receipt: ``stamp_fallbacks``), not at the poll that read
+them: the driver host polls at its tick, and receipt stamps on that 20 ms grid put 0.0096 m/s of median error into
+the pairs (``scmbridge bench pairing --link udp``).
 
 Health is truthful: ``ok`` only while the socket is open and the robot's last accepted state is younger than
 ``state_timeout_s`` (so False until the first state); ``text`` says how long the robot has been silent.
@@ -56,8 +56,6 @@ _REFUSALS = ("out_of_order", "seq_jump", "old_epoch", "foreign_epoch")
 #: Linux: each datagram carries the socket's count of datagrams dropped for want of buffer space (socket(7))
 SO_RXQ_OVFL = getattr(socket, "SO_RXQ_OVFL", 40)
 _ANC_SPACE = socket.CMSG_SPACE(4)
-#: a state the robot's clock puts further than this before its receipt restarts the clock estimate
-STAMP_MAX_AGE = 0.5
 
 
 def resolve_ipv4(host: str, port: int) -> tuple[str, int]:
@@ -179,7 +177,7 @@ class UdpDriver:
             return None
         if prev_epoch is not None and st.epoch != prev_epoch:
             self.counters["robot_restarts"] += 1
-            self._clock = ClockOffset(self.config.clock_window_s)  # a rebooted robot: a new clock
+            self._clock.reset()  # a rebooted robot: a new clock
             self._robot_stamp = -math.inf
         elif prev_epoch is not None and st.seq > prev_seq + 1:
             self.counters["state_gaps"] += st.seq - prev_seq - 1
@@ -188,7 +186,7 @@ class UdpDriver:
             self.counters["stamp_fallbacks"] += 1
             return Pose(receipt, st.x, st.y, st.theta, st.v, st.omega)
         self._robot_stamp = st.stamp
-        stamp, steady = self._clock.restamp_checked(st.stamp, receipt, STAMP_MAX_AGE)
+        stamp, steady = self._clock.restamp_checked(st.stamp, receipt)
         self.counters["clock_restarts"] += not steady
         return Pose(stamp, st.x, st.y, st.theta, st.v, st.omega)
 
