@@ -1,10 +1,13 @@
-"""Shared helpers for the benchmarks: timing summaries in one consistent JSON form."""
+"""Shared helpers for the benchmarks: timing summaries in one consistent JSON form, the emulated CAN rig."""
 
 from __future__ import annotations
 
 import json
 import sys
+import time
 from collections.abc import Iterable
+from contextlib import ExitStack
+from typing import Any
 
 import numpy as np
 
@@ -26,3 +29,24 @@ def emit(result: dict) -> None:
     json.dump(result, sys.stdout, indent=2, sort_keys=False)
     sys.stdout.write("\n")
     sys.stdout.flush()
+
+
+def can_ecus(stack: ExitStack, channel: str, vehicle: Any, **ecu_kw: Any) -> Any:
+    """The emulated ODrive controllers of ``vehicle`` on the python-can ``virtual`` ``channel``, stopped with
+    ``stack``."""
+    from sim_learner.can_ecu import DiffDriveEcus
+
+    ecus = DiffDriveEcus({"interface": "virtual", "channel": channel}, vehicle, **ecu_kw).start()
+    stack.callback(ecus.stop)
+    return ecus
+
+
+def open_can_driver(stack: ExitStack, channel: str) -> Any:
+    """The CAN driver on the ``virtual`` ``channel``, opened (both axes armed), closed with ``stack``."""
+    from bridge.config import CanLinkConfig
+    from drivers import open_driver
+
+    driver = open_driver("can", CanLinkConfig(interface="virtual", channel=channel))
+    stack.callback(driver.close)
+    driver.open(time.monotonic())
+    return driver

@@ -64,6 +64,7 @@ from typing import Any
 import msgspec
 
 from bridge import wire as M
+from bridge.bench.common import can_ecus, open_can_driver
 from bridge.gate import DRIVING
 from bridge.node import rss_mb, rss_parts
 
@@ -1179,24 +1180,6 @@ def can_decoder(n: int, seed: int, workdir: Path | None = None) -> dict:
                    "bench (decoder in-process)", disagreements=disagree, kinds_sent_refused=tally.report())
 
 
-def _can_rig(stack: ExitStack, channel: str, vehicle, **ecu_kw):
-    from sim_learner.can_ecu import DiffDriveEcus
-
-    ecus = DiffDriveEcus({"interface": "virtual", "channel": channel}, vehicle, **ecu_kw).start()
-    stack.callback(ecus.stop)
-    return ecus
-
-
-def _can_driver(stack: ExitStack, channel: str):
-    from bridge.config import CanLinkConfig
-    from drivers import open_driver
-
-    driver = open_driver("can", CanLinkConfig(interface="virtual", channel=channel))
-    stack.callback(driver.close)
-    driver.open(time.monotonic())
-    return driver
-
-
 def can_driver(n: int, seed: int, workdir: Path | None = None) -> dict:
     """Frames on a ``virtual`` channel at a running CAN driver (its emulated controllers on the same channel),
     impersonating the controllers. Every frame the oracle refuses must be counted malformed; a frame the oracle
@@ -1218,8 +1201,8 @@ def can_driver(n: int, seed: int, workdir: Path | None = None) -> dict:
         # driver and this harness share one interpreter, and a scheduling stall of it on a loaded machine is not
         # what this input tests (CI once tripped an axis between re-arming and the drive). The faults the fuzzed
         # frames cause (an Estop, an IDLE request) are still latched and cleared by the operator below.
-        _can_rig(stack, channel, vehicle, watchdog=2.0)
-        driver = _can_driver(stack, channel)
+        can_ecus(stack, channel, vehicle, watchdog=2.0)
+        driver = open_can_driver(stack, channel)
         bus = can.Bus(interface="virtual", channel=channel)
         stack.callback(bus.shutdown)
         mut = CanMutator(rng, _controller_frames(rng, own), own)
@@ -1436,7 +1419,7 @@ def can_ecu(n: int, seed: int, workdir: Path | None = None) -> dict:
         d, e = counts["definite"], counts["either"]
         rss1 = rss_mb()
         try:
-            drive = _drive(_can_driver(stack, channel), spy, 0.25, crashes)
+            drive = _drive(open_can_driver(stack, channel), spy, 0.25, crashes)
         except Exception as exc:
             crashes.caught("driver open", exc)
             drive = {"ok": False}

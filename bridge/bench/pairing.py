@@ -20,56 +20,50 @@ from typing import Any
 
 import numpy as np
 
-from bridge.bench.common import emit
+from bridge.bench.common import can_ecus, emit, open_can_driver
 
 TICK = 0.02  # the driver host's default 50 Hz
 STATION_TICK = 0.1  # the station's default 10 Hz
 
 
+def _opened(stack: ExitStack, link: str, config: Any) -> Any:
+    from drivers import open_driver
+
+    driver = open_driver(link, config)
+    stack.callback(driver.close)
+    driver.open(time.monotonic())
+    return driver
+
+
 def _mavlink(stack: ExitStack, vehicle: Any) -> Any:
     from bridge.config import MavlinkLinkConfig
-    from drivers import open_driver
     from sim_learner.mavlink_rover import MavlinkRover
 
     rover = MavlinkRover(vehicle).start()
     stack.callback(rover.stop)
-    driver = open_driver("mavlink", MavlinkLinkConfig(url=f"udpout:127.0.0.1:{rover.port}", open_timeout=10.0))
-    stack.callback(driver.close)
-    return driver
+    return _opened(stack, "mavlink", MavlinkLinkConfig(url=f"udpout:127.0.0.1:{rover.port}", open_timeout=10.0))
 
 
 def _can(stack: ExitStack, vehicle: Any) -> Any:
     import uuid
 
-    from bridge.config import CanLinkConfig
-    from drivers import open_driver
-    from sim_learner.can_ecu import DiffDriveEcus
-
     channel = f"pairing-{uuid.uuid4().hex[:8]}"
-    ecus = DiffDriveEcus({"interface": "virtual", "channel": channel}, vehicle).start()
-    stack.callback(ecus.stop)
-    driver = open_driver("can", CanLinkConfig(interface="virtual", channel=channel))
-    stack.callback(driver.close)
-    return driver
+    can_ecus(stack, channel, vehicle)
+    return open_can_driver(stack, channel)
 
 
 def _udp(stack: ExitStack, vehicle: Any) -> Any:
-    import socket
-
     from bridge.config import UdpLinkConfig
-    from drivers import open_driver
+    from bridge.procs import free_udp_port
     from sim_learner.udp_robot import UdpRobot
 
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:  # the driver's port, which the robot is pinned to
-        s.bind(("127.0.0.1", 0))
-        port = s.getsockname()[1]
+    port = free_udp_port()  # the driver's port, which the robot is pinned to
     robot = UdpRobot(vehicle, peer=("127.0.0.1", port)).start()
     stack.callback(robot.stop)
-    driver = open_driver("udp", UdpLinkConfig(robot_port=robot.port, bind_port=port))
-    stack.callback(driver.close)
-    return driver
+    return _opened(stack, "udp", UdpLinkConfig(robot_port=robot.port, bind_port=port))
 
 
+#: link -> a factory of its emulated learner and an opened driver on it (both closed with the stack)
 LINKS = {"mavlink": _mavlink, "can": _can, "udp": _udp}
 
 
@@ -87,7 +81,6 @@ def run(link: str, seconds: float, seed: int = 0, command_period: float = 0.1, p
     per_command = max(1, round(command_period / TICK))
     with ExitStack() as stack:
         driver = LINKS[link](stack, SimVehicle(model, (0.0, 0.0, 0.0), now=time.monotonic()))
-        driver.open(time.monotonic())
         u = (0.0, 0.0)
         k = commands = 0
         t_next = t0 = time.monotonic()
