@@ -259,12 +259,13 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     if not (args.minutes > 0 and args.sample_s > 0 and args.warmup_s >= 0):
         ap.error("--minutes and --sample-s must be > 0, --warmup-s >= 0")
-    if not set(filter(None, args.trace_memory.split(","))) <= {"station", "driver"}:
+    traced = tuple(n for n in args.trace_memory.split(",") if n)
+    if not set(traced) <= {"station", "driver"}:
         ap.error(f"--trace-memory: station and/or driver, not {args.trace_memory!r}")
     from bridge.bench.common import emit
 
     with tempfile.TemporaryDirectory(prefix="scm-soak-") as tmp:
         out = run(args.minutes, args.link, Path(tmp), args.sample_s, args.warmup_s, args.mission,
-                  trace_memory=tuple(n for n in args.trace_memory.split(",") if n))
+                  trace_memory=traced)
     emit(out)
     return 0 if out["processes_alive"] else 1
