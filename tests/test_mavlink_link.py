@@ -151,7 +151,7 @@ def test_a_poses_heading_is_the_attitude_at_its_own_vehicle_time_in_either_order
     drv = MavlinkDriver(MavlinkLinkConfig())  # streams half a period apart: interpolated
     poses = [p for k, ms in (("att", 1000), ("pos", 1025), ("att", 1050), ("pos", 1075), ("att", 1100))
              for p in feed(drv, k, ms)]
-    assert [round(math.pi / 2 - p.theta, 6) for p in poses] == [round(yaw(1025), 6), round(yaw(1075), 6)]
+    assert [math.pi / 2 - p.theta for p in poses] == pytest.approx([yaw(1025), yaw(1075)], abs=1e-6)
 
 
 def test_rover_stops_when_set_points_stop() -> None:
