@@ -1,1 +1,2 @@
-"""scmbridge's I/O side: Zenoh messages and keys, the base-station service, the driver host and the CLI."""
+"""scmbridge's I/O side, in layers (docs/ARCHITECTURE.md): ``core`` (wire, configuration, gate, clock),
+``nodes`` (station, driver host, Zenoh plumbing) and ``tools`` (the CLI, the demo and the operator's tools)."""

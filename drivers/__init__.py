@@ -11,7 +11,7 @@ from typing import Any
 
 from drivers.base import Driver, DriverError
 
-#: link name -> "module:Class"; each class takes its link's typed configuration (``bridge.config``) as its only
+#: link name -> "module:Class"; each class takes its link's typed configuration (``bridge.core.config``) as its only
 #: argument.
 LINKS: dict[str, str] = {
     "can": "drivers.can:CanDriver",
@@ -35,7 +35,7 @@ def open_driver(name: str, config: Any = None) -> Driver:
         raise DriverError(f"the {name} link is not in this build yet (no module {module_name})") from None
     cls = getattr(module, cls_name)
     if config is None:
-        from bridge.config import LINK_CONFIGS
+        from bridge.core.config import LINK_CONFIGS
 
         config = LINK_CONFIGS[name]()
     return cls(config)

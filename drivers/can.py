@@ -4,7 +4,7 @@ Frames as ODrive firmware 0.6 defines them, from ``odrive_cansimple.dbc`` (node 
 at run time: arbitration id = node_id << 5 | cmd_id, 11-bit, little endian, IEEE float32); enumerations and error
 names in :mod:`drivers.odrive`, with the ODrive sources they were checked against. The driver turns (v, omega) into
 wheel turn rates with the wheel radius and track width, and integrates odometry from the controllers' encoder
-estimates. Configuration: :class:`bridge.config.CanLinkConfig` (``[link.can]`` in the driver host's file).
+estimates. Configuration: :class:`bridge.core.config.CanLinkConfig` (``[link.can]`` in the driver host's file).
 
 **Start-up** (``open``), the one time the driver arms the controllers, because starting the driver host is the
 operator's act: per axis Clear_Errors (what a previous session left, typically the watchdog error of its stop),
@@ -62,7 +62,7 @@ from typing import Any
 import can
 import cantools
 
-from bridge.config import CanLinkConfig
+from bridge.core.config import CanLinkConfig
 from drivers.base import DriverError, LinkHealth, Pose
 from drivers.odrive import AxisState, ControlMode, InputMode, error_names, state_name
 

@@ -34,8 +34,8 @@ v = the NED velocity projected on the heading, so reversing is negative). Every 
 system and component ids; the others are counted (``detail["foreign"]``).
 
 Poses: each is stamped at its LOCAL_POSITION_NED's ``time_boot_ms``, put on the driver host's monotonic clock with
-the sliding-window minimum of ``receipt - time_boot_ms`` (:class:`bridge.clock.ClockOffset`, ``clock_window_s``; a
-reboot, or a stamp more than ``bridge.clock.MAX_AGE`` before its receipt, starts it again), not at its receipt: the
+the sliding-window minimum of ``receipt - time_boot_ms`` (:class:`bridge.core.clock.ClockOffset`, ``clock_window_s``; a
+reboot, or a stamp more than ``bridge.core.clock.MAX_AGE`` before its receipt, starts it again), not at its receipt: the
 host polls at its tick, so receipt stamps fall on a 20 ms grid and a 0.05 s interval between two poses read as 0.04
 or 0.06 s. Its heading is the ATTITUDE's at the same vehicle time, interpolated between the two ATTITUDEs around it
 (a position waits, usually within the same burst, for the ATTITUDE at or after it). ``scmbridge bench pairing`` (the
@@ -53,7 +53,7 @@ or the HEARTBEAT's armed flag, then close: ArduPilot's TCP port drops a command 
 closes (libraries/AP_HAL_SITL/UARTDriver.cpp), so closing at once would leave the vehicle armed. A vehicle the
 operator has taken over is left alone.
 
-Configuration: :class:`bridge.config.MavlinkLinkConfig` (``[link.mavlink]`` in the driver host's file).
+Configuration: :class:`bridge.core.config.MavlinkLinkConfig` (``[link.mavlink]`` in the driver host's file).
 """
 
 from __future__ import annotations
@@ -70,8 +70,8 @@ from typing import Any
 os.environ.setdefault("MAVLINK20", "1")
 from pymavlink import mavutil  # noqa: E402
 
-from bridge.clock import ClockOffset  # noqa: E402
-from bridge.config import MavlinkLinkConfig  # noqa: E402
+from bridge.core.clock import ClockOffset  # noqa: E402
+from bridge.core.config import MavlinkLinkConfig  # noqa: E402
 from drivers.base import DriverError, LinkHealth, Pose  # noqa: E402
 
 log = logging.getLogger("scmbridge.driver.mavlink")

@@ -1,8 +1,8 @@
 """UDP shim link for small microcontroller robots: MessagePack datagrams of the same msgspec structs.
 
-The driver sends :class:`bridge.wire.Command` datagrams to the robot, each carrying the driver's ``epoch`` (picked
-once per driver, :func:`bridge.wire.new_epoch`), ``sender = "driver"`` and the driver's own increasing ``seq``;
-the robot answers with :class:`bridge.wire.LearnerState` datagrams carrying the robot's epoch (picked at boot) and
+The driver sends :class:`bridge.core.wire.Command` datagrams to the robot, each carrying the driver's ``epoch`` (picked
+once per driver, :func:`bridge.core.wire.new_epoch`), ``sender = "driver"`` and the driver's own increasing ``seq``;
+the robot answers with :class:`bridge.core.wire.LearnerState` datagrams carrying the robot's epoch (picked at boot) and
 its own ``seq``. The robot obeys only its configured peer, stops on its own watchdog when commands stop and applies
 its own hard limits (see :mod:`sim_learner.udp_robot`).
 
@@ -11,7 +11,7 @@ What the driver trusts, in order:
 1. the source address: only datagrams from ``robot_host:robot_port`` (resolved once, at ``open``) are read; all
    others are counted as ``foreign`` and dropped undecoded;
 2. the payload: a datagram that does not decode and validate as a ``LearnerState`` is ``malformed``;
-3. the robot's ``(epoch, seq)`` stream, through :class:`bridge.gate.SeqGate`: within the epoch it follows, a
+3. the robot's ``(epoch, seq)`` stream, through :class:`bridge.core.gate.SeqGate`: within the epoch it follows, a
    state is taken only if its seq is above the last one (``state_out_of_order`` otherwise) and not further above
    it than the robot could have counted since (``state_seq_jump``: one forged seq of ``2**63 - 1`` cannot lock the
    real robot out); a new epoch (a rebooted robot) is taken once the followed stream has been silent for
@@ -22,8 +22,9 @@ Datagrams the kernel dropped because the socket's receive buffer was full (a flo
 too (``dropped_by_kernel``, Linux ``SO_RXQ_OVFL``); the robot's own states lost that way also show as ``state_gaps``.
 
 Poses are stamped at the robot's own ``stamp`` (its clock at the sample), put on the driver host's monotonic clock
-with the sliding-window minimum of ``receipt - stamp`` (:class:`bridge.clock.ClockOffset`, ``clock_window_s``; a new
-robot epoch, or a stamp more than ``bridge.clock.MAX_AGE`` before its receipt, starts it again: ``clock_restarts``;
+with the sliding-window minimum of ``receipt - stamp`` (:class:`bridge.core.clock.ClockOffset`,
+``clock_window_s``; a new
+robot epoch, or a stamp more than ``bridge.core.clock.MAX_AGE`` before its receipt, starts it again: ``clock_restarts``;
 a stamp that does not advance, not being a clock, gives the receipt: ``stamp_fallbacks``), not at the poll that read
 them: the driver host polls at its tick, and receipt stamps on that 20 ms grid put 0.0096 m/s of median error into
 the pairs (``scmbridge bench pairing --link udp``).
@@ -31,7 +32,7 @@ the pairs (``scmbridge bench pairing --link udp``).
 Health is truthful: ``ok`` only while the socket is open and the robot's last accepted state is younger than
 ``state_timeout_s`` (so False until the first state); ``text`` says how long the robot has been silent.
 
-Configuration: :class:`bridge.config.UdpLinkConfig` (``[link.udp]`` in the driver host's file).
+Configuration: :class:`bridge.core.config.UdpLinkConfig` (``[link.udp]`` in the driver host's file).
 """
 
 from __future__ import annotations
@@ -40,10 +41,10 @@ import math
 import socket
 import time
 
-from bridge import wire as M
-from bridge.clock import ClockOffset
-from bridge.config import UdpLinkConfig
-from bridge.gate import SeqGate
+from bridge.core import wire as M
+from bridge.core.clock import ClockOffset
+from bridge.core.config import UdpLinkConfig
+from bridge.core.gate import SeqGate
 from drivers.base import DriverError, LinkHealth, Pose
 
 #: seqs a state may jump ahead of the last one beyond what ``max_state_rate_hz`` allows for the time elapsed

@@ -11,8 +11,8 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 from matplotlib.patches import Circle  # noqa: E402
 
-from bridge.plots import draw_box as _box  # noqa: E402  (shared with the station-side `scmbridge pairs plot`)
-from bridge.plots import draw_pairs  # noqa: E402
+from sim_learner.plots import draw_box as _box  # noqa: E402  (shared with the station-side `scmbridge pairs plot`)
+from sim_learner.plots import draw_pairs  # noqa: E402
 from sim_learner.runs import deviation_profile  # noqa: E402
 from transfer.domain import Bounds  # noqa: E402
 from transfer.store import PairStore  # noqa: E402

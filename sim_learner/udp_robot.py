@@ -8,7 +8,7 @@ It behaves like the firmware it stands in for, which trusts nothing on the netwo
   owns the robot until it reboots); it must be asked for. Datagrams from any other address are dropped undecoded
   and counted (``foreign``); the state goes to the peer only (none before a ``first`` peer is pinned).
 - **Validation.** A datagram that does not decode and validate as a ``Command`` is dropped (``malformed``).
-- **The driver's stream.** Commands go through :class:`bridge.gate.SeqGate` on the driver's ``(epoch, seq)``: a
+- **The driver's stream.** Commands go through :class:`bridge.core.gate.SeqGate` on the driver's ``(epoch, seq)``: a
   command not above the last one (a replay, a reorder) is refused (``out_of_order``), so is a seq jump beyond what
   a driver can count (``seq_jump``), a second driver while the first one is alive (``foreign_epoch``) and any
   command of a driver run left behind (``old_epoch``). A restarted driver host (a new epoch) is taken once the
@@ -34,12 +34,12 @@ import threading
 import time
 from typing import Literal
 
-from bridge import wire as M
-from bridge.gate import SeqGate
+from bridge.core import wire as M
+from bridge.core.gate import SeqGate
 from sim_learner.device import ThreadedDevice
 from sim_learner.vehicle import SimVehicle
 
-#: the driver host's default address (``bridge.config.UdpLinkConfig``'s ``bind_host``, ``bind_port``)
+#: the driver host's default address (``bridge.core.config.UdpLinkConfig``'s ``bind_host``, ``bind_port``)
 DEFAULT_PEER: tuple[str, int] = ("127.0.0.1", 47801)
 
 Peer = tuple[str, int] | Literal["first"]

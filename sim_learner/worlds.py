@@ -12,7 +12,7 @@ import math
 import numpy as np
 from numpy.typing import NDArray
 
-from bridge.config import load_mission
+from bridge.core.config import load_mission
 from transfer.mission import Mission
 
 #: the simulations' name for a mission

@@ -7,7 +7,7 @@ import time
 from collections.abc import Callable
 from typing import Any
 
-from bridge import wire as M
+from bridge.core import wire as M
 
 
 class Collector:

@@ -10,10 +10,10 @@ import sys
 import tempfile
 import time
 
-from bridge import wire as M
-from bridge.procs import stop_group
-from bridge.wire import Keys
-from bridge.zsession import free_port, make_config, open_session, tcp
+from bridge.core import wire as M
+from bridge.core.wire import Keys
+from bridge.nodes.zsession import free_port, make_config, open_session, tcp
+from bridge.tools.procs import stop_group
 
 
 def main() -> int:
@@ -22,7 +22,7 @@ def main() -> int:
     with tempfile.NamedTemporaryFile("w", suffix=".toml", delete=False) as f:
         f.write(f'robot = "ns"\n[link.can]\ninterface = "udp_multicast"\nchannel = "{channel}"\nopen_timeout = 10.0\n')
         cfg = f.name
-    py = [sys.executable, "-m", "bridge.cli"]
+    py = [sys.executable, "-m", "bridge"]
     # the motor controllers first (they must answer the driver's arming), then the driver host
     learner = subprocess.Popen(py + ["learner", "--link", "can", "--interface", "udp_multicast", "--channel", channel,
                                      "--duration", "60"], stdout=subprocess.PIPE, text=True, start_new_session=True)

@@ -1,6 +1,7 @@
 """The shape docs/ARCHITECTURE.md promises, checked from the code's own imports (every import statement, also the
-ones inside functions): no cycle between modules, a pure method, a leaf wire schema, a station that knows no
-simulator, and docstrings that cite only what the repository contains."""
+ones inside functions): packages in layers that import only downwards, no cycle between modules, a pure method, a
+leaf wire schema, a station that knows no simulator, benchmarks outside the product, and docstrings that cite only
+what the repository contains."""
 
 from __future__ import annotations
 
@@ -11,7 +12,12 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parent.parent
-PACKAGES = ("transfer", "bridge", "drivers", "sim_learner")
+PACKAGES = ("transfer", "bridge", "drivers", "sim_learner", "bench")
+#: docs/ARCHITECTURE.md section 2: each package's layer; a module imports only from its own layer or below, and
+#: the two packages of layer 2 (the links and the learner's emulators) know nothing of each other. ``bench`` (the
+#: benchmarks and fuzzers) sits above everything and nothing in the product imports it.
+LAYERS = {"transfer": 0, "bridge": 1, "bridge.core": 1, "drivers": 2, "sim_learner": 2, "bridge.nodes": 3,
+          "bridge.tools": 4, "bridge.__main__": 4, "bench": 5}
 
 
 def _modules() -> dict[str, Path]:
@@ -58,6 +64,34 @@ def _reach(start: str) -> set[str]:
     return seen
 
 
+def _package(module: str) -> str:
+    """The longest entry of LAYERS that ``module`` belongs to."""
+    best = max((p for p in LAYERS if module == p or module.startswith(p + ".")), key=len)
+    return best
+
+
+def test_every_module_has_a_layer() -> None:
+    assert all(_package(m) for m in MODULES)
+
+
+def test_packages_import_only_downwards() -> None:
+    wrong = []
+    for m, deps in GRAPH.items():
+        pm = _package(m)
+        for d in deps:
+            pd = _package(d)
+            if LAYERS[pd] > LAYERS[pm] or (LAYERS[pd] == LAYERS[pm] == 2 and pd != pm):
+                wrong.append(f"{m} ({pm}, layer {LAYERS[pm]}) imports {d} ({pd}, layer {LAYERS[pd]})")
+    assert not wrong, "imports against the layering:\n" + "\n".join(sorted(wrong))
+
+
+def test_the_layers_are_what_the_architecture_document_draws() -> None:
+    text = (ROOT / "docs" / "ARCHITECTURE.md").read_text()
+    for pkg in LAYERS:
+        if pkg not in ("bridge", "bridge.__main__"):
+            assert f"`{pkg.replace('.', '/')}/`" in text or f"`{pkg}`" in text, f"{pkg} is not in docs/ARCHITECTURE.md"
+
+
 def test_no_module_imports_one_that_imports_it_back() -> None:
     cycles = sorted(m for m in MODULES if m in _reach(m))
     assert not cycles, f"import cycles through: {cycles}"
@@ -72,14 +106,14 @@ def test_the_method_is_pure_and_depends_on_no_io_package() -> None:
 
 
 def test_the_wire_schema_is_a_leaf() -> None:
-    assert GRAPH["bridge.wire"] == set()
+    assert GRAPH["bridge.core.wire"] == set()
 
 
 def test_the_station_knows_no_simulator() -> None:
-    assert not [m for m in _reach("bridge.station") if m.startswith("sim_learner")]
+    assert not [m for m in _reach("bridge.nodes.station") if m.startswith("sim_learner")]
 
 
-@pytest.mark.parametrize("mod", ["bridge.driver_host", "drivers.can", "drivers.mavlink", "drivers.udp"])
+@pytest.mark.parametrize("mod", ["bridge.nodes.driver_host", "drivers.can", "drivers.mavlink", "drivers.udp"])
 def test_the_robot_side_needs_no_numerical_stack(mod: str) -> None:
     heavy = re.compile(r"^\s*(import|from)\s+(scipy|casadi|numba|matplotlib)\b", re.M)
     for m in {mod} | _reach(mod):

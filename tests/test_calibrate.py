@@ -12,9 +12,9 @@ import numpy as np
 import pytest
 from collect import Collector
 
-from bridge import wire as M
-from bridge.procs import Children
-from bridge.zsession import free_port, make_config, open_session, tcp
+from bridge.core import wire as M
+from bridge.nodes.zsession import free_port, make_config, open_session, tcp
+from bridge.tools.procs import Children
 from sim_learner.dynamics import mpc_learner
 from transfer.calibration import CalibrationPlan
 from transfer.domain import Bounds
@@ -64,7 +64,7 @@ def test_scmbridge_calibrate_drives_the_robot_through_its_driver_host_into_the_s
         col = Collector(session)
         states, lock = col.listen(M.key(robot, "state"), M.LearnerState), col.lock
         kids.spawn(["driver", "--link", "can", "--emulate", *client, "--duration", "140"])
-        res = subprocess.run([sys.executable, "-m", "bridge.cli", "calibrate", *client, "--store", str(store),
+        res = subprocess.run([sys.executable, "-m", "bridge", "calibrate", *client, "--store", str(store),
                               "--grid", "3x3", "--hold", "0.6", "--max-distance", "1.2", "--max-time", "90"],
                              capture_output=True, text=True, timeout=130)
     assert res.returncode == 0, res.stdout[-2000:] + res.stderr[-3000:]
@@ -84,7 +84,7 @@ def test_scmbridge_calibrate_drives_the_robot_through_its_driver_host_into_the_s
 def test_the_motion_primitive_teacher_drives_from_calibrated_pairs(tmp_path) -> None:
     """The paper's Section 5.1 on the bridge: calibrate, then the station's motion-primitive teacher plans with
     the primitives inside the calibrated limits and drives the emulated learner along the S-path."""
-    from bridge.config import load_mission
+    from bridge.core.config import load_mission
 
     mission = load_mission()
     port, robot = free_port(), f"prim{os.getpid()}"
@@ -96,7 +96,7 @@ def test_the_motion_primitive_teacher_drives_from_calibrated_pairs(tmp_path) -> 
         col = Collector(session)
         states, lock = col.listen(M.key(robot, "state"), M.LearnerState), col.lock
         kids.spawn(["driver", "--link", "can", "--emulate", "--x0", x0, *client, "--duration", "140"])
-        res = subprocess.run([sys.executable, "-m", "bridge.cli", "calibrate", *client, "--store", str(store),
+        res = subprocess.run([sys.executable, "-m", "bridge", "calibrate", *client, "--store", str(store),
                               "--grid", "3x3", "--hold", "0.5", "--max-distance", "2.0", "--max-time", "60"],
                              capture_output=True, text=True, timeout=90)
         assert res.returncode == 0, res.stderr[-2000:]

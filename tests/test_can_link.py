@@ -19,7 +19,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from bridge.config import CanLinkConfig
+from bridge.core.config import CanLinkConfig
 from drivers import open_driver
 from drivers.base import Pose
 from drivers.can import CanDriver, database, decode, encode

@@ -10,7 +10,7 @@ import sys
 import msgspec
 import pytest
 
-from bridge import config as C
+from bridge.core import config as C
 
 STATION_BAD = [
     ("[station]\nhorizn = 5\n", "station.horizn", "did you mean 'horizon'"),
@@ -78,7 +78,7 @@ def test_the_commented_default_is_a_valid_file_of_exactly_the_defaults(tmp_path,
 def test_every_command_that_reads_a_config_refuses_a_typo_before_opening_anything(tmp_path, command) -> None:
     f = tmp_path / "typo.toml"
     f.write_text("[driver]\ncmd_timout = 0.05\n" if command[0] == "driver" else "[station]\nhorizn = 5\n")
-    res = subprocess.run([sys.executable, "-m", "bridge.cli", *command, *(["--config"] if command[0] != "config"
+    res = subprocess.run([sys.executable, "-m", "bridge", *command, *(["--config"] if command[0] != "config"
                                                                          else []), str(f)],
                          capture_output=True, text=True, timeout=60)
     assert res.returncode == 2
@@ -88,6 +88,6 @@ def test_every_command_that_reads_a_config_refuses_a_typo_before_opening_anythin
 
 
 def test_a_non_finite_start_pose_is_an_argument_error() -> None:
-    res = subprocess.run([sys.executable, "-m", "bridge.cli", "driver", "--link", "can", "--x0", "nan,0,0"],
+    res = subprocess.run([sys.executable, "-m", "bridge", "driver", "--link", "can", "--x0", "nan,0,0"],
                          capture_output=True, text=True, timeout=60)
     assert res.returncode == 2 and "three finite numbers" in res.stderr and "Traceback" not in res.stderr

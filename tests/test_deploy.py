@@ -12,8 +12,8 @@ from pathlib import Path
 import pytest
 import zenoh
 
-from bridge import deploy
-from bridge.config import load_driver, load_station
+from bridge.core.config import load_driver, load_station
+from bridge.tools import deploy
 from drivers import open_driver
 
 DEPLOY = Path(__file__).resolve().parent.parent / "deploy"
@@ -45,7 +45,7 @@ def test_no_shipped_config_listens_on_every_interface_or_scouts_by_multicast() -
 def test_every_config_runs_without_the_shared_memory_transport(tmp_path: Path) -> None:
     """Finding (bench fuzz): with Zenoh's shared memory on, each same-machine sender's 16 MiB pool stayed mapped in
     the driver host after the sender had gone (66 -> 153 MB RSS over four senders)."""
-    from bridge.zsession import make_config
+    from bridge.nodes.zsession import make_config
 
     assert json.loads(str(zenoh.Config()))["transport"]["shared_memory"]["enabled"] is True  # zenoh's own default
     for path in sorted((DEPLOY / "zenoh").glob("*.json5")):

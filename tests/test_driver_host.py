@@ -15,10 +15,10 @@ import msgspec
 import numpy as np
 import pytest
 
-from bridge import wire as M
-from bridge.procs import spawn, stop_group
-from bridge.wire import Keys, status_key
-from bridge.zsession import free_port, make_config, open_session, tcp
+from bridge.core import wire as M
+from bridge.core.wire import Keys, status_key
+from bridge.nodes.zsession import free_port, make_config, open_session, tcp
+from bridge.tools.procs import spawn, stop_group
 from transfer.domain import Bounds
 
 LIMITS = Bounds((-0.5, 0.5), (-1.0, 1.0))
@@ -77,7 +77,7 @@ def driver_host(request, tmp_path):
         vehicle = SimVehicle(mpc_learner(), (0.0, 0.0, 0.0), now=time.monotonic())
         cfg = tmp_path / "driver.toml"
         if link == "udp":
-            from bridge.procs import free_udp_port
+            from bridge.tools.procs import free_udp_port
             from sim_learner.udp_robot import UdpRobot
 
             bind = free_udp_port()
@@ -174,7 +174,7 @@ def test_estop_command_latches_confirms_and_only_the_operator_releases(driver_ho
     t.start()
     try:
         assert lis.wait(lambda s: any(a.reason == "cmd" for a in s.applied), 3.0)
-        cli = [sys.executable, "-m", "bridge.cli", "estop", "--robot", robot, "--connect", ep, "--mode", "client"]
+        cli = [sys.executable, "-m", "bridge", "estop", "--robot", robot, "--connect", ep, "--mode", "client"]
         res = subprocess.run(cli + ["--reason", "test"], capture_output=True, text=True, timeout=30)
         assert res.returncode == 0, res.stderr
         assert f"{robot}/driver-can: LATCHED by operator" in res.stdout

@@ -12,10 +12,10 @@ from pathlib import Path
 import pytest
 from collect import Collector
 
-from bridge import wire as M
-from bridge.config import load_mission
-from bridge.procs import Children
-from bridge.zsession import free_port, make_config, open_session, tcp
+from bridge.core import wire as M
+from bridge.core.config import load_mission
+from bridge.nodes.zsession import free_port, make_config, open_session, tcp
+from bridge.tools.procs import Children
 
 ROOT = Path(__file__).resolve().parent.parent
 MISSION = ROOT / "bridge" / "missions" / "paper_s_path.toml"

@@ -12,11 +12,11 @@ import numpy as np
 import pytest
 from collect import Collector
 
-from bridge import wire as M
-from bridge.config import StationConfig, load_mission
-from bridge.procs import Children, free_udp_port
-from bridge.station import Station
-from bridge.zsession import free_port, make_config, open_session, tcp
+from bridge.core import wire as M
+from bridge.core.config import StationConfig, load_mission
+from bridge.nodes.station import Station
+from bridge.nodes.zsession import free_port, make_config, open_session, tcp
+from bridge.tools.procs import Children, free_udp_port
 from sim_learner.dynamics import mpc_learner
 from sim_learner.udp_robot import UdpRobot
 from sim_learner.vehicle import SimVehicle

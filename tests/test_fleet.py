@@ -16,10 +16,10 @@ from pathlib import Path
 
 import pytest
 
-from bridge import wire as M
-from bridge.bench.fleet import STATION_ENV, SimRobot, sweep, write_mission
-from bridge.procs import Children, emulated_link
-from bridge.zsession import free_port, make_config, open_session, tcp
+from bench.fleet import STATION_ENV, SimRobot, sweep, write_mission
+from bridge.core import wire as M
+from bridge.nodes.zsession import free_port, make_config, open_session, tcp
+from bridge.tools.procs import Children, emulated_link
 
 ROOT = Path(__file__).resolve().parent.parent
 SYSTEMD = ROOT / "deploy" / "systemd"
@@ -44,7 +44,7 @@ def test_the_sweep_goes_up_to_the_fleet_asked_for() -> None:
 
 
 def test_the_bench_mission_is_the_s_path_five_times_inside_the_mpc_state_box(tmp_path) -> None:
-    from bridge.config import load_mission
+    from bridge.core.config import load_mission
 
     one = load_mission(None)
     five = load_mission(write_mission(tmp_path / "m.toml"))
@@ -136,7 +136,7 @@ def test_the_simulated_robots_wait_for_every_station_then_follow_their_commands(
 
 
 def load_start_heading(mission: Path) -> float:
-    from bridge.config import load_mission
+    from bridge.core.config import load_mission
 
     return float(load_mission(mission).start[2])
 
@@ -148,8 +148,8 @@ def test_the_fleet_summary_says_how_far_from_the_goal_point_a_robot_stopped() ->
     says the distance."""
     import numpy as np
 
-    from bridge.config import load_mission
-    from bridge.demo import Monitor, _robot_summary
+    from bridge.core.config import load_mission
+    from bridge.tools.demo import Monitor, _robot_summary
 
     world = load_mission(None)
     mon = Monitor.__new__(Monitor)  # no session: only the figures
@@ -205,7 +205,7 @@ def test_template_units_run_the_installed_command_for_the_instance_robot(kind: s
     if kind == "station":  # one pair store per robot, whatever a copied configuration says
         assert "--store /var/lib/scmbridge/pairs-%i.bin" in cmd and unit["StateDirectory"] == ["scmbridge"]
     # every option is one the command takes
-    helptext = subprocess.run([sys.executable, "-m", "bridge.cli", kind, "--help"], capture_output=True, text=True,
+    helptext = subprocess.run([sys.executable, "-m", "bridge", kind, "--help"], capture_output=True, text=True,
                               timeout=60).stdout
     for opt in re.findall(r"(?<=\s)--[a-z][a-z0-9-]*", cmd):
         assert opt in helptext, opt
@@ -280,7 +280,7 @@ def test_template_units_run_as_systemd_would_for_two_robots(tmp_path) -> None:
 @pytest.mark.timeout(480)
 def test_the_fleet_demo_brings_three_robots_to_their_goals_and_leaves_no_process(tmp_path) -> None:
     out = tmp_path / "fleet"
-    res = subprocess.run([sys.executable, "-m", "bridge.cli", "demo", "--robots", "3", "--out", str(out),
+    res = subprocess.run([sys.executable, "-m", "bridge", "demo", "--robots", "3", "--out", str(out),
                           "--timeout", "300"], capture_output=True, text=True, timeout=420)
     assert res.returncode == 0, res.stdout[-3000:] + res.stderr[-2000:]
     fleet = json.loads(next(ln for ln in res.stdout.splitlines() if ln.startswith("fleet:"))[len("fleet:"):])
@@ -297,7 +297,7 @@ def test_the_fleet_demo_brings_three_robots_to_their_goals_and_leaves_no_process
 @pytest.mark.slow
 @pytest.mark.timeout(200)
 def test_the_fleet_bench_measures_one_station_and_says_how_many_it_held() -> None:
-    res = subprocess.run([sys.executable, "-m", "bridge.cli", "bench", "fleet", "--sizes", "1,2", "--seconds", "5",
+    res = subprocess.run([sys.executable, "-m", "bridge", "bench", "fleet", "--sizes", "1,2", "--seconds", "5",
                           "--warmup", "2", "--keep-going"], capture_output=True, text=True, timeout=180)
     assert res.returncode == 0, res.stderr[-3000:]
     out = json.loads(res.stdout)

@@ -9,8 +9,8 @@ import msgspec
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from bridge import wire as M
-from bridge.gate import CommandGate, Decision, SeqGate
+from bridge.core import wire as M
+from bridge.core.gate import CommandGate, Decision, SeqGate
 from transfer.domain import Bounds
 
 LIMITS = Bounds((-0.5, 0.5), (-1.0, 1.0))

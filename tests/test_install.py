@@ -31,7 +31,7 @@ LOCKED_PY = "3.11"  # the Python the locks were compiled for (Makefile LOCKED_PY
 HEAVY = ("scipy", "casadi", "numba", "llvmlite", "matplotlib")
 # The driver host imports the wire messages itself; they are not named here so that the test does not depend on
 # the wire module's file name.
-ROBOT_MODULES = ("bridge.driver_host", "drivers", "drivers.can", "drivers.mavlink", "drivers.udp")
+ROBOT_MODULES = ("bridge.nodes.driver_host", "drivers", "drivers.can", "drivers.mavlink", "drivers.udp")
 
 _BLOCKED_RUN = f"""
 import runpy, sys
@@ -49,7 +49,7 @@ for mod in {ROBOT_MODULES!r}:
     importlib.import_module(mod)
 sys.argv = ["scmbridge", "driver", "--help"]
 try:
-    runpy.run_module("bridge.cli", run_name="__main__", alter_sys=True)
+    runpy.run_module("bridge.tools.cli", run_name="__main__", alter_sys=True)
 except SystemExit as e:
     if e.code not in (0, None):
         raise

@@ -11,9 +11,9 @@ import time
 
 import pytest
 
-from bridge import wire as M
-from bridge.procs import spawn, stop_group
-from bridge.zsession import free_port, make_config, open_session, tcp
+from bridge.core import wire as M
+from bridge.nodes.zsession import free_port, make_config, open_session, tcp
+from bridge.tools.procs import spawn, stop_group
 
 websockets = pytest.importorskip("websockets.sync.client")
 

@@ -22,7 +22,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from pymavlink import mavutil
 
-from bridge.config import MavlinkLinkConfig
+from bridge.core.config import MavlinkLinkConfig
 from drivers import DriverError, open_driver
 from drivers.mavlink import TYPE_MASK_VEL_YAWRATE
 from sim_learner.dynamics import LearnerModel, mpc_learner
@@ -119,7 +119,7 @@ def test_pairs_from_the_link_recover_the_learners_response() -> None:
     bench, 20 s): poses stamped on receipt fell on the host's 20 ms tick grid and took the heading of an
     ATTITUDE up to a period older, 0.014 m/s and 0.013 rad/s median error; and a minimum span of exactly dt / 2
     rejected 117 of 197 intervals."""
-    from bridge.bench.pairing import run
+    from bench.pairing import run
 
     res = run("mavlink", 6.0, seed=5)
     assert res["formed"] >= 0.75 * res["commands"] and res["rejected"] <= 0.1 * res["commands"], res  # load margin

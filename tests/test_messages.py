@@ -9,7 +9,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from bridge.wire import (
+from bridge.core.wire import (
     Applied,
     Command,
     Estop,

@@ -14,11 +14,11 @@ import numpy as np
 import pytest
 from collect import Collector
 
-from bridge import wire as M
-from bridge.clock import ClockOffset
-from bridge.pairing import IntervalPairer
-from bridge.procs import Children, free_udp_port
-from bridge.zsession import free_port, make_config, open_session, tcp
+from bridge.core import wire as M
+from bridge.core.clock import ClockOffset
+from bridge.nodes.pairing import IntervalPairer
+from bridge.nodes.zsession import free_port, make_config, open_session, tcp
+from bridge.tools.procs import Children, free_udp_port
 from sim_learner.dynamics import mpc_learner
 from sim_learner.udp_robot import UdpRobot
 from sim_learner.vehicle import SimVehicle

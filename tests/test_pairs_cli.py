@@ -13,10 +13,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from bridge.pairs_cli import from_message, from_store, main, pairs_figure
-from bridge.procs import spawn, stop_group
-from bridge.station import pairs_message, save_atomic
-from bridge.zsession import free_port, tcp
+from bridge.nodes.station import pairs_message, save_atomic
+from bridge.nodes.zsession import free_port, tcp
+from bridge.tools.pairs_cli import from_message, from_store, main, pairs_figure
+from bridge.tools.procs import spawn, stop_group
 from sim_learner.dynamics import MPC_TEACHER_V, MPC_TEACHER_W, mpc_learner
 from transfer.domain import Bounds
 from transfer.mappers import BarycentricMapper
@@ -133,7 +133,7 @@ def test_a_store_that_cannot_be_read_is_one_line(tmp_path: Path, capsys) -> None
 
 
 def _cli(*args: str, timeout: float = 90) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "bridge.cli", "pairs", *args], capture_output=True, text=True,
+    return subprocess.run([sys.executable, "-m", "bridge", "pairs", *args], capture_output=True, text=True,
                           timeout=timeout, cwd=ROOT)
 
 

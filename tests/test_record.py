@@ -2,8 +2,8 @@
 
 The fast tests drive a short, deterministic run (poses along a mission path, commands, echoes, both nodes' status,
 a mission message, a malformed and a non-canonical sample) through a Zenoh router on a free 127.0.0.1 port, with
-the demo's own :class:`bridge.demo.Monitor` watching live next to a recorder process. The slow test records the
-real HIL demo (``scmbridge demo``) end to end. Every process is started through ``bridge.procs`` and stopped.
+the demo's own :class:`bridge.tools.demo.Monitor` watching live next to a recorder process. The slow test records the
+real HIL demo (``scmbridge demo``) end to end. Every process is started through ``bridge.tools.procs`` and stopped.
 """
 
 from __future__ import annotations
@@ -25,10 +25,11 @@ import msgspec
 import pytest
 import zenoh
 
-from bridge import wire as M
-from bridge.config import mission_from_spec
-from bridge.procs import Children, stop_group
-from bridge.record import (
+from bridge.core import wire as M
+from bridge.core.config import mission_from_spec
+from bridge.nodes.zsession import free_port, make_config, open_session, tcp
+from bridge.tools.procs import Children, stop_group
+from bridge.tools.record import (
     MALFORMED,
     NONCANONICAL,
     TOPIC_KINDS,
@@ -39,7 +40,6 @@ from bridge.record import (
     json_schema,
     read_recording,
 )
-from bridge.zsession import free_port, make_config, open_session, tcp
 
 ROBOT = "rec1"
 MISSION = M.MissionSpec(name="test-bend", path=[[0.0, 0.0], [2.0, 0.0], [3.0, 1.0]], goal_tolerance=0.2)
@@ -164,7 +164,7 @@ def _point_at(mission, s: float) -> tuple[float, float]:
 
 def canonical(sent: list[tuple[str, bytes]]) -> list[tuple[str, bytes]]:
     """What a replay should publish for what was sent: wire messages only, in wire.encode's form."""
-    from bridge.record import kind_of
+    from bridge.tools.record import kind_of
 
     out = []
     for key, data in sent:
@@ -229,7 +229,7 @@ def test_size_limit_is_never_exceeded(tmp_path: Path) -> None:
 @pytest.fixture(scope="module")
 def recorded(tmp_path_factory) -> dict:
     """A synthetic run watched live by the demo's Monitor and recorded by `scmbridge record --all`."""
-    from bridge.demo import Monitor
+    from bridge.tools.demo import Monitor
 
     out = tmp_path_factory.mktemp("rec") / "run.mcap"
     with router() as (session, port), Children() as kids:
@@ -279,10 +279,10 @@ def test_the_recording_holds_every_sample_in_order_with_schemas(recorded: dict) 
 
 
 def test_report_gives_the_live_monitors_summary(recorded: dict, tmp_path: Path) -> None:
-    from bridge.report import main as report_main
+    from bridge.tools.report import main as report_main
 
     out = tmp_path / "report"
-    proc = subprocess.run([sys.executable, "-m", "bridge.cli", "report", str(recorded["out"]), "--out", str(out)],
+    proc = subprocess.run([sys.executable, "-m", "bridge", "report", str(recorded["out"]), "--out", str(out)],
                           capture_output=True, text=True, timeout=120)
     assert proc.returncode == 0, proc.stderr + proc.stdout
     line = next(x for x in proc.stdout.splitlines() if x.startswith("summary: "))
@@ -449,7 +449,7 @@ def test_a_recorded_demo_reports_the_live_demos_figures(tmp_path: Path) -> None:
         while len(held) < 2 and time.monotonic() < t_end:  # the driver host and the station
             for pid in _children_of(demo.pid):
                 cmd = _cmdline(pid)
-                if pid not in held and "bridge.cli" in cmd and cmd[cmd.index("bridge.cli") + 1] in ("driver",
+                if pid not in held and "bridge" in cmd and cmd[cmd.index("bridge") + 1] in ("driver",
                                                                                                     "station"):
                     os.killpg(pid, signal.SIGSTOP)
                     held[pid] = cmd
@@ -473,7 +473,7 @@ def test_a_recorded_demo_reports_the_live_demos_figures(tmp_path: Path) -> None:
     left = subprocess.run(["pgrep", "-f", f"--store {demo_out}"], capture_output=True, text=True)
     assert left.stdout.strip() == "", "the demo left a process behind"
     assert "stopped: signal" in text, text
-    proc = subprocess.run([sys.executable, "-m", "bridge.cli", "report", str(out), "--out", str(tmp_path / "rep")],
+    proc = subprocess.run([sys.executable, "-m", "bridge", "report", str(out), "--out", str(tmp_path / "rep")],
                           capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stderr + proc.stdout
     got = json.loads(next(x for x in proc.stdout.splitlines() if x.startswith("summary: "))[len("summary: "):])

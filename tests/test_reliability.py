@@ -1,4 +1,4 @@
-"""The reliability suite at a small size: ``scmbridge bench fuzz`` and ``scmbridge bench soak`` (bridge/bench/).
+"""The reliability suite at a small size: ``scmbridge bench fuzz`` and ``scmbridge bench soak`` (bench/).
 
 Each fuzzed input (2000 payloads) must be counted exactly by its receiver, crash nothing, never give a vehicle a
 non-finite or out-of-limits command, and leave the link able to drive. The long forms (100k payloads per input, RSS
@@ -12,7 +12,7 @@ import json
 
 import pytest
 
-from bridge.bench import fuzz, soak
+from bench import fuzz, soak
 
 N = 2000
 
@@ -95,7 +95,7 @@ def test_rss_rounds_and_the_probe_host_report(tmp_path) -> None:
 def test_a_memory_report_names_the_sites_that_grew(tmp_path, monkeypatch) -> None:
     import tracemalloc
 
-    from bridge.node import MemoryReport
+    from bridge.nodes.node import MemoryReport
 
     path = tmp_path / "mem.jsonl"
     untraced = MemoryReport(str(path)).build()

@@ -12,12 +12,12 @@ import numpy as np
 import pytest
 from collect import Collector
 
-from bridge import wire as M
-from bridge.pairing import IntervalPairer
-from bridge.procs import spawn, stop_group
-from bridge.station import load_store, save_atomic
-from bridge.wire import Keys
-from bridge.zsession import free_port, make_config, open_session, tcp
+from bridge.core import wire as M
+from bridge.core.wire import Keys
+from bridge.nodes.pairing import IntervalPairer
+from bridge.nodes.station import load_store, save_atomic
+from bridge.nodes.zsession import free_port, make_config, open_session, tcp
+from bridge.tools.procs import spawn, stop_group
 from sim_learner.dynamics import MPC_LEARNER_V, MPC_LEARNER_W, MPC_TEACHER_V, MPC_TEACHER_W
 from transfer.domain import Bounds
 from transfer.store import PairStore
@@ -111,8 +111,8 @@ def test_station_restarts_and_reloads_its_pairs(tmp_path) -> None:
 def test_a_station_killed_and_restarted_drives_the_robot_again_at_once(tmp_path) -> None:
     """Finding: after a kill -9 and restart the vehicle did not move for 19.9 s (the gate dropped every
     seq <= last and the new station counted from 0). Now the new run's epoch is followed on its first command."""
-    from bridge.config import load_mission
-    from bridge.procs import Children
+    from bridge.core.config import load_mission
+    from bridge.tools.procs import Children
 
     port, robot = free_port(), f"rs{os.getpid()}"
     x0 = ",".join(f"{a:.6f}" for a in load_mission().start)
@@ -142,8 +142,8 @@ def test_exploration_is_a_setting_and_never_happens_near_an_obstacle(tmp_path) -
     """Finding: exploration ran mid-mission next to obstacles with no way to bound or stop it."""
     import msgspec
 
-    from bridge.config import StationConfig, load_mission
-    from bridge.station import Station
+    from bridge.core.config import StationConfig, load_mission
+    from bridge.nodes.station import Station
 
     class Sink:
         def __init__(self) -> None:
@@ -173,8 +173,8 @@ def test_a_running_station_takes_a_new_mission_over_zenoh_and_its_goal_state_res
     scm/<robot>/mission replaces it (goal state reset) and the station drives to the new goal."""
     import math
 
-    from bridge.config import load_mission
-    from bridge.procs import Children
+    from bridge.core.config import load_mission
+    from bridge.tools.procs import Children
 
     port, robot = free_port(), f"mi{os.getpid()}"
     x0 = ",".join(f"{a:.6f}" for a in load_mission().start)

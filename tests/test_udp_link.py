@@ -26,9 +26,9 @@ from collections.abc import Iterator
 import msgspec
 import pytest
 
-from bridge import wire as M
-from bridge.config import UdpLinkConfig
-from bridge.procs import stop_group
+from bridge.core import wire as M
+from bridge.core.config import UdpLinkConfig
+from bridge.tools.procs import stop_group
 from drivers import open_driver
 from drivers.base import DriverError
 from sim_learner.dynamics import mpc_learner
@@ -341,7 +341,7 @@ def test_poses_carry_the_robots_own_stamps_so_the_pairs_are_its_true_response() 
     """``scmbridge bench pairing --link udp`` for 4 s: the station's pairing on this link's poses as the driver host
     feeds them. Finding: poses stamped when the host's 50 Hz tick read them put 0.0096 m/s (median) of error into the
     pairs; at the robot's own stamps it is below a micrometre per second here."""
-    from bridge.bench.pairing import run
+    from bench.pairing import run
 
     res = run("udp", 4.0, seed=3)
     assert res["formed"] >= 0.75 * res["commands"] and res["rejected"] <= 0.1 * res["commands"], res  # load margin
@@ -478,7 +478,7 @@ def test_the_learner_command_serves_its_peer_only_and_refuses_a_bad_peer(tmp_pat
     port = free_udp_port()
     with udp_socket() as s:
         robot_port = s.getsockname()[1]
-    py = [sys.executable, "-m", "bridge.cli", "learner", "--link", "udp"]
+    py = [sys.executable, "-m", "bridge", "learner", "--link", "udp"]
     bad = subprocess.run(py + ["--peer", "nowhere", "--duration", "1"], capture_output=True, text=True, timeout=60)
     assert bad.returncode == 2 and "expected HOST:PORT" in bad.stderr
     proc = subprocess.Popen(py + ["--port", str(robot_port), "--peer", f"{LOCAL}:{port}", "--v-max", "0.5",

@@ -8,7 +8,8 @@ As deployed, the station runs *inside* the router (``scmbridge station --zenoh-c
 so the router's own session stands for the station here; a second station session connects as a client with the
 station's certificate (a station on its own host, or a station-side tool). Clients that must be stopped by the
 router (forgers) use ``session.put``, which a Zenoh 1.x client sends to the router unconditionally; well-behaved
-nodes use declared publishers like ``bridge.station`` and ``bridge.driver_host`` do (a declared publisher sends
+nodes use declared publishers like ``bridge.nodes.station`` and ``bridge.nodes.driver_host`` do (a declared
+publisher sends
 only once the router has told it of a matching subscriber, which the ACL must therefore allow too).
 
 Timing: a message that must arrive is given ``ARRIVE_S`` (2 s); a message that must not arrive is sent every 50 ms
@@ -32,9 +33,9 @@ from typing import Any
 import pytest
 import zenoh
 
-from bridge import deploy
-from bridge import wire as M
-from bridge.zsession import free_port, make_config, tcp
+from bridge.core import wire as M
+from bridge.nodes.zsession import free_port, make_config, tcp
+from bridge.tools import deploy
 
 ARRIVE_S = 2.0  # a message that should arrive arrives within this
 QUIET_S = 1.0  # a message that must not arrive: keep sending it this long, then look
@@ -439,7 +440,7 @@ def test_an_unnamed_certificate_publishes_nothing(lab: Lab) -> None:
 
 
 def test_optional_mocap_and_teacher_identities_get_only_their_keys() -> None:
-    from bridge.deploy import access_control
+    from bridge.tools.deploy import access_control
 
     acl = access_control(["rover1", "rover2"], mocap_cn="mocap", teacher_cn="teacher")
     rules = {r["id"]: r for r in acl["rules"]}

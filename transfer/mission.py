@@ -1,7 +1,7 @@
 """A mission as the method sees it: a path to follow to its goal, circular obstacles, an optional start pose.
 
 Pure data and geometry (no I/O): the station and the simulations both decide "goal reached" and "collision" here,
-with one rule each. Mission files are read by ``bridge.config.load_mission`` (docs/ARCHITECTURE.md).
+with one rule each. Mission files are read by ``bridge.core.config.load_mission`` (docs/ARCHITECTURE.md).
 """
 
 from __future__ import annotations

@@ -1,6 +1,6 @@
 """An example external teacher: a lab's own controller driving a robot through scmbridge's transfer service.
 
-It uses only the wire schema (``bridge.wire``) and Zenoh: it reads the robot's pose (``scm/<robot>/state``) and the
+It uses only the wire schema (``bridge.core.wire``) and Zenoh: it reads the robot's pose (``scm/<robot>/state``) and the
 learned limits the station publishes (``scm/<robot>/limits``), computes a teacher command with a pure-pursuit
 controller along a mission's path, bounds it by the learned limits as the paper's teacher does, and publishes it
 on ``scm/<robot>/teacher`` at 10 Hz. The station (``[teacher] kind = "external"``) maps each command into the
@@ -21,7 +21,7 @@ import time
 import msgspec
 import zenoh
 
-from bridge import wire as W
+from bridge.core import wire as W
 
 
 def load_path(mission: str) -> tuple[list[tuple[float, float]], float]:

@@ -14,7 +14,7 @@ come from one clock (the driver host's ``state`` and ``applied``), so base stati
 Senders of sequenced streams (``cmd``, ``state``) carry an ``epoch``: a number the sender picks once per start
 (:func:`new_epoch`). A receiver follows one ``(epoch, seq)`` stream; a new epoch is recognised at once when the
 stream it follows has gone silent (a restarted station or robot), so an old, replayed or forged sequence number
-cannot lock anyone out for longer than a silence timeout (see ``bridge.gate.SeqGate``).
+cannot lock anyone out for longer than a silence timeout (see ``bridge.core.gate.SeqGate``).
 """
 
 from __future__ import annotations

@@ -3,7 +3,8 @@
 A real driver drives an emulated learner (the MAVLink rover over UDP on 127.0.0.1, the ODrive controllers on a
 python-can ``virtual`` channel, or the UDP shim's robot on 127.0.0.1) as the driver host does: a tick every 20 ms
 (poll, then send), a new random command every ``--command-period`` s (the station's 10 Hz), each send echoed as the
-host's ``applied`` stamp. The poses and echoes go through the station's :class:`bridge.pairing.IntervalPairer`, and
+host's ``applied`` stamp. The poses and echoes go through the station's
+:class:`bridge.nodes.pairing.IntervalPairer`, and
 each pair is compared with the learner's true response to its command (``LearnerModel.response``: what a perfect
 pairing would measure).
 
@@ -20,7 +21,7 @@ from typing import Any
 
 import numpy as np
 
-from bridge.bench.common import can_ecus, emit, open_can_driver
+from bench.common import can_ecus, emit, open_can_driver
 
 TICK = 0.02  # the driver host's default 50 Hz
 STATION_TICK = 0.1  # the station's default 10 Hz
@@ -36,7 +37,7 @@ def _opened(stack: ExitStack, link: str, config: Any) -> Any:
 
 
 def _mavlink(stack: ExitStack, vehicle: Any) -> Any:
-    from bridge.config import MavlinkLinkConfig
+    from bridge.core.config import MavlinkLinkConfig
     from sim_learner.mavlink_rover import MavlinkRover
 
     rover = MavlinkRover(vehicle).start()
@@ -53,8 +54,8 @@ def _can(stack: ExitStack, vehicle: Any) -> Any:
 
 
 def _udp(stack: ExitStack, vehicle: Any) -> Any:
-    from bridge.config import UdpLinkConfig
-    from bridge.procs import free_udp_port
+    from bridge.core.config import UdpLinkConfig
+    from bridge.tools.procs import free_udp_port
     from sim_learner.udp_robot import UdpRobot
 
     port = free_udp_port()  # the driver's port, which the robot is pinned to
@@ -70,7 +71,7 @@ LINKS = {"mavlink": _mavlink, "can": _can, "udp": _udp}
 def run(link: str, seconds: float, seed: int = 0, command_period: float = 0.1, pair_dt: float = 0.1,
         min_span: float | None = None) -> dict:
     """Drive ``seconds`` of random commands through ``link`` and judge the pairs (see the module docstring)."""
-    from bridge.pairing import IntervalPairer
+    from bridge.nodes.pairing import IntervalPairer
     from sim_learner.dynamics import mpc_learner
     from sim_learner.vehicle import SimVehicle
 

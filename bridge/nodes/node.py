@@ -23,8 +23,8 @@ from typing import Any, TypeVar
 import zenoh
 from msgspec import Struct
 
-from bridge import wire as M
-from bridge.zsession import make_config
+from bridge.core import wire as M
+from bridge.nodes.zsession import make_config
 
 log = logging.getLogger("scmbridge.node")
 S = TypeVar("S", bound=Struct)

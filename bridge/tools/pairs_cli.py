@@ -4,7 +4,7 @@ Two sources, one view:
 
 - ``--robot R [Zenoh options]`` asks the running station: a Zenoh ``get`` on ``scm/R/pairs`` (retried until
   ``--timeout``, since a fresh session needs a moment to reach its peer) answered with the refined pairs and the
-  learned limits (``bridge.wire.Pairs``); meanwhile it listens on ``scm/R/cmd`` (and ``scm/R/teacher``) for up to a
+  learned limits (``bridge.core.wire.Pairs``); meanwhile it listens on ``scm/R/cmd`` (and ``scm/R/teacher``) for up to a
   second, for the method and the mapping region of the latest command. The ``Pairs`` reply carries no command
   bounds nor grid: they come from ``--config station.toml``, the station's own configuration (its defaults
   without it). When no station answers the command ends with one line naming the robot and the endpoints tried,
@@ -15,7 +15,7 @@ Two sources, one view:
 ``show`` prints a table (id, cluster size, teacher (v, omega), learner (v, omega)), the learned limits (box and
 hull), how many grid cells are configured and, live, the latest command; ``--json`` prints the same as one JSON
 object for machines. ``plot --out FILE.png`` draws the paper's pair of command-domain figures
-(:func:`bridge.plots.command_domains_figure`): the teacher domain with its bounds, the learned limits, the refined
+(:func:`sim_learner.plots.command_domains_figure`): the teacher domain with its bounds, the learned limits, the refined
 pairs' teacher parts and their Delaunay triangulation, and the learner domain with its bounds, the grid and the
 pairs' learner parts, with the region that mapped the latest command highlighted on both. :func:`pairs_figure`
 draws the same from a store file, for the demo's output.
@@ -39,9 +39,9 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from bridge import wire as M
-from bridge.cliutil import positive_float
-from bridge.node import add_zenoh_args, zenoh_config
+from bridge.core import wire as M
+from bridge.nodes.cliutil import positive_float
+from bridge.nodes.node import add_zenoh_args, zenoh_config
 from transfer.domain import Bounds
 from transfer.store import PairStore
 
@@ -283,7 +283,7 @@ def ask_station(args: argparse.Namespace, robot: str, timeout: float,
     """
     import zenoh
 
-    from bridge.zsession import open_session
+    from bridge.nodes.zsession import open_session
 
     conf = zenoh_config(args)
     listener = _Listener()
@@ -314,7 +314,7 @@ def gather(args: argparse.Namespace) -> Learned:
     """The view asked for on the command line: the store file, or the running station."""
     if args.store:
         return from_store(load_store_file(args.store), f"pair store {args.store}")
-    from bridge.config import load_station
+    from bridge.core.config import load_station
 
     cfg = load_station(args.config)  # a configuration mistake ends here, before any session opens
     robot = args.robot
@@ -368,7 +368,7 @@ def table(view: Learned) -> str:
 def draw(view: Learned, out_png: str | Path, region: tuple[int, ...] | list[int] | None = None) -> Path:
     """Write the command-domain figure of ``view`` to ``out_png``; ``region`` (pair ids) overrides the latest
     command's region."""
-    from bridge.plots import command_domains_figure
+    from sim_learner.plots import command_domains_figure
 
     c = view.latest
     if region is None:

@@ -20,8 +20,8 @@ from pathlib import Path
 
 import numpy as np
 
-from bridge.bench.common import emit
-from bridge.procs import Children, emulated_link
+from bench.common import emit
+from bridge.tools.procs import Children, emulated_link
 
 
 def _rss_kb(pid: int) -> int | None:
@@ -38,9 +38,9 @@ def _rss_kb(pid: int) -> int | None:
 def run_link(link: str, seconds: float, workdir: str) -> dict:
     """Commands at 50 Hz for ``seconds`` through the driver host on ``link``; latency, loop timing, memory."""
 
-    from bridge import wire as M
-    from bridge.wire import Keys, status_key
-    from bridge.zsession import free_port, make_config, open_session, tcp
+    from bridge.core import wire as M
+    from bridge.core.wire import Keys, status_key
+    from bridge.nodes.zsession import free_port, make_config, open_session, tcp
 
     port = free_port()
     robot = f"bench{link}"

@@ -1,6 +1,6 @@
 """``scmbridge estop``: stop one robot or every robot now, or release a latched stop, and see who latched it.
 
-``scmbridge estop --robot R`` (or ``--all``) publishes an :class:`bridge.wire.Estop` on ``scm/<robot>/estop``,
+``scmbridge estop --robot R`` (or ``--all``) publishes an :class:`bridge.core.wire.Estop` on ``scm/<robot>/estop``,
 then asks the driver hosts (a Zenoh query on the same key, which each answers with its latch state) and prints one
 line per driver host: latched or not, and by whom. ``--release`` releases the latch; a driver host honours it only
 from a source its configuration names (``estop_release_sources``, default ``operator``), so ``--source`` must be
@@ -17,9 +17,9 @@ import time
 
 import zenoh
 
-from bridge import wire as M
-from bridge.node import add_zenoh_args, zenoh_config
-from bridge.zsession import open_session
+from bridge.core import wire as M
+from bridge.nodes.node import add_zenoh_args, zenoh_config
+from bridge.nodes.zsession import open_session
 
 
 def latch_states(session: zenoh.Session, selector: str, timeout: float) -> dict[str, M.EstopState]:

@@ -4,7 +4,7 @@ Inputs (``--inputs``, all by default), ``--per-input N`` payloads each, seeded (
 
 - ``zenoh_cmd``, ``zenoh_estop``: MessagePack payloads on ``scm/<robot>/cmd`` and ``scm/<robot>/estop`` into a real
   driver host process (``scmbridge driver --link can --emulate``) behind a Zenoh router in this process. The oracle
-  is the wire contract (:func:`bridge.wire.decode`): the host's final status must count every payload that fails it
+  is the wire contract (:func:`bridge.core.wire.decode`): the host's final status must count every payload that fails it
   in ``malformed_<input>`` and every other command in exactly one gate counter (``accepted`` or a refusal); for
   estops the latch counters (``estops``, ``estop_releases``, ``estop_release_refused``) must be what the documented
   latch rule gives for the valid ones, in order. Every ``applied`` echo is checked as it arrives: it decodes (finite,
@@ -31,7 +31,7 @@ command still drives.
 
 ``rss_rounds_mb``: the driver host's RSS before and after each of ``--rounds`` rounds of ``--round-size`` Zenoh
 ``cmd`` payloads (a fresh process). ``rss_probe``: the same rounds against a driver-host-like process of this module
-(a :class:`bridge.driver_host.DriverHost` with its Zenoh session and emulated controllers) that also reports the
+(a :class:`bridge.nodes.driver_host.DriverHost` with its Zenoh session and emulated controllers) that also reports the
 Python heap (``tracemalloc``), glibc's heap (``mallinfo2``: in use, and free but kept) and its RSS after
 ``malloc_trim(0)``: where the growth is, and whether it is returned.
 """
@@ -63,12 +63,12 @@ from typing import Any
 
 import msgspec
 
-from bridge import wire as M
-from bridge.bench.common import can_ecus, open_can_driver
-from bridge.gate import DRIVING
-from bridge.node import rss_mb, rss_parts
+from bench.common import can_ecus, open_can_driver
+from bridge.core import wire as M
+from bridge.core.gate import DRIVING
+from bridge.nodes.node import rss_mb, rss_parts
 
-#: the driver host's default hard limits (``bridge.config.DEFAULT_HARD_LIMITS``); the host runs with no config file
+#: the driver host's default hard limits (``bridge.core.config.DEFAULT_HARD_LIMITS``); the host runs with no config file
 HARD_V, HARD_W = (-0.5, 0.5), (-1.0, 1.0)
 #: every input, in the order they run
 INPUTS = ("zenoh_cmd", "zenoh_estop", "udp_driver", "udp_robot", "can_decoder", "can_driver", "can_ecu",
@@ -338,8 +338,8 @@ class HostRig:
 
     # ------------------------------------------------------------------------------------------ life cycle
     def __enter__(self) -> HostRig:
-        from bridge.procs import Children
-        from bridge.zsession import free_port, make_config, open_session, tcp
+        from bridge.nodes.zsession import free_port, make_config, open_session, tcp
+        from bridge.tools.procs import Children
 
         try:
             port = free_port()
@@ -681,16 +681,17 @@ def heap_report(first: tracemalloc.Snapshot | None = None) -> dict:
 
 
 def probe_host(argv: list[str]) -> int:
-    """A driver-host-like process for the RSS study: the real :class:`bridge.driver_host.DriverHost` with its Zenoh
+    """A driver-host-like process for the RSS study: the real
+    :class:`bridge.nodes.driver_host.DriverHost` with its Zenoh
     session and the emulated CAN controllers in-process (as ``scmbridge driver --link can --emulate``), under
     tracemalloc. Lines on stdin: ``measure`` prints ``PROBE {json}`` (:func:`heap_report`), ``trim`` calls glibc's
     ``malloc_trim(0)`` first, ``quit`` stops it."""
     import logging
 
-    from bridge.config import load_driver
-    from bridge.driver_host import DriverHost
-    from bridge.node import add_zenoh_args, stop_on_signals, zenoh_config
-    from bridge.zsession import open_session
+    from bridge.core.config import load_driver
+    from bridge.nodes.driver_host import DriverHost
+    from bridge.nodes.node import add_zenoh_args, stop_on_signals, zenoh_config
+    from bridge.nodes.zsession import open_session
     from drivers import open_driver
     from sim_learner.can_ecu import DiffDriveEcus
 
@@ -781,7 +782,7 @@ def rss_senders(senders: int, per_sender: int, seed: int, workdir: Path, shm: bo
     ``shm``: every session with Zenoh's shared-memory transport on (zenoh's default) or off (scmbridge's)."""
     import zenoh
 
-    from bridge.zsession import make_config, open_session
+    from bridge.nodes.zsession import make_config, open_session
 
     rng = random.Random(seed)
     with HostRig(workdir, f"fuzzsnd{'' if shm else 'n'}{os.getpid()}", shm=shm) as rig:
@@ -889,7 +890,7 @@ def udp_driver(n: int, seed: int, workdir: Path | None = None) -> dict:
     """Datagrams at the UDP driver: from its pinned robot address (a socket bound here) and from a stranger. Every
     datagram is counted once: foreign, malformed, a pose, or one of the stream's refusals. Afterwards an emulated
     robot takes the pinned address and the driver drives it."""
-    from bridge.config import UdpLinkConfig
+    from bridge.core.config import UdpLinkConfig
     from drivers import open_driver
     from sim_learner.udp_robot import UdpRobot
 
@@ -988,7 +989,7 @@ def udp_robot(n: int, seed: int, workdir: Path | None = None) -> dict:
     datagram is counted once (``received`` = foreign + malformed + a stream refusal + over its limits + applied);
     the vehicle never gets a non-finite command or one beyond the robot's own limits. Afterwards a real driver takes
     the peer's address and drives it."""
-    from bridge.config import UdpLinkConfig
+    from bridge.core.config import UdpLinkConfig
     from drivers import open_driver
     from sim_learner.udp_robot import UdpRobot
 
@@ -1660,7 +1661,7 @@ def mavlink_driver(n: int, seed: int, workdir: Path | None = None) -> dict:
     driver opened GUIDED and armed): the driver must receive every message the oracle parser gets out of them
     and count exactly its BAD_DATA. What the driver sends meanwhile must be what it was told (or a stop); a valid
     GUIDED heartbeat afterwards and the driver's set-point reaches the vehicle again."""
-    from bridge.config import MavlinkLinkConfig
+    from bridge.core.config import MavlinkLinkConfig
     from drivers import open_driver
 
     rng = random.Random(seed)
@@ -1805,7 +1806,7 @@ def mavlink_rover(n: int, seed: int, workdir: Path | None = None) -> dict:
     beyond WP_SPEED / ATC_STR_RAT_MAX. A rover whose thread dies is counted (with the exception), replaced by a new
     one, and the batch it died in is left out of the counts. Afterwards: what a NaN velocity set-point makes of the
     vehicle, and a real driver opens the rover (GUIDED, armed) and drives it."""
-    from bridge.config import MavlinkLinkConfig
+    from bridge.core.config import MavlinkLinkConfig
     from drivers import open_driver
 
     rng = random.Random(seed)
@@ -1929,7 +1930,7 @@ def main(argv: list[str] | None = None) -> int:
     with tempfile.TemporaryDirectory(prefix="scm-fuzz-") as tmp:
         out = run(args.per_input, args.seed, inputs, Path(tmp), args.rounds, args.round_size, not args.no_probe,
                   args.senders, args.per_sender)
-    from bridge.bench.common import emit
+    from bench.common import emit
 
     emit(out)
     return 0 if out["all_exact"] and out["all_vehicle_ok"] else 1

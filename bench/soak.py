@@ -2,9 +2,10 @@
 
 The processes ``scmbridge demo`` starts, on a free 127.0.0.1 port: the driver host (with the emulated learner on
 ``--link``: CAN controllers inside it, the UDP robot or the ArduPilot-like rover as a process of their own, see
-:func:`bridge.procs.emulated_link`), the station (MPC teacher + transfer, starting with no pairs) and this process as
+:func:`bridge.tools.procs.emulated_link`), the station (MPC teacher + transfer, starting with no pairs) and this
+process as
 the Zenoh router watching them. Laps: each time the station reports the goal reached, this process publishes the
-next lap's :class:`bridge.wire.MissionSpec` on ``scm/<robot>/mission`` (the station's goal state resets). The
+next lap's :class:`bridge.core.wire.MissionSpec` on ``scm/<robot>/mission`` (the station's goal state resets). The
 laps go out and back: the mission's own path, then the same path reversed (same obstacles), and so on. Publishing
 the unchanged mission again would end the lap at once: the robot stands at its goal, and the goal rule
 (:meth:`transfer.mission.Mission.reached`) counts a robot past the path's end as arrived. The processes run for the
@@ -17,7 +18,7 @@ the missed deadlines of the station and the driver host (their status counters, 
 counter of their last status, and any child that exited or logged a traceback. JSON on stdout.
 
 ``--trace-memory [station,driver]`` runs those nodes under ``tracemalloc`` and asks each for a memory report
-(SIGUSR1, :class:`bridge.node.MemoryReport`) at the end of warm-up and at the end: ``memory_reports`` lists the
+(SIGUSR1, :class:`bridge.nodes.node.MemoryReport`) at the end of warm-up and at the end: ``memory_reports`` lists the
 Python allocation sites that grew most in between. Growth of the RSS that no site accounts for is outside Python's
 heap (native libraries, the allocator keeping freed memory). Traced nodes are slower, and a report pauses its node
 for its snapshot: traced, the driver host on CAN missed its emulated controllers' watchdog (0.5 s), and they
@@ -42,8 +43,8 @@ from typing import Any
 import msgspec
 import numpy as np
 
-from bridge import wire as M
-from bridge.node import rss_parts
+from bridge.core import wire as M
+from bridge.nodes.node import rss_parts
 
 
 def slope_mb_per_min(times_s: list[float], values: list[float | None], warmup_s: float) -> float | None:
@@ -104,10 +105,10 @@ def _tracebacks(path: Path) -> list[str]:
 
 
 def _memory_env(trace: bool, workdir: Path, name: str) -> dict[str, Any]:
-    """Spawn keywords for a node whose Python heap is traced (:class:`bridge.node.MemoryReport`), or none."""
+    """Spawn keywords for a node whose Python heap is traced (:class:`bridge.nodes.node.MemoryReport`), or none."""
     if not trace:
         return {}
-    from bridge.node import MEMORY_REPORT_ENV
+    from bridge.nodes.node import MEMORY_REPORT_ENV
 
     return {"env": {**os.environ, "PYTHONTRACEMALLOC": "1", MEMORY_REPORT_ENV: str(workdir / f"memory-{name}.jsonl")}}
 
@@ -129,9 +130,9 @@ def _memory_reports(workdir: Path, names: tuple[str, ...]) -> dict[str, list[dic
 def run(minutes: float, link: str, workdir: Path, sample_s: float = 10.0, warmup_s: float = 60.0,
         mission: str = "paper-s-path", startup_timeout: float = 180.0, trace_memory: tuple[str, ...] = ()) -> dict:
     """The soak (see the module docstring); returns the JSON-ready result."""
-    from bridge.config import load_mission_spec
-    from bridge.procs import Children, emulated_link
-    from bridge.zsession import free_port, make_config, open_session, tcp
+    from bridge.core.config import load_mission_spec
+    from bridge.nodes.zsession import free_port, make_config, open_session, tcp
+    from bridge.tools.procs import Children, emulated_link
 
     spec = load_mission_spec(mission)
     if spec.start is None:
@@ -262,7 +263,7 @@ def main(argv: list[str] | None = None) -> int:
     traced = tuple(n for n in args.trace_memory.split(",") if n)
     if not set(traced) <= {"station", "driver"}:
         ap.error(f"--trace-memory: station and/or driver, not {args.trace_memory!r}")
-    from bridge.bench.common import emit
+    from bench.common import emit
 
     with tempfile.TemporaryDirectory(prefix="scm-soak-") as tmp:
         out = run(args.minutes, args.link, Path(tmp), args.sample_s, args.warmup_s, args.mission,

@@ -23,7 +23,7 @@ import logging
 import math
 from dataclasses import dataclass, field
 
-from bridge import wire as M
+from bridge.core import wire as M
 from transfer.domain import Bounds
 
 log = logging.getLogger("scmbridge.gate")

@@ -1,6 +1,6 @@
 """``scmbridge deploy``: generate the lab's TLS + access-control router config, and throwaway certificates.
 
-The access control is generated from the wire contract (:mod:`bridge.wire`), never written by hand, so every robot
+The access control is generated from the wire contract (:mod:`bridge.core.wire`), never written by hand, so every robot
 gets exactly the same rules and a new topic cannot be forgotten in one robot's block. The router (the base
 station's Zenoh session in ``router`` mode) identifies each client by the common name (CN) of the certificate it
 presents over mutual TLS, and with ``default_permission: "deny"`` lets through only what a rule allows:
@@ -52,7 +52,7 @@ from collections.abc import Iterable, Sequence
 from pathlib import Path
 from typing import Any
 
-from bridge import wire as M
+from bridge.core import wire as M
 
 #: what a robot's driver host publishes, and what it listens to (docs/ARCHITECTURE.md section 3)
 ROBOT_PUBLISHES = ("state", "applied")

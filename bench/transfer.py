@@ -11,7 +11,7 @@ import time
 
 import numpy as np
 
-from bridge.bench.common import emit, summary_us
+from bench.common import emit, summary_us
 
 DT = 0.1
 

@@ -31,7 +31,7 @@ from contextlib import ExitStack
 
 import numpy as np
 
-from bridge.node import Inputs
+from bridge.nodes.node import Inputs
 
 
 def inprocess(args: argparse.Namespace) -> int:
@@ -96,7 +96,7 @@ class Monitor:
     """The demo's view of the run: the learner's states and each node's latest status, from Zenoh callbacks."""
 
     def __init__(self, session, robot: str) -> None:
-        from bridge import wire as M
+        from bridge.core import wire as M
 
         self.states: list[tuple[float, float, float, float]] = []
         self.status: dict = {}
@@ -185,9 +185,9 @@ def hil(args: argparse.Namespace) -> int:
     """Three processes over Zenoh on a free loopback port, watched by this one (see the module docstring)."""
     from pathlib import Path
 
-    from bridge.config import load_mission
-    from bridge.procs import Children, emulated_link
-    from bridge.zsession import free_port, make_config, open_session, tcp
+    from bridge.core.config import load_mission
+    from bridge.nodes.zsession import free_port, make_config, open_session, tcp
+    from bridge.tools.procs import Children, emulated_link
 
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -222,7 +222,7 @@ def hil(args: argparse.Namespace) -> int:
     traj = summary.pop("_traj")
     print("summary:", json.dumps(summary))
     _figure(out, world, traj, args.link)
-    from bridge.pairs_cli import pairs_figure
+    from bridge.tools.pairs_cli import pairs_figure
 
     pairs_figure(store, out / "demo_pairs.png")  # what was learned: command domains, limits, refined pairs
     print(f"figures: {out / 'demo_trajectory.png'}, {out / 'demo_pairs.png'}; pair store: {store}; logs: {out}/*.log")
@@ -302,9 +302,9 @@ def fleet(args: argparse.Namespace) -> int:
     """``--robots N``: N robots, each a driver host and a station process, behind this one router hub."""
     from pathlib import Path
 
-    from bridge.config import load_mission
-    from bridge.procs import Children, emulated_link
-    from bridge.zsession import free_port, make_config, open_session, tcp
+    from bridge.core.config import load_mission
+    from bridge.nodes.zsession import free_port, make_config, open_session, tcp
+    from bridge.tools.procs import Children, emulated_link
 
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -320,9 +320,10 @@ def fleet(args: argparse.Namespace) -> int:
     stores = {r: out / f"pairs-{r}.bin" for r in robots}
     for store in stores.values():
         store.unlink(missing_ok=True)  # the demo starts from scratch
-    from bridge.bench.fleet import STATION_ENV
+    from bridge.tools.cli import ONE_BLAS_THREAD
 
-    env = dict(os.environ, **STATION_ENV)  # the stations share the cores: one BLAS thread each, as the units run them
+    # the stations share the cores: one BLAS thread each, as the units run them
+    env = dict(os.environ, **ONE_BLAS_THREAD)
     interrupted = False
     t0 = time.monotonic()
     with ExitStack() as stack:

@@ -23,7 +23,7 @@ from typing import Annotated, Any, Literal, TypeVar, Union, get_args, get_origin
 import msgspec
 from msgspec import Meta, Struct, field
 
-from bridge.wire import MissionSpec
+from bridge.core.wire import MissionSpec
 from transfer import paper
 from transfer.domain import Bounds
 from transfer.mission import Mission

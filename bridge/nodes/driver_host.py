@@ -2,7 +2,7 @@
 
 It subscribes to ``scm/<robot>/cmd`` and ``scm/<robot>/estop`` and answers queries on the estop key with its latch
 state. Every command is decoded (so validated: finite, in wire range) and goes through the pure
-:class:`bridge.gate.CommandGate`: the next of its sender's ``(epoch, seq)`` stream, fresh (received less than
+:class:`bridge.core.gate.CommandGate`: the next of its sender's ``(epoch, seq)`` stream, fresh (received less than
 min(valid_ms, cmd_timeout) ago), a stop applied as exactly zero, anything else clamped to the configured hard
 limits. The host hands the result to the link driver only while the link says the vehicle is fit to drive
 (``health().ok``) and its telemetry is fresh; otherwise it stops the vehicle and says why. Each tick it echoes what
@@ -30,13 +30,13 @@ import msgspec
 import numpy as np
 import zenoh
 
-from bridge import wire as M
-from bridge.cliutil import pose_arg, positive_float
-from bridge.clock import ClockOffset
-from bridge.config import DriverConfig, load_driver
-from bridge.gate import CommandGate, Decision
-from bridge.node import Inputs, add_zenoh_args, stop_on_signals, zenoh_config
-from bridge.zsession import open_session
+from bridge.core import wire as M
+from bridge.core.clock import ClockOffset
+from bridge.core.config import DriverConfig, load_driver
+from bridge.core.gate import CommandGate, Decision
+from bridge.nodes.cliutil import pose_arg, positive_float
+from bridge.nodes.node import Inputs, add_zenoh_args, stop_on_signals, zenoh_config
+from bridge.nodes.zsession import open_session
 from drivers.base import Driver, LinkHealth
 
 log = logging.getLogger("scmbridge.driver")
@@ -78,9 +78,9 @@ class DriverHost:
 
     # ---------------------------------------------------------------------------------------------- inputs
     def on_mocap(self, st: M.LearnerState, now: float) -> None:
-        """A motion-capture sample: its own stamp put on this host's clock (:mod:`bridge.clock`). A sample landing
-        more than ``bridge.clock.MAX_AGE`` before its receipt (the bridge's clock jumped, or one forged stamp pulled the
-        estimate) restarts the estimate (``mocap_clock_restarts``)."""
+        """A motion-capture sample: its own stamp put on this host's clock (:mod:`bridge.core.clock`). A sample
+        landing more than ``bridge.core.clock.MAX_AGE`` before its receipt (the bridge's clock jumped, or one forged
+        stamp pulled the estimate) restarts the estimate (``mocap_clock_restarts``)."""
         with self.lock:
             t, steady = self.mocap_clock.restamp_checked(st.stamp, now)
             if not steady:

@@ -7,7 +7,7 @@ import time
 
 import numpy as np
 
-from bridge.bench.common import emit, summary_us
+from bench.common import emit, summary_us
 
 
 def _random_quad(rng: np.random.Generator) -> list[complex]:

@@ -5,10 +5,10 @@ router (a free 127.0.0.1 port), N real ``scmbridge station`` processes (MPC N = 
 robot ``fleet1..fleetN``, each from an empty pair store, one BLAS thread each as the shipped units run them) are
 its clients, and one lightweight process
 (``--simulate``, this module) stands in for all N robots' driver hosts: a unicycle per robot integrating the
-commands it accepts (through the driver host's own :class:`bridge.gate.CommandGate`: its (epoch, seq) stream,
+commands it accepts (through the driver host's own :class:`bridge.core.gate.CommandGate`: its (epoch, seq) stream,
 freshness, the deadman, the hard limits), publishing per robot at the driver host's cadence with the emulated CAN
 link: ``state`` at 100 Hz, ``applied`` at 50 Hz and at once for each accepted command, an ok ``status/driver``
-each second, all as :mod:`bridge.wire` messages. It holds the robots with a truthful not-ok status until every
+each second, all as :mod:`bridge.core.wire` messages. It holds the robots with a truthful not-ok status until every
 station is up, then lets them all drive at once, so every station plans (the MPC runs) for the whole window; the
 mission is the paper's S-path laid end to end five times (40 m), which no robot finishes within a run.
 
@@ -36,7 +36,8 @@ from pathlib import Path
 
 import numpy as np
 
-from bridge.bench.common import emit
+from bench.common import emit
+from bridge.tools.cli import ONE_BLAS_THREAD
 
 PERIOD_S = 0.1  # the station's default tick (10 Hz)
 STATE_HZ = 100.0  # the emulated CAN link's poses: each wheel's encoder estimate every 10 ms
@@ -46,7 +47,7 @@ TILES = 5  # the paper's 8 m S-path laid end to end: 40 m, more than a robot dri
 #: station. By default OpenBLAS starts a worker per core and its workers spin between the solver's small BLAS calls:
 #: measured here, 32 ms of CPU per 10 Hz tick of one station by default against 11 ms with these (and the spinning
 #: threads take cores from every other station). ``--blas-threads inherit`` measures the default.
-STATION_ENV = {"OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1"}
+STATION_ENV = ONE_BLAS_THREAD
 
 
 # ------------------------------------------------------------------------------------------- the robots
@@ -54,9 +55,9 @@ class SimRobot:
     """One robot as its driver host shows it on the wire: the gate, a unicycle, its keys and sequence numbers."""
 
     def __init__(self, name: str, x0: tuple[float, float, float], now: float) -> None:
-        from bridge import wire as M
-        from bridge.config import DEFAULT_HARD_LIMITS
-        from bridge.gate import CommandGate
+        from bridge.core import wire as M
+        from bridge.core.config import DEFAULT_HARD_LIMITS
+        from bridge.core.gate import CommandGate
 
         self.name, self.keys = name, M.Keys(name)
         self.gate = CommandGate(DEFAULT_HARD_LIMITS.bounds(), 0.3)
@@ -111,8 +112,8 @@ class SimFleet:
 
     def apply(self, r: SimRobot, now: float) -> None:
         """A driver host tick for ``r``: integrate, decide, echo what the vehicle got."""
-        from bridge import wire as M
-        from bridge.gate import Decision
+        from bridge.core import wire as M
+        from bridge.core.gate import Decision
 
         r.integrate(now)
         with self.lock:
@@ -126,7 +127,7 @@ class SimFleet:
         r.seq["applied"] += 1
 
     def publish_state(self, r: SimRobot, now: float) -> None:
-        from bridge import wire as M
+        from bridge.core import wire as M
 
         r.integrate(now)
         r.pubs["state"].put(M.encode(M.LearnerState(stamp=now, seq=r.seq["state"], x=r.x, y=r.y, theta=r.th, v=r.v,
@@ -134,7 +135,7 @@ class SimFleet:
         r.seq["state"] += 1
 
     def publish_status(self, r: SimRobot, now: float, waiting: int) -> None:
-        from bridge import wire as M
+        from bridge.core import wire as M
 
         with self.lock:
             counters = dict(r.gate.counters)
@@ -144,8 +145,8 @@ class SimFleet:
         r.seq["status"] += 1
 
     def serve(self, session, stop: threading.Event, duration: float) -> None:
-        from bridge import wire as M
-        from bridge.node import Inputs
+        from bridge.core import wire as M
+        from bridge.nodes.node import Inputs
 
         inputs = Inputs()
         for r in self.robots.values():
@@ -193,9 +194,9 @@ class SimFleet:
 
 def simulate(args: argparse.Namespace) -> int:
     """``--simulate fleet1,fleet2,...``: the robots' side of the bench as one client process."""
-    from bridge.config import load_mission
-    from bridge.node import stop_on_signals
-    from bridge.zsession import make_config, open_session
+    from bridge.core.config import load_mission
+    from bridge.nodes.node import stop_on_signals
+    from bridge.nodes.zsession import make_config, open_session
 
     logging.basicConfig(level=logging.INFO, format="%(asctime)s fleet-sim %(levelname)s %(message)s")
     world = load_mission(args.mission)
@@ -209,7 +210,7 @@ def simulate(args: argparse.Namespace) -> int:
 # ------------------------------------------------------------------------------------------- the mission
 def write_mission(path: Path, tiles: int = TILES) -> Path:
     """The paper's S-path (and its obstacles) laid end to end ``tiles`` times along x, as a mission file."""
-    from bridge.config import load_mission_spec
+    from bridge.core.config import load_mission_spec
 
     spec = load_mission_spec(None)
     x_end = spec.path[-1][0] - spec.path[0][0]
@@ -269,9 +270,9 @@ def _load() -> list[float]:
 def run_level(n: int, seconds: float, warmup: float, mission: Path, workdir: Path, log,
               env: dict[str, str] | None = None) -> dict:
     """N stations and the simulated robots behind one router; the window's figures (see the module docstring)."""
-    from bridge import wire as M
-    from bridge.procs import Children
-    from bridge.zsession import free_port, make_config, open_session, tcp
+    from bridge.core import wire as M
+    from bridge.nodes.zsession import free_port, make_config, open_session, tcp
+    from bridge.tools.procs import Children
 
     robots = [f"fleet{k + 1}" for k in range(n)]
     port = free_port()

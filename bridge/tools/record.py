@@ -7,10 +7,10 @@ one MCAP schema per wire message type (``scmbridge.Command``, ...). Messages are
 - ``json`` + ``jsonschema`` is the pair MCAP lists as well known and Foxglove decodes without a plugin; MessagePack
   is not a well-known MCAP message encoding and no common viewer reads it, so a file of raw MessagePack would need
   this project to be opened at all.
-- Nothing is lost. Each message is decoded (so validated) with :func:`bridge.wire.decode`, written as msgspec's
+- Nothing is lost. Each message is decoded (so validated) with :func:`bridge.core.wire.decode`, written as msgspec's
   JSON of the Struct (shortest round-trip floats, so every number is exact; fields left at their default are left
   out, as on the wire, and the schema names the default), and the recorder checks, per message, that re-encoding
-  that JSON with :func:`bridge.wire.encode` gives back the received bytes exactly. When it does not (a sender
+  that JSON with :func:`bridge.core.wire.encode` gives back the received bytes exactly. When it does not (a sender
   with another MessagePack encoder: other field order, float32, explicit defaults), the received bytes are also
   written, base64, on the ``/scmbridge/noncanonical`` channel with the same receive time. So the wire bytes of
   every recorded message are either what ``wire.encode`` makes of its JSON (what ``replay`` publishes) or stored
@@ -61,7 +61,7 @@ from typing import Any
 import msgspec
 from msgspec import Struct
 
-from bridge import wire as M
+from bridge.core import wire as M
 
 #: the wire message of each topic of ``scm/<robot>/<topic>`` (``status`` has one more chunk: the node)
 TOPIC_KINDS: dict[str, type[Struct]] = {
@@ -70,7 +70,7 @@ TOPIC_KINDS: dict[str, type[Struct]] = {
     "status": M.Status, "estop": M.Estop,
 }
 if set(TOPIC_KINDS) != set(M.TOPICS):  # a topic added to the wire contract must be added here
-    raise ImportError(f"bridge.record knows topics {sorted(TOPIC_KINDS)}, the wire contract {sorted(M.TOPICS)}")
+    raise ImportError(f"bridge.tools.record knows topics {sorted(TOPIC_KINDS)}, the wire contract {sorted(M.TOPICS)}")
 
 SCHEMA_PREFIX = "scmbridge."
 MALFORMED = "/scmbridge/malformed"
@@ -398,8 +398,8 @@ def _start_meta(pattern: str, clock: Clock) -> dict[str, str]:
 
 
 def _record_args(argv: list[str] | None) -> argparse.Namespace:
-    from bridge.cliutil import positive_float
-    from bridge.node import add_zenoh_args
+    from bridge.nodes.cliutil import positive_float
+    from bridge.nodes.node import add_zenoh_args
 
     ap = argparse.ArgumentParser(prog="scmbridge record", description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -440,8 +440,8 @@ def record_main(argv: list[str] | None = None) -> int:
     args = _record_args(argv)
     import zenoh
 
-    from bridge.node import Inputs, stop_on_signals, zenoh_config
-    from bridge.zsession import open_session
+    from bridge.nodes.node import Inputs, stop_on_signals, zenoh_config
+    from bridge.nodes.zsession import open_session
 
     pattern = f"{M.PREFIX}/{args.robot}/**" if args.robot else f"{M.PREFIX}/**"
     clock = Clock()
@@ -628,9 +628,9 @@ def wire_bytes(entry: Entry, renames: dict[str, str]) -> tuple[str, bytes]:
 
 def replay_main(argv: list[str] | None = None) -> int:
     """``scmbridge replay FILE...``: publish the recorded messages at the recorded pace (see the module docstring)."""
-    from bridge.cliutil import positive_float
-    from bridge.node import add_zenoh_args, stop_on_signals, zenoh_config
-    from bridge.zsession import open_session
+    from bridge.nodes.cliutil import positive_float
+    from bridge.nodes.node import add_zenoh_args, stop_on_signals, zenoh_config
+    from bridge.nodes.zsession import open_session
 
     ap = argparse.ArgumentParser(prog="scmbridge replay", description="republish a recording (scmbridge record) on "
                                  "its Zenoh keys at the recorded pace")

@@ -12,7 +12,7 @@ import time
 
 import numpy as np
 
-from bridge.bench.common import emit
+from bench.common import emit
 
 
 def main(argv: list[str] | None = None) -> int:

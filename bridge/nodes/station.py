@@ -1,7 +1,7 @@
 """``scmbridge station``: the base-station service, the teacher and the transfer policy in a fixed-rate loop.
 
 Each tick (10 Hz default; absolute deadlines, missed ones counted) it takes the learner states and applied-command
-echoes that arrived, forms the command pairs they really bracket (:mod:`bridge.pairing`), updates the pair store
+echoes that arrived, forms the command pairs they really bracket (:mod:`bridge.nodes.pairing`), updates the pair store
 (and so the learned limits), and then either drives or says why not:
 
 - it drives only while the robot is fit: the driver host's status is fresh and ``ok`` (link up, vehicle in the
@@ -32,12 +32,12 @@ from typing import Any
 import numpy as np
 import zenoh
 
-from bridge import wire as M
-from bridge.cliutil import positive_float
-from bridge.config import StationConfig, load_mission, load_station, mission_from_spec
-from bridge.node import FixedRate, Inputs, add_zenoh_args, stop_on_signals, zenoh_config
-from bridge.pairing import IntervalPairer
-from bridge.zsession import open_session
+from bridge.core import wire as M
+from bridge.core.config import StationConfig, load_mission, load_station, mission_from_spec
+from bridge.nodes.cliutil import positive_float
+from bridge.nodes.node import FixedRate, Inputs, add_zenoh_args, stop_on_signals, zenoh_config
+from bridge.nodes.pairing import IntervalPairer
+from bridge.nodes.zsession import open_session
 from transfer.calibration import CalibrationPlan
 from transfer.domain import Bounds
 from transfer.mission import Mission

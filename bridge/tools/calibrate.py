@@ -17,12 +17,12 @@ from pathlib import Path
 
 import msgspec
 
-from bridge import wire as M
-from bridge.cliutil import positive_float
-from bridge.config import ConfigError, load_mission, load_station
-from bridge.node import add_zenoh_args, stop_on_signals, zenoh_config
-from bridge.station import Station
-from bridge.zsession import open_session
+from bridge.core import wire as M
+from bridge.core.config import ConfigError, load_mission, load_station
+from bridge.nodes.cliutil import positive_float
+from bridge.nodes.node import add_zenoh_args, stop_on_signals, zenoh_config
+from bridge.nodes.station import Station
+from bridge.nodes.zsession import open_session
 from transfer.calibration import CalibrationPlan
 
 

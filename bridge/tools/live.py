@@ -29,10 +29,10 @@ from typing import Any
 import msgspec
 import zenoh
 
-from bridge import wire as M
-from bridge.config import load_mission, mission_from_spec
-from bridge.node import add_zenoh_args, stop_on_signals, zenoh_config
-from bridge.zsession import open_session
+from bridge.core import wire as M
+from bridge.core.config import load_mission, mission_from_spec
+from bridge.nodes.node import add_zenoh_args, stop_on_signals, zenoh_config
+from bridge.nodes.zsession import open_session
 from transfer.mission import Mission
 
 with warnings.catch_warnings():

@@ -1,7 +1,7 @@
 """``scmbridge report run.mcap --out DIR``: the run a recording holds, as figures and the demo's summary figures.
 
 The summary (reached goal, time, mean/max deviation from the mission path, method counts, pairs, missed deadlines,
-median solve time) is computed by the demo's own :class:`bridge.demo.Monitor`: the recorded ``state`` and
+median solve time) is computed by the demo's own :class:`bridge.tools.demo.Monitor`: the recorded ``state`` and
 ``status`` messages are fed, in arrival order, to the same subscription callbacks the live monitor runs, so a
 recorded demo run gives the figures the live demo printed (``tests/test_record.py`` checks it end to end).
 
@@ -35,8 +35,8 @@ from typing import Any
 
 import numpy as np
 
-from bridge import wire as M
-from bridge.record import Entry, parse_key, read_recording, wire_bytes
+from bridge.core import wire as M
+from bridge.tools.record import Entry, parse_key, read_recording, wire_bytes
 
 #: ``applied`` reasons that carry the seq of the command they executed (a stop command included)
 _EXECUTED = ("cmd", "clamped", "stop")
@@ -81,7 +81,7 @@ def robots(entries: list[Entry]) -> list[str]:
 
 def pick_mission(entries: list[Entry], robot: str, mission_file: str | None) -> tuple[Any, str]:
     """The mission the run followed (see the module docstring) and where it came from."""
-    from bridge.config import load_mission, mission_from_spec
+    from bridge.core.config import load_mission, mission_from_spec
 
     key = M.key(robot, "mission")
     recorded = [e for e in entries if e.topic == key]
@@ -96,7 +96,7 @@ def pick_mission(entries: list[Entry], robot: str, mission_file: str | None) -> 
 
 def demo_summary(entries: list[Entry], robot: str, mission: Any) -> tuple[dict | None, np.ndarray]:
     """The demo's summary (``Monitor.summary``) of the recorded run, and the trajectory ``(K, 3)``."""
-    from bridge.demo import Monitor
+    from bridge.tools.demo import Monitor
 
     feed = FeedSession()
     mon = Monitor(feed, robot)

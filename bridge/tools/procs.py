@@ -33,7 +33,7 @@ def stop_group(proc: subprocess.Popen, term_timeout: float = 10.0) -> None:
 def spawn(args: list[str], out: Any = subprocess.PIPE, **kwargs: Any) -> subprocess.Popen:
     """``scmbridge ARGS...`` as a child in its own process group (so :func:`stop_group` takes all of it), with
     stdout and stderr together into ``out`` (a pipe, a file, or ``subprocess.DEVNULL``)."""
-    return subprocess.Popen([sys.executable, "-m", "bridge.cli", *args], stdout=out, stderr=subprocess.STDOUT,
+    return subprocess.Popen([sys.executable, "-m", "bridge", *args], stdout=out, stderr=subprocess.STDOUT,
                             start_new_session=True, **kwargs)
 
 

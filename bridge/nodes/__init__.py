@@ -1,0 +1,2 @@
+"""The long-running nodes: the station, the driver host and the Zenoh plumbing they share
+(docs/ARCHITECTURE.md, section 2)."""
