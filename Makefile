@@ -20,7 +20,7 @@ PIP_COMPILE := CUSTOM_COMPILE_COMMAND="make lock" $(VENV)/bin/pip-compile --quie
 	$(if $(UPGRADE),--upgrade,)
 LOCK_NOTE := \# Locked for CPython $(LOCKED_PY) on Linux x86_64 (hashes: every file PyPI has for each pinned version).
 
-.PHONY: demo test lint bench install lock clean
+.PHONY: demo test lint bench install lock clean cli-doc
 
 $(PY):
 	@$(call check_python,$(PYTHON))
@@ -55,6 +55,10 @@ bench: $(STAMP)
 	$(VENV)/bin/scmbridge bench scm
 	$(VENV)/bin/scmbridge bench transfer
 	$(VENV)/bin/scmbridge bench mpc
+
+# docs/CLI.md is generated from the parsers (tests/test_cli.py checks it is current)
+cli-doc: $(STAMP)
+	$(PY) -c 'from bridge.tools.cli import reference; import sys; sys.stdout.write(reference())' > docs/CLI.md
 
 clean:
 	rm -rf $(VENV) build *.egg-info .pytest_cache .ruff_cache

@@ -105,18 +105,19 @@ def run_link(link: str, seconds: float, workdir: str) -> dict:
     }
 
 
-def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="scmbridge bench bridge", description=__doc__)
-    ap.add_argument("--seconds", type=float, default=60.0, help="the CAN run (loop timing and memory)")
-    ap.add_argument("--link-seconds", type=float, default=15.0, help="the udp and mavlink runs")
+def arguments(ap: argparse.ArgumentParser) -> None:
+    ap.add_argument("--duration", type=float, default=60.0, help="seconds of the CAN run (loop timing and memory)")
+    ap.add_argument("--link-duration", type=float, default=15.0, help="seconds of the udp and mavlink runs")
     ap.add_argument("--links", default="can,udp,mavlink")
-    args = ap.parse_args(argv)
+
+
+def run(args: argparse.Namespace) -> int:
     import tempfile
 
     out: dict = {"links": {}}
     with tempfile.TemporaryDirectory() as tmp:
         for link in args.links.split(","):
-            out["links"][link] = run_link(link, args.seconds if link == "can" else args.link_seconds, tmp)
+            out["links"][link] = run_link(link, args.duration if link == "can" else args.link_duration, tmp)
     out["targets"] = {"p99_ms": 5.0, "missed_deadlines_fraction": 0.01, "memory": "no growth"}
     emit(out)
     return 0

@@ -1,6 +1,6 @@
 """``scmbridge bench fleet``: how many robots one base station holds at 10 Hz (JSON).
 
-For each fleet size N of a sweep (1, 2, 4, 8, 12, 16, 20, 24, ... up to ``--robots``): this process is the Zenoh
+For each fleet size N of a sweep (1, 2, 4, 8, 12, 16, 20, 24, ... up to ``--max-robots``): this process is the Zenoh
 router (a free 127.0.0.1 port), N real ``scmbridge station`` processes (MPC N = 20, transfer, pairing; one per
 robot ``fleet1..fleetN``, each from an empty pair store, one BLAS thread each as the shipped units run them) are
 its clients, and one lightweight process
@@ -12,9 +12,9 @@ each second, all as :mod:`bridge.core.wire` messages. It holds the robots with a
 station is up, then lets them all drive at once, so every station plans (the MPC runs) for the whole window; the
 mission is the paper's S-path laid end to end five times (40 m), which no robot finishes within a run.
 
-After ``--warmup`` seconds of driving, each station's ``status`` is collected for ``--seconds``: missed deadlines
+After ``--warmup`` seconds of driving, each station's ``status`` is collected for ``--duration``: missed deadlines
 over the window's ticks (every periodic tick publishes one ``cmd``, counted at the hub), the station's own tick
-p99 (its last 600 ticks: the window when ``--seconds`` >= 60), and, at the hub, the command latency from the
+p99 (its last 600 ticks: the window when ``--duration`` >= 60), and, at the hub, the command latency from the
 tick's start (the command's stamp) to its arrival. N is held when **every** station missed fewer than 1 % of its
 deadlines and its tick p99 is under the period. CPU seconds of the stations, the simulator and this process over
 the window give the ticks per core-second; the machine's load and busy cores show what else was running. The
@@ -37,6 +37,7 @@ from pathlib import Path
 import numpy as np
 
 from bench.common import emit
+from bridge.core.errors import UsageError
 from bridge.tools.cli import ONE_BLAS_THREAD
 
 PERIOD_S = 0.1  # the station's default tick (10 Hz)
@@ -203,7 +204,7 @@ def simulate(args: argparse.Namespace) -> int:
     fleet = SimFleet(args.simulate.split(","), tuple(world.start))
     stop = stop_on_signals()
     with open_session(make_config(mode="client", connect=args.connect)) as session:
-        fleet.serve(session, stop, args.duration)
+        fleet.serve(session, stop, args.sim_duration)
     return 0
 
 
@@ -313,7 +314,7 @@ def run_level(n: int, seconds: float, warmup: float, mission: Path, workdir: Pat
         session.declare_subscriber(f"{M.PREFIX}/*/status/station", on_status)
         session.declare_subscriber(f"{M.PREFIX}/*/cmd", on_cmd)
         sim = kids.spawn(["bench", "fleet", "--simulate", ",".join(robots), "--connect", tcp(port), "--mission",
-                          str(mission), "--duration", str(life)], log)
+                          str(mission), "--sim-duration", str(life)], log)
         stations = {r: kids.spawn(["station", "--robot", r, "--mode", "client", "--connect", tcp(port), "--store",
                                    str(workdir / f"pairs-{r}.bin"), "--mission", str(mission), "--duration",
                                    str(life)], log, env=env) for r in robots}
@@ -413,11 +414,9 @@ def sweep(limit: int) -> list[int]:
     return out
 
 
-def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="scmbridge bench fleet", description=__doc__,
-                                 formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--robots", type=int, default=24, help="the largest fleet of the sweep")
-    ap.add_argument("--seconds", type=float, default=60.0, help="the measurement window per fleet size")
+def arguments(ap: argparse.ArgumentParser) -> None:
+    ap.add_argument("--max-robots", type=int, default=24, help="the largest fleet of the sweep")
+    ap.add_argument("--duration", type=float, default=60.0, help="seconds of the measurement window per fleet size")
     ap.add_argument("--warmup", type=float, default=10.0, help="seconds of driving before the window")
     ap.add_argument("--sizes", default=None, help="fleet sizes to run, comma-separated (default: the sweep)")
     ap.add_argument("--keep-going", action="store_true", help="run every size even after one is not held")
@@ -427,13 +426,15 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--simulate", default=None, help=argparse.SUPPRESS)  # the robots' process: fleet1,fleet2,...
     ap.add_argument("--connect", action="append", default=[], help=argparse.SUPPRESS)
     ap.add_argument("--mission", default=None, help=argparse.SUPPRESS)
-    ap.add_argument("--duration", type=float, default=600.0, help=argparse.SUPPRESS)
-    args = ap.parse_args(argv)
+    ap.add_argument("--sim-duration", type=float, default=600.0, help=argparse.SUPPRESS)
+
+
+def run(args: argparse.Namespace) -> int:
     if args.simulate:
         return simulate(args)
-    if args.robots < 1:
-        ap.error("--robots must be at least 1")
-    sizes = [int(a) for a in args.sizes.split(",")] if args.sizes else sweep(args.robots)
+    if args.max_robots < 1:
+        raise UsageError("--max-robots must be at least 1")
+    sizes = [int(a) for a in args.sizes.split(",")] if args.sizes else sweep(args.max_robots)
     # `scmbridge` sets one BLAS thread for every command it runs (bridge/cli.py) unless the environment says
     # otherwise; "inherit" asks for OpenBLAS's own default, a thread per core, explicitly
     cores = str(os.cpu_count() or 1)
@@ -441,7 +442,7 @@ def main(argv: list[str] | None = None) -> int:
                                {"OPENBLAS_NUM_THREADS": cores, "OMP_NUM_THREADS": cores}))
     out: dict = {"rate_hz": 1 / PERIOD_S, "period_ms": PERIOD_S * 1e3, "mpc_horizon": 20,
                  "criterion": {"missed_fraction_every_station": "< 0.01", "tick_p99_ms_every_station": "< 100"},
-                 "seconds": args.seconds, "warmup_s": args.warmup, "cpus": os.cpu_count(), "load_start": _load(),
+                 "duration_s": args.duration, "warmup_s": args.warmup, "cpus": os.cpu_count(), "load_start": _load(),
                  "station_env": {k: env[k] for k in STATION_ENV},
                  "levels": []}
     held = 0
@@ -452,7 +453,7 @@ def main(argv: list[str] | None = None) -> int:
                 wd = Path(tmp) / f"n{n}"
                 wd.mkdir()
                 t0 = time.monotonic()
-                level = run_level(n, args.seconds, args.warmup, mission, wd, log, env)
+                level = run_level(n, args.duration, args.warmup, mission, wd, log, env)
                 level["wall_s"] = round(time.monotonic() - t0, 1)
                 out["levels"].append(level)
                 brief = {k: level.get(k) for k in ("robots", "held", "missed_fraction_worst", "tick_p99_ms_worst",
@@ -480,5 +481,3 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
-if __name__ == "__main__":  # pragma: no cover
-    raise SystemExit(main(sys.argv[1:]))

@@ -65,8 +65,9 @@ import msgspec
 
 from bench.common import can_ecus, open_can_driver
 from bridge.core import wire as M
+from bridge.core.errors import UsageError
 from bridge.core.gate import DRIVING
-from bridge.nodes.node import rss_mb, rss_parts
+from bridge.nodes.node import add_zenoh_args, rss_mb, rss_parts
 
 #: the driver host's default hard limits (``bridge.core.config.DEFAULT_HARD_LIMITS``); the host runs with no config file
 HARD_V, HARD_W = (-0.5, 0.5), (-1.0, 1.0)
@@ -354,7 +355,7 @@ class HostRig:
             self.session.declare_subscriber(M.status_key(self.robot, "driver"), self._on_status)
             self.log_path = self.workdir / f"driver-{self.robot}.log"
             log = self.stack.enter_context(open(self.log_path, "w"))
-            client = ["--robot", self.robot, "--mode", "client", "--connect", self.endpoint]
+            client = ["--mode", "client", "--connect", self.endpoint]
             # the host's session with Zenoh's shared-memory transport on (zenoh's default, which scmbridge's
             # configs turn off) or off, through a lab-style file (a file that sets it is obeyed)
             conf = self.workdir / f"zenoh-{self.robot}.json5"
@@ -362,10 +363,11 @@ class HostRig:
                                         "transport": {"shared_memory": {"enabled": self.shm}}}))
             client += ["--zenoh-config", str(conf)]
             if self.probe:  # a driver-host-like process of this module that also reports its heap
-                self.proc = kids.spawn(["bench", "fuzz", "--probe-host", *client], subprocess.PIPE,
+                self.proc = kids.spawn(["bench", "fuzz", "--probe-host", self.robot, *client], subprocess.PIPE,
                                        stdin=subprocess.PIPE, text=True, bufsize=1)
             else:
-                self.proc = kids.spawn(["driver", "--link", "can", "--emulate", *client, "--duration", "86400"],
+                self.proc = kids.spawn(["driver", "--link", "can", "--emulate", "--robot", self.robot, *client,
+                                        "--duration", "86400"],
                                        log)
             if not wait_until(lambda: self.status is not None and self.status.ok, 90.0, 0.05):
                 raise RuntimeError(f"the driver host did not come up (log: {self.log_path})")
@@ -680,7 +682,7 @@ def heap_report(first: tracemalloc.Snapshot | None = None) -> dict:
     return out
 
 
-def probe_host(argv: list[str]) -> int:
+def probe_host(args: argparse.Namespace) -> int:
     """A driver-host-like process for the RSS study: the real
     :class:`bridge.nodes.driver_host.DriverHost` with its Zenoh
     session and the emulated CAN controllers in-process (as ``scmbridge driver --link can --emulate``), under
@@ -690,15 +692,12 @@ def probe_host(argv: list[str]) -> int:
 
     from bridge.core.config import load_driver
     from bridge.nodes.driver_host import DriverHost
-    from bridge.nodes.node import add_zenoh_args, stop_on_signals, zenoh_config
+    from bridge.nodes.node import stop_on_signals, zenoh_config
     from bridge.nodes.zsession import open_session
     from drivers import open_driver
     from sim_learner.can_ecu import DiffDriveEcus
 
-    ap = argparse.ArgumentParser(prog="scmbridge bench fuzz --probe-host")
-    ap.add_argument("--robot", required=True)
-    add_zenoh_args(ap)
-    args = ap.parse_args(argv)
+    args.robot = args.probe_host
     logging.basicConfig(level=logging.ERROR)
     tracemalloc.start(1)
     cfg = load_driver(None)
@@ -1875,7 +1874,7 @@ IN_PROCESS: dict[str, Callable[[int, int, Path], dict]] = {
     "can_ecu": can_ecu, "mavlink_driver": mavlink_driver, "mavlink_rover": mavlink_rover}
 
 
-def run(per_input: int, seed: int, inputs: tuple[str, ...], workdir: Path, rounds: int = 0,
+def fuzz(per_input: int, seed: int, inputs: tuple[str, ...], workdir: Path, rounds: int = 0,
         round_size: int = 0, probe: bool = False, senders: int = 0, per_sender: int = 0) -> dict:
     """Every input asked for (``per_input`` payloads each), then the RSS rounds; one JSON-ready dict."""
     out: dict[str, Any] = {"per_input": per_input, "seed": seed, "inputs": {}}
@@ -1908,12 +1907,7 @@ def run(per_input: int, seed: int, inputs: tuple[str, ...], workdir: Path, round
     return out
 
 
-def main(argv: list[str] | None = None) -> int:
-    argv = list(sys.argv[1:] if argv is None else argv)
-    if argv and argv[0] == "--probe-host":
-        return probe_host(argv[1:])
-    ap = argparse.ArgumentParser(prog="scmbridge bench fuzz", description=__doc__,
-                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+def arguments(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--per-input", type=int, default=100_000, help="payloads per input (default 100000)")
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--inputs", default=",".join(INPUTS), help=f"comma-separated subset of {', '.join(INPUTS)}")
@@ -1922,13 +1916,19 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--no-probe", action="store_true", help="RSS study without the heap-reporting probe host")
     ap.add_argument("--senders", type=int, default=4, help="RSS study: successive sender sessions (0: none)")
     ap.add_argument("--per-sender", type=int, default=2000, help="RSS study: 4-64 KiB payloads per sender")
-    args = ap.parse_args(argv)
+    ap.add_argument("--probe-host", default=None, metavar="ROBOT", help=argparse.SUPPRESS)  # the RSS study's child
+    add_zenoh_args(ap)
+
+
+def run(args: argparse.Namespace) -> int:
+    if args.probe_host:
+        return probe_host(args)
     inputs = tuple(i.strip() for i in args.inputs.split(",") if i.strip())
     unknown = [i for i in inputs if i not in INPUTS]
     if unknown or args.per_input < 1 or args.rounds < 0:
-        ap.error(f"unknown inputs {unknown}" if unknown else "--per-input >= 1 and --rounds >= 0")
+        raise UsageError(f"unknown inputs {unknown}" if unknown else "--per-input >= 1 and --rounds >= 0")
     with tempfile.TemporaryDirectory(prefix="scm-fuzz-") as tmp:
-        out = run(args.per_input, args.seed, inputs, Path(tmp), args.rounds, args.round_size, not args.no_probe,
+        out = fuzz(args.per_input, args.seed, inputs, Path(tmp), args.rounds, args.round_size, not args.no_probe,
                   args.senders, args.per_sender)
     from bench.common import emit
 

@@ -15,10 +15,11 @@ import numpy as np
 from bench.common import emit
 
 
-def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="scmbridge bench mpc", description=__doc__)
+def arguments(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--steps", type=int, default=400, help="closed-loop steps per horizon")
-    args = ap.parse_args(argv)
+
+
+def run(args: argparse.Namespace) -> int:
     from sim_learner.dynamics import MPC_LEARNER_V, MPC_LEARNER_W
     from sim_learner.worlds import mpc_world
     from transfer.domain import Bounds

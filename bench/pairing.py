@@ -68,7 +68,7 @@ def _udp(stack: ExitStack, vehicle: Any) -> Any:
 LINKS = {"mavlink": _mavlink, "can": _can, "udp": _udp}
 
 
-def run(link: str, seconds: float, seed: int = 0, command_period: float = 0.1, pair_dt: float = 0.1,
+def measure(link: str, seconds: float, seed: int = 0, command_period: float = 0.1, pair_dt: float = 0.1,
         min_span: float | None = None) -> dict:
     """Drive ``seconds`` of random commands through ``link`` and judge the pairs (see the module docstring)."""
     from bridge.nodes.pairing import IntervalPairer
@@ -121,14 +121,14 @@ def run(link: str, seconds: float, seed: int = 0, command_period: float = 0.1, p
             "error_v_mps": stats(err[:, 0]), "error_omega_radps": stats(err[:, 1])}
 
 
-def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="scmbridge bench pairing", description=__doc__,
-                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+def arguments(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--link", choices=sorted(LINKS), default="mavlink")
-    ap.add_argument("--seconds", type=float, default=20.0)
+    ap.add_argument("--duration", type=float, default=20.0, help="seconds of commands")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--command-period", type=float, default=0.1, help="s between new commands (the station's tick)")
     ap.add_argument("--min-span", type=float, default=None, help="the pairer's minimum span, s (default: its own)")
-    args = ap.parse_args(argv)
-    emit(run(args.link, args.seconds, args.seed, args.command_period, min_span=args.min_span))
+
+
+def run(args: argparse.Namespace) -> int:
+    emit(measure(args.link, args.duration, args.seed, args.command_period, min_span=args.min_span))
     return 0

@@ -26,11 +26,12 @@ def _random_quad(rng: np.random.Generator) -> list[complex]:
             return quad
 
 
-def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="scmbridge bench scm", description=__doc__)
+def arguments(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--n", type=int, default=200, help="repetitions per measurement")
     ap.add_argument("--seed", type=int, default=0)
-    args = ap.parse_args(argv)
+
+
+def run(args: argparse.Namespace) -> int:
     rng = np.random.default_rng(args.seed)
 
     t0 = time.perf_counter()

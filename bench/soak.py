@@ -44,6 +44,7 @@ import msgspec
 import numpy as np
 
 from bridge.core import wire as M
+from bridge.core.errors import UsageError
 from bridge.nodes.node import rss_parts
 
 
@@ -127,7 +128,7 @@ def _memory_reports(workdir: Path, names: tuple[str, ...]) -> dict[str, list[dic
     return out
 
 
-def run(minutes: float, link: str, workdir: Path, sample_s: float = 10.0, warmup_s: float = 60.0,
+def soak(minutes: float, link: str, workdir: Path, sample_s: float = 10.0, warmup_s: float = 60.0,
         mission: str = "paper-s-path", startup_timeout: float = 180.0, trace_memory: tuple[str, ...] = ()) -> dict:
     """The soak (see the module docstring); returns the JSON-ready result."""
     from bridge.core.config import load_mission_spec
@@ -244,29 +245,29 @@ def run(minutes: float, link: str, workdir: Path, sample_s: float = 10.0, warmup
     }
 
 
-def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="scmbridge bench soak", description=__doc__,
-                                 formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--minutes", type=float, default=10.0, help="how long to drive (after start-up)")
+def arguments(ap: argparse.ArgumentParser) -> None:
+    ap.add_argument("--duration", type=float, default=600.0, help="seconds to drive (after start-up)")
     ap.add_argument("--link", choices=["can", "udp", "mavlink"], default="can")
-    ap.add_argument("--sample-s", type=float, default=10.0, help="RSS sampling period, s")
-    ap.add_argument("--warmup-s", type=float, default=60.0, help="samples before this are left out of the slope")
+    ap.add_argument("--sample-every", type=float, default=10.0, help="RSS sampling period, seconds")
+    ap.add_argument("--warmup", type=float, default=60.0, help="seconds of samples left out of the slope")
     ap.add_argument("--mission", default="paper-s-path", help="mission file or shipped mission name")
     ap.add_argument("--trace-memory", nargs="?", const="station", default="", metavar="NODES",
                     help="run these nodes (comma-separated: station, driver; default station) under tracemalloc and "
                          "report where their Python heap grew between the end of warm-up and the end. A report "
                          "pauses the node while it snapshots its heap (seconds): a driver host on CAN misses its "
                          "controllers' watchdog, and they stop until the operator releases them")
-    args = ap.parse_args(argv)
-    if not (args.minutes > 0 and args.sample_s > 0 and args.warmup_s >= 0):
-        ap.error("--minutes and --sample-s must be > 0, --warmup-s >= 0")
+
+
+def run(args: argparse.Namespace) -> int:
+    if not (args.duration > 0 and args.sample_every > 0 and args.warmup >= 0):
+        raise UsageError("--duration and --sample-every must be > 0, --warmup >= 0")
     traced = tuple(n for n in args.trace_memory.split(",") if n)
     if not set(traced) <= {"station", "driver"}:
-        ap.error(f"--trace-memory: station and/or driver, not {args.trace_memory!r}")
+        raise UsageError(f"--trace-memory: station and/or driver, not {args.trace_memory!r}")
     from bench.common import emit
 
     with tempfile.TemporaryDirectory(prefix="scm-soak-") as tmp:
-        out = run(args.minutes, args.link, Path(tmp), args.sample_s, args.warmup_s, args.mission,
+        out = soak(args.duration / 60.0, args.link, Path(tmp), args.sample_every, args.warmup, args.mission,
                   trace_memory=traced)
     emit(out)
     return 0 if out["processes_alive"] else 1

@@ -93,11 +93,12 @@ def _time_stream(policy, store, model, command, rng, n: int) -> list[float]:
     return out
 
 
-def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="scmbridge bench transfer", description=__doc__)
+def arguments(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--n", type=int, default=2000, help="commands per measurement")
     ap.add_argument("--seed", type=int, default=0)
-    args = ap.parse_args(argv)
+
+
+def run(args: argparse.Namespace) -> int:
 
     from transfer.policy import TransferPolicy
     from transfer.scm import warmup

@@ -17,8 +17,11 @@ import signal
 import threading
 import time
 
+from bridge.core.args import pose_arg, positive_float
+from bridge.core.errors import UsageError
 
-def _peer_arg(ap: argparse.ArgumentParser, text: str | None) -> tuple[str, int] | str:
+
+def _peer_arg(text: str | None) -> tuple[str, int] | str:
     """``--peer``: ``HOST:PORT`` or ``first``; None is the robot's default (the driver host's default address)."""
     from sim_learner.udp_robot import DEFAULT_PEER
 
@@ -28,23 +31,21 @@ def _peer_arg(ap: argparse.ArgumentParser, text: str | None) -> tuple[str, int] 
         return "first"
     host, _, port = text.rpartition(":")
     if not host or not port.isdigit() or not 0 < int(port) < 65536:
-        ap.error(f"--peer {text!r}: expected HOST:PORT (the driver host's bind address) or 'first'")
+        raise UsageError(f"--peer {text!r}: expected HOST:PORT (the driver host's bind address) or 'first'")
     return host.strip("[]"), int(port)
 
 
-def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="scmbridge learner", description=__doc__,
-                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+def arguments(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--link", choices=["can", "udp", "mavlink"], required=True)
     ap.add_argument("--port", type=int, default=None, help="(udp, mavlink) UDP port on --host (47800 / 14550)")
     ap.add_argument("--host", default="127.0.0.1", help="(udp, mavlink) the address to listen on")
     ap.add_argument("--interface", default="udp_multicast")
     ap.add_argument("--channel", default="239.74.163.2")
     ap.add_argument("--model", default="mpc", help="learner model: mpc, experiment, scaled")
-    ap.add_argument("--x0", default="0,0,0", help="start pose x,y,theta")
+    ap.add_argument("--x0", type=pose_arg, default=(0.0, 0.0, 0.0), help="start pose x,y,theta")
     ap.add_argument("--noise", type=float, default=0.0, help="position measurement noise std (m)")
     ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--duration", type=float, default=None)
+    ap.add_argument("--duration", type=positive_float, default=None, help="stop after this many seconds")
     ap.add_argument("--wheel-radius", type=float, default=0.1)
     ap.add_argument("--track-width", type=float, default=0.4)
     ap.add_argument("--peer", default=None, help="(udp) the driver host's HOST:PORT, the only sender obeyed and "
@@ -53,10 +54,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--v-max", type=float, default=1.0, help="(udp) the robot's own limit |v|, m/s: refused beyond")
     ap.add_argument("--omega-max", type=float, default=2.0, help="(udp) the robot's own limit |omega|, rad/s")
     ap.add_argument("--watchdog", type=float, default=0.5, help="(udp) no command for this long stops it, s")
-    args = ap.parse_args(argv)
-    peer = _peer_arg(ap, args.peer) if args.link == "udp" else None
+
+
+def run(args: argparse.Namespace) -> int:
+    peer = _peer_arg(args.peer) if args.link == "udp" else None
     if args.link == "udp" and not (0 < args.v_max < 1e3 and 0 < args.omega_max < 1e3 and 0 < args.watchdog < 60):
-        ap.error("--v-max, --omega-max and --watchdog must be positive (and finite)")
+        raise UsageError("--v-max, --omega-max and --watchdog must be positive (and finite)")
 
     import numpy as np
 
@@ -67,7 +70,7 @@ def main(argv: list[str] | None = None) -> int:
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
-    x0 = tuple(float(a) for a in args.x0.split(","))
+    x0 = args.x0
     rng = np.random.default_rng(args.seed) if args.noise > 0 else None
     vehicle = SimVehicle(model_by_name(args.model), x0, now=time.monotonic(), pos_noise=args.noise, rng=rng)
     if args.link == "mavlink":

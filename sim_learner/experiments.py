@@ -41,6 +41,7 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
+from bridge.core.errors import UsageError
 from sim_learner.dynamics import MPC_TEACHER_V, MPC_TEACHER_W, LearnerModel, mpc_learner
 from sim_learner.runs import DT, Progress, Run, mean_dev_last_half
 from sim_learner.worlds import World, mpc_world
@@ -278,7 +279,7 @@ class MpcOutcome:
     store: PairStore
 
 
-def run_mpc(seed: int = 0, quick: bool = False, out: Path | None = None, progress: bool = True,
+def mpc_experiment(seed: int = 0, quick: bool = False, out: Path | None = None, progress: bool = True,
             exploration: str = "guided") -> MpcOutcome:
     """Paper Section 5.2: ideal teacher vs SCM learner vs the two baselines, no command pairs at the start."""
     case = mpc_case(quick)
@@ -416,13 +417,13 @@ def sweep_mpc(seeds: Sequence[int], quick: bool = True, explorations: Sequence[s
 
 
 # ------------------------------------------------------------------------------------------ the grid test
-def run_grid(seed: int = 0, quick: bool = False, out: Path | None = None, progress: bool = True,
+def grid_experiment(seed: int = 0, quick: bool = False, out: Path | None = None, progress: bool = True,
              store: PairStore | None = None, exploration: str = "guided") -> dict:
     """The paper's exhaustive test: a dense grid of teacher commands inside the learned limits, 0.1 s each, on
     the pairs an MPC run (``seed``, ``exploration``) learned, or on ``store``. The SCM region is where the scm
     policy's method is ``scm``; every mapper is compared on that region."""
     if store is None:
-        store = run_mpc(seed, quick, None, progress, exploration).store
+        store = mpc_experiment(seed, quick, None, progress, exploration).store
     learner = mpc_learner()
     box = store.limits.box
     n = 25 if quick else 60
@@ -487,51 +488,77 @@ def run_grid(seed: int = 0, quick: bool = False, out: Path | None = None, progre
     return summary
 
 
-def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="scmbridge sim", description=__doc__,
-                                 formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("experiment", choices=["mpc", "grid", "primitives"])
+def _common(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--out", type=Path, default=Path("out"), help="directory for figures and trajectories")
-    ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--seeds", default=None, help="mpc only: a seed sweep, e.g. 0-9 or 0,3,5 (JSON of statistics)")
+    ap.add_argument("--seed", type=int, default=0, help="the run's seed (default 0)")
     ap.add_argument("--policy", choices=list(EXPLORATIONS), default=None,
                     help="the exploration policy (default: guided; a sweep runs both unless one is named)")
-    ap.add_argument("--workers", type=int, default=2, help="sweep worker processes (at most 2)")
     ap.add_argument("--quick", action="store_true", help="a shortened run (what the tests use)")
-    ap.add_argument("--store", type=Path, default=None,
-                    help="grid only: test the pairs of this pair-store file (e.g. one a sweep wrote) instead of a run")
-    args = ap.parse_args(argv)
-    if args.store is not None and args.experiment != "grid":
-        ap.error("--store is for the grid experiment")
-    t0 = time.perf_counter()
-    if args.seeds is not None:
-        if args.experiment != "mpc":
-            ap.error("--seeds is for the mpc experiment")
-        explorations = [args.policy] if args.policy else list(EXPLORATIONS)
-        try:
-            seeds = parse_seeds(args.seeds)
-        except ValueError as exc:
-            ap.error(f"--seeds: {exc}")
-        outcome = sweep_mpc(seeds, args.quick, explorations, args.workers)
-        summary = outcome.summary
-        args.out.mkdir(parents=True, exist_ok=True)
-        for (e, seed), store in outcome.stores.items():
-            (args.out / f"pairs-{e}-{seed}.bin").write_bytes(store.to_bytes())
-        summary["wall_s"] = time.perf_counter() - t0
-        (args.out / "mpc_sweep.json").write_text(json.dumps(summary, indent=2) + "\n")
-    elif args.experiment == "mpc":
-        summary = run_mpc(args.seed, args.quick, args.out, exploration=args.policy or "guided").summary
-    elif args.experiment == "grid":
-        store = PairStore.from_bytes(args.store.read_bytes()) if args.store is not None else None
-        summary = run_grid(args.seed, args.quick, args.out, store=store, exploration=args.policy or "guided")
-    else:
-        from sim_learner.primitives_sim import run_primitives
 
-        summary = run_primitives(args.seed, args.quick, args.out, exploration=args.policy or "guided")
+
+def arguments_mpc(ap: argparse.ArgumentParser) -> None:
+    _common(ap)
+    ap.add_argument("--seeds", default=None, help="a seed sweep, e.g. 0-9 or 0,3,5 (JSON of statistics)")
+    ap.add_argument("--workers", type=int, default=2, help="sweep worker processes (at most 2)")
+
+
+def arguments_grid(ap: argparse.ArgumentParser) -> None:
+    _common(ap)
+    ap.add_argument("--store", type=Path, default=None,
+                    help="test the pairs of this pair-store file (e.g. one a sweep wrote) instead of a run's")
+
+
+def arguments_primitives(ap: argparse.ArgumentParser) -> None:
+    _common(ap)
+
+
+def _emit(summary: dict, t0: float) -> int:
     summary["wall_s"] = time.perf_counter() - t0
     json.dump(summary, sys.stdout, indent=2)
     sys.stdout.write("\n")
     return 0
 
 
-__all__ = ["MpcOutcome", "SweepOutcome", "main", "run_grid", "run_mpc", "sweep_mpc"]
+def run_mpc(args: argparse.Namespace) -> int:
+    """The paper's MPC case (Section 5.2): from no pairs at all, the ideal teacher, the SCM learner and two baseline
+    learners follow the S-path with the teacher's MPC. --seeds 0-9 runs a seed sweep instead (at most two worker
+    processes) and prints, for every claim figure, the median, the spread and the worst seed, per exploration
+    policy. Prints one JSON summary; figures and trajectories go to --out."""
+    t0 = time.perf_counter()
+    if args.seeds is None:
+        return _emit(mpc_experiment(args.seed, args.quick, args.out, exploration=args.policy or "guided").summary, t0)
+    explorations = [args.policy] if args.policy else list(EXPLORATIONS)
+    try:
+        seeds = parse_seeds(args.seeds)
+    except ValueError as exc:
+        raise UsageError(f"--seeds: {exc}") from None
+    outcome = sweep_mpc(seeds, args.quick, explorations, args.workers)
+    summary = outcome.summary
+    args.out.mkdir(parents=True, exist_ok=True)
+    for (e, seed), store in outcome.stores.items():
+        (args.out / f"pairs-{e}-{seed}.bin").write_bytes(store.to_bytes())
+    summary["wall_s"] = time.perf_counter() - t0
+    (args.out / "mpc_sweep.json").write_text(json.dumps(summary, indent=2) + "\n")
+    return _emit(summary, t0)
+
+
+def run_grid(args: argparse.Namespace) -> int:
+    """The paper's exhaustive test: a dense grid of teacher commands inside the learned limits, each applied 0.1 s
+    from the same pose to the teacher, the baseline, the SCM learner and each alternative mapper (on the pairs of a
+    seed's run, or of --store). Prints one JSON summary; figures go to --out."""
+    t0 = time.perf_counter()
+    store = PairStore.from_bytes(args.store.read_bytes()) if args.store is not None else None
+    return _emit(grid_experiment(args.seed, args.quick, args.out, store=store, exploration=args.policy or "guided"), t0)
+
+
+def run_primitives(args: argparse.Namespace) -> int:
+    """The paper's motion-primitive case (Section 5.1) after a 5 x 5 calibration. Prints one JSON summary; figures
+    go to --out."""
+    from sim_learner.primitives_sim import run_primitives as primitives_experiment
+
+    t0 = time.perf_counter()
+    return _emit(primitives_experiment(args.seed, args.quick, args.out, exploration=args.policy or "guided"), t0)
+
+
+
+__all__ = ["MpcOutcome", "SweepOutcome", "grid_experiment", "mpc_experiment", "sweep_mpc"]

@@ -65,7 +65,7 @@ def test_scmbridge_calibrate_drives_the_robot_through_its_driver_host_into_the_s
         states, lock = col.listen(M.key(robot, "state"), M.LearnerState), col.lock
         kids.spawn(["driver", "--link", "can", "--emulate", *client, "--duration", "140"])
         res = subprocess.run([sys.executable, "-m", "bridge", "calibrate", *client, "--store", str(store),
-                              "--grid", "3x3", "--hold", "0.6", "--max-distance", "1.2", "--max-time", "90"],
+                              "--grid", "3x3", "--hold", "0.6", "--max-distance", "1.2", "--duration", "90"],
                              capture_output=True, text=True, timeout=130)
     assert res.returncode == 0, res.stdout[-2000:] + res.stderr[-3000:]
     assert "all 9 commands driven" in res.stdout
@@ -97,7 +97,7 @@ def test_the_motion_primitive_teacher_drives_from_calibrated_pairs(tmp_path) -> 
         states, lock = col.listen(M.key(robot, "state"), M.LearnerState), col.lock
         kids.spawn(["driver", "--link", "can", "--emulate", "--x0", x0, *client, "--duration", "140"])
         res = subprocess.run([sys.executable, "-m", "bridge", "calibrate", *client, "--store", str(store),
-                              "--grid", "3x3", "--hold", "0.5", "--max-distance", "2.0", "--max-time", "60"],
+                              "--grid", "3x3", "--hold", "0.5", "--max-distance", "2.0", "--duration", "60"],
                              capture_output=True, text=True, timeout=90)
         assert res.returncode == 0, res.stderr[-2000:]
         kids.spawn(["station", "--config", str(cfg), *client, "--store", str(store), "--duration", "80"])

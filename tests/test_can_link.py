@@ -19,7 +19,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from bridge.core.config import CanLinkConfig
+from bridge.core.config import CanLinkConfig, Rule
 from drivers import open_driver
 from drivers.base import Pose
 from drivers.can import CanDriver, database, decode, encode
@@ -108,7 +108,7 @@ def test_random_frames_never_crash_and_garbage_is_counted(arb: int, data: bytes)
 
 
 def test_config_refuses_a_backoff_bound_below_its_start() -> None:
-    with pytest.raises(ValueError, match="reopen_backoff_max"):
+    with pytest.raises(Rule, match="reopen_backoff_max"):
         CanLinkConfig(reopen_backoff=1.0, reopen_backoff_max=0.5)
     cfg = CanLinkConfig()
     assert 0.3 <= cfg.heartbeat_timeout <= 0.5  # 3-5 of ODrive's default 0.1 s heartbeat periods

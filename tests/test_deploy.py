@@ -13,7 +13,7 @@ import pytest
 import zenoh
 
 from bridge.core.config import load_driver, load_station
-from bridge.tools import deploy
+from bridge.tools import cli
 from drivers import open_driver
 
 DEPLOY = Path(__file__).resolve().parent.parent / "deploy"
@@ -68,7 +68,7 @@ def test_generated_configs_are_what_their_generator_writes() -> None:
             continue
         out = io.StringIO()
         with contextlib.redirect_stdout(out):
-            assert deploy.main(shlex.split(m.group(1))) == 0
+            assert cli.main(["deploy", *shlex.split(m.group(1))]) == 0
         assert out.getvalue() == path.read_text(), f"{path.name} differs from `scmbridge deploy {m.group(1)}`"
         generated += 1
     assert generated >= 2  # the router's TLS + ACL config and the robot's TLS client config

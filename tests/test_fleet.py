@@ -92,7 +92,7 @@ def test_the_simulated_robots_wait_for_every_station_then_follow_their_commands(
             session.declare_subscriber(k.applied, keep(applied[r], M.Applied))
             session.declare_subscriber(M.status_key(r, "driver"), keep(status[r], M.Status))
         kids.spawn(["bench", "fleet", "--simulate", ",".join(robots), "--connect", tcp(port), "--mission",
-                    str(mission), "--duration", "60"], subprocess.DEVNULL)
+                    str(mission), "--sim-duration", "60"], subprocess.DEVNULL)
         assert _wait(lambda: all(status[r] and len(states[r]) > 20 for r in robots), 30, lock)
         with lock:
             assert all(not status[r][-1].ok and "waiting for 2" in status[r][-1].text for r in robots)
@@ -280,8 +280,8 @@ def test_template_units_run_as_systemd_would_for_two_robots(tmp_path) -> None:
 @pytest.mark.timeout(480)
 def test_the_fleet_demo_brings_three_robots_to_their_goals_and_leaves_no_process(tmp_path) -> None:
     out = tmp_path / "fleet"
-    res = subprocess.run([sys.executable, "-m", "bridge", "demo", "--robots", "3", "--out", str(out),
-                          "--timeout", "300"], capture_output=True, text=True, timeout=420)
+    res = subprocess.run([sys.executable, "-m", "bridge", "demo", "--count", "3", "--out", str(out),
+                          "--duration", "300"], capture_output=True, text=True, timeout=420)
     assert res.returncode == 0, res.stdout[-3000:] + res.stderr[-2000:]
     fleet = json.loads(next(ln for ln in res.stdout.splitlines() if ln.startswith("fleet:"))[len("fleet:"):])
     assert fleet["reached_goal"] == ["demo1", "demo2", "demo3"] and fleet["not_at_goal"] == []
@@ -297,7 +297,7 @@ def test_the_fleet_demo_brings_three_robots_to_their_goals_and_leaves_no_process
 @pytest.mark.slow
 @pytest.mark.timeout(200)
 def test_the_fleet_bench_measures_one_station_and_says_how_many_it_held() -> None:
-    res = subprocess.run([sys.executable, "-m", "bridge", "bench", "fleet", "--sizes", "1,2", "--seconds", "5",
+    res = subprocess.run([sys.executable, "-m", "bridge", "bench", "fleet", "--sizes", "1,2", "--duration", "5",
                           "--warmup", "2", "--keep-going"], capture_output=True, text=True, timeout=180)
     assert res.returncode == 0, res.stderr[-3000:]
     out = json.loads(res.stdout)

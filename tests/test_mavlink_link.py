@@ -119,9 +119,9 @@ def test_pairs_from_the_link_recover_the_learners_response() -> None:
     bench, 20 s): poses stamped on receipt fell on the host's 20 ms tick grid and took the heading of an
     ATTITUDE up to a period older, 0.014 m/s and 0.013 rad/s median error; and a minimum span of exactly dt / 2
     rejected 117 of 197 intervals."""
-    from bench.pairing import run
+    from bench.pairing import measure
 
-    res = run("mavlink", 6.0, seed=5)
+    res = measure("mavlink", 6.0, seed=5)
     assert res["formed"] >= 0.75 * res["commands"] and res["rejected"] <= 0.1 * res["commands"], res  # load margin
     assert res["error_v_mps"]["median"] < 0.004 and res["error_omega_radps"]["median"] < 0.004, res
 

@@ -13,9 +13,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from bridge.nodes.station import pairs_message, save_atomic
+from bridge.core.paths import save_atomic
+from bridge.nodes.station import pairs_message
 from bridge.nodes.zsession import free_port, tcp
-from bridge.tools.pairs_cli import from_message, from_store, main, pairs_figure
+from bridge.tools.cli import main as cli_main
+from bridge.tools.pairs_cli import from_message, from_store, pairs_figure
 from bridge.tools.procs import spawn, stop_group
 from sim_learner.dynamics import MPC_TEACHER_V, MPC_TEACHER_W, mpc_learner
 from transfer.domain import Bounds
@@ -74,14 +76,14 @@ def _same_as_store(out: dict, store: PairStore) -> None:
 
 
 def test_show_json_from_a_store_file(store: PairStore, store_file: Path, capsys) -> None:
-    assert main(["show", "--store", str(store_file), "--json"]) == 0
+    assert cli_main(["pairs", "show", "--store", str(store_file), "--json"]) == 0
     out = json.loads(capsys.readouterr().out)
     _same_as_store(out, store)
     assert 80 <= len(out["pairs"]) <= 121 and out["raw_pairs"] == store.raw_count and out["k_min"] == 5
     assert out["latest_command"] is None and out["warnings"] == []
     # the learned limits are the cubic learner's range on the teacher domain (its extremes were driven)
     np.testing.assert_allclose(out["limits"]["box"], store.learner_bounds.as_list(), atol=5e-3)
-    assert main(["show", "--store", str(store_file)]) == 0
+    assert cli_main(["pairs", "show", "--store", str(store_file)]) == 0
     text = capsys.readouterr().out
     assert f"configured cells: {len(out['pairs'])} of 121" in text and "learned limits on the teacher domain" in text
 
@@ -89,7 +91,7 @@ def test_show_json_from_a_store_file(store: PairStore, store_file: Path, capsys)
 def test_plot_from_a_store_file_and_the_demos_figure(store: PairStore, store_file: Path, tmp_path: Path,
                                                      capsys) -> None:
     png = tmp_path / "figs" / "pairs.png"
-    assert main(["plot", "--store", str(store_file), "--out", str(png)]) == 0
+    assert cli_main(["pairs", "plot", "--store", str(store_file), "--out", str(png)]) == 0
     assert png.read_bytes().startswith(PNG) and png.stat().st_size > 10_000
     ids = [p.id for p in store.refined()][:4]
     assert pairs_figure(store_file, tmp_path / "demo.png", region=ids).stat().st_size > 10_000
@@ -127,9 +129,9 @@ def test_a_store_that_cannot_be_read_is_one_line(tmp_path: Path, capsys) -> None
     bad = tmp_path / "bad.bin"
     bad.write_bytes(b"not a store")
     for f in (bad, tmp_path / "missing.bin"):
-        assert main(["show", "--store", str(f)]) == 2
+        assert cli_main(["pairs", "show", "--store", str(f)]) == 2
         err = capsys.readouterr().err
-        assert err.count("\n") == 1 and err.startswith("scmbridge pairs: error: ") and str(f) in err
+        assert err.count("\n") == 1 and err.startswith("scmbridge pairs show: error: ") and str(f) in err
 
 
 def _cli(*args: str, timeout: float = 90) -> subprocess.CompletedProcess:

@@ -28,18 +28,18 @@ import zenoh
 from bridge.core import wire as M
 from bridge.core.config import mission_from_spec
 from bridge.nodes.zsession import free_port, make_config, open_session, tcp
-from bridge.tools.procs import Children, stop_group
-from bridge.tools.record import (
+from bridge.tools.mcap_format import (
     MALFORMED,
     NONCANONICAL,
     TOPIC_KINDS,
-    McapSink,
     RawSample,
     classify,
     from_json,
     json_schema,
     read_recording,
 )
+from bridge.tools.procs import Children, stop_group
+from bridge.tools.record import McapSink
 
 ROBOT = "rec1"
 MISSION = M.MissionSpec(name="test-bend", path=[[0.0, 0.0], [2.0, 0.0], [3.0, 1.0]], goal_tolerance=0.2)
@@ -164,7 +164,7 @@ def _point_at(mission, s: float) -> tuple[float, float]:
 
 def canonical(sent: list[tuple[str, bytes]]) -> list[tuple[str, bytes]]:
     """What a replay should publish for what was sent: wire messages only, in wire.encode's form."""
-    from bridge.tools.record import kind_of
+    from bridge.tools.mcap_format import kind_of
 
     out = []
     for key, data in sent:
@@ -279,7 +279,7 @@ def test_the_recording_holds_every_sample_in_order_with_schemas(recorded: dict) 
 
 
 def test_report_gives_the_live_monitors_summary(recorded: dict, tmp_path: Path) -> None:
-    from bridge.tools.report import main as report_main
+    from bridge.tools.cli import main as cli_main
 
     out = tmp_path / "report"
     proc = subprocess.run([sys.executable, "-m", "bridge", "report", str(recorded["out"]), "--out", str(out)],
@@ -295,7 +295,7 @@ def test_report_gives_the_live_monitors_summary(recorded: dict, tmp_path: Path) 
     assert 0 <= lat["by_stamps_ms"]["median"] < 50
     for name in ("trajectory.png", "deviation.png", "timeline.png"):
         assert (out / name).stat().st_size > 10_000, name
-    assert report_main([str(recorded["out"]), "--out", str(tmp_path / "r2"), "--robot", "nobody"]) == 1
+    assert cli_main(["report", str(recorded["out"]), "--out", str(tmp_path / "r2"), "--robot", "nobody"]) == 1
 
 
 @pytest.mark.parametrize("with_commands", [True, False], ids=["with-commands", "default"])
@@ -442,7 +442,7 @@ def test_a_recorded_demo_reports_the_live_demos_figures(tmp_path: Path) -> None:
     and holds them (SIGSTOP) until the recorder is subscribed so it misses nothing of the run."""
     demo_out, out = tmp_path / "demo", tmp_path / "demo.mcap"
     with Children() as kids:
-        demo = kids.spawn(["demo", "--out", str(demo_out), "--timeout", "150"])
+        demo = kids.spawn(["demo", "--out", str(demo_out), "--duration", "150"])
         held: dict[int, list[str]] = {}
         port = None
         t_end = time.monotonic() + 60

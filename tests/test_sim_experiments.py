@@ -18,7 +18,8 @@ import json
 import numpy as np
 import pytest
 
-from sim_learner.experiments import main, mpc_case, run_grid, run_scm, scm_figures
+from bridge.tools.cli import main
+from sim_learner.experiments import grid_experiment, mpc_case, run_scm, scm_figures
 from transfer.store import PairStore
 
 SEEDS = (0, 1, 2, 3, 4)
@@ -31,7 +32,7 @@ def sweep(tmp_path_factory) -> dict:
     out = tmp_path_factory.mktemp("sweep")
     buf = io.StringIO()
     with contextlib.redirect_stdout(buf):
-        assert main(["mpc", "--quick", "--seeds", "0-4", "--policy", "guided", "--workers", "2",
+        assert main(["sim", "mpc", "--quick", "--seeds", "0-4", "--policy", "guided", "--workers", "2",
                      "--out", str(out)]) == 0
     summary = json.loads(buf.getvalue())
     assert json.loads((out / "mpc_sweep.json").read_text())["policies"] == summary["policies"]
@@ -103,7 +104,7 @@ def test_grid_scm_region_error_beats_the_baseline_and_an_affine_map(sweep) -> No
     # The paper's <= 0.2 holds on the paper policy's denser pairs (0.14), not on the guided policy's (README).
     ratios, affine = [], []
     for s in SEEDS:
-        g = run_grid(seed=s, quick=True, out=None, progress=False, store=sweep["stores"][s])
+        g = grid_experiment(seed=s, quick=True, out=None, progress=False, store=sweep["stores"][s])
         assert g["scm_region_fraction"] > 0.5
         base = g["baseline_median_pos_err_m"]
         ratios.append(g["scm_region_median_pos_err_m"] / base)
@@ -113,7 +114,7 @@ def test_grid_scm_region_error_beats_the_baseline_and_an_affine_map(sweep) -> No
 
 def test_cli_grid_on_a_saved_store_writes_json_figures_and_trajectories(sweep, tmp_path, capsys) -> None:
     store = sweep["out"] / "pairs-guided-0.bin"
-    assert main(["grid", "--quick", "--store", str(store), "--out", str(tmp_path)]) == 0
+    assert main(["sim", "grid", "--quick", "--store", str(store), "--out", str(tmp_path)]) == 0
     out = json.loads(capsys.readouterr().out)
     assert out["experiment"] == "grid" and "scm_region_median_pos_err_m" in out
     assert (tmp_path / "grid_errors.png").stat().st_size > 10_000

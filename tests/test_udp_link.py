@@ -341,9 +341,9 @@ def test_poses_carry_the_robots_own_stamps_so_the_pairs_are_its_true_response() 
     """``scmbridge bench pairing --link udp`` for 4 s: the station's pairing on this link's poses as the driver host
     feeds them. Finding: poses stamped when the host's 50 Hz tick read them put 0.0096 m/s (median) of error into the
     pairs; at the robot's own stamps it is below a micrometre per second here."""
-    from bench.pairing import run
+    from bench.pairing import measure
 
-    res = run("udp", 4.0, seed=3)
+    res = measure("udp", 4.0, seed=3)
     assert res["formed"] >= 0.75 * res["commands"] and res["rejected"] <= 0.1 * res["commands"], res  # load margin
     assert res["error_v_mps"]["median"] < 0.002 and res["error_omega_radps"]["median"] < 0.002, res
 

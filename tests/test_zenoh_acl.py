@@ -35,7 +35,7 @@ import zenoh
 
 from bridge.core import wire as M
 from bridge.nodes.zsession import free_port, make_config, tcp
-from bridge.tools import deploy
+from bridge.tools import cli, deploy
 
 ARRIVE_S = 2.0  # a message that should arrive arrives within this
 QUIET_S = 1.0  # a message that must not arrive: keep sending it this long, then look
@@ -185,7 +185,7 @@ def client_config(endpoint: str, lab_certs: Path, name: str | None, certs: Path 
 def _cli(argv: list[str]) -> str:
     out = io.StringIO()
     with contextlib.redirect_stdout(out):
-        assert deploy.main(argv) == 0
+        assert cli.main(["deploy", *argv]) == 0
     return out.getvalue()
 
 
@@ -261,7 +261,7 @@ def test_the_generator_refuses_what_would_open_the_router() -> None:
         deploy.access_control(["rover1", "station"])
     with pytest.raises(ValueError, match="robot name"):
         deploy.access_control(["rover/1"])
-    assert deploy.main(["acl", "--robots", "rover1", "--listen", "tls/[::]:7447"]) == 2
+    assert cli.main(["deploy", "acl", "--robots", "rover1", "--listen", "tls/[::]:7447"]) == 2
 
 
 # ----------------------------------------------------------------------------------------- who gets in

@@ -16,6 +16,11 @@ import math
 import re
 import sys
 import types
+
+if sys.version_info >= (3, 11):
+    import tomllib
+else:  # pragma: no cover
+    import tomli as tomllib
 from importlib import resources
 from pathlib import Path
 from typing import Annotated, Any, Literal, TypeVar, Union, get_args, get_origin, get_type_hints
@@ -23,6 +28,7 @@ from typing import Annotated, Any, Literal, TypeVar, Union, get_args, get_origin
 import msgspec
 from msgspec import Meta, Struct, field
 
+from bridge.core.errors import UsageError
 from bridge.core.wire import MissionSpec
 from transfer import paper
 from transfer.domain import Bounds
@@ -30,12 +36,17 @@ from transfer.mission import Mission
 from transfer.teacher.path import Polyline
 
 
-class ConfigError(ValueError):
+class ConfigError(UsageError, ValueError):
     """A configuration the user has to fix; ``str()`` is the one line to print."""
 
     def __init__(self, source: str, where: str, problem: str) -> None:
         self.source, self.where, self.problem = source, where, problem
         super().__init__(f"{source}: {where}: {problem}" if where else f"{source}: {problem}")
+
+
+class Rule(Exception):
+    """A cross-field rule a configuration breaks (raised by ``__post_init__``; not a ValueError, so msgspec passes it
+    through untouched and the validator reports it at the table it belongs to)."""
 
 
 def _m(description: str, **bounds: float) -> Meta:
@@ -61,7 +72,7 @@ class BoundsConfig(_Cfg):
     def __post_init__(self) -> None:
         for name, (lo, hi) in (("v", self.v), ("w", self.w)):
             if not lo < hi:
-                raise ValueError(f"{name} = [{lo}, {hi}]: min must be < max")
+                raise Rule(f"{name} = [{lo}, {hi}]: min must be < max")
 
     def bounds(self) -> Bounds:
         return Bounds(tuple(self.v), tuple(self.w))
@@ -97,13 +108,13 @@ class CanLinkConfig(_Cfg):
 
     def __post_init__(self) -> None:
         if self.reopen_backoff_max < self.reopen_backoff:
-            raise ValueError(f"reopen_backoff_max = {self.reopen_backoff_max} < reopen_backoff = "
+            raise Rule(f"reopen_backoff_max = {self.reopen_backoff_max} < reopen_backoff = "
                              f"{self.reopen_backoff}: the longest wait cannot be shorter than the first")
         if self.left_node == self.right_node:
-            raise ValueError(f"left_node and right_node are both {self.left_node}; each wheel needs its own node")
+            raise Rule(f"left_node and right_node are both {self.left_node}; each wheel needs its own node")
         for name in ("left_sign", "right_sign"):
             if getattr(self, name) not in (1.0, -1.0):
-                raise ValueError(f"{name} = {getattr(self, name)}: must be 1 or -1")
+                raise Rule(f"{name} = {getattr(self, name)}: must be 1 or -1")
 
 
 class MavlinkLinkConfig(_Cfg):
@@ -138,7 +149,7 @@ class MavlinkLinkConfig(_Cfg):
 
     def __post_init__(self) -> None:
         if self.position_timeout < 2.0 / self.rate_hz:
-            raise ValueError(f"position_timeout = {self.position_timeout} s is shorter than two LOCAL_POSITION_NED "
+            raise Rule(f"position_timeout = {self.position_timeout} s is shorter than two LOCAL_POSITION_NED "
                              f"periods at rate_hz = {self.rate_hz}")
 
 
@@ -167,7 +178,7 @@ class UdpLinkConfig(_Cfg):
 
     def __post_init__(self) -> None:
         if self.robot_port == 0:
-            raise ValueError("robot_port must be the robot's port (1-65535)")
+            raise Rule("robot_port must be the robot's port (1-65535)")
 
 
 class LinkSection(_Cfg):
@@ -209,7 +220,7 @@ class DriverSection(_Cfg):
 
     def __post_init__(self) -> None:
         if self.max_send_hz < self.rate_hz:
-            raise ValueError(f"max_send_hz = {self.max_send_hz} is below rate_hz = {self.rate_hz}: every tick sends")
+            raise Rule(f"max_send_hz = {self.max_send_hz} is below rate_hz = {self.rate_hz}: every tick sends")
 
 
 class DriverConfig(_Cfg):
@@ -277,7 +288,7 @@ class CalibrationSection(_Cfg):
 
     def __post_init__(self) -> None:
         if self.return_radius_m >= self.max_distance_m:
-            raise ValueError(f"return_radius_m = {self.return_radius_m} must be below max_distance_m = "
+            raise Rule(f"return_radius_m = {self.return_radius_m} must be below max_distance_m = "
                              f"{self.max_distance_m}")
 
 
@@ -306,79 +317,173 @@ C = TypeVar("C", bound=Struct)
 
 
 # ------------------------------------------------------------------------------------------------- decoding
-def _unwrap(tp: Any) -> Any:
-    """The Struct class behind ``Annotated[...]`` / ``X | None``, else None."""
+Path_ = tuple[str | int, ...]
+
+
+def _where(path: Path_) -> str:
+    """``driver.hard_limits.v[0]`` for ``("driver", "hard_limits", "v", 0)``."""
+    out = ""
+    for part in path:
+        out += f"[{part}]" if isinstance(part, int) else (f".{part}" if out else part)
+    return out
+
+
+def _constraints(tp: Any) -> tuple[Any, list[Meta]]:
+    """The type under ``Annotated[...]`` layers and every ``Meta`` on the way."""
+    metas: list[Meta] = []
     while get_origin(tp) is Annotated:
-        tp = get_args(tp)[0]
-    if get_origin(tp) in (Union, types.UnionType):
-        inner = [a for a in get_args(tp) if a is not type(None)]
-        tp = inner[0] if len(inner) == 1 else None
-        return _unwrap(tp) if tp is not None else None
-    return tp if isinstance(tp, type) and issubclass(tp, Struct) else None
+        args = get_args(tp)
+        metas += [m for m in args[1:] if isinstance(m, Meta)]
+        tp = args[0]
+    return tp, metas
 
 
-def _struct_at(kind: type[Struct], path: list[str]) -> type[Struct] | None:
-    tp: type[Struct] | None = kind
-    for name in path:
-        if tp is None:
-            return None
-        hints = get_type_hints(tp, include_extras=True)
-        tp = _unwrap(hints[name]) if name in hints else None
-    return tp
+def _fmt(x: float) -> str:
+    return repr(float(x)) if isinstance(x, float) else str(x)
 
 
-_AT = re.compile(r"^(?P<msg>.*?)(?: - at `\$(?P<path>[^`]*)`)?$", re.S)
+def _check_meta(value: Any, metas: list[Meta], path: Path_) -> None:
+    """The ranges, lengths and patterns written in the type."""
+    for m in metas:
+        for attr, ok, text in (("gt", lambda v, b: v > b, "must be > {}"), ("ge", lambda v, b: v >= b, "must be >= {}"),
+                               ("lt", lambda v, b: v < b, "must be < {}"), ("le", lambda v, b: v <= b,
+                                                                             "must be <= {}")):
+            bound = getattr(m, attr)
+            if bound is not None and isinstance(value, (int, float)) and not ok(value, bound):
+                if abs(bound) == 1e9:
+                    raise _Problem(path, "a finite number" if not math.isfinite(value) else "out of range",
+                                   f"expected a number between -1e9 and 1e9, got {_fmt(value)}")
+                raise _Problem(path, "out of range", text.format(_fmt(bound)) + f", got {_fmt(value)}")
+        if m.min_length is not None and len(value) < m.min_length:
+            raise _Problem(path, "too short", f"needs at least {m.min_length} (length {len(value)})")
+        if m.max_length is not None and len(value) > m.max_length:
+            raise _Problem(path, "too long", f"at most {m.max_length} allowed (length {len(value)})")
+        if m.pattern is not None and isinstance(value, str) and not re.search(m.pattern, value):
+            desc = f" ({m.description})" if m.description else ""
+            raise _Problem(path, "bad text", f"{value!r} does not match {m.pattern}{desc}")
 
 
-def _explain(kind: type[Struct], err: msgspec.ValidationError) -> tuple[str, str]:
-    """(key path, problem) from msgspec's message, with the nearest valid name for an unknown key."""
-    m = _AT.match(str(err))
-    msg = m.group("msg") if m else str(err)
-    raw = (m.group("path") or "") if m else ""
-    parts = [p for p in re.split(r"\.|(?=\[)", raw) if p]
-    keys = [p for p in parts if not p.startswith("[")]
-    where = "".join(p if p.startswith("[") else ("." + p) for p in parts).lstrip(".")
-    unknown = re.match(r"Object contains unknown field `([^`]*)`", msg)
-    if unknown:
-        name = unknown.group(1)
-        owner = _struct_at(kind, keys)
-        valid = list(owner.__struct_fields__) if owner is not None else []
-        close = difflib.get_close_matches(name, valid, n=1, cutoff=0.5)
-        hint = f" (did you mean '{close[0]}'?)" if close else (f" (valid: {', '.join(valid)})" if valid else "")
-        return (f"{where}.{name}" if where else name), f"unknown key{hint}"
-    missing = re.match(r"Object missing required field `([^`]*)`", msg)
-    if missing:
-        return (f"{where}.{missing.group(1)}" if where else missing.group(1)), "required key is missing"
-    msg = msg.replace("Expected `float`", "expected a finite number").replace("`", "'")
-    msg = msg[:1].lower() + msg[1:]
-    if msg.startswith("invalid enum value") and keys:
-        owner = _struct_at(kind, keys[:-1])
-        tp = get_type_hints(owner, include_extras=True).get(keys[-1]) if owner is not None else None
-        while tp is not None and get_origin(tp) is Annotated:
-            tp = get_args(tp)[0]
-        if tp is not None and get_origin(tp) is Literal:
-            msg += " (one of: " + ", ".join(repr(a) for a in get_args(tp)) + ")"
-    if "<= 1000000000.0" in msg or ">= -1000000000.0" in msg:
-        msg = "expected a finite number"
-    return where, msg
+class _Problem(Exception):
+    """One problem found by :func:`validate`: where, what kind, and the words for a person."""
+
+    def __init__(self, path: Path_, kind: str, detail: str) -> None:
+        super().__init__(detail)
+        self.path, self.kind, self.detail = path, kind, detail
 
 
-def decode_toml(data: bytes | str, kind: type[C], source: str = "<config>") -> C:
-    """Decode TOML text into ``kind``; raise :class:`ConfigError` (one line) on any problem."""
-    raw = data.encode() if isinstance(data, str) else data
+_NAMES = {bool: "true or false", int: "a whole number", float: "a number", str: "text"}
+
+
+def _kind_name(tp: Any) -> str:
+    tp, _ = _constraints(tp)
+    if isinstance(tp, type) and issubclass(tp, Struct):
+        return "a table"
+    if get_origin(tp) in (list, tuple):
+        return "a list"
+    if get_origin(tp) is Literal:
+        return "one of " + ", ".join(repr(a) for a in get_args(tp))
+    return _NAMES.get(tp, getattr(tp, "__name__", str(tp)))
+
+
+def _got(value: Any) -> str:
+    return {bool: "true/false", int: "a whole number", float: "a number", str: "text", list: "a list",
+            dict: "a table"}.get(type(value), type(value).__name__)
+
+
+def validate(value: Any, tp: Any, path: Path_ = ()) -> None:
+    """Check ``value`` (as decoded from TOML) against the type ``tp`` and raise :class:`_Problem` at the first
+    mistake, with its path and kind. Walks the type itself, so every message is ours, not msgspec's."""
+    base, metas = _constraints(tp)
+    origin = get_origin(base)
+    if origin in (Union, types.UnionType):
+        options = [a for a in get_args(base)]
+        if value is None and type(None) in options:
+            return
+        errors = []
+        for option in options:
+            if option is type(None):
+                continue
+            try:
+                validate(value, option, path)
+                return
+            except _Problem as exc:
+                errors.append(exc)
+        raise errors[0]
+    if isinstance(base, type) and issubclass(base, Struct):
+        _validate_struct(value, base, path)
+    elif origin is Literal:
+        if value not in get_args(base) or type(value) is bool and True in get_args(base):
+            raise _Problem(path, "not one of", f"must be {_kind_name(base)}, got {value!r}")
+    elif origin in (list, tuple):
+        if not isinstance(value, list):
+            raise _Problem(path, "wrong type", f"expected a list, got {_got(value)}")
+        args = get_args(base)
+        if origin is tuple and not (len(args) == 2 and args[1] is Ellipsis):
+            if len(value) != len(args):
+                raise _Problem(path, "wrong length", f"expected a list of length {len(args)}, got length {len(value)}")
+            for k, (item, item_tp) in enumerate(zip(value, args)):
+                validate(item, item_tp, (*path, k))
+        else:
+            for k, item in enumerate(value):
+                validate(item, args[0], (*path, k))
+    elif base is bool:
+        if not isinstance(value, bool):
+            raise _Problem(path, "wrong type", f"expected true or false, got {_got(value)}")
+    elif base is int:
+        if not isinstance(value, int) or isinstance(value, bool):
+            raise _Problem(path, "wrong type", f"expected a whole number, got {_got(value)}")
+    elif base is float:
+        if not isinstance(value, (int, float)) or isinstance(value, bool):
+            raise _Problem(path, "wrong type", f"expected a number, got {_got(value)}")
+        if not math.isfinite(value):
+            raise _Problem(path, "not finite", f"expected a finite number, got {value}")
+    elif base is str and not isinstance(value, str):
+        raise _Problem(path, "wrong type", f"expected text, got {_got(value)}")
+    _check_meta(value, metas, path)
+
+
+def _validate_struct(value: Any, kind: type[Struct], path: Path_) -> None:
+    if not isinstance(value, dict):
+        raise _Problem(path, "wrong type", f"expected a table, got {_got(value)}")
+    hints = get_type_hints(kind, include_extras=True)
+    fields = list(kind.__struct_fields__)
+    for key in value:
+        if key not in hints:
+            close = difflib.get_close_matches(str(key), fields, n=1, cutoff=0.5)
+            hint = f" (did you mean '{close[0]}'?)" if close else f" (valid: {', '.join(fields)})"
+            raise _Problem((*path, key), "unknown key", f"unknown key{hint}")
+    required = set(fields) - set(kind.__struct_defaults__ and fields[len(fields) - len(kind.__struct_defaults__):])
+    for name in fields:
+        if name in value:
+            validate(value[name], hints[name], (*path, name))
+        elif name in required:
+            raise _Problem((*path, name), "missing key", "required key is missing")
     try:
-        return msgspec.toml.decode(raw, type=kind)
-    except msgspec.ValidationError as exc:
-        where, problem = _explain(kind, exc)
-        raise ConfigError(source, where, problem) from None
-    except msgspec.DecodeError as exc:
-        raise ConfigError(source, "", f"not valid TOML: {str(exc).splitlines()[0]}") from None
+        msgspec.convert(value, kind)
+    except Rule as exc:
+        raise _Problem(path, "rule", str(exc)) from None
+    except msgspec.ValidationError as exc:  # a wire Struct's own rule (a mission file): its ValueError is the cause
+        if not isinstance(exc.__cause__, ValueError):
+            raise
+        raise _Problem(path, "rule", str(exc.__cause__)) from None
 
 
-def load(path: str | Path | None, kind: type[C]) -> C:
-    """The configuration in ``path`` (the defaults when ``path`` is None), or :class:`ConfigError`."""
-    if path is None:
-        return msgspec.convert({}, kind)
+def parse_toml(data: bytes, source: str) -> dict[str, Any]:
+    """The TOML table in ``data``; :class:`ConfigError` (one line) for text that is not UTF-8 or not TOML."""
+    try:
+        text = data.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        raise ConfigError(source, "", f"not UTF-8 text (byte {exc.start}): a TOML file is UTF-8") from None
+    try:
+        return tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(source, "", f"not valid TOML: {exc}") from None
+    except RecursionError:
+        raise ConfigError(source, "", "not valid TOML: nested too deeply") from None
+
+
+def read_table(path: str | Path) -> dict[str, Any]:
+    """The TOML table of the file at ``path``; :class:`ConfigError` (one line) for every way reading can fail."""
     p = Path(path)
     try:
         data = p.read_bytes()
@@ -388,7 +493,29 @@ def load(path: str | Path | None, kind: type[C]) -> C:
         raise ConfigError(str(p), "", "is a directory, not a configuration file") from None
     except OSError as exc:
         raise ConfigError(str(p), "", f"cannot read: {exc.strerror or exc}") from None
-    return decode_toml(data, kind, str(p))
+    return parse_toml(data, str(p))
+
+
+def from_table(table: dict[str, Any], kind: type[C], source: str) -> C:
+    """``table`` validated (:func:`validate`) and converted into ``kind``; :class:`ConfigError` naming the key."""
+    try:
+        validate(table, kind)
+    except _Problem as exc:
+        raise ConfigError(source, _where(exc.path), exc.detail) from None
+    return msgspec.convert(table, kind)
+
+
+def decode_toml(data: bytes | str, kind: type[C], source: str = "<config>") -> C:
+    """Decode TOML text into ``kind``; raise :class:`ConfigError` (one line) on any problem."""
+    raw = data.encode() if isinstance(data, str) else data
+    return from_table(parse_toml(raw, source), kind, source)
+
+
+def load(path: str | Path | None, kind: type[C]) -> C:
+    """The configuration in ``path`` (the defaults when ``path`` is None), or :class:`ConfigError`."""
+    if path is None:
+        return msgspec.convert({}, kind)
+    return from_table(read_table(path), kind, str(path))
 
 
 def load_station(path: str | Path | None) -> StationConfig:
@@ -435,113 +562,6 @@ def load_mission(path: str | Path | None = None) -> Mission:
         raise ConfigError(str(path or "paper-s-path"), "", str(exc)) from None
 
 
-# --------------------------------------------------------------------------------------------------- show
-def _toml_value(v: Any) -> str:
-    if isinstance(v, bool):
-        return "true" if v else "false"
-    if isinstance(v, float):
-        return repr(v) if math.isfinite(v) else "nan"
-    if isinstance(v, int):
-        return str(v)
-    if isinstance(v, str):
-        return '"' + v.replace("\\", "\\\\").replace('"', '\\"') + '"'
-    if isinstance(v, (list, tuple)):
-        return "[" + ", ".join(_toml_value(a) for a in v) + "]"
-    raise TypeError(f"no TOML form for {v!r}")
-
-
-def _describe(tp: Any) -> str:
-    parts: list[str] = []
-    while get_origin(tp) is Annotated:
-        args = get_args(tp)
-        for meta in args[1:]:
-            if isinstance(meta, Meta):
-                if meta.description:
-                    parts.append(meta.description)
-                rng = [f"{op} {getattr(meta, k)}" for k, op in (("gt", ">"), ("ge", ">="), ("lt", "<"), ("le", "<="))
-                       if getattr(meta, k) is not None and abs(getattr(meta, k)) != 1e9]
-                if rng:
-                    parts.append(", ".join(rng))
-        tp = args[0]
-    if get_origin(tp) is Literal:
-        parts.append("one of " + ", ".join(repr(a) for a in get_args(tp)))
-    return "; ".join(parts)
-
-
-def _show(obj: Struct, prefix: str, out: list[str]) -> None:
-    hints = get_type_hints(type(obj), include_extras=True)
-    tables = []
-    for name in obj.__struct_fields__:
-        val = getattr(obj, name)
-        if isinstance(val, Struct):
-            tables.append((name, val, _describe(hints[name])))
-            continue
-        if val is None:
-            out.append(f"# {name} =  # {_describe(hints[name])} (unset)")
-            continue
-        text = f"{name} = {_toml_value(val)}"
-        desc = _describe(hints[name])
-        out.append(f"{text:<40} # {desc}" if desc else text)
-    for name, val, desc in tables:
-        if any(not isinstance(getattr(val, f), Struct) for f in val.__struct_fields__):
-            out.append("")
-            out.append(f"[{prefix}{name}]")
-            doc = (type(val).__doc__ or "").strip().splitlines()
-            out.append(f"# {desc}" if desc else f"# {doc[0].replace('``', '')}" if doc else "#")
-        _show(val, f"{prefix}{name}.", out)
-
-
-def show(kind: str) -> str:
-    """A commented TOML file holding every default of ``kind`` (station, driver or mission)."""
-    if kind == "mission":
-        text = resources.files("bridge").joinpath("missions", SHIPPED_MISSIONS["paper-s-path"]).read_text()
-        return text
-    obj = msgspec.convert({}, KINDS[kind])
-    out = [f"# scmbridge {kind} configuration: every key with its default (scmbridge config show --kind {kind})"]
-    _show(obj, "", out)
-    return "\n".join(out) + "\n"
-
-
-def check(path: str, kind: str | None = None) -> str:
-    """Validate a file; returns a one-line description of what it is. Raises ConfigError."""
-    p = Path(path)
-    if kind is None:
-        try:
-            table = msgspec.toml.decode(p.read_bytes())
-        except FileNotFoundError:
-            raise ConfigError(str(p), "", "no such file") from None
-        except OSError as exc:
-            raise ConfigError(str(p), "", f"cannot read: {exc.strerror or exc}") from None
-        except msgspec.DecodeError as exc:
-            raise ConfigError(str(p), "", f"not valid TOML: {str(exc).splitlines()[0]}") from None
-        kind = guess_kind(table if isinstance(table, dict) else {})
-    if kind == "mission":
-        m = load_mission(p)
-        return f"{p}: a valid mission '{m.name}': {len(m.path.points)} waypoints, {m.path.length:.2f} m, " \
-               f"{len(m.obstacles)} obstacles"
-    cfg = load(p, KINDS[kind])
-    return f"{p}: a valid {kind} configuration for robot '{cfg.robot}'"
-
-
-def main(argv: list[str] | None = None) -> int:
-    """``scmbridge config check FILE [--kind K]`` / ``scmbridge config show --kind station|driver|mission``."""
-    import argparse
-
-    ap = argparse.ArgumentParser(prog="scmbridge config", description="validate or show configuration files")
-    sub = ap.add_subparsers(dest="what", required=True)
-    c = sub.add_parser("check", help="validate a station, driver or mission file (exit 2 with the problem)")
-    c.add_argument("file")
-    c.add_argument("--kind", choices=sorted(KINDS), help="default: guessed from the file's keys")
-    s = sub.add_parser("show", help="print a commented default")
-    s.add_argument("--kind", choices=sorted(KINDS), required=True)
-    args = ap.parse_args(argv)
-    if args.what == "show":
-        sys.stdout.write(show(args.kind))
-        return 0
-    print(check(args.file, args.kind))
-    return 0
-
-
 __all__ = [
     "KINDS",
     "LINK_CONFIGS",
@@ -557,14 +577,11 @@ __all__ = [
     "TeacherSection",
     "TransferSection",
     "UdpLinkConfig",
-    "check",
     "decode_toml",
     "load",
     "load_driver",
     "load_mission",
     "load_mission_spec",
     "load_station",
-    "main",
     "mission_from_spec",
-    "show",
 ]

@@ -29,7 +29,8 @@ from msgspec import Meta, Struct
 # ------------------------------------------------------------------------------------------------------- keys
 PREFIX = "scm"
 #: every topic of one robot's namespace ``scm/<robot>/<topic>``; who publishes each is in docs/ARCHITECTURE.md
-TOPICS = ("state", "cmd", "teacher", "applied", "pairs", "limits", "mission", "mocap", "status", "estop")
+TOPICS = ("state", "cmd", "teacher", "applied", "pairs", "limits", "mission", "mocap", "status", "estop", "control",
+          "engage")
 _ROBOT = re.compile(r"^[A-Za-z0-9_\-]{1,64}$")
 
 
@@ -65,6 +66,8 @@ class Keys:
     mocap: str
     status: str
     estop: str
+    control: str
+    engage: str
 
     def __init__(self, robot: str) -> None:
         self.robot = check_robot(robot)
@@ -238,13 +241,22 @@ class MissionSpec(_Msg, kw_only=True):
             raise ValueError("the path has no length (all waypoints are the same point)")
 
 
+#: what a node is doing, for ``scmbridge status`` and the log; ``text`` gives the one reason in words
+NodeState = Literal["", "driving", "idle", "running", "paused", "finished", "aborted", "waiting", "estop", "operator",
+                    "link_down", "fault", "no_pose", "starting", "dry_run", "stopped"]
+
+
 class Status(_Msg, kw_only=True):
-    """``scm/<robot>/status``: health of one node; counters only grow."""
+    """``scm/<robot>/status/<node>``: health of one node; counters only grow. ``state`` says in one word what the
+    node is doing (``driving``, ``paused``, ``estop``, ...) and ``text`` why; ``progress`` is the station's share of
+    its mission done (0..1)."""
 
     stamp: Stamp
     seq: Seq
     node: Name
     ok: bool = True
+    state: NodeState = ""
+    progress: Annotated[float, Meta(ge=0.0, le=1.0)] | None = None
     rates_hz: dict[Name, Annotated[float, Meta(ge=0, le=1e6)]] = {}
     latencies_ms: dict[Name, Annotated[float, Meta(ge=0, le=1e9)]] = {}
     counters: dict[Name, Annotated[int, Meta(ge=0)]] = {}
@@ -271,6 +283,54 @@ class EstopState(_Msg, kw_only=True):
     latched: bool
     source: Name = ""
     reason: Text = ""
+
+
+MissionAction = Literal["start", "pause", "resume", "abort", "send", "status"]
+MissionPhase = Literal["idle", "running", "paused", "finished", "aborted"]
+
+
+class MissionRequest(_Msg, kw_only=True):
+    """A query on ``scm/<robot>/control``: a person's request to the station (``send`` carries the new mission)."""
+
+    stamp: Stamp
+    action: MissionAction
+    spec: MissionSpec | None = None
+    source: Name = ""
+
+
+class MissionState(_Msg, kw_only=True):
+    """The station's answer on ``scm/<robot>/control``: the mission's phase after the request, whether the request
+    was done (``accepted``) and, in words, what was done or why it was refused (``text``) and why the mission is
+    where it is (``reason``: ``paused: estop latched by operator``)."""
+
+    stamp: Stamp
+    robot: Name
+    phase: MissionPhase
+    mission: Name = ""
+    accepted: bool = True
+    text: Text = ""
+    reason: Text = ""
+    progress: Annotated[float, Meta(ge=0.0, le=1.0)] = 0.0
+
+
+class EngageRequest(_Msg, kw_only=True):
+    """A query on ``scm/<robot>/engage``: a person asks the driver host to take the vehicle into its control
+    (``engaged=False``: hand it back, stopped)."""
+
+    stamp: Stamp
+    engaged: bool = True
+    source: Name = ""
+
+
+class EngageState(_Msg, kw_only=True):
+    """The driver host's answer on ``scm/<robot>/engage``: engaged or not after the request, and in words what was
+    done or why not (``waiting for the operator: mode HOLD, disarmed``)."""
+
+    stamp: Stamp
+    node: Name
+    engaged: bool
+    accepted: bool = True
+    text: Text = ""
 
 
 class MessageError(ValueError):
@@ -309,6 +369,8 @@ __all__ = [
     "TOPICS",
     "Applied",
     "Command",
+    "EngageRequest",
+    "EngageState",
     "Estop",
     "EstopState",
     "Keys",
@@ -316,7 +378,9 @@ __all__ = [
     "Limits",
     "MessageError",
     "Method",
+    "MissionRequest",
     "MissionSpec",
+    "MissionState",
     "PairRecord",
     "Pairs",
     "Status",

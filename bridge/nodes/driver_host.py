@@ -31,10 +31,11 @@ import numpy as np
 import zenoh
 
 from bridge.core import wire as M
+from bridge.core.args import pose_arg, positive_float, robot_arg
 from bridge.core.clock import ClockOffset
 from bridge.core.config import DriverConfig, load_driver
+from bridge.core.errors import UsageError
 from bridge.core.gate import CommandGate, Decision
-from bridge.nodes.cliutil import pose_arg, positive_float
 from bridge.nodes.node import Inputs, add_zenoh_args, stop_on_signals, zenoh_config
 from bridge.nodes.zsession import open_session
 from drivers.base import Driver, LinkHealth
@@ -242,22 +243,16 @@ class DriverHost:
                 self.wake.clear()
 
 
-def _args(argv: list[str] | None) -> argparse.Namespace:
-    ap = argparse.ArgumentParser(prog="scmbridge driver", description=__doc__,
-                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+def arguments(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--link", choices=["can", "mavlink", "udp"], required=True)
     ap.add_argument("--config", help="driver TOML (scmbridge config show --kind driver; deploy/driver*.example.toml)")
-    ap.add_argument("--robot", default=None, help="robot name (overrides the config)")
+    ap.add_argument("--robot", type=robot_arg, default=None, help="robot name (overrides the config)")
     add_zenoh_args(ap)
     ap.add_argument("--rate", type=positive_float, default=None, help="control loop rate, Hz (overrides the config)")
     ap.add_argument("--duration", type=positive_float, default=None, help="stop after this many seconds")
     ap.add_argument("--emulate", action="store_true", help="host emulated CAN motor controllers in-process")
     ap.add_argument("--model", default="mpc", help="learner model for --emulate (mpc, experiment, scaled)")
     ap.add_argument("--x0", type=pose_arg, default=(0.0, 0.0, 0.0), help="start pose x,y,theta for --emulate")
-    args = ap.parse_args(argv)
-    if args.emulate and args.link != "can":
-        ap.error("--emulate hosts CAN motor controllers; run `scmbridge learner` for the other links")
-    return args
 
 
 def _emulated_ecus(cfg, model: str, x0: tuple[float, float, float]):
@@ -272,9 +267,9 @@ def _emulated_ecus(cfg, model: str, x0: tuple[float, float, float]):
                          wheel_radius=cfg.wheel_radius, track_width=cfg.track_width).start()
 
 
-def main(argv: list[str] | None = None) -> int:
-    args = _args(argv)
-    logging.basicConfig(level=logging.INFO, format="%(asctime)s driver %(levelname)s %(message)s")
+def run(args: argparse.Namespace) -> int:
+    if args.emulate and args.link != "can":
+        raise UsageError("--emulate hosts CAN motor controllers; run `scmbridge learner` for the other links")
     cfg = load_driver(args.config)  # a mistake ends here, before any link or session opens
     robot = M.check_robot(args.robot or cfg.robot)
     link_cfg = getattr(cfg.link, args.link)

@@ -33,8 +33,9 @@ import numpy as np
 import zenoh
 
 from bridge.core import wire as M
+from bridge.core.args import positive_float, robot_arg
 from bridge.core.config import StationConfig, load_mission, load_station, mission_from_spec
-from bridge.nodes.cliutil import positive_float
+from bridge.core.paths import save_atomic
 from bridge.nodes.node import FixedRate, Inputs, add_zenoh_args, stop_on_signals, zenoh_config
 from bridge.nodes.pairing import IntervalPairer
 from bridge.nodes.zsession import open_session
@@ -49,28 +50,6 @@ log = logging.getLogger("scmbridge.station")
 
 #: a driver host publishes status each second: after this long without one, the robot is not known to be fit
 DRIVER_STATUS_MAX_AGE = 3.0
-
-
-def save_atomic(path: Path, data: bytes) -> None:
-    """Write ``data`` so that ``path`` holds either the old or the new content, never a torn file; on failure
-    (a full disk) the temporary file is removed and the error raised."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    try:
-        with open(tmp, "wb") as f:
-            f.write(data)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
-    dfd = os.open(path.parent, os.O_DIRECTORY)
-    try:
-        os.fsync(dfd)
-    finally:
-        os.close(dfd)
 
 
 def load_store(path: Path, learner: Bounds, teacher: Bounds, grid, k_min: int) -> tuple[PairStore, str]:
@@ -451,19 +430,18 @@ class Station:
             periodic = self.ticker.wait(self.wake if self.teacher_kind == "external" else None)
 
 
-def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="scmbridge station", description=__doc__,
-                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+def arguments(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--config", help="station TOML (scmbridge config show --kind station)")
-    ap.add_argument("--robot", default=None, help="robot name (overrides the config)")
+    ap.add_argument("--robot", type=robot_arg, default=None, help="robot name (overrides the config)")
     ap.add_argument("--mission", default=None, help="mission file (TOML; overrides the config)")
     add_zenoh_args(ap)
     ap.add_argument("--rate", type=positive_float, default=None, help="control tick rate, Hz (overrides the config)")
     ap.add_argument("--store", default=None, help="pair store file (persisted atomically, reloaded at start)")
-    ap.add_argument("--duration", type=positive_float, default=None)
+    ap.add_argument("--duration", type=positive_float, default=None, help="stop after this many seconds")
     ap.add_argument("--exit-at-goal", action="store_true", help="stop the service once the goal is reached")
-    args = ap.parse_args(argv)
-    logging.basicConfig(level=logging.INFO, format="%(asctime)s station %(levelname)s %(message)s")
+
+
+def run(args: argparse.Namespace) -> int:
     cfg = load_station(args.config)  # mistakes end here, before any session opens
     mission = load_mission(args.mission or cfg.station.mission or None)
     robot = M.check_robot(args.robot or cfg.robot)

@@ -12,14 +12,13 @@ robot (the driver host follows one sender at a time and would refuse it). Progre
 from __future__ import annotations
 
 import argparse
-import logging
 from pathlib import Path
 
 import msgspec
 
 from bridge.core import wire as M
+from bridge.core.args import positive_float, robot_arg
 from bridge.core.config import ConfigError, load_mission, load_station
-from bridge.nodes.cliutil import positive_float
 from bridge.nodes.node import add_zenoh_args, stop_on_signals, zenoh_config
 from bridge.nodes.station import Station
 from bridge.nodes.zsession import open_session
@@ -37,23 +36,23 @@ def grid_arg(text: str) -> tuple[int, int]:
     return nv, nw
 
 
-def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="scmbridge calibrate", description=__doc__,
-                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+def arguments(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--config", help="station TOML ([calibration], bounds, store)")
-    ap.add_argument("--robot", default=None, help="robot name (overrides the config)")
+    ap.add_argument("--robot", type=robot_arg, default=None, help="robot name (overrides the config)")
     ap.add_argument("--store", default=None, help="pair store file (overrides the config)")
     ap.add_argument("--grid", type=grid_arg, default=None, help="commands per axis, e.g. 5x5 (overrides the config)")
     ap.add_argument("--hold", type=positive_float, default=None, help="seconds each command is held")
     ap.add_argument("--max-distance", type=positive_float, default=None, help="m from the start before stopping")
-    ap.add_argument("--max-time", type=positive_float, default=None, help="s before stopping")
+    ap.add_argument("--duration", type=positive_float, default=None, help="seconds before stopping (the config's "
+                    "max_time_s by default)")
     add_zenoh_args(ap)
-    args = ap.parse_args(argv)
-    logging.basicConfig(level=logging.INFO, format="%(asctime)s calibrate %(levelname)s %(message)s")
+
+
+def run(args: argparse.Namespace) -> int:
     cfg = load_station(args.config)
     c = cfg.calibration
     overrides = {k: v for k, v in (("grid", args.grid), ("hold_s", args.hold), ("max_distance_m", args.max_distance),
-                                   ("max_time_s", args.max_time)) if v is not None}
+                                   ("max_time_s", args.duration)) if v is not None}
     if "max_distance_m" in overrides and c.return_radius_m >= overrides["max_distance_m"]:
         overrides["return_radius_m"] = 0.4 * overrides["max_distance_m"]
     if overrides:

@@ -1,103 +1,223 @@
-"""The ``scmbridge`` command.
+"""The ``scmbridge`` command: one grammar for every command (its reference is docs/CLI.md, generated from here).
 
-Subcommands are resolved lazily: only the module of the command asked for is imported (``import casadi`` or
-``pymavlink`` cost a noticeable fraction of a second each). Every command module exposes
-``main(argv: list[str]) -> int`` with its own argparse parser. A configuration mistake
-(:class:`bridge.core.config.ConfigError`) ends the command with exit status 2 and one line naming the file, the key and
-the problem; commands read their configuration before they open any link or session.
+Every command, one word (``station``) or two (``config check``, ``bench fleet``), is one entry of
+:data:`COMMANDS` naming the module that implements it. That module defines ``arguments(parser)`` (its options)
+and ``run(args) -> int`` (for a two-word command ``arguments_<word>`` and ``run_<word>``). Only the module of the
+command asked for is imported. Every command takes ``--log-level`` and ``--help``; ``scmbridge --version``.
+Expected failures end with one line and exit status 2 (:class:`UsageError`, a configuration error).
 """
 
 from __future__ import annotations
 
+import argparse
 import importlib
+import inspect
+import logging
 import os
+import re
+import shlex
 import sys
+from dataclasses import dataclass
+from importlib import metadata
 from pathlib import Path
+from typing import Any
+
+from bridge.core.errors import UsageError
 
 # The numerical work here is small matrices (a 20-step MPC, 2 x 2 maps): OpenBLAS's default worker threads only
-# spin between calls (one station: 22-32 ms of CPU per tick against 9-15 ms single-threaded) and steal the CPU other
-# stations and the driver host need. Set before anything imports numpy; an explicit setting in the environment wins.
+# spin between calls and steal the CPU other stations and the driver host need. Set before anything imports numpy;
+# an explicit setting in the environment wins.
 #: one BLAS / OpenMP thread: what every station process runs with (the shipped units set it too)
 ONE_BLAS_THREAD = {"OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
 for _var, _val in ONE_BLAS_THREAD.items():
     os.environ.setdefault(_var, _val)
 
-#: command -> (module, one-line help). ``bench`` and ``sim`` take a second word.
-COMMANDS: dict[str, tuple[str, str]] = {
-    "demo": ("bridge.tools.demo", "station + driver host + emulated learner over Zenoh on 127.0.0.1 (MPC S-path)"),
-    "station": ("bridge.nodes.station", "the base-station service: teacher + transfer loop publishing commands"),
-    "driver": ("bridge.nodes.driver_host", "the driver host: Zenoh commands -> vehicle link, telemetry -> state"),
-    "learner": ("sim_learner.emulator", "a software learner behind a vehicle link (can, mavlink, udp)"),
-    "sim": ("sim_learner.experiments", "the paper's simulations: sim primitives|mpc|grid --out DIR"),
-    "calibrate": ("bridge.tools.calibrate", "the calibration stage: a bounded grid of learner commands into the store"),
-    "view": ("bridge.tools.live", "a live view of robots in Foxglove (WebSocket server; --mcap writes the same)"),
-    "estop": ("bridge.tools.estop",
-              "estop --robot R|--all [--release --source NAME]: stop now, or release, and confirm"),
-    "config": ("bridge.core.config", "config check FILE | config show --kind station|driver|mission"),
-    "pairs": ("bridge.tools.pairs_cli", "see what was learned: pairs show|plot --robot R | --store FILE"),
-    "deploy": ("bridge.tools.deploy", "deploy acl|client|certs: the lab's TLS + access-control Zenoh configs"),
-    "bench scm": ("bench.scm", "Schwarz-Christoffel map build/evaluate timings (JSON)"),
-    "bench transfer": ("bench.transfer", "transfer policy per-command cost (JSON)"),
-    "bench mpc": ("bench.mpc", "MPC closed-loop solve times (JSON)"),
-    "bench bridge": ("bench.bridge", "end-to-end latency and 50 Hz loop jitter over Zenoh (JSON)"),
-    "record": ("bridge.tools.record", "record scm/** (or one robot) into an MCAP file, with schemas"),
-    "replay": ("bridge.tools.replay", "republish a recording on its Zenoh keys at the recorded pace (or faster)"),
-    "report": ("bridge.tools.report", "figures and the demo's summary figures from a recording"),
-    "bench fleet": ("bench.fleet", "how many robots one base station holds at 10 Hz, N stations (JSON)"),
-    "bench fuzz": ("bench.fuzz", "mutated input at every trust boundary, counts checked exactly; RSS (JSON)"),
-    "bench soak": ("bench.soak", "the HIL loop driving the mission for --minutes: RSS trend, deadlines (JSON)"),
-    "bench pairing": ("bench.pairing", "a link's command pairs against the learner's true response (JSON)"),
-}
+LOG_LEVELS = ("debug", "info", "warning", "error")
+WIDTH = 110  # help text width: fixed, so docs/CLI.md does not depend on the terminal
 
 
-def _usage() -> str:
-    lines = ["usage: scmbridge COMMAND [ARGS...]", "", "commands:"]
-    lines += [f"  {name:<16} {text}" for name, (_, text) in COMMANDS.items()]
-    lines += ["", "Run `scmbridge COMMAND --help` for a command's options."]
+@dataclass(frozen=True)
+class Command:
+    """One command: its words, the module implementing it and a one-line summary."""
+
+    name: str
+    module: str
+    summary: str
+
+    @property
+    def words(self) -> list[str]:
+        return self.name.split()
+
+    def suffix(self, module: Any) -> str:
+        """The module's function names for this command: ``arguments_check``/``run_check`` for ``config check`` when
+        the module defines them (one module for several commands), else ``arguments``/``run``."""
+        sub = "_" + self.words[-1]
+        return sub if len(self.words) == 2 and hasattr(module, f"run{sub}") else ""
+
+
+_C = Command
+#: every command, in the order ``scmbridge --help`` lists them
+COMMANDS: list[Command] = [
+    _C("demo", "bridge.tools.demo", "station + driver host + emulated learner over Zenoh on 127.0.0.1 (the S-path)"),
+    _C("station", "bridge.nodes.station", "the base-station service: teacher + transfer loop publishing commands"),
+    _C("driver", "bridge.nodes.driver_host", "the driver host: Zenoh commands -> vehicle link, telemetry -> state"),
+    _C("learner", "sim_learner.emulator", "a software learner behind a vehicle link, as its own process"),
+    _C("calibrate", "bridge.tools.calibrate", "the calibration stage: a bounded grid of learner commands"),
+    _C("estop", "bridge.tools.estop", "stop one robot or every robot now, or release the latch, and confirm"),
+    _C("view", "bridge.tools.live", "a live view of robots in Foxglove (a WebSocket server)"),
+    _C("record", "bridge.tools.record", "record scm/** (or some robots) into an MCAP file"),
+    _C("replay", "bridge.tools.replay", "republish a recording on its Zenoh keys"),
+    _C("report", "bridge.tools.report", "the run's figures and summary from a recording"),
+    _C("pairs show", "bridge.tools.pairs_cli", "print what a station learned: refined pairs and limits"),
+    _C("pairs plot", "bridge.tools.pairs_cli", "draw what a station learned on both command domains"),
+    _C("config check", "bridge.tools.config_cmd", "validate a station, driver or mission file"),
+    _C("config show", "bridge.tools.config_cmd", "print a commented default configuration"),
+    _C("deploy acl", "bridge.tools.deploy", "the base station router's TLS + access-control Zenoh config"),
+    _C("deploy client", "bridge.tools.deploy", "a client's TLS Zenoh config (a robot, the operator)"),
+    _C("deploy certs", "bridge.tools.deploy", "a throwaway CA and certificates (tests, a first try)"),
+    _C("sim mpc", "sim_learner.experiments", "the paper's MPC simulation (or a seed sweep)"),
+    _C("sim grid", "sim_learner.experiments", "the paper's exhaustive grid test of a learned store"),
+    _C("sim primitives", "sim_learner.experiments", "the paper's motion-primitive simulation"),
+    _C("bench scm", "bench.scm", "Schwarz-Christoffel map build and evaluation timings (JSON)"),
+    _C("bench transfer", "bench.transfer", "transfer policy cost per command (JSON)"),
+    _C("bench mpc", "bench.mpc", "MPC solve times and closed-loop results per solver (JSON)"),
+    _C("bench bridge", "bench.bridge", "end-to-end latency and 50 Hz loop jitter over Zenoh (JSON)"),
+    _C("bench fleet", "bench.fleet", "how many robots one base station holds at 10 Hz (JSON)"),
+    _C("bench fuzz", "bench.fuzz", "mutated input at every trust boundary, counts checked exactly (JSON)"),
+    _C("bench soak", "bench.soak", "the HIL loop driving for a long time: RSS trend, deadlines (JSON)"),
+    _C("bench pairing", "bench.pairing", "a link's command pairs against the learner's true response (JSON)"),
+]
+BY_NAME = {c.name: c for c in COMMANDS}
+GROUPS = {c.words[0] for c in COMMANDS if len(c.words) == 2}
+
+
+def plain(text: str) -> str:
+    """Docstring markup (``code``, :class:`x`, **bold**) as plain text for ``--help``."""
+    text = re.sub(r":(?:class|func|mod|meth|data|attr):`~?([^`]+)`", r"\1", text)
+    return text.replace("``", "").replace("**", "")
+
+
+class _Formatter(argparse.RawDescriptionHelpFormatter):
+    """Descriptions keep their paragraphs; everything is wrapped at :data:`WIDTH` whatever the terminal."""
+
+    def __init__(self, prog: str) -> None:
+        super().__init__(prog, width=WIDTH, max_help_position=32)
+
+
+def version() -> str:
+    try:
+        return metadata.version("scmbridge")
+    except metadata.PackageNotFoundError:
+        return "unknown"
+
+
+def _description(module: Any, summary: str, suffix: str) -> str:
+    """The command's help text: its ``run`` function's docstring (or its module's), as plain text."""
+    fn = getattr(module, f"run{suffix}", None)
+    doc = (fn.__doc__ if fn is not None and fn.__doc__ else module.__doc__) or summary
+    return plain(inspect.cleandoc(doc))
+
+
+def _bench_tree() -> None:
+    """Benchmarks live in the source tree's top-level ``bench/``, not in the installed package: put that tree on
+    the import path, or raise :class:`UsageError` saying where to run them from."""
+    tree = Path(__file__).resolve().parents[2]
+    if not (tree / "bench" / "__init__.py").exists():
+        raise UsageError("the benchmarks ship with the source tree (bench/), not with the installed package: "
+                         "run them from a clone")
+    if str(tree) not in sys.path:
+        sys.path.insert(0, str(tree))
+
+
+def load(cmd: Command) -> Any:
+    """The module implementing ``cmd``."""
+    if cmd.module.startswith("bench."):
+        _bench_tree()
+    return importlib.import_module(cmd.module)
+
+
+def parser_for(cmd: Command, module: Any | None = None) -> argparse.ArgumentParser:
+    """The full parser of one command (its module's options plus ``--log-level``)."""
+    module = module if module is not None else load(cmd)
+    suffix = cmd.suffix(module)
+    p = argparse.ArgumentParser(prog=f"scmbridge {cmd.name}", description=_description(module, cmd.summary, suffix),
+                                formatter_class=_Formatter, allow_abbrev=False)
+    getattr(module, f"arguments{suffix}")(p)
+    p.add_argument("--log-level", choices=LOG_LEVELS, default="info", help="what is logged (default info)")
+    return p
+
+
+def _listing(names: list[Command], title: str) -> str:
+    lines = [title, ""]
+    lines += [f"  {c.name:<18} {c.summary}" for c in names]
     return "\n".join(lines)
 
 
-def _bench_path() -> str:
-    """Benchmarks live in the source tree's top-level ``bench/`` (not in the installed product): put that tree on
-    the import path, or say why it cannot be found."""
-    tree = Path(__file__).resolve().parents[2]
-    if not (tree / "bench" / "__init__.py").exists():
-        return "the benchmarks ship with the source tree (bench/), not with the installed package: run from a clone"
-    if str(tree) not in sys.path:
-        sys.path.insert(0, str(tree))
-    return ""
+def root_help() -> str:
+    return "\n".join([
+        "usage: scmbridge [--version] COMMAND [OPTIONS]", "",
+        "Teacher-to-learner command transfer with Schwarz-Christoffel maps, bridged to robots over Zenoh.", "",
+        _listing(COMMANDS, "commands:"), "",
+        "Every command takes --help and --log-level {debug,info,warning,error}.",
+        "The reference of every command and option: docs/CLI.md."])
+
+
+def group_help(group: str) -> str:
+    subs = [c for c in COMMANDS if c.words[0] == group]
+    names = "|".join(c.words[1] for c in subs)
+    return f"usage: scmbridge {group} {{{names}}} [OPTIONS]\n\n" + _listing(subs, f"{group} commands:")
+
+
+def setup_logging(level: str, name: str) -> None:
+    logging.basicConfig(level=getattr(logging, level.upper()),
+                        format=f"%(asctime)s {name.replace(' ', '-')} %(levelname)s %(message)s")
 
 
 def main(argv: list[str] | None = None) -> int:
-    """Dispatch to the command module; returns the process exit code."""
+    """Dispatch to the command's module; returns the process exit code."""
     args = list(sys.argv[1:] if argv is None else argv)
     if not args or args[0] in ("-h", "--help", "help"):
-        print(_usage())
+        print(root_help())
         return 0
-    name, rest = args[0], args[1:]
-    if name == "bench":
-        if not rest or rest[0].startswith("-"):
-            benches = ",".join(n.split()[1] for n in COMMANDS if n.startswith("bench "))
-            print(f"usage: scmbridge bench {{{benches}}} [OPTIONS]", file=sys.stderr)
+    if args[0] == "--version":
+        print(f"scmbridge {version()}")
+        return 0
+    word = args[0]
+    if word in GROUPS:
+        if len(args) < 2 or args[1] in ("-h", "--help"):
+            print(group_help(word), file=sys.stdout if len(args) >= 2 else sys.stderr)
+            return 0 if len(args) >= 2 else 2
+        name, rest = f"{word} {args[1]}", args[2:]
+        if name not in BY_NAME:
+            print(f"scmbridge: unknown command {name!r}\n\n{group_help(word)}", file=sys.stderr)
             return 2
-        name, rest = f"bench {rest[0]}", rest[1:]
-    if name not in COMMANDS:
-        print(f"scmbridge: unknown command {name!r}\n\n{_usage()}", file=sys.stderr)
+    elif word in BY_NAME:
+        name, rest = word, args[1:]
+    else:
+        print(f"scmbridge: unknown command {word!r}\n\n{root_help()}", file=sys.stderr)
         return 2
-    from bridge.core.config import ConfigError
-
-    target = COMMANDS[name][0]
-    if target.startswith("bench."):
-        err = _bench_path()
-        if err:
-            print(f"scmbridge {name}: error: {err}", file=sys.stderr)
-            return 2
-    module = importlib.import_module(target)
+    cmd = BY_NAME[name]
     try:
-        return int(module.main(rest) or 0)
-    except ConfigError as exc:  # a user's mistake: one line, no traceback
+        module = load(cmd)
+        ns = parser_for(cmd, module).parse_args(rest)
+        ns.command_line = shlex.join(["scmbridge", *cmd.words, *rest])  # what a generated file says made it
+        setup_logging(ns.log_level, name)
+        return int(getattr(module, f"run{cmd.suffix(module)}")(ns) or 0)
+    except UsageError as exc:  # a person's mistake or an expected failure: one line, no traceback
         print(f"scmbridge {name}: error: {exc}", file=sys.stderr)
         return 2
+    except KeyboardInterrupt:
+        return 130
+
+
+def reference() -> str:
+    """docs/CLI.md: every command's help page, generated from the parsers (``make cli-doc``)."""
+    out = ["# scmbridge command reference", "",
+           "Generated from the parsers by `make cli-doc` (tests/test_cli.py checks it is current).", "",
+           "```", root_help(), "```", ""]
+    for cmd in COMMANDS:
+        out += [f"## scmbridge {cmd.name}", "", "```", parser_for(cmd).format_help().rstrip(), "```", ""]
+    return "\n".join(out)
 
 
 if __name__ == "__main__":

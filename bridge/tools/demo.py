@@ -1,21 +1,10 @@
-"""``scmbridge demo``: the hardware-in-the-loop demo over Zenoh, or ``--inprocess`` the SC transfer alone.
+"""``scmbridge demo``: the hardware-in-the-loop demo over Zenoh on 127.0.0.1, or ``--inprocess`` the SC transfer alone.
 
-Default: three separate processes on 127.0.0.1 (free port, no multicast scouting): the driver host with the
-learner's emulated CAN motor controllers on a python-can ``virtual`` channel inside it, the station (teacher MPC +
-transfer policy, starting with no command pairs) and this monitor. The learner drives the MPC S-path; a live
-one-line status shows rate, method counts, deviation and progress; at the end a summary and a figure
-(``--out``, default ``demo_out/``). It ends on its own at the goal or at ``--timeout``, and on Ctrl-C, leaving no
-process behind.
-
-``--robots N`` (N > 1): one base station, many robots. N emulated learners ``demo1..demoN`` at once, each its own
-driver host (with its own emulated controllers) and its own station process, all clients of this one router hub,
-each in its own namespace ``scm/demoK/...`` on the same mission from the same start. A live line summarises them
-all; at the end a summary per robot (``summary demoK: {...}``), one line ``fleet: {...}`` and a figure with every
-trajectory (``demo_fleet.png``). Exit 0 when every robot reached its goal, else 1 and the names of those that did
-not.
-
-``--inprocess``: learn pairs from the paper's nonlinear learner, map teacher commands with SCM, the identity
-baseline and the barycentric alternative, drive the learner 0.1 s with each and print how far each lands.
+A driver host with the emulated learner on the chosen link, a station (teacher MPC + transfer, starting with no
+pairs) and this process as the Zenoh hub; the learner drives the mission (the paper's S-path) while a live line
+shows progress; at the end a summary, the figures and the logs in ``--out``. ``--count N`` or ``--robots a,b,c``:
+several robots, each its own driver host and station, behind the same hub. It ends at the goal, after ``--duration``
+or on Ctrl-C, leaving no process behind; exit 1 names any robot that did not reach its goal.
 """
 
 from __future__ import annotations
@@ -31,6 +20,8 @@ from contextlib import ExitStack
 
 import numpy as np
 
+from bridge.core.args import positive_float, robots_arg
+from bridge.core.errors import UsageError
 from bridge.nodes.node import Inputs
 
 
@@ -181,7 +172,7 @@ def _watch(mon: Monitor, kids, world, timeout: float) -> None:
         print()
 
 
-def hil(args: argparse.Namespace) -> int:
+def hil(args: argparse.Namespace, robot: str) -> int:
     """Three processes over Zenoh on a free loopback port, watched by this one (see the module docstring)."""
     from pathlib import Path
 
@@ -196,7 +187,7 @@ def hil(args: argparse.Namespace) -> int:
     world = load_mission(args.mission)
     if world.start is None:
         raise SystemExit(f"scmbridge demo: error: mission {world.name!r} has no start pose for the emulated learner")
-    robot, port = "demo", free_port()
+    port = free_port()
     x0 = ",".join(f"{a:.6f}" for a in world.start)
     client = ["--robot", robot, "--mode", "client", "--connect", tcp(port)]
     mon = None
@@ -208,11 +199,11 @@ def hil(args: argparse.Namespace) -> int:
         kids = stack.enter_context(Children())
         mon = Monitor(session, robot)
         try:
-            driver_args = emulated_link(kids, args.link, out, x0, args.timeout + 15, logs["driver"])
-            kids.spawn(["driver", *driver_args, *client, "--duration", str(args.timeout + 15)], logs["driver"])
-            kids.spawn(["station", *client, "--store", str(store), "--exit-at-goal", "--duration", str(args.timeout),
+            driver_args = emulated_link(kids, args.link, out, x0, args.duration + 15, logs["driver"])
+            kids.spawn(["driver", *driver_args, *client, "--duration", str(args.duration + 15)], logs["driver"])
+            kids.spawn(["station", *client, "--store", str(store), "--exit-at-goal", "--duration", str(args.duration),
                         *(["--mission", args.mission] if args.mission else [])], logs["station"])
-            _watch(mon, kids, world, args.timeout)
+            _watch(mon, kids, world, args.duration)
         except KeyboardInterrupt:
             print("\ninterrupted: stopping the demo's processes", file=sys.stderr)
     summary = mon.summary(world) if mon is not None else None
@@ -298,8 +289,8 @@ def _fleet_figure(out, world, trajs: dict[str, np.ndarray], link: str) -> None:
     plt.close(fig)
 
 
-def fleet(args: argparse.Namespace) -> int:
-    """``--robots N``: N robots, each a driver host and a station process, behind this one router hub."""
+def fleet(args: argparse.Namespace, robots: list[str]) -> int:
+    """Several robots, each a driver host and a station process, behind this one router hub."""
     from pathlib import Path
 
     from bridge.core.config import load_mission
@@ -311,8 +302,7 @@ def fleet(args: argparse.Namespace) -> int:
     world = load_mission(args.mission)
     if world.start is None:
         raise SystemExit(f"scmbridge demo: error: mission {world.name!r} has no start pose for the emulated learner")
-    robots = [f"demo{k + 1}" for k in range(args.robots)]
-    timeout = args.timeout
+    timeout = args.duration
     port = free_port()
     x0 = ",".join(f"{a:.6f}" for a in world.start)  # every robot in its own namespace: the same start for all
     mons: dict[str, Monitor] = {}
@@ -384,31 +374,36 @@ def fleet(args: argparse.Namespace) -> int:
                   f"(past the path's end; max deviation {summaries[r]['max_dev_m']:.2f} m)")
     if trajs:
         _fleet_figure(out, world, trajs, args.link)
-        print(f"figure: {out / 'demo_fleet.png'}; pair stores: {out}/pairs-demo*.bin; logs: {out}/demo*-*.log")
+        print(f"figure: {out / 'demo_fleet.png'}; pair stores: {out}/pairs-*.bin; logs: {out}/*-driver.log, "
+              f"{out}/*-station.log")
     if missing:
         print(f"not at the goal: {', '.join(missing)}", file=sys.stderr)
         return 1
     return 0
 
 
-def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="scmbridge demo", description=__doc__,
-                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+def arguments(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--link", choices=["can", "udp", "mavlink"], default="can", help="vehicle link")
     ap.add_argument("--mission", default=None, help="mission file (default: the paper's S-path)")
-    ap.add_argument("--out", default="demo_out")
-    ap.add_argument("--timeout", type=float, default=None,
-                    help="seconds before the demo gives up (default 120; with --robots N, 120 + 30 per extra robot)")
-    ap.add_argument("--robots", type=int, default=1,
-                    help="N emulated learners demo1..demoN at once, each its own driver host and station process")
+    ap.add_argument("--out", default="demo_out", help="directory for the figures, the pair stores and the logs")
+    ap.add_argument("--duration", type=positive_float, default=None,
+                    help="seconds before the demo gives up (default 120; 30 more per extra robot)")
+    who = ap.add_mutually_exclusive_group()
+    who.add_argument("--robots", type=robots_arg, default=None,
+                     help="emulated learners to run at once, comma-separated names, each its own driver host and "
+                          "station process (default: one robot, demo)")
+    who.add_argument("--count", type=int, default=None, help="N emulated learners demo1..demoN at once")
     ap.add_argument("--inprocess", action="store_true", help="the in-process SC transfer example instead")
-    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--seed", type=int, default=0, help="(--inprocess) random generator seed")
     ap.add_argument("--commands", type=int, default=8, help="(--inprocess) teacher commands to show")
-    args = ap.parse_args(argv)
-    if args.robots < 1:
-        ap.error("--robots must be at least 1")
-    if args.timeout is None:
-        args.timeout = 120.0 + 30.0 * (args.robots - 1)
+
+
+def run(args: argparse.Namespace) -> int:
+    if args.count is not None and args.count < 1:
+        raise UsageError("--count must be at least 1")
+    robots = args.robots or ([f"demo{k + 1}" for k in range(args.count)] if args.count else ["demo"])
+    if args.duration is None:
+        args.duration = 120.0 + 30.0 * (len(robots) - 1)
     if args.inprocess:
         return inprocess(args)
-    return hil(args) if args.robots == 1 else fleet(args)
+    return hil(args, robots[0]) if len(robots) == 1 and not args.count else fleet(args, robots)

@@ -44,7 +44,6 @@ from __future__ import annotations
 import argparse
 import ipaddress
 import json
-import shlex
 import shutil
 import subprocess
 import sys
@@ -53,6 +52,8 @@ from pathlib import Path
 from typing import Any
 
 from bridge.core import wire as M
+from bridge.core.args import robots_arg
+from bridge.core.errors import UsageError
 
 #: what a robot's driver host publishes, and what it listens to (docs/ARCHITECTURE.md section 3)
 ROBOT_PUBLISHES = ("state", "applied")
@@ -315,62 +316,71 @@ def _sans(addresses: Sequence[str]) -> list[str]:
     return out
 
 
-def main(argv: list[str] | None = None) -> int:
-    """``scmbridge deploy acl|client|certs``; configs go to stdout, errors are one line and exit status 2."""
-    argv = list(sys.argv[1:] if argv is None else argv)
-    ap = argparse.ArgumentParser(prog="scmbridge deploy", description=__doc__,
-                                 formatter_class=argparse.RawDescriptionHelpFormatter)
-    sub = ap.add_subparsers(dest="what", required=True)
-    acl = sub.add_parser("acl", help="the base station router's TLS + access-control config (JSON5, to stdout)")
-    acl.add_argument("--robots", required=True, help="comma-separated robot names (= their certificates' CN)")
-    acl.add_argument("--station-cn", default="station", help="the station's certificate CN (default station)")
-    acl.add_argument("--operator-cn", default="operator", help="the operator's certificate CN (default operator)")
-    acl.add_argument("--mocap-cn", default=None, help="a motion-capture bridge's CN (may publish every robot's mocap)")
-    acl.add_argument("--teacher-cn", default=None, help="an external teacher's CN (publishes teacher, sees state "
-                                                        "and limits)")
-    acl.add_argument("--listen", default=LAB_LISTEN, help=f"router endpoint tls/ADDR:PORT (default {LAB_LISTEN})")
-    acl.add_argument("--certs", default=LAB_CERTS,
-                     help=f"directory of ca.crt and the station's key and certificate (default {LAB_CERTS})")
-    cli = sub.add_parser("client", help="a client's TLS config (a robot's driver host, the operator; to stdout)")
-    cli.add_argument("--name", required=True, help="the client's certificate CN (a robot's name, operator, ...)")
-    cli.add_argument("--connect", default=LAB_LISTEN, help=f"the router's endpoint (default {LAB_LISTEN})")
-    cli.add_argument("--certs", default=LAB_CERTS, help=f"directory of ca.crt and <name>.key/.crt "
-                                                       f"(default {LAB_CERTS})")
-    crt = sub.add_parser("certs", help="a throwaway CA and certificates made with openssl (tests, a first try)")
-    crt.add_argument("--robots", required=True, help="comma-separated robot names")
-    crt.add_argument("--station-cn", default="station")
-    crt.add_argument("--operator-cn", default="operator")
-    crt.add_argument("--extra", default="", help="more comma-separated names to certify")
-    crt.add_argument("--station-address", action="append", default=[],
-                     help="an address clients use to reach the router, written into the station's certificate "
-                          "(repeatable; default 127.0.0.1)")
-    crt.add_argument("--days", type=int, default=30, help="validity in days (default 30)")
-    crt.add_argument("--out", required=True, help="output directory")
-    args = ap.parse_args(argv)
-    command = " ".join(["scmbridge deploy", *(shlex.quote(a) for a in argv)])
+def arguments_acl(ap: argparse.ArgumentParser) -> None:
+    ap.add_argument("--robots", type=robots_arg, required=True,
+                    help="comma-separated robot names (= their certificates' CN)")
+    ap.add_argument("--station-cn", default="station", help="the station's certificate CN (default station)")
+    ap.add_argument("--operator-cn", default="operator", help="the operator's certificate CN (default operator)")
+    ap.add_argument("--mocap-cn", default=None, help="a motion-capture bridge's CN (may publish every robot's mocap)")
+    ap.add_argument("--teacher-cn", default=None, help="an external teacher's CN (publishes teacher, sees state "
+                                                       "and limits)")
+    ap.add_argument("--listen", default=LAB_LISTEN, help=f"router endpoint tls/ADDR:PORT (default {LAB_LISTEN})")
+    ap.add_argument("--certs", default=LAB_CERTS,
+                    help=f"directory of ca.crt and the station's key and certificate (default {LAB_CERTS})")
 
-    try:
-        if args.what == "acl":
-            conf = router_config(_names(args.robots), station_cn=args.station_cn, operator_cn=args.operator_cn,
-                                 listen=args.listen, certs=args.certs, mocap_cn=args.mocap_cn,
-                                 teacher_cn=args.teacher_cn)
-            sys.stdout.write(render(conf, command))
-        elif args.what == "client":
-            sys.stdout.write(render(client_config(args.name, connect=args.connect, certs=args.certs), command,
-                                    CLIENT_HEADER))
-        else:
-            robots = _names(args.robots)
-            _check_names(robots, args.station_cn, args.operator_cn)
-            names = [args.station_cn, args.operator_cn, *robots, *_names(args.extra)]
-            make_certs(Path(args.out), names, station_cn=args.station_cn,
-                       station_sans=_sans(args.station_address or ["127.0.0.1"]), days=args.days)
-            print(f"wrote a throwaway CA and certificates for {', '.join(names)} to {args.out}: for tests and a "
-                  "first try only, a lab issues its own (deploy/README.md)", file=sys.stderr)
-    except (ValueError, RuntimeError) as exc:
-        print(f"scmbridge deploy {args.what}: error: {exc}", file=sys.stderr)
-        return 2
+
+def run_acl(args: argparse.Namespace) -> int:
+    """Print the base station router's Zenoh config (JSON5): mutual TLS only, no scouting, and the access control
+    generated from the wire contract for the given robots (default deny)."""
+    conf = _or_usage(lambda: router_config(args.robots, station_cn=args.station_cn, operator_cn=args.operator_cn,
+                                           listen=args.listen, certs=args.certs, mocap_cn=args.mocap_cn,
+                                           teacher_cn=args.teacher_cn))
+    sys.stdout.write(render(conf, args.command_line))
     return 0
 
 
-if __name__ == "__main__":
-    sys.exit(main())
+def arguments_client(ap: argparse.ArgumentParser) -> None:
+    ap.add_argument("--name", required=True, help="the client's certificate CN (a robot's name, operator, ...)")
+    ap.add_argument("--connect", default=LAB_LISTEN, help=f"the router's endpoint (default {LAB_LISTEN})")
+    ap.add_argument("--certs", default=LAB_CERTS, help=f"directory of ca.crt and <name>.key/.crt "
+                                                      f"(default {LAB_CERTS})")
+
+
+def run_client(args: argparse.Namespace) -> int:
+    """Print a client's Zenoh config (JSON5): mutual TLS to the base station's router with this name's
+    certificate (a robot's driver host, the operator's console, a station-side tool)."""
+    conf = _or_usage(lambda: client_config(args.name, connect=args.connect, certs=args.certs))
+    sys.stdout.write(render(conf, args.command_line, CLIENT_HEADER))
+    return 0
+
+
+def arguments_certs(ap: argparse.ArgumentParser) -> None:
+    ap.add_argument("--robots", type=robots_arg, required=True, help="comma-separated robot names")
+    ap.add_argument("--station-cn", default="station")
+    ap.add_argument("--operator-cn", default="operator")
+    ap.add_argument("--extra", default="", help="more comma-separated names to certify")
+    ap.add_argument("--station-address", action="append", default=[],
+                    help="an address clients use to reach the router, written into the station's certificate "
+                         "(repeatable; default 127.0.0.1)")
+    ap.add_argument("--days", type=int, default=30, help="validity in days (default 30)")
+    ap.add_argument("--out", required=True, help="output directory")
+
+
+def run_certs(args: argparse.Namespace) -> int:
+    """Make a throwaway CA and one certificate per name with openssl, for tests and a lab's first try (a lab
+    issues its certificates from its own PKI)."""
+    _or_usage(lambda: _check_names(args.robots, args.station_cn, args.operator_cn))
+    names = [args.station_cn, args.operator_cn, *args.robots, *_names(args.extra)]
+    _or_usage(lambda: make_certs(Path(args.out), names, station_cn=args.station_cn,
+                                 station_sans=_sans(args.station_address or ["127.0.0.1"]), days=args.days))
+    print(f"wrote a throwaway CA and certificates for {', '.join(names)} to {args.out}: for tests and a "
+          "first try only, a lab issues its own (deploy/README.md)", file=sys.stderr)
+    return 0
+
+
+def _or_usage(fn: Any) -> Any:
+    """``fn()``, with its ValueError or RuntimeError (a bad name, openssl missing) as a one-line UsageError."""
+    try:
+        return fn()
+    except (ValueError, RuntimeError) as exc:
+        raise UsageError(str(exc)) from None

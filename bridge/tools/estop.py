@@ -18,6 +18,7 @@ import time
 import zenoh
 
 from bridge.core import wire as M
+from bridge.core.args import positive_float, robot_arg
 from bridge.nodes.node import add_zenoh_args, zenoh_config
 from bridge.nodes.zsession import open_session
 
@@ -37,18 +38,19 @@ def latch_states(session: zenoh.Session, selector: str, timeout: float) -> dict[
     return out
 
 
-def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="scmbridge estop", description=__doc__,
-                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+def arguments(ap: argparse.ArgumentParser) -> None:
     who = ap.add_mutually_exclusive_group(required=True)
-    who.add_argument("--robot", help="the robot to stop")
+    who.add_argument("--robot", type=robot_arg, help="the robot to stop")
     who.add_argument("--all", action="store_true", help="every robot whose driver host answers")
     ap.add_argument("--release", action="store_true", help="release a latched estop (needs a configured --source)")
     ap.add_argument("--source", default="operator", help="who you are (driver hosts release only named sources)")
     ap.add_argument("--reason", default="", help="why, for the driver hosts' logs")
-    ap.add_argument("--timeout", type=float, default=1.0, help="seconds to wait for the driver hosts' answers")
+    ap.add_argument("--timeout", type=positive_float, default=1.0,
+                    help="seconds to wait for the driver hosts' answers")
     add_zenoh_args(ap)
-    args = ap.parse_args(argv)
+
+
+def run(args: argparse.Namespace) -> int:
     engaged = not args.release
     with open_session(zenoh_config(args)) as session:
         if args.all:

@@ -30,6 +30,7 @@ import msgspec
 import zenoh
 
 from bridge.core import wire as M
+from bridge.core.args import positive_float, robot_arg, robots_arg
 from bridge.core.config import load_mission, mission_from_spec
 from bridge.nodes.node import add_zenoh_args, stop_on_signals, zenoh_config
 from bridge.nodes.zsession import open_session
@@ -170,22 +171,22 @@ class LiveView:
             view.channel(topic, JSON_TOPICS[topic]).log(msgspec.to_builtins(msg))
 
 
-def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="scmbridge view", description=__doc__,
-                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+def arguments(ap: argparse.ArgumentParser) -> None:
     who = ap.add_mutually_exclusive_group(required=True)
-    who.add_argument("--robot", action="append", help="a robot to show (repeatable)")
+    who.add_argument("--robot", type=robot_arg, help="the robot to show")
+    who.add_argument("--robots", type=robots_arg, help="the robots to show, comma-separated")
     who.add_argument("--all", action="store_true", help="every robot on the network")
     ap.add_argument("--host", default="127.0.0.1", help="the Foxglove WebSocket server's address")
     ap.add_argument("--port", type=int, default=8765, help="its port (0: any free one, printed)")
     ap.add_argument("--mcap", default=None, help="also write what is shown into this MCAP file")
     ap.add_argument("--mission", default=None, help="mission drawn until one is published (default: the S-path)")
-    ap.add_argument("--duration", type=float, default=None)
+    ap.add_argument("--duration", type=positive_float, default=None, help="stop after this many seconds")
     add_zenoh_args(ap)
-    args = ap.parse_args(argv)
-    logging.basicConfig(level=logging.INFO, format="%(asctime)s view %(levelname)s %(message)s")
+
+
+def run(args: argparse.Namespace) -> int:
     mission = load_mission(args.mission)
-    selectors = ["scm/**"] if args.all else [f"scm/{M.check_robot(r)}/**" for r in args.robot]
+    selectors = ["scm/**"] if args.all else [f"scm/{r}/**" for r in (args.robots or [args.robot])]
     view = LiveView(mission)
     stop = stop_on_signals()
     server = foxglove.start_server(name="scmbridge", host=args.host, port=args.port)

@@ -40,7 +40,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from bridge.core import wire as M
-from bridge.nodes.cliutil import positive_float
+from bridge.core.args import positive_float, robot_arg
+from bridge.core.errors import UsageError
 from bridge.nodes.node import add_zenoh_args, zenoh_config
 from transfer.domain import Bounds
 from transfer.store import PairStore
@@ -51,7 +52,7 @@ COMMAND_WAIT_S = 1.0
 TEACHER_WAIT_S = 0.2
 
 
-class PairsError(Exception):
+class PairsError(UsageError):
     """A problem the user has to act on (no station, unreadable store); ``str()`` is the one line to print."""
 
 
@@ -401,51 +402,51 @@ def pairs_figure(store_path: str | Path, out_png: str | Path, region: list[int] 
                 None if region is None else [int(i) for i in region])
 
 
-def _robot_arg(text: str) -> str:
-    """A robot name that is one Zenoh key chunk (a mistake is an argparse error, exit status 2)."""
-    try:
-        return M.check_robot(text)
-    except ValueError as exc:
-        raise argparse.ArgumentTypeError(str(exc)) from None
-
-
-def main(argv: list[str] | None = None) -> int:
-    common = argparse.ArgumentParser(add_help=False)
-    src = common.add_mutually_exclusive_group(required=True)
-    src.add_argument("--robot", type=_robot_arg, help="ask the running station of this robot over Zenoh")
+def _source(ap: argparse.ArgumentParser) -> None:
+    src = ap.add_mutually_exclusive_group(required=True)
+    src.add_argument("--robot", type=robot_arg, help="ask the running station of this robot over Zenoh")
     src.add_argument("--store", help="read a pair store file instead (offline; it carries its bounds)")
-    common.add_argument("--config", help="the station's TOML: command bounds and grid for --robot (default: the "
-                                         "station defaults)")
-    common.add_argument("--timeout", type=positive_float, default=3.0,
-                        help="seconds to wait for the station's answer (default 3)")
-    add_zenoh_args(common)
-    ap = argparse.ArgumentParser(prog="scmbridge pairs", description=__doc__,
-                                 formatter_class=argparse.RawDescriptionHelpFormatter)
-    sub = ap.add_subparsers(dest="action", required=True, metavar="{show,plot}")
-    show = sub.add_parser("show", parents=[common], help="print the refined pairs, limits, cells, latest command")
-    show.add_argument("--json", action="store_true", help="one JSON object instead of the table")
-    plot = sub.add_parser("plot", parents=[common], help="draw the teacher and learner command domains")
-    plot.add_argument("--out", required=True, help="the figure to write (FILE.png)")
-    args = ap.parse_args(argv)
-    try:
-        if args.action == "plot":
-            try:
-                import matplotlib  # noqa: F401
-            except ImportError:
-                raise PairsError("plot needs matplotlib (pip install 'scmbridge[sims]')") from None
-        view = gather(args)
-        if args.action == "show":
-            print(json.dumps(view.as_json()) if args.json else table(view))
-        else:
-            out = draw(view, args.out)
-            print(f"figure: {out} ({view.summary()})")
-            for w in view.warnings:
-                print(f"warning: {w}", file=sys.stderr)
-    except PairsError as exc:
-        print(f"scmbridge pairs: error: {exc}", file=sys.stderr)
-        return 2
+    ap.add_argument("--config", help="the station's TOML: command bounds and grid for --robot (default: the "
+                                     "station defaults)")
+    ap.add_argument("--timeout", type=positive_float, default=3.0,
+                    help="seconds to wait for the station's answer (default 3)")
+    add_zenoh_args(ap)
+
+
+def arguments_show(ap: argparse.ArgumentParser) -> None:
+    _source(ap)
+    ap.add_argument("--json", action="store_true", help="one JSON object instead of the table")
+
+
+def arguments_plot(ap: argparse.ArgumentParser) -> None:
+    _source(ap)
+    ap.add_argument("--out", required=True, help="the figure to write (FILE.png)")
+
+
+def run_show(args: argparse.Namespace) -> int:
+    """Print what a station learned: one row per refined pair (id = its learner grid cell, cluster size, teacher
+    and learner commands), the learned limits, the configured cells and, live, how the latest command was
+    obtained. --robot asks the running station over Zenoh; --store reads a pair store file offline."""
+    view = gather(args)
+    print(json.dumps(view.as_json()) if args.json else table(view))
     return 0
 
 
-__all__ = ["Learned", "LatestCommand", "PairsError", "draw", "from_message", "from_store", "main", "pairs_figure",
+def run_plot(args: argparse.Namespace) -> int:
+    """Draw the paper's command-domain figures of what a station learned: the teacher domain with the learned
+    limits, the refined pairs and their Delaunay triangulation, and the learner domain with the refinement grid;
+    live, the region that mapped the latest command is shaded."""
+    try:
+        import matplotlib  # noqa: F401
+    except ImportError:
+        raise PairsError("plot needs matplotlib (pip install 'scmbridge[sims]')") from None
+    view = gather(args)
+    out = draw(view, args.out)
+    print(f"figure: {out} ({view.summary()})")
+    for w in view.warnings:
+        print(f"warning: {w}", file=sys.stderr)
+    return 0
+
+
+__all__ = ["Learned", "LatestCommand", "PairsError", "draw", "from_message", "from_store", "pairs_figure",
            "table"]

@@ -36,7 +36,9 @@ from typing import Any
 import numpy as np
 
 from bridge.core import wire as M
-from bridge.tools.record import Entry, parse_key, read_recording, wire_bytes
+from bridge.core.args import robot_arg
+from bridge.core.errors import UsageError
+from bridge.tools.mcap_format import Entry, parse_key, read_recording, wire_bytes
 
 #: ``applied`` reasons that carry the seq of the command they executed (a stop command included)
 _EXECUTED = ("cmd", "clamped", "stop")
@@ -284,18 +286,19 @@ def report(files: list[str], out: Path, robot: str | None = None, mission_file: 
     return result
 
 
-def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="scmbridge report", description=__doc__,
-                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+def arguments(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("files", nargs="+", help="MCAP file(s) of one recording, in order")
     ap.add_argument("--out", required=True, help="directory for report.json and the figures")
-    ap.add_argument("--robot", default=None, help="the robot to report (needed when several were recorded)")
+    ap.add_argument("--robot", type=robot_arg, default=None,
+                    help="the robot to report (needed when several were recorded)")
     ap.add_argument("--mission", default=None, help="mission file when the recording holds no mission message")
     ap.add_argument("--no-figures", action="store_true", help="only report.json and the summary")
-    args = ap.parse_args(argv)
+
+
+def run(args: argparse.Namespace) -> int:
     for f in args.files:
         if not Path(f).is_file():
-            ap.error(f"{f}: no such file")
+            raise UsageError(f"{f}: no such file")
     out = Path(args.out)
     try:
         result = report(args.files, out, args.robot, args.mission, figures=not args.no_figures)

@@ -1,9 +1,11 @@
-"""Small argument types the commands share: a user's mistake is one argparse line and exit status 2."""
+"""Argument types every command shares: a mistake is one argparse line and exit status 2."""
 
 from __future__ import annotations
 
 import argparse
 import math
+
+from bridge.core.wire import check_robot
 
 
 def pose_arg(text: str) -> tuple[float, float, float]:
@@ -26,3 +28,21 @@ def positive_float(text: str) -> float:
     if not (math.isfinite(val) and val > 0):
         raise argparse.ArgumentTypeError(f"{text!r} must be a finite number > 0")
     return val
+
+
+def robot_arg(text: str) -> str:
+    """A robot name: one Zenoh key chunk (``[A-Za-z0-9_-]``, 1-64 characters)."""
+    try:
+        return check_robot(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+
+
+def robots_arg(text: str) -> list[str]:
+    """Comma-separated robot names (at least one, no repeats)."""
+    names = [robot_arg(a.strip()) for a in text.split(",") if a.strip()]
+    if not names:
+        raise argparse.ArgumentTypeError("give at least one robot name")
+    if len(set(names)) != len(names):
+        raise argparse.ArgumentTypeError(f"{text!r} names a robot twice")
+    return names
