@@ -7,22 +7,11 @@ obstacles. The simulations, the demo and the station all read the same files.
 
 from __future__ import annotations
 
-import math
-
-import numpy as np
-from numpy.typing import NDArray
-
 from bridge.core.config import load_mission
 from transfer.mission import Mission
 
 #: the simulations' name for a mission
 World = Mission
-
-
-def s_path(length: float = 8.0, amplitude: float = 1.2, n: int = 400) -> NDArray[np.float64]:
-    """An S: y = A sin(2 pi x / length) for x in [0, length] (how the shipped S-path missions were made)."""
-    x = np.linspace(0.0, length, n)
-    return np.stack([x, amplitude * np.sin(2 * math.pi * x / length)], axis=-1)
 
 
 def mpc_world(scale: float = 1.0) -> Mission:

@@ -63,5 +63,5 @@ def test_the_example_external_teacher_drives_the_robot_through_the_transfer_serv
     assert limits and limits[-1].version >= 2  # the learned limits reached the teacher as they changed
     assert status is not None and status.counters.get("malformed_teacher", 0) == 0
     # what a transfer-only station sends: mapped (SC, or its affine/barycentric fallback where an SC map fails),
-    # direct, perturbed or a stop; never a calibration or manual command
+    # direct, perturbed or a stop; never a calibration command
     assert {c.method for c in got["cmd"]} <= {"scm", "affine", "barycentric", "direct", "perturb", "stop"}

@@ -81,16 +81,6 @@ class Mission:
         """May a transfer policy explore (perturb) here? Only at least ``clearance`` from every obstacle's edge."""
         return self.min_clearance(xy) >= clearance
 
-    def nearest_obstacles(self, xy: ArrayLike, radius: float, limit: int) -> tuple[NDArray[np.float64], int]:
-        """The obstacles whose edge is within ``radius`` of ``xy``, nearest first, at most ``limit`` of them, and
-        how many within ``radius`` were left out (a controller with a fixed number of obstacle slots says so)."""
-        if self.obstacles.size == 0:
-            return self.obstacles, 0
-        c = self.clearance(xy)
-        near = np.flatnonzero(c <= radius)
-        order = near[np.argsort(c[near], kind="stable")]
-        return self.obstacles[order[:limit]], max(0, order.size - limit)
-
     def scaled(self, k: float, name: str | None = None) -> Mission:
         """The same mission ``k`` times smaller or larger (positions and radii; the goal tolerance and the start's
         heading kept)."""

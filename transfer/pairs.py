@@ -36,14 +36,3 @@ def teacher_equivalent(x0: ArrayLike, x1: ArrayLike, dt: float) -> NDArray[np.fl
     v = (d[..., 0] * np.cos(th) + d[..., 1] * np.sin(th)) / dt
     w = np.asarray(wrap_angle(b[..., 2] - th)) / dt
     return np.stack([v, w], axis=-1)
-
-
-def pairing_residual(x0: ArrayLike, x1: ArrayLike, dt: float) -> NDArray[np.float64] | float:
-    """Lateral displacement (m) the teacher model cannot explain: a quality measure for a pair."""
-    a = np.asarray(x0, dtype=float)
-    b = np.asarray(x1, dtype=float)
-    th = a[..., 2]
-    d = b[..., :2] - a[..., :2]
-    lat = -d[..., 0] * np.sin(th) + d[..., 1] * np.cos(th)
-    out = np.abs(lat)
-    return float(out) if np.ndim(out) == 0 else out

@@ -93,7 +93,7 @@ Name = Annotated[str, Meta(max_length=64)]
 Epoch = Annotated[int, Meta(ge=0, le=2**63 - 1)]  # 0: a sender that does not say (tests, old tools)
 Text = Annotated[str, Meta(max_length=1024)]
 
-Method = Literal["scm", "affine", "barycentric", "direct", "perturb", "stop", "calibrate", "manual"]
+Method = Literal["scm", "affine", "barycentric", "direct", "perturb", "stop", "calibrate"]
 
 
 class _Msg(Struct, forbid_unknown_fields=True, omit_defaults=True):

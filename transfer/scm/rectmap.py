@@ -386,33 +386,6 @@ class RectangleMap:
         out[~ok] = np.nan
         return out
 
-    # helpers used by QuadTransfer to carry corner offsets exactly
-    def _user_parts(self, cs: NDArray[np.int64], ds: NDArray[np.complex128]) -> tuple[NDArray[np.int64],
-                                                                                     NDArray[np.complex128]]:
-        """Internal (corner, delta) -> (user corner or -1, user unit-square offset / absolute point)."""
-        r = self._r
-        K, Kp = self._K, self._Kp
-        dprime = ds.imag / Kp - 1j * ds.real / (2.0 * K)
-        uc = np.where(cs >= 0, (cs + r) % 4, -1)
-        absolute = self._internal_to_square(np.full_like(cs, -1), ds)
-        return uc, np.where(cs >= 0, _ROT[r] * dprime, absolute)
-
-    def _from_user_parts(self, uc: NDArray[np.int64], dd: NDArray[np.complex128]) -> NDArray[np.complex128]:
-        r = self._r
-        K, Kp = self._K, self._Kp
-        dprime = dd / _ROT[r]
-        d_corner = -2.0 * K * dprime.imag + 1j * Kp * dprime.real
-        cs_abs, ds_abs = self._square_to_internal(dd)
-        cs = np.where(uc >= 0, (uc - r) % 4, cs_abs)
-        ds = np.where(uc >= 0, d_corner, ds_abs)
-        return self._forward_internal(cs.astype(np.int64), ds)
-
-    @property
-    def prevertices(self) -> NDArray[np.complex128]:
-        """Strip prevertices in the user's vertex order."""
-        out = np.empty_like(self._z)
-        out[self._order] = self._z
-        return out
 
 
 class QuadTransfer:
