@@ -240,7 +240,13 @@ class RectangleMap:
             if math.isfinite(F) and abs(F) < 1e3 * target:
                 return np.array([y])
         best, best_err = y0, np.inf
-        starts = [y0] if y0.size == 1 else [y0, self._initial_guess(math.exp(y0[0]), False)]
+        L0 = math.exp(y0[0])
+        # the guess's L0 comes from the polygon's side lengths, which a reflex corner can make far off: retry from
+        # a ladder of strip lengths around it before giving up (each start is a few hundred residual evaluations)
+        ladder = [f * L0 for f in (0.5, 2.0, 0.25, 4.0, 0.125, 8.0, 1 / 16, 16.0)]
+        starts = [y0] if y0.size == 1 else [y0, self._initial_guess(L0, False)]
+        starts += [self._initial_guess(L, True) for L in ladder] if y0.size > 1 else [np.array([math.log(L)])
+                                                                                       for L in ladder]
         for start in starts:
             sol = scipy.optimize.root(residual, start, method="hybr", options={"xtol": 1e-14})
             F = residual(sol.x)
