@@ -75,7 +75,7 @@ HARD_V, HARD_W = (-0.5, 0.5), (-1.0, 1.0)
 INPUTS = ("zenoh_cmd", "zenoh_estop", "udp_driver", "udp_robot", "can_decoder", "can_driver", "can_ecu",
           "mavlink_driver", "mavlink_rover")
 LOCAL = "127.0.0.1"
-GATE_VERDICTS = ("accepted", "out_of_order", "old_epoch", "foreign_epoch", "seq_jump")
+GATE_VERDICTS = ("accepted", "out_of_order", "old_epoch", "foreign_epoch", "seq_jump", "stamp_jump")
 
 
 # ============================================================================================= small helpers

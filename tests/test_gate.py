@@ -86,8 +86,51 @@ def test_a_stop_is_a_stop_whatever_the_limits() -> None:
     assert g.decide(0.01) == Decision(0.0, 0.0, "stop", 1)
     g.offer(_cmd(2, 0.0, 0.0), 0.02)
     assert g.decide(0.03) == Decision(0.0, 0.0, "stop", 2)
-    g.offer(_cmd(3, 0.1, 0.0), 0.04)  # not a stop: clamped into the limits
-    assert g.decide(0.05) == Decision(0.2, 0.0, "clamped", 3)
+    g.offer(_cmd(3, 0.6, 0.0), 0.04)  # not a stop: clamped into the limits, in its own direction
+    assert g.decide(0.05) == Decision(0.5, 0.0, "clamped", 3)
+
+
+def test_a_command_the_vehicle_cannot_do_in_its_direction_is_a_stop_never_mirrored() -> None:
+    """Finding: with hard limits v = [0.05, ...], v = -99 reached the vehicle as +0.05 (and (0, 0.3) as
+    (0.05, 0.3)): clamping turned a request into motion the other way."""
+    g = CommandGate(Bounds((0.05, 0.5), (0.1, 1.0)), cmd_timeout=0.3)
+    cases = [((-99.0, 0.3), None), ((0.0, 0.3), None), ((0.03, 0.3), None), ((0.2, -0.5), None),
+             ((0.9, 0.3), (0.5, 0.3)), ((0.2, 5.0), (0.2, 1.0)), ((0.2, 0.5), (0.2, 0.5))]
+    for k, ((v, w), want) in enumerate(cases, start=1):
+        g.offer(_cmd(k, v, w), 0.01 * k)
+        d = g.decide(0.01 * k + 0.001)
+        if want is None:
+            assert d == Decision(0.0, 0.0, "refused", k), (v, w, d)
+        else:
+            assert (d.v, d.omega) == want and d.driving, (v, w, d)
+    assert g.counters["refused_range"] == 4
+
+
+def test_a_forged_jump_inside_the_real_epoch_locks_the_station_out_for_a_few_commands_at_most() -> None:
+    """Finding: a forged Command with the station's epoch and seq + 135, sent 90 ms after a real one, was applied
+    and then locked the real station (10 Hz) out for 13.5 s."""
+    g = CommandGate(LIMITS, cmd_timeout=0.3)
+    t = 100.0
+    for k in range(1, 21):  # the real station: 10 Hz, stamps on its own clock (1000 s off ours), 2 ms latency
+        assert g.offer(M.Command(stamp=t - 1000.0 - 0.002, seq=k, v=0.1, omega=0.0, method="scm", epoch=STATION), t)
+        t += 0.1
+    last = 20
+    forged = M.Command(stamp=t - 1000.0 - 0.01, seq=last + 135, v=0.5, omega=1.0, method="scm", epoch=STATION)
+    assert not g.offer(forged, t - 0.01)  # 135 seqs in 90 ms: no station counts that fast
+    assert g.counters["seq_jump"] == 1
+    ahead = M.Command(stamp=t - 1000.0 + 5.0, seq=last + 2, v=0.5, omega=1.0, method="scm", epoch=STATION)
+    assert not g.offer(ahead, t - 0.005)  # stamped 5 s after it arrived: not the station's clock
+    assert g.counters["stamp_jump"] == 1
+    # the worst a forger inside the epoch can do: the largest jump the rate bound lets through
+    sneaky = M.Command(stamp=t - 1000.0 - 0.004, seq=last + 5, v=0.5, omega=1.0, method="scm", epoch=STATION)
+    assert g.offer(sneaky, t - 0.004)
+    refused = 0
+    for k in range(last + 1, last + 12):  # the real station goes on at 10 Hz
+        ok = g.offer(M.Command(stamp=t - 1000.0 - 0.002, seq=k, v=0.1, omega=0.0, method="scm", epoch=STATION), t)
+        refused += not ok
+        t += 0.1
+    assert refused <= 2 and g.counters["resyncs"] == 1, (refused, g.counters)
+    assert g.latest is not None and g.latest.v == 0.1 and g.latest.seq == last + 11
 
 
 def test_only_a_configured_source_releases_a_latched_estop() -> None:

@@ -9,10 +9,13 @@ sequence numbers"):
 - a message of another epoch is taken (the sender restarted: a new station run, a rebooted robot) once the stream
   it follows has been silent for ``silence_s``; while that stream is alive, a second sender is refused (counted);
 - a message of an epoch it has left is refused unless its seq is above the last one seen from that epoch: a
-  replayed or reordered message of an earlier run is refused, while a sender that was only silent can come back.
+  replayed or reordered message of an earlier run is refused, while a sender that was only silent can come back;
+- within the epoch, a stamp later than its own receipt (on the sender's clock as the stream shows it) is refused,
+  and a sender found behind a forged jump is followed again after a few messages.
 
 :class:`CommandGate` is the driver host's gate for ``cmd``: freshness (validity and the deadman), the estop latch
-(released only by a source the configuration names), clamping to the hard limits, and "a stop is a stop": a
+(released only by a source the configuration names), clamping to the hard limits where that keeps the command's
+direction (otherwise a stop: never -99 m/s into +0.05), and "a stop is a stop": a
 ``stop`` method, an exact zero command, the deadman or an estop reach the vehicle as exactly zero, whatever the
 limits say.
 """
@@ -24,6 +27,7 @@ import math
 from dataclasses import dataclass, field
 
 from bridge.core import wire as M
+from bridge.core.clock import ClockOffset
 from transfer.domain import Bounds
 
 log = logging.getLogger("scmbridge.gate")
@@ -39,20 +43,34 @@ class SeqGate:
     replay (refused, ``old_epoch``) unless its seq is above that epoch's last one, in which case that sender is
     simply back (after the usual silence). So a forged new epoch slipped in during a dropout holds the vehicle
     only until it goes silent; it cannot lock the real sender out.
+
+    Within the followed epoch, messages that carry the sender's stamp are also checked against time: the least
+    ``receipt - stamp`` of the stream (its clock offset plus the least latency) puts each stamp on this clock, and a
+    message stamped more than ``stamp_tolerance`` after its own receipt cannot have been sent by that sender
+    (``stamp_jump``). If the sender keeps sending below a seq the gate took (``resync_after`` fresh messages in a
+    row with rising seqs), the gate follows it again (``resync``): a forged jump inside the real epoch locks the real
+    sender out for a few messages at most.
     """
 
-    def __init__(self, silence_s: float, max_rate_hz: float = 1000.0, slack: int = 50, remember: int = 64) -> None:
+    def __init__(self, silence_s: float, max_rate_hz: float = 1000.0, slack: int = 50, remember: int = 64,
+                 stamp_tolerance: float = 0.05, resync_after: int = 3, fresh_s: float = 0.5) -> None:
         self.silence_s = float(silence_s)
         self.max_rate_hz = float(max_rate_hz)
         self.slack = int(slack)
         self.remember = int(remember)
+        self.stamp_tolerance = float(stamp_tolerance)
+        self.resync_after = int(resync_after)
+        self.fresh_s = float(fresh_s)
         self.epoch: int | None = None
         self.last_seq = -1
         self.last_time = -math.inf
         self.left: dict[int, int] = {}  # epoch -> its last seq, for the epochs followed before (oldest first)
+        self.clock = ClockOffset()  # the followed sender's stamps on this clock
+        self._behind: list[int] = []  # seqs refused in a row as out of order (rising, fresh)
 
-    def accept(self, epoch: int, seq: int, now: float) -> str | None:
-        """Take ``(epoch, seq)`` received at ``now`` if it is the next of the stream; else the reason it is not."""
+    def accept(self, epoch: int, seq: int, now: float, stamp: float | None = None) -> str | None:
+        """Take ``(epoch, seq)`` received at ``now`` (with the sender's ``stamp`` when it has one) if it is the next
+        of the stream; else the reason it is not (``resync``: taken, after the sender was found behind a jump)."""
         if epoch != self.epoch:
             if seq <= self.left.get(epoch, -1):
                 return "old_epoch"
@@ -65,15 +83,57 @@ class SeqGate:
                 log.info("sender epoch %x followed instead of %x after %.2f s of silence", epoch, self.epoch,
                          now - self.last_time)
             self.left.pop(epoch, None)
-            self.epoch, self.last_seq = epoch, seq
-            self.last_time = now
+            self.clock.reset()
+            self._take(epoch, seq, now, stamp)
             return None
+        offset = self.clock.offset
+        if stamp is not None and offset is not None and stamp + offset > now + self.stamp_tolerance:
+            return "stamp_jump"  # sent after it arrived: not this sender's clock
         if seq <= self.last_seq:
-            return "out_of_order"
+            return self._out_of_order(seq, now, stamp, offset)
         if seq - self.last_seq > self.slack + self.max_rate_hz * max(0.0, now - self.last_time):
             return "seq_jump"
-        self.last_seq, self.last_time = seq, now
+        self._take(epoch, seq, now, stamp)
         return None
+
+    def _take(self, epoch: int, seq: int, now: float, stamp: float | None) -> None:
+        self.epoch, self.last_seq, self.last_time = epoch, seq, now
+        if stamp is not None:
+            self.clock.restamp(stamp, now)
+        self._behind.clear()
+
+    def _out_of_order(self, seq: int, now: float, stamp: float | None, offset: float | None) -> str:
+        """A message of the followed epoch at or below the last seq: a replay, a reordering, or the real sender
+        behind a forged jump. A run of fresh ones with rising seqs is that sender, alive: follow it again."""
+        fresh = stamp is not None and offset is not None and stamp + offset >= now - self.fresh_s
+        if not fresh or (self._behind and seq <= self._behind[-1]):
+            self._behind.clear()
+        if fresh:
+            self._behind.append(seq)
+        if len(self._behind) >= self.resync_after:
+            log.warning("command stream followed again: %d commands in a row came below seq %d (a forged jump?)",
+                        len(self._behind), self.last_seq)
+            self._take(self.epoch, seq, now, stamp)  # type: ignore[arg-type]
+            return "resync"
+        return "out_of_order"
+
+
+#: the fastest a station may send commands (its configuration's rate bound is 200 Hz) and the seqs of slack on top
+MAX_COMMAND_RATE_HZ = 250.0
+COMMAND_SEQ_SLACK = 5
+
+
+def in_range(value: float, limits: tuple[float, float]) -> float | None:
+    """``value`` clamped into ``limits`` when that keeps its direction (a speed above the top, a turn sharper than
+    allowed); None when the range has nothing in its direction: below a positive minimum (a vehicle that cannot
+    crawl or reverse, asked for 0.02 m/s or for -1 m/s) or above a negative maximum. Clamping those would turn a
+    request into motion the other way (-99 m/s into +0.05)."""
+    lo, hi = limits
+    if value < lo:
+        return None if lo > 0.0 else lo
+    if value > hi:
+        return None if hi < 0.0 else hi
+    return value
 
 
 @dataclass(frozen=True)
@@ -82,7 +142,7 @@ class Decision:
 
     v: float
     omega: float
-    reason: str  # cmd | clamped | stop | deadman | estop | stale | start
+    reason: str  # cmd | clamped | refused | stop | deadman | estop | stale | start
     cmd_seq: int | None = None
 
     @property
@@ -104,18 +164,23 @@ class CommandGate:
     estop_source: str = ""
     estop_reason: str = ""
     counters: dict[str, int] = field(default_factory=lambda: {
-        "accepted": 0, "out_of_order": 0, "old_epoch": 0, "foreign_epoch": 0, "seq_jump": 0, "deadman_trips": 0,
-        "stale": 0, "clamped": 0, "stops": 0, "estops": 0, "estop_releases": 0, "estop_release_refused": 0})
+        "accepted": 0, "out_of_order": 0, "old_epoch": 0, "foreign_epoch": 0, "seq_jump": 0, "stamp_jump": 0,
+        "resyncs": 0, "deadman_trips": 0, "stale": 0, "clamped": 0, "refused_range": 0, "stops": 0, "estops": 0,
+        "estop_releases": 0, "estop_release_refused": 0})
     _deadman_active: bool = True
 
     def __post_init__(self) -> None:
         if self.seq is None:
-            self.seq = SeqGate(silence_s=self.cmd_timeout)
+            # a station ticks at <= 200 Hz (its config's bound): a few seqs of slack, and stamps that must advance
+            # like the receipts, keep a forged jump inside the real epoch from locking the station out
+            self.seq = SeqGate(silence_s=self.cmd_timeout, max_rate_hz=MAX_COMMAND_RATE_HZ, slack=COMMAND_SEQ_SLACK)
 
     def offer(self, cmd: M.Command, now: float) -> bool:
         """A decoded command arrived at ``now``; False (and counted) if it is not the next of its sender's stream."""
-        why = self.seq.accept(cmd.epoch, cmd.seq, now)
-        if why is not None:
+        why = self.seq.accept(cmd.epoch, cmd.seq, now, cmd.stamp)
+        if why == "resync":
+            self.counters["resyncs"] += 1
+        elif why is not None:
             self.counters[why] += 1
             return False
         self.latest, self.received_at = cmd, now
@@ -159,12 +224,14 @@ class CommandGate:
         if cmd.method == "stop" or (cmd.v == 0.0 and cmd.omega == 0.0):
             self.counters["stops"] += 1
             return Decision(0.0, 0.0, "stop", cmd.seq)  # a stop is a stop, whatever the limits
-        v = min(max(cmd.v, self.limits.v[0]), self.limits.v[1])
-        w = min(max(cmd.omega, self.limits.w[0]), self.limits.w[1])
+        v, w = in_range(cmd.v, self.limits.v), in_range(cmd.omega, self.limits.w)
+        if v is None or w is None:  # the vehicle cannot do it in that direction: a stop, never the other way
+            self.counters["refused_range"] += 1
+            return Decision(0.0, 0.0, "refused", cmd.seq)
         if (v, w) != (cmd.v, cmd.omega):
             self.counters["clamped"] += 1
             return Decision(v, w, "clamped", cmd.seq)
         return Decision(v, w, "cmd", cmd.seq)
 
 
-__all__ = ["DRIVING", "CommandGate", "Decision", "SeqGate"]
+__all__ = ["COMMAND_SEQ_SLACK", "DRIVING", "MAX_COMMAND_RATE_HZ", "CommandGate", "Decision", "SeqGate", "in_range"]

@@ -152,7 +152,8 @@ class Applied(_Msg, kw_only=True):
     """``scm/<robot>/applied``: what the vehicle really got and when (driver-host clock).
 
     ``cmd_seq`` is the ``Command.seq`` it came from, or absent for a stop the driver host decided itself
-    (``reason`` says why: stop (a stop command), deadman, estop, stale, shutdown, fault (a controller error),
+    (``reason`` says why: stop (a stop command), refused (outside what the vehicle can do in that direction: never
+    mirrored into motion the other way), deadman, estop, stale, shutdown, fault (a controller error),
     operator (the vehicle's operator took control), link_down, no_telemetry (no pose from the vehicle lately)).
     """
 
@@ -160,8 +161,8 @@ class Applied(_Msg, kw_only=True):
     seq: Seq
     v: Speed
     omega: Rate
-    reason: Literal["cmd", "clamped", "stop", "deadman", "estop", "stale", "shutdown", "start", "fault", "operator",
-                    "link_down", "no_telemetry"]
+    reason: Literal["cmd", "clamped", "refused", "stop", "deadman", "estop", "stale", "shutdown", "start", "fault",
+                    "operator", "link_down", "no_telemetry"]
     cmd_seq: Seq | None = None
 
 
