@@ -1,0 +1,140 @@
+"""``scmbridge status``: why is it (not) moving? One line per robot and node, from the status every node publishes
+each second (``scm/<robot>/status/<node>``): driving, or the one reason it is not (estop latched by whom, operator
+took control, waiting for engage, no pose, link down, mission paused or finished), the link, the pose's age, the
+pairs learned and the mission's progress. ``--watch`` prints it again every second until Ctrl-C.
+
+Exit status: 0 when every robot asked about is driving (or at its goal), 1 when one is not, 2 when no node
+answered (with the endpoints tried).
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import threading
+import time
+from dataclasses import dataclass, field
+
+from bridge.core import wire as M
+from bridge.core.args import positive_float, robot_arg, robots_arg
+from bridge.core.errors import UsageError
+from bridge.nodes.node import add_zenoh_args, zenoh_config
+from bridge.nodes.zsession import open_session
+
+#: a node's status older than this is reported as silent (they publish each second)
+STALE_S = 3.0
+#: the station's states in which its robot is doing what it should (driving, or done)
+GOOD = ("driving", "running", "finished")
+
+
+@dataclass
+class Seen:
+    """The latest status of every node heard, with the time it arrived."""
+
+    latest: dict[tuple[str, str], tuple[M.Status, float]] = field(default_factory=dict)
+    malformed: int = 0
+    lock: threading.Lock = field(default_factory=threading.Lock)
+
+    def on_sample(self, sample) -> None:  # Zenoh's thread: decode and store
+        parts = str(sample.key_expr).split("/")
+        try:
+            st = M.decode(sample.payload.to_bytes(), M.Status)
+        except M.MessageError:
+            with self.lock:
+                self.malformed += 1
+            return
+        if len(parts) == 4:
+            with self.lock:
+                self.latest[(parts[1], parts[3])] = (st, time.monotonic())
+
+
+def _state(st: M.Status) -> str:
+    return st.state or ("ok" if st.ok else "not ok")
+
+
+def node_line(robot: str, node: str, st: M.Status, age: float) -> str:
+    """``rover1  driver   estop     estop latched by operator | pose 0.02 s``: what a person needs at a glance."""
+    if age > STALE_S:
+        return f"{robot:<12} {node:<8} {'silent':<9} no status for {age:.0f} s (the node is down or unreachable)"
+    parts = [st.text or ("ok" if st.ok else "not ok")]
+    if st.progress is not None:
+        parts.append(f"mission {100 * st.progress:.0f}%")
+    pairs = st.counters.get("refined_pairs")
+    if pairs is not None:
+        parts.append(f"pairs {pairs}")
+    pose_ms = st.latencies_ms.get("telemetry_age")
+    if pose_ms is not None:
+        parts.append("pose never" if pose_ms >= 1e8 else f"pose {pose_ms / 1e3:.2f} s old")
+    return f"{robot:<12} {node:<8} {_state(st):<9} " + " | ".join(parts)
+
+
+def robot_ok(statuses: dict[str, tuple[M.Status, float]], now: float) -> bool:
+    """A robot is fine when its station and its driver host are heard and the station drives (or is done)."""
+    station, driver = statuses.get("station"), statuses.get("driver")
+    if station is None or driver is None or now - station[1] > STALE_S or now - driver[1] > STALE_S:
+        return False
+    st = station[0]
+    return st.ok and (st.state in GOOD or (not st.state and st.ok))
+
+
+def report(seen: Seen, robots: list[str] | None) -> tuple[list[str], bool]:
+    """The lines to print and whether every robot is fine."""
+    now = time.monotonic()
+    with seen.lock:
+        latest = dict(seen.latest)
+    names = sorted(robots if robots is not None else {r for r, _ in latest})
+    lines, all_ok = [], True
+    for robot in names:
+        nodes = {n: v for (r, n), v in latest.items() if r == robot}
+        if not nodes:
+            lines.append(f"{robot:<12} {'-':<8} {'silent':<9} no node of this robot answered")
+            all_ok = False
+            continue
+        for node in sorted(nodes, key=lambda n: (n != "station", n != "driver", n)):
+            st, at = nodes[node]
+            lines.append(node_line(robot, node, st, now - at))
+        all_ok &= robot_ok(nodes, now)
+    return lines, all_ok
+
+
+def arguments(ap: argparse.ArgumentParser) -> None:
+    who = ap.add_mutually_exclusive_group(required=True)
+    who.add_argument("--robot", type=robot_arg, help="the robot to report")
+    who.add_argument("--robots", type=robots_arg, help="the robots to report, comma-separated")
+    who.add_argument("--all", action="store_true", help="every robot whose nodes publish a status")
+    ap.add_argument("--watch", action="store_true", help="print again every second until Ctrl-C")
+    ap.add_argument("--timeout", type=positive_float, default=1.5,
+                    help="seconds to listen for the nodes' statuses (they publish each second; default 1.5)")
+    add_zenoh_args(ap)
+
+
+def run(args: argparse.Namespace) -> int:
+    robots = None if args.all else (args.robots or [args.robot])
+    selectors = ["scm/*/status/*"] if robots is None else [f"scm/{r}/status/*" for r in robots]
+    seen = Seen()
+    ok = False
+    with open_session(zenoh_config(args)) as session:
+        subs = [session.declare_subscriber(s, seen.on_sample) for s in selectors]
+        try:
+            deadline = time.monotonic() + args.timeout
+            while time.monotonic() < deadline:
+                time.sleep(0.05)
+            if not seen.latest:
+                tried = ", ".join(args.connect or args.listen) or "the Zenoh defaults"
+                raise UsageError(f"no node's status arrived within {args.timeout:g} s on {', '.join(selectors)} "
+                                 f"(endpoints: {tried}); is the router up, and may this identity read "
+                                 "scm/*/status?")
+            lines, ok = report(seen, robots)
+            print("\n".join(lines), flush=True)
+            while args.watch:
+                time.sleep(1.0)
+                lines, ok = report(seen, robots)
+                print(f"--- {time.strftime('%H:%M:%S')}\n" + "\n".join(lines), flush=True)
+        except KeyboardInterrupt:
+            pass
+        finally:
+            for s in subs:
+                s.undeclare()
+    if seen.malformed:
+        print(f"scmbridge status: {seen.malformed} malformed status messages ignored", file=sys.stderr)
+    return 0 if ok else 1

@@ -1,0 +1,62 @@
+"""``scmbridge status`` over real Zenoh: one line per robot and node naming the one reason a robot is not driving,
+and an exit status a script can use."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import threading
+import time
+
+from bridge.core import wire as M
+from bridge.nodes.zsession import free_port, make_config, open_session, tcp
+
+
+def _publisher(session, stop: threading.Event, statuses: dict[tuple[str, str], M.Status]) -> None:
+    pubs = {k: session.declare_publisher(M.status_key(*k)) for k in statuses}
+    seq = 0
+    while not stop.is_set():
+        for k, st in statuses.items():
+            pubs[k].put(M.encode(M.Status(**{**{f: getattr(st, f) for f in st.__struct_fields__},
+                                              "stamp": time.monotonic(), "seq": seq})))
+        seq += 1
+        stop.wait(0.2)
+
+
+def _status(port: int, *args: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "bridge", "status", *args, "--mode", "client", "--connect",
+                           tcp(port), "--timeout", "1.0"], capture_output=True, text=True, timeout=60)
+
+
+def test_status_names_the_reason_each_robot_is_not_driving() -> None:
+    port = free_port()
+    statuses = {
+        ("rover1", "station"): M.Status(stamp=0, seq=0, node="station", ok=True, state="driving", text="driving",
+                                        progress=0.42, counters={"refined_pairs": 17}),
+        ("rover1", "driver"): M.Status(stamp=0, seq=0, node="driver", ok=True, state="driving",
+                                       text="link can: driving (cmd)", latencies_ms={"telemetry_age": 20.0}),
+        ("rover2", "station"): M.Status(stamp=0, seq=0, node="station", ok=False, state="paused",
+                                        text="paused: estop latched by operator", progress=0.1),
+        ("rover2", "driver"): M.Status(stamp=0, seq=0, node="driver", ok=False, state="estop",
+                                       text="link udp: estop latched by operator"),
+    }
+    stop = threading.Event()
+    with open_session(make_config(mode="router", listen=[tcp(port)])) as session:
+        t = threading.Thread(target=_publisher, args=(session, stop, statuses), daemon=True)
+        t.start()
+        try:
+            every = _status(port, "--all")
+            one = _status(port, "--robot", "rover1")
+            ghost = _status(port, "--robot", "ghost")
+        finally:
+            stop.set()
+            t.join(2)
+    lines = every.stdout.strip().splitlines()
+    assert every.returncode == 1, every
+    assert len(lines) == 4 and [ln.split()[:3] for ln in lines] == [
+        ["rover1", "station", "driving"], ["rover1", "driver", "driving"],
+        ["rover2", "station", "paused"], ["rover2", "driver", "estop"]], lines
+    assert "mission 42%" in lines[0] and "pairs 17" in lines[0] and "pose 0.02 s old" in lines[1]
+    assert "estop latched by operator" in lines[2] and "estop latched by operator" in lines[3]
+    assert one.returncode == 0 and len(one.stdout.strip().splitlines()) == 2, one
+    assert ghost.returncode == 2 and "no node's status arrived" in ghost.stderr and "Traceback" not in ghost.stderr
