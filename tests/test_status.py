@@ -60,3 +60,30 @@ def test_status_names_the_reason_each_robot_is_not_driving() -> None:
     assert "estop latched by operator" in lines[2] and "estop latched by operator" in lines[3]
     assert one.returncode == 0 and len(one.stdout.strip().splitlines()) == 2, one
     assert ghost.returncode == 2 and "no node's status arrived" in ghost.stderr and "Traceback" not in ghost.stderr
+
+
+def test_a_service_waits_for_the_router_and_a_tool_says_it_is_not_there_in_one_line() -> None:
+    import threading as th
+
+    from bridge.nodes.zsession import open_session
+
+    port = free_port()
+    stop, out = th.Event(), {}
+
+    def service() -> None:
+        s = open_session(make_config(mode="client", connect=[tcp(port)]), wait=stop, what="test service")
+        out["zid"] = str(s.info.zid())
+        out["routers"] = s.info.routers_zid()
+        s.close()
+
+    t = th.Thread(target=service, daemon=True)
+    t.start()
+    time.sleep(0.6)  # the router is not up yet: the service waits, it does not exit
+    assert t.is_alive() and not out
+    with open_session(make_config(mode="router", listen=[tcp(port)])):
+        t.join(10)
+        assert not t.is_alive() and out.get("routers"), out
+    res = subprocess.run([sys.executable, "-m", "bridge", "estop", "--robot", "r1", "--mode", "client", "--connect",
+                          tcp(port)], capture_output=True, text=True, timeout=60)
+    assert res.returncode == 2 and len(res.stderr.strip().splitlines()) == 1, res.stderr
+    assert "cannot reach the Zenoh router" in res.stderr and "Traceback" not in res.stderr

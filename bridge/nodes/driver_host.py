@@ -282,7 +282,7 @@ def run(args: argparse.Namespace) -> int:
     stop = stop_on_signals()
     ecus = _emulated_ecus(link_cfg, args.model, args.x0) if args.emulate else None
     try:
-        with open_session(zenoh_config(args)) as session:
+        with open_session(zenoh_config(args), wait=stop, what="driver host") as session:
             host.serve(session, stop, args.duration)
     finally:
         host.driver.close()

@@ -453,7 +453,7 @@ def run(args: argparse.Namespace) -> int:
     warmup()  # compile / load the SC kernels before the first tick
     stop = stop_on_signals()
     try:
-        with open_session(zenoh_config(args)) as session:
+        with open_session(zenoh_config(args), wait=stop, what="station") as session:
             station.serve(session, stop, args.duration, args.exit_at_goal)
     finally:
         station.persist()

@@ -8,11 +8,18 @@ manager (or close it in ``finally``): a process that exits with a callback subsc
 from __future__ import annotations
 
 import json
+import logging
 import socket
+import threading
 from collections.abc import Sequence
 from pathlib import Path
 
 import zenoh
+
+from bridge.core.errors import UsageError
+from bridge.nodes import systemd
+
+log = logging.getLogger("scmbridge.zenoh")
 
 
 def free_port(host: str = "127.0.0.1") -> int:
@@ -64,6 +71,36 @@ def make_config(
     return conf
 
 
-def open_session(conf: zenoh.Config) -> zenoh.Session:
-    """Open a session (use it as ``with open_session(conf) as s:``)."""
-    return zenoh.open(conf)
+def _endpoints(conf: zenoh.Config) -> str:
+    try:
+        eps = json.loads(conf.get_json("connect/endpoints")) or json.loads(conf.get_json("listen/endpoints"))
+    except Exception:  # a config without them (the defaults)
+        eps = []
+    return ", ".join(str(e) for e in eps) or "the Zenoh defaults"
+
+
+def open_session(conf: zenoh.Config, wait: threading.Event | None = None, what: str = "") -> zenoh.Session:
+    """Open a session (use it as ``with open_session(conf) as s:``).
+
+    A tool (``wait`` None) tries once: a router that cannot be reached is one line (:class:`UsageError`). A service
+    passes its stop event: it keeps trying with a backoff (0.1 s doubling to 5 s), logs once what it waits for and
+    tells systemd, until it connects or ``wait`` is set (then :class:`UsageError` too: stopped while waiting). The
+    same error covers a router that is down and one that refused this TLS identity (wrong certificate or address):
+    ``scmbridge doctor`` tells them apart."""
+    delay, said = 0.1, ""
+    while True:
+        try:
+            return zenoh.open(conf)
+        except zenoh.ZError as exc:
+            reason = str(exc).split(" at ", 1)[0].strip()
+            text = (f"cannot reach the Zenoh router at {_endpoints(conf)} ({reason}): is it up, and does it accept "
+                    "this identity? (scmbridge doctor)")
+            if wait is None:
+                raise UsageError(text) from None
+            if text != said:
+                log.warning("%s%s; retrying", f"{what}: " if what else "", text)
+                systemd.status(f"waiting for the Zenoh router at {_endpoints(conf)}")
+                said = text
+            if wait.wait(delay):
+                raise UsageError(f"stopped while waiting for the Zenoh router at {_endpoints(conf)}") from None
+            delay = min(2 * delay, 5.0)
