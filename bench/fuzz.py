@@ -511,7 +511,7 @@ class CommandStream(Stream):
         v, w = (0.0, 0.0) if r < 0.05 else (rng.uniform(-99, 99), rng.uniform(-99, 99)) if r < 0.15 else (
             rng.uniform(-self.span[0], self.span[0]), rng.uniform(-self.span[1], self.span[1]))
         msg = {"stamp": time.monotonic(), "seq": self.seq + 1, "v": v, "omega": w,
-               "method": rng.choice(["scm", "direct", "perturb", "stop", "affine", "manual"]),
+               "method": rng.choice(["scm", "direct", "perturb", "stop", "affine", "calibrate"]),
                "sender": self.sender, "epoch": self.epoch}
         if rng.random() < 0.2:
             msg["valid_ms"] = rng.choice([1, 50, 300, 10_000])
