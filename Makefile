@@ -37,9 +37,11 @@ install: $(STAMP)
 demo: $(STAMP)
 	$(VENV)/bin/scmbridge demo $(ARGS)
 
+# The suite mostly waits on real time (stations at 10 Hz, links, deadmen): three workers share two cores well.
+TEST_WORKERS ?= 3
 test: $(STAMP)
 	$(VENV)/bin/ruff check .
-	$(PY) -m pytest -q $(PYTEST_ARGS)
+	$(PY) -m pytest -q -n $(TEST_WORKERS) $(PYTEST_ARGS)
 
 lint: $(STAMP)
 	$(VENV)/bin/ruff check .
