@@ -6,8 +6,18 @@ from __future__ import annotations
 
 import os
 
+import pytest
 from hypothesis import settings
 
 settings.register_profile("suite", derandomize=True, print_blob=True)
 settings.register_profile("explore", derandomize=False, print_blob=True)
 settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "suite"))
+
+
+@pytest.fixture(autouse=True)
+def _own_state_and_cache(tmp_path_factory, monkeypatch) -> None:
+    """Each test (and every process it starts) keeps its state (estop latch, pair store, mission) in a directory of
+    its own, so a latch one test leaves never stops another; the compiled-code cache is shared by the session."""
+    monkeypatch.setenv("SCMBRIDGE_STATE_DIR", str(tmp_path_factory.mktemp("state")))
+    if "SCMBRIDGE_CACHE_DIR" not in os.environ:
+        monkeypatch.setenv("SCMBRIDGE_CACHE_DIR", str(tmp_path_factory.getbasetemp() / "cache"))

@@ -183,7 +183,8 @@ def test_estop_command_latches_confirms_and_only_the_operator_releases(driver_ho
         with lis.lock:
             recent = [a for a in lis.applied if a.stamp > t_latched + 0.1]
         assert recent and all(a.reason == "estop" and a.v == 0.0 for a in recent)
-        res = subprocess.run(cli + ["--release", "--source", "fuzzer"], capture_output=True, text=True, timeout=30)
+        res = subprocess.run(cli + ["--release", "--source", "fuzzer", "--timeout", "1"], capture_output=True,
+                             text=True, timeout=30)
         assert res.returncode == 1 and "LATCHED" in res.stdout  # not a configured release source
         res = subprocess.run(cli + ["--release"], capture_output=True, text=True, timeout=30)
         assert res.returncode == 0 and "released" in res.stdout, res.stdout + res.stderr

@@ -53,6 +53,12 @@ def status_key(robot: str, node: str) -> str:
     return f"{key(robot, 'status')}/{check_robot(node)}"
 
 
+def alive_key(robot: str, node: str) -> str:
+    """A node's Zenoh liveliness token (``scm/<robot>/alive/<node>``): it stays while the node's session lives,
+    also while the process is stalled, so operator tools can find every robot, not only those that answer now."""
+    return f"{PREFIX}/{check_robot(robot)}/alive/{check_robot(node)}"
+
+
 class Keys:
     """All keys of one robot, as attributes: ``Keys("rover1").cmd == "scm/rover1/cmd"``."""
 
@@ -392,5 +398,6 @@ __all__ = [
     "key",
     "new_epoch",
     "status_key",
+    "alive_key",
     "validated",
 ]

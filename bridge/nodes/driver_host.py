@@ -200,6 +200,7 @@ class DriverHost:
         self.inputs.subscribe(session, k.cmd, M.Command, "cmd", self.on_cmd)
         self.inputs.subscribe(session, k.estop, M.Estop, "estop", self.on_estop)
         session.declare_queryable(k.estop, self.on_estop_query)
+        self.alive = session.liveliness().declare_token(M.alive_key(self.robot, "driver"))
         if self.pose_source == "mocap":
             self.inputs.subscribe(session, k.mocap, M.LearnerState, "mocap", self.on_mocap)
         self.pubs = {"applied": session.declare_publisher(k.applied), "state": session.declare_publisher(k.state),

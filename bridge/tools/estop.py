@@ -1,26 +1,34 @@
 """``scmbridge estop``: stop one robot or every robot now, or release a latched stop, and see who latched it.
 
-``scmbridge estop --robot R`` (or ``--all``) publishes an :class:`bridge.core.wire.Estop` on ``scm/<robot>/estop``,
-then asks the driver hosts (a Zenoh query on the same key, which each answers with its latch state) and prints one
-line per driver host: latched or not, and by whom. ``--release`` releases the latch; a driver host honours it only
-from a source its configuration names (``estop_release_sources``, default ``operator``), so ``--source`` must be
-one of them; the release is logged there with the source, and it is the operator action that lets a link clear
-its controllers' latched faults. Exit status: 0 when every driver host that answered is in the asked state, 1
-otherwise (or when none answered).
+``--robot R`` (or ``--robots A,B`` or ``--all``) publishes an Estop on each robot's ``scm/<robot>/estop`` and asks
+its driver host (a query on the same key, answered with the latch state) until it confirms, sending again at each
+try, for up to ``--timeout`` seconds. ``--all`` means every robot known on the network: those whose driver host
+answers, those whose driver host's liveliness token is present (a stalled host keeps it until its session expires)
+and those whose nodes publish status. ``--release`` releases the latch; a driver host honours it only from a
+source its configuration names (``estop_release_sources``), so ``--source`` must be one of them.
+
+Prints one line per driver host (latched or released, by whom). Exit status: 0 when every robot confirmed the asked
+state, 1 naming every robot that did not (or when none was found), 2 when the router cannot be reached.
 """
 
 from __future__ import annotations
 
 import argparse
 import sys
+import threading
 import time
 
 import zenoh
 
 from bridge.core import wire as M
-from bridge.core.args import positive_float, robot_arg
+from bridge.core.args import positive_float, robot_arg, robots_arg
 from bridge.nodes.node import add_zenoh_args, zenoh_config
 from bridge.nodes.zsession import open_session
+
+#: seconds one try waits for a driver host's answer
+TRY_TIMEOUT_S = 0.5
+#: seconds ``--all`` listens for status and liveliness to find robots that do not answer at once
+DISCOVER_S = 1.2
 
 
 def latch_states(session: zenoh.Session, selector: str, timeout: float) -> dict[str, M.EstopState]:
@@ -38,39 +46,92 @@ def latch_states(session: zenoh.Session, selector: str, timeout: float) -> dict[
     return out
 
 
+def known_robots(session: zenoh.Session, wait: float) -> set[str]:
+    """Every robot something on the network speaks for: estop answers, liveliness tokens, status publishers."""
+    robots: set[str] = set()
+    lock = threading.Lock()
+
+    def on_status(sample: zenoh.Sample) -> None:
+        with lock:
+            robots.add(str(sample.key_expr).split("/")[1])
+
+    sub = session.declare_subscriber(f"{M.PREFIX}/*/status/**", on_status)
+    try:
+        found = {k.split("/")[0] for k in latch_states(session, f"{M.PREFIX}/*/estop", TRY_TIMEOUT_S)}
+        for reply in session.liveliness().get(f"{M.PREFIX}/*/alive/**", timeout=TRY_TIMEOUT_S):
+            if reply.ok is not None:
+                found.add(str(reply.ok.key_expr).split("/")[1])
+        time.sleep(max(0.0, wait - 2 * TRY_TIMEOUT_S))  # nodes publish status each second
+    finally:
+        sub.undeclare()
+    with lock:
+        return found | robots
+
+
+def confirm(session: zenoh.Session, robots: list[str], msg_for, engaged: bool, deadline: float,
+            ) -> dict[str, dict[str, M.EstopState]]:
+    """Send the estop to each robot not yet confirmed and ask it, until all confirm or the deadline passes.
+    Returns ``{robot: {robot/node: state}}`` of the last answers (empty for a robot that never answered)."""
+    answers: dict[str, dict[str, M.EstopState]] = {r: {} for r in robots}
+    pending = list(robots)
+    while pending:
+        for robot in pending:
+            session.put(M.key(robot, "estop"), M.encode(msg_for()))
+        for robot in pending:
+            left = deadline - time.monotonic()
+            got = latch_states(session, M.key(robot, "estop"), max(0.05, min(TRY_TIMEOUT_S, left)))
+            if got:
+                answers[robot] = got
+        pending = [r for r in pending
+                   if not answers[r] or any(st.latched != engaged for st in answers[r].values())]
+        if not pending or time.monotonic() >= deadline:
+            break
+        time.sleep(0.1)
+    return answers
+
+
 def arguments(ap: argparse.ArgumentParser) -> None:
     who = ap.add_mutually_exclusive_group(required=True)
     who.add_argument("--robot", type=robot_arg, help="the robot to stop")
-    who.add_argument("--all", action="store_true", help="every robot whose driver host answers")
+    who.add_argument("--robots", type=robots_arg, help="these robots (comma-separated names)")
+    who.add_argument("--all", action="store_true", help="every robot found on the network")
     ap.add_argument("--release", action="store_true", help="release a latched estop (needs a configured --source)")
     ap.add_argument("--source", default="operator", help="who you are (driver hosts release only named sources)")
     ap.add_argument("--reason", default="", help="why, for the driver hosts' logs")
-    ap.add_argument("--timeout", type=positive_float, default=1.0,
-                    help="seconds to wait for the driver hosts' answers")
+    ap.add_argument("--timeout", type=positive_float, default=5.0,
+                    help="seconds to keep trying until every robot confirms")
     add_zenoh_args(ap)
 
 
 def run(args: argparse.Namespace) -> int:
     engaged = not args.release
+    deadline = time.monotonic() + args.timeout
     with open_session(zenoh_config(args)) as session:
         if args.all:
-            robots = sorted({k.split("/")[0] for k in latch_states(session, "scm/*/estop", args.timeout)})
+            robots = sorted(known_robots(session, DISCOVER_S))
             if not robots:
-                print("scmbridge estop: no driver host answered on scm/*/estop", file=sys.stderr)
+                print(f"scmbridge estop: no robot found (no answer on {M.PREFIX}/*/estop, no liveliness token, "
+                      "no status)", file=sys.stderr)
                 return 1
         else:
-            robots = [M.check_robot(args.robot)]
-        for robot in robots:
-            msg = M.Estop(stamp=time.monotonic(), engaged=engaged, source=args.source, reason=args.reason)
-            session.put(M.key(robot, "estop"), M.encode(msg))
-        time.sleep(0.2)  # the driver hosts apply it at once; give the put a moment before asking
-        states: dict[str, M.EstopState] = {}
-        for robot in robots:
-            states.update(latch_states(session, M.key(robot, "estop"), args.timeout))
-    missing = [r for r in robots if not any(k.startswith(f"{r}/") for k in states)]
-    for name, st in sorted(states.items()):
-        state = f"LATCHED by {st.source or 'unknown'}" if st.latched else "released"
-        print(f"{name}: {state}" + (f" ({st.reason})" if st.reason else ""))
-    for r in missing:
-        print(f"{r}: no driver host answered", file=sys.stderr)
-    return 0 if states and not missing and all(st.latched == engaged for st in states.values()) else 1
+            robots = [args.robot] if args.robot else list(args.robots)
+
+        def msg_for() -> M.Estop:
+            return M.Estop(stamp=time.monotonic(), engaged=engaged, source=args.source, reason=args.reason)
+
+        answers = confirm(session, robots, msg_for, engaged, max(deadline, time.monotonic() + TRY_TIMEOUT_S))
+    failed = []
+    for robot in robots:
+        states = answers[robot]
+        if not states:
+            print(f"{robot}: no driver host confirmed within {args.timeout:g} s", file=sys.stderr)
+            failed.append(robot)
+            continue
+        for name, st in sorted(states.items()):
+            state = f"LATCHED by {st.source or 'unknown'}" if st.latched else "released"
+            print(f"{name}: {state}" + (f" ({st.reason})" if st.reason else ""))
+        if any(st.latched != engaged for st in states.values()):
+            failed.append(robot)
+    if failed:
+        print(f"scmbridge estop: not confirmed by {', '.join(failed)}", file=sys.stderr)
+    return 1 if failed else 0
