@@ -41,25 +41,15 @@ def test_a_foxglove_client_sees_pose_scene_commands_and_health_live(tmp_path) ->
                 channels: dict[str, dict] = {}
                 subscribed: dict[int, str] = {}
                 got: dict[str, list[bytes]] = {}
-                t_end = time.monotonic() + 30
-                seq = 0
-                while time.monotonic() < t_end:
-                    # the robot drives: publish what a station and a driver host publish
-                    now = time.monotonic()
-                    session.put(keys.state, M.encode(M.LearnerState(stamp=now, seq=seq, x=0.01 * seq, y=0.5,
-                                                                    theta=0.1)))
-                    session.put(keys.cmd, M.encode(M.Command(stamp=now, seq=seq, v=0.25, omega=-0.1,
-                                                             method="scm")))
-                    session.put(M.status_key(robot, "driver"), M.encode(M.Status(
-                        stamp=now, seq=seq, node="driver", ok=False, text="operator took control: mode HOLD")))
-                    seq += 1
-                    # read everything that came (4 channels a round): reading one frame a round fell behind a
-                    # loaded machine's backlog and never got to the commands within the 30 s (seen once)
-                    for _ in range(400):
+                wanted = [f"/{robot}/pose", f"/{robot}/scene", f"/{robot}/cmd", f"/{robot}/status/driver"]
+
+                def read(deadline: float) -> None:
+                    """Read every frame that has come (subscribing to each advertised channel) until none for 50 ms."""
+                    while time.monotonic() < deadline:
                         try:
                             frame = ws.recv(timeout=0.05)
                         except TimeoutError:
-                            break
+                            return
                         if isinstance(frame, str):
                             msg = json.loads(frame)
                             if msg.get("op") == "advertise":
@@ -73,9 +63,25 @@ def test_a_foxglove_client_sees_pose_scene_commands_and_health_live(tmp_path) ->
                         elif frame[0] == 0x01:  # messageData: opcode, subscription id u32, timestamp u64, payload
                             sid = struct.unpack_from("<I", frame, 1)[0]
                             got.setdefault(subscribed[sid], []).append(bytes(frame[13:]))
-                    wanted = [f"/{robot}/pose", f"/{robot}/scene", f"/{robot}/cmd", f"/{robot}/status/driver"]
-                    if all(len(got.get(t, [])) >= 2 for t in wanted):
-                        break
+
+                # a named robot's channels are advertised as the client connects: wait for them (the event), then
+                # drive; before, a channel made on the first sample raced the client's subscription
+                t_end = time.monotonic() + 30
+                while time.monotonic() < t_end and not all(t in channels for t in wanted):
+                    read(t_end)
+                assert all(t in channels for t in wanted), f"advertised: {sorted(channels)}"
+                seq = 0
+                while time.monotonic() < t_end and not all(len(got.get(t, [])) >= 2 for t in wanted):
+                    # the robot drives: publish what a station and a driver host publish
+                    now = time.monotonic()
+                    session.put(keys.state, M.encode(M.LearnerState(stamp=now, seq=seq, x=0.01 * seq, y=0.5,
+                                                                    theta=0.1)))
+                    session.put(keys.cmd, M.encode(M.Command(stamp=now, seq=seq, v=0.25, omega=-0.1,
+                                                             method="scm")))
+                    session.put(M.status_key(robot, "driver"), M.encode(M.Status(
+                        stamp=now, seq=seq, node="driver", ok=False, text="operator took control: mode HOLD")))
+                    seq += 1
+                    read(t_end)
         finally:
             stop_group(view)
     for t in wanted:

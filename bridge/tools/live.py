@@ -46,6 +46,8 @@ log = logging.getLogger("scmbridge.view")
 
 JSON_TOPICS: dict[str, type[msgspec.Struct]] = {"cmd": M.Command, "teacher": M.TeacherCommand,
                                                  "applied": M.Applied, "limits": M.Limits}
+#: nodes whose status channels a named robot has from the start
+NODES = ("station", "driver")
 TRAIL = 2000  # poses kept per robot for the trail
 
 
@@ -86,6 +88,10 @@ class RobotView:
         self.scene = fc.SceneUpdateChannel(f"/{robot}/scene")
         self.json: dict[str, foxglove.Channel] = {}
         self.t_scene = 0.0
+        for name, kind in JSON_TOPICS.items():
+            self.channel(name, kind)
+        for node in NODES:
+            self.channel(f"status/{node}", M.Status)
 
     def channel(self, name: str, kind: type[msgspec.Struct]) -> foxglove.Channel:
         ch = self.json.get(name)
@@ -185,17 +191,22 @@ def arguments(ap: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    """Serve the live view. A named robot's channels exist from the start, so a viewer that connects sees them all
+    in its first advertisement; the address is printed once the Zenoh subscriptions are in place."""
     mission = load_mission(args.mission)
-    selectors = ["scm/**"] if args.all else [f"scm/{r}/**" for r in (args.robots or [args.robot])]
+    named = [] if args.all else list(args.robots or [args.robot])
+    selectors = ["scm/**"] if args.all else [f"scm/{r}/**" for r in named]
     view = LiveView(mission)
+    for robot in named:
+        view.robot(robot)
     stop = stop_on_signals()
     server = foxglove.start_server(name="scmbridge", host=args.host, port=args.port)
     writer: Any = foxglove.open_mcap(args.mcap, allow_overwrite=True) if args.mcap else None
-    print(f"foxglove live view on ws://{args.host}:{server.port} ({', '.join(selectors)})", flush=True)
     try:
         with open_session(zenoh_config(args)) as session:
             for sel in selectors:
                 session.declare_subscriber(sel, view.on_sample)
+            print(f"foxglove live view on ws://{args.host}:{server.port} ({', '.join(selectors)})", flush=True)
             stop.wait(args.duration)
     finally:
         server.stop()
