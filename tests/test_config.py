@@ -46,6 +46,12 @@ DRIVER_BAD = [
     ("[link.can]\nleft_sign = 0.5\n", "link.can", "must be 1 or -1"),
     ("[link.udp]\nrobot_port = 70000\n", "link.udp.robot_port", "<= 65535"),
     ('[driver]\npose_source = "gps"\n', "driver.pose_source", "mocap"),
+    # accepted before, and unsafe: an Estop with no source released the latch; a deadman that fires at once
+    ('[driver]\nestop_release_sources = [""]\n', "driver.estop_release_sources[0]", "non-blank"),
+    ('[driver]\nestop_release_sources = ["  "]\n', "driver.estop_release_sources[0]", "non-blank"),
+    ("[driver]\nestop_release_sources = []\n", "driver.estop_release_sources", "at least 1"),
+    ("[driver]\ncmd_timeout = 1e-300\n", "driver.cmd_timeout", ">= 0.02"),
+    ("[driver.hard_limits]\nv = [-1e9, 1e9]\nw = [-1, 1]\n", "driver", "beyond any rover"),
 ]
 
 

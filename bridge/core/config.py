@@ -57,6 +57,9 @@ Finite = Annotated[float, Meta(ge=-1e9, le=1e9)]  # a NaN or inf fails the compa
 Range = tuple[Finite, Finite]
 RobotName = Annotated[str, Meta(pattern=r"^[A-Za-z0-9_\-]{1,64}$", description="one Zenoh key chunk")]
 Port = Annotated[int, Meta(ge=0, le=65535)]
+SourceName = Annotated[str, Meta(pattern=r"^[A-Za-z0-9_.\-]{1,64}$", description="a non-blank source name")]
+#: hard limits beyond these are a mistake, not a vehicle (m/s, rad/s)
+HARD_V_MAX, HARD_W_MAX = 20.0, 20.0
 
 
 class _Cfg(Struct, forbid_unknown_fields=True, kw_only=True, frozen=True):
@@ -199,7 +202,7 @@ class DriverSection(_Cfg):
     """``[driver]``: the driver host's loop and safety settings."""
 
     rate_hz: Annotated[float, _m("control loop rate, Hz", ge=1.0, le=1000.0)] = 50.0
-    cmd_timeout: Annotated[float, _m("deadman: no valid command for this long stops the vehicle, s", gt=0.0,
+    cmd_timeout: Annotated[float, _m("deadman: no valid command for this long stops the vehicle, s", ge=0.02,
                                      le=10.0)] = 0.3
     hard_limits: Annotated[BoundsConfig, _m("every command is clamped into this box before a vehicle sees it")] = (
         DEFAULT_HARD_LIMITS)
@@ -208,9 +211,9 @@ class DriverSection(_Cfg):
                                      le=1000.0)] = 100.0
     max_telemetry_age_s: Annotated[float, _m("no pose from the link for this long stops the vehicle (it would drive "
                                              "blind), s", gt=0.0, le=60.0)] = 0.5
-    estop_release_sources: Annotated[tuple[Annotated[str, Meta(max_length=64)], ...],
+    estop_release_sources: Annotated[tuple[SourceName, ...],
                                      _m("Estop sources allowed to release a latched estop (scmbridge estop "
-                                        "--release --source NAME)")] = ("operator",)
+                                        "--release --source NAME); at least one", min_length=1)] = ("operator",)
 
     pose_source: Annotated[Literal["link", "mocap"], _m(
         "where the published state comes from: the link's own telemetry, or a motion-capture bridge publishing "
@@ -221,6 +224,10 @@ class DriverSection(_Cfg):
     def __post_init__(self) -> None:
         if self.max_send_hz < self.rate_hz:
             raise Rule(f"max_send_hz = {self.max_send_hz} is below rate_hz = {self.rate_hz}: every tick sends")
+        (v_lo, v_hi), (w_lo, w_hi) = self.hard_limits.v, self.hard_limits.w
+        if max(abs(v_lo), abs(v_hi)) > HARD_V_MAX or max(abs(w_lo), abs(w_hi)) > HARD_W_MAX:
+            raise Rule(f"hard_limits v = [{v_lo}, {v_hi}], w = [{w_lo}, {w_hi}] are beyond any rover this drives "
+                       f"(|v| <= {HARD_V_MAX} m/s, |w| <= {HARD_W_MAX} rad/s): a typo would let anything through")
 
 
 class DriverConfig(_Cfg):
