@@ -191,8 +191,8 @@ def arguments(ap: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    """Serve the live view. A named robot's channels exist from the start, so a viewer that connects sees them all
-    in its first advertisement; the address is printed once the Zenoh subscriptions are in place."""
+    # a named robot's channels exist from the start, so a viewer that connects sees them all in its first
+    # advertisement; the address is printed once the Zenoh subscriptions are in place
     mission = load_mission(args.mission)
     named = [] if args.all else list(args.robots or [args.robot])
     selectors = ["scm/**"] if args.all else [f"scm/{r}/**" for r in named]
