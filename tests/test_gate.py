@@ -10,7 +10,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from bridge.core import wire as M
-from bridge.core.gate import CommandGate, Decision, SeqGate
+from bridge.core.gate import CONFLICT_WINDOW_S, CommandGate, Decision, SeqGate
 from transfer.domain import Bounds
 
 LIMITS = Bounds((-0.5, 0.5), (-1.0, 1.0))
@@ -69,6 +69,18 @@ def test_a_second_sender_cannot_take_over_a_live_stream() -> None:
     assert not g.offer(_cmd(1, 0.4, 0.0, epoch=0xBAD), 0.1)
     assert g.counters["foreign_epoch"] == 1
     assert g.offer(_cmd(2, 0.2, 0.0), 0.2)
+
+
+def test_a_second_or_forged_sender_puts_the_stream_in_conflict_for_health() -> None:
+    """Finding: `ok` stayed true with two stations publishing for one robot and during a forged-seq lockout."""
+    g = CommandGate(LIMITS, cmd_timeout=0.3)
+    g.offer(_cmd(1, 0.2, 0.0), 0.0)
+    assert g.conflict(0.05) is None
+    g.offer(_cmd(1, 0.4, 0.0, epoch=0xBAD), 0.1)
+    assert "second sender" in g.conflict(0.2)
+    assert g.conflict(0.1 + CONFLICT_WINDOW_S + 0.01) is None  # it went away: trusted again
+    g.offer(_cmd(2 + 10_000, 0.4, 0.0), 3.0)  # a forged seq jump inside the epoch
+    assert "seq_jump" in g.conflict(3.1)
 
 
 def test_seq_gate_allows_gaps_from_lost_messages() -> None:

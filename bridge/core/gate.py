@@ -118,6 +118,8 @@ class SeqGate:
         return "out_of_order"
 
 
+#: refusals of a second or forged sender keep the command stream "in conflict" (health not ok) this long, s
+CONFLICT_WINDOW_S = 2.0
 #: the fastest a station may send commands (its configuration's rate bound is 200 Hz) and the seqs of slack on top
 MAX_COMMAND_RATE_HZ = 250.0
 COMMAND_SEQ_SLACK = 5
@@ -167,6 +169,7 @@ class CommandGate:
         "accepted": 0, "out_of_order": 0, "old_epoch": 0, "foreign_epoch": 0, "seq_jump": 0, "stamp_jump": 0,
         "resyncs": 0, "deadman_trips": 0, "stale": 0, "clamped": 0, "refused_range": 0, "stops": 0, "estops": 0,
         "estop_releases": 0, "estop_release_refused": 0})
+    refused_at: dict[str, float] = field(default_factory=dict)  # why -> when a command was last refused for it
     _deadman_active: bool = True
 
     def __post_init__(self) -> None:
@@ -182,10 +185,24 @@ class CommandGate:
             self.counters["resyncs"] += 1
         elif why is not None:
             self.counters[why] += 1
+            self.refused_at[why] = now
             return False
         self.latest, self.received_at = cmd, now
         self.counters["accepted"] += 1
         return True
+
+    def conflict(self, now: float, window: float = CONFLICT_WINDOW_S) -> str | None:
+        """Why the command stream cannot be trusted right now, or None: within ``window`` s, commands of a second
+        sender (another epoch while the followed one is alive) or forged ones (a seq or stamp jump) were refused.
+        The vehicle is still driven by the followed sender; health must say so (ok false), not "driving"."""
+        recent = {why: t for why, t in self.refused_at.items() if now - t < window}
+        if "foreign_epoch" in recent:
+            return (f"a second sender on cmd: {self.counters['foreign_epoch']} commands of another epoch refused "
+                    "(two stations for one robot, or a forger)")
+        forged = [why for why in ("seq_jump", "stamp_jump") if why in recent]
+        if forged:
+            return f"forged commands on cmd ({', '.join(forged)}) refused"
+        return None
 
     def estop(self, e: M.Estop) -> bool:
         """Engage (anyone allowed) or release (only a configured source) the latch. True if the latch changed."""
@@ -234,4 +251,5 @@ class CommandGate:
         return Decision(v, w, "cmd", cmd.seq)
 
 
-__all__ = ["COMMAND_SEQ_SLACK", "DRIVING", "MAX_COMMAND_RATE_HZ", "CommandGate", "Decision", "SeqGate", "in_range"]
+__all__ = ["COMMAND_SEQ_SLACK", "CONFLICT_WINDOW_S", "DRIVING", "MAX_COMMAND_RATE_HZ", "CommandGate", "Decision",
+           "SeqGate", "in_range"]
