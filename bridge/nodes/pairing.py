@@ -12,28 +12,64 @@ Why 0.4 ``dt``: telemetry at twice the command rate (an ArduPilot vehicle's 20 H
 puts two poses, one period apart, inside each command, so the span is ``dt / 2`` give or take the vehicle's
 scheduling jitter. A minimum of exactly ``dt / 2`` rejected about half of those intervals for that jitter alone
 (docs/ARCHITECTURE.md, section 4).
+
+What it learns from is checked first (forged or garbled telemetry must not be learned, nor stop learning): with
+the receipt time given, an event stamped further ahead of the last one than the time that passed between their
+receipts is dropped (``implausible_stamp``), and a run of events behind a stamp that was accepted by mistake
+(the first event ever was forged) is followed again after ``RESYNC_AFTER`` (``resyncs``); a pose that moves
+faster than ``max_speed`` or turns faster than ``max_turn`` from the last accepted pose is dropped
+(``implausible_pose``) unless ``RESYNC_AFTER`` poses in a row agree with each other (the robot was relocated: the
+interval restarts, no pair spans the jump); a pair whose learner command lies outside ``command_bounds`` or whose
+teacher part lies outside ``teacher_bounds`` (symmetric, times ``margin``) is never formed (``implausible_pair``).
 """
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 from numpy.typing import NDArray
 
+from transfer.domain import Bounds
 from transfer.pairs import teacher_equivalent
 
 DRIVING = ("cmd", "clamped")
 Pair = tuple[NDArray[np.float64], NDArray[np.float64]]
+#: events in a row that agree with each other and not with what was accepted before: follow them
+RESYNC_AFTER = 3
+#: how far an event's stamp may run ahead of its receipt, relative to the last accepted event, s
+STAMP_TOLERANCE = 0.25
+
+
+def _grown(b: Bounds, margin: float) -> Bounds:
+    """The plausible box around ``b``: symmetric about zero (a vehicle may reverse or stand still whatever its
+    box), ``margin`` times its largest magnitude on each axis."""
+    v, w = margin * float(np.max(np.abs(b.v))), margin * float(np.max(np.abs(b.w)))
+    return Bounds((-v, v), (-w, w))
 
 
 class IntervalPairer:
     """Turns time-ordered applied echoes and poses into command pairs (see the module docstring)."""
 
-    def __init__(self, dt: float, min_span: float | None = None, max_gap: float | None = None) -> None:
+    def __init__(self, dt: float, min_span: float | None = None, max_gap: float | None = None, *,
+                 max_speed: float = math.inf, max_turn: float = math.inf, command_bounds: Bounds | None = None,
+                 teacher_bounds: Bounds | None = None, margin: float = 1.5) -> None:
         if dt <= 0:
             raise ValueError("dt must be positive")
         self.dt = float(dt)
         self.min_span = 0.4 * self.dt if min_span is None else float(min_span)
         self.max_gap = 2.0 * self.dt if max_gap is None else float(max_gap)
+        self.max_speed, self.max_turn = float(max_speed), float(max_turn)
+        self.command_bounds = None if command_bounds is None else _grown(command_bounds, margin)
+        self.teacher_bounds = None if teacher_bounds is None else _grown(teacher_bounds, margin)
+        self.anchor: tuple[float, float] | None = None  # (stamp, receipt) of the last accepted event
+        self.behind: list[tuple[float, float]] = []  # (stamp, receipt) of events in a row behind the anchor
+        self.pose: tuple[float, NDArray[np.float64]] | None = None  # the last accepted pose
+        self.odd_poses: list[tuple[float, NDArray[np.float64]]] = []  # implausible poses in a row
+        self.implausible_stamp = 0
+        self.implausible_pose = 0
+        self.implausible_pair = 0
+        self.resyncs = 0
         self.segment: tuple[float, float] | None = None  # the command in force, None when not driving
         self.first: tuple[float, NDArray[np.float64]] | None = None
         self.last: tuple[float, NDArray[np.float64]] | None = None
@@ -42,11 +78,40 @@ class IntervalPairer:
         self.formed = 0
         self.out_of_order = 0  # events older than one already fed: ignored
 
-    def applied(self, stamp: float, v: float, omega: float, reason: str) -> Pair | None:
+    def _admit(self, stamp: float, received: float | None) -> bool:
+        """Whether an event stamped ``stamp`` (received at ``received``, when known) may be used (see the module
+        docstring); updates the order and the anchor."""
+        if not math.isfinite(stamp):
+            self.implausible_stamp += 1
+            return False
+        if received is not None and self.anchor is not None:
+            s0, r0 = self.anchor
+            if stamp - s0 > (received - r0) + STAMP_TOLERANCE:
+                self.implausible_stamp += 1  # ahead of what the time between receipts allows: not the sender's
+                return False
         if stamp < self.last_event:
             self.out_of_order += 1
-            return None
+            if received is None:
+                return False
+            run = self.behind
+            if run and not (stamp > run[-1][0] and abs((stamp - run[-1][0]) - (received - run[-1][1]))
+                            <= STAMP_TOLERANCE):
+                run.clear()
+            run.append((stamp, received))
+            if len(run) < RESYNC_AFTER:
+                return False
+            self.resyncs += 1  # the stamp followed so far was forged: follow the sender's stream again
+            self.segment, self.first, self.last, self.pose = None, None, None, None
+        self.behind.clear()
         self.last_event = stamp
+        if received is not None:
+            self.anchor = (stamp, received)
+        return True
+
+    def applied(self, stamp: float, v: float, omega: float, reason: str, received: float | None = None,
+                ) -> Pair | None:
+        if not self._admit(stamp, received):
+            return None
         key = (float(v), float(omega)) if reason in DRIVING else None
         if key == self.segment:
             return None
@@ -54,14 +119,38 @@ class IntervalPairer:
         self.segment, self.first, self.last = key, None, None
         return out
 
-    def state(self, stamp: float, pose: NDArray[np.float64]) -> Pair | None:
-        if stamp < self.last_event:
-            self.out_of_order += 1
+    def _plausible_pose(self, stamp: float, p: NDArray[np.float64]) -> bool:
+        """A pose the vehicle could have reached from the last accepted one (or, after a run of poses that agree
+        with each other, the vehicle's new place: the interval restarts there)."""
+        if not np.all(np.isfinite(p)):
+            self.implausible_pose += 1
+            return False
+        if self.pose is None or self._reachable(self.pose, (stamp, p)):
+            self.pose, self.odd_poses = (stamp, p), []
+            return True
+        self.implausible_pose += 1
+        run = self.odd_poses
+        if run and not self._reachable(run[-1], (stamp, p)):
+            run.clear()
+        run.append((stamp, p))
+        if len(run) >= RESYNC_AFTER:
+            self.resyncs += 1
+            self.pose, self.odd_poses = (stamp, p), []
+            self.first, self.last = None, None  # no pair spans the jump
+        return False
+
+    def _reachable(self, a: tuple[float, NDArray[np.float64]], b: tuple[float, NDArray[np.float64]]) -> bool:
+        dt = max(b[0] - a[0], self.dt / 10)  # two poses in one instant: judge them over a tenth of a pair
+        step = float(np.hypot(*(b[1][:2] - a[1][:2])))
+        turn = abs(math.remainder(float(b[1][2] - a[1][2]), math.tau))
+        return step <= self.max_speed * dt and turn <= self.max_turn * dt
+
+    def state(self, stamp: float, pose: NDArray[np.float64], received: float | None = None) -> Pair | None:
+        p = np.asarray(pose, dtype=float)
+        if not self._admit(stamp, received) or not self._plausible_pose(stamp, p):
             return None
-        self.last_event = stamp
         if self.segment is None:
             return None
-        p = np.asarray(pose, dtype=float)
         prev = self.last if self.last is not None else self.first
         if prev is not None and stamp - prev[0] > self.max_gap:
             self.rejected += 1  # a telemetry gap: restart the interval here
@@ -84,5 +173,10 @@ class IntervalPairer:
         if t2 - t1 < self.min_span:
             self.rejected += 1
             return None
+        teacher, learner = teacher_equivalent(x1, x2, t2 - t1), np.array(self.segment)
+        if ((self.command_bounds is not None and not self.command_bounds.contains(learner))
+                or (self.teacher_bounds is not None and not self.teacher_bounds.contains(teacher))):
+            self.implausible_pair += 1
+            return None
         self.formed += 1
-        return teacher_equivalent(x1, x2, t2 - t1), np.array(self.segment)
+        return teacher, learner

@@ -1,0 +1,93 @@
+"""What the station learns from is checked before it is paired: forged or garbled telemetry is counted and dropped,
+never learned, and never stops learning (the pairer, pure: times are arguments).
+
+Findings this answers: one forged ``state`` stamped 1e11 stopped pairing for good (0 pairs in 20 s); forged
+``state`` + ``applied`` put a pair with teacher v = 121 m/s in the persisted store; 20 spoofed states 30 m away
+put a teacher v = 14.6 m/s pair there."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from bridge.nodes.pairing import IntervalPairer
+from transfer.domain import Bounds
+from transfer.paper import MPC_LEARNER_V, MPC_LEARNER_W, MPC_TEACHER_V, MPC_TEACHER_W
+from transfer.teacher.unicycle import step
+
+TB = Bounds(MPC_TEACHER_V, MPC_TEACHER_W)
+LB = Bounds(MPC_LEARNER_V, MPC_LEARNER_W)
+
+
+def _pairer() -> IntervalPairer:
+    vmax, wmax = float(np.max(np.abs(LB.v))), float(np.max(np.abs(LB.w)))
+    return IntervalPairer(0.1, max_speed=2 * vmax, max_turn=2 * wmax, command_bounds=LB, teacher_bounds=TB)
+
+
+def _drive(p: IntervalPairer, t0: float, x: np.ndarray, u: np.ndarray, n: int, lag: float = 0.003,
+           inject=None, echo: np.ndarray | None = None) -> tuple[list, float, np.ndarray]:
+    """``n`` poses every 20 ms under command ``u``, its echo (``echo`` if given) every 100 ms as the driver host
+    sends it, each received ``lag`` s after its stamp; ``inject(i, t)`` may feed forged events between them."""
+    pairs = []
+    t = t0
+    said = u if echo is None else echo
+    for i in range(n):
+        if i % 5 == 0:
+            out = p.applied(t, *said, "cmd", received=t + lag)
+            if out:
+                pairs.append(out)
+        t += 0.02
+        x = step(x, u, 0.02)
+        if inject is not None:
+            inject(i, t)
+        out = p.state(t, x, received=t + lag)
+        if out:
+            pairs.append(out)
+    return pairs, t, x
+
+
+def test_one_forged_far_future_stamp_does_not_stop_pairing() -> None:
+    p = _pairer()
+    u = np.array([0.2, 0.05])
+
+    def forge(i: int, t: float) -> None:
+        if i == 10:
+            p.state(1e11, np.array([5.0, 5.0, 0.0]), received=t + 0.003)
+
+    pairs, t, x = _drive(p, 0.0, np.zeros(3), u, 100, inject=forge)
+    assert p.implausible_stamp == 1 and len(pairs) >= 15
+    assert all(np.allclose(ul, u) and np.allclose(ut, u, atol=0.01) for ut, ul in pairs)
+
+
+def test_a_forged_first_event_is_left_behind_after_a_few_real_ones() -> None:
+    p = _pairer()
+    p.state(1e11, np.zeros(3), received=0.0)  # the very first event ever is forged: nothing to judge it by
+    pairs, _, _ = _drive(p, 0.0, np.zeros(3), np.array([0.2, 0.0]), 100)
+    assert p.resyncs == 1 and len(pairs) >= 15
+
+
+def test_spoofed_poses_far_away_are_never_paired() -> None:
+    p = _pairer()
+    u = np.array([0.25, 0.0])
+
+    def spoof(i: int, t: float) -> None:
+        if i % 5 == 2:  # interleaved with the real telemetry, 30 m away
+            p.state(t + 0.001, np.array([30.0, 0.0, 0.0]), received=t + 0.004)
+
+    pairs, _, _ = _drive(p, 0.0, np.zeros(3), u, 150, inject=spoof)
+    assert p.implausible_pose >= 25 and len(pairs) >= 20
+    assert all(abs(ut[0]) < 0.35 for ut, _ in pairs), [ut for ut, _ in pairs]
+
+
+def test_a_relocated_robot_is_followed_and_no_pair_spans_the_jump() -> None:
+    p = _pairer()
+    u = np.array([0.2, 0.0])
+    pairs, t, x = _drive(p, 0.0, np.zeros(3), u, 30)
+    more, _, _ = _drive(p, t + 0.01, x + np.array([3.0, 0.0, 0.0]), u, 60)  # mocap re-zeroed: 3 m at once
+    assert p.resyncs == 1 and len(more) >= 8
+    assert all(np.allclose(ut, u, atol=0.01) for ut, _ in pairs + more)
+
+
+def test_a_forged_applied_echo_beyond_the_vehicles_box_is_never_paired() -> None:
+    p = _pairer()
+    pairs, _, _ = _drive(p, 0.0, np.zeros(3), np.array([0.2, 0.0]), 40, echo=np.array([121.0, 0.0]))
+    assert pairs == [] and p.implausible_pair >= 1
