@@ -35,7 +35,7 @@ system and component ids; the others are counted (``detail["foreign"]``).
 
 Poses: each is stamped at its LOCAL_POSITION_NED's ``time_boot_ms``, put on the driver host's monotonic clock with
 the sliding-window minimum of ``receipt - time_boot_ms`` (:class:`bridge.core.clock.ClockOffset`, ``clock_window_s``; a
-reboot, or a stamp more than ``bridge.core.clock.MAX_AGE`` before its receipt, starts it again), not at its receipt: the
+reboot, or a confirmed step of its clock (``bridge.core.clock``), starts it again), not at its receipt: the
 host polls at its tick, so receipt stamps fall on a 20 ms grid and a 0.05 s interval between two poses read as 0.04
 or 0.06 s. Its heading is the ATTITUDE's at the same vehicle time, interpolated between the two ATTITUDEs around it
 (a position waits, usually within the same burst, for the ATTITUDE at or after it). ``scmbridge bench pairing`` (the

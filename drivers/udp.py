@@ -24,7 +24,7 @@ too (``dropped_by_kernel``, Linux ``SO_RXQ_OVFL``); the robot's own states lost 
 Poses are stamped at the robot's own ``stamp`` (its clock at the sample), put on the driver host's monotonic clock
 with the sliding-window minimum of ``receipt - stamp`` (:class:`bridge.core.clock.ClockOffset`,
 ``clock_window_s``; a new
-robot epoch, or a stamp more than ``bridge.core.clock.MAX_AGE`` before its receipt, starts it again: ``clock_restarts``;
+robot epoch, or a confirmed step of its clock (``bridge.core.clock``), starts it again: ``clock_restarts``;
 a stamp that does not advance, not being a clock, gives the receipt: ``stamp_fallbacks``), not at the poll that read
 them: the driver host polls at its tick, and receipt stamps on that 20 ms grid put 0.0096 m/s of median error into
 the pairs (``scmbridge bench pairing --link udp``).

@@ -40,18 +40,41 @@ def test_clock_offset_removes_delivery_jitter_and_follows_the_minimum() -> None:
     assert abs(c.offset - (0.002 - MOCAP_CLOCK)) < 0.0015
 
 
-def test_a_stamp_that_jumped_restarts_the_estimate_instead_of_shifting_every_later_sample() -> None:
-    """One stamp forged (or a sender clock jumped) 0.4 s ahead pulls the window's minimum: every later sample would
-    land 0.4 s early for a whole window. Bounded, the next sample finds its time too old and starts again."""
-    c = ClockOffset(window_s=5.0, max_age=0.25)
+def test_one_stamp_forged_ahead_is_dropped_and_shifts_nothing() -> None:
+    """Finding: one forged sample 0.4 s ahead shifted every pose for the next 5 s, undetected (the default max_age
+    0.5 s let it through). It pulls the window's minimum no more: it is dropped, the next samples keep their time."""
+    c = ClockOffset(window_s=5.0)
     for k in range(50):
-        t, ok = c.restamp_checked(k * 0.02 + MOCAP_CLOCK, k * 0.02 + 0.001)
-        assert ok and t == pytest.approx(k * 0.02 + 0.001)
-    c.restamp_checked(50 * 0.02 + MOCAP_CLOCK + 0.4, 50 * 0.02 + 0.001)  # the forged one: at its receipt
-    t, ok = c.restamp_checked(51 * 0.02 + MOCAP_CLOCK, 51 * 0.02 + 0.001)
-    assert not ok and t == pytest.approx(51 * 0.02 + 0.001)  # restarted from this sample
-    t, ok = c.restamp_checked(52 * 0.02 + MOCAP_CLOCK, 52 * 0.02 + 0.003)
-    assert ok and t == pytest.approx(52 * 0.02 + 0.001)  # and it follows the minimum again
+        t, verdict = c.judge(k * 0.02 + MOCAP_CLOCK, k * 0.02 + 0.001)
+        assert verdict == "ok" and t == pytest.approx(k * 0.02 + 0.001)
+    assert c.judge(50 * 0.02 + MOCAP_CLOCK + 0.4, 50 * 0.02 + 0.001) == (None, "dropped")
+    for k in range(51, 60):
+        t, verdict = c.judge(k * 0.02 + MOCAP_CLOCK, k * 0.02 + 0.003)
+        assert verdict == "ok" and t == pytest.approx(k * 0.02 + 0.001)
+
+
+@pytest.mark.parametrize("step", [-0.45, 0.45])
+def test_a_clock_step_is_detected_within_a_few_samples(step: float) -> None:
+    """Finding: a real clock step back of 0.45 s shifted every pose for the next 5 s. A step either way restarts the
+    estimate once a few samples agree on it; at most those few samples are not placed exactly."""
+    c = ClockOffset(window_s=5.0)
+    for k in range(50):
+        c.judge(k * 0.02 + MOCAP_CLOCK, k * 0.02 + 0.001)
+    verdicts = []
+    for k in range(50, 70):
+        t, verdict = c.judge(k * 0.02 + MOCAP_CLOCK + step, k * 0.02 + 0.001)
+        verdicts.append(verdict)
+        if k >= 53:
+            assert verdict == "ok" and t == pytest.approx(k * 0.02 + 0.001)
+    assert verdicts[:3].count("restarted") == 1
+
+
+def test_late_deliveries_keep_their_own_time() -> None:
+    c = ClockOffset(window_s=5.0)
+    for k in range(50):
+        c.judge(k * 0.02 + MOCAP_CLOCK, k * 0.02 + 0.001)
+    t, verdict = c.judge(50 * 0.02 + MOCAP_CLOCK, 50 * 0.02 + 0.2)  # one sample 0.2 s late
+    assert verdict == "ok" and t == pytest.approx(50 * 0.02 + 0.001)
 
 
 class MocapBridge:

@@ -258,16 +258,18 @@ def test_poses_are_stamped_at_the_robots_clock_or_at_receipt_when_its_stamp_is_n
     """States read in one poll keep the robot's own spacing (about 0.02 s here), on the driver host's clock; a firmware
     whose stamp does not advance (this scripted robot's constant 1.0) gets receipt stamps, counted."""
     driver, robot = scripted
-    robot.state(0.0, stamp=time.monotonic() + 500.0)  # the robot's clock: ours + 500 s, sampled as it sends;
-    time.sleep(0.005)  # read at once, this one sets the offset
-    assert len(driver.poll(time.monotonic())) == 1
+    for _ in range(3):  # the robot's clock (ours + 500 s) replaces the open's constant stamps: a step of the clock,
+        robot.state(0.0, stamp=time.monotonic() + 500.0)  # followed once three in a row agree on it
+        time.sleep(0.005)  # read at once: these set the offset
+        assert len(driver.poll(time.monotonic())) == 1
+    assert driver.counters["clock_restarts"] == 3  # two samples held back, then the restart
     stamps = []
     for k in range(5):  # then five that wait in the socket for one poll
         stamps.append(time.monotonic() + 500.0)
         robot.state(0.01 * k, stamp=stamps[-1])
         time.sleep(0.02)
     poses = driver.poll(time.monotonic())  # all five at once, one receipt time
-    assert len(poses) == 5 and driver.counters["stamp_fallbacks"] == 0
+    assert len(poses) == 5 and driver.counters["stamp_fallbacks"] == 0, driver.counters
     assert [b.stamp - a.stamp for a, b in zip(poses, poses[1:])] == pytest.approx(
         [b - a for a, b in zip(stamps, stamps[1:])], abs=1e-9)
     assert stamps[-1] - 500.0 <= poses[-1].stamp <= time.monotonic()

@@ -10,29 +10,66 @@ small next to the pairing interval (a few ms against 100 ms), at least one sampl
 close to that minimum, and the two clocks' drift over the window must be negligible (5 s default: crystal clocks
 drift ~50 ppm, 0.25 ms). Rate: at least twice the pairing rate (>= 20 Hz for 0.1 s pairs; mocap gives 100-240 Hz).
 Pure: times are arguments.
+
+:meth:`ClockOffset.judge` also catches what a window minimum alone lets through for a whole window: one sample
+stamped ahead (forged, or the sender's clock stepped forward) would pull the minimum and shift every later sample;
+a clock stepped back would leave every later sample early until the old minimum leaves the window. A sample whose
+``receipt - stamp`` lies more than ``step`` below the estimate is dropped; ``confirm`` samples in a row that agree
+on a new offset below it, or more than ``back_step`` above it (a step back; smaller lateness is delivery: samples
+read in one batch, a busy radio), restart the estimate from them, within a few samples.
 """
 
 from __future__ import annotations
 
 from collections import deque
 
-#: a sample that the estimate puts further than this before its receipt restarts it (a few ms is normal)
-MAX_AGE = 0.5
+#: a sample whose offset differs from the estimate by more than this is odd (delivery jitter is a few ms), s
+STEP = 0.05
+#: a sample later than this behind the estimate is odd: a clock stepped back, or a long stall, s
+BACK_STEP = 0.2
+#: odd samples in a row that agree on a new offset: the sender's clock stepped
+CONFIRM = 3
 
 
 class ClockOffset:
-    """Sliding-window minimum of ``receipt - stamp`` (see the module docstring); :meth:`restamp_checked` bounds it
-    by ``max_age``."""
+    """Sliding-window minimum of ``receipt - stamp`` with step detection (see the module docstring)."""
 
-    def __init__(self, window_s: float = 5.0, max_age: float = MAX_AGE) -> None:
-        if not (window_s > 0 and max_age > 0):
-            raise ValueError("the window and the maximum age must be positive")
-        self.window_s, self.max_age = float(window_s), float(max_age)
+    def __init__(self, window_s: float = 5.0, step: float = STEP, back_step: float = BACK_STEP,
+                 confirm: int = CONFIRM) -> None:
+        if not (window_s > 0 and step > 0 and back_step > 0 and confirm >= 1):
+            raise ValueError("the window and the steps must be positive, confirm at least 1")
+        self.window_s, self.step, self.back_step = float(window_s), float(step), float(back_step)
+        self.confirm = int(confirm)
         self._d: deque[tuple[float, float]] = deque()  # (receipt, receipt - stamp), offsets increasing
+        self._odd: list[tuple[str, float]] = []  # (ahead | behind, receipt - stamp) of the odd samples in a row
 
     def reset(self) -> None:
         """Forget the estimate (the sender rebooted: a new clock)."""
         self._d.clear()
+        self._odd.clear()
+
+    def judge(self, stamp: float, receipt: float) -> tuple[float | None, str]:
+        """The sample's time on this clock and the verdict: ``ok``; ``dropped`` (time None, not to be used: stamped
+        ahead of any possible delivery, or later than ``back_step``, and not yet confirmed as a step);
+        ``restarted`` (``confirm`` samples agreed on a new offset: the sender's clock stepped; the estimate starts
+        again from them, this one at its receipt)."""
+        d = receipt - stamp
+        off = self.offset
+        if off is None:
+            return min(self.restamp(stamp, receipt), receipt), "ok"
+        if off - self.step <= d <= off + self.back_step:
+            self._odd.clear()
+            return min(self.restamp(stamp, receipt), receipt), "ok"  # a late one keeps its own time
+        kind = "ahead" if d < off else "behind"
+        run = self._odd
+        if run and (run[-1][0] != kind or abs(run[-1][1] - d) > self.step):
+            run.clear()
+        run.append((kind, d))
+        if len(run) >= self.confirm:
+            self.reset()
+            self.restamp(stamp, receipt)
+            return receipt, "restarted"
+        return None, "dropped"
 
     def restamp(self, stamp: float, receipt: float) -> float:
         """The sample's time on the receiver's clock, after learning from this sample too."""
@@ -45,15 +82,10 @@ class ClockOffset:
         return stamp + self._d[0][1]
 
     def restamp_checked(self, stamp: float, receipt: float) -> tuple[float, bool]:
-        """:meth:`restamp`, bounded: a result older than ``max_age`` before ``receipt`` means the sender's clock
-        jumped (or one stamp was forged ahead and pulled the minimum), so the estimate starts again from this sample,
-        which then lands at its receipt. Returns ``(time, True)``, or ``(receipt, False)`` after such a restart."""
-        t = min(self.restamp(stamp, receipt), receipt)  # (the sample that sets the minimum: receipt, +- rounding)
-        if t >= receipt - self.max_age:
-            return t, True
-        self.reset()
-        self.restamp(stamp, receipt)
-        return receipt, False
+        """:meth:`judge` for a caller that must place every sample: ``(time, True)`` when it is ok, else
+        ``(receipt, False)`` (dropped or restarted: the sample is put at its receipt and counted by the caller)."""
+        t, verdict = self.judge(stamp, receipt)
+        return (t, True) if verdict == "ok" and t is not None else (receipt, False)
 
     @property
     def offset(self) -> float | None:

@@ -80,13 +80,13 @@ class DriverHost:
     # ---------------------------------------------------------------------------------------------- inputs
     def on_mocap(self, st: M.LearnerState, now: float) -> None:
         """A motion-capture sample: its own stamp put on this host's clock (:mod:`bridge.core.clock`). A sample
-        landing more than ``bridge.core.clock.MAX_AGE`` before its receipt (the bridge's clock jumped, or one forged
-        stamp pulled the estimate) restarts the estimate (``mocap_clock_restarts``)."""
+        stamped ahead of any possible delivery is dropped (``mocap_dropped``: forged, or a clock step not yet
+        confirmed); a confirmed step of the bridge's clock restarts the estimate (``mocap_clock_restarts``)."""
         with self.lock:
-            t, steady = self.mocap_clock.restamp_checked(st.stamp, now)
-            if not steady:
-                self.inputs.count("mocap_clock_restarts")
-            if t > 0:
+            t, verdict = self.mocap_clock.judge(st.stamp, now)
+            if verdict != "ok":
+                self.inputs.count("mocap_clock_restarts" if verdict == "restarted" else "mocap_dropped")
+            if t is not None and t > 0:
                 self.mocap.append(msgspec.structs.replace(st, stamp=t))
 
     def on_cmd(self, cmd: M.Command, now: float) -> None:
