@@ -73,6 +73,8 @@ COMMANDS: list[Command] = [
     _C("pairs plot", "bridge.tools.pairs_cli", "draw what a station learned on both command domains"),
     _C("config check", "bridge.tools.config_cmd", "validate a station, driver or mission file"),
     _C("config show", "bridge.tools.config_cmd", "print a commented default configuration"),
+    _C("keys udp", "bridge.tools.keys", "make the UDP link's datagram key (state directory, mode 0600)"),
+    _C("keys mavlink", "bridge.tools.keys", "make the MAVLink 2 signing key (state directory, mode 0600)"),
     _C("deploy acl", "bridge.tools.deploy", "the base station router's TLS + access-control Zenoh config"),
     _C("deploy client", "bridge.tools.deploy", "a client's TLS Zenoh config (a robot, the operator)"),
     _C("deploy certs", "bridge.tools.deploy", "a throwaway CA and certificates (tests, a first try)"),

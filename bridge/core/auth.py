@@ -1,0 +1,90 @@
+"""Authenticated datagrams for links whose medium carries no authentication of its own (the UDP shim).
+
+Pinning a peer's address and port is not authentication: anyone on the segment can send from it. Each datagram is
+``MAGIC + tag + payload``, the tag a keyed BLAKE2b (16 bytes) over the magic and the payload (the wire message,
+which carries the sender's epoch and seq: a replay is then refused by the seq gate). Both ends read one key file
+(32 random bytes, hex, mode 0600) made by ``scmbridge keys udp --robot R`` in the state directory; a datagram
+whose tag does not verify is counted and dropped by the receiver. Pure apart from reading and writing key files.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import hmac
+import os
+import secrets
+import stat
+from pathlib import Path
+
+from bridge.core.errors import UsageError
+from bridge.core.paths import save_atomic, state_dir
+
+MAGIC = b"\xa5\x01"  # format and version of an authenticated datagram
+TAG_BYTES = 16
+KEY_BYTES = 32
+OVERHEAD = len(MAGIC) + TAG_BYTES
+
+
+class KeyFileError(UsageError):
+    """A key file that is missing, unreadable, malformed or readable by others: one line, the fix named."""
+
+
+def _tag(key: bytes, payload: bytes) -> bytes:
+    return hashlib.blake2b(MAGIC + payload, key=key, digest_size=TAG_BYTES).digest()
+
+
+def seal(key: bytes, payload: bytes) -> bytes:
+    """The datagram carrying ``payload`` with its tag."""
+    return MAGIC + _tag(key, payload) + payload
+
+
+def open_sealed(key: bytes, datagram: bytes) -> bytes | None:
+    """The payload if ``datagram`` is sealed with ``key``, else None (forged, corrupted, or unauthenticated)."""
+    if len(datagram) < OVERHEAD or datagram[: len(MAGIC)] != MAGIC:
+        return None
+    tag, payload = datagram[len(MAGIC):OVERHEAD], datagram[OVERHEAD:]
+    return payload if hmac.compare_digest(tag, _tag(key, payload)) else None
+
+
+def key_path(robot: str, link: str) -> Path:
+    """Where ``scmbridge keys LINK --robot ROBOT`` keeps the key: ``<state dir>/keys/<robot>-<link>.key``."""
+    return state_dir() / "keys" / f"{robot}-{link}.key"
+
+
+def make_key(path: Path, *, force: bool = False) -> bytes:
+    """Write a new random key to ``path`` (mode 0600, atomically); refuses to replace one unless ``force``."""
+    path = Path(path)
+    if path.exists() and not force:
+        raise KeyFileError(f"{path} exists (both ends use it); give --force to replace it")
+    key = secrets.token_bytes(KEY_BYTES)
+    old = os.umask(0o077)
+    try:
+        save_atomic(path, key.hex().encode() + b"\n")
+    finally:
+        os.umask(old)
+    os.chmod(path, 0o600)
+    return key
+
+
+def load_key(path: str | Path) -> bytes:
+    """The key in ``path``; refuses a missing, malformed or group/world-readable file with one line."""
+    path = Path(path)
+    try:
+        st = path.stat()
+        text = path.read_text(encoding="ascii").strip()
+    except FileNotFoundError:
+        raise KeyFileError(f"key file {path} not found (make one: scmbridge keys udp --robot NAME)") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise KeyFileError(f"key file {path}: cannot read it ({exc})") from None
+    if st.st_mode & (stat.S_IRWXG | stat.S_IRWXO):
+        raise KeyFileError(f"key file {path} is readable by others (mode {stat.S_IMODE(st.st_mode):o}); chmod 600 it")
+    try:
+        key = bytes.fromhex(text)
+    except ValueError:
+        key = b""
+    if len(key) != KEY_BYTES:
+        raise KeyFileError(f"key file {path}: expected {KEY_BYTES} bytes as hex (scmbridge keys makes one)")
+    return key
+
+
+__all__ = ["KEY_BYTES", "MAGIC", "OVERHEAD", "KeyFileError", "key_path", "load_key", "make_key", "open_sealed", "seal"]
