@@ -315,8 +315,8 @@ def run_level(n: int, seconds: float, warmup: float, mission: Path, workdir: Pat
         session.declare_subscriber(f"{M.PREFIX}/*/cmd", on_cmd)
         sim = kids.spawn(["bench", "fleet", "--simulate", ",".join(robots), "--connect", tcp(port), "--mission",
                           str(mission), "--sim-duration", str(life)], log)
-        stations = {r: kids.spawn(["station", "--robot", r, "--mode", "client", "--connect", tcp(port), "--store",
-                                   str(workdir / f"pairs-{r}.bin"), "--mission", str(mission), "--duration",
+        stations = {r: kids.spawn(["station", "--start", "--robot", r, "--mode", "client", "--connect", tcp(port),
+                                   "--store", str(workdir / f"pairs-{r}.bin"), "--mission", str(mission), "--duration",
                                    str(life)], log, env=env) for r in robots}
         # up: every station publishes status and says it is driving (the robots are released together)
         while time.monotonic() - t_start < startup_limit:

@@ -160,8 +160,8 @@ def soak(minutes: float, link: str, workdir: Path, sample_s: float = 10.0, warmu
             procs["learner"] = kids.procs[-1]
         procs["driver"] = kids.spawn(["driver", *driver_args, *client, "--duration", str(life)], logs["driver"],
                                      **_memory_env("driver" in trace_memory, workdir, "driver"))
-        procs["station"] = kids.spawn(["station", *client, "--store", str(workdir / "pairs.bin"), "--mission",
-                                       mission, "--duration", str(life)], logs["station"],
+        procs["station"] = kids.spawn(["station", *client, "--start", "--store", str(workdir / "pairs.bin"),
+                                       "--mission", mission, "--duration", str(life)], logs["station"],
                                       **_memory_env("station" in trace_memory, workdir, "station"))
         traced = tuple(n for n in ("station", "driver") if n in trace_memory)
         t_up = time.monotonic() + startup_timeout

@@ -100,7 +100,7 @@ def test_the_motion_primitive_teacher_drives_from_calibrated_pairs(tmp_path) -> 
                               "--grid", "3x3", "--hold", "0.5", "--max-distance", "2.0", "--duration", "60"],
                              capture_output=True, text=True, timeout=90)
         assert res.returncode == 0, res.stderr[-2000:]
-        kids.spawn(["station", "--config", str(cfg), *client, "--store", str(store), "--duration", "80"])
+        kids.spawn(["station", "--start", "--config", str(cfg), *client, "--store", str(store), "--duration", "80"])
         t_end, progress = time.monotonic() + 70, 0.0
         while time.monotonic() < t_end and progress < 0.15:
             time.sleep(0.5)

@@ -37,7 +37,8 @@ def test_the_example_external_teacher_drives_the_robot_through_the_transfer_serv
                "limits": col.listen(k.limits, M.Limits),
                "status": col.listen(M.status_key(robot, "station"), M.Status)}
         kids.spawn(["driver", "--link", "can", "--emulate", "--x0", x0, *client, "--duration", "140"])
-        kids.spawn(["station", "--config", str(cfg), *client, "--store", str(tmp_path / "p.bin"), "--duration", "130"])
+        kids.spawn(["station", "--start", "--config", str(cfg), *client, "--store", str(tmp_path / "p.bin"),
+                    "--duration", "130"])
         teacher = subprocess.Popen([sys.executable, str(ROOT / "deploy" / "examples" / "external_teacher.py"),
                                     "--robot", robot, "--connect", tcp(port), "--mission", str(MISSION),
                                     "--duration", "120"], start_new_session=True, stdout=subprocess.DEVNULL)

@@ -143,7 +143,7 @@ def test_a_running_station_answers_with_what_its_store_holds(store: PairStore, s
                                                              tmp_path: Path) -> None:
     port, robot = free_port(), f"pairs{os.getpid()}"
     with open(tmp_path / "station.log", "w") as log:
-        proc = spawn(["station", "--robot", robot, "--listen", tcp(port), "--store", str(store_file),
+        proc = spawn(["station", "--start", "--robot", robot, "--listen", tcp(port), "--store", str(store_file),
                       "--duration", "90"], log, cwd=ROOT)
         try:
             # the query is retried until --timeout: it covers the station's start (imports, SC kernel warm-up)

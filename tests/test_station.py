@@ -6,6 +6,8 @@ from __future__ import annotations
 
 import os
 import signal
+import subprocess
+import sys
 import time
 
 import numpy as np
@@ -109,9 +111,11 @@ def test_station_restarts_and_reloads_its_pairs(tmp_path) -> None:
 
 @pytest.mark.slow
 @pytest.mark.timeout(200)
-def test_a_station_killed_and_restarted_drives_the_robot_again_at_once(tmp_path) -> None:
+def test_a_station_killed_and_restarted_comes_back_paused_and_drives_at_once_when_resumed(tmp_path) -> None:
     """Finding: after a kill -9 and restart the vehicle did not move for 19.9 s (the gate dropped every
-    seq <= last and the new station counted from 0). Now the new run's epoch is followed on its first command."""
+    seq <= last and the new station counted from 0). Now the new run's epoch is followed on its first command.
+    And a restart never takes the robot back by itself: the restarted station comes back paused with its mission,
+    and drives once a person resumes it."""
     from bridge.core.config import load_mission
     from bridge.tools.procs import Children
 
@@ -124,15 +128,28 @@ def test_a_station_killed_and_restarted_drives_the_robot_again_at_once(tmp_path)
         applied, commands = col.listen(keys.applied, M.Applied), col.listen(keys.cmd, M.Command)
         cmd_times, wait = col.times[keys.cmd], col.wait
         kids.spawn(["driver", "--link", "can", "--emulate", "--x0", x0, *client, "--duration", "120"])
-        first = kids.spawn(station)
+        first = kids.spawn([*station, "--start"])
         assert wait(lambda: any(a.reason == "cmd" for a in applied), 90), "the first station never drove"
         os.killpg(first.pid, signal.SIGKILL)
         first.wait(timeout=5)
         with col.lock:
             old_epoch = commands[-1].epoch
         assert wait(lambda: applied[-1].reason == "deadman", 2.0)
+        status = col.listen(M.status_key(robot, "station"), M.Status)
         kids.spawn(station)
-        assert wait(lambda: any(c.epoch != old_epoch and c.method != "stop" for c in commands), 90)
+        assert wait(lambda: status and status[-1].state == "paused" and "restarted" in status[-1].text, 60), \
+            [s.text for s in status[-3:]]
+        with col.lock:
+            assert all(c.method == "stop" for c in commands if c.epoch != old_epoch)  # paused: stops only
+        t_end = time.monotonic() + 30
+        while True:  # refused until the new station has heard the driver host (its status comes each second)
+            res = subprocess.run([sys.executable, "-m", "bridge", "mission", "resume", *client], capture_output=True,
+                                 text=True, timeout=60)
+            if res.returncode != 1 or "no driver host status" not in res.stderr or time.monotonic() > t_end:
+                break
+            time.sleep(0.2)
+        assert res.returncode == 0 and "resumed" in res.stdout, res.stdout + res.stderr
+        assert wait(lambda: any(c.epoch != old_epoch and c.method != "stop" for c in commands), 30)
         with col.lock:
             t_first = next(t for t, c in zip(cmd_times, commands) if c.epoch != old_epoch and c.method != "stop")
         assert wait(lambda: any(a.reason in ("cmd", "clamped") and a.stamp >= t_first for a in applied), 1.0), \
@@ -185,7 +202,7 @@ def test_a_running_station_takes_a_new_mission_over_zenoh_and_its_goal_state_res
         states = col.listen(keys.state, M.LearnerState)
         status = col.listen(M.status_key(robot, "station"), M.Status)
         kids.spawn(["driver", "--link", "can", "--emulate", "--x0", x0, *client, "--duration", "100"])
-        kids.spawn(["station", *client, "--store", str(tmp_path / "p.bin"), "--duration", "90"])
+        kids.spawn(["station", *client, "--start", "--store", str(tmp_path / "p.bin"), "--duration", "90"])
         assert col.wait(lambda: status and status[-1].text == "driving", 60)
         for goal_no in (1, 2):  # two short missions ahead of the robot: each reached, then the next resets it
             with col.lock:

@@ -29,6 +29,7 @@ import msgspec
 from msgspec import Meta, Struct, field
 
 from bridge.core.errors import UsageError
+from bridge.core.paths import state_dir
 from bridge.core.wire import MissionSpec
 from transfer import paper
 from transfer.domain import Bounds
@@ -58,6 +59,8 @@ Range = tuple[Finite, Finite]
 RobotName = Annotated[str, Meta(pattern=r"^[A-Za-z0-9_\-]{1,64}$", description="one Zenoh key chunk")]
 Port = Annotated[int, Meta(ge=0, le=65535)]
 SourceName = Annotated[str, Meta(pattern=r"^[A-Za-z0-9_.\-]{1,64}$", description="a non-blank source name")]
+#: a station's tick rate, Hz: below, a command's validity (three periods) would exceed the wire's 10 s
+RATE_HZ_RANGE = (0.5, 200.0)
 #: hard limits beyond these are a mistake, not a vehicle (m/s, rad/s)
 HARD_V_MAX, HARD_W_MAX = 20.0, 20.0
 
@@ -242,11 +245,12 @@ class DriverConfig(_Cfg):
 class StationSection(_Cfg):
     """``[station]``: the loop, persistence and the mission."""
 
-    rate_hz: Annotated[float, _m("control tick rate, Hz (the paper's 10 Hz)", ge=0.5, le=200.0)] = 10.0
+    rate_hz: Annotated[float, _m("control tick rate, Hz (the paper's 10 Hz)", ge=RATE_HZ_RANGE[0],
+                                 le=RATE_HZ_RANGE[1])] = 10.0
     pair_dt: Annotated[float, _m("pairing interval, s", ge=0.01, le=10.0)] = 0.1
     horizon: Annotated[int, _m("MPC horizon N, steps", ge=2, le=200)] = 20
     persist_every_s: Annotated[float, _m("save the pair store this often, s", ge=0.1, le=86400.0)] = 5.0
-    store_path: Annotated[str, _m("pair store file; empty: pairs-<robot>.bin in the working directory")] = ""
+    store_path: Annotated[str, _m("pair store file; empty: pairs-<robot>.bin in the state directory")] = ""
     mission: Annotated[str, _m("mission file (TOML); empty: the paper's S-path shipped with scmbridge")] = ""
     max_pose_age_s: Annotated[float, _m("a pose older than this stops planning (the station publishes stops), s",
                                         gt=0.0, le=60.0)] = 0.5
@@ -315,8 +319,10 @@ class StationConfig(_Cfg):
     teacher: TeacherSection = field(default_factory=TeacherSection)
     calibration: CalibrationSection = field(default_factory=CalibrationSection)
 
-    def store_file(self) -> Path:
-        return Path(self.station.store_path or f"pairs-{self.robot}.bin")
+    def store_file(self, robot: str | None = None) -> Path:
+        """The pair store: ``store_path``, else ``pairs-<robot>.bin`` in the state directory (never the working
+        directory: two stations started in one directory must not share a file)."""
+        return Path(self.station.store_path or state_dir() / f"pairs-{robot or self.robot}.bin")
 
 
 KINDS: dict[str, type[Struct]] = {"station": StationConfig, "driver": DriverConfig, "mission": MissionSpec}

@@ -187,5 +187,16 @@ def zenoh_config(args: argparse.Namespace) -> zenoh.Config:
     return make_config(mode=args.mode, listen=args.listen, connect=args.connect, config_file=args.zenoh_config)
 
 
-__all__ = ["FixedRate", "Inputs", "MemoryReport", "add_zenoh_args", "rss_mb", "rss_parts", "stop_on_signals",
-           "zenoh_config"]
+def endpoints_tried(args: argparse.Namespace) -> str:
+    """The endpoints a session made from ``args`` tries, in words (for the no-station error)."""
+    eps = [*args.connect, *(f"listening on {e}" for e in args.listen)]
+    if args.zenoh_config:
+        eps.insert(0, f"the endpoints of {args.zenoh_config}")
+    if not eps:
+        return "no endpoint (multicast scouting is off: give --connect tcp/HOST:PORT)"
+    return ", ".join(eps)
+
+
+__all__ = ["FixedRate", "Inputs", "MemoryReport", "add_zenoh_args", "endpoints_tried", "rss_mb", "rss_parts",
+           "stop_on_signals", "zenoh_config"]
+

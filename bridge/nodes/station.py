@@ -4,10 +4,13 @@ Each tick (10 Hz default; absolute deadlines, missed ones counted) it takes the 
 echoes that arrived, forms the command pairs they really bracket (:mod:`bridge.nodes.pairing`), updates the pair store
 (and so the learned limits), and then either drives or says why not:
 
-- it drives only while the robot is fit: the driver host's status is fresh and ``ok`` (link up, vehicle in the
-  operator's hands or not, no fault, no estop), and the latest pose arrived less than ``max_pose_age_s`` ago;
-- otherwise, and at the goal, it publishes stops and its status says why (``robot not ready: ...``,
-  ``no pose for 0.8 s``, ``goal reached``).
+- it drives only while a person has started the mission (:mod:`bridge.nodes.mission_control`: it starts idle;
+  ``scmbridge mission start``, or ``--start``; requests are answered on ``scm/<robot>/control``) and the robot is
+  fit: the driver host's status is fresh and ``ok`` (link up, engaged, no fault, no estop), and the latest pose
+  arrived less than ``max_pose_age_s`` ago; a robot that stops being fit while driving pauses the mission until a
+  person resumes it;
+- otherwise, and at the goal, it publishes stops and its status says why (``idle: ...``, ``paused: estop latched by
+  operator``, ``waiting for the robot: ...``, ``goal reached``).
 
 Driving: the teacher MPC, bounded by the learned limits and given the obstacles that matter, proposes a command;
 the transfer policy maps it; ``cmd`` carries it (with the method, a validity of three periods, this run's sender
@@ -34,8 +37,10 @@ import zenoh
 
 from bridge.core import wire as M
 from bridge.core.args import positive_float, robot_arg
-from bridge.core.config import StationConfig, load_mission, load_station, mission_from_spec
-from bridge.core.paths import save_atomic
+from bridge.core.config import RATE_HZ_RANGE, StationConfig, load_mission_spec, load_station, mission_from_spec
+from bridge.core.errors import UsageError
+from bridge.core.paths import save_atomic, state_dir
+from bridge.nodes.mission_control import Fitness, MissionControl, Saved, spec_of
 from bridge.nodes.node import FixedRate, Inputs, add_zenoh_args, stop_on_signals, zenoh_config
 from bridge.nodes.pairing import IntervalPairer
 from bridge.nodes.zsession import open_session
@@ -50,6 +55,8 @@ log = logging.getLogger("scmbridge.station")
 
 #: a driver host publishes status each second: after this long without one, the robot is not known to be fit
 DRIVER_STATUS_MAX_AGE = 3.0
+#: what the learner can really do is its box (or the teacher's) times this; beyond it a pose or pair is implausible
+PLAUSIBLE = 1.5
 
 
 def load_store(path: Path, learner: Bounds, teacher: Bounds, grid, k_min: int) -> tuple[PairStore, str]:
@@ -81,7 +88,10 @@ def pairs_message(store: PairStore, robot: str, now: float) -> M.Pairs:
 class Station:
     """One robot's station: pairing, the teacher, the policy, persistence and the Zenoh side."""
 
-    def __init__(self, cfg: StationConfig, robot: str, rate_hz: float, store_path: Path, mission: Mission) -> None:
+    def __init__(self, cfg: StationConfig, robot: str, rate_hz: float, store_path: Path, mission: Mission,
+                 control: MissionControl | None = None, control_path: Path | None = None) -> None:
+        """``control``: the mission's phase machine (default: ``mission``, idle); ``control_path``: where it is
+        kept across restarts (None: not kept)."""
         from transfer.teacher.mpc import MpcConfig, MpcTeacher
 
         scfg, tcfg = cfg.station, cfg.transfer
@@ -102,8 +112,16 @@ class Station:
         self.safe_policy = self.policy if self.exploration != "paper" else TransferPolicy(
             self.store, tcfg.mapper, rng=rng, exploration="guided")
         self.mpc = MpcTeacher(MpcConfig(N=scfg.horizon, dt=self.period)) if cfg.teacher.kind == "mpc" else None
-        self.pairer = IntervalPairer(scfg.pair_dt)
-        self.mission = mission
+        learner, teacher = cfg.learner_bounds.bounds(), cfg.teacher_bounds.bounds()
+        top_v = float(max(abs(x) for x in (*learner.v, *teacher.v)))
+        top_w = float(max(abs(x) for x in (*learner.w, *teacher.w)))
+        self.pairer = IntervalPairer(scfg.pair_dt, max_speed=PLAUSIBLE * top_v + 0.1, max_turn=PLAUSIBLE * top_w + 0.2,
+                                     command_bounds=learner, teacher_bounds=Bounds((-top_v, top_v), (-top_w, top_w)),
+                                     margin=PLAUSIBLE)
+        self.control = control or MissionControl(robot, spec_of(mission))
+        self.control_path = control_path
+        self.fitness = Fitness()
+        self.driver_seq = -1  # the driver host's last status seq: a lower one means it restarted
         self.teacher_kind = cfg.teacher.kind
         self.teacher_timeout = cfg.teacher.timeout_s
         self.calibration: CalibrationPlan | None = None
@@ -117,13 +135,13 @@ class Station:
         self.lock = threading.Lock()  # the inbox, the store (read by the pairs queryable) and the mission
         self.inbox: dict[str, Any] = {"state": None, "state_at": -np.inf, "events": [], "driver": None,
                                       "driver_at": -np.inf, "mission": None, "teacher": None, "teacher_at": -np.inf,
-                                      "teacher_new": False}
+                                      "teacher_new": False, "driver_restarted": False}
         self.epoch = M.new_epoch()
         self.seq = {"cmd": 0, "status": 0}
         self.counts: dict[str, int] = {"scm": 0, "direct": 0, "perturb": 0, "affine": 0, "barycentric": 0, "stop": 0}
         self.calib_progress: tuple[int, int, str] | None = None
         self.extra = {"obstacles_dropped": 0, "persist_failures": 0, "missions": 0, "explore_vetoed": 0}
-        self.reached = False
+        self.mission_version = self.control.version
         self.why = "starting"
         self.persist_error = ""
         self.limits_sent: tuple[list[float], int] | None = None
@@ -135,18 +153,42 @@ class Station:
         self.ticker: FixedRate | None = None
 
     # ---------------------------------------------------------------------------------------------- inputs
+    @property
+    def mission(self) -> Mission:
+        return self.control.mission
+
     def on_state(self, st: M.LearnerState, now: float) -> None:
         with self.lock:
             self.inbox["state"], self.inbox["state_at"] = st, now
-            self.inbox["events"].append((st.stamp, 1, st))
+            self.inbox["events"].append((st.stamp, 1, st, now))
 
     def on_applied(self, a: M.Applied, now: float) -> None:
         with self.lock:
-            self.inbox["events"].append((a.stamp, 0, a))
+            self.inbox["events"].append((a.stamp, 0, a, now))
 
     def on_driver_status(self, st: M.Status, now: float) -> None:
         with self.lock:
+            if st.seq < self.driver_seq:
+                self.inbox["driver_restarted"] = True  # a new driver host process: it counts from 0 again
+            self.driver_seq = st.seq
             self.inbox["driver"], self.inbox["driver_at"] = st, now
+
+    def on_control_query(self, query: zenoh.Query) -> None:
+        """A person's request (``scmbridge mission ...``): done or refused under the lock, answered at once."""
+        now = time.monotonic()
+        try:
+            payload = query.payload
+            req = M.decode(payload.to_bytes() if payload is not None else b"", M.MissionRequest)
+        except M.MessageError as exc:
+            self.inputs.count("malformed_control")
+            with self.lock:
+                ans = self.control.answer(now, False, f"malformed request: {exc}")
+        else:
+            with self.lock:
+                ans = self.control.request(req, self.fitness, now)
+            if req.action != "status":
+                log.info("mission %s%s: %s", req.action, f" by {req.source}" if req.source else "", ans.text)
+        query.reply(self.keys.control, M.encode(ans))
 
     def on_mission(self, spec: M.MissionSpec, now: float) -> None:
         try:
@@ -156,7 +198,7 @@ class Station:
             log.warning("mission %r refused: %s", spec.name, exc)
             return
         with self.lock:
-            self.inbox["mission"] = mission
+            self.inbox["mission"] = (spec, mission)
 
     def on_teacher(self, t: M.TeacherCommand, now: float) -> None:
         with self.lock:
@@ -175,16 +217,24 @@ class Station:
         with self.lock:
             events, self.inbox["events"] = self.inbox["events"], []
             mission, self.inbox["mission"] = self.inbox["mission"], None
-            for _, kind, e in sorted(events, key=lambda e: (e[0], e[1])):
+            for _, kind, e, received in sorted(events, key=lambda e: (e[0], e[1])):
                 if kind == 0:
-                    pair = self.pairer.applied(e.stamp, e.v, e.omega, e.reason)
+                    pair = self.pairer.applied(e.stamp, e.v, e.omega, e.reason, received)
                 else:
-                    pair = self.pairer.state(e.stamp, np.array([e.x, e.y, e.theta]))
+                    pair = self.pairer.state(e.stamp, np.array([e.x, e.y, e.theta]), received)
                 if pair is not None:
                     self.store.add(*pair)
             inbox = dict(self.inbox)
-        if mission is not None:
-            self.mission, self.reached = mission, False
+            self.inbox["driver_restarted"] = False
+            if mission is not None:
+                self.control.replace(*mission)
+            if inbox["driver_restarted"]:
+                log.warning("the driver host restarted")
+                self.control.driver_restarted()
+            new_mission = self.control.version != self.mission_version
+            self.mission_version = self.control.version
+        if new_mission:  # from the mission topic or a person's send
+            mission = self.mission
             if self.mpc is not None:
                 self.mpc.reset()
             if self.primitives is not None:
@@ -307,21 +357,54 @@ class Station:
 
     def tick(self, now: float) -> None:
         state, state_at, driver, driver_at = self.ingest()
-        why = self.fit_to_drive(now, state, state_at, driver, driver_at)
+        fit = self.fit_to_drive(now, state, state_at, driver, driver_at)
+        estop = driver is not None and (driver.state == "estop" or "estop latched" in driver.text)
         follows_mission = self.teacher_kind != "external" and self.calibration is None
-        if follows_mission and not why and not self.reached and self.mission.reached([state.x, state.y]):
-            self.reached = True
-            log.info("goal of mission %r reached", self.mission.name)
-        if follows_mission and self.reached:
-            why = "goal reached"
-        if not why:
+        with self.lock:
+            self.fitness = Fitness(fit, estop)
+            c = self.control
+            if follows_mission and not fit and c.phase == "running":
+                c.progress = max(c.progress, self.mission.progress([state.x, state.y]))
+                if self.mission.reached([state.x, state.y]):
+                    c.reached()
+            drive = c.may_drive(self.fitness)
+            why = "" if drive else self.not_driving(fit)
+        if drive:
             why = self.drive(now, state)
         if why:
             if why != self.why:
                 log.info("not driving: %s", why)
             self._command(now, 0.0, 0.0, "stop")
             self.counts["stop"] += 1
+        elif self.why != "driving":
+            log.info("driving (mission %r)", self.mission.name)
         self.why = why or "driving"
+        if self.control.changed:
+            self.save_control()
+
+    def not_driving(self, fit: str) -> str:
+        """The one reason the robot is not driven this tick (for the status line and the log)."""
+        c = self.control
+        if c.phase == "idle":
+            return f"idle: waiting for a person (scmbridge mission start --robot {self.robot})"
+        if c.phase == "finished":
+            return "goal reached"
+        if c.phase == "running":
+            return f"waiting for the robot: {fit}"
+        return c.reason  # paused: why; aborted: by whom
+
+    def save_control(self) -> None:
+        """Keep the mission and its phase on disk (a restart comes back to it, never running)."""
+        with self.lock:
+            blob = M.encode(self.control.saved()) if self.control_path is not None else b""
+        if self.control_path is None:
+            return
+        try:
+            save_atomic(self.control_path, blob)
+        except OSError as exc:
+            self.extra["persist_failures"] += 1
+            self.control.changed = True  # retried next tick
+            self.persist_error = f"mission state not saved: {exc.strerror or exc}"
 
     # ---------------------------------------------------------------------------------------- publications
     def publish_limits(self, now: float, force: bool) -> None:
@@ -345,15 +428,18 @@ class Station:
                     "raw_pairs": self.store.raw_count,
                     "pairs_rejected": self.pairer.rejected, "pairs_formed": self.pairer.formed,
                     "pairs_out_of_order": self.pairer.out_of_order,
-                    "goal_reached": int(self.reached)}
+                    "goal_reached": int(self.control.phase == "finished")}
         if self.calib_progress is not None:
             i, n, phase = self.calib_progress
             counters.update({"calibration_index": i, "calibration_total": n})
         ok = (self.why in ("driving", "goal reached") or self.why.startswith("calibration:")) and not self.persist_error
         text = self.why + (f"; {self.persist_error}" if self.persist_error else "")
+        phase = self.control.phase
+        state = "driving" if self.why == "driving" else ("waiting" if phase == "running" else phase)
         tk = np.array(self.tick_ms) if self.tick_ms else np.zeros(1)
         counters["ticks"] = self.ticks
-        msg = M.Status(stamp=now, seq=self.seq["status"], node="station", ok=ok, rates_hz={"loop": 1 / self.period},
+        msg = M.Status(stamp=now, seq=self.seq["status"], node="station", ok=ok, state=state,
+                       progress=min(1.0, max(0.0, self.control.progress)), rates_hz={"loop": 1 / self.period},
                        latencies_ms={"solve_median": float(np.median(sm)), "solve_max": float(sm.max()),
                                      "tick_p50": float(np.percentile(tk, 50)), "tick_p99": float(np.percentile(tk, 99)),
                                      "tick_max": float(tk.max())},
@@ -392,13 +478,15 @@ class Station:
         if self.teacher_kind == "external":
             self.inputs.subscribe(session, k.teacher, M.TeacherCommand, "teacher", self.on_teacher)
         session.declare_queryable(k.pairs, self.on_pairs_query)
+        session.declare_queryable(k.control, self.on_control_query)
         self.pubs = {t: session.declare_publisher(getattr(k, t)) for t in ("cmd", "limits")}
         if self.teacher_kind != "external":
             self.pubs["teacher"] = session.declare_publisher(k.teacher)
         self.pubs["status"] = session.declare_publisher(M.status_key(self.robot, "station"))
         what = "calibration" if self.calibration else (
             "external teacher" if self.teacher_kind == "external" else f"mission {self.mission.name}")
-        log.info("station for %s at %.0f Hz, %s (epoch %x)", self.robot, 1 / self.period, what, self.epoch)
+        log.info("station for %s at %.0f Hz, %s, %s (epoch %x)", self.robot, 1 / self.period, what,
+                 self.control.phase, self.epoch)
         self.ticker = FixedRate(1 / self.period, stop)
         t_start = time.monotonic()
         t_status = t_persist = t_start
@@ -423,7 +511,8 @@ class Station:
             if now >= t_persist:
                 self.persist()
                 t_persist = now + self.persist_every
-            if exit_at_goal and (self.reached or (self.calibration is not None and self.calibration.finished)):
+            if exit_at_goal and (self.control.phase in ("finished", "aborted")
+                                 or (self.calibration is not None and self.calibration.finished)):
                 self._put("status", self.status(now))
                 time.sleep(3 * self.period)
                 break
@@ -439,17 +528,48 @@ def arguments(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--store", default=None, help="pair store file (persisted atomically, reloaded at start)")
     ap.add_argument("--duration", type=positive_float, default=None, help="stop after this many seconds")
     ap.add_argument("--exit-at-goal", action="store_true", help="stop the service once the goal is reached")
+    ap.add_argument("--start", action="store_true",
+                    help="start the mission at once (a person's act: never in a service unit that restarts)")
+
+
+def control_file(robot: str) -> Path:
+    """Where a station keeps its mission and phase across restarts."""
+    return state_dir() / f"mission-{robot}.bin"
+
+
+def restore_control(robot: str, mission_arg: str | None, default_mission: str | None) -> MissionControl:
+    """The mission a station starts with: ``--mission`` (a new one: idle), else the saved one (never running),
+    else the configured or shipped one (idle). An unreadable saved file is kept aside, not lost."""
+    path = control_file(robot)
+    if mission_arg:
+        return MissionControl(robot, load_mission_spec(mission_arg))
+    if path.exists():
+        try:
+            return MissionControl.restored(robot, M.decode(path.read_bytes(), Saved))
+        except (OSError, M.MessageError, ValueError) as exc:
+            aside = path.with_name(path.name + f".corrupt-{int(time.time())}")
+            os.replace(path, aside)
+            log.error("mission state %s unusable (%s); moved to %s, starting idle", path, exc, aside)
+    return MissionControl(robot, load_mission_spec(default_mission))
 
 
 def run(args: argparse.Namespace) -> int:
     cfg = load_station(args.config)  # mistakes end here, before any session opens
-    mission = load_mission(args.mission or cfg.station.mission or None)
     robot = M.check_robot(args.robot or cfg.robot)
-    store_path = Path(args.store) if args.store else cfg.store_file()
+    rate = cfg.station.rate_hz if args.rate is None else args.rate
+    if not RATE_HZ_RANGE[0] <= rate <= RATE_HZ_RANGE[1]:
+        raise UsageError(f"--rate {rate:g}: must be within {RATE_HZ_RANGE[0]:g}..{RATE_HZ_RANGE[1]:g} Hz")
+    store_path = Path(args.store) if args.store else cfg.store_file(robot)
+    if store_path.is_dir():
+        raise UsageError(f"pair store {store_path} is a directory; name a file")
+    control = restore_control(robot, args.mission, cfg.station.mission or None)
+    if args.start:
+        control.request(M.MissionRequest(stamp=0.0, action="start", source="command line"),
+                        Fitness("not checked yet"), 0.0)
 
     from transfer.scm import warmup
 
-    station = Station(cfg, robot, args.rate or cfg.station.rate_hz, store_path, mission)
+    station = Station(cfg, robot, rate, store_path, control.mission, control, control_file(robot))
     warmup()  # compile / load the SC kernels before the first tick
     stop = stop_on_signals()
     try:
@@ -457,5 +577,6 @@ def run(args: argparse.Namespace) -> int:
             station.serve(session, stop, args.duration, args.exit_at_goal)
     finally:
         station.persist()
+        station.save_control()
         log.info("pair store saved to %s (%d refined pairs)", store_path, len(station.store.refined()))
     return 0

@@ -19,6 +19,7 @@ import msgspec
 from bridge.core import wire as M
 from bridge.core.args import positive_float, robot_arg
 from bridge.core.config import ConfigError, load_mission, load_station
+from bridge.nodes.mission_control import Fitness
 from bridge.nodes.node import add_zenoh_args, stop_on_signals, zenoh_config
 from bridge.nodes.station import Station
 from bridge.nodes.zsession import open_session
@@ -61,8 +62,11 @@ def run(args: argparse.Namespace) -> int:
         except msgspec.ValidationError as exc:
             raise ConfigError("command line", "calibration", str(exc)) from None
     robot = M.check_robot(args.robot or cfg.robot)
-    store = Path(args.store) if args.store else cfg.store_file()
+    store = Path(args.store) if args.store else cfg.store_file(robot)
     station = Station(cfg, robot, cfg.station.rate_hz, store, load_mission(cfg.station.mission or None))
+    # running calibration is a person's act by itself: the stage starts at once
+    station.control.request(M.MissionRequest(stamp=0.0, action="start", source="scmbridge calibrate"),
+                            Fitness("not checked yet"), 0.0)
     station.calibration = CalibrationPlan(cfg.learner_bounds.bounds(), c.grid, hold_s=c.hold_s,
                                           max_distance=c.max_distance_m, return_radius=c.return_radius_m,
                                           max_time_s=c.max_time_s)

@@ -201,8 +201,8 @@ def hil(args: argparse.Namespace, robot: str) -> int:
         try:
             driver_args = emulated_link(kids, args.link, out, x0, args.duration + 15, logs["driver"])
             kids.spawn(["driver", *driver_args, *client, "--duration", str(args.duration + 15)], logs["driver"])
-            kids.spawn(["station", *client, "--store", str(store), "--exit-at-goal", "--duration", str(args.duration),
-                        *(["--mission", args.mission] if args.mission else [])], logs["station"])
+            kids.spawn(["station", *client, "--start", "--store", str(store), "--exit-at-goal", "--duration",
+                        str(args.duration), *(["--mission", args.mission] if args.mission else [])], logs["station"])
             _watch(mon, kids, world, args.duration)
         except KeyboardInterrupt:
             print("\ninterrupted: stopping the demo's processes", file=sys.stderr)
@@ -329,8 +329,8 @@ def fleet(args: argparse.Namespace, robots: list[str]) -> int:
                 driver_args = emulated_link(kids, args.link, wd, x0, timeout + 15, logs["driver"])
                 kids.spawn(["driver", *driver_args, *client, "--duration", str(timeout + 15)], logs["driver"])
                 stations[robot] = kids.spawn(
-                    ["station", *client, "--store", str(stores[robot]), "--exit-at-goal", "--duration", str(timeout),
-                     *(["--mission", args.mission] if args.mission else [])], logs["station"], env=env)
+                    ["station", *client, "--start", "--store", str(stores[robot]), "--exit-at-goal", "--duration",
+                     str(timeout), *(["--mission", args.mission] if args.mission else [])], logs["station"], env=env)
             tty = sys.stdout.isatty()
             last_print = 0.0
             others = [p for p in kids.procs if p not in stations.values()]

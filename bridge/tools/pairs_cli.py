@@ -42,7 +42,7 @@ from numpy.typing import NDArray
 from bridge.core import wire as M
 from bridge.core.args import positive_float, robot_arg
 from bridge.core.errors import UsageError
-from bridge.nodes.node import add_zenoh_args, zenoh_config
+from bridge.nodes.node import add_zenoh_args, endpoints_tried, zenoh_config
 from transfer.domain import Bounds
 from transfer.store import PairStore
 
@@ -244,16 +244,6 @@ class _Listener:
             return None
         return LatestCommand(seq=cmd.seq, method=cmd.method, v=cmd.v, omega=cmd.omega, region=tuple(cmd.region),
                              teacher=(t.v, t.omega) if t is not None else None)
-
-
-def endpoints_tried(args: argparse.Namespace) -> str:
-    """The endpoints a session made from ``args`` tries, in words (for the no-station error)."""
-    eps = [*args.connect, *(f"listening on {e}" for e in args.listen)]
-    if args.zenoh_config:
-        eps.insert(0, f"the endpoints of {args.zenoh_config}")
-    if not eps:
-        return "no endpoint (multicast scouting is off: give --connect tcp/HOST:PORT)"
-    return ", ".join(eps)
 
 
 def _get_pairs(session: Any, robot: str, deadline: float) -> M.Pairs | None:

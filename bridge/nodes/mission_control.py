@@ -1,0 +1,168 @@
+"""A person starts the robot: the station's mission phases and the requests that move between them (pure: times
+and the robot's fitness are arguments; docs/ARCHITECTURE.md, "Mission control").
+
+Phases: ``idle`` (a mission is loaded, nothing is driven), ``running`` (driving, or waiting for the robot to become
+fit right after a person's start or resume), ``paused``, ``finished`` (goal reached), ``aborted``. Only a person's
+request starts or resumes (``scmbridge mission start|resume``, or ``--start`` on the station's command line).
+Anything that stops the robot without a person (an estop, the operator taking the vehicle, a lost link or pose, a
+fault, the driver host restarting) moves ``running`` to ``paused`` with that reason, and it stays paused until a
+person resumes it; a resume is refused, with the reason, while an estop is latched or the robot is not fit.
+``send`` replaces the mission and goes to ``idle``; ``abort`` stops for good until a new ``start``. A restarted
+station comes back with its saved mission, never running (a running mission comes back paused).
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+import msgspec
+import numpy as np
+
+from bridge.core import wire as M
+from bridge.core.config import mission_from_spec
+from transfer.mission import Mission
+
+log = logging.getLogger("scmbridge.station")
+
+
+class Saved(msgspec.Struct, kw_only=True):
+    """What a station keeps on its disk so a restart knows its mission and where it was."""
+
+    phase: M.MissionPhase
+    reason: str = ""
+    spec: M.MissionSpec
+
+
+@dataclass
+class Fitness:
+    """The robot's fitness as the station sees it this tick: ``why`` empty when it may be driven, else the one
+    reason; ``estop`` when that reason is a latched estop (a resume is refused until it is released)."""
+
+    why: str = "no driver host status"
+    estop: bool = False
+
+
+class MissionControl:
+    """The phase machine (see the module docstring). ``request`` answers a person; ``tick`` follows the robot."""
+
+    def __init__(self, robot: str, spec: M.MissionSpec, phase: M.MissionPhase = "idle", reason: str = "") -> None:
+        self.robot = robot
+        self.spec = spec
+        self.mission: Mission = mission_from_spec(spec)
+        self.phase: M.MissionPhase = phase
+        self.reason = reason or ("waiting for a person: scmbridge mission start" if phase == "idle" else "")
+        self.drove = False  # running and driven since the last start/resume (a stop after that pauses)
+        self.progress = 0.0
+        self.changed = True  # the phase or mission changed since the last save
+        self.version = 0  # counts mission replacements (the station resets its teacher on a new one)
+
+    # ------------------------------------------------------------------------------------------- restarts
+    @classmethod
+    def restored(cls, robot: str, saved: Saved) -> MissionControl:
+        """A restarted station: its saved mission, never running."""
+        if saved.phase == "running":
+            return cls(robot, saved.spec, "paused", "the station restarted: resume to drive on")
+        return cls(robot, saved.spec, saved.phase, saved.reason)
+
+    def saved(self) -> Saved:
+        self.changed = False
+        return Saved(phase=self.phase, reason=self.reason, spec=self.spec)
+
+    # ------------------------------------------------------------------------------------------- requests
+    def request(self, req: M.MissionRequest, fit: Fitness, now: float) -> M.MissionState:
+        """Do what a person asked, if it may be done now; the answer says what was done or why not."""
+        who = f" by {req.source}" if req.source else ""
+        act = req.action
+        if act == "status":
+            return self.answer(now, True, f"mission {self.spec.name!r} is {self.phase}")
+        if act == "send":
+            if req.spec is None:
+                return self.answer(now, False, "send needs a mission")
+            try:
+                mission = mission_from_spec(req.spec)
+            except ValueError as exc:
+                return self.answer(now, False, f"mission refused: {exc}")
+            self.spec, self.mission, self.progress = req.spec, mission, 0.0
+            self.version += 1
+            self._go("idle", f"new mission{who}: scmbridge mission start to drive it")
+            return self.answer(now, True, f"mission {req.spec.name!r} loaded; idle until started")
+        if act in ("start", "resume"):
+            if self.phase == "running":
+                return self.answer(now, True, "already running")
+            if act == "resume" and self.phase != "paused":
+                return self.answer(now, False, f"nothing to resume: the mission is {self.phase}"
+                                   + ("; use start" if self.phase in ("idle", "finished", "aborted") else ""))
+            if fit.estop or (act == "resume" and fit.why):
+                return self.answer(now, False, f"refused: {fit.why}")
+            if act == "start" and self.phase in ("finished", "aborted"):
+                self.progress = 0.0  # start again from the beginning
+            done = "started" if act == "start" else "resumed"
+            self._go("running", f"{done}{who}")
+            return self.answer(now, True, f"mission {self.spec.name!r} {done}" + (
+                f"; waiting for the robot: {fit.why}" if fit.why else ""))
+        if act == "pause":
+            if self.phase != "running":
+                return self.answer(now, False, f"nothing to pause: the mission is {self.phase}")
+            self._go("paused", f"paused{who}")
+            return self.answer(now, True, "paused")
+        if act == "abort":
+            if self.phase in ("aborted", "finished"):
+                return self.answer(now, True, f"the mission is already {self.phase}")
+            self._go("aborted", f"aborted{who}")
+            return self.answer(now, True, "aborted: stopped until a new start")
+        return self.answer(now, False, f"unknown action {act!r}")
+
+    def replace(self, spec: M.MissionSpec, mission: Mission) -> None:
+        """A program's new mission on ``scm/<robot>/mission`` for a station a person started: it replaces the
+        mission; a finished one goes on with the new goal, every other phase stays as it is."""
+        self.spec, self.mission, self.progress = spec, mission, 0.0
+        self.version += 1
+        if self.phase == "finished":
+            self._go("running", f"new mission {spec.name!r} after the goal")
+        self.changed = True
+
+    # ------------------------------------------------------------------------------------------------ tick
+    def may_drive(self, fit: Fitness) -> bool:
+        """Whether this tick drives; pauses a running mission the robot stopped following without a person."""
+        if self.phase != "running":
+            return False
+        if fit.why:
+            if self.drove:
+                self._go("paused", f"paused: {fit.why}")
+            return False
+        self.drove = True
+        return True
+
+    def reached(self) -> None:
+        self.progress = 1.0
+        self._go("finished", "goal reached")
+
+    def driver_restarted(self) -> None:
+        if self.phase == "running":
+            self._go("paused", "paused: the driver host restarted")
+
+    # ------------------------------------------------------------------------------------------- helpers
+    def _go(self, phase: M.MissionPhase, reason: str) -> None:
+        if phase != self.phase or reason != self.reason:
+            log.info("mission %r: %s -> %s (%s)", self.spec.name, self.phase, phase, reason)
+        self.phase, self.reason, self.changed = phase, reason, True
+        if phase == "running":
+            self.drove = False
+
+    def answer(self, now: float, accepted: bool, text: str) -> M.MissionState:
+        return M.MissionState(stamp=now, robot=self.robot, phase=self.phase, mission=self.spec.name,
+                              accepted=accepted, text=text[:1024], reason=self.reason[:1024],
+                              progress=min(1.0, max(0.0, self.progress)))
+
+
+def spec_of(mission: Mission) -> M.MissionSpec:
+    """The wire form of a mission (to keep it on disk and answer with its name)."""
+    obstacles = [[float(x), float(y), float(r)] for x, y, r in np.asarray(mission.obstacles).reshape(-1, 3)]
+    start = None if mission.start is None else [float(a) for a in mission.start]
+    return M.MissionSpec(name=mission.name, frame=mission.frame, path=[[float(x), float(y)] for x, y in
+                                                                       mission.path.points],
+                         goal_tolerance=float(mission.goal_tolerance), obstacles=obstacles, start=start)
+
+
+__all__ = ["Fitness", "MissionControl", "Saved", "spec_of"]

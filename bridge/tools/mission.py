@@ -1,0 +1,123 @@
+"""``scmbridge mission start|pause|resume|abort|status|send``: a person's requests to a robot's station.
+
+Each is a Zenoh query on ``scm/<robot>/control`` (a :class:`bridge.core.wire.MissionRequest`), answered by the
+station with what it did or why it refused, and where the mission is (``running``, ``paused: estop latched by
+operator``, ...). A station starts idle and drives only after ``start``; after an estop, an operator takeover, a
+lost link or a driver-host restart it pauses, and only ``resume`` drives on. ``send FILE`` loads a new mission
+(idle until started). Prints the answer in one line. Exit status: 0 accepted, 1 refused, 2 no station answered.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+
+import zenoh
+
+from bridge.core import wire as M
+from bridge.core.args import positive_float, robot_arg
+from bridge.core.config import load_mission_spec
+from bridge.core.errors import UsageError
+from bridge.nodes.node import add_zenoh_args, endpoints_tried, zenoh_config
+from bridge.nodes.zsession import open_session
+
+#: a fresh session needs a moment to reach the station: ask again this often until --timeout
+RETRY_S = 0.25
+
+
+def ask(session: zenoh.Session, robot: str, req: M.MissionRequest, timeout: float) -> M.MissionState | None:
+    """The station's answer to ``req``, asking again until ``timeout``; None if no station answered."""
+    t_end = time.monotonic() + timeout
+    while True:
+        left = t_end - time.monotonic()
+        for reply in session.get(M.key(robot, "control"), payload=M.encode(req), timeout=max(0.05, min(1.0, left))):
+            if reply.ok is None:
+                continue
+            try:
+                return M.decode(reply.ok.payload.to_bytes(), M.MissionState)
+            except M.MessageError:
+                continue
+        if time.monotonic() + RETRY_S >= t_end:
+            return None
+        time.sleep(RETRY_S)
+
+
+def line(st: M.MissionState) -> str:
+    head = f"{st.robot}: {'' if st.accepted else 'REFUSED: '}{st.text}"
+    where = f"mission {st.mission!r} {st.phase}" + (f" ({st.reason})" if st.reason and st.phase != "running" else "")
+    return f"{head} | {where}, {100 * st.progress:.0f}% done"
+
+
+def _arguments(ap: argparse.ArgumentParser) -> None:
+    ap.add_argument("--robot", type=robot_arg, required=True, help="the robot whose station to ask")
+    ap.add_argument("--source", default="operator", help="who you are (the station logs it)")
+    ap.add_argument("--timeout", type=positive_float, default=3.0, help="seconds to wait for the station's answer")
+    add_zenoh_args(ap)
+
+
+def _run(args: argparse.Namespace, action: str, spec: M.MissionSpec | None = None) -> int:
+    req = M.MissionRequest(stamp=time.monotonic(), action=action, spec=spec, source=args.source)
+    with open_session(zenoh_config(args)) as session:
+        st = ask(session, args.robot, req, args.timeout)
+    if st is None:
+        raise UsageError(f"no station answered on {M.key(args.robot, 'control')} within {args.timeout:g} s "
+                         f"(tried {endpoints_tried(args)})")
+    print(line(st), file=sys.stdout if st.accepted else sys.stderr)
+    return 0 if st.accepted else 1
+
+
+def arguments_start(ap: argparse.ArgumentParser) -> None:
+    _arguments(ap)
+
+
+def run_start(args: argparse.Namespace) -> int:
+    """Start the robot's mission (from the beginning after it finished or was aborted)."""
+    return _run(args, "start")
+
+
+def arguments_pause(ap: argparse.ArgumentParser) -> None:
+    _arguments(ap)
+
+
+def run_pause(args: argparse.Namespace) -> int:
+    """Pause the running mission: the station publishes stops until a resume."""
+    return _run(args, "pause")
+
+
+def arguments_resume(ap: argparse.ArgumentParser) -> None:
+    _arguments(ap)
+
+
+def run_resume(args: argparse.Namespace) -> int:
+    """Resume a paused mission; refused, with the reason, while an estop is latched or the robot is not fit."""
+    return _run(args, "resume")
+
+
+def arguments_abort(ap: argparse.ArgumentParser) -> None:
+    _arguments(ap)
+
+
+def run_abort(args: argparse.Namespace) -> int:
+    """Abort the mission: stopped for good until a new start."""
+    return _run(args, "abort")
+
+
+def arguments_status(ap: argparse.ArgumentParser) -> None:
+    _arguments(ap)
+
+
+def run_status(args: argparse.Namespace) -> int:
+    """Where the mission is and why."""
+    return _run(args, "status")
+
+
+def arguments_send(ap: argparse.ArgumentParser) -> None:
+    ap.add_argument("file", help="the mission file (TOML: scmbridge config show --kind mission)")
+    _arguments(ap)
+
+
+def run_send(args: argparse.Namespace) -> int:
+    """Load a new mission into the station (idle until started)."""
+    spec = load_mission_spec(args.file)  # a mistake is one line here, before anything is sent
+    return _run(args, "send", spec)
