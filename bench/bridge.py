@@ -66,8 +66,8 @@ def run_link(link: str, seconds: float, workdir: str) -> dict:
         session.declare_subscriber(keys.applied, on_applied)
         session.declare_subscriber(status_key(robot, "driver"), on_status)
         driver_args = emulated_link(kids, link, Path(workdir), "0,0,0", seconds + 40, rate_hz=50)
-        driver = kids.spawn(["driver", *driver_args, "--robot", robot, "--mode", "client", "--connect", tcp(port),
-                             "--rate", "50", "--duration", str(seconds + 30)], subprocess.DEVNULL)
+        driver = kids.spawn(["driver", "--engage", *driver_args, "--robot", robot, "--mode", "client", "--connect",
+                             tcp(port), "--rate", "50", "--duration", str(seconds + 30)], subprocess.DEVNULL)
         t_end = time.monotonic() + 30
         while time.monotonic() < t_end:
             with lock:

@@ -49,4 +49,5 @@ def open_can_driver(stack: ExitStack, channel: str) -> Any:
     driver = open_driver("can", CanLinkConfig(interface="virtual", channel=channel))
     stack.callback(driver.close)
     driver.open(time.monotonic())
+    driver.engage(time.monotonic(), clear_faults=True)  # a person who has looked at the robot: clear and arm
     return driver

@@ -366,8 +366,8 @@ class HostRig:
                 self.proc = kids.spawn(["bench", "fuzz", "--probe-host", self.robot, *client], subprocess.PIPE,
                                        stdin=subprocess.PIPE, text=True, bufsize=1)
             else:
-                self.proc = kids.spawn(["driver", "--link", "can", "--emulate", "--robot", self.robot, *client,
-                                        "--duration", "86400"],
+                self.proc = kids.spawn(["driver", "--engage", "--link", "can", "--emulate", "--robot", self.robot,
+                                        *client, "--duration", "86400"],
                                        log)
             if not wait_until(lambda: self.status is not None and self.status.ok, 90.0, 0.05):
                 raise RuntimeError(f"the driver host did not come up (log: {self.log_path})")
@@ -703,6 +703,7 @@ def probe_host(args: argparse.Namespace) -> int:
     cfg = load_driver(None)
     link = msgspec.structs.replace(cfg.link.can, interface="virtual", channel=f"scm-{args.robot}")
     host = DriverHost(cfg, "can", open_driver("can", link), args.robot, cfg.driver.rate_hz)
+    host.engage_on_start = True  # as `scmbridge driver --engage`
     ecus = DiffDriveEcus({"interface": "virtual", "channel": link.channel}, new_vehicle(),
                          left_node=link.left_node, right_node=link.right_node, left_sign=link.left_sign,
                          right_sign=link.right_sign, wheel_radius=link.wheel_radius,
@@ -1856,6 +1857,7 @@ def mavlink_rover(n: int, seed: int, workdir: Path | None = None) -> dict:
                                                               open_timeout=5.0))
             stack.callback(driver.close)
             driver.open(time.monotonic())
+            driver.engage(time.monotonic())  # a person's act: GUIDED and armed
             drive = _drive(driver, spy, 0.25, crashes)
         except Exception as exc:
             crashes.caught("driver open", exc)

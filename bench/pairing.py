@@ -33,6 +33,7 @@ def _opened(stack: ExitStack, link: str, config: Any) -> Any:
     driver = open_driver(link, config)
     stack.callback(driver.close)
     driver.open(time.monotonic())
+    driver.engage(time.monotonic())  # what a person's scmbridge engage does
     return driver
 
 

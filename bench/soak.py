@@ -158,8 +158,8 @@ def soak(minutes: float, link: str, workdir: Path, sample_s: float = 10.0, warmu
         driver_args = emulated_link(kids, link, workdir, x0, life, logs["learner"])
         if link != "can":
             procs["learner"] = kids.procs[-1]
-        procs["driver"] = kids.spawn(["driver", *driver_args, *client, "--duration", str(life)], logs["driver"],
-                                     **_memory_env("driver" in trace_memory, workdir, "driver"))
+        procs["driver"] = kids.spawn(["driver", "--engage", *driver_args, *client, "--duration", str(life)],
+                                     logs["driver"], **_memory_env("driver" in trace_memory, workdir, "driver"))
         procs["station"] = kids.spawn(["station", *client, "--start", "--store", str(workdir / "pairs.bin"),
                                        "--mission", mission, "--duration", str(life)], logs["station"],
                                       **_memory_env("station" in trace_memory, workdir, "station"))

@@ -52,6 +52,16 @@ class LinkHealth:
     detail: dict[str, Any] = field(default_factory=dict)
 
 
+@dataclass(frozen=True, slots=True)
+class FailsafeReport:
+    """What the vehicle does by itself when the driver host dies: ``drive_on_s``, the longest it may keep
+    executing the last command (None: unknown), in words in ``text``, with the settings read from it."""
+
+    drive_on_s: float | None
+    text: str
+    params: dict[str, float] = field(default_factory=dict)
+
+
 @runtime_checkable
 class Driver(Protocol):
     """A vehicle link. Construction takes the link's config mapping and does no I/O; ``open`` connects."""
@@ -59,7 +69,16 @@ class Driver(Protocol):
     name: str
 
     def open(self, now: float) -> None:
-        """Connect and bring the vehicle to a state where it accepts velocity commands (may block, bounded)."""
+        """Connect and read the vehicle's state (may block, bounded). Never arms it, changes its mode or puts an
+        axis in closed loop: a restarted driver host must not take a vehicle back from a person."""
+
+    def engage(self, now: float, clear_faults: bool = False) -> None:
+        """A person's act (``scmbridge engage``): bring the vehicle to accept velocity commands (MAVLink: GUIDED and
+        armed; CAN: closed loop). Raises :class:`DriverError` with the reason if it cannot; ``clear_faults``: the
+        person also asks to clear what the controllers latched."""
+
+    def failsafe(self) -> FailsafeReport:
+        """What the vehicle does by itself if this host dies (read at open where the link allows)."""
 
     def send(self, v: float, omega: float, now: float) -> None:
         """Command forward speed ``v`` (m/s) and yaw rate ``omega`` (rad/s, CCW+). Inputs are already checked.
@@ -82,5 +101,6 @@ class Driver(Protocol):
         controllers latched (axis errors) and bring them back to accepting commands. Never called automatically;
         a link with nothing to clear (MAVLink: the operator changes the mode) does nothing."""
 
-    def close(self) -> None:
-        """Stop the vehicle if possible and release the link. Idempotent."""
+    def close(self, disarm: bool = True, stop_speed: float = 0.05, stop_timeout: float = 3.0) -> None:
+        """Stop the vehicle, wait (at most ``stop_timeout``) until it reports less than ``stop_speed``, then (if
+        ``disarm``: it was engaged by this host) disarm it or idle its axes, and release the link. Idempotent."""

@@ -6,15 +6,18 @@ names in :mod:`drivers.odrive`, with the ODrive sources they were checked agains
 wheel turn rates with the wheel radius and track width, and integrates odometry from the controllers' encoder
 estimates. Configuration: :class:`bridge.core.config.CanLinkConfig` (``[link.can]`` in the driver host's file).
 
-**Start-up** (``open``), the one time the driver arms the controllers, because starting the driver host is the
-operator's act: per axis Clear_Errors (what a previous session left, typically the watchdog error of its stop),
-Set_Controller_Mode(VELOCITY_CONTROL, PASSTHROUGH), Set_Input_Vel(0), Set_Axis_State(CLOSED_LOOP_CONTROL); then it
-waits, at most ``open_timeout``, feeding the watchdogs with zero set-points, until both Heartbeats report closed loop
-without error. Velocity control must be set explicitly: an ODrive's factory control mode is POSITION_CONTROL, in
-which Set_Input_Vel is only a feed-forward and the wheel holds its position. The input mode is PASSTHROUGH, not
-VEL_RAMP: the set-point the driver host applies is the one it echoes on ``applied`` and the one the station's learner
-model is identified on; a ramp inside the controller would add a lag nothing upstream models (acceleration is
-bounded by the driver host's hard limits and the transfer's bounds instead).
+**Start-up** (``open``) only opens the bus and listens: no axis enters closed loop until a person engages
+(``scmbridge engage``, or ``engage_on_start``), since a restarted driver host must not take the robot back.
+**Engage** (:meth:`CanDriver.engage`) refuses, naming the axis and its errors, while an axis reports an error (the
+watchdog error a killed session left, an ODrive's own estop) unless the person also asks to clear it (``--clear-
+faults``); then per axis Clear_Errors, Set_Controller_Mode(VELOCITY_CONTROL, PASSTHROUGH), Set_Input_Vel(0),
+Set_Axis_State(CLOSED_LOOP_CONTROL), and it waits, at most ``open_timeout``, feeding the watchdogs with zero set-
+points, until both Heartbeats report closed loop without error. **Close**: zero set-points until both axes report
+less than ``stop_speed`` (at most ``stop_timeout``), then IDLE. Velocity control must be set explicitly: an ODrive's
+factory control mode is POSITION_CONTROL, in which Set_Input_Vel is only a feed-forward and the wheel holds its
+position. The input mode is PASSTHROUGH, not VEL_RAMP: the set-point the driver host applies is the one it echoes on
+``applied`` and the one the station's learner model is identified on; a ramp inside the controller would add a lag
+nothing upstream models (acceleration is bounded by the driver host's hard limits and the transfer's bounds instead).
 
 **Supervision** (in ``poll``, ``send`` and ``health``):
 
@@ -63,7 +66,7 @@ import can
 import cantools
 
 from bridge.core.config import CanLinkConfig
-from drivers.base import DriverError, LinkHealth, Pose
+from drivers.base import DriverError, FailsafeReport, LinkHealth, Pose
 from drivers.odrive import AxisState, ControlMode, InputMode, error_names, state_name
 
 #: error class bit of a bus-off error frame (Linux ``include/uapi/linux/can/error.h``: ``CAN_ERR_BUSOFF``); python-can's
@@ -206,6 +209,26 @@ class CanDriver:
         except (can.CanError, OSError, ValueError) as exc:
             raise DriverError(f"cannot open CAN bus {self.interface}:{self.channel}: {exc}") from exc
         self._health.connected = True
+        self._phase = "idle"
+        t_end = time.monotonic() + min(self.open_timeout, 1.0)
+        while time.monotonic() < t_end and any(ax.heartbeat_at is None for ax in self.axes):
+            self.poll(time.monotonic(), block=0.02)  # the controllers' Heartbeats say how they are
+
+    def engage(self, now: float, clear_faults: bool = False) -> None:
+        """A person's act: both axes into velocity control and closed loop (see the module docstring)."""
+        if self.bus is None or self._phase == "closed":
+            raise DriverError(f"CAN bus {self.interface}:{self.channel} not open")
+        t_hb = time.monotonic() + self.open_timeout
+        while time.monotonic() < t_hb and any(not ax.heartbeat_at for ax in self.axes):
+            self.poll(time.monotonic(), block=0.02)
+        silent = [f"{ax.side} controller (node {ax.node})" for ax in self.axes if ax.heartbeat_at is None]
+        if silent:
+            raise DriverError(f"no heartbeat from the {' and the '.join(silent)}")
+        faulted = [ax for ax in self.axes if ax.error or ax.fault]
+        if faulted and not clear_faults:
+            what = "; ".join(f"{ax.side} axis error: {', '.join(error_names(ax.error or ax.fault_error))}"
+                             for ax in faulted)
+            raise DriverError(f"{what}: check the robot, then engage with --clear-faults")
         self._arm(time.monotonic(), every_axis=True)
         t_feed = 0.0
         while True:
@@ -218,6 +241,11 @@ class CanDriver:
                 if self._health.ok:
                     return
                 raise DriverError(f"motor controllers not ready after {self.open_timeout} s: {self._health.text}")
+
+    def failsafe(self) -> FailsafeReport:
+        return FailsafeReport(drive_on_s=None, text=(
+            "if the host dies each ODrive drives on until its own watchdog trips (axis.config.enable_watchdog, "
+            "watchdog_timeout: off by default; CANSimple 0.6 cannot read it: check it with odrivetool)"))
 
     def _arm(self, now: float, every_axis: bool) -> None:
         """Clear errors, velocity control + passthrough, zero set-point, closed loop; then wait (phase arming) until
@@ -437,6 +465,8 @@ class CanDriver:
             h.ok = False
             return
         reasons: list[str] = []
+        if self._phase == "idle":
+            reasons.append("axes idle: not engaged")
         if self.bus is None:
             reasons.append(f"CAN bus down ({self._down_reason}); reopening in {max(0.0, self._reopen_at - now):.2f} s")
         if self._phase == "arming":
@@ -482,16 +512,28 @@ class CanDriver:
         ``open_timeout``), else the axis that did not re-arm is a latched fault again."""
         if self._phase == "closed" or self.bus is None:
             return  # nothing reachable: the text still says why
+        if self._phase == "idle":  # not engaged: clear the errors, never arm (engage does that)
+            for ax in self.axes:
+                self._send(encode(ax.node, "Clear_Errors", {"Identify": 0}))
+                ax.fault, ax.fault_error = False, 0
+            return
         self._arm(now, every_axis=False)
         self._evaluate(now)
 
-    def close(self) -> None:
+    def close(self, disarm: bool = True, stop_speed: float = 0.05, stop_timeout: float = 3.0) -> None:
         if self.bus is None:
             self._phase = "closed"
             self._health.connected = self._health.ok = False
             self._health.text = "closed"
             return
         try:
+            t_end = time.monotonic() + stop_timeout
+            turns = stop_speed / (2.0 * math.pi * self.radius)  # rev/s of a wheel at stop_speed
+            while self._phase == "running" and time.monotonic() < t_end:  # zero until both wheels have stopped
+                self.stop(0.0)
+                self.poll(time.monotonic(), block=0.02)
+                if all(abs(ax.vel) < turns for ax in self.axes):
+                    break
             self.stop(0.0)
             for ax in self.axes:
                 self._send(encode(ax.node, "Set_Axis_State", {"Axis_Requested_State": AxisState.IDLE}))

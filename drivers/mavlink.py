@@ -1,11 +1,15 @@
 """MAVLink link: an ArduPilot Rover in GUIDED mode (pymavlink, MAVLink 2, ardupilotmega).
 
-The operator always wins. ``open()`` is the only place this driver changes the vehicle's mode or arms it; afterwards
-it never does either again. When the vehicle leaves GUIDED (an RC mode switch, a failsafe) the driver stops sending
+The operator always wins. ``open()`` never changes the vehicle's mode nor arms it (a restarted driver host must not
+take a vehicle back from the operator): :meth:`MavlinkDriver.engage`, a person's explicit act (``scmbridge engage``,
+or ``engage_on_start`` in the driver host's configuration), is the only place this driver selects GUIDED and arms,
+reading every COMMAND_ACK. When the vehicle leaves GUIDED (an RC mode switch, a failsafe) the driver stops sending
 set-points and says so in :meth:`MavlinkDriver.health` (``ok`` False, ``"operator took control: mode HOLD"``); it
 drives again only when the operator has put the vehicle back in GUIDED (and armed), with no action on our side.
 
-open(), bounded by ``open_timeout``:
+open(), bounded by ``open_timeout``, steps 1-3 and the failsafe parameters (``FS_GCS_ENABLE``, ``FS_GCS_TIMEOUT``,
+``FS_ACTION``, ``FS_TIMEOUT``: PARAM_REQUEST_READ / PARAM_VALUE), reported by :meth:`MavlinkDriver.failsafe`;
+engage(), bounded by ``open_timeout``, steps 4-5:
 
 1. connect (a TCP or serial connection that fails is tried again with backoff) and wait for a HEARTBEAT from
    ``target_system``/``target_component`` whose mode is not INITIALISING;
@@ -48,10 +52,11 @@ heartbeats return the message intervals are asked again (a rebooted autopilot fo
 only if the vehicle is GUIDED and armed. STATUSTEXTs are logged and the last ``statustext_keep`` are in
 ``health().detail``.
 
-close(): if the vehicle is still ours (GUIDED), a zero set-point, then disarm and wait (``close_timeout``) for the ACK
-or the HEARTBEAT's armed flag, then close: ArduPilot's TCP port drops a command that arrives just before its peer
-closes (libraries/AP_HAL_SITL/UARTDriver.cpp), so closing at once would leave the vehicle armed. A vehicle the
-operator has taken over is left alone.
+close(): if the vehicle is still ours (GUIDED), zero set-points until it reports (LOCAL_POSITION_NED) a speed below
+``stop_speed`` (at most ``stop_timeout``: a rover disarmed while moving coasts), then disarm and wait
+(``close_timeout``) for the ACK or the HEARTBEAT's armed flag, then close: ArduPilot's TCP port drops a command that
+arrives just before its peer closes (libraries/AP_HAL_SITL/UARTDriver.cpp), so closing at once would leave the
+vehicle armed. A vehicle the operator has taken over is left alone.
 
 Configuration: :class:`bridge.core.config.MavlinkLinkConfig` (``[link.mavlink]`` in the driver host's file).
 """
@@ -72,7 +77,7 @@ from pymavlink import mavutil  # noqa: E402
 
 from bridge.core.clock import ClockOffset  # noqa: E402
 from bridge.core.config import MavlinkLinkConfig  # noqa: E402
-from drivers.base import DriverError, LinkHealth, Pose  # noqa: E402
+from drivers.base import DriverError, FailsafeReport, LinkHealth, Pose  # noqa: E402
 
 log = logging.getLogger("scmbridge.driver.mavlink")
 
@@ -81,6 +86,10 @@ MAV = mavutil.mavlink
 ROVER_MODES: dict[int, str] = mavutil.mode_mapping_bynumber(MAV.MAV_TYPE_GROUND_ROVER)
 GUIDED = mavutil.mode_mapping_byname(MAV.MAV_TYPE_GROUND_ROVER)["GUIDED"]
 INITIALISING = mavutil.mode_mapping_byname(MAV.MAV_TYPE_GROUND_ROVER)["INITIALISING"]
+#: the vehicle's own failsafe settings read at open (Rover/Parameters.cpp, GCS failsafe in Rover/failsafe.cpp)
+FAILSAFE_PARAMS = ("FS_GCS_ENABLE", "FS_GCS_TIMEOUT", "FS_ACTION", "FS_TIMEOUT")
+#: Rover stops a GUIDED velocity target not renewed for this long (Rover/mode_guided.cpp), s
+GUIDED_TIMEOUT_S = 3.0
 TYPE_MASK_VEL_YAWRATE = 0x05E7
 SOURCE_COMPONENT = MAV.MAV_COMP_ID_MISSIONPLANNER
 NO_ACK = -1  # a command that got no COMMAND_ACK after all its tries
@@ -169,6 +178,8 @@ class MavlinkDriver:
     """The MAVLink link behind the :class:`drivers.base.Driver` protocol (see the module docstring)."""
 
     name = "mavlink"
+    #: the operator putting the vehicle in GUIDED and arming it, seen while the host runs, is a person's engage
+    operator_engages = True
 
     def __init__(self, config: MavlinkLinkConfig) -> None:
         self.config = config
@@ -201,6 +212,9 @@ class MavlinkDriver:
         self._foreign_ids: deque[tuple[int, int]] = deque(maxlen=8)
         self._clock = ClockOffset(config.clock_window_s)  # the vehicle's time_boot_ms -> our monotonic clock
         self._last_refusal = ""
+        self.params: dict[str, float] = {}  # the failsafe parameters the vehicle reported at open
+        self._last_position: _Position | None = None
+        self._last_position_time = -math.inf
 
     # ------------------------------------------------------------------------------------------ properties
     @property
@@ -333,6 +347,7 @@ class MavlinkDriver:
             stamp, steady = self._clock.restamp_checked(msg.time_boot_ms / 1000.0, now)
             self._counts["clock_restarts"] += not steady
             p = _Position(int(msg.time_boot_ms), stamp, float(msg.x), float(msg.y), float(msg.vx), float(msg.vy))
+            self._last_position, self._last_position_time = p, now
             if v.pending is not None and v.att is not None:
                 out.append(self._pose(v.pending))  # no ATTITUDE came after it: the last one, carried forward
             v.pending = None
@@ -350,6 +365,10 @@ class MavlinkDriver:
                 v.pending = None
         elif t == "COMMAND_ACK":
             self._ack(msg)
+        elif t == "PARAM_VALUE":
+            name = str(msg.param_id).rstrip("\x00")
+            if name in FAILSAFE_PARAMS and math.isfinite(msg.param_value):
+                self.params[name] = float(msg.param_value)
         elif t == "STATUSTEXT":
             text = "".join(c if c.isprintable() else "\ufffd" for c in str(msg.text).rstrip("\x00"))  # for logs
             v.texts.append((now, text))
@@ -481,7 +500,7 @@ class MavlinkDriver:
 
     # ------------------------------------------------------------------------------------------------ open
     def open(self, now: float) -> None:
-        """Connect, wait for the vehicle to be ready, put it in GUIDED and arm it (see the module docstring)."""
+        """Connect, wait for the vehicle to be ready and read its failsafe settings; never its mode nor arming."""
         t_end = time.monotonic() + self.open_timeout
         self._closed = False
         while self.conn is None:
@@ -505,14 +524,48 @@ class MavlinkDriver:
         if not self._wait(lambda: self._position_fresh(time.monotonic()) and v.att is not None, t_end):
             raise DriverError(f"vehicle position not ready within {self.open_timeout} s: no LOCAL_POSITION_NED "
                               f"(ArduPilot sends it only once its EKF has an origin){self._texts_note()}")
-        self._enter_guided(t_end)
-        self._arm(t_end)
-        if v.custom_mode != GUIDED:
-            raise DriverError(f"operator took control while opening: mode {mode_name(v.custom_mode)}")
+        self._read_params(FAILSAFE_PARAMS, min(t_end, time.monotonic() + 2.0))
         self._opened = True
         self._link_up = True
         self._update_state(time.monotonic())
-        log.info("vehicle ready on %s: GUIDED, armed, position streaming", self.url)
+        log.info("vehicle on %s: mode %s, %s, position streaming; %s", self.url, mode_name(v.custom_mode),
+                 "armed" if v.armed else "disarmed", self.failsafe().text)
+
+    def engage(self, now: float, clear_faults: bool = False) -> None:
+        """A person's act: select GUIDED and arm, each confirmed by its COMMAND_ACK and the HEARTBEAT (see the
+        module docstring); raises :class:`DriverError` with the vehicle's own reason when it refuses."""
+        if self._closed or not self._opened:
+            raise DriverError("MAVLink link not open")
+        t_end = time.monotonic() + self.open_timeout
+        self._enter_guided(t_end)
+        self._arm(t_end)
+        if self.v.custom_mode != GUIDED:
+            raise DriverError(f"operator took control while engaging: mode {mode_name(self.v.custom_mode)}")
+        self._update_state(time.monotonic())
+        log.info("vehicle engaged: GUIDED, armed")
+
+    def _read_params(self, names: tuple[str, ...], t_end: float) -> None:
+        """Ask for each parameter (PARAM_REQUEST_READ) and wait for the PARAM_VALUEs; a missing one stays unknown."""
+        for name in names:
+            try:
+                self.conn.mav.param_request_read_send(self.target[0], self.target[1], name.encode(), -1)
+                self._health.frames_sent += 1
+            except OSError as exc:
+                self._conn_failed = str(exc)
+                return
+        self._wait(lambda: all(n in self.params for n in names), t_end)
+
+    def failsafe(self) -> FailsafeReport:
+        """What the vehicle does on its own when this host dies (stops sending set-points and heartbeats)."""
+        p = self.params
+        gcs = p.get("FS_GCS_ENABLE")
+        known = ", ".join(f"{k}={p[k]:g}" for k in FAILSAFE_PARAMS if k in p) or "no failsafe parameter answered"
+        drive_on = GUIDED_TIMEOUT_S  # Rover/mode_guided.cpp: no new target for 3 s -> stop (not a parameter)
+        if gcs and p.get("FS_ACTION", 0) and "FS_GCS_TIMEOUT" in p:
+            drive_on = min(drive_on, p["FS_GCS_TIMEOUT"] + p.get("FS_TIMEOUT", 0.0))
+        text = (f"if the host dies the vehicle drives on for up to {drive_on:g} s (GUIDED stops after "
+                f"{GUIDED_TIMEOUT_S:g} s without a target; {known})")
+        return FailsafeReport(drive_on_s=drive_on, text=text, params=dict(p))
 
     def _texts_note(self) -> str:
         return f"; vehicle said: {'; '.join(self.statustexts)}" if self.v.texts else ""
@@ -666,8 +719,16 @@ class MavlinkDriver:
     def clear_faults(self, now: float) -> None:
         """Nothing to clear on this link: the operator puts the vehicle back in GUIDED and arms it himself."""
 
-    def close(self) -> None:
-        """Stop and disarm a vehicle that is still ours, wait for the disarm to be acknowledged, then close."""
+    def _speed(self) -> float | None:
+        """The vehicle's own speed over ground from its last LOCAL_POSITION_NED, m/s (None before one)."""
+        p = self.v.pending
+        last = self._last_position
+        pos = p if p is not None else last
+        return None if pos is None else math.hypot(pos.vx, pos.vy)
+
+    def close(self, disarm: bool = True, stop_speed: float = 0.05, stop_timeout: float = 3.0) -> None:
+        """Stop a vehicle that is still ours, wait until it reports it has stopped (``stop_speed``, at most
+        ``stop_timeout``), disarm it (``disarm``: it was engaged by us) and wait for the acknowledgement, close."""
         if self._closed:
             return
         if self.conn is None:
@@ -680,7 +741,19 @@ class MavlinkDriver:
             v = self.v
             if v.custom_mode == GUIDED:
                 self._setpoint(0.0, 0.0, now)
-                if self.disarm_on_close and v.armed:
+                t_stop = now + stop_timeout
+                while v.armed and v.custom_mode == GUIDED and time.monotonic() < t_stop:
+                    speed = self._speed()
+                    if speed is not None and speed < stop_speed and self._last_position_time > now:
+                        break
+                    self._setpoint(0.0, 0.0, time.monotonic())
+                    self._wait(lambda: False, time.monotonic() + 0.05)
+                else:
+                    if v.armed and v.custom_mode == GUIDED:
+                        log.warning("the vehicle still reports %.2f m/s after %.1f s of zero set-points",
+                                    self._speed() or math.nan, stop_timeout)
+                now = time.monotonic()
+                if disarm and self.disarm_on_close and v.armed and v.custom_mode == GUIDED:
                     t_end = now + self.config.close_timeout
                     r = self._run(MAV.MAV_CMD_COMPONENT_ARM_DISARM, (0, 0), "disarm", t_end,
                                   done=lambda: v.hb_time is not None and v.hb_time >= now and not v.armed)

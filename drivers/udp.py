@@ -45,7 +45,7 @@ from bridge.core import wire as M
 from bridge.core.clock import ClockOffset
 from bridge.core.config import UdpLinkConfig
 from bridge.core.gate import SeqGate
-from drivers.base import DriverError, LinkHealth, Pose
+from drivers.base import DriverError, FailsafeReport, LinkHealth, Pose
 
 #: seqs a state may jump ahead of the last one beyond what ``max_state_rate_hz`` allows for the time elapsed
 STATE_SEQ_SLACK = 10
@@ -210,10 +210,27 @@ class UdpDriver:
     def clear_faults(self, now: float) -> None:
         """Nothing to clear on this link (see :meth:`drivers.base.Driver.clear_faults`)."""
 
-    def close(self) -> None:
+    def engage(self, now: float, clear_faults: bool = False) -> None:
+        """Nothing to switch on the robot: the driver host starts sending non-zero commands once engaged."""
+        if self.sock is None:
+            raise DriverError("UDP link not open")
+
+    def failsafe(self) -> FailsafeReport:
+        s = CMD_VALID_MS / 1000.0
+        return FailsafeReport(drive_on_s=s, text=f"if the host dies the robot drives on for up to {s:g} s (each "
+                              "command is valid that long on the robot)")
+
+    def close(self, disarm: bool = True, stop_speed: float = 0.05, stop_timeout: float = 3.0) -> None:
         if self.sock is None:
             return
         try:
+            t_end = time.monotonic() + stop_timeout
+            while time.monotonic() < t_end:  # stops until the robot says it has stopped
+                self.stop(time.monotonic())
+                time.sleep(0.02)
+                poses = self.poll(time.monotonic())
+                if poses and poses[-1].v is not None and abs(poses[-1].v) < stop_speed:
+                    break
             self.stop(time.monotonic())
         finally:
             self.sock.close()

@@ -38,8 +38,19 @@ driver that is wrong about the vehicle. Paths are in github.com/ArduPilot/ardupi
   through ``constrain_float`` (AP_Math: a NaN becomes the middle of its range and raises the internal error
   ``constraining_nan``; in AR_AttitudeControl ``get_steering_out_rate`` that range is the acceleration limit around
   the last desired rate, so the last turn rate is kept; +-inf become +-ATC_STR_RAT_MAX).
+* Stopping: a zero target (or a GUID_TIMEOUT stop) brakes at ``decel_max`` m/s^2 (ATC_DECEL_MAX; Rover's speed
+  controller limits deceleration, AR_AttitudeControl ``get_throttle_out_speed``); disarmed, the motors are off and the
+  rover coasts, slowing at ``coast_decel`` m/s^2 (friction). Other targets are taken at once (the learner's response
+  models its dynamics).
 * GUID_TIMEOUT (Rover/mode_guided.cpp): no new target for ``guid_timeout`` s (3 by default) -> STATUSTEXT "target not
   received last 3.0 secs, stopping" and a stop.
+* Parameters (Rover/Parameters.cpp defaults: FS_ACTION 2 = Hold, FS_TIMEOUT 1.5 s, FS_GCS_ENABLE 0, FS_GCS_TIMEOUT 5 s;
+  SYSID_MYGCS 255): PARAM_REQUEST_READ by name (index -1) or index, and PARAM_REQUEST_LIST, answered with PARAM_VALUE
+  (REAL32); an unknown name gets no answer, as in AP_Param.
+* GCS failsafe (Rover/Rover.cpp ``gcs_failsafe_check``, Rover/failsafe.cpp ``failsafe_trigger``): with FS_GCS_ENABLE
+  set, no HEARTBEAT from the ground station (system SYSID_MYGCS) for FS_GCS_TIMEOUT starts the failsafe; if it
+  persists FS_TIMEOUT while armed, FS_ACTION is taken (1 RTL, modelled as Hold since RTL is not; 2 Hold; 0 nothing)
+  with STATUSTEXT "Failsafe: GCS". A HEARTBEAT ends it (the mode stays: the operator takes the vehicle back).
 * HEARTBEAT at 1 Hz: GROUND_ROVER, ARDUPILOTMEGA, base_mode and system_status as Rover/GCS_Mavlink.cpp ``base_mode``
   / ``vehicle_system_status`` (CUSTOM_MODE_ENABLED, GUIDED_ENABLED in autopilot modes, SAFETY_ARMED; CALIBRATING while
   initialising, STANDBY in HOLD, else ACTIVE).
@@ -76,6 +87,9 @@ from sim_learner.vehicle import SimVehicle  # noqa: E402
 mavutil.set_dialect("ardupilotmega")
 MAV = mavutil.mavlink
 
+#: the parameters this vehicle answers for, with Rover's defaults (Rover/Parameters.cpp, GCS_MAVLink)
+PARAM_DEFAULTS: dict[str, float] = {"FS_ACTION": 2.0, "FS_TIMEOUT": 1.5, "FS_GCS_ENABLE": 0.0, "FS_GCS_TIMEOUT": 5.0,
+                                    "SYSID_MYGCS": 255.0}
 #: Rover's mode numbers (Rover/mode.h), by name, from pymavlink's table.
 MODES: dict[str, int] = mavutil.mode_mapping_byname(MAV.MAV_TYPE_GROUND_ROVER)
 MODE_NAMES: dict[int, str] = mavutil.mode_mapping_bynumber(MAV.MAV_TYPE_GROUND_ROVER)
@@ -134,7 +148,8 @@ class MavlinkRover(ThreadedDevice):
     def __init__(self, vehicle: SimVehicle, host: str = "127.0.0.1", port: int = 0, *, transport: str = "udp",
                  sysid: int = 1, compid: int = 1, wp_speed: float = 2.0, str_rat_max: float = 2.0,
                  guid_timeout: float = 3.0, init_s: float = 0.3, ekf_position_s: float = 1.0,
-                 ekf_origin_s: float | None = None, initial_mode: str = "MANUAL") -> None:
+                 ekf_origin_s: float | None = None, initial_mode: str = "MANUAL",
+                 params: dict[str, float] | None = None, decel_max: float = 2.0, coast_decel: float = 0.3) -> None:
         super().__init__()
         if transport not in ("udp", "tcp"):
             raise ValueError(f"transport {transport!r}: udp or tcp")
@@ -148,6 +163,13 @@ class MavlinkRover(ThreadedDevice):
         self.custom_mode = INITIALISING
         self.armed = False
         self.safety_switch = False  # True: the hardware safety switch is still on, arming refused
+        self.params: dict[str, float] = {**PARAM_DEFAULTS, **(params or {})}
+        self.decel_max, self.coast_decel = float(decel_max), float(coast_decel)
+        self.slowing_at: float | None = None  # the body slows down by itself since then (braking or coasting)
+        self.disarms: list[tuple[float, float]] = []  # (time, body speed) of every disarm, for tests
+        self.gcs_seen = -math.inf  # the last HEARTBEAT of the ground station (SYSID_MYGCS)
+        self.failsafe_since: float | None = None  # the GCS failsafe condition holds since then
+        self.failsafe_taken = False
         self.intervals: dict[int, float] = dict(_STREAMED)  # message id -> period (s); inf: stopped
         self.target: tuple[float, float] | None = None  # GUIDED turn rate and speed target (ENU v, omega)
         self.target_time = -math.inf
@@ -317,7 +339,7 @@ class MavlinkRover(ThreadedDevice):
             return False
         self.custom_mode = mode
         self.target = None  # leaving or entering GUIDED: no target (GUIDED starts in its Stop submode)
-        self.vehicle.stop(now)
+        self._slow_down(now)
         self._heartbeat()  # gcs().send_message(MSG_HEARTBEAT) on every change
         return True
 
@@ -343,7 +365,8 @@ class MavlinkRover(ThreadedDevice):
             self._drive(now)
         else:
             self.armed = False
-            self.vehicle.stop(now)
+            self.disarms.append((now, self.vehicle.advance(now).v))  # the body's speed as the motors went off
+            self._slow_down(now)  # coasting
             self._text("Throttle disarmed", MAV.MAV_SEVERITY_INFO)
         return MAV.MAV_RESULT_ACCEPTED
 
@@ -384,6 +407,17 @@ class MavlinkRover(ThreadedDevice):
             self.mav.command_ack_send(msg.command, result, 0, 0, msg.get_srcSystem(), msg.get_srcComponent())
         elif t == "SET_POSITION_TARGET_LOCAL_NED" and self._for_us(msg):
             self._setpoint(msg, now)
+        elif t == "HEARTBEAT" and msg.get_srcSystem() == int(self.params["SYSID_MYGCS"]):
+            self.gcs_seen = now
+        elif t == "PARAM_REQUEST_READ" and self._for_us(msg):
+            names = list(self.params)
+            name = msg.param_id.rstrip("\x00") if msg.param_index < 0 else (
+                names[msg.param_index] if 0 <= msg.param_index < len(names) else None)
+            if name in self.params:
+                self._param_value(name)
+        elif t == "PARAM_REQUEST_LIST" and self._for_us(msg):
+            for name in self.params:
+                self._param_value(name)
 
     def _command(self, command: int, p: tuple[float, ...], now: float) -> int:
         used = {MAV.MAV_CMD_DO_SET_MODE: 2, MAV.MAV_CMD_COMPONENT_ARM_DISARM: 1, MAV.MAV_CMD_SET_MESSAGE_INTERVAL: 2}
@@ -402,6 +436,28 @@ class MavlinkRover(ThreadedDevice):
         if command == MAV.MAV_CMD_SET_MESSAGE_INTERVAL:
             return self._set_interval(int(p[0]), float(p[1]))
         return MAV.MAV_RESULT_UNSUPPORTED
+
+    def _param_value(self, name: str) -> None:
+        names = list(self.params)
+        self.mav.param_value_send(name.encode(), float(self.params[name]), MAV.MAV_PARAM_TYPE_REAL32, len(names),
+                                  names.index(name))
+
+    def _gcs_failsafe(self, now: float) -> None:
+        """Rover's GCS failsafe (see the module docstring)."""
+        p = self.params
+        lost = bool(p["FS_GCS_ENABLE"]) and math.isfinite(self.gcs_seen) and now - self.gcs_seen > p["FS_GCS_TIMEOUT"]
+        if not lost:
+            self.failsafe_since, self.failsafe_taken = None, False
+            return
+        if self.failsafe_since is None:
+            self.failsafe_since = now
+        if self.failsafe_taken or not self.armed or now - self.failsafe_since <= p["FS_TIMEOUT"]:
+            return
+        self.failsafe_taken = True
+        self._text("Failsafe: GCS", MAV.MAV_SEVERITY_CRITICAL)
+        if int(p["FS_ACTION"]) in (1, 2, 3, 4):  # RTL / SmartRTL are not modelled: Hold, their own fallback
+            self._set_mode(HOLD, now)
+            self.vehicle.stop(now)
 
     def _ignore(self, reason: str) -> None:
         self.ignored_setpoints[reason] = self.ignored_setpoints.get(reason, 0) + 1
@@ -437,9 +493,26 @@ class MavlinkRover(ThreadedDevice):
 
     def _drive(self, now: float) -> None:
         if self.target is None or not self.armed or self.target == (0.0, 0.0):
-            self.vehicle.stop(now)
+            self._slow_down(now)
         else:
+            self.slowing_at = None
             self.vehicle.command(self.target[0], self.target[1], now)
+
+    def _slow_down(self, now: float) -> None:
+        """Brake (armed) or coast (disarmed) toward a stop, from the body's speed now (see the module docstring)."""
+        st = self.vehicle.advance(now)
+        rate = self.decel_max if self.armed else self.coast_decel
+        if self.slowing_at is not None:
+            dv = rate * (now - self.slowing_at)
+            v = math.copysign(max(0.0, abs(st.v) - dv), st.v)
+        else:
+            v = st.v
+        if abs(v) < 1e-3 or rate <= 0.0:
+            self.slowing_at = None
+            self.vehicle.stop(now)
+            return
+        self.slowing_at = now
+        self.vehicle.roll(v, 0.0, now)
 
     # ------------------------------------------------------------------------------------------- output
     def _heartbeat(self) -> None:
@@ -506,9 +579,15 @@ class MavlinkRover(ThreadedDevice):
             events.append(self.t0 + self.init_s)
         if self.target is not None:
             events.append(self.target_time + self.guid_timeout)
+        if self.slowing_at is not None:
+            events.append(self.slowing_at + 0.02)
+        if self.params["FS_GCS_ENABLE"] and self.armed and not self.failsafe_taken:  # the GCS failsafe's next step
+            events.append(self.gcs_seen + self.params["FS_GCS_TIMEOUT"] + 1e-3 if self.failsafe_since is None
+                          else self.failsafe_since + self.params["FS_TIMEOUT"] + 1e-3)
         return min(events)
 
     def _update(self, now: float) -> None:
+        self._gcs_failsafe(now)
         if not self._initialised and now - self.t0 >= self.init_s:
             self._initialised = True
             self.custom_mode = INITIALISING
@@ -516,7 +595,9 @@ class MavlinkRover(ThreadedDevice):
         if self.target is not None and now - self.target_time > self.guid_timeout:
             self.target = None
             self._text(f"target not received last {self.guid_timeout:.1f} secs, stopping")
-            self.vehicle.stop(now)
+            self._slow_down(now)
+        elif self.slowing_at is not None:
+            self._slow_down(now)
 
     def _telemetry(self, now: float, due: dict[Any, float]) -> None:
         lpn, att = MAV.MAVLINK_MSG_ID_LOCAL_POSITION_NED, MAV.MAVLINK_MSG_ID_ATTITUDE

@@ -59,6 +59,7 @@ class SimVehicle:
         self.max_dt = float(max_dt)
         self.pos_noise = float(pos_noise)
         self.rng = rng
+        self.rolling = False  # moving by itself (roll), not by a command
         self._lock = threading.RLock()  # a link emulator's thread commands it while a test or mocap thread reads it
 
     def command(self, v: float, omega: float, now: float) -> None:
@@ -70,10 +71,17 @@ class SimVehicle:
         self.advance(now)
         if not (np.isfinite(v) and np.isfinite(omega)):
             raise ValueError(f"non-finite command ({v}, {omega}) reached the vehicle")
-        self.cmd = (float(v), float(omega))
+        self.cmd, self.rolling = (float(v), float(omega)), False
         # an exact zero is a stop (wheels held), not a command in the learner's range: the paper's learner maps
         # every command through d(h(n(.))) and would creep at v_min
         self.moving = not (v == 0.0 and omega == 0.0)
+
+    def roll(self, v: float, omega: float, now: float) -> None:
+        """The body moves at ``(v, omega)`` from ``now`` by itself, not by a command through the learner's response
+        (a vehicle braking to a stop, or coasting with its motors off)."""
+        with self._lock:
+            self.advance(now)
+            self.cmd, self.moving, self.rolling = (float(v), float(omega)), True, True
 
     def stop(self, now: float) -> None:
         """Hold the wheels from ``now`` on."""
@@ -95,7 +103,9 @@ class SimVehicle:
         dt_total = float(now) - self.t
         if dt_total <= 0.0:
             return self.state
-        if self.moving:
+        if self.moving and self.rolling:
+            v, w = self.cmd
+        elif self.moving:
             v, w = (float(a) for a in self.model.response(np.asarray(self.cmd)))
         else:
             v, w = 0.0, 0.0

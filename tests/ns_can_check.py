@@ -29,7 +29,7 @@ def main() -> int:
     procs = [learner]
     assert learner.stdout is not None
     learner.stdout.readline()  # "learner on ...": its bus is up
-    procs.append(subprocess.Popen(py + ["driver", "--link", "can", "--config", cfg, "--listen", tcp(port),
+    procs.append(subprocess.Popen(py + ["driver", "--engage", "--link", "can", "--config", cfg, "--listen", tcp(port),
                                         "--duration", "60"], start_new_session=True))
     states: list[M.LearnerState] = []
     applied: list[M.Applied] = []

@@ -63,7 +63,7 @@ def test_scmbridge_calibrate_drives_the_robot_through_its_driver_host_into_the_s
     with open_session(make_config(mode="router", listen=[tcp(port)])) as session, Children() as kids:
         col = Collector(session)
         states, lock = col.listen(M.key(robot, "state"), M.LearnerState), col.lock
-        kids.spawn(["driver", "--link", "can", "--emulate", *client, "--duration", "140"])
+        kids.spawn(["driver", "--engage", "--link", "can", "--emulate", *client, "--duration", "140"])
         res = subprocess.run([sys.executable, "-m", "bridge", "calibrate", *client, "--store", str(store),
                               "--grid", "3x3", "--hold", "0.6", "--max-distance", "1.2", "--duration", "90"],
                              capture_output=True, text=True, timeout=130)
@@ -95,7 +95,7 @@ def test_the_motion_primitive_teacher_drives_from_calibrated_pairs(tmp_path) -> 
     with open_session(make_config(mode="router", listen=[tcp(port)])) as session, Children() as kids:
         col = Collector(session)
         states, lock = col.listen(M.key(robot, "state"), M.LearnerState), col.lock
-        kids.spawn(["driver", "--link", "can", "--emulate", "--x0", x0, *client, "--duration", "140"])
+        kids.spawn(["driver", "--engage", "--link", "can", "--emulate", "--x0", x0, *client, "--duration", "140"])
         res = subprocess.run([sys.executable, "-m", "bridge", "calibrate", *client, "--store", str(store),
                               "--grid", "3x3", "--hold", "0.5", "--max-distance", "2.0", "--duration", "60"],
                              capture_output=True, text=True, timeout=90)

@@ -159,6 +159,7 @@ def rig() -> Iterator[Rig]:
     spy = can.Bus(interface="virtual", channel=channel)
     try:
         driver.open(time.monotonic())
+        driver.engage(time.monotonic())  # a person's act: both axes into closed loop
         yield Rig(channel, driver, ecus, vehicle, spy)
     finally:
         driver.close()

@@ -89,7 +89,7 @@ def driver_host(request, tmp_path):
             device = MavlinkRover(vehicle).start()
             cfg.write_text(f'[link.mavlink]\nurl = "udpout:127.0.0.1:{device.port}"\nrate_hz = 50\n')
         args += ["--config", str(cfg)]
-    proc = spawn(["driver", *args, "--robot", robot, "--listen", tcp(port), "--duration", "40"])
+    proc = spawn(["driver", "--engage", *args, "--robot", robot, "--listen", tcp(port), "--duration", "40"])
     try:
         with open_session(make_config(connect=[tcp(port)])) as session:
             lis = Listener(session, robot)

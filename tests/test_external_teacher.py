@@ -36,7 +36,7 @@ def test_the_example_external_teacher_drives_the_robot_through_the_transfer_serv
         got = {"state": col.listen(k.state, M.LearnerState), "cmd": col.listen(k.cmd, M.Command),
                "limits": col.listen(k.limits, M.Limits),
                "status": col.listen(M.status_key(robot, "station"), M.Status)}
-        kids.spawn(["driver", "--link", "can", "--emulate", "--x0", x0, *client, "--duration", "140"])
+        kids.spawn(["driver", "--engage", "--link", "can", "--emulate", "--x0", x0, *client, "--duration", "140"])
         kids.spawn(["station", "--start", "--config", str(cfg), *client, "--store", str(tmp_path / "p.bin"),
                     "--duration", "130"])
         teacher = subprocess.Popen([sys.executable, str(ROOT / "deploy" / "examples" / "external_teacher.py"),

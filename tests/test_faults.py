@@ -71,8 +71,8 @@ def test_stale_telemetry_stops_the_robot_and_a_killed_driver_host_leaves_it_to_i
         k, col = M.Keys(robot), Collector(session)
         applied, status = col.listen(k.applied, M.Applied), col.listen(M.status_key(robot, "driver"), M.Status)
         lock = col.lock
-        host = kids.spawn(["driver", "--link", "udp", "--config", str(cfg), "--robot", robot, "--mode", "client",
-                           "--connect", tcp(port), "--duration", "80"])
+        host = kids.spawn(["driver", "--engage", "--link", "udp", "--config", str(cfg), "--robot", robot, "--mode",
+                           "client", "--connect", tcp(port), "--duration", "80"])
         pub = session.declare_publisher(k.cmd)
         epoch, seq = M.new_epoch(), 0
 

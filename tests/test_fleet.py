@@ -268,9 +268,10 @@ def test_template_units_run_as_systemd_would_for_two_robots(tmp_path) -> None:
         with lock:  # the units start idle: nobody has started a mission yet
             assert not any(a.reason in ("cmd", "clamped") for a in applied)
             assert seen["scm/rover7/status/station"][-1].state == "idle"
-        res = subprocess.run([sys.executable, "-m", "bridge", "mission", "start", "--robot", "rover7", "--mode",
-                              "client", "--connect", tcp(port)], capture_output=True, text=True, timeout=60)
-        assert res.returncode == 0, res.stdout + res.stderr
+        for cmd in (["engage"], ["mission", "start"]):  # a person engages the vehicle, then starts the mission
+            res = subprocess.run([sys.executable, "-m", "bridge", *cmd, "--robot", "rover7", "--mode", "client",
+                                  "--connect", tcp(port)], capture_output=True, text=True, timeout=60)
+            assert res.returncode == 0, res.stdout + res.stderr
         assert _wait(lambda: any(a.reason in ("cmd", "clamped") for a in applied), 30, lock), \
             "rover7's station did not drive rover7 through its driver host"
         with lock:

@@ -48,6 +48,7 @@ def rig(transport: str = "udp", *, model: LearnerModel | None = None, open_link:
     try:
         if open_link:
             driver.open(time.monotonic())
+            driver.engage(time.monotonic())  # a person's act: GUIDED and armed
         yield driver, rover, vehicle
     finally:
         driver.close()
@@ -232,14 +233,15 @@ def test_arming_refused_is_reported_with_its_mav_result_and_the_prearm_text() ->
         th.start()
         t0 = time.monotonic()
         try:
+            driver.open(t0)  # never arms: that is engage's
             with pytest.raises(DriverError, match=r"arming refused: MAV_RESULT_FAILED \(PreArm: Hardware safety "
                                                   r"switch\)"):
-                driver.open(t0)
+                driver.engage(t0)
         finally:
             stop.set()
             th.join(1.0)
             driver.close()
-        assert time.monotonic() - t0 < 3.0 + 2.0  # bounded by open_timeout
+        assert time.monotonic() - t0 < 2 * 3.0 + 2.0  # open and engage, each bounded by open_timeout
         arms = [c for c in rover.commands if c["command"] == MAV.MAV_CMD_COMPONENT_ARM_DISARM]
         assert arms and all(c["result"] == MAV.MAV_RESULT_FAILED for c in arms)
         assert not rover.armed and "arming refused: MAV_RESULT_FAILED" in driver.health().detail["last_refusal"]

@@ -93,7 +93,7 @@ def test_a_station_drives_only_after_a_person_and_an_estop_release_or_a_driver_r
         cmds = col.listen(M.key(robot, "cmd"), M.Command)
         status = col.listen(M.status_key(robot, "station"), M.Status)
         drv_status = col.listen(M.status_key(robot, "driver"), M.Status)
-        host = kids.spawn(driver, out=subprocess.DEVNULL)
+        host = kids.spawn([*driver, "--engage"], out=subprocess.DEVNULL)
         kids.spawn(["station", *client, "--store", str(tmp_path / "p.bin"), "--duration", "150"],
                    out=subprocess.DEVNULL)
 
@@ -137,13 +137,18 @@ def test_a_station_drives_only_after_a_person_and_an_estop_release_or_a_driver_r
         assert ans.returncode == 0 and "resumed" in ans.stdout, ans.stdout + ans.stderr
         assert col.wait(lambda: cmds[-1].method != "stop", 10)
 
-        # the driver host is killed and restarted: the mission pauses and stays paused
+        # the driver host is killed and restarted: it waits for a new engage, and the mission stays paused after it
         os.killpg(host.pid, signal.SIGKILL)
         host.wait(timeout=5)
         assert col.wait(lambda: last_state() == "paused", 10), [s.text for s in status[-2:]]
         kids.spawn(driver, out=subprocess.DEVNULL)
         n1 = len(drv_status)
-        assert col.wait(lambda: len(drv_status) > n1 + 2 and drv_status[-1].ok, 60)
+        assert col.wait(lambda: len(drv_status) > n1 and drv_status[-1].state == "waiting", 60)
+        assert "waiting for engage" in drv_status[-1].text and not drv_status[-1].ok
+        eng = subprocess.run([sys.executable, "-m", "bridge", "engage", *client], capture_output=True, text=True,
+                             timeout=60)
+        assert eng.returncode == 0 and "engaged" in eng.stdout, eng.stdout + eng.stderr
+        assert col.wait(lambda: drv_status[-1].ok, 10)
         t_back = time.monotonic()
         assert col.wait(lambda: time.monotonic() > t_back + 1.5, 5)
         with col.lock:

@@ -123,7 +123,7 @@ def test_the_driver_host_publishes_mocap_poses_on_its_clock_and_they_pair_with_t
         lock = col.lock
         mocap = MocapBridge(session, robot, vehicle)
         mocap.thread.start()
-        kids.spawn(["driver", "--link", "udp", "--config", str(cfg), "--robot", robot, "--mode", "client",
+        kids.spawn(["driver", "--engage", "--link", "udp", "--config", str(cfg), "--robot", robot, "--mode", "client",
                     "--connect", tcp(port), "--duration", "60"])
         try:
             t_end = time.monotonic() + 30

@@ -127,7 +127,7 @@ def test_a_station_killed_and_restarted_comes_back_paused_and_drives_at_once_whe
         keys, col = Keys(robot), Collector(session)
         applied, commands = col.listen(keys.applied, M.Applied), col.listen(keys.cmd, M.Command)
         cmd_times, wait = col.times[keys.cmd], col.wait
-        kids.spawn(["driver", "--link", "can", "--emulate", "--x0", x0, *client, "--duration", "120"])
+        kids.spawn(["driver", "--engage", "--link", "can", "--emulate", "--x0", x0, *client, "--duration", "120"])
         first = kids.spawn([*station, "--start"])
         assert wait(lambda: any(a.reason == "cmd" for a in applied), 90), "the first station never drove"
         os.killpg(first.pid, signal.SIGKILL)
@@ -201,7 +201,7 @@ def test_a_running_station_takes_a_new_mission_over_zenoh_and_its_goal_state_res
         keys, col = Keys(robot), Collector(session)
         states = col.listen(keys.state, M.LearnerState)
         status = col.listen(M.status_key(robot, "station"), M.Status)
-        kids.spawn(["driver", "--link", "can", "--emulate", "--x0", x0, *client, "--duration", "100"])
+        kids.spawn(["driver", "--engage", "--link", "can", "--emulate", "--x0", x0, *client, "--duration", "100"])
         kids.spawn(["station", *client, "--start", "--store", str(tmp_path / "p.bin"), "--duration", "90"])
         assert col.wait(lambda: status and status[-1].text == "driving", 60)
         for goal_no in (1, 2):  # two short missions ahead of the robot: each reached, then the next resets it

@@ -223,6 +223,16 @@ class DriverSection(_Cfg):
         "scm/<robot>/mocap (restamped onto this host's clock)")] = "link"
     mocap_window_s: Annotated[float, _m("mocap: the clock-offset estimate is the least (receipt - stamp) over this "
                                         "window, s", gt=0.1, le=600.0)] = 5.0
+    engage_on_start: Annotated[bool, _m(
+        "engage the vehicle when the host starts (MAVLink: select GUIDED and arm; CAN: closed loop). Off: the host "
+        "waits for a person (scmbridge engage, or the operator selecting GUIDED and arming), also after a restart")] = (
+        False)
+    stop_speed: Annotated[float, _m("closing: zero commands until the vehicle reports less than this, then disarm, "
+                                    "m/s", gt=0.0, le=5.0)] = 0.05
+    stop_timeout: Annotated[float, _m("closing: the longest wait for the vehicle to stop before disarming, s", gt=0.0,
+                                      le=60.0)] = 3.0
+    max_drive_on_s: Annotated[float, _m("warn when the vehicle's own failsafe lets it drive on longer than this after "
+                                        "the host dies, s", gt=0.0, le=600.0)] = 1.0
 
     def __post_init__(self) -> None:
         if self.max_send_hz < self.rate_hz:

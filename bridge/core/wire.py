@@ -160,7 +160,8 @@ class Applied(_Msg, kw_only=True):
     ``cmd_seq`` is the ``Command.seq`` it came from, or absent for a stop the driver host decided itself
     (``reason`` says why: stop (a stop command), refused (outside what the vehicle can do in that direction: never
     mirrored into motion the other way), deadman, estop, stale, shutdown, fault (a controller error),
-    operator (the vehicle's operator took control), link_down, no_telemetry (no pose from the vehicle lately)).
+    operator (the vehicle's operator took control), link_down, no_telemetry (no pose from the vehicle lately),
+    disengaged (no person has engaged the vehicle since the host started)).
     """
 
     stamp: Stamp
@@ -168,7 +169,7 @@ class Applied(_Msg, kw_only=True):
     v: Speed
     omega: Rate
     reason: Literal["cmd", "clamped", "refused", "stop", "deadman", "estop", "stale", "shutdown", "start", "fault",
-                    "operator", "link_down", "no_telemetry"]
+                    "operator", "link_down", "no_telemetry", "disengaged"]
     cmd_seq: Seq | None = None
 
 
@@ -322,11 +323,12 @@ class MissionState(_Msg, kw_only=True):
 
 class EngageRequest(_Msg, kw_only=True):
     """A query on ``scm/<robot>/engage``: a person asks the driver host to take the vehicle into its control
-    (``engaged=False``: hand it back, stopped)."""
+    (``engaged=False``: hand it back, stopped; ``clear_faults``: also clear what the controllers latched)."""
 
     stamp: Stamp
     engaged: bool = True
     source: Name = ""
+    clear_faults: bool = False
 
 
 class EngageState(_Msg, kw_only=True):

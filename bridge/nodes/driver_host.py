@@ -1,17 +1,21 @@
 """``scmbridge driver``: the driver host, between Zenoh and one vehicle link (docs/ARCHITECTURE.md).
 
 It subscribes to ``scm/<robot>/cmd`` and ``scm/<robot>/estop`` and answers queries on the estop key with its latch
-state. Every command is decoded (so validated: finite, in wire range) and goes through the pure
-:class:`bridge.core.gate.CommandGate`: the next of its sender's ``(epoch, seq)`` stream, fresh (received less than
-min(valid_ms, cmd_timeout) ago), a stop applied as exactly zero, anything else clamped to the configured hard
-limits. The host hands the result to the link driver only while the link says the vehicle is fit to drive
-(``health().ok``) and its telemetry is fresh; otherwise it stops the vehicle and says why. Each tick it echoes what
-the vehicle really got on ``applied``, publishes the link's poses as ``state`` (its own epoch and sequence) and,
-each second, a truthful ``status``. Commands are applied as they arrive (latency is not a multiple of the period),
-but the link never gets more than ``max_send_hz`` of them. An estop latches a stop; only a source named in
-``estop_release_sources`` releases it, and a release is the operator action that lets the link clear its
-controllers' latched faults. All stamps are this host's ``time.monotonic()``, so the station pairs ``applied``
-with ``state`` without any clock synchronisation.
+state. A person is in charge: the host starts *not engaged* (a restart never takes a vehicle back) and sends nothing
+but stops until a person engages it (``scmbridge engage``: a query on ``scm/<robot>/engage``; MAVLink: also the
+operator selecting GUIDED and arming while the host runs; ``engage_on_start`` in the config). The estop latch is kept
+in the state directory and re-read at start, so it survives a restart or a reboot. Closing stops the vehicle, waits
+until it reports it has stopped, and only then disarms (a vehicle engaged by this host). Every command is decoded (so
+validated: finite, in wire range) and goes through the pure :class:`bridge.core.gate.CommandGate`: the next of its
+sender's ``(epoch, seq)`` stream, fresh (received less than min(valid_ms, cmd_timeout) ago), a stop applied as
+exactly zero, anything else clamped to the configured hard limits. The host hands the result to the link driver only
+while the link says the vehicle is fit to drive (``health().ok``) and its telemetry is fresh; otherwise it stops the
+vehicle and says why. Each tick it echoes what the vehicle really got on ``applied``, publishes the link's poses as
+``state`` (its own epoch and sequence) and, each second, a truthful ``status``. Commands are applied as they arrive
+(latency is not a multiple of the period), but the link never gets more than ``max_send_hz`` of them. An estop
+latches a stop; only a source named in ``estop_release_sources`` releases it, and a release is the operator action
+that lets the link clear its controllers' latched faults. All stamps are this host's ``time.monotonic()``, so the
+station pairs ``applied`` with ``state`` without any clock synchronisation.
 
 ``--emulate`` (CAN only) hosts the emulated motor controllers on the same python-can ``virtual`` channel inside
 this process: the wire between driver and controllers is python-can, not a shortcut.
@@ -25,6 +29,7 @@ import math
 import threading
 import time
 from collections import deque
+from pathlib import Path
 
 import msgspec
 import numpy as np
@@ -36,11 +41,38 @@ from bridge.core.clock import ClockOffset
 from bridge.core.config import DriverConfig, load_driver
 from bridge.core.errors import UsageError
 from bridge.core.gate import CommandGate, Decision
+from bridge.core.paths import save_atomic, state_dir
+from bridge.nodes import systemd
 from bridge.nodes.node import Inputs, add_zenoh_args, stop_on_signals, zenoh_config
 from bridge.nodes.zsession import open_session
-from drivers.base import Driver, LinkHealth
+from drivers.base import Driver, DriverError, FailsafeReport, LinkHealth
 
 log = logging.getLogger("scmbridge.driver")
+
+
+class Latch(msgspec.Struct, kw_only=True):
+    """The estop latch as kept on the robot's disk."""
+
+    latched: bool
+    source: str = ""
+    reason: str = ""
+
+
+def latch_file(robot: str) -> Path:
+    """Where a robot's estop latch is kept (the state directory survives restarts and reboots)."""
+    return state_dir() / f"estop-{robot}.bin"
+
+
+def read_latch(path: Path) -> Latch:
+    """The saved latch; none saved: released; unreadable: latched (the safe side), said in the log."""
+    try:
+        return M.decode(path.read_bytes(), Latch)
+    except FileNotFoundError:
+        return Latch(latched=False)
+    except (OSError, M.MessageError) as exc:
+        log.error("estop latch %s unreadable (%s): starting latched; release it with scmbridge estop --release",
+                  path, exc)
+        return Latch(latched=True, source="unreadable latch file", reason=str(exc)[:200])
 
 
 def blocked_reason(health: LinkHealth) -> str:
@@ -53,7 +85,10 @@ def blocked_reason(health: LinkHealth) -> str:
 class DriverHost:
     """One robot's driver host: the gate, the link and the Zenoh side (see the module docstring)."""
 
-    def __init__(self, cfg: DriverConfig, link: str, driver: Driver, robot: str, rate_hz: float) -> None:
+    def __init__(self, cfg: DriverConfig, link: str, driver: Driver, robot: str, rate_hz: float, *,
+                 dry_run: bool = False, latch_path: Path | None = None) -> None:
+        """``dry_run``: run the whole loop and publish what would be applied, sending nothing to the vehicle;
+        ``latch_path``: where the estop latch is kept (None: in memory only)."""
         d = cfg.driver
         self.link, self.driver, self.robot = link, driver, robot
         self.keys = M.Keys(robot)
@@ -76,6 +111,23 @@ class DriverHost:
         self.pose_source = d.pose_source
         self.mocap_clock = ClockOffset(d.mocap_window_s)
         self.mocap: list[M.LearnerState] = []  # restamped samples waiting for the loop
+        self.dry_run = dry_run
+        self.engaged = False  # a person engaged the vehicle since this host started
+        self.engage_on_start = d.engage_on_start
+        self.operator_engages = bool(getattr(driver, "operator_engages", False))
+        self.engage_queries: list[tuple[zenoh.Query, M.EngageRequest]] = []  # answered by the loop thread
+        self.stop_speed, self.stop_timeout, self.max_drive_on = d.stop_speed, d.stop_timeout, d.max_drive_on_s
+        self.failsafe_report: FailsafeReport | None = None
+        self.was_ok = False  # the link's health last tick (an operator's GUIDED + arming is a transition)
+        self.last_health_connected = False
+        self.last_state = ""
+        self.latch_path = latch_path
+        if latch_path is not None:
+            saved = read_latch(latch_path)
+            if saved.latched:
+                self.gate.estop(M.Estop(stamp=0.0, engaged=True, source=saved.source, reason=saved.reason))
+                log.warning("estop latched by %s (kept from before this start): %s", saved.source or "unknown",
+                            saved.reason or "no reason given")
 
     # ---------------------------------------------------------------------------------------------- inputs
     def on_mocap(self, st: M.LearnerState, now: float) -> None:
@@ -100,9 +152,75 @@ class DriverHost:
             changed = self.gate.estop(e)
             if changed and not e.engaged:
                 self.clear_requested = True
+            if changed:
+                self.save_latch()
         if changed:
             log.warning("estop %s by %r: %s", "engaged" if e.engaged else "released", e.source, e.reason)
         self.wake.set()
+
+    def save_latch(self) -> None:
+        """Keep the latch on disk (called under the lock, at each change); a failure is logged and counted, and the
+        latch in memory holds."""
+        if self.latch_path is None:
+            return
+        g = self.gate
+        try:
+            save_atomic(self.latch_path, M.encode(Latch(latched=g.estopped, source=g.estop_source,
+                                                        reason=g.estop_reason)))
+        except OSError as exc:
+            self.inputs.count("latch_save_failures")
+            log.error("estop latch not saved to %s: %s", self.latch_path, exc.strerror or exc)
+
+    def on_engage_query(self, query: zenoh.Query) -> None:
+        """A person's ``scmbridge engage``: handed to the loop (which owns the link) and answered from there."""
+        try:
+            payload = query.payload
+            req = M.decode(payload.to_bytes() if payload is not None else b"", M.EngageRequest)
+        except M.MessageError as exc:
+            self.inputs.count("malformed_engage")
+            query.reply(self.keys.engage, M.encode(M.EngageState(
+                stamp=time.monotonic(), node=f"driver-{self.link}", engaged=self.engaged, accepted=False,
+                text=f"malformed request: {exc}"[:1024])))
+            return
+        with self.lock:
+            self.engage_queries.append((query, req))
+        self.wake.set()
+
+    def handle_engage(self, req: M.EngageRequest, now: float, clear: bool = False) -> M.EngageState:
+        """Engage (or hand back) the vehicle, in the loop thread; the answer says what was done or why not."""
+        node = f"driver-{self.link}"
+        who = f" by {req.source}" if req.source else ""
+        if not req.engaged:
+            was, self.engaged = self.engaged, False
+            log.warning("disengaged%s: the vehicle gets stops only", who)
+            return M.EngageState(stamp=now, node=node, engaged=False, text="disengaged" if was else "not engaged")
+        if self.engaged:
+            return M.EngageState(stamp=now, node=node, engaged=True, text="already engaged")
+        with self.lock:
+            latched, source = self.gate.estopped, self.gate.estop_source
+        if latched:
+            return M.EngageState(stamp=now, node=node, engaged=False, accepted=False,
+                                 text=f"refused: estop latched by {source or 'unknown'}")
+        if not self.dry_run:
+            try:
+                self.driver.engage(now, clear_faults=clear)
+            except DriverError as exc:
+                log.warning("engage%s refused: %s", who, exc)
+                return M.EngageState(stamp=now, node=node, engaged=False, accepted=False, text=str(exc)[:1024])
+        self.engaged = True
+        log.warning("engaged%s: the vehicle follows the station's commands", who)
+        return M.EngageState(stamp=now, node=node, engaged=True, text="engaged" + (" (dry run)" if self.dry_run
+                                                                                  else ""))
+
+    def answer_engage_queries(self) -> None:
+        with self.lock:
+            pending, self.engage_queries = self.engage_queries, []
+        for query, req in pending:
+            ans = self.handle_engage(req, time.monotonic(), req.clear_faults)
+            try:
+                query.reply(self.keys.engage, M.encode(ans))
+            finally:
+                query.drop()
 
     def on_estop_query(self, query: zenoh.Query) -> None:
         with self.lock:
@@ -111,29 +229,53 @@ class DriverHost:
         query.reply(self.keys.estop, M.encode(st))
 
     # ------------------------------------------------------------------------------------------------ tick
+    def follow_operator(self, health: LinkHealth) -> None:
+        """MAVLink: the operator taking the vehicle (leaving GUIDED) disengages; the operator putting it in GUIDED
+        and arming it while the host runs (a transition, never a state found at start) engages."""
+        if not self.operator_engages or self.dry_run:
+            return
+        operator = health.connected and not health.ok and health.text.startswith("operator")
+        if self.engaged and operator:
+            self.engaged = False
+            log.warning("disengaged: %s", health.text)
+        elif not self.engaged and health.ok and not self.was_ok and self.last_health_connected:
+            self.engaged = True
+            log.warning("engaged by the operator: %s", health.text)
+
     def decide(self, now: float) -> Decision:
-        """The gate's decision, overruled by the link's health and the telemetry's age."""
+        """The gate's decision, overruled by engagement, the link's health and the telemetry's age."""
         self.health = self.driver.health()
+        self.follow_operator(self.health)
+        self.was_ok, self.last_health_connected = self.health.ok, self.health.connected
         with self.lock:
             d = self.gate.decide(now)
             clear, self.clear_requested = self.clear_requested, False
         if clear:
             log.warning("operator released the estop: clearing the link's latched faults")
             self.driver.clear_faults(now)
-        if d.driving and not self.health.ok:
+        if d.driving and not self.engaged:
+            return Decision(0.0, 0.0, "disengaged", d.cmd_seq)
+        if d.driving and not self.health.ok and not self.dry_run:
             return Decision(0.0, 0.0, blocked_reason(self.health), d.cmd_seq)
         if d.driving and now - self.last_pose > self.max_telemetry_age:
             return Decision(0.0, 0.0, "no_telemetry", d.cmd_seq)
         return d
 
     def tick(self, now: float) -> None:
+        if self.engage_queries:
+            self.answer_engage_queries()
         d = self.decide(now)
-        if d.driving:
+        if self.dry_run:
+            pass  # what would be sent is published on applied; the vehicle gets nothing
+        elif d.driving:
             self.driver.send(d.v, d.omega, now)
         else:
             self.driver.stop(now)
-        if d.reason != self.last_decision.reason and not d.driving:
-            log.info("vehicle stopped: %s", d.reason)
+        if d.reason != self.last_decision.reason:
+            if not d.driving:
+                log.info("vehicle stopped: %s", d.reason)
+            elif not self.last_decision.driving:
+                log.info("vehicle driving (%s)", d.reason)
         self.last_decision = d
         self._put("applied", M.Applied(stamp=now, seq=self.seq["applied"], v=d.v, omega=d.omega, reason=d.reason,
                                        cmd_seq=d.cmd_seq))
@@ -178,17 +320,53 @@ class DriverHost:
         if pose_age > self.max_telemetry_age:
             problems.append("no telemetry yet" if math.isinf(pose_age) else f"no telemetry for {pose_age:.1f} s")
         if estop[0]:
-            problems.append(f"estop latched by {estop[1] or 'unknown'}")
+            problems.insert(0, f"estop latched by {estop[1] or 'unknown'}")
+        with self.lock:
+            conflict = self.gate.conflict(now)
+        if conflict:
+            problems.append(conflict)
+        if not self.engaged and not estop[0]:
+            if self.operator_engages and h.connected and not h.ok:
+                problems.insert(0, f"waiting for the operator: {h.text.split(': ', 1)[-1]} "
+                                   f"(or scmbridge engage --robot {self.robot})")
+            else:
+                problems.insert(0, f"waiting for engage (scmbridge engage --robot {self.robot})")
+        state = self.node_state(estop[0], h, pose_age, problems)
+        if state != self.last_state:
+            log.info("%s: %s", state, "; ".join(problems) or "driving")
+            self.last_state = state
         lat = {"telemetry_age": min(pose_age, 1e6) * 1e3}
         if len(self.ticks) > 2:
             dev = np.abs(np.diff(np.asarray(self.ticks)) - self.period) * 1e3
             lat.update({"jitter_p50": float(np.percentile(dev, 50)), "jitter_p99": float(np.percentile(dev, 99)),
                         "jitter_max": float(dev.max())})
+        if self.failsafe_report is not None and (self.failsafe_report.drive_on_s is None
+                                                 or self.failsafe_report.drive_on_s > self.max_drive_on):
+            lat["failsafe_drive_on"] = min(1e9, 1e3 * (self.failsafe_report.drive_on_s or 1e6))
         text = f"link {self.link}: " + ("; ".join(problems) if problems else f"driving ({self.last_decision.reason})")
-        msg = M.Status(stamp=now, seq=self.seq["status"], node="driver", ok=not problems,
+        if self.dry_run:
+            text = "DRY RUN (nothing is sent to the vehicle): " + text
+        msg = M.Status(stamp=now, seq=self.seq["status"], node="driver", ok=not problems and not self.dry_run,
+                       state=state,
                        rates_hz={"loop": 1.0 / self.period}, latencies_ms=lat, counters=counters, text=text[:1024])
         self.seq["status"] += 1
         return msg
+
+    def node_state(self, estop: bool, h: LinkHealth, pose_age: float, problems: list[str]) -> str:
+        """The one word ``scmbridge status`` shows for this host."""
+        if self.dry_run:
+            return "dry_run"
+        if estop:
+            return "estop"
+        if not h.connected:
+            return "link_down"
+        if not self.engaged:
+            return "waiting"
+        if not h.ok:
+            return "operator" if h.text.startswith("operator") else "fault"
+        if pose_age > self.max_telemetry_age:
+            return "no_pose"
+        return "driving" if not problems else "fault"
 
     # ------------------------------------------------------------------------------------------------ run
     def _put(self, topic: str, msg: msgspec.Struct) -> None:
@@ -200,18 +378,37 @@ class DriverHost:
         self.inputs.subscribe(session, k.cmd, M.Command, "cmd", self.on_cmd)
         self.inputs.subscribe(session, k.estop, M.Estop, "estop", self.on_estop)
         session.declare_queryable(k.estop, self.on_estop_query)
+        session.declare_queryable(k.engage, self.on_engage_query)
         self.alive = session.liveliness().declare_token(M.alive_key(self.robot, "driver"))
         if self.pose_source == "mocap":
             self.inputs.subscribe(session, k.mocap, M.LearnerState, "mocap", self.on_mocap)
         self.pubs = {"applied": session.declare_publisher(k.applied), "state": session.declare_publisher(k.state),
                      "status": session.declare_publisher(M.status_key(self.robot, "driver"))}
         self._put("status", M.Status(stamp=time.monotonic(), seq=self.seq["status"], node="driver", ok=False,
-                                     text=f"link {self.link}: opening (vehicle not yet ready)"))
+                                     state="starting", text=f"link {self.link}: opening (vehicle not yet ready)"))
         self.seq["status"] += 1
-        self.driver.open(time.monotonic())  # may block up to the link's open_timeout (MAVLink: EKF, arming)
-        log.info("driver host for %s on link %s at %.0f Hz (epoch %x)", self.robot, self.link, 1 / self.period,
-                 self.epoch)
+        self.driver.open(time.monotonic())  # may block up to the link's open_timeout (MAVLink: EKF position)
+        self.failsafe_report = self.driver.failsafe()
+        too_long = self.failsafe_report.drive_on_s is None or self.failsafe_report.drive_on_s > self.max_drive_on
+        (log.warning if too_long else log.info)("vehicle failsafe: %s%s", self.failsafe_report.text,
+                                                f" (more than max_drive_on_s = {self.max_drive_on:g} s)"
+                                                if too_long else "")
+        log.info("driver host for %s on link %s at %.0f Hz (epoch %x)%s", self.robot, self.link, 1 / self.period,
+                 self.epoch, ": DRY RUN, nothing is sent to the vehicle" if self.dry_run else "")
+        if self.engage_on_start:
+            ans = self.handle_engage(M.EngageRequest(stamp=0.0, source="engage_on_start"), time.monotonic())
+            if not ans.engaged:
+                log.error("engage_on_start: %s", ans.text)
+        systemd.ready(f"{self.robot}: link {self.link} open, " + ("engaged" if self.engaged else "waiting for engage"))
         self.loop(stop, duration)
+
+    def close(self) -> None:
+        """Stop, wait until the vehicle has stopped, then disarm / idle (only what this host engaged)."""
+        systemd.stopping()
+        if self.dry_run:
+            self.driver.close(disarm=False, stop_speed=self.stop_speed, stop_timeout=0.0)
+            return
+        self.driver.close(disarm=self.engaged, stop_speed=self.stop_speed, stop_timeout=self.stop_timeout)
 
     def loop(self, stop: threading.Event, duration: float | None) -> None:
         """Periodic ticks, plus an immediate tick for each accepted command; ticks are never closer than
@@ -254,6 +451,11 @@ def arguments(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--emulate", action="store_true", help="host emulated CAN motor controllers in-process")
     ap.add_argument("--model", default="mpc", help="learner model for --emulate (mpc, experiment, scaled)")
     ap.add_argument("--x0", type=pose_arg, default=(0.0, 0.0, 0.0), help="start pose x,y,theta for --emulate")
+    ap.add_argument("--engage", action="store_true",
+                    help="engage the vehicle at start, as engage_on_start (a person at the keyboard; never in a unit "
+                         "that restarts)")
+    ap.add_argument("--dry-run", action="store_true",
+                    help="run the whole loop and publish applied, but send nothing to the vehicle (bring-up)")
 
 
 def _emulated_ecus(cfg, model: str, x0: tuple[float, float, float]):
@@ -279,14 +481,16 @@ def run(args: argparse.Namespace) -> int:
                                            initial_pose=args.x0)
     from drivers import open_driver
 
-    host = DriverHost(cfg, args.link, open_driver(args.link, link_cfg), robot, args.rate or cfg.driver.rate_hz)
+    host = DriverHost(cfg, args.link, open_driver(args.link, link_cfg), robot, args.rate or cfg.driver.rate_hz,
+                      dry_run=args.dry_run, latch_path=latch_file(robot))
+    host.engage_on_start = host.engage_on_start or args.engage
     stop = stop_on_signals()
     ecus = _emulated_ecus(link_cfg, args.model, args.x0) if args.emulate else None
     try:
         with open_session(zenoh_config(args), wait=stop, what="driver host") as session:
             host.serve(session, stop, args.duration)
     finally:
-        host.driver.close()
+        host.close()
         if ecus is not None:
             ecus.stop()
     return 0

@@ -65,6 +65,7 @@ COMMANDS: list[Command] = [
     _C("calibrate", "bridge.tools.calibrate", "the calibration stage: a bounded grid of learner commands"),
     _C("status", "bridge.tools.status", "why is it (not) moving: one line per robot and node"),
     _C("estop", "bridge.tools.estop", "stop one robot or every robot now, or release the latch, and confirm"),
+    _C("engage", "bridge.tools.engage", "a person hands a robot's vehicle to the system (or takes it back)"),
     _C("mission start", "bridge.tools.mission", "start a robot's mission (a station starts idle)"),
     _C("mission pause", "bridge.tools.mission", "pause the running mission (stops until resumed)"),
     _C("mission resume", "bridge.tools.mission", "resume a paused mission (refused while the robot is not fit)"),

@@ -200,7 +200,8 @@ def hil(args: argparse.Namespace, robot: str) -> int:
         mon = Monitor(session, robot)
         try:
             driver_args = emulated_link(kids, args.link, out, x0, args.duration + 15, logs["driver"])
-            kids.spawn(["driver", *driver_args, *client, "--duration", str(args.duration + 15)], logs["driver"])
+            kids.spawn(["driver", "--engage", *driver_args, *client, "--duration", str(args.duration + 15)],
+                       logs["driver"])
             kids.spawn(["station", *client, "--start", "--store", str(store), "--exit-at-goal", "--duration",
                         str(args.duration), *(["--mission", args.mission] if args.mission else [])], logs["station"])
             _watch(mon, kids, world, args.duration)
@@ -327,7 +328,8 @@ def fleet(args: argparse.Namespace, robots: list[str]) -> int:
                 wd = out / robot
                 wd.mkdir(exist_ok=True)
                 driver_args = emulated_link(kids, args.link, wd, x0, timeout + 15, logs["driver"])
-                kids.spawn(["driver", *driver_args, *client, "--duration", str(timeout + 15)], logs["driver"])
+                kids.spawn(["driver", "--engage", *driver_args, *client, "--duration", str(timeout + 15)],
+                           logs["driver"])
                 stations[robot] = kids.spawn(
                     ["station", *client, "--start", "--store", str(stores[robot]), "--exit-at-goal", "--duration",
                      str(timeout), *(["--mission", args.mission] if args.mission else [])], logs["station"], env=env)

@@ -1,0 +1,68 @@
+"""``scmbridge engage --robot R``: a person hands the vehicle to the system (or takes it back with ``--release``).
+
+A driver host starts not engaged, also after a restart: it sends only stops until a person engages it. Engaging
+is a query on ``scm/<robot>/engage`` answered by the driver host once done: MAVLink: GUIDED selected and armed,
+each confirmed by the vehicle (or the vehicle's reason for refusing); CAN: both axes in closed loop (refused, naming
+the axis, while one reports an error, unless ``--clear-faults``); UDP: the host starts sending commands. Refused
+while an estop is latched. Engaging an engaged host says so and succeeds. The station still drives only after
+``scmbridge mission start`` (or resume). Exit status: 0 done, 1 refused, 2 no driver host answered.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+
+import zenoh
+
+from bridge.core import wire as M
+from bridge.core.args import positive_float, robot_arg
+from bridge.core.errors import UsageError
+from bridge.nodes.node import add_zenoh_args, endpoints_tried, zenoh_config
+from bridge.nodes.zsession import open_session
+
+RETRY_S = 0.25
+
+
+def ask(session: zenoh.Session, robot: str, req: M.EngageRequest, timeout: float) -> list[M.EngageState]:
+    """Every driver host's answer to ``req`` (asking again until one answers or ``timeout`` passes)."""
+    t_end = time.monotonic() + timeout
+    while True:
+        out = []
+        for reply in session.get(M.key(robot, "engage"), payload=M.encode(req),
+                                 timeout=max(0.1, t_end - time.monotonic())):
+            if reply.ok is None:
+                continue
+            try:
+                out.append(M.decode(reply.ok.payload.to_bytes(), M.EngageState))
+            except M.MessageError:
+                continue
+        if out or time.monotonic() + RETRY_S >= t_end:
+            return out
+        time.sleep(RETRY_S)
+
+
+def arguments(ap: argparse.ArgumentParser) -> None:
+    ap.add_argument("--robot", type=robot_arg, required=True, help="the robot to engage")
+    ap.add_argument("--release", action="store_true", help="hand the vehicle back: the host sends only stops")
+    ap.add_argument("--clear-faults", action="store_true",
+                    help="also clear what the motor controllers latched (look at the robot first)")
+    ap.add_argument("--source", default="operator", help="who you are (the driver host logs it)")
+    ap.add_argument("--timeout", type=positive_float, default=40.0,
+                    help="seconds to wait for the driver host (engaging a vehicle can take a while: arming checks)")
+    add_zenoh_args(ap)
+
+
+def run(args: argparse.Namespace) -> int:
+    req = M.EngageRequest(stamp=time.monotonic(), engaged=not args.release, source=args.source,
+                          clear_faults=args.clear_faults)
+    with open_session(zenoh_config(args)) as session:
+        answers = ask(session, args.robot, req, args.timeout)
+    if not answers:
+        raise UsageError(f"no driver host answered on {M.key(args.robot, 'engage')} within {args.timeout:g} s "
+                         f"(tried {endpoints_tried(args)})")
+    for st in answers:
+        print(f"{args.robot}/{st.node}: {'' if st.accepted else 'REFUSED: '}{st.text}",
+              file=sys.stdout if st.accepted else sys.stderr)
+    return 0 if all(st.accepted for st in answers) else 1
