@@ -279,3 +279,22 @@ def test_the_vehicles_failsafe_is_read_at_open_and_the_gcs_failsafe_acts_as_rove
     finally:
         driver.close()
         rover.stop()
+
+
+@pytest.mark.timeout(120)
+def test_a_driver_host_started_before_its_vehicle_waits_for_it_and_says_so(tmp_path) -> None:
+    """Start in any order: no vehicle yet is not an exit with a traceback but a wait, on status and in the log."""
+    port, robot, bind = free_port(), f"wv{os.getpid()}", free_udp_port()
+    robot_port = free_udp_port()
+    with open_session(make_config(mode="router", listen=[tcp(port)])) as session, Children() as kids:
+        cfg = tmp_path / "driver.toml"
+        cfg.write_text(f"[link.udp]\nrobot_port = {robot_port}\nbind_port = {bind}\nopen_timeout = 0.5\n")
+        col = Collector(session)
+        status = col.listen(M.status_key(robot, "driver"), M.Status)
+        host = kids.spawn(["driver", "--link", "udp", "--config", str(cfg), "--robot", robot, "--mode", "client",
+                           "--connect", tcp(port), "--duration", "60"])
+        assert col.wait(lambda: status and "waiting for the vehicle" in status[-1].text, 30), status[-1:]
+        assert host.poll() is None and status[-1].state == "starting"
+        vehicle = SimVehicle(mpc_learner(), (0.0, 0.0, 0.0), now=time.monotonic())
+        with UdpRobot(vehicle, port=robot_port, peer=("127.0.0.1", bind)):
+            assert col.wait(lambda: status[-1].state == "waiting" and "waiting for engage" in status[-1].text, 30)

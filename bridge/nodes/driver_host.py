@@ -50,6 +50,10 @@ from drivers.base import Driver, DriverError, FailsafeReport, LinkHealth
 log = logging.getLogger("scmbridge.driver")
 
 
+#: the first and the longest wait between attempts to open a link that is not there yet, s
+OPEN_BACKOFF = (0.5, 10.0)
+
+
 class Latch(msgspec.Struct, kw_only=True):
     """The estop latch as kept on the robot's disk."""
 
@@ -387,7 +391,8 @@ class DriverHost:
         self._put("status", M.Status(stamp=time.monotonic(), seq=self.seq["status"], node="driver", ok=False,
                                      state="starting", text=f"link {self.link}: opening (vehicle not yet ready)"))
         self.seq["status"] += 1
-        self.driver.open(time.monotonic())  # may block up to the link's open_timeout (MAVLink: EKF position)
+        if not self.open_link(stop):
+            return
         self.failsafe_report = self.driver.failsafe()
         too_long = self.failsafe_report.drive_on_s is None or self.failsafe_report.drive_on_s > self.max_drive_on
         (log.warning if too_long else log.info)("vehicle failsafe: %s%s", self.failsafe_report.text,
@@ -401,6 +406,28 @@ class DriverHost:
                 log.error("engage_on_start: %s", ans.text)
         systemd.ready(f"{self.robot}: link {self.link} open, " + ("engaged" if self.engaged else "waiting for engage"))
         self.loop(stop, duration)
+
+    def open_link(self, stop: threading.Event) -> bool:
+        """Open the link, retrying with a backoff while the vehicle (or the CAN interface) is not there, saying what
+        it waits for on status, in the log (once per reason) and to systemd; False if stopped meanwhile."""
+        backoff, said = OPEN_BACKOFF[0], ""
+        while not stop.is_set():
+            try:
+                self.driver.open(time.monotonic())  # bounded by the link's open_timeout
+                return True
+            except DriverError as exc:
+                text = f"link {self.link}: waiting for the vehicle: {exc}"
+                if text != said:
+                    log.warning("%s; trying again (every %.0f s at most)", text, OPEN_BACKOFF[1])
+                    said = text
+                systemd.status(text[:200])
+                self._put("status", M.Status(stamp=time.monotonic(), seq=self.seq["status"], node="driver",
+                                             ok=False, state="starting", text=text[:1024]))
+                self.seq["status"] += 1
+                self.driver.close(disarm=False, stop_timeout=0.0)  # a half-open link is let go before the retry
+                stop.wait(backoff)
+                backoff = min(2 * backoff, OPEN_BACKOFF[1])
+        return False
 
     def close(self) -> None:
         """Stop, wait until the vehicle has stopped, then disarm / idle (only what this host engaged)."""

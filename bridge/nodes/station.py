@@ -40,6 +40,7 @@ from bridge.core.args import positive_float, robot_arg
 from bridge.core.config import RATE_HZ_RANGE, StationConfig, load_mission_spec, load_station, mission_from_spec
 from bridge.core.errors import UsageError
 from bridge.core.paths import save_atomic, state_dir
+from bridge.nodes import systemd
 from bridge.nodes.mission_control import Fitness, MissionControl, Saved, spec_of
 from bridge.nodes.node import FixedRate, Inputs, add_zenoh_args, stop_on_signals, zenoh_config
 from bridge.nodes.pairing import IntervalPairer
@@ -487,6 +488,7 @@ class Station:
             "external teacher" if self.teacher_kind == "external" else f"mission {self.mission.name}")
         log.info("station for %s at %.0f Hz, %s, %s (epoch %x)", self.robot, 1 / self.period, what,
                  self.control.phase, self.epoch)
+        systemd.ready(f"{self.robot}: {what}, mission {self.control.phase}")
         self.ticker = FixedRate(1 / self.period, stop)
         t_start = time.monotonic()
         t_status = t_persist = t_start

@@ -63,6 +63,7 @@ COMMANDS: list[Command] = [
     _C("driver", "bridge.nodes.driver_host", "the driver host: Zenoh commands -> vehicle link, telemetry -> state"),
     _C("learner", "sim_learner.emulator", "a software learner behind a vehicle link, as its own process"),
     _C("calibrate", "bridge.tools.calibrate", "the calibration stage: a bounded grid of learner commands"),
+    _C("doctor", "bridge.tools.doctor", "preflight: router, certificates, access rules, CAN, vehicle and failsafe"),
     _C("status", "bridge.tools.status", "why is it (not) moving: one line per robot and node"),
     _C("estop", "bridge.tools.estop", "stop one robot or every robot now, or release the latch, and confirm"),
     _C("engage", "bridge.tools.engage", "a person hands a robot's vehicle to the system (or takes it back)"),

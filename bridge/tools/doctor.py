@@ -1,0 +1,205 @@
+"""``scmbridge doctor``: a preflight before a lab drives: what is wrong, and what to do about it.
+
+Each check prints one line, ``ok``, ``warn`` or ``FAIL``, its name and what it found or what to fix:
+
+- ``config``: the station and/or driver files (``--station``, ``--driver``) parse and are sane;
+- ``router``: the Zenoh router the configuration (``--zenoh-config`` or ``--connect``) names is reachable;
+- ``tls``: for a TLS configuration, each certificate and key it names exists, the certificates are signed by the
+  CA it names (one CA), and none expires within ``--expiry-days`` (a warning) or has expired (a failure);
+- ``access``: a router configuration with access control on is named as such (rules and subjects counted); one
+  without says that anyone on its network may publish commands;
+- ``can``: for a SocketCAN link, the interface exists and is up (with the command that brings it up);
+- ``vehicle``: the link opens and the vehicle answers (``--link`` with ``--driver``; it is never engaged: no
+  mode change, arming or closed loop), and its own failsafe: how long it would drive on if the driver host died,
+  a warning beyond the driver's ``max_drive_on_s``.
+
+Run it before starting the driver host (a serial port or a UDP port can be opened by one process only). Exit
+status: 0 when nothing failed (warnings allowed), 1 otherwise.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime as dt
+import json
+import shutil
+import subprocess
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import zenoh
+
+from bridge.core.args import positive_float
+from bridge.core.config import load_driver, load_station
+from bridge.core.errors import UsageError
+from bridge.nodes.node import add_zenoh_args, endpoints_tried, zenoh_config
+from bridge.nodes.zsession import open_session
+
+LEVELS = ("ok", "warn", "FAIL")
+
+
+@dataclass(frozen=True)
+class Check:
+    """One finding: ``level`` ok / warn / FAIL, the check's ``name``, and in words what was found or what to do."""
+
+    level: str
+    name: str
+    text: str
+
+    def line(self) -> str:
+        return f"{self.level:<5} {self.name:<8} {self.text}"
+
+
+def _json(conf: zenoh.Config, key: str) -> object:
+    try:
+        return json.loads(conf.get_json(key))
+    except Exception:  # a key the config does not have
+        return None
+
+
+def check_router(args: argparse.Namespace, conf: zenoh.Config) -> Check:
+    try:
+        with open_session(conf):
+            return Check("ok", "router", f"reached ({endpoints_tried(args)})")
+    except UsageError as exc:
+        return Check("FAIL", "router", f"{exc} (start the router: the station's unit, or scmbridge station "
+                                       "--zenoh-config station-router-tls-acl.json5)")
+
+
+def _openssl(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run(["openssl", *args], capture_output=True, text=True, timeout=30)
+
+
+def check_tls(conf: zenoh.Config, expiry_days: float) -> list[Check]:
+    tls = _json(conf, "transport/link/tls")
+    if not isinstance(tls, dict) or not any(isinstance(v, str) and v for v in tls.values()):
+        return [Check("warn", "tls", "no TLS in this Zenoh configuration: traffic is neither encrypted nor "
+                                     "authenticated (scmbridge deploy makes the lab's TLS configuration)")]
+    if shutil.which("openssl") is None:
+        return [Check("warn", "tls", "openssl is not installed: certificates not checked")]
+    ca = tls.get("root_ca_certificate")
+    out: list[Check] = []
+    files = {k: v for k, v in tls.items() if isinstance(v, str) and k.endswith(("_certificate", "_private_key"))}
+    for key, path in sorted(files.items()):
+        if not Path(path).is_file():
+            out.append(Check("FAIL", "tls", f"{key} {path}: no such file"))
+            continue
+        if not key.endswith("_certificate"):
+            continue
+        end = _openssl("x509", "-in", path, "-noout", "-enddate", "-subject")
+        if end.returncode != 0:
+            out.append(Check("FAIL", "tls", f"{path}: not a certificate ({end.stderr.strip()[:120]})"))
+            continue
+        fields = dict(line.split("=", 1) for line in end.stdout.strip().splitlines() if "=" in line)
+        expires = dt.datetime.strptime(fields["notAfter"].strip(), "%b %d %H:%M:%S %Y %Z").replace(tzinfo=dt.UTC)
+        left = (expires - dt.datetime.now(dt.UTC)).total_seconds() / 86400
+        subject = fields.get("subject", "").strip()
+        if left <= 0:
+            out.append(Check("FAIL", "tls", f"{path} ({subject}) expired on {expires:%Y-%m-%d}: issue a new one"))
+        elif left < expiry_days:
+            out.append(Check("warn", "tls", f"{path} ({subject}) expires in {left:.0f} days ({expires:%Y-%m-%d})"))
+        else:
+            out.append(Check("ok", "tls", f"{path} ({subject}) valid until {expires:%Y-%m-%d}"))
+        if ca and key != "root_ca_certificate" and Path(ca).is_file():
+            ver = _openssl("verify", "-CAfile", ca, path)
+            if ver.returncode != 0:
+                out.append(Check("FAIL", "tls", f"{path} is not signed by the CA {ca}: every peer will refuse it "
+                                                "(all certificates of a lab come from one CA)"))
+    return out
+
+
+def check_access(conf: zenoh.Config) -> Check:
+    ac = _json(conf, "access_control")
+    mode = _json(conf, "mode")
+    if isinstance(ac, dict) and ac.get("enabled"):
+        return Check("ok", "access", f"access control on, default {ac.get('default_permission', 'deny')}: "
+                                     f"{len(ac.get('rules', []))} rules, {len(ac.get('subjects', []))} subjects")
+    if mode == "router":
+        return Check("warn", "access", "this router has no access control: anyone who reaches it may publish "
+                                       "commands (scmbridge deploy acl makes the lab's rules)")
+    return Check("ok", "access", "a client: the router's rules apply (check the router's configuration)")
+
+
+def check_can(channel: str, interface: str) -> Check:
+    if interface != "socketcan":
+        return Check("ok", "can", f"interface {interface} (no SocketCAN device to check)")
+    state = Path(f"/sys/class/net/{channel}/operstate")
+    fix = f"sudo ip link set {channel} up type can bitrate 500000 restart-ms 100"
+    if not state.exists():
+        return Check("FAIL", "can", f"no CAN interface {channel} (adapter unplugged? driver not loaded?); then: {fix}")
+    text = state.read_text().strip()
+    if text not in ("up", "unknown"):
+        return Check("FAIL", "can", f"{channel} is {text}: {fix}")
+    return Check("ok", "can", f"{channel} is up")
+
+
+def check_vehicle(link: str, link_cfg: object, max_drive_on: float) -> list[Check]:
+    from drivers import open_driver
+    from drivers.base import DriverError
+
+    driver = open_driver(link, link_cfg)
+    try:
+        driver.open(time.monotonic())
+    except DriverError as exc:
+        return [Check("FAIL", "vehicle", f"link {link}: {exc}")]
+    try:
+        h = driver.health()
+        fs = driver.failsafe()
+        out = [Check("ok", "vehicle", f"link {link}: the vehicle answers ({h.text})")]
+        if fs.drive_on_s is None or fs.drive_on_s > max_drive_on:
+            out.append(Check("warn", "failsafe", f"{fs.text}: more than max_drive_on_s = {max_drive_on:g} s; "
+                                                 "see deploy/ROBOT.md, what the vehicle does when the host dies"))
+        else:
+            out.append(Check("ok", "failsafe", fs.text))
+        return out
+    finally:
+        driver.close(disarm=False, stop_timeout=0.0)
+
+
+def arguments(ap: argparse.ArgumentParser) -> None:
+    ap.add_argument("--station", default=None, help="the station's configuration file to check")
+    ap.add_argument("--driver", default=None, help="the driver host's configuration file to check")
+    ap.add_argument("--link", choices=["can", "mavlink", "udp"], default=None,
+                    help="with --driver: open this link and check the vehicle and its failsafe (never engaged)")
+    ap.add_argument("--expiry-days", type=positive_float, default=14.0,
+                    help="warn when a certificate expires within this many days")
+    add_zenoh_args(ap)
+
+
+def run(args: argparse.Namespace) -> int:
+    checks: list[Check] = []
+
+    def step(fn: Callable[[], list[Check] | Check]) -> None:
+        found = fn()
+        for c in found if isinstance(found, list) else [found]:
+            checks.append(c)
+            print(c.line(), flush=True)
+
+    driver_cfg = None
+    for kind, path, load in (("station", args.station, load_station), ("driver", args.driver, load_driver)):
+        if path is None:
+            continue
+        try:
+            cfg = load(path)
+        except UsageError as exc:
+            step(lambda exc=exc: Check("FAIL", "config", str(exc)))
+            continue
+        step(lambda kind=kind, path=path: Check("ok", "config", f"{kind} {path}"))
+        if kind == "driver":
+            driver_cfg = cfg
+    conf = zenoh_config(args)
+    step(lambda: check_router(args, conf))
+    step(lambda: check_tls(conf, args.expiry_days))
+    step(lambda: check_access(conf))
+    if args.link is not None:
+        if driver_cfg is None:
+            raise UsageError("--link needs --driver FILE (the link's settings)")
+        link_cfg = getattr(driver_cfg.link, args.link)
+        if args.link == "can":
+            step(lambda: check_can(link_cfg.channel, link_cfg.interface))
+        step(lambda: check_vehicle(args.link, link_cfg, driver_cfg.driver.max_drive_on_s))
+    failed = [c for c in checks if c.level == "FAIL"]
+    print(f"{len(checks)} checks: {len(failed)} failed, {sum(c.level == 'warn' for c in checks)} warnings")
+    return 1 if failed else 0

@@ -1,0 +1,73 @@
+"""``scmbridge doctor``: one line per check saying what is wrong and what to do, against a real router, a real
+emulated rover (never engaged) and real certificates made with openssl."""
+
+from __future__ import annotations
+
+import shutil
+import subprocess
+import sys
+import time
+
+import pytest
+
+from bridge.nodes.zsession import free_port, make_config, open_session, tcp
+from sim_learner.dynamics import mpc_learner
+from sim_learner.mavlink_rover import MavlinkRover
+from sim_learner.vehicle import SimVehicle
+
+
+def _doctor(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "bridge", "doctor", *args], capture_output=True, text=True,
+                          timeout=120)
+
+
+def _lines(res: subprocess.CompletedProcess) -> dict[str, list[str]]:
+    out: dict[str, list[str]] = {}
+    for ln in res.stdout.splitlines():
+        parts = ln.split(None, 2)
+        if len(parts) == 3 and parts[0] in ("ok", "warn", "FAIL"):
+            out.setdefault(parts[1], []).append(f"{parts[0]} {parts[2]}")
+    return out
+
+
+def test_doctor_checks_the_router_the_vehicle_and_its_failsafe_without_engaging_it(tmp_path) -> None:
+    vehicle = SimVehicle(mpc_learner(), (0.0, 0.0, 0.0), now=time.monotonic())
+    rover = MavlinkRover(vehicle, init_s=0.2, ekf_position_s=0.4).start()
+    cfg = tmp_path / "driver.toml"
+    cfg.write_text(f'[link.mavlink]\nurl = "udpout:127.0.0.1:{rover.port}"\nrate_hz = 20\n')
+    port = free_port()
+    try:
+        with open_session(make_config(mode="router", listen=[tcp(port)])):
+            res = _doctor("--driver", str(cfg), "--link", "mavlink", "--mode", "client", "--connect", tcp(port))
+        found = _lines(res)
+        assert res.returncode == 0, res.stdout + res.stderr
+        assert found["config"][0].startswith("ok") and found["router"][0].startswith("ok")
+        assert found["tls"][0].startswith("warn") and "neither encrypted nor authenticated" in found["tls"][0]
+        assert found["vehicle"][0].startswith("ok") and "answers" in found["vehicle"][0]
+        assert found["failsafe"][0].startswith("warn") and "up to 3 s" in found["failsafe"][0]
+        assert "FS_GCS_ENABLE=0" in found["failsafe"][0]
+        assert not rover.armed and rover.mode_name == "MANUAL"  # looked at, never engaged
+    finally:
+        rover.stop()
+    res = _doctor("--mode", "client", "--connect", tcp(free_port()))  # nothing listens there
+    assert res.returncode == 1 and _lines(res)["router"][0].startswith("FAIL"), res.stdout
+    assert "Traceback" not in res.stderr
+
+
+@pytest.mark.skipif(shutil.which("openssl") is None, reason="openssl is not installed")
+def test_doctor_names_a_certificate_about_to_expire_and_one_of_another_ca(tmp_path) -> None:
+    from bridge.tools.deploy import client_config, make_ca, make_cert, make_certs, render
+
+    certs = tmp_path / "tls"
+    make_certs(certs, ["station", "operator"], days=5)
+    conf = tmp_path / "operator.json5"
+    conf.write_text(render(client_config("operator", connect=f"tls/127.0.0.1:{free_port()}", certs=str(certs)), ""))
+    found = _lines(_doctor("--zenoh-config", str(conf)))
+    tls = found["tls"]
+    assert any(t.startswith("warn") and "operator.crt" in t and "expires in" in t for t in tls), tls
+    other = tmp_path / "other"
+    make_ca(other)
+    make_cert(other, "operator")
+    shutil.copy(other / "operator.crt", certs / "operator.crt")  # a certificate from another lab's CA
+    tls = _lines(_doctor("--zenoh-config", str(conf)))["tls"]
+    assert any(t.startswith("FAIL") and "not signed by the CA" in t for t in tls), tls
