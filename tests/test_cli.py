@@ -65,3 +65,18 @@ def test_parsers_refuse_names_that_are_not_robot_names() -> None:
     with pytest.raises(argparse.ArgumentTypeError):
         robots_arg("a,a")
     assert robots_arg("r1, r2") == ["r1", "r2"]
+
+
+def test_numba_caches_in_the_cache_directory_when_the_install_is_not_writable(tmp_path, monkeypatch) -> None:
+    """Finding: as the service user of a root-owned install, `station --help` failed: numba could not cache its
+    kernels next to their source. The CLI then points numba at the cache directory (systemd's CacheDirectory=)."""
+    from bridge.tools import cli
+
+    ro = tmp_path / "scm"
+    ro.mkdir()
+    monkeypatch.setenv("NUMBA_CACHE_DIR", "")  # recorded, so the test's value is undone afterwards
+    monkeypatch.delenv("NUMBA_CACHE_DIR")
+    monkeypatch.setenv("SCMBRIDGE_CACHE_DIR", str(tmp_path / "cache"))
+    monkeypatch.setattr(cli.os, "access", lambda path, mode: False)  # what a non-root user finds
+    assert cli.numba_cache_dir(ro) == str(tmp_path / "cache" / "numba") == cli.os.environ["NUMBA_CACHE_DIR"]
+    assert cli.numba_cache_dir(ro) is None  # set once: a person's own NUMBA_CACHE_DIR is never overridden

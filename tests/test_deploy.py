@@ -7,6 +7,9 @@ import io
 import json
 import re
 import shlex
+import shutil
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -110,3 +113,25 @@ def test_example_link_configs_construct_their_drivers(link: str) -> None:
     cfg = load_driver(DEPLOY / f"driver.{link}.example.toml")
     drv = open_driver(link, getattr(cfg.link, link))
     assert drv.name == link and cfg.driver.cmd_timeout == pytest.approx(0.3)
+
+
+@pytest.mark.skipif(shutil.which("systemd-analyze") is None, reason="systemd-analyze is not installed")
+def test_the_units_pass_systemd_analyze_verify(tmp_path) -> None:
+    """Every shipped unit (templates instantiated) as systemd parses it: no unknown key, no bad value. The
+    install path is moved to this checkout's so that the ExecStart binary exists."""
+    exe = Path(sys.executable).with_name("scmbridge")
+    units = []
+    for unit in sorted(DEPLOY.glob("systemd/*.service")):
+        text = unit.read_text().replace("/opt/scmbridge/.venv/bin/scmbridge", str(exe))
+        text = text.replace("/opt/scmbridge", str(tmp_path))
+        name = unit.name.replace("@.service", "@rover1.service")
+        (tmp_path / name).write_text(text)
+        units.append(str(tmp_path / name))
+    res = subprocess.run(["systemd-analyze", "verify", *units], capture_output=True, text=True, timeout=120)
+    text = res.stdout + res.stderr
+    assert res.returncode == 0 and not any(w in text for w in ("Unknown", "Failed to parse", "Invalid")), text
+    for u in units:
+        body = Path(u).read_text()
+        assert "Type=notify" in body and "StateDirectory=scmbridge" in body and "CacheDirectory=scmbridge" in body
+        start = next(ln for ln in body.splitlines() if ln.startswith("ExecStart="))
+        assert "NUMBA_CACHE_DIR=" in body and "--engage" not in start and "--start" not in start

@@ -32,6 +32,21 @@ ONE_BLAS_THREAD = {"OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1", "MKL_NUM
 for _var, _val in ONE_BLAS_THREAD.items():
     os.environ.setdefault(_var, _val)
 
+
+def numba_cache_dir(kernels: Path = Path(__file__).resolve().parents[2] / "transfer" / "scm") -> str | None:
+    """Where numba caches the SC kernels when it cannot next to their source (an install owned by root, run by a
+    service user): the cache directory, unless ``NUMBA_CACHE_DIR`` is set. Set before numba is first imported
+    (this module runs first for every command); without it numba fails at import: "cannot cache function"."""
+    if os.environ.get("NUMBA_CACHE_DIR") or os.access(kernels, os.W_OK):
+        return None
+    from bridge.core.paths import cache_dir
+
+    os.environ["NUMBA_CACHE_DIR"] = str(cache_dir() / "numba")
+    return os.environ["NUMBA_CACHE_DIR"]
+
+
+numba_cache_dir()
+
 LOG_LEVELS = ("debug", "info", "warning", "error")
 WIDTH = 110  # help text width: fixed, so docs/CLI.md does not depend on the terminal
 
