@@ -46,6 +46,11 @@ or 0.06 s. Its heading is the ATTITUDE's at the same vehicle time, interpolated 
 emulated rover, 20 Hz telemetry, 10 Hz commands): the pairs' median error to the learner's true response fell from
 0.014 m/s and 0.013 rad/s to 0.0004 m/s and 0.0001 rad/s.
 
+Signing (``signing_key_file``, made by ``scmbridge keys mavlink``; the autopilot gets the same key through
+SETUP_SIGNING, e.g. from a ground station): MAVLink 2 message signing as ArduPilot implements it
+(libraries/GCS_MAVLink/GCS_Signing.cpp): every message this driver sends is signed, and an unsigned or badly signed
+message, or one whose signature timestamp goes back, is refused (``health().detail["bad_signatures"]``).
+
 Supervision: no HEARTBEAT for ``heartbeat_timeout`` -> ``connected`` and ``ok`` False, ``"no heartbeat for 3.2 s"``;
 a connection that failed (TCP EOF, a serial error) is re-opened with backoff, UDP just keeps listening. When
 heartbeats return the message intervals are asked again (a rebooted autopilot forgot them) and ``ok`` comes back
@@ -75,6 +80,7 @@ from typing import Any
 os.environ.setdefault("MAVLINK20", "1")
 from pymavlink import mavutil  # noqa: E402
 
+from bridge.core.auth import load_key  # noqa: E402
 from bridge.core.clock import ClockOffset  # noqa: E402
 from bridge.core.config import MavlinkLinkConfig  # noqa: E402
 from drivers.base import DriverError, FailsafeReport, LinkHealth, Pose  # noqa: E402
@@ -189,6 +195,8 @@ class MavlinkDriver:
         self.rate_hz = config.rate_hz
         self.open_timeout = config.open_timeout
         self.disarm_on_close = config.disarm_on_close
+        self.signing_key = load_key(config.signing_key_file) if config.signing_key_file else None
+        self._bad_sig_before = 0  # refused signatures on connections closed since
         self.conn: Any = None
         self.v = _Vehicle(texts=deque(maxlen=config.statustext_keep))
         self._health = LinkHealth()
@@ -236,6 +244,8 @@ class MavlinkDriver:
         conn = mavutil.mavlink_connection(self.url, baud=self.baud, source_system=self.source_system,
                                           source_component=SOURCE_COMPONENT, dialect="ardupilotmega",
                                           autoreconnect=False, retries=0)
+        if self.signing_key is not None:  # MAVLink 2 signing: ours signed, unsigned or forged ones refused
+            conn.setup_signing(self.signing_key, sign_outgoing=True, allow_unsigned_callback=None)
         if hasattr(conn, "handle_eof"):  # TCP: pymavlink prints and would reconnect itself on EOF; we do it
             def failed() -> None:
                 self._conn_failed = "connection closed by the vehicle"
@@ -247,6 +257,7 @@ class MavlinkDriver:
 
     def _close_conn(self) -> None:
         """Close the pymavlink connection if there is one (a failing close is not an error worth more)."""
+        self._bad_sig_before = self._bad_signatures()
         try:
             if self.conn is not None:
                 self.conn.close()
@@ -712,9 +723,16 @@ class MavlinkDriver:
             "heartbeat_age": None if v.hb_time is None else round(now - v.hb_time, 3),
             "position_age": None if v.pos_time is None else round(now - v.pos_time, 3),
             "statustexts": self.statustexts, "last_refusal": self._last_refusal,
+            "bad_signatures": self._bad_signatures(),
             "foreign_ids": list(self._foreign_ids), **self._counts,
         }
         return self._health
+
+    def _bad_signatures(self) -> int:
+        """Messages refused by MAVLink 2 signing (unsigned, forged or replayed), over every connection so far."""
+        sig = getattr(getattr(self.conn, "mav", None), "signing", None)
+        now = (sig.badsig_count + sig.reject_count) if sig is not None and self.signing_key is not None else 0
+        return self._bad_sig_before + now
 
     def clear_faults(self, now: float) -> None:
         """Nothing to clear on this link: the operator puts the vehicle back in GUIDED and arms it himself."""

@@ -8,6 +8,10 @@ its own hard limits (see :mod:`sim_learner.udp_robot`).
 
 What the driver trusts, in order:
 
+0. with a ``key_file`` (the lab's configuration; made by ``scmbridge keys udp``), the datagram's keyed tag
+   (:mod:`bridge.core.auth`): pinning an address is not authentication, anyone on the segment can send from it.
+   A datagram without a valid tag is counted (``unauthenticated``) and dropped; the commands this driver sends are
+   sealed with the same key;
 1. the source address: only datagrams from ``robot_host:robot_port`` (resolved once, at ``open``) are read; all
    others are counted as ``foreign`` and dropped undecoded;
 2. the payload: a datagram that does not decode and validate as a ``LearnerState`` is ``malformed``;
@@ -42,6 +46,7 @@ import socket
 import time
 
 from bridge.core import wire as M
+from bridge.core.auth import load_key, open_sealed, seal
 from bridge.core.clock import ClockOffset
 from bridge.core.config import UdpLinkConfig
 from bridge.core.gate import SeqGate
@@ -86,8 +91,10 @@ class UdpDriver:
         self.gate = SeqGate(silence_s=config.state_timeout_s, max_rate_hz=config.max_state_rate_hz,
                             slack=STATE_SEQ_SLACK)
         self.last_state_time = -math.inf  # driver-host monotonic time of the last accepted state
-        self.counters = {"foreign": 0, "state_gaps": 0, "robot_restarts": 0, "dropped_by_kernel": 0,
-                         "clock_restarts": 0, "stamp_fallbacks": 0, **{f"state_{r}": 0 for r in _REFUSALS}}
+        self.key = load_key(config.key_file) if config.key_file else None  # a bad key file: one line, at start
+        self.counters = {"foreign": 0, "unauthenticated": 0, "state_gaps": 0, "robot_restarts": 0,
+                         "dropped_by_kernel": 0, "clock_restarts": 0, "stamp_fallbacks": 0,
+                         **{f"state_{r}": 0 for r in _REFUSALS}}
         self._clock = ClockOffset(config.clock_window_s)  # the robot's stamps -> our monotonic clock
         self._robot_stamp = -math.inf  # the last robot stamp taken in this epoch
         self._health = LinkHealth()
@@ -127,8 +134,9 @@ class UdpDriver:
         self.seq += 1
         msg = M.Command(stamp=max(0.0, now), seq=self.seq, v=v, omega=omega, method=method, valid_ms=CMD_VALID_MS,
                         sender="driver", epoch=self.epoch)
+        data = M.encode(msg)
         try:
-            self.sock.sendto(M.encode(msg), self.robot_addr)
+            self.sock.sendto(seal(self.key, data) if self.key is not None else data, self.robot_addr)
             self._health.frames_sent += 1
         except OSError:  # a full socket buffer (non-blocking) or an unreachable network: dropped, counted
             self._health.errors += 1
@@ -159,6 +167,11 @@ class UdpDriver:
             if src[:2] != self.robot_addr:
                 self.counters["foreign"] += 1
                 continue
+            if self.key is not None:
+                data = open_sealed(self.key, data)
+                if data is None:
+                    self.counters["unauthenticated"] += 1
+                    continue
             try:
                 st = M.decode(data, M.LearnerState)
             except M.MessageError:

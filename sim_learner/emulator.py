@@ -18,6 +18,7 @@ import threading
 import time
 
 from bridge.core.args import pose_arg, positive_float
+from bridge.core.auth import load_key
 from bridge.core.errors import UsageError
 
 
@@ -54,6 +55,8 @@ def arguments(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--v-max", type=float, default=1.0, help="(udp) the robot's own limit |v|, m/s: refused beyond")
     ap.add_argument("--omega-max", type=float, default=2.0, help="(udp) the robot's own limit |omega|, rad/s")
     ap.add_argument("--watchdog", type=float, default=0.5, help="(udp) no command for this long stops it, s")
+    ap.add_argument("--key-file", default=None, help="(udp) the datagram key (scmbridge keys udp): commands must "
+                    "carry its tag; (mavlink) the signing key: unsigned messages are refused")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -77,7 +80,8 @@ def run(args: argparse.Namespace) -> int:
         from sim_learner.mavlink_rover import MavlinkRover
 
         port = 14550 if args.port is None else args.port
-        with MavlinkRover(vehicle, args.host, port) as rover:
+        with MavlinkRover(vehicle, args.host, port,
+                          signing_key=load_key(args.key_file) if args.key_file else None) as rover:
             print(f"learner on mavlink udp {args.host}:{rover.port}, model {args.model}", flush=True)
             stop.wait(args.duration)
         return 0
@@ -86,7 +90,7 @@ def run(args: argparse.Namespace) -> int:
 
         port = 47800 if args.port is None else args.port
         with UdpRobot(vehicle, args.host, port, peer=peer, v_max=args.v_max, omega_max=args.omega_max,
-                      watchdog=args.watchdog) as robot:
+                      watchdog=args.watchdog, key=load_key(args.key_file) if args.key_file else None) as robot:
             shown = "the first valid sender" if peer == "first" else f"{peer[0]}:{peer[1]}"
             print(f"learner on udp {args.host}:{robot.port}, model {args.model}, peer {shown}", flush=True)
             stop.wait(args.duration)

@@ -44,6 +44,9 @@ driver that is wrong about the vehicle. Paths are in github.com/ArduPilot/ardupi
   models its dynamics).
 * GUID_TIMEOUT (Rover/mode_guided.cpp): no new target for ``guid_timeout`` s (3 by default) -> STATUSTEXT "target not
   received last 3.0 secs, stopping" and a stop.
+* Signing (libraries/GCS_MAVLink/GCS_Signing.cpp, as SETUP_SIGNING leaves it): with ``signing_key``, every message
+  it sends is signed, and a message that is unsigned (other than RADIO_STATUS / RADIO), badly signed or whose
+  signature timestamp goes back on its stream is refused before it is handled (counted in ``bad_signatures``).
 * Parameters (Rover/Parameters.cpp defaults: FS_ACTION 2 = Hold, FS_TIMEOUT 1.5 s, FS_GCS_ENABLE 0, FS_GCS_TIMEOUT 5 s;
   SYSID_MYGCS 255): PARAM_REQUEST_READ by name (index -1) or index, and PARAM_REQUEST_LIST, answered with PARAM_VALUE
   (REAL32); an unknown name gets no answer, as in AP_Param.
@@ -86,6 +89,11 @@ from sim_learner.vehicle import SimVehicle  # noqa: E402
 
 mavutil.set_dialect("ardupilotmega")
 MAV = mavutil.mavlink
+
+def _accept_unsigned(mav: Any, msg_id: int) -> bool:
+    """GCS_Signing.cpp ``accept_unsigned_callback``: a radio's own status messages pass unsigned, nothing else."""
+    return msg_id in (MAV.MAVLINK_MSG_ID_RADIO_STATUS, MAV.MAVLINK_MSG_ID_RADIO)
+
 
 #: the parameters this vehicle answers for, with Rover's defaults (Rover/Parameters.cpp, GCS_MAVLink)
 PARAM_DEFAULTS: dict[str, float] = {"FS_ACTION": 2.0, "FS_TIMEOUT": 1.5, "FS_GCS_ENABLE": 0.0, "FS_GCS_TIMEOUT": 5.0,
@@ -149,7 +157,8 @@ class MavlinkRover(ThreadedDevice):
                  sysid: int = 1, compid: int = 1, wp_speed: float = 2.0, str_rat_max: float = 2.0,
                  guid_timeout: float = 3.0, init_s: float = 0.3, ekf_position_s: float = 1.0,
                  ekf_origin_s: float | None = None, initial_mode: str = "MANUAL",
-                 params: dict[str, float] | None = None, decel_max: float = 2.0, coast_decel: float = 0.3) -> None:
+                 params: dict[str, float] | None = None, decel_max: float = 2.0, coast_decel: float = 0.3,
+                 signing_key: bytes | None = None) -> None:
         super().__init__()
         if transport not in ("udp", "tcp"):
             raise ValueError(f"transport {transport!r}: udp or tcp")
@@ -195,6 +204,13 @@ class MavlinkRover(ThreadedDevice):
         self.mav.robust_parsing = True
         self._parser = MAV.MAVLink(None, srcSystem=self.sysid, srcComponent=self.compid)
         self._parser.robust_parsing = True
+        if signing_key is not None:  # GCS_Signing.cpp: once a key is set, unsigned messages are refused
+            for m in (self.mav, self._parser):
+                m.signing.secret_key = signing_key
+                m.signing.sign_outgoing = True
+                m.signing.link_id = 0
+                m.signing.timestamp = int(max(0.0, time.time() - 1420070400) * 1e5)  # 10 us since 2015
+                m.signing.allow_unsigned_callback = _accept_unsigned
         self.t0 = time.monotonic()
 
     # ------------------------------------------------------------------------------------------- transport
@@ -458,6 +474,12 @@ class MavlinkRover(ThreadedDevice):
         if int(p["FS_ACTION"]) in (1, 2, 3, 4):  # RTL / SmartRTL are not modelled: Hold, their own fallback
             self._set_mode(HOLD, now)
             self.vehicle.stop(now)
+
+    @property
+    def bad_signatures(self) -> int:
+        """Messages refused by signing (unsigned, forged or replayed)."""
+        s = self._parser.signing
+        return s.badsig_count + s.reject_count
 
     def _ignore(self, reason: str) -> None:
         self.ignored_setpoints[reason] = self.ignored_setpoints.get(reason, 0) + 1

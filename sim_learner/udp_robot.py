@@ -35,6 +35,7 @@ import time
 from typing import Literal
 
 from bridge.core import wire as M
+from bridge.core.auth import open_sealed, seal
 from bridge.core.gate import SeqGate
 from sim_learner.device import ThreadedDevice
 from sim_learner.vehicle import SimVehicle
@@ -59,13 +60,14 @@ class UdpRobot(ThreadedDevice):
 
     def __init__(self, vehicle: SimVehicle, host: str = "127.0.0.1", port: int = 0, *, peer: Peer = DEFAULT_PEER,
                  watchdog: float = 0.5, rate: float = 50.0, v_max: float = 1.0, omega_max: float = 2.0,
-                 silence: float | None = None, epoch: int | None = None) -> None:
+                 silence: float | None = None, epoch: int | None = None, key: bytes | None = None) -> None:
         super().__init__()
         if not (v_max > 0.0 and omega_max > 0.0 and math.isfinite(v_max) and math.isfinite(omega_max)):
             raise ValueError(f"the robot's limits must be finite and > 0, not v_max={v_max}, omega_max={omega_max}")
         if peer != "first" and not (isinstance(peer, tuple) and len(peer) == 2):
             raise ValueError(f"peer must be (host, port) or 'first', not {peer!r}")
         self.vehicle = vehicle
+        self.key = key  # the datagram key: commands must carry its tag, states carry it
         self.addr = (host, int(port))
         self.peer_config: Peer = peer
         self.peer: tuple[str, int] | None = None  # resolved at start, or the pinned first sender
@@ -75,7 +77,7 @@ class UdpRobot(ThreadedDevice):
         self.silence = self.watchdog if silence is None else float(silence)
         self.epoch = M.new_epoch() if epoch is None else int(epoch)
         self.counters: dict[str, int] = dict.fromkeys(
-            ("received", "applied", "malformed", "foreign", "out_of_order", "seq_jump", "old_epoch",
+            ("received", "applied", "malformed", "foreign", "unauthenticated", "out_of_order", "seq_jump", "old_epoch",
              "foreign_epoch", "over_limits", "watchdog_stops", "states_sent", "states_paused", "reboots"), 0)
         self.gate = SeqGate(silence_s=self.silence)
         self.last_cmd: M.Command | None = None  # the last command applied (or the last stop)
@@ -151,6 +153,11 @@ class UdpRobot(ThreadedDevice):
         if self.peer is not None and src != self.peer:
             c["foreign"] += 1
             return
+        if self.key is not None:
+            data = open_sealed(self.key, data)
+            if data is None:
+                c["unauthenticated"] += 1
+                return
         try:
             cmd = M.decode(data, M.Command)
         except M.MessageError:
@@ -189,7 +196,8 @@ class UdpRobot(ThreadedDevice):
             self.counters["states_paused"] += 1
             return
         try:
-            self.sock.sendto(M.encode(msg), self.peer)
+            data = M.encode(msg)
+            self.sock.sendto(seal(self.key, data) if self.key is not None else data, self.peer)
             self.counters["states_sent"] += 1
         except OSError:
             pass

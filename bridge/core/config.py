@@ -126,7 +126,8 @@ class CanLinkConfig(_Cfg):
 class MavlinkLinkConfig(_Cfg):
     """``[link.mavlink]``: an ArduPilot Rover in GUIDED mode."""
 
-    url: Annotated[str, _m("pymavlink connection: tcp:HOST:5760 (SITL), udpout:HOST:PORT, /dev/ttyUSB0")] = (
+    url: Annotated[str, _m("pymavlink connection: tcp:HOST:5760 (SITL), udpout:HOST:PORT, /dev/ttyUSB0",
+                           min_length=1)] = (
         "udpout:127.0.0.1:14550")
     baud: Annotated[int, _m("serial baud rate", ge=1200, le=4_000_000)] = 57600
     target_system: Annotated[int, _m("the vehicle's MAVLink system id", ge=1, le=255)] = 1
@@ -152,6 +153,9 @@ class MavlinkLinkConfig(_Cfg):
     statustext_keep: Annotated[int, _m("the vehicle's last STATUSTEXTs kept for health() and error texts", ge=1,
                                        le=100)] = 8
     disarm_on_close: Annotated[bool, _m("disarm when the driver host stops (only a vehicle still in GUIDED)")] = True
+    signing_key_file: Annotated[str, _m(
+        "MAVLink 2 signing key (scmbridge keys mavlink; the autopilot gets the same key with SETUP_SIGNING): every "
+        "message we send is signed and unsigned or badly signed ones are refused; empty: no signing")] = ""
 
     def __post_init__(self) -> None:
         if self.position_timeout < 2.0 / self.rate_hz:
@@ -167,7 +171,8 @@ class UdpLinkConfig(_Cfg):
     driver's port is fixed (``bind_port``), and the robot's firmware is configured with it.
     """
 
-    robot_host: Annotated[str, _m("the robot's address (resolved once, when the link opens)")] = "127.0.0.1"
+    robot_host: Annotated[str, _m("the robot's address (resolved once, when the link opens)", min_length=1)] = (
+        "127.0.0.1")
     robot_port: Annotated[Port, _m("the robot's UDP port")] = 47800
     bind_host: Annotated[str, _m("our address (127.0.0.1 for loopback tests)")] = "127.0.0.1"
     bind_port: Annotated[Port, _m("our UDP port: the robot's configured peer, so fixed; 0: any free (only for a "
@@ -181,6 +186,8 @@ class UdpLinkConfig(_Cfg):
                                            gt=0.0, le=100_000.0)] = 200.0
     clock_window_s: Annotated[float, _m("window of the robot-clock offset estimate that stamps poses at the robot's "
                                         "own stamps, s", gt=0.0, le=600.0)] = 5.0
+    key_file: Annotated[str, _m("the datagram key both ends use (scmbridge keys udp): every datagram carries a keyed "
+                                "tag and unauthenticated ones are dropped; empty: none (loopback tests only)")] = ""
 
     def __post_init__(self) -> None:
         if self.robot_port == 0:

@@ -33,7 +33,11 @@ for _var, _val in ONE_BLAS_THREAD.items():
     os.environ.setdefault(_var, _val)
 
 
-def numba_cache_dir(kernels: Path = Path(__file__).resolve().parents[2] / "transfer" / "scm") -> str | None:
+#: where the SC kernels live (numba caches next to them when it may)
+KERNELS_DIR = Path(__file__).resolve().parents[2] / "transfer" / "scm"
+
+
+def numba_cache_dir(kernels: Path = KERNELS_DIR) -> str | None:
     """Where numba caches the SC kernels when it cannot next to their source (an install owned by root, run by a
     service user): the cache directory, unless ``NUMBA_CACHE_DIR`` is set. Set before numba is first imported
     (this module runs first for every command); without it numba fails at import: "cannot cache function"."""

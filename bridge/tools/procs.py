@@ -10,6 +10,8 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from bridge.core.auth import make_key
+
 
 def stop_group(proc: subprocess.Popen, term_timeout: float = 10.0) -> None:
     """SIGTERM the child's whole process group, SIGKILL it if it has not gone after ``term_timeout`` s.
@@ -75,13 +77,17 @@ def emulated_link(kids: Children, link: str, workdir: Path, x0: str, duration: f
         return ["--link", "can", "--emulate", "--x0", x0]
     port = free_udp_port()
     cfg = Path(workdir) / f"driver-{link}.toml"
-    extra = []
+    key = Path(workdir) / f"{link}-{port}.key"  # both ends authenticate, as a lab's robot does
+    make_key(key, force=True)
+    extra = ["--key-file", str(key)]
     if link == "udp":  # the robot and the driver host each answer only the other's configured address
         bind = free_udp_port()
-        cfg.write_text(f'[link.udp]\nrobot_host = "127.0.0.1"\nrobot_port = {port}\nbind_port = {bind}\n')
-        extra = ["--peer", f"127.0.0.1:{bind}"]
+        cfg.write_text(f'[link.udp]\nrobot_host = "127.0.0.1"\nrobot_port = {port}\nbind_port = {bind}\n'
+                       f'key_file = "{key}"\n')
+        extra += ["--peer", f"127.0.0.1:{bind}"]
     else:
-        cfg.write_text(f'[link.mavlink]\nurl = "udpout:127.0.0.1:{port}"\nrate_hz = {rate_hz}\n')
+        cfg.write_text(f'[link.mavlink]\nurl = "udpout:127.0.0.1:{port}"\nrate_hz = {rate_hz}\n'
+                       f'signing_key_file = "{key}"\n')
     kids.spawn(["learner", "--link", link, "--port", str(port), "--x0", x0, "--duration", str(duration), *extra],
                out)
     return ["--link", link, "--config", str(cfg)]

@@ -1,0 +1,113 @@
+"""Authenticated links: the UDP shim's keyed datagram tags and MAVLink 2 signing, against the emulated devices.
+
+Findings this answers: a spoofed UDP datagram with v = 0.95 (within the robot's own limit) drove the robot at its
+body maximum for 0.6 s: pinning an address and port is not authentication."""
+
+from __future__ import annotations
+
+import os
+import time
+
+import pytest
+from pymavlink.dialects.v20 import ardupilotmega as MAV
+
+from bridge.core import wire as M
+from bridge.core.auth import load_key, make_key
+from bridge.core.config import MavlinkLinkConfig, UdpLinkConfig
+from bridge.tools.procs import free_udp_port
+from drivers import open_driver
+from drivers.base import DriverError
+from sim_learner.dynamics import mpc_learner
+from sim_learner.mavlink_rover import MavlinkRover
+from sim_learner.udp_robot import UdpRobot
+from sim_learner.vehicle import SimVehicle
+
+
+def _drive(driver, seconds: float, v: float) -> None:
+    t_end = time.monotonic() + seconds
+    while time.monotonic() < t_end:
+        driver.send(v, 0.0, time.monotonic())
+        driver.poll(time.monotonic())
+        time.sleep(0.02)
+
+
+@pytest.fixture
+def key_file(tmp_path):
+    path = tmp_path / "link.key"
+    make_key(path)
+    return path
+
+
+def test_only_datagrams_sealed_with_the_key_move_the_udp_robot(key_file) -> None:
+    vehicle = SimVehicle(mpc_learner(), (0.0, 0.0, 0.0), now=time.monotonic())
+    bind = free_udp_port()
+    with UdpRobot(vehicle, peer=("127.0.0.1", bind), key=load_key(key_file)) as robot:
+        driver = open_driver("udp", UdpLinkConfig(robot_port=robot.port, bind_port=bind, key_file=str(key_file)))
+        try:
+            driver.open(time.monotonic())
+            # a forger who knows the driver's epoch and seq and sends from the driver's own address, unsealed
+            forged = M.encode(M.Command(stamp=time.monotonic(), seq=driver.seq + 1, v=0.95, omega=0.0,
+                                        method="scm", valid_ms=300, sender="driver", epoch=driver.epoch))
+            with robot._lock:
+                robot._handle(forged, ("127.0.0.1", bind), time.monotonic())
+            assert robot.counters["unauthenticated"] == 1 and not robot.moving and vehicle.distance == 0.0
+            _drive(driver, 0.5, 0.3)  # the driver's own, sealed: they drive it
+            assert vehicle.distance > 0.05 and robot.counters["applied"] > 0
+            assert driver.counters["unauthenticated"] == 0 and driver.health().ok
+        finally:
+            driver.close()
+
+
+def test_a_driver_without_the_key_cannot_move_a_robot_that_has_one(key_file) -> None:
+    vehicle = SimVehicle(mpc_learner(), (0.0, 0.0, 0.0), now=time.monotonic())
+    bind = free_udp_port()
+    with UdpRobot(vehicle, peer=("127.0.0.1", bind), key=load_key(key_file)) as robot:
+        driver = open_driver("udp", UdpLinkConfig(robot_port=robot.port, bind_port=bind, open_timeout=0.5))
+        try:
+            with pytest.raises(DriverError, match="no state"):  # its states are sealed: not decodable without it
+                driver.open(time.monotonic())
+            assert robot.counters["unauthenticated"] > 0 and vehicle.distance == 0.0
+        finally:
+            driver.close()
+
+
+def test_mavlink_signing_refuses_every_unsigned_or_foreign_signed_message(tmp_path, key_file) -> None:
+    vehicle = SimVehicle(mpc_learner(), (0.0, 0.0, 0.0), now=time.monotonic())
+    rover = MavlinkRover(vehicle, init_s=0.2, ekf_position_s=0.4, signing_key=load_key(key_file)).start()
+    url = f"udpout:127.0.0.1:{rover.port}"
+    try:
+        other = tmp_path / "other.key"
+        make_key(other)
+        for wrong in (None, other):  # no signing, and another lab's key
+            cfg = MavlinkLinkConfig(url=url, open_timeout=3.0, ack_timeout=0.2, command_retries=1,
+                                    signing_key_file=str(wrong) if wrong else "")
+            driver = open_driver("mavlink", cfg)
+            try:
+                if wrong is not None:  # its own check refuses the rover's signed messages: nothing heard
+                    with pytest.raises(DriverError, match="no HEARTBEAT"):
+                        driver.open(time.monotonic())
+                    assert driver.health().detail["bad_signatures"] > 0
+                else:  # it hears the rover, but the rover refuses what it says
+                    driver.open(time.monotonic())
+                    with pytest.raises(DriverError):
+                        driver.engage(time.monotonic())
+            finally:
+                driver.close(disarm=False, stop_timeout=0.0)
+            assert not rover.armed and rover.mode_name == "MANUAL"
+        refused = rover.bad_signatures
+        assert refused > 0
+        driver = open_driver("mavlink", MavlinkLinkConfig(url=url, open_timeout=10.0, signing_key_file=str(key_file)))
+        try:
+            driver.open(time.monotonic())
+            driver.engage(time.monotonic())
+            assert rover.armed and rover.mode_name == "GUIDED"
+            _drive(driver, 0.6, 0.4)
+            assert vehicle.distance > 0.05
+        finally:
+            driver.close()
+        assert not rover.armed
+        assert not [c for c in rover.commands if c["command"] == MAV.MAV_CMD_COMPONENT_ARM_DISARM
+                    and c["result"] != MAV.MAV_RESULT_ACCEPTED]  # every command it handled was the signed driver's
+    finally:
+        rover.stop()
+    assert os.stat(key_file).st_mode & 0o077 == 0
