@@ -6,6 +6,8 @@ from __future__ import annotations
 import errno
 import os
 import signal
+import subprocess
+import sys
 import time
 
 import numpy as np
@@ -111,3 +113,14 @@ def test_stale_telemetry_stops_the_robot_and_a_killed_driver_host_leaves_it_to_i
         time.sleep(0.6)
         assert moving_before > 0.0 and vehicle.state.v == 0.0 and not vehicle.moving
         assert time.monotonic() - t_kill < 2.0
+
+
+def test_a_failed_final_save_is_an_error_and_a_non_zero_exit(tmp_path) -> None:
+    """Finding: with a full disk at SIGTERM the last save failed, the log said "pair store saved", exit 0."""
+    port = free_port()
+    with open_session(make_config(mode="router", listen=[tcp(port)])):
+        res = subprocess.run([sys.executable, "-m", "bridge", "station", "--robot", "fs1", "--mode", "client",
+                              "--connect", tcp(port), "--store", "/proc/scmbridge-test/pairs.bin", "--duration", "2"],
+                             capture_output=True, text=True, timeout=120)
+    assert res.returncode == 1, res.stderr[-2000:]
+    assert "pair store NOT saved" in res.stderr and "pair store saved to" not in res.stderr

@@ -91,3 +91,41 @@ def test_a_forged_applied_echo_beyond_the_vehicles_box_is_never_paired() -> None
     p = _pairer()
     pairs, _, _ = _drive(p, 0.0, np.zeros(3), np.array([0.2, 0.0]), 40, echo=np.array([121.0, 0.0]))
     assert pairs == [] and p.implausible_pair >= 1
+
+
+def test_a_store_with_a_pair_no_vehicle_could_make_is_quarantined_not_served(tmp_path) -> None:
+    """Finding: a learned pair with teacher v = 121 m/s was persisted; afterwards the station's pairs reply broke the
+    wire contract and `pairs show --robot` exited 2 on every restart."""
+    from bridge.core.paths import save_atomic
+    from bridge.nodes.station import load_store
+    from transfer.store import PairStore
+
+    poisoned = PairStore(LB, TB, k_min=1)
+    poisoned.add([121.0, 0.0], [0.2, 0.0])
+    poisoned.add([0.2, 0.1], [0.2, 0.1])
+    f = tmp_path / "pairs.bin"
+    save_atomic(f, poisoned.to_bytes())
+    store, how = load_store(f, LB, TB, (11, 11), 1)
+    assert how == "new pair store" and store.raw_count == 0
+    assert [p.name for p in tmp_path.iterdir() if p.name.startswith("pairs.bin.corrupt-")]
+
+
+def test_another_sender_on_the_robots_commands_or_implausible_telemetry_make_the_station_not_ok(tmp_path) -> None:
+    """Finding: `ok` stayed true with two stations publishing for one robot, and while pairing was halted."""
+    from bridge.core import wire as M
+    from bridge.core.config import StationConfig, load_mission
+    from bridge.nodes.station import INTEGRITY_WINDOW_S, Station
+
+    st = Station(StationConfig(), "r1", 10.0, tmp_path / "p.bin", load_mission())
+    st.why = "driving"
+    assert st.status(1.0).ok
+    st.on_own_cmd(M.Command(stamp=1.0, seq=1, v=0.1, omega=0.0, method="scm", epoch=st.epoch), 1.0)
+    assert st.status(1.1).ok  # its own command, heard back
+    st.on_own_cmd(M.Command(stamp=1.0, seq=1, v=0.1, omega=0.0, method="scm", epoch=st.epoch ^ 1), 1.2)
+    s = st.status(1.3)
+    assert not s.ok and "another sender publishes commands" in s.text
+    assert st.status(1.2 + INTEGRITY_WINDOW_S + 0.1).ok
+    st.pairer.state(0.0, np.zeros(3), received=100.0)
+    st.pairer.state(1e11, np.zeros(3), received=100.01)  # a forged stamp, dropped
+    s = st.status(100.1)
+    assert not s.ok and "implausible telemetry" in s.text and s.counters["implausible_stamps"] == 1

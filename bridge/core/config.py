@@ -89,7 +89,7 @@ class CanLinkConfig(_Cfg):
     """``[link.can]``: a differential-drive base with one ODrive 0.6 (CANSimple) controller per wheel."""
 
     interface: Annotated[str, _m("python-can interface: socketcan, virtual, udp_multicast, pcan, ...")] = "socketcan"
-    channel: Annotated[str, _m("bus channel: can0, a virtual channel name, a multicast group")] = "can0"
+    channel: Annotated[str, _m("bus channel: can0, a virtual channel name, a multicast group", min_length=1)] = "can0"
     bitrate: Annotated[int, _m("bit/s (ignored by socketcan: set it with `ip link`)", ge=10_000, le=8_000_000)] = (
         500_000)
     fd: Annotated[bool, _m("CAN FD (udp_multicast needs an explicit false)")] = False

@@ -56,23 +56,34 @@ log = logging.getLogger("scmbridge.station")
 
 #: a driver host publishes status each second: after this long without one, the robot is not known to be fit
 DRIVER_STATUS_MAX_AGE = 3.0
+#: an integrity problem (another sender, implausible telemetry) keeps the status not ok this long, s
+INTEGRITY_WINDOW_S = 5.0
 #: what the learner can really do is its box (or the teacher's) times this; beyond it a pose or pair is implausible
 PLAUSIBLE = 1.5
 
 
 def load_store(path: Path, learner: Bounds, teacher: Bounds, grid, k_min: int) -> tuple[PairStore, str]:
-    """The persisted store if there is a valid one, else a new one (a corrupt file is kept aside, not lost)."""
+    """The persisted store if there is a valid one, else a new one. A file that is corrupt, made for other bounds,
+    holds a pair no vehicle could have produced, or would break the wire contract when served (``pairs``) is
+    quarantined: kept aside, not lost, and not served."""
     path = Path(path)
     if path.exists():
         try:
             store = PairStore.from_bytes(path.read_bytes())
             if store.learner_bounds != learner or store.teacher_bounds != teacher:
                 raise ValueError("its command bounds differ from this configuration")
+            top_v = PLAUSIBLE * max(abs(x) for x in (*learner.v, *teacher.v))
+            top_w = PLAUSIBLE * max(abs(x) for x in (*learner.w, *teacher.w))
+            for p in store.refined():
+                if not all(abs(float(u[0])) <= top_v and abs(float(u[1])) <= top_w for u in (p.u_T, p.u_L)):
+                    raise ValueError(f"pair {p.id} (teacher {p.u_T[0]:.3g}, {p.u_T[1]:.3g}; learner "
+                                     f"{p.u_L[0]:.3g}, {p.u_L[1]:.3g}) is beyond what the vehicle can do")
+            M.validated(pairs_message(store, "learner", 0.0))  # what the pairs queryable would serve
             return store, f"reloaded {len(store.refined())} refined pairs from {path}"
         except ValueError as exc:
             aside = path.with_name(path.name + f".corrupt-{int(time.time())}")
             os.replace(path, aside)
-            log.error("pair store %s unusable (%s); moved to %s, starting empty", path, exc, aside)
+            log.error("pair store %s unusable (%s); quarantined as %s, starting empty", path, exc, aside)
     return PairStore(learner, teacher, tuple(grid), k_min), "new pair store"
 
 
@@ -123,6 +134,8 @@ class Station:
         self.control_path = control_path
         self.fitness = Fitness()
         self.driver_seq = -1  # the driver host's last status seq: a lower one means it restarted
+        self.foreign_cmd_at, self.foreign_epoch = -np.inf, 0  # the last command of another sender on our key
+        self.implausible_seen: tuple[int, float] = (0, -np.inf)  # (count, when it last grew)
         self.teacher_kind = cfg.teacher.kind
         self.teacher_timeout = cfg.teacher.timeout_s
         self.calibration: CalibrationPlan | None = None
@@ -166,6 +179,13 @@ class Station:
     def on_applied(self, a: M.Applied, now: float) -> None:
         with self.lock:
             self.inbox["events"].append((a.stamp, 0, a, now))
+
+    def on_own_cmd(self, cmd: M.Command, now: float) -> None:
+        """Commands on this robot's key that this station did not send: another station (or a forger)."""
+        if cmd.epoch != self.epoch:
+            with self.lock:
+                self.foreign_cmd_at, self.foreign_epoch = now, cmd.epoch
+            self.inputs.count("foreign_commands")
 
     def on_driver_status(self, st: M.Status, now: float) -> None:
         with self.lock:
@@ -429,12 +449,17 @@ class Station:
                     "raw_pairs": self.store.raw_count,
                     "pairs_rejected": self.pairer.rejected, "pairs_formed": self.pairer.formed,
                     "pairs_out_of_order": self.pairer.out_of_order,
+                    "implausible_stamps": self.pairer.implausible_stamp,
+                    "implausible_poses": self.pairer.implausible_pose,
+                    "implausible_pairs": self.pairer.implausible_pair, "pairer_resyncs": self.pairer.resyncs,
                     "goal_reached": int(self.control.phase == "finished")}
         if self.calib_progress is not None:
             i, n, phase = self.calib_progress
             counters.update({"calibration_index": i, "calibration_total": n})
-        ok = (self.why in ("driving", "goal reached") or self.why.startswith("calibration:")) and not self.persist_error
-        text = self.why + (f"; {self.persist_error}" if self.persist_error else "")
+        problems = self.integrity(now)
+        ok = ((self.why in ("driving", "goal reached") or self.why.startswith("calibration:"))
+              and not self.persist_error and not problems)
+        text = "; ".join([self.why, *([self.persist_error] if self.persist_error else []), *problems])
         phase = self.control.phase
         state = "driving" if self.why == "driving" else ("waiting" if phase == "running" else phase)
         tk = np.array(self.tick_ms) if self.tick_ms else np.zeros(1)
@@ -448,7 +473,25 @@ class Station:
         self.seq["status"] += 1
         return msg
 
-    def persist(self) -> None:
+    def integrity(self, now: float) -> list[str]:
+        """What makes this station's work untrustworthy right now (its status is then not ok): another sender's
+        commands on this robot's key, telemetry dropped as implausible before pairing, in the last few seconds."""
+        out = []
+        with self.lock:
+            foreign_at, foreign_epoch = self.foreign_cmd_at, self.foreign_epoch
+        if now - foreign_at < INTEGRITY_WINDOW_S:
+            out.append(f"another sender publishes commands for this robot (epoch {foreign_epoch:x}): a second "
+                       "station or a forger")
+        p = self.pairer
+        bad = p.implausible_stamp + p.implausible_pose + p.implausible_pair
+        if bad > self.implausible_seen[0]:
+            self.implausible_seen = (bad, now)
+        if now - self.implausible_seen[1] < INTEGRITY_WINDOW_S:
+            out.append(f"implausible telemetry dropped before pairing ({p.implausible_stamp} stamps, "
+                       f"{p.implausible_pose} poses, {p.implausible_pair} pairs so far)")
+        return out
+
+    def persist(self) -> bool:
         """Save the store; a failure (disk full, permissions) is reported and retried at the next period."""
         with self.lock:
             blob = self.store.to_bytes()
@@ -459,10 +502,11 @@ class Station:
             self.persist_error = f"pair store not saved: {exc.strerror or exc}"
             log.error("%s (%s); driving on, retrying in %.0f s", self.persist_error, self.store_path,
                       self.persist_every)
-            return
+            return False
         if self.persist_error:
             log.info("pair store saved again to %s", self.store_path)
         self.persist_error = ""
+        return True
 
     def _put(self, topic: str, msg: Any) -> None:
         self.pubs[topic].put(M.encode(msg))
@@ -476,6 +520,7 @@ class Station:
         self.inputs.subscribe(session, M.status_key(self.robot, "driver"), M.Status, "driver_status",
                               self.on_driver_status)
         self.inputs.subscribe(session, k.mission, M.MissionSpec, "mission", self.on_mission)
+        self.inputs.subscribe(session, k.cmd, M.Command, "own_cmd", self.on_own_cmd)
         if self.teacher_kind == "external":
             self.inputs.subscribe(session, k.teacher, M.TeacherCommand, "teacher", self.on_teacher)
         session.declare_queryable(k.pairs, self.on_pairs_query)
@@ -578,7 +623,11 @@ def run(args: argparse.Namespace) -> int:
         with open_session(zenoh_config(args), wait=stop, what="station") as session:
             station.serve(session, stop, args.duration, args.exit_at_goal)
     finally:
-        station.persist()
+        saved = station.persist()
         station.save_control()
-        log.info("pair store saved to %s (%d refined pairs)", store_path, len(station.store.refined()))
-    return 0
+        if saved:
+            log.info("pair store saved to %s (%d refined pairs)", store_path, len(station.store.refined()))
+        else:
+            log.error("pair store NOT saved to %s: %s (%d refined pairs lost at this exit)", store_path,
+                      station.persist_error, len(station.store.refined()))
+    return 0 if saved else 1
