@@ -40,9 +40,12 @@ nothing upstream models (acceleration is bounded by the driver host's hard limit
 **Odometry.** Every decoded estimate is validated before it touches the pose: finite (``decode``), ``|Vel_Estimate|``
 at most ``max_wheel_speed``, ``|Pos_Estimate|`` at most :data:`MAX_ABS_POSITION`, and a position step no larger than
 ``max_wheel_speed`` times the time between the two frames (plus :data:`JUMP_SLACK`). A rejected estimate is counted
-(``malformed``, and ``rejected_estimates``) and never integrated. When :data:`RESYNC_AFTER` rejected steps in a row
-agree with each other, the encoder really moved (a controller reboot, a Set_Absolute_Position): the reference is
-re-anchored there without integrating the step (``resyncs``).
+(``malformed``, and ``rejected_estimates``) and never integrated. Each wheel's travel also has a budget that refills
+at the fastest the wheel can turn given what it was told (twice the commanded rate plus a slack, at most
+``max_wheel_speed``): many small steps, each plausible alone, cannot add up to more (crafted frames at 2 kHz once
+gave 101 m of odometry in 2 s). An implausible estimate makes ``health()`` not ok for a moment, with the reason. When
+:data:`RESYNC_AFTER` rejected steps in a row agree with each other, the encoder really moved (a controller reboot, a
+Set_Absolute_Position): the reference is re-anchored there without integrating the step (``resyncs``).
 
 **Time stamps.** A pose carries the time its encoder frames were received on the bus (``msg.timestamp``, which
 python-can fills on receive), not the time ``poll`` ran. python-can stamps with the wall clock: ``time.time()`` for
@@ -77,6 +80,12 @@ CAN_ERR_BUSOFF = 0x40
 MAX_ABS_POSITION = 1e7
 #: s of motion at ``max_wheel_speed`` tolerated on top of the interval between two encoder frames (stamp jitter).
 JUMP_SLACK = 0.02
+#: rev/s a wheel may turn beyond twice its commanded rate (pushed, rolling on after a stop)
+COMMAND_SLACK_REV_S = 1.0
+#: s of motion the odometry's travel budget holds at most (frame jitter, a burst of frames read at once)
+BURST_S = 0.1
+#: implausible encoder estimates keep the link's health not ok this long, s
+ODOMETRY_ALARM_S = 2.0
 #: consecutive rejected position steps that agree with each other before the encoder reference is re-anchored.
 RESYNC_AFTER = 3
 #: s a frame's stamp may lie after its receipt (clock granularity) and still be believed.
@@ -144,6 +153,9 @@ class _Axis:
     fault: bool = False  # latched controller fault (cleared only by clear_faults)
     fault_error: int = 0  # union of the error bits seen since the fault latched
     fault_state: int = AxisState.UNDEFINED  # the state the axis was in when it latched
+    commanded: float = 0.0  # rev/s: the last Input_Vel sent to it
+    budget: float = 0.0  # rev the encoder may still move (refilled at the plausible wheel speed)
+    budget_at: float | None = None  # the stamp the budget was last refilled at
     pos: float | None = None  # rev: the odometry reference (last estimate integrated, or the anchor)
     vel: float = 0.0  # rev/s
     stamp: float | None = None  # of ``pos``
@@ -191,6 +203,8 @@ class CanDriver:
             "heartbeat_losses": 0, "rejected_estimates": 0, "resyncs": 0, "stamp_fallbacks": 0,
         }
         self._hb_lost = {ax.side: False for ax in self.axes}
+        self.rejected_at = -math.inf  # when the last implausible estimate was rejected
+        self.overrun_at = -math.inf  # when estimates last claimed more travel than the wheel can do
 
     # ----------------------------------------------------------------------------------------------- link
     def _open_bus(self) -> can.BusABC:
@@ -275,6 +289,7 @@ class CanDriver:
             self._zero()  # a fault, a lost controller, arming: nothing but zero set-points
             return
         ql, qr = self.wheel_turn_rates(v, omega)
+        self.left.commanded, self.right.commanded = ql, qr
         self._send(encode(self.left.node, "Set_Input_Vel", {"Input_Vel": ql, "Input_Torque_FF": 0.0}))
         self._send(encode(self.right.node, "Set_Input_Vel", {"Input_Vel": qr, "Input_Torque_FF": 0.0}))
 
@@ -284,6 +299,7 @@ class CanDriver:
     def _zero(self) -> None:
         """Zero set-points to both axes (holds a healthy wheel in closed loop; harmless to an idle one)."""
         for ax in self.axes:
+            ax.commanded = 0.0
             self._send(encode(ax.node, "Set_Input_Vel", {"Input_Vel": 0.0, "Input_Torque_FF": 0.0}))
 
     # ----------------------------------------------------------------------------------------------- receive
@@ -367,7 +383,8 @@ class CanDriver:
             ax.pos, ax.vel, ax.stamp = pos, vel, stamp  # the anchor: nothing to integrate yet
             return None
         ref_pos, _, ref_stamp = ax.new if ax.new is not None else (ax.pos, ax.vel, ax.stamp)
-        if not self._plausible_step(ref_pos, ref_stamp, pos, stamp):
+        plausible = self._plausible_step(ref_pos, ref_stamp, pos, stamp)
+        if not (plausible and self._spend(ax, abs(pos - ref_pos), stamp)):
             self._reject()
             ax.jumps.append((pos, stamp))
             del ax.jumps[:-RESYNC_AFTER]
@@ -375,6 +392,7 @@ class CanDriver:
                     self._plausible_step(p0, t0, p1, t1) for (p0, t0), (p1, t1) in zip(ax.jumps, ax.jumps[1:])):
                 # the encoder really moved: re-anchor both wheels there, without integrating the step
                 self.counters["resyncs"] += 1
+                self.rejected_at = -math.inf  # a real move of the encoder, not an implausible one
                 ax.pos, ax.vel, ax.stamp, ax.new = pos, vel, stamp, None
                 ax.jumps.clear()
                 other = self.right if ax is self.left else self.left
@@ -409,9 +427,28 @@ class CanDriver:
     def _plausible_step(self, p0: float, t0: float, p1: float, t1: float) -> bool:
         return abs(p1 - p0) <= self.max_wheel_speed * (max(t1 - t0, 0.0) + JUMP_SLACK)
 
+    def _spend(self, ax: _Axis, dp: float, stamp: float) -> bool:
+        """Whether the wheel may have moved ``dp`` rev by ``stamp``: its travel budget refills at the fastest it can
+        turn (twice the commanded rate plus :data:`COMMAND_SLACK_REV_S`, at most ``max_wheel_speed``) and holds at
+        most :data:`BURST_S` of it. Many small steps in quick succession (each plausible alone) cannot add up to
+        more than the wheel can do, nor can a wheel told to stand still run away."""
+        rate = min(self.max_wheel_speed, 2.0 * abs(ax.commanded) + COMMAND_SLACK_REV_S)
+        if ax.budget_at is not None:  # a gap between frames allows the gap's worth; a steady stream, BURST_S's
+            gap = max(0.0, stamp - ax.budget_at)
+            ax.budget = min(rate * max(BURST_S, gap), ax.budget + rate * gap)
+        else:
+            ax.budget = rate * BURST_S
+        ax.budget_at = max(stamp, ax.budget_at or stamp)
+        if dp > ax.budget + 1e-9:
+            self.overrun_at = time.monotonic()  # more travel than the wheel can do: not cleared by a resync
+            return False
+        ax.budget -= dp
+        return True
+
     def _reject(self) -> None:
         self._health.malformed += 1
         self.counters["rejected_estimates"] += 1
+        self.rejected_at = time.monotonic()
 
     # ----------------------------------------------------------------------------------------------- bus
     def _send(self, frame: can.Message) -> bool:
@@ -481,6 +518,9 @@ class CanDriver:
             else:
                 reasons.append("arming: waiting for both axes in closed loop")
         reasons += [ax.describe() for ax in self.axes if ax.fault]
+        if now - max(self.rejected_at, self.overrun_at) < ODOMETRY_ALARM_S:
+            reasons.append(f"odometry: implausible encoder estimates rejected ({self.counters['rejected_estimates']} "
+                           "so far): a faulty encoder or forged frames")
         for ax in self.axes:
             age = None if ax.heartbeat_at is None else now - ax.heartbeat_at
             lost = age is None or age > self.heartbeat_timeout

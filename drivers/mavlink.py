@@ -32,10 +32,11 @@ refusal after the ACK (its text queue), so a refusal waits briefly for it.
 send(v, omega): SET_POSITION_TARGET_LOCAL_NED in MAV_FRAME_BODY_NED, type_mask 0x05E7 ("Use Vel+Yaw Rate" in
 ArduPilot's "Rover Commands in Guided Mode"), vx = v (negative: backwards), yaw_rate = -omega (NED is clockwise).
 Only while the vehicle is GUIDED, armed, heard from and streaming its position; a changed command (a stop always)
-goes at once, an unchanged one is repeated at ``setpoint_rate_hz`` (ArduPilot stops after GUID_TIMEOUT, 3 s,
-without one). poll(): LOCAL_POSITION_NED + ATTITUDE -> ENU poses (x_enu = y_ned, y_enu = x_ned, theta = pi/2 - yaw,
-v = the NED velocity projected on the heading, so reversing is negative). Every message is filtered by the vehicle's
-system and component ids; the others are counted (``detail["foreign"]``).
+goes at once (at most ``max_setpoint_hz`` set-points a second in all: changing commands once took 97 % of a
+57600-baud radio; a stop after motion always at once), an unchanged one is repeated at ``setpoint_rate_hz``
+(ArduPilot stops after GUID_TIMEOUT, 3 s, without one). poll(): LOCAL_POSITION_NED + ATTITUDE -> ENU poses (x_enu =
+y_ned, y_enu = x_ned, theta = pi/2 - yaw, v = the NED velocity projected on the heading, so reversing is negative).
+Every message is filtered by the vehicle's system and component ids; the others are counted (``detail["foreign"]``).
 
 Poses: each is stamped at its LOCAL_POSITION_NED's ``time_boot_ms``, put on the driver host's monotonic clock with
 the sliding-window minimum of ``receipt - time_boot_ms`` (:class:`bridge.core.clock.ClockOffset`, ``clock_window_s``; a
@@ -208,6 +209,7 @@ class MavlinkDriver:
         self._sp_last: tuple[float, float] | None = None
         self._sp_time = -math.inf
         self._sp_period = 1.0 / config.setpoint_rate_hz
+        self._sp_min_gap = 1.0 / config.max_setpoint_hz
         self._link_up = False
         self._conn_failed: str | None = None
         self._lost_reason = ""
@@ -215,7 +217,8 @@ class MavlinkDriver:
         self._reconnect_due = 0.0
         self._backoff = _BACKOFF0
         self._state: tuple[bool, bool, str, str] = (False, False, "not opened", "closed")
-        self._counts = {"foreign": 0, "setpoints_sent": 0, "setpoints_withheld": 0, "stray_acks": 0,
+        self._counts = {"foreign": 0, "setpoints_sent": 0, "setpoints_withheld": 0, "setpoints_deferred": 0,
+                        "stray_acks": 0,
                         "reconnects": 0, "link_losses": 0, "invalid_values": 0, "clock_restarts": 0}
         self._foreign_ids: deque[tuple[int, int]] = deque(maxlen=8)
         self._clock = ClockOffset(config.clock_window_s)  # the vehicle's time_boot_ms -> our monotonic clock
@@ -680,7 +683,17 @@ class MavlinkDriver:
         self._sp_last, self._sp_time = (float(v), float(omega)), now
 
     def _setpoint_due(self, cmd: tuple[float, float], now: float) -> bool:
-        return cmd != self._sp_last or now - self._sp_time >= self._sp_period
+        """An unchanged command every ``setpoint_rate_hz``; a changed one at once, but never more than
+        ``max_setpoint_hz`` set-points a second (the radio's budget); a stop after motion always at once."""
+        if cmd == (0.0, 0.0) and self._sp_last not in (None, (0.0, 0.0)):
+            return True
+        gap = now - self._sp_time
+        if cmd != self._sp_last:
+            if gap >= self._sp_min_gap:
+                return True
+            self._counts["setpoints_deferred"] += 1
+            return False
+        return gap >= self._sp_period
 
     def send(self, v: float, omega: float, now: float) -> None:
         """A set-point, only while :meth:`health` is ok (never a mode change or an arming: the operator's)."""

@@ -535,3 +535,21 @@ def test_poses_carry_the_frames_own_receive_time_on_the_monotonic_clock() -> Non
             assert driver.counters["stamp_fallbacks"] >= fallbacks + 4
         finally:
             driver.close()
+
+
+def test_many_small_crafted_encoder_steps_cannot_add_up_to_more_than_the_wheel_can_do() -> None:
+    """Finding: crafted encoder frames, each a small plausible step, gave 101 m of odometry error in 2 s (status
+    ok). Each wheel's travel now has a budget refilled at what it can really turn; the link says so when tampered."""
+    d = CanDriver(CanLinkConfig(max_wheel_speed=10.0))
+    d._phase = "running"
+    t = 0.0
+    d._encoder(d.left, 0.0, 0.0, t)
+    d._encoder(d.right, 0.0, 0.0, t)
+    for k in range(1, 4001):  # 2 s of frames at 2 kHz, each 0.02 rev ahead (40 rev/s if believed): standing still
+        t = k * 0.0005
+        d._encoder(d.left, 0.02 * k, 0.0, t)
+        d._encoder(d.right, -0.02 * k, 0.0, t)
+    assert abs(d.pose[0]) < 2.5, d.pose  # at most what a wheel told to stand still may roll (not 100 m)
+    assert d.counters["rejected_estimates"] > 1000
+    h = d.health()
+    assert not h.ok and "odometry: implausible encoder estimates" in h.text

@@ -139,6 +139,9 @@ class MavlinkLinkConfig(_Cfg):
     setpoint_rate_hz: Annotated[float, _m("set-points repeating an unchanged command, Hz (a changed command and a stop "
                                           "go at once; 50 Hz set-points fill 56 % of a 57600-baud radio)",
                                           gt=0.0, le=50.0)] = 10.0
+    max_setpoint_hz: Annotated[float, _m(
+        "the most set-points per second, changed commands included (a 57600-baud radio carries ~90 a second and "
+        "nothing else then); a stop after motion always goes at once", gt=0.0, le=200.0)] = 25.0
     open_timeout: Annotated[float, _m("s for heartbeat, EKF position, GUIDED and arming", gt=0.0, le=300.0)] = 30.0
     heartbeat_timeout: Annotated[float, _m("s without the vehicle's 1 Hz HEARTBEAT before the link counts as down",
                                            ge=1.5, le=60.0)] = 3.0
