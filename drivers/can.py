@@ -81,7 +81,7 @@ MAX_ABS_POSITION = 1e7
 #: s of motion at ``max_wheel_speed`` tolerated on top of the interval between two encoder frames (stamp jitter).
 JUMP_SLACK = 0.02
 #: rev/s a wheel may turn beyond twice its commanded rate (pushed, rolling on after a stop)
-COMMAND_SLACK_REV_S = 1.0
+COMMAND_SLACK_REV_S = 0.5
 #: s of motion the odometry's travel budget holds at most (frame jitter, a burst of frames read at once)
 BURST_S = 0.1
 #: implausible encoder estimates keep the link's health not ok this long, s

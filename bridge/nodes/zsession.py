@@ -79,6 +79,16 @@ def _endpoints(conf: zenoh.Config) -> str:
     return ", ".join(str(e) for e in eps) or "the Zenoh defaults"
 
 
+def secured(conf: zenoh.Config) -> bool:
+    """Whether the configuration speaks TLS only (mutual: a certificate of the lab's CA, checked by the router)."""
+    try:
+        protocols = json.loads(conf.get_json("transport/link/protocols")) or []
+        tls = json.loads(conf.get_json("transport/link/tls")) or {}
+    except Exception:  # keys the config does not have
+        return False
+    return protocols == ["tls"] and bool(tls.get("root_ca_certificate"))
+
+
 def open_session(conf: zenoh.Config, wait: threading.Event | None = None, what: str = "") -> zenoh.Session:
     """Open a session (use it as ``with open_session(conf) as s:``).
 
@@ -88,6 +98,10 @@ def open_session(conf: zenoh.Config, wait: threading.Event | None = None, what: 
     same error covers a router that is down and one that refused this TLS identity (wrong certificate or address):
     ``scmbridge doctor`` tells them apart."""
     delay, said = 0.1, ""
+    if what and not secured(conf):
+        log.warning("%s: this Zenoh session has no TLS: anyone who reaches its network can publish commands and "
+                    "estop releases (for the demo and tests on loopback only; a lab uses the configuration "
+                    "`scmbridge deploy` makes, deploy/README.md)", what)
     while True:
         try:
             return zenoh.open(conf)

@@ -1,0 +1,13 @@
+"""``scmbridge bench attack --short``: every attack a hostile probe found, run against the real components; nothing
+unsafe reaches a vehicle and nothing implausible is learned (each attack is also tested where it is fixed)."""
+
+from __future__ import annotations
+
+from bench.attack import ATTACKS, run_all
+
+
+def test_no_attack_gets_through() -> None:
+    res = run_all(short=True)
+    failed = [a for a in res["attacks"] if not a["ok"]]
+    assert not failed, failed
+    assert [a["attack"] for a in res["attacks"]] == list(ATTACKS) and res["all_ok"]
