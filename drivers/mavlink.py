@@ -196,7 +196,7 @@ class MavlinkDriver:
         self.rate_hz = config.rate_hz
         self.open_timeout = config.open_timeout
         self.disarm_on_close = config.disarm_on_close
-        self.signing_key = load_key(config.signing_key_file) if config.signing_key_file else None
+        self.signing_key: bytes | None = None  # read at open (the driver host checks the file at start)
         self._bad_sig_before = 0  # refused signatures on connections closed since
         self.conn: Any = None
         self.v = _Vehicle(texts=deque(maxlen=config.statustext_keep))
@@ -517,6 +517,8 @@ class MavlinkDriver:
         """Connect, wait for the vehicle to be ready and read its failsafe settings; never its mode nor arming."""
         t_end = time.monotonic() + self.open_timeout
         self._closed = False
+        if self.config.signing_key_file:
+            self.signing_key = load_key(self.config.signing_key_file, "mavlink")
         while self.conn is None:
             try:
                 self._connect()

@@ -91,7 +91,7 @@ class UdpDriver:
         self.gate = SeqGate(silence_s=config.state_timeout_s, max_rate_hz=config.max_state_rate_hz,
                             slack=STATE_SEQ_SLACK)
         self.last_state_time = -math.inf  # driver-host monotonic time of the last accepted state
-        self.key = load_key(config.key_file) if config.key_file else None  # a bad key file: one line, at start
+        self.key: bytes | None = None  # the datagram key, read at open (the driver host checks it at start)
         self.counters = {"foreign": 0, "unauthenticated": 0, "state_gaps": 0, "robot_restarts": 0,
                          "dropped_by_kernel": 0, "clock_restarts": 0, "stamp_fallbacks": 0,
                          **{f"state_{r}": 0 for r in _REFUSALS}}
@@ -105,6 +105,7 @@ class UdpDriver:
 
     def open(self, now: float) -> None:
         """Resolve the robot's address, bind, and greet the robot with stops until its first state arrives."""
+        self.key = load_key(self.config.key_file, "udp") if self.config.key_file else None
         self.robot_addr = resolve_ipv4(self.config.robot_host, self.config.robot_port)
         sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         try:

@@ -120,3 +120,13 @@ def test_a_non_finite_start_pose_is_an_argument_error() -> None:
     res = subprocess.run([sys.executable, "-m", "bridge", "driver", "--link", "can", "--x0", "nan,0,0"],
                          capture_output=True, text=True, timeout=60)
     assert res.returncode == 2 and "three finite numbers" in res.stderr and "Traceback" not in res.stderr
+
+
+def test_a_malformed_or_missing_zenoh_config_is_one_line(tmp_path) -> None:
+    bad = tmp_path / "bad.json5"
+    bad.write_text("{ not json5")
+    for path in (bad, tmp_path / "missing.json5"):
+        res = subprocess.run([sys.executable, "-m", "bridge", "status", "--all", "--zenoh-config", str(path)],
+                             capture_output=True, text=True, timeout=60)
+        assert res.returncode == 2 and len(res.stderr.strip().splitlines()) == 1, res.stderr
+        assert str(path) in res.stderr and "Traceback" not in res.stderr

@@ -111,3 +111,18 @@ def test_mavlink_signing_refuses_every_unsigned_or_foreign_signed_message(tmp_pa
     finally:
         rover.stop()
     assert os.stat(key_file).st_mode & 0o077 == 0
+
+
+def test_a_driver_host_with_a_missing_or_unsafe_key_says_so_in_one_line(tmp_path, key_file) -> None:
+    import subprocess
+    import sys
+
+    cfg = tmp_path / "driver.toml"
+    for key, why in ((tmp_path / "missing.key", "not found (make one: scmbridge keys udp"),
+                     (key_file, "readable by others")):
+        if key == key_file:
+            key.chmod(0o644)
+        cfg.write_text(f'[link.udp]\nkey_file = "{key}"\n')
+        res = subprocess.run([sys.executable, "-m", "bridge", "driver", "--link", "udp", "--config", str(cfg),
+                              "--duration", "1"], capture_output=True, text=True, timeout=60)
+        assert res.returncode == 2 and why in res.stderr and "Traceback" not in res.stderr, res.stderr

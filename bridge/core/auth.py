@@ -66,14 +66,14 @@ def make_key(path: Path, *, force: bool = False) -> bytes:
     return key
 
 
-def load_key(path: str | Path) -> bytes:
+def load_key(path: str | Path, link: str = "udp") -> bytes:
     """The key in ``path``; refuses a missing, malformed or group/world-readable file with one line."""
     path = Path(path)
     try:
         st = path.stat()
         text = path.read_text(encoding="ascii").strip()
     except FileNotFoundError:
-        raise KeyFileError(f"key file {path} not found (make one: scmbridge keys udp --robot NAME)") from None
+        raise KeyFileError(f"key file {path} not found (make one: scmbridge keys {link} --robot NAME)") from None
     except (OSError, UnicodeDecodeError) as exc:
         raise KeyFileError(f"key file {path}: cannot read it ({exc})") from None
     if st.st_mode & (stat.S_IRWXG | stat.S_IRWXO):

@@ -37,6 +37,7 @@ import zenoh
 
 from bridge.core import wire as M
 from bridge.core.args import pose_arg, positive_float, robot_arg
+from bridge.core.auth import load_key
 from bridge.core.clock import ClockOffset
 from bridge.core.config import DriverConfig, load_driver
 from bridge.core.errors import UsageError
@@ -506,6 +507,9 @@ def run(args: argparse.Namespace) -> int:
     if args.emulate:
         link_cfg = msgspec.structs.replace(link_cfg, interface="virtual", channel=f"scm-{robot}",
                                            initial_pose=args.x0)
+    for name in ("key_file", "signing_key_file"):  # a missing or unsafe key is one line now, not a retry loop later
+        if getattr(link_cfg, name, ""):
+            load_key(getattr(link_cfg, name), args.link)
     from drivers import open_driver
 
     host = DriverHost(cfg, args.link, open_driver(args.link, link_cfg), robot, args.rate or cfg.driver.rate_hz,

@@ -49,8 +49,13 @@ def make_config(
     if mode not in ("peer", "client", "router"):
         raise ValueError(f"zenoh mode must be peer, client or router, not {mode!r}")
     if config_file is not None:
-        conf = zenoh.Config.from_file(str(config_file))
-        if "shared_memory" not in Path(config_file).read_text():  # off unless the lab's file says otherwise
+        try:
+            conf = zenoh.Config.from_file(str(config_file))
+            text = Path(config_file).read_text()
+        except (zenoh.ZError, OSError, UnicodeDecodeError) as exc:
+            first = str(exc).strip().splitlines()
+            raise UsageError(f"--zenoh-config {config_file}: {' '.join(first[:4]).split(' at /')[0][:300]}") from None
+        if "shared_memory" not in text:  # off unless the lab's file says otherwise
             conf.insert_json5("transport/shared_memory/enabled", "false")
     else:
         conf = zenoh.Config()
