@@ -84,7 +84,8 @@ def test_the_shipped_tls_router_config_is_deny_by_default_over_mutual_tls_only()
     acl = conf["access_control"]
     assert acl["enabled"] is True and acl["default_permission"] == "deny"
     assert {s["id"]: s["cert_common_names"] for s in acl["subjects"]} == {
-        "robot/rover1": ["rover1"], "station": ["station"], "operator": ["operator"]}
+        "robot/rover1": ["rover1"], "station": ["station"], "operator": ["operator"],
+        "observer": ["observer"]}
 
 
 def test_example_station_and_driver_configs_are_consistent() -> None:

@@ -490,3 +490,12 @@ def test_a_recorded_demo_reports_the_live_demos_figures(tmp_path: Path) -> None:
     entries, _ = read_recording([out])
     first_state = next(e for e in entries if e.topic == "scm/demo/state").message()
     assert first_state.seq == 0, "the recorder missed the start of the run"
+
+
+def test_a_recording_of_nothing_is_not_a_success(tmp_path: Path) -> None:
+    """Finding: with a certificate the access control denied, `record` recorded 0 messages and exited 0."""
+    port = free_port()
+    with open_session(make_config(mode="router", listen=[tcp(port)])):
+        res = subprocess.run([sys.executable, "-m", "bridge", "record", "--all", "--out", str(tmp_path / "r.mcap"),
+                              *client_args(port), "--duration", "1"], capture_output=True, text=True, timeout=60)
+    assert res.returncode == 1 and "nothing received" in res.stderr, res.stdout + res.stderr

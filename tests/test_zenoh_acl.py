@@ -45,6 +45,7 @@ CONNECT_TIMEOUT_MS = 1000  # a refused client gives up after this
 FLEET = ("rover1", "rover3")  # named in the ACL
 UNNAMED = "rover2"  # a certificate of the lab's CA that the ACL does not name
 K1, K2, K3 = M.Keys("rover1"), M.Keys("rover2"), M.Keys("rover3")
+EVERYTHING_KEY = f"{M.PREFIX}/**"
 
 
 # ---------------------------------------------------------------------------------------------------- helpers
@@ -157,6 +158,7 @@ class Lab:
     rover3: zenoh.Session
     rover2: zenoh.Session  # a lab certificate the ACL does not name
     operator: zenoh.Session
+    observer: zenoh.Session  # reads everything, changes nothing
 
     @property
     def endpoint(self) -> str:
@@ -195,7 +197,7 @@ def lab(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Lab]:
         pytest.skip("openssl is not installed: the throwaway CA and certificates are made with it")
     d = tmp_path_factory.mktemp("acl")
     certs, other = d / "tls", d / "other-ca"
-    _cli(["certs", "--robots", ",".join(FLEET), "--extra", UNNAMED, "--station-address", "127.0.0.1",
+    _cli(["certs", "--robots", ",".join(FLEET), "--extra", f"{UNNAMED},observer", "--station-address", "127.0.0.1",
           "--days", "1", "--out", str(certs)])
     deploy.make_certs(other, ["rover1"], days=1)  # another CA; the certificate even carries a fleet name
     port = free_port()
@@ -203,7 +205,7 @@ def lab(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Lab]:
     path = d / "station-router-tls-acl.json5"
     path.write_text(text)
     clients = {"station": "station", "rover1": "rover1", "forger": "rover1", "rover3": "rover3", "rover2": UNNAMED,
-               "operator": "operator"}
+               "operator": "operator", "observer": "observer"}
     with contextlib.ExitStack() as stack:
         router = stack.enter_context(zenoh.open(make_config(mode="router", config_file=path)))
         conf = json.loads(str(zenoh.Config.from_file(str(path))))
@@ -227,11 +229,15 @@ def test_the_generated_rules_give_each_identity_only_its_own_keys() -> None:
     assert acl["enabled"] is True and acl["default_permission"] == "deny"
     rules = {r["id"]: r for r in acl["rules"]}
     assert all(r["permission"] == "allow" and len(r["flows"]) == 1 for r in rules.values())
-    # exact keys only: a wildcard in a rule is easy to get wrong and slower to match
-    assert not any(c in k for r in rules.values() for k in r["key_exprs"] for c in "*$?#")
+    # exact keys, but for what the operator's and observer's tools ask and listen on (estop --all, status --all,
+    # view --all, record) and a robot's share of those wildcard queries; no rule lets anyone publish on a wildcard
+    wild = {k for r in rules.values() for k in r["key_exprs"] if any(c in k for c in "*$?#")}
+    assert wild == {deploy.ALL_ESTOPS, deploy.EVERYTHING, deploy.ALL_ALIVE}
+    assert not [r for r in rules.values() if "put" in r["messages"] and r["flows"] == ["ingress"]
+                and set(r["key_exprs"]) & {deploy.EVERYTHING, deploy.ALL_ESTOPS}]
     subjects = {s["id"]: s["cert_common_names"] for s in acl["subjects"]}
     assert subjects == {"robot/rover1": ["rover1"], "robot/rover3": ["rover3"], "station": ["station"],
-                        "operator": ["operator"]}
+                        "operator": ["operator"], "observer": ["observer"]}
 
     def allowed(subject: str, flow: str, message: str) -> set[str]:
         ids = [rid for p in acl["policies"] if subject in p["subjects"] for rid in p["rules"]]
@@ -241,12 +247,14 @@ def test_the_generated_rules_give_each_identity_only_its_own_keys() -> None:
     assert allowed("robot/rover1", "ingress", "put") == {K1.state, K1.applied, M.status_key("rover1", "driver")}
     assert allowed("robot/rover1", "egress", "put") == {K1.cmd, K1.estop}
     assert allowed("robot/rover1", "ingress", "declare_subscriber") == {K1.cmd, K1.estop}
-    assert allowed("robot/rover1", "ingress", "reply") == {K1.estop}
+    assert allowed("robot/rover1", "ingress", "reply") == {K1.estop, K1.engage}
     assert allowed("operator", "ingress", "put") == {K1.estop, K3.estop}
     station_puts = allowed("station", "ingress", "put")
     assert {K1.cmd, K3.cmd, K1.teacher, K1.limits, K1.mission} <= station_puts
     assert not station_puts & {K1.state, K1.applied, K1.estop, M.status_key("rover1", "driver")}
-    assert allowed("station", "ingress", "reply") == {K1.pairs, K3.pairs}
+    assert allowed("station", "ingress", "reply") == {K1.pairs, K3.pairs, K1.control, K3.control}
+    assert allowed("observer", "ingress", "put") == set() and allowed("observer", "ingress", "query") == {
+        K1.pairs, K3.pairs, K1.estop, K3.estop, deploy.ALL_ESTOPS}  # never control or engage: they change things
     # only the station publishes cmd
     others = ("robot/rover1", "robot/rover3", "operator")
     assert [s for s in others if {K1.cmd, K3.cmd} & allowed(s, "ingress", "put")] == []
@@ -455,3 +463,52 @@ def test_optional_mocap_and_teacher_identities_get_only_their_keys() -> None:
                    for k in r["key_exprs"])
     without = access_control(["rover1"])
     assert "scm/rover1/mocap" not in {k for r in without["rules"] for k in r["key_exprs"]}
+
+
+# ------------------------------------------------------------------------- the operator's and observer's tools
+def test_the_operators_wildcard_tools_reach_every_robot_through_the_rules(lab: Lab) -> None:
+    """Finding: `estop --all` did nothing under the lab's TLS + access control (the wildcard query was denied), and
+    `status`, `view`, `record` saw nothing. The operator's wildcard query finds every robot's latch, its status
+    subscription hears every robot, it finds the robots' liveliness tokens, and its engage and mission requests
+    reach the driver host and the station."""
+    latch = M.encode(M.EstopState(stamp=1.0, node="driver", latched=False))
+    engaged = M.encode(M.EngageState(stamp=1.0, node="driver", engaged=True))
+    mission = M.encode(M.MissionState(stamp=1.0, robot="rover1", phase="running"))
+    qs = [lab.rover1.declare_queryable(K1.estop, lambda q: q.reply(K1.estop, latch)),
+          lab.rover1.declare_queryable(K1.engage, lambda q: q.reply(K1.engage, engaged)),
+          lab.router.declare_queryable(K1.control, lambda q: q.reply(K1.control, mission))]
+    token = lab.rover1.liveliness().declare_token(M.alive_key("rover1", "driver"))
+    status = M.encode(M.Status(stamp=1.0, seq=1, node="driver", state="driving"))
+    try:
+        assert send_until(lambda: None, lambda: latch in replies(lab.operator, deploy.ALL_ESTOPS, timeout=0.5))
+        assert send_until(lambda: None, lambda: engaged in replies(lab.operator, K1.engage, timeout=0.5))
+        assert send_until(lambda: None, lambda: mission in replies(lab.operator, K1.control, timeout=0.5))
+        alive = [str(r.ok.key_expr) for r in lab.operator.liveliness().get(deploy.ALL_ALIVE, timeout=1.0)
+                 if r.ok is not None]
+        assert M.alive_key("rover1", "driver") in alive
+        with subscribed(lab.operator, f"{M.PREFIX}/*/status/**") as seen, \
+                publishers(lab.rover1, M.status_key("rover1", "driver")) as (pub,):
+            assert send_until(lambda: pub.put(status), lambda: seen.has(status))
+    finally:
+        token.undeclare()
+        for q in qs:
+            q.undeclare()
+
+
+def test_the_observer_reads_everything_and_changes_nothing(lab: Lab) -> None:
+    state = tag("state-for-observer")
+    asked = Inbox()
+    qs = [lab.router.declare_queryable(K1.control, lambda q: asked.add(str(q.key_expr), b"control")),
+          lab.rover1.declare_queryable(K1.engage, lambda q: asked.add(str(q.key_expr), b"engage"))]
+    try:
+        with subscribed(lab.observer, EVERYTHING_KEY) as seen, publishers(lab.rover1, K1.state) as (pub,):
+            assert send_until(lambda: pub.put(state), lambda: seen.has(state)), "observer saw nothing"
+        with subscribed(lab.rover1, K1.estop) as driver_sees:
+            forged = M.encode(M.Estop(stamp=1.0, engaged=False, source="operator"))
+            keep_sending([lambda: lab.observer.put(K1.estop, forged)])
+            assert not driver_sees.has(forged)
+        assert replies(lab.observer, K1.control) == [] and replies(lab.observer, K1.engage) == []
+        assert asked.got == []  # the requests never reached the station or the driver host
+    finally:
+        for q in qs:
+            q.undeclare()

@@ -90,11 +90,28 @@ def _check_names(robots: Sequence[str], station_cn: str, operator_cn: str, *othe
         raise ValueError(f"each identity must have its own common name; repeated: {', '.join(dupes)}")
 
 
+#: the wildcard keys operator tools ask and listen on (estop --all, status --all, view --all, record), and the
+#: robots' liveliness tokens (a stalled driver host keeps its token: estop --all still finds it)
+ALL_ESTOPS = f"{M.PREFIX}/*/estop"
+EVERYTHING = f"{M.PREFIX}/**"
+ALL_ALIVE = f"{M.PREFIX}/*/alive/**"
+
+
+def _reader(role: str) -> list[dict[str, Any]]:
+    """Read everything (``scm/**``), publish nothing: the observer's rights, which the operator has too."""
+    return [_rule(f"{role}/subscribes-all", "ingress", ["declare_subscriber"], [EVERYTHING]),
+            _rule(f"{role}/receives-all", "egress", ["put"], [EVERYTHING]),
+            _rule(f"{role}/liveliness", "ingress", ["liveliness_query", "declare_liveliness_subscriber"],
+                  [ALL_ALIVE]),
+            _rule(f"{role}/liveliness-replies", "egress", ["liveliness_token"], [ALL_ALIVE])]
+
+
 def access_control(robots: Sequence[str], *, station_cn: str = "station", operator_cn: str = "operator",
-                   mocap_cn: str | None = None, teacher_cn: str | None = None) -> dict[str, Any]:
+                   mocap_cn: str | None = None, teacher_cn: str | None = None,
+                   observer_cn: str | None = "observer") -> dict[str, Any]:
     """The ``access_control`` section for ``robots``: default deny, one set of allow rules per identity."""
     robots = list(robots)
-    _check_names(robots, station_cn, operator_cn, *(n for n in (mocap_cn, teacher_cn) if n))
+    _check_names(robots, station_cn, operator_cn, *(n for n in (mocap_cn, teacher_cn, observer_cn) if n))
     rules: list[dict[str, Any]] = []
     subjects: list[dict[str, Any]] = []
     policies: list[dict[str, Any]] = []
@@ -109,8 +126,9 @@ def access_control(robots: Sequence[str], *, station_cn: str = "station", operat
             _rule(f"{rid}/publishes-matching", "egress", ["declare_subscriber"], pubs),
             _rule(f"{rid}/subscribes", "ingress", ["declare_subscriber"], recv),
             _rule(f"{rid}/receives", "egress", ["put"], recv),
-            _rule(f"{rid}/answers-estop", "ingress", ["declare_queryable", "reply"], [k.estop]),
-            _rule(f"{rid}/estop-queries", "egress", ["query"], [k.estop]),
+            _rule(f"{rid}/answers-estop", "ingress", ["declare_queryable", "reply"], [k.estop, k.engage]),
+            _rule(f"{rid}/estop-queries", "egress", ["query"], [k.estop, k.engage, ALL_ESTOPS]),
+            _rule(f"{rid}/alive", "ingress", ["liveliness_token"], [M.alive_key(r, "driver")]),
         ]
         rules += mine
         subjects.append({"id": rid, "cert_common_names": [r]})
@@ -121,6 +139,9 @@ def access_control(robots: Sequence[str], *, station_cn: str = "station", operat
     s_recv = [getattr(k, t) for k in each for t in STATION_RECEIVES] + [M.status_key(r, "driver") for r in robots]
     pairs = [k.pairs for k in each]
     estops = [k.estop for k in each]
+    controls = [k.control for k in each]
+    engages = [k.engage for k in each]
+    cmds = [k.cmd for k in each]
     station = [
         _rule("station/publishes", "ingress", ["put"], s_pubs),
         _rule("station/publishes-matching", "egress", ["declare_subscriber"], s_pubs),
@@ -130,15 +151,27 @@ def access_control(robots: Sequence[str], *, station_cn: str = "station", operat
         _rule("station/pairs-queries", "egress", ["query"], pairs),
         _rule("station/queries-pairs", "ingress", ["query"], pairs),
         _rule("station/pairs-replies", "egress", ["reply"], pairs),
+        _rule("station/answers-control", "ingress", ["declare_queryable", "reply"], controls),
+        _rule("station/control-queries", "egress", ["query"], controls),
+        _rule("station/hears-cmd", "ingress", ["declare_subscriber"], cmds),  # another sender on its robot's key
+        _rule("station/receives-cmd", "egress", ["put"], cmds),
     ]
+    # the operator: estop (engage and release), engage, missions, pairs, and everything an observer may read
     operator = [
-        _rule("operator/estop", "ingress", ["put", "query"], estops),
+        _rule("operator/estop", "ingress", ["put"], estops),
+        _rule("operator/estop-latches", "ingress", ["query"], [*estops, ALL_ESTOPS]),
         _rule("operator/estop-matching", "egress", ["declare_subscriber", "declare_queryable"], estops),
         _rule("operator/estop-replies", "egress", ["reply"], estops),
-        _rule("operator/queries-pairs", "ingress", ["query"], pairs),
-        _rule("operator/pairs-replies", "egress", ["reply"], pairs),
+        _rule("operator/queries", "ingress", ["query"], [*pairs, *controls, *engages]),
+        _rule("operator/replies", "egress", ["reply"], [*pairs, *controls, *engages]),
+        *_reader("operator"),
     ]
     roles = {"station": (station_cn, station), "operator": (operator_cn, operator)}
+    if observer_cn:  # reads everything, asks only what changes nothing (pairs, the estop latch), publishes nothing
+        roles["observer"] = (observer_cn, [
+            *_reader("observer"),
+            _rule("observer/queries", "ingress", ["query"], [*pairs, *estops, ALL_ESTOPS]),
+            _rule("observer/replies", "egress", ["reply"], [*pairs, *estops])])
     if mocap_cn:
         mocaps = [k.mocap for k in each]
         roles["mocap"] = (mocap_cn, [_rule("mocap/publishes", "ingress", ["put"], mocaps),
@@ -171,7 +204,7 @@ def _transport(certs_dir: str, **tls: Any) -> dict[str, Any]:
 
 def router_config(robots: Sequence[str], *, station_cn: str = "station", operator_cn: str = "operator",
                   listen: str = LAB_LISTEN, certs: str | Path = LAB_CERTS, mocap_cn: str | None = None,
-                  teacher_cn: str | None = None) -> dict[str, Any]:
+                  teacher_cn: str | None = None, observer_cn: str | None = "observer") -> dict[str, Any]:
     """The base station's router config: mutual TLS only on ``listen``, no scouting, the generated access control.
 
     The router presents the station's certificate (``<certs>/<station_cn>.crt``) and accepts only clients whose
@@ -191,7 +224,7 @@ def router_config(robots: Sequence[str], *, station_cn: str = "station", operato
         "transport": _transport(d, listen_private_key=f"{d}/{station_cn}.key",
                                 listen_certificate=f"{d}/{station_cn}.crt"),
         "access_control": access_control(robots, station_cn=station_cn, operator_cn=operator_cn, mocap_cn=mocap_cn,
-                                         teacher_cn=teacher_cn),
+                                         teacher_cn=teacher_cn, observer_cn=observer_cn),
     }
 
 
@@ -324,6 +357,9 @@ def arguments_acl(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--mocap-cn", default=None, help="a motion-capture bridge's CN (may publish every robot's mocap)")
     ap.add_argument("--teacher-cn", default=None, help="an external teacher's CN (publishes teacher, sees state "
                                                        "and limits)")
+    ap.add_argument("--observer-cn", default="observer",
+                    help="the observer's CN: reads everything (view, record, status, pairs), publishes nothing "
+                         "(default observer; empty: no observer)")
     ap.add_argument("--listen", default=LAB_LISTEN, help=f"router endpoint tls/ADDR:PORT (default {LAB_LISTEN})")
     ap.add_argument("--certs", default=LAB_CERTS,
                     help=f"directory of ca.crt and the station's key and certificate (default {LAB_CERTS})")
@@ -334,7 +370,7 @@ def run_acl(args: argparse.Namespace) -> int:
     generated from the wire contract for the given robots (default deny)."""
     conf = _or_usage(lambda: router_config(args.robots, station_cn=args.station_cn, operator_cn=args.operator_cn,
                                            listen=args.listen, certs=args.certs, mocap_cn=args.mocap_cn,
-                                           teacher_cn=args.teacher_cn))
+                                           teacher_cn=args.teacher_cn, observer_cn=args.observer_cn or None))
     sys.stdout.write(render(conf, args.command_line))
     return 0
 

@@ -20,6 +20,7 @@ from __future__ import annotations
 import argparse
 import logging
 import math
+import sys
 import threading
 import time
 import warnings
@@ -213,4 +214,8 @@ def run(args: argparse.Namespace) -> int:
         if writer is not None:
             writer.close()
     log.info("shown %d messages, %d malformed", view.counts["messages"], view.counts["malformed"])
+    if view.counts["messages"] == 0:
+        print(f"scmbridge view: nothing received on {', '.join(selectors)}: nothing was published, or the router's "
+              "access control does not let this identity read it (scmbridge doctor)", file=sys.stderr)
+        return 1
     return 0

@@ -348,4 +348,9 @@ def run(args: argparse.Namespace) -> int:
     if reason == "size limit":
         print(f"scmbridge record: the size limit ({args.max_bytes} bytes) is reached: recording stopped",
               file=sys.stderr)
+    if c["messages"] == 0:  # nothing is not a recording: a denied identity or nothing running looks the same
+        print(f"scmbridge record: nothing received on {pattern}: nothing was published, or the router's access "
+              "control does not let this identity read it (scmbridge doctor; the observer or operator certificate)",
+              file=sys.stderr)
+        return 1
     return 0
