@@ -136,3 +136,25 @@ def test_the_units_pass_systemd_analyze_verify(tmp_path) -> None:
         assert "Type=notify" in body and "StateDirectory=scmbridge" in body and "CacheDirectory=scmbridge" in body
         start = next(ln for ln in body.splitlines() if ln.startswith("ExecStart="))
         assert "NUMBA_CACHE_DIR=" in body and "--engage" not in start and "--start" not in start
+
+
+@pytest.mark.skipif(shutil.which("openssl") is None, reason="openssl is not installed")
+def test_certs_keep_the_labs_ca_add_robots_and_say_how_long_they_last(tmp_path, capsys) -> None:
+    """Findings: re-running `certs` to add a robot silently made a new CA (breaking every deployed robot); the
+    station's certificate covered only 127.0.0.1; certificates silently lasted 30 days."""
+    out = tmp_path / "tls"
+    assert cli.main(["deploy", "certs", "--robots", "rover1", "--station-address", "192.168.50.10", "--out",
+                     str(out)]) == 0
+    first = capsys.readouterr().out
+    assert "made a CA" in first and "valid until" in first
+    ca = (out / "ca.crt").read_bytes()
+    assert cli.main(["deploy", "certs", "--add-robot", "rover2", "--out", str(out)]) == 0
+    added = capsys.readouterr().out
+    assert "kept the CA" in added and "made " in added and (out / "ca.crt").read_bytes() == ca
+    ver = subprocess.run(["openssl", "verify", "-CAfile", str(out / "ca.crt"), str(out / "rover2.crt")],
+                         capture_output=True, text=True)
+    assert ver.returncode == 0, ver.stderr
+    san = subprocess.run(["openssl", "x509", "-in", str(out / "station.crt"), "-noout", "-ext", "subjectAltName"],
+                         capture_output=True, text=True).stdout
+    assert "192.168.50.10" in san
+    assert cli.main(["deploy", "certs", "--add-robot", "rover9", "--out", str(tmp_path / "empty")]) == 2

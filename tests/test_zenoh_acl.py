@@ -197,7 +197,7 @@ def lab(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Lab]:
         pytest.skip("openssl is not installed: the throwaway CA and certificates are made with it")
     d = tmp_path_factory.mktemp("acl")
     certs, other = d / "tls", d / "other-ca"
-    _cli(["certs", "--robots", ",".join(FLEET), "--extra", f"{UNNAMED},observer", "--station-address", "127.0.0.1",
+    _cli(["certs", "--robots", ",".join(FLEET), "--extra", UNNAMED, "--station-address", "127.0.0.1",
           "--days", "1", "--out", str(certs)])
     deploy.make_certs(other, ["rover1"], days=1)  # another CA; the certificate even carries a fleet name
     port = free_port()

@@ -123,7 +123,9 @@ def access_control(robots: Sequence[str], *, station_cn: str = "station", operat
         rid = f"robot/{r}"  # a robot name has no "/", so these ids never collide with the station's or operator's
         mine = [
             _rule(f"{rid}/publishes", "ingress", ["put"], pubs),
-            _rule(f"{rid}/publishes-matching", "egress", ["declare_subscriber"], pubs),
+            # a declared publisher sends only once it knows of a matching subscriber, also an operator's or an
+            # observer's wildcard one (status --all, view, record): learning of a subscriber carries no data
+            _rule(f"{rid}/publishes-matching", "egress", ["declare_subscriber"], [*pubs, EVERYTHING]),
             _rule(f"{rid}/subscribes", "ingress", ["declare_subscriber"], recv),
             _rule(f"{rid}/receives", "egress", ["put"], recv),
             _rule(f"{rid}/answers-estop", "ingress", ["declare_queryable", "reply"], [k.estop, k.engage]),
@@ -144,7 +146,7 @@ def access_control(robots: Sequence[str], *, station_cn: str = "station", operat
     cmds = [k.cmd for k in each]
     station = [
         _rule("station/publishes", "ingress", ["put"], s_pubs),
-        _rule("station/publishes-matching", "egress", ["declare_subscriber"], s_pubs),
+        _rule("station/publishes-matching", "egress", ["declare_subscriber"], [*s_pubs, EVERYTHING]),
         _rule("station/subscribes", "ingress", ["declare_subscriber"], s_recv),
         _rule("station/receives", "egress", ["put"], s_recv),
         _rule("station/answers-pairs", "ingress", ["declare_queryable", "reply"], pairs),
@@ -325,11 +327,31 @@ def make_cert(out: Path, name: str, *, sans: Sequence[str] = (), days: int = 30,
 
 
 def make_certs(out: Path, names: Sequence[str], *, station_cn: str = "station",
-               station_sans: Sequence[str] = ("IP:127.0.0.1",), days: int = 30) -> None:
-    """A throwaway CA and one certificate per name in ``out``; the station's carries ``station_sans``."""
-    make_ca(out, days=days)
+               station_sans: Sequence[str] = ("IP:127.0.0.1",), days: int = 30) -> list[str]:
+    """A CA (kept if ``out`` has one: a new CA would break every robot already deployed) and a certificate for
+    each name that has none yet; the station's carries ``station_sans``. Returns what it did, one line each."""
+    done = []
+    if (out / "ca.crt").exists() and (out / "ca.key").exists():
+        done.append(f"kept the CA in {out} (valid until {valid_until(out / 'ca.crt')})")
+    else:
+        make_ca(out, days=max(days, 365))
+        done.append(f"made a CA in {out} (valid until {valid_until(out / 'ca.crt')})")
     for n in names:
+        crt = out / f"{n}.crt"
+        if crt.exists():
+            done.append(f"kept {crt} (valid until {valid_until(crt)})")
+            continue
         make_cert(out, n, sans=station_sans if n == station_cn else (), days=days)
+        done.append(f"made {crt} (valid until {valid_until(crt)})")
+    return done
+
+
+def valid_until(crt: Path) -> str:
+    """The certificate's end of validity, as openssl prints it."""
+    exe = shutil.which("openssl")
+    res = subprocess.run([exe or "openssl", "x509", "-in", str(crt), "-noout", "-enddate"], capture_output=True,
+                         text=True, timeout=30)
+    return res.stdout.strip().split("=", 1)[-1] or "unknown"
 
 
 # ------------------------------------------------------------------------------------------------------- CLI
@@ -391,26 +413,42 @@ def run_client(args: argparse.Namespace) -> int:
 
 
 def arguments_certs(ap: argparse.ArgumentParser) -> None:
-    ap.add_argument("--robots", type=robots_arg, required=True, help="comma-separated robot names")
+    who = ap.add_mutually_exclusive_group(required=True)
+    who.add_argument("--robots", type=robots_arg, help="comma-separated robot names (with the station's, the "
+                                                       "operator's and the observer's certificates)")
+    who.add_argument("--add-robot", type=robots_arg, help="certificates for these robots only, from the CA in --out")
     ap.add_argument("--station-cn", default="station")
     ap.add_argument("--operator-cn", default="operator")
     ap.add_argument("--extra", default="", help="more comma-separated names to certify")
     ap.add_argument("--station-address", action="append", default=[],
                     help="an address clients use to reach the router, written into the station's certificate "
                          "(repeatable; default 127.0.0.1)")
-    ap.add_argument("--days", type=int, default=30, help="validity in days (default 30)")
+    ap.add_argument("--days", type=int, default=365, help="validity of each certificate, days (default 365; printed)")
+    ap.add_argument("--observer-cn", default="observer", help="the observer's certificate CN (empty: none)")
     ap.add_argument("--out", required=True, help="output directory")
 
 
 def run_certs(args: argparse.Namespace) -> int:
     """Make a throwaway CA and one certificate per name with openssl, for tests and a lab's first try (a lab
     issues its certificates from its own PKI)."""
-    _or_usage(lambda: _check_names(args.robots, args.station_cn, args.operator_cn))
-    names = [args.station_cn, args.operator_cn, *args.robots, *_names(args.extra)]
-    _or_usage(lambda: make_certs(Path(args.out), names, station_cn=args.station_cn,
-                                 station_sans=_sans(args.station_address or ["127.0.0.1"]), days=args.days))
-    print(f"wrote a throwaway CA and certificates for {', '.join(names)} to {args.out}: for tests and a "
-          "first try only, a lab issues its own (deploy/README.md)", file=sys.stderr)
+    out = Path(args.out)
+    if args.add_robot:
+        if not (out / "ca.crt").exists():
+            raise UsageError(f"--add-robot needs the lab's CA in {out} (ca.crt, ca.key): the one the robots trust")
+        for r in args.add_robot:
+            M.check_robot(r)
+        names = list(args.add_robot)
+    else:
+        _or_usage(lambda: _check_names(args.robots, args.station_cn, args.operator_cn,
+                                       *([args.observer_cn] if args.observer_cn else [])))
+        names = [args.station_cn, args.operator_cn, *([args.observer_cn] if args.observer_cn else []),
+                 *args.robots, *_names(args.extra)]
+    for line in _or_usage(lambda: make_certs(out, names, station_cn=args.station_cn,
+                                             station_sans=_sans(args.station_address or ["127.0.0.1"]),
+                                             days=args.days)):
+        print(line)
+    print("a throwaway CA: for tests and a first try; a lab issues its certificates from its own PKI "
+          "(deploy/README.md); scmbridge doctor warns before they expire", file=sys.stderr)
     return 0
 
 
