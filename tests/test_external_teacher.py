@@ -39,9 +39,10 @@ def test_the_example_external_teacher_drives_the_robot_through_the_transfer_serv
         kids.spawn(["driver", "--engage", "--link", "can", "--emulate", "--x0", x0, *client, "--duration", "140"])
         kids.spawn(["station", "--start", "--config", str(cfg), *client, "--store", str(tmp_path / "p.bin"),
                     "--duration", "130"])
+        said = open(tmp_path / "teacher.out", "w")  # noqa: SIM115 (closed with the process, below)
         teacher = subprocess.Popen([sys.executable, str(ROOT / "deploy" / "examples" / "external_teacher.py"),
-                                    "--robot", robot, "--connect", tcp(port), "--mission", str(MISSION),
-                                    "--duration", "120"], start_new_session=True, stdout=subprocess.DEVNULL)
+                                    "--robot", robot, "--mode", "client", "--connect", tcp(port), "--mission",
+                                    str(MISSION), "--duration", "120"], start_new_session=True, stdout=said)
         kids.procs.append(teacher)
         t_end = time.monotonic() + 110
         progress = 0.0
@@ -55,6 +56,9 @@ def test_the_example_external_teacher_drives_the_robot_through_the_transfer_serv
                 mapped = any(c.method == "scm" for c in got["cmd"])
             if progress > 0.25 and mapped:  # how soon the first SC region forms depends on the machine's load
                 break
+    said.close()
+    out = (tmp_path / "teacher.out").read_text()
+    assert f"publishing scm/{robot}/teacher" in out and "-> v " in out, out[:2000]  # it says what it does
     with lock:
         methods = {c.method for c in got["cmd"]}
         limits = list(got["limits"])

@@ -6,14 +6,18 @@ controller along a mission's path, bounds it by the learned limits as the paper'
 on ``scm/<robot>/teacher`` at 10 Hz. The station (``[teacher] kind = "external"``) maps each command into the
 learner's command space and drives the robot; at the goal this teacher says stop (an exact zero command).
 
-    python deploy/examples/external_teacher.py --robot rover1 --connect tcp/192.168.50.10:7447 \
+    python deploy/examples/external_teacher.py --robot rover1 --zenoh-config /etc/scmbridge/teacher.json5 \
         --mission bridge/missions/paper_s_path.toml
+
+It takes the Zenoh options every scmbridge command takes (``--zenoh-config`` a TLS client config that ``scmbridge
+deploy client --name teacher`` writes, for the lab's access control with ``deploy acl --teacher-cn teacher``; or
+``--mode client --connect tcp/...`` on a test network) and prints what it does: where it connects, then each second
+the pose, the command and the limits it bounds it by, and the goal when it gets there.
 """
 
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import threading
 import time
@@ -22,6 +26,8 @@ import msgspec
 import zenoh
 
 from bridge.core import wire as W
+from bridge.nodes.node import add_zenoh_args, endpoints_tried, zenoh_config
+from bridge.nodes.zsession import open_session
 
 
 def load_path(mission: str) -> tuple[list[tuple[float, float]], float]:
@@ -59,8 +65,8 @@ class PurePursuit:
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--robot", required=True)
-    ap.add_argument("--connect", action="append", default=[], help="Zenoh endpoint, e.g. tcp/127.0.0.1:7447")
     ap.add_argument("--mission", required=True, help="mission file (TOML)")
+    add_zenoh_args(ap)
     ap.add_argument("--rate", type=float, default=10.0)
     ap.add_argument("--duration", type=float, default=None)
     args = ap.parse_args()
@@ -86,25 +92,36 @@ def main() -> int:
         with lock:
             latest["box"] = lim.box
 
-    conf = zenoh.Config()
-    conf.insert_json5("mode", '"client"')
-    conf.insert_json5("connect/endpoints", json.dumps(args.connect))
-    conf.insert_json5("scouting/multicast/enabled", "false")
     epoch, seq = W.new_epoch(), 0
     t_end = None if args.duration is None else time.monotonic() + args.duration
-    with zenoh.open(conf) as session:
+    with open_session(zenoh_config(args)) as session:
+        print(f"external teacher for {args.robot}: connected ({endpoints_tried(args)}); following {args.mission} "
+              f"({len(path)} waypoints), publishing {keys.teacher} at {args.rate:g} Hz", flush=True)
         session.declare_subscriber(keys.state, on_state)
         session.declare_subscriber(keys.limits, on_limits)
         pub = session.declare_publisher(keys.teacher)
+        t_say, at_goal = 0.0, False
         while t_end is None or time.monotonic() < t_end:
             with lock:
                 st, box = latest["state"], list(latest["box"])
+            now = time.monotonic()
+            if st is None and now >= t_say:
+                print(f"waiting for the robot's pose on {keys.state}", flush=True)
+                t_say = now + 5.0
             if st is not None:
                 v, w = ctl.command(st.x, st.y, st.theta, box)
-                msg = W.TeacherCommand(stamp=time.monotonic(), seq=seq, v=v, omega=w, solver="pure-pursuit",
+                msg = W.TeacherCommand(stamp=now, seq=seq, v=v, omega=w, solver="pure-pursuit",
                                        sender="example-teacher", epoch=epoch)
                 pub.put(W.encode(msg))
                 seq += 1
+                if (v, w) == (0.0, 0.0) and not at_goal:
+                    print(f"goal reached at ({st.x:.2f}, {st.y:.2f}): commanding stop", flush=True)
+                at_goal = (v, w) == (0.0, 0.0)
+                if now >= t_say and not at_goal:
+                    print(f"pose ({st.x:.2f}, {st.y:.2f}, {st.theta:.2f}) -> v {v:.3f} m/s, omega {w:.3f} rad/s "
+                          f"(learned limits v [{box[0]:.2f}, {box[1]:.2f}], omega [{box[2]:.2f}, {box[3]:.2f}])",
+                          flush=True)
+                    t_say = now + 1.0
             time.sleep(1.0 / args.rate)
     return 0
 
