@@ -499,3 +499,35 @@ def test_a_recording_of_nothing_is_not_a_success(tmp_path: Path) -> None:
         res = subprocess.run([sys.executable, "-m", "bridge", "record", "--all", "--out", str(tmp_path / "r.mcap"),
                               *client_args(port), "--duration", "1"], capture_output=True, text=True, timeout=60)
     assert res.returncode == 1 and "nothing received" in res.stderr, res.stdout + res.stderr
+
+
+def test_the_reports_figures_cover_the_driving_time_only() -> None:
+    """Finding: on a real recording `time_s` ran from the first to the last recorded pose (68.2 s for a 34 s drive),
+    the mean deviation included the time parked at the goal, and 401 stop commands after the goal counted as the
+    run's commands. Parked before the start (2 s), drive 3 s to the goal, parked 5 s: the figures are the drive's."""
+    from bridge.core.config import mission_from_spec
+    from bridge.tools.demo import Monitor
+    from bridge.tools.report import FeedSession
+
+    mission = mission_from_spec(M.MissionSpec(name="line", path=[[0.0, 0.0], [0.6, 0.0]], goal_tolerance=0.05))
+    feed = FeedSession()
+    mon = Monitor(feed, "r1")
+    k = M.Keys("r1")
+    t, x = 100.0, 0.0
+    for step in range(200):  # 10 s at 20 Hz: parked 2 s, 3 s at 0.2 m/s along the path, parked 5 s
+        t += 0.05
+        moving = 2.0 <= step * 0.05 < 5.0
+        x = min(0.6, x + 0.01) if moving else x
+        seq = step + 1
+        feed.put(k.cmd, M.encode(M.Command(stamp=t, seq=seq, v=0.2 if moving else 0.0, omega=0.0,
+                                           method="scm" if moving else "stop")))
+        feed.put(k.applied, M.encode(M.Applied(stamp=t, seq=seq, v=0.2 if moving else 0.0, omega=0.0,
+                                               reason="cmd" if moving else "stop", cmd_seq=seq)))
+        feed.put(k.state, M.encode(M.LearnerState(stamp=t, seq=seq, x=x, y=0.3 if not moving and step > 100 else 0.0,
+                                                  theta=0.0)))
+    feed.put(M.status_key("r1", "station"), M.encode(M.Status(stamp=t, seq=1, node="station",
+                                                              counters={"goal_reached": 1, "method_stop": 140})))
+    s = mon.summary(mission)
+    assert 2.6 <= s["time_s"] <= 3.1 and s["parked_before_s"] >= 1.9 and s["parked_after_s"] >= 4.9, s
+    assert s["methods"] == {"scm": s["methods"]["scm"]} and 50 <= s["methods"]["scm"] <= 61, s["methods"]
+    assert s["mean_dev_m"] < 0.01, s  # the pose parked 0.3 m off the path after the goal does not count

@@ -16,6 +16,7 @@ import os
 import sys
 import threading
 import time
+from collections import Counter
 from contextlib import ExitStack
 
 import numpy as np
@@ -91,10 +92,14 @@ class Monitor:
 
         self.states: list[tuple[float, float, float, float]] = []
         self.status: dict = {}
+        self.applied: list[tuple[float, str, int | None]] = []  # (stamp, reason, cmd_seq): the driver host's clock
+        self.cmds: dict[int, str] = {}  # seq -> method (the station's current run)
         self.lock = threading.Lock()
         self.inputs = Inputs()
         keys = M.Keys(robot)
         self.inputs.subscribe(session, keys.state, M.LearnerState, "state", self._state)
+        self.inputs.subscribe(session, keys.applied, M.Applied, "applied", self._applied)
+        self.inputs.subscribe(session, keys.cmd, M.Command, "cmd", self._cmd)
         for node in ("station", "driver"):
             self.inputs.subscribe(session, M.status_key(robot, node), M.Status, "status", self._status)
 
@@ -105,6 +110,14 @@ class Monitor:
     def _status(self, st, now: float) -> None:
         with self.lock:
             self.status[st.node] = st
+
+    def _applied(self, a, now: float) -> None:
+        with self.lock:
+            self.applied.append((a.stamp, a.reason, a.cmd_seq))
+
+    def _cmd(self, c, now: float) -> None:
+        with self.lock:
+            self.cmds[c.seq] = c.method
 
     def line(self, world, t: float) -> str:
         """One line of live progress."""
@@ -121,21 +134,40 @@ class Monitor:
                 f"progress={100 * s_arc / world.path.length:5.1f}% [{st.text}]")
 
     def summary(self, world) -> dict | None:
-        """The run's figures, or None if it produced no telemetry."""
+        """The run's figures over its driving time, or None if it produced no telemetry: from the first command the
+        vehicle executed to the goal (the mission's own rule on the poses), or to the last executed command; the
+        time parked before and after it is reported apart, and neither its poses nor its stop commands count.
+        All times are the driver host's stamps (poses and applied echoes: one clock, whatever the machines)."""
         with self.lock:
-            traj = np.array([s[1:] for s in self.states]) if self.states else np.zeros((0, 3))
+            states = list(self.states)
             st = self.status.get("station")
-            elapsed = self.states[-1][0] - self.states[0][0] if self.states else 0.0
-        if traj.shape[0] == 0 or st is None:
+            applied, cmds = list(self.applied), dict(self.cmds)
+        if not states or st is None:
             return None
+        driving = [a for a in applied if a[1] in ("cmd", "clamped")]
+        t0 = driving[0][0] if driving else states[0][0]
+        goal = next((s[0] for s in states if s[0] >= t0 and world.reached(s[1:3])), None)
+        t1 = goal if goal is not None else (driving[-1][0] if driving else states[-1][0])
+        run = [s for s in states if t0 <= s[0] <= t1] or states
+        traj = np.array([s[1:] for s in run])
         devs = np.array([world.path.project(p[:2])[1] for p in traj])
         c = st.counters
-        return {"reached_goal": bool(c.get("goal_reached", 0)), "time_s": round(elapsed, 1),
+        seqs = [a[2] for a in applied if a[2] is not None and t0 <= a[0] <= t1]
+        if seqs and cmds:  # the commands of the driving time (not the stops parked at the goal)
+            lo, hi = min(seqs), max(seqs)
+            methods = dict(Counter(m for seq, m in cmds.items() if lo <= seq <= hi))
+        else:
+            methods = {k[7:]: v for k, v in c.items() if k.startswith("method_")}
+        return {"reached_goal": bool(c.get("goal_reached", 0)) or goal is not None, "time_s": round(t1 - t0, 1),
+                "parked_before_s": round(max(0.0, t0 - states[0][0]), 1),
+                "parked_after_s": round(max(0.0, states[-1][0] - t1), 1),
                 "mean_dev_m": round(float(devs.mean()), 4), "max_dev_m": round(float(devs.max()), 4),
-                "methods": {k[7:]: v for k, v in c.items() if k.startswith("method_")},
+                # how far from the goal point it stopped (the station's goal flag alone could be a pose far away)
+                "goal_dist_m": round(float(np.hypot(*(traj[-1, :2] - np.asarray(world.goal)))), 3),
+                "methods": methods,
                 "refined_pairs": c.get("refined_pairs"), "raw_pairs": c.get("raw_pairs"),
                 "missed_deadlines": c.get("missed_deadlines"), "solve_ms_median": st.latencies_ms.get("solve_median"),
-                "_traj": traj}
+                "_traj": np.array([s[1:] for s in states])}
 
 
 def _figure(out, world, traj, link: str) -> None:
@@ -250,23 +282,9 @@ def _fleet_line(mons: dict[str, Monitor], world, t: float) -> str:
 
 
 def _robot_summary(mon: Monitor, world) -> dict | None:
-    """:meth:`Monitor.summary` of one robot of the fleet, its time and deviations up to its goal (its driver host
-    keeps publishing poses at the goal while the other robots drive on)."""
-    s = mon.summary(world)
-    if s is None:
-        return None
-    with mon.lock:
-        stamps = np.array([st[0] for st in mon.states])
-    traj = s["_traj"]
-    at = next((i for i, p in enumerate(traj) if world.reached(p[:2])), None)
-    if at is not None:
-        traj = s["_traj"] = traj[: at + 1]
-        devs = np.array([world.path.project(p[:2])[1] for p in traj])
-        s.update(time_s=round(float(stamps[at] - stamps[0]), 1), mean_dev_m=round(float(devs.mean()), 4),
-                 max_dev_m=round(float(devs.max()), 4))
-    # how far from the goal point it stopped: the goal rule also takes a pose "past the path's end" at any distance
-    s["goal_dist_m"] = round(float(np.hypot(*(traj[-1, :2] - world.goal))), 3) if traj.shape[0] else None
-    return s
+    """:meth:`Monitor.summary` of one robot of the fleet: its figures already stop at its goal (its driver host
+    keeps publishing poses there while the other robots drive on)."""
+    return mon.summary(world)
 
 
 def _fleet_figure(out, world, trajs: dict[str, np.ndarray], link: str) -> None:
