@@ -80,3 +80,23 @@ def test_numba_caches_in_the_cache_directory_when_the_install_is_not_writable(tm
     monkeypatch.setattr(cli.os, "access", lambda path, mode: False)  # what a non-root user finds
     assert cli.numba_cache_dir(ro) == str(tmp_path / "cache" / "numba") == cli.os.environ["NUMBA_CACHE_DIR"]
     assert cli.numba_cache_dir(ro) is None  # set once: a person's own NUMBA_CACHE_DIR is never overridden
+
+
+def test_a_missing_extra_says_which_to_install(monkeypatch, capsys) -> None:
+    """Finding: a missing extra gave a raw traceback (`No module named 'foxglove'`)."""
+    import builtins
+
+    from bridge.tools import cli
+
+    real = builtins.__import__
+
+    def no_foxglove(name, *args, **kwargs):
+        if name == "foxglove" or name.startswith("foxglove."):
+            raise ModuleNotFoundError(f"No module named {name!r}", name=name)
+        return real(name, *args, **kwargs)
+
+    monkeypatch.delitem(sys.modules, "bridge.tools.live", raising=False)
+    monkeypatch.setattr(builtins, "__import__", no_foxglove)
+    assert cli.main(["view", "--robot", "r1", "--duration", "0.1"]) == 2
+    err = capsys.readouterr().err
+    assert "needs foxglove, in the 'station' extra" in err and "Traceback" not in err

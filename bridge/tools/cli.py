@@ -33,6 +33,9 @@ for _var, _val in ONE_BLAS_THREAD.items():
     os.environ.setdefault(_var, _val)
 
 
+#: optional modules and the smallest extra that brings each (pyproject.toml)
+EXTRA_OF = {"foxglove": "station", "mcap": "record", "casadi": "station", "numba": "station", "scipy": "station",
+            "matplotlib": "sims"}
 #: where the SC kernels live (numba caches next to them when it may)
 KERNELS_DIR = Path(__file__).resolve().parents[2] / "transfer" / "scm"
 
@@ -236,6 +239,14 @@ def main(argv: list[str] | None = None) -> int:
         return int(getattr(module, f"run{cmd.suffix(module)}")(ns) or 0)
     except UsageError as exc:  # a person's mistake or an expected failure: one line, no traceback
         print(f"scmbridge {name}: error: {exc}", file=sys.stderr)
+        return 2
+    except ModuleNotFoundError as exc:  # an install without this command's extra (a robot's base install)
+        extra = EXTRA_OF.get((exc.name or "").split(".")[0])
+        if extra is None:
+            raise
+        print(f"scmbridge {name}: error: this command needs {exc.name}, in the '{extra}' extra: "
+              f"pip install --no-deps --no-build-isolation '.[{extra}]' from the lock (deploy/ROBOT.md)",
+              file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         return 130
