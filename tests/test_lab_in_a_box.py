@@ -1,0 +1,74 @@
+"""A lab in a box: the secure deployment exactly as deploy/README.md lays it out, on loopback. A CA and certificates
+(`deploy certs`), the router's TLS + access-control config (`deploy acl`) with the station running inside the
+router, a robot's driver host and the operator's tools as TLS clients (`deploy client`): a person engages the robot,
+starts the mission, sees it drive in `status --all`, stops it with `estop --all`; the observer sees everything and
+can change nothing. Findings this answers: under the lab's TLS + access control `estop --all` did nothing and the
+operator's tools saw nothing."""
+
+from __future__ import annotations
+
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from bridge.core.config import load_mission
+from bridge.nodes.zsession import free_port
+from bridge.tools.procs import Children
+
+ROBOT = "rover1"
+
+
+def _scm(*args: str, timeout: float = 90) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "bridge", *args], capture_output=True, text=True, timeout=timeout)
+
+
+def _until(fn, timeout: float, step: float = 0.5):
+    t_end = time.monotonic() + timeout
+    while True:
+        res = fn()
+        if res or time.monotonic() > t_end:
+            return res
+        time.sleep(step)
+
+
+@pytest.mark.skipif(shutil.which("openssl") is None, reason="openssl is not installed")
+@pytest.mark.timeout(240)
+def test_a_secure_lab_on_loopback_is_driven_and_stopped_by_its_operator(tmp_path: Path) -> None:
+    certs, port = tmp_path / "tls", free_port()
+    ep = f"tls/127.0.0.1:{port}"
+    made = _scm("deploy", "certs", "--robots", ROBOT, "--station-address", "127.0.0.1", "--out", str(certs))
+    assert made.returncode == 0, made.stderr
+    router = _scm("deploy", "acl", "--robots", ROBOT, "--listen", ep, "--certs", str(certs))
+    assert router.returncode == 0, router.stderr
+    (tmp_path / "router.json5").write_text(router.stdout)
+    for name in (ROBOT, "operator", "observer"):
+        res = _scm("deploy", "client", "--name", name, "--connect", ep, "--certs", str(certs))
+        assert res.returncode == 0, res.stderr
+        (tmp_path / f"{name}.json5").write_text(res.stdout)
+    z = {n: ["--zenoh-config", str(tmp_path / f"{n}.json5")] for n in (ROBOT, "operator", "observer")}
+    x0 = ",".join(f"{a:.6f}" for a in load_mission().start)
+    with Children() as kids:
+        kids.spawn(["station", "--robot", ROBOT, "--zenoh-config", str(tmp_path / "router.json5"), "--store",
+                    str(tmp_path / "pairs.bin"), "--duration", "200"], subprocess.DEVNULL)
+        kids.spawn(["driver", "--link", "can", "--emulate", "--x0", x0, "--robot", ROBOT, *z[ROBOT], "--duration",
+                    "200"], subprocess.DEVNULL)
+        # the operator sees both nodes: idle and waiting for a person
+        seen = _until(lambda: (r := _scm("status", "--all", *z["operator"])).stdout.count(ROBOT) >= 2 and r, 60)
+        assert seen and "idle" in seen.stdout and "waiting" in seen.stdout, seen and seen.stdout + seen.stderr
+        for cmd in (["engage", "--robot", ROBOT], ["mission", "start", "--robot", ROBOT]):
+            res = _scm(*cmd, *z["operator"])
+            assert res.returncode == 0, res.stdout + res.stderr
+        driving = _until(lambda: (r := _scm("status", "--robot", ROBOT, *z["observer"])).returncode == 0 and r, 60)
+        assert driving and "driving" in driving.stdout, driving and driving.stdout + driving.stderr
+        # the observer can change nothing
+        assert _scm("engage", "--robot", ROBOT, "--release", "--timeout", "2", *z["observer"]).returncode == 2
+        assert _scm("mission", "pause", "--robot", ROBOT, "--timeout", "2", *z["observer"]).returncode == 2
+        # the operator stops every robot
+        res = _scm("estop", "--all", *z["operator"])
+        assert res.returncode == 0 and f"{ROBOT}/driver-can: LATCHED by operator" in res.stdout, res.stdout + res.stderr
+        stopped = _until(lambda: "estop latched by operator" in _scm("status", "--all", *z["observer"]).stdout, 30)
+        assert stopped
