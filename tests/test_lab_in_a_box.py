@@ -1,6 +1,6 @@
-"""A lab in a box: the secure deployment exactly as deploy/README.md lays it out, on loopback. A CA and certificates
-(`deploy certs`), the router's TLS + access-control config (`deploy acl`) with the station running inside the
-router, a robot's driver host and the operator's tools as TLS clients (`deploy client`): a person engages the robot,
+"""A lab in a box: the secure deployment exactly as deploy/README.md lays it out, on loopback. `deploy lab` makes a CA
+and the certificates, the router's TLS + access-control config (the station runs inside the router) and the
+clients' configs; a robot's driver host and the operator's tools are TLS clients: a person engages the robot,
 starts the mission, sees it drive in `status --all`, stops it with `estop --all`; the observer sees everything and
 can change nothing. Findings this answers: under the lab's TLS + access control `estop --all` did nothing and the
 operator's tools saw nothing."""
@@ -38,17 +38,11 @@ def _until(fn, timeout: float, step: float = 0.5):
 @pytest.mark.skipif(shutil.which("openssl") is None, reason="openssl is not installed")
 @pytest.mark.timeout(240)
 def test_a_secure_lab_on_loopback_is_driven_and_stopped_by_its_operator(tmp_path: Path) -> None:
-    certs, port = tmp_path / "tls", free_port()
-    ep = f"tls/127.0.0.1:{port}"
-    made = _scm("deploy", "certs", "--robots", ROBOT, "--station-address", "127.0.0.1", "--out", str(certs))
+    # the whole lab in one command (the certificates are used where they were made)
+    made = _scm("deploy", "lab", "--robots", ROBOT, "--station-address", "127.0.0.1", "--port", str(free_port()),
+                "--certs", str(tmp_path / "tls"), "--out", str(tmp_path))
     assert made.returncode == 0, made.stderr
-    router = _scm("deploy", "acl", "--robots", ROBOT, "--listen", ep, "--certs", str(certs))
-    assert router.returncode == 0, router.stderr
-    (tmp_path / "router.json5").write_text(router.stdout)
-    for name in (ROBOT, "operator", "observer"):
-        res = _scm("deploy", "client", "--name", name, "--connect", ep, "--certs", str(certs))
-        assert res.returncode == 0, res.stderr
-        (tmp_path / f"{name}.json5").write_text(res.stdout)
+    (tmp_path / "router.json5").write_text((tmp_path / "station-router.json5").read_text())
     z = {n: ["--zenoh-config", str(tmp_path / f"{n}.json5")] for n in (ROBOT, "operator", "observer")}
     x0 = ",".join(f"{a:.6f}" for a in load_mission().start)
     with Children() as kids:
@@ -67,6 +61,10 @@ def test_a_secure_lab_on_loopback_is_driven_and_stopped_by_its_operator(tmp_path
         # the observer can change nothing
         assert _scm("engage", "--robot", ROBOT, "--release", "--timeout", "2", *z["observer"]).returncode == 2
         assert _scm("mission", "pause", "--robot", ROBOT, "--timeout", "2", *z["observer"]).returncode == 2
+        # the preflight through the lab's TLS and rules: the operator's identity sees both nodes
+        doc = _scm("doctor", *z["operator"])
+        assert doc.returncode == 0 and "ok    reach" in doc.stdout and "1 driver hosts answer" in doc.stdout, doc.stdout
+        assert "ok    tls" in doc.stdout and "FAIL" not in doc.stdout, doc.stdout
         # the operator stops every robot
         res = _scm("estop", "--all", *z["operator"])
         assert res.returncode == 0 and f"{ROBOT}/driver-can: LATCHED by operator" in res.stdout, res.stdout + res.stderr

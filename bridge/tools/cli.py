@@ -105,6 +105,7 @@ COMMANDS: list[Command] = [
     _C("config show", "bridge.tools.config_cmd", "print a commented default configuration"),
     _C("keys udp", "bridge.tools.keys", "make the UDP link's datagram key (state directory, mode 0600)"),
     _C("keys mavlink", "bridge.tools.keys", "make the MAVLink 2 signing key (state directory, mode 0600)"),
+    _C("deploy lab", "bridge.tools.deploy", "a whole secure lab in one command: CA, certificates, router and clients"),
     _C("deploy acl", "bridge.tools.deploy", "the base station router's TLS + access-control Zenoh config"),
     _C("deploy client", "bridge.tools.deploy", "a client's TLS Zenoh config (a robot, the operator)"),
     _C("deploy certs", "bridge.tools.deploy", "a throwaway CA and certificates (tests, a first try)"),

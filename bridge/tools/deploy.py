@@ -458,3 +458,39 @@ def _or_usage(fn: Any) -> Any:
         return fn()
     except (ValueError, RuntimeError) as exc:
         raise UsageError(str(exc)) from None
+
+
+def arguments_lab(ap: argparse.ArgumentParser) -> None:
+    ap.add_argument("--robots", type=robots_arg, required=True, help="comma-separated robot names")
+    ap.add_argument("--station-address", action="append", required=True,
+                    help="the address robots and tools reach the router at (repeatable; the first is where it "
+                         "listens)")
+    ap.add_argument("--port", type=int, default=7447, help="the router's TLS port (default 7447)")
+    ap.add_argument("--certs", default=LAB_CERTS,
+                    help=f"where the certificates will be installed on each host (default {LAB_CERTS})")
+    ap.add_argument("--days", type=int, default=365, help="validity of each certificate, days (default 365)")
+    ap.add_argument("--out", required=True, help="output directory (an existing CA in OUT/tls is kept)")
+
+
+def run_lab(args: argparse.Namespace) -> int:
+    """Make a whole secure lab in one command: a CA and the certificates (station, operator, observer, each robot),
+    the router's TLS + access-control config (the station's session), and every client's config (each robot, the
+    operator, the observer, a station on another host), ready to install. Re-running it for a grown fleet keeps the
+    CA and the certificates already made."""
+    out, tls = Path(args.out), Path(args.out) / "tls"
+    _or_usage(lambda: _check_names(args.robots, "station", "operator", "observer"))
+    listen = f"tls/{args.station_address[0]}:{args.port}"
+    for line in _or_usage(lambda: make_certs(tls, ["station", "operator", "observer", *args.robots],
+                                             station_sans=_sans(args.station_address), days=args.days)):
+        print(line)
+    router = _or_usage(lambda: router_config(args.robots, listen=listen, certs=args.certs))
+    (out / "station-router.json5").write_text(render(router, args.command_line))
+    for name in (*args.robots, "operator", "observer", "station"):
+        conf = client_config(name, connect=listen, certs=args.certs)
+        target = {"station": "station-client.json5"}.get(name, f"{name}.json5")
+        (out / target).write_text(render(conf, args.command_line, CLIENT_HEADER))
+    print(f"wrote {out}/station-router.json5 (the base station: /etc/scmbridge/station-router.json5), "
+          f"{', '.join(f'{r}.json5' for r in args.robots)} (each robot: /etc/scmbridge/robot-client.json5), "
+          f"operator.json5, observer.json5, station-client.json5; certificates in {tls} (install ca.crt and each "
+          f"host's own key and certificate in {args.certs}; keep ca.key off the base station)")
+    return 0

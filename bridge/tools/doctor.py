@@ -3,7 +3,9 @@
 Each check prints one line, ``ok``, ``warn`` or ``FAIL``, its name and what it found or what to fix:
 
 - ``config``: the station and/or driver files (``--station``, ``--driver``) parse and are sane;
-- ``router``: the Zenoh router the configuration (``--zenoh-config`` or ``--connect``) names is reachable;
+- ``router``: the Zenoh router the configuration (``--zenoh-config`` or ``--connect``) names is reachable, and
+  (``reach``) what this identity sees through it: the nodes' statuses and the driver hosts answering its estop
+  query, as ``status --all`` and ``estop --all`` will;
 - ``tls``: for a TLS configuration, each certificate and key it names exists, the certificates are signed by the
   CA it names (one CA), and none expires within ``--expiry-days`` (a warning) or has expired (a failure);
 - ``access``: a router configuration with access control on is named as such (rules and subjects counted); one
@@ -31,6 +33,7 @@ from pathlib import Path
 
 import zenoh
 
+from bridge.core import wire as M
 from bridge.core.args import positive_float
 from bridge.core.config import load_driver, load_station
 from bridge.core.errors import UsageError
@@ -59,13 +62,31 @@ def _json(conf: zenoh.Config, key: str) -> object:
         return None
 
 
-def check_router(args: argparse.Namespace, conf: zenoh.Config) -> Check:
+def check_router(args: argparse.Namespace, conf: zenoh.Config, listen_s: float) -> list[Check]:
+    """The router answers, and what this identity may see through it: the statuses it hears and the driver hosts
+    that answer its estop query (the tools it will use: status --all, estop --all) within ``listen_s``."""
     try:
-        with open_session(conf):
-            return Check("ok", "router", f"reached ({endpoints_tried(args)})")
+        with open_session(conf) as session:
+            heard: set[str] = set()
+            sub = session.declare_subscriber(f"{M.PREFIX}/*/status/**",
+                                             lambda s: heard.add("/".join(str(s.key_expr).split("/")[1::2])))
+            answered = {str(r.ok.key_expr).split("/")[1] for r in session.get(f"{M.PREFIX}/*/estop",
+                                                                              timeout=min(1.0, listen_s))
+                        if r.ok is not None}
+            time.sleep(max(0.0, listen_s - 1.0))
+            sub.undeclare()
     except UsageError as exc:
-        return Check("FAIL", "router", f"{exc} (start the router: the station's unit, or scmbridge station "
-                                       "--zenoh-config station-router-tls-acl.json5)")
+        return [Check("FAIL", "router", f"{exc} (start the router: the station's unit, or scmbridge station "
+                                        "--zenoh-config station-router.json5)")]
+    out = [Check("ok", "router", f"reached ({endpoints_tried(args)})")]
+    if heard or answered:
+        out.append(Check("ok", "reach", f"this identity hears {len(heard)} node statuses ({', '.join(sorted(heard))})"
+                                         f"; {len(answered)} driver hosts answer its estop query"))
+    else:
+        out.append(Check("warn", "reach", f"no status heard in {listen_s:g} s and no driver host answered an estop "
+                                           "query: nothing is running yet, or the router's access control does not "
+                                           "let this identity see it (use the operator or observer certificate)"))
+    return out
 
 
 def _openssl(*args: str) -> subprocess.CompletedProcess:
@@ -165,6 +186,8 @@ def arguments(ap: argparse.ArgumentParser) -> None:
                     help="with --driver: open this link and check the vehicle and its failsafe (never engaged)")
     ap.add_argument("--expiry-days", type=positive_float, default=14.0,
                     help="warn when a certificate expires within this many days")
+    ap.add_argument("--listen-s", type=positive_float, default=2.5,
+                    help="seconds to listen for the nodes' statuses through the router")
     add_zenoh_args(ap)
 
 
@@ -190,7 +213,7 @@ def run(args: argparse.Namespace) -> int:
         if kind == "driver":
             driver_cfg = cfg
     conf = zenoh_config(args)
-    step(lambda: check_router(args, conf))
+    step(lambda: check_router(args, conf, args.listen_s))
     step(lambda: check_tls(conf, args.expiry_days))
     step(lambda: check_access(conf))
     if args.link is not None:
