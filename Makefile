@@ -52,6 +52,7 @@ lock: $(STAMP)
 	$(PIP_COMPILE) -o $(ROBOT_LOCK) pyproject.toml
 	$(PIP_COMPILE) --extra dev -c $(ROBOT_LOCK) -o $(LOCK) pyproject.toml
 	sed -i '2i $(LOCK_NOTE)' $(ROBOT_LOCK) $(LOCK)
+	$(VENV)/bin/python requirements/platforms.py $(ROBOT_LOCK)
 
 bench: $(STAMP)
 	$(VENV)/bin/scmbridge bench scm

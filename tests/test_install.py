@@ -6,6 +6,7 @@ the station's heavy packages. And the hashed locks in requirements/ must agree w
 
 from __future__ import annotations
 
+import json
 import os
 import re
 import subprocess
@@ -164,3 +165,43 @@ def test_numpy_cap_matches_numba() -> None:
     assert upper, f"pyproject's numpy has no upper bound; numba asks {numba_numpy.specifier}"
     theirs = [s for s in numba_numpy.specifier if s.operator in ("<", "<=")]
     assert theirs and upper[0].version == theirs[0].version, (ours, numba_numpy)
+
+
+ROBOT_FILES = ROOT / "requirements" / "robot-files.json"
+
+
+def _lock_hashes(path: Path) -> dict[str, set[str]]:
+    """``{name==version: {sha256, ...}}`` of a pip-compile lock with hashes."""
+    out: dict[str, set[str]] = {}
+    pin = None
+    for line in path.read_text().splitlines():
+        m = re.match(r"^([A-Za-z0-9_.\-]+)==([^\s;\\]+)", line)
+        if m:
+            pin = f"{m.group(1).lower()}=={m.group(2)}"
+            out[pin] = set()
+        for h in re.findall(r"--hash=sha256:([0-9a-f]{64})", line):
+            if pin is not None:
+                out[pin].add(h)
+    return out
+
+
+def test_the_robot_lock_installs_on_an_aarch64_robot_computer() -> None:
+    """Finding: the lock was for x86_64 only, while many robot computers are aarch64. Each pin of the robot lock has a
+    file that installs on CPython 3.11, Linux aarch64 (a pure wheel, a manylinux aarch64 wheel, or an sdist), and the
+    lock carries its hash: `pip install --require-hashes -r requirements/robot.txt` works there. Checked offline from
+    requirements/robot-files.json, which `make lock` writes from the index (requirements/platforms.py)."""
+    from packaging.tags import compatible_tags, cpython_tags
+    from packaging.utils import parse_wheel_filename
+
+    platforms = [f"manylinux_2_{m}_aarch64" for m in range(39, 16, -1)] + ["manylinux2014_aarch64", "linux_aarch64"]
+    supported = {*cpython_tags((3, 11), platforms=platforms), *compatible_tags((3, 11), "cp311", platforms)}
+    files = json.loads(ROBOT_FILES.read_text())
+    locked = _lock_hashes(ROBOT_LOCK)
+    assert set(files) == set(locked), "requirements/robot-files.json is stale: run `make lock`"
+    missing = []
+    for pin, hashes in sorted(locked.items()):
+        ok = [fn for fn, sha in files[pin].items() if sha in hashes and (
+            fn.endswith(".tar.gz") or (fn.endswith(".whl") and set(parse_wheel_filename(fn)[3]) & supported))]
+        if not ok:
+            missing.append(pin)
+    assert not missing, f"no aarch64-installable file with a locked hash for {missing}"
