@@ -6,10 +6,13 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import re
 import shlex
+import shutil
 import subprocess
 import sys
+import tempfile
 import threading
 import time
 from pathlib import Path
@@ -318,3 +321,36 @@ def test_the_fleet_bench_measures_one_station_and_says_how_many_it_held() -> Non
     assert out["robots_held"] in (0, 1, 2) and out["scaling"]["robots_per_core_at_10hz"] > 0
     left = subprocess.run(["pgrep", "-f", "scm-fleet-"], capture_output=True, text=True)
     assert left.stdout.strip() == ""
+
+
+@pytest.mark.parametrize("kind", ["station", "driver"])
+def test_a_units_exact_command_runs_as_an_unprivileged_user(tmp_path: Path, kind: str) -> None:
+    """Finding: as the `scmbridge` user of a root-owned install even `station --help` failed (numba could not cache
+    its kernels next to their source). The unit's exact ExecStart, with its environment (the cache directory it
+    gives), runs as `nobody` with no writable install."""
+    if os.geteuid() != 0 or shutil.which("setpriv") is None:
+        pytest.skip("needs root and setpriv to switch to an unprivileged user")
+    probe = subprocess.run(["setpriv", "--reuid=65534", "--regid=65534", "--clear-groups", sys.executable, "-c",
+                            "import bridge"], capture_output=True, text=True, timeout=60, cwd=ROOT)
+    if probe.returncode != 0:
+        pytest.skip(f"this checkout's interpreter is not usable by an unprivileged user here ({sys.executable}: "
+                    f"{probe.stderr.strip().splitlines()[-1][:120] if probe.stderr.strip() else probe.returncode})")
+    unit = _unit(f"scmbridge-{kind}@.service")
+    base = Path(tempfile.mkdtemp(prefix="scm-unit-"))  # pytest's own tmp is root's, 0700: not for nobody
+    try:
+        base.chmod(0o755)
+        etc, var, cache = base / "etc", base / "var", base / "cache"  # what StateDirectory=/CacheDirectory= give
+        for d in (etc, var, cache):
+            d.mkdir()
+            os.chown(d, 65534, 65534)
+        argv = _command(unit, "rover1", etc, var)
+        env = dict(a.split("=", 1) for line in unit.get("Environment", []) for a in shlex.split(line))
+        env = {k: v.replace("/var/cache/scmbridge", str(cache)) for k, v in env.items()}
+        env.update(PATH=os.environ.get("PATH", ""), HOME=str(base), STATE_DIRECTORY=str(var),
+                   CACHE_DIRECTORY=str(cache))
+        res = subprocess.run(["setpriv", "--reuid=65534", "--regid=65534", "--clear-groups", sys.executable, "-m",
+                              "bridge", *argv[1:], "--help"], capture_output=True, text=True, timeout=300, env=env,
+                             cwd=ROOT)
+        assert res.returncode == 0 and "usage: scmbridge" in res.stdout, res.stderr[-2000:]
+    finally:
+        shutil.rmtree(base, ignore_errors=True)
