@@ -205,3 +205,28 @@ def test_the_robot_lock_installs_on_an_aarch64_robot_computer() -> None:
         if not ok:
             missing.append(pin)
     assert not missing, f"no aarch64-installable file with a locked hash for {missing}"
+
+
+@pytest.mark.timeout(300)
+def test_a_robot_installs_from_its_lock_and_the_project_offline(tmp_path: Path) -> None:
+    """Finding: ROBOT.md's `pip install --no-deps .` fetched setuptools from the network. The robot venv installs the
+    lock (from the package index, as the robot's first step does), then the project with no index at all
+    (`--no-build-isolation`: the lock's own setuptools builds it), and the driver host runs."""
+    import shutil
+    import venv
+
+    src = tmp_path / "src"  # a copy: the build leaves build/ and *.egg-info behind
+    shutil.copytree(ROOT, src, ignore=shutil.ignore_patterns(".venv", ".git", "__pycache__", "*.egg-info", "build",
+                                                             ".pytest_cache", "demo_out", ".ruff_cache"))
+    env_dir = tmp_path / "robot-venv"
+    venv.EnvBuilder(with_pip=True).create(env_dir)
+    pip = [str(env_dir / "bin" / "python"), "-m", "pip", "--disable-pip-version-check", "-q"]
+    res = subprocess.run([*pip, "install", "--require-hashes", "-r", str(ROBOT_LOCK)], capture_output=True, text=True,
+                         timeout=240)
+    assert res.returncode == 0, res.stderr[-2000:]
+    res = subprocess.run([*pip, "install", "--no-index", "--no-deps", "--no-build-isolation", str(src)],
+                         capture_output=True, text=True, timeout=120)
+    assert res.returncode == 0, res.stderr[-2000:]
+    res = subprocess.run([str(env_dir / "bin" / "scmbridge"), "driver", "--help"], capture_output=True, text=True,
+                         timeout=120)
+    assert res.returncode == 0 and "usage: scmbridge driver" in res.stdout, res.stderr[-2000:]
