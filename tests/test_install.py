@@ -220,11 +220,12 @@ def test_a_robot_installs_from_its_lock_and_the_project_offline(tmp_path: Path) 
                                                              ".pytest_cache", "demo_out", ".ruff_cache"))
     env_dir = tmp_path / "robot-venv"
     venv.EnvBuilder(with_pip=True).create(env_dir)
-    pip = [str(env_dir / "bin" / "python"), "-m", "pip", "--disable-pip-version-check", "-q"]
-    res = subprocess.run([*pip, "install", "--require-hashes", "-r", str(ROBOT_LOCK)], capture_output=True, text=True,
-                         timeout=240)
+    # niced and without byte-compiling: the suite's timing-sensitive tests run beside it on the other workers
+    pip = ["nice", "-n", "19", str(env_dir / "bin" / "python"), "-m", "pip", "--disable-pip-version-check", "-q"]
+    res = subprocess.run([*pip, "install", "--no-compile", "--require-hashes", "-r", str(ROBOT_LOCK)],
+                         capture_output=True, text=True, timeout=240)
     assert res.returncode == 0, res.stderr[-2000:]
-    res = subprocess.run([*pip, "install", "--no-index", "--no-deps", "--no-build-isolation", str(src)],
+    res = subprocess.run([*pip, "install", "--no-compile", "--no-index", "--no-deps", "--no-build-isolation", str(src)],
                          capture_output=True, text=True, timeout=120)
     assert res.returncode == 0, res.stderr[-2000:]
     res = subprocess.run([str(env_dir / "bin" / "scmbridge"), "driver", "--help"], capture_output=True, text=True,

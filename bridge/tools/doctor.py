@@ -186,7 +186,7 @@ def arguments(ap: argparse.ArgumentParser) -> None:
                     help="with --driver: open this link and check the vehicle and its failsafe (never engaged)")
     ap.add_argument("--expiry-days", type=positive_float, default=14.0,
                     help="warn when a certificate expires within this many days")
-    ap.add_argument("--listen-s", type=positive_float, default=2.5,
+    ap.add_argument("--duration", type=positive_float, default=2.5,
                     help="seconds to listen for the nodes' statuses through the router")
     add_zenoh_args(ap)
 
@@ -213,7 +213,7 @@ def run(args: argparse.Namespace) -> int:
         if kind == "driver":
             driver_cfg = cfg
     conf = zenoh_config(args)
-    step(lambda: check_router(args, conf, args.listen_s))
+    step(lambda: check_router(args, conf, args.duration))
     step(lambda: check_tls(conf, args.expiry_days))
     step(lambda: check_access(conf))
     if args.link is not None:
