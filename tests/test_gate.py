@@ -183,3 +183,24 @@ def test_a_forged_new_epoch_during_a_dropout_does_not_lock_the_real_sender_out()
     assert s.accept(1, 11, 0.6) == "foreign_epoch"  # the forger's stream is alive
     assert s.accept(1, 10, 1.0) == "old_epoch"  # a replay of the real sender's past is still refused
     assert s.accept(1, 12, 1.0) is None  # the forger went silent: the real sender is back
+
+
+def test_a_station_whose_first_commands_came_late_is_not_taken_for_a_forger() -> None:
+    """Found in a loaded fleet demo: a station's first commands reached the driver host 0.3 s late; every later one
+    then looked stamped ahead of its own receipt ("forged ... stamp_jump"), was refused for good, and the robot
+    never moved. A few in-order commands that agree on the faster clock are the sender: followed again."""
+    g = CommandGate(LIMITS, cmd_timeout=0.3)
+    t = 100.0
+    for seq in range(1, 4):  # a stall: each arrives 0.3 s after its stamp
+        t += 0.1
+        assert g.offer(M.Command(stamp=t, seq=seq, v=0.2, omega=0.0, method="scm", epoch=STATION), t + 0.3)
+    verdicts = []
+    for seq in range(4, 10):  # the machine recovers: 2 ms of latency
+        t += 0.1
+        verdicts.append(g.offer(M.Command(stamp=t, seq=seq, v=0.2, omega=0.0, method="scm", epoch=STATION),
+                                t + 0.002))
+    assert verdicts[:2] == [False, False] and all(verdicts[2:]), verdicts
+    assert g.counters["resyncs"] == 1 and g.conflict(t + 0.01) is None
+    # one forged command stamped ahead is still refused
+    assert not g.offer(M.Command(stamp=t + 0.5, seq=10, v=0.5, omega=1.0, method="scm", epoch=STATION), t + 0.01)
+    assert g.counters["stamp_jump"] == 3

@@ -26,6 +26,7 @@ from bridge.tools.procs import Children
 FIT = Fitness("")
 ESTOP = Fitness("robot not ready: link can: estop latched by operator", estop=True)
 NO_POSE = Fitness("no pose for 0.8 s")
+LATE = Fitness("no pose for 0.6 s", immediate=False)
 
 
 def _req(action: str, **kw) -> M.MissionRequest:
@@ -53,6 +54,16 @@ def test_only_a_persons_start_or_resume_drives_and_every_stop_without_one_pauses
     assert c.request(_req("abort"), FIT, 0.0).accepted and c.phase == "aborted"
     assert not c.request(_req("resume"), FIT, 0.0).accepted and not c.may_drive(FIT)
     assert not c.request(_req("start"), ESTOP, 0.0).accepted  # never started into a latched estop
+
+
+def test_a_pose_late_for_a_moment_is_not_a_lost_link_but_a_lasting_one_pauses() -> None:
+    c = MissionControl("r1", load_mission_spec())
+    c.request(_req("start"), FIT, 0.0)
+    assert c.may_drive(FIT, 0.0)
+    assert not c.may_drive(LATE, 0.1) and not c.may_drive(LATE, 1.5) and c.phase == "running"  # a loaded moment
+    assert c.may_drive(FIT, 1.6)
+    assert not c.may_drive(LATE, 2.0) and not c.may_drive(LATE, 4.1) and c.phase == "paused"  # lasted 2 s: lost
+    assert not c.may_drive(FIT, 4.2) and "no pose" in c.reason
 
 
 def test_send_loads_a_mission_idle_and_a_restart_never_comes_back_running() -> None:

@@ -11,7 +11,9 @@ sequence numbers"):
 - a message of an epoch it has left is refused unless its seq is above the last one seen from that epoch: a
   replayed or reordered message of an earlier run is refused, while a sender that was only silent can come back;
 - within the epoch, a stamp later than its own receipt (on the sender's clock as the stream shows it) is refused,
-  and a sender found behind a forged jump is followed again after a few messages.
+  and a sender found behind a forged jump is followed again after a few messages; a sender whose least latency was
+  learned during a stall (its first commands came late on a loaded machine) is followed again once a few in-order
+  messages agree on its faster clock.
 
 :class:`CommandGate` is the driver host's gate for ``cmd``: freshness (validity and the deadman), the estop latch
 (released only by a source the configuration names), clamping to the hard limits where that keeps the command's
@@ -67,6 +69,7 @@ class SeqGate:
         self.left: dict[int, int] = {}  # epoch -> its last seq, for the epochs followed before (oldest first)
         self.clock = ClockOffset()  # the followed sender's stamps on this clock
         self._behind: list[int] = []  # seqs refused in a row as out of order (rising, fresh)
+        self._ahead: list[tuple[float, int]] = []  # (receipt - stamp, seq) of the messages refused in a row as ahead
 
     def accept(self, epoch: int, seq: int, now: float, stamp: float | None = None) -> str | None:
         """Take ``(epoch, seq)`` received at ``now`` (with the sender's ``stamp`` when it has one) if it is the next
@@ -87,14 +90,28 @@ class SeqGate:
             self._take(epoch, seq, now, stamp)
             return None
         offset = self.clock.offset
+        clock_resync = False
         if stamp is not None and offset is not None and stamp + offset > now + self.stamp_tolerance:
-            return "stamp_jump"  # sent after it arrived: not this sender's clock
+            # sent after it arrived, on the sender's clock as learned: forged, or the sender's least latency was
+            # learned during a stall (a loaded start) and it is faster now. A run that agrees on the new offset,
+            # in order, is the sender: learn its clock again.
+            run, d = self._ahead, now - stamp
+            if run and (abs(run[-1][0] - d) > self.stamp_tolerance or seq <= run[-1][1]):
+                run.clear()
+            run.append((d, seq))
+            if len(run) < self.resync_after:
+                return "stamp_jump"
+            run.clear()
+            self.clock.reset()
+            clock_resync = True
+        else:
+            self._ahead.clear()
         if seq <= self.last_seq:
             return self._out_of_order(seq, now, stamp, offset)
         if seq - self.last_seq > self.slack + self.max_rate_hz * max(0.0, now - self.last_time):
             return "seq_jump"
         self._take(epoch, seq, now, stamp)
-        return None
+        return "clock_resync" if clock_resync else None
 
     def _take(self, epoch: int, seq: int, now: float, stamp: float | None) -> None:
         self.epoch, self.last_seq, self.last_time = epoch, seq, now
@@ -181,7 +198,10 @@ class CommandGate:
     def offer(self, cmd: M.Command, now: float) -> bool:
         """A decoded command arrived at ``now``; False (and counted) if it is not the next of its sender's stream."""
         why = self.seq.accept(cmd.epoch, cmd.seq, now, cmd.stamp)
-        if why == "resync":
+        if why == "clock_resync":  # the real sender, only faster than its clock was learned: no forger after all
+            self.counters["resyncs"] += 1
+            self.refused_at.pop("stamp_jump", None)
+        elif why == "resync":
             self.counters["resyncs"] += 1
         elif why is not None:
             self.counters[why] += 1

@@ -26,6 +26,10 @@ from transfer.mission import Mission
 log = logging.getLogger("scmbridge.station")
 
 
+#: a pose or a driver status late for this long after driving pauses the mission (a lost link), s
+PAUSE_AFTER_S = 2.0
+
+
 class Saved(msgspec.Struct, kw_only=True):
     """What a station keeps on its disk so a restart knows its mission and where it was."""
 
@@ -37,10 +41,13 @@ class Saved(msgspec.Struct, kw_only=True):
 @dataclass
 class Fitness:
     """The robot's fitness as the station sees it this tick: ``why`` empty when it may be driven, else the one
-    reason; ``estop`` when that reason is a latched estop (a resume is refused until it is released)."""
+    reason; ``estop`` when that reason is a latched estop (a resume is refused until it is released);
+    ``immediate`` when it stops the mission at once (the driver host says the robot cannot drive), else (a pose or
+    a status late) only once it has lasted ``PAUSE_AFTER_S`` (a loaded moment is not a lost link)."""
 
     why: str = "no driver host status"
     estop: bool = False
+    immediate: bool = True
 
 
 class MissionControl:
@@ -56,6 +63,7 @@ class MissionControl:
         self.progress = 0.0
         self.changed = True  # the phase or mission changed since the last save
         self.version = 0  # counts mission replacements (the station resets its teacher on a new one)
+        self.unfit_since: float | None = None  # since when the robot has not been fit while running
 
     # ------------------------------------------------------------------------------------------- restarts
     @classmethod
@@ -123,14 +131,17 @@ class MissionControl:
         self.changed = True
 
     # ------------------------------------------------------------------------------------------------ tick
-    def may_drive(self, fit: Fitness) -> bool:
+    def may_drive(self, fit: Fitness, now: float = 0.0) -> bool:
         """Whether this tick drives; pauses a running mission the robot stopped following without a person."""
         if self.phase != "running":
+            self.unfit_since = None
             return False
         if fit.why:
-            if self.drove:
+            self.unfit_since = now if self.unfit_since is None else self.unfit_since
+            if self.drove and (fit.immediate or now - self.unfit_since >= PAUSE_AFTER_S):
                 self._go("paused", f"paused: {fit.why}")
             return False
+        self.unfit_since = None
         self.drove = True
         return True
 

@@ -380,15 +380,16 @@ class Station:
         state, state_at, driver, driver_at = self.ingest()
         fit = self.fit_to_drive(now, state, state_at, driver, driver_at)
         estop = driver is not None and (driver.state == "estop" or "estop latched" in driver.text)
+        late = driver is None or now - driver_at > DRIVER_STATUS_MAX_AGE or driver.ok  # a pose or a status late
         follows_mission = self.teacher_kind != "external" and self.calibration is None
         with self.lock:
-            self.fitness = Fitness(fit, estop)
+            self.fitness = Fitness(fit, estop, immediate=not late)
             c = self.control
             if follows_mission and not fit and c.phase == "running":
                 c.progress = max(c.progress, self.mission.progress([state.x, state.y]))
                 if self.mission.reached([state.x, state.y]):
                     c.reached()
-            drive = c.may_drive(self.fitness)
+            drive = c.may_drive(self.fitness, now)
             why = "" if drive else self.not_driving(fit)
         if drive:
             why = self.drive(now, state)
