@@ -19,6 +19,7 @@ import time
 
 from bridge.core.args import pose_arg, positive_float
 from bridge.core.auth import load_key
+from bridge.core.config import LINK_CONFIGS
 from bridge.core.errors import UsageError
 
 
@@ -37,7 +38,7 @@ def _peer_arg(text: str | None) -> tuple[str, int] | str:
 
 
 def arguments(ap: argparse.ArgumentParser) -> None:
-    ap.add_argument("--link", choices=["can", "udp", "mavlink"], required=True)
+    ap.add_argument("--link", choices=sorted(LINK_CONFIGS), required=True)
     ap.add_argument("--port", type=int, default=None, help="(udp, mavlink) UDP port on --host (47800 / 14550)")
     ap.add_argument("--host", default="127.0.0.1", help="(udp, mavlink) the address to listen on")
     ap.add_argument("--interface", default="udp_multicast")

@@ -129,3 +129,23 @@ def test_docs_cite_only_what_the_repository_contains() -> None:
             continue
         assert not outside.search(f.read_text()), f"{f} cites a document outside the repository"
     assert (ROOT / "docs" / "ARCHITECTURE.md").exists()
+
+
+def test_every_link_is_named_in_one_table() -> None:
+    """The links a user can pick (every `--link` option) are the configuration's link table, and each has its
+    driver registered under the same name."""
+    import ast
+
+    from bridge.core.config import LINK_CONFIGS, LinkSection
+    from drivers import LINKS
+
+    assert set(LINKS) == set(LINK_CONFIGS) == set(LinkSection.__struct_fields__)
+    for path in ROOT.rglob("*.py"):
+        if ".venv" in path.parts:
+            continue
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.Call) and getattr(node.func, "attr", "") == "add_argument" and any(
+                    isinstance(a, ast.Constant) and a.value == "--link" for a in node.args):
+                choices = [k.value for k in node.keywords if k.arg == "choices"]
+                assert choices and not isinstance(choices[0], ast.List), \
+                    f"{path.relative_to(ROOT)}:{node.lineno}: --link choices written by hand"

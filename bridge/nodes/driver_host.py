@@ -39,7 +39,7 @@ from bridge.core import wire as M
 from bridge.core.args import pose_arg, positive_float, robot_arg
 from bridge.core.auth import load_key
 from bridge.core.clock import ClockOffset
-from bridge.core.config import DriverConfig, load_driver
+from bridge.core.config import LINK_CONFIGS, DriverConfig, load_driver
 from bridge.core.errors import UsageError
 from bridge.core.gate import CommandGate, Decision
 from bridge.core.paths import save_atomic, state_dir
@@ -470,7 +470,7 @@ class DriverHost:
 
 
 def arguments(ap: argparse.ArgumentParser) -> None:
-    ap.add_argument("--link", choices=["can", "mavlink", "udp"], required=True)
+    ap.add_argument("--link", choices=sorted(LINK_CONFIGS), required=True)
     ap.add_argument("--config", help="driver TOML (scmbridge config show --kind driver; deploy/driver*.example.toml)")
     ap.add_argument("--robot", type=robot_arg, default=None, help="robot name (overrides the config)")
     add_zenoh_args(ap)
