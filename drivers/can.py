@@ -68,6 +68,7 @@ from typing import Any
 import can
 import cantools
 
+from bridge.core.backoff import Backoff
 from bridge.core.config import CanLinkConfig
 from drivers.base import DriverError, FailsafeReport, LinkHealth, Pose
 from drivers.odrive import AxisState, ControlMode, InputMode, error_names, state_name
@@ -196,7 +197,7 @@ class CanDriver:
         self._arm_deadline = 0.0
         self._down_reason: str | None = None
         self._reopen_at = 0.0
-        self._backoff = config.reopen_backoff
+        self._backoff = Backoff(config.reopen_backoff, config.reopen_backoff_max)
         self._send_failures = 0
         self.counters: dict[str, int] = {
             "error_frames": 0, "bus_failures": 0, "reopens": 0, "send_failures": 0, "faults": 0,
@@ -364,7 +365,7 @@ class CanDriver:
         ax.state, ax.error = int(sig["Axis_State"]), int(sig["Axis_Error"])
         ax.procedure_result = int(sig["Procedure_Result"])
         ax.heartbeat_at = stamp if ax.heartbeat_at is None else max(ax.heartbeat_at, stamp)
-        self._backoff = self.config.reopen_backoff  # the bus carries the controllers' frames again
+        self._backoff.reset()  # the bus carries the controllers' frames again
         if self._phase != "running":
             return  # arming: old Heartbeats (from before the request) still report the fault being cleared
         if ax.error or ax.state != AxisState.CLOSED_LOOP_CONTROL:
@@ -478,21 +479,21 @@ class CanDriver:
         self._health.connected = False
         self._down_reason = reason
         self._send_failures = 0
-        self._reopen_at = now + self._backoff
+        self._reopen_at = now + self._backoff.delay
 
     def _reopen(self, now: float) -> None:
         try:
             self.bus = self._open_bus()
         except (can.CanError, OSError, ValueError) as exc:
             self._down_reason = f"reopen failed: {exc}"
-            self._backoff = min(2.0 * self._backoff, self.config.reopen_backoff_max)
-            self._reopen_at = now + self._backoff
+            self._backoff.grow()
+            self._reopen_at = now + self._backoff.delay
             return
         self.counters["reopens"] += 1
         self._health.connected = True
         self._down_reason = None
         # until a controller's frame arrives on the new bus, the next failure waits longer
-        self._backoff = min(2.0 * self._backoff, self.config.reopen_backoff_max)
+        self._backoff.grow()
 
     # ----------------------------------------------------------------------------------------------- state
     def _evaluate(self, now: float) -> None:

@@ -82,6 +82,7 @@ os.environ.setdefault("MAVLINK20", "1")
 from pymavlink import mavutil  # noqa: E402
 
 from bridge.core.auth import load_key  # noqa: E402
+from bridge.core.backoff import Backoff  # noqa: E402
 from bridge.core.clock import ClockOffset  # noqa: E402
 from bridge.core.config import MavlinkLinkConfig  # noqa: E402
 from drivers.base import DriverError, FailsafeReport, LinkHealth, Pose  # noqa: E402
@@ -215,7 +216,7 @@ class MavlinkDriver:
         self._lost_reason = ""
         self._conn_time = math.inf
         self._reconnect_due = 0.0
-        self._backoff = _BACKOFF0
+        self._backoff = Backoff(_BACKOFF0, config.reconnect_max_s)
         self._state: tuple[bool, bool, str, str] = (False, False, "not opened", "closed")
         self._counts = {"foreign": 0, "setpoints_sent": 0, "setpoints_withheld": 0, "setpoints_deferred": 0,
                         "stray_acks": 0,
@@ -269,13 +270,13 @@ class MavlinkDriver:
         self.conn = None
 
     def _drop_connection(self, reason: str, now: float) -> None:
-        log.warning("MAVLink connection %s lost: %s; re-opening in %.2f s", self.url, reason, self._backoff)
+        log.warning("MAVLink connection %s lost: %s; re-opening in %.2f s", self.url, reason, self._backoff.delay)
         self._health.errors += 1
         self._lost_reason = reason
         self._close_conn()
         self._conn_failed = None
-        self._reconnect_due = now + self._backoff
-        self._backoff = min(2 * self._backoff, self.config.reconnect_max_s)
+        self._reconnect_due = now + self._backoff.delay
+        self._backoff.grow()
 
     def _try_reconnect(self, now: float) -> None:
         if self.conn is not None or now < self._reconnect_due:
@@ -284,8 +285,8 @@ class MavlinkDriver:
             self._connect()
         except Exception as exc:  # pymavlink raises OSError, SerialException, ConnectionRefusedError...
             log.debug("re-opening %s failed: %s", self.url, exc)
-            self._reconnect_due = now + self._backoff
-            self._backoff = min(2 * self._backoff, self.config.reconnect_max_s)
+            self._reconnect_due = now + self._backoff.delay
+            self._backoff.grow()
             return
         self._counts["reconnects"] += 1
         log.info("MAVLink connection %s re-opened", self.url)
@@ -523,10 +524,10 @@ class MavlinkDriver:
             try:
                 self._connect()
             except Exception as exc:  # pymavlink raises plain OSError/SerialException/...
-                if time.monotonic() + self._backoff > t_end:
+                if time.monotonic() + self._backoff.delay > t_end:
                     raise DriverError(f"cannot open MAVLink connection {self.url}: {exc}") from exc
-                time.sleep(self._backoff)
-                self._backoff = min(2 * self._backoff, self.config.reconnect_max_s)
+                time.sleep(self._backoff.delay)
+                self._backoff.grow()
         self._heartbeat(time.monotonic(), force=True)
         v = self.v
         if not self._wait(lambda: v.hb_time is not None and v.custom_mode != INITIALISING, t_end):
@@ -535,7 +536,7 @@ class MavlinkDriver:
                 raise DriverError(f"no HEARTBEAT from system {self.target[0]} component {self.target[1]} on "
                                   f"{self.url} within {self.open_timeout} s{others}")
             raise DriverError(f"the vehicle is still initialising after {self.open_timeout} s")
-        self._backoff = _BACKOFF0
+        self._backoff.reset()
         self._request_streams()
         if not self._wait(lambda: self._position_fresh(time.monotonic()) and v.att is not None, t_end):
             raise DriverError(f"vehicle position not ready within {self.open_timeout} s: no LOCAL_POSITION_NED "
@@ -663,7 +664,7 @@ class MavlinkDriver:
                 self._counts["link_losses"] += 1
             elif connected and not self._link_up:
                 self._link_up = True
-                self._backoff = _BACKOFF0
+                self._backoff.reset()
                 log.info("heartbeat back from the vehicle (mode %s, %s)", mode_name(v.custom_mode),
                          "armed" if v.armed else "disarmed")
                 self._request_streams()  # a rebooted autopilot forgot them; never the mode or arming

@@ -393,7 +393,7 @@ def test_a_failed_bus_is_reported_and_reopened_with_bounded_backoff(rig: Rig, mo
     # waits 0.05, 0.1, 0.2, 0.2, ... s: doubling, bounded by reopen_backoff_max (+ up to a tick or two of delay on
     # a loaded machine)
     assert 4 <= len(attempts) <= 9, attempts
-    assert gaps[0] < gaps[2] and all(0.09 <= g <= 0.2 + 0.15 for g in gaps[1:]) and d._backoff == 0.2, gaps
+    assert gaps[0] < gaps[2] and all(0.09 <= g <= 0.2 + 0.15 for g in gaps[1:]) and d._backoff.delay == 0.2, gaps
     monkeypatch.setattr(d, "_open_bus", real_open)
     # back: the controllers' frames flow again; their watchdogs (0.3 s) tripped during the 1 s outage, which
     # the driver reports and leaves to the operator

@@ -38,6 +38,7 @@ import zenoh
 from bridge.core import wire as M
 from bridge.core.args import pose_arg, positive_float, robot_arg
 from bridge.core.auth import load_key
+from bridge.core.backoff import Backoff
 from bridge.core.clock import ClockOffset
 from bridge.core.config import LINK_CONFIGS, DriverConfig, load_driver
 from bridge.core.errors import UsageError
@@ -411,7 +412,7 @@ class DriverHost:
     def open_link(self, stop: threading.Event) -> bool:
         """Open the link, retrying with a backoff while the vehicle (or the CAN interface) is not there, saying what
         it waits for on status, in the log (once per reason) and to systemd; False if stopped meanwhile."""
-        backoff, said = OPEN_BACKOFF[0], ""
+        backoff, said = Backoff(*OPEN_BACKOFF), ""
         while not stop.is_set():
             try:
                 self.driver.open(time.monotonic())  # bounded by the link's open_timeout
@@ -419,15 +420,15 @@ class DriverHost:
             except DriverError as exc:
                 text = f"link {self.link}: waiting for the vehicle: {exc}"
                 if text != said:
-                    log.warning("%s; trying again (every %.0f s at most)", text, OPEN_BACKOFF[1])
+                    log.warning("%s; trying again (every %.0f s at most)", text, backoff.maximum)
                     said = text
                 systemd.status(text[:200])
                 self._put("status", M.Status(stamp=time.monotonic(), seq=self.seq["status"], node="driver",
                                              ok=False, state="starting", text=text[:1024]))
                 self.seq["status"] += 1
                 self.driver.close(disarm=False, stop_timeout=0.0)  # a half-open link is let go before the retry
-                stop.wait(backoff)
-                backoff = min(2 * backoff, OPEN_BACKOFF[1])
+                stop.wait(backoff.delay)
+                backoff.grow()
         return False
 
     def close(self) -> None:

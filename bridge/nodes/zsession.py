@@ -16,6 +16,7 @@ from pathlib import Path
 
 import zenoh
 
+from bridge.core.backoff import Backoff
 from bridge.core.errors import UsageError
 from bridge.nodes import systemd
 
@@ -102,7 +103,7 @@ def open_session(conf: zenoh.Config, wait: threading.Event | None = None, what: 
     tells systemd, until it connects or ``wait`` is set (then :class:`UsageError` too: stopped while waiting). The
     same error covers a router that is down and one that refused this TLS identity (wrong certificate or address):
     ``scmbridge doctor`` tells them apart."""
-    delay, said = 0.1, ""
+    backoff, said = Backoff(0.1, 5.0), ""
     if what and not secured(conf):
         log.warning("%s: this Zenoh session has no TLS: anyone who reaches its network can publish commands and "
                     "estop releases (for the demo and tests on loopback only; a lab uses the configuration "
@@ -120,6 +121,6 @@ def open_session(conf: zenoh.Config, wait: threading.Event | None = None, what: 
                 log.warning("%s%s; retrying", f"{what}: " if what else "", text)
                 systemd.status(f"waiting for the Zenoh router at {_endpoints(conf)}")
                 said = text
-            if wait.wait(delay):
+            if wait.wait(backoff.delay):
                 raise UsageError(f"stopped while waiting for the Zenoh router at {_endpoints(conf)}") from None
-            delay = min(2 * delay, 5.0)
+            backoff.grow()
