@@ -30,8 +30,8 @@ with the sliding-window minimum of ``receipt - stamp`` (:class:`bridge.core.cloc
 ``clock_window_s``; a new
 robot epoch, or a confirmed step of its clock (``bridge.core.clock``), starts it again: ``clock_restarts``;
 a stamp that does not advance, not being a clock, gives the receipt: ``stamp_fallbacks``), not at the poll that read
-them: the driver host polls at its tick, and receipt stamps on that 20 ms grid put 0.0096 m/s of median error into
-the pairs (``scmbridge bench pairing --link udp``).
+them: the driver host polls at its tick, and receipt stamps on that 20 ms grid would add error to the pairs
+(``scmbridge bench pairing --link udp`` measures it; README.md, "Reliability").
 
 Health is truthful: ``ok`` only while the socket is open and the robot's last accepted state is younger than
 ``state_timeout_s`` (so False until the first state); ``text`` says how long the robot has been silent.
