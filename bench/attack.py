@@ -56,9 +56,9 @@ def udp_spoof(short: bool) -> Result:
     """An unsealed Command (v = 0.95, the robot's own limit 1.0) from the driver's own address and epoch."""
     from bridge.core import wire as M
     from bridge.core.auth import make_key
-    from bridge.core.config import UdpLinkConfig
     from bridge.tools.procs import free_udp_port
     from drivers import open_driver
+    from drivers.udp import UdpLinkConfig
     from sim_learner.dynamics import mpc_learner
     from sim_learner.udp_robot import UdpRobot
     from sim_learner.vehicle import SimVehicle
@@ -120,7 +120,7 @@ def mavlink_unsigned(short: bool) -> Result:
 def estop_forgotten_on_restart(short: bool) -> Result:
     """An operator's estop, then the driver host dies and is restarted (as systemd does)."""
     from bridge.core import wire as M
-    from bridge.core.config import DriverConfig
+    from bridge.nodes.driver_config import DriverConfig
     from bridge.nodes.driver_host import DriverHost
 
     class _NoLink:  # the host's gate and latch are what is attacked; no link is opened
@@ -210,8 +210,7 @@ def poisoned_store(short: bool) -> Result:
 
 def can_odometry(short: bool) -> Result:
     """Crafted encoder frames at 2 kHz, each a small plausible step, while the robot stands still."""
-    from bridge.core.config import CanLinkConfig
-    from drivers.can import CanDriver
+    from drivers.can import CanDriver, CanLinkConfig
 
     d = CanDriver(CanLinkConfig(max_wheel_speed=10.0))
     d._phase = "running"

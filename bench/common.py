@@ -43,8 +43,8 @@ def can_ecus(stack: ExitStack, channel: str, vehicle: Any, **ecu_kw: Any) -> Any
 
 def open_can_driver(stack: ExitStack, channel: str) -> Any:
     """The CAN driver on the ``virtual`` ``channel``, opened (both axes armed), closed with ``stack``."""
-    from bridge.core.config import CanLinkConfig
     from drivers import open_driver
+    from drivers.can import CanLinkConfig
 
     driver = open_driver("can", CanLinkConfig(interface="virtual", channel=channel))
     stack.callback(driver.close)

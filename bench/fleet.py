@@ -57,8 +57,8 @@ class SimRobot:
 
     def __init__(self, name: str, x0: tuple[float, float, float], now: float) -> None:
         from bridge.core import wire as M
-        from bridge.core.config import DEFAULT_HARD_LIMITS
         from bridge.core.gate import CommandGate
+        from bridge.nodes.driver_config import DEFAULT_HARD_LIMITS
 
         self.name, self.keys = name, M.Keys(name)
         self.gate = CommandGate(DEFAULT_HARD_LIMITS.bounds(), 0.3)

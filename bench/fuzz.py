@@ -69,7 +69,8 @@ from bridge.core.errors import UsageError
 from bridge.core.gate import DRIVING
 from bridge.nodes.node import add_zenoh_args, rss_mb, rss_parts
 
-#: the driver host's default hard limits (``bridge.core.config.DEFAULT_HARD_LIMITS``); the host runs with no config file
+#: the driver host's default hard limits (``bridge.nodes.driver_config.DEFAULT_HARD_LIMITS``); the host runs with no
+#: config file
 HARD_V, HARD_W = (-0.5, 0.5), (-1.0, 1.0)
 #: every input, in the order they run
 INPUTS = ("zenoh_cmd", "zenoh_estop", "udp_driver", "udp_robot", "can_decoder", "can_driver", "can_ecu",
@@ -690,7 +691,7 @@ def probe_host(args: argparse.Namespace) -> int:
     ``malloc_trim(0)`` first, ``quit`` stops it."""
     import logging
 
-    from bridge.core.config import load_driver
+    from bridge.nodes.driver_config import load_driver
     from bridge.nodes.driver_host import DriverHost
     from bridge.nodes.node import stop_on_signals, zenoh_config
     from bridge.nodes.zsession import open_session
@@ -890,8 +891,8 @@ def udp_driver(n: int, seed: int, workdir: Path | None = None) -> dict:
     """Datagrams at the UDP driver: from its pinned robot address (a socket bound here) and from a stranger. Every
     datagram is counted once: foreign, malformed, a pose, or one of the stream's refusals. Afterwards an emulated
     robot takes the pinned address and the driver drives it."""
-    from bridge.core.config import UdpLinkConfig
     from drivers import open_driver
+    from drivers.udp import UdpLinkConfig
     from sim_learner.udp_robot import UdpRobot
 
     rng = random.Random(seed)
@@ -989,8 +990,8 @@ def udp_robot(n: int, seed: int, workdir: Path | None = None) -> dict:
     datagram is counted once (``received`` = foreign + malformed + a stream refusal + over its limits + applied);
     the vehicle never gets a non-finite command or one beyond the robot's own limits. Afterwards a real driver takes
     the peer's address and drives it."""
-    from bridge.core.config import UdpLinkConfig
     from drivers import open_driver
+    from drivers.udp import UdpLinkConfig
     from sim_learner.udp_robot import UdpRobot
 
     rng = random.Random(seed)
@@ -1661,8 +1662,8 @@ def mavlink_driver(n: int, seed: int, workdir: Path | None = None) -> dict:
     driver opened GUIDED and armed): the driver must receive every message the oracle parser gets out of them
     and count exactly its BAD_DATA. What the driver sends meanwhile must be what it was told (or a stop); a valid
     GUIDED heartbeat afterwards and the driver's set-point reaches the vehicle again."""
-    from bridge.core.config import MavlinkLinkConfig
     from drivers import open_driver
+    from drivers.mavlink import MavlinkLinkConfig
 
     rng = random.Random(seed)
     L = mavlink2()
@@ -1806,8 +1807,8 @@ def mavlink_rover(n: int, seed: int, workdir: Path | None = None) -> dict:
     beyond WP_SPEED / ATC_STR_RAT_MAX. A rover whose thread dies is counted (with the exception), replaced by a new
     one, and the batch it died in is left out of the counts. Afterwards: what a NaN velocity set-point makes of the
     vehicle, and a real driver opens the rover (GUIDED, armed) and drives it."""
-    from bridge.core.config import MavlinkLinkConfig
     from drivers import open_driver
+    from drivers.mavlink import MavlinkLinkConfig
 
     rng = random.Random(seed)
     t0, crashes = time.monotonic(), Crashes()

@@ -38,7 +38,7 @@ def _opened(stack: ExitStack, link: str, config: Any) -> Any:
 
 
 def _mavlink(stack: ExitStack, vehicle: Any) -> Any:
-    from bridge.core.config import MavlinkLinkConfig
+    from drivers.mavlink import MavlinkLinkConfig
     from sim_learner.mavlink_rover import MavlinkRover
 
     rover = MavlinkRover(vehicle).start()
@@ -55,8 +55,8 @@ def _can(stack: ExitStack, vehicle: Any) -> Any:
 
 
 def _udp(stack: ExitStack, vehicle: Any) -> Any:
-    from bridge.core.config import UdpLinkConfig
     from bridge.tools.procs import free_udp_port
+    from drivers.udp import UdpLinkConfig
     from sim_learner.udp_robot import UdpRobot
 
     port = free_udp_port()  # the driver's port, which the robot is pinned to

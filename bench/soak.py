@@ -44,9 +44,9 @@ import msgspec
 import numpy as np
 
 from bridge.core import wire as M
-from bridge.core.config import LINK_CONFIGS
 from bridge.core.errors import UsageError
 from bridge.nodes.node import rss_parts
+from drivers import link_names
 
 
 def slope_mb_per_min(times_s: list[float], values: list[float | None], warmup_s: float) -> float | None:
@@ -248,7 +248,7 @@ def soak(minutes: float, link: str, workdir: Path, sample_s: float = 10.0, warmu
 
 def arguments(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--duration", type=float, default=600.0, help="seconds to drive (after start-up)")
-    ap.add_argument("--link", choices=sorted(LINK_CONFIGS), default="can")
+    ap.add_argument("--link", choices=link_names(), default="can")
     ap.add_argument("--sample-every", type=float, default=10.0, help="RSS sampling period, seconds")
     ap.add_argument("--warmup", type=float, default=60.0, help="seconds of samples left out of the slope")
     ap.add_argument("--mission", default="paper-s-path", help="mission file or shipped mission name")

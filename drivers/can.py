@@ -4,7 +4,8 @@ Frames as ODrive firmware 0.6 defines them, from ``odrive_cansimple.dbc`` (node 
 at run time: arbitration id = node_id << 5 | cmd_id, 11-bit, little endian, IEEE float32); enumerations and error
 names in :mod:`drivers.odrive`, with the ODrive sources they were checked against. The driver turns (v, omega) into
 wheel turn rates with the wheel radius and track width, and integrates odometry from the controllers' encoder
-estimates. Configuration: :class:`bridge.core.config.CanLinkConfig` (``[link.can]`` in the driver host's file).
+estimates. Configuration: :class:`CanLinkConfig` (``[link.can]`` in the driver host's file). python-can and
+cantools are imported when a driver is built or a frame coded, not with the module (the configuration needs neither).
 
 **Start-up** (``open``) only opens the bus and listens: no axis enters closed loop until a person engages
 (``scmbridge engage``, or ``engage_on_start``), since a restarted driver host must not take the robot back.
@@ -63,15 +64,16 @@ import math
 import time
 from dataclasses import dataclass, field
 from importlib import resources
-from typing import Any
-
-import can
-import cantools
+from typing import TYPE_CHECKING, Annotated, Any
 
 from bridge.core.backoff import Backoff
-from bridge.core.config import CanLinkConfig
+from bridge.core.config import Cfg, Finite, Rule, meta
 from drivers.base import DriverError, FailsafeReport, LinkHealth, Pose
 from drivers.odrive import AxisState, ControlMode, InputMode, error_names, state_name
+
+if TYPE_CHECKING:
+    import can
+    import cantools
 
 #: error class bit of a bus-off error frame (Linux ``include/uapi/linux/can/error.h``: ``CAN_ERR_BUSOFF``); python-can's
 #: socketcan interface puts the error class into the error frame's ``arbitration_id``.
@@ -98,6 +100,45 @@ SEND_FAILURES_DOWN = 3
 #: frames read in one ``poll`` at most, so a flooded bus cannot hold the driver host's loop.
 MAX_FRAMES_PER_POLL = 2000
 
+
+class CanLinkConfig(Cfg):
+    """``[link.can]``: a differential-drive base with one ODrive 0.6 (CANSimple) controller per wheel."""
+
+    interface: Annotated[str, meta("python-can interface: socketcan, virtual, udp_multicast, pcan, ...")] = "socketcan"
+    channel: Annotated[str, meta("bus channel: can0, a virtual channel name, a multicast group", min_length=1)] = "can0"
+    bitrate: Annotated[int, meta("bit/s (ignored by socketcan: set it with `ip link`)", ge=10_000, le=8_000_000)] = (
+        500_000)
+    fd: Annotated[bool, meta("CAN FD (udp_multicast needs an explicit false)")] = False
+    left_node: Annotated[int, meta("left wheel's CANSimple node id", ge=0, le=63)] = 0
+    right_node: Annotated[int, meta("right wheel's CANSimple node id", ge=0, le=63)] = 1
+    left_sign: Annotated[float, meta("+1 or -1: -1 for a mirrored motor")] = 1.0
+    right_sign: Annotated[float, meta("+1 or -1: -1 for a mirrored motor")] = -1.0
+    wheel_radius: Annotated[float, meta("m", gt=0.0, le=10.0)] = 0.1
+    track_width: Annotated[float, meta("distance between the wheels, m", gt=0.0, le=100.0)] = 0.4
+    initial_pose: Annotated[tuple[Finite, Finite, Finite], meta("odometry origin [x, y, theta]")] = (0.0, 0.0, 0.0)
+    open_timeout: Annotated[float, meta("s to wait for both axes in closed loop (at open and after clear_faults)",
+                                        gt=0.0, le=120.0)] = 2.0
+    heartbeat_timeout: Annotated[float, meta(
+        "s without a controller's Heartbeat before the link is reported lost and the other wheel stopped (ODrive sends "
+        "one every 0.1 s by default; keep it at or below the controllers' watchdog_timeout)", ge=0.05, le=10.0)] = 0.5
+    max_wheel_speed: Annotated[float, meta("rev/s: an encoder estimate faster than this, or a position step it cannot "
+                                           "explain, is rejected as implausible", gt=0.0, le=1000.0)] = 5.0
+    reopen_backoff: Annotated[float, meta("s before the first attempt to reopen a failed bus; doubles per failed "
+                                          "attempt", gt=0.0, le=10.0)] = 0.1
+    reopen_backoff_max: Annotated[float, meta("s: the longest wait between two attempts to reopen a failed bus",
+                                              gt=0.0, le=60.0)] = 2.0
+
+    def __post_init__(self) -> None:
+        if self.reopen_backoff_max < self.reopen_backoff:
+            raise Rule(f"reopen_backoff_max = {self.reopen_backoff_max} < reopen_backoff = "
+                             f"{self.reopen_backoff}: the longest wait cannot be shorter than the first")
+        if self.left_node == self.right_node:
+            raise Rule(f"left_node and right_node are both {self.left_node}; each wheel needs its own node")
+        for name in ("left_sign", "right_sign"):
+            if getattr(self, name) not in (1.0, -1.0):
+                raise Rule(f"{name} = {getattr(self, name)}: must be 1 or -1")
+
+
 _DB: cantools.database.can.Database | None = None
 
 
@@ -105,6 +146,8 @@ def database() -> cantools.database.can.Database:
     """The shipped CANSimple DBC (loaded once)."""
     global _DB
     if _DB is None:
+        import cantools
+
         text = resources.files("drivers").joinpath("odrive_cansimple.dbc").read_text()
         _DB = cantools.database.load_string(text, database_format="dbc")
     return _DB
@@ -112,6 +155,8 @@ def database() -> cantools.database.can.Database:
 
 def encode(node: int, name: str, signals: dict[str, float] | None = None) -> can.Message:
     """A CANSimple frame for ``node`` (0..63)."""
+    import can
+
     if not 0 <= node < 64:
         raise ValueError(f"CANSimple node id must be 0..63, got {node}")
     msg = database().get_message_by_name(name)
@@ -209,6 +254,8 @@ class CanDriver:
 
     # ----------------------------------------------------------------------------------------------- link
     def _open_bus(self) -> can.BusABC:
+        import can
+
         kwargs: dict[str, Any] = {"interface": self.interface, "channel": self.channel}
         if self.interface == "socketcan":
             pass  # the bitrate of a SocketCAN device is set with `ip link`, not here
@@ -219,6 +266,8 @@ class CanDriver:
         return can.Bus(**kwargs)
 
     def open(self, now: float) -> None:
+        import can
+
         try:
             self.bus = self._open_bus()
         except (can.CanError, OSError, ValueError) as exc:
@@ -305,6 +354,8 @@ class CanDriver:
 
     # ----------------------------------------------------------------------------------------------- receive
     def poll(self, now: float, block: float = 0.0) -> list[Pose]:
+        import can
+
         out: list[Pose] = []
         if self.bus is None and self._phase != "closed" and now >= self._reopen_at:
             self._reopen(now)
@@ -453,6 +504,8 @@ class CanDriver:
 
     # ----------------------------------------------------------------------------------------------- bus
     def _send(self, frame: can.Message) -> bool:
+        import can
+
         if self.bus is None:
             return False
         try:
@@ -482,6 +535,8 @@ class CanDriver:
         self._reopen_at = now + self._backoff.delay
 
     def _reopen(self, now: float) -> None:
+        import can
+
         try:
             self.bus = self._open_bus()
         except (can.CanError, OSError, ValueError) as exc:
@@ -586,3 +641,10 @@ class CanDriver:
             self._phase = "closed"
             self._health.connected = self._health.ok = False
             self._health.text = "closed"
+
+
+#: the link's plugin entry (``drivers.LINKS``): its ``[link.can]`` section, its driver, and whether ``scmbridge
+#: learner`` emulates it (the two ODrive controllers, :mod:`sim_learner.can_ecu`)
+CONFIG = CanLinkConfig
+DRIVER = CanDriver
+EMULATED = True

@@ -63,7 +63,8 @@ close(): if the vehicle is still ours (GUIDED), zero set-points until it reports
 arrives just before its peer closes (libraries/AP_HAL_SITL/UARTDriver.cpp), so closing at once would leave the
 vehicle armed. A vehicle the operator has taken over is left alone.
 
-Configuration: :class:`bridge.core.config.MavlinkLinkConfig` (``[link.mavlink]`` in the driver host's file).
+Configuration: :class:`MavlinkLinkConfig` (``[link.mavlink]`` in the driver host's file). pymavlink is imported
+when the first driver is built (:func:`load_pymavlink`), not with the module: the configuration does not need it.
 """
 
 from __future__ import annotations
@@ -75,30 +76,28 @@ import time
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Annotated, Any
 
-os.environ.setdefault("MAVLINK20", "1")
-from pymavlink import mavutil  # noqa: E402
-
-from bridge.core.auth import load_key  # noqa: E402
-from bridge.core.backoff import Backoff  # noqa: E402
-from bridge.core.clock import ClockOffset  # noqa: E402
-from bridge.core.config import MavlinkLinkConfig  # noqa: E402
-from drivers.base import DriverError, FailsafeReport, LinkHealth, Pose  # noqa: E402
+from bridge.core.auth import load_key
+from bridge.core.backoff import Backoff
+from bridge.core.clock import ClockOffset
+from bridge.core.config import Cfg, Rule, meta
+from drivers.base import DriverError, FailsafeReport, LinkHealth, Pose
 
 log = logging.getLogger("scmbridge.driver.mavlink")
 
-mavutil.set_dialect("ardupilotmega")
-MAV = mavutil.mavlink
-ROVER_MODES: dict[int, str] = mavutil.mode_mapping_bynumber(MAV.MAV_TYPE_GROUND_ROVER)
-GUIDED = mavutil.mode_mapping_byname(MAV.MAV_TYPE_GROUND_ROVER)["GUIDED"]
-INITIALISING = mavutil.mode_mapping_byname(MAV.MAV_TYPE_GROUND_ROVER)["INITIALISING"]
+#: pymavlink (ardupilotmega dialect, MAVLink 2) and the Rover's mode numbers, set by :func:`load_pymavlink`
+mavutil: Any = None
+MAV: Any = None
+ROVER_MODES: dict[int, str] = {}
+GUIDED: int
+INITIALISING: int
+SOURCE_COMPONENT: int
 #: the vehicle's own failsafe settings read at open (Rover/Parameters.cpp, GCS failsafe in Rover/failsafe.cpp)
 FAILSAFE_PARAMS = ("FS_GCS_ENABLE", "FS_GCS_TIMEOUT", "FS_ACTION", "FS_TIMEOUT")
 #: Rover stops a GUIDED velocity target not renewed for this long (Rover/mode_guided.cpp), s
 GUIDED_TIMEOUT_S = 3.0
 TYPE_MASK_VEL_YAWRATE = 0x05E7
-SOURCE_COMPONENT = MAV.MAV_COMP_ID_MISSIONPLANNER
 NO_ACK = -1  # a command that got no COMMAND_ACK after all its tries
 _BACKOFF0 = 0.25
 #: the most the ATTITUDE and LOCAL_POSITION_NED samples may be apart for the heading to be carried to the position's
@@ -108,6 +107,67 @@ ATTITUDE_MAX_LAG = 0.1
 #: rad (ArduPilot sends [-pi, pi]; a full turn either way is tolerated), yaw rate in rad/s. A message outside them,
 #: NaN/inf included, is counted malformed (``detail["invalid_values"]``) and dropped before it can reach a pose.
 POSITION_MAX, SPEED_MAX, YAW_MAX, YAW_RATE_MAX = 1e6, 100.0, 2 * math.pi, 100.0
+
+
+def load_pymavlink() -> None:
+    """Import pymavlink and set the names above (once): reading a driver host's configuration, which holds every
+    link's section, must not load it."""
+    global mavutil, MAV, ROVER_MODES, GUIDED, INITIALISING, SOURCE_COMPONENT
+    if mavutil is not None:
+        return
+    os.environ.setdefault("MAVLINK20", "1")
+    from pymavlink import mavutil as loaded
+
+    loaded.set_dialect("ardupilotmega")
+    mav = loaded.mavlink
+    ROVER_MODES = loaded.mode_mapping_bynumber(mav.MAV_TYPE_GROUND_ROVER)
+    GUIDED = loaded.mode_mapping_byname(mav.MAV_TYPE_GROUND_ROVER)["GUIDED"]
+    INITIALISING = loaded.mode_mapping_byname(mav.MAV_TYPE_GROUND_ROVER)["INITIALISING"]
+    SOURCE_COMPONENT = mav.MAV_COMP_ID_MISSIONPLANNER
+    MAV, mavutil = mav, loaded
+
+
+class MavlinkLinkConfig(Cfg):
+    """``[link.mavlink]``: an ArduPilot Rover in GUIDED mode."""
+
+    url: Annotated[str, meta("pymavlink connection: tcp:HOST:5760 (SITL), udpout:HOST:PORT, /dev/ttyUSB0",
+                             min_length=1)] = (
+        "udpout:127.0.0.1:14550")
+    baud: Annotated[int, meta("serial baud rate", ge=1200, le=4_000_000)] = 57600
+    target_system: Annotated[int, meta("the vehicle's MAVLink system id", ge=1, le=255)] = 1
+    target_component: Annotated[int, meta("the autopilot's component id", ge=0, le=255)] = 1
+    source_system: Annotated[int, meta("our system id (a ground control station)", ge=1, le=255)] = 255
+    rate_hz: Annotated[float, meta("LOCAL_POSITION_NED and ATTITUDE rate requested, Hz", gt=0.0, le=100.0)] = 20.0
+    clock_window_s: Annotated[float, meta("window of the vehicle-clock offset estimate that stamps poses at their "
+                                          "time_boot_ms, s", gt=0.0, le=600.0)] = 5.0
+    setpoint_rate_hz: Annotated[float, meta(
+        "set-points repeating an unchanged command, Hz (a changed command and a stop go at once; 50 Hz set-points fill "
+        "56 % of a 57600-baud radio)", gt=0.0, le=50.0)] = 10.0
+    max_setpoint_hz: Annotated[float, meta(
+        "the most set-points per second, changed commands included (a 57600-baud radio carries ~90 a second and "
+        "nothing else then); a stop after motion always goes at once", gt=0.0, le=200.0)] = 25.0
+    open_timeout: Annotated[float, meta("s for heartbeat, EKF position, GUIDED and arming", gt=0.0, le=300.0)] = 30.0
+    heartbeat_timeout: Annotated[float, meta("s without the vehicle's 1 Hz HEARTBEAT before the link counts as down",
+                                             ge=1.5, le=60.0)] = 3.0
+    position_timeout: Annotated[float, meta("s without LOCAL_POSITION_NED before the vehicle counts as not ready "
+                                            "(ArduPilot sends none without an EKF origin)", gt=0.0, le=60.0)] = 1.0
+    ack_timeout: Annotated[float, meta("s to wait for each COMMAND_ACK before sending the command again", gt=0.0,
+                                       le=30.0)] = 1.0
+    command_retries: Annotated[int, meta("times a command without COMMAND_ACK is sent again", ge=0, le=10)] = 3
+    close_timeout: Annotated[float, meta("s close() waits for the disarm to be acknowledged", gt=0.0, le=60.0)] = 3.0
+    reconnect_max_s: Annotated[float, meta("longest wait between attempts to re-open a failed connection, s (the "
+                                           "wait doubles from 0.25 s)", ge=0.25, le=300.0)] = 5.0
+    statustext_keep: Annotated[int, meta("the vehicle's last STATUSTEXTs kept for health() and error texts", ge=1,
+                                         le=100)] = 8
+    disarm_on_close: Annotated[bool, meta("disarm when the driver host stops (only a vehicle still in GUIDED)")] = True
+    signing_key_file: Annotated[str, meta(
+        "MAVLink 2 signing key (scmbridge keys mavlink; the autopilot gets the same key with SETUP_SIGNING): every "
+        "message we send is signed and unsigned or badly signed ones are refused; empty: no signing")] = ""
+
+    def __post_init__(self) -> None:
+        if self.position_timeout < 2.0 / self.rate_hz:
+            raise Rule(f"position_timeout = {self.position_timeout} s is shorter than two LOCAL_POSITION_NED "
+                             f"periods at rate_hz = {self.rate_hz}")
 
 
 def telemetry_valid(msg: Any) -> bool:
@@ -126,6 +186,7 @@ def mode_name(custom_mode: int | None) -> str:
     """Rover's name for a custom mode number (``"HOLD"``), ``"unknown"`` before the first HEARTBEAT."""
     if custom_mode is None:
         return "unknown"
+    load_pymavlink()
     return ROVER_MODES.get(custom_mode, f"mode {custom_mode}")
 
 
@@ -133,6 +194,7 @@ def result_name(result: int) -> str:
     """``"MAV_RESULT_FAILED"`` for 4; ``"no COMMAND_ACK"`` for :data:`NO_ACK`."""
     if result == NO_ACK:
         return "no COMMAND_ACK"
+    load_pymavlink()
     entry = MAV.enums["MAV_RESULT"].get(result)
     return entry.name if entry is not None else f"MAV_RESULT {result}"
 
@@ -189,6 +251,7 @@ class MavlinkDriver:
     operator_engages = True
 
     def __init__(self, config: MavlinkLinkConfig) -> None:
+        load_pymavlink()
         self.config = config
         self.url, self.baud = config.url, config.baud
         self.target = (config.target_system, config.target_component)
@@ -801,3 +864,10 @@ class MavlinkDriver:
             self._close_conn()
             self._closed = True
             self._update_state(time.monotonic())
+
+
+#: the link's plugin entry (``drivers.LINKS``): its ``[link.mavlink]`` section, its driver, and whether ``scmbridge
+#: learner`` emulates it (an ArduPilot-Rover-like vehicle, :mod:`sim_learner.mavlink_rover`)
+CONFIG = MavlinkLinkConfig
+DRIVER = MavlinkDriver
+EMULATED = True

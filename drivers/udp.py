@@ -36,7 +36,7 @@ them: the driver host polls at its tick, and receipt stamps on that 20 ms grid w
 Health is truthful: ``ok`` only while the socket is open and the robot's last accepted state is younger than
 ``state_timeout_s`` (so False until the first state); ``text`` says how long the robot has been silent.
 
-Configuration: :class:`bridge.core.config.UdpLinkConfig` (``[link.udp]`` in the driver host's file).
+Configuration: :class:`UdpLinkConfig` (``[link.udp]`` in the driver host's file).
 """
 
 from __future__ import annotations
@@ -44,11 +44,12 @@ from __future__ import annotations
 import math
 import socket
 import time
+from typing import Annotated
 
 from bridge.core import wire as M
 from bridge.core.auth import load_key, open_sealed, seal
 from bridge.core.clock import ClockOffset
-from bridge.core.config import UdpLinkConfig
+from bridge.core.config import Cfg, Port, Rule, meta
 from bridge.core.gate import SeqGate
 from drivers.base import DriverError, FailsafeReport, LinkHealth, Pose
 
@@ -62,6 +63,37 @@ _REFUSALS = ("out_of_order", "seq_jump", "old_epoch", "foreign_epoch")
 #: Linux: each datagram carries the socket's count of datagrams dropped for want of buffer space (socket(7))
 SO_RXQ_OVFL = getattr(socket, "SO_RXQ_OVFL", 40)
 _ANC_SPACE = socket.CMSG_SPACE(4)
+
+
+class UdpLinkConfig(Cfg):
+    """``[link.udp]``: MessagePack datagrams to a small robot (the UDP shim).
+
+    Both ends pin each other: the driver takes datagrams only from ``robot_host:robot_port`` and the robot obeys
+    (and streams its state to) only its configured peer, which is this driver's ``bind_host:bind_port``. So the
+    driver's port is fixed (``bind_port``), and the robot's firmware is configured with it.
+    """
+
+    robot_host: Annotated[str, meta("the robot's address (resolved once, when the link opens)", min_length=1)] = (
+        "127.0.0.1")
+    robot_port: Annotated[Port, meta("the robot's UDP port")] = 47800
+    bind_host: Annotated[str, meta("our address (127.0.0.1 for loopback tests)")] = "127.0.0.1"
+    bind_port: Annotated[Port, meta("our UDP port: the robot's configured peer, so fixed; 0: any free (only for a "
+                                    "robot that pins its first sender)")] = 47801
+    open_timeout: Annotated[float, meta("s to wait for the robot's first state", gt=0.0, le=120.0)] = 2.0
+    state_timeout_s: Annotated[float, meta("the robot's state older than this: the link is not ok (the host stops); "
+                                           "also the silence after which a new robot epoch (a reboot) is taken, s",
+                                           gt=0.0, le=60.0)] = 0.5
+    max_state_rate_hz: Annotated[float, meta("the fastest the robot may count its state seq (it streams at ~50 Hz): "
+                                             "a state whose seq jumps further ahead than this allows is refused, Hz",
+                                             gt=0.0, le=100_000.0)] = 200.0
+    clock_window_s: Annotated[float, meta("window of the robot-clock offset estimate that stamps poses at the robot's "
+                                          "own stamps, s", gt=0.0, le=600.0)] = 5.0
+    key_file: Annotated[str, meta("the datagram key both ends use (scmbridge keys udp): every datagram carries a keyed "
+                                  "tag and unauthenticated ones are dropped; empty: none (loopback tests only)")] = ""
+
+    def __post_init__(self) -> None:
+        if self.robot_port == 0:
+            raise Rule("robot_port must be the robot's port (1-65535)")
 
 
 def resolve_ipv4(host: str, port: int) -> tuple[str, int]:
@@ -251,3 +283,10 @@ class UdpDriver:
             self.sock = None
             self._health.connected = self._health.ok = False
             self._health.text = "closed"
+
+
+#: the link's plugin entry (``drivers.LINKS``): its ``[link.udp]`` section, its driver, and whether ``scmbridge
+#: learner`` emulates it (the UDP-shim robot, :mod:`sim_learner.udp_robot`)
+CONFIG = UdpLinkConfig
+DRIVER = UdpDriver
+EMULATED = True

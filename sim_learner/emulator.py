@@ -16,11 +16,15 @@ import argparse
 import signal
 import threading
 import time
+from collections.abc import Callable
+from typing import TYPE_CHECKING
 
 from bridge.core.args import pose_arg, positive_float
 from bridge.core.auth import load_key
-from bridge.core.config import LINK_CONFIGS
 from bridge.core.errors import UsageError
+
+if TYPE_CHECKING:
+    from sim_learner.vehicle import SimVehicle
 
 
 def _peer_arg(text: str | None) -> tuple[str, int] | str:
@@ -38,7 +42,7 @@ def _peer_arg(text: str | None) -> tuple[str, int] | str:
 
 
 def arguments(ap: argparse.ArgumentParser) -> None:
-    ap.add_argument("--link", choices=sorted(LINK_CONFIGS), required=True)
+    ap.add_argument("--link", choices=sorted(EMULATORS), required=True)
     ap.add_argument("--port", type=int, default=None, help="(udp, mavlink) UDP port on --host (47800 / 14550)")
     ap.add_argument("--host", default="127.0.0.1", help="(udp, mavlink) the address to listen on")
     ap.add_argument("--interface", default="udp_multicast")
@@ -60,46 +64,63 @@ def arguments(ap: argparse.ArgumentParser) -> None:
                     "carry its tag; (mavlink) the signing key: unsigned messages are refused")
 
 
-def run(args: argparse.Namespace) -> int:
-    peer = _peer_arg(args.peer) if args.link == "udp" else None
-    if args.link == "udp" and not (0 < args.v_max < 1e3 and 0 < args.omega_max < 1e3 and 0 < args.watchdog < 60):
-        raise UsageError("--v-max, --omega-max and --watchdog must be positive (and finite)")
+def _mavlink(args: argparse.Namespace, vehicle: SimVehicle, stop: threading.Event) -> None:
+    from sim_learner.mavlink_rover import MavlinkRover
 
-    import numpy as np
+    port = 14550 if args.port is None else args.port
+    key = load_key(args.key_file) if args.key_file else None
+    with MavlinkRover(vehicle, args.host, port, signing_key=key) as rover:
+        print(f"learner on mavlink udp {args.host}:{rover.port}, model {args.model}", flush=True)
+        stop.wait(args.duration)
 
+
+def _udp(args: argparse.Namespace, vehicle: SimVehicle, stop: threading.Event) -> None:
+    from sim_learner.udp_robot import UdpRobot
+
+    peer = _peer_arg(args.peer)
+    port = 47800 if args.port is None else args.port
+    with UdpRobot(vehicle, args.host, port, peer=peer, v_max=args.v_max, omega_max=args.omega_max,
+                  watchdog=args.watchdog, key=load_key(args.key_file) if args.key_file else None) as robot:
+        shown = "the first valid sender" if peer == "first" else f"{peer[0]}:{peer[1]}"
+        print(f"learner on udp {args.host}:{robot.port}, model {args.model}, peer {shown}", flush=True)
+        stop.wait(args.duration)
+
+
+def _can(args: argparse.Namespace, vehicle: SimVehicle, stop: threading.Event) -> None:
     from sim_learner.can_ecu import DiffDriveEcus
-    from sim_learner.dynamics import model_by_name
-    from sim_learner.vehicle import SimVehicle
 
-    stop = threading.Event()
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, lambda *_: stop.set())
-    x0 = args.x0
-    rng = np.random.default_rng(args.seed) if args.noise > 0 else None
-    vehicle = SimVehicle(model_by_name(args.model), x0, now=time.monotonic(), pos_noise=args.noise, rng=rng)
-    if args.link == "mavlink":
-        from sim_learner.mavlink_rover import MavlinkRover
-
-        port = 14550 if args.port is None else args.port
-        with MavlinkRover(vehicle, args.host, port,
-                          signing_key=load_key(args.key_file) if args.key_file else None) as rover:
-            print(f"learner on mavlink udp {args.host}:{rover.port}, model {args.model}", flush=True)
-            stop.wait(args.duration)
-        return 0
-    if args.link == "udp":
-        from sim_learner.udp_robot import UdpRobot
-
-        port = 47800 if args.port is None else args.port
-        with UdpRobot(vehicle, args.host, port, peer=peer, v_max=args.v_max, omega_max=args.omega_max,
-                      watchdog=args.watchdog, key=load_key(args.key_file) if args.key_file else None) as robot:
-            shown = "the first valid sender" if peer == "first" else f"{peer[0]}:{peer[1]}"
-            print(f"learner on udp {args.host}:{robot.port}, model {args.model}, peer {shown}", flush=True)
-            stop.wait(args.duration)
-        return 0
     bus_kwargs = {"interface": args.interface, "channel": args.channel}
     if args.interface == "udp_multicast":
         bus_kwargs["fd"] = False
     with DiffDriveEcus(bus_kwargs, vehicle, wheel_radius=args.wheel_radius, track_width=args.track_width):
         print(f"learner on {args.interface}:{args.channel}, model {args.model}", flush=True)
         stop.wait(args.duration)
+
+
+#: the links this learner emulates, each by the device it behaves as (the drivers' registry marks the same links
+#: ``EMULATED``; sim_learner does not import drivers, so a test checks the two agree)
+EMULATORS: dict[str, Callable[[argparse.Namespace, SimVehicle, threading.Event], None]] = {
+    "can": _can,
+    "mavlink": _mavlink,
+    "udp": _udp,
+}
+
+
+def run(args: argparse.Namespace) -> int:
+    if args.link == "udp":
+        _peer_arg(args.peer)  # a mistake is one line before anything starts
+        if not (0 < args.v_max < 1e3 and 0 < args.omega_max < 1e3 and 0 < args.watchdog < 60):
+            raise UsageError("--v-max, --omega-max and --watchdog must be positive (and finite)")
+
+    import numpy as np
+
+    from sim_learner.dynamics import model_by_name
+    from sim_learner.vehicle import SimVehicle
+
+    stop = threading.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: stop.set())
+    rng = np.random.default_rng(args.seed) if args.noise > 0 else None
+    vehicle = SimVehicle(model_by_name(args.model), args.x0, now=time.monotonic(), pos_noise=args.noise, rng=rng)
+    EMULATORS[args.link](args, vehicle, stop)
     return 0

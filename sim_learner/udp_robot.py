@@ -40,7 +40,7 @@ from bridge.core.gate import SeqGate
 from sim_learner.device import ThreadedDevice
 from sim_learner.vehicle import SimVehicle
 
-#: the driver host's default address (``bridge.core.config.UdpLinkConfig``'s ``bind_host``, ``bind_port``)
+#: the driver host's default address (``drivers.udp.UdpLinkConfig``'s ``bind_host``, ``bind_port``)
 DEFAULT_PEER: tuple[str, int] = ("127.0.0.1", 47801)
 
 Peer = tuple[str, int] | Literal["first"]

@@ -8,6 +8,7 @@ from __future__ import annotations
 import ast
 import re
 from pathlib import Path
+from typing import get_type_hints
 
 import pytest
 
@@ -132,14 +133,19 @@ def test_docs_cite_only_what_the_repository_contains() -> None:
 
 
 def test_every_link_is_named_in_one_table() -> None:
-    """The links a user can pick (every `--link` option) are the configuration's link table, and each has its
-    driver registered under the same name."""
+    """The links a user can pick (every `--link` option) are the drivers' registry, the driver host's configuration
+    has a section for each (its own config struct), and each module names its config and driver."""
     import ast
 
-    from bridge.core.config import LINK_CONFIGS, LinkSection
-    from drivers import LINKS
+    import drivers
+    from bridge.nodes.driver_config import LinkSection
 
-    assert set(LINKS) == set(LINK_CONFIGS) == set(LinkSection.__struct_fields__)
+    assert drivers.link_names() == sorted(drivers.LINKS) == sorted(LinkSection.__struct_fields__)
+    hints = get_type_hints(LinkSection)
+    for name in drivers.LINKS:
+        module = drivers.link_module(name)
+        assert hints[name] is module.CONFIG is drivers.link_config(name)
+        assert isinstance(module.EMULATED, bool) and module.DRIVER.name == name
     for path in ROOT.rglob("*.py"):
         if ".venv" in path.parts:
             continue
@@ -149,3 +155,11 @@ def test_every_link_is_named_in_one_table() -> None:
                 choices = [k.value for k in node.keywords if k.arg == "choices"]
                 assert choices and not isinstance(choices[0], ast.List), \
                     f"{path.relative_to(ROOT)}:{node.lineno}: --link choices written by hand"
+
+
+def test_the_learner_emulates_exactly_the_links_marked_emulated() -> None:
+    """sim_learner may not import drivers, so its own table of emulators is checked against the registry here."""
+    import drivers
+    from sim_learner.emulator import EMULATORS
+
+    assert sorted(EMULATORS) == [n for n in drivers.link_names() if drivers.link_module(n).EMULATED]

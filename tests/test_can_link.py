@@ -19,10 +19,10 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from bridge.core.config import CanLinkConfig, Rule
+from bridge.core.config import Rule
 from drivers import open_driver
 from drivers.base import Pose
-from drivers.can import CanDriver, database, decode, encode
+from drivers.can import CanDriver, CanLinkConfig, database, decode, encode
 from drivers.odrive import AxisState, ControlMode, InputMode, ODriveError, ProcedureResult, error_names
 from sim_learner import can_ecu
 from sim_learner.can_ecu import DiffDriveEcus

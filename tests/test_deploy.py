@@ -15,7 +15,8 @@ from pathlib import Path
 import pytest
 import zenoh
 
-from bridge.core.config import load_driver, load_station
+from bridge.core.config import load_station
+from bridge.nodes.driver_config import load_driver
 from bridge.tools import cli
 from drivers import open_driver
 

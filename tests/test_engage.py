@@ -24,12 +24,13 @@ from collect import Collector
 from pymavlink.dialects.v20 import ardupilotmega as MAV
 
 from bridge.core import wire as M
-from bridge.core.config import CanLinkConfig, MavlinkLinkConfig
 from bridge.nodes.zsession import free_port, make_config, open_session, tcp
 from bridge.tools.estop import latch_states
 from bridge.tools.procs import Children, free_udp_port
 from drivers import open_driver
 from drivers.base import DriverError
+from drivers.can import CanLinkConfig
+from drivers.mavlink import MavlinkLinkConfig
 from sim_learner.can_ecu import DiffDriveEcus
 from sim_learner.dynamics import mpc_learner
 from sim_learner.mavlink_rover import MavlinkRover

@@ -13,10 +13,11 @@ from pymavlink.dialects.v20 import ardupilotmega as MAV
 
 from bridge.core import wire as M
 from bridge.core.auth import load_key, make_key
-from bridge.core.config import MavlinkLinkConfig, UdpLinkConfig
 from bridge.tools.procs import free_udp_port
 from drivers import open_driver
 from drivers.base import DriverError
+from drivers.mavlink import MavlinkLinkConfig
+from drivers.udp import UdpLinkConfig
 from sim_learner.dynamics import mpc_learner
 from sim_learner.mavlink_rover import MavlinkRover
 from sim_learner.udp_robot import UdpRobot

@@ -22,9 +22,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from pymavlink import mavutil
 
-from bridge.core.config import MavlinkLinkConfig
 from drivers import DriverError, open_driver
-from drivers.mavlink import TYPE_MASK_VEL_YAWRATE
+from drivers.mavlink import TYPE_MASK_VEL_YAWRATE, MavlinkLinkConfig
 from sim_learner.dynamics import LearnerModel, mpc_learner
 from sim_learner.mavlink_rover import GUIDED, MODES, MavlinkRover
 from sim_learner.vehicle import SimVehicle

@@ -27,10 +27,10 @@ import msgspec
 import pytest
 
 from bridge.core import wire as M
-from bridge.core.config import UdpLinkConfig
 from bridge.tools.procs import stop_group
 from drivers import open_driver
 from drivers.base import DriverError
+from drivers.udp import UdpLinkConfig
 from sim_learner.dynamics import mpc_learner
 from sim_learner.udp_robot import DEFAULT_PEER, UdpRobot
 from sim_learner.vehicle import SimVehicle

@@ -40,13 +40,14 @@ from bridge.core.args import pose_arg, positive_float, robot_arg
 from bridge.core.auth import load_key
 from bridge.core.backoff import Backoff
 from bridge.core.clock import ClockOffset
-from bridge.core.config import LINK_CONFIGS, DriverConfig, load_driver
 from bridge.core.errors import UsageError
 from bridge.core.gate import CommandGate, Decision
 from bridge.core.paths import save_atomic, state_dir
 from bridge.nodes import systemd
+from bridge.nodes.driver_config import DriverConfig, load_driver
 from bridge.nodes.node import Inputs, add_zenoh_args, stop_on_signals, zenoh_config
 from bridge.nodes.zsession import open_session
+from drivers import link_names, open_driver
 from drivers.base import Driver, DriverError, FailsafeReport, LinkHealth
 
 log = logging.getLogger("scmbridge.driver")
@@ -471,7 +472,7 @@ class DriverHost:
 
 
 def arguments(ap: argparse.ArgumentParser) -> None:
-    ap.add_argument("--link", choices=sorted(LINK_CONFIGS), required=True)
+    ap.add_argument("--link", choices=link_names(), required=True)
     ap.add_argument("--config", help="driver TOML (scmbridge config show --kind driver; deploy/driver*.example.toml)")
     ap.add_argument("--robot", type=robot_arg, default=None, help="robot name (overrides the config)")
     add_zenoh_args(ap)
@@ -511,8 +512,6 @@ def run(args: argparse.Namespace) -> int:
     for name in ("key_file", "signing_key_file"):  # a missing or unsafe key is one line now, not a retry loop later
         if getattr(link_cfg, name, ""):
             load_key(getattr(link_cfg, name), args.link)
-    from drivers import open_driver
-
     host = DriverHost(cfg, args.link, open_driver(args.link, link_cfg), robot, args.rate or cfg.driver.rate_hz,
                       dry_run=args.dry_run, latch_path=latch_file(robot))
     host.engage_on_start = host.engage_on_start or args.engage

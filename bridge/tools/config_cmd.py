@@ -13,7 +13,17 @@ from typing import Annotated, Any, Literal, get_args, get_origin, get_type_hints
 import msgspec
 from msgspec import Meta, Struct
 
-from bridge.core.config import KINDS, SHIPPED_MISSIONS, guess_kind, load, load_mission, read_table
+from bridge.core.config import SHIPPED_MISSIONS, StationConfig, guess_kind, load, load_mission, read_table
+from bridge.core.wire import MissionSpec
+from bridge.nodes.driver_config import driver_config_type
+
+#: the kinds of configuration file, by the name ``--kind`` takes
+KIND_NAMES = ("driver", "mission", "station")
+
+
+def kind_type(kind: str) -> type[Struct]:
+    """The struct a file of ``kind`` decodes into (the driver's holds a section for every link registered now)."""
+    return {"station": StationConfig, "driver": driver_config_type(), "mission": MissionSpec}[kind]
 
 
 def _toml_value(v: Any) -> str:
@@ -76,7 +86,7 @@ def show(kind: str) -> str:
     if kind == "mission":
         text = resources.files("bridge").joinpath("missions", SHIPPED_MISSIONS["paper-s-path"]).read_text()
         return text
-    obj = msgspec.convert({}, KINDS[kind])
+    obj = msgspec.convert({}, kind_type(kind))
     out = [f"# scmbridge {kind} configuration: every key with its default (scmbridge config show --kind {kind})"]
     _show(obj, "", out)
     return "\n".join(out) + "\n"
@@ -91,13 +101,13 @@ def check(path: str, kind: str | None = None) -> str:
         m = load_mission(p)
         return f"{p}: a valid mission '{m.name}': {len(m.path.points)} waypoints, {m.path.length:.2f} m, " \
                f"{len(m.obstacles)} obstacles"
-    cfg = load(p, KINDS[kind])
+    cfg = load(p, kind_type(kind))
     return f"{p}: a valid {kind} configuration for robot '{cfg.robot}'"
 
 
 def arguments_check(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("file", help="the file to check")
-    ap.add_argument("--kind", choices=sorted(KINDS), help="station, driver or mission (default: guessed from its keys)")
+    ap.add_argument("--kind", choices=KIND_NAMES, help="station, driver or mission (default: guessed from its keys)")
 
 
 def run_check(args: argparse.Namespace) -> int:
@@ -108,7 +118,7 @@ def run_check(args: argparse.Namespace) -> int:
 
 
 def arguments_show(ap: argparse.ArgumentParser) -> None:
-    ap.add_argument("--kind", choices=sorted(KINDS), required=True, help="station, driver or mission")
+    ap.add_argument("--kind", choices=KIND_NAMES, required=True, help="station, driver or mission")
 
 
 def run_show(args: argparse.Namespace) -> int:

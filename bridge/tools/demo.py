@@ -22,9 +22,9 @@ from contextlib import ExitStack
 import numpy as np
 
 from bridge.core.args import positive_float, robots_arg
-from bridge.core.config import LINK_CONFIGS
 from bridge.core.errors import UsageError
 from bridge.nodes.node import Inputs
+from drivers import link_names
 
 
 def inprocess(args: argparse.Namespace) -> int:
@@ -404,7 +404,7 @@ def fleet(args: argparse.Namespace, robots: list[str]) -> int:
 
 
 def arguments(ap: argparse.ArgumentParser) -> None:
-    ap.add_argument("--link", choices=sorted(LINK_CONFIGS), default="can", help="vehicle link")
+    ap.add_argument("--link", choices=link_names(), default="can", help="vehicle link")
     ap.add_argument("--mission", default=None, help="mission file (default: the paper's S-path)")
     ap.add_argument("--out", default="demo_out", help="directory for the figures, the pair stores and the logs")
     ap.add_argument("--duration", type=positive_float, default=None,

@@ -35,10 +35,12 @@ import zenoh
 
 from bridge.core import wire as M
 from bridge.core.args import positive_float
-from bridge.core.config import LINK_CONFIGS, load_driver, load_station
+from bridge.core.config import load_station
 from bridge.core.errors import UsageError
+from bridge.nodes.driver_config import load_driver
 from bridge.nodes.node import add_zenoh_args, endpoints_tried, zenoh_config
 from bridge.nodes.zsession import open_session
+from drivers import link_names
 
 LEVELS = ("ok", "warn", "FAIL")
 
@@ -182,7 +184,7 @@ def check_vehicle(link: str, link_cfg: object, max_drive_on: float) -> list[Chec
 def arguments(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--station", default=None, help="the station's configuration file to check")
     ap.add_argument("--driver", default=None, help="the driver host's configuration file to check")
-    ap.add_argument("--link", choices=sorted(LINK_CONFIGS), default=None,
+    ap.add_argument("--link", choices=link_names(), default=None,
                     help="with --driver: open this link and check the vehicle and its failsafe (never engaged)")
     ap.add_argument("--expiry-days", type=positive_float, default=14.0,
                     help="warn when a certificate expires within this many days")
