@@ -221,7 +221,7 @@ def can_odometry(short: bool) -> Result:
         d._encoder(d.left, 0.02 * k, 0.0, k * 0.0005)
         d._encoder(d.right, -0.02 * k, 0.0, k * 0.0005)
     err = math.hypot(d.pose[0], d.pose[1])
-    h = d.health()
+    h = d.health(time.monotonic())
     allowed = 2 * math.pi * 0.1 * 0.5 * (n * 0.0005 + 0.1)  # what a wheel told to stand still may roll
     return {"reached_vehicle": None, "learned": {"odometry_error_m": round(err, 3), "allowed_m": round(allowed, 3)},
             "health_ok": h.ok, "ok": err <= allowed and not h.ok}

@@ -916,8 +916,8 @@ def udp_driver(n: int, seed: int, workdir: Path | None = None) -> dict:
             driver.open(time.monotonic())
         addr = peer["addr"]
         rss0 = rss_mb()
-        h0 = driver.health()
-        base = (h0.frames_received, h0.malformed, dict(h0.detail))
+        h0 = driver.health(time.monotonic())
+        base = (h0.frames_received, h0.malformed, h0.detail)
         mut = MsgMutator(rng, STATE, stream, max_blob=1400)
         tally = Tally()
         sent = foreign = bad = 0
@@ -934,15 +934,15 @@ def udp_driver(n: int, seed: int, workdir: Path | None = None) -> dict:
                 except Exception as exc:  # a crash of the receiver, counted
                     crashes.caught("poll", exc)
                     break
-                if driver.health().frames_received - base[0] >= sent:
+                if driver.health(time.monotonic()).frames_received - base[0] >= sent:
                     break
                 time.sleep(0.001)
             driver.send(0.2, 0.1, time.monotonic())
-        h = driver.health()
+        h = driver.health(time.monotonic())
         d = h.detail
         got = {"frames": h.frames_received - base[0], "malformed": h.malformed - base[1],
-               "foreign": d["foreign"] - base[2]["foreign"], "poses": len(poses),
-               "refused": sum(d[k] - base[2][k] for k in refusals)}
+               "foreign": d.foreign - base[2].foreign, "poses": len(poses),
+               "refused": sum(getattr(d, k) - getattr(base[2], k) for k in refusals)}
         want = {"frames": sent, "malformed": bad, "foreign": foreign, "poses+refused": sent - foreign - bad}
         exact = (got["frames"] == sent and got["malformed"] == bad and got["foreign"] == foreign
                  and got["poses"] + got["refused"] == want["poses+refused"])
@@ -982,7 +982,7 @@ def _drive(driver, spy: VehicleSpy, v: float, crashes: Crashes, seconds: float =
     speed = spy.speed()
     got = last is not None and abs(last[0] - v) < 1e-5 and abs(last[1]) < 1e-5
     return {"vehicle_got": [round(a, 6) for a in last] if last else None, "speed": round(speed, 3),
-            "health_ok": bool(driver.health().ok), "ok": bool(got and speed > 0.0)}
+            "health_ok": bool(driver.health(time.monotonic()).ok), "ok": bool(got and speed > 0.0)}
 
 
 def udp_robot(n: int, seed: int, workdir: Path | None = None) -> dict:
@@ -1210,7 +1210,7 @@ def can_driver(n: int, seed: int, workdir: Path | None = None) -> dict:
         mut = CanMutator(rng, _controller_frames(rng, own), own)
         tally = Tally()
         rss0 = rss_mb()
-        m0 = driver.health().malformed
+        m0 = driver.health(time.monotonic()).malformed
         sent = bad = 0
         poses = []
 
@@ -1233,12 +1233,12 @@ def can_driver(n: int, seed: int, workdir: Path | None = None) -> dict:
                 sent += 1
             poll()
             driver.send(0.2, 0.1, time.monotonic())
-        counted = driver.health().malformed - m0
+        counted = driver.health(time.monotonic()).malformed - m0
         rss1 = rss_mb()
         # valid structure, garbage values: encoder estimates from the driver's own nodes
         k = max(20, n // 50)
         n_poses = len(poses)
-        m1 = driver.health().malformed
+        m1 = driver.health(time.monotonic()).malformed
         for i in range(k):
             node = own[i % 2]
             val = rng.choice([3.4e38, -3.4e38, 1e30, 1e7, -1e7, rng.uniform(-1e6, 1e6)])
@@ -1248,12 +1248,12 @@ def can_driver(n: int, seed: int, workdir: Path | None = None) -> dict:
         poll()
         garbage = poses[n_poses:]
         beyond = sum(not (abs(p.x) <= 1e6 and abs(p.y) <= 1e6 and abs(p.theta) <= 1e3) for p in garbage)
-        refused_garbage = driver.health().malformed - m1
+        refused_garbage = driver.health(time.monotonic()).malformed - m1
 
         def tick() -> bool:  # the driver host's tick with no command: poll, then zeros (which feed the watchdog)
             poll()
             driver.send(0.0, 0.0, time.monotonic())
-            return driver.health().ok
+            return driver.health(time.monotonic()).ok
 
         # Three Heartbeat periods of ticks before judging the link: a fuzzed frame can disarm an axis as a real
         # ODrive would obey it (an Estop, an IDLE request), and the driver learns it from the next Heartbeat only.
@@ -1263,7 +1263,7 @@ def can_driver(n: int, seed: int, workdir: Path | None = None) -> dict:
             tick()
             time.sleep(0.02)
         # the operator's act if the link latched a fault meanwhile, then drive; is the odometry sane again?
-        cleared = not driver.health().ok
+        cleared = not driver.health(time.monotonic()).ok
         if cleared:
             driver.clear_faults(time.monotonic())
             wait_until(tick, 3.0, 0.02)
@@ -1699,7 +1699,7 @@ def mavlink_driver(n: int, seed: int, workdir: Path | None = None) -> dict:
         driver.poll(time.monotonic())
         drain(fake)
         rss0 = rss_mb()
-        h0 = driver.health()
+        h0 = driver.health(time.monotonic())
         base = (h0.frames_received, h0.malformed)
         mut, oracle, tally = MavMutator(rng, _vehicle_templates(rng)), MavOracle(vehicle=(1, 1)), Tally()
         sent = 0
@@ -1717,12 +1717,13 @@ def mavlink_driver(n: int, seed: int, workdir: Path | None = None) -> dict:
                 except Exception as exc:
                     crashes.caught("poll", exc)
                     break
-                h = driver.health()  # a BAD_DATA or invalid telemetry is malformed, every other message received
+                # a BAD_DATA or invalid telemetry is malformed, every other message received
+                h = driver.health(time.monotonic())
                 if h.frames_received - base[0] + h.malformed - base[1] >= oracle.total:
                     break
                 time.sleep(0.001)
             driver.send(0.2, 0.1, time.monotonic())
-        h = driver.health()
+        h = driver.health(time.monotonic())
         got = {"messages": h.frames_received - base[0] + h.malformed - base[1], "bad_data": h.malformed - base[1]}
         want = {"messages": oracle.total, "bad_data": oracle.bad + oracle.invalid}
         out_parser = mav_parser()

@@ -10,8 +10,8 @@ applied-command echo the station pairs with each other come from one clock.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
-from typing import Any, Protocol, runtime_checkable
+from dataclasses import dataclass, field, fields
+from typing import Protocol, runtime_checkable
 
 
 class DriverError(RuntimeError):
@@ -30,6 +30,26 @@ class Pose:
     omega: float | None = None  # yaw rate, rad/s, counter-clockwise positive
 
 
+class LinkDetail(Protocol):
+    """What one link knows beyond :class:`LinkHealth`'s common fields: a frozen dataclass of its own per link (axis
+    states for CAN, mode and arming for MAVLink, stream refusals for UDP)."""
+
+    def status_counters(self) -> dict[str, int]:
+        """Its counts (whole numbers, not negative), which the driver host's status carries as ``link_<name>``."""
+        ...
+
+
+def whole_numbers(detail: object) -> dict[str, int]:
+    """The fields of a dataclass that hold a whole number (or a flag) not below zero, by name: what
+    :meth:`LinkDetail.status_counters` usually returns."""
+    out: dict[str, int] = {}
+    for f in fields(detail):
+        value = getattr(detail, f.name)
+        if isinstance(value, (int, bool)) and int(value) >= 0:
+            out[f.name] = int(value)
+    return out
+
+
 @dataclass(slots=True)
 class LinkHealth:
     """What a driver reports about its link; counters only grow.
@@ -40,6 +60,7 @@ class LinkHealth:
     in words a person can act on (``"operator took control: mode HOLD"``, ``"left axis error: ..."``), the driver
     host stops, and the station stops pairing and planning for that robot. A ``text`` that starts with
     ``"operator"`` means a person has the vehicle (the host reports reason ``operator``, not ``fault``).
+    ``detail``: the link's own typed detail (None: nothing beyond these fields).
     """
 
     connected: bool = False
@@ -49,7 +70,7 @@ class LinkHealth:
     frames_received: int = 0
     malformed: int = 0  # frames/messages that failed to decode or validate, dropped
     errors: int = 0  # link-level errors (send failures, vehicle faults)
-    detail: dict[str, Any] = field(default_factory=dict)
+    detail: LinkDetail | None = None
 
 
 @dataclass(frozen=True, slots=True)
@@ -93,8 +114,11 @@ class Driver(Protocol):
     def poll(self, now: float) -> list[Pose]:
         """Read what arrived since the last call, without blocking long; return new poses, oldest first."""
 
-    def health(self) -> LinkHealth:
-        """Counters and link state for ``status``."""
+    def health(self, now: float) -> LinkHealth:
+        """The link's state at ``now`` as of the last ``poll``/``send`` (a new snapshot, with the link's typed
+        detail), for the driver host's decisions and ``status``. Pure: it changes nothing and reads no clock, so
+        asking never alters what the link does; what time changes (a latch, a phase, a count) happens in ``poll``
+        and ``send``."""
 
     def clear_faults(self, now: float) -> None:
         """An explicit operator action (an estop release, ``scmbridge estop --release``): clear what the vehicle's

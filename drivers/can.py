@@ -20,7 +20,7 @@ position. The input mode is PASSTHROUGH, not VEL_RAMP: the set-point the driver 
 ``applied`` and the one the station's learner model is identified on; a ramp inside the controller would add a lag
 nothing upstream models (acceleration is bounded by the driver host's hard limits and the transfer's bounds instead).
 
-**Supervision** (in ``poll``, ``send`` and ``health``):
+**Supervision** (in ``poll`` and ``send``; ``health`` reports it and changes nothing):
 
 - *controller fault*, latched: a Heartbeat with a non-zero ``Axis_Error``, or an axis that left closed loop (its
   watchdog, an Estop frame from another bus node, an operator's tool). Both axes get zero set-points at once (the
@@ -62,13 +62,13 @@ from __future__ import annotations
 import contextlib
 import math
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from importlib import resources
 from typing import TYPE_CHECKING, Annotated, Any
 
 from bridge.core.backoff import Backoff
 from bridge.core.config import Cfg, Finite, Rule, meta
-from drivers.base import DriverError, FailsafeReport, LinkHealth, Pose
+from drivers.base import DriverError, FailsafeReport, LinkHealth, Pose, whole_numbers
 from drivers.odrive import AxisState, ControlMode, InputMode, error_names, state_name
 
 if TYPE_CHECKING:
@@ -183,6 +183,46 @@ def decode(frame: can.Message) -> tuple[int, str, dict[str, Any]]:
         if isinstance(v, float) and not math.isfinite(v):
             raise ValueError(f"{msg.name}.{k} is not finite")
     return node, msg.name, dict(sig)
+
+
+@dataclass(frozen=True, slots=True)
+class CanCounters:
+    """The CAN link's own counts (only grow)."""
+
+    error_frames: int = 0  # error frames on the bus
+    bus_failures: int = 0  # the bus shut down after a failure (receive, three sends, bus-off)
+    reopens: int = 0  # the bus reopened after a failure
+    send_failures: int = 0
+    faults: int = 0  # controller faults latched
+    heartbeat_losses: int = 0  # a controller silent for heartbeat_timeout while running
+    rejected_estimates: int = 0  # implausible encoder estimates, never integrated
+    resyncs: int = 0  # the encoder reference re-anchored after agreeing rejected steps
+    stamp_fallbacks: int = 0  # frames stamped at their receipt (no usable bus stamp)
+
+
+@dataclass(frozen=True, slots=True)
+class AxisHealth:
+    """One wheel's controller as its last Heartbeat reported it."""
+
+    node: int
+    state: str  # the axis state's name: CLOSED_LOOP_CONTROL, IDLE, ...
+    error: int  # the Axis_Error word
+    errors: tuple[str, ...]  # its bits' names
+    procedure_result: int
+    heartbeat_age: float | None  # s since the last Heartbeat (None: none yet)
+    fault: bool  # a latched fault (cleared only by clear_faults)
+
+
+@dataclass(frozen=True, slots=True)
+class CanHealthDetail:
+    """The CAN link's detail in :class:`drivers.base.LinkHealth`."""
+
+    counters: CanCounters
+    left: AxisHealth
+    right: AxisHealth
+
+    def status_counters(self) -> dict[str, int]:
+        return whole_numbers(self.counters)
 
 
 @dataclass
@@ -551,56 +591,72 @@ class CanDriver:
         self._backoff.grow()
 
     # ----------------------------------------------------------------------------------------------- state
-    def _evaluate(self, now: float) -> None:
-        """``ok`` and ``text`` from the bus, the latched faults, the Heartbeats' age and the arming phase."""
-        h = self._health
-        if self._phase == "closed":
-            h.ok = False
-            return
+    def _advance(self, now: float) -> None:
+        """What time changes (``poll`` and ``send`` call it): arming ends once both axes confirm closed loop, or when
+        ``open_timeout`` has passed (an axis that did not come up is then a latched fault); a controller whose
+        Heartbeats stop while running is counted once per loss."""
+        if self._phase == "arming":
+            if all(ax.ready(now, self.heartbeat_timeout) for ax in self.axes):
+                self._phase = "running"
+            elif now > self._arm_deadline:
+                self._phase = "running"
+                for ax in self.axes:  # (an axis that is silent is reported as a lost heartbeat)
+                    if ax.heartbeat_at is not None and (ax.error or ax.state != AxisState.CLOSED_LOOP_CONTROL):
+                        ax.fault, ax.fault_error, ax.fault_state = True, ax.error, ax.state
+                        self.counters["faults"] += 1
+        for ax in self.axes:
+            lost = self._phase == "running" and self._heartbeat_lost(ax, now)
+            if lost and not self._hb_lost[ax.side]:
+                self.counters["heartbeat_losses"] += 1
+            self._hb_lost[ax.side] = lost
+
+    def _heartbeat_lost(self, ax: _Axis, now: float) -> bool:
+        return ax.heartbeat_at is None or now - ax.heartbeat_at > self.heartbeat_timeout
+
+    def _reasons(self, now: float) -> list[str]:
+        """Why the link is not fit to drive at ``now`` (none: it is), from the bus, the latched faults, the
+        Heartbeats' age and the arming phase. Pure."""
         reasons: list[str] = []
         if self._phase == "idle":
             reasons.append("axes idle: not engaged")
         if self.bus is None:
             reasons.append(f"CAN bus down ({self._down_reason}); reopening in {max(0.0, self._reopen_at - now):.2f} s")
         if self._phase == "arming":
-            if all(ax.ready(now, self.heartbeat_timeout) for ax in self.axes):
-                self._phase = "running"
-            elif now > self._arm_deadline:
-                self._phase = "running"
-                for ax in self.axes:  # (an axis that is silent is reported below, as a lost heartbeat)
-                    if ax.heartbeat_at is not None and (ax.error or ax.state != AxisState.CLOSED_LOOP_CONTROL):
-                        ax.fault, ax.fault_error, ax.fault_state = True, ax.error, ax.state
-                        self.counters["faults"] += 1
-            else:
-                reasons.append("arming: waiting for both axes in closed loop")
+            reasons.append("arming: waiting for both axes in closed loop")
         reasons += [ax.describe() for ax in self.axes if ax.fault]
         if now - max(self.rejected_at, self.overrun_at) < ODOMETRY_ALARM_S:
             reasons.append(f"odometry: implausible encoder estimates rejected ({self.counters['rejected_estimates']} "
                            "so far): a faulty encoder or forged frames")
-        for ax in self.axes:
-            age = None if ax.heartbeat_at is None else now - ax.heartbeat_at
-            lost = age is None or age > self.heartbeat_timeout
-            if lost and self._phase == "running":
-                reasons.append(f"{ax.side} controller (node {ax.node}): "
-                               + ("no heartbeat" if age is None else f"no heartbeat for {age:.2f} s"))
-                if not self._hb_lost[ax.side]:
-                    self.counters["heartbeat_losses"] += 1
-            self._hb_lost[ax.side] = lost and self._phase == "running"
+        if self._phase == "running":
+            for ax in self.axes:
+                if self._heartbeat_lost(ax, now):
+                    age = "" if ax.heartbeat_at is None else f" for {now - ax.heartbeat_at:.2f} s"
+                    reasons.append(f"{ax.side} controller (node {ax.node}): no heartbeat{age}")
+        return reasons
+
+    def _evaluate(self, now: float) -> None:
+        """Advance the state to ``now`` and set ``ok`` and ``text`` from it."""
+        h = self._health
+        if self._phase == "closed":
+            h.ok = False
+            return
+        self._advance(now)
+        reasons = self._reasons(now)
         h.ok = not reasons
         h.text = "; ".join(reasons) if reasons else "ready"
 
-    def health(self) -> LinkHealth:
-        now = time.monotonic()
-        self._evaluate(now)
-        self._health.detail = {
-            "counters": dict(self.counters),
-            "axes": {ax.side: {"node": ax.node, "state": state_name(ax.state), "error": ax.error,
-                               "errors": error_names(ax.error), "procedure_result": ax.procedure_result,
-                               "heartbeat_age": None if ax.heartbeat_at is None else now - ax.heartbeat_at,
-                               "fault": ax.fault}
-                     for ax in self.axes},
-        }
-        return self._health
+    def health(self, now: float) -> LinkHealth:
+        h = self._health
+        if self._phase == "closed":
+            ok, text = False, h.text
+        else:
+            reasons = self._reasons(now)
+            ok, text = not reasons, "; ".join(reasons) if reasons else "ready"
+        left, right = (AxisHealth(node=ax.node, state=state_name(ax.state), error=ax.error,
+                                  errors=tuple(error_names(ax.error)), procedure_result=ax.procedure_result,
+                                  heartbeat_age=None if ax.heartbeat_at is None else now - ax.heartbeat_at,
+                                  fault=ax.fault) for ax in self.axes)
+        return replace(h, ok=ok, text=text, detail=CanHealthDetail(CanCounters(**self.counters), left, right))
 
     def clear_faults(self, now: float) -> None:
         """The operator's act: Clear_Errors to both controllers, velocity control again, zero set-point, closed loop

@@ -36,7 +36,7 @@ goes at once (at most ``max_setpoint_hz`` set-points a second in all: changing c
 57600-baud radio; a stop after motion always at once), an unchanged one is repeated at ``setpoint_rate_hz``
 (ArduPilot stops after GUID_TIMEOUT, 3 s, without one). poll(): LOCAL_POSITION_NED + ATTITUDE -> ENU poses (x_enu =
 y_ned, y_enu = x_ned, theta = pi/2 - yaw, v = the NED velocity projected on the heading, so reversing is negative).
-Every message is filtered by the vehicle's system and component ids; the others are counted (``detail["foreign"]``).
+Every message is filtered by the vehicle's system and component ids; the others are counted (``detail.foreign``).
 
 Poses: each is stamped at its LOCAL_POSITION_NED's ``time_boot_ms``, put on the driver host's monotonic clock with
 the sliding-window minimum of ``receipt - time_boot_ms`` (:class:`bridge.core.clock.ClockOffset`, ``clock_window_s``; a
@@ -49,13 +49,13 @@ measures what this buys (README.md, "Reliability").
 Signing (``signing_key_file``, made by ``scmbridge keys mavlink``; the autopilot gets the same key through
 SETUP_SIGNING, e.g. from a ground station): MAVLink 2 message signing as ArduPilot implements it
 (libraries/GCS_MAVLink/GCS_Signing.cpp): every message this driver sends is signed, and an unsigned or badly signed
-message, or one whose signature timestamp goes back, is refused (``health().detail["bad_signatures"]``).
+message, or one whose signature timestamp goes back, is refused (``health(now).detail.bad_signatures``).
 
 Supervision: no HEARTBEAT for ``heartbeat_timeout`` -> ``connected`` and ``ok`` False, ``"no heartbeat for 3.2 s"``;
 a connection that failed (TCP EOF, a serial error) is re-opened with backoff, UDP just keeps listening. When
 heartbeats return the message intervals are asked again (a rebooted autopilot forgot them) and ``ok`` comes back
 only if the vehicle is GUIDED and armed. STATUSTEXTs are logged and the last ``statustext_keep`` are in
-``health().detail``.
+``health(now).detail.statustexts``.
 
 close(): if the vehicle is still ours (GUIDED), zero set-points until it reports (LOCAL_POSITION_NED) a speed below
 ``stop_speed`` (at most ``stop_timeout``: a rover disarmed while moving coasts), then disarm and wait
@@ -75,14 +75,14 @@ import os
 import time
 from collections import deque
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Annotated, Any
 
 from bridge.core.auth import load_key
 from bridge.core.backoff import Backoff
 from bridge.core.clock import ClockOffset
 from bridge.core.config import Cfg, Rule, meta
-from drivers.base import DriverError, FailsafeReport, LinkHealth, Pose
+from drivers.base import DriverError, FailsafeReport, LinkHealth, Pose, whole_numbers
 
 log = logging.getLogger("scmbridge.driver.mavlink")
 
@@ -105,7 +105,7 @@ _BACKOFF0 = 0.25
 ATTITUDE_MAX_LAG = 0.1
 #: Telemetry a vehicle can really send (the wire's own ranges are wider still): |x|, |y| in m, speeds in m/s, yaw in
 #: rad (ArduPilot sends [-pi, pi]; a full turn either way is tolerated), yaw rate in rad/s. A message outside them,
-#: NaN/inf included, is counted malformed (``detail["invalid_values"]``) and dropped before it can reach a pose.
+#: NaN/inf included, is counted malformed (``detail.invalid_values``) and dropped before it can reach a pose.
 POSITION_MAX, SPEED_MAX, YAW_MAX, YAW_RATE_MAX = 1e6, 100.0, 2 * math.pi, 100.0
 
 
@@ -197,6 +197,34 @@ def result_name(result: int) -> str:
     load_pymavlink()
     entry = MAV.enums["MAV_RESULT"].get(result)
     return entry.name if entry is not None else f"MAV_RESULT {result}"
+
+
+@dataclass(frozen=True, slots=True)
+class MavlinkHealthDetail:
+    """The MAVLink link's detail in :class:`drivers.base.LinkHealth`: the vehicle as it last reported itself, and the
+    link's counts."""
+
+    mode: str  # the Rover mode's name ("GUIDED", "HOLD"; "unknown" before the first HEARTBEAT)
+    custom_mode: int | None
+    armed: bool
+    heartbeat_age: float | None  # s since the last HEARTBEAT
+    position_age: float | None  # s since the last LOCAL_POSITION_NED
+    statustexts: tuple[str, ...]  # the last STATUSTEXTs, oldest first
+    last_refusal: str  # the last command the vehicle refused, in words
+    bad_signatures: int  # messages refused by MAVLink 2 signing
+    foreign_ids: tuple[tuple[int, int], ...]  # (system, component) of the last foreign senders
+    foreign: int = 0  # messages from another system or component, dropped
+    setpoints_sent: int = 0
+    setpoints_withheld: int = 0  # send() while the vehicle does not accept set-points
+    setpoints_deferred: int = 0  # a changed command held back by max_setpoint_hz
+    stray_acks: int = 0  # COMMAND_ACKs for no command in flight
+    reconnects: int = 0
+    link_losses: int = 0
+    invalid_values: int = 0  # telemetry outside what a vehicle can send, dropped
+    clock_restarts: int = 0  # the vehicle-clock offset estimate restarted
+
+    def status_counters(self) -> dict[str, int]:
+        return whole_numbers(self)
 
 
 @dataclass
@@ -688,8 +716,8 @@ class MavlinkDriver:
     def _position_fresh(self, now: float) -> bool:
         return self.v.pos_time is not None and now - self.v.pos_time <= self.config.position_timeout
 
-    def _update_state(self, now: float) -> None:
-        """(connected, ok, text, reason) from what the vehicle last said; log when the reason changes."""
+    def _judge(self, now: float) -> tuple[bool, bool, str, str]:
+        """(connected, ok, text, reason) at ``now`` from what the vehicle last said. Pure."""
         v = self.v
         hb_age = math.inf if v.hb_time is None else now - v.hb_time
         connected = (self.conn is not None and hb_age <= self.config.heartbeat_timeout
@@ -713,8 +741,17 @@ class MavlinkDriver:
             age = math.inf if v.pos_time is None else now - v.pos_time
             state = (True, False, f"no LOCAL_POSITION_NED for {age:.1f} s (EKF origin lost?)", "position")
         else:
-            v.rebooted = False
             state = (True, True, "driving: GUIDED, armed", "ok")
+        return state
+
+    def _update_state(self, now: float) -> None:
+        """Judge the vehicle at ``now`` (:meth:`_judge`) and act on a change: log it, count a lost link, ask a
+        vehicle whose heartbeat came back for its streams again (never its mode or arming)."""
+        state = self._judge(now)
+        v = self.v
+        if state[3] == "ok":
+            v.rebooted = False
+        connected = state[0]
         if self._opened and not self._closed:
             if state[3] != self._state[3]:
                 if state[1]:
@@ -792,19 +829,16 @@ class MavlinkDriver:
         self._update_state(now)
         return poses
 
-    def health(self) -> LinkHealth:
-        now = time.monotonic()
-        self._update_state(now)
+    def health(self, now: float) -> LinkHealth:
+        connected, ok, text, _ = self._judge(now)
         v = self.v
-        self._health.detail = {
-            "mode": mode_name(v.custom_mode), "custom_mode": v.custom_mode, "armed": v.armed,
-            "heartbeat_age": None if v.hb_time is None else round(now - v.hb_time, 3),
-            "position_age": None if v.pos_time is None else round(now - v.pos_time, 3),
-            "statustexts": self.statustexts, "last_refusal": self._last_refusal,
-            "bad_signatures": self._bad_signatures(),
-            "foreign_ids": list(self._foreign_ids), **self._counts,
-        }
-        return self._health
+        detail = MavlinkHealthDetail(
+            mode=mode_name(v.custom_mode), custom_mode=v.custom_mode, armed=v.armed,
+            heartbeat_age=None if v.hb_time is None else round(now - v.hb_time, 3),
+            position_age=None if v.pos_time is None else round(now - v.pos_time, 3),
+            statustexts=tuple(self.statustexts), last_refusal=self._last_refusal,
+            bad_signatures=self._bad_signatures(), foreign_ids=tuple(self._foreign_ids), **self._counts)
+        return replace(self._health, connected=connected, ok=ok, text=text, detail=detail)
 
     def _bad_signatures(self) -> int:
         """Messages refused by MAVLink 2 signing (unsigned, forged or replayed), over every connection so far."""

@@ -44,6 +44,7 @@ from __future__ import annotations
 import math
 import socket
 import time
+from dataclasses import dataclass, replace
 from typing import Annotated
 
 from bridge.core import wire as M
@@ -51,7 +52,7 @@ from bridge.core.auth import load_key, open_sealed, seal
 from bridge.core.clock import ClockOffset
 from bridge.core.config import Cfg, Port, Rule, meta
 from bridge.core.gate import SeqGate
-from drivers.base import DriverError, FailsafeReport, LinkHealth, Pose
+from drivers.base import DriverError, FailsafeReport, LinkHealth, Pose, whole_numbers
 
 #: seqs a state may jump ahead of the last one beyond what ``max_state_rate_hz`` allows for the time elapsed
 STATE_SEQ_SLACK = 10
@@ -94,6 +95,26 @@ class UdpLinkConfig(Cfg):
     def __post_init__(self) -> None:
         if self.robot_port == 0:
             raise Rule("robot_port must be the robot's port (1-65535)")
+
+
+@dataclass(frozen=True, slots=True)
+class UdpHealthDetail:
+    """The UDP link's counts in :class:`drivers.base.LinkHealth` (only grow)."""
+
+    foreign: int = 0  # datagrams from another address than the robot's, dropped
+    unauthenticated: int = 0  # datagrams without a valid tag (a key is configured), dropped
+    state_gaps: int = 0  # states the robot counted that never arrived
+    robot_restarts: int = 0  # a new robot epoch taken (it rebooted)
+    dropped_by_kernel: int = 0  # datagrams the socket's buffer had no room for
+    clock_restarts: int = 0  # the robot-clock offset estimate restarted
+    stamp_fallbacks: int = 0  # states stamped at their receipt (the robot's stamp did not advance)
+    state_out_of_order: int = 0  # states refused by the (epoch, seq) stream, by reason
+    state_seq_jump: int = 0
+    state_old_epoch: int = 0
+    state_foreign_epoch: int = 0
+
+    def status_counters(self) -> dict[str, int]:
+        return whole_numbers(self)
 
 
 def resolve_ipv4(host: str, port: int) -> tuple[str, int]:
@@ -237,21 +258,18 @@ class UdpDriver:
         self.counters["clock_restarts"] += not steady
         return Pose(stamp, st.x, st.y, st.theta, st.v, st.omega)
 
-    def health(self) -> LinkHealth:
-        h = self._health
-        h.detail = dict(self.counters)
+    def health(self, now: float) -> LinkHealth:
+        detail = UdpHealthDetail(**self.counters)
         if self.sock is None:
-            h.ok = False
-            return h
-        age = time.monotonic() - self.last_state_time
-        h.ok = age <= self.state_timeout
-        if h.ok:
-            h.text = "ready"
+            return replace(self._health, ok=False, detail=detail)
+        age = now - self.last_state_time
+        if age <= self.state_timeout:
+            text = "ready"
         elif math.isinf(age):
-            h.text = f"no state from the robot yet ({self.robot_text})"
+            text = f"no state from the robot yet ({self.robot_text})"
         else:
-            h.text = f"no state from the robot for {age:.1f} s"
-        return h
+            text = f"no state from the robot for {age:.1f} s"
+        return replace(self._health, ok=age <= self.state_timeout, text=text, detail=detail)
 
     def clear_faults(self, now: float) -> None:
         """Nothing to clear on this link (see :meth:`drivers.base.Driver.clear_faults`)."""

@@ -8,6 +8,7 @@ odriverobotics/ros_odrive (see drivers/odrive.py)."""
 from __future__ import annotations
 
 import math
+import re
 import struct
 import threading
 import time
@@ -21,13 +22,18 @@ from hypothesis import strategies as st
 
 from bridge.core.config import Rule
 from drivers import open_driver
-from drivers.base import Pose
-from drivers.can import CanDriver, CanLinkConfig, database, decode, encode
+from drivers.base import Driver, LinkHealth, Pose
+from drivers.can import CanDriver, CanHealthDetail, CanLinkConfig, database, decode, encode
 from drivers.odrive import AxisState, ControlMode, InputMode, ODriveError, ProcedureResult, error_names
 from sim_learner import can_ecu
 from sim_learner.can_ecu import DiffDriveEcus
 from sim_learner.dynamics import mpc_learner
 from sim_learner.vehicle import SimVehicle
+
+
+def health(driver: Driver) -> LinkHealth:
+    """The driver's health now (as the driver host asks for it each tick)."""
+    return driver.health(time.monotonic())
 
 # (cmd_id, length, {signal: (start bit, bit length, signed, float)}) per ODrive 0.6's generated CANSimple messages
 REFERENCE_0_6 = {
@@ -132,7 +138,7 @@ class Rig:
         t_end = time.monotonic() + seconds
         while time.monotonic() < t_end:
             now = time.monotonic()
-            if host and not self.driver.health().ok:
+            if host and not health(self.driver).ok:
                 self.driver.stop(now)
             else:
                 self.driver.send(v, w, now)
@@ -268,7 +274,7 @@ def test_open_sets_velocity_control_and_passthrough_before_closed_loop(rig: Rig)
         assert modes and arm and modes[0] < arm[0], seq
         ax = rig.ecus.axis(node)
         assert (ax.state, ax.control_mode, ax.input_mode) == (8, 2, 1)
-    h = rig.driver.health()
+    h = health(rig.driver)
     assert h.ok and h.text == "ready"
 
 
@@ -318,7 +324,7 @@ def _assert_held_while_sending(rig: Rig, seconds: float = 1.0) -> None:
 
 def _cleared_and_driving(rig: Rig) -> None:
     rig.driver.clear_faults(time.monotonic())
-    assert rig.wait(lambda: rig.driver.health().ok, 1.5), rig.driver.health().text
+    assert rig.wait(lambda: health(rig.driver).ok, 1.5), health(rig.driver).text
     x0 = rig.body().x
     rig.run(0.6, 0.3, 0.0, host=True)
     assert rig.body().v > 0.0 and rig.body().x != x0
@@ -328,12 +334,12 @@ def test_an_axis_error_stops_both_wheels_is_named_and_waits_for_the_operator(rig
     rig.run(0.4, 0.3, 0.0)
     assert rig.body().v > 0.0
     rig.ecus.inject_error(0, ODriveError.DRV_FAULT)
-    assert rig.wait(lambda: not rig.driver.health().ok, 0.5, 0.3)
-    h = rig.driver.health()
+    assert rig.wait(lambda: not health(rig.driver).ok, 0.5, 0.3)
+    h = health(rig.driver)
     assert "left axis error: DRV_FAULT" in h.text
     _assert_held_while_sending(rig)
     assert rig.ecus.axis(0).state == 1 and rig.ecus.axis(1).state == 8  # left idle, right held in closed loop
-    assert not rig.driver.health().ok and rig.driver.health().detail["counters"]["faults"] == 1
+    assert not health(rig.driver).ok and health(rig.driver).detail.counters.faults == 1
     _cleared_and_driving(rig)
 
 
@@ -347,27 +353,51 @@ def test_a_controllers_own_stop_is_never_overridden(rig: Rig, trip: str) -> None
     else:
         rig.spy.send(encode(1, "Estop"))
         node, name = 1, "right axis error: ESTOP_REQUESTED"
-    assert rig.wait(lambda: not rig.driver.health().ok, 0.5, 0.3)
+    assert rig.wait(lambda: not health(rig.driver).ok, 0.5, 0.3)
     _assert_held_while_sending(rig)
     assert rig.ecus.axis(node).state == 1
-    assert name in rig.driver.health().text
+    assert name in health(rig.driver).text
     _cleared_and_driving(rig)
+
+
+def test_health_is_pure_asking_changes_nothing_and_reads_no_clock(rig: Rig, monkeypatch: pytest.MonkeyPatch) -> None:
+    """``health(now)`` reports the state at ``now`` as the last poll left it: asking about a moment when both
+    controllers would have been silent for 5 s neither latches nor counts anything, and no clock is read."""
+    d = rig.driver
+    assert rig.wait(lambda: health(d).ok, 1.5), health(d).text
+    now = time.monotonic()
+    before = (d._phase, dict(d.counters), dict(d._hb_lost), [(ax.fault, ax.heartbeat_at) for ax in d.axes])
+
+    def no_clock() -> float:
+        raise AssertionError("health() read the clock")
+
+    with monkeypatch.context() as m:
+        m.setattr(time, "monotonic", no_clock)
+        m.setattr(time, "time", no_clock)
+        later, h = d.health(now + 5.0), d.health(now)
+    assert not later.ok and re.search(r"left controller \(node 0\): no heartbeat for 5\.\d\d s", later.text), later.text
+    assert h.ok and h.text == "ready" and h == d.health(now)
+    assert (d._phase, dict(d.counters), dict(d._hb_lost), [(ax.fault, ax.heartbeat_at) for ax in d.axes]) == before
+    assert isinstance(h.detail, CanHealthDetail) and h.detail.left.state == "CLOSED_LOOP_CONTROL"
+    assert h.detail.right.node == 1 and not h.detail.right.fault and h.detail.counters.heartbeat_losses == 0
+    rig.run(0.1, 0.2, 0.0, host=True)
+    assert health(d).ok and d.counters["heartbeat_losses"] == 0
 
 
 def test_a_lost_heartbeat_stops_the_base_and_names_the_node(rig: Rig) -> None:
     rig.run(0.4, 0.3, 0.0)
     rig.ecus.unplug(1)  # the right controller's cable
     t0 = time.monotonic()
-    assert rig.wait(lambda: not rig.driver.health().ok and "node 1" in rig.driver.health().text, 1.0, 0.3)
+    assert rig.wait(lambda: not health(rig.driver).ok and "node 1" in health(rig.driver).text, 1.0, 0.3)
     assert time.monotonic() - t0 < 0.3 + 0.25  # heartbeat_timeout + one heartbeat period + slack
-    assert "right controller (node 1): no heartbeat" in rig.driver.health().text
+    assert "right controller (node 1): no heartbeat" in health(rig.driver).text
     _assert_held_while_sending(rig, 0.8)
     # plugged back: its own watchdog tripped meanwhile, which is a latched fault for the operator
     rig.ecus.replug(1)
-    assert rig.wait(lambda: "right axis error: WATCHDOG_TIMER_EXPIRED" in rig.driver.health().text, 1.0)
+    assert rig.wait(lambda: "right axis error: WATCHDOG_TIMER_EXPIRED" in health(rig.driver).text, 1.0)
     rig.run(0.3, 0.3, 0.0)
-    assert not rig.driver.health().ok and rig.ecus.axis(1).state == 1
-    assert rig.driver.health().detail["counters"]["heartbeat_losses"] >= 1
+    assert not health(rig.driver).ok and rig.ecus.axis(1).state == 1
+    assert health(rig.driver).detail.counters.heartbeat_losses >= 1
     _cleared_and_driving(rig)
 
 
@@ -386,9 +416,9 @@ def test_a_failed_bus_is_reported_and_reopened_with_bounded_backoff(rig: Rig, mo
     assert d.bus is not None
     d.bus.shutdown()  # the bus dies under the driver: recv/send raise can.CanOperationError
     rig.run(1.0, 0.2, 0.0, host=True)
-    h = d.health()
+    h = health(d)
     assert not h.ok and not h.connected and "CAN bus down" in h.text and "interface gone" in h.text
-    assert h.detail["counters"]["bus_failures"] == 1
+    assert h.detail.counters.bus_failures == 1
     gaps = [b - a for a, b in zip(attempts, attempts[1:])]
     # waits 0.05, 0.1, 0.2, 0.2, ... s: doubling, bounded by reopen_backoff_max (+ up to a tick or two of delay on
     # a loaded machine)
@@ -397,38 +427,38 @@ def test_a_failed_bus_is_reported_and_reopened_with_bounded_backoff(rig: Rig, mo
     monkeypatch.setattr(d, "_open_bus", real_open)
     # back: the controllers' frames flow again; their watchdogs (0.3 s) tripped during the 1 s outage, which
     # the driver reports and leaves to the operator
-    assert rig.wait(lambda: d.health().connected and "WATCHDOG_TIMER_EXPIRED" in d.health().text, 2.0), (
-        d.health().text)
-    assert d.health().detail["counters"]["reopens"] == 1 and not d.health().ok
-    n = d.health().frames_received
+    assert rig.wait(lambda: health(d).connected and "WATCHDOG_TIMER_EXPIRED" in health(d).text, 2.0), (
+        health(d).text)
+    assert health(d).detail.counters.reopens == 1 and not health(d).ok
+    n = health(d).frames_received
     rig.run(0.3, 0.2, 0.0, host=True)
-    assert d.health().frames_received > n
+    assert health(d).frames_received > n
     _cleared_and_driving(rig)
 
 
 def test_error_frames_are_counted_apart_from_garbage_and_bus_off_reopens(rig: Rig) -> None:
     d = rig.driver
-    h0 = d.health()
+    h0 = health(d)
     malformed0, errors0 = h0.malformed, h0.errors
     rig.spy.send(can.Message(arbitration_id=0x004, is_error_frame=True, data=bytes(8)))  # controller problem
     rig.run(0.1)
-    h = d.health()
-    assert h.detail["counters"]["error_frames"] == 1 and h.errors == errors0 + 1 and h.malformed == malformed0
-    assert h.ok and h.detail["counters"]["bus_failures"] == 0
+    h = health(d)
+    assert h.detail.counters.error_frames == 1 and h.errors == errors0 + 1 and h.malformed == malformed0
+    assert h.ok and h.detail.counters.bus_failures == 0
     rig.spy.send(can.Message(arbitration_id=0x040, is_error_frame=True, data=bytes(8)))  # CAN_ERR_BUSOFF
     rig.run(0.05)
-    h = d.health()
-    assert h.detail["counters"]["bus_failures"] == 1 and h.malformed == malformed0
-    assert rig.wait(lambda: d.health().ok, 2.0), d.health().text
-    assert d.health().detail["counters"]["reopens"] == 1
+    h = health(d)
+    assert h.detail.counters.bus_failures == 1 and h.malformed == malformed0
+    assert rig.wait(lambda: health(d).ok, 2.0), health(d).text
+    assert health(d).detail.counters.reopens == 1
 
 
 def test_driver_counts_malformed_frames_on_its_bus(rig: Rig) -> None:
-    before = rig.driver.health().malformed
+    before = health(rig.driver).malformed
     rig.spy.send(can.Message(arbitration_id=(0 << 5) | 0x09, data=b"\x01\x02", is_extended_id=False))
     rig.spy.send(can.Message(arbitration_id=(1 << 5) | 0x1F, data=b"", is_extended_id=False))
     rig.driver.poll(time.monotonic(), block=0.1)
-    assert rig.driver.health().malformed >= before + 2
+    assert health(rig.driver).malformed >= before + 2
 
 
 # ------------------------------------------------------------------------------------------ odometry
@@ -447,8 +477,8 @@ def test_implausible_encoder_estimates_never_reach_the_pose(rig: Rig) -> None:
     body = rig.body()
     lag = max(0.0, time.monotonic() - poses[-1].stamp)
     assert math.hypot(poses[-1].x - body.x, poses[-1].y - body.y) < 0.01 + abs(body.v) * lag
-    assert d.health().detail["counters"]["rejected_estimates"] >= 2 * len(garbage)
-    assert d.health().malformed >= 2 * len(garbage) + 2
+    assert health(d).detail.counters.rejected_estimates >= 2 * len(garbage)
+    assert health(d).malformed >= 2 * len(garbage) + 2
 
 
 def test_a_real_encoder_jump_resyncs_the_reference_without_moving_the_pose() -> None:
@@ -551,5 +581,5 @@ def test_many_small_crafted_encoder_steps_cannot_add_up_to_more_than_the_wheel_c
         d._encoder(d.right, -0.02 * k, 0.0, t)
     assert abs(d.pose[0]) < 0.7, d.pose  # at most what a wheel told to stand still may roll (not 100 m)
     assert d.counters["rejected_estimates"] > 1000
-    h = d.health()
+    h = health(d)
     assert not h.ok and "odometry: implausible encoder estimates" in h.text

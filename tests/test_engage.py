@@ -205,7 +205,7 @@ def test_no_axis_enters_closed_loop_before_engage_and_a_faulted_axis_needs_a_per
             driver.stop(time.monotonic())
             driver.poll(time.monotonic())
             time.sleep(0.01)
-        h = driver.health()
+        h = driver.health(time.monotonic())
         assert not closed_loop and not h.ok and "not engaged" in h.text
         assert all(ecus.axis(n).state == 1 for n in (0, 1))  # IDLE
         ecus.inject_error(0, 0x1000)  # the left controller reports an error (a DRV fault)
@@ -214,7 +214,7 @@ def test_no_axis_enters_closed_loop_before_engage_and_a_faulted_axis_needs_a_per
             driver.engage(time.monotonic())
         assert not closed_loop
         driver.engage(time.monotonic(), clear_faults=True)  # the person looked at the robot and clears it
-        assert closed_loop and driver.health().ok
+        assert closed_loop and driver.health(time.monotonic()).ok
     finally:
         stop.set()
         th.join(1)

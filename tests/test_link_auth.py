@@ -54,7 +54,7 @@ def test_only_datagrams_sealed_with_the_key_move_the_udp_robot(key_file) -> None
             assert robot.counters["unauthenticated"] == 1 and not robot.moving and vehicle.distance == 0.0
             _drive(driver, 0.5, 0.3)  # the driver's own, sealed: they drive it
             assert vehicle.distance > 0.05 and robot.counters["applied"] > 0
-            assert driver.counters["unauthenticated"] == 0 and driver.health().ok
+            assert driver.counters["unauthenticated"] == 0 and driver.health(time.monotonic()).ok
         finally:
             driver.close()
 
@@ -87,7 +87,7 @@ def test_mavlink_signing_refuses_every_unsigned_or_foreign_signed_message(tmp_pa
                 if wrong is not None:  # its own check refuses the rover's signed messages: nothing heard
                     with pytest.raises(DriverError, match="no HEARTBEAT"):
                         driver.open(time.monotonic())
-                    assert driver.health().detail["bad_signatures"] > 0
+                    assert driver.health(time.monotonic()).detail.bad_signatures > 0
                 else:  # it hears the rover, but the rover refuses what it says
                     driver.open(time.monotonic())
                     with pytest.raises(DriverError):

@@ -84,7 +84,7 @@ LOOPBACK = textwrap.dedent('''
             self.received += 1
             return [Pose(now, *self.pose, v, w)]
 
-        def health(self) -> LinkHealth:
+        def health(self, now: float) -> LinkHealth:
             return LinkHealth(connected=self.opened, ok=self.opened and self.engaged,
                               text="ready" if self.engaged else "not engaged", frames_sent=self.sent,
                               frames_received=self.received)
@@ -145,7 +145,7 @@ def test_open_driver_builds_the_new_link_and_it_drives(loopback: str) -> None:
     assert isinstance(driver, Driver) and driver.name == loopback
     driver.open(10.0)
     driver.engage(10.0)
-    assert driver.health().ok
+    assert driver.health(10.0).ok
     driver.send(0.5, 0.0, 10.0)
     (pose,) = driver.poll(11.0)
     assert (pose.x, pose.v) == (pytest.approx(1.0), pytest.approx(1.0))  # gain 2 x 0.5 m/s for 1 s

@@ -23,10 +23,16 @@ from hypothesis import strategies as st
 from pymavlink import mavutil
 
 from drivers import DriverError, open_driver
+from drivers.base import Driver, LinkHealth
 from drivers.mavlink import TYPE_MASK_VEL_YAWRATE, MavlinkLinkConfig
 from sim_learner.dynamics import LearnerModel, mpc_learner
 from sim_learner.mavlink_rover import GUIDED, MODES, MavlinkRover
 from sim_learner.vehicle import SimVehicle
+
+
+def health(driver: Driver) -> LinkHealth:
+    """The driver's health now (as the driver host asks for it each tick)."""
+    return driver.health(time.monotonic())
 
 MAV = mavutil.mavlink
 MODE_OR_ARM = (MAV.MAV_CMD_DO_SET_MODE, MAV.MAV_CMD_COMPONENT_ARM_DISARM)
@@ -83,7 +89,7 @@ def commands_after(rover: MavlinkRover, t: float, kinds: tuple[int, ...] = MODE_
 # ------------------------------------------------------------------------------------------------ basics
 def test_open_reaches_guided_and_armed_with_position_streaming() -> None:
     with rig() as (driver, rover, _):
-        h = driver.health()
+        h = health(driver)
         assert h.ok and h.connected and h.text == "driving: GUIDED, armed"
         assert rover.custom_mode == GUIDED and rover.armed
         assert rover.intervals[32] == pytest.approx(0.05) and rover.intervals[30] == pytest.approx(0.05)
@@ -179,11 +185,11 @@ def test_an_rc_mode_switch_is_never_fought_and_driving_resumes_when_the_operator
         time.sleep(0.05)
         assert rover.mode_name == "HOLD" and commands_after(rover, t_open) == []
         assert rover.ignored_setpoints.get("not GUIDED", 0) == ignored  # none sent: withheld, not ignored
-        h = driver.health()
+        h = health(driver)
         assert not h.ok and h.connected and h.text == "operator took control: mode HOLD"
         assert vehicle.advance(time.monotonic()).v == 0.0
         assert rover.rc_mode_switch("GUIDED")
-        assert wait_for(driver, lambda: driver.health().ok, 2.0), driver.health().text
+        assert wait_for(driver, lambda: health(driver).ok, 2.0), health(driver).text
         n = len(rover.setpoints)
         drive(driver, 0.3, 0.25, 0.0)
         assert len(rover.setpoints) > n and vehicle.advance(time.monotonic()).v > 0
@@ -195,11 +201,11 @@ def test_an_operator_disarm_is_reported_and_never_undone() -> None:
         t_open = time.monotonic()
         assert rover.rc_arm(False)
         drive(driver, 1.2, 0.25, 0.0)
-        h = driver.health()
+        h = health(driver)
         assert not h.ok and h.text == "vehicle disarmed in GUIDED: waiting for the operator to arm it"
         assert not rover.armed and commands_after(rover, t_open) == []
         assert rover.rc_arm(True)
-        assert wait_for(driver, lambda: driver.health().ok, 2.0), driver.health().text
+        assert wait_for(driver, lambda: health(driver).ok, 2.0), health(driver).text
 
 
 def test_close_leaves_a_vehicle_the_operator_has_taken_alone() -> None:
@@ -243,7 +249,7 @@ def test_arming_refused_is_reported_with_its_mav_result_and_the_prearm_text() ->
         assert time.monotonic() - t0 < 2 * 3.0 + 2.0  # open and engage, each bounded by open_timeout
         arms = [c for c in rover.commands if c["command"] == MAV.MAV_CMD_COMPONENT_ARM_DISARM]
         assert arms and all(c["result"] == MAV.MAV_RESULT_FAILED for c in arms)
-        assert not rover.armed and "arming refused: MAV_RESULT_FAILED" in driver.health().detail["last_refusal"]
+        assert not rover.armed and "arming refused: MAV_RESULT_FAILED" in health(driver).detail.last_refusal
 
 
 def test_open_waits_for_the_ekf_origin_before_reporting_ready() -> None:
@@ -286,15 +292,15 @@ def test_heartbeat_loss_is_reported_and_recovery_touches_neither_mode_nor_arming
         t_open = time.monotonic()
         drive(driver, 0.2, 0.2, 0.0)
         rover.radio_blackout(True)
-        assert wait_for(driver, lambda: not driver.health().connected, 3.0)
-        h = driver.health()
+        assert wait_for(driver, lambda: not health(driver).connected, 3.0)
+        h = health(driver)
         assert not h.ok and h.text.startswith("no heartbeat for ") and float(h.text.split()[3]) >= 1.5
         n = len(rover.setpoints)
         drive(driver, 0.3, 0.2, 0.0)  # the host keeps calling: nothing goes out while the link is down
         rover.radio_blackout(False)
-        assert wait_for(driver, lambda: driver.health().ok, 3.0), driver.health().text
+        assert wait_for(driver, lambda: health(driver).ok, 3.0), health(driver).text
         assert len(rover.setpoints) == n and commands_after(rover, t_open) == []
-        assert driver.health().detail["link_losses"] == 1
+        assert health(driver).detail.link_losses == 1
 
 
 def test_tcp_reconnects_after_a_reboot_and_waits_for_the_operator() -> None:
@@ -304,18 +310,18 @@ def test_tcp_reconnects_after_a_reboot_and_waits_for_the_operator() -> None:
         drive(driver, 1.5, 0.2, 0.0)  # up long enough that its clock going back to 0 tells a reboot (> 1 s)
         port = rover.port
         rover.stop()
-        assert wait_for(driver, lambda: not driver.health().connected, 3.0)
+        assert wait_for(driver, lambda: not health(driver).connected, 3.0)
         rover2 = MavlinkRover(vehicle, port=port, transport="tcp", init_s=0.2, ekf_position_s=0.4).start()
         try:
-            assert wait_for(driver, lambda: driver.health().connected and rover2.intervals[32] == 0.05
+            assert wait_for(driver, lambda: health(driver).connected and rover2.intervals[32] == 0.05
                             and rover2.intervals[30] == 0.05, 6.0)
-            assert wait_for(driver, lambda: driver.health().text.startswith("vehicle rebooted: mode MANUAL"), 2.0)
-            assert "disarmed" in driver.health().text and not driver.health().ok
+            assert wait_for(driver, lambda: health(driver).text.startswith("vehicle rebooted: mode MANUAL"), 2.0)
+            assert "disarmed" in health(driver).text and not health(driver).ok
             assert {c["command"] for c in rover2.commands} == {MAV.MAV_CMD_SET_MESSAGE_INTERVAL}  # streams only
-            assert driver.health().detail["reconnects"] >= 1
+            assert health(driver).detail.reconnects >= 1
             assert rover2.rc_mode_switch("GUIDED")
             assert wait_for(driver, lambda: rover2.rc_arm(True), 2.0)
-            assert wait_for(driver, lambda: driver.health().ok, 3.0), driver.health().text
+            assert wait_for(driver, lambda: health(driver).ok, 3.0), health(driver).text
             drive(driver, 0.3, 0.2, 0.0)
             assert rover2.setpoints
         finally:
@@ -329,7 +335,8 @@ def test_statustexts_are_logged_and_the_last_few_are_in_health(caplog: pytest.Lo
         for i in range(6):
             rover.text(f"PreArm: check {i}")
         assert wait_for(driver, lambda: driver.statustexts[-1:] == ["PreArm: check 5"], 2.0)
-        assert driver.health().detail["statustexts"] == ["PreArm: check 3", "PreArm: check 4", "PreArm: check 5"]
+        assert health(driver).detail.statustexts == ("PreArm: check 3", "PreArm: check 4",
+                                                                      "PreArm: check 5")
         assert "vehicle: PreArm: check 0" in caplog.text
 
 
@@ -344,11 +351,11 @@ def test_other_systems_on_the_link_are_ignored_and_counted() -> None:
             other.local_position_ned_send(0, 100.0, 100.0, 0.0, 1.0, 0.0, 0.0)
             gcs.command_ack_send(MAV.MAV_CMD_COMPONENT_ARM_DISARM, MAV.MAV_RESULT_ACCEPTED, 0, 0, 255, 190)
             drive(driver, 0.05, 0.2, 0.0, poses)
-        h = driver.health()
+        h = health(driver)
         assert h.ok and driver.custom_mode == GUIDED and driver.armed
         body = vehicle.advance(time.monotonic())
         assert poses and all(math.hypot(p.x - body.x, p.y - body.y) < 0.5 for p in poses)
-        assert h.detail["foreign"] >= 40 and (2, 1) in h.detail["foreign_ids"]
+        assert h.detail.foreign >= 40 and (2, 1) in h.detail.foreign_ids
 
 
 def test_set_points_repeat_at_the_set_point_rate_but_a_change_goes_at_once() -> None:
@@ -483,14 +490,14 @@ def test_telemetry_with_non_finite_or_absurd_values_is_counted_and_dropped() -> 
     message went unread; a position of 1e30 m became a pose."""
     with rig() as (driver, rover, _):
         me = rover.foreign(1, 1)  # the vehicle's own ids: these are "its" messages
-        before = driver.health().malformed
+        before = health(driver).malformed
         for bad in (math.inf, math.nan, 1e30):
             me.attitude_send(0, 0.0, 0.0, bad, 0.0, 0.0, 0.0)
             me.local_position_ned_send(0, bad, 0.0, 0.0, 0.0, 0.0, 0.0)
         poses: list = []
         drive(driver, 0.3, 0.2, 0.0, poses)
-        h = driver.health()
-        assert h.malformed - before == 6 and h.detail["invalid_values"] == 6
+        h = health(driver)
+        assert h.malformed - before == 6 and h.detail.invalid_values == 6
         assert h.ok and poses and all(abs(p.x) < 100 and abs(p.y) < 100 and math.isfinite(p.theta) for p in poses)
 
 
@@ -508,7 +515,7 @@ def test_changing_commands_never_take_more_set_points_than_the_radio_budget() ->
             time.sleep(0.01)
         sent = len(rover.setpoints) - n0
         assert sent <= 2.0 * 20 + 3, sent
-        assert driver.health().detail["setpoints_deferred"] > 50
+        assert health(driver).detail.setpoints_deferred > 50
         driver.stop(time.monotonic())
         assert rover.setpoints[-1]["vx"] == 0.0 or _until_stop(rover)
 

@@ -29,11 +29,16 @@ import pytest
 from bridge.core import wire as M
 from bridge.tools.procs import stop_group
 from drivers import open_driver
-from drivers.base import DriverError
+from drivers.base import Driver, DriverError, LinkHealth
 from drivers.udp import UdpLinkConfig
 from sim_learner.dynamics import mpc_learner
 from sim_learner.udp_robot import DEFAULT_PEER, UdpRobot
 from sim_learner.vehicle import SimVehicle
+
+
+def health(driver: Driver) -> LinkHealth:
+    """The driver's health now (as the driver host asks for it each tick)."""
+    return driver.health(time.monotonic())
 
 LOCAL = "127.0.0.1"
 
@@ -140,7 +145,7 @@ def poll_until(driver, n_datagrams: int, timeout: float = 2.0) -> list:
     t_end = time.monotonic() + timeout
     while time.monotonic() < t_end:
         poses += driver.poll(time.monotonic())
-        if driver.health().frames_received >= n_datagrams:
+        if health(driver).frames_received >= n_datagrams:
             break
         time.sleep(0.002)
     return poses
@@ -149,7 +154,7 @@ def poll_until(driver, n_datagrams: int, timeout: float = 2.0) -> list:
 def test_a_forged_huge_seq_does_not_lock_the_robots_telemetry_out(scripted) -> None:
     driver, robot = scripted
     driver.poll(time.monotonic())
-    n0 = driver.health().frames_received
+    n0 = health(driver).frames_received
     for i in range(3):
         robot.state(x=1.0 + i)
     # forged from the robot's own address (a spoofed source): the highest seq there is, and another epoch
@@ -160,14 +165,14 @@ def test_a_forged_huge_seq_does_not_lock_the_robots_telemetry_out(scripted) -> N
         robot.state(x=10.0 + i)
     poses = poll_until(driver, n0 + 10)
     assert [p.x for p in poses] == [1.0, 2.0, 3.0, 10.0, 11.0, 12.0, 13.0, 14.0]  # the real robot, every state
-    d = driver.health().detail
-    assert d["state_seq_jump"] == 1 and d["state_foreign_epoch"] == 1
+    d = health(driver).detail
+    assert d.state_seq_jump == 1 and d.state_foreign_epoch == 1
 
 
 def test_state_datagrams_from_any_other_address_are_dropped_as_foreign(scripted) -> None:
     driver, robot = scripted
     driver.poll(time.monotonic())
-    n0 = driver.health().frames_received
+    n0 = health(driver).frames_received
     with udp_socket() as spoofer:
         robot.state(x=1.0)
         robot.state(x=50.0, seq=robot.seq + 1, via=spoofer)  # the next seq of the right epoch, wrong sender
@@ -175,8 +180,8 @@ def test_state_datagrams_from_any_other_address_are_dropped_as_foreign(scripted)
         robot.state(x=2.0)
         poses = poll_until(driver, n0 + 4)
     assert [p.x for p in poses] == [1.0, 2.0]
-    h = driver.health()
-    assert h.detail["foreign"] == 2 and h.malformed == 0
+    h = health(driver)
+    assert h.detail.foreign == 2 and h.malformed == 0
 
 
 def test_datagrams_the_kernel_dropped_in_a_flood_are_counted(scripted) -> None:
@@ -185,17 +190,17 @@ def test_datagrams_the_kernel_dropped_in_a_flood_are_counted(scripted) -> None:
     driver, robot = scripted
     driver.sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)  # a small buffer: the flood overflows it
     driver.poll(time.monotonic())
-    n0, flood = driver.health().frames_received, 2000
+    n0, flood = health(driver).frames_received, 2000
     with udp_socket() as flooder:
         for _ in range(flood):
             flooder.sendto(b"\x00" * 64, ("127.0.0.1", driver.sock.getsockname()[1]))
     poll_until(driver, n0 + flood, timeout=1.0)
     robot.state(x=1.0)  # the kernel reports its drop count with the next datagram read
-    poses = poll_until(driver, n0 + flood + 1 - driver.health().detail["dropped_by_kernel"], timeout=1.0)
+    poses = poll_until(driver, n0 + flood + 1 - health(driver).detail.dropped_by_kernel, timeout=1.0)
     poses += driver.poll(time.monotonic())
-    h = driver.health()
-    assert h.detail["dropped_by_kernel"] > 0
-    assert h.frames_received - n0 + h.detail["dropped_by_kernel"] == flood + 1
+    h = health(driver)
+    assert h.detail.dropped_by_kernel > 0
+    assert h.frames_received - n0 + h.detail.dropped_by_kernel == flood + 1
     assert [p.x for p in poses] == [1.0]
 
 
@@ -217,39 +222,39 @@ def test_a_robot_that_reboots_is_recognised_after_a_silence_and_its_old_epoch_re
     assert poses, "the rebooted robot's state was never taken"
     taken_after = time.monotonic() - t_last_old
     assert 0.3 <= taken_after < 0.3 + 0.25  # refused while the old stream may be alive, taken after the silence
-    d = driver.health().detail
-    assert d["state_foreign_epoch"] >= 1 and d["robot_restarts"] == 1
+    d = health(driver).detail
+    assert d.state_foreign_epoch >= 1 and d.robot_restarts == 1
     # the old run's datagrams (a late one, a replay) are refused for good
     robot.state(x=-1.0, seq=1000, epoch=old_epoch)
     robot.state(x=200.0)
     time.sleep(0.05)
     assert [p.x for p in driver.poll(time.monotonic())] == [200.0]
-    assert driver.health().detail["state_old_epoch"] == 1
+    assert health(driver).detail.state_old_epoch == 1
 
 
 def test_health_is_ok_only_while_the_robots_state_is_fresh(scripted) -> None:
     driver, robot = scripted
-    h = driver.health()
+    h = health(driver)
     assert h.ok and h.connected
     time.sleep(0.45)
     driver.poll(time.monotonic())
-    h = driver.health()
+    h = health(driver)
     assert not h.ok and h.connected
     assert re.fullmatch(r"no state from the robot for (0\.[4-9]|[1-9]\.\d) s", h.text), h.text
     robot.state(x=1.0)
     time.sleep(0.02)
     driver.poll(time.monotonic())
-    assert driver.health().ok
+    assert health(driver).ok
 
 
 def test_health_is_not_ok_before_the_first_state() -> None:
     with udp_socket() as silent:  # a robot that never answers
         driver = open_driver("udp", UdpLinkConfig(robot_port=silent.getsockname()[1], bind_port=0,
                                                   open_timeout=0.2))
-        assert not driver.health().ok
+        assert not health(driver).ok
         with pytest.raises(DriverError, match="no state from the UDP robot"):
             driver.open(time.monotonic())
-        h = driver.health()
+        h = health(driver)
         assert not h.ok and "no state from the robot yet" in h.text
         driver.close()
 
@@ -336,7 +341,7 @@ def test_command_reaches_the_robot_and_state_comes_back(rig) -> None:
     assert robot.last_cmd.seq == driver.seq and robot.last_cmd.epoch == driver.epoch
     body = vehicle.advance(time.monotonic())
     assert poses and body.x > 0.05 and abs(poses[-1].x - body.x) < 0.02
-    assert driver.health().ok
+    assert health(driver).ok
 
 
 def test_poses_carry_the_robots_own_stamps_so_the_pairs_are_its_true_response() -> None:
@@ -462,17 +467,17 @@ def test_a_robot_reboot_and_a_telemetry_pause_do_not_lock_the_link(rig) -> None:
     driver, robot, vehicle = rig
     old_epoch = robot.epoch
     robot.pause_telemetry(0.8)  # the driver's state_timeout_s is 0.5
-    assert wait_for(lambda: (driver.poll(time.monotonic()), not driver.health().ok)[1], 1.0)
-    assert "no state from the robot" in driver.health().text
-    assert wait_for(lambda: len(driver.poll(time.monotonic())) > 0, 1.0) and driver.health().ok
+    assert wait_for(lambda: (driver.poll(time.monotonic()), not health(driver).ok)[1], 1.0)
+    assert "no state from the robot" in health(driver).text
+    assert wait_for(lambda: len(driver.poll(time.monotonic())) > 0, 1.0) and health(driver).ok
     robot.reboot()
     assert robot.epoch != old_epoch
     t0 = time.monotonic()
-    while time.monotonic() - t0 < 2.0 and driver.health().detail["robot_restarts"] == 0:
+    while time.monotonic() - t0 < 2.0 and health(driver).detail.robot_restarts == 0:
         driver.poll(time.monotonic())
         time.sleep(0.01)
-    assert driver.health().detail["robot_restarts"] == 1
-    assert wait_for(lambda: len(driver.poll(time.monotonic())) > 0, 0.5) and driver.health().ok
+    assert health(driver).detail.robot_restarts == 1
+    assert wait_for(lambda: len(driver.poll(time.monotonic())) > 0, 0.5) and health(driver).ok
 
 
 def test_the_learner_command_serves_its_peer_only_and_refuses_a_bad_peer(tmp_path) -> None:
@@ -489,7 +494,7 @@ def test_the_learner_command_serves_its_peer_only_and_refuses_a_bad_peer(tmp_pat
     driver = open_driver("udp", UdpLinkConfig(robot_port=robot_port, bind_port=port, open_timeout=20.0))
     try:
         driver.open(time.monotonic())
-        assert driver.health().ok
+        assert health(driver).ok
     finally:
         driver.close()
         stop_group(proc)
@@ -525,8 +530,8 @@ def test_fuzzing_the_driver_with_2000_datagrams(scripted) -> None:
     driver, robot = scripted
     rng = random.Random(20240610)
     driver.poll(time.monotonic())
-    h0 = driver.health()
-    base = (h0.frames_received, h0.malformed, h0.detail["foreign"])
+    h0 = health(driver)
+    base = (h0.frames_received, h0.malformed, h0.detail.foreign)
     poses: list = []
     sent = 0
     with udp_socket() as stranger:
@@ -543,12 +548,12 @@ def test_fuzzing_the_driver_with_2000_datagrams(scripted) -> None:
                 via.sendto(data, robot.driver_addr)
                 sent += 1
             poses += poll_until(driver, base[0] + sent)
-    h = driver.health()
+    h = health(driver)
     d = h.detail
     assert h.frames_received - base[0] == sent
-    refused = sum(d[k] for k in ("state_out_of_order", "state_seq_jump", "state_old_epoch", "state_foreign_epoch"))
-    assert len(poses) + (h.malformed - base[1]) + (d["foreign"] - base[2]) + refused == sent
-    assert d["foreign"] - base[2] > 200 and h.malformed - base[1] > 500 and len(poses) > 300
+    refused = d.state_out_of_order + d.state_seq_jump + d.state_old_epoch + d.state_foreign_epoch
+    assert len(poses) + (h.malformed - base[1]) + (d.foreign - base[2]) + refused == sent
+    assert d.foreign - base[2] > 200 and h.malformed - base[1] > 500 and len(poses) > 300
     assert all(math.isfinite(v) for p in poses for v in (p.x, p.y, p.theta, p.v or 0.0, p.omega or 0.0))
 
 

@@ -251,7 +251,7 @@ class DriverHost:
 
     def decide(self, now: float) -> Decision:
         """The gate's decision, overruled by engagement, the link's health and the telemetry's age."""
-        self.health = self.driver.health()
+        self.health = self.driver.health(now)
         self.follow_operator(self.health)
         self.was_ok, self.last_health_connected = self.health.ok, self.health.connected
         with self.lock:
@@ -318,8 +318,8 @@ class DriverHost:
         counters.update(self.inputs.snapshot())
         counters.update({"link_malformed": h.malformed, "link_errors": h.errors, "missed_deadlines": self.missed,
                          "frames_sent": h.frames_sent, "frames_received": h.frames_received, "ticks": len(self.ticks)})
-        flat = {**h.detail, **h.detail.get("counters", {})}  # a link may group its counters under "counters"
-        counters.update({f"link_{k}": int(v) for k, v in flat.items() if isinstance(v, (int, bool)) and int(v) >= 0})
+        if h.detail is not None:
+            counters.update({f"link_{k}": v for k, v in h.detail.status_counters().items()})
         pose_age = now - self.last_pose
         problems = []
         if not h.ok:

@@ -168,7 +168,7 @@ def check_vehicle(link: str, link_cfg: object, max_drive_on: float) -> list[Chec
     except DriverError as exc:
         return [Check("FAIL", "vehicle", f"link {link}: {exc}")]
     try:
-        h = driver.health()
+        h = driver.health(time.monotonic())
         fs = driver.failsafe()
         out = [Check("ok", "vehicle", f"link {link}: the vehicle answers ({h.text})")]
         if fs.drive_on_s is None or fs.drive_on_s > max_drive_on:
