@@ -30,10 +30,10 @@ def forged_command_in_epoch(short: bool) -> Result:
     """A forged Command with the station's epoch and seq + 135, stamped 90 ms after a real one (the epoch is
     readable off an open network): applied? how long is the real station locked out?"""
     from bridge.core import wire as M
+    from bridge.core.config import DEFAULT_HARD_LIMITS, DriverSection
     from bridge.core.gate import CommandGate
-    from transfer.domain import Bounds
 
-    g = CommandGate(Bounds((-0.5, 0.5), (-1.0, 1.0)), cmd_timeout=0.3)
+    g = CommandGate(DEFAULT_HARD_LIMITS.bounds(), cmd_timeout=DriverSection().cmd_timeout)
     epoch, t = 0x5EED, 100.0
     forged_applied, locked = 0, 0
     for k in range(40 if short else 400):
