@@ -40,8 +40,6 @@ from bridge.core.errors import UsageError
 from bridge.nodes.node import add_zenoh_args, endpoints_tried, zenoh_config
 from bridge.nodes.zsession import open_session
 
-LEVELS = ("ok", "warn", "FAIL")
-
 
 @dataclass(frozen=True)
 class Check:
