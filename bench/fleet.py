@@ -46,9 +46,8 @@ STATE_HZ = 100.0  # the emulated CAN link's poses: each wheel's encoder estimate
 APPLIED_HZ = DriverSection().rate_hz  # the driver host's loop
 TILES = 5  # the paper's 8 m S-path laid end to end: 40 m, more than a robot drives in one run
 #: What the shipped station units (deploy/systemd/scmbridge-station*.service) set: one BLAS / OpenMP thread per
-#: station. By default OpenBLAS starts a worker per core and its workers spin between the solver's small BLAS calls:
-#: measured here, 32 ms of CPU per 10 Hz tick of one station by default against 11 ms with these (and the spinning
-#: threads take cores from every other station). ``--blas-threads inherit`` measures the default.
+#: station, so that OpenBLAS's spinning workers do not take the cores other stations need (README, "Many robots",
+#: has the figures; ``--blas-threads inherit`` measures the default).
 STATION_ENV = ONE_BLAS_THREAD
 
 
