@@ -31,9 +31,9 @@ def forged_command_in_epoch(short: bool) -> Result:
     readable off an open network): applied? how long is the real station locked out?"""
     from bridge.core import wire as M
     from bridge.core.gate import CommandGate
-    from transfer.domain import Bounds
+    from bridge.nodes.driver_config import DEFAULT_HARD_LIMITS, DriverSection
 
-    g = CommandGate(Bounds((-0.5, 0.5), (-1.0, 1.0)), cmd_timeout=0.3)
+    g = CommandGate(DEFAULT_HARD_LIMITS.bounds(), cmd_timeout=DriverSection().cmd_timeout)
     epoch, t = 0x5EED, 100.0
     forged_applied, locked = 0, 0
     for k in range(40 if short else 400):

@@ -21,7 +21,11 @@ from pathlib import Path
 import numpy as np
 
 from bench.common import emit
+from bridge.nodes.driver_config import DriverSection
 from bridge.tools.procs import Children, emulated_link
+
+#: the driver host's loop rate (its default): what its missed deadlines are a fraction of
+LOOP_HZ = DriverSection().rate_hz
 
 
 def _rss_kb(pid: int) -> int | None:
@@ -100,7 +104,7 @@ def run_link(link: str, seconds: float, workdir: str) -> dict:
         "commands_sent": seq,
         "loop_50hz": {"jitter_ms": dict(last.latencies_ms) if last else None,
                       "missed_deadlines": c.get("missed_deadlines"),
-                      "missed_fraction": c.get("missed_deadlines", 0) / (50.0 * (seconds + 1))},
+                      "missed_fraction": c.get("missed_deadlines", 0) / (LOOP_HZ * (seconds + 1))},
         "driver_rss_kb": {"start": rss0, "end": rss1},
     }
 

@@ -37,17 +37,18 @@ from pathlib import Path
 import numpy as np
 
 from bench.common import emit
+from bridge.core.config import StationSection
 from bridge.core.errors import UsageError
+from bridge.nodes.driver_config import DEFAULT_HARD_LIMITS, DriverSection
 from bridge.tools.cli import ONE_BLAS_THREAD
 
-PERIOD_S = 0.1  # the station's default tick (10 Hz)
+PERIOD_S = 1.0 / StationSection().rate_hz  # the station's default tick
 STATE_HZ = 100.0  # the emulated CAN link's poses: each wheel's encoder estimate every 10 ms
-APPLIED_HZ = 50.0  # the driver host's loop
+APPLIED_HZ = DriverSection().rate_hz  # the driver host's loop
 TILES = 5  # the paper's 8 m S-path laid end to end: 40 m, more than a robot drives in one run
 #: What the shipped station units (deploy/systemd/scmbridge-station*.service) set: one BLAS / OpenMP thread per
-#: station. By default OpenBLAS starts a worker per core and its workers spin between the solver's small BLAS calls:
-#: measured here, 32 ms of CPU per 10 Hz tick of one station by default against 11 ms with these (and the spinning
-#: threads take cores from every other station). ``--blas-threads inherit`` measures the default.
+#: station, so that OpenBLAS's spinning workers do not take the cores other stations need (README, "Many robots",
+#: has the figures; ``--blas-threads inherit`` measures the default).
 STATION_ENV = ONE_BLAS_THREAD
 
 
@@ -58,10 +59,9 @@ class SimRobot:
     def __init__(self, name: str, x0: tuple[float, float, float], now: float) -> None:
         from bridge.core import wire as M
         from bridge.core.gate import CommandGate
-        from bridge.nodes.driver_config import DEFAULT_HARD_LIMITS
 
         self.name, self.keys = name, M.Keys(name)
-        self.gate = CommandGate(DEFAULT_HARD_LIMITS.bounds(), 0.3)
+        self.gate = CommandGate(DEFAULT_HARD_LIMITS.bounds(), DriverSection().cmd_timeout)
         self.x, self.y, self.th = (float(a) for a in x0)
         self.v = self.w = 0.0
         self.t = now
@@ -440,7 +440,7 @@ def run(args: argparse.Namespace) -> int:
     cores = str(os.cpu_count() or 1)
     env = dict(os.environ, **(STATION_ENV if args.blas_threads == "1" else
                                {"OPENBLAS_NUM_THREADS": cores, "OMP_NUM_THREADS": cores}))
-    out: dict = {"rate_hz": 1 / PERIOD_S, "period_ms": PERIOD_S * 1e3, "mpc_horizon": 20,
+    out: dict = {"rate_hz": 1 / PERIOD_S, "period_ms": PERIOD_S * 1e3, "mpc_horizon": StationSection().horizon,
                  "criterion": {"missed_fraction_every_station": "< 0.01", "tick_p99_ms_every_station": "< 100"},
                  "duration_s": args.duration, "warmup_s": args.warmup, "cpus": os.cpu_count(), "load_start": _load(),
                  "station_env": {k: env[k] for k in STATION_ENV},

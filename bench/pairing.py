@@ -22,9 +22,11 @@ from typing import Any
 import numpy as np
 
 from bench.common import can_ecus, emit, open_can_driver
+from bridge.core.config import StationSection
+from bridge.nodes.driver_config import DriverSection
 
-TICK = 0.02  # the driver host's default 50 Hz
-STATION_TICK = 0.1  # the station's default 10 Hz
+TICK = 1.0 / DriverSection().rate_hz  # the driver host's default tick
+STATION_TICK = 1.0 / StationSection().rate_hz  # the station's default tick
 
 
 def _opened(stack: ExitStack, link: str, config: Any) -> Any:

@@ -21,8 +21,7 @@ counter of their last status, and any child that exited or logged a traceback. J
 (SIGUSR1, :class:`bridge.nodes.node.MemoryReport`) at the end of warm-up and at the end: ``memory_reports`` lists the
 Python allocation sites that grew most in between. Growth of the RSS that no site accounts for is outside Python's
 heap (native libraries, the allocator keeping freed memory). Traced nodes are slower, and a report pauses its node
-for its snapshot: traced, the driver host on CAN missed its emulated controllers' watchdog (0.5 s), and they
-stopped until an operator's release, as real ones do. So by default only the station is traced.
+for its snapshot, long enough to trip a driving vehicle's watchdog: so by default only the station is traced.
 """
 
 from __future__ import annotations

@@ -274,8 +274,3 @@ class DiffDriveEcus(ThreadedDevice):
         with self._lock:
             ax = self.axes[node]
             return _EcuAxis(**{k: getattr(ax, k) for k in ax.__dataclass_fields__})
-
-    def sent_by_master(self, node: int, cmd: int, since: float = -math.inf) -> list[bytes]:
-        """Payloads of the frames ``cmd`` the master sent to ``node`` since ``since`` (emulator clock; tests)."""
-        with self._lock:
-            return [d for t, n, c, d in self.received if n == node and c == cmd and t >= since]

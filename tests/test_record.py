@@ -1,4 +1,4 @@
-"""``scmbridge record`` / ``replay`` / ``report`` (bridge/record.py, bridge/report.py).
+"""``scmbridge record`` / ``replay`` / ``report`` (bridge/tools/record.py, mcap_sink.py, report.py).
 
 The fast tests drive a short, deterministic run (poses along a mission path, commands, echoes, both nodes' status,
 a mission message, a malformed and a non-canonical sample) through a Zenoh router on a free 127.0.0.1 port, with
@@ -38,8 +38,8 @@ from bridge.tools.mcap_format import (
     json_schema,
     read_recording,
 )
+from bridge.tools.mcap_sink import McapSink
 from bridge.tools.procs import Children, stop_group
-from bridge.tools.record import McapSink
 
 ROBOT = "rec1"
 MISSION = M.MissionSpec(name="test-bend", path=[[0.0, 0.0], [2.0, 0.0], [3.0, 1.0]], goal_tolerance=0.2)

@@ -12,7 +12,10 @@ import json
 
 import pytest
 
-from bench import fuzz, soak
+from bench import soak
+from bench.fuzz import can_frames, harness, host, mavlink_frames, messages, rss
+from bench.fuzz.main import IN_PROCESS
+from bridge.core import wire as M
 
 N = 2000
 
@@ -35,7 +38,7 @@ def check(res: dict, name: str) -> None:
 @pytest.fixture(scope="module")
 def zenoh_results(tmp_path_factory) -> dict:
     """Both Zenoh inputs into one driver host process (saves a start-up)."""
-    return fuzz.fuzz_zenoh(N, 7, tmp_path_factory.mktemp("fuzz"))
+    return host.fuzz_zenoh(N, 7, tmp_path_factory.mktemp("fuzz"))
 
 
 @pytest.mark.parametrize("name", ["zenoh_cmd", "zenoh_estop"])
@@ -55,7 +58,7 @@ def test_the_estop_latch_counts_follow_the_documented_rule(zenoh_results) -> Non
 @pytest.mark.parametrize("name", ["udp_driver", "udp_robot", "can_decoder", "can_driver", "can_ecu", "mavlink_driver",
                                   "mavlink_rover"])
 def test_in_process_inputs_are_counted_exactly(name, tmp_path) -> None:
-    res = fuzz.IN_PROCESS[name](N, 11, tmp_path)
+    res = IN_PROCESS[name](N, 11, tmp_path)
     assert res["counted"] > N // 10, res  # the mutations really are malformed, mostly
     check(res, name)
 
@@ -66,26 +69,26 @@ def test_oracles_refuse_what_the_contract_refuses() -> None:
     import random
 
     rng = random.Random(3)
-    tally = fuzz.Tally()
-    mut = fuzz.MsgMutator(rng, fuzz.COMMAND, fuzz.CommandStream(rng))
+    tally = harness.Tally()
+    mut = messages.MsgMutator(rng, messages.COMMAND, messages.CommandStream(rng))
     for _ in range(3000):
         kind, data = mut.next()
-        tally.add(kind, not fuzz.wire_ok(data, fuzz.M.Command))
+        tally.add(kind, not messages.wire_ok(data, M.Command))
     assert tally.contract_violations() == 0 and tally.refused["valid"] == 0
-    assert all(tally.sent[k] > 20 for k in fuzz.MUST_REJECT)
-    spec = fuzz.CanSpec()
-    assert spec.valid(fuzz._frame(1, fuzz.SET_INPUT_VEL, bytes(8)))
-    assert not spec.valid(fuzz._frame(1, fuzz.SET_INPUT_VEL, bytes(7)))
-    assert not spec.valid(fuzz._frame(1, fuzz.SET_INPUT_VEL, b"\x00\x00\xc0\x7f" + bytes(4)))  # NaN
-    m = fuzz.MavMutator(random.Random(1), fuzz._gcs_templates(random.Random(2)))
-    parser = fuzz.mav_parser()
+    assert all(tally.sent[k] > 20 for k in harness.MUST_REJECT)
+    spec = can_frames.CanSpec()
+    assert spec.valid(can_frames.can_frame(1, can_frames.SET_INPUT_VEL, bytes(8)))
+    assert not spec.valid(can_frames.can_frame(1, can_frames.SET_INPUT_VEL, bytes(7)))
+    assert not spec.valid(can_frames.can_frame(1, can_frames.SET_INPUT_VEL, b"\x00\x00\xc0\x7f" + bytes(4)))  # NaN
+    m = mavlink_frames.MavMutator(random.Random(1), mavlink_frames.gcs_templates(random.Random(2)))
+    parser = mavlink_frames.mav_parser()
     for _ in range(200):  # sealed: nothing is left pending in a parser after any datagram
-        fuzz.mav_parse(parser, m.next()[1])
+        mavlink_frames.mav_parse(parser, m.next()[1])
         assert parser.buf_len() == 0
 
 
 def test_rss_rounds_and_the_probe_host_report(tmp_path) -> None:
-    res = fuzz.rss_rounds(1, 300, 5, tmp_path, probe=True)
+    res = rss.rss_rounds(1, 300, 5, tmp_path, probe=True)
     assert len(res["rss_mb"]) == 2 and all(res["exact"]) and not res["crashes"]
     assert len(res["heap"]) == 2 and res["heap"][0]["python_traced_mb"] > 0
     assert "malloc_free_kept_mb" in res["after_malloc_trim"]

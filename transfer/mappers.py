@@ -211,12 +211,6 @@ class AffineMapper(_Triangulated):
         self._sync()
         return None if self._coef is None else np.append(t, 1.0) @ self._coef
 
-    def linear_part(self) -> NDArray[np.float64] | None:
-        """The fit's 2 x 2 linear part ``M`` (``l = t @ M + b``): how a step in the normalised teacher command moves
-        the normalised learner command, on average over the refined pairs (None before there is a fit)."""
-        self._sync()
-        return None if self._coef is None else self._coef[:2]
-
 
 class IdentityMapper:
     """The paper's baseline: the teacher command is applied to the learner as it is."""

@@ -159,7 +159,7 @@ class Applied(_Msg, kw_only=True):
 
     ``cmd_seq`` is the ``Command.seq`` it came from, or absent for a stop the driver host decided itself
     (``reason`` says why: stop (a stop command), refused (outside what the vehicle can do in that direction: never
-    mirrored into motion the other way), deadman, estop, stale, shutdown, fault (a controller error),
+    mirrored into motion the other way), deadman, estop, stale, start (no command yet), fault (a controller error),
     operator (the vehicle's operator took control), link_down, no_telemetry (no pose from the vehicle lately),
     disengaged (no person has engaged the vehicle since the host started)).
     """
@@ -168,7 +168,7 @@ class Applied(_Msg, kw_only=True):
     seq: Seq
     v: Speed
     omega: Rate
-    reason: Literal["cmd", "clamped", "refused", "stop", "deadman", "estop", "stale", "shutdown", "start", "fault",
+    reason: Literal["cmd", "clamped", "refused", "stop", "deadman", "estop", "stale", "start", "fault",
                     "operator", "link_down", "no_telemetry", "disengaged"]
     cmd_seq: Seq | None = None
 
@@ -220,7 +220,6 @@ class Limits(_Msg, kw_only=True):
 
 
 XY = Annotated[list[Coord], Meta(min_length=2, max_length=2)]
-Radius = Annotated[float, Meta(gt=0.0, le=1e4)]
 
 
 class MissionSpec(_Msg, kw_only=True):
@@ -251,7 +250,7 @@ class MissionSpec(_Msg, kw_only=True):
 
 #: what a node is doing, for ``scmbridge status`` and the log; ``text`` gives the one reason in words
 NodeState = Literal["", "driving", "idle", "running", "paused", "finished", "aborted", "waiting", "estop", "operator",
-                    "link_down", "fault", "no_pose", "starting", "dry_run", "stopped"]
+                    "link_down", "fault", "no_pose", "starting", "dry_run"]
 
 
 class Status(_Msg, kw_only=True):

@@ -8,10 +8,9 @@ over which that one command was in force. A pair ``<f_T^-1(x(t1), x(t2)), u_L>``
 pair per ``dt``), and only if the span is at least ``min_span`` (0.4 ``dt`` by default). Deadman stops, estops
 and telemetry gaps longer than ``max_gap`` never produce a pair. Pure: times are arguments.
 
-Why 0.4 ``dt``: telemetry at twice the command rate (an ArduPilot vehicle's 20 Hz poses against 10 Hz commands)
-puts two poses, one period apart, inside each command, so the span is ``dt / 2`` give or take the vehicle's
-scheduling jitter. A minimum of exactly ``dt / 2`` rejected about half of those intervals for that jitter alone
-(docs/ARCHITECTURE.md, section 4).
+Why 0.4 ``dt``: telemetry at twice the command rate puts two poses about ``dt / 2`` apart inside each command, and
+the vehicle's scheduling jitter must not reject them (docs/ARCHITECTURE.md section 4; the measurement is in the
+README, "Reliability").
 
 What it learns from is checked first (forged or garbled telemetry must not be learned, nor stop learning): with
 the receipt time given, an event stamped further ahead of the last one than the time that passed between their

@@ -42,8 +42,6 @@ from bridge.nodes.node import add_zenoh_args, endpoints_tried, zenoh_config
 from bridge.nodes.zsession import open_session
 from drivers import link_names
 
-LEVELS = ("ok", "warn", "FAIL")
-
 
 @dataclass(frozen=True)
 class Check:
