@@ -48,7 +48,8 @@ from bridge.nodes.zsession import open_session
 from transfer.calibration import CalibrationPlan
 from transfer.domain import Bounds
 from transfer.mission import Mission
-from transfer.policy import TransferPolicy, planned_commands
+from transfer.policy import make_policy
+from transfer.step import TransferStep
 from transfer.store import PairStore
 from transfer.teacher.primitives import PrimitiveFollower, PrimitiveLibrary, PrimitivePlanner
 
@@ -115,14 +116,10 @@ class Station:
         self.store, how = load_store(store_path, cfg.learner_bounds.bounds(), cfg.teacher_bounds.bounds(),
                                      tcfg.grid, tcfg.k_min)
         log.info("%s", how)
-        rng = np.random.default_rng(tcfg.seed)
-        self.exploration, self.clearance = tcfg.exploration, tcfg.explore_clearance_m
-        self.policy = TransferPolicy(self.store, tcfg.mapper, rng=rng,
-                                     exploration="paper" if tcfg.exploration == "paper" else "guided")
-        # near obstacles (and with exploration off) commands are mapped without perturbing: the paper's algorithm
-        # has no such switch, so it gets a guided twin over the same store for those ticks
-        self.safe_policy = self.policy if self.exploration != "paper" else TransferPolicy(
-            self.store, tcfg.mapper, rng=rng, exploration="guided")
+        policy = make_policy(self.store, tcfg.mapper, np.random.default_rng(tcfg.seed),
+                             exploration="paper" if tcfg.exploration == "paper" else "guided")
+        self.transfer = TransferStep(policy, dt=self.period, explore=tcfg.exploration != "off",
+                                     clearance=tcfg.explore_clearance_m)
         self.mpc = MpcTeacher(MpcConfig(N=scfg.horizon, dt=self.period)) if cfg.teacher.kind == "mpc" else None
         learner, teacher = cfg.learner_bounds.bounds(), cfg.teacher_bounds.bounds()
         top_v = float(max(abs(x) for x in (*learner.v, *teacher.v)))
@@ -341,15 +338,10 @@ class Station:
         """Map a teacher command and publish it. Exploration is allowed only if configured and, when the pose is
         known, at least ``explore_clearance_m`` from every obstacle; ``predicted`` (the teacher's plan) steers
         which missing pair guided exploration fills."""
-        explore = self.exploration != "off" and (x is None or self.mission.may_explore(x[:2], self.clearance))
-        plan = planned_commands(predicted, self.period) if predicted is not None else None
-        if not explore:
-            self.extra["explore_vetoed"] += 1
         with self.lock:
-            if explore and self.exploration == "paper":
-                m = self.policy.map(u_T)
-            else:
-                m = self.safe_policy.map(u_T, plan=plan, explore=explore)
+            m = self.transfer.map(u_T, x, self.mission, predicted)
+        if m.vetoed:
+            self.extra["explore_vetoed"] += 1
         self.counts[m.method] = self.counts.get(m.method, 0) + 1
         self._command(now, float(m.u_L[0]), float(m.u_L[1]), m.method, list(m.region)[:8])
 
