@@ -1,15 +1,24 @@
-"""``scmbridge station``: the base-station service, one robot's :class:`~bridge.nodes.station_core.StationCore` on
-Zenoh.
+"""``scmbridge station``: the base-station service, the teacher and the transfer policy in a fixed-rate loop.
 
-The core (:mod:`bridge.nodes.station_core`) does the work of each tick: pairing, the command source (the MPC, the
-motion primitives, an external teacher, the calibration stage), the transfer step, mission control, the status and
-persistence. This module is its Zenoh adapter: subscribers decode, count and put what arrives into a typed inbox
-(``state``, ``applied``, the driver host's status, ``mission``, an external teacher's ``teacher``, the commands
-heard on this robot's ``cmd`` key); the queryables answer ``pairs`` and ``control`` (a person's ``scmbridge mission
-...``) at once; a fixed-rate loop (10 Hz default; absolute deadlines, missed ones counted) hands the inbox to
-``core.tick`` and publishes what it returns (``cmd``, ``teacher``, ``limits``, ``status``). An external teacher's
-command wakes the loop, so it is mapped as it arrives. Callbacks only decode and store; all work is in the loop,
-and the core is only ever called under the adapter's lock (docs/ARCHITECTURE.md).
+Each tick (10 Hz default; absolute deadlines, missed ones counted) it takes the learner states and applied-command
+echoes that arrived, forms the command pairs they really bracket (:mod:`bridge.nodes.pairing`), updates the pair store
+(and so the learned limits), and then either drives or says why not:
+
+- it drives only while a person has started the mission (:mod:`bridge.nodes.mission_control`: it starts idle;
+  ``scmbridge mission start``, or ``--start``; requests are answered on ``scm/<robot>/control``) and the robot is
+  fit: the driver host's status is fresh and ``ok`` (link up, engaged, no fault, no estop), and the latest pose
+  arrived less than ``max_pose_age_s`` ago; a robot that stops being fit while driving pauses the mission until a
+  person resumes it;
+- otherwise, and at the goal, it publishes stops and its status says why (``idle: ...``, ``paused: estop latched by
+  operator``, ``waiting for the robot: ...``, ``goal reached``).
+
+Driving: the teacher MPC, bounded by the learned limits and given the obstacles that matter, proposes a command;
+the transfer policy maps it; ``cmd`` carries it (with the method, a validity of three periods, this run's sender
+name and epoch) and ``teacher`` the teacher's own command and plan. ``limits`` is published when the learned
+limits change and each second; ``pairs`` answers queries; ``mission`` takes a new mission (the goal state resets).
+The pair store is persisted atomically every ``persist_every_s`` and at exit, and reloaded at start; a failed save
+(a full disk) is logged, reported on status and retried, and never stops the loop. Callbacks only decode and
+store; all work is in the loop (docs/ARCHITECTURE.md).
 """
 
 from __future__ import annotations
@@ -65,7 +74,13 @@ class Inbox:
 
 
 class Station:
-    """One robot's station on Zenoh: the core, its inbox and its publishers."""
+    """One robot's station on Zenoh: the Zenoh adapter of a :class:`~bridge.nodes.station_core.StationCore`.
+
+    The core does the work of each tick (pairing, the command source, the transfer step, mission control, the status
+    and persistence). Here subscribers decode, count and put what arrives into a typed :class:`Inbox`; the
+    queryables answer ``pairs`` and ``control`` at once; the fixed-rate loop hands the inbox to ``core.tick`` and
+    publishes what it returns. An external teacher's command wakes the loop, so it is mapped as it arrives. The core
+    is only ever called under this adapter's lock."""
 
     def __init__(self, cfg: StationConfig, robot: str, rate_hz: float, store_path: Path, mission: Mission,
                  control: MissionControl | None = None, control_path: Path | None = None,

@@ -312,19 +312,19 @@ class StationCore:
         for m, at in inputs.telemetry:
             if isinstance(m, M.LearnerState):
                 self.state, self.state_at = m, at
-        if inputs.driver is not None:
-            st, at = inputs.driver
-            restarted = st.seq < self.driver_seq  # a new driver host process: it counts from 0 again
-            self.driver_seq = st.seq
-            self.driver, self.driver_at = st, at
-            if restarted:
-                log.warning("the driver host restarted")
-                self.control.driver_restarted()
         if inputs.teacher is not None:
             self.teacher, self.teacher_at = inputs.teacher
             self.teacher_new = True
         if inputs.mission is not None:
             self.control.replace(*inputs.mission)
+        if inputs.driver is not None:
+            st, at = inputs.driver
+            restarted = st.seq < self.driver_seq  # a new driver host process: it counts from 0 again
+            self.driver_seq = st.seq
+            self.driver, self.driver_at = st, at
+            if restarted:  # after a new mission: a finished mission that goes on is paused all the same
+                log.warning("the driver host restarted")
+                self.control.driver_restarted()
         if self.control.version != self.mission_version:  # from the mission topic or a person's send
             self.mission_version = self.control.version
             mission = self.mission
