@@ -251,12 +251,12 @@ def second_station(short: bool) -> Result:
     """A second station publishes commands for the robot: does the first one still say ok?"""
     from bridge.core import wire as M
     from bridge.core.config import StationConfig, load_mission
-    from bridge.nodes.station import Station
+    from bridge.nodes.station_core import StationCore
 
     with tempfile.TemporaryDirectory() as d:
-        st = Station(StationConfig(), f"a{uuid.uuid4().hex[:6]}", 10.0, Path(d) / "p.bin", load_mission())
+        st = StationCore(StationConfig(), f"a{uuid.uuid4().hex[:6]}", 10.0, Path(d) / "p.bin", load_mission())
         st.why = "driving"
-        st.on_own_cmd(M.Command(stamp=1.0, seq=1, v=0.1, omega=0.0, method="scm", epoch=st.epoch ^ 0xF), 1.0)
+        st.heard_command(M.Command(stamp=1.0, seq=1, v=0.1, omega=0.0, method="scm", epoch=st.epoch ^ 0xF), 1.0)
         s = st.status(1.5)
     return {"reached_vehicle": None, "learned": None, "station_ok": s.ok, "text": s.text, "ok": not s.ok}
 

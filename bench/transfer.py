@@ -100,13 +100,13 @@ def arguments(ap: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
 
-    from transfer.policy import TransferPolicy
+    from transfer.policy import make_policy
     from transfer.scm import warmup
 
     warmup()
     rng = np.random.default_rng(args.seed)
     store, model, ingest = _filled_store(rng)
-    policy = TransferPolicy(store, "scm", rng=rng)
+    policy = make_policy(store, "scm", rng=rng)
     ids, _, T, _ = store.refined_arrays()
     lo, hi = T.min(axis=0), T.max(axis=0)
 

@@ -47,14 +47,14 @@ from sim_learner.runs import DT, Progress, Run, mean_dev_last_half
 from sim_learner.worlds import World, mpc_world
 from transfer.domain import Bounds
 from transfer.pairs import teacher_equivalent
-from transfer.policy import EXPLORATIONS, TransferPolicy, planned_commands
+from transfer.policy import EXPLORATIONS, make_policy
+from transfer.step import TransferStep
 from transfer.store import PairStore
 from transfer.teacher.mpc import MpcConfig, MpcResult, MpcTeacher
 from transfer.teacher.unicycle import step as teacher_step
 
 VEHICLE_RADIUS = 0.1  # m, for collision checks
 START_JITTER = (1e-3, 1e-3)  # m, rad: the seed's offset of the SCM learner's start (module docstring)
-PLAN_HINT = 10  # planned teacher commands passed to the guided policy (1 s of the MPC's plan)
 
 ApplyFn = Callable[[NDArray[np.float64], MpcResult], tuple[NDArray[np.float64], NDArray[np.float64], str]]
 
@@ -173,18 +173,19 @@ def scm_start(world: World, seed: int, jitter: tuple[float, float] = START_JITTE
 def run_scm(seed: int, quick: bool, exploration: str = "guided",
             progress: Progress | None = None) -> tuple[Run, PairStore]:
     """The SCM learner from no pairs at all: the MPC bounded by the learned limits, each command mapped by the
-    transfer policy, each control interval paired and added to the store. The guided policy gets the teacher's
-    plan and may explore only away from obstacles (``Mission.may_explore``); the paper's ignores both. The seed
-    drives the policy's random generator and the start's sub-millimetre jitter (:func:`scm_start`)."""
+    transfer step the station uses (:class:`transfer.step.TransferStep`: the policy explores by its own rule, never
+    near an obstacle; the guided policy is steered by the teacher's plan), each control interval paired and added to
+    the store. The seed drives the policy's random generator and the start's sub-millimetre jitter
+    (:func:`scm_start`)."""
     case = mpc_case(quick)
     world, learner = case.world, case.learner
     store = PairStore(case.learner_bounds, case.teacher_bounds, k_min=5)
-    policy = TransferPolicy(store, "scm", rng=np.random.default_rng(seed), exploration=exploration)
+    step = TransferStep(make_policy(store, "scm", np.random.default_rng(seed), exploration=exploration), dt=DT)
 
     regions: list[tuple[int, ...]] = []
 
     def scm(x, res):
-        m = policy.map(res.u, plan=planned_commands(res.predicted, DT, PLAN_HINT), explore=world.may_explore(x[:2]))
+        m = step.map(res.u, x, world, res.predicted)
         x1 = learner.step(x, m.u_L, DT)
         store.add(teacher_equivalent(x, x1, DT), m.u_L)
         regions.append(m.region)
@@ -438,7 +439,7 @@ def grid_experiment(seed: int = 0, quick: bool = False, out: Path | None = None,
     ang_err = {k: np.zeros(len(cmds)) for k in names}
     method = np.empty(len(cmds), dtype=object)
     for name in names:
-        pol = TransferPolicy(store, name, rng=np.random.default_rng(seed), exploration=exploration)
+        pol = make_policy(store, name, np.random.default_rng(seed), exploration=exploration)
         for i, u in enumerate(cmds):
             m = pol.map(u)
             if name == "scm":

@@ -20,7 +20,8 @@ from sim_learner.worlds import World, primitives_world
 from transfer.domain import Bounds
 from transfer.limits import calibration_commands
 from transfer.pairs import teacher_equivalent
-from transfer.policy import TransferPolicy
+from transfer.policy import make_policy
+from transfer.step import TransferStep
 from transfer.store import PairStore
 from transfer.teacher.primitives import PrimitiveLibrary, PrimitivePlanner, replan_threshold
 
@@ -42,7 +43,8 @@ def calibrate(learner: LearnerModel, store: PairStore, duration: float) -> None:
 
 def follow(name: str, world: World, learner: LearnerModel, planner: PrimitivePlanner, allowed, to_learner,
            rng: np.random.Generator, t_max: float, bar: Progress | None) -> dict:
-    """Closed loop: plan, execute the first primitive tick by tick, replan at its end or on deviation."""
+    """Closed loop: plan, execute the first primitive tick by tick, replan at its end or on deviation.
+    ``to_learner(u_T, pose)``: the learner command for a primitive's command planned from the measured pose."""
     x = world.start.astype(float).copy()
     poses, cmds, plans = [x.copy()], [], []
     replans = events = 0
@@ -58,7 +60,7 @@ def follow(name: str, world: World, learner: LearnerModel, planner: PrimitivePla
         plans.append(plan.trajectory[:, :2])
         replans += 1
         u_T = plan.commands[0]
-        u_L = to_learner(u_T)
+        u_L = to_learner(u_T, meas)
         for j in range(steps):
             x = learner.step(x, u_L, DT)
             k += 1
@@ -97,12 +99,12 @@ def run_primitives(seed: int = 0, quick: bool = False, out: Path | None = None, 
     calibrate(learner, store, lib.duration)
     kept = np.asarray(store.limits.contains(lib.commands, use_hull=True, tol=1e-6))
     planner = PrimitivePlanner(lib, k_d=1.0, k_theta=2.0, horizon=2)
-    policy = TransferPolicy(store, "scm", rng=np.random.default_rng(seed), exploration=exploration)
+    step = TransferStep(make_policy(store, "scm", np.random.default_rng(seed), exploration=exploration), dt=DT)
     bar = Progress("primitives") if progress else None
     t_max = 90.0 if quick else 150.0
     rng = np.random.default_rng(seed)
-    scm = follow("scm", world, learner, planner, kept, lambda u: policy.map(u).u_L, rng, t_max, bar)
-    base = follow("baseline", world, learner, planner, np.ones(len(lib), dtype=bool), learner.clamp,
+    scm = follow("scm", world, learner, planner, kept, lambda u, x: step.map(u, x, world).u_L, rng, t_max, bar)
+    base = follow("baseline", world, learner, planner, np.ones(len(lib), dtype=bool), lambda u, x: learner.clamp(u),
                   np.random.default_rng(seed), t_max, bar)
     if bar:
         bar.done()

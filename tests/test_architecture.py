@@ -114,6 +114,14 @@ def test_the_station_knows_no_simulator() -> None:
     assert not [m for m in _reach("bridge.nodes.station") if m.startswith("sim_learner")]
 
 
+def test_the_station_core_runs_without_zenoh_threads_or_module_state() -> None:
+    """Many cores (one per robot) run in one process over one session: the core and what it reaches import no
+    Zenoh and start no thread."""
+    forbidden = re.compile(r"^\s*(import|from)\s+(zenoh|threading)\b", re.M)
+    for m in {"bridge.nodes.station_core"} | _reach("bridge.nodes.station_core"):
+        assert not forbidden.search(MODULES[m].read_text()), f"the station core reaches {m}, which imports it"
+
+
 @pytest.mark.parametrize("mod", ["bridge.nodes.driver_host", "drivers.can", "drivers.mavlink", "drivers.udp"])
 def test_the_robot_side_needs_no_numerical_stack(mod: str) -> None:
     heavy = re.compile(r"^\s*(import|from)\s+(scipy|casadi|numba|matplotlib)\b", re.M)

@@ -16,7 +16,7 @@ from collect import Collector
 
 from bridge.core import wire as M
 from bridge.core.config import StationConfig, load_mission
-from bridge.nodes.station import Station
+from bridge.nodes.station_core import StationCore
 from bridge.nodes.zsession import free_port, make_config, open_session, tcp
 from bridge.tools.procs import Children, free_udp_port
 from sim_learner.dynamics import mpc_learner
@@ -30,7 +30,7 @@ def _status(ok: bool = True, text: str = "link can: driving (cmd)") -> M.Status:
 
 def test_the_station_drives_only_a_fit_robot_from_a_fresh_pose(tmp_path) -> None:
     """Finding: the station planned from the last pose whatever its age. It now stops and says why."""
-    st = Station(StationConfig(), "r1", 10.0, tmp_path / "p.bin", load_mission())
+    st = StationCore(StationConfig(), "r1", 10.0, tmp_path / "p.bin", load_mission())
     pose = M.LearnerState(stamp=1.0, seq=1, x=0.0, y=0.0, theta=0.0)
     assert st.fit_to_drive(10.0, pose, 9.9, _status(), 9.5) == ""
     assert st.fit_to_drive(10.0, pose, 9.2, _status(), 9.5) == "no pose for 0.8 s"
@@ -42,7 +42,7 @@ def test_the_station_drives_only_a_fit_robot_from_a_fresh_pose(tmp_path) -> None
 
 def test_a_full_disk_is_reported_retried_and_leaves_no_temporary_file(tmp_path, monkeypatch) -> None:
     """Finding: OSError on persist killed the station in a restart loop and left .tmp files."""
-    st = Station(StationConfig(), "r1", 10.0, tmp_path / "p.bin", load_mission())
+    st = StationCore(StationConfig(), "r1", 10.0, tmp_path / "p.bin", load_mission())
     real_fsync = os.fsync
 
     def full(fd: int) -> None:
@@ -50,7 +50,7 @@ def test_a_full_disk_is_reported_retried_and_leaves_no_temporary_file(tmp_path, 
 
     monkeypatch.setattr(os, "fsync", full)
     st.persist()  # no exception: the loop goes on
-    assert st.extra["persist_failures"] == 1 and "No space left on device" in st.persist_error
+    assert st.counters.persist_failures == 1 and "No space left on device" in st.persist_error
     assert not list(tmp_path.glob(".*.tmp")) and not (tmp_path / "p.bin").exists()
     status = st.status(1.0)
     assert not status.ok and "pair store not saved" in status.text

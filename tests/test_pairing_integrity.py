@@ -114,14 +114,14 @@ def test_another_sender_on_the_robots_commands_or_implausible_telemetry_make_the
     """Finding: `ok` stayed true with two stations publishing for one robot, and while pairing was halted."""
     from bridge.core import wire as M
     from bridge.core.config import StationConfig, load_mission
-    from bridge.nodes.station import INTEGRITY_WINDOW_S, Station
+    from bridge.nodes.station_core import INTEGRITY_WINDOW_S, StationCore
 
-    st = Station(StationConfig(), "r1", 10.0, tmp_path / "p.bin", load_mission())
+    st = StationCore(StationConfig(), "r1", 10.0, tmp_path / "p.bin", load_mission())
     st.why = "driving"
     assert st.status(1.0).ok
-    st.on_own_cmd(M.Command(stamp=1.0, seq=1, v=0.1, omega=0.0, method="scm", epoch=st.epoch), 1.0)
+    st.heard_command(M.Command(stamp=1.0, seq=1, v=0.1, omega=0.0, method="scm", epoch=st.epoch), 1.0)
     assert st.status(1.1).ok  # its own command, heard back
-    st.on_own_cmd(M.Command(stamp=1.0, seq=1, v=0.1, omega=0.0, method="scm", epoch=st.epoch ^ 1), 1.2)
+    st.heard_command(M.Command(stamp=1.0, seq=1, v=0.1, omega=0.0, method="scm", epoch=st.epoch ^ 1), 1.2)
     s = st.status(1.3)
     assert not s.ok and "another sender publishes commands" in s.text
     assert st.status(1.2 + INTEGRITY_WINDOW_S + 0.1).ok

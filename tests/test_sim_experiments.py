@@ -4,9 +4,10 @@ The closed loop (MPC + exploration + refinement) amplifies floating-point differ
 seed follows another trajectory. So every MPC figure is judged on the median of a sweep over ``SEEDS``, in which
 each seed also moves the learner's start by up to 1 mm / 1 mrad (sampling exactly that sensitivity), against a
 threshold with a margin far above the sweep's spread, and never by exact equality. The margins are stated next to
-each assertion (measured here, 10 seeds); the thresholds still fail the paper's exploration policy, the identity
-mapper or an affine map where the test says so. Claims that do not hold are not tested as xfails: the README's
-"The paper's simulations" states them with the sweep's numbers.
+each assertion (measured here, 10 seeds); the thresholds still fail the identity mapper or an affine map where the
+test says so. (The paper's exploration policy now passes the time, deviation and perturbation thresholds too, with
+less margin: the transfer step keeps it, as the guided one, from exploring next to obstacles.) Claims that do not
+hold are not tested as xfails: the README's "The paper's simulations" states them with the sweep's numbers.
 """
 
 from __future__ import annotations
@@ -65,19 +66,19 @@ def test_mpc_scm_learner_reaches_the_goal_safely_and_learns_its_limits(sweep) ->
 
 def test_mpc_scm_learner_is_within_1_2x_the_ideal_teacher_time(sweep) -> None:
     # the paper: shortly after the ideal teacher; the issue's goal 1.2x (the paper's own bound in the tests was
-    # 1.25x). Measured median 1.06 (max 1.07 over 10 seeds): margin 0.14. The paper's exploration policy fails it,
-    # narrowly (median 1.22 over seeds 0-4, 1.21 over 0-9).
+    # 1.25x). Measured median 1.06 (max 1.07 over 10 seeds): margin 0.14. The paper's exploration policy: median
+    # 1.10 (seeds 0-9; 1.21 while it still explored next to obstacles).
     assert sweep["stats"]["scm_time_ratio"]["median"] <= 1.2
 
 
 def test_mpc_scm_deviation_last_half_within_1_5x_teacher(sweep) -> None:
-    # measured median 0.70 (max 0.99 over 10 seeds): margin 0.8. The paper's policy: median 1.37 (10 seeds).
+    # measured median 0.70 (max 0.99 over 10 seeds): margin 0.8. The paper's policy: median 1.01 (10 seeds).
     assert sweep["stats"]["scm_dev_ratio"]["median"] <= 1.5
 
 
 def test_mpc_exploration_costs_at_most_15_percent_of_the_commands(sweep) -> None:
-    # measured median 3.9 % (max 4.2 %): margin 11 points. The paper's policy: median 19 % (seeds 0-4), so it
-    # fails this one.
+    # measured median 3.9 % (max 4.2 %): margin 11 points. The paper's policy: median 11 % (seeds 0-9, worst
+    # 21 %; 19 % while it still explored next to obstacles).
     assert sweep["stats"]["perturb_share"]["median"] <= 0.15
 
 

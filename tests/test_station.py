@@ -161,27 +161,19 @@ def test_exploration_is_a_setting_and_never_happens_near_an_obstacle(tmp_path) -
     import msgspec
 
     from bridge.core.config import StationConfig, load_mission
-    from bridge.nodes.station import Station
-
-    class Sink:
-        def __init__(self) -> None:
-            self.sent: list[bytes] = []
-
-        def put(self, data: bytes) -> None:
-            self.sent.append(data)
+    from bridge.nodes.sources import Proposal
+    from bridge.nodes.station_core import StationCore
 
     mission = load_mission()
     ox, oy, r = mission.obstacles[0]
     near, far = np.array([ox + r + 0.1, oy]), np.array([0.0, -1.0])
     for exploration, vetoed in (("guided", 1), ("paper", 1), ("off", 2)):
         cfg = msgspec.convert({"transfer": {"exploration": exploration, "explore_clearance_m": 0.3}}, StationConfig)
-        st = Station(cfg, "r1", 10.0, tmp_path / f"{exploration}.bin", mission)
-        st.pubs = {"cmd": Sink()}
-        st.map_and_send(1.0, np.array([0.3, 0.1]), near)
-        st.map_and_send(1.1, np.array([0.3, 0.1]), far)
-        assert st.extra["explore_vetoed"] == vetoed, exploration
-        cmds = [M.decode(b, M.Command) for b in st.pubs["cmd"].sent]
-        assert len(cmds) == 2 and cmds[0].method != "perturb"
+        core = StationCore(cfg, "r1", 10.0, tmp_path / f"{exploration}.bin", mission)
+        cmds = [core.send(1.0, Proposal(np.array([0.3, 0.1]), near)),
+                core.send(1.1, Proposal(np.array([0.3, 0.1]), far))]
+        assert core.counters.explore_vetoed == vetoed, exploration
+        assert cmds[0].method != "perturb" and [c.seq for c in cmds] == [0, 1]
 
 
 @pytest.mark.slow

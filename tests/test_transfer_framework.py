@@ -12,7 +12,7 @@ from hypothesis import strategies as st
 from transfer.domain import Bounds
 from transfer.limits import calibration_commands
 from transfer.pairs import teacher_equivalent
-from transfer.policy import TransferPolicy
+from transfer.policy import GuidedPolicy, make_policy
 from transfer.store import PairStore
 from transfer.teacher.unicycle import step
 
@@ -153,7 +153,7 @@ def _affine_store(k_min: int = 1) -> tuple[PairStore, np.ndarray, np.ndarray]:
 @pytest.mark.parametrize("mapper", ["scm", "barycentric", "affine"])
 def test_mappers_reproduce_a_per_axis_affine_learner_inside_the_hull(mapper: str) -> None:
     s, a, b = _affine_store()
-    p = TransferPolicy(s, mapper, seed=0)
+    p = make_policy(s, mapper, seed=0)
     rng = np.random.default_rng(5)
     for _ in range(60):
         uL = LB.denormalise(0.02 + 0.96 * rng.random(2))
@@ -165,7 +165,7 @@ def test_mappers_reproduce_a_per_axis_affine_learner_inside_the_hull(mapper: str
 
 def test_scm_regions_are_cached_and_rebuilt_when_a_pair_moves() -> None:
     s, a, b = _affine_store(k_min=1)
-    p = TransferPolicy(s, "scm", seed=0)
+    p = make_policy(s, "scm", seed=0)
     uT = a * LB.denormalise([0.5, 0.5]) + b
     m1 = p.map(uT)
     builds = p.mapper.builds
@@ -185,7 +185,7 @@ def test_scm_regions_are_cached_and_rebuilt_when_a_pair_moves() -> None:
 # ------------------------------------------------------------------------------------------------- policy
 def test_paper_policy_falls_back_exactly_as_specified() -> None:
     s = PairStore(LB, TB, k_min=2)
-    p = TransferPolicy(s, "scm", rng=np.random.default_rng(3), exploration="paper")
+    p = make_policy(s, "scm", rng=np.random.default_rng(3), exploration="paper")
     uT = np.array([0.2, 0.05])
     m = p.map(uT)  # nothing learned: direct, the teacher command clipped into the learner's box
     assert m.method == "direct" and np.allclose(m.u_L, LB.clip(uT))
@@ -202,26 +202,28 @@ def test_paper_policy_falls_back_exactly_as_specified() -> None:
     assert m.method == "perturb"
     c2 = s.cell_of(m.u_L)
     assert max(abs(c2[0] - cell[0]), abs(c2[1] - cell[1])) == 1 and not s.is_configured(c2)
-    # the paper's policy ignores the caller's hints: told not to explore, it still perturbs
-    assert p.map(uT, explore=False, plan=[[0.3, 0.1]]).method == "perturb"
+    # told not to explore (near an obstacle), it maps without perturbing, as the guided policy does
+    calm = p.map(uT, explore=False, plan=[[0.3, 0.1]])
+    assert calm.method != "perturb"
+    assert np.array_equal(calm.u_L, make_policy(s, "scm", seed=0).map(uT, explore=False).u_L)
     # seeded: the same sequence for the same seed
-    q1 = TransferPolicy(s, "scm", rng=np.random.default_rng(9), exploration="paper")
-    q2 = TransferPolicy(s, "scm", rng=np.random.default_rng(9), exploration="paper")
+    q1 = make_policy(s, "scm", rng=np.random.default_rng(9), exploration="paper")
+    q2 = make_policy(s, "scm", rng=np.random.default_rng(9), exploration="paper")
     assert all(np.array_equal(q1.map(uT).u_L, q2.map(uT).u_L) for _ in range(5))
     # the baseline applies the teacher command directly, always
-    base = TransferPolicy(s, "identity")
+    base = make_policy(s, "identity")
     assert base.map(uT).method == "direct"
     with pytest.raises(ValueError, match="finite"):
         p.map([np.nan, 0.0])
     with pytest.raises(ValueError, match="exploration"):
-        TransferPolicy(s, "scm", exploration="random")
+        make_policy(s, "scm", exploration="random")
 
 
 @pytest.mark.parametrize("exploration", ["paper", "guided"])
 def test_policy_probes_a_limit_whose_learner_boundary_was_never_driven(exploration: str) -> None:
     s = PairStore(LB, TB, k_min=5)
     s.add(TB.denormalise([0.1, 0.5]), LB.denormalise([0.5, 0.5]))  # interior outlier: proportional estimate
-    p = TransferPolicy(s, "scm", seed=0, exploration=exploration)
+    p = make_policy(s, "scm", seed=0, exploration=exploration)
     box = s.limits.box
     m = p.map([box.v[1], 0.0])  # the teacher saturates at the estimated top speed
     assert m.method == "perturb" and m.u_L[0] == LB.v[1]  # the learner's top speed is driven once
@@ -249,8 +251,8 @@ def _n(cells: tuple[float, float]) -> np.ndarray:
 
 def test_guided_policy_without_pairs_and_without_a_region_applies_the_estimate() -> None:
     s = PairStore(LB, TB, k_min=2)
-    p = TransferPolicy(s, "scm", seed=0)
-    assert p.exploration == "guided"  # the default
+    p = make_policy(s, "scm", seed=0)
+    assert isinstance(p, GuidedPolicy)  # the default
     uT = np.array([0.2, 0.05])
     m = p.map(uT)  # nothing learned: as in the paper, the teacher command read as a learner command, clipped
     assert m.method == "direct" and np.allclose(m.u_L, LB.clip(uT))
@@ -260,15 +262,15 @@ def test_guided_policy_without_pairs_and_without_a_region_applies_the_estimate()
     for c in [(2.5, 2.5), (8.5, 2.5), (2.5, 8.5)]:
         tri.add(TB.denormalise(_n(c)), LB.denormalise(_n(c)))
     t = TB.denormalise(_n((4.0, 4.0)))
-    assert TransferPolicy(tri, "scm", seed=0).mapper.map_normalised(_n((4.0, 4.0))) is None
-    g = TransferPolicy(tri, "scm", seed=0).map(t)
+    assert make_policy(tri, "scm", seed=0).mapper.map_normalised(_n((4.0, 4.0))) is None
+    g = make_policy(tri, "scm", seed=0).map(t)
     assert g.method == "barycentric" and np.allclose(g.u_L, LB.denormalise(_n((4.0, 4.0))), atol=1e-12)
-    assert TransferPolicy(tri, "scm", seed=0, exploration="paper").map(t).method != "scm"
+    assert make_policy(tri, "scm", seed=0, exploration="paper").map(t).method != "scm"
 
 
 def test_guided_policy_applies_the_offset_from_the_region_directly_and_continuously() -> None:
     s = _square_store()
-    p = TransferPolicy(s, "scm", seed=0)
+    p = make_policy(s, "scm", seed=0)
     # 0.02 (normalised teacher units) right of the square's edge: within ``saturate``, no exploring; the map of
     # the nearest edge point plus the offset read one-to-one in physical units
     t_n = _n((5.5, 4.8)) + np.array([0.02, 0.0])
@@ -285,7 +287,7 @@ def test_guided_policy_applies_the_offset_from_the_region_directly_and_continuou
 
 def test_guided_policy_explores_the_neighbour_that_serves_the_plan_at_the_least_detour() -> None:
     s = _square_store()
-    p = TransferPolicy(s, "scm", seed=0, saturate=0.01)
+    p = make_policy(s, "scm", seed=0, saturate=0.01)
     # 0.02 right of the square: beyond ``saturate`` now, and the estimate (5.98, 4.8 in cell units) lies in the
     # configured cell (5, 4): explore a neighbour
     t = TB.denormalise(_n((5.5, 4.8)) + np.array([0.02, 0.0]))
@@ -300,7 +302,7 @@ def test_guided_policy_explores_the_neighbour_that_serves_the_plan_at_the_least_
     assert m2.method == "perturb" and s.cell_of(m2.u_L) == (6, 5)
     np.testing.assert_allclose(LB.normalise(m2.u_L), [6.1 / 11, 5.1 / 11], atol=1e-12)
     # deterministic: no tie, so the random generator is not consulted and any seed gives the same command
-    assert np.array_equal(TransferPolicy(s, "scm", seed=123, saturate=0.01).map(t).u_L, m.u_L)
+    assert np.array_equal(make_policy(s, "scm", seed=123, saturate=0.01).map(t).u_L, m.u_L)
 
 
 def test_guided_policy_never_perturbs_when_told_not_to_explore() -> None:
@@ -310,7 +312,7 @@ def test_guided_policy_never_perturbs_when_told_not_to_explore() -> None:
     lone.add(TB.denormalise([0.1, 0.5]), LB.denormalise([0.5, 0.5]))  # an unprobed, estimated limit
     stores.append(lone)
     for s in stores:
-        p = TransferPolicy(s, "scm", seed=0, saturate=0.01)
+        p = make_policy(s, "scm", seed=0, saturate=0.01)
         box = s.limits.box
         cmds = [TB.denormalise(rng.random(2)) for _ in range(200)] + [box.hi, box.lo, [box.v[1], 0.0]]
         methods = {p.map(u, explore=False).method for u in cmds}
@@ -319,8 +321,8 @@ def test_guided_policy_never_perturbs_when_told_not_to_explore() -> None:
             m = p.map(u, explore=False)
             assert np.all(np.isfinite(m.u_L)) and LB.contains(m.u_L)
     # ... while the same policy, allowed to, does explore (probe the limit, perturb next to the square)
-    assert TransferPolicy(lone, "scm", seed=0).map([lone.limits.box.v[1], 0.0]).method == "perturb"
-    sq = TransferPolicy(stores[1], "scm", seed=0, saturate=0.01)
+    assert make_policy(lone, "scm", seed=0).map([lone.limits.box.v[1], 0.0]).method == "perturb"
+    sq = make_policy(stores[1], "scm", seed=0, saturate=0.01)
     assert sq.map(TB.denormalise(_n((5.5, 4.8)) + np.array([0.02, 0.0]))).method == "perturb"
 
 
@@ -332,7 +334,7 @@ def test_policy_output_is_always_finite_and_inside_the_learner_box(v: float, w: 
                                                                    with_plan: bool) -> None:
     s, _, _ = _affine_store(k_min=1)
     plan = [[v, w], [-v, 2 * w], [np.nan, 0.0]] if with_plan else None
-    m = TransferPolicy(s, mapper, seed=1, exploration=exploration).map([v, w], plan=plan, explore=explore)
+    m = make_policy(s, mapper, seed=1, exploration=exploration).map([v, w], plan=plan, explore=explore)
     assert np.all(np.isfinite(m.u_L)) and LB.contains(m.u_L)
 
 
@@ -346,7 +348,7 @@ def test_store_round_trips_and_rejects_corruption() -> None:
     assert [(p.id, p.version, p.count) for p in t.refined()] == [(p.id, p.version, p.count) for p in s.refined()]
     assert t.limits.box == s.limits.box
     uT = a * LB.denormalise([0.4, 0.6]) + b
-    np.testing.assert_allclose(TransferPolicy(t).map(uT).u_L, TransferPolicy(s).map(uT).u_L, atol=1e-12)
+    np.testing.assert_allclose(make_policy(t).map(uT).u_L, make_policy(s).map(uT).u_L, atol=1e-12)
     bad = bytearray(blob)
     bad[len(bad) // 2] ^= 0x55
     for corrupt, match in [
@@ -377,3 +379,71 @@ def test_store_rejects_an_incompatible_schema_version() -> None:
     blob = b"SCMPAIRS" + zlib.crc32(payload).to_bytes(4, "little") + payload
     with pytest.raises(ValueError, match="count"):
         PairStore.from_bytes(blob)
+
+
+# ------------------------------------------------------------------------------------------ the transfer step
+def _explorable_store() -> PairStore:
+    """Limits measured, one refined pair in the cell of ``(0.2, 0.05)`` and no region: both policies perturb."""
+    s = PairStore(LB, TB, k_min=2)
+    for corner in LB.corners():
+        s.add(corner, corner)
+    for _ in range(2):
+        s.add([0.1, 0.0], [0.2, 0.05])
+    return s
+
+
+@pytest.mark.parametrize("exploration", ["paper", "guided"])
+def test_transfer_step_explores_by_the_policys_rule_only_away_from_obstacles(exploration: str) -> None:
+    from transfer.mission import Mission
+    from transfer.step import TransferStep
+    from transfer.teacher.path import Polyline
+
+    mission = Mission("m", Polyline(np.array([[0.0, 0.0], [5.0, 0.0]])), np.array([[2.0, 1.0, 0.5]]), 0.2)
+    uT = np.array([0.2, 0.05])
+    near, far = np.array([2.0, 0.4, 0.0]), np.array([0.0, 0.0, 0.0])
+    s = _explorable_store()
+    step = TransferStep(make_policy(s, "scm", seed=0, exploration=exploration), dt=0.1, clearance=0.3)
+    m = step.map(uT, far, mission)
+    assert m.method == "perturb" and not m.vetoed
+    m = step.map(uT, near, mission)
+    assert m.method != "perturb" and m.vetoed
+    # near an obstacle both policies send the same unperturbed command
+    guided = TransferStep(make_policy(s, "scm", seed=5), dt=0.1, clearance=0.3)
+    assert np.array_equal(m.u_L, guided.map(uT, near, mission).u_L)
+    # exploration off: never perturbs, wherever the pose; without a pose it follows the setting alone
+    off = TransferStep(make_policy(s, "scm", seed=0, exploration=exploration), dt=0.1, explore=False)
+    assert all(off.map(uT, x, mission).vetoed for x in (near, far, None))
+    assert step.map(uT).method == "perturb"
+
+
+def test_transfer_step_reads_the_teachers_plan_as_its_next_commands() -> None:
+    from transfer.policy import planned_commands
+    from transfer.step import TransferStep
+
+    seen: list = []
+
+    class Spy:
+        def __init__(self, inner) -> None:
+            self.inner, self.store, self.mapper, self.rng = inner, inner.store, inner.mapper, inner.rng
+
+        def map(self, u_T, *, plan=None, explore=True):
+            seen.append(plan)
+            return self.inner.map(u_T, plan=plan, explore=explore)
+
+    pred = np.array([[0.1 * k, 0.0, 0.0] for k in range(15)])
+    step = TransferStep(Spy(make_policy(_explorable_store(), seed=0)), dt=0.1, plan_hint=4)
+    step.map([0.2, 0.05], predicted=pred)
+    step.map([0.2, 0.05])
+    np.testing.assert_allclose(seen[0], planned_commands(pred, 0.1, 4))
+    assert seen[0].shape == (4, 2) and seen[1] is None
+
+
+def test_identity_mapper_speaks_the_mapper_protocol() -> None:
+    from transfer.mappers import IdentityMapper
+
+    s = PairStore(LB, TB, k_min=2)
+    m = IdentityMapper(s)
+    t_n = TB.normalise([0.9, 0.1])
+    l_n, region = m.map_normalised(t_n)
+    np.testing.assert_allclose(LB.denormalise(l_n), LB.clip([0.9, 0.1]))
+    assert region == () and m.nearest_on_hull(t_n)[1] == 0.0

@@ -12,13 +12,15 @@ and share one interface, so the SC map can be compared honestly with simpler alt
 - :class:`AffineMapper`: one least-squares affine map fitted on all refined pairs (used on the same region).
 - :class:`IdentityMapper`: the paper's baseline, the teacher command applied as it is.
 
-``map_normalised(t)`` returns ``(l, region)`` with ``l`` the normalised learner command, or ``None`` when the
-mapper has no region for ``t`` (the policy then falls back).
+Every mapper implements the :class:`Mapper` protocol: ``map_normalised(t)`` returns ``(l, region)`` with ``l`` the
+normalised learner command, or ``None`` when the mapper has no region for ``t`` (the policy then falls back);
+``nearest_on_hull(t)`` the point of its region nearest to ``t`` and the distance (``None`` before it has one).
 """
 
 from __future__ import annotations
 
 from collections import OrderedDict
+from typing import Protocol
 
 import numpy as np
 from numpy.typing import NDArray
@@ -28,6 +30,21 @@ from transfer.scm import QuadTransfer, is_simple_ccw
 from transfer.store import PairStore
 
 Region = tuple[int, ...]
+
+
+class Mapper(Protocol):
+    """Normalised teacher command -> normalised learner command over a store's refined pairs."""
+
+    name: str
+    store: PairStore
+
+    def map_normalised(self, t: NDArray[np.float64]) -> tuple[NDArray[np.float64], Region] | None:
+        """``(l, region)`` for ``t``, or None where the mapper has no region."""
+        ...
+
+    def nearest_on_hull(self, t: NDArray[np.float64]) -> tuple[NDArray[np.float64], float] | None:
+        """The point of the mapper's region nearest to ``t`` and its distance; None before there is a region."""
+        ...
 
 
 class _Triangulated:
@@ -213,18 +230,27 @@ class AffineMapper(_Triangulated):
 
 
 class IdentityMapper:
-    """The paper's baseline: the teacher command is applied to the learner as it is."""
+    """The paper's baseline: the teacher command is applied to the learner as it is (clipped into the learner's
+    box). It needs no pairs: its region is the whole teacher domain."""
 
     name = "identity"
 
     def __init__(self, store: PairStore) -> None:
         self.store = store
 
+    def map_normalised(self, t: NDArray[np.float64]) -> tuple[NDArray[np.float64], Region]:
+        lb = self.store.learner_bounds
+        u = lb.clip(self.store.teacher_bounds.denormalise(np.asarray(t, dtype=float)))
+        return lb.normalise(u), ()
+
+    def nearest_on_hull(self, t: NDArray[np.float64]) -> tuple[NDArray[np.float64], float]:
+        return np.asarray(t, dtype=float).copy(), 0.0
+
 
 MAPPERS = {"scm": ScmMapper, "barycentric": BarycentricMapper, "affine": AffineMapper, "identity": IdentityMapper}
 
 
-def make_mapper(name: str, store: PairStore):
+def make_mapper(name: str, store: PairStore) -> Mapper:
     """A mapper by name: ``scm``, ``barycentric``, ``affine`` or ``identity``."""
     try:
         return MAPPERS[name](store)

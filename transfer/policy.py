@@ -1,12 +1,14 @@
 """The transfer policy: teacher command -> learner command, and how it was obtained (paper Section 5.2).
 
-``TransferPolicy(store, mapper, rng, *, exploration=...).map(u_T, *, plan=None, explore=True)`` returns a
-:class:`Mapped` ``(u_L, method, region)``. Two exploration policies decide what happens where no mapping region
-holds u_T; both map through the region the same way where one does. The result is always finite and inside the
+Two policies implement one :class:`Policy` protocol, ``map(u_T, *, plan=None, explore=True) -> Mapped`` with
+:class:`Mapped` ``(u_L, method, region)``: :class:`PaperPolicy` and :class:`GuidedPolicy` (``make_policy(store,
+mapper, exploration=...)`` builds one by name). They decide differently what happens where no mapping region holds
+u_T; both map through the region the same way where one does, and both share one unperturbed mapping for
+``explore=False``. The result is always finite and inside the
 learner's hard bounds; a non-finite u_T is refused with ValueError. With the ``identity`` mapper (the paper's
 baseline) every command is ``"direct"``, the teacher command clipped into the learner's box.
 
-``exploration="paper"``: the paper's algorithm as published (``plan`` and ``explore`` are ignored). ``method`` is
+:class:`PaperPolicy`: the paper's algorithm as published (``plan`` is ignored). ``method`` is
 
 - ``"scm"`` (or the alternative mapper's name): a mapping region holds u_T; or u_T lies inside the learned
   limits but just outside the triangulated region (within ``saturate``, normalised units, default 0.1 ~ one grid
@@ -23,7 +25,7 @@ baseline) every command is ``"direct"``, the teacher command clipped into the le
   fit of the refined pairs puts u_T; ties broken by the policy's random generator) so that pairs are
   learned where they are missing. With every cell configured it falls back to ``"direct"``.
 
-``exploration="guided"`` (the default): exploration should cost the mission as little as possible. Every command
+:class:`GuidedPolicy` (the default): exploration should cost the mission as little as possible. Every command
 is the policy's best estimate of the learner command for u_T, or, when it explores, the point of the chosen
 unconfigured cell nearest to that estimate. ``method`` is
 
@@ -51,20 +53,23 @@ unconfigured cell nearest to that estimate. ``method`` is
   command sent is the point of that cell nearest to the estimate, moved ``inset`` (fraction of a cell) inside it,
   not a uniform sample: the pair lands where it is missing at the least detour from what the mission needs.
 
-``explore=False`` (the caller's choice, e.g. near obstacles) means no perturbation of any kind in guided mode:
-the command is the region's map or the estimate. ``plan`` is an optional (K, 2) array of the teacher's next
-planned commands (teacher units, after u_T; :func:`planned_commands` recovers them from an MPC's predicted states);
-it only steers which cell is explored. The method names are those of the bridge's ``Command`` message.
+``explore=False`` (the caller's choice, e.g. near obstacles: :class:`transfer.step.TransferStep` decides it) means
+no perturbation of any kind, for both policies: the command is the guided policy's region map (with its barycentric
+fallback) or its estimate; the paper's algorithm has no such mode, so it shares the guided one. ``plan`` is an
+optional (K, 2) array of the teacher's next planned commands (teacher units, after u_T; :func:`planned_commands`
+recovers them from an MPC's predicted states); it only steers which cell is explored.
+The method names are those of the bridge's ``Command`` message.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Protocol
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from transfer.mappers import AffineMapper, BarycentricMapper, IdentityMapper, Region, make_mapper
+from transfer.mappers import AffineMapper, BarycentricMapper, IdentityMapper, Mapper, Region, make_mapper
 from transfer.pairs import teacher_equivalent
 from transfer.store import PairStore
 
@@ -82,59 +87,134 @@ def planned_commands(predicted: ArrayLike, dt: float, k: int = 10) -> NDArray[np
 
 @dataclass(frozen=True)
 class Mapped:
-    """A learner command (learner units), the method that produced it and the refined-pair ids of its region."""
+    """A learner command (learner units), the method that produced it and the refined-pair ids of its region;
+    ``vetoed``: exploration was not allowed for it (set by :class:`transfer.step.TransferStep`)."""
 
     u_L: NDArray[np.float64]
     method: str
     region: tuple[int, ...] = ()
+    vetoed: bool = False
 
 
-class TransferPolicy:
-    """Maps teacher commands to learner commands with a mapper over a :class:`PairStore` (see module docstring)."""
+class Policy(Protocol):
+    """Teacher command -> learner command over a pair store (module docstring)."""
 
-    def __init__(self, store: PairStore, mapper: str | object = "scm", rng: np.random.Generator | None = None,
+    store: PairStore
+    mapper: Mapper
+    rng: np.random.Generator
+
+    def map(self, u_T: ArrayLike, *, plan: ArrayLike | None = None, explore: bool = True) -> Mapped:
+        """The learner command for ``u_T``; ``plan``: the teacher's next commands (a hint); ``explore``: whether
+        it may perturb."""
+        ...
+
+
+class _PolicyBase:
+    """What both policies share: the checks, the identity baseline, the probe of a never-driven limit and the
+    unperturbed mapping (region, barycentric fallback, estimate relative to the learned region)."""
+
+    def __init__(self, store: PairStore, mapper: str | Mapper = "scm", rng: np.random.Generator | None = None,
                  *, seed: int | None = None, saturate: float = 0.1, probe_tol: float = 1e-6,
-                 exploration: str = "guided", inset: float = 0.1) -> None:
+                 inset: float = 0.1) -> None:
         """``mapper``: a mapper name (``scm``, ``barycentric``, ``affine``, ``identity``) or object; ``rng`` (or
         ``seed``): the random generator of the exploration; ``saturate``: normalised teacher distance to the
         learned region below which commands are served from the region instead of explored; ``probe_tol``: how
-        close to a never-driven learned limit a command must be to probe it; ``exploration``: ``"guided"`` or
-        ``"paper"``; ``inset``: how far (fraction of a cell) inside the chosen cell a guided perturbation lands."""
-        if exploration not in EXPLORATIONS:
-            raise ValueError(f"unknown exploration {exploration!r}; known: {', '.join(EXPLORATIONS)}")
+        close to a never-driven learned limit a command must be to probe it; ``inset``: how far (fraction of a
+        cell) inside the chosen cell a guided perturbation lands."""
         if not 0.0 <= inset < 0.5:
             raise ValueError(f"inset must be in [0, 0.5), got {inset}")
         self.store = store
         self.saturate = float(saturate)
         self.probe_tol = float(probe_tol)
-        self.exploration = exploration
         self.inset = float(inset)
-        self.mapper = make_mapper(mapper, store) if isinstance(mapper, str) else mapper
+        self.mapper: Mapper = make_mapper(mapper, store) if isinstance(mapper, str) else mapper
         identity = isinstance(self.mapper, IdentityMapper)
         self._affine = None if identity else AffineMapper(store)
-        # guided: a triangle of refined pairs where the mapper has no usable region is interpolated linearly
+        # a triangle of refined pairs where the mapper has no usable region is interpolated linearly
         self._fallback = (BarycentricMapper(store)
-                          if exploration == "guided" and not identity
-                          and not isinstance(self.mapper, BarycentricMapper) else None)
-        if rng is None:
-            rng = np.random.default_rng(seed)
-        self.rng = rng
+                          if not identity and not isinstance(self.mapper, BarycentricMapper) else None)
+        self.rng = rng if rng is not None else np.random.default_rng(seed)
 
     def map(self, u_T: ArrayLike, *, plan: ArrayLike | None = None, explore: bool = True) -> Mapped:
         """The learner command for teacher command ``u_T`` (see the module docstring for every case)."""
         t = np.asarray(u_T, dtype=float).reshape(2)
         if not np.all(np.isfinite(t)):
             raise ValueError(f"teacher command must be finite, got {t}")
-        lb = self.store.learner_bounds
         if isinstance(self.mapper, IdentityMapper):
-            return Mapped(lb.clip(t), "direct")
+            return Mapped(self.store.learner_bounds.clip(t), "direct")
         t_n = self.store.teacher_bounds.normalise(t)
-        if self.exploration == "paper":
-            return self._map_paper(t, t_n)
-        return self._map_guided(t, t_n, plan, bool(explore))
+        if not explore:
+            u, method, ids, _ = self._unperturbed(t, t_n)
+            return Mapped(u, method, ids)
+        return self._explore(t, t_n, plan)
 
-    # ------------------------------------------------------------------------------------------ the paper
-    def _map_paper(self, t: NDArray[np.float64], t_n: NDArray[np.float64]) -> Mapped:
+    def _explore(self, t: NDArray[np.float64], t_n: NDArray[np.float64], plan: ArrayLike | None) -> Mapped:
+        raise NotImplementedError
+
+    # ------------------------------------------------------------------------------------------ shared helpers
+    def _unperturbed(self, t: NDArray[np.float64], t_n: NDArray[np.float64]) -> tuple[NDArray[np.float64], str,
+                                                                                      Region, float]:
+        """The best unperturbed learner command: (learner units, method, region, gap to the learned region)."""
+        lb = self.store.learner_bounds
+        region = self._map_chain(t_n)
+        if region is not None:
+            (l_n, method, ids), gap = region, 0.0
+        else:
+            l_n, method, ids, gap = self._estimate(t, t_n)
+        return lb.clip(lb.denormalise(l_n)), method, ids, gap
+
+    def _probe_limits(self, t_n: NDArray[np.float64], base: NDArray[np.float64]) -> NDArray[np.float64] | None:
+        """A teacher command saturated at a learned limit whose learner boundary has never been seen: send the
+        learner's extreme command on that axis once (``base``, learner units, on the other), so the boundary pair
+        fixes the limit (paper: a new outlier on the boundary moves the bound). Without it a proportional estimate
+        from an interior outlier, which underestimates a convex learner response (the paper's h_v = v^3), would
+        bound the teacher for good."""
+        lim = self.store.limits
+        lb = self.store.learner_bounds
+        u = np.array(base, dtype=float)
+        probed = False
+        for a in range(2):
+            if lim.bcnt_hi[a] == 0 and t_n[a] >= lim.hi[a] - self.probe_tol:
+                u[a] = lb.hi[a]
+                probed = True
+            elif lim.bcnt_lo[a] == 0 and t_n[a] <= lim.lo[a] + self.probe_tol:
+                u[a] = lb.lo[a]
+                probed = True
+        return u if probed else None
+
+    def _map_chain(self, t_n: NDArray[np.float64]) -> tuple[NDArray[np.float64], str, Region] | None:
+        """The mapper's region for t_n, else the barycentric interpolation of its triangle."""
+        res = self.mapper.map_normalised(t_n)
+        if res is not None and np.all(np.isfinite(res[0])):
+            return res[0], self.mapper.name, res[1]
+        if self._fallback is not None:
+            res = self._fallback.map_normalised(t_n)
+            if res is not None and np.all(np.isfinite(res[0])):
+                return res[0], self._fallback.name, res[1]
+        return None
+
+    def _estimate(self, t: NDArray[np.float64], t_n: NDArray[np.float64]) -> tuple[NDArray[np.float64], str,
+                                                                                  Region, float]:
+        """The best guess outside the triangulated region: (normalised learner command, method, region, gap). It
+        is the linear interpolation of the region's nearest point ``q`` (on a hull edge: between its two pairs)
+        plus the offset ``t - q`` read one-to-one in physical units (the teacher command applied directly, relative
+        to the learned region), and ``gap`` is ``|t - q|`` (normalised teacher units); before there is a region,
+        the teacher command read as a learner command (gap infinite)."""
+        lb, tb = self.store.learner_bounds, self.store.teacher_bounds
+        linear = self._fallback if self._fallback is not None else self.mapper
+        near = linear.nearest_on_hull(t_n)
+        if near is not None:
+            res = linear.map_normalised(near[0])
+            if res is not None and np.all(np.isfinite(res[0])):
+                offset = (t_n - near[0]) * tb.span / lb.span  # normalised teacher step -> normalised learner step
+                return np.clip(res[0] + offset, 0.0, 1.0), "direct", res[1], float(near[1])
+        return lb.normalise(lb.clip(t)), "direct", (), float("inf")
+
+
+class PaperPolicy(_PolicyBase):
+    """The paper's exploration as published (module docstring); ``plan`` is ignored."""
+
+    def _explore(self, t: NDArray[np.float64], t_n: NDArray[np.float64], plan: ArrayLike | None) -> Mapped:
         lb = self.store.learner_bounds
         probe = self._probe_limits(t_n, lb.clip(t))
         if probe is not None:
@@ -162,25 +242,6 @@ class TransferPolicy:
         n = (np.array(target, dtype=float) + self.rng.random(2)) / np.array([gv, gw], dtype=float)
         return Mapped(lb.clip(lb.denormalise(n)), "perturb")
 
-    def _probe_limits(self, t_n: NDArray[np.float64], base: NDArray[np.float64]) -> NDArray[np.float64] | None:
-        """A teacher command saturated at a learned limit whose learner boundary has never been seen: send the
-        learner's extreme command on that axis once (``base``, learner units, on the other), so the boundary pair
-        fixes the limit (paper: a new outlier on the boundary moves the bound). Without it a proportional estimate
-        from an interior outlier, which underestimates a convex learner response (the paper's h_v = v^3), would
-        bound the teacher for good."""
-        lim = self.store.limits
-        lb = self.store.learner_bounds
-        u = np.array(base, dtype=float)
-        probed = False
-        for a in range(2):
-            if lim.bcnt_hi[a] == 0 and t_n[a] >= lim.hi[a] - self.probe_tol:
-                u[a] = lb.hi[a]
-                probed = True
-            elif lim.bcnt_lo[a] == 0 and t_n[a] <= lim.lo[a] + self.probe_tol:
-                u[a] = lb.lo[a]
-                probed = True
-        return u if probed else None
-
     def _predict(self, t_n: NDArray[np.float64], direct: NDArray[np.float64]) -> NDArray[np.float64]:
         """Where the learner command for t_n probably is (normalised): the least-squares affine map of the refined
         pairs, or the teacher command itself while there are too few pairs for one."""
@@ -193,7 +254,7 @@ class TransferPolicy:
         """The unconfigured cell of the nearest ring around ``cell`` closest to ``towards`` (normalised learner
         point; ties broken by the random generator): exploring where the command probably maps, not anywhere."""
         gv, gw = self.store.grid
-        configured = self.store.pub_version > 0
+        configured = self.store.configured()
         i0, j0 = cell
         goal = np.asarray(towards) * np.array([gv, gw], dtype=float)
         for r in range(1, max(gv, gw)):
@@ -209,18 +270,14 @@ class TransferPolicy:
                 return ring[int(best[self.rng.integers(best.size)])]
         return None
 
-    # ---------------------------------------------------------------------------------------------- guided
-    def _map_guided(self, t: NDArray[np.float64], t_n: NDArray[np.float64], plan: ArrayLike | None,
-                    explore: bool) -> Mapped:
+
+class GuidedPolicy(_PolicyBase):
+    """Exploration at the least detour from what the mission needs, steered by the teacher's plan (module
+    docstring)."""
+
+    def _explore(self, t: NDArray[np.float64], t_n: NDArray[np.float64], plan: ArrayLike | None) -> Mapped:
         lb = self.store.learner_bounds
-        region = self._map_chain(t_n)
-        if region is not None:
-            (l_n, method, ids), gap = region, 0.0
-        else:
-            l_n, method, ids, gap = self._estimate(t, t_n)
-        u = lb.clip(lb.denormalise(l_n))
-        if not explore:
-            return Mapped(u, method, ids)
+        u, method, ids, gap = self._unperturbed(t, t_n)
         probe = self._probe_limits(t_n, u)
         if probe is not None:
             return Mapped(probe, "perturb")
@@ -233,34 +290,6 @@ class TransferPolicy:
         if target is None:
             return Mapped(u, method, ids)
         return Mapped(lb.clip(lb.denormalise(self._nearest_in_cell(target, lb.normalise(u)))), "perturb")
-
-    def _map_chain(self, t_n: NDArray[np.float64]) -> tuple[NDArray[np.float64], str, Region] | None:
-        """The mapper's region for t_n, else the barycentric interpolation of its triangle (guided)."""
-        res = self.mapper.map_normalised(t_n)
-        if res is not None and np.all(np.isfinite(res[0])):
-            return res[0], self.mapper.name, res[1]
-        if self._fallback is not None:
-            res = self._fallback.map_normalised(t_n)
-            if res is not None and np.all(np.isfinite(res[0])):
-                return res[0], self._fallback.name, res[1]
-        return None
-
-    def _estimate(self, t: NDArray[np.float64], t_n: NDArray[np.float64]) -> tuple[NDArray[np.float64], str,
-                                                                                  Region, float]:
-        """The best guess outside the triangulated region: (normalised learner command, method, region, gap). It
-        is the linear interpolation of the region's nearest point ``q`` (on a hull edge: between its two pairs)
-        plus the offset ``t - q`` read one-to-one in physical units (the teacher command applied directly, relative
-        to the learned region), and ``gap`` is ``|t - q|`` (normalised teacher units); before there is a region,
-        the teacher command read as a learner command (gap infinite)."""
-        lb, tb = self.store.learner_bounds, self.store.teacher_bounds
-        linear = self._fallback if self._fallback is not None else self.mapper
-        near = linear.nearest_on_hull(t_n)
-        if near is not None:
-            res = linear.map_normalised(near[0])
-            if res is not None and np.all(np.isfinite(res[0])):
-                offset = (t_n - near[0]) * tb.span / lb.span  # normalised teacher step -> normalised learner step
-                return np.clip(res[0] + offset, 0.0, 1.0), "direct", res[1], float(near[1])
-        return lb.normalise(lb.clip(t)), "direct", (), float("inf")
 
     def _cell_distance(self, cell: tuple[int, int], p: NDArray[np.float64]) -> float:
         """Distance (normalised learner units) from p to the rectangle of a grid cell."""
@@ -280,7 +309,7 @@ class TransferPolicy:
                        plan: ArrayLike | None) -> tuple[int, int] | None:
         """The unconfigured neighbour of ``cell`` that costs the least detour now and serves the plan best."""
         gv, gw = self.store.grid
-        configured = self.store.pub_version > 0
+        configured = self.store.configured()
         i0, j0 = cell
         cands = [(i, j) for i in range(max(0, i0 - 1), min(gv, i0 + 2)) for j in range(max(0, j0 - 1), min(gw, j0 + 2))
                  if (i, j) != cell and not configured[i, j]]
@@ -311,3 +340,16 @@ class TransferPolicy:
             res = self._map_chain(p_n)
             out.append(res[0] if res is not None else self._estimate(p, p_n)[0])
         return out
+
+
+POLICIES: dict[str, type[_PolicyBase]] = {"paper": PaperPolicy, "guided": GuidedPolicy}
+
+
+def make_policy(store: PairStore, mapper: str | Mapper = "scm", rng: np.random.Generator | None = None, *,
+                exploration: str = "guided", **options: float | int | None) -> Policy:
+    """A policy by its exploration's name (``guided`` or ``paper``); ``options`` as the policies take them."""
+    try:
+        cls = POLICIES[exploration]
+    except KeyError:
+        raise ValueError(f"unknown exploration {exploration!r}; known: {', '.join(EXPLORATIONS)}") from None
+    return cls(store, mapper, rng, **options)  # type: ignore[arg-type]

@@ -156,6 +156,10 @@ class PairStore:
         """A cell is configured when it holds a refined pair (k_min members)."""
         return bool(self.pub_version[cell] > 0)
 
+    def configured(self) -> NDArray[np.bool_]:
+        """Which cells are configured, as a (n_v, n_omega) mask (a copy: the caller cannot change the store)."""
+        return self.pub_version > 0
+
     def refined_arrays(self) -> tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.float64], NDArray[np.float64]]:
         """(ids, versions, teacher parts normalised, learner parts normalised) of all refined pairs (cached)."""
         if self._arrays is None:

@@ -63,20 +63,20 @@ def run(args: argparse.Namespace) -> int:
             raise ConfigError("command line", "calibration", str(exc)) from None
     robot = M.check_robot(args.robot or cfg.robot)
     store = Path(args.store) if args.store else cfg.store_file(robot)
-    station = Station(cfg, robot, cfg.station.rate_hz, store, load_mission(cfg.station.mission or None))
+    plan = CalibrationPlan(cfg.learner_bounds.bounds(), c.grid, hold_s=c.hold_s, max_distance=c.max_distance_m,
+                           return_radius=c.return_radius_m, max_time_s=c.max_time_s)
+    station = Station(cfg, robot, cfg.station.rate_hz, store, load_mission(cfg.station.mission or None),
+                      calibration=plan)
     # running calibration is a person's act by itself: the stage starts at once
     station.control.request(M.MissionRequest(stamp=0.0, action="start", source="scmbridge calibrate"),
                             Fitness("not checked yet"), 0.0)
-    station.calibration = CalibrationPlan(cfg.learner_bounds.bounds(), c.grid, hold_s=c.hold_s,
-                                          max_distance=c.max_distance_m, return_radius=c.return_radius_m,
-                                          max_time_s=c.max_time_s)
     stop = stop_on_signals()
     try:
         with open_session(zenoh_config(args)) as session:
             station.serve(session, stop, c.max_time_s + 30.0, exit_at_goal=True)
     finally:
         station.persist()
-    done = station.calibration.finished
+    done = plan.finished
     box = station.store.limits.box
     print(f"calibration: {done.reason if done else 'interrupted'}; {station.store.raw_count} raw / "
           f"{len(station.store.refined())} refined pairs in {store}; learned limits v [{box.v[0]:.3f}, "

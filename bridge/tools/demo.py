@@ -32,7 +32,7 @@ def inprocess(args: argparse.Namespace) -> int:
     from sim_learner.dynamics import MPC_TEACHER_V, MPC_TEACHER_W, mpc_learner
     from transfer.domain import Bounds
     from transfer.pairs import teacher_equivalent
-    from transfer.policy import TransferPolicy
+    from transfer.policy import make_policy
     from transfer.scm import warmup
     from transfer.store import PairStore
     from transfer.teacher.unicycle import step
@@ -59,7 +59,7 @@ def inprocess(args: argparse.Namespace) -> int:
     print(f"learner limits on the teacher domain: v in [{box.v[0]:.3f}, {box.v[1]:.3f}] m/s, "
           f"omega in [{box.w[0]:.3f}, {box.w[1]:.3f}] rad/s (true: v [0.050, 0.300], omega "
           f"[{-math.pi / 16:.3f}, {math.pi / 12:.3f}])")
-    policies = {name: TransferPolicy(store, name, seed=args.seed) for name in ("scm", "identity", "barycentric")}
+    policies = {name: make_policy(store, name, seed=args.seed) for name in ("scm", "identity", "barycentric")}
     ids, _, T, _ = store.refined_arrays()
     lo, hi = T.min(axis=0), T.max(axis=0)
     print(f"\n{'teacher (v, w)':>18} | {'SCM learner cmd':>18} {'err mm':>7} | {'baseline err mm':>15} | "

@@ -1,0 +1,235 @@
+"""Where a station's commands come from: one :class:`CommandSource` per teacher, chosen once by :func:`make_source`.
+
+Each tick the station core (:mod:`bridge.nodes.station_core`) asks its source for a :class:`Proposal` at the
+latest pose; the source answers with a teacher command to map (the built-in MPC, the paper's motion primitives, an
+external teacher's command), a learner command to send as it is (the calibration stage), ``None`` (nothing new:
+an external teacher that has not spoken since the last command) or a :class:`Why` (the one reason it does not
+drive; the core then publishes a stop). Sources keep their own state (warm starts, the current primitive, the
+calibration plan) and nothing else: the core owns the store, the transfer step, the counters and the wire.
+
+A new teacher is one new class implementing :class:`CommandSource` and one line in :func:`make_source`.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass
+from typing import Any, Protocol
+
+import numpy as np
+from numpy.typing import NDArray
+
+from bridge.core import wire as M
+from bridge.core.config import StationConfig
+from transfer.calibration import CalibrationPlan
+from transfer.mission import Mission
+from transfer.store import PairStore
+from transfer.teacher.primitives import PrimitiveFollower, PrimitiveLibrary, PrimitivePlanner
+
+log = logging.getLogger("scmbridge.station")
+
+
+@dataclass(frozen=True)
+class Why:
+    """The one reason the source does not drive this tick (the station publishes a stop and says it)."""
+
+    text: str
+
+
+@dataclass(frozen=True)
+class Proposal:
+    """A command to send. ``method`` None: ``u`` is a teacher command, mapped by the transfer step with
+    ``predicted`` (the teacher's plan, if any) as its hint; else ``u`` is a learner command sent as it is with that
+    method. ``solver`` set: the source is the station's own teacher and its command goes out on ``teacher``
+    (``ok``: whether it solved). ``solve_ms``: how long it took to compute, for the status."""
+
+    u: NDArray[np.float64]
+    pose: NDArray[np.float64] | None = None
+    predicted: NDArray[np.float64] | None = None
+    method: str | None = None
+    solver: str | None = None
+    ok: bool = True
+    solve_ms: float | None = None
+
+
+@dataclass
+class SourceContext:
+    """What a source may read (and count) when it proposes: the mission, the pair store (its learned limits), the
+    station's counters, the last tick's reason and the external teacher's latest command."""
+
+    mission: Mission
+    store: PairStore
+    counters: Any  # the station's counters (bridge.nodes.station_core.StationCounters: that module imports this)
+    why: str = "starting"
+    teacher: M.TeacherCommand | None = None
+    teacher_at: float = -np.inf
+    teacher_new: bool = False
+
+
+class CommandSource(Protocol):
+    """One teacher of the station (module docstring)."""
+
+    #: what the station does, for its log line at start ("mission <name>" is added for sources that follow one)
+    what: str
+    #: the source follows the mission's path (its goal ends the mission); False: an external teacher, calibration
+    follows_mission: bool
+    #: the station listens to ``teacher`` for this source's commands and maps each as it arrives
+    external: bool
+
+    def propose(self, now: float, pose: M.LearnerState, ctx: SourceContext) -> Proposal | Why | None:
+        """The command for ``pose`` now, a reason not to drive, or None (nothing new to send)."""
+        ...
+
+    def reset(self) -> None:
+        """A new mission: forget what belonged to the old one."""
+        ...
+
+    def done(self) -> bool:
+        """The source has finished its work for good (the calibration plan is through)."""
+        ...
+
+
+def _pose(state: M.LearnerState) -> NDArray[np.float64]:
+    return np.array([state.x, state.y, state.theta])
+
+
+class MpcSource:
+    """The built-in MPC: follows the mission's path, bounded by the learned limits' box, given its obstacles."""
+
+    what = "mpc"
+    follows_mission = True
+    external = False
+
+    def __init__(self, teacher) -> None:
+        self.teacher = teacher  # transfer.teacher.mpc.MpcTeacher (imported lazily: casadi)
+
+    def propose(self, now: float, pose: M.LearnerState, ctx: SourceContext) -> Proposal:
+        x = _pose(pose)
+        t0 = time.perf_counter()
+        res = self.teacher.solve(x, ctx.mission.path, ctx.store.limits.box, ctx.mission.obstacles)
+        solve_ms = (time.perf_counter() - t0) * 1e3
+        ctx.counters.obstacles_dropped += res.obstacles_dropped
+        return Proposal(np.asarray(res.u, dtype=float), x, res.predicted, solver=res.solver, ok=res.ok,
+                        solve_ms=solve_ms)
+
+    def reset(self) -> None:
+        self.teacher.reset()
+
+    def done(self) -> bool:
+        return False
+
+
+class PrimitivesSource:
+    """The paper's motion-primitive teacher: only the primitives inside the learned limits (hull) are planned with,
+    so it needs calibrated pairs first; each tick's command is the current primitive's."""
+
+    what = "primitives"
+    follows_mission = True
+    external = False
+
+    def __init__(self, follower: PrimitiveFollower) -> None:
+        self.follower = follower
+
+    def propose(self, now: float, pose: M.LearnerState, ctx: SourceContext) -> Proposal | Why:
+        lib = self.follower.planner.lib
+        allowed = np.asarray(ctx.store.limits.contains(lib.commands, use_hull=True, tol=1e-6))
+        if not allowed.any():
+            return Why("no primitive within the learned limits: calibrate first (scmbridge calibrate)")
+        x = _pose(pose)
+        u_T = self.follower.step(x, ctx.mission.path, allowed, ctx.mission.obstacles)
+        ctx.counters.primitive_replans = self.follower.replans
+        ctx.counters.primitives_allowed = int(allowed.sum())
+        return Proposal(np.asarray(u_T, dtype=float), x)
+
+    def reset(self) -> None:
+        self.follower.reset()
+
+    def done(self) -> bool:
+        return False
+
+
+class ExternalSource:
+    """Transfer only: a lab's own teacher publishes ``TeacherCommand``s; each is mapped once, as it arrives. A
+    teacher that says stop (``ok`` false or an exact zero) or falls silent for ``timeout_s`` gets the robot
+    stopped."""
+
+    what = "external teacher"
+    follows_mission = False
+    external = True
+
+    def __init__(self, timeout_s: float) -> None:
+        self.timeout_s = float(timeout_s)
+
+    def propose(self, now: float, pose: M.LearnerState, ctx: SourceContext) -> Proposal | Why | None:
+        t, t_at = ctx.teacher, ctx.teacher_at
+        if t is None:
+            return Why("waiting for the external teacher")
+        if now - t_at > self.timeout_s:
+            return Why(f"no teacher command for {now - t_at:.1f} s")
+        if not t.ok or (t.v == 0.0 and t.omega == 0.0):
+            return Why("the teacher says stop")
+        if not ctx.teacher_new:
+            return None
+        return Proposal(np.array([t.v, t.omega]), np.array([pose.x, pose.y]))
+
+    def reset(self) -> None:
+        pass
+
+    def done(self) -> bool:
+        return False
+
+
+class CalibrationSource:
+    """The calibration stage: the plan's learner commands go out as they are (method ``calibrate``)."""
+
+    what = "calibration"
+    follows_mission = False
+    external = False
+
+    def __init__(self, plan: CalibrationPlan) -> None:
+        self.plan = plan
+        self.progress: tuple[int, int, str] | None = None
+
+    def propose(self, now: float, pose: M.LearnerState, ctx: SourceContext) -> Proposal | Why:
+        step = self.plan.step(now, [pose.x, pose.y, pose.theta])
+        if step.done:
+            if ctx.why != f"calibration: {step.reason}":
+                log.info("calibration finished: %s; %d refined pairs", step.reason, len(ctx.store.refined()))
+            return Why(f"calibration: {step.reason}")
+        if self.progress is None or (self.progress[0], self.progress[2]) != (step.index, step.phase):
+            dist = float(np.hypot(pose.x - self.plan.start[0], pose.y - self.plan.start[1]))
+            log.info("calibration %d/%d %s (v %.3f, omega %.3f): %d raw / %d refined pairs, %.2f m from the start",
+                     step.index + 1, step.total, step.phase, step.u_L[0], step.u_L[1], ctx.store.raw_count,
+                     len(ctx.store.refined()), dist)
+        self.progress = (step.index, step.total, step.phase)
+        ctx.counters.calibration_index, ctx.counters.calibration_total = step.index, step.total
+        return Proposal(np.asarray(step.u_L, dtype=float), method="calibrate")
+
+    def reset(self) -> None:
+        pass
+
+    def done(self) -> bool:
+        return self.plan.finished is not None
+
+
+def make_source(cfg: StationConfig, period: float, calibration: CalibrationPlan | None = None) -> CommandSource:
+    """The station's command source from its configuration (``[teacher] kind``), or the calibration stage when a
+    plan is given. The one place each teacher is built."""
+    if calibration is not None:
+        return CalibrationSource(calibration)
+    t = cfg.teacher
+    if t.kind == "mpc":
+        from transfer.teacher.mpc import MpcConfig, MpcTeacher
+
+        return MpcSource(MpcTeacher(MpcConfig(N=cfg.station.horizon, dt=period)))
+    if t.kind == "primitives":
+        lib = PrimitiveLibrary(cfg.teacher_bounds.bounds(), t.primitives_grid, duration=t.primitive_s, dt=period)
+        return PrimitivesSource(PrimitiveFollower(PrimitivePlanner(lib, k_d=1.0, k_theta=2.0, horizon=2)))
+    if t.kind == "external":
+        return ExternalSource(t.timeout_s)
+    raise ValueError(f"unknown teacher kind {t.kind!r}")
+
+
+__all__ = ["CalibrationSource", "CommandSource", "ExternalSource", "MpcSource", "PrimitivesSource", "Proposal",
+           "SourceContext", "Why", "make_source"]

@@ -1,0 +1,513 @@
+"""One robot's station without Zenoh: ``StationCore.tick(inputs, now) -> outputs`` over typed messages.
+
+Each tick takes what arrived (:class:`TickInputs`: learner states and applied echoes in arrival order, the latest
+driver host status, a new mission, an external teacher's command), forms the command pairs they really bracket
+(:mod:`bridge.nodes.pairing`), updates the pair store (and so the learned limits), and then either drives or says
+why not:
+
+- it drives only while a person has started the mission (:mod:`bridge.nodes.mission_control`) and the robot is
+  fit: the driver host's status is fresh and ``ok`` (link up, engaged, no fault, no estop), and the latest pose
+  arrived less than ``max_pose_age_s`` ago; a robot that stops being fit while driving pauses the mission until a
+  person resumes it;
+- otherwise, and at the goal, it publishes stops and its status says why (``idle: ...``, ``paused: estop latched by
+  operator``, ``waiting for the robot: ...``, ``goal reached``).
+
+Driving: the command source (:mod:`bridge.nodes.sources`: the MPC, the motion primitives, an external teacher or
+the calibration stage, chosen once from the configuration) proposes a command at the latest pose; a teacher
+command is mapped by the one transfer step (:class:`transfer.step.TransferStep`) and goes out as ``cmd`` (with the
+method, a validity of three periods, this run's sender name and epoch), the station's own teacher's command and
+plan as ``teacher``. A periodic tick also gives ``limits`` when the learned limits change and each second, the
+status each second, and saves the pair store every ``persist_every_s`` (atomically; a failed save is logged,
+reported on status and retried, and never stops the loop).
+
+:class:`TickOutputs` is what to publish; the Zenoh adapter (:mod:`bridge.nodes.station`) puts it on the wire. The
+core has no threads, no module-level state and no session: a process may run many, one per robot. It is not
+thread-safe: the adapter calls it (ticks and the control and pairs queries) under one lock.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import os
+import time
+from collections import deque
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from bridge.core import wire as M
+from bridge.core.config import StationConfig
+from bridge.core.paths import save_atomic
+from bridge.nodes.mission_control import Fitness, MissionControl, spec_of
+from bridge.nodes.pairing import IntervalPairer
+from bridge.nodes.sources import CalibrationSource, CommandSource, Proposal, SourceContext, Why, make_source
+from transfer.calibration import CalibrationPlan
+from transfer.domain import Bounds
+from transfer.mission import Mission
+from transfer.policy import make_policy
+from transfer.step import TransferStep
+from transfer.store import PairStore
+
+log = logging.getLogger("scmbridge.station")
+
+#: a driver host publishes status each second: after this long without one, the robot is not known to be fit
+DRIVER_STATUS_MAX_AGE = 3.0
+#: an integrity problem (another sender, implausible telemetry) keeps the status not ok this long, s
+INTEGRITY_WINDOW_S = 5.0
+#: what the learner can really do is its box (or the teacher's) times this; beyond it a pose or pair is implausible
+PLAUSIBLE = 1.5
+#: the status (and the forced limits) go out this often, s
+STATUS_EVERY_S = 1.0
+
+
+def load_store(path: Path, learner: Bounds, teacher: Bounds, grid, k_min: int) -> tuple[PairStore, str]:
+    """The persisted store if there is a valid one, else a new one. A file that is corrupt, made for other bounds,
+    holds a pair no vehicle could have produced, or would break the wire contract when served (``pairs``) is
+    quarantined: kept aside, not lost, and not served."""
+    path = Path(path)
+    if path.exists():
+        try:
+            store = PairStore.from_bytes(path.read_bytes())
+            if store.learner_bounds != learner or store.teacher_bounds != teacher:
+                raise ValueError("its command bounds differ from this configuration")
+            top_v = PLAUSIBLE * max(abs(x) for x in (*learner.v, *teacher.v))
+            top_w = PLAUSIBLE * max(abs(x) for x in (*learner.w, *teacher.w))
+            for p in store.refined():
+                if not all(abs(float(u[0])) <= top_v and abs(float(u[1])) <= top_w for u in (p.u_T, p.u_L)):
+                    raise ValueError(f"pair {p.id} (teacher {p.u_T[0]:.3g}, {p.u_T[1]:.3g}; learner "
+                                     f"{p.u_L[0]:.3g}, {p.u_L[1]:.3g}) is beyond what the vehicle can do")
+            M.validated(pairs_message(store, "learner", 0.0))  # what the pairs queryable would serve
+            return store, f"reloaded {len(store.refined())} refined pairs from {path}"
+        except ValueError as exc:
+            aside = path.with_name(path.name + f".corrupt-{int(time.time())}")
+            os.replace(path, aside)
+            log.error("pair store %s unusable (%s); quarantined as %s, starting empty", path, exc, aside)
+    return PairStore(learner, teacher, tuple(grid), k_min), "new pair store"
+
+
+def pairs_message(store: PairStore, robot: str, now: float) -> M.Pairs:
+    """The ``pairs`` reply: the refined pairs and the learned limits."""
+    recs = [M.PairRecord(id=p.id, version=p.version, count=p.count, teacher_v=float(p.u_T[0]),
+                         teacher_omega=float(p.u_T[1]), learner_v=float(p.u_L[0]), learner_omega=float(p.u_L[1]))
+            for p in store.refined()]
+    return M.Pairs(stamp=now, robot=robot, pairs=recs, limits_box=store.limits.box.as_list(),
+                   limits_hull=[[float(a), float(b)] for a, b in store.limits.hull],
+                   teacher_bounds=store.teacher_bounds.as_list(), learner_bounds=store.learner_bounds.as_list(),
+                   grid=[int(store.grid[0]), int(store.grid[1])])
+
+
+@dataclass
+class StationCounters:
+    """Every counter on the station's status. :meth:`as_dict` gives the status's ``counters``: the optional ones
+    (None, or a zero ``method_calibrate`` / ``foreign_commands``) only once they mean something; ``inputs`` are
+    the transport's own counts (``malformed_<input>``), merged as they are."""
+
+    method_scm: int = 0
+    method_direct: int = 0
+    method_perturb: int = 0
+    method_affine: int = 0
+    method_barycentric: int = 0
+    method_stop: int = 0
+    method_calibrate: int = 0
+    obstacles_dropped: int = 0
+    persist_failures: int = 0
+    missions: int = 0
+    explore_vetoed: int = 0
+    primitive_replans: int | None = None
+    primitives_allowed: int | None = None
+    foreign_commands: int = 0
+    inputs: dict[str, int] = field(default_factory=dict)
+    missed_deadlines: int = 0
+    refined_pairs: int = 0
+    raw_pairs: int = 0
+    pairs_rejected: int = 0
+    pairs_formed: int = 0
+    pairs_out_of_order: int = 0
+    implausible_stamps: int = 0
+    implausible_poses: int = 0
+    implausible_pairs: int = 0
+    pairer_resyncs: int = 0
+    goal_reached: int = 0
+    calibration_index: int | None = None
+    calibration_total: int | None = None
+    ticks: int = 0
+
+    _SHOWN_IF_NONZERO = ("method_calibrate", "foreign_commands")
+
+    def count_method(self, method: str) -> None:
+        """One more command sent by ``method`` (a wire ``Command`` method)."""
+        name = f"method_{method}"
+        setattr(self, name, getattr(self, name) + 1)
+
+    def as_dict(self) -> dict[str, int]:
+        out: dict[str, int] = {}
+        for f in dataclasses.fields(self):
+            v = getattr(self, f.name)
+            if f.name == "inputs":
+                out.update(v)
+            elif v is None or (f.name in self._SHOWN_IF_NONZERO and v == 0):
+                continue
+            else:
+                out[f.name] = int(v)
+        return out
+
+
+@dataclass(frozen=True)
+class TickInputs:
+    """What arrived since the last tick. ``telemetry``: learner states and applied echoes with their receipt
+    times, in arrival order; ``driver``: the latest driver host status and its receipt time; ``mission``: a new
+    mission (its spec and the decoded mission); ``teacher``: an external teacher's latest command and its receipt
+    time. ``periodic`` False: a tick woken by an external teacher's command (map it, nothing else).
+    ``input_counts``: the transport's counts of dropped inputs; ``missed_deadlines``: the loop's, for the status."""
+
+    telemetry: tuple[tuple[M.LearnerState | M.Applied, float], ...] = ()
+    driver: tuple[M.Status, float] | None = None
+    mission: tuple[M.MissionSpec, Mission] | None = None
+    teacher: tuple[M.TeacherCommand, float] | None = None
+    periodic: bool = True
+    input_counts: Mapping[str, int] = field(default_factory=dict)
+    missed_deadlines: int = 0
+
+
+@dataclass(frozen=True)
+class TickOutputs:
+    """What to publish after a tick: each is None when there is nothing to send on that key."""
+
+    command: M.Command | None = None
+    teacher: M.TeacherCommand | None = None
+    limits: M.Limits | None = None
+    status: M.Status | None = None
+
+
+class StationCore:
+    """One robot's station: pairing, the command source, the transfer step, mission control, persistence and the
+    status (module docstring)."""
+
+    def __init__(self, cfg: StationConfig, robot: str, rate_hz: float, store_path: Path, mission: Mission,
+                 control: MissionControl | None = None, control_path: Path | None = None,
+                 calibration: CalibrationPlan | None = None, source: CommandSource | None = None) -> None:
+        """``control``: the mission's phase machine (default: ``mission``, idle); ``control_path``: where it is
+        kept across restarts (None: not kept); ``calibration``: run this calibration plan instead of a teacher;
+        ``source``: a command source to use instead of the configured one."""
+        scfg, tcfg = cfg.station, cfg.transfer
+        self.robot = robot
+        self.period = 1.0 / rate_hz
+        self.store_path = Path(store_path)
+        self.persist_every = scfg.persist_every_s
+        self.max_pose_age = scfg.max_pose_age_s
+        learner, teacher = cfg.learner_bounds.bounds(), cfg.teacher_bounds.bounds()
+        self.store, how = load_store(self.store_path, learner, teacher, tcfg.grid, tcfg.k_min)
+        log.info("%s", how)
+        policy = make_policy(self.store, tcfg.mapper, np.random.default_rng(tcfg.seed),
+                             exploration="paper" if tcfg.exploration == "paper" else "guided")
+        self.transfer = TransferStep(policy, dt=self.period, explore=tcfg.exploration != "off",
+                                     clearance=tcfg.explore_clearance_m)
+        self.source: CommandSource = source or make_source(cfg, self.period, calibration)
+        top_v = float(max(abs(x) for x in (*learner.v, *teacher.v)))
+        top_w = float(max(abs(x) for x in (*learner.w, *teacher.w)))
+        self.pairer = IntervalPairer(scfg.pair_dt, max_speed=PLAUSIBLE * top_v + 0.1, max_turn=PLAUSIBLE * top_w + 0.2,
+                                     command_bounds=learner, teacher_bounds=Bounds((-top_v, top_v), (-top_w, top_w)),
+                                     margin=PLAUSIBLE)
+        self.control = control or MissionControl(robot, spec_of(mission))
+        self.control_path = control_path
+        self.fitness = Fitness()
+        self.counters = StationCounters()
+        self.epoch = M.new_epoch()
+        self.seq = {"cmd": 0, "status": 0}
+        # the latest of each input, kept across ticks
+        self.state: M.LearnerState | None = None
+        self.state_at = -np.inf
+        self.driver: M.Status | None = None
+        self.driver_at = -np.inf
+        self.driver_seq = -1  # the driver host's last status seq: a lower one means it restarted
+        self.teacher: M.TeacherCommand | None = None
+        self.teacher_at = -np.inf
+        self.teacher_new = False  # an external teacher's command not yet given to the source
+        self.foreign_cmd_at, self.foreign_epoch = -np.inf, 0  # the last command of another sender on our key
+        self.implausible_seen: tuple[int, float] = (0, -np.inf)  # (count, when it last grew)
+        self.mission_version = self.control.version
+        self.why = "starting"
+        self.persist_error = ""
+        self.limits_sent: tuple[list[float], int] | None = None
+        self.limits_version = 0
+        self.solve_ms: deque[float] = deque(maxlen=100)
+        self.tick_ms: deque[float] = deque(maxlen=600)  # the last minute of periodic ticks' durations
+        self.t_status: float | None = None  # the next status is due then (None: at the first periodic tick)
+        self.t_persist: float | None = None
+
+    # -------------------------------------------------------------------------------------------- queries
+    @property
+    def mission(self) -> Mission:
+        return self.control.mission
+
+    @property
+    def calibration(self) -> CalibrationPlan | None:
+        """The calibration plan this core runs, if it runs one."""
+        return self.source.plan if isinstance(self.source, CalibrationSource) else None
+
+    @property
+    def finished(self) -> bool:
+        """Nothing more to do: the mission finished or was aborted, or the source is through (calibration)."""
+        return self.control.phase in ("finished", "aborted") or self.source.done()
+
+    def what(self) -> str:
+        """What this station does, for its start-up line."""
+        return f"mission {self.mission.name}" if self.source.follows_mission else self.source.what
+
+    def request(self, req: M.MissionRequest, now: float) -> M.MissionState:
+        """A person's mission request, done or refused from the last tick's fitness."""
+        ans = self.control.request(req, self.fitness, now)
+        if req.action != "status":
+            log.info("mission %s%s: %s", req.action, f" by {req.source}" if req.source else "", ans.text)
+        return ans
+
+    def pairs(self, now: float) -> M.Pairs:
+        return pairs_message(self.store, self.robot, now)
+
+    def heard_command(self, cmd: M.Command, now: float) -> None:
+        """A command on this robot's key: one this station did not send is another station's (or a forger's)."""
+        if cmd.epoch != self.epoch:
+            self.foreign_cmd_at, self.foreign_epoch = now, cmd.epoch
+            self.counters.foreign_commands += 1
+
+    # ----------------------------------------------------------------------------------------------- tick
+    def tick(self, inputs: TickInputs, now: float) -> TickOutputs:
+        """One tick at ``now`` (module docstring)."""
+        t0 = time.monotonic()
+        self.ingest(inputs)
+        command, teacher = self.control_step(now)
+        if not inputs.periodic:
+            return TickOutputs(command, teacher)
+        self.tick_ms.append((time.monotonic() - t0) * 1e3)
+        self.counters.ticks += 1
+        self.counters.inputs = dict(inputs.input_counts)
+        self.counters.missed_deadlines = inputs.missed_deadlines
+        status = limits = None
+        if self.t_status is None or now >= self.t_status:
+            status = self.status(now)
+            limits = self.limits(now, force=True)
+            self.t_status = now + STATUS_EVERY_S
+        else:
+            limits = self.limits(now, force=False)
+        if self.t_persist is None or now >= self.t_persist:
+            self.persist()
+            self.t_persist = now + self.persist_every
+        return TickOutputs(command, teacher, limits, status)
+
+    def ingest(self, inputs: TickInputs) -> None:
+        """Pairs from the echoes and poses that arrived (time order), the latest pose and driver status, a new
+        mission if one came."""
+        arrived = [(m.stamp, 0 if isinstance(m, M.Applied) else 1, i, m, at)
+                   for i, (m, at) in enumerate(inputs.telemetry)]
+        for _, kind, _, e, received in sorted(arrived, key=lambda e: (e[0], e[1])):
+            if kind == 0:
+                pair = self.pairer.applied(e.stamp, e.v, e.omega, e.reason, received)
+            else:
+                pair = self.pairer.state(e.stamp, np.array([e.x, e.y, e.theta]), received)
+            if pair is not None:
+                self.store.add(*pair)
+        for m, at in inputs.telemetry:
+            if isinstance(m, M.LearnerState):
+                self.state, self.state_at = m, at
+        if inputs.teacher is not None:
+            self.teacher, self.teacher_at = inputs.teacher
+            self.teacher_new = True
+        if inputs.mission is not None:
+            self.control.replace(*inputs.mission)
+        if inputs.driver is not None:
+            st, at = inputs.driver
+            restarted = st.seq < self.driver_seq  # a new driver host process: it counts from 0 again
+            self.driver_seq = st.seq
+            self.driver, self.driver_at = st, at
+            if restarted:  # after a new mission: a finished mission that goes on is paused all the same
+                log.warning("the driver host restarted")
+                self.control.driver_restarted()
+        if self.control.version != self.mission_version:  # from the mission topic or a person's send
+            self.mission_version = self.control.version
+            mission = self.mission
+            self.source.reset()
+            self.counters.missions += 1
+            log.info("new mission %r: %d waypoints, %.1f m, %d obstacles", mission.name, len(mission.path.points),
+                     mission.path.length, len(mission.obstacles))
+
+    def control_step(self, now: float) -> tuple[M.Command | None, M.TeacherCommand | None]:
+        """Drive, or publish a stop and say why: the command and teacher message of this tick."""
+        state, driver = self.state, self.driver
+        fit = self.fit_to_drive(now, state, self.state_at, driver, self.driver_at)
+        estop = driver is not None and (driver.state == "estop" or "estop latched" in driver.text)
+        late = driver is None or now - self.driver_at > DRIVER_STATUS_MAX_AGE or driver.ok  # a pose or status late
+        self.fitness = Fitness(fit, estop, immediate=not late)
+        c = self.control
+        if self.source.follows_mission and not fit and c.phase == "running":
+            c.progress = max(c.progress, self.mission.progress([state.x, state.y]))
+            if self.mission.reached([state.x, state.y]):
+                c.reached()
+        command = teacher = None
+        why = "" if c.may_drive(self.fitness, now) else self.not_driving(fit)
+        if not why:
+            why, command, teacher = self.drive(now, state)
+        if why:
+            if why != self.why:
+                log.info("not driving: %s", why)
+            command = self._command(now, 0.0, 0.0, "stop")
+            self.counters.method_stop += 1
+        elif self.why != "driving":
+            log.info("driving (mission %r)", self.mission.name)
+        self.why = why or "driving"
+        self.counters.goal_reached = int(c.phase == "finished")
+        if c.changed:
+            self.save_control()
+        return command, teacher
+
+    def fit_to_drive(self, now: float, state: M.LearnerState | None, state_at: float, driver: M.Status | None,
+                     driver_at: float) -> str:
+        """Empty if the station may drive the robot now, else why not (for status and the log)."""
+        if driver is None or now - driver_at > DRIVER_STATUS_MAX_AGE:
+            return "robot not ready: no driver host status"
+        if not driver.ok:
+            return f"robot not ready: {driver.text}"
+        if state is None:
+            return "no pose yet"
+        if now - state_at > self.max_pose_age:
+            return f"no pose for {now - state_at:.1f} s"
+        return ""
+
+    def drive(self, now: float, state: M.LearnerState) -> tuple[str, M.Command | None, M.TeacherCommand | None]:
+        """The source's proposal, mapped and made a command; or why not."""
+        ctx = SourceContext(self.mission, self.store, self.counters, self.why, self.teacher, self.teacher_at,
+                            self.teacher_new)
+        self.teacher_new = False
+        prop = self.source.propose(now, state, ctx)
+        if isinstance(prop, Why):
+            return prop.text, None, None
+        if prop is None:
+            return "", None, None
+        if prop.solve_ms is not None:
+            self.solve_ms.append(prop.solve_ms)
+        command = self.send(now, prop)
+        teacher = None
+        if prop.solver is not None:
+            pred = np.asarray(prop.predicted) if prop.predicted is not None else np.zeros((0, 3))
+            teacher = M.TeacherCommand(
+                stamp=now, seq=command.seq, v=float(prop.u[0]), omega=float(prop.u[1]), solver=prop.solver,
+                ok=prop.ok, predicted_x=[float(a) for a in pred[:, 0]], predicted_y=[float(a) for a in pred[:, 1]],
+                sender="station", epoch=self.epoch)
+        return "", command, teacher
+
+    def send(self, now: float, prop: Proposal) -> M.Command:
+        """The command for a proposal: a teacher command mapped by the transfer step (exploring only where it may),
+        or a learner command as it is."""
+        if prop.method is not None:
+            self.counters.count_method(prop.method)
+            return self._command(now, float(prop.u[0]), float(prop.u[1]), prop.method)
+        m = self.transfer.map(prop.u, prop.pose, self.mission, prop.predicted)
+        if m.vetoed:
+            self.counters.explore_vetoed += 1
+        self.counters.count_method(m.method)
+        return self._command(now, float(m.u_L[0]), float(m.u_L[1]), m.method, list(m.region)[:8])
+
+    def _command(self, now: float, v: float, omega: float, method: str, region: list[int] | None = None) -> M.Command:
+        cmd = M.Command(stamp=now, seq=self.seq["cmd"], v=v, omega=omega, method=method,
+                        valid_ms=int(3000 * self.period), region=region or [], sender="station", epoch=self.epoch)
+        self.seq["cmd"] += 1
+        return M.validated(cmd)
+
+    def not_driving(self, fit: str) -> str:
+        """The one reason the robot is not driven this tick (for the status line and the log)."""
+        c = self.control
+        if c.phase == "idle":
+            return f"idle: waiting for a person (scmbridge mission start --robot {self.robot})"
+        if c.phase == "finished":
+            return "goal reached"
+        if c.phase == "running":
+            return f"waiting for the robot: {fit}"
+        return c.reason  # paused: why; aborted: by whom
+
+    # ---------------------------------------------------------------------------------------- publications
+    def limits(self, now: float, force: bool) -> M.Limits | None:
+        """The learned limits when they changed (a new version), or with ``force`` (each second) anyway."""
+        box = self.store.limits.box.as_list()
+        hull = [[float(a), float(b)] for a, b in self.store.limits.hull]
+        key = (box, len(hull))
+        if self.limits_sent is None or self.limits_sent != key:
+            self.limits_version += 1
+        elif not force:
+            return None
+        self.limits_sent = key
+        return M.Limits(stamp=now, robot=self.robot, version=self.limits_version, box=box, hull=hull)
+
+    def status(self, now: float) -> M.Status:
+        """The station's status: ok, state, the one reason, progress, latencies and every counter."""
+        sm = np.array(self.solve_ms) if self.solve_ms else np.zeros(1)
+        c, p = self.counters, self.pairer
+        c.refined_pairs, c.raw_pairs = len(self.store.refined()), self.store.raw_count
+        c.pairs_rejected, c.pairs_formed, c.pairs_out_of_order = p.rejected, p.formed, p.out_of_order
+        c.implausible_stamps, c.implausible_poses, c.implausible_pairs = (p.implausible_stamp, p.implausible_pose,
+                                                                          p.implausible_pair)
+        c.pairer_resyncs = p.resyncs
+        c.goal_reached = int(self.control.phase == "finished")
+        problems = self.integrity(now)
+        ok = ((self.why in ("driving", "goal reached") or self.why.startswith("calibration:"))
+              and not self.persist_error and not problems)
+        text = "; ".join([self.why, *([self.persist_error] if self.persist_error else []), *problems])
+        phase = self.control.phase
+        state = "driving" if self.why == "driving" else ("waiting" if phase == "running" else phase)
+        tk = np.array(self.tick_ms) if self.tick_ms else np.zeros(1)
+        msg = M.Status(stamp=now, seq=self.seq["status"], node="station", ok=ok, state=state,
+                       progress=min(1.0, max(0.0, self.control.progress)), rates_hz={"loop": 1 / self.period},
+                       latencies_ms={"solve_median": float(np.median(sm)), "solve_max": float(sm.max()),
+                                     "tick_p50": float(np.percentile(tk, 50)), "tick_p99": float(np.percentile(tk, 99)),
+                                     "tick_max": float(tk.max())},
+                       counters=c.as_dict(), text=text[:1024])
+        self.seq["status"] += 1
+        return msg
+
+    def integrity(self, now: float) -> list[str]:
+        """What makes this station's work untrustworthy right now (its status is then not ok): another sender's
+        commands on this robot's key, telemetry dropped as implausible before pairing, in the last few seconds."""
+        out = []
+        if now - self.foreign_cmd_at < INTEGRITY_WINDOW_S:
+            out.append(f"another sender publishes commands for this robot (epoch {self.foreign_epoch:x}): a second "
+                       "station or a forger")
+        p = self.pairer
+        bad = p.implausible_stamp + p.implausible_pose + p.implausible_pair
+        if bad > self.implausible_seen[0]:
+            self.implausible_seen = (bad, now)
+        if now - self.implausible_seen[1] < INTEGRITY_WINDOW_S:
+            out.append(f"implausible telemetry dropped before pairing ({p.implausible_stamp} stamps, "
+                       f"{p.implausible_pose} poses, {p.implausible_pair} pairs so far)")
+        return out
+
+    # ------------------------------------------------------------------------------------------ persistence
+    def persist(self) -> bool:
+        """Save the store; a failure (disk full, permissions) is reported and retried at the next period."""
+        try:
+            save_atomic(self.store_path, self.store.to_bytes())
+        except OSError as exc:
+            self.counters.persist_failures += 1
+            self.persist_error = f"pair store not saved: {exc.strerror or exc}"
+            log.error("%s (%s); driving on, retrying in %.0f s", self.persist_error, self.store_path,
+                      self.persist_every)
+            return False
+        if self.persist_error:
+            log.info("pair store saved again to %s", self.store_path)
+        self.persist_error = ""
+        return True
+
+    def save_control(self) -> None:
+        """Keep the mission and its phase on disk (a restart comes back to it, never running)."""
+        if self.control_path is None:
+            return
+        try:
+            save_atomic(self.control_path, M.encode(self.control.saved()))
+        except OSError as exc:
+            self.counters.persist_failures += 1
+            self.control.changed = True  # retried next tick
+            self.persist_error = f"mission state not saved: {exc.strerror or exc}"
+
+
+__all__ = ["DRIVER_STATUS_MAX_AGE", "INTEGRITY_WINDOW_S", "PLAUSIBLE", "StationCore", "StationCounters",
+           "TickInputs", "TickOutputs", "load_store", "pairs_message"]

@@ -1,0 +1,170 @@
+"""The station core without Zenoh: typed ticks in, messages out, one counters object, one command source per
+teacher, several cores in one process."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from bridge.core import wire as M
+from bridge.core.config import StationConfig, load_mission
+from bridge.nodes.sources import ExternalSource, MpcSource, PrimitivesSource, Proposal, Why, make_source
+from bridge.nodes.station_core import StationCore, StationCounters, TickInputs
+from sim_learner.dynamics import mpc_learner
+
+#: the status counter keys of a station that has driven with the MPC (the keys tools and tests read)
+MPC_KEYS = {"method_scm", "method_direct", "method_perturb", "method_affine", "method_barycentric", "method_stop",
+            "obstacles_dropped", "persist_failures", "missions", "explore_vetoed", "missed_deadlines",
+            "refined_pairs", "raw_pairs", "pairs_rejected", "pairs_formed", "pairs_out_of_order",
+            "implausible_stamps", "implausible_poses", "implausible_pairs", "pairer_resyncs", "goal_reached", "ticks"}
+
+
+def _driver(seq: int = 1, ok: bool = True) -> M.Status:
+    return M.Status(stamp=0.0, seq=seq, node="driver", ok=ok, text="link can: driving (cmd)")
+
+
+def _start(core: StationCore) -> None:
+    core.request(M.MissionRequest(stamp=0.0, action="start", source="test"), 0.0)
+
+
+class _Robot:
+    """The paper's learner, fed each command and answering with its echo and its pose, as a driver host would."""
+
+    def __init__(self, start) -> None:
+        self.learner = mpc_learner()
+        self.x = np.array(start, dtype=float)
+        self.seq = 0
+
+    def state(self, now: float) -> M.LearnerState:
+        self.seq += 1
+        return M.LearnerState(stamp=now, seq=self.seq, x=float(self.x[0]), y=float(self.x[1]),
+                              theta=float(self.x[2]))
+
+    def apply(self, cmd: M.Command, now: float, dt: float) -> M.Applied:
+        u = np.array([cmd.v, cmd.omega])
+        self.x = self.learner.step(self.x, u, dt)
+        return M.Applied(stamp=now + 1e-3, seq=cmd.seq, v=cmd.v, omega=cmd.omega,
+                         reason="stop" if cmd.method == "stop" else "cmd", cmd_seq=cmd.seq)
+
+
+def test_a_core_drives_a_robot_by_ticks_alone_and_reports_todays_counters(tmp_path) -> None:
+    mission = load_mission()
+    core = StationCore(StationConfig(), "r1", 10.0, tmp_path / "p.bin", mission)
+    assert isinstance(core.source, MpcSource)
+    robot = _Robot(mission.start)
+    out = core.tick(TickInputs(telemetry=((robot.state(0.0), 0.0),), driver=(_driver(), 0.0)), 0.0)
+    # idle: a stop, and the status says who has to act
+    assert out.command.method == "stop" and out.teacher is None
+    assert out.status.text.startswith("idle: waiting for a person") and out.limits is not None
+    assert (tmp_path / "p.bin").exists()  # the first periodic tick saves the store
+    _start(core)
+    methods, dt = [], 0.1
+    pending: list = []
+    for k in range(1, 40):
+        now = k * dt
+        out = core.tick(TickInputs(telemetry=((robot.state(now), now), *pending), driver=(_driver(k), now),
+                                   input_counts={"malformed_state": 2}), now)
+        methods.append(out.command.method)
+        pending = [(robot.apply(out.command, now, dt), now + 2e-3)]
+        if out.command.method != "stop":
+            assert out.teacher is not None and out.teacher.seq == out.command.seq
+            assert out.teacher.epoch == out.command.epoch == core.epoch
+    assert "stop" not in methods and core.why == "driving"
+    status = core.status(4.0)
+    assert status.ok and status.state == "driving"
+    assert set(status.counters) == MPC_KEYS | {"malformed_state"}
+    c = status.counters
+    assert c["ticks"] == 40 and c["method_stop"] == 1 and c["malformed_state"] == 2
+    assert sum(c[f"method_{m}"] for m in ("scm", "direct", "perturb", "affine", "barycentric")) == 39
+    assert c["pairs_formed"] > 0 and c["raw_pairs"] == c["pairs_formed"]
+
+
+def test_counters_name_the_optional_keys_only_once_they_mean_something() -> None:
+    c = StationCounters()
+    assert "method_calibrate" not in c.as_dict() and "primitive_replans" not in c.as_dict()
+    c.count_method("calibrate")
+    c.primitive_replans, c.calibration_index, c.calibration_total = 3, 1, 9
+    c.foreign_commands = 1
+    d = c.as_dict()
+    assert d["method_calibrate"] == 1 and d["primitive_replans"] == 3 and d["foreign_commands"] == 1
+    assert (d["calibration_index"], d["calibration_total"]) == (1, 9)
+    assert all(isinstance(v, int) for v in d.values())
+
+
+def test_the_configured_teacher_picks_its_source() -> None:
+    import msgspec
+
+    def cfg(kind: str) -> StationConfig:
+        return msgspec.convert({"teacher": {"kind": kind}}, StationConfig)
+
+    assert isinstance(make_source(cfg("primitives"), 0.1), PrimitivesSource)
+    ext = make_source(cfg("external"), 0.1)
+    assert isinstance(ext, ExternalSource) and ext.external and not ext.follows_mission
+
+
+def test_an_external_teachers_command_is_mapped_once_and_a_silent_teacher_stops_the_robot(tmp_path) -> None:
+    import msgspec
+
+    cfg = msgspec.convert({"teacher": {"kind": "external", "timeout_s": 0.5}}, StationConfig)
+    core = StationCore(cfg, "r1", 10.0, tmp_path / "p.bin", load_mission())
+    _start(core)
+    pose = M.LearnerState(stamp=1.0, seq=1, x=0.0, y=-1.0, theta=0.0)
+    first = core.tick(TickInputs(telemetry=((pose, 1.0),), driver=(_driver(), 1.0)), 1.0)
+    assert first.command.method == "stop" and core.why == "waiting for the external teacher"
+    t = M.TeacherCommand(stamp=1.0, seq=1, v=0.3, omega=0.1, solver="lab", ok=True)
+    woken = core.tick(TickInputs(teacher=(t, 1.05), periodic=False), 1.05)
+    assert woken.command is not None and woken.command.method != "stop"
+    assert woken.status is None and woken.limits is None  # a woken tick only maps
+    again = core.tick(TickInputs(telemetry=((pose, 1.1),)), 1.1)
+    assert again.command is None  # mapped once: nothing new to send
+    silent = core.tick(TickInputs(telemetry=((pose, 1.7),), driver=(_driver(2), 1.7)), 1.7)
+    assert silent.command.method == "stop" and core.why.startswith("no teacher command for")
+
+
+def test_a_new_teacher_is_one_class_and_cores_share_nothing(tmp_path) -> None:
+    class Constant:
+        """A teacher that always asks for the same command."""
+
+        what, follows_mission, external = "constant", False, False
+
+        def __init__(self) -> None:
+            self.resets = 0
+
+        def propose(self, now, pose, ctx):
+            if pose.x > 1.0:
+                return Why("far enough")
+            return Proposal(np.array([0.2, 0.0]), np.array([pose.x, pose.y]))
+
+        def reset(self) -> None:
+            self.resets += 1
+
+        def done(self) -> bool:
+            return False
+
+    mission = load_mission()
+    a = StationCore(StationConfig(), "a", 10.0, tmp_path / "a.bin", mission, source=Constant())
+    b = StationCore(StationConfig(), "b", 10.0, tmp_path / "b.bin", mission, source=Constant())
+    assert a.epoch != b.epoch and a.store is not b.store and a.counters is not b.counters
+    _start(a)
+    near = M.LearnerState(stamp=1.0, seq=1, x=0.0, y=-1.0, theta=0.0)
+    far = M.LearnerState(stamp=1.1, seq=2, x=2.0, y=-1.0, theta=0.0)
+    out_a = a.tick(TickInputs(telemetry=((near, 1.0),), driver=(_driver(), 1.0)), 1.0)
+    out_b = b.tick(TickInputs(telemetry=((near, 1.0),), driver=(_driver(), 1.0)), 1.0)
+    assert out_a.command.method != "stop" and out_a.teacher is None  # not the station's own solver: no teacher
+    assert out_b.command.method == "stop" and b.counters.method_stop == 1 and a.counters.method_stop == 0
+    assert a.tick(TickInputs(telemetry=((far, 1.1),)), 1.1).command.method == "stop" and a.why == "far enough"
+    spec = M.MissionSpec(name="other", path=[[0.0, 0.0], [1.0, 0.0]])
+    from bridge.core.config import mission_from_spec
+
+    a.tick(TickInputs(mission=(spec, mission_from_spec(spec))), 1.2)
+    assert a.source.resets == 1 and b.source.resets == 0 and a.mission.name == "other" != b.mission.name
+
+
+@pytest.mark.parametrize("restart_seq", [0, 3])
+def test_a_driver_host_restart_pauses_a_running_mission(tmp_path, restart_seq: int) -> None:
+    core = StationCore(StationConfig(), "r1", 10.0, tmp_path / "p.bin", load_mission(),
+                       source=make_source(StationConfig(), 0.1))
+    _start(core)
+    core.tick(TickInputs(driver=(_driver(10), 1.0)), 1.0)
+    core.tick(TickInputs(driver=(_driver(restart_seq), 2.0)), 2.0)
+    assert core.control.phase == "paused"

@@ -1,0 +1,71 @@
+"""The one transfer step: a teacher command mapped to the learner command to send, exploring only where it is safe.
+
+The station and the paper's simulations both map every teacher command through :class:`TransferStep`, so they
+follow one rule:
+
+- exploration is allowed when the step is configured to explore and, when the pose and the mission are known, the
+  pose is at least ``clearance`` from every obstacle's edge (:meth:`transfer.mission.Mission.may_explore`);
+- where it is allowed, the policy explores by its own rule (:class:`~transfer.policy.GuidedPolicy` steered by the
+  teacher's plan, :class:`~transfer.policy.PaperPolicy` as published, ignoring the plan);
+- where it is not (near obstacles, or exploration off), no policy perturbs: the command is the guided mapping
+  without perturbation (the region's map, its barycentric fallback, or the estimate relative to the learned
+  region), and the result says so (``Mapped.vetoed``).
+
+The teacher's plan (an MPC's predicted states) becomes the policy's hint of the next ``plan_hint`` commands
+(:func:`~transfer.policy.planned_commands`). Pure: no I/O, no clock.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+from numpy.typing import ArrayLike
+
+from transfer.mission import EXPLORE_CLEARANCE, Mission
+from transfer.policy import Mapped, Policy, planned_commands
+
+#: planned teacher commands passed to the policy as its hint (1 s of a 10 Hz MPC's plan)
+PLAN_HINT = 10
+
+
+class TransferStep:
+    """Maps teacher commands with one policy under the one exploration rule (module docstring)."""
+
+    def __init__(self, policy: Policy, *, dt: float, explore: bool = True, clearance: float = EXPLORE_CLEARANCE,
+                 plan_hint: int = PLAN_HINT) -> None:
+        """``policy``: the transfer policy; ``dt``: the teacher's control period (to read its plan); ``explore``:
+        whether exploration is on at all; ``clearance``: no exploration closer than this to an obstacle's edge, m;
+        ``plan_hint``: how many planned commands steer the exploration."""
+        if not dt > 0:
+            raise ValueError(f"dt must be positive, got {dt}")
+        self.policy = policy
+        self.dt = float(dt)
+        self.explore = bool(explore)
+        self.clearance = float(clearance)
+        self.plan_hint = int(plan_hint)
+
+    @property
+    def store(self):
+        """The policy's pair store."""
+        return self.policy.store
+
+    def may_explore(self, pose: ArrayLike | None, mission: Mission | None) -> bool:
+        """Is exploration allowed for a command sent at ``pose`` (``(x, y, ...)``; None: unknown) on ``mission``?"""
+        if not self.explore:
+            return False
+        if pose is None or mission is None:
+            return True
+        return mission.may_explore(np.asarray(pose, dtype=float)[:2], self.clearance)
+
+    def map(self, u_T: ArrayLike, pose: ArrayLike | None = None, mission: Mission | None = None,
+            predicted: ArrayLike | None = None) -> Mapped:
+        """The learner command for teacher command ``u_T`` sent at ``pose`` on ``mission``; ``predicted``: the
+        teacher's predicted states ``(N + 1, 3)``, if it has a plan."""
+        explore = self.may_explore(pose, mission)
+        plan = planned_commands(predicted, self.dt, self.plan_hint) if predicted is not None else None
+        m = self.policy.map(u_T, plan=plan, explore=explore)
+        return m if explore else dataclasses.replace(m, vetoed=True)
+
+
+__all__ = ["PLAN_HINT", "TransferStep"]
