@@ -269,8 +269,9 @@ def _load() -> list[float]:
 
 
 def run_level(n: int, seconds: float, warmup: float, mission: Path, workdir: Path, log,
-              env: dict[str, str] | None = None) -> dict:
-    """N stations and the simulated robots behind one router; the window's figures (see the module docstring)."""
+              env: dict[str, str] | None = None, layout: str = "processes") -> dict:
+    """N stations and the simulated robots behind one router; the window's figures (see the module docstring).
+    ``layout``: ``processes``, a station process per robot; ``one``, every robot in one ``station --robots``."""
     from bridge.core import wire as M
     from bridge.nodes.zsession import free_port, make_config, open_session, tcp
     from bridge.tools.procs import Children
@@ -315,9 +316,14 @@ def run_level(n: int, seconds: float, warmup: float, mission: Path, workdir: Pat
         session.declare_subscriber(f"{M.PREFIX}/*/cmd", on_cmd)
         sim = kids.spawn(["bench", "fleet", "--simulate", ",".join(robots), "--connect", tcp(port), "--mission",
                           str(mission), "--sim-duration", str(life)], log)
-        stations = {r: kids.spawn(["station", "--start", "--robot", r, "--mode", "client", "--connect", tcp(port),
-                                   "--store", str(workdir / f"pairs-{r}.bin"), "--mission", str(mission), "--duration",
-                                   str(life)], log, env=env) for r in robots}
+        if layout == "one":  # the pair stores and missions in the state directory: one per robot, in workdir
+            stations = {"all": kids.spawn(["station", "--start", "--robots", ",".join(robots), "--mode", "client",
+                                           "--connect", tcp(port), "--mission", str(mission), "--duration", str(life)],
+                                          log, env=dict(env or os.environ, SCMBRIDGE_STATE_DIR=str(workdir)))}
+        else:
+            stations = {r: kids.spawn(["station", "--start", "--robot", r, "--mode", "client", "--connect", tcp(port),
+                                       "--store", str(workdir / f"pairs-{r}.bin"), "--mission", str(mission),
+                                       "--duration", str(life)], log, env=env) for r in robots}
         # up: every station publishes status and says it is driving (the robots are released together)
         while time.monotonic() - t_start < startup_limit:
             sts = [latest(r) for r in robots]
@@ -388,6 +394,8 @@ def run_level(n: int, seconds: float, warmup: float, mission: Path, workdir: Pat
         "station_cpu_ms_per_tick": _r(cpu["stations"] / max(ticks, 1) * 1e3, 2),
         "ticks_per_core_s": _r(ticks / cpu["stations"], 1) if cpu["stations"] > 0 else None,
         "station_rss_mb_median": _r(np.median([a for a in rss if a is not None])) if any(rss) else None,
+        "station_rss_mb_total": _r(sum(a for a in rss if a is not None)) if any(rss) else None,
+        "layout": layout,
         "load_after": _load(),
     })
     if exited:
@@ -420,6 +428,8 @@ def arguments(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--warmup", type=float, default=10.0, help="seconds of driving before the window")
     ap.add_argument("--sizes", default=None, help="fleet sizes to run, comma-separated (default: the sweep)")
     ap.add_argument("--keep-going", action="store_true", help="run every size even after one is not held")
+    ap.add_argument("--layout", choices=["processes", "one"], default="processes",
+                    help="processes: a station process per robot; one: every robot in one `station --robots` process")
     ap.add_argument("--blas-threads", choices=["1", "inherit"], default="1",
                     help="1: the stations run as the shipped units run them (OPENBLAS_NUM_THREADS=1, "
                          "OMP_NUM_THREADS=1); inherit: OpenBLAS's default, one thread per core")
@@ -453,7 +463,7 @@ def run(args: argparse.Namespace) -> int:
                 wd = Path(tmp) / f"n{n}"
                 wd.mkdir()
                 t0 = time.monotonic()
-                level = run_level(n, args.duration, args.warmup, mission, wd, log, env)
+                level = run_level(n, args.duration, args.warmup, mission, wd, log, env, args.layout)
                 level["wall_s"] = round(time.monotonic() - t0, 1)
                 out["levels"].append(level)
                 brief = {k: level.get(k) for k in ("robots", "held", "missed_fraction_worst", "tick_p99_ms_worst",
@@ -468,6 +478,12 @@ def run(args: argparse.Namespace) -> int:
                 tail = (Path(tmp) / "fleet.log").read_text()[-3000:]
                 print(tail, file=sys.stderr)
     out["robots_held"] = sizes[held - 1] if held else 0
+    out["layout"] = args.layout
+    one = [lv for lv in out["levels"] if lv.get("station_rss_mb_total") is not None]
+    if args.layout == "one" and len(one) >= 2:  # what each added robot costs the one process
+        a, b = one[0], one[-1]
+        out["rss_mb_per_added_robot"] = _r((b["station_rss_mb_total"] - a["station_rss_mb_total"])
+                                           / max(b["robots"] - a["robots"], 1))
     tpc = [lv["ticks_per_core_s"] for lv in out["levels"] if lv.get("ticks_per_core_s")]
     if tpc:
         best = float(np.median(tpc))

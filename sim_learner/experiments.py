@@ -84,10 +84,13 @@ def mpc_case(quick: bool) -> MpcCase:
                    60.0 if quick else 120.0)
 
 
-@functools.lru_cache(maxsize=1)
-def _mpc_teacher() -> MpcTeacher:
-    """One MPC per process (built once; ``reset`` before every run clears its warm start)."""
-    return MpcTeacher(MpcConfig(N=20, dt=DT))
+@functools.lru_cache(maxsize=4)
+def _mpc_teacher(solver: str = "ipopt") -> MpcTeacher:
+    """One MPC per process and solver (built once; ``reset`` before every run clears its warm start); the
+    real-time iteration runs compiled code where the machine can build it (:mod:`bridge.core.codegen`)."""
+    from bridge.core.codegen import compile_functions
+
+    return MpcTeacher(MpcConfig(N=20, dt=DT, solver=solver), compiler=None if solver == "ipopt" else compile_functions)
 
 
 def closed_loop_mpc(name: str, world: World, mpc: MpcTeacher, bounds_fn: Callable[[], Bounds], apply_fn: ApplyFn,
@@ -131,21 +134,21 @@ class References:
     baseline_true_range: Run
 
 
-_REFERENCES: dict[bool, References] = {}
+_REFERENCES: dict[tuple[bool, str], References] = {}
 
 
-def mpc_references(quick: bool, progress: bool = False) -> References:
+def mpc_references(quick: bool, progress: bool = False, solver: str = "ipopt") -> References:
     """Ideal teacher (the teacher model under the MPC bounded by the learner's true range) and the two baselines
     (module docstring); deterministic, so computed once per process and shared by every seed."""
-    if quick not in _REFERENCES:
-        _REFERENCES[quick] = _compute_references(quick, progress)
-    return _REFERENCES[quick]
+    if (quick, solver) not in _REFERENCES:
+        _REFERENCES[quick, solver] = _compute_references(quick, progress, solver)
+    return _REFERENCES[quick, solver]
 
 
-def _compute_references(quick: bool, progress: bool) -> References:
+def _compute_references(quick: bool, progress: bool, solver: str = "ipopt") -> References:
     case = mpc_case(quick)
     world, learner = case.world, case.learner
-    mpc = _mpc_teacher()
+    mpc = _mpc_teacher(solver)
     bar = Progress("refs") if progress else None
 
     def ideal(x, res):
@@ -171,7 +174,7 @@ def scm_start(world: World, seed: int, jitter: tuple[float, float] = START_JITTE
 
 
 def run_scm(seed: int, quick: bool, exploration: str = "guided",
-            progress: Progress | None = None) -> tuple[Run, PairStore]:
+            progress: Progress | None = None, solver: str = "ipopt") -> tuple[Run, PairStore]:
     """The SCM learner from no pairs at all: the MPC bounded by the learned limits, each command mapped by the
     transfer step the station uses (:class:`transfer.step.TransferStep`: the policy explores by its own rule, never
     near an obstacle; the guided policy is steered by the teacher's plan), each control interval paired and added to
@@ -191,7 +194,7 @@ def run_scm(seed: int, quick: bool, exploration: str = "guided",
         regions.append(m.region)
         return x1, m.u_L, m.method
 
-    run = closed_loop_mpc("scm", world, _mpc_teacher(), lambda: store.limits.box, scm, case.t_max, progress,
+    run = closed_loop_mpc("scm", world, _mpc_teacher(solver), lambda: store.limits.box, scm, case.t_max, progress,
                           scm_start(world, seed))
     run.regions = regions
     return run, store
@@ -212,9 +215,9 @@ def _with_ratios(fig: dict, ref: dict) -> dict:
             "dev_ratio": ratio(fig["dev_last_half_m"], ref["dev_last_half_m"])}
 
 
-def reference_figures(quick: bool, progress: bool = False) -> dict:
+def reference_figures(quick: bool, progress: bool = False, solver: str = "ipopt") -> dict:
     """The ideal teacher's and both baselines' figures (JSON-ready; seed-independent)."""
-    refs = mpc_references(quick, progress)
+    refs = mpc_references(quick, progress, solver)
     world = mpc_case(quick).world
     teacher = _run_figures(refs.teacher, world)
     return {"teacher": teacher,
@@ -353,9 +356,9 @@ def summarise_sweep(per_seed: Sequence[dict]) -> dict:
 def _sweep_task(task: tuple) -> tuple[dict, bytes | None]:
     """One unit of a sweep, in a worker: the references' figures, or one seed's SCM figures and learned store."""
     if task[0] == "refs":
-        return reference_figures(task[1]), None
-    _, seed, quick, exploration = task
-    run, store = run_scm(seed, quick, exploration)
+        return reference_figures(task[1], solver=task[2]), None
+    _, seed, quick, exploration, solver = task
+    run, store = run_scm(seed, quick, exploration, solver=solver)
     return scm_figures(run, store, quick), store.to_bytes()
 
 
@@ -375,7 +378,7 @@ class SweepOutcome:
 
 
 def sweep_mpc(seeds: Sequence[int], quick: bool = True, explorations: Sequence[str] = EXPLORATIONS,
-              workers: int = 2, progress: bool = True) -> SweepOutcome:
+              workers: int = 2, progress: bool = True, solver: str = "ipopt") -> SweepOutcome:
     """The MPC case for every seed and exploration policy: per-seed figures, their median, spread and worst seed,
     and the seed-independent references (ideal teacher, both baselines). ``workers`` > 1 uses a process pool
     (spawned, at most 2 workers; a script calling this needs the ``if __name__ == "__main__"`` guard); 1 runs
@@ -383,7 +386,8 @@ def sweep_mpc(seeds: Sequence[int], quick: bool = True, explorations: Sequence[s
     for e in explorations:
         if e not in EXPLORATIONS:
             raise ValueError(f"unknown exploration {e!r}; known: {', '.join(EXPLORATIONS)}")
-    tasks: list[tuple] = [("refs", quick)] + [("scm", s, quick, e) for e in explorations for s in seeds]
+    tasks: list[tuple] = [("refs", quick, solver)] + [("scm", s, quick, e, solver) for e in explorations
+                                                     for s in seeds]
     workers = max(1, min(int(workers), 2))
     bar = Progress("sweep") if progress else None
     results: list[tuple[dict, bytes | None]] = []
@@ -409,6 +413,7 @@ def sweep_mpc(seeds: Sequence[int], quick: bool = True, explorations: Sequence[s
     summary = {
         "experiment": "mpc-sweep",
         "quick": quick,
+        "mpc_solver": solver,
         "seeds": list(seeds),
         "references": {**refs, "note": "deterministic and seed-independent: the same for every seed"},
         "policies": policies,

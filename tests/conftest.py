@@ -17,7 +17,10 @@ settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "suite"))
 @pytest.fixture(autouse=True)
 def _own_state_and_cache(tmp_path_factory, monkeypatch) -> None:
     """Each test (and every process it starts) keeps its state (estop latch, pair store, mission) in a directory of
-    its own, so a latch one test leaves never stops another; the compiled-code cache is shared by the session."""
+    its own, so a latch one test leaves never stops another; the compiled-code cache is shared by the session. The
+    stations the suite starts run the MPC's functions interpreted (same results; the compiled path has its own tests
+    in test_codegen.py): a build per worker would cost each a core for tens of seconds beside timed tests."""
     monkeypatch.setenv("SCMBRIDGE_STATE_DIR", str(tmp_path_factory.mktemp("state")))
+    monkeypatch.setenv("SCMBRIDGE_NO_COMPILE", "1")
     if "SCMBRIDGE_CACHE_DIR" not in os.environ:
         monkeypatch.setenv("SCMBRIDGE_CACHE_DIR", str(tmp_path_factory.getbasetemp() / "cache"))

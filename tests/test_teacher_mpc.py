@@ -9,7 +9,7 @@ import pytest
 
 from sim_learner.worlds import mpc_world
 from transfer.domain import Bounds
-from transfer.teacher.mpc import MpcConfig, MpcTeacher
+from transfer.teacher.mpc import SOLVERS, MpcConfig, MpcTeacher
 from transfer.teacher.path import Polyline
 from transfer.teacher.unicycle import step
 
@@ -29,7 +29,11 @@ def mpc() -> MpcTeacher:
     return MpcTeacher(MpcConfig(N=15))
 
 
-def test_mpc_tracks_the_path_within_its_input_bounds_and_misses_obstacles(mpc: MpcTeacher) -> None:
+@pytest.mark.parametrize("solver", SOLVERS)
+def test_mpc_tracks_the_path_within_its_input_bounds_and_misses_obstacles(solver: str) -> None:
+    """Every way of solving the MPC (interpreted here; test_codegen.py compares the compiled code) drives the
+    quick world to its goal within the bounds and without touching an obstacle."""
+    mpc = MpcTeacher(MpcConfig(N=15, solver=solver))
     world = mpc_world(0.6)
     limits = Bounds((0.05, 0.3), (-0.2, 0.26))
     x = world.start.copy()
@@ -52,11 +56,11 @@ def test_mpc_tracks_the_path_within_its_input_bounds_and_misses_obstacles(mpc: M
 
 def test_changing_limits_rebounds_the_inputs_without_rebuilding(mpc: MpcTeacher) -> None:
     world = mpc_world(0.6)
-    solver = mpc._solver
+    solver = mpc._backend
     mpc.reset()
     r1 = mpc.solve(world.start, world.path, Bounds((0.05, 0.6), (-0.8, 0.8)), world.obstacles)
     r2 = mpc.solve(world.start, world.path, Bounds((0.05, 0.1), (-0.1, 0.1)), world.obstacles)
-    assert mpc._solver is solver
+    assert mpc._backend is solver
     assert r1.u[0] > 0.1 + 1e-6 or abs(r1.u[1]) > 0.1 + 1e-6  # the wide box allowed more
     assert Bounds((0.05, 0.1), (-0.1, 0.1)).contains(r2.u, tol=1e-9)
 
@@ -85,3 +89,42 @@ def test_the_mpc_keeps_the_nearest_obstacles_within_reach_and_counts_the_ones_it
     assert kept.tolist() == [[0.0, 0.7, 0.2], [0.9, 0.0, 0.3]] and dropped == 1
     kept, dropped = mpc.obstacles_that_matter(np.zeros(3), np.array(far), limits)
     assert kept.shape == (0, 3) and dropped == 0
+
+
+def test_the_real_time_iteration_keeps_the_reference_closed_loop() -> None:
+    """The real-time iteration (one QP per tick) drives the full-size world as the converged IPOPT solve does:
+    the same arrival time within a few ticks and the same last-half deviation within a centimetre."""
+    from sim_learner.dynamics import MPC_LEARNER_V, MPC_LEARNER_W
+    from sim_learner.runs import Run, mean_dev_last_half
+
+    world = mpc_world()
+    limits = Bounds(MPC_LEARNER_V, MPC_LEARNER_W)
+    out = {}
+    for solver in ("ipopt", "rti-qpoases"):
+        mpc = MpcTeacher(MpcConfig(N=20, solver=solver))
+        x, run = world.start.copy(), Run(solver)
+        run.poses.append(x.copy())
+        while len(run.poses) < 2000 and not world.reached(x):
+            r = mpc.solve(x, world.path, limits, world.obstacles)
+            x = step(x, r.u, 0.1)
+            run.poses.append(x.copy())
+            assert not world.collides(x[:2], 0.1)
+        out[solver] = (len(run.poses), mean_dev_last_half(run, world))
+    assert abs(out["rti-qpoases"][0] - out["ipopt"][0]) <= 5, out
+    assert abs(out["rti-qpoases"][1] - out["ipopt"][1]) <= 0.01, out
+
+
+def test_a_failed_qp_falls_back_and_says_so() -> None:
+    """A QP the solver gives up on (no working-set change allowed) is never a command: the stop, then the
+    shifted plan."""
+    world = mpc_world(0.6)
+    limits = Bounds((0.05, 0.3), (-0.2, 0.26))
+    starved = MpcTeacher(MpcConfig(N=10, solver="rti-qpoases", max_iter=0))
+    res = starved.solve(world.start, world.path, limits, world.obstacles)
+    assert not res.ok and res.fallback and res.status.startswith("QP")
+    assert res.u[0] == pytest.approx(limits.v[0]) and res.u[1] == pytest.approx(0.0)
+
+
+def test_an_unknown_solver_is_refused() -> None:
+    with pytest.raises(ValueError, match="unknown MPC solver"):
+        MpcConfig(solver="fatrop")

@@ -125,6 +125,12 @@ class TeacherSection(Cfg):
     primitive_s: Annotated[float, meta("primitives: each primitive's duration, s", gt=0.0, le=60.0)] = 1.0
     timeout_s: Annotated[float, meta("external: no teacher command for this long makes the station publish stops, s",
                                      gt=0.0, le=10.0)] = 0.3
+    mpc_solver: Annotated[Literal["rti-qpoases", "rti-daqp", "ipopt"], meta(
+        "mpc: how the MPC is solved: rti-qpoases / rti-daqp, one QP per tick from compiled code (real-time "
+        "iteration; built once per machine, in the background, into the cache directory); ipopt, the full "
+        "nonlinear program each tick (the reference, about ten times slower)")] = "rti-qpoases"
+    obstacle_slots: Annotated[int, meta("mpc: obstacles the MPC considers at once, the nearest within its reach",
+                                        ge=1, le=64)] = 12
 
 
 class CalibrationSection(Cfg):

@@ -222,7 +222,8 @@ def make_source(cfg: StationConfig, period: float, calibration: CalibrationPlan 
     if t.kind == "mpc":
         from transfer.teacher.mpc import MpcConfig, MpcTeacher
 
-        return MpcSource(MpcTeacher(MpcConfig(N=cfg.station.horizon, dt=period)))
+        return MpcSource(MpcTeacher(MpcConfig(N=cfg.station.horizon, dt=period, max_obstacles=t.obstacle_slots,
+                                              solver=t.mpc_solver)))
     if t.kind == "primitives":
         lib = PrimitiveLibrary(cfg.teacher_bounds.bounds(), t.primitives_grid, duration=t.primitive_s, dt=period)
         return PrimitivesSource(PrimitiveFollower(PrimitivePlanner(lib, k_d=1.0, k_theta=2.0, horizon=2)))

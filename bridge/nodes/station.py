@@ -33,13 +33,14 @@ from pathlib import Path
 import zenoh
 
 from bridge.core import wire as M
-from bridge.core.args import positive_float, robot_arg
+from bridge.core.args import positive_float, robot_arg, robots_arg
 from bridge.core.config import RATE_HZ_RANGE, StationConfig, load_mission_spec, load_station, mission_from_spec
 from bridge.core.errors import UsageError
 from bridge.core.paths import state_dir
 from bridge.nodes import systemd
 from bridge.nodes.mission_control import Fitness, MissionControl, Saved
 from bridge.nodes.node import FixedRate, Inputs, add_zenoh_args, stop_on_signals, zenoh_config
+from bridge.nodes.sources import MpcSource
 from bridge.nodes.station_core import (  # noqa: F401  (the station's names, as before the split)
     DRIVER_STATUS_MAX_AGE,
     INTEGRITY_WINDOW_S,
@@ -73,6 +74,38 @@ class Inbox:
         return out
 
 
+class KernelBuild:
+    """The MPC's compiled code, built in a background thread (:mod:`bridge.core.codegen`: once per machine, then
+    loaded from the cache in milliseconds) while the stations already run the same functions interpreted; each loop
+    switches its teacher to it between two ticks (:meth:`adopt`). Never a build inside a tick. One build serves
+    every robot of a process whose MPC solves the same problem."""
+
+    def __init__(self, teacher) -> None:
+        self.result: list | None = None
+        self.done = threading.Event()
+        kernels = teacher.kernels() if teacher is not None else []
+        if kernels:
+            threading.Thread(target=self._build, args=(kernels,), name="mpc-build", daemon=True).start()
+        else:
+            self.done.set()
+
+    def _build(self, kernels: list) -> None:
+        from bridge.core.codegen import compile_functions
+
+        try:
+            self.result = compile_functions(kernels)
+        finally:
+            self.done.set()
+
+    def adopt(self, teacher) -> bool:
+        """Switch ``teacher`` to the compiled code if it is ready (call with its core's lock held); True once."""
+        if not self.done.is_set() or self.result is None or teacher is None or teacher.compiled:
+            return False
+        teacher.use_compiled(self.result)
+        log.info("MPC: compiled code in use")
+        return True
+
+
 class Station:
     """One robot's station on Zenoh: the Zenoh adapter of a :class:`~bridge.nodes.station_core.StationCore`.
 
@@ -96,6 +129,8 @@ class Station:
         self.wake = threading.Event()  # an external teacher's command is mapped as it arrives
         self.pubs: dict[str, zenoh.Publisher] = {}
         self.ticker: FixedRate | None = None
+        self.build: KernelBuild | None = None
+        self.teacher = self.core.source.teacher if isinstance(self.core.source, MpcSource) else None
 
     @property
     def store(self):
@@ -166,6 +201,9 @@ class Station:
     def tick(self, now: float, periodic: bool = True) -> TickOutputs:
         """Hand the inbox to the core and publish what it returns."""
         with self.lock:
+            if self.build is not None and self.build.done.is_set():
+                self.build.adopt(self.teacher)
+                self.build = None
             inputs = self.inbox.take(periodic, self.inputs.snapshot(), self.ticker.missed if self.ticker else 0)
             out = self.core.tick(inputs, now)
         self.publish(out)
@@ -187,7 +225,9 @@ class Station:
 
     # ------------------------------------------------------------------------------------------------- run
     def serve(self, session: zenoh.Session, stop: threading.Event, duration: float | None,
-              exit_at_goal: bool) -> None:
+              exit_at_goal: bool, announce: bool = True) -> None:
+        """Declare this robot's keys on ``session`` and run its fixed-rate loop until ``stop`` (or ``duration``, or
+        the goal with ``exit_at_goal``). ``announce``: tell systemd the service is ready (one robot per process)."""
         k = self.keys
         external = self.core.source.external
         self.inputs.subscribe(session, k.state, M.LearnerState, "state", self.on_state)
@@ -204,10 +244,13 @@ class Station:
         if not external:
             self.pubs["teacher"] = session.declare_publisher(k.teacher)
         self.pubs["status"] = session.declare_publisher(M.status_key(self.robot, "station"))
+        if self.build is None:
+            self.build = KernelBuild(self.teacher)
         what = self.core.what()
         log.info("station for %s at %.0f Hz, %s, %s (epoch %x)", self.robot, 1 / self.period, what,
                  self.core.control.phase, self.core.epoch)
-        systemd.ready(f"{self.robot}: {what}, mission {self.core.control.phase}")
+        if announce:
+            systemd.ready(f"{self.robot}: {what}, mission {self.core.control.phase}")
         self.ticker = FixedRate(1 / self.period, stop)
         t_start = time.monotonic()
         periodic = True
@@ -228,6 +271,9 @@ class Station:
 def arguments(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--config", help="station TOML (scmbridge config show --kind station)")
     ap.add_argument("--robot", type=robot_arg, default=None, help="robot name (overrides the config)")
+    ap.add_argument("--robots", type=robots_arg, default=None,
+                    help="serve several robots from this one process (comma-separated names; each its own loop, "
+                         "deadlines, pair store and mission; one Zenoh session and one compiled MPC for all)")
     ap.add_argument("--mission", default=None, help="mission file (TOML; overrides the config)")
     add_zenoh_args(ap)
     ap.add_argument("--rate", type=positive_float, default=None, help="control tick rate, Hz (overrides the config)")
@@ -259,12 +305,8 @@ def restore_control(robot: str, mission_arg: str | None, default_mission: str | 
     return MissionControl(robot, load_mission_spec(default_mission))
 
 
-def run(args: argparse.Namespace) -> int:
-    cfg = load_station(args.config)  # mistakes end here, before any session opens
-    robot = M.check_robot(args.robot or cfg.robot)
-    rate = cfg.station.rate_hz if args.rate is None else args.rate
-    if not RATE_HZ_RANGE[0] <= rate <= RATE_HZ_RANGE[1]:
-        raise UsageError(f"--rate {rate:g}: must be within {RATE_HZ_RANGE[0]:g}..{RATE_HZ_RANGE[1]:g} Hz")
+def _station(cfg: StationConfig, robot: str, rate: float, args: argparse.Namespace) -> Station:
+    """One robot's station as the command line asks for it (its store, its saved or given mission)."""
     store_path = Path(args.store) if args.store else cfg.store_file(robot)
     if store_path.is_dir():
         raise UsageError(f"pair store {store_path} is a directory; name a file")
@@ -272,21 +314,88 @@ def run(args: argparse.Namespace) -> int:
     if args.start:
         control.request(M.MissionRequest(stamp=0.0, action="start", source="command line"),
                         Fitness("not checked yet"), 0.0)
+    return Station(cfg, robot, rate, store_path, control.mission, control, control_file(robot))
 
+
+def _save(station: Station) -> bool:
+    saved = station.persist()
+    station.save_control()
+    path, n = station.core.store_path, len(station.store.refined())
+    if saved:
+        log.info("%s: pair store saved to %s (%d refined pairs)", station.robot, path, n)
+    else:
+        log.error("%s: pair store NOT saved to %s: %s (%d refined pairs lost at this exit)", station.robot, path,
+                  station.core.persist_error, n)
+    return saved
+
+
+def run(args: argparse.Namespace) -> int:
+    cfg = load_station(args.config)  # mistakes end here, before any session opens
+    rate = cfg.station.rate_hz if args.rate is None else args.rate
+    if not RATE_HZ_RANGE[0] <= rate <= RATE_HZ_RANGE[1]:
+        raise UsageError(f"--rate {rate:g}: must be within {RATE_HZ_RANGE[0]:g}..{RATE_HZ_RANGE[1]:g} Hz")
+    if args.robots is not None:
+        if args.robot is not None or args.store is not None:
+            raise UsageError("--robots names every robot and keeps each one's pair store in the state directory: "
+                             "drop --robot and --store")
+        return run_fleet(cfg, args.robots, rate, args)
+    robot = M.check_robot(args.robot or cfg.robot)
+    station = _station(cfg, robot, rate, args)
     from transfer.scm import warmup
 
-    station = Station(cfg, robot, rate, store_path, control.mission, control, control_file(robot))
     warmup()  # compile / load the SC kernels before the first tick
     stop = stop_on_signals()
     try:
         with open_session(zenoh_config(args), wait=stop, what="station") as session:
             station.serve(session, stop, args.duration, args.exit_at_goal)
     finally:
-        saved = station.persist()
-        station.save_control()
-        if saved:
-            log.info("pair store saved to %s (%d refined pairs)", store_path, len(station.store.refined()))
-        else:
-            log.error("pair store NOT saved to %s: %s (%d refined pairs lost at this exit)", store_path,
-                      station.core.persist_error, len(station.store.refined()))
+        saved = _save(station)
     return 0 if saved else 1
+
+
+def run_fleet(cfg: StationConfig, robots: list[str], rate: float, args: argparse.Namespace) -> int:
+    """Every robot's station in this one process over one Zenoh session: each robot its own thread and fixed-rate
+    loop (its deadlines and missed ones its own: a slow robot never delays another), store, mission and status;
+    the SC kernels and the MPC's compiled code are built once and shared. A robot whose station cannot be built
+    (an unreadable mission) or whose loop fails is logged and left stopped (its driver host's deadman stops the
+    vehicle); the others drive on."""
+    from transfer.scm import warmup
+
+    stations: dict[str, Station] = {}
+    for robot in robots:
+        try:
+            stations[robot] = _station(cfg, robot, rate, args)
+        except (UsageError, ValueError, OSError) as exc:
+            log.error("%s: not served: %s", robot, exc)
+    if not stations:
+        raise UsageError(f"none of the {len(robots)} robots could be served (see the log)")
+    warmup()
+    # one build of the MPC's compiled code for every robot: the first station's, adopted by all
+    teachers = [st.core.source.teacher for st in stations.values() if isinstance(st.core.source, MpcSource)]
+    build = KernelBuild(teachers[0] if teachers else None)
+    for st in stations.values():
+        st.build = build
+    stop = stop_on_signals()
+    failed: list[str] = []
+
+    def serve(st: Station) -> None:
+        try:
+            st.serve(session, stop, args.duration, args.exit_at_goal, announce=False)
+        except Exception as exc:  # one robot's failure stops that robot only
+            failed.append(st.robot)
+            log.exception("%s: station loop failed (%s); its robot stops by its deadman, the others drive on",
+                          st.robot, exc)
+
+    try:
+        with open_session(zenoh_config(args), wait=stop, what="station") as session:
+            threads = [threading.Thread(target=serve, args=(st,), name=f"station-{r}", daemon=True)
+                       for r, st in stations.items()]
+            for t in threads:
+                t.start()
+            systemd.ready(f"{len(stations)} robots: {', '.join(stations)}")
+            log.info("serving %d robots from one process: %s", len(stations), ", ".join(stations))
+            for t in threads:
+                t.join()
+    finally:
+        saved = [_save(st) for st in stations.values()]
+    return 0 if all(saved) and not failed and len(stations) == len(robots) else 1

@@ -1,22 +1,34 @@
 """The teacher's MPC (paper Section 5.2, Eq. MPC_OCP), with CasADi.
 
 Unicycle model (Euler, step ``dt``), horizon ``N``, quadratic tracking cost on position and heading, a penalty on
-input changes, circular obstacle constraints, state bounds, input bounds equal to the *current learned limits* and
-an input-rate bound. The NLP is built once per (N, number of obstacle slots); the input bounds are variable bounds
-passed at every solve (``lbx``/``ubx``), and the obstacles, the references, the start and the previous input are
-parameters, so a change of learned limits never rebuilds the problem.
+input changes, circular obstacle constraints (softened by a slack per stage), state bounds, input bounds equal to the
+*current learned limits* and an input-rate bound. The problem is built once per configuration; the input bounds are
+passed at every solve, and the obstacles, the references, the start and the previous input are parameters, so a
+change of learned limits never rebuilds it.
+
+Two ways to solve the same problem (``MpcConfig.solver``, docs/ARCHITECTURE.md "The teacher's MPC"):
+
+- ``ipopt``: the full nonlinear program to convergence (IPOPT over the stage-wise NLP); the reference.
+- ``rti-qpoases`` / ``rti-daqp``: real-time iteration. Each tick linearises the problem once around the previous
+  plan shifted by one step (single shooting: the inputs and the slacks are the variables, Gauss-Newton Hessian of
+  the least-squares cost, obstacle rows linearised) and solves one dense QP with an active-set solver that keeps its
+  working set from tick to tick. A cold start (the first tick, after ``reset``) iterates up to ``rti_cold_iters``
+  times. The QP's data come from a CasADi function that a caller may hand to a ``compiler`` (generated C, built once
+  and cached by :mod:`bridge.core.codegen`); without one it runs in CasADi's virtual machine.
 
 References are sampled along the path from the point closest to the vehicle, spaced by the distance the teacher
-covers in one step at the top of its current speed bound. The solver is warm-started from the previous solution
-shifted by one step. A failed solve never yields garbage: the shifted previous plan is used if there is one (and
-the result says ``fallback=True``), else a stop.
+covers in one step at the top of its current speed bound. The obstacles the problem's slots hold are the nearest
+within the horizon's reach. A failed solve never yields garbage: the shifted previous plan is used if there is one
+(and the result says ``fallback=True``), else a stop.
 
-Pure: no clocks; the caller times ``solve``.
+Pure: no clocks, no files; the caller times ``solve``.
 """
 
 from __future__ import annotations
 
+import functools
 import math
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
 import casadi as ca
@@ -41,11 +53,25 @@ class MpcConfig:
     r_du: float = 1.0
     du_max: tuple[float, float] = (0.3, 1.2)  # max change of (v, omega) per step
     obstacle_margin: float = 0.15  # vehicle radius + safety, m
-    max_obstacles: int = 6
+    max_obstacles: int = 12  # obstacle slots: the nearest within the horizon's reach are kept
     state_box: tuple[float, float, float, float] = (-50.0, 50.0, -50.0, 50.0)  # x_min, x_max, y_min, y_max
-    solver: str = "ipopt"  # IPOPT (mumps); fatrop needs a different constraint order, not wired up
-    max_iter: int = 60
+    solver: str = "ipopt"  # one of SOLVERS
+    max_iter: int = 60  # IPOPT's iteration cap; the QP solvers' working-set changes are capped at 10x this
     slack_weight: float = 1e5  # penalty on obstacle-constraint violation (m^2), exact for large enough weights
+    rti_cold_iters: int = 5  # real-time iteration: QPs on a cold start (no previous plan); 1 per tick after
+
+    def __post_init__(self) -> None:
+        if self.solver not in SOLVERS:
+            raise ValueError(f"unknown MPC solver {self.solver!r}; known: {', '.join(SOLVERS)}")
+        if self.N < 2 or self.max_obstacles < 0 or self.dt <= 0 or self.rti_cold_iters < 1:
+            raise ValueError(f"MPC needs N >= 2, dt > 0, max_obstacles >= 0, rti_cold_iters >= 1: {self}")
+
+
+#: the ways to solve the MPC (module docstring); "ipopt" is the reference
+SOLVERS = ("ipopt", "rti-qpoases", "rti-daqp")
+
+#: turns CasADi functions into faster equivalents (generated, compiled code) or returns None to keep them as they are
+Compiler = Callable[[Sequence[ca.Function]], "Sequence[ca.Function] | None"]
 
 
 @dataclass
@@ -136,35 +162,275 @@ def _layout(N: int) -> tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.in
     return np.array(idx_x), np.array(idx_u), np.array(idx_s)
 
 
-def _solver(cfg: MpcConfig, nlp: dict):
-    if cfg.solver != "ipopt":
-        raise ValueError(f"unknown MPC solver {cfg.solver!r}: only ipopt is wired up")
+def _ipopt(cfg: MpcConfig, nlp: dict):
     opts = {"print_time": False, "ipopt": {"print_level": 0, "max_iter": cfg.max_iter, "tol": 1e-6,
             "acceptable_tol": 1e-4, "warm_start_init_point": "yes", "sb": "yes", "mu_strategy": "adaptive",
             "warm_start_bound_push": 1e-6, "warm_start_mult_bound_push": 1e-6, "mu_init": 1e-3}}
     return ca.nlpsol("mpc", "ipopt", nlp, opts)
 
 
-class MpcTeacher:
-    """Step-wise MPC: ``solve(state, path, limits)`` each control tick (see the module docstring)."""
+class _Ipopt:
+    """The reference: the stage-wise NLP solved to convergence, warm-started with the previous primal-dual point."""
 
-    def __init__(self, config: MpcConfig | None = None) -> None:
-        self.cfg = cfg = config or MpcConfig()
+    def __init__(self, cfg: MpcConfig) -> None:
         nlp, rows = _build_nlp(cfg)
-        self._solver = _solver(cfg, nlp)
-        self._nx = 3 * (cfg.N + 1) + 2 * cfg.N + cfg.N
-        self._lbg, self._ubg = np.array(rows.lb), np.array(rows.ub)
-        self._ix, self._iu, self._is = _layout(cfg.N)
-        self._prev: NDArray[np.float64] | None = None
-        self._prev_pred: NDArray[np.float64] | None = None
-        self._prev_u: NDArray[np.float64] | None = None
-        self._lam_g: NDArray[np.float64] | None = None
-        self.u_last = np.zeros(2)
+        self.cfg, self.solver = cfg, _ipopt(cfg, nlp)
+        self.nx = 3 * (cfg.N + 1) + 2 * cfg.N + cfg.N
+        self.lbg, self.ubg = np.array(rows.lb), np.array(rows.ub)
+        self.ix, self.iu, self.islack = _layout(cfg.N)
+        self.lam_g: NDArray[np.float64] | None = None
 
     def reset(self) -> None:
-        self._prev = self._prev_pred = self._prev_u = self._lam_g = None
+        self.lam_g = None
+
+    def solve(self, p: NDArray[np.float64], state: NDArray[np.float64], U0: NDArray[np.float64], limits: Bounds,
+              cold: bool) -> tuple[bool, str, int, NDArray[np.float64], NDArray[np.float64]]:
+        cfg = self.cfg
+        X0 = np.zeros((cfg.N + 1, 3))
+        X0[0] = state
+        for k in range(cfg.N):
+            X0[k + 1] = step(X0[k], U0[k], cfg.dt)
+        lbx, ubx = np.full(self.nx, -np.inf), np.full(self.nx, np.inf)
+        xb = cfg.state_box
+        lbx[self.ix[:, 0]], ubx[self.ix[:, 0]] = xb[0], xb[1]
+        lbx[self.ix[:, 1]], ubx[self.ix[:, 1]] = xb[2], xb[3]
+        lbx[self.iu[:, 0]], ubx[self.iu[:, 0]] = limits.v
+        lbx[self.iu[:, 1]], ubx[self.iu[:, 1]] = limits.w
+        lbx[self.islack] = 0.0
+        x_init = np.zeros(self.nx)
+        x_init[self.ix], x_init[self.iu] = X0, U0
+        args = {"x0": x_init, "p": p, "lbx": lbx, "ubx": ubx, "lbg": self.lbg, "ubg": self.ubg}
+        if self.lam_g is not None and not cold:
+            args["lam_g0"] = self.lam_g
+        try:
+            sol = self.solver(**args)
+        except RuntimeError as exc:  # CasADi raises on solver errors
+            return False, f"error: {exc}", 0, U0, X0
+        stats = self.solver.stats()
+        xopt = np.asarray(sol["x"]).ravel()
+        ok = bool(stats.get("success", False)) and bool(np.all(np.isfinite(xopt)))
+        if ok:
+            self.lam_g = np.asarray(sol["lam_g"]).ravel()
+        return ok, str(stats.get("return_status", "")), int(stats.get("iter_count", 0)), xopt[self.iu], xopt[self.ix]
+
+
+@functools.lru_cache(maxsize=8)
+def _build_rti(cfg: MpcConfig) -> tuple[ca.Function, ca.Function]:
+    """The real-time iteration's two functions over z = [u_0 .. u_{N-1}, s] (single shooting) and the parameters p
+    of :func:`_build_nlp` (built once per configuration and shared by every MPC of a process). One slack s softens
+    every obstacle row (it is the largest violation; IPOPT's problem has one per stage): with the same exact penalty
+    both problems have the same solution wherever the obstacles can be avoided, and a third fewer QP variables make
+    the QP about twice as fast.
+
+    - ``mpc_rti_lin(z, p) -> (r, Jr, c, Jc, lo, hi)``: the cost's residuals r (cost = |r|^2 + the slack penalty; the
+      heading term 1 - cos e is 2 sin^2(e/2)), the rows c (input rates, obstacles, state box) with their bounds
+      lo <= c <= hi (an unused obstacle slot, radius <= 0, gets lo = -inf), and both Jacobians, dense.
+    - ``mpc_rti_roll(z, p) -> X``: the (N + 1) x 3 states the inputs of z give from the start.
+
+    :class:`_Rti` forms the QP from them: Gauss-Newton Hessian 2 Jr'Jr, the slack penalty exactly, the rows
+    linearised at z.
+    """
+    N, K = cfg.N, cfg.max_obstacles
+    U, S = ca.SX.sym("U", 2, N), ca.SX.sym("S")
+    x0, refs, u_prev = ca.SX.sym("x0", 3), ca.SX.sym("refs", 3, N + 1), ca.SX.sym("u_prev", 2)
+    obs = ca.SX.sym("obs", 3, K)
+    z = ca.vertcat(ca.vec(U), S)
+    p = ca.vertcat(x0, ca.vec(refs), u_prev, ca.vec(obs))
+    X = [x0]
+    for k in range(N):
+        X.append(ca.vertcat(*euler(X[-1][0], X[-1][1], X[-1][2], U[0, k], U[1, k], cfg.dt, ca.cos, ca.sin)))
+    res, rate = [], []
+    for k in range(1, N + 1):
+        q = math.sqrt(cfg.q_terminal if k == N else cfg.q_pos)
+        res += [q * (X[k][0] - refs[0, k]), q * (X[k][1] - refs[1, k]),
+                math.sqrt(2 * cfg.q_heading) * ca.sin((X[k][2] - refs[2, k]) / 2)]
+    for k in range(N):
+        du = U[:, k] - (u_prev if k == 0 else U[:, k - 1])
+        res += [math.sqrt(cfg.r_u) * U[0, k], math.sqrt(cfg.r_u) * U[1, k],
+                math.sqrt(cfg.r_du) * du[0], math.sqrt(cfg.r_du) * du[1]]
+        rate += [du[0], du[1]]
+    r = ca.vertcat(*res)
+    obstacle, obstacle_lo = [], []
+    for k in range(1, N + 1):
+        for j in range(K):
+            obstacle.append((X[k][0] - obs[0, j]) ** 2 + (X[k][1] - obs[1, j]) ** 2 + S)
+            rr = obs[2, j] + cfg.obstacle_margin
+            obstacle_lo.append(ca.if_else(obs[2, j] > 0, rr**2, -ca.inf))
+    box = [c for k in range(1, N + 1) for c in (X[k][0], X[k][1])]
+    c = ca.vertcat(*rate, *obstacle, *box)
+    dmax = np.tile(np.asarray(cfg.du_max, dtype=float), N)
+    xb = cfg.state_box
+    lo = ca.vertcat(ca.DM(-dmax), *obstacle_lo, ca.DM(np.tile([xb[0], xb[2]], N)))
+    hi = ca.vertcat(ca.DM(dmax), ca.inf * ca.DM.ones(K * N), ca.DM(np.tile([xb[1], xb[3]], N)))
+    lin = ca.Function("mpc_rti_lin", [z, p], [r, ca.densify(ca.jacobian(r, z)), c, ca.densify(ca.jacobian(c, z)),
+                                              lo, hi], ["z", "p"], ["r", "jr", "c", "jc", "lo", "hi"])
+    roll = ca.Function("mpc_rti_roll", [z, p], [ca.horzcat(*X).T], ["z", "p"], ["x"])
+    return lin, roll
+
+
+class _Buffered:
+    """A CasADi function evaluated in place on numpy arrays (``Function.buffer``): no conversion per call, which
+    costs more than the evaluation itself for matrices of this size."""
+
+    def __init__(self, fn: ca.Function) -> None:
+        self.fn = fn
+        self.args = [np.zeros(fn.nnz_in(i)) for i in range(fn.n_in())]
+        self.res = [np.zeros(fn.nnz_out(i)) for i in range(fn.n_out())]
+        self._buf, self._eval = fn.buffer()
+        for i, a in enumerate(self.args):
+            self._buf.set_arg(i, memoryview(a))
+        for i, a in enumerate(self.res):
+            self._buf.set_res(i, memoryview(a))
+
+    def rebind(self, i: int, array: NDArray[np.float64]) -> None:
+        """Make input ``i`` read ``array`` (another buffer's array: no copy between the two)."""
+        if array.size != self.args[i].size:
+            raise ValueError(f"input {i} of {self.fn.name()} holds {self.args[i].size} numbers, not {array.size}")
+        self.args[i] = array
+        self._buf.set_arg(i, memoryview(array))
+
+    def __call__(self) -> None:
+        self._eval()
+
+    def stats(self) -> dict:
+        """The solver's statistics of the last evaluation (``success``, ``return_status``, ...)."""
+        return self._buf.stats()
+
+
+class _Rti:
+    """Real-time iteration (module docstring): one QP per tick on the problem linearised at the shifted plan. The
+    QP's data are written in place into the solver's input arrays (CasADi's dense matrices are column-major: the
+    numpy views below are transposes of the flat buffers)."""
+
+    def __init__(self, cfg: MpcConfig, compiler: Compiler | None) -> None:
+        N = cfg.N
+        self.cfg, self.nz = cfg, 2 * N + 1
+        self.functions = list(_build_rti(cfg))
+        compiled = compiler(self.functions) if compiler is not None else None
+        self.compiled = False
+        self._bind(compiled or self.functions)
+        self.compiled = compiled is not None
+        plugin = cfg.solver.split("-", 1)[1]
+        opts: dict = {"error_on_fail": False}
+        if plugin == "qpoases":
+            opts.update({"printLevel": "none", "sparse": False, "nWSR": 10 * cfg.max_iter})
+        elif plugin == "daqp":
+            opts.update({"daqp": {"iter_limit": 10 * cfg.max_iter}})
+        m, nz = self.lin.fn.nnz_out(2), self.nz
+        self.qp_fn = ca.conic("mpc_rti", plugin, {"h": ca.Sparsity.dense(nz, nz), "a": ca.Sparsity.dense(m, nz)},
+                              opts)
+        self.qp = _Buffered(self.qp_fn)
+        self._bind_qp()
+        self.slack_weight = cfg.slack_weight
+        self.bounds_of: tuple | None = None
+
+    def _bind(self, functions: Sequence[ca.Function]) -> None:
+        """Evaluate the linearisation and the rollout with ``functions`` (interpreted or compiled: same results)."""
+        lin, roll = functions
+        self.lin, self.roll = _Buffered(lin), _Buffered(roll)
+        nz, nr, m = self.nz, lin.nnz_out(0), lin.nnz_out(2)
+        self.z = self.lin.args[0]
+        # the linearisation's outputs; Jc is the QP's A itself, the start of each QP the linearisation point
+        self.r, self.c, self.lo, self.hi = (self.lin.res[i] for i in (0, 2, 4, 5))
+        self.JrT = self.lin.res[1].reshape(nz, nr)  # Jr transposed, contiguous: BLAS reads it as it is
+        self.AT = self.lin.res[3].reshape(nz, m)
+        if hasattr(self, "qp"):
+            self._bind_qp()
+
+    def use(self, functions: Sequence[ca.Function]) -> None:
+        """Switch to compiled equivalents of :attr:`functions` (between two solves)."""
+        self._bind(functions)
+        self.compiled = True
+
+    def _bind_qp(self) -> None:
+        nz = self.nz
+        arg = {name: self.qp.args[self.qp_fn.index_in(name)] for name in ("h", "g", "lba", "uba", "lbx", "ubx")}
+        self.H = arg["h"].reshape(nz, nz)  # symmetric: its layout does not matter
+        self.g, self.lba, self.uba, self.lbx, self.ubx = arg["g"], arg["lba"], arg["uba"], arg["lbx"], arg["ubx"]
+        self.qp.rebind(self.qp_fn.index_in("a"), self.lin.res[3])
+        self.qp.rebind(self.qp_fn.index_in("x0"), self.z)
+        self.roll.rebind(0, self.qp.res[0])
+        self.roll.rebind(1, self.lin.args[1])
+
+    def reset(self) -> None:
+        """Nothing to forget: the solver's working set is only a starting guess."""
+
+    def _bounds(self, limits: Bounds) -> None:
+        key = (limits.v, limits.w)
+        if key != self.bounds_of:
+            N = self.cfg.N
+            self.lbx[: 2 * N], self.ubx[: 2 * N] = np.tile(limits.lo, N), np.tile(limits.hi, N)
+            self.lbx[2 * N:], self.ubx[2 * N:] = 0.0, np.inf
+            self.bounds_of = key
+
+    def solve(self, p: NDArray[np.float64], state: NDArray[np.float64], U0: NDArray[np.float64], limits: Bounds,
+              cold: bool) -> tuple[bool, str, int, NDArray[np.float64], NDArray[np.float64]]:
+        N, z, x = self.cfg.N, self.z, self.qp.res[0]
+        self._bounds(limits)
+        self.lin.args[1][:] = p
+        z[: 2 * N] = U0.ravel()
+        z[2 * N] = 0.0
+        np.clip(z, self.lbx, self.ubx, out=z)
+        status, iters = "", 0
+        for _ in range(self.cfg.rti_cold_iters if cold else 1):
+            self.lin()
+            # cost |r|^2 + w s + w s^2 ~ 1/2 z'Hz + g'z with H = 2 Jr'Jr (Gauss-Newton), g = 2 Jr'(r - Jr z)
+            np.dot(self.JrT, self.JrT.T, out=self.H)
+            self.H *= 2.0
+            self.H[-1, -1] += 2.0 * self.slack_weight
+            np.dot(self.JrT, 2.0 * (self.r - z @ self.JrT), out=self.g)
+            self.g[-1] += self.slack_weight
+            shift = z @ self.AT - self.c  # c(z') ~ c(z) + A (z' - z): bounds on c become bounds on A z'
+            np.add(self.lo, shift, out=self.lba)
+            np.add(self.hi, shift, out=self.uba)
+            try:
+                self.qp()
+            except RuntimeError as exc:  # CasADi refuses an ill-posed QP (bounds crossed by a bad linearisation)
+                return False, f"QP: {str(exc).splitlines()[-1][:120]}", iters, U0, np.zeros((N + 1, 3))
+            stats = self.qp.stats()
+            iters += 1
+            if not stats.get("success", False) or not np.all(np.isfinite(x)):
+                return False, f"QP: {stats.get('return_status', 'failed')}", iters, U0, np.zeros((N + 1, 3))
+            moved = float(np.max(np.abs(x - z)))
+            z[:] = x
+            if moved < 1e-5:
+                break
+        status = f"rti cold ({iters} QPs)" if cold else "rti"
+        self.roll()
+        return True, status, iters, x[: 2 * N].reshape(N, 2).copy(), self.roll.res[0].reshape(3, N + 1).T.copy()
+
+
+class MpcTeacher:
+    """Step-wise MPC: ``solve(state, path, limits)`` each control tick (see the module docstring). ``compiler``
+    (real-time iteration only) builds the QP's data function into generated code once."""
+
+    def __init__(self, config: MpcConfig | None = None, compiler: Compiler | None = None) -> None:
+        self.cfg = cfg = config or MpcConfig()
+        self._backend: _Ipopt | _Rti = _Ipopt(cfg) if cfg.solver == "ipopt" else _Rti(cfg, compiler)
+        self._prev_pred: NDArray[np.float64] | None = None
+        self._prev_u: NDArray[np.float64] | None = None
         self.u_last = np.zeros(2)
 
+    @property
+    def compiled(self) -> bool:
+        """Whether the solve runs generated, compiled code (real-time iteration with a working compiler)."""
+        return isinstance(self._backend, _Rti) and self._backend.compiled
+
+    def kernels(self) -> list[ca.Function]:
+        """The functions a compiler may turn into compiled code (empty for IPOPT): hand the result to
+        :meth:`use_compiled`, e.g. from a build in the background."""
+        return list(self._backend.functions) if isinstance(self._backend, _Rti) else []
+
+    def use_compiled(self, functions: Sequence[ca.Function]) -> None:
+        """Solve with compiled equivalents of :meth:`kernels` from now on (call between two solves)."""
+        if not isinstance(self._backend, _Rti):
+            raise ValueError("only the real-time iteration has kernels to compile")
+        self._backend.use(functions)
+
+    def reset(self) -> None:
+        self._prev_pred = self._prev_u = None
+        self._backend.reset()
+        self.u_last = np.zeros(2)
     def references(self, state: NDArray[np.float64], path: Polyline, v_ref: float) -> NDArray[np.float64]:
         """N + 1 references from the closest path point, spaced by ``v_ref * dt`` (headings unwrapped)."""
         s0, _ = path.project(state[:2])
@@ -211,36 +477,11 @@ class MpcTeacher:
         obs[:, : o.shape[0]] = o.T
         u_prev = np.clip(self.u_last, limits.lo, limits.hi)
         p = np.concatenate([state, refs.T.ravel(order="F"), u_prev, obs.ravel(order="F")])
-        lbx = np.full(self._nx, -np.inf)
-        ubx = np.full(self._nx, np.inf)
-        xb = cfg.state_box
-        lbx[self._ix[:, 0]], ubx[self._ix[:, 0]] = xb[0], xb[1]
-        lbx[self._ix[:, 1]], ubx[self._ix[:, 1]] = xb[2], xb[3]
-        lbx[self._iu[:, 0]], ubx[self._iu[:, 0]] = limits.v
-        lbx[self._iu[:, 1]], ubx[self._iu[:, 1]] = limits.w
-        lbx[self._is] = 0.0
-        x_init = self._warm(state, refs, limits)
-        args = {"x0": x_init, "p": p, "lbx": lbx, "ubx": ubx, "lbg": self._lbg, "ubg": self._ubg}
-        if self._lam_g is not None and cfg.solver == "ipopt":
-            args["lam_g0"] = self._lam_g
-        try:
-            sol = self._solver(**args)
-            stats = self._solver.stats()
-            ok = bool(stats.get("success", False))
-            status = str(stats.get("return_status", ""))
-            iters = int(stats.get("iter_count", 0))
-            xopt = np.asarray(sol["x"]).ravel()
-            if not np.all(np.isfinite(xopt)):
-                ok = False
-        except RuntimeError as exc:  # CasADi raises on solver errors
-            ok, status, iters, xopt = False, f"error: {exc}", 0, x_init
+        cold = self._prev_u is None
+        ok, status, iters, U, Xp = self._backend.solve(p, state, self._warm(limits), limits, cold)
         if ok:
-            U = xopt[self._iu]
-            Xp = xopt[self._ix]
             u = np.clip(U[0], limits.lo, limits.hi)
-            self._prev = xopt
             self._prev_u, self._prev_pred = U, Xp
-            self._lam_g = np.asarray(sol["lam_g"]).ravel()
             self.u_last = u
             return MpcResult(u, True, status, Xp, False, cfg.solver, iters, dropped, refs)
         # fallback: the previous plan shifted by one step, or a stop
@@ -257,18 +498,10 @@ class MpcTeacher:
         return MpcResult(stop, False, status, np.repeat(state[None], N + 1, axis=0), True, cfg.solver, iters, dropped,
                          refs)
 
-    def _warm(self, state: NDArray[np.float64], refs: NDArray[np.float64], limits: Bounds) -> NDArray[np.float64]:
-        """Initial guess: the previous solution shifted one step, or a rollout along the references."""
-        x = np.zeros(self._nx)
+    def _warm(self, limits: Bounds) -> NDArray[np.float64]:
+        """The inputs to start from: the previous plan's shifted one step, or half the top speed straight ahead."""
         if self._prev_u is not None:
             U = np.vstack([self._prev_u[1:], self._prev_u[-1:]])
         else:
             U = np.tile(np.clip([limits.v[1] * 0.5, 0.0], limits.lo, limits.hi), (self.cfg.N, 1))
-        U = np.clip(U, limits.lo, limits.hi)
-        X = np.zeros((self.cfg.N + 1, 3))
-        X[0] = state
-        for k in range(self.cfg.N):
-            X[k + 1] = step(X[k], U[k], self.cfg.dt)
-        x[self._ix] = X
-        x[self._iu] = U
-        return x
+        return np.clip(U, limits.lo, limits.hi)

@@ -22,15 +22,15 @@ class Polyline:
         self.s = np.concatenate([[0.0], np.cumsum(self.seg_len)])
         self.length = float(self.s[-1])
         self.heading = np.arctan2(seg[:, 1], seg[:, 0])
+        self._seg = seg
+        self._len2 = np.maximum(self.seg_len**2, 1e-18)
 
     def project(self, xy: NDArray[np.float64]) -> tuple[float, float]:
         """(arc length of the closest point, distance to the path)."""
-        a = self.points[:-1]
-        d = np.diff(self.points, axis=0)
-        L2 = np.maximum(self.seg_len**2, 1e-18)
-        t = np.clip(((xy - a) * d).sum(axis=1) / L2, 0.0, 1.0)
-        proj = a + t[:, None] * d
-        dist = np.hypot(*(proj - xy).T)
+        a, d = self.points[:-1], self._seg
+        t = np.clip(((xy - a) * d).sum(axis=1) / self._len2, 0.0, 1.0)
+        e = a + t[:, None] * d - xy
+        dist = np.hypot(e[:, 0], e[:, 1])
         i = int(np.argmin(dist))
         return float(self.s[i] + t[i] * self.seg_len[i]), float(dist[i])
 
