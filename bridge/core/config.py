@@ -151,6 +151,25 @@ class CalibrationSection(Cfg):
                              f"{self.max_distance_m}")
 
 
+class FleetSection(Cfg):
+    """``[fleet]``: which station host serves which robots when a lab shards its robots over several base-station
+    machines behind its Zenoh routers (``scmbridge station --shard HOST``; deploy/README.md, "Several base
+    stations"). Every host reads the same file; a robot is served by exactly one host."""
+
+    shards: Annotated[dict[RobotName, list[RobotName]], meta(
+        "station host name -> the robots it serves, e.g. base1 = [\"r1\", \"r2\"]")] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        seen: dict[str, str] = {}
+        for host, robots in self.shards.items():
+            if not robots:
+                raise Rule(f"shard {host!r} serves no robot")
+            for r in robots:
+                if r in seen:
+                    raise Rule(f"robot {r!r} is in shards {seen[r]!r} and {host!r}: each robot has one station")
+                seen[r] = host
+
+
 DEFAULT_TEACHER_BOUNDS = BoundsConfig(v=paper.MPC_TEACHER_V, w=paper.MPC_TEACHER_W)
 DEFAULT_LEARNER_BOUNDS = BoundsConfig(v=paper.MPC_LEARNER_V, w=paper.MPC_LEARNER_W)
 
@@ -166,6 +185,7 @@ class StationConfig(Cfg):
     transfer: TransferSection = field(default_factory=TransferSection)
     teacher: TeacherSection = field(default_factory=TeacherSection)
     calibration: CalibrationSection = field(default_factory=CalibrationSection)
+    fleet: FleetSection = field(default_factory=FleetSection)
 
     def store_file(self, robot: str | None = None) -> Path:
         """The pair store: ``store_path``, else ``pairs-<robot>.bin`` in the state directory (never the working

@@ -274,6 +274,8 @@ def arguments(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--robots", type=robots_arg, default=None,
                     help="serve several robots from this one process (comma-separated names; each its own loop, "
                          "deadlines, pair store and mission; one Zenoh session and one compiled MPC for all)")
+    ap.add_argument("--shard", default=None, help="serve the robots the config's [fleet] shards give this station "
+                    "host (one process, as --robots)")
     ap.add_argument("--mission", default=None, help="mission file (TOML; overrides the config)")
     add_zenoh_args(ap)
     ap.add_argument("--rate", type=positive_float, default=None, help="control tick rate, Hz (overrides the config)")
@@ -334,6 +336,13 @@ def run(args: argparse.Namespace) -> int:
     rate = cfg.station.rate_hz if args.rate is None else args.rate
     if not RATE_HZ_RANGE[0] <= rate <= RATE_HZ_RANGE[1]:
         raise UsageError(f"--rate {rate:g}: must be within {RATE_HZ_RANGE[0]:g}..{RATE_HZ_RANGE[1]:g} Hz")
+    if args.shard is not None:
+        if args.robots is not None:
+            raise UsageError("--shard takes its robots from the config's [fleet] shards: drop --robots")
+        if args.shard not in cfg.fleet.shards:
+            known = ", ".join(sorted(cfg.fleet.shards)) or "none: the config has no [fleet] shards"
+            raise UsageError(f"--shard {args.shard!r}: not in the config's [fleet] shards (known: {known})")
+        args.robots = cfg.fleet.shards[args.shard]
     if args.robots is not None:
         if args.robot is not None or args.store is not None:
             raise UsageError("--robots names every robot and keeps each one's pair store in the state directory: "
