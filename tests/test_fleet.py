@@ -215,7 +215,20 @@ def test_template_units_run_the_installed_command_for_the_instance_robot(kind: s
         assert opt in helptext, opt
 
 
-@pytest.mark.parametrize("name", ["scmbridge-station@.service", "scmbridge-station.service"])
+def test_the_shard_unit_serves_the_hosts_robots_from_the_shared_fleet_file() -> None:
+    unit = _unit("scmbridge-station-shard@.service")
+    (cmd,) = unit["ExecStart"]
+    assert cmd.startswith(f"{INSTALLED} station ") and "--shard %i" in cmd
+    assert "--config /etc/scmbridge/fleet.toml" in cmd and "--start" not in cmd
+    assert unit["Type"] == ["notify"] and unit["StateDirectory"] == ["scmbridge"]
+    helptext = subprocess.run([sys.executable, "-m", "bridge", "station", "--help"], capture_output=True, text=True,
+                              timeout=60).stdout
+    for opt in re.findall(r"(?<=\s)--[a-z][a-z0-9-]*", cmd):
+        assert opt in helptext, opt
+
+
+@pytest.mark.parametrize("name", ["scmbridge-station@.service", "scmbridge-station.service",
+                                  "scmbridge-station-shard@.service"])
 def test_station_units_run_one_blas_thread_as_the_fleet_bench_measures(name: str) -> None:
     env = dict(a.split("=", 1) for line in _unit(name).get("Environment", []) for a in shlex.split(line))
     assert {k: env.get(k) for k in STATION_ENV} == STATION_ENV

@@ -87,3 +87,25 @@ def test_two_station_hosts_each_serve_half_the_fleet_and_one_dying_stops_only_it
         for r in robots:
             assert f"{r}/driver-can: LATCHED by operator" in stop.stdout, stop.stdout
         assert col.wait(lambda: all(applied[r] and applied[r][-1].reason == "estop" for r in shards["hostB"]), 5)
+
+
+@pytest.mark.timeout(90)
+def test_one_robot_that_cannot_be_served_leaves_the_others_of_its_process_running(tmp_path) -> None:
+    """``station --robots``: a robot whose station cannot be built (here its pair store path is a directory) is
+    named in the log and left stopped; the process serves the others and exits non-zero at the end."""
+    from bridge.core.paths import state_dir
+
+    tag = f"f{os.getpid()}"
+    good, bad = f"{tag}ok", f"{tag}bad"
+    (state_dir() / f"pairs-{bad}.bin").mkdir(parents=True)
+    port = free_port()
+    with open_session(make_config(mode="router", listen=[tcp(port)])) as session, Children() as kids:
+        col = Collector(session)
+        seen = {r: col.listen(M.status_key(r, "station"), M.Status) for r in (good, bad)}
+        proc = kids.spawn(["station", "--robots", f"{good},{bad}", "--mode", "client", "--connect", tcp(port),
+                           "--duration", "6"], out=subprocess.PIPE, text=True)
+        assert col.wait(lambda: bool(seen[good]), 60), "the good robot's station never spoke"
+        out, _ = proc.communicate(timeout=60)
+    assert proc.returncode == 1
+    assert not seen[bad]
+    assert f"{bad}: not served" in out and "is a directory" in out, out
