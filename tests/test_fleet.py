@@ -320,9 +320,11 @@ def test_the_fleet_demo_brings_three_robots_to_their_goals_and_leaves_no_process
 
 @pytest.mark.slow
 @pytest.mark.timeout(200)
-def test_the_fleet_bench_measures_one_station_and_says_how_many_it_held() -> None:
+def test_the_fleet_bench_measures_one_station_and_says_how_many_it_held(tmp_path) -> None:
+    # the bench's working directory under this test's own: the check for leftovers below sees only this run's
     res = subprocess.run([sys.executable, "-m", "bridge", "bench", "fleet", "--sizes", "1,2", "--duration", "5",
-                          "--warmup", "2", "--keep-going"], capture_output=True, text=True, timeout=180)
+                          "--warmup", "2", "--keep-going"], capture_output=True, text=True, timeout=180,
+                         env=dict(os.environ, TMPDIR=str(tmp_path)))
     assert res.returncode == 0, res.stderr[-3000:]
     out = json.loads(res.stdout)
     assert [lv["robots"] for lv in out["levels"]] == [1, 2]
@@ -332,7 +334,7 @@ def test_the_fleet_bench_measures_one_station_and_says_how_many_it_held() -> Non
         assert lv["ticks_per_core_s"] > 0 and lv["tick_p99_ms_worst"] > 0
         assert lv["held"] == (lv["missed_fraction_worst"] < 0.01 and lv["tick_p99_ms_worst"] < 100.0)
     assert out["robots_held"] in (0, 1, 2) and out["scaling"]["robots_per_core_at_10hz"] > 0
-    left = subprocess.run(["pgrep", "-f", "scm-fleet-"], capture_output=True, text=True)
+    left = subprocess.run(["pgrep", "-f", f"{tmp_path}/scm-fleet-"], capture_output=True, text=True)
     assert left.stdout.strip() == ""
 
 
