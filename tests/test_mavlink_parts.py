@@ -71,3 +71,11 @@ def test_the_judgement_names_one_reason_in_the_order_a_person_acts_on() -> None:
         assert (verdict.reason, verdict.text, verdict.ok) == (reason, text, False), verdict
     assert judge(v, LinkView(False, False, True, 0.0, "", "u"), now, MODES, 3.0, 1.0).connected  # heard, not opened
     assert MODES.name(None) == "unknown" and MODES.name(99) == "mode 99"
+
+
+def test_command_results_and_modes_are_named_from_pymavlinks_tables() -> None:
+    from drivers.mavlink import NO_ACK, load_pymavlink, mode_name, result_name
+
+    modes = load_pymavlink().modes
+    assert (modes.guided, modes.initialising) == (15, 16) and mode_name(4) == "HOLD" and mode_name(None) == "unknown"
+    assert result_name(4) == "MAV_RESULT_FAILED" and result_name(NO_ACK) == "no COMMAND_ACK"

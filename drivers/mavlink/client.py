@@ -15,7 +15,7 @@ from typing import Any
 from bridge.core.backoff import Backoff
 from drivers.base import LinkHealth
 from drivers.mavlink.config import MavlinkLinkConfig
-from drivers.mavlink.dialect import Dialect
+from drivers.mavlink.dialect import Dialect, load_pymavlink
 
 log = logging.getLogger("scmbridge.driver.mavlink")
 
@@ -23,11 +23,11 @@ NO_ACK = -1  # a command that got no COMMAND_ACK after all its tries
 _BACKOFF0 = 0.25
 
 
-def result_name(result: int, dialect: Dialect) -> str:
+def result_name(result: int) -> str:
     """``"MAV_RESULT_FAILED"`` for 4; ``"no COMMAND_ACK"`` for :data:`NO_ACK`."""
     if result == NO_ACK:
         return "no COMMAND_ACK"
-    entry = dialect.mav.enums["MAV_RESULT"].get(result)
+    entry = load_pymavlink().mav.enums["MAV_RESULT"].get(result)
     return entry.name if entry is not None else f"MAV_RESULT {result}"
 
 

@@ -214,7 +214,7 @@ class MavlinkDriver:
             n = self.v.text_count
             self.client.wait(lambda: self.v.text_count != n, time.monotonic() + min(0.5, self.config.ack_timeout))
             texts = [t for ts, t in self.v.texts if ts >= since]
-        text = f"{what} refused: {result_name(result, self.dialect)}" + (f" ({'; '.join(texts)})" if texts else "")
+        text = f"{what} refused: {result_name(result)}" + (f" ({'; '.join(texts)})" if texts else "")
         self._last_refusal = text
         log.warning("%s", text)
         return text
