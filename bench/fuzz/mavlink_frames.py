@@ -198,7 +198,7 @@ def gcs_templates(rng: random.Random):
     return make
 
 
-#: The MAVLink driver's telemetry contract (drivers/mavlink.py): which fields of a vehicle's LOCAL_POSITION_NED /
+#: The MAVLink driver's telemetry contract (drivers/mavlink/pose.py): which fields of a vehicle's LOCAL_POSITION_NED /
 #: ATTITUDE must be finite and within what magnitude, else the message is malformed.
 MAV_TELEMETRY_BOUNDS = {"LOCAL_POSITION_NED": {"x": POSITION_MAX, "y": POSITION_MAX, "vx": SPEED_MAX, "vy": SPEED_MAX},
                         "ATTITUDE": {"yaw": YAW_MAX, "yawspeed": YAW_RATE_MAX}}

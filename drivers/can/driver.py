@@ -1,96 +1,30 @@
-"""CAN link: a differential-drive base with one ODrive motor controller (firmware 0.6, CANSimple) per wheel.
-
-Frames as ODrive firmware 0.6 defines them, from ``odrive_cansimple.dbc`` (node 0 layout; the node offset is added
-at run time: arbitration id = node_id << 5 | cmd_id, 11-bit, little endian, IEEE float32); enumerations and error
-names in :mod:`drivers.odrive`, with the ODrive sources they were checked against. The driver turns (v, omega) into
-wheel turn rates with the wheel radius and track width, and integrates odometry from the controllers' encoder
-estimates. Configuration: :class:`CanLinkConfig` (``[link.can]`` in the driver host's file). python-can and
-cantools are imported when a driver is built or a frame coded, not with the module (the configuration needs neither).
-
-**Start-up** (``open``) only opens the bus and listens: no axis enters closed loop until a person engages
-(``scmbridge engage``, or ``engage_on_start``), since a restarted driver host must not take the robot back.
-**Engage** (:meth:`CanDriver.engage`) refuses, naming the axis and its errors, while an axis reports an error (the
-watchdog error a killed session left, an ODrive's own estop) unless the person also asks to clear it (``--clear-
-faults``); then per axis Clear_Errors, Set_Controller_Mode(VELOCITY_CONTROL, PASSTHROUGH), Set_Input_Vel(0),
-Set_Axis_State(CLOSED_LOOP_CONTROL), and it waits, at most ``open_timeout``, feeding the watchdogs with zero set-
-points, until both Heartbeats report closed loop without error. **Close**: zero set-points until both axes report
-less than ``stop_speed`` (at most ``stop_timeout``), then IDLE. Velocity control must be set explicitly: an ODrive's
-factory control mode is POSITION_CONTROL, in which Set_Input_Vel is only a feed-forward and the wheel holds its
-position. The input mode is PASSTHROUGH, not VEL_RAMP: the set-point the driver host applies is the one it echoes on
-``applied`` and the one the station's learner model is identified on; a ramp inside the controller would add a lag
-nothing upstream models (acceleration is bounded by the driver host's hard limits and the transfer's bounds instead).
-
-**Supervision** (in ``poll`` and ``send``; ``health`` reports it and changes nothing):
-
-- *controller fault*, latched: a Heartbeat with a non-zero ``Axis_Error``, or an axis that left closed loop (its
-  watchdog, an Estop frame from another bus node, an operator's tool). Both axes get zero set-points at once (the
-  healthy wheel must not keep driving: the robot would pivot), ``ok`` is False and ``text`` names the axis and the
-  errors (``"left axis error: WATCHDOG_TIMER_EXPIRED"``). Only :meth:`CanDriver.clear_faults` (the operator) clears
-  and re-arms; the driver never does it by itself.
-- *heartbeat lost*: no Heartbeat from a controller for ``heartbeat_timeout`` -> ``ok`` False, ``text`` names the
-  node. Not latched: when Heartbeats return, what they report decides (a controller whose own watchdog tripped
-  meanwhile reports WATCHDOG_TIMER_EXPIRED, which is a latched fault).
-- *bus failure*: a python-can error on receive (``can.CanOperationError`` and the other ``can.CanError``), three
-  send failures in a row, or a bus-off error frame -> the bus is shut down and reopened with a backoff that doubles
-  from ``reopen_backoff`` up to ``reopen_backoff_max`` (retried for as long as the link runs); ``ok`` is False while
-  it is down. Error frames are counted apart from malformed frames. On SocketCAN the controller itself leaves bus-off
-  only if the interface restarts it: ``ip link set can0 type can bitrate 500000 restart-ms 100``.
-
-``send`` while not ``ok`` sends nothing but zero set-points.
-
-**Odometry.** Every decoded estimate is validated before it touches the pose: finite (``decode``), ``|Vel_Estimate|``
-at most ``max_wheel_speed``, ``|Pos_Estimate|`` at most :data:`MAX_ABS_POSITION`, and a position step no larger than
-``max_wheel_speed`` times the time between the two frames (plus :data:`JUMP_SLACK`). A rejected estimate is counted
-(``malformed``, and ``rejected_estimates``) and never integrated. Each wheel's travel also has a budget that refills
-at the fastest the wheel can turn given what it was told (twice the commanded rate plus a slack, at most
-``max_wheel_speed``): many small steps, each plausible alone, cannot add up to more (crafted frames at 2 kHz once
-gave 101 m of odometry in 2 s). An implausible estimate makes ``health()`` not ok for a moment, with the reason. When
-:data:`RESYNC_AFTER` rejected steps in a row agree with each other, the encoder really moved (a controller reboot, a
-Set_Absolute_Position): the reference is re-anchored there without integrating the step (``resyncs``).
-
-**Time stamps.** A pose carries the time its encoder frames were received on the bus (``msg.timestamp``, which
-python-can fills on receive), not the time ``poll`` ran. python-can stamps with the wall clock: ``time.time()`` for
-the ``virtual`` and ``udp_multicast`` interfaces, the kernel's receive time (CLOCK_REALTIME) for ``socketcan``. The
-driver host's clock is ``time.monotonic()``; each ``poll`` measures the offset between the two and maps every frame
-onto the monotonic base. A stamp that is missing, in the future of its receipt (beyond :data:`STAMP_SLACK`) or older
-than :data:`STAMP_MAX_AGE` (a wall-clock step, NTP) is replaced by the receive time and counted
-(``stamp_fallbacks``).
-"""
+"""The CAN driver: a differential-drive base with one ODrive 0.6 controller per wheel behind the
+:class:`drivers.base.Driver` protocol. It supervises the bus and the controllers, arms the axes only when a person
+engages, and wires the frame codec (:mod:`.codec`) and the odometry (:mod:`.odometry`)."""
 
 from __future__ import annotations
 
 import contextlib
 import math
 import time
-from dataclasses import dataclass, field, replace
-from importlib import resources
-from typing import TYPE_CHECKING, Annotated, Any
+from dataclasses import dataclass, replace
+from typing import TYPE_CHECKING, Any
 
 from bridge.core.backoff import Backoff
-from bridge.core.config import Cfg, Finite, Rule, meta
 from drivers.base import DriverError, FailsafeReport, LinkHealth, Pose, whole_numbers
+from drivers.can.codec import decode, encode
+from drivers.can.config import CanLinkConfig
+from drivers.can.odometry import Odometry, Wheel
 from drivers.odrive import AxisState, ControlMode, InputMode, error_names, state_name
 
 if TYPE_CHECKING:
     import can
-    import cantools
 
 #: error class bit of a bus-off error frame (Linux ``include/uapi/linux/can/error.h``: ``CAN_ERR_BUSOFF``); python-can's
 #: socketcan interface puts the error class into the error frame's ``arbitration_id``.
 CAN_ERR_BUSOFF = 0x40
-#: rev: a position estimate beyond this is garbage (float32 resolution there is ~1 rev; 1e7 rev of a 0.1 m wheel is
-#: 6000 km).
-MAX_ABS_POSITION = 1e7
-#: s of motion at ``max_wheel_speed`` tolerated on top of the interval between two encoder frames (stamp jitter).
-JUMP_SLACK = 0.02
-#: rev/s a wheel may turn beyond twice its commanded rate (pushed, rolling on after a stop)
-COMMAND_SLACK_REV_S = 0.5
-#: s of motion the odometry's travel budget holds at most (frame jitter, a burst of frames read at once)
-BURST_S = 0.1
 #: implausible encoder estimates keep the link's health not ok this long, s
 ODOMETRY_ALARM_S = 2.0
-#: consecutive rejected position steps that agree with each other before the encoder reference is re-anchored.
-RESYNC_AFTER = 3
 #: s a frame's stamp may lie after its receipt (clock granularity) and still be believed.
 STAMP_SLACK = 0.05
 #: s a frame's stamp may lie before its receipt (it waited in the socket buffer) and still be believed.
@@ -99,90 +33,6 @@ STAMP_MAX_AGE = 1.0
 SEND_FAILURES_DOWN = 3
 #: frames read in one ``poll`` at most, so a flooded bus cannot hold the driver host's loop.
 MAX_FRAMES_PER_POLL = 2000
-
-
-class CanLinkConfig(Cfg):
-    """``[link.can]``: a differential-drive base with one ODrive 0.6 (CANSimple) controller per wheel."""
-
-    interface: Annotated[str, meta("python-can interface: socketcan, virtual, udp_multicast, pcan, ...")] = "socketcan"
-    channel: Annotated[str, meta("bus channel: can0, a virtual channel name, a multicast group", min_length=1)] = "can0"
-    bitrate: Annotated[int, meta("bit/s (ignored by socketcan: set it with `ip link`)", ge=10_000, le=8_000_000)] = (
-        500_000)
-    fd: Annotated[bool, meta("CAN FD (udp_multicast needs an explicit false)")] = False
-    left_node: Annotated[int, meta("left wheel's CANSimple node id", ge=0, le=63)] = 0
-    right_node: Annotated[int, meta("right wheel's CANSimple node id", ge=0, le=63)] = 1
-    left_sign: Annotated[float, meta("+1 or -1: -1 for a mirrored motor")] = 1.0
-    right_sign: Annotated[float, meta("+1 or -1: -1 for a mirrored motor")] = -1.0
-    wheel_radius: Annotated[float, meta("m", gt=0.0, le=10.0)] = 0.1
-    track_width: Annotated[float, meta("distance between the wheels, m", gt=0.0, le=100.0)] = 0.4
-    initial_pose: Annotated[tuple[Finite, Finite, Finite], meta("odometry origin [x, y, theta]")] = (0.0, 0.0, 0.0)
-    open_timeout: Annotated[float, meta("s to wait for both axes in closed loop (at open and after clear_faults)",
-                                        gt=0.0, le=120.0)] = 2.0
-    heartbeat_timeout: Annotated[float, meta(
-        "s without a controller's Heartbeat before the link is reported lost and the other wheel stopped (ODrive sends "
-        "one every 0.1 s by default; keep it at or below the controllers' watchdog_timeout)", ge=0.05, le=10.0)] = 0.5
-    max_wheel_speed: Annotated[float, meta("rev/s: an encoder estimate faster than this, or a position step it cannot "
-                                           "explain, is rejected as implausible", gt=0.0, le=1000.0)] = 5.0
-    reopen_backoff: Annotated[float, meta("s before the first attempt to reopen a failed bus; doubles per failed "
-                                          "attempt", gt=0.0, le=10.0)] = 0.1
-    reopen_backoff_max: Annotated[float, meta("s: the longest wait between two attempts to reopen a failed bus",
-                                              gt=0.0, le=60.0)] = 2.0
-
-    def __post_init__(self) -> None:
-        if self.reopen_backoff_max < self.reopen_backoff:
-            raise Rule(f"reopen_backoff_max = {self.reopen_backoff_max} < reopen_backoff = "
-                             f"{self.reopen_backoff}: the longest wait cannot be shorter than the first")
-        if self.left_node == self.right_node:
-            raise Rule(f"left_node and right_node are both {self.left_node}; each wheel needs its own node")
-        for name in ("left_sign", "right_sign"):
-            if getattr(self, name) not in (1.0, -1.0):
-                raise Rule(f"{name} = {getattr(self, name)}: must be 1 or -1")
-
-
-_DB: cantools.database.can.Database | None = None
-
-
-def database() -> cantools.database.can.Database:
-    """The shipped CANSimple DBC (loaded once)."""
-    global _DB
-    if _DB is None:
-        import cantools
-
-        text = resources.files("drivers").joinpath("odrive_cansimple.dbc").read_text()
-        _DB = cantools.database.load_string(text, database_format="dbc")
-    return _DB
-
-
-def encode(node: int, name: str, signals: dict[str, float] | None = None) -> can.Message:
-    """A CANSimple frame for ``node`` (0..63)."""
-    import can
-
-    if not 0 <= node < 64:
-        raise ValueError(f"CANSimple node id must be 0..63, got {node}")
-    msg = database().get_message_by_name(name)
-    data = msg.encode(signals or {}) if msg.signals else b""
-    return can.Message(arbitration_id=(node << 5) | msg.frame_id, data=data, is_extended_id=False)
-
-
-def decode(frame: can.Message) -> tuple[int, str, dict[str, Any]]:
-    """(node, message name, signals) of a CANSimple frame; ValueError for anything that is not one (wrong length,
-    non-finite float, unknown command, extended id, error frame)."""
-    if frame.is_extended_id or frame.is_error_frame:
-        raise ValueError("not a CANSimple frame (extended id or error frame)")
-    node, cmd = frame.arbitration_id >> 5, frame.arbitration_id & 0x1F
-    try:
-        msg = database().get_message_by_frame_id(cmd)
-    except KeyError:
-        raise ValueError(f"unknown CANSimple command 0x{cmd:02x}") from None
-    if frame.is_remote_frame:
-        return node, msg.name, {"_rtr": True}
-    if len(frame.data) != msg.length:
-        raise ValueError(f"{msg.name}: {len(frame.data)} data bytes, expected {msg.length}")
-    sig = msg.decode(bytes(frame.data), decode_choices=False) if msg.signals else {}
-    for k, v in sig.items():
-        if isinstance(v, float) and not math.isfinite(v):
-            raise ValueError(f"{msg.name}.{k} is not finite")
-    return node, msg.name, dict(sig)
 
 
 @dataclass(frozen=True, slots=True)
@@ -231,7 +81,7 @@ class _Axis:
 
     side: str  # "left" / "right": the word the status text uses
     node: int
-    sign: float
+    wheel: Wheel  # its odometry
     state: int = AxisState.UNDEFINED  # from the last Heartbeat
     error: int = 0  # ODriveError word of the last Heartbeat
     procedure_result: int = 0
@@ -239,14 +89,6 @@ class _Axis:
     fault: bool = False  # latched controller fault (cleared only by clear_faults)
     fault_error: int = 0  # union of the error bits seen since the fault latched
     fault_state: int = AxisState.UNDEFINED  # the state the axis was in when it latched
-    commanded: float = 0.0  # rev/s: the last Input_Vel sent to it
-    budget: float = 0.0  # rev the encoder may still move (refilled at the plausible wheel speed)
-    budget_at: float | None = None  # the stamp the budget was last refilled at
-    pos: float | None = None  # rev: the odometry reference (last estimate integrated, or the anchor)
-    vel: float = 0.0  # rev/s
-    stamp: float | None = None  # of ``pos``
-    new: tuple[float, float, float] | None = None  # (pos, vel, stamp) accepted, waiting for the other wheel
-    jumps: list[tuple[float, float]] = field(default_factory=list)  # rejected steps in a row: (pos, stamp)
 
     def ready(self, now: float, heartbeat_timeout: float) -> bool:
         """Heartbeat fresh, closed loop, no error: the axis executes velocity set-points."""
@@ -261,7 +103,47 @@ class _Axis:
 
 
 class CanDriver:
-    """The CAN link behind the :class:`drivers.base.Driver` protocol (see the module docstring)."""
+    """The CAN link (python-can).
+
+    **Start-up** (``open``) only opens the bus and listens: no axis enters closed loop until a person engages
+    (``scmbridge engage``, or ``engage_on_start``), since a restarted driver host must not take the robot back.
+    **Engage** (:meth:`engage`) refuses, naming the axis and its errors, while an axis reports an error (the watchdog
+    error a killed session left, an ODrive's own estop) unless the person also asks to clear it (``--clear-faults``);
+    then per axis Clear_Errors, Set_Controller_Mode(VELOCITY_CONTROL, PASSTHROUGH), Set_Input_Vel(0),
+    Set_Axis_State(CLOSED_LOOP_CONTROL), and it waits, at most ``open_timeout``, feeding the watchdogs with zero
+    set-points, until both Heartbeats report closed loop without error. **Close**: zero set-points until both axes
+    report less than ``stop_speed`` (at most ``stop_timeout``), then IDLE. Velocity control must be set explicitly: an
+    ODrive's factory control mode is POSITION_CONTROL, in which Set_Input_Vel is only a feed-forward and the wheel
+    holds its position. The input mode is PASSTHROUGH, not VEL_RAMP: the set-point the driver host applies is the one
+    it echoes on ``applied`` and the one the station's learner model is identified on; a ramp inside the controller
+    would add a lag nothing upstream models.
+
+    **Supervision** (in ``poll`` and ``send``; ``health`` reports it and changes nothing):
+
+    - *controller fault*, latched: a Heartbeat with a non-zero ``Axis_Error``, or an axis that left closed loop (its
+      watchdog, an Estop frame from another bus node, an operator's tool). Both axes get zero set-points at once (the
+      healthy wheel must not keep driving: the robot would pivot), ``ok`` is False and ``text`` names the axis and
+      the errors (``"left axis error: WATCHDOG_TIMER_EXPIRED"``). Only :meth:`clear_faults` (the operator) clears and
+      re-arms; the driver never does it by itself.
+    - *heartbeat lost*: no Heartbeat from a controller for ``heartbeat_timeout`` -> ``ok`` False, ``text`` names the
+      node. Not latched: when Heartbeats return, what they report decides (a controller whose own watchdog tripped
+      meanwhile reports WATCHDOG_TIMER_EXPIRED, which is a latched fault).
+    - *bus failure*: a python-can error on receive, three send failures in a row, or a bus-off error frame -> the bus
+      is shut down and reopened with a backoff that doubles from ``reopen_backoff`` up to ``reopen_backoff_max``;
+      ``ok`` is False while it is down. Error frames are counted apart from malformed frames. On SocketCAN the
+      controller itself leaves bus-off only if the interface restarts it: ``ip link set can0 type can bitrate 500000
+      restart-ms 100``.
+    - *odometry*: an implausible encoder estimate (:class:`drivers.can.odometry.Odometry`) is counted
+      (``malformed``, ``rejected_estimates``), never integrated, and makes ``health()`` not ok for a moment.
+
+    ``send`` while not ``ok`` sends nothing but zero set-points.
+
+    **Time stamps.** A pose carries the time its encoder frames were received on the bus (``msg.timestamp``, which
+    python-can fills on receive with the wall clock: ``time.time()`` for ``virtual`` and ``udp_multicast``, the
+    kernel's receive time for ``socketcan``), mapped by each ``poll`` onto the driver host's ``time.monotonic()``. A
+    stamp that is missing, in the future of its receipt (beyond :data:`STAMP_SLACK`) or older than
+    :data:`STAMP_MAX_AGE` (a wall-clock step, NTP) is replaced by the receive time and counted (``stamp_fallbacks``).
+    """
 
     name = "can"
 
@@ -269,13 +151,14 @@ class CanDriver:
         self.config = config
         self.interface, self.channel, self.bitrate = config.interface, config.channel, config.bitrate
         self.radius, self.track = config.wheel_radius, config.track_width
-        self.left = _Axis("left", config.left_node, config.left_sign)
-        self.right = _Axis("right", config.right_node, config.right_sign)
+        self.left = _Axis("left", config.left_node, Wheel(config.left_sign))
+        self.right = _Axis("right", config.right_node, Wheel(config.right_sign))
         self.axes = (self.left, self.right)
+        self.odometry = Odometry(config.wheel_radius, config.track_width, config.max_wheel_speed, self.left.wheel,
+                                 self.right.wheel, config.initial_pose)
         self.open_timeout = config.open_timeout
         self.heartbeat_timeout = config.heartbeat_timeout
         self.max_wheel_speed = config.max_wheel_speed
-        self.pose = [float(a) for a in config.initial_pose]
         self.bus: can.BusABC | None = None
         self._health = LinkHealth()
         self._phase = "closed"  # closed -> arming -> running (-> arming again on clear_faults)
@@ -319,7 +202,7 @@ class CanDriver:
             self.poll(time.monotonic(), block=0.02)  # the controllers' Heartbeats say how they are
 
     def engage(self, now: float, clear_faults: bool = False) -> None:
-        """A person's act: both axes into velocity control and closed loop (see the module docstring)."""
+        """A person's act: both axes into velocity control and closed loop (see the class docstring)."""
         if self.bus is None or self._phase == "closed":
             raise DriverError(f"CAN bus {self.interface}:{self.channel} not open")
         t_hb = time.monotonic() + self.open_timeout
@@ -366,12 +249,14 @@ class CanDriver:
         self._phase = "arming"
         self._arm_deadline = now + self.open_timeout
 
+    @property
+    def pose(self) -> list[float]:
+        """The odometry's pose [x, y, theta] (from ``initial_pose``)."""
+        return self.odometry.pose
+
     def wheel_turn_rates(self, v: float, omega: float) -> tuple[float, float]:
         """(left, right) Input_Vel in rev/s for body speed v (m/s) and yaw rate omega (rad/s), signs applied."""
-        vl = v - omega * self.track / 2.0
-        vr = v + omega * self.track / 2.0
-        k = 1.0 / (2.0 * math.pi * self.radius)
-        return self.left.sign * vl * k, self.right.sign * vr * k
+        return self.odometry.wheel_turn_rates(v, omega)
 
     def send(self, v: float, omega: float, now: float) -> None:
         self._evaluate(now)
@@ -379,7 +264,7 @@ class CanDriver:
             self._zero()  # a fault, a lost controller, arming: nothing but zero set-points
             return
         ql, qr = self.wheel_turn_rates(v, omega)
-        self.left.commanded, self.right.commanded = ql, qr
+        self.left.wheel.commanded, self.right.wheel.commanded = ql, qr
         self._send(encode(self.left.node, "Set_Input_Vel", {"Input_Vel": ql, "Input_Torque_FF": 0.0}))
         self._send(encode(self.right.node, "Set_Input_Vel", {"Input_Vel": qr, "Input_Torque_FF": 0.0}))
 
@@ -389,7 +274,7 @@ class CanDriver:
     def _zero(self) -> None:
         """Zero set-points to both axes (holds a healthy wheel in closed loop; harmless to an idle one)."""
         for ax in self.axes:
-            ax.commanded = 0.0
+            ax.wheel.commanded = 0.0
             self._send(encode(ax.node, "Set_Input_Vel", {"Input_Vel": 0.0, "Input_Torque_FF": 0.0}))
 
     # ----------------------------------------------------------------------------------------------- receive
@@ -443,7 +328,7 @@ class CanDriver:
         return None
 
     def _stamp(self, frame: can.Message, received: float, offset: float) -> float:
-        """The frame's own receive stamp on the driver host's monotonic base (see the module docstring)."""
+        """The frame's own receive stamp on the driver host's monotonic base (see the class docstring)."""
         ts = frame.timestamp
         if ts and math.isfinite(ts):
             mono = ts + offset
@@ -467,75 +352,17 @@ class CanDriver:
             ax.fault_error |= ax.error
 
     def _encoder(self, ax: _Axis, pos: float, vel: float, stamp: float) -> Pose | None:
-        """Validate one estimate; integrate one odometry step once both wheels have a new accepted one."""
-        if abs(vel) > self.max_wheel_speed or abs(pos) > MAX_ABS_POSITION:
-            self._reject()
-            return None
-        if ax.pos is None or ax.stamp is None:
-            ax.pos, ax.vel, ax.stamp = pos, vel, stamp  # the anchor: nothing to integrate yet
-            return None
-        ref_pos, _, ref_stamp = ax.new if ax.new is not None else (ax.pos, ax.vel, ax.stamp)
-        plausible = self._plausible_step(ref_pos, ref_stamp, pos, stamp)
-        if not (plausible and self._spend(ax, abs(pos - ref_pos), stamp)):
-            self._reject()
-            ax.jumps.append((pos, stamp))
-            del ax.jumps[:-RESYNC_AFTER]
-            if len(ax.jumps) == RESYNC_AFTER and all(
-                    self._plausible_step(p0, t0, p1, t1) for (p0, t0), (p1, t1) in zip(ax.jumps, ax.jumps[1:])):
-                # the encoder really moved: re-anchor both wheels there, without integrating the step
-                self.counters["resyncs"] += 1
-                self.rejected_at = -math.inf  # a real move of the encoder, not an implausible one
-                ax.pos, ax.vel, ax.stamp, ax.new = pos, vel, stamp, None
-                ax.jumps.clear()
-                other = self.right if ax is self.left else self.left
-                if other.new is not None:
-                    other.pos, other.vel, other.stamp = other.new
-                    other.new = None
-            return None
-        ax.jumps.clear()
-        ax.new = (pos, vel, stamp)
-        if self.left.new is None or self.right.new is None:
-            return None
-        # both wheels have a new estimate: one odometry step (midpoint heading)
-        assert self.left.pos is not None and self.right.pos is not None
-        circ = 2.0 * math.pi * self.radius
-        (pl, vl_, tl), (pr, vr_, tr) = self.left.new, self.right.new
-        dl = (pl - self.left.pos) * circ * self.left.sign
-        dr = (pr - self.right.pos) * circ * self.right.sign
-        self.left.pos, self.left.vel, self.left.stamp = pl, vl_, tl
-        self.right.pos, self.right.vel, self.right.stamp = pr, vr_, tr
-        self.left.new = self.right.new = None
-        ds = 0.5 * (dl + dr)
-        dth = (dr - dl) / self.track
-        x, y, th = self.pose
-        x += ds * math.cos(th + 0.5 * dth)
-        y += ds * math.sin(th + 0.5 * dth)
-        th += dth
-        self.pose = [x, y, th]
-        v = 0.5 * circ * (vl_ * self.left.sign + vr_ * self.right.sign)
-        w = circ * (vr_ * self.right.sign - vl_ * self.left.sign) / self.track
-        return Pose(max(tl, tr), x, y, th, v, w)
-
-    def _plausible_step(self, p0: float, t0: float, p1: float, t1: float) -> bool:
-        return abs(p1 - p0) <= self.max_wheel_speed * (max(t1 - t0, 0.0) + JUMP_SLACK)
-
-    def _spend(self, ax: _Axis, dp: float, stamp: float) -> bool:
-        """Whether the wheel may have moved ``dp`` rev by ``stamp``: its travel budget refills at the fastest it can
-        turn (twice the commanded rate plus :data:`COMMAND_SLACK_REV_S`, at most ``max_wheel_speed``) and holds at
-        most :data:`BURST_S` of it. Many small steps in quick succession (each plausible alone) cannot add up to
-        more than the wheel can do, nor can a wheel told to stand still run away."""
-        rate = min(self.max_wheel_speed, 2.0 * abs(ax.commanded) + COMMAND_SLACK_REV_S)
-        if ax.budget_at is not None:  # a gap between frames allows the gap's worth; a steady stream, BURST_S's
-            gap = max(0.0, stamp - ax.budget_at)
-            ax.budget = min(rate * max(BURST_S, gap), ax.budget + rate * gap)
-        else:
-            ax.budget = rate * BURST_S
-        ax.budget_at = max(stamp, ax.budget_at or stamp)
-        if dp > ax.budget + 1e-9:
+        """One encoder estimate into the odometry (:class:`drivers.can.odometry.Odometry`); a rejected one is counted
+        and keeps ``health()`` not ok for :data:`ODOMETRY_ALARM_S` with the reason."""
+        step = self.odometry.estimate(ax.wheel, pos, vel, stamp)
+        if step.overrun:
             self.overrun_at = time.monotonic()  # more travel than the wheel can do: not cleared by a resync
-            return False
-        ax.budget -= dp
-        return True
+        if step.rejected:
+            self._reject()
+        if step.resynced:
+            self.counters["resyncs"] += 1
+            self.rejected_at = -math.inf  # a real move of the encoder, not an implausible one
+        return step.pose
 
     def _reject(self) -> None:
         self._health.malformed += 1
@@ -684,7 +511,7 @@ class CanDriver:
             while self._phase == "running" and time.monotonic() < t_end:  # zero until both wheels have stopped
                 self.stop(0.0)
                 self.poll(time.monotonic(), block=0.02)
-                if all(abs(ax.vel) < turns for ax in self.axes):
+                if all(abs(ax.wheel.vel) < turns for ax in self.axes):
                     break
             self.stop(0.0)
             for ax in self.axes:
@@ -698,9 +525,3 @@ class CanDriver:
             self._health.connected = self._health.ok = False
             self._health.text = "closed"
 
-
-#: the link's plugin entry (``drivers.LINKS``): its ``[link.can]`` section, its driver, and whether ``scmbridge
-#: learner`` emulates it (the two ODrive controllers, :mod:`sim_learner.can_ecu`)
-CONFIG = CanLinkConfig
-DRIVER = CanDriver
-EMULATED = True
