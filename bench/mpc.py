@@ -32,19 +32,18 @@ def arguments(ap: argparse.ArgumentParser) -> None:
 
 
 def _timing(solver: str, N: int, slots: int, steps: int) -> dict:
-    from bridge.core.codegen import compile_functions
+    from bridge.core.codegen import build_mpc
     from sim_learner.dynamics import MPC_LEARNER_V, MPC_LEARNER_W
     from sim_learner.runs import Run, mean_dev_last_half
     from sim_learner.worlds import mpc_world
     from transfer.domain import Bounds
-    from transfer.teacher.mpc import MpcConfig, MpcTeacher
+    from transfer.teacher.mpc import MpcConfig
     from transfer.teacher.unicycle import step
 
     world = mpc_world()
     limits = Bounds(MPC_LEARNER_V, MPC_LEARNER_W)
     t0 = time.perf_counter()
-    mpc = MpcTeacher(MpcConfig(N=N, max_obstacles=slots, solver=solver),
-                     compiler=None if solver == "ipopt" else compile_functions)
+    mpc = build_mpc(MpcConfig(N=N, max_obstacles=slots, solver=solver), compile=True)
     build_s = time.perf_counter() - t0
     x, run, times, fails, collided = world.start.copy(), Run(solver), [], 0, False
     run.poses.append(x.copy())

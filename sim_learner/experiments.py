@@ -88,9 +88,9 @@ def mpc_case(quick: bool) -> MpcCase:
 def _mpc_teacher(solver: str = "ipopt") -> MpcTeacher:
     """One MPC per process and solver (built once; ``reset`` before every run clears its warm start); the
     real-time iteration runs compiled code where the machine can build it (:mod:`bridge.core.codegen`)."""
-    from bridge.core.codegen import compile_functions
+    from bridge.core.codegen import build_mpc
 
-    return MpcTeacher(MpcConfig(N=20, dt=DT, solver=solver), compiler=None if solver == "ipopt" else compile_functions)
+    return build_mpc(MpcConfig(N=20, dt=DT, solver=solver), compile=True)
 
 
 def closed_loop_mpc(name: str, world: World, mpc: MpcTeacher, bounds_fn: Callable[[], Bounds], apply_fn: ApplyFn,

@@ -15,13 +15,15 @@ and stop by the hundred, use it; the compiled path has its own tests).
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import logging
 import os
 import shutil
 import subprocess
+import sys
 import tempfile
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from pathlib import Path
 
 from bridge.core.paths import cache_dir
@@ -104,3 +106,28 @@ def _build(cc: str, source: str, lib: Path) -> None:
         if done.returncode != 0:
             raise RuntimeError(f"{Path(cc).name} failed: {(done.stderr or done.stdout).strip()[:300]}")
         os.replace(out, lib)
+
+
+@contextlib.contextmanager
+def native_stdout_to_stderr() -> Iterator[None]:
+    """Send what native code writes on file descriptor 1 to descriptor 2 meanwhile: qpOASES prints its licence
+    banner on stdout each time a solver's memory is made, which would corrupt a command's JSON output (``bench``)
+    and repeat in a service's log once per robot."""
+    sys.stdout.flush()
+    saved = os.dup(1)
+    try:
+        os.dup2(2, 1)
+        yield
+    finally:
+        os.dup2(saved, 1)
+        os.close(saved)
+
+
+def build_mpc(config, compile: bool = False):
+    """An :class:`~transfer.teacher.mpc.MpcTeacher` for ``config`` made the way every node makes one: the solvers'
+    banners kept off stdout and, with ``compile``, the real-time iteration's functions compiled now (cached; a
+    station builds them in the background instead)."""
+    from transfer.teacher.mpc import MpcTeacher
+
+    with native_stdout_to_stderr():
+        return MpcTeacher(config, compiler=compile_functions if compile and config.solver != "ipopt" else None)

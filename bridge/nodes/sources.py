@@ -220,10 +220,12 @@ def make_source(cfg: StationConfig, period: float, calibration: CalibrationPlan 
         return CalibrationSource(calibration)
     t = cfg.teacher
     if t.kind == "mpc":
-        from transfer.teacher.mpc import MpcConfig, MpcTeacher
+        from bridge.core.codegen import build_mpc
+        from transfer.teacher.mpc import MpcConfig
 
-        return MpcSource(MpcTeacher(MpcConfig(N=cfg.station.horizon, dt=period, max_obstacles=t.obstacle_slots,
-                                              solver=t.mpc_solver)))
+        # compiled in the background by the Zenoh side (station.KernelBuild), never here: a core is built at once
+        return MpcSource(build_mpc(MpcConfig(N=cfg.station.horizon, dt=period, max_obstacles=t.obstacle_slots,
+                                             solver=t.mpc_solver)))
     if t.kind == "primitives":
         lib = PrimitiveLibrary(cfg.teacher_bounds.bounds(), t.primitives_grid, duration=t.primitive_s, dt=period)
         return PrimitivesSource(PrimitiveFollower(PrimitivePlanner(lib, k_d=1.0, k_theta=2.0, horizon=2)))

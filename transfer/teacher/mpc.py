@@ -36,6 +36,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from transfer.domain import Bounds
+from transfer.teacher import _refs
 from transfer.teacher.path import Polyline
 from transfer.teacher.unicycle import euler, step
 
@@ -407,6 +408,9 @@ class MpcTeacher:
     def __init__(self, config: MpcConfig | None = None, compiler: Compiler | None = None) -> None:
         self.cfg = cfg = config or MpcConfig()
         self._backend: _Ipopt | _Rti = _Ipopt(cfg) if cfg.solver == "ipopt" else _Rti(cfg, compiler)
+        # the references' compiled loop loaded (or compiled, once per machine) now, not in the first tick
+        _refs.references(np.array([[0.0, 0.0], [1.0, 0.0]]), np.array([0.0, 1.0]), np.array([1.0]), np.zeros(1),
+                         0.0, 0.0, 0.0, 0.1, 2)
         self._prev_pred: NDArray[np.float64] | None = None
         self._prev_u: NDArray[np.float64] | None = None
         self.u_last = np.zeros(2)
@@ -431,15 +435,11 @@ class MpcTeacher:
         self._prev_pred = self._prev_u = None
         self._backend.reset()
         self.u_last = np.zeros(2)
+
     def references(self, state: NDArray[np.float64], path: Polyline, v_ref: float) -> NDArray[np.float64]:
         """N + 1 references from the closest path point, spaced by ``v_ref * dt`` (headings unwrapped)."""
-        s0, _ = path.project(state[:2])
-        ss = s0 + v_ref * self.cfg.dt * np.arange(self.cfg.N + 1)
-        r = path.at(ss)
-        # unwrap the reference heading next to the vehicle's heading so the cost sees no 2 pi jumps
-        rel = np.unwrap(r[:, 2] - state[2])
-        r[:, 2] = state[2] + rel - 2 * math.pi * np.round(rel[0] / (2 * math.pi))
-        return r
+        return _refs.references(path.points, path.s, path.seg_len, path.heading, float(state[0]), float(state[1]),
+                                float(state[2]), float(v_ref * self.cfg.dt), self.cfg.N + 1)
 
     def obstacles_that_matter(self, state: NDArray[np.float64], obstacles: NDArray[np.float64] | None,
                               limits: Bounds) -> tuple[NDArray[np.float64], int]:
@@ -468,19 +468,19 @@ class MpcTeacher:
         cfg = self.cfg
         N = cfg.N
         state = np.asarray(state, dtype=float)
-        if not np.all(np.isfinite(state)):
-            raise ValueError(f"MPC state must be finite, got {state}")
+        if not (state.shape == (3,) and all(math.isfinite(a) for a in state)):
+            raise ValueError(f"MPC state must be three finite numbers, got {state}")
         refs = self.references(state, path, limits.v[1] if v_ref is None else v_ref)
         obs = np.zeros((3, cfg.max_obstacles))
         obs[2, :] = -1.0
         o, dropped = self.obstacles_that_matter(state, obstacles, limits)
         obs[:, : o.shape[0]] = o.T
-        u_prev = np.clip(self.u_last, limits.lo, limits.hi)
+        u_prev = np.minimum(np.maximum(self.u_last, limits.lo), limits.hi)
         p = np.concatenate([state, refs.T.ravel(order="F"), u_prev, obs.ravel(order="F")])
         cold = self._prev_u is None
         ok, status, iters, U, Xp = self._backend.solve(p, state, self._warm(limits), limits, cold)
         if ok:
-            u = np.clip(U[0], limits.lo, limits.hi)
+            u = np.minimum(np.maximum(U[0], limits.lo), limits.hi)
             self._prev_u, self._prev_pred = U, Xp
             self.u_last = u
             return MpcResult(u, True, status, Xp, False, cfg.solver, iters, dropped, refs)
@@ -501,7 +501,8 @@ class MpcTeacher:
     def _warm(self, limits: Bounds) -> NDArray[np.float64]:
         """The inputs to start from: the previous plan's shifted one step, or half the top speed straight ahead."""
         if self._prev_u is not None:
-            U = np.vstack([self._prev_u[1:], self._prev_u[-1:]])
+            U = np.empty_like(self._prev_u)
+            U[:-1], U[-1] = self._prev_u[1:], self._prev_u[-1]
         else:
-            U = np.tile(np.clip([limits.v[1] * 0.5, 0.0], limits.lo, limits.hi), (self.cfg.N, 1))
-        return np.clip(U, limits.lo, limits.hi)
+            U = np.tile([limits.v[1] * 0.5, 0.0], (self.cfg.N, 1))
+        return np.minimum(np.maximum(U, limits.lo), limits.hi)

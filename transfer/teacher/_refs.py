@@ -1,0 +1,47 @@
+"""The MPC's references along a polyline in one compiled loop (numba, cached on disk): the same closest point as
+:meth:`transfer.teacher.path.Polyline.project`, the same samples as :meth:`~transfer.teacher.path.Polyline.at`,
+headings unwrapped next to the vehicle's. A few microseconds, where the numpy calls took tens per tick."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+
+@njit(cache=True, error_model="numpy")
+def references(points: np.ndarray, s_cum: np.ndarray, seg_len: np.ndarray, heading: np.ndarray, x: float,
+               y: float, theta: float, spacing: float, n: int) -> np.ndarray:
+    """``n`` poses (x, y, heading) from the point of the path closest to (x, y), ``spacing`` metres apart (clipped
+    to the path); the first heading within pi of ``theta``, each next within pi of the one before."""
+    m = points.shape[0] - 1
+    best, s0 = np.inf, 0.0
+    for i in range(m):
+        ax, ay = points[i, 0], points[i, 1]
+        dx, dy = points[i + 1, 0] - ax, points[i + 1, 1] - ay
+        t = ((x - ax) * dx + (y - ay) * dy) / max(seg_len[i] ** 2, 1e-18)
+        t = min(max(t, 0.0), 1.0)
+        d = math.hypot(ax + t * dx - x, ay + t * dy - y)
+        if d < best:
+            best, s0 = d, s_cum[i] + t * seg_len[i]
+    two_pi = 2.0 * math.pi
+    out = np.empty((n, 3))
+    length = s_cum[-1]
+    prev_raw, prev = 0.0, 0.0
+    for k in range(n):
+        s = min(max(s0 + spacing * k, 0.0), length)
+        i = min(max(np.searchsorted(s_cum, s, side="right") - 1, 0), m - 1)
+        t = (s - s_cum[i]) / max(seg_len[i], 1e-18)
+        out[k, 0] = points[i, 0] + t * (points[i + 1, 0] - points[i, 0])
+        out[k, 1] = points[i, 1] + t * (points[i + 1, 1] - points[i, 1])
+        h = heading[i]
+        if k == 0:
+            rel = h - theta
+            prev = theta + rel - two_pi * np.round(rel / two_pi)
+        else:
+            d = h - prev_raw
+            prev = prev + d - two_pi * np.round(d / two_pi)
+        prev_raw = h
+        out[k, 2] = prev
+    return out
