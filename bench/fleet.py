@@ -269,9 +269,10 @@ def _load() -> list[float]:
 
 
 def run_level(n: int, seconds: float, warmup: float, mission: Path, workdir: Path, log,
-              env: dict[str, str] | None = None, layout: str = "processes") -> dict:
+              env: dict[str, str] | None = None, layout: str = "processes", shards: int = 2) -> dict:
     """N stations and the simulated robots behind one router; the window's figures (see the module docstring).
-    ``layout``: ``processes``, a station process per robot; ``one``, every robot in one ``station --robots``."""
+    ``layout``: ``processes``, a station process per robot; ``one``, every robot in one ``station --robots``;
+    ``shards``, the robots split over ``shards`` such processes (as station hosts of a sharded lab would be)."""
     from bridge.core import wire as M
     from bridge.nodes.zsession import free_port, make_config, open_session, tcp
     from bridge.tools.procs import Children
@@ -316,10 +317,13 @@ def run_level(n: int, seconds: float, warmup: float, mission: Path, workdir: Pat
         session.declare_subscriber(f"{M.PREFIX}/*/cmd", on_cmd)
         sim = kids.spawn(["bench", "fleet", "--simulate", ",".join(robots), "--connect", tcp(port), "--mission",
                           str(mission), "--sim-duration", str(life)], log)
-        if layout == "one":  # the pair stores and missions in the state directory: one per robot, in workdir
-            stations = {"all": kids.spawn(["station", "--start", "--robots", ",".join(robots), "--mode", "client",
-                                           "--connect", tcp(port), "--mission", str(mission), "--duration", str(life)],
-                                          log, env=dict(env or os.environ, SCMBRIDGE_STATE_DIR=str(workdir)))}
+        if layout in ("one", "shards"):  # the pair stores and missions in the state directory (workdir)
+            groups = [robots] if layout == "one" else [robots[k::shards] for k in range(min(shards, n))]
+            stations = {f"shard{k}": kids.spawn(["station", "--start", "--robots", ",".join(g), "--mode", "client",
+                                                 "--connect", tcp(port), "--mission", str(mission), "--duration",
+                                                 str(life)], log,
+                                                env=dict(env or os.environ, SCMBRIDGE_STATE_DIR=str(workdir)))
+                        for k, g in enumerate(groups)}
         else:
             stations = {r: kids.spawn(["station", "--start", "--robot", r, "--mode", "client", "--connect", tcp(port),
                                        "--store", str(workdir / f"pairs-{r}.bin"), "--mission", str(mission),
@@ -428,8 +432,11 @@ def arguments(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--warmup", type=float, default=10.0, help="seconds of driving before the window")
     ap.add_argument("--sizes", default=None, help="fleet sizes to run, comma-separated (default: the sweep)")
     ap.add_argument("--keep-going", action="store_true", help="run every size even after one is not held")
-    ap.add_argument("--layout", choices=["processes", "one"], default="processes",
-                    help="processes: a station process per robot; one: every robot in one `station --robots` process")
+    ap.add_argument("--layout", choices=["processes", "one", "shards"], default="processes",
+                    help="processes: a station process per robot; one: every robot in one `station --robots` process; "
+                         "shards: the robots split over --shards such processes")
+    ap.add_argument("--shards", type=int, default=os.cpu_count() or 1, help="station processes of --layout shards "
+                    "(default: one per core)")
     ap.add_argument("--blas-threads", choices=["1", "inherit"], default="1",
                     help="1: the stations run as the shipped units run them (OPENBLAS_NUM_THREADS=1, "
                          "OMP_NUM_THREADS=1); inherit: OpenBLAS's default, one thread per core")
@@ -463,7 +470,7 @@ def run(args: argparse.Namespace) -> int:
                 wd = Path(tmp) / f"n{n}"
                 wd.mkdir()
                 t0 = time.monotonic()
-                level = run_level(n, args.duration, args.warmup, mission, wd, log, env, args.layout)
+                level = run_level(n, args.duration, args.warmup, mission, wd, log, env, args.layout, args.shards)
                 level["wall_s"] = round(time.monotonic() - t0, 1)
                 out["levels"].append(level)
                 brief = {k: level.get(k) for k in ("robots", "held", "missed_fraction_worst", "tick_p99_ms_worst",
@@ -478,7 +485,7 @@ def run(args: argparse.Namespace) -> int:
                 tail = (Path(tmp) / "fleet.log").read_text()[-3000:]
                 print(tail, file=sys.stderr)
     out["robots_held"] = sizes[held - 1] if held else 0
-    out["layout"] = args.layout
+    out["layout"] = args.layout if args.layout != "shards" else f"shards ({args.shards} processes)"
     one = [lv for lv in out["levels"] if lv.get("station_rss_mb_total") is not None]
     if args.layout == "one" and len(one) >= 2:  # what each added robot costs the one process
         a, b = one[0], one[-1]

@@ -26,6 +26,7 @@ from __future__ import annotations
 import argparse
 import logging
 import os
+import sys
 import threading
 import time
 from pathlib import Path
@@ -370,6 +371,9 @@ def run_fleet(cfg: StationConfig, robots: list[str], rate: float, args: argparse
     vehicle); the others drive on."""
     from transfer.scm import warmup
 
+    # many loops share one interpreter: hand the GIL over every 0.5 ms (Python's default is 5 ms), so a tick that is
+    # due never waits behind another robot's long computation for more than that
+    sys.setswitchinterval(float(os.environ.get("SCMBRIDGE_SWITCH_INTERVAL", "0.0005")))
     stations: dict[str, Station] = {}
     for robot in robots:
         try:
