@@ -10,7 +10,7 @@ Two ways to solve the same problem (``MpcConfig.solver``, docs/ARCHITECTURE.md "
 
 - ``ipopt``: the full nonlinear program to convergence (IPOPT over the stage-wise NLP); the reference.
 - ``rti-qpoases`` / ``rti-daqp``: real-time iteration. Each tick linearises the problem once around the previous
-  plan shifted by one step (single shooting: the inputs and the slacks are the variables, Gauss-Newton Hessian of
+  plan shifted by one step (single shooting over the inputs and one obstacle slack, Gauss-Newton Hessian of
   the least-squares cost, obstacle rows linearised) and solves one dense QP with an active-set solver that keeps its
   working set from tick to tick. A cold start (the first tick, after ``reset``) iterates up to ``rti_cold_iters``
   times. The QP's data come from a CasADi function that a caller may hand to a ``compiler`` (generated C, built once
