@@ -80,3 +80,30 @@ def test_agreeing_rejected_steps_re_anchor_the_reference_without_moving_the_pose
         o.estimate(o.right, -0.04 - 0.01 * k, -1.0, t)
     assert [s.rejected for s in steps] == [True] * 3 and [s.resynced for s in steps] == [False, False, True]
     assert o.pose[0] == pytest.approx(x, abs=1e-9) and o.left.pos == pytest.approx(500.03)
+
+
+def test_estimates_read_late_are_judged_by_the_command_in_force_when_they_were_measured() -> None:
+    """Finding (a fresh clone's suite beside two busy loops): a loaded driver host read a second of encoder frames
+    after it had already sent the stop, judged the wheel's travel by the stop (0.5 rev/s of slack) instead of the
+    1 rev/s it was turning at, called the encoder implausible and the station paused the mission."""
+    o = odometry()
+    o.command(o.left, 1.0, 0.0)
+    o.command(o.right, -1.0, 0.0)
+    feed(o, 0.0, 0.0, 0.0)
+    o.command(o.left, 0.0, 1.0)  # the stop, sent before the frames below are read
+    o.command(o.right, 0.0, 1.0)
+    for k in range(1, 101):  # the frames of the second before the stop: 1 rev/s, every one plausible
+        t = 0.01 * k
+        step = feed(o, t, -t, t, 1.0, -1.0)
+        assert not step.rejected and step.pose is not None, k
+    # after the stop (and its BURST_S of response), the same speed is more than the wheel was told
+    steps = [o.estimate(o.left, 1.0 + 0.01 * k, 1.0, 1.0 + BURST_S + 0.01 * k) for k in range(1, 40)]
+    assert any(s.overrun for s in steps)
+
+
+def test_a_wheels_command_memory_keeps_the_command_in_force_and_forgets_older_ones() -> None:
+    o = odometry()
+    for k in range(50):
+        o.command(o.left, float(k % 3), 0.1 * k)
+    assert o.left.history[0][0] <= 4.9 - 2.0 <= o.left.history[1][0]  # the one in force when the memory starts
+    assert o.left.commanded == float(49 % 3)

@@ -264,7 +264,8 @@ class CanDriver:
             self._zero()  # a fault, a lost controller, arming: nothing but zero set-points
             return
         ql, qr = self.wheel_turn_rates(v, omega)
-        self.left.wheel.commanded, self.right.wheel.commanded = ql, qr
+        self.odometry.command(self.left.wheel, ql, now)
+        self.odometry.command(self.right.wheel, qr, now)
         self._send(encode(self.left.node, "Set_Input_Vel", {"Input_Vel": ql, "Input_Torque_FF": 0.0}))
         self._send(encode(self.right.node, "Set_Input_Vel", {"Input_Vel": qr, "Input_Torque_FF": 0.0}))
 
@@ -273,8 +274,9 @@ class CanDriver:
 
     def _zero(self) -> None:
         """Zero set-points to both axes (holds a healthy wheel in closed loop; harmless to an idle one)."""
+        now = time.monotonic()
         for ax in self.axes:
-            ax.wheel.commanded = 0.0
+            self.odometry.command(ax.wheel, 0.0, now)
             self._send(encode(ax.node, "Set_Input_Vel", {"Input_Vel": 0.0, "Input_Torque_FF": 0.0}))
 
     # ----------------------------------------------------------------------------------------------- receive

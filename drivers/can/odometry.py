@@ -20,6 +20,9 @@ COMMAND_SLACK_REV_S = 0.5
 BURST_S = 0.1
 #: consecutive rejected position steps that agree with each other before the encoder reference is re-anchored.
 RESYNC_AFTER = 3
+#: s of commands a wheel remembers: an estimate is judged by the commands in force when it was measured, not when it
+#: is read (a loaded host reads frames late, after it has already told the wheel something else)
+COMMAND_MEMORY_S = 2.0
 
 
 @dataclass
@@ -28,6 +31,7 @@ class Wheel:
 
     sign: float  # +1 or -1: -1 for a mirrored motor
     commanded: float = 0.0  # rev/s: the last Input_Vel sent to it
+    history: list[tuple[float, float]] = field(default_factory=list)  # (when, |Input_Vel|) sent, oldest first
     budget: float = 0.0  # rev the encoder may still move (refilled at the plausible wheel speed)
     budget_at: float | None = None  # the stamp the budget was last refilled at
     pos: float | None = None  # rev: the odometry reference (last estimate integrated, or the anchor)
@@ -69,6 +73,24 @@ class Odometry:
         vr = v + omega * self.track / 2.0
         k = 1.0 / (2.0 * math.pi * self.radius)
         return self.left.sign * vl * k, self.right.sign * vr * k
+
+    def command(self, w: Wheel, rate: float, at: float) -> None:
+        """Input_Vel ``rate`` (rev/s) sent to wheel ``w`` at ``at`` (the stamps' time base)."""
+        w.commanded = rate
+        w.history.append((at, abs(rate)))
+        while len(w.history) > 1 and w.history[1][0] < at - COMMAND_MEMORY_S:
+            del w.history[0]  # keep the one command still in force at the memory's start
+
+    def _rate_in_force(self, w: Wheel, t0: float, t1: float) -> float:
+        """The largest |Input_Vel| the wheel was told to turn at between ``t0`` and ``t1`` (the one in force at
+        ``t0`` and any sent since, up to ``t1``); the current command where there is no history."""
+        top, before = abs(w.commanded) if not w.history else 0.0, None
+        for at, rate in w.history:
+            if at <= t0:
+                before = rate
+            elif at <= t1:
+                top = max(top, rate)
+        return top if before is None else max(top, before)
 
     def estimate(self, w: Wheel, pos: float, vel: float, stamp: float) -> Step:
         """One wheel's encoder estimate (rev, rev/s) received at ``stamp``."""
@@ -127,9 +149,11 @@ class Odometry:
 
     def _spend(self, w: Wheel, dp: float, stamp: float) -> bool:
         """Whether the wheel may have moved ``dp`` rev by ``stamp``: its travel budget refills at the fastest it can
-        turn (twice the commanded rate plus :data:`COMMAND_SLACK_REV_S`, at most ``max_wheel_speed``) and holds at
+        turn (twice the rate it was told over the interval, plus :data:`COMMAND_SLACK_REV_S`, at most
+        ``max_wheel_speed``; a replaced command still counts for :data:`BURST_S`, the wheel's response) and holds at
         most :data:`BURST_S` of it, so neither a stream of small steps nor a wheel told to stand still runs away."""
-        rate = min(self.max_wheel_speed, 2.0 * abs(w.commanded) + COMMAND_SLACK_REV_S)
+        since = stamp - BURST_S if w.budget_at is None else min(w.budget_at, stamp) - BURST_S
+        rate = min(self.max_wheel_speed, 2.0 * self._rate_in_force(w, since, stamp) + COMMAND_SLACK_REV_S)
         if w.budget_at is not None:  # a gap between frames allows the gap's worth; a steady stream, BURST_S's
             gap = max(0.0, stamp - w.budget_at)
             w.budget = min(rate * max(BURST_S, gap), w.budget + rate * gap)
