@@ -121,7 +121,8 @@ def _ask_memory_reports(procs: dict[str, Any], names: tuple[str, ...]) -> None:
 
 
 def _memory_reports(workdir: Path, names: tuple[str, ...]) -> dict[str, list[dict]]:
-    out: dict[str, list[dict]] = {}
+    """Every traced node's reports so far (an empty list for one that wrote none: it never answered)."""
+    out: dict[str, list[dict]] = {name: [] for name in names}
     for name in names:
         with contextlib.suppress(OSError):
             out[name] = [json.loads(line) for line in (workdir / f"memory-{name}.jsonl").read_text().splitlines()]
@@ -172,20 +173,26 @@ def soak(minutes: float, link: str, workdir: Path, sample_s: float = 10.0, warmu
                 break  # both up, and the station is driving
             time.sleep(0.2)
         startup = round(time.monotonic() - (t_up - startup_timeout), 1)
+        st = watch.get("station")
+        up = st is not None and watch.get("driver") is not None
+        if not up:  # a node that has not spoken may not have its SIGUSR1 handler yet: the signal would kill it
+            traced_up: tuple[str, ...] = ()
+        else:
+            traced_up = traced
         first = {n: _status_dict(watch.get(n)) for n in ("station", "driver")}
         pub = session.declare_publisher(keys.mission)
         t0 = time.monotonic()
         t_sample = t0
         lap, lap_t0, published_missions = 0, t0, None
         warm = min(warmup_s, 0.5 * seconds)
-        baseline_due = t0 + warm if traced else math.inf
+        baseline_due = t0 + warm if traced_up else math.inf
         while time.monotonic() - t0 < seconds:
             now = time.monotonic()
             if kids.any_exited():
                 alive = False
                 break
             if now >= baseline_due:  # the heap after warm-up is the baseline the last report compares with
-                _ask_memory_reports(procs, traced)
+                _ask_memory_reports(procs, traced_up)
                 baseline_due = math.inf
             if now >= t_sample:
                 times.append(round(now - t0, 1))
@@ -207,8 +214,8 @@ def soak(minutes: float, link: str, workdir: Path, sample_s: float = 10.0, warmu
         elapsed = time.monotonic() - t0
         last = {n: watch.get(n) for n in ("station", "driver")}
         pub.undeclare()
-        if traced and alive:
-            _ask_memory_reports(procs, traced)
+        if traced_up and alive:
+            _ask_memory_reports(procs, traced_up)
             t_end = time.monotonic() + 120.0  # a snapshot of a large traced heap takes a while
             while time.monotonic() < t_end and any(len(r) < 2 for r in _memory_reports(workdir, traced).values()):
                 time.sleep(0.5)
@@ -240,7 +247,7 @@ def soak(minutes: float, link: str, workdir: Path, sample_s: float = 10.0, warmu
                         "scm/<robot>/mission when the station reports the goal reached; processes not restarted"},
         "times_s": times, "rss": rss, "missed_deadlines": missed,
         "last_status": {n: _status_dict(last[n]) for n in ("station", "driver")},
-        "processes_alive": alive, "exit_codes": exits, "log_errors": crashes,
+        "processes_alive": alive, "exit_codes": exits, "log_errors": crashes, "nodes_up": up,
         **({"memory_reports": _memory_reports(workdir, traced)} if traced else {}),
     }
 
