@@ -16,6 +16,7 @@ and stop by the hundred, use it; the compiled path has its own tests).
 from __future__ import annotations
 
 import contextlib
+import functools
 import hashlib
 import logging
 import os
@@ -53,7 +54,9 @@ def c_compiler() -> str | None:
     return None
 
 
+@functools.lru_cache(maxsize=4)
 def _compiler_id(cc: str) -> str:
+    """The compiler's version line (part of the library's name): asked once per process, not per MPC built."""
     try:
         out = subprocess.run([cc, "--version"], capture_output=True, text=True, timeout=30).stdout
     except (OSError, subprocess.SubprocessError):

@@ -75,6 +75,10 @@ class Inbox:
         return out
 
 
+#: how often a many-robot station hands the GIL over, s (Python's default is 5 ms; see run_fleet)
+FLEET_SWITCH_INTERVAL_S = 0.0005
+
+
 class KernelBuild:
     """The MPC's compiled code, built in a background thread (:mod:`bridge.core.codegen`: once per machine, then
     loaded from the cache in milliseconds) while the stations already run the same functions interpreted; each loop
@@ -373,7 +377,7 @@ def run_fleet(cfg: StationConfig, robots: list[str], rate: float, args: argparse
 
     # many loops share one interpreter: hand the GIL over every 0.5 ms (Python's default is 5 ms), so a tick that is
     # due never waits behind another robot's long computation for more than that
-    sys.setswitchinterval(float(os.environ.get("SCMBRIDGE_SWITCH_INTERVAL", "0.0005")))
+    sys.setswitchinterval(FLEET_SWITCH_INTERVAL_S)
     stations: dict[str, Station] = {}
     for robot in robots:
         try:

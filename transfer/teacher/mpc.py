@@ -308,7 +308,6 @@ class _Rti:
         self.cfg, self.nz = cfg, 2 * N + 1
         self.functions = list(_build_rti(cfg))
         compiled = compiler(self.functions) if compiler is not None else None
-        self.compiled = False
         self._bind(compiled or self.functions)
         self.compiled = compiled is not None
         plugin = cfg.solver.split("-", 1)[1]
@@ -335,12 +334,11 @@ class _Rti:
         self.r, self.c, self.lo, self.hi = (self.lin.res[i] for i in (0, 2, 4, 5))
         self.JrT = self.lin.res[1].reshape(nz, nr)  # Jr transposed, contiguous: BLAS reads it as it is
         self.AT = self.lin.res[3].reshape(nz, m)
-        if hasattr(self, "qp"):
-            self._bind_qp()
 
     def use(self, functions: Sequence[ca.Function]) -> None:
         """Switch to compiled equivalents of :attr:`functions` (between two solves)."""
         self._bind(functions)
+        self._bind_qp()  # the QP reads the new linearisation's buffers
         self.compiled = True
 
     def _bind_qp(self) -> None:
