@@ -4,7 +4,7 @@ A real driver drives an emulated learner (the MAVLink rover over UDP on 127.0.0.
 python-can ``virtual`` channel, or the UDP shim's robot on 127.0.0.1) as the driver host does: a tick every 20 ms
 (poll, then send), a new random command every ``--command-period`` s (the station's 10 Hz), each send echoed as the
 host's ``applied`` stamp. The poses and echoes go through the station's
-:class:`bridge.nodes.pairing.IntervalPairer`, and
+:class:`bridge.nodes.pairing.Reorder` and :class:`bridge.nodes.pairing.IntervalPairer`, and
 each pair is compared with the learner's true response to its command (``LearnerModel.response``: what a perfect
 pairing would measure).
 
@@ -74,7 +74,7 @@ LINKS = {"mavlink": _mavlink, "can": _can, "udp": _udp}
 def measure(link: str, seconds: float, seed: int = 0, command_period: float = 0.1, pair_dt: float = 0.1,
         min_span: float | None = None) -> dict:
     """Drive ``seconds`` of random commands through ``link`` and judge the pairs (see the module docstring)."""
-    from bridge.nodes.pairing import IntervalPairer
+    from bridge.nodes.pairing import IntervalPairer, Reorder
     from sim_learner.dynamics import mpc_learner
     from sim_learner.vehicle import SimVehicle
 
@@ -101,14 +101,16 @@ def measure(link: str, seconds: float, seed: int = 0, command_period: float = 0.
             t_next += TICK
             time.sleep(max(0.0, t_next - time.monotonic()))
     # as the station takes them: what reached it by each 10 Hz tick (the driver host publishes poses when it polls
-    # them, echoes when it sends), sorted by stamp within the tick
-    pairer = IntervalPairer(pair_dt, min_span)
+    # them, echoes when it sends), through the station's reorder buffer
+    pairer, reorder = IntervalPairer(pair_dt, min_span), Reorder()
     pairs = []
-    ticks: dict[int, list[tuple[float, int, Any]]] = {}
+    ticks: dict[int, list[tuple[float, int, Any, float]]] = {}
     for stamp, kind, e, published in events:
-        ticks.setdefault(int((published - t0) / STATION_TICK) + 1, []).append((stamp, kind, e))
-    for n in sorted(ticks):
-        for t, kind, e in sorted(ticks[n], key=lambda e: (e[0], e[1])):
+        ticks.setdefault(int((published - t0) / STATION_TICK) + 1, []).append((stamp, kind, e, published))
+    for n in range(1, max(ticks, default=0) + 1 + int(reorder.window / STATION_TICK) + 1):
+        for stamp, kind, e, published in ticks.get(n, []):
+            reorder.push(stamp, kind, published, (stamp, kind, e))
+        for t, kind, e in reorder.ready(t0 + n * STATION_TICK):
             out = pairer.applied(t, e[0], e[1], "cmd") if kind == 0 else pairer.state(t, e)
             if out is not None:
                 pairs.append(out)

@@ -118,19 +118,20 @@ class DiffDriveEcus(ThreadedDevice):
         self.received: list[tuple[float, int, int, bytes]] = []  # (time, node, cmd_id, data), the last 1000
         self._lock = threading.RLock()
         self.bus: can.BusABC | None = None
+        self._t_enc = self._t_hb = 0.0  # when the next encoder estimates and Heartbeat are due
 
     def _open(self) -> None:
         self.bus = can.Bus(**self.bus_kwargs)
 
     def _close(self) -> None:
-        if self.bus is not None:
-            self.bus.shutdown()
-            self.bus = None
+        with self._lock:
+            if self.bus is not None:
+                self.bus.shutdown()
+                self.bus = None
 
     # ------------------------------------------------------------------------------------------------ loop
     def _run(self) -> None:
         assert self.bus is not None
-        t_enc = t_hb = self.clock()
         while not self._stop.is_set():
             frame = self.bus.recv(timeout=0.002)
             with self._lock:
@@ -143,15 +144,29 @@ class DiffDriveEcus(ThreadedDevice):
                     handled += 1
                     frame = self.bus.recv(timeout=0.0) if handled < 1000 else None
                 self._watchdog(now)
-                if now >= t_enc:
-                    self._integrate(now)
-                    for ax in self.axes.values():
-                        self._send_encoder(ax)
-                    t_enc = now + self.encoder_period
-                if now >= t_hb:
-                    for ax in self.axes.values():
-                        self._send(ax, HEARTBEAT, struct.pack("<IBBBx", ax.error, ax.state, ax.procedure_result, 1))
-                    t_hb = now + self.heartbeat_period
+                self.emit_due()
+
+    def emit_due(self) -> None:
+        """Send the encoder estimates and Heartbeats that are due now.
+
+        A real controller runs on its own hardware; these run on a thread of whatever process hosts them. A driver
+        host that emulates them in its own process (``--emulate``) also calls this before it reads the bus, so a
+        thread the interpreter did not schedule for a while cannot make the controllers fall silent where the real
+        device would have spoken on time. (Frames and the watchdog stay with the controllers' own thread: they are
+        handled in the bus's order.)"""
+        with self._lock:
+            if self.bus is None:
+                return
+            now = self.clock()
+            if now >= self._t_enc:
+                self._integrate(now)
+                for ax in self.axes.values():
+                    self._send_encoder(ax)
+                self._t_enc = now + self.encoder_period
+            if now >= self._t_hb:
+                for ax in self.axes.values():
+                    self._send(ax, HEARTBEAT, struct.pack("<IBBBx", ax.error, ax.state, ax.procedure_result, 1))
+                self._t_hb = now + self.heartbeat_period
 
     def _handle(self, frame: can.Message, now: float) -> None:
         if frame.is_error_frame or frame.is_extended_id:

@@ -401,6 +401,26 @@ def test_a_lost_heartbeat_stops_the_base_and_names_the_node(rig: Rig) -> None:
     _cleared_and_driving(rig)
 
 
+def test_controllers_emulated_in_the_hosts_process_speak_on_time_though_their_thread_is_starved(rig: Rig) -> None:
+    """Finding (the fleet demo beside two busy loops): the controllers emulated inside a driver host (``--emulate``)
+    ran on a thread the loaded interpreter did not schedule for 0.9 s; their Heartbeats stopped where real
+    controllers' would not, and the station rightly paused that robot for a lost link. The host now lets them send
+    what is due before each read of the bus (``DriverHost.co_located``)."""
+    rig.run(0.4, 0.3, 0.0)
+    rig.ecus._stop.set()  # the controllers' own thread is never scheduled again (their bus stays open)
+    rig.ecus._thread.join(timeout=2.0)
+    t_end = time.monotonic() + 1.0  # > 3 heartbeat_timeout
+    while time.monotonic() < t_end:
+        now = time.monotonic()
+        rig.ecus.emit_due()  # what the driver host does before it polls
+        rig.driver.send(0.3, 0.0, now)
+        rig.driver.poll(now, block=0.02)
+    h = health(rig.driver)
+    assert h.ok and h.detail.counters.heartbeat_losses == 0, h.text
+    rig.run(0.6, 0.3, 0.0)  # without it, as before: the link is lost
+    assert health(rig.driver).detail.counters.heartbeat_losses >= 1
+
+
 # ------------------------------------------------------------------------------------------ bus failures
 def test_a_failed_bus_is_reported_and_reopened_with_bounded_backoff(rig: Rig, monkeypatch) -> None:
     d = rig.driver

@@ -18,7 +18,8 @@ that lets the link clear its controllers' latched faults. All stamps are this ho
 station pairs ``applied`` with ``state`` without any clock synchronisation.
 
 ``--emulate`` (CAN only) hosts the emulated motor controllers on the same python-can ``virtual`` channel inside
-this process: the wire between driver and controllers is python-can, not a shortcut.
+this process: the wire between driver and controllers is python-can, not a shortcut. The host lets them send what
+is due before each read of the bus, as controllers on their own hardware would have.
 """
 
 from __future__ import annotations
@@ -30,6 +31,7 @@ import threading
 import time
 from collections import deque
 from pathlib import Path
+from typing import Any
 
 import msgspec
 import numpy as np
@@ -121,6 +123,8 @@ class DriverHost:
         self.dry_run = dry_run
         self.engaged = False  # a person engaged the vehicle since this host started
         self.engage_on_start = d.engage_on_start
+        #: emulated devices hosted in this process (``--emulate``): each ``emit_due()`` runs before the link is read
+        self.co_located: list[Any] = []
         self.operator_engages = bool(getattr(driver, "operator_engages", False))
         self.engage_queries: list[tuple[zenoh.Query, M.EngageRequest]] = []  # answered by the loop thread
         self.stop_speed, self.stop_timeout, self.max_drive_on = d.stop_speed, d.stop_timeout, d.max_drive_on_s
@@ -300,6 +304,8 @@ class DriverHost:
     def poses(self, now: float) -> list[M.LearnerState]:
         """This tick's poses: the link's telemetry, or the motion-capture samples (the link is polled either way:
         its frames carry the vehicle's health)."""
+        for device in self.co_located:
+            device.emit_due()
         link = self.driver.poll(now)
         if self.pose_source == "mocap":
             with self.lock:
@@ -517,6 +523,8 @@ def run(args: argparse.Namespace) -> int:
     host.engage_on_start = host.engage_on_start or args.engage
     stop = stop_on_signals()
     ecus = _emulated_ecus(link_cfg, args.model, args.x0) if args.emulate else None
+    if ecus is not None:
+        host.co_located.append(ecus)
     try:
         with open_session(zenoh_config(args), wait=stop, what="driver host") as session:
             host.serve(session, stop, args.duration)

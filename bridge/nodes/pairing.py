@@ -24,7 +24,10 @@ teacher part lies outside ``teacher_bounds`` (symmetric, times ``margin``) is ne
 
 from __future__ import annotations
 
+import heapq
+import itertools
 import math
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -38,6 +41,45 @@ Pair = tuple[NDArray[np.float64], NDArray[np.float64]]
 RESYNC_AFTER = 3
 #: how far an event's stamp may run ahead of its receipt, relative to the last accepted event, s
 STAMP_TOLERANCE = 0.25
+#: how long an event waits for earlier-stamped ones still on their way before it is fed to the pairer, s
+REORDER_WINDOW = 0.2
+
+
+class Reorder:
+    """Puts telemetry back in stamp order before the pairer sees it.
+
+    A pose is stamped when the vehicle measured it, an echo when the command was sent; over a real link (or a
+    loaded host) a pose measured just before a command can arrive after that command's echo. Fed as it comes, the
+    pose would be older than an event already used and the pairer would drop it (``out_of_order``). Each event is
+    held for ``window`` after its receipt; events leave in stamp order, and one never leaves while an earlier-stamped
+    event is still held, so anything that arrives less than ``window`` late takes its place. A forged stamp delays
+    the stream by at most ``window`` (it leaves when its own wait is over; the pairer judges it then). Events with
+    a non-finite stamp leave at once (the pairer counts them). Pure: times are arguments."""
+
+    def __init__(self, window: float = REORDER_WINDOW) -> None:
+        self.window = float(window)
+        self._heap: list[tuple[float, int, int, float, Any]] = []
+        self._seq = itertools.count()
+        self._now: list[Any] = []
+
+    def push(self, stamp: float, kind: int, received: float, item: Any) -> None:
+        """Hold ``item`` (stamped ``stamp``, received at ``received``); ``kind`` orders events of one stamp (echoes
+        before poses: the command is in force from its own instant)."""
+        if not math.isfinite(stamp):
+            self._now.append(item)
+        else:
+            heapq.heappush(self._heap, (stamp, kind, next(self._seq), received, item))
+
+    def ready(self, now: float) -> list[Any]:
+        """The held events that may go to the pairer at ``now``, oldest stamp first."""
+        out, self._now = self._now, []
+        heap = self._heap
+        while heap and now - heap[0][3] >= self.window:
+            out.append(heapq.heappop(heap)[4])
+        return out
+
+    def __len__(self) -> int:
+        return len(self._heap) + len(self._now)
 
 
 def _grown(b: Bounds, margin: float) -> Bounds:

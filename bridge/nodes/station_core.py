@@ -42,7 +42,7 @@ from bridge.core import wire as M
 from bridge.core.config import StationConfig
 from bridge.core.paths import save_atomic
 from bridge.nodes.mission_control import Fitness, MissionControl, spec_of
-from bridge.nodes.pairing import IntervalPairer
+from bridge.nodes.pairing import IntervalPairer, Reorder
 from bridge.nodes.sources import CalibrationSource, CommandSource, Proposal, SourceContext, Why, make_source
 from transfer.calibration import CalibrationPlan
 from transfer.domain import Bounds
@@ -211,6 +211,7 @@ class StationCore:
         self.pairer = IntervalPairer(scfg.pair_dt, max_speed=PLAUSIBLE * top_v + 0.1, max_turn=PLAUSIBLE * top_w + 0.2,
                                      command_bounds=learner, teacher_bounds=Bounds((-top_v, top_v), (-top_w, top_w)),
                                      margin=PLAUSIBLE)
+        self.reorder = Reorder()
         self.control = control or MissionControl(robot, spec_of(mission))
         self.control_path = control_path
         self.fitness = Fitness()
@@ -277,7 +278,7 @@ class StationCore:
     def tick(self, inputs: TickInputs, now: float) -> TickOutputs:
         """One tick at ``now`` (module docstring)."""
         t0 = time.monotonic()
-        self.ingest(inputs)
+        self.ingest(inputs, now)
         command, teacher = self.control_step(now)
         if not inputs.periodic:
             return TickOutputs(command, teacher)
@@ -297,13 +298,14 @@ class StationCore:
             self.t_persist = now + self.persist_every
         return TickOutputs(command, teacher, limits, status)
 
-    def ingest(self, inputs: TickInputs) -> None:
-        """Pairs from the echoes and poses that arrived (time order), the latest pose and driver status, a new
-        mission if one came."""
-        arrived = [(m.stamp, 0 if isinstance(m, M.Applied) else 1, i, m, at)
-                   for i, (m, at) in enumerate(inputs.telemetry)]
-        for _, kind, _, e, received in sorted(arrived, key=lambda e: (e[0], e[1])):
-            if kind == 0:
+    def ingest(self, inputs: TickInputs, now: float) -> None:
+        """Pairs from the echoes and poses that arrived (put back in stamp order by :class:`Reorder`, so they reach
+        the pairer ``REORDER_WINDOW`` after receipt), the latest pose and driver status, a new mission if one
+        came."""
+        for m, at in inputs.telemetry:
+            self.reorder.push(m.stamp, 0 if isinstance(m, M.Applied) else 1, at, (m, at))
+        for e, received in self.reorder.ready(now):
+            if isinstance(e, M.Applied):
                 pair = self.pairer.applied(e.stamp, e.v, e.omega, e.reason, received)
             else:
                 pair = self.pairer.state(e.stamp, np.array([e.x, e.y, e.theta]), received)
