@@ -45,15 +45,19 @@ def test_two_station_hosts_each_serve_half_the_fleet_and_one_dying_stops_only_it
         for r in robots:
             kids.spawn(["driver", "--engage", "--link", "can", "--emulate", "--x0", x0, "--robot", r, "--mode",
                         "client", "--connect", tcp(port), "--duration", "200"], out=subprocess.DEVNULL)
+        logs = {h: tmp_path / f"{h}.log" for h in shards}  # a file, not a pipe nobody reads (a full pipe blocks)
         hosts = {h: kids.spawn(["station", "--config", str(cfg), "--shard", h, "--start", "--mode", "client",
                                 "--connect", tcp(port), "--listen", tcp(free_port(), f"127.0.0.{2 + i}"),
-                                "--duration", "180"]) for i, h in enumerate(shards)}
+                                "--duration", "180"], out=logs[h].open("w")) for i, h in enumerate(shards)}
+
+        def hosts_said() -> str:
+            return "".join(f"\n--- {h} (exit {hosts[h].poll()}):\n" + logs[h].read_text()[-1500:] for h in shards)
 
         def driving(rs: list[str]) -> bool:
             return all(station[r] and station[r][-1].text == "driving" for r in rs)
 
-        assert col.wait(lambda: driving(robots), 120), {r: station[r][-1].text if station[r] else None
-                                                        for r in robots}
+        assert col.wait(lambda: driving(robots), 120), (
+            str({r: station[r][-1].text if station[r] else None for r in robots}) + hosts_said())
         every = _cli(port, "status", "--all")
         assert every.returncode == 0, every.stderr
         rows = {tuple(line.split()[:3]) for line in every.stdout.splitlines() if line.strip()}
