@@ -295,6 +295,53 @@ def test_crowded_prevertices_are_refused_by_name() -> None:
         RectangleMap(v)
 
 
+#: a quadrilateral of learned pairs along the learner's top speed (normalised), from a station's learning run
+SLIVER = [0.4545 + 0.5464j, 0.45452 + 0.6667j, 0.4543 + 0.6304j, 0.4545 + 0.5744j]
+
+
+def test_a_sliver_quadrilateral_is_refused_after_a_bounded_search(monkeypatch) -> None:
+    """Finding (``bench fleet`` profiled): pairs learned along a limit of the command box made quadrilaterals whose
+    corners are almost collinear; Newton failed on them and the multi-start fallback took 0.1-1.4 s each, inside
+    a station's tick. A quadrilateral now has one bracketed solve after Newton."""
+    calls = {"n": 0}
+    real = kern.side_integrals
+
+    def counted(*a):
+        calls["n"] += 1
+        return real(*a)
+
+    monkeypatch.setattr(kern, "side_integrals", counted)
+    with pytest.raises(ValueError, match="too thin"):
+        RectangleMap(SLIVER)
+    assert calls["n"] <= 2000  # Newton's damped steps and one Brent search (the multi-start took many thousands)
+
+
+def test_the_sc_mapper_never_builds_on_a_sliver(monkeypatch) -> None:
+    """Three pairs almost on one line and one away: the thin triangle's neighbours only make slivers; a command
+    inside it gets no SC region (the policy falls back) and no SC problem is attempted."""
+    import transfer.mappers as TM
+    from transfer.domain import Bounds
+    from transfer.store import PairStore
+
+    b = Bounds((-1.0, 1.0), (-1.0, 1.0))
+    store = PairStore(b, b, k_min=1)
+    for t in ([0.2, 0.1], [0.2, 0.9], [0.2004, 0.5], [0.9, 0.5]):
+        store.add(np.array(t), np.array(t))
+
+    def thin_triangle_query(m: TM.ScmMapper) -> np.ndarray:
+        m._sync()
+        assert m.tri is not None
+        s = min(range(len(m.tri.simplices)), key=lambda k: TM._min_angle(m.T[m.tri.simplices[k]]))
+        return m.T[m.tri.simplices[s]].mean(axis=0)
+
+    m = TM.ScmMapper(store)
+    assert m.map_normalised(thin_triangle_query(m)) is None and m.builds == 0
+    monkeypatch.setattr(TM, "MIN_QUAD_ANGLE", 0.0)  # what it did: tried the slivers
+    m = TM.ScmMapper(store)
+    m.map_normalised(thin_triangle_query(m))
+    assert m.builds >= 1
+
+
 def test_points_outside_are_reported_not_mapped() -> None:
     f = RectangleMap([0, 2, 2 + 1j, 1j])
     with pytest.raises(ValueError, match="outside the polygon"):

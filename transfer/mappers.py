@@ -5,8 +5,10 @@ and share one interface, so the SC map can be compared honestly with simpler alt
 
 - :class:`ScmMapper`: the paper's method. Delaunay triangulation of the refined pairs' teacher parts; the triangle
   holding u_T joined with one neighbour gives the teacher quadrilateral, the same pairs the learner
-  quadrilateral; both must be simple and counter-clockwise; among the valid neighbours the one whose two
-  quadrilaterals have the largest smallest interior angle wins (the best-conditioned SC problem). The
+  quadrilateral; both must be simple and counter-clockwise with no interior angle under ``MIN_QUAD_ANGLE`` (a
+  sliver whose corners are almost collinear, as pairs learned along a limit of the command box make, has no
+  accurate SC map and is not tried); among the valid neighbours the one whose two quadrilaterals have the largest
+  smallest interior angle wins (the best-conditioned SC problem). The
   ``QuadTransfer`` of a triangle is cached and rebuilt when one of its pairs changes version.
 - :class:`BarycentricMapper`: piecewise-linear interpolation on the same triangles.
 - :class:`AffineMapper`: one least-squares affine map fitted on all refined pairs (used on the same region).
@@ -30,6 +32,8 @@ from transfer.scm import QuadTransfer, is_simple_ccw
 from transfer.store import PairStore
 
 Region = tuple[int, ...]
+#: the smallest interior angle of a quadrilateral the SC mapper builds a map on, radians (1 degree)
+MIN_QUAD_ANGLE = float(np.radians(1.0))
 
 
 class Mapper(Protocol):
@@ -149,6 +153,8 @@ class ScmMapper(_Triangulated):
             if not (is_simple_ccw(qt) and is_simple_ccw(ql)):
                 continue
             score = min(_min_angle(qt), _min_angle(ql))
+            if score < MIN_QUAD_ANGLE:
+                continue
             key = tuple((int(self.ids[v]), int(self.vers[v])) for v in quad)
             scored.append((score, quad, key))
         scored.sort(key=lambda e: -e[0])

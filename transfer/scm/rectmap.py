@@ -239,6 +239,7 @@ class RectangleMap:
                 y, F = yn, Fn
             if math.isfinite(F) and abs(F) < 1e3 * target:
                 return np.array([y])
+            return self._solve_bracketed(residual, float(y0[0]), 1e3 * target)
         best, best_err = y0, np.inf
         L0 = math.exp(y0[0])
         # the guess's L0 comes from the polygon's side lengths, which a reflex corner can make far off: retry from
@@ -268,6 +269,34 @@ class RectangleMap:
             raise ValueError(f"SC prevertices crowd (separation {sep:.1e}): polygon too elongated between its "
                              f"corners for an accurate rectangle map (parameter residual {best_err:.1e})")
         raise ValueError(f"SC parameter problem did not converge (residual {best_err:.1e})")
+
+    @staticmethod
+    def _solve_bracketed(residual, y0: float, accept: float) -> NDArray[np.float64]:
+        """The quadrilateral's one unknown (log L) when Newton did not converge: a sign change of the residual
+        searched outwards from the guess, then Brent's method on it. A few dozen residual evaluations either way, so
+        a region that has no accurate map (a sliver whose corners are almost collinear) is refused at once instead
+        of after a multi-start search."""
+
+        def f(y: float) -> float:
+            F = float(residual(np.array([y]))[0])
+            return F if math.isfinite(F) else math.nan
+
+        lo = hi = y0
+        f_lo = f_hi = f(y0)
+        for step in (0.25, 0.5, 1.0, 2.0, 4.0, 8.0):
+            if math.isfinite(f_lo) and math.isfinite(f_hi) and f_lo * f_hi <= 0.0:
+                break
+            lo, hi = y0 - step, y0 + step
+            f_lo, f_hi = f(lo), f(hi)
+        if math.isfinite(f_lo) and math.isfinite(f_hi) and f_lo * f_hi <= 0.0:
+            y = float(scipy.optimize.brentq(f, lo, hi, xtol=1e-15, rtol=4 * np.finfo(float).eps, maxiter=200))
+            F = f(y)
+            if math.isfinite(F) and abs(F) < accept:
+                return np.array([y])
+            raise ValueError(f"SC parameter problem did not converge (residual {F:.1e}): the quadrilateral is too "
+                             "thin for an accurate rectangle map")
+        raise ValueError("SC parameter problem has no solution near the guess: the quadrilateral is too thin for an "
+                         "accurate rectangle map")
 
     def _args(self) -> tuple:
         return (
