@@ -107,4 +107,4 @@ def test_the_motion_primitive_teacher_drives_from_calibrated_pairs(tmp_path) -> 
             with lock:
                 last = states[-1]
             progress = max(progress, mission.progress([last.x, last.y]))
-    assert progress >= 0.15, f"the primitive teacher covered only {progress:.0%} of the path"
+        assert progress >= 0.15, f"the primitive teacher covered only {progress:.0%} of the path" + kids.said()

@@ -7,6 +7,7 @@ from __future__ import annotations
 import json
 import os
 import struct
+import subprocess
 import time
 
 import pytest
@@ -32,7 +33,7 @@ def test_a_foxglove_client_sees_pose_scene_commands_and_health_live(tmp_path) ->
     zport, robot = free_port(), f"lv{os.getpid()}"
     with open_session(make_config(mode="router", listen=[tcp(zport)])) as session:
         view = spawn(["view", "--robot", robot, "--port", "0", "--mode", "client", "--connect", tcp(zport),
-                      "--duration", "60"])
+                      "--duration", "60"], subprocess.PIPE)
         try:
             port = _port(view)
             with websockets.connect(f"ws://127.0.0.1:{port}", subprotocols=["foxglove.sdk.v1"],

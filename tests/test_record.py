@@ -75,7 +75,7 @@ def wait_line(proc: subprocess.Popen, pattern: str, timeout: float = 30.0) -> st
 
 
 def start_recorder(kids: Children, port: int, out: Path, *extra: str) -> subprocess.Popen:
-    proc = kids.spawn(["record", "--all", "--out", str(out), *client_args(port), *extra])
+    proc = kids.spawn(["record", "--all", "--out", str(out), *client_args(port), *extra], subprocess.PIPE)
     wait_line(proc, r"^recording scm/")
     return proc
 
@@ -307,7 +307,7 @@ def test_replay_publishes_every_message_in_order(recorded: dict, with_commands: 
     with router() as (session, port), Children() as kids:
         session.declare_subscriber("scm/**", lambda s: got.append((str(s.key_expr), s.payload.to_bytes())))
         args = ["replay", str(recorded["out"]), "--fast", *client_args(port)]
-        proc = kids.spawn(args + (["--with-commands"] if with_commands else []))
+        proc = kids.spawn(args + (["--with-commands"] if with_commands else []), subprocess.PIPE)
         line = wait_line(proc, r"^replayed ", timeout=60)
         assert proc.wait(timeout=30) == 0
         time.sleep(0.2)
@@ -322,7 +322,7 @@ def test_replay_keeps_the_recorded_pace_and_renames(recorded: dict) -> None:
     with router() as (session, port), Children() as kids:
         session.declare_subscriber("scm/**", lambda s: got.append((time.monotonic(), str(s.key_expr))))
         proc = kids.spawn(["replay", str(recorded["out"]), "--speed", "2", "--robot-rename", f"{ROBOT}=copy",
-                           *client_args(port)])
+                           *client_args(port)], subprocess.PIPE)
         wait_line(proc, r"^replayed ", timeout=60)
         proc.wait(timeout=30)
     took = got[-1][0] - got[0][0]
@@ -442,7 +442,7 @@ def test_a_recorded_demo_reports_the_live_demos_figures(tmp_path: Path) -> None:
     and holds them (SIGSTOP) until the recorder is subscribed so it misses nothing of the run."""
     demo_out, out = tmp_path / "demo", tmp_path / "demo.mcap"
     with Children() as kids:
-        demo = kids.spawn(["demo", "--out", str(demo_out), "--duration", "150"])
+        demo = kids.spawn(["demo", "--out", str(demo_out), "--duration", "150"], subprocess.PIPE)
         held: dict[int, list[str]] = {}
         port = None
         t_end = time.monotonic() + 60

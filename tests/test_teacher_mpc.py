@@ -131,17 +131,19 @@ def test_an_unknown_solver_is_refused() -> None:
 
 
 def test_the_compiled_references_are_the_polylines_own_samples() -> None:
-    """The MPC's references come from one numba loop (transfer/teacher/_refs.py), a twin of Polyline.project_numpy
-    and Polyline.at: it must give the same closest point (so must Polyline.project, the same loop) and samples,
-    headings unwrapped next to the vehicle's."""
+    """The MPC's references come from one numba loop (transfer/teacher/_refs.py), a twin of Polyline.project and
+    Polyline.at: it must give the same closest point and samples, headings unwrapped next to the vehicle's."""
+    from transfer.teacher._refs import closest
+
     world = mpc_world()
     mpc = MpcTeacher(MpcConfig(N=20))
     rng = np.random.default_rng(3)
     for _ in range(300):
         state = np.r_[rng.uniform(-1.0, 9.0, 2), rng.uniform(-20.0, 20.0)]
         v = rng.uniform(0.0, 1.0)
-        s0, d0 = world.path.project_numpy(state[:2])
-        assert world.path.project(state[:2]) == pytest.approx((s0, d0), abs=1e-12)  # the compiled closest point
+        s0, d0 = world.path.project(state[:2])
+        p = world.path  # the compiled closest point (the station's progress) is project's
+        assert closest(p.points, p.s, p.seg_len, *state[:2]) == pytest.approx((s0, d0), abs=1e-12)
         want = world.path.at(s0 + v * 0.1 * np.arange(21))
         rel = np.unwrap(want[:, 2] - state[2])
         want[:, 2] = state[2] + rel - 2 * math.pi * np.round(rel[0] / (2 * math.pi))

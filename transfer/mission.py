@@ -57,8 +57,12 @@ class Mission:
         """The one goal rule: at least ``GOAL_MIN_PROGRESS`` of the path covered and within the goal tolerance of
         the goal. (Passing the path's end is not enough: a vehicle 3 m beside the last waypoint is not there.)"""
         xy = np.asarray(x, dtype=float)[:2]
-        s, _ = self.path.project(xy)
-        return s >= GOAL_MIN_PROGRESS * self.path.length and float(np.hypot(*(xy - self.goal))) < self.goal_tolerance
+        return self.reached_at(self.path.project(xy)[0], xy)
+
+    def reached_at(self, s: float, xy: ArrayLike) -> bool:
+        """:meth:`reached` for a point ``xy`` whose closest point on the path is at arc length ``s``."""
+        p = np.asarray(xy, dtype=float)[:2]
+        return s >= GOAL_MIN_PROGRESS * self.path.length and float(np.hypot(*(p - self.goal))) < self.goal_tolerance
 
     def collides(self, xy: ArrayLike, radius: float = 0.0) -> bool:
         """Does a disc of ``radius`` at ``xy`` touch an obstacle?"""

@@ -50,6 +50,7 @@ from transfer.mission import Mission
 from transfer.policy import make_policy
 from transfer.step import TransferStep
 from transfer.store import PairStore
+from transfer.teacher._refs import closest
 
 log = logging.getLogger("scmbridge.station")
 
@@ -344,8 +345,10 @@ class StationCore:
         self.fitness = Fitness(fit, estop, immediate=not late)
         c = self.control
         if self.source.follows_mission and not fit and c.phase == "running":
-            c.progress = max(c.progress, self.mission.progress([state.x, state.y]))
-            if self.mission.reached([state.x, state.y]):
+            path = self.mission.path  # the closest point in one compiled loop: a mission path has thousands of segments
+            s, _ = closest(path.points, path.s, path.seg_len, state.x, state.y)
+            c.progress = max(c.progress, s / path.length)
+            if self.mission.reached_at(s, [state.x, state.y]):
                 c.reached()
         command = teacher = None
         why = "" if c.may_drive(self.fitness, now) else self.not_driving(fit)

@@ -7,6 +7,7 @@ import signal
 import socket
 import subprocess
 import sys
+import tempfile
 from pathlib import Path
 from typing import Any
 
@@ -32,11 +33,30 @@ def stop_group(proc: subprocess.Popen, term_timeout: float = 10.0) -> None:
         proc.wait(timeout=5)
 
 
-def spawn(args: list[str], out: Any = subprocess.PIPE, **kwargs: Any) -> subprocess.Popen:
+#: ``out`` of :func:`spawn`: the child's output goes to an anonymous temporary file, read back with :func:`said`
+LOG = "log"
+
+
+def spawn(args: list[str], out: Any = LOG, **kwargs: Any) -> subprocess.Popen:
     """``scmbridge ARGS...`` as a child in its own process group (so :func:`stop_group` takes all of it), with
-    stdout and stderr together into ``out`` (a pipe, a file, or ``subprocess.DEVNULL``)."""
-    return subprocess.Popen([sys.executable, "-m", "bridge", *args], stdout=out, stderr=subprocess.STDOUT,
-                            start_new_session=True, **kwargs)
+    stdout and stderr together into ``out``: :data:`LOG` (the default), a temporary file that never fills, read
+    with :func:`said`; a file; ``subprocess.DEVNULL``; or ``subprocess.PIPE`` for a caller that reads as the child
+    writes (a pipe nobody reads blocks a chatty child once it holds 64 KB)."""
+    log = tempfile.TemporaryFile() if isinstance(out, str) and out == LOG else None  # noqa: SIM115 (closed by Children)
+    proc = subprocess.Popen([sys.executable, "-m", "bridge", *args], stdout=log if log is not None else out,
+                            stderr=subprocess.STDOUT, start_new_session=True, **kwargs)
+    proc.log = log  # type: ignore[attr-defined]
+    return proc
+
+
+def said(proc: subprocess.Popen, tail: int = 3000) -> str:
+    """The last ``tail`` characters a child spawned with :data:`LOG` wrote (empty for any other ``out``)."""
+    log = getattr(proc, "log", None)
+    if log is None or log.closed:
+        return ""
+    log.seek(0, os.SEEK_END)
+    log.seek(max(0, log.tell() - 4 * tail))
+    return log.read().decode(errors="replace")[-tail:]
 
 
 class Children:
@@ -45,10 +65,16 @@ class Children:
     def __init__(self) -> None:
         self.procs: list[subprocess.Popen] = []
 
-    def spawn(self, args: list[str], out: Any = subprocess.PIPE, **kwargs: Any) -> subprocess.Popen:
+    def spawn(self, args: list[str], out: Any = LOG, **kwargs: Any) -> subprocess.Popen:
         proc = spawn(args, out, **kwargs)
         self.procs.append(proc)
         return proc
+
+    def said(self) -> str:
+        """What every child spawned with :data:`LOG` said last, each under its command line (for a failure's
+        message)."""
+        return "".join(f"\n--- {' '.join(p.args[3:6])} ... (exit {p.poll()}):\n{said(p, 1500)}" for p in self.procs
+                       if getattr(p, "log", None) is not None)
 
     def any_exited(self) -> bool:
         return any(p.poll() is not None for p in self.procs)
@@ -59,6 +85,9 @@ class Children:
     def __exit__(self, *exc: object) -> None:
         for p in reversed(self.procs):
             stop_group(p)
+        for p in self.procs:
+            if getattr(p, "log", None) is not None:
+                p.log.close()
 
 
 def free_udp_port(host: str = "127.0.0.1") -> int:

@@ -1,5 +1,5 @@
 """The closest point of a polyline and the MPC's references along it, in compiled loops (numba, cached on disk):
-the same closest point as :meth:`transfer.teacher.path.Polyline.project_numpy`, the same samples as
+the same closest point as :meth:`transfer.teacher.path.Polyline.project`, the same samples as
 :meth:`~transfer.teacher.path.Polyline.at`, headings unwrapped next to the vehicle's. A few microseconds, where the
 numpy calls took tens per tick."""
 

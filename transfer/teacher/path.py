@@ -26,16 +26,7 @@ class Polyline:
         self._len2 = np.maximum(self.seg_len**2, 1e-18)
 
     def project(self, xy: NDArray[np.float64]) -> tuple[float, float]:
-        """(arc length of the closest point, distance to the path); one compiled loop over the segments (a mission
-        path has thousands, and a station asks every tick)."""
-        from transfer.teacher._refs import closest
-
-        p = np.asarray(xy, dtype=float).reshape(-1)
-        s, d = closest(self.points, self.s, self.seg_len, float(p[0]), float(p[1]))
-        return float(s), float(d)
-
-    def project_numpy(self, xy: NDArray[np.float64]) -> tuple[float, float]:
-        """:meth:`project` in numpy (the reference the compiled loop is tested against)."""
+        """(arc length of the closest point, distance to the path)."""
         a, d = self.points[:-1], self._seg
         t = np.clip(((xy - a) * d).sum(axis=1) / self._len2, 0.0, 1.0)
         e = a + t[:, None] * d - xy
