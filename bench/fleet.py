@@ -343,6 +343,8 @@ def run_level(n: int, seconds: float, warmup: float, mission: Path, workdir: Pat
         if up < n:
             res["failed"] = f"{up} of {n} stations driving after {res['startup_s']} s" + (
                 "; a process exited" if kids.any_exited() else "")
+            res["exited"] = {name: p.returncode for name, p in {"sim": sim, **stations}.items()
+                             if p.poll() is not None}
             return res
         time.sleep(warmup)
         pids = {"stations": [p.pid for p in stations.values()], "sim": [sim.pid], "hub": [os.getpid()]}
@@ -480,10 +482,11 @@ def run(args: argparse.Namespace) -> int:
                     held = sizes.index(n) + 1
                 if not level["held"] and not args.keep_going:
                     break
-            if not out["levels"] or "failed" in out["levels"][0]:
+            if not out["levels"] or any(lv.get("exited") for lv in out["levels"]) or "failed" in out["levels"][0]:
                 log.flush()
-                tail = (Path(tmp) / "fleet.log").read_text()[-3000:]
-                print(tail, file=sys.stderr)
+                text = (Path(tmp) / "fleet.log").read_text()
+                crash = text.find("Fatal Python error")  # a crashed process's stack (faulthandler), else the end
+                print(text[crash:crash + 60000] if crash >= 0 else text[-3000:], file=sys.stderr)
     out["robots_held"] = sizes[held - 1] if held else 0
     out["layout"] = args.layout if args.layout != "shards" else f"shards ({args.shards} processes)"
     one = [lv for lv in out["levels"] if lv.get("station_rss_mb_total") is not None]
