@@ -421,6 +421,33 @@ def test_controllers_emulated_in_the_hosts_process_speak_on_time_though_their_th
     assert health(rig.driver).detail.counters.heartbeat_losses >= 1
 
 
+def test_a_driver_host_that_stalled_reads_the_heartbeats_waiting_on_the_bus_before_it_judges_the_link(
+        rig: Rig) -> None:
+    """Finding (the shard test beside two busy loops): a driver host that was not scheduled for 0.6 s judged the
+    link's health before reading the bus, so the controllers' Heartbeats waiting there unread counted as lost, its
+    status said "no heartbeat" and the station paused the mission. The host now reads the link first."""
+    from bridge.nodes.driver_config import DriverConfig
+    from bridge.nodes.driver_host import DriverHost
+
+    class Pub:
+        def put(self, data: bytes) -> None:
+            pass
+
+    rig.ecus.watchdog = 1.0  # controllers whose watchdog outlasts the stall (else they fault, as they must)
+    host = DriverHost(DriverConfig(), "can", rig.driver, "r1", 50.0)
+    host.pubs = {"state": Pub(), "applied": Pub()}
+    host.engaged = True
+    t_end = time.monotonic() + 0.5
+    while time.monotonic() < t_end:  # ticking at 50 Hz: the link is fit
+        host.tick(time.monotonic())
+        time.sleep(0.02)
+    assert host.health.ok, host.health.text
+    time.sleep(0.6)  # the host stalls for twice heartbeat_timeout; the controllers keep sending
+    host.tick(time.monotonic())
+    assert host.health.ok, host.health.text
+    assert health(rig.driver).detail.counters.heartbeat_losses == 0
+
+
 # ------------------------------------------------------------------------------------------ bus failures
 def test_a_failed_bus_is_reported_and_reopened_with_bounded_backoff(rig: Rig, monkeypatch) -> None:
     d = rig.driver

@@ -273,8 +273,21 @@ class DriverHost:
         return d
 
     def tick(self, now: float) -> None:
+        """Read the link, then decide and send. Finding (the shard test beside two busy loops): the host judged the
+        link's health before reading it, so after a stall of its own (0.6 s) the controllers' Heartbeats waiting
+        unread on the bus counted as lost, the status said "no heartbeat" and the station paused the mission. Health
+        and the telemetry's age are now judged on what has arrived; a link that really went silent still fails."""
         if self.engage_queries:
             self.answer_engage_queries()
+        for st in self.poses(now):
+            try:
+                self._put("state", M.validated(st))
+            except M.MessageError:
+                self.inputs.count("telemetry_out_of_range")
+                log.warning("telemetry out of range, not published: %s", st)
+                continue
+            self.seq["state"] += 1
+            self.last_pose = max(self.last_pose, now)
         d = self.decide(now)
         if self.dry_run:
             pass  # what would be sent is published on applied; the vehicle gets nothing
@@ -291,15 +304,6 @@ class DriverHost:
         self._put("applied", M.Applied(stamp=now, seq=self.seq["applied"], v=d.v, omega=d.omega, reason=d.reason,
                                        cmd_seq=d.cmd_seq))
         self.seq["applied"] += 1
-        for st in self.poses(now):
-            try:
-                self._put("state", M.validated(st))
-            except M.MessageError:
-                self.inputs.count("telemetry_out_of_range")
-                log.warning("telemetry out of range, not published: %s", st)
-                continue
-            self.seq["state"] += 1
-            self.last_pose = max(self.last_pose, now)
 
     def poses(self, now: float) -> list[M.LearnerState]:
         """This tick's poses: the link's telemetry, or the motion-capture samples (the link is polled either way:
