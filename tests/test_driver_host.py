@@ -209,8 +209,11 @@ def test_a_flood_of_commands_reaches_the_link_at_most_at_max_send_hz(driver_host
         time.sleep(0.0015)
     time.sleep(0.2)
     with lis.lock:
-        window = [a.stamp for a in lis.applied if t0 + 0.25 <= a.stamp <= t0 + 1.25]
+        during = np.sort([a.stamp for a in lis.applied if t0 <= a.stamp <= t0 + 1.5])
     assert seq > 500
-    assert len(window) <= 100 * 1.0 + 2, f"{len(window)} sends in one second (max_send_hz 100)"
-    gaps = np.diff(window)
-    assert gaps.min() >= 1 / 100 - 1e-3  # never closer than 1 / max_send_hz
+    # every one-second window of the flood (a fixed one came up empty once beside two busy loops: the host had
+    # published nothing in it), and at least some sends to judge
+    assert during.size >= 10, f"{during.size} sends during a 1.5 s flood"
+    busiest = int(max(np.searchsorted(during, s + 1.0) - i for i, s in enumerate(during)))
+    assert busiest <= 100 * 1.0 + 2, f"{busiest} sends in one second (max_send_hz 100)"
+    assert np.diff(during).min() >= 1 / 100 - 1e-3  # never closer than 1 / max_send_hz
