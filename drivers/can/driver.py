@@ -221,7 +221,7 @@ class CanDriver:
         while True:
             t = time.monotonic()
             if t >= t_feed:  # the watchdogs count from arming: feed them while the axes come up
-                self._zero()
+                self._zero(t)
                 t_feed = t + 0.05
             self.poll(t, block=0.02)
             if self._phase == "running":
@@ -261,7 +261,7 @@ class CanDriver:
     def send(self, v: float, omega: float, now: float) -> None:
         self._evaluate(now)
         if not self._health.ok:
-            self._zero()  # a fault, a lost controller, arming: nothing but zero set-points
+            self._zero(now)  # a fault, a lost controller, arming: nothing but zero set-points
             return
         ql, qr = self.wheel_turn_rates(v, omega)
         self.odometry.command(self.left.wheel, ql, now)
@@ -270,11 +270,10 @@ class CanDriver:
         self._send(encode(self.right.node, "Set_Input_Vel", {"Input_Vel": qr, "Input_Torque_FF": 0.0}))
 
     def stop(self, now: float) -> None:
-        self._zero()
+        self._zero(now)
 
-    def _zero(self) -> None:
-        """Zero set-points to both axes (holds a healthy wheel in closed loop; harmless to an idle one)."""
-        now = time.monotonic()
+    def _zero(self, now: float) -> None:
+        """Zero set-points to both axes at ``now`` (holds a healthy wheel in closed loop; harmless to an idle one)."""
         for ax in self.axes:
             self.odometry.command(ax.wheel, 0.0, now)
             self._send(encode(ax.node, "Set_Input_Vel", {"Input_Vel": 0.0, "Input_Torque_FF": 0.0}))
@@ -350,7 +349,7 @@ class CanDriver:
             if not ax.fault:
                 ax.fault, ax.fault_state = True, ax.state
                 self.counters["faults"] += 1
-                self._zero()  # both wheels, now: not at the driver host's next tick
+                self._zero(stamp)  # both wheels, now: not at the driver host's next tick
             ax.fault_error |= ax.error
 
     def _encoder(self, ax: _Axis, pos: float, vel: float, stamp: float) -> Pose | None:
