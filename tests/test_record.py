@@ -8,6 +8,7 @@ real HIL demo (``scmbridge demo``) end to end. Every process is started through 
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import os
@@ -444,26 +445,34 @@ def test_a_recorded_demo_reports_the_live_demos_figures(tmp_path: Path) -> None:
     with Children() as kids:
         demo = kids.spawn(["demo", "--out", str(demo_out), "--duration", "150"], subprocess.PIPE)
         held: dict[int, list[str]] = {}
-        port = None
-        t_end = time.monotonic() + 60
-        while len(held) < 2 and time.monotonic() < t_end:  # the driver host and the station
-            for pid in _children_of(demo.pid):
-                cmd = _cmdline(pid)
-                if pid not in held and "bridge" in cmd and cmd[cmd.index("bridge") + 1] in ("driver",
-                                                                                                    "station"):
-                    os.killpg(pid, signal.SIGSTOP)
-                    held[pid] = cmd
-                    port = int(cmd[cmd.index("--connect") + 1].rsplit(":", 1)[1])
-            time.sleep(0.005)
-        assert len(held) == 2 and port, held
-        rec = start_recorder(kids, port, out)
-        time.sleep(0.5)  # the subscription reaches the router
-        for pid in held:
-            os.killpg(pid, signal.SIGCONT)
-        line = wait_line(demo, r"^summary: ", timeout=300)
-        assert demo.wait(timeout=60) == 0
-        time.sleep(0.5)
-        text = finish(rec)
+        demo_done = False
+        try:
+            port = None
+            t_end = time.monotonic() + 60
+            while len(held) < 2 and time.monotonic() < t_end:  # the driver host and the station
+                for pid in _children_of(demo.pid):
+                    cmd = _cmdline(pid)
+                    if pid not in held and "bridge" in cmd and cmd[cmd.index("bridge") + 1] in ("driver",
+                                                                                                        "station"):
+                        os.killpg(pid, signal.SIGSTOP)
+                        held[pid] = cmd
+                        port = int(cmd[cmd.index("--connect") + 1].rsplit(":", 1)[1])
+                time.sleep(0.005)
+            assert len(held) == 2 and port, held
+            rec = start_recorder(kids, port, out)
+            time.sleep(0.5)  # the subscription reaches the router
+            for pid in held:
+                os.killpg(pid, signal.SIGCONT)
+            line = wait_line(demo, r"^summary: ", timeout=300)
+            assert demo.wait(timeout=60) == 0
+            demo_done = True
+            time.sleep(0.5)
+            text = finish(rec)
+        finally:  # held children sit in sessions of their own: stopping the demo's group would miss them
+            if not demo_done:
+                for pid in held:
+                    with contextlib.suppress(ProcessLookupError, PermissionError):
+                        os.killpg(pid, signal.SIGKILL)
     live = json.loads(line[len("summary: "):])
     # the demo itself (make demo's job): the goal from no pairs, its figures, nothing left behind
     assert live["reached_goal"] and live["raw_pairs"] > 100 and live["methods"]["scm"] > 0
