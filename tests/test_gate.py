@@ -204,3 +204,25 @@ def test_a_station_whose_first_commands_came_late_is_not_taken_for_a_forger() ->
     # one forged command stamped ahead is still refused
     assert not g.offer(M.Command(stamp=t + 0.5, seq=10, v=0.5, omega=1.0, method="scm", epoch=STATION), t + 0.01)
     assert g.counters["stamp_jump"] == 3
+
+
+def test_a_station_read_in_batches_after_a_late_start_is_followed_again() -> None:
+    """Found beside two busy loops: a restarted station's first command reached the starved driver host 0.3 s late,
+    and the host then read the commands in batches (one per stall). Within a batch the latencies differ by the send
+    period, so a resync that asked the ahead commands to agree on one latency never came: the station was refused
+    as a forger ("stamp_jump") for as long as the batches went on. In-order commands are the sender, batched or not."""
+    g = CommandGate(LIMITS, cmd_timeout=0.5)
+    t = 100.0
+    assert g.offer(M.Command(stamp=t, seq=1, v=0.2, omega=0.0, method="scm", epoch=STATION), t + 0.3)
+    seq, verdicts = 1, []
+    for _ in range(4):  # every 0.3 s the host reads the three commands sent (10 Hz) since its last read
+        read_at = t + 0.3
+        for _k in range(3):
+            seq, t = seq + 1, t + 0.1
+            verdicts.append(g.offer(M.Command(stamp=t, seq=seq, v=0.2, omega=0.0, method="scm", epoch=STATION),
+                                    read_at + 0.001))
+    assert verdicts[:2] == [False, False] and all(verdicts[2:]), verdicts
+    assert g.counters["resyncs"] == 1 and g.conflict(t + 1.0) is None
+    # the clock was learned from the whole run: the batch's freshest command sets it, so no later one looks ahead
+    assert g.counters["stamp_jump"] == 2
+    assert not g.offer(M.Command(stamp=t + 0.5, seq=seq + 1, v=0.5, omega=1.0, method="scm", epoch=STATION), t + 0.4)

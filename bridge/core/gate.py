@@ -12,8 +12,8 @@ sequence numbers"):
   replayed or reordered message of an earlier run is refused, while a sender that was only silent can come back;
 - within the epoch, a stamp later than its own receipt (on the sender's clock as the stream shows it) is refused,
   and a sender found behind a forged jump is followed again after a few messages; a sender whose least latency was
-  learned during a stall (its first commands came late on a loaded machine) is followed again once a few in-order
-  messages agree on its faster clock.
+  learned during a stall (its first commands came late on a loaded machine) is followed again once a few
+  messages in the sender's order (seqs and stamps rising) show its faster clock, even read in batches.
 
 :class:`CommandGate` is the driver host's gate for ``cmd``: freshness (validity and the deadman), the estop latch
 (released only by a source the configuration names), clamping to the hard limits where that keeps the command's
@@ -69,7 +69,7 @@ class SeqGate:
         self.left: dict[int, int] = {}  # epoch -> its last seq, for the epochs followed before (oldest first)
         self.clock = ClockOffset()  # the followed sender's stamps on this clock
         self._behind: list[int] = []  # seqs refused in a row as out of order (rising, fresh)
-        self._ahead: list[tuple[float, int]] = []  # (receipt - stamp, seq) of the messages refused in a row as ahead
+        self._ahead: list[tuple[float, float, int]] = []  # (receipt, stamp, seq) of those refused in a row as ahead
 
     def accept(self, epoch: int, seq: int, now: float, stamp: float | None = None) -> str | None:
         """Take ``(epoch, seq)`` received at ``now`` (with the sender's ``stamp`` when it has one) if it is the next
@@ -93,16 +93,20 @@ class SeqGate:
         clock_resync = False
         if stamp is not None and offset is not None and stamp + offset > now + self.stamp_tolerance:
             # sent after it arrived, on the sender's clock as learned: forged, or the sender's least latency was
-            # learned during a stall (a loaded start) and it is faster now. A run that agrees on the new offset,
-            # in order, is the sender: learn its clock again.
-            run, d = self._ahead, now - stamp
-            if run and (abs(run[-1][0] - d) > self.stamp_tolerance or seq <= run[-1][1]):
+            # learned during a stall (a loaded start) and it is faster now. A run of such messages in the sender's
+            # order (seqs and stamps rising, nothing in between that fits the old clock) is the sender: learn its
+            # clock again from the whole run. Their latencies need not agree: a starved host reads the commands
+            # queued during its stall in one batch, so one batch's latencies differ by the send period.
+            run = self._ahead
+            if run and (seq <= run[-1][2] or stamp <= run[-1][1]):
                 run.clear()
-            run.append((d, seq))
+            run.append((now, stamp, seq))
             if len(run) < self.resync_after:
                 return "stamp_jump"
-            run.clear()
             self.clock.reset()
+            for receipt, sent, _ in run[:-1]:
+                self.clock.restamp(sent, receipt)
+            run.clear()
             clock_resync = True
         else:
             self._ahead.clear()
