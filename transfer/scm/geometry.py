@@ -51,8 +51,8 @@ def _segments_cross(p1: complex, p2: complex, q1: complex, q2: complex, tol: flo
 
 def turning_exponents(w: NDArray[np.complex128]) -> NDArray[np.float64]:
     """beta_j = interior angle / pi - 1 (= -turn_j / pi) of a counter-clockwise polygon."""
-    prev = w - np.roll(w, 1)
-    nxt = np.roll(w, -1) - w
+    nxt = np.concatenate((w[1:], w[:1])) - w  # np.roll's result, without its generality's cost (a hot path)
+    prev = np.concatenate((nxt[-1:], nxt[:-1]))
     return -np.angle(nxt / prev) / np.pi
 
 
@@ -77,7 +77,8 @@ def check_polygon(vertices: ArrayLike, *, min_vertices: int = 4) -> NDArray[np.c
                 continue  # adjacent edges share a vertex
             if _segments_cross(w[i], w[(i + 1) % n], w[j], w[(j + 1) % n], 1e-12):
                 raise ValueError(f"self-crossing polygon: edge {i}-{(i + 1) % n} meets edge {j}-{(j + 1) % n}")
-    area2 = float(np.sum(w.real * np.roll(w.imag, -1) - np.roll(w.real, -1) * w.imag))
+    after = np.concatenate((w[1:], w[:1]))
+    area2 = float(np.sum(w.real * after.imag - after.real * w.imag))
     if area2 < 0:
         raise ValueError("vertices are in clockwise order; give them counter-clockwise")
     if area2 <= 1e-14 * diam * diam:

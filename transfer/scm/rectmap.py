@@ -75,7 +75,7 @@ class RectangleMap:
         toolbox's convention); set the internal vertex order, corner indices, angles and quadrature rules.
         Returns the boundary length between consecutive corners (user order)."""
         n = w.size
-        arc = np.abs(np.roll(w, -1) - w)
+        arc = np.abs(np.concatenate((w[1:], w[:1])) - w)
 
         def chain(a: int, b: int) -> float:
             idx = [(a + i) % n for i in range((b - a) % n)]
@@ -120,7 +120,13 @@ class RectangleMap:
             # a configuration where quadrature breaks down (crowding) is far from the solution: say so finitely
             return np.where(np.isfinite(F), F, 1e3)
 
-        y = self._solve(residual, self._initial_guess(L0, True))
+        if n == 4:  # the quadrilateral of the control path: its one unknown solved in compiled code
+            y0 = math.log(L0)  # the guess of _initial_guess, which has nothing else to place
+            y1, _, ok = kern.quad_newton(y0, beta, _SIG4, self._qx, self._qw, self._lx, self._lw, float(ratios[0]),
+                                         1e-2 * self.tol)
+            y = np.array([y1]) if ok else self._solve_bracketed(residual, y0, 10.0 * self.tol)
+        else:
+            y = self._solve(residual, self._initial_guess(L0, True))
         z, sig = self._prevertices(y)
         sep = np.abs(z[:, None] - z[None, :])[np.triu_indices(n, 1)].min()
         if sep < _CROWDING:
@@ -213,41 +219,14 @@ class RectangleMap:
         return np.concatenate(parts)
 
     def _solve(self, residual, y0: NDArray[np.float64]) -> NDArray[np.float64]:
-        """The parameter problem: Newton on log L for N = 4 (one unknown), MINPACK hybrd otherwise."""
-        target = 1e-2 * self.tol
-        if y0.size == 1:
-            y = float(y0[0])
-            F = float(residual(np.array([y]))[0])
-            for _ in range(60):
-                if not math.isfinite(F):
-                    break
-                if abs(F) < target:
-                    return np.array([y])
-                h = 1e-6
-                dF = (float(residual(np.array([y + h]))[0]) - F) / h
-                step = -F / dF if dF != 0 and math.isfinite(dF) else 0.5
-                step = max(-2.0, min(2.0, step))
-                lam = 1.0
-                for _h in range(30):
-                    yn = y + lam * step
-                    Fn = float(residual(np.array([yn]))[0])
-                    if math.isfinite(Fn) and abs(Fn) < abs(F):
-                        break
-                    lam *= 0.5
-                else:
-                    break
-                y, F = yn, Fn
-            if math.isfinite(F) and abs(F) < 1e3 * target:
-                return np.array([y])
-            return self._solve_bracketed(residual, float(y0[0]), 1e3 * target)
+        """The parameter problem of a polygon with more than four vertices (MINPACK hybrd from a ladder of starts;
+        the quadrilateral's one unknown is solved by :func:`~transfer.scm._kernels.quad_newton`)."""
         best, best_err = y0, np.inf
         L0 = math.exp(y0[0])
         # the guess's L0 comes from the polygon's side lengths, which a reflex corner can make far off: retry from
         # a ladder of strip lengths around it before giving up (each start is a few hundred residual evaluations)
         ladder = [f * L0 for f in (0.5, 2.0, 0.25, 4.0, 0.125, 8.0, 1 / 16, 16.0)]
-        starts = [y0] if y0.size == 1 else [y0, self._initial_guess(L0, False)]
-        starts += [self._initial_guess(L, True) for L in ladder] if y0.size > 1 else [np.array([math.log(L)])
-                                                                                       for L in ladder]
+        starts = [y0, self._initial_guess(L0, False), *(self._initial_guess(L, True) for L in ladder)]
         for start in starts:
             sol = scipy.optimize.root(residual, start, method="hybr", options={"xtol": 1e-14})
             F = residual(sol.x)
