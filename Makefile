@@ -30,6 +30,9 @@ $(STAMP): $(PY) $(LOCK) pyproject.toml
 	@$(call check_python,$(PY))
 	$(PY) -m pip install --quiet --require-hashes --only-binary=:all: -r $(LOCK)
 	$(PY) -m pip install --quiet --no-deps --no-build-isolation -e .
+	@# the compiled kernels (SC map, MPC references) once, into numba's on-disk cache, instead of in every process
+	@# that first needs them (a station starting beside others, or a test's, would spend tens of seconds)
+	$(PY) -c 'from transfer.scm import warmup; from transfer.teacher.mpc import MpcTeacher; warmup(); MpcTeacher()'
 	touch $(STAMP)
 
 install: $(STAMP)

@@ -27,18 +27,24 @@ class Bounds:
                 raise ValueError(f"bounds {name}=({lo}, {hi}) must have min < max")
         object.__setattr__(self, "v", (float(self.v[0]), float(self.v[1])))
         object.__setattr__(self, "w", (float(self.w[0]), float(self.w[1])))
+        # built once (every command of every tick reads them), and read-only: a caller cannot change the bounds
+        lo, hi = np.array([self.v[0], self.w[0]]), np.array([self.v[1], self.w[1]])
+        span = hi - lo
+        for name, a in (("_lo", lo), ("_hi", hi), ("_span", span)):
+            a.flags.writeable = False
+            object.__setattr__(self, name, a)
 
     @property
     def lo(self) -> NDArray[np.float64]:
-        return np.array([self.v[0], self.w[0]])
+        return self._lo  # type: ignore[attr-defined]
 
     @property
     def hi(self) -> NDArray[np.float64]:
-        return np.array([self.v[1], self.w[1]])
+        return self._hi  # type: ignore[attr-defined]
 
     @property
     def span(self) -> NDArray[np.float64]:
-        return self.hi - self.lo
+        return self._span  # type: ignore[attr-defined]
 
     def normalise(self, u: ArrayLike) -> NDArray[np.float64]:
         """(..., 2) commands -> [0, 1]^2 (values outside the box map outside [0, 1])."""

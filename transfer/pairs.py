@@ -25,6 +25,8 @@ def teacher_equivalent(x0: ArrayLike, x1: ArrayLike, dt: float) -> NDArray[np.fl
     """
     if not (dt > 0 and math.isfinite(dt)):
         raise ValueError(f"dt must be a positive finite number, got {dt}")
+    if isinstance(x0, np.ndarray) and isinstance(x1, np.ndarray) and x0.shape == x1.shape == (3,):
+        return _one_pair(x0.tolist(), x1.tolist(), dt)  # the live pairer's case, once per pair: scalar maths
     a = np.asarray(x0, dtype=float)
     b = np.asarray(x1, dtype=float)
     if a.shape[-1] != 3 or b.shape[-1] != 3:
@@ -36,3 +38,13 @@ def teacher_equivalent(x0: ArrayLike, x1: ArrayLike, dt: float) -> NDArray[np.fl
     v = (d[..., 0] * np.cos(th) + d[..., 1] * np.sin(th)) / dt
     w = np.asarray(wrap_angle(b[..., 2] - th)) / dt
     return np.stack([v, w], axis=-1)
+
+
+def _one_pair(a: list[float], b: list[float], dt: float) -> NDArray[np.float64]:
+    """:func:`teacher_equivalent` of two single poses, in scalar arithmetic (the same formulas)."""
+    if not all(math.isfinite(c) for c in (*a, *b)):
+        raise ValueError("poses must be finite")
+    th = a[2]
+    v = ((b[0] - a[0]) * math.cos(th) + (b[1] - a[1]) * math.sin(th)) / dt
+    w = ((b[2] - th + math.pi) % (2.0 * math.pi) - math.pi) / dt
+    return np.array([v, w])

@@ -163,7 +163,7 @@ class IntervalPairer:
     def _plausible_pose(self, stamp: float, p: NDArray[np.float64]) -> bool:
         """A pose the vehicle could have reached from the last accepted one (or, after a run of poses that agree
         with each other, the vehicle's new place: the interval restarts there)."""
-        if not np.all(np.isfinite(p)):
+        if not all(math.isfinite(c) for c in p.tolist()):
             self.implausible_pose += 1
             return False
         if self.pose is None or self._reachable(self.pose, (stamp, p)):
@@ -182,8 +182,9 @@ class IntervalPairer:
 
     def _reachable(self, a: tuple[float, NDArray[np.float64]], b: tuple[float, NDArray[np.float64]]) -> bool:
         dt = max(b[0] - a[0], self.dt / 10)  # two poses in one instant: judge them over a tenth of a pair
-        step = float(np.hypot(*(b[1][:2] - a[1][:2])))
-        turn = abs(math.remainder(float(b[1][2] - a[1][2]), math.tau))
+        (xa, ya, tha), (xb, yb, thb) = a[1].tolist(), b[1].tolist()  # scalar maths: once per pose, a hot path
+        step = math.hypot(xb - xa, yb - ya)
+        turn = abs(math.remainder(thb - tha, math.tau))
         return step <= self.max_speed * dt and turn <= self.max_turn * dt
 
     def state(self, stamp: float, pose: NDArray[np.float64], received: float | None = None) -> Pair | None:
