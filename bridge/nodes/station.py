@@ -40,7 +40,7 @@ from bridge.core.errors import UsageError
 from bridge.core.paths import state_dir
 from bridge.nodes import systemd
 from bridge.nodes.mission_control import Fitness, MissionControl, Saved
-from bridge.nodes.node import FixedRate, Inputs, add_zenoh_args, stop_on_signals, zenoh_config
+from bridge.nodes.node import FixedRate, Inputs, Queued, add_zenoh_args, stop_on_signals, zenoh_config
 from bridge.nodes.sources import MpcSource
 from bridge.nodes.station_core import (  # noqa: F401  (the station's names, as before the split)
     DRIVER_STATUS_MAX_AGE,
@@ -60,7 +60,8 @@ log = logging.getLogger("scmbridge.station")
 
 
 class Inbox:
-    """What the callbacks handed over since the last tick (taken, and so emptied, by :meth:`take`)."""
+    """What arrived since the last tick (taken, and so emptied, by :meth:`take`): from the callbacks, and the
+    telemetry queues read at the tick."""
 
     def __init__(self) -> None:
         self.telemetry: list[tuple[M.LearnerState | M.Applied, float]] = []
@@ -131,6 +132,7 @@ class Station:
         self.inputs = Inputs()
         self.lock = threading.Lock()  # the inbox and every call into the core
         self.inbox = Inbox()
+        self.telemetry: list[Queued] = []  # the echoes' and the poses' queues, read at each tick (serve declares them)
         self.wake = threading.Event()  # an external teacher's command is mapped as it arrives
         self.pubs: dict[str, zenoh.Publisher] = {}
         self.ticker: FixedRate | None = None
@@ -150,14 +152,6 @@ class Station:
         return self.core.calibration
 
     # ---------------------------------------------------------------------------------------------- inputs
-    def on_state(self, st: M.LearnerState, now: float) -> None:
-        with self.lock:
-            self.inbox.telemetry.append((st, now))
-
-    def on_applied(self, a: M.Applied, now: float) -> None:
-        with self.lock:
-            self.inbox.telemetry.append((a, now))
-
     def on_own_cmd(self, cmd: M.Command, now: float) -> None:
         """Commands on this robot's key: one this station did not send is another station's (or a forger's)."""
         with self.lock:
@@ -209,6 +203,8 @@ class Station:
             if self.build is not None and self.build.done.is_set():
                 self.build.adopt(self.teacher)
                 self.build = None
+            for q in self.telemetry:
+                self.inbox.telemetry += q.drain(now)
             inputs = self.inbox.take(periodic, self.inputs.snapshot(), self.ticker.missed if self.ticker else 0)
             out = self.core.tick(inputs, now)
         self.publish(out)
@@ -235,8 +231,9 @@ class Station:
         the goal with ``exit_at_goal``). ``announce``: tell systemd the service is ready (one robot per process)."""
         k = self.keys
         external = self.core.source.external
-        self.inputs.subscribe(session, k.state, M.LearnerState, "state", self.on_state)
-        self.inputs.subscribe(session, k.applied, M.Applied, "applied", self.on_applied)
+        # poses (100 Hz) and echoes (50 Hz) wait in Zenoh's ring until the tick reads them: no callback per sample
+        self.telemetry = [self.inputs.queue(session, k.applied, M.Applied, "applied"),
+                          self.inputs.queue(session, k.state, M.LearnerState, "state")]
         self.inputs.subscribe(session, M.status_key(self.robot, "driver"), M.Status, "driver_status",
                               self.on_driver_status)
         self.inputs.subscribe(session, k.mission, M.MissionSpec, "mission", self.on_mission)
