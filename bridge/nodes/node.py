@@ -69,9 +69,9 @@ class Inputs:
               capacity: int = QUEUE_CAPACITY) -> Queued[S]:
         """Declare a subscriber on ``key`` whose samples wait in Zenoh's own ring buffer until the node's loop
         takes them (:meth:`Queued.drain`): for a high-rate input (poses at 100 Hz per robot) read once a tick.
-        A Python callback per sample costs its thread the GIL each time (40 us of CPU a message measured here, 11 us
-        drained); a ring never blocks Zenoh's receiving thread (a stalled loop loses the oldest samples, not the
-        session). Decoding and the ``malformed_<name>`` count are as :meth:`subscribe`'s."""
+        A Python callback per sample costs its thread the GIL each time, several times what draining costs (README,
+        "Many robots"); a ring never blocks Zenoh's receiving thread (a stalled loop loses the oldest samples, not
+        the session). Decoding and the ``malformed_<name>`` count are as :meth:`subscribe`'s."""
         return Queued(self, session.declare_subscriber(key, zenoh.handlers.RingChannel(capacity)), kind, name, key)
 
 
