@@ -188,33 +188,55 @@ def test_a_forged_new_epoch_during_a_dropout_does_not_lock_the_real_sender_out()
 def test_a_station_whose_first_commands_came_late_is_not_taken_for_a_forger() -> None:
     """Found in a loaded fleet demo: a station's first commands reached the driver host 0.3 s late; every later one
     then looked stamped ahead of its own receipt ("forged ... stamp_jump"), was refused for good, and the robot
-    never moved. A few in-order commands that agree on the faster clock are the sender: followed again."""
+    never moved. The first commands of an epoch only teach the gate the sender's clock; and a sender whose clock
+    was learned during a longer stall is followed again after a few in-order commands."""
     g = CommandGate(LIMITS, cmd_timeout=0.3)
     t = 100.0
-    for seq in range(1, 4):  # a stall: each arrives 0.3 s after its stamp
+    for seq in range(1, 4):  # a slow start: each arrives 0.3 s after its stamp
         t += 0.1
         assert g.offer(M.Command(stamp=t, seq=seq, v=0.2, omega=0.0, method="scm", epoch=STATION), t + 0.3)
+    for seq in range(4, 10):  # the machine recovers: 2 ms of latency, still within the clock's learning
+        t += 0.1
+        assert g.offer(M.Command(stamp=t, seq=seq, v=0.2, omega=0.0, method="scm", epoch=STATION), t + 0.002)
+    assert g.counters["stamp_jump"] == 0 and g.conflict(t + 0.01) is None
+    # one forged command stamped ahead is refused once the clock is learned
+    for seq in range(10, 13):
+        t += 0.1
+        assert g.offer(M.Command(stamp=t, seq=seq, v=0.2, omega=0.0, method="scm", epoch=STATION), t + 0.002)
+    assert not g.offer(M.Command(stamp=t + 0.5, seq=13, v=0.5, omega=1.0, method="scm", epoch=STATION), t + 0.01)
+    assert g.counters["stamp_jump"] == 1
+
+
+def _learned_late(g: CommandGate, t: float, n: int = 12, late: float = 0.3) -> tuple[float, int]:
+    """``n`` commands that each arrive ``late`` after their stamp (a stall that outlasts the clock's learning)."""
+    for seq in range(1, n + 1):
+        t += 0.1
+        assert g.offer(M.Command(stamp=t, seq=seq, v=0.2, omega=0.0, method="scm", epoch=STATION), t + late)
+    return t, n
+
+
+def test_a_sender_faster_than_the_clock_learned_in_a_long_stall_is_followed_again() -> None:
+    g = CommandGate(LIMITS, cmd_timeout=0.5)
+    t, last = _learned_late(g, 100.0)
     verdicts = []
-    for seq in range(4, 10):  # the machine recovers: 2 ms of latency
+    for seq in range(last + 1, last + 7):  # the machine recovers: 2 ms of latency
         t += 0.1
         verdicts.append(g.offer(M.Command(stamp=t, seq=seq, v=0.2, omega=0.0, method="scm", epoch=STATION),
                                 t + 0.002))
     assert verdicts[:2] == [False, False] and all(verdicts[2:]), verdicts
     assert g.counters["resyncs"] == 1 and g.conflict(t + 0.01) is None
-    # one forged command stamped ahead is still refused
-    assert not g.offer(M.Command(stamp=t + 0.5, seq=10, v=0.5, omega=1.0, method="scm", epoch=STATION), t + 0.01)
+    assert not g.offer(M.Command(stamp=t + 0.5, seq=seq + 1, v=0.5, omega=1.0, method="scm", epoch=STATION), t + 0.01)
     assert g.counters["stamp_jump"] == 3
 
 
-def test_a_station_read_in_batches_after_a_late_start_is_followed_again() -> None:
-    """Found beside two busy loops: a restarted station's first command reached the starved driver host 0.3 s late,
-    and the host then read the commands in batches (one per stall). Within a batch the latencies differ by the send
-    period, so a resync that asked the ahead commands to agree on one latency never came: the station was refused
-    as a forger ("stamp_jump") for as long as the batches went on. In-order commands are the sender, batched or not."""
+def test_a_station_read_in_batches_after_a_long_stall_is_followed_again() -> None:
+    """Found beside two busy loops: commands read in batches (one per stall of a starved driver host) have
+    latencies that differ by the send period, so a resync that asked the ahead commands to agree on one latency
+    never came: the station was refused as a forger ("stamp_jump") for as long as the batches went on. In-order
+    commands are the sender, batched or not."""
     g = CommandGate(LIMITS, cmd_timeout=0.5)
-    t = 100.0
-    assert g.offer(M.Command(stamp=t, seq=1, v=0.2, omega=0.0, method="scm", epoch=STATION), t + 0.3)
-    seq, verdicts = 1, []
+    t, seq = _learned_late(g, 100.0)
+    verdicts = []
     for _ in range(4):  # every 0.3 s the host reads the three commands sent (10 Hz) since its last read
         read_at = t + 0.3
         for _k in range(3):
@@ -226,3 +248,33 @@ def test_a_station_read_in_batches_after_a_late_start_is_followed_again() -> Non
     # the clock was learned from the whole run: the batch's freshest command sets it, so no later one looks ahead
     assert g.counters["stamp_jump"] == 2
     assert not g.offer(M.Command(stamp=t + 0.5, seq=seq + 1, v=0.5, omega=1.0, method="scm", epoch=STATION), t + 0.4)
+
+
+def test_a_restarted_station_whose_first_tick_was_slow_is_never_called_a_forger() -> None:
+    """Found beside two busy loops: a restarted station's first command (stamped at the start of its first,
+    slowest tick) taught the gate a 0.3 s latency; the next ones looked ahead, were refused as forged, and the
+    driver host's status said so just when the operator resumed the mission: refused. A new epoch's first
+    commands only teach the gate its clock."""
+    g = CommandGate(LIMITS, cmd_timeout=0.3)
+    t, seq = _learned_late(g, 100.0, late=0.002)
+    t += 1.0  # the station is killed: silence, then its new run
+    new = STATION + 1
+    assert g.offer(M.Command(stamp=t, seq=0, v=0.0, omega=0.0, method="stop", epoch=new), t + 0.3)
+    for k in range(1, 20):
+        t += 0.1
+        assert g.offer(M.Command(stamp=t, seq=k, v=0.0, omega=0.0, method="stop", epoch=new), t + 0.002)
+    assert g.counters["stamp_jump"] == 0 and g.conflict(t + 0.01) is None
+
+
+def test_a_stall_of_a_few_seconds_does_not_make_the_station_look_like_a_forger_afterwards() -> None:
+    """Found beside two busy loops (a fleet demo robot paused mid-mission): a driver host starved for a few seconds
+    got every command late, the learned least latency rose with them, and once the host was fast again the station's
+    commands looked stamped ahead: refused as forged, and the station paused its mission. The least latency is
+    kept over a minute."""
+    g = CommandGate(LIMITS, cmd_timeout=0.5)
+    t, last = _learned_late(g, 100.0, n=20, late=0.002)
+    for k in range(1, 91):  # 8 s of a starved host (each command read 0.25 s late), then fast again
+        t += 0.1
+        late = 0.25 if k <= 80 else 0.002
+        assert g.offer(M.Command(stamp=t, seq=last + k, v=0.2, omega=0.0, method="scm", epoch=STATION), t + late)
+    assert g.counters["stamp_jump"] == 0 and g.conflict(t) is None

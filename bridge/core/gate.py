@@ -49,13 +49,17 @@ class SeqGate:
     Within the followed epoch, messages that carry the sender's stamp are also checked against time: the least
     ``receipt - stamp`` of the stream (its clock offset plus the least latency) puts each stamp on this clock, and a
     message stamped more than ``stamp_tolerance`` after its own receipt cannot have been sent by that sender
-    (``stamp_jump``). If the sender keeps sending below a seq the gate took (``resync_after`` fresh messages in a
+    (``stamp_jump``). The first ``learn_clock`` stamped messages of an epoch only teach the gate that clock: a
+    sender's first message is often its slowest (a new station's first tick, stamped at its start, includes the
+    first solve), and what came faster after it is the sender, not a forger. If the sender keeps sending below a
+    seq the gate took (``resync_after`` fresh messages in a
     row with rising seqs), the gate follows it again (``resync``): a forged jump inside the real epoch locks the real
     sender out for a few messages at most.
     """
 
     def __init__(self, silence_s: float, max_rate_hz: float = 1000.0, slack: int = 50, remember: int = 64,
-                 stamp_tolerance: float = 0.05, resync_after: int = 3, fresh_s: float = 0.5) -> None:
+                 stamp_tolerance: float = 0.05, resync_after: int = 3, fresh_s: float = 0.5,
+                 learn_clock: int = 10, clock_window_s: float = 60.0) -> None:
         self.silence_s = float(silence_s)
         self.max_rate_hz = float(max_rate_hz)
         self.slack = int(slack)
@@ -67,9 +71,14 @@ class SeqGate:
         self.last_seq = -1
         self.last_time = -math.inf
         self.left: dict[int, int] = {}  # epoch -> its last seq, for the epochs followed before (oldest first)
-        self.clock = ClockOffset()  # the followed sender's stamps on this clock
+        # the followed sender's stamps on this clock; a long window, so a stall of a few seconds (every command late)
+        # does not raise the learned minimum and make the sender look ahead once it is fast again (a command link's
+        # two clocks drift by a few ms a minute at most, far inside stamp_tolerance)
+        self.clock = ClockOffset(window_s=clock_window_s)
         self._behind: list[int] = []  # seqs refused in a row as out of order (rising, fresh)
         self._ahead: list[tuple[float, float, int]] = []  # (receipt, stamp, seq) of those refused in a row as ahead
+        self.learn_clock = int(learn_clock)
+        self._stamps = 0  # stamped messages taken from the followed epoch (its clock is learned from the first few)
 
     def accept(self, epoch: int, seq: int, now: float, stamp: float | None = None) -> str | None:
         """Take ``(epoch, seq)`` received at ``now`` (with the sender's ``stamp`` when it has one) if it is the next
@@ -91,6 +100,8 @@ class SeqGate:
             return None
         offset = self.clock.offset
         clock_resync = False
+        if self._stamps < self.learn_clock and offset is not None and stamp is not None:
+            offset = None  # the sender's clock is still being learned: a faster message lowers the minimum
         if stamp is not None and offset is not None and stamp + offset > now + self.stamp_tolerance:
             # sent after it arrived, on the sender's clock as learned: forged, or the sender's least latency was
             # learned during a stall (a loaded start) and it is faster now. A run of such messages in the sender's
@@ -118,9 +129,12 @@ class SeqGate:
         return "clock_resync" if clock_resync else None
 
     def _take(self, epoch: int, seq: int, now: float, stamp: float | None) -> None:
+        if epoch != self.epoch:
+            self._stamps = 0
         self.epoch, self.last_seq, self.last_time = epoch, seq, now
         if stamp is not None:
             self.clock.restamp(stamp, now)
+            self._stamps += 1
         self._behind.clear()
 
     def _out_of_order(self, seq: int, now: float, stamp: float | None, offset: float | None) -> str:

@@ -159,10 +159,11 @@ class StationCounters:
 @dataclass(frozen=True)
 class TickInputs:
     """What arrived since the last tick. ``telemetry``: applied echoes and learner states with their receipt
-    times, each kind in arrival order (the pairer takes them in stamp order); ``driver``: the latest driver host status and its receipt time; ``mission``: a new
-    mission (its spec and the decoded mission); ``teacher``: an external teacher's latest command and its receipt
-    time. ``periodic`` False: a tick woken by an external teacher's command (map it, nothing else).
-    ``input_counts``: the transport's counts of dropped inputs; ``missed_deadlines``: the loop's, for the status."""
+    times, each kind in arrival order (the pairer takes them in stamp order); ``driver``: the latest driver host
+    status and its receipt time; ``mission``: a new mission (its spec and the decoded mission); ``teacher``: an
+    external teacher's latest command and its receipt time. ``periodic`` False: a tick woken by an external
+    teacher's command (map it, nothing else). ``input_counts``: the transport's counts of dropped inputs;
+    ``missed_deadlines``: the loop's, for the status."""
 
     telemetry: tuple[tuple[M.LearnerState | M.Applied, float], ...] = ()
     driver: tuple[M.Status, float] | None = None
