@@ -278,3 +278,19 @@ def test_a_stall_of_a_few_seconds_does_not_make_the_station_look_like_a_forger_a
         late = 0.25 if k <= 80 else 0.002
         assert g.offer(M.Command(stamp=t, seq=last + k, v=0.2, omega=0.0, method="scm", epoch=STATION), t + late)
     assert g.counters["stamp_jump"] == 0 and g.conflict(t) is None
+
+
+def test_a_forged_jump_while_the_clock_is_still_learned_locks_the_station_out_for_a_few_commands_at_most() -> None:
+    """The first commands of an epoch only teach the gate the clock; a forged jump among them must still not lock
+    the real station out (its in-order, fresh commands below the jump are followed again)."""
+    g = CommandGate(LIMITS, cmd_timeout=0.3)
+    t = 100.0
+    for k in range(1, 4):
+        t += 0.1
+        assert g.offer(M.Command(stamp=t, seq=k, v=0.1, omega=0.0, method="scm", epoch=STATION), t + 0.002)
+    assert g.offer(M.Command(stamp=t + 0.01, seq=8, v=0.5, omega=1.0, method="scm", epoch=STATION), t + 0.012)
+    verdicts = []
+    for k in range(4, 10):
+        t += 0.1
+        verdicts.append(g.offer(M.Command(stamp=t, seq=k, v=0.1, omega=0.0, method="scm", epoch=STATION), t + 0.002))
+    assert not all(verdicts[:2]) and all(verdicts[3:]), verdicts

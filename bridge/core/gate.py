@@ -100,9 +100,9 @@ class SeqGate:
             return None
         offset = self.clock.offset
         clock_resync = False
-        if self._stamps < self.learn_clock and offset is not None and stamp is not None:
-            offset = None  # the sender's clock is still being learned: a faster message lowers the minimum
-        if stamp is not None and offset is not None and stamp + offset > now + self.stamp_tolerance:
+        # while the sender's clock is still being learned, a faster message only lowers the minimum
+        judged = offset if self._stamps >= self.learn_clock else None
+        if stamp is not None and judged is not None and stamp + judged > now + self.stamp_tolerance:
             # sent after it arrived, on the sender's clock as learned: forged, or the sender's least latency was
             # learned during a stall (a loaded start) and it is faster now. A run of such messages in the sender's
             # order (seqs and stamps rising, nothing in between that fits the old clock) is the sender: learn its
