@@ -55,7 +55,10 @@ def check_polygon(vertices: ArrayLike, *, min_vertices: int = 4) -> NDArray[np.c
 
 def is_simple_ccw(vertices: ArrayLike) -> bool:
     """True when :func:`check_polygon` accepts the polygon (cheap boolean form for region selection)."""
-    w = np.asarray(as_complex(vertices), dtype=np.complex128).ravel()
+    try:
+        w = np.asarray(as_complex(vertices), dtype=np.complex128).ravel()
+    except (TypeError, ValueError):
+        return False
     return w.size >= 4 and kern.polygon_defect(w)[0] == 0
 
 
