@@ -55,15 +55,20 @@ class Inputs:
 
         def on_sample(sample: zenoh.Sample) -> None:
             now = time.monotonic()
-            try:
-                msg = M.decode(sample.payload.to_bytes(), kind)
-            except M.MessageError as exc:
-                self.count(f"malformed_{name}")
-                log.debug("dropped %s on %s: %s", kind.__name__, key, exc)
-                return
-            handler(msg, now)
+            msg = self.decode(sample, kind, name, key)
+            if msg is not None:
+                handler(msg, now)
 
         return session.declare_subscriber(key, on_sample)
+
+    def decode(self, sample: zenoh.Sample, kind: type[S], name: str, key: str) -> S | None:
+        """``sample`` decoded (and so validated) as ``kind``; None, counted as ``malformed_<name>``, if it is not."""
+        try:
+            return M.decode(sample.payload.to_bytes(), kind)
+        except M.MessageError as exc:
+            self.count(f"malformed_{name}")
+            log.debug("dropped %s on %s: %s", kind.__name__, key, exc)
+            return None
 
     def queue(self, session: zenoh.Session, key: str, kind: type[S], name: str,
               capacity: int = QUEUE_CAPACITY) -> Queued[S]:
@@ -71,7 +76,7 @@ class Inputs:
         takes them (:meth:`Queued.drain`): for a high-rate input (poses at 100 Hz per robot) read once a tick.
         A Python callback per sample costs its thread the GIL each time, several times what draining costs (README,
         "Many robots"); a ring never blocks Zenoh's receiving thread (a stalled loop loses the oldest samples, not
-        the session). Decoding and the ``malformed_<name>`` count are as :meth:`subscribe`'s."""
+        the session). Decoded and counted by :meth:`decode`, as :meth:`subscribe`'s."""
         return Queued(self, session.declare_subscriber(key, zenoh.handlers.RingChannel(capacity)), kind, name, key)
 
 
@@ -86,11 +91,9 @@ class Queued(Generic[S]):
         arrived since the last read, at most one loop period ago); the malformed ones counted and dropped."""
         out: list[tuple[S, float]] = []
         while (sample := self.subscriber.try_recv()) is not None:
-            try:
-                out.append((M.decode(sample.payload.to_bytes(), self.kind), now))
-            except M.MessageError as exc:
-                self.inputs.count(f"malformed_{self.name}")
-                log.debug("dropped %s on %s: %s", self.kind.__name__, self.key, exc)
+            msg = self.inputs.decode(sample, self.kind, self.name, self.key)
+            if msg is not None:
+                out.append((msg, now))
         return out
 
 
