@@ -112,20 +112,22 @@ class RectangleMap:
         width = 0.5 * (lens[(self._r + 1) % 4] + lens[(self._r + 3) % 4])
         L0 = max(min(length / width, 100.0) - math.log(4.0) / math.pi, 0.05)
 
-        def residual(y: NDArray[np.float64]) -> NDArray[np.float64]:
-            z, sig = self._prevertices(y)
-            I = kern.side_integrals(z, beta, sig, self._qx, self._qw, self._lx, self._lw, n - 2)
-            with np.errstate(divide="ignore", invalid="ignore"):
-                F = np.log(np.abs(I[1:])) - np.log(np.abs(I[0])) - ratios
-            # a configuration where quadrature breaks down (crowding) is far from the solution: say so finitely
-            return np.where(np.isfinite(F), F, 1e3)
-
-        if n == 4:  # the quadrilateral of the control path: its one unknown solved in compiled code
+        if n == 4:  # the quadrilateral of the control path: its one unknown, log L, solved in compiled code
+            args = (beta, _SIG4, self._qx, self._qw, self._lx, self._lw, float(ratios[0]))
             y0 = math.log(L0)  # the guess of _initial_guess, which has nothing else to place
-            y1, _, ok = kern.quad_newton(y0, beta, _SIG4, self._qx, self._qw, self._lx, self._lw, float(ratios[0]),
-                                         1e-2 * self.tol)
-            y = np.array([y1]) if ok else self._solve_bracketed(residual, y0, 10.0 * self.tol)
+            y1, _, ok = kern.quad_newton(y0, *args, 1e-2 * self.tol)
+            y = np.array([y1]) if ok else self._solve_bracketed(
+                lambda y: np.array([kern.quad_residual(float(y[0]), *args)]), y0, 10.0 * self.tol)
         else:
+
+            def residual(y: NDArray[np.float64]) -> NDArray[np.float64]:
+                z, sig = self._prevertices(y)
+                I = kern.side_integrals(z, beta, sig, self._qx, self._qw, self._lx, self._lw, n - 2)
+                with np.errstate(divide="ignore", invalid="ignore"):
+                    F = np.log(np.abs(I[1:])) - np.log(np.abs(I[0])) - ratios
+                # a configuration where quadrature breaks down (crowding) is far from the solution: say so finitely
+                return np.where(np.isfinite(F), F, 1e3)
+
             y = self._solve(residual, self._initial_guess(L0, True))
         z, sig = self._prevertices(y)
         sep = np.abs(z[:, None] - z[None, :])[np.triu_indices(n, 1)].min()
