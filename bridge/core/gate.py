@@ -95,7 +95,8 @@ class SeqGate:
                 log.info("sender epoch %x followed instead of %x after %.2f s of silence", epoch, self.epoch,
                          now - self.last_time)
             self.left.pop(epoch, None)
-            self.clock.reset()
+            self.clock.reset()  # a new sender's clock, learned from its first stamped messages
+            self._stamps = 0
             self._take(epoch, seq, now, stamp)
             return None
         offset = self.clock.offset
@@ -129,8 +130,6 @@ class SeqGate:
         return "clock_resync" if clock_resync else None
 
     def _take(self, epoch: int, seq: int, now: float, stamp: float | None) -> None:
-        if epoch != self.epoch:
-            self._stamps = 0
         self.epoch, self.last_seq, self.last_time = epoch, seq, now
         if stamp is not None:
             self.clock.restamp(stamp, now)
