@@ -43,8 +43,7 @@ def turning_exponents(w: NDArray[np.complex128]) -> NDArray[np.float64]:
 
 def check_polygon(vertices: ArrayLike, *, min_vertices: int = 4) -> NDArray[np.complex128]:
     """Validate a polygon and return its vertices as a complex array; ValueError naming the problem otherwise."""
-    w = as_complex(vertices, "vertices").ravel() if np.iscomplexobj(np.asarray(vertices)) else as_complex(vertices)
-    w = np.asarray(w, dtype=np.complex128).ravel()
+    w = _vertices(vertices)
     if w.size < min_vertices:
         raise ValueError(f"a polygon needs at least {min_vertices} vertices, got {w.size}")
     code, i, j = kern.polygon_defect(w)
@@ -56,10 +55,15 @@ def check_polygon(vertices: ArrayLike, *, min_vertices: int = 4) -> NDArray[np.c
 def is_simple_ccw(vertices: ArrayLike) -> bool:
     """True when :func:`check_polygon` accepts the polygon (cheap boolean form for region selection)."""
     try:
-        w = np.asarray(as_complex(vertices), dtype=np.complex128).ravel()
+        w = _vertices(vertices)
     except (TypeError, ValueError):
         return False
     return w.size >= 4 and kern.polygon_defect(w)[0] == 0
+
+
+def _vertices(vertices: ArrayLike) -> NDArray[np.complex128]:
+    """A polygon's vertices (complex numbers or (N, 2) floats) as a flat complex array."""
+    return np.asarray(as_complex(vertices), dtype=np.complex128).ravel()
 
 
 def check_corners(corners: Sequence[int], n: int) -> tuple[int, int, int, int]:
