@@ -46,5 +46,5 @@ def _one_pair(a: list[float], b: list[float], dt: float) -> NDArray[np.float64]:
         raise ValueError("poses must be finite")
     th = a[2]
     v = ((b[0] - a[0]) * math.cos(th) + (b[1] - a[1]) * math.sin(th)) / dt
-    w = ((b[2] - th + math.pi) % (2.0 * math.pi) - math.pi) / dt
+    w = wrap_angle(b[2] - th) / dt
     return np.array([v, w])

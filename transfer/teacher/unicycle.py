@@ -6,6 +6,7 @@ Vectorised over leading axes so a batch of poses or commands steps at once.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from typing import Any
 
@@ -15,6 +16,8 @@ from numpy.typing import ArrayLike, NDArray
 
 def wrap_angle(a: ArrayLike) -> NDArray[np.float64] | float:
     """Angle(s) wrapped to [-pi, pi)."""
+    if type(a) is float:  # one angle (the live pairer's, once per pair): the same arithmetic without numpy's calls
+        return (a + math.pi) % (2.0 * math.pi) - math.pi
     out = (np.asarray(a, dtype=float) + np.pi) % (2.0 * np.pi) - np.pi
     return float(out) if out.ndim == 0 else out
 
