@@ -121,7 +121,11 @@ class DiffDriveEcus(ThreadedDevice):
         self._t_enc = self._t_hb = 0.0  # when the next encoder estimates and Heartbeat are due
 
     def _open(self) -> None:
-        self.bus = can.Bus(**self.bus_kwargs)
+        kwargs = dict(self.bus_kwargs)
+        if kwargs.get("interface") == "virtual":
+            # the frames keep the stamp _send gives them: the time the controller put them on the wire
+            kwargs.setdefault("preserve_timestamps", True)
+        self.bus = can.Bus(**kwargs)
 
     def _close(self) -> None:
         with self._lock:
@@ -161,11 +165,11 @@ class DiffDriveEcus(ThreadedDevice):
             if now >= self._t_enc:
                 self._integrate(now)
                 for ax in self.axes.values():
-                    self._send_encoder(ax)
+                    self._send_encoder(ax, now)
                 self._t_enc = now + self.encoder_period
             if now >= self._t_hb:
                 for ax in self.axes.values():
-                    self._send(ax, HEARTBEAT, struct.pack("<IBBBx", ax.error, ax.state, ax.procedure_result, 1))
+                    self._send(ax, HEARTBEAT, struct.pack("<IBBBx", ax.error, ax.state, ax.procedure_result, 1), now)
                 self._t_hb = now + self.heartbeat_period
 
     def _handle(self, frame: can.Message, now: float) -> None:
@@ -181,7 +185,7 @@ class DiffDriveEcus(ThreadedDevice):
         if frame.is_remote_frame:
             if cmd == GET_ENCODER_ESTIMATES:
                 self._integrate(now)
-                self._send_encoder(ax)
+                self._send_encoder(ax, now)
             return
         if cmd == SET_INPUT_VEL:
             if len(data) < 8:
@@ -257,13 +261,19 @@ class DiffDriveEcus(ThreadedDevice):
         self.left.vel = self.left.sign * (st.v - st.omega * self.track / 2.0) / circ
         self.right.vel = self.right.sign * (st.v + st.omega * self.track / 2.0) / circ
 
-    def _send_encoder(self, ax: _EcuAxis) -> None:
-        self._send(ax, GET_ENCODER_ESTIMATES, struct.pack("<ff", ax.pos, ax.vel))
+    def _send_encoder(self, ax: _EcuAxis, at: float) -> None:
+        self._send(ax, GET_ENCODER_ESTIMATES, struct.pack("<ff", ax.pos, ax.vel), at)
 
-    def _send(self, ax: _EcuAxis, cmd: int, data: bytes) -> None:
+    def _send(self, ax: _EcuAxis, cmd: int, data: bytes, at: float) -> None:
+        """Put a frame on the bus as sent at ``at`` (this emulator's clock): the moment the controller measured what
+        it carries. A real controller transmits microseconds after it measures and the host's kernel stamps the
+        frame on arrival; this thread can be preempted between the two, and a frame stamped when the thread got the
+        CPU back would claim the wheel was there later than it was (on the ``virtual`` bus, which keeps the stamp
+        given here)."""
         if self.bus is None or not ax.plugged:
             return
-        frame = can.Message(arbitration_id=(ax.node << 5) | cmd, data=data, is_extended_id=False)
+        wall = time.time() - (self.clock() - at)
+        frame = can.Message(timestamp=wall, arbitration_id=(ax.node << 5) | cmd, data=data, is_extended_id=False)
         with contextlib.suppress(can.CanError):
             self.bus.send(frame, timeout=0.05)
 

@@ -264,6 +264,29 @@ def test_emulated_controller_behaves_as_odrive_0_6() -> None:
             master.shutdown()
 
 
+def test_emulated_frames_carry_the_time_the_controller_measured_not_when_its_thread_got_the_cpu_back() -> None:
+    """Finding (series 12, run 3, beside two busy loops): the emulator's thread, preempted between measuring the
+    wheels and writing the frame, sent a frame stamped ~0.35 s after the position it carried; the next frame, on
+    time, looked like a jump no wheel can make, the driver rejected it and the fleet demo's mission paused. A real
+    controller transmits as it measures and the host's kernel stamps the frame on arrival."""
+    channel = f"test-{uuid.uuid4().hex[:8]}"
+    vehicle = SimVehicle(mpc_learner(), (0.0, 0.0, 0.0), now=time.monotonic())
+    readings = iter([time.monotonic() - 0.3])  # the measurement; every later reading is 0.3 s on: the preemption
+    ecus = DiffDriveEcus({"interface": "virtual", "channel": channel}, vehicle,
+                         clock=lambda: next(readings, None) or time.monotonic())
+    spy = can.Bus(interface="virtual", channel=channel)
+    try:
+        ecus._open()
+        ecus.emit_due()
+        frames = [spy.recv(timeout=1.0) for _ in range(4)]  # both encoder estimates and both Heartbeats
+        assert all(f is not None for f in frames)
+        assert {f.arbitration_id & 0x1F for f in frames} == {0x01, 0x09}
+        assert all(abs(f.timestamp - (time.time() - 0.3)) < 0.1 for f in frames), [f.timestamp for f in frames]
+    finally:
+        ecus._close()
+        spy.shutdown()
+
+
 # ------------------------------------------------------------------------------------------ start-up, driving
 def test_open_sets_velocity_control_and_passthrough_before_closed_loop(rig: Rig) -> None:
     for node in (0, 1):
