@@ -101,6 +101,27 @@ def test_estimates_read_late_are_judged_by_the_command_in_force_when_they_were_m
     assert any(s.overrun for s in steps)
 
 
+def test_a_stop_written_late_leaves_the_old_command_in_force_until_the_frame_left() -> None:
+    """A driver host preempted between deciding a stop (at its tick's start) and writing it to the bus: the
+    controllers keep turning at the old speed until the frame arrives and report it, stamped by the kernel as
+    they come. The wheel is judged by the old command until the frame left, by the stop after it."""
+
+    def run(sent: float | None) -> list[bool]:
+        o = odometry()
+        o.command(o.left, 2.0, 0.0)
+        feed(o, 0.0, 0.0, 0.0)
+        o.command(o.left, 0.0, 0.01, sent)  # decided at 0.01, on the bus at ``sent``
+        return [o.estimate(o.left, 0.02 * k, 2.0, 0.01 * k).overrun for k in range(1, 51)]  # 2 rev/s until 0.5 s
+
+    assert not any(run(sent=0.5))
+    assert any(run(sent=None))  # the same frames judged by the stop from the moment it was decided
+    o = odometry()
+    o.command(o.left, 2.0, 0.0)
+    feed(o, 0.0, 0.0, 0.0)
+    o.command(o.left, 0.0, 0.01, 0.2)
+    assert any(o.estimate(o.left, 0.02 * k, 2.0, 0.01 * k).overrun for k in range(1, 100))  # and it ends
+
+
 def test_a_wheels_command_memory_keeps_the_command_in_force_and_forgets_older_ones() -> None:
     o = odometry()
     for k in range(50):

@@ -264,10 +264,11 @@ class CanDriver:
             self._zero(now)  # a fault, a lost controller, arming: nothing but zero set-points
             return
         ql, qr = self.wheel_turn_rates(v, omega)
-        self.odometry.command(self.left.wheel, ql, now)
-        self.odometry.command(self.right.wheel, qr, now)
         self._send(encode(self.left.node, "Set_Input_Vel", {"Input_Vel": ql, "Input_Torque_FF": 0.0}))
         self._send(encode(self.right.node, "Set_Input_Vel", {"Input_Vel": qr, "Input_Torque_FF": 0.0}))
+        sent = time.monotonic()  # a host preempted since ``now`` wrote the frames only now
+        self.odometry.command(self.left.wheel, ql, now, sent)
+        self.odometry.command(self.right.wheel, qr, now, sent)
 
     def stop(self, now: float) -> None:
         self._zero(now)
@@ -275,8 +276,8 @@ class CanDriver:
     def _zero(self, now: float) -> None:
         """Zero set-points to both axes at ``now`` (holds a healthy wheel in closed loop; harmless to an idle one)."""
         for ax in self.axes:
-            self.odometry.command(ax.wheel, 0.0, now)
             self._send(encode(ax.node, "Set_Input_Vel", {"Input_Vel": 0.0, "Input_Torque_FF": 0.0}))
+            self.odometry.command(ax.wheel, 0.0, now, time.monotonic())
 
     # ----------------------------------------------------------------------------------------------- receive
     def poll(self, now: float, block: float = 0.0) -> list[Pose]:

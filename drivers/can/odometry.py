@@ -4,6 +4,7 @@ reads a clock or touches the bus."""
 
 from __future__ import annotations
 
+import bisect
 import math
 from dataclasses import dataclass, field
 
@@ -74,11 +75,19 @@ class Odometry:
         k = 1.0 / (2.0 * math.pi * self.radius)
         return self.left.sign * vl * k, self.right.sign * vr * k
 
-    def command(self, w: Wheel, rate: float, at: float) -> None:
-        """Input_Vel ``rate`` (rev/s) sent to wheel ``w`` at ``at`` (the stamps' time base)."""
+    def command(self, w: Wheel, rate: float, at: float, sent: float | None = None) -> None:
+        """Input_Vel ``rate`` (rev/s) decided for wheel ``w`` at ``at`` and on the bus by ``sent`` (the stamps' time
+        base). A host preempted between deciding and writing the frame leaves the old command in force until the
+        frame leaves: a slower new command counts from ``sent``, a faster one already from ``at``."""
+        old = abs(w.commanded)
         w.commanded = rate
-        w.history.append((at, abs(rate)))
-        while len(w.history) > 1 and w.history[1][0] < at - COMMAND_MEMORY_S:
+        if sent is not None and sent > at and old > abs(rate):
+            bisect.insort(w.history, (at, old))
+            bisect.insort(w.history, (sent, abs(rate)))
+        else:
+            bisect.insort(w.history, (at, abs(rate)))
+        latest = w.history[-1][0]
+        while len(w.history) > 1 and w.history[1][0] < latest - COMMAND_MEMORY_S:
             del w.history[0]  # keep the one command still in force at the memory's start
 
     def _rate_in_force(self, w: Wheel, t0: float, t1: float) -> float:
