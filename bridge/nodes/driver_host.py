@@ -47,7 +47,7 @@ from bridge.core.gate import CommandGate, Decision
 from bridge.core.paths import save_atomic, state_dir
 from bridge.nodes import systemd
 from bridge.nodes.driver_config import DriverConfig, load_driver
-from bridge.nodes.node import Inputs, add_zenoh_args, stop_on_signals, zenoh_config
+from bridge.nodes.node import Inputs, StallWatch, Usage, add_zenoh_args, stop_on_signals, zenoh_config
 from bridge.nodes.zsession import open_session
 from drivers import link_names, open_driver
 from drivers.base import Driver, DriverError, FailsafeReport, LinkHealth
@@ -57,6 +57,8 @@ log = logging.getLogger("scmbridge.driver")
 
 #: the first and the longest wait between attempts to open a link that is not there yet, s
 OPEN_BACKOFF = (0.5, 10.0)
+#: s between two loop iterations beyond which the log says why the loop was late (bridge.nodes.node.StallWatch)
+STALL_REPORT_S = 0.25
 
 
 class Latch(msgspec.Struct, kw_only=True):
@@ -115,6 +117,9 @@ class DriverHost:
         self.last_decision = Decision(0.0, 0.0, "start")
         self.health = LinkHealth()
         self.missed = 0
+        #: a loop iteration later than this says why in the log (the controllers' watchdog is 0.5 s on ODrive's
+        #: example; the deadman a few periods)
+        self.stall_watch = StallWatch(STALL_REPORT_S)
         self.ticks: deque[float] = deque(maxlen=500)  # start times of the periodic ticks (jitter)
         self.pubs: dict[str, zenoh.Publisher] = {}
         self.pose_source = d.pose_source
@@ -327,6 +332,7 @@ class DriverHost:
             estop = (self.gate.estopped, self.gate.estop_source)
         counters.update(self.inputs.snapshot())
         counters.update({"link_malformed": h.malformed, "link_errors": h.errors, "missed_deadlines": self.missed,
+                         "loop_stalls": self.stall_watch.stalls,
                          "frames_sent": h.frames_sent, "frames_received": h.frames_received, "ticks": len(self.ticks)})
         if h.detail is not None:
             counters.update({f"link_{k}": v for k, v in h.detail.status_counters().items()})
@@ -463,6 +469,9 @@ class DriverHost:
             now = time.monotonic()
             if duration is not None and now - t_start >= duration:
                 return
+            stalled = self.stall_watch.check(now, Usage.now())
+            if stalled:
+                log.warning("%s", stalled)
             periodic = now >= t_next
             if periodic:
                 self.ticks.append(now)

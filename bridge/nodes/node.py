@@ -12,12 +12,14 @@ import gc
 import json
 import logging
 import os
+import resource
 import signal
 import threading
 import time
 import tracemalloc
 from collections import Counter
 from collections.abc import Callable
+from dataclasses import dataclass
 from typing import Any, Generic, TypeVar
 
 import zenoh
@@ -95,6 +97,55 @@ class Queued(Generic[S]):
             if msg is not None:
                 out.append((msg, now))
         return out
+
+
+@dataclass(frozen=True)
+class Usage:
+    """What the process had used by a moment: CPU seconds, context switches it gave up (voluntary: it waited for
+    something) and had taken from it (involuntary: the kernel ran another task), major page faults (it waited for
+    a page from disk)."""
+
+    cpu: float
+    voluntary: int
+    involuntary: int
+    major_faults: int
+
+    @classmethod
+    def now(cls) -> Usage:
+        r = resource.getrusage(resource.RUSAGE_SELF)
+        return cls(r.ru_utime + r.ru_stime, r.ru_nvcsw, r.ru_nivcsw, r.ru_majflt)
+
+
+class StallWatch:
+    """Says why a loop came back late: ``check(now, usage)`` each iteration returns, when more than ``threshold``
+    seconds passed since the last one, a line for the log that tells apart a process that was busy (its own CPU
+    time covers the gap), one the kernel did not run (involuntary switches, little CPU: the machine was too busy) and
+    one that waited (on a lock, the disk, a page). A robot whose controllers' watchdog tripped is explained by it."""
+
+    def __init__(self, threshold: float) -> None:
+        self.threshold = float(threshold)
+        self.last: tuple[float, Usage] | None = None
+        self.stalls = 0
+
+    def check(self, now: float, usage: Usage) -> str | None:
+        last, self.last = self.last, (now, usage)
+        if last is None or now - last[0] <= self.threshold:
+            return None
+        self.stalls += 1
+        gap, before = now - last[0], last[1]
+        cpu = usage.cpu - before.cpu
+        inv, vol = usage.involuntary - before.involuntary, usage.voluntary - before.voluntary
+        faults = usage.major_faults - before.major_faults
+        if cpu >= 0.5 * gap:
+            why = "busy: this process computed for most of it"
+        elif faults:
+            why = "waiting for memory pages from disk"
+        elif inv > vol:
+            why = "not scheduled: the machine's other tasks had the CPU"
+        else:
+            why = "waiting (a lock, the disk or the interpreter lock)"
+        return (f"loop stalled {gap:.2f} s ({why}; {cpu:.3f} s CPU, {inv} involuntary and {vol} voluntary context "
+                f"switches, {faults} major page faults)")
 
 
 class FixedRate:

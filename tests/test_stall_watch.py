@@ -1,0 +1,63 @@
+"""A loop that came back late says why: busy, not scheduled, or waiting (bridge.nodes.node.StallWatch). This is
+what tells a lab whether a robot whose controllers' watchdog tripped had a slow driver host or an overloaded
+machine."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+
+from bridge.nodes.node import StallWatch, Usage
+
+
+def test_on_time_iterations_say_nothing_and_a_late_one_says_why() -> None:
+    w = StallWatch(0.25)
+    assert w.check(0.0, Usage(1.0, 10, 10, 0)) is None
+    assert w.check(0.02, Usage(1.001, 11, 10, 0)) is None
+    busy = w.check(0.62, Usage(1.5, 11, 14, 0))
+    assert busy is not None and busy.startswith("loop stalled 0.60 s (busy") and "0.499 s CPU" in busy
+    starved = w.check(1.62, Usage(1.52, 12, 60, 0))
+    assert starved is not None and "not scheduled" in starved and "46 involuntary" in starved
+    paged = w.check(2.5, Usage(1.53, 13, 61, 7))
+    assert paged is not None and "memory pages" in paged and "7 major page faults" in paged
+    waiting = w.check(3.5, Usage(1.54, 40, 62, 7))
+    assert waiting is not None and "waiting" in waiting
+    assert w.stalls == 4
+
+
+def test_a_process_the_kernel_does_not_run_is_told_apart_from_a_busy_one() -> None:
+    """A real process: stopped (SIGSTOP) for 0.6 s while it waited for its input, then computing for 0.6 s; its watch
+    reports both gaps and calls only the second one busy."""
+    code = textwrap.dedent("""
+        import sys, time
+        from bridge.nodes.node import StallWatch, Usage
+        w = StallWatch(0.25)
+        w.check(time.monotonic(), Usage.now())
+        print("ready", flush=True)
+        sys.stdin.readline()  # the parent stops us (SIGSTOP) and continues us, then writes this line
+        print(w.check(time.monotonic(), Usage.now()), flush=True)
+        t = time.monotonic()
+        while time.monotonic() - t < 0.6:
+            pass
+        print(w.check(time.monotonic(), Usage.now()), flush=True)
+    """)
+    proc = subprocess.Popen([sys.executable, "-c", code], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+    try:
+        assert proc.stdout is not None and proc.stdin is not None
+        assert proc.stdout.readline().strip() == "ready"
+        os.kill(proc.pid, signal.SIGSTOP)
+        try:
+            subprocess.run(["sleep", "0.6"], check=True)
+        finally:
+            os.kill(proc.pid, signal.SIGCONT)
+        proc.stdin.write("go\n")
+        proc.stdin.flush()
+        stopped, busy = proc.stdout.readline(), proc.stdout.readline()
+        assert "loop stalled" in stopped and "busy" not in stopped, stopped
+        assert "loop stalled" in busy and "(busy" in busy, busy
+    finally:
+        proc.kill()
+        proc.wait(10)
