@@ -57,12 +57,14 @@ unconfigured cell nearest to that estimate. ``method`` is
 no perturbation of any kind, for both policies: the command is the guided policy's region map (with its barycentric
 fallback) or its estimate; the paper's algorithm has no such mode, so it shares the guided one. ``plan`` is an
 optional (K, 2) array of the teacher's next planned commands (teacher units, after u_T; :func:`planned_commands`
-recovers them from an MPC's predicted states); it only steers which cell is explored.
+recovers them from an MPC's predicted states), or a function returning it, called only when a cell is chosen;
+it only steers which cell is explored.
 The method names are those of the bridge's ``Command`` message.
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Protocol
 
@@ -96,6 +98,10 @@ class Mapped:
     vetoed: bool = False
 
 
+#: the teacher's next planned commands ``(K, 2)``, or a function that returns them (read only when needed), or None
+Plan = ArrayLike | Callable[[], ArrayLike] | None
+
+
 class Policy(Protocol):
     """Teacher command -> learner command over a pair store (module docstring)."""
 
@@ -103,7 +109,7 @@ class Policy(Protocol):
     mapper: Mapper
     rng: np.random.Generator
 
-    def map(self, u_T: ArrayLike, *, plan: ArrayLike | None = None, explore: bool = True) -> Mapped:
+    def map(self, u_T: ArrayLike, *, plan: Plan = None, explore: bool = True) -> Mapped:
         """The learner command for ``u_T``; ``plan``: the teacher's next commands (a hint); ``explore``: whether
         it may perturb."""
         ...
@@ -135,7 +141,7 @@ class _PolicyBase:
                           if not identity and not isinstance(self.mapper, BarycentricMapper) else None)
         self.rng = rng if rng is not None else np.random.default_rng(seed)
 
-    def map(self, u_T: ArrayLike, *, plan: ArrayLike | None = None, explore: bool = True) -> Mapped:
+    def map(self, u_T: ArrayLike, *, plan: Plan = None, explore: bool = True) -> Mapped:
         """The learner command for teacher command ``u_T`` (see the module docstring for every case)."""
         t = np.asarray(u_T, dtype=float).reshape(2)
         if not np.all(np.isfinite(t)):
@@ -148,7 +154,7 @@ class _PolicyBase:
             return Mapped(u, method, ids)
         return self._explore(t, t_n, plan)
 
-    def _explore(self, t: NDArray[np.float64], t_n: NDArray[np.float64], plan: ArrayLike | None) -> Mapped:
+    def _explore(self, t: NDArray[np.float64], t_n: NDArray[np.float64], plan: Plan) -> Mapped:
         raise NotImplementedError
 
     # ------------------------------------------------------------------------------------------ shared helpers
@@ -214,7 +220,7 @@ class _PolicyBase:
 class PaperPolicy(_PolicyBase):
     """The paper's exploration as published (module docstring); ``plan`` is ignored."""
 
-    def _explore(self, t: NDArray[np.float64], t_n: NDArray[np.float64], plan: ArrayLike | None) -> Mapped:
+    def _explore(self, t: NDArray[np.float64], t_n: NDArray[np.float64], plan: Plan) -> Mapped:
         lb = self.store.learner_bounds
         probe = self._probe_limits(t_n, lb.clip(t))
         if probe is not None:
@@ -275,7 +281,7 @@ class GuidedPolicy(_PolicyBase):
     """Exploration at the least detour from what the mission needs, steered by the teacher's plan (module
     docstring)."""
 
-    def _explore(self, t: NDArray[np.float64], t_n: NDArray[np.float64], plan: ArrayLike | None) -> Mapped:
+    def _explore(self, t: NDArray[np.float64], t_n: NDArray[np.float64], plan: Plan) -> Mapped:
         lb = self.store.learner_bounds
         u, method, ids, gap = self._unperturbed(t, t_n)
         probe = self._probe_limits(t_n, u)
@@ -306,7 +312,7 @@ class GuidedPolicy(_PolicyBase):
         return np.clip(p, lo + margin, lo + 1.0 / g - margin)
 
     def _guided_target(self, cell: tuple[int, int], est_n: NDArray[np.float64],
-                       plan: ArrayLike | None) -> tuple[int, int] | None:
+                       plan: Plan) -> tuple[int, int] | None:
         """The unconfigured neighbour of ``cell`` that costs the least detour now and serves the plan best."""
         gv, gw = self.store.grid
         configured = self.store.configured()
@@ -326,8 +332,10 @@ class GuidedPolicy(_PolicyBase):
         best = np.flatnonzero(cost_a <= cost_a.min() + 1e-9)
         return cands[int(best[self.rng.integers(best.size)])]
 
-    def _plan_estimates(self, plan: ArrayLike | None) -> list[NDArray[np.float64]]:
+    def _plan_estimates(self, plan: Plan) -> list[NDArray[np.float64]]:
         """The normalised learner commands the teacher's planned commands would map to (region or estimate)."""
+        if callable(plan):
+            plan = plan()
         if plan is None:
             return []
         P = np.asarray(plan, dtype=float).reshape(-1, 2)

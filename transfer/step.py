@@ -20,7 +20,7 @@ from __future__ import annotations
 import dataclasses
 
 import numpy as np
-from numpy.typing import ArrayLike
+from numpy.typing import ArrayLike, NDArray
 
 from transfer.mission import EXPLORE_CLEARANCE, Mission
 from transfer.policy import Mapped, Policy, planned_commands
@@ -63,7 +63,10 @@ class TransferStep:
         """The learner command for teacher command ``u_T`` sent at ``pose`` on ``mission``; ``predicted``: the
         teacher's predicted states ``(N + 1, 3)``, if it has a plan."""
         explore = self.may_explore(pose, mission)
-        plan = planned_commands(predicted, self.dt, self.plan_hint) if predicted is not None else None
+        plan = None
+        if predicted is not None:  # read only if the policy explores next to a configured cell (a few % of commands)
+            def plan() -> NDArray[np.float64]:
+                return planned_commands(predicted, self.dt, self.plan_hint)
         m = self.policy.map(u_T, plan=plan, explore=explore)
         return m if explore else dataclasses.replace(m, vetoed=True)
 
