@@ -62,6 +62,9 @@ INTEGRITY_WINDOW_S = 5.0
 PLAUSIBLE = 1.5
 #: the status (and the forced limits) go out this often, s
 STATUS_EVERY_S = 1.0
+#: between two forced ones, the limits go out when an edge of their box moved more than this fraction of the
+#: teacher's range (half a percent: the store's own tolerance for moving a refined pair)
+LIMITS_MOVE_TOL = 0.005
 
 
 def load_store(path: Path, learner: Bounds, teacher: Bounds, grid, k_min: int) -> tuple[PairStore, str]:
@@ -434,14 +437,20 @@ class StationCore:
 
     # ---------------------------------------------------------------------------------------- publications
     def limits(self, now: float, force: bool) -> M.Limits | None:
-        """The learned limits when they changed (a new version), or with ``force`` (each second) anyway."""
+        """The learned limits when their box moved by more than :data:`LIMITS_MOVE_TOL` of the teacher's range since
+        the last message, or with ``force`` (each second) as they are; a new version whenever what is sent changed.
+        (Every pair on a boundary nudges the box's mean a little: the hull is built for a message, not each tick.)"""
         box = self.store.limits.box.as_list()
+        sent = self.limits_sent
+        if sent is not None and not force:
+            sv, sw = self.store.teacher_bounds.span.tolist()
+            tol = (sv, sv, sw, sw)
+            if all(abs(a - b) <= LIMITS_MOVE_TOL * t for a, b, t in zip(box, sent[0], tol)):
+                return None
         hull = [[float(a), float(b)] for a, b in self.store.limits.hull]
         key = (box, len(hull))
-        if self.limits_sent is None or self.limits_sent != key:
+        if sent != key:
             self.limits_version += 1
-        elif not force:
-            return None
         self.limits_sent = key
         return M.Limits(stamp=now, robot=self.robot, version=self.limits_version, box=box, hull=hull)
 
