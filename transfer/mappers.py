@@ -64,6 +64,7 @@ class _Triangulated:
         self.vers = np.zeros(0, dtype=np.int64)
         self.T = np.zeros((0, 2))
         self.L = np.zeros((0, 2))
+        self._edges: tuple[NDArray[np.float64], ...] | None = None  # nearest_on_hull's edges of this triangulation
 
     def _sync(self) -> None:
         if self._rev == self.store.revision:
@@ -71,6 +72,7 @@ class _Triangulated:
         self._rev = self.store.revision
         self.ids, self.vers, self.T, self.L = self.store.refined_arrays()
         self.tri = None
+        self._edges = None
         if self.ids.size >= 3:
             try:
                 self.tri = Delaunay(self.T)
@@ -94,15 +96,17 @@ class _Triangulated:
         self._sync()
         if self.tri is None:
             return None
-        P = self.T
-        e = self.tri.convex_hull
-        a, b = P[e[:, 0]], P[e[:, 1]]
-        d = b - a
-        tt = np.clip(((t - a) * d).sum(axis=1) / np.maximum((d * d).sum(axis=1), 1e-300), 0.0, 1.0)
+        if self._edges is None:  # the hull's edges, once per triangulation (a hot path: every "direct" command)
+            P = self.T
+            e = self.tri.convex_hull
+            a = P[e[:, 0]]
+            d = P[e[:, 1]] - a
+            self._edges = (a, d, np.maximum((d * d).sum(axis=1), 1e-300), P.mean(axis=0))
+        a, d, dd, centre = self._edges
+        tt = np.clip(((t - a) * d).sum(axis=1) / dd, 0.0, 1.0)
         q = a + tt[:, None] * d
         dist = np.hypot(*(q - t).T)
         i = int(np.argmin(dist))
-        centre = P.mean(axis=0)
         inside = q[i] + 1e-9 * (centre - q[i])  # a hair inside, so the point location finds its triangle
         return inside, float(dist[i])
 
