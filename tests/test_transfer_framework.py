@@ -448,3 +448,25 @@ def test_identity_mapper_speaks_the_mapper_protocol() -> None:
     l_n, region = m.map_normalised(t_n)
     np.testing.assert_allclose(LB.denormalise(l_n), LB.clip([0.9, 0.1]))
     assert region == () and m.nearest_on_hull(t_n)[1] == 0.0
+
+
+def test_a_command_saturated_at_a_driven_limit_maps_along_the_limits_row_of_pairs() -> None:
+    """Found on the full-size MPC run: the MPC's commands sit at the learned top speed, where the refined pairs of
+    the top row of cells are (nearly) collinear; the 2-D regions there are slivers and mapped the yaw rate 3x worse
+    than the ideal teacher's deviation allowed. At a driven limit the map is the learner's extreme on that axis and
+    linear along the row on the other."""
+    s = PairStore(LB, TB, k_min=1)
+    top = LB.v[1]
+    row = [(-0.15, -0.12), (0.0, 0.02), (0.2, 0.15)]  # (learner yaw rate, teacher-equivalent yaw rate) on the limit
+    for w_l, w_t in row:
+        s.add([top, w_t], [top, w_l])
+    s.add([0.1, 0.0], [0.12, 0.0])  # an interior pair: a triangulated region exists
+    policy = make_policy(s, seed=0)
+    hi = s.limits.box.v[1]
+    m = policy.map([hi, 0.085], explore=False)  # between the row's 2nd and 3rd pairs
+    assert m.method == "barycentric" and len(m.region) == 2
+    w = (0.085 - 0.02) / (0.15 - 0.02)
+    np.testing.assert_allclose(m.u_L, [top, 0.0 + w * 0.2], atol=1e-9)
+    # beyond the row's pairs, or inside the limit, the ordinary mapping decides
+    assert len(policy.map([hi, 0.17], explore=False).region) != 2
+    assert len(policy.map([hi - 0.05, 0.085], explore=False).region) != 2

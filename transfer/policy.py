@@ -33,7 +33,11 @@ unconfigured cell nearest to that estimate. ``method`` is
 - ``"barycentric"``: with the ``scm`` (or ``affine``) mapper, u_T lies in a Delaunay triangle of the refined pairs
   but the mapper has no usable region there (no neighbour forms a simple counter-clockwise quadrilateral on both
   sides: the slivers along a row of boundary-cell means): linear interpolation on that triangle, instead of
-  exploring around a command the learned pairs already enclose;
+  exploring around a command the learned pairs already enclose; and a command at a learned limit whose boundary
+  has been driven (within ``ALONG_LIMIT_TOL``, as a bounded MPC's saturated commands are): the learner's extreme
+  on that axis and, on the other, linear interpolation between the two neighbouring refined pairs of the boundary
+  row of cells (those pairs are nearly collinear in the teacher domain, so the 2-D regions there are slivers);
+  this holds for every policy's unperturbed mapping;
 - ``"direct"``: no region holds u_T, and the teacher command is applied directly *relative to the learned region*:
   the estimate is the linear interpolation of the region's nearest point ``q`` (on a hull edge, between that
   edge's two pairs) plus the offset ``u_T - q`` taken one-to-one in physical units, clipped into the learner's
@@ -76,6 +80,9 @@ from transfer.pairs import teacher_equivalent
 from transfer.store import PairStore
 
 EXPLORATIONS = ("paper", "guided")
+#: normalised teacher distance to a learned limit within which a command is mapped along it (a hundredth of a cell
+#: of the 11 x 11 grid: an interior-point MPC stops about 1e-4 short of its bounds)
+ALONG_LIMIT_TOL = 1e-3
 
 
 def planned_commands(predicted: ArrayLike, dt: float, k: int = 10) -> NDArray[np.float64]:
@@ -162,12 +169,48 @@ class _PolicyBase:
                                                                                       Region, float]:
         """The best unperturbed learner command: (learner units, method, region, gap to the learned region)."""
         lb = self.store.learner_bounds
-        region = self._map_chain(t_n)
+        region = self._along_limit(t_n) or self._map_chain(t_n)
         if region is not None:
             (l_n, method, ids), gap = region, 0.0
         else:
             l_n, method, ids, gap = self._estimate(t, t_n)
         return lb.clip(lb.denormalise(l_n)), method, ids, gap
+
+    def _along_limit(self, t_n: NDArray[np.float64]) -> tuple[NDArray[np.float64], str, Region] | None:
+        """A command saturated at a learned limit whose boundary has been driven (a bounded controller's commands
+        sit exactly there): the learner's extreme on that axis, and on the other the linear interpolation between
+        the two neighbouring refined pairs of the boundary row of cells on that side. Those pairs are (nearly)
+        collinear in the teacher domain, so the 2-D regions along the limit are slivers whose maps are
+        ill-conditioned; along the row the map is one-dimensional. None when ``t_n`` is not at such a limit or lies
+        beyond the row's pairs."""
+        ids, _, T, L = self.store.refined_arrays()
+        if ids.size < 2:
+            return None
+        lim, grid = self.store.limits, self.store.grid
+        cells = (ids // grid[1], ids % grid[1])
+        for a in (0, 1):
+            b = 1 - a
+            for at_limit, row, extreme in (
+                    (lim.bcnt_hi[a] > 0 and t_n[a] >= lim.hi[a] - ALONG_LIMIT_TOL, grid[a] - 1, 1.0),
+                    (lim.bcnt_lo[a] > 0 and t_n[a] <= lim.lo[a] + ALONG_LIMIT_TOL, 0, 0.0)):
+                if not at_limit:
+                    continue
+                on_row = np.flatnonzero(cells[a] == row)
+                if on_row.size < 2:
+                    continue
+                on_row = on_row[np.argsort(T[on_row, b], kind="stable")]
+                xs = T[on_row, b]
+                x = float(t_n[b])
+                if not xs[0] <= x <= xs[-1]:
+                    continue
+                k = min(max(int(np.searchsorted(xs, x, side="right")), 1), on_row.size - 1)
+                i0, i1 = on_row[k - 1], on_row[k]
+                span = T[i1, b] - T[i0, b]
+                w = (x - T[i0, b]) / span if span > 0 else 0.5
+                l_n = np.empty(2)
+                l_n[a], l_n[b] = extreme, L[i0, b] + w * (L[i1, b] - L[i0, b])
+                return l_n, "barycentric", (int(ids[i0]), int(ids[i1]))
+        return None
 
     def _probe_limits(self, t_n: NDArray[np.float64], base: NDArray[np.float64]) -> NDArray[np.float64] | None:
         """A teacher command saturated at a learned limit whose learner boundary has never been seen: send the
