@@ -187,7 +187,6 @@ class _PolicyBase:
         if ids.size < 2:
             return None
         lim, grid = self.store.limits, self.store.grid
-        cells = (ids // grid[1], ids % grid[1])
         for a in (0, 1):
             b = 1 - a
             for at_limit, row, extreme in (
@@ -195,7 +194,7 @@ class _PolicyBase:
                     (lim.bcnt_lo[a] > 0 and t_n[a] <= lim.lo[a] + ALONG_LIMIT_TOL, 0, 0.0)):
                 if not at_limit:
                     continue
-                on_row = np.flatnonzero(cells[a] == row)
+                on_row = np.flatnonzero((ids // grid[1] if a == 0 else ids % grid[1]) == row)  # the cells' index a
                 if on_row.size < 2:
                     continue
                 on_row = on_row[np.argsort(T[on_row, b], kind="stable")]
