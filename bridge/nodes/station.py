@@ -226,9 +226,11 @@ class Station:
 
     # ------------------------------------------------------------------------------------------------- run
     def serve(self, session: zenoh.Session, stop: threading.Event, duration: float | None,
-              exit_at_goal: bool, announce: bool = True) -> None:
+              exit_at_goal: bool, announce: bool = True, phase: float = 0.0) -> None:
         """Declare this robot's keys on ``session`` and run its fixed-rate loop until ``stop`` (or ``duration``, or
-        the goal with ``exit_at_goal``). ``announce``: tell systemd the service is ready (one robot per process)."""
+        the goal with ``exit_at_goal``). ``announce``: tell systemd the service is ready (one robot per process).
+        ``phase``: seconds to wait before the first tick (a many-robot process spreads its robots' ticks over the
+        period)."""
         k = self.keys
         external = self.core.source.external
         # poses (100 Hz) and echoes (50 Hz) wait in Zenoh's ring until the tick reads them: no callback per sample
@@ -253,6 +255,8 @@ class Station:
                  self.core.control.phase, self.core.epoch)
         if announce:
             systemd.ready(f"{self.robot}: {what}, mission {self.core.control.phase}")
+        if phase > 0 and stop.wait(phase):
+            return
         self.ticker = FixedRate(1 / self.period, stop)
         t_start = time.monotonic()
         periodic = True
@@ -392,9 +396,9 @@ def run_fleet(cfg: StationConfig, robots: list[str], rate: float, args: argparse
     stop = stop_on_signals()
     failed: list[str] = []
 
-    def serve(st: Station) -> None:
+    def serve(st: Station, phase: float) -> None:
         try:
-            st.serve(session, stop, args.duration, args.exit_at_goal, announce=False)
+            st.serve(session, stop, args.duration, args.exit_at_goal, announce=False, phase=phase)
         except Exception as exc:  # one robot's failure stops that robot only
             failed.append(st.robot)
             log.exception("%s: station loop failed (%s); its robot stops by its deadman, the others drive on",
@@ -402,8 +406,11 @@ def run_fleet(cfg: StationConfig, robots: list[str], rate: float, args: argparse
 
     try:
         with open_session(zenoh_config(args), wait=stop, what="station") as session:
-            threads = [threading.Thread(target=serve, args=(st,), name=f"station-{r}", daemon=True)
-                       for r, st in stations.items()]
+            # the robots' ticks spread evenly over the period: started together, every robot would be due at the same
+            # instant each period and the last to get the interpreter lock would wait for all the others' ticks
+            threads = [threading.Thread(target=serve, args=(st, i / len(stations) / rate),
+                                        name=f"station-{r}", daemon=True)
+                       for i, (r, st) in enumerate(stations.items())]
             for t in threads:
                 t.start()
             systemd.ready(f"{len(stations)} robots: {', '.join(stations)}")
