@@ -29,6 +29,20 @@ def test_on_time_iterations_say_nothing_and_a_late_one_says_why() -> None:
     assert w.stalls == 4
 
 
+def test_a_machine_its_hypervisor_did_not_run_is_named(monkeypatch) -> None:
+    """Steal over the gap (a virtual machine's CPUs not run, every process on it frozen) is the machine's, not the
+    process's: named as such, with the figures per CPU; I/O wait alone still reads as waiting."""
+    monkeypatch.setattr("os.cpu_count", lambda: 2)
+    w = StallWatch(0.25)
+    w.check(0.0, Usage(1.0, 10, 10, 0, steal=5.0, iowait=3.0))
+    frozen = w.check(1.44, Usage(1.004, 34, 18, 0, steal=7.6, iowait=3.1))
+    assert frozen is not None and "hypervisor" in frozen and "1.30 s steal, 0.05 s I/O wait" in frozen, frozen
+    disk = w.check(2.5, Usage(1.01, 60, 19, 0, steal=7.6, iowait=5.0))
+    assert disk is not None and disk.startswith("loop stalled 1.06 s (waiting") and "0.95 s I/O wait" in disk, disk
+    real = Usage.now()  # on Linux the machine's figures are read from /proc/stat
+    assert (real.steal is None) == (real.iowait is None)
+
+
 def test_a_process_the_kernel_does_not_run_is_told_apart_from_a_busy_one() -> None:
     """A real process: stopped (SIGSTOP) for 0.6 s while it waited for its input, then computing until it has used
     0.6 s of CPU; its watch reports both gaps from the kernel's own accounting: the first with no CPU to speak of,

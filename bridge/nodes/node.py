@@ -103,24 +103,42 @@ class Queued(Generic[S]):
 class Usage:
     """What the process had used by a moment: CPU seconds, context switches it gave up (voluntary: it waited for
     something) and had taken from it (involuntary: the kernel ran another task), major page faults (it waited for
-    a page from disk)."""
+    a page from disk); and the machine's CPU seconds of steal (a virtual machine's CPUs its hypervisor did not run)
+    and of I/O wait, summed over its CPUs (None where ``/proc/stat`` is not readable)."""
 
     cpu: float
     voluntary: int
     involuntary: int
     major_faults: int
+    steal: float | None = None
+    iowait: float | None = None
 
     @classmethod
     def now(cls) -> Usage:
         r = resource.getrusage(resource.RUSAGE_SELF)
-        return cls(r.ru_utime + r.ru_stime, r.ru_nvcsw, r.ru_nivcsw, r.ru_majflt)
+        iowait, steal = _machine_waits()
+        return cls(r.ru_utime + r.ru_stime, r.ru_nvcsw, r.ru_nivcsw, r.ru_majflt, steal, iowait)
+
+
+def _machine_waits() -> tuple[float | None, float | None]:
+    """The machine's I/O wait and steal so far, CPU seconds over all its CPUs (``/proc/stat``; Linux only)."""
+    try:
+        with open("/proc/stat", "rb") as f:
+            fields = f.readline().split()
+        return int(fields[5]) / _CLK_TCK, int(fields[8]) / _CLK_TCK
+    except (OSError, IndexError, ValueError):
+        return None, None
+
+
+_CLK_TCK = os.sysconf("SC_CLK_TCK") if hasattr(os, "sysconf") else 100
 
 
 class StallWatch:
     """Says why a loop came back late: ``check(now, usage)`` each iteration returns, when more than ``threshold``
     seconds passed since the last one, a line for the log that tells apart a process that was busy (its own CPU
-    time covers the gap), one the kernel did not run (involuntary switches, little CPU: the machine was too busy) and
-    one that waited (on a lock, the disk, a page). A robot whose controllers' watchdog tripped is explained by it."""
+    time covers the gap), a machine whose hypervisor did not run it (steal: every process on it stood still), one the
+    kernel did not run (involuntary switches, little CPU: the machine was too busy) and one that waited (on a lock,
+    the disk, a page). A robot whose controllers' watchdog tripped is explained by it."""
 
     def __init__(self, threshold: float) -> None:
         self.threshold = float(threshold)
@@ -136,8 +154,17 @@ class StallWatch:
         cpu = usage.cpu - before.cpu
         inv, vol = usage.involuntary - before.involuntary, usage.voluntary - before.voluntary
         faults = usage.major_faults - before.major_faults
+        machine = ""
+        steal = None
+        if usage.steal is not None and before.steal is not None and usage.iowait is not None \
+                and before.iowait is not None:
+            steal = (usage.steal - before.steal) / (os.cpu_count() or 1)
+            machine = (f"; the machine, per CPU: {steal:.2f} s steal, "
+                       f"{(usage.iowait - before.iowait) / (os.cpu_count() or 1):.2f} s I/O wait")
         if cpu >= 0.5 * gap:
             why = "busy: this process computed for most of it"
+        elif steal is not None and steal >= 0.5 * gap:
+            why = "the machine was not run: its hypervisor held the virtual CPUs"
         elif faults:
             why = "waiting for memory pages from disk"
         elif inv > vol:
@@ -145,7 +172,7 @@ class StallWatch:
         else:
             why = "waiting (a lock, the disk or the interpreter lock)"
         return (f"loop stalled {gap:.2f} s ({why}; {cpu:.3f} s CPU, {inv} involuntary and {vol} voluntary context "
-                f"switches, {faults} major page faults)")
+                f"switches, {faults} major page faults{machine})")
 
 
 class FixedRate:
