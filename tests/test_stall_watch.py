@@ -31,16 +31,17 @@ def test_on_time_iterations_say_nothing_and_a_late_one_says_why() -> None:
 
 def test_a_machine_its_hypervisor_did_not_run_is_named(monkeypatch) -> None:
     """Steal over the gap (a virtual machine's CPUs not run, every process on it frozen) is the machine's, not the
-    process's: named as such, with the figures per CPU; I/O wait alone still reads as waiting."""
+    process's: named as such, with the figures; an I/O stall alone still reads as waiting, with its figure."""
     monkeypatch.setattr("os.cpu_count", lambda: 2)
     w = StallWatch(0.25)
-    w.check(0.0, Usage(1.0, 10, 10, 0, steal=5.0, iowait=3.0))
-    frozen = w.check(1.44, Usage(1.004, 34, 18, 0, steal=7.6, iowait=3.1))
-    assert frozen is not None and "hypervisor" in frozen and "1.30 s steal, 0.05 s I/O wait" in frozen, frozen
-    disk = w.check(2.5, Usage(1.01, 60, 19, 0, steal=7.6, iowait=5.0))
-    assert disk is not None and disk.startswith("loop stalled 1.06 s (waiting") and "0.95 s I/O wait" in disk, disk
-    real = Usage.now()  # on Linux the machine's figures are read from /proc/stat
-    assert (real.steal is None) == (real.iowait is None)
+    w.check(0.0, Usage(1.0, 10, 10, 0, steal=5.0, io_stall=3.0))
+    frozen = w.check(1.44, Usage(1.004, 34, 18, 0, steal=7.6, io_stall=3.05))
+    assert frozen is not None and "hypervisor" in frozen and "1.30 s steal per CPU, 0.05 s I/O stall" in frozen, frozen
+    disk = w.check(2.5, Usage(1.01, 60, 19, 0, steal=7.6, io_stall=4.0))
+    assert disk is not None and disk.startswith("loop stalled 1.06 s (waiting") and "0.95 s I/O stall" in disk, disk
+    real = Usage.now()  # where the kernel gives them, the machine's figures are read
+    assert (real.steal is not None) == os.path.exists("/proc/stat")
+    assert (real.io_stall is not None) == os.path.exists("/proc/pressure/io")
 
 
 def test_a_process_the_kernel_does_not_run_is_told_apart_from_a_busy_one() -> None:
@@ -83,3 +84,47 @@ def test_a_process_the_kernel_does_not_run_is_told_apart_from_a_busy_one() -> No
     finally:
         proc.kill()
         proc.wait(10)
+
+
+def test_a_blocked_loop_is_reported_while_it_is_blocked_with_where() -> None:
+    """The watcher names the loop's innermost frame (here a lock it waits for) while the loop is still stuck, and
+    once per stall."""
+    import logging
+    import threading
+
+    from bridge.nodes.node import BlockedLoop
+
+    records: list[str] = []
+    reported = threading.Event()
+
+    class Collect(logging.Handler):
+        def emit(self, record: logging.LogRecord) -> None:
+            records.append(record.getMessage())
+            reported.set()
+
+    logger = logging.getLogger("test.blocked_loop")
+    logger.addHandler(Collect())
+    stop, held = threading.Event(), threading.Lock()
+
+    def stuck_on_the_lock() -> None:
+        with held:
+            pass
+
+    def loop() -> None:
+        watch = BlockedLoop(0.2, stop, logger).start()
+        watch.beat()
+        stuck_on_the_lock()
+        watch.beat()
+        stop.set()
+
+    held.acquire()
+    t = threading.Thread(target=loop)
+    t.start()
+    try:
+        assert reported.wait(30.0), "no report while the loop was blocked"
+        assert t.is_alive()  # said while it is blocked, not after
+    finally:
+        held.release()
+        t.join(10.0)
+    assert len(records) == 1 and records[0].startswith("loop blocked for "), records
+    assert "test_stall_watch.py" in records[0] and "stuck_on_the_lock" in records[0].split(" <- ")[0], records[0]

@@ -47,7 +47,7 @@ from bridge.core.gate import CommandGate, Decision
 from bridge.core.paths import save_atomic, state_dir
 from bridge.nodes import systemd
 from bridge.nodes.driver_config import DriverConfig, load_driver
-from bridge.nodes.node import Inputs, StallWatch, Usage, add_zenoh_args, stop_on_signals, zenoh_config
+from bridge.nodes.node import BlockedLoop, Inputs, StallWatch, Usage, add_zenoh_args, stop_on_signals, zenoh_config
 from bridge.nodes.zsession import open_session
 from drivers import link_names, open_driver
 from drivers.base import Driver, DriverError, FailsafeReport, LinkHealth
@@ -118,8 +118,9 @@ class DriverHost:
         self.health = LinkHealth()
         self.missed = 0
         #: a loop iteration later than this says why in the log (the controllers' watchdog is 0.5 s on ODrive's
-        #: example; the deadman a few periods)
-        self.stall_watch = StallWatch(STALL_REPORT_S)
+        #: example; the deadman a few periods), and where it is blocked while it is (two periods at a slow rate)
+        self.stall_report_s = max(STALL_REPORT_S, 2.0 * self.period)
+        self.stall_watch = StallWatch(self.stall_report_s)
         self.ticks: deque[float] = deque(maxlen=500)  # start times of the periodic ticks (jitter)
         self.pubs: dict[str, zenoh.Publisher] = {}
         self.pose_source = d.pose_source
@@ -462,7 +463,9 @@ class DriverHost:
         t_start = t_next = time.monotonic()
         t_status = t_start
         last_tick = -math.inf
+        blocked = BlockedLoop(self.stall_report_s, stop, log).start()
         while not stop.is_set():
+            blocked.beat()
             gap = last_tick + self.min_gap - time.monotonic()
             if gap > 0:
                 stop.wait(gap)

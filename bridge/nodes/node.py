@@ -14,12 +14,15 @@ import logging
 import os
 import resource
 import signal
+import sys
 import threading
 import time
+import traceback
 import tracemalloc
 from collections import Counter
 from collections.abc import Callable
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any, Generic, TypeVar
 
 import zenoh
@@ -103,31 +106,39 @@ class Queued(Generic[S]):
 class Usage:
     """What the process had used by a moment: CPU seconds, context switches it gave up (voluntary: it waited for
     something) and had taken from it (involuntary: the kernel ran another task), major page faults (it waited for
-    a page from disk); and the machine's CPU seconds of steal (a virtual machine's CPUs its hypervisor did not run)
-    and of I/O wait, summed over its CPUs (None where ``/proc/stat`` is not readable)."""
+    a page from disk); and, machine-wide, the CPU seconds of steal summed over the CPUs (a virtual machine's CPUs its
+    hypervisor did not run; ``/proc/stat``) and the seconds some task was stalled on I/O (``/proc/pressure/io``:
+    unlike the CPUs' I/O wait it counts on a busy machine too); None where the kernel does not say."""
 
     cpu: float
     voluntary: int
     involuntary: int
     major_faults: int
     steal: float | None = None
-    iowait: float | None = None
+    io_stall: float | None = None
 
     @classmethod
     def now(cls) -> Usage:
         r = resource.getrusage(resource.RUSAGE_SELF)
-        iowait, steal = _machine_waits()
-        return cls(r.ru_utime + r.ru_stime, r.ru_nvcsw, r.ru_nivcsw, r.ru_majflt, steal, iowait)
+        return cls(r.ru_utime + r.ru_stime, r.ru_nvcsw, r.ru_nivcsw, r.ru_majflt, _steal(), _io_stall())
 
 
-def _machine_waits() -> tuple[float | None, float | None]:
-    """The machine's I/O wait and steal so far, CPU seconds over all its CPUs (``/proc/stat``; Linux only)."""
+def _steal() -> float | None:
+    """The machine's steal so far, CPU seconds summed over its CPUs (``/proc/stat``; Linux only)."""
     try:
         with open("/proc/stat", "rb") as f:
-            fields = f.readline().split()
-        return int(fields[5]) / _CLK_TCK, int(fields[8]) / _CLK_TCK
+            return int(f.readline().split()[8]) / _CLK_TCK
     except (OSError, IndexError, ValueError):
-        return None, None
+        return None
+
+
+def _io_stall() -> float | None:
+    """Seconds so far in which some task of the machine was stalled on I/O (pressure stall information)."""
+    try:
+        with open("/proc/pressure/io", "rb") as f:
+            return int(f.readline().rsplit(b"total=", 1)[1]) / 1e6
+    except (OSError, IndexError, ValueError):
+        return None
 
 
 _CLK_TCK = os.sysconf("SC_CLK_TCK") if hasattr(os, "sysconf") else 100
@@ -154,13 +165,12 @@ class StallWatch:
         cpu = usage.cpu - before.cpu
         inv, vol = usage.involuntary - before.involuntary, usage.voluntary - before.voluntary
         faults = usage.major_faults - before.major_faults
-        machine = ""
-        steal = None
-        if usage.steal is not None and before.steal is not None and usage.iowait is not None \
-                and before.iowait is not None:
+        machine, steal = "", None
+        if usage.steal is not None and before.steal is not None:
             steal = (usage.steal - before.steal) / (os.cpu_count() or 1)
-            machine = (f"; the machine, per CPU: {steal:.2f} s steal, "
-                       f"{(usage.iowait - before.iowait) / (os.cpu_count() or 1):.2f} s I/O wait")
+            machine += f"; the machine: {steal:.2f} s steal per CPU"
+        if usage.io_stall is not None and before.io_stall is not None:
+            machine += f"{'; the machine:' if not machine else ','} {usage.io_stall - before.io_stall:.2f} s I/O stall"
         if cpu >= 0.5 * gap:
             why = "busy: this process computed for most of it"
         elif steal is not None and steal >= 0.5 * gap:
@@ -173,6 +183,46 @@ class StallWatch:
             why = "waiting (a lock, the disk or the interpreter lock)"
         return (f"loop stalled {gap:.2f} s ({why}; {cpu:.3f} s CPU, {inv} involuntary and {vol} voluntary context "
                 f"switches, {faults} major page faults{machine})")
+
+
+class BlockedLoop:
+    """Where a loop is stuck, said while it is: :meth:`beat` each iteration; a watcher thread that sees no beat for
+    ``threshold`` seconds logs the loop thread's innermost frames once per stall (the stall watch's line, after it,
+    gives the figures). A loop blocked on a lock, a file or a native call shows where; a process the kernel or its
+    hypervisor did not run shows nothing here, since the watcher did not run either."""
+
+    def __init__(self, threshold: float, stop: threading.Event, logger: logging.Logger, frames: int = 6) -> None:
+        self.threshold = float(threshold)
+        self.stop, self.log, self.frames = stop, logger, int(frames)
+        self.last = time.monotonic()
+        self.reported = False
+        self.ident: int | None = None
+
+    def start(self) -> BlockedLoop:
+        """Watch the calling thread (the loop's) from a daemon thread until ``stop``."""
+        self.ident = threading.get_ident()
+        self.last = time.monotonic()
+        threading.Thread(target=self._watch, name="blocked-loop", daemon=True).start()
+        return self
+
+    def beat(self) -> None:
+        self.last = time.monotonic()
+        self.reported = False
+
+    def where(self) -> str | None:
+        """The loop thread's innermost frames, innermost first (None if it is gone)."""
+        frame = sys._current_frames().get(self.ident) if self.ident is not None else None
+        if frame is None:
+            return None
+        stack = traceback.extract_stack(frame)[-self.frames:]
+        return " <- ".join(f"{Path(f.filename).name}:{f.lineno} {f.name}" for f in reversed(stack))
+
+    def _watch(self) -> None:
+        while not self.stop.wait(self.threshold / 4):
+            late = time.monotonic() - self.last
+            if late > self.threshold and not self.reported:
+                self.reported = True
+                self.log.warning("loop blocked for %.2f s so far, in: %s", late, self.where())
 
 
 class FixedRate:
