@@ -464,33 +464,36 @@ class DriverHost:
         t_status = t_start
         last_tick = -math.inf
         blocked = BlockedLoop(self.stall_report_s, stop, log).start()
-        while not stop.is_set():
-            blocked.beat()
-            gap = last_tick + self.min_gap - time.monotonic()
-            if gap > 0:
-                stop.wait(gap)
-            now = time.monotonic()
-            if duration is not None and now - t_start >= duration:
-                return
-            stalled = self.stall_watch.check(now, Usage.now())
-            if stalled:
-                log.warning("%s", stalled)
-            periodic = now >= t_next
-            if periodic:
-                self.ticks.append(now)
-            self.tick(now)
-            last_tick = now
-            if now >= t_status:
-                self._put("status", self.status(now))
-                t_status = now + 1.0
-            if periodic:
-                t_next += self.period
-                if t_next <= time.monotonic():
-                    self.missed += 1
-                    t_next = time.monotonic() + self.period
-            delay = t_next - time.monotonic()
-            if delay > 0 and self.wake.wait(delay):
-                self.wake.clear()
+        try:
+            while not stop.is_set():
+                blocked.beat()
+                gap = last_tick + self.min_gap - time.monotonic()
+                if gap > 0:
+                    stop.wait(gap)
+                now = time.monotonic()
+                if duration is not None and now - t_start >= duration:
+                    return
+                stalled = self.stall_watch.check(now, Usage.now())
+                if stalled:
+                    log.warning("%s", stalled)
+                periodic = now >= t_next
+                if periodic:
+                    self.ticks.append(now)
+                self.tick(now)
+                last_tick = now
+                if now >= t_status:
+                    self._put("status", self.status(now))
+                    t_status = now + 1.0
+                if periodic:
+                    t_next += self.period
+                    if t_next <= time.monotonic():
+                        self.missed += 1
+                        t_next = time.monotonic() + self.period
+                delay = t_next - time.monotonic()
+                if delay > 0 and self.wake.wait(delay):
+                    self.wake.clear()
+        finally:
+            blocked.done()
 
 
 def arguments(ap: argparse.ArgumentParser) -> None:

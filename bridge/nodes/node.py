@@ -197,9 +197,10 @@ class BlockedLoop:
         self.last = time.monotonic()
         self.reported = False
         self.ident: int | None = None
+        self._done = threading.Event()
 
     def start(self) -> BlockedLoop:
-        """Watch the calling thread (the loop's) from a daemon thread until ``stop``."""
+        """Watch the calling thread (the loop's) from a daemon thread until ``stop`` or :meth:`done`."""
         self.ident = threading.get_ident()
         self.last = time.monotonic()
         threading.Thread(target=self._watch, name="blocked-loop", daemon=True).start()
@@ -208,6 +209,10 @@ class BlockedLoop:
     def beat(self) -> None:
         self.last = time.monotonic()
         self.reported = False
+
+    def done(self) -> None:
+        """The loop has ended (what follows it, a shutdown, is not a blocked loop)."""
+        self._done.set()
 
     def where(self) -> str | None:
         """The loop thread's innermost frames, innermost first (None if it is gone)."""
@@ -218,7 +223,7 @@ class BlockedLoop:
         return " <- ".join(f"{Path(f.filename).name}:{f.lineno} {f.name}" for f in reversed(stack))
 
     def _watch(self) -> None:
-        while not self.stop.wait(self.threshold / 4):
+        while not (self._done.wait(self.threshold / 4) or self.stop.is_set()):
             late = time.monotonic() - self.last
             if late > self.threshold and not self.reported:
                 self.reported = True
