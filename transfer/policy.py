@@ -194,7 +194,7 @@ class _PolicyBase:
                     (lim.bcnt_lo[a] > 0 and t_n[a] <= lim.lo[a] + ALONG_LIMIT_TOL, 0, 0.0)):
                 if not at_limit:
                     continue
-                on_row = np.flatnonzero((ids // grid[1] if a == 0 else ids % grid[1]) == row)  # the cells' index a
+                on_row = np.flatnonzero(np.unravel_index(ids, grid)[a] == row)  # the pairs of cells on that row
                 if on_row.size < 2:
                     continue
                 on_row = on_row[np.argsort(T[on_row, b], kind="stable")]
