@@ -165,12 +165,13 @@ class StallWatch:
         cpu = usage.cpu - before.cpu
         inv, vol = usage.involuntary - before.involuntary, usage.voluntary - before.voluntary
         faults = usage.major_faults - before.major_faults
-        machine, steal = "", None
+        steal, figures = None, []
         if usage.steal is not None and before.steal is not None:
             steal = (usage.steal - before.steal) / (os.cpu_count() or 1)
-            machine += f"; the machine: {steal:.2f} s steal per CPU"
+            figures.append(f"{steal:.2f} s steal per CPU")
         if usage.io_stall is not None and before.io_stall is not None:
-            machine += f"{'; the machine:' if not machine else ','} {usage.io_stall - before.io_stall:.2f} s I/O stall"
+            figures.append(f"{usage.io_stall - before.io_stall:.2f} s I/O stall")
+        machine = f"; the machine: {', '.join(figures)}" if figures else ""
         if cpu >= 0.5 * gap:
             why = "busy: this process computed for most of it"
         elif steal is not None and steal >= 0.5 * gap:
