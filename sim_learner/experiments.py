@@ -444,7 +444,9 @@ def grid_experiment(seed: int = 0, quick: bool = False, out: Path | None = None,
     ang_err = {k: np.zeros(len(cmds)) for k in names}
     method = np.empty(len(cmds), dtype=object)
     for name in names:
-        pol = make_policy(store, name, np.random.default_rng(seed), exploration=exploration)
+        # the grid maps every command once from one pose and learns nothing: no filling of holes
+        fill = {"fill_budget": 0.0} if exploration == "guided" else {}
+        pol = make_policy(store, name, np.random.default_rng(seed), exploration=exploration, **fill)
         for i, u in enumerate(cmds):
             m = pol.map(u)
             if name == "scm":
@@ -494,6 +496,33 @@ def grid_experiment(seed: int = 0, quick: bool = False, out: Path | None = None,
     return summary
 
 
+#: the grid figures a seed sweep summarises: SCM / baseline median position error on the SCM region (the paper's
+#: reading) and against the baseline over the whole grid, and the region's share of the grid
+GRID_FIGURES = ("scm_to_baseline", "scm_to_baseline_all", "scm_region_fraction")
+
+
+def sweep_grid(seeds: Sequence[int], quick: bool = False, exploration: str = "guided", workers: int = 2,
+               progress: bool = True) -> dict:
+    """The grid test on the pairs each seed's MPC run learned (the runs in at most two worker processes): per-seed
+    figures and their median, spread and worst seed (``figure_stats``)."""
+    outcome = sweep_mpc(seeds, quick, [exploration], workers, progress)
+    per_seed = []
+    for seed in seeds:
+        g = grid_experiment(seed, quick, None, False, outcome.stores[(exploration, seed)], exploration)
+        scm = g["scm_region_median_pos_err_m"]
+        per_seed.append({
+            "seed": seed,
+            "scm_to_baseline": None if scm is None else scm / g["baseline_median_pos_err_m"],
+            "scm_to_baseline_all": None if scm is None else scm / g["baseline_region_median_pos_err_m_all"],
+            "scm_region_fraction": g["scm_region_fraction"],
+            "scm_region_median_pos_err_m": scm,
+            "refined_pairs": len(outcome.stores[(exploration, seed)].refined()),
+        })
+    return {"experiment": "grid-sweep", "quick": quick, "exploration": exploration, "seeds": list(seeds),
+            "stats": {f: figure_stats({p["seed"]: p[f] for p in per_seed}) for f in GRID_FIGURES},
+            "per_seed": per_seed}
+
+
 def _common(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--out", type=Path, default=Path("out"), help="directory for figures and trajectories")
     ap.add_argument("--seed", type=int, default=0, help="the run's seed (default 0)")
@@ -510,6 +539,9 @@ def arguments_mpc(ap: argparse.ArgumentParser) -> None:
 
 def arguments_grid(ap: argparse.ArgumentParser) -> None:
     _common(ap)
+    ap.add_argument("--seeds", default=None,
+                    help="the grid on the pairs of each seed's MPC run, e.g. 10-19 (JSON of statistics)")
+    ap.add_argument("--workers", type=int, default=2, help="the MPC runs' worker processes (at most 2)")
     ap.add_argument("--store", type=Path, default=None,
                     help="test the pairs of this pair-store file (e.g. one a sweep wrote) instead of a run's")
 
@@ -553,6 +585,14 @@ def run_grid(args: argparse.Namespace) -> int:
     from the same pose to the teacher, the baseline, the SCM learner and each alternative mapper (on the pairs of a
     seed's run, or of --store). Prints one JSON summary; figures go to --out."""
     t0 = time.perf_counter()
+    if args.seeds is not None:
+        if args.store is not None:
+            raise UsageError("--store and --seeds exclude each other")
+        try:
+            seeds = parse_seeds(args.seeds)
+        except ValueError as exc:
+            raise UsageError(f"--seeds: {exc}") from None
+        return _emit(sweep_grid(seeds, args.quick, args.policy or "guided", args.workers), t0)
     store = PairStore.from_bytes(args.store.read_bytes()) if args.store is not None else None
     return _emit(grid_experiment(args.seed, args.quick, args.out, store=store, exploration=args.policy or "guided"), t0)
 
@@ -567,4 +607,4 @@ def run_primitives(args: argparse.Namespace) -> int:
 
 
 
-__all__ = ["MpcOutcome", "SweepOutcome", "grid_experiment", "mpc_experiment", "sweep_mpc"]
+__all__ = ["MpcOutcome", "SweepOutcome", "grid_experiment", "mpc_experiment", "sweep_grid", "sweep_mpc"]

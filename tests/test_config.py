@@ -131,3 +131,11 @@ def test_a_malformed_or_missing_zenoh_config_is_one_line(tmp_path) -> None:
                              capture_output=True, text=True, timeout=60)
         assert res.returncode == 2 and len(res.stderr.strip().splitlines()) == 1, res.stderr
         assert str(path) in res.stderr and "Traceback" not in res.stderr
+
+
+def test_the_stations_fill_budget_default_is_the_guided_policys() -> None:
+    # the config module stays free of the numerical stack (the robot side imports it), so it repeats the number
+    from transfer.policy import FILL_BUDGET, GuidedPolicy
+
+    assert C.TransferSection().fill_budget == FILL_BUDGET
+    assert GuidedPolicy.__init__.__kwdefaults__["fill_budget"] == FILL_BUDGET

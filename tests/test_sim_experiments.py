@@ -100,9 +100,9 @@ def test_mpc_seed_is_deterministic_across_processes(sweep) -> None:
 
 
 def test_grid_scm_region_error_beats_the_baseline_and_an_affine_map(sweep) -> None:
-    # the exhaustive 0.1 s test on the pairs each seed learned. Measured (guided pairs, 5 seeds): SCM / baseline
-    # median position error 0.25-0.30 (median 0.29), affine 0.55-0.69, identity 1 by definition; threshold 0.45.
-    # The paper's <= 0.2 holds on the paper policy's denser pairs (0.14), not on the guided policy's (README).
+    # the exhaustive 0.1 s test on the pairs each seed learned. Measured (guided pairs, with the guided policy's
+    # fills): SCM / baseline median position error 0.13-0.16 (median 0.15) on these seeds, 0.13-0.27 over 0-9;
+    # threshold 0.25 (before the fills: 0.25-0.30, median 0.29, which fails it). The full-size claim is the README's.
     ratios, affine = [], []
     for s in SEEDS:
         g = grid_experiment(seed=s, quick=True, out=None, progress=False, store=sweep["stores"][s])
@@ -110,7 +110,7 @@ def test_grid_scm_region_error_beats_the_baseline_and_an_affine_map(sweep) -> No
         base = g["baseline_median_pos_err_m"]
         ratios.append(g["scm_region_median_pos_err_m"] / base)
         affine.append(g["mappers"]["affine"]["region_median_pos_err_m"] / base)
-    assert float(np.median(ratios)) <= 0.45 < float(np.median(affine))
+    assert float(np.median(ratios)) <= 0.25 and float(np.median(ratios)) < float(np.median(affine))
 
 
 def test_cli_grid_on_a_saved_store_writes_json_figures_and_trajectories(sweep, tmp_path, capsys) -> None:
@@ -120,6 +120,17 @@ def test_cli_grid_on_a_saved_store_writes_json_figures_and_trajectories(sweep, t
     assert out["experiment"] == "grid" and "scm_region_median_pos_err_m" in out
     assert (tmp_path / "grid_errors.png").stat().st_size > 10_000
     assert (tmp_path / "grid.npz").exists()
+
+
+def test_cli_grid_over_seeds_runs_each_seeds_mpc_and_summarises(capsys) -> None:
+    assert main(["sim", "grid", "--quick", "--seeds", "0", "--workers", "1"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["experiment"] == "grid-sweep" and out["seeds"] == [0] and out["exploration"] == "guided"
+    (one,) = out["per_seed"]
+    assert out["stats"]["scm_to_baseline"]["median"] == one["scm_to_baseline"] < 1.0
+    assert one["scm_to_baseline_all"] > 0 and one["refined_pairs"] >= 3
+    assert main(["sim", "grid", "--quick", "--seeds", "0", "--store", "x.bin"]) == 2
+    assert "exclude each other" in capsys.readouterr().err
 
 
 def test_primitives_scm_learner_reaches_the_goal_and_the_baseline_deviates_3x_more() -> None:

@@ -55,7 +55,28 @@ unconfigured cell nearest to that estimate. ``method`` is
   learner units) to the cell's rectangle and ``d(plan, cell)`` the least distance of the estimates of the teacher's
   next planned commands ``plan`` (0 without a plan); ties broken by the random generator (the only use of it). The
   command sent is the point of that cell nearest to the estimate, moved ``inset`` (fraction of a cell) inside it,
-  not a uniform sample: the pair lands where it is missing at the least detour from what the mission needs.
+  not a uniform sample: the pair lands where it is missing at the least detour from what the mission needs;
+  or a *fill* (below).
+
+*Filling the map's holes* (guided, ``fill_budget``, default ``FILL_BUDGET``). A mission that drives at its limits
+(an MPC at the learned top speed and yaw rates) never asks for the commands in between, so without it the map there
+is a straight line across the unconfigured cells (for the paper's cubic learner: learner speeds 0.1-0.9 of the
+range, whose responses span three quarters of the teacher's speeds). A fill explores such a hole on the teacher's
+own path, only slower: for a command served from the learned region, the policy considers the teacher command
+slowed by s (1 down to ``fill_depth``, and no slower than the learned speed limit) at the same curvature, mapped:
+the learner speed the map gives for ``s * v_T`` and the yaw rate it gives for ``s * omega_T`` at ``v_T`` (where the
+mission drives, so that row is learned; exact when the learner's yaw-rate response does not depend on its speed;
+no fill where that yaw rate has no learned region). Among the candidates in unconfigured cells it fills a cell an
+earlier burst began, else the one whose teacher command is farthest from every refined pair (the map's biggest
+hole on the teacher's way). A burst sends k_min commands into that cell, each at the learner speed of the cell's
+pairs so far and at the yaw rate that gives the teacher's curvature at the speed those pairs measured (only the
+first command of a burst relies on the map's guess of the hole's speed); the command stays in the burst's cell
+while that yaw rate is within one cell of it (moved into it: a cell is finished at a yaw-rate error of at most one
+cell), else the burst moves to that yaw rate's cell if it is unconfigured, and ends otherwise (or with no learned
+yaw rate). Fills are paid from a token budget:
+``fill_budget`` per command served from the region, at most one cell's k_min saved, and a burst starts only with
+k_min saved. They cost time, not path: the robot slows down along the curve the teacher asked for. Like every
+perturbation they never happen where ``explore`` is False (near obstacles).
 
 ``explore=False`` (the caller's choice, e.g. near obstacles: :class:`transfer.step.TransferStep` decides it) means
 no perturbation of any kind, for both policies: the command is the guided policy's region map (with its barycentric
@@ -83,6 +104,8 @@ EXPLORATIONS = ("paper", "guided")
 #: normalised teacher distance to a learned limit within which a command is mapped along it (a hundredth of a cell
 #: of the 11 x 11 grid: an interior-point MPC stops about 1e-4 short of its bounds)
 ALONG_LIMIT_TOL = 1e-3
+#: the guided policy's default share of region-served commands that may fill holes of the map (module docstring)
+FILL_BUDGET = 0.08
 
 
 def planned_commands(predicted: ArrayLike, dt: float, k: int = 10) -> NDArray[np.float64]:
@@ -330,6 +353,9 @@ class GuidedPolicy(_PolicyBase):
         if probe is not None:
             return Mapped(probe, "perturb")
         if gap <= self.saturate:
+            fill = self._fill(t)
+            if fill is not None:
+                return Mapped(fill, "perturb")
             return Mapped(u, method, ids)
         cell = self.store.cell_of(u)
         if not self.store.is_configured(cell):
@@ -338,6 +364,106 @@ class GuidedPolicy(_PolicyBase):
         if target is None:
             return Mapped(u, method, ids)
         return Mapped(lb.clip(lb.denormalise(self._nearest_in_cell(target, lb.normalise(u)))), "perturb")
+
+    def __init__(self, store: PairStore, mapper: str | Mapper = "scm", rng: np.random.Generator | None = None,
+                 *, fill_budget: float = FILL_BUDGET, fill_depth: float = 0.3, **options: float | None) -> None:
+        """``fill_budget``: the share of the commands served from the learned region that may fill a hole of the
+        map (0: never); ``fill_depth``: the slowest a fill asks for, as a fraction of the teacher's speed (what the
+        learner then drives is the map's guess in the hole, which the fill measures); the other
+        options as :class:`_PolicyBase` takes them."""
+        super().__init__(store, mapper, rng, **options)  # type: ignore[arg-type]
+        if not 0.0 <= fill_budget < 1.0:
+            raise ValueError(f"fill_budget must be in [0, 1), got {fill_budget}")
+        if not 0.0 < fill_depth < 1.0:
+            raise ValueError(f"fill_depth must be in (0, 1), got {fill_depth}")
+        self.fill_budget = float(fill_budget)
+        self.fill_depth = float(fill_depth)
+        self._fill_tokens = 0.0  # earned at fill_budget per command served from the region, at most one cell's k_min
+        self._fill_cell: tuple[int, int] | None = None  # the hole the current burst fills; None between bursts
+
+    def _fill(self, t: NDArray[np.float64]) -> NDArray[np.float64] | None:
+        """The fill of a hole of the map (module docstring), or None: no budget, no hole, or a paused burst."""
+        store = self.store
+        if self.fill_budget <= 0.0 or not t[0] > 0.0:
+            return None
+        self._fill_tokens = min(self._fill_tokens + self.fill_budget, float(store.k_min))
+        c = self._fill_cell
+        configured = store.configured()
+        if c is not None and (configured[c] or self._fill_tokens < 1.0):
+            c = self._fill_cell = None  # the burst is over: its hole is configured, or its budget spent
+        if c is not None and store.count[c] > 0:
+            # the burst goes on at the learner speed of its pairs so far, turning for the teacher's curvature at the
+            # speed those pairs measured; if that yaw rate is another cell's of the same speeds, it fills that one
+            v_bar = float(store.teacher_bounds.denormalise(store.sum_T[c] / store.count[c])[0])
+            u = self._at_speed(t, float(store.sum_L[c][0] / store.count[c]), v_bar / float(t[0]))
+            u = None if u is None else self._in_burst(c, u)
+            if u is None:  # no learned yaw rate for it, or only known cells there: the burst ends
+                self._fill_cell = None
+                return None
+            self._fill_cell = store.cell_of(u)
+            self._fill_tokens -= 1.0
+            return u
+        if self._fill_tokens < store.k_min:  # a new burst starts with one whole cell's budget
+            return None
+        hole = self._fill_target(t)
+        if hole is None:
+            return None
+        self._fill_cell, u = hole
+        self._fill_tokens -= 1.0
+        return u
+
+    def _in_burst(self, c: tuple[int, int], u: NDArray[np.float64]) -> NDArray[np.float64] | None:
+        """Where a burst's next command goes: ``u`` moved (on the yaw-rate axis) into the burst's cell ``c`` when it
+        lies within one cell of it (a cell is finished at a yaw-rate error of at most one cell); else ``u`` if its
+        own cell is unconfigured (the burst moves there); else None."""
+        store, lb = self.store, self.store.learner_bounds
+        l_n = lb.normalise(u)
+        inside = self._nearest_in_cell(c, l_n)
+        if abs(inside[1] - l_n[1]) <= 1.0 / store.grid[1]:
+            return lb.clip(lb.denormalise(np.array([l_n[0], inside[1]])))
+        return None if store.is_configured(store.cell_of(u)) else u
+
+    def _fill_target(self, t: NDArray[np.float64]) -> tuple[tuple[int, int], NDArray[np.float64]] | None:
+        """Where a new burst goes: along the teacher's command slowed by s (1 down to ``fill_depth``, no slower
+        than the learned speed limit), the learner command for speed ``s * v_T`` at curvature ``omega_T / v_T``;
+        among those in unconfigured cells, a cell an earlier burst began first, else the one whose teacher command
+        ``s * u_T`` is farthest from every refined pair (normalised teacher units: the map's biggest hole on the
+        teacher's way). (cell, learner command), or None."""
+        store = self.store
+        tb, lb = store.teacher_bounds, store.learner_bounds
+        configured = store.configured()
+        _, _, T, _ = store.refined_arrays()
+        best: tuple[tuple[bool, float], tuple[int, int], NDArray[np.float64]] | None = None
+        for s in np.linspace(1.0, self.fill_depth, 29)[1:]:
+            ts = t * s
+            ts_n = tb.normalise(ts)
+            if ts_n[0] < store.limits.lo[0]:
+                break
+            v_n = float(lb.normalise(self._unperturbed(ts, ts_n)[0])[0])
+            u = self._at_speed(t, v_n, s)
+            if u is None:
+                continue
+            cell = store.cell_of(u)
+            if configured[cell]:
+                continue
+            key = (bool(store.count[cell] > 0), float(np.min(np.hypot(*(T - ts_n).T))) if len(T) else 0.0)
+            if best is None or key > best[0]:
+                best = (key, cell, u)
+        return None if best is None else (best[1], best[2])
+
+    def _at_speed(self, t: NDArray[np.float64], v_n: float, s: float) -> NDArray[np.float64] | None:
+        """The learner command at normalised learner speed ``v_n`` whose yaw rate is the map's for ``s * omega_T``
+        at the teacher's own speed ``v_T``, where the mission drives and the map is learned: the teacher's curvature
+        at ``s * v_T``, if the learner's yaw-rate response does not depend on its speed. None when the map has no
+        learned region for that yaw rate."""
+        lb, tb = self.store.learner_bounds, self.store.teacher_bounds
+        t_w = np.array([t[0], t[1] * s])
+        u_w, method, _, _ = self._unperturbed(t_w, tb.normalise(t_w))
+        if method == "direct":
+            return None
+        l_n = lb.normalise(u_w)
+        l_n[0] = v_n
+        return lb.clip(lb.denormalise(l_n))
 
     def _cell_distance(self, cell: tuple[int, int], p: NDArray[np.float64]) -> float:
         """Distance (normalised learner units) from p to the rectangle of a grid cell."""

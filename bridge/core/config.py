@@ -107,11 +107,16 @@ class TransferSection(Cfg):
     mapper: Annotated[Literal["scm", "affine", "barycentric", "identity"], meta("how a region maps commands")] = "scm"
     seed: Annotated[int, meta("random generator seed of the exploration", ge=0, le=2**32 - 1)] = 0
     exploration: Annotated[Literal["guided", "paper", "off"], meta(
-        "guided: explore (perturb) only where the command needs a missing pair, at the least detour, steered by "
-        "the teacher's plan; paper: the paper's algorithm as published; off: never perturb (map, or extrapolate "
+        "guided: explore (perturb) where the command needs a missing pair, at the least detour, steered by the "
+        "teacher's plan, and fill the map's holes on the teacher's curve, slower, within fill_budget; paper: the "
+        "paper's algorithm as published; off: never perturb (map, or extrapolate "
         "from the learned region)")] = "guided"
     explore_clearance_m: Annotated[float, meta("no exploration closer than this to an obstacle's edge, whatever the "
                                                "exploration setting, m", ge=0.0, le=100.0)] = 0.3
+    # = transfer.policy.FILL_BUDGET, repeated: this module stays free of the numerical stack (tests/test_config.py)
+    fill_budget: Annotated[float, meta(
+        "guided: the share of the commands served from the learned region that may fill a hole of the map, driving "
+        "the teacher's curve slower (0: never)", ge=0.0, lt=1.0)] = 0.08
 
 
 class TeacherSection(Cfg):

@@ -207,7 +207,8 @@ class StationCore:
         self.store, how = load_store(self.store_path, learner, teacher, tcfg.grid, tcfg.k_min)
         log.info("%s", how)
         policy = make_policy(self.store, tcfg.mapper, np.random.default_rng(tcfg.seed),
-                             exploration="paper" if tcfg.exploration == "paper" else "guided")
+                             **({"exploration": "paper"} if tcfg.exploration == "paper"
+                                else {"exploration": "guided", "fill_budget": tcfg.fill_budget}))
         self.transfer = TransferStep(policy, dt=self.period, explore=tcfg.exploration != "off",
                                      clearance=tcfg.explore_clearance_m)
         self.source: CommandSource = source or make_source(cfg, self.period, calibration)
