@@ -62,21 +62,20 @@ unconfigured cell nearest to that estimate. ``method`` is
 (an MPC at the learned top speed and yaw rates) never asks for the commands in between, so without it the map there
 is a straight line across the unconfigured cells (for the paper's cubic learner: learner speeds 0.1-0.9 of the
 range, whose responses span three quarters of the teacher's speeds). A fill explores such a hole on the teacher's
-own path, only slower: for a command served from the learned region, the policy considers the teacher command
-slowed by s (1 down to ``fill_depth``, and no slower than the learned speed limit) at the same curvature, mapped:
-the learner speed the map gives for ``s * v_T`` and the yaw rate it gives for ``s * omega_T`` at ``v_T`` (where the
-mission drives, so that row is learned; exact when the learner's yaw-rate response does not depend on its speed;
-no fill where that yaw rate has no learned region). Among the candidates in unconfigured cells it fills a cell an
-earlier burst began, else the one whose teacher command is farthest from every refined pair (the map's biggest
-hole on the teacher's way). A burst sends k_min commands into that cell, each at the learner speed of the cell's
-pairs so far and at the yaw rate that gives the teacher's curvature at the speed those pairs measured (only the
-first command of a burst relies on the map's guess of the hole's speed); the command stays in the burst's cell
-while that yaw rate is within one cell of it (moved into it: a cell is finished at a yaw-rate error of at most one
-cell), else the burst moves to that yaw rate's cell if it is unconfigured, and ends otherwise (or with no learned
-yaw rate). Fills are paid from a token budget:
-``fill_budget`` per command served from the region, at most one cell's k_min saved, and a burst starts only with
-k_min saved. They cost time, not path: the robot slows down along the curve the teacher asked for. Like every
-perturbation they never happen where ``explore`` is False (near obstacles).
+own path, only slower: for a command served from the learned region, the policy considers the teacher command slowed
+by s (1 down to ``fill_depth``, and no slower than the learned speed limit) at the same curvature, mapped: the
+learner speed the map gives for ``s * v_T`` and the yaw rate it gives for ``s * omega_T`` at ``v_T`` (where the
+mission drives, so that row is learned; exact when the learner's yaw-rate response does not depend on its speed; no
+fill where that yaw rate has no learned region). Among the candidates in unconfigured cells it fills a cell an
+earlier burst began, else the one whose teacher command is farthest from every refined pair (the map's biggest hole
+on the teacher's way). A burst sends k_min commands into that cell, each at the learner speed of the cell's pairs so
+far and at the yaw rate that gives the teacher's curvature at the speed those pairs measured (only the first command
+of a burst relies on the map's guess of the hole's speed); the command stays in the burst's cell while that yaw rate
+is within one cell of it (moved into it: a cell is finished at a yaw-rate error of at most one cell), else the burst
+moves to that yaw rate's cell if it is unconfigured, and ends otherwise (or with no learned yaw rate). Fills are
+paid from a token budget: ``fill_budget`` per command served from the region, at most one cell's k_min saved, and a
+burst starts only with k_min saved. They cost time, not path: the robot slows down along the curve the teacher asked
+for. Like every perturbation they never happen where ``explore`` is False (near obstacles).
 
 ``explore=False`` (the caller's choice, e.g. near obstacles: :class:`transfer.step.TransferStep` decides it) means
 no perturbation of any kind, for both policies: the command is the guided policy's region map (with its barycentric
@@ -393,7 +392,7 @@ class GuidedPolicy(_PolicyBase):
             c = self._fill_cell = None  # the burst is over: its hole is configured, or its budget spent
         if c is not None and store.count[c] > 0:
             # the burst goes on at the learner speed of its pairs so far, turning for the teacher's curvature at the
-            # speed those pairs measured; if that yaw rate is another cell's of the same speeds, it fills that one
+            # speed those pairs measured (in its cell, or in that yaw rate's own cell: _in_burst)
             v_bar = float(store.teacher_bounds.denormalise(store.sum_T[c] / store.count[c])[0])
             u = self._at_speed(t, float(store.sum_L[c][0] / store.count[c]), v_bar / float(t[0]))
             u = None if u is None else self._in_burst(c, u)
