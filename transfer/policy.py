@@ -387,14 +387,14 @@ class GuidedPolicy(_PolicyBase):
             return None
         self._fill_tokens = min(self._fill_tokens + self.fill_budget, float(store.k_min))
         c = self._fill_cell
-        configured = store.configured()
-        if c is not None and (configured[c] or self._fill_tokens < 1.0):
+        if c is not None and (store.is_configured(c) or self._fill_tokens < 1.0):
             c = self._fill_cell = None  # the burst is over: its hole is configured, or its budget spent
         if c is not None and store.count[c] > 0:
             # the burst goes on at the learner speed of its pairs so far, turning for the teacher's curvature at the
             # speed those pairs measured (in its cell, or in that yaw rate's own cell: _in_burst)
-            v_bar = float(store.teacher_bounds.denormalise(store.sum_T[c] / store.count[c])[0])
-            u = self._at_speed(t, float(store.sum_L[c][0] / store.count[c]), v_bar / float(t[0]))
+            mean_T, mean_L = store.cluster_mean(c)
+            v_bar = float(store.teacher_bounds.denormalise(mean_T)[0])
+            u = self._at_speed(t, float(mean_L[0]), v_bar / float(t[0]))
             u = None if u is None else self._in_burst(c, u)
             if u is None:  # no learned yaw rate for it, or only known cells there: the burst ends
                 self._fill_cell = None

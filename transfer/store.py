@@ -140,8 +140,7 @@ class PairStore:
         self.sum_L[cell] += l_n
         refined_changed = False
         if self.count[cell] >= self.k_min:
-            mT = self.sum_T[cell] / self.count[cell]
-            mL = self.sum_L[cell] / self.count[cell]
+            mT, mL = self.cluster_mean(cell)
             moved = max(np.max(np.abs(mT - self.pub_T[cell])), np.max(np.abs(mL - self.pub_L[cell])))
             if self.pub_version[cell] == 0 or moved > self.move_tol:
                 self.pub_T[cell], self.pub_L[cell] = mT, mL
@@ -151,6 +150,14 @@ class PairStore:
                 refined_changed = True
         limits_changed = self.limits.update(t_n, l_n, cell)
         return AddResult(cell, refined_changed, limits_changed)
+
+    def cluster_mean(self, cell: tuple[int, int]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """The mean of a cell's raw pairs so far, (teacher part, learner part) normalised, even before it holds k_min
+        of them (then it is not a refined pair yet); the cell must hold at least one."""
+        n = self.count[cell]
+        if n == 0:
+            raise ValueError(f"cell {cell} holds no raw pair")
+        return self.sum_T[cell] / n, self.sum_L[cell] / n
 
     def is_configured(self, cell: tuple[int, int]) -> bool:
         """A cell is configured when it holds a refined pair (k_min members)."""
