@@ -526,3 +526,40 @@ def test_guided_fills_the_maps_holes_on_the_teachers_curve_slower_within_its_bud
                                                        explore=False))
     assert all(m.method != "perturb" for m, _ in _drive(make_policy(store2, "scm", seed=0, fill_budget=0.0), case,
                                                        store2, t, 200))
+
+
+def test_the_hole_search_costs_at_most_about_one_map_per_command_when_no_hole_is_on_the_teachers_way() -> None:
+    """The steady state of a station: a learned store, the fill budget saved up, and no hole on the teacher's way.
+    A search that found nothing waits as many commands as it cost maps, and a store with no hole is never searched
+    (before: 54 maps for every command, 250x the command's cost)."""
+    from sim_learner.experiments import mpc_case
+
+    case = mpc_case(False)
+    lb = case.learner_bounds
+    for holes in ([], [(0, 0), (1, 0), (2, 0)]):  # none, or only at the slowest speeds' hardest right turn
+        store = PairStore(case.learner_bounds, case.teacher_bounds, k_min=5)
+        for i in range(11):
+            for j in range(11):
+                if (i, j) in holes:
+                    continue
+                u = lb.denormalise(np.array([(i + 0.5) / 11, (j + 0.5) / 11]))
+                for _ in range(store.k_min):
+                    store.add(case.learner.response(u), u)
+        p = make_policy(store, "scm", seed=0)
+        calls = 0
+        inner = p._unperturbed
+
+        def counted(*a, _inner=inner):
+            nonlocal calls
+            calls += 1
+            return _inner(*a)
+
+        p._unperturbed = counted
+        t = case.learner.response(lb.denormalise(np.array([0.9, 0.5])))  # straight ahead, fast: nothing to fill
+        n = 600
+        methods = {p.map(t).method for _ in range(n)}
+        assert "perturb" not in methods
+        # one map for the command itself, at most about one more for the searches, amortised
+        assert calls <= 2.1 * n, (holes, calls / n)
+        if not holes:
+            assert calls == n

@@ -163,6 +163,10 @@ class PairStore:
         """A cell is configured when it holds a refined pair (k_min members)."""
         return bool(self.pub_version[cell] > 0)
 
+    def n_configured(self) -> int:
+        """How many cells are configured."""
+        return int(np.count_nonzero(self.pub_version))
+
     def configured(self) -> NDArray[np.bool_]:
         """Which cells are configured, as a (n_v, n_omega) mask (a copy: the caller cannot change the store)."""
         return self.pub_version > 0
