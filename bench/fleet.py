@@ -142,6 +142,8 @@ class SimFleet:
             counters = dict(r.gate.counters)
         text = "link sim: driving" if self.released else f"link sim: waiting for {waiting} more station(s)"
         r.pubs["status"].put(M.encode(M.Status(stamp=now, seq=r.seq["status"], node="driver", ok=self.released,
+                                               state="driving" if self.released else "waiting",
+                                               reason="ok" if self.released else "not_engaged",
                                                rates_hz={"loop": APPLIED_HZ}, counters=counters, text=text)))
         r.seq["status"] += 1
 
@@ -331,14 +333,14 @@ def run_level(n: int, seconds: float, warmup: float, mission: Path, workdir: Pat
         # up: every station publishes status and says it is driving (the robots are released together)
         while time.monotonic() - t_start < startup_limit:
             sts = [latest(r) for r in robots]
-            if all(s is not None and s.text == "driving" for s in sts):
+            if all(s is not None and s.reason == "ok" for s in sts):
                 break
             if kids.any_exited():
                 break
             time.sleep(0.2)
         else:
             sts = [latest(r) for r in robots]
-        up = sum(1 for s in sts if s is not None and s.text == "driving")
+        up = sum(1 for s in sts if s is not None and s.reason == "ok")
         res["startup_s"] = round(time.monotonic() - t_start, 1)
         if up < n:
             res["failed"] = f"{up} of {n} stations driving after {res['startup_s']} s" + (
@@ -377,7 +379,7 @@ def run_level(n: int, seconds: float, warmup: float, mission: Path, workdir: Pat
                   "tick_max_ms": s1.latencies_ms.get("tick_max"),
                   "solve_ms_median": s1.latencies_ms.get("solve_median"),
                   "cmd_latency_p99_ms": float(np.percentile(lat, 99)) if lat.size else None,
-                  "driving": s1.text == "driving", "refined_pairs": s1.counters.get("refined_pairs")}
+                  "driving": s1.reason == "ok", "refined_pairs": s1.counters.get("refined_pairs")}
     good = [v for v in per.values() if "failed" not in v]
     window = t_w1 - t_w0
     ticks = sum(v["ticks"] for v in good)

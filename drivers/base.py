@@ -11,7 +11,7 @@ applied-command echo the station pairs with each other come from one clock.
 from __future__ import annotations
 
 from dataclasses import dataclass, field, fields
-from typing import Protocol, runtime_checkable
+from typing import Literal, Protocol, runtime_checkable
 
 
 class DriverError(RuntimeError):
@@ -50,6 +50,17 @@ def whole_numbers(detail: object) -> dict[str, int]:
     return out
 
 
+#: why a link is (not) fit to drive, in one word that code decides on (:attr:`LinkHealth.reason`): ``ok``;
+#: ``closed`` (not opened yet, or closed); ``link_down`` (no connection to the vehicle: a CAN bus down, no MAVLink
+#: heartbeat); ``operator`` (a person has the vehicle: MAVLink, it left GUIDED); ``rebooted`` (MAVLink: the vehicle
+#: rebooted and is not in GUIDED); ``disarmed`` (MAVLink: GUIDED, not armed); ``no_telemetry`` (no fresh pose from the
+#: vehicle: MAVLink's LOCAL_POSITION_NED, the UDP robot's state); ``not_engaged`` (CAN: the axes idle); ``arming``
+#: (CAN: waiting for both axes in closed loop); ``fault`` (CAN: a latched controller fault); ``no_heartbeat`` (CAN: a
+#: controller's heartbeat lost); ``odometry`` (CAN: implausible encoder estimates rejected)
+LinkReason = Literal["ok", "closed", "link_down", "operator", "rebooted", "disarmed", "no_telemetry", "not_engaged",
+                     "arming", "fault", "no_heartbeat", "odometry"]
+
+
 @dataclass(slots=True)
 class LinkHealth:
     """What a driver reports about its link; counters only grow.
@@ -58,8 +69,10 @@ class LinkHealth:
     executes velocity commands (MAVLink: heartbeat fresh, GUIDED, armed, position ready; CAN: both controllers'
     heartbeats fresh, closed loop, no axis error; UDP: the robot's state fresh). When it is False, ``text`` says why
     in words a person can act on (``"operator took control: mode HOLD"``, ``"left axis error: ..."``), the driver
-    host stops, and the station stops pairing and planning for that robot. A ``text`` that starts with
-    ``"operator"`` means a person has the vehicle (the host reports reason ``operator``, not ``fault``).
+    host stops, and the station stops pairing and planning for that robot. ``reason`` says it in one typed word
+    (:data:`LinkReason`, the first cause when there are several), and only it is decided on: ``operator`` means a
+    person has the vehicle (the host reports reason ``operator``, not ``fault``, and a MAVLink host disengages); a
+    link sets it wherever it sets ``text``, which is for people and may be reworded freely.
     ``detail``: the link's own typed detail (None: nothing beyond these fields).
     """
 
@@ -71,6 +84,7 @@ class LinkHealth:
     malformed: int = 0  # frames/messages that failed to decode or validate, dropped
     errors: int = 0  # link-level errors (send failures, vehicle faults)
     detail: LinkDetail | None = None
+    reason: LinkReason = "closed"  # last, so a positional construction of the fields above keeps its meaning
 
 
 @dataclass(frozen=True, slots=True)

@@ -263,13 +263,14 @@ class UdpDriver:
         if self.sock is None:
             return replace(self._health, ok=False, detail=detail)
         age = now - self.last_state_time
-        if age <= self.state_timeout:
+        ok = age <= self.state_timeout
+        if ok:
             text = "ready"
         elif math.isinf(age):
             text = f"no state from the robot yet ({self.robot_text})"
         else:
             text = f"no state from the robot for {age:.1f} s"
-        return replace(self._health, ok=age <= self.state_timeout, text=text, detail=detail)
+        return replace(self._health, ok=ok, reason="ok" if ok else "no_telemetry", text=text, detail=detail)
 
     def clear_faults(self, now: float) -> None:
         """Nothing to clear on this link (see :meth:`drivers.base.Driver.clear_faults`)."""
@@ -300,7 +301,7 @@ class UdpDriver:
             self.sock.close()
             self.sock = None
             self._health.connected = self._health.ok = False
-            self._health.text = "closed"
+            self._health.text, self._health.reason = "closed", "closed"
 
 
 #: the link's plugin entry (``drivers.LINKS``): its ``[link.udp]`` section, its driver, and whether ``scmbridge

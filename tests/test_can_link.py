@@ -298,7 +298,7 @@ def test_open_sets_velocity_control_and_passthrough_before_closed_loop(rig: Rig)
         ax = rig.ecus.axis(node)
         assert (ax.state, ax.control_mode, ax.input_mode) == (8, 2, 1)
     h = health(rig.driver)
-    assert h.ok and h.text == "ready"
+    assert h.ok and h.text == "ready" and h.reason == "ok"
 
 
 def test_commands_reach_the_bus_as_wheel_speeds_and_odometry_returns_the_pose(rig: Rig) -> None:
@@ -359,7 +359,7 @@ def test_an_axis_error_stops_both_wheels_is_named_and_waits_for_the_operator(rig
     rig.ecus.inject_error(0, ODriveError.DRV_FAULT)
     assert rig.wait(lambda: not health(rig.driver).ok, 0.5, 0.3)
     h = health(rig.driver)
-    assert "left axis error: DRV_FAULT" in h.text
+    assert "left axis error: DRV_FAULT" in h.text and h.reason == "fault"
     _assert_held_while_sending(rig)
     assert rig.ecus.axis(0).state == 1 and rig.ecus.axis(1).state == 8  # left idle, right held in closed loop
     assert not health(rig.driver).ok and health(rig.driver).detail.counters.faults == 1
@@ -414,6 +414,7 @@ def test_a_lost_heartbeat_stops_the_base_and_names_the_node(rig: Rig) -> None:
     assert rig.wait(lambda: not health(rig.driver).ok and "node 1" in health(rig.driver).text, 1.0, 0.3)
     assert time.monotonic() - t0 < 0.3 + 0.25  # heartbeat_timeout + one heartbeat period + slack
     assert "right controller (node 1): no heartbeat" in health(rig.driver).text
+    assert health(rig.driver).reason == "no_heartbeat"
     _assert_held_while_sending(rig, 0.8)
     # plugged back: its own watchdog tripped meanwhile, which is a latched fault for the operator
     rig.ecus.replug(1)
@@ -488,6 +489,7 @@ def test_a_failed_bus_is_reported_and_reopened_with_bounded_backoff(rig: Rig, mo
     rig.run(1.0, 0.2, 0.0, host=True)
     h = health(d)
     assert not h.ok and not h.connected and "CAN bus down" in h.text and "interface gone" in h.text
+    assert h.reason == "link_down"
     assert h.detail.counters.bus_failures == 1
     gaps = [b - a for a, b in zip(attempts, attempts[1:])]
     # waits 0.05, 0.1, 0.2, 0.2, ... s: doubling, bounded by reopen_backoff_max (+ up to a tick or two of delay on

@@ -16,6 +16,7 @@ from collect import Collector
 
 from bridge.core import wire as M
 from bridge.core.config import StationConfig, load_mission
+from bridge.nodes.sources import Why
 from bridge.nodes.station_core import StationCore
 from bridge.nodes.zsession import free_port, make_config, open_session, tcp
 from bridge.tools.procs import Children, free_udp_port
@@ -32,12 +33,13 @@ def test_the_station_drives_only_a_fit_robot_from_a_fresh_pose(tmp_path) -> None
     """Finding: the station planned from the last pose whatever its age. It now stops and says why."""
     st = StationCore(StationConfig(), "r1", 10.0, tmp_path / "p.bin", load_mission())
     pose = M.LearnerState(stamp=1.0, seq=1, x=0.0, y=0.0, theta=0.0)
-    assert st.fit_to_drive(10.0, pose, 9.9, _status(), 9.5) == ""
-    assert st.fit_to_drive(10.0, pose, 9.2, _status(), 9.5) == "no pose for 0.8 s"
-    assert st.fit_to_drive(10.0, None, -np.inf, _status(), 9.5) == "no pose yet"
+    assert st.fit_to_drive(10.0, pose, 9.9, _status(), 9.5) is None
+    assert st.fit_to_drive(10.0, pose, 9.2, _status(), 9.5) == Why("no pose for 0.8 s", "no_telemetry")
+    assert st.fit_to_drive(10.0, None, -np.inf, _status(), 9.5) == Why("no pose yet", "no_telemetry")
     why = st.fit_to_drive(10.0, pose, 9.9, _status(False, "link mavlink: operator took control: mode HOLD"), 9.5)
-    assert why == "robot not ready: link mavlink: operator took control: mode HOLD"
-    assert st.fit_to_drive(10.0, pose, 9.9, _status(), 5.0).startswith("robot not ready: no driver host status")
+    assert why == Why("robot not ready: link mavlink: operator took control: mode HOLD", "robot_not_ready")
+    late = st.fit_to_drive(10.0, pose, 9.9, _status(), 5.0)
+    assert late.text.startswith("robot not ready: no driver host status") and late.reason == "robot_not_ready"
 
 
 def test_a_full_disk_is_reported_retried_and_leaves_no_temporary_file(tmp_path, monkeypatch) -> None:

@@ -90,7 +90,7 @@ def commands_after(rover: MavlinkRover, t: float, kinds: tuple[int, ...] = MODE_
 def test_open_reaches_guided_and_armed_with_position_streaming() -> None:
     with rig() as (driver, rover, _):
         h = health(driver)
-        assert h.ok and h.connected and h.text == "driving: GUIDED, armed"
+        assert h.ok and h.connected and h.text == "driving: GUIDED, armed" and h.reason == "ok"
         assert rover.custom_mode == GUIDED and rover.armed
         assert rover.intervals[32] == pytest.approx(0.05) and rover.intervals[30] == pytest.approx(0.05)
         assert all(c["result"] == MAV.MAV_RESULT_ACCEPTED for c in rover.commands)  # each one acked
@@ -186,7 +186,7 @@ def test_an_rc_mode_switch_is_never_fought_and_driving_resumes_when_the_operator
         assert rover.mode_name == "HOLD" and commands_after(rover, t_open) == []
         assert rover.ignored_setpoints.get("not GUIDED", 0) == ignored  # none sent: withheld, not ignored
         h = health(driver)
-        assert not h.ok and h.connected and h.text == "operator took control: mode HOLD"
+        assert not h.ok and h.connected and h.text == "operator took control: mode HOLD" and h.reason == "operator"
         assert vehicle.advance(time.monotonic()).v == 0.0
         assert rover.rc_mode_switch("GUIDED")
         assert wait_for(driver, lambda: health(driver).ok, 2.0), health(driver).text
@@ -203,6 +203,7 @@ def test_an_operator_disarm_is_reported_and_never_undone() -> None:
         drive(driver, 1.2, 0.25, 0.0)
         h = health(driver)
         assert not h.ok and h.text == "vehicle disarmed in GUIDED: waiting for the operator to arm it"
+        assert h.reason == "disarmed"
         assert not rover.armed and commands_after(rover, t_open) == []
         assert rover.rc_arm(True)
         assert wait_for(driver, lambda: health(driver).ok, 2.0), health(driver).text
@@ -295,6 +296,7 @@ def test_heartbeat_loss_is_reported_and_recovery_touches_neither_mode_nor_arming
         assert wait_for(driver, lambda: not health(driver).connected, 3.0)
         h = health(driver)
         assert not h.ok and h.text.startswith("no heartbeat for ") and float(h.text.split()[3]) >= 1.5
+        assert h.reason == "link_down"
         n = len(rover.setpoints)
         drive(driver, 0.3, 0.2, 0.0)  # the host keeps calling: nothing goes out while the link is down
         rover.radio_blackout(False)
@@ -317,6 +319,7 @@ def test_tcp_reconnects_after_a_reboot_and_waits_for_the_operator() -> None:
                             and rover2.intervals[30] == 0.05, 6.0)
             assert wait_for(driver, lambda: health(driver).text.startswith("vehicle rebooted: mode MANUAL"), 2.0)
             assert "disarmed" in health(driver).text and not health(driver).ok
+            assert health(driver).reason == "rebooted"  # not the operator: the host stays engaged
             assert {c["command"] for c in rover2.commands} == {MAV.MAV_CMD_SET_MESSAGE_INTERVAL}  # streams only
             assert health(driver).detail.reconnects >= 1
             assert rover2.rc_mode_switch("GUIDED")

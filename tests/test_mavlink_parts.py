@@ -51,18 +51,18 @@ def test_the_judgement_names_one_reason_in_the_order_a_person_acts_on() -> None:
     v = Vehicle(custom_mode=15, armed=True, hb_time=9.5, pos_time=9.9)
     assert judge(v, OPEN, now, MODES, 3.0, 1.0).reason == "ok"
     cases = [
-        (Vehicle(custom_mode=4, armed=True, hb_time=9.5, pos_time=9.9), OPEN, "mode",
+        (Vehicle(custom_mode=4, armed=True, hb_time=9.5, pos_time=9.9), OPEN, "operator",
          "operator took control: mode HOLD"),
-        (Vehicle(custom_mode=4, armed=False, hb_time=9.5, rebooted=True), OPEN, "mode",
+        (Vehicle(custom_mode=4, armed=False, hb_time=9.5, rebooted=True), OPEN, "rebooted",
          "vehicle rebooted: mode HOLD, disarmed"),
         (Vehicle(custom_mode=15, armed=False, hb_time=9.5, pos_time=9.9), OPEN, "disarmed",
          "vehicle disarmed in GUIDED: waiting for the operator to arm it"),
-        (Vehicle(custom_mode=15, armed=True, hb_time=9.5, pos_time=8.0), OPEN, "position",
+        (Vehicle(custom_mode=15, armed=True, hb_time=9.5, pos_time=8.0), OPEN, "no_telemetry",
          "no LOCAL_POSITION_NED for 2.0 s (EKF origin lost?)"),
-        (Vehicle(custom_mode=15, armed=True, hb_time=6.0, pos_time=9.9), OPEN, "link", "no heartbeat for 4.0 s"),
-        (v, LinkView(True, False, False, 0.0, "EOF", "tcp:h:1"), "link",
+        (Vehicle(custom_mode=15, armed=True, hb_time=6.0, pos_time=9.9), OPEN, "link_down", "no heartbeat for 4.0 s"),
+        (v, LinkView(True, False, False, 0.0, "EOF", "tcp:h:1"), "link_down",
          "connection lost (EOF), re-opening tcp:h:1; no heartbeat for 0.5 s"),
-        (v, LinkView(True, False, True, 9.8, "", "u"), "link", "no heartbeat for 0.5 s"),  # heard before reconnect
+        (v, LinkView(True, False, True, 9.8, "", "u"), "link_down", "no heartbeat for 0.5 s"),  # heard before reconnect
         (v, LinkView(False, False, True, 0.0, "", "u"), "closed", "not opened"),
         (v, LinkView(True, True, True, 0.0, "", "u"), "closed", "closed"),
     ]

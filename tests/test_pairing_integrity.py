@@ -117,7 +117,7 @@ def test_another_sender_on_the_robots_commands_or_implausible_telemetry_make_the
     from bridge.nodes.station_core import INTEGRITY_WINDOW_S, StationCore
 
     st = StationCore(StationConfig(), "r1", 10.0, tmp_path / "p.bin", load_mission())
-    st.why = "driving"
+    st.why, st.reason = "driving", "ok"  # as after a tick that drove
     assert st.status(1.0).ok
     st.heard_command(M.Command(stamp=1.0, seq=1, v=0.1, omega=0.0, method="scm", epoch=st.epoch), 1.0)
     assert st.status(1.1).ok  # its own command, heard back

@@ -255,7 +255,7 @@ def test_health_is_not_ok_before_the_first_state() -> None:
         with pytest.raises(DriverError, match="no state from the UDP robot"):
             driver.open(time.monotonic())
         h = health(driver)
-        assert not h.ok and "no state from the robot yet" in h.text
+        assert not h.ok and "no state from the robot yet" in h.text and h.reason == "no_telemetry"
         driver.close()
 
 

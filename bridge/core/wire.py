@@ -253,10 +253,27 @@ NodeState = Literal["", "driving", "idle", "running", "paused", "finished", "abo
                     "link_down", "fault", "no_pose", "starting", "dry_run"]
 
 
+#: why a node is in its state, typed: what programs decide on (the station's fitness, ``scmbridge status``), while
+#: ``text`` says it in words for people and may be reworded freely. Both nodes: ``ok`` (nothing stands in the way:
+#: driving), ``no_telemetry`` (no fresh pose). The driver host (in this order): ``estop`` (latched; also in a dry
+#: run), ``dry_run``, ``starting`` (opening the link), ``link_down``, ``not_engaged`` (no person engaged the vehicle
+#: yet, or the operator has yet to hand it over), ``operator`` (a person took the vehicle), ``fault`` (the link says
+#: the vehicle cannot drive: a controller fault, a lost controller heartbeat, ...), ``conflict`` (two command senders).
+#: The station: ``idle``, ``paused``, ``aborted`` (the mission's phase), ``goal_reached``, ``calibration_done``,
+#: ``robot_not_ready`` (the driver host's status is missing, late or not ok), ``teacher`` (the command source gives
+#: nothing to drive: an external teacher silent or saying stop, no primitive within the learned limits),
+#: ``persist_failed`` (the pair store or the mission state not saved), ``integrity`` (another command sender, or
+#: implausible telemetry)
+Reason = Literal["ok", "no_telemetry", "estop", "dry_run", "starting", "link_down", "not_engaged", "operator", "fault",
+                 "conflict", "idle", "paused", "aborted", "goal_reached", "calibration_done", "robot_not_ready",
+                 "teacher", "persist_failed", "integrity"]
+
+
 class Status(_Msg, kw_only=True):
     """``scm/<robot>/status/<node>``: health of one node; counters only grow. ``state`` says in one word what the
-    node is doing (``driving``, ``paused``, ``estop``, ...) and ``text`` why; ``progress`` is the station's share of
-    its mission done (0..1)."""
+    node is doing (``driving``, ``paused``, ``estop``, ...), ``reason`` why (typed: :data:`Reason`; None from a node
+    older than the field) and ``text`` why in words, for people only; ``progress`` is the station's share of its
+    mission done (0..1)."""
 
     stamp: Stamp
     seq: Seq
@@ -268,6 +285,7 @@ class Status(_Msg, kw_only=True):
     latencies_ms: dict[Name, Annotated[float, Meta(ge=0, le=1e9)]] = {}
     counters: dict[Name, Annotated[int, Meta(ge=0)]] = {}
     text: Text = ""
+    reason: Reason | None = None
 
 
 class Estop(_Msg, kw_only=True):
@@ -408,6 +426,7 @@ __all__ = [
     "MissionState",
     "PairRecord",
     "Pairs",
+    "Reason",
     "Status",
     "TeacherCommand",
     "check_robot",

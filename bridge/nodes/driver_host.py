@@ -87,10 +87,11 @@ def read_latch(path: Path) -> Latch:
 
 
 def blocked_reason(health: LinkHealth) -> str:
-    """The ``applied`` reason for a vehicle the link says is not fit to drive."""
+    """The ``applied`` reason for a vehicle the link says is not fit to drive (from its typed reason, never its
+    words)."""
     if not health.connected:
         return "link_down"
-    return "operator" if health.text.startswith("operator") else "fault"
+    return "operator" if health.reason == "operator" else "fault"
 
 
 class DriverHost:
@@ -251,7 +252,7 @@ class DriverHost:
         and arming it while the host runs (a transition, never a state found at start) engages."""
         if not self.operator_engages or self.dry_run:
             return
-        operator = health.connected and not health.ok and health.text.startswith("operator")
+        operator = health.connected and not health.ok and health.reason == "operator"
         if self.engaged and operator:
             self.engaged = False
             log.warning("disengaged: %s", health.text)
@@ -355,7 +356,7 @@ class DriverHost:
                                    f"(or scmbridge engage --robot {self.robot})")
             else:
                 problems.insert(0, f"waiting for engage (scmbridge engage --robot {self.robot})")
-        state = self.node_state(estop[0], h, pose_age, problems)
+        state, reason = self.node_state(estop[0], h, pose_age, problems)
         if state != self.last_state:
             log.info("%s: %s", state, "; ".join(problems) or "driving")
             self.last_state = state
@@ -371,26 +372,28 @@ class DriverHost:
         if self.dry_run:
             text = "DRY RUN (nothing is sent to the vehicle): " + text
         msg = M.Status(stamp=now, seq=self.seq["status"], node="driver", ok=not problems and not self.dry_run,
-                       state=state,
+                       state=state, reason=reason,
                        rates_hz={"loop": 1.0 / self.period}, latencies_ms=lat, counters=counters, text=text[:1024])
         self.seq["status"] += 1
         return msg
 
-    def node_state(self, estop: bool, h: LinkHealth, pose_age: float, problems: list[str]) -> str:
-        """The one word ``scmbridge status`` shows for this host."""
+    def node_state(self, estop: bool, h: LinkHealth, pose_age: float,
+                   problems: list[str]) -> tuple[M.NodeState, M.Reason]:
+        """The one word ``scmbridge status`` shows for this host, and its typed reason (what the station decides
+        on: a latched estop is ``estop`` also in a dry run); from typed values only, never from a text."""
         if self.dry_run:
-            return "dry_run"
+            return "dry_run", "estop" if estop else "dry_run"
         if estop:
-            return "estop"
+            return "estop", "estop"
         if not h.connected:
-            return "link_down"
+            return "link_down", "link_down"
         if not self.engaged:
-            return "waiting"
+            return "waiting", "not_engaged"
         if not h.ok:
-            return "operator" if h.text.startswith("operator") else "fault"
+            return ("operator", "operator") if h.reason == "operator" else ("fault", "fault")
         if pose_age > self.max_telemetry_age:
-            return "no_pose"
-        return "driving" if not problems else "fault"
+            return "no_pose", "no_telemetry"
+        return ("driving", "ok") if not problems else ("fault", "conflict")  # (the one problem left: two senders)
 
     # ------------------------------------------------------------------------------------------------ run
     def _put(self, topic: str, msg: msgspec.Struct) -> None:
@@ -409,7 +412,8 @@ class DriverHost:
         self.pubs = {"applied": session.declare_publisher(k.applied), "state": session.declare_publisher(k.state),
                      "status": session.declare_publisher(M.status_key(self.robot, "driver"))}
         self._put("status", M.Status(stamp=time.monotonic(), seq=self.seq["status"], node="driver", ok=False,
-                                     state="starting", text=f"link {self.link}: opening (vehicle not yet ready)"))
+                                     state="starting", reason="starting",
+                                     text=f"link {self.link}: opening (vehicle not yet ready)"))
         self.seq["status"] += 1
         if not self.open_link(stop):
             return
@@ -442,7 +446,7 @@ class DriverHost:
                     said = text
                 systemd.status(text[:200])
                 self._put("status", M.Status(stamp=time.monotonic(), seq=self.seq["status"], node="driver",
-                                             ok=False, state="starting", text=text[:1024]))
+                                             ok=False, state="starting", reason="link_down", text=text[:1024]))
                 self.seq["status"] += 1
                 self.driver.close(disarm=False, stop_timeout=0.0)  # a half-open link is let go before the retry
                 stop.wait(backoff.delay)

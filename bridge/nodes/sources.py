@@ -32,9 +32,12 @@ log = logging.getLogger("scmbridge.station")
 
 @dataclass(frozen=True)
 class Why:
-    """The one reason the source does not drive this tick (the station publishes a stop and says it)."""
+    """The one reason the source (or the station) does not drive this tick: the station publishes a stop and says
+    it, ``text`` in words for people, ``reason`` typed for what the station decides on (its status's ``ok`` and
+    ``reason``): a source's own stop is ``teacher`` unless it says otherwise."""
 
     text: str
+    reason: M.Reason = "teacher"
 
 
 @dataclass(frozen=True)
@@ -196,7 +199,7 @@ class CalibrationSource:
         if step.done:
             if ctx.why != f"calibration: {step.reason}":
                 log.info("calibration finished: %s; %d refined pairs", step.reason, len(ctx.store.refined()))
-            return Why(f"calibration: {step.reason}")
+            return Why(f"calibration: {step.reason}", "calibration_done")
         if self.progress is None or (self.progress[0], self.progress[2]) != (step.index, step.phase):
             dist = float(np.hypot(pose.x - self.plan.start[0], pose.y - self.plan.start[1]))
             log.info("calibration %d/%d %s (v %.3f, omega %.3f): %d raw / %d refined pairs, %.2f m from the start",

@@ -60,6 +60,8 @@ DRIVER_STATUS_MAX_AGE = 3.0
 INTEGRITY_WINDOW_S = 5.0
 #: what the learner can really do is its box (or the teacher's) times this; beyond it a pose or pair is implausible
 PLAUSIBLE = 1.5
+#: the station's reasons under which it does what it should (its status is then ok, unless its work is untrustworthy)
+GOOD_REASONS: tuple[M.Reason, ...] = ("ok", "goal_reached", "calibration_done")
 #: the status (and the forced limits) go out this often, s
 STATUS_EVERY_S = 1.0
 #: between two forced ones, the limits go out when an edge of their box moved more than this fraction of the
@@ -90,6 +92,12 @@ def load_store(path: Path, learner: Bounds, teacher: Bounds, grid, k_min: int) -
             os.replace(path, aside)
             log.error("pair store %s unusable (%s); quarantined as %s, starting empty", path, exc, aside)
     return PairStore(learner, teacher, tuple(grid), k_min), "new pair store"
+
+
+def driver_estop(driver: M.Status) -> bool:
+    """Whether a driver host's status says an estop is latched there: its typed reason (``estop``, also in a dry
+    run), never its words; a host older than that field says it by its state alone."""
+    return driver.reason == "estop" if driver.reason is not None else driver.state == "estop"
 
 
 def pairs_message(store: PairStore, robot: str, now: float) -> M.Pairs:
@@ -236,7 +244,8 @@ class StationCore:
         self.foreign_cmd_at, self.foreign_epoch = -np.inf, 0  # the last command of another sender on our key
         self.implausible_seen: tuple[int, float] = (0, -np.inf)  # (count, when it last grew)
         self.mission_version = self.control.version
-        self.why = "starting"
+        self.why = "starting"  # the one reason this station does (not) drive, in words (status text, log) ...
+        self.reason: M.Reason = "starting"  # ... and typed: what its status's ok and reason are decided on
         self.persist_error = ""
         self.limits_sent: tuple[list[float], int] | None = None
         self.limits_version = 0
@@ -344,57 +353,58 @@ class StationCore:
     def control_step(self, now: float) -> tuple[M.Command | None, M.TeacherCommand | None]:
         """Drive, or publish a stop and say why: the command and teacher message of this tick."""
         state, driver = self.state, self.driver
-        fit = self.fit_to_drive(now, state, self.state_at, driver, self.driver_at)
-        estop = driver is not None and (driver.state == "estop" or "estop latched" in driver.text)
+        unfit = self.fit_to_drive(now, state, self.state_at, driver, self.driver_at)
+        estop = driver is not None and driver_estop(driver)
         late = driver is None or now - self.driver_at > DRIVER_STATUS_MAX_AGE or driver.ok  # a pose or status late
-        self.fitness = Fitness(fit, estop, immediate=not late)
+        self.fitness = Fitness(unfit.text if unfit is not None else "", estop, immediate=not late)
         c = self.control
-        if self.source.follows_mission and not fit and c.phase == "running":
+        if self.source.follows_mission and unfit is None and c.phase == "running":
             path = self.mission.path  # the closest point in one compiled loop: a mission path has thousands of segments
             s, _ = closest(path.points, path.s, path.seg_len, state.x, state.y)
             c.progress = max(c.progress, s / path.length)
             if self.mission.reached_at(s, [state.x, state.y]):
                 c.reached()
         command = teacher = None
-        why = "" if c.may_drive(self.fitness, now) else self.not_driving(fit)
-        if not why:
-            why, command, teacher = self.drive(now, state)
-        if why:
-            if why != self.why:
-                log.info("not driving: %s", why)
+        stop = None if c.may_drive(self.fitness, now) else self.not_driving(unfit)
+        if stop is None:
+            stop, command, teacher = self.drive(now, state)
+        if stop is not None:
+            if stop.text != self.why:
+                log.info("not driving: %s", stop.text)
             command = self._command(now, 0.0, 0.0, "stop")
             self.counters.method_stop += 1
-        elif self.why != "driving":
+        elif self.reason != "ok":
             log.info("driving (mission %r)", self.mission.name)
-        self.why = why or "driving"
+        self.why, self.reason = (stop.text, stop.reason) if stop is not None else ("driving", "ok")
         self.counters.goal_reached = int(c.phase == "finished")
         if c.changed:
             self.save_control()
         return command, teacher
 
     def fit_to_drive(self, now: float, state: M.LearnerState | None, state_at: float, driver: M.Status | None,
-                     driver_at: float) -> str:
-        """Empty if the station may drive the robot now, else why not (for status and the log)."""
+                     driver_at: float) -> Why | None:
+        """None if the station may drive the robot now, else why not (typed, and in words for status and the log).
+        Decided on typed fields only (the driver host's ``ok``, the stamps): its ``text`` is only quoted."""
         if driver is None or now - driver_at > DRIVER_STATUS_MAX_AGE:
-            return "robot not ready: no driver host status"
+            return Why("robot not ready: no driver host status", "robot_not_ready")
         if not driver.ok:
-            return f"robot not ready: {driver.text}"
+            return Why(f"robot not ready: {driver.text}", "robot_not_ready")
         if state is None:
-            return "no pose yet"
+            return Why("no pose yet", "no_telemetry")
         if now - state_at > self.max_pose_age:
-            return f"no pose for {now - state_at:.1f} s"
-        return ""
+            return Why(f"no pose for {now - state_at:.1f} s", "no_telemetry")
+        return None
 
-    def drive(self, now: float, state: M.LearnerState) -> tuple[str, M.Command | None, M.TeacherCommand | None]:
+    def drive(self, now: float, state: M.LearnerState) -> tuple[Why | None, M.Command | None, M.TeacherCommand | None]:
         """The source's proposal, mapped and made a command; or why not."""
         ctx = SourceContext(self.mission, self.store, self.counters, self.why, self.teacher, self.teacher_at,
                             self.teacher_new)
         self.teacher_new = False
         prop = self.source.propose(now, state, ctx)
         if isinstance(prop, Why):
-            return prop.text, None, None
+            return prop, None, None
         if prop is None:
-            return "", None, None
+            return None, None, None
         if prop.solve_ms is not None:
             self.solve_ms.append(prop.solve_ms)
         command = self.send(now, prop)
@@ -405,7 +415,7 @@ class StationCore:
                 stamp=now, seq=command.seq, v=float(prop.u[0]), omega=float(prop.u[1]), solver=prop.solver,
                 ok=prop.ok, predicted_x=[float(a) for a in pred[:, 0]], predicted_y=[float(a) for a in pred[:, 1]],
                 sender="station", epoch=self.epoch)
-        return "", command, teacher
+        return None, command, teacher
 
     def send(self, now: float, prop: Proposal) -> M.Command:
         """The command for a proposal: a teacher command mapped by the transfer step (exploring only where it may),
@@ -425,16 +435,19 @@ class StationCore:
         self.seq["cmd"] += 1
         return M.validated(cmd)
 
-    def not_driving(self, fit: str) -> str:
-        """The one reason the robot is not driven this tick (for the status line and the log)."""
+    def not_driving(self, unfit: Why | None) -> Why:
+        """The one reason the robot is not driven this tick (typed from the mission's phase, in words for the status
+        line and the log), whatever the words: a paused mission whose reason is empty still stops."""
         c = self.control
         if c.phase == "idle":
-            return f"idle: waiting for a person (scmbridge mission start --robot {self.robot})"
+            return Why(f"idle: waiting for a person (scmbridge mission start --robot {self.robot})", "idle")
         if c.phase == "finished":
-            return "goal reached"
+            return Why("goal reached", "goal_reached")
         if c.phase == "running":
-            return f"waiting for the robot: {fit}"
-        return c.reason  # paused: why; aborted: by whom
+            if unfit is None:  # (may_drive refuses a running mission only for an unfit robot)
+                unfit = Why("not fit", "robot_not_ready")
+            return Why(f"waiting for the robot: {unfit.text}", unfit.reason)
+        return Why(c.reason or c.phase, "paused" if c.phase == "paused" else "aborted")  # paused: why; aborted: by whom
 
     # ---------------------------------------------------------------------------------------- publications
     def limits(self, now: float, force: bool) -> M.Limits | None:
@@ -466,13 +479,15 @@ class StationCore:
         c.pairer_resyncs = p.resyncs
         c.goal_reached = int(self.control.phase == "finished")
         problems = self.integrity(now)
-        ok = ((self.why in ("driving", "goal reached") or self.why.startswith("calibration:"))
-              and not self.persist_error and not problems)
+        reason = self.reason
+        if reason in GOOD_REASONS and (self.persist_error or problems):  # doing what it should, but untrustworthy
+            reason = "persist_failed" if self.persist_error else "integrity"
+        ok = reason in GOOD_REASONS
         text = "; ".join([self.why, *([self.persist_error] if self.persist_error else []), *problems])
         phase = self.control.phase
-        state = "driving" if self.why == "driving" else ("waiting" if phase == "running" else phase)
+        state = "driving" if self.reason == "ok" else ("waiting" if phase == "running" else phase)
         tk = np.array(self.tick_ms) if self.tick_ms else np.zeros(1)
-        msg = M.Status(stamp=now, seq=self.seq["status"], node="station", ok=ok, state=state,
+        msg = M.Status(stamp=now, seq=self.seq["status"], node="station", ok=ok, state=state, reason=reason,
                        progress=min(1.0, max(0.0, self.control.progress)), rates_hz={"loop": 1 / self.period},
                        latencies_ms={"solve_median": float(np.median(sm)), "solve_max": float(sm.max()),
                                      "tick_p50": float(np.percentile(tk, 50)), "tick_p99": float(np.percentile(tk, 99)),
@@ -525,5 +540,5 @@ class StationCore:
             self.persist_error = f"mission state not saved: {exc.strerror or exc}"
 
 
-__all__ = ["DRIVER_STATUS_MAX_AGE", "INTEGRITY_WINDOW_S", "PLAUSIBLE", "StationCore", "StationCounters",
-           "TickInputs", "TickOutputs", "load_store", "pairs_message"]
+__all__ = ["DRIVER_STATUS_MAX_AGE", "GOOD_REASONS", "INTEGRITY_WINDOW_S", "PLAUSIBLE", "StationCore", "StationCounters",
+           "TickInputs", "TickOutputs", "driver_estop", "load_store", "pairs_message"]

@@ -23,8 +23,11 @@ from bridge.nodes.zsession import open_session
 
 #: a node's status older than this is reported as silent (they publish each second)
 STALE_S = 3.0
-#: the station's states in which its robot is doing what it should (driving, or done)
+#: the station's states in which its robot is doing what it should (driving, or done): for a station older than the
+#: typed reason
 GOOD = ("driving", "running", "finished")
+#: the station's typed reasons (``Status.reason``) under which its robot is doing what it should (driving, at its goal)
+GOOD_REASONS = ("ok", "goal_reached")
 
 
 @dataclass
@@ -56,7 +59,7 @@ def node_line(robot: str, node: str, st: M.Status, age: float) -> str:
     """``rover1  driver   estop     estop latched by operator | pose 0.02 s``: what a person needs at a glance."""
     if age > STALE_S:
         return f"{robot:<12} {node:<8} {'silent':<9} no status for {age:.0f} s (the node is down or unreachable)"
-    parts = [st.text or ("ok" if st.ok else "not ok")]
+    parts = [st.text or st.reason or ("ok" if st.ok else "not ok")]
     if st.progress is not None:
         parts.append(f"mission {100 * st.progress:.0f}%")
     pairs = st.counters.get("refined_pairs")
@@ -69,11 +72,14 @@ def node_line(robot: str, node: str, st: M.Status, age: float) -> str:
 
 
 def robot_ok(statuses: dict[str, tuple[M.Status, float]], now: float) -> bool:
-    """A robot is fine when its station and its driver host are heard and the station drives (or is done)."""
+    """A robot is fine when its station and its driver host are heard and the station drives (or is done), by the
+    station's typed reason (its state for a station older than that field), never its words."""
     station, driver = statuses.get("station"), statuses.get("driver")
     if station is None or driver is None or now - station[1] > STALE_S or now - driver[1] > STALE_S:
         return False
     st = station[0]
+    if st.reason is not None:
+        return st.ok and st.reason in GOOD_REASONS
     return st.ok and (st.state in GOOD or (not st.state and st.ok))
 
 

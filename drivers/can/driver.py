@@ -11,7 +11,7 @@ from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING, Any
 
 from bridge.core.backoff import Backoff
-from drivers.base import DriverError, FailsafeReport, LinkHealth, Pose, whole_numbers
+from drivers.base import DriverError, FailsafeReport, LinkHealth, LinkReason, Pose, whole_numbers
 from drivers.can.codec import decode, encode
 from drivers.can.config import CanLinkConfig
 from drivers.can.odometry import Odometry, Wheel
@@ -442,50 +442,57 @@ class CanDriver:
     def _heartbeat_lost(self, ax: _Axis, now: float) -> bool:
         return ax.heartbeat_at is None or now - ax.heartbeat_at > self.heartbeat_timeout
 
-    def _reasons(self, now: float) -> list[str]:
+    def _reasons(self, now: float) -> list[tuple[LinkReason, str]]:
         """Why the link is not fit to drive at ``now`` (none: it is), from the bus, the latched faults, the
-        Heartbeats' age and the arming phase. Pure."""
-        reasons: list[str] = []
+        Heartbeats' age and the arming phase, each typed and in words. Pure."""
+        reasons: list[tuple[LinkReason, str]] = []
         if self._phase == "idle":
-            reasons.append("axes idle: not engaged")
+            reasons.append(("not_engaged", "axes idle: not engaged"))
         if self.bus is None:
-            reasons.append(f"CAN bus down ({self._down_reason}); reopening in {max(0.0, self._reopen_at - now):.2f} s")
+            reasons.append(("link_down", f"CAN bus down ({self._down_reason}); reopening in "
+                                         f"{max(0.0, self._reopen_at - now):.2f} s"))
         if self._phase == "arming":
-            reasons.append("arming: waiting for both axes in closed loop")
-        reasons += [ax.describe() for ax in self.axes if ax.fault]
+            reasons.append(("arming", "arming: waiting for both axes in closed loop"))
+        reasons += [("fault", ax.describe()) for ax in self.axes if ax.fault]
         if now - max(self.rejected_at, self.overrun_at) < ODOMETRY_ALARM_S:
-            reasons.append(f"odometry: implausible encoder estimates rejected ({self.counters['rejected_estimates']} "
-                           "so far): a faulty encoder or forged frames")
+            reasons.append(("odometry", f"odometry: implausible encoder estimates rejected "
+                                        f"({self.counters['rejected_estimates']} so far): a faulty encoder or forged "
+                                        "frames"))
         if self._phase == "running":
             for ax in self.axes:
                 if self._heartbeat_lost(ax, now):
                     age = "" if ax.heartbeat_at is None else f" for {now - ax.heartbeat_at:.2f} s"
-                    reasons.append(f"{ax.side} controller (node {ax.node}): no heartbeat{age}")
+                    reasons.append(("no_heartbeat", f"{ax.side} controller (node {ax.node}): no heartbeat{age}"))
         return reasons
 
+    @staticmethod
+    def _verdict(reasons: list[tuple[LinkReason, str]]) -> tuple[bool, LinkReason, str]:
+        """``ok``, the first reason typed, and every reason in words (``"ready"`` when there is none)."""
+        if not reasons:
+            return True, "ok", "ready"
+        return False, reasons[0][0], "; ".join(text for _, text in reasons)
+
     def _evaluate(self, now: float) -> None:
-        """Advance the state to ``now`` and set ``ok`` and ``text`` from it."""
+        """Advance the state to ``now`` and set ``ok``, ``reason`` and ``text`` from it."""
         h = self._health
         if self._phase == "closed":
             h.ok = False
             return
         self._advance(now)
-        reasons = self._reasons(now)
-        h.ok = not reasons
-        h.text = "; ".join(reasons) if reasons else "ready"
+        h.ok, h.reason, h.text = self._verdict(self._reasons(now))
 
     def health(self, now: float) -> LinkHealth:
         h = self._health
         if self._phase == "closed":
-            ok, text = False, h.text
+            ok, reason, text = False, h.reason, h.text
         else:
-            reasons = self._reasons(now)
-            ok, text = not reasons, "; ".join(reasons) if reasons else "ready"
+            ok, reason, text = self._verdict(self._reasons(now))
         left, right = (AxisHealth(node=ax.node, state=state_name(ax.state), error=ax.error,
                                   errors=tuple(error_names(ax.error)), procedure_result=ax.procedure_result,
                                   heartbeat_age=None if ax.heartbeat_at is None else now - ax.heartbeat_at,
                                   fault=ax.fault) for ax in self.axes)
-        return replace(h, ok=ok, text=text, detail=CanHealthDetail(CanCounters(**self.counters), left, right))
+        return replace(h, ok=ok, reason=reason, text=text,
+                       detail=CanHealthDetail(CanCounters(**self.counters), left, right))
 
     def clear_faults(self, now: float) -> None:
         """The operator's act: Clear_Errors to both controllers, velocity control again, zero set-point, closed loop
@@ -505,7 +512,7 @@ class CanDriver:
         if self.bus is None:
             self._phase = "closed"
             self._health.connected = self._health.ok = False
-            self._health.text = "closed"
+            self._health.text, self._health.reason = "closed", "closed"
             return
         try:
             t_end = time.monotonic() + stop_timeout
@@ -525,5 +532,5 @@ class CanDriver:
             self.bus = None
             self._phase = "closed"
             self._health.connected = self._health.ok = False
-            self._health.text = "closed"
+            self._health.text, self._health.reason = "closed", "closed"
 

@@ -384,7 +384,7 @@ class MavlinkDriver:
                     log.info("vehicle accepts commands: %s", state.text)
                 else:
                     log.warning("vehicle does not accept commands: %s", state.text)
-            if state.reason == "link" and self._link_up:
+            if state.reason == "link_down" and self._link_up:
                 self._link_up = False
                 self._counts["link_losses"] += 1
             elif state.connected and not self._link_up:
@@ -394,7 +394,8 @@ class MavlinkDriver:
                          "armed" if v.armed else "disarmed")
                 self._request_streams()  # a rebooted autopilot forgot them; never the mode or arming
         self._state = state
-        self._health.connected, self._health.ok, self._health.text = state.connected, state.ok, state.text
+        h = self._health
+        h.connected, h.ok, h.text, h.reason = state.connected, state.ok, state.text, state.reason
 
     # ----------------------------------------------------------------------------------------- set-points
     def _setpoint(self, v: float, omega: float, now: float) -> None:
@@ -467,7 +468,8 @@ class MavlinkDriver:
             position_age=None if v.pos_time is None else round(now - v.pos_time, 3),
             statustexts=tuple(self.statustexts), last_refusal=self._last_refusal,
             bad_signatures=self.client.bad_signatures(), foreign_ids=tuple(self._foreign_ids), **self._counts)
-        return replace(self._health, connected=state.connected, ok=state.ok, text=state.text, detail=detail)
+        return replace(self._health, connected=state.connected, ok=state.ok, text=state.text, reason=state.reason,
+                       detail=detail)
 
     def clear_faults(self, now: float) -> None:
         """Nothing to clear on this link: the operator puts the vehicle back in GUIDED and arms it himself."""

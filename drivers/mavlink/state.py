@@ -8,6 +8,8 @@ from collections import deque
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 
+from drivers.base import LinkReason
+
 
 @dataclass(frozen=True, slots=True)
 class RoverModes:
@@ -52,12 +54,13 @@ class LinkView:
 
 @dataclass(frozen=True, slots=True)
 class Verdict:
-    """Whether the vehicle accepts set-points at one moment, and why not in words a person can act on."""
+    """Whether the vehicle accepts set-points at one moment, and why not: typed for code (``reason``, the link's
+    :data:`drivers.base.LinkReason`) and in words a person can act on (``text``)."""
 
     connected: bool  # a fresh HEARTBEAT on the current connection
     ok: bool  # GUIDED, armed, heard from and streaming its position
-    text: str
-    reason: str  # one word: closed, link, mode, disarmed, position or ok
+    text: str  # for people
+    reason: LinkReason  # for code: closed, link_down, operator, rebooted, disarmed, no_telemetry or ok
 
 
 NOT_OPENED = Verdict(False, False, "not opened", "closed")
@@ -83,13 +86,14 @@ def judge(v: Vehicle, link: LinkView, now: float, modes: RoverModes, heartbeat_t
             text = f"connection lost ({link.lost_reason}), re-opening {link.url}; no heartbeat for {hb_age:.1f} s"
         else:
             text = f"no heartbeat for {hb_age:.1f} s"
-        return Verdict(False, False, text, "link")
+        return Verdict(False, False, text, "link_down")
     if v.custom_mode != modes.guided:
         who = "vehicle rebooted" if v.rebooted else "operator took control"
-        return Verdict(True, False, f"{who}: mode {modes.name(v.custom_mode)}{'' if v.armed else ', disarmed'}", "mode")
+        why: LinkReason = "rebooted" if v.rebooted else "operator"
+        return Verdict(True, False, f"{who}: mode {modes.name(v.custom_mode)}{'' if v.armed else ', disarmed'}", why)
     if not v.armed:
         return Verdict(True, False, "vehicle disarmed in GUIDED: waiting for the operator to arm it", "disarmed")
     if not position_fresh(v, now, position_timeout):
         age = math.inf if v.pos_time is None else now - v.pos_time
-        return Verdict(True, False, f"no LOCAL_POSITION_NED for {age:.1f} s (EKF origin lost?)", "position")
+        return Verdict(True, False, f"no LOCAL_POSITION_NED for {age:.1f} s (EKF origin lost?)", "no_telemetry")
     return Verdict(True, True, "driving: GUIDED, armed", "ok")
