@@ -264,10 +264,10 @@ class FixedRate:
 
 
 def stop_on_signals() -> threading.Event:
-    """An Event set by SIGINT or SIGTERM (the loop polls it; Zenoh's ``recv`` would ignore SIGINT). SIGUSR1 writes
-    a memory report (:class:`MemoryReport`)."""
+    """An Event set by SIGINT, SIGTERM or SIGHUP (the loop polls it; Zenoh's ``recv`` would ignore SIGINT). SIGUSR1
+    writes a memory report (:class:`MemoryReport`)."""
     stop = threading.Event()
-    for sig in (signal.SIGINT, signal.SIGTERM):
+    for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
         signal.signal(sig, lambda *_: stop.set())
     report = MemoryReport(os.environ.get(MEMORY_REPORT_ENV))
     signal.signal(signal.SIGUSR1, lambda *_: report.write())

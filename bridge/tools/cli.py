@@ -16,6 +16,7 @@ import logging
 import os
 import re
 import shlex
+import signal
 import sys
 from dataclasses import dataclass
 from importlib import metadata
@@ -208,6 +209,24 @@ def setup_logging(level: str, name: str) -> None:
                         format=f"%(asctime)s {name.replace(' ', '-')} %(levelname)s %(message)s")
 
 
+class Terminated(KeyboardInterrupt):
+    """SIGTERM or SIGHUP, raised in the main thread as Ctrl-C is: every ``with Children()`` and ``finally`` on the way
+    out runs, so a tool killed by ``timeout``, CI or a closing terminal stops every process it started, as Ctrl-C
+    does (a node replaces this with its own handler: :func:`bridge.nodes.node.stop_on_signals`)."""
+
+    def __init__(self, signum: int) -> None:
+        super().__init__(signal.Signals(signum).name)
+        self.signum = signum
+
+
+def _terminate_like_ctrl_c() -> None:
+    def handler(signum: int, _frame: object) -> None:
+        raise Terminated(signum)
+
+    for sig in (signal.SIGTERM, signal.SIGHUP):
+        signal.signal(sig, handler)
+
+
 def main(argv: list[str] | None = None) -> int:
     """Dispatch to the command's module; returns the process exit code."""
     args = list(sys.argv[1:] if argv is None else argv)
@@ -232,6 +251,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"scmbridge: unknown command {word!r}\n\n{root_help()}", file=sys.stderr)
         return 2
     cmd = BY_NAME[name]
+    _terminate_like_ctrl_c()
     try:
         module = load(cmd)
         ns = parser_for(cmd, module).parse_args(rest)
@@ -249,6 +269,9 @@ def main(argv: list[str] | None = None) -> int:
               f"pip install --no-deps --no-build-isolation '.[{extra}]' from the lock (deploy/ROBOT.md)",
               file=sys.stderr)
         return 2
+    except Terminated as exc:
+        print(f"scmbridge {name}: {exc}: stopped", file=sys.stderr)
+        return 128 + exc.signum
     except KeyboardInterrupt:
         return 130
 
