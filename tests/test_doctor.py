@@ -71,3 +71,23 @@ def test_doctor_names_a_certificate_about_to_expire_and_one_of_another_ca(tmp_pa
     shutil.copy(other / "operator.crt", certs / "operator.crt")  # a certificate from another lab's CA
     tls = _lines(_doctor("--zenoh-config", str(conf)))["tls"]
     assert any(t.startswith("FAIL") and "not signed by the CA" in t for t in tls), tls
+
+
+def test_doctor_fails_a_can_bus_where_no_controller_answers_and_passes_one_where_both_do() -> None:
+    """Found: ``doctor --link can`` said "ok vehicle: the vehicle answers (axes idle)" on a bus with no controller
+    at all; only ``engage`` said "no heartbeat". A real python-can virtual bus, the emulated ODrives or nothing."""
+    import uuid
+
+    from bridge.tools.doctor import check_vehicle
+    from drivers.can.config import CanLinkConfig
+    from sim_learner.can_ecu import DiffDriveEcus
+
+    channel = f"doctor-{uuid.uuid4().hex[:8]}"
+    cfg = CanLinkConfig(interface="virtual", channel=channel, heartbeat_timeout=0.3)
+    silent = check_vehicle("can", cfg, max_drive_on=1.0)
+    assert silent[0].level == "FAIL" and silent[0].name == "vehicle", silent
+    assert "does not answer" in silent[0].text and "no heartbeat" in silent[0].text, silent
+    vehicle = SimVehicle(mpc_learner(), (0.0, 0.0, 0.0), now=time.monotonic())
+    with DiffDriveEcus({"interface": "virtual", "channel": channel}, vehicle):
+        found = check_vehicle("can", cfg, max_drive_on=1.0)
+    assert found[0].level == "ok" and "answers" in found[0].text and "idle" in found[0].text, found

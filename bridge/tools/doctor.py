@@ -156,6 +156,25 @@ def check_can(channel: str, interface: str) -> Check:
     return Check("ok", "can", f"{channel} is up")
 
 
+#: link reasons that mean the vehicle has not been heard from (drivers.base.LinkReason)
+SILENT = ("link_down", "no_heartbeat", "no_telemetry")
+#: how long the vehicle has to answer once its link is open, s (a CAN controller's Heartbeat is every 100 ms, a UDP
+#: robot's state every 50 ms, a MAVLink HEARTBEAT every second: the MAVLink link's open already waits for one)
+ANSWER_S = 2.0
+
+
+def _answer(driver) -> object:
+    """The link's health once the vehicle has answered, or after :data:`ANSWER_S` (the link polled meanwhile)."""
+    end = time.monotonic() + ANSWER_S
+    while True:
+        now = time.monotonic()
+        driver.poll(now)
+        h = driver.health(now)
+        if (h.connected and h.reason not in SILENT) or now >= end:
+            return h
+        time.sleep(0.02)
+
+
 def check_vehicle(link: str, link_cfg: object, max_drive_on: float) -> list[Check]:
     from drivers import open_driver
     from drivers.base import DriverError
@@ -166,7 +185,10 @@ def check_vehicle(link: str, link_cfg: object, max_drive_on: float) -> list[Chec
     except DriverError as exc:
         return [Check("FAIL", "vehicle", f"link {link}: {exc}")]
     try:
-        h = driver.health(time.monotonic())
+        h = _answer(driver)
+        if not h.connected or h.reason in SILENT:
+            return [Check("FAIL", "vehicle", f"link {link}: the vehicle does not answer within {ANSWER_S:g} s: "
+                                             f"{h.text}")]
         fs = driver.failsafe()
         out = [Check("ok", "vehicle", f"link {link}: the vehicle answers ({h.text})")]
         if fs.drive_on_s is None or fs.drive_on_s > max_drive_on:

@@ -447,6 +447,9 @@ class CanDriver:
         Heartbeats' age and the arming phase, each typed and in words. Pure."""
         reasons: list[tuple[LinkReason, str]] = []
         if self._phase == "idle":
+            # a silent controller first: not engaged is what a person does next, a controller that does not answer
+            # is what is wrong (doctor fails on it; before, only engage said "no heartbeat")
+            reasons += self._silent(now)
             reasons.append(("not_engaged", "axes idle: not engaged"))
         if self.bus is None:
             reasons.append(("link_down", f"CAN bus down ({self._down_reason}); reopening in "
@@ -459,11 +462,17 @@ class CanDriver:
                                         f"({self.counters['rejected_estimates']} so far): a faulty encoder or forged "
                                         "frames"))
         if self._phase == "running":
-            for ax in self.axes:
-                if self._heartbeat_lost(ax, now):
-                    age = "" if ax.heartbeat_at is None else f" for {now - ax.heartbeat_at:.2f} s"
-                    reasons.append(("no_heartbeat", f"{ax.side} controller (node {ax.node}): no heartbeat{age}"))
+            reasons += self._silent(now)
         return reasons
+
+    def _silent(self, now: float) -> list[tuple[LinkReason, str]]:
+        """The controllers whose Heartbeat is older than ``heartbeat_timeout`` (or never came)."""
+        out: list[tuple[LinkReason, str]] = []
+        for ax in self.axes:
+            if self._heartbeat_lost(ax, now):
+                age = "" if ax.heartbeat_at is None else f" for {now - ax.heartbeat_at:.2f} s"
+                out.append(("no_heartbeat", f"{ax.side} controller (node {ax.node}): no heartbeat{age}"))
+        return out
 
     @staticmethod
     def _verdict(reasons: list[tuple[LinkReason, str]]) -> tuple[bool, LinkReason, str]:
