@@ -14,14 +14,15 @@ figure three times worse than its target. A figure that could not be measured he
 
 **Calibration.** The SC map, the transfer policy and the MPC are CPU-bound: their figures scale with the machine's
 speed and with the other load on it, and a CI machine three times slower than the one the targets were set on would
-fail without any regression. So just before each of those sections the same process times a fixed reference
+fail without any regression. So around each of those sections the same process times a fixed reference
 workload (:func:`reference_workload`: an interpreted loop with a dict, small-array numpy calls and one vectorised
 complex kernel, the three kinds of work those sections do) and divides by that workload's time on the machine the
 targets come from (:data:`REFERENCE_S`, measured there, with its date and load). That ratio, floored at 1 (a faster
 machine is judged on the plain targets: they are absolute claims of the docs) and capped at :data:`MAX_RATIO` (a
 machine so slow or so loaded is not fit to judge, and must not wave a regression through), scales the section's
-targets and limits; the line gives ``nominal_target`` and ``ratio``. Timed in the same process, right before the
-section, the reference sees the same CPU, the same contention and the same Python build as the figures it excuses.
+targets and limits; the line gives ``nominal_target`` and ``ratio``. Timed in the same process right before and
+right after the section (the slower of the two kept: load changes), the reference sees the same CPU, the same
+contention and the same Python build as the figures it excuses.
 The latencies of the bridge and of the estop are not scaled: they are mostly waiting (Zenoh, the loop's wake-up, the
 disk), not computing, and their targets are what the vehicle needs whatever runs the host.
 
@@ -90,6 +91,11 @@ def figure(name: str, value: float | None, unit: str, target: float, ratio: floa
     return out
 
 
+def measured(name: str, value: float | None, unit: str, target: float, **extra: Any) -> dict:
+    """What a section measured, for :func:`figure` to judge once the section's calibration ratio is known."""
+    return {"name": name, "value": value, "unit": unit, "target": target, **extra}
+
+
 def skipped(name: str, unit: str, target: float, why: str) -> dict:
     """A figure this machine cannot measure for a reason outside the code (never a failure)."""
     return {"name": name, "value": None, "unit": unit, "target": target, "limit": LIMIT_FACTOR * target,
@@ -141,7 +147,7 @@ def _p99(samples_s: list[float], scale: float = 1e6) -> float:
     return float(np.percentile(samples_s, 99)) * scale if samples_s else float("nan")
 
 
-def section_scm(ratio: float, n: int = 60) -> Iterator[dict]:
+def section_scm(n: int = 60) -> Iterator[dict]:
     """``bench scm``, short: a map build and one point through a built QuadTransfer."""
     from bench.scm import _random_quad
     from transfer.scm import QuadTransfer, RectangleMap, warmup
@@ -160,11 +166,11 @@ def section_scm(ratio: float, n: int = 60) -> Iterator[dict]:
         t = time.perf_counter()
         qt(w)
         point.append(time.perf_counter() - t)
-    yield figure("scm_point_median", _median(point), "us", 50.0, ratio, n=n)
-    yield figure("scm_build_median", _median(build), "us", 500.0, ratio, n=n)
+    yield measured("scm_point_median", _median(point), "us", 50.0, n=n)
+    yield measured("scm_build_median", _median(build), "us", 500.0, n=n)
 
 
-def section_transfer(ratio: float, n: int = 400) -> Iterator[dict]:
+def section_transfer(n: int = 400) -> Iterator[dict]:
     """``bench transfer``, short: a command on a built region, right after its region moved, and the stream."""
     from bench.transfer import _filled_store, _time_hits, _time_rebuilds, _time_stream
     from transfer.policy import make_policy
@@ -183,12 +189,12 @@ def section_transfer(ratio: float, n: int = 400) -> Iterator[dict]:
     hits, _ = _time_hits(policy, command, n)
     rebuilds = _time_rebuilds(policy, store, command, n)
     stream = _time_stream(policy, store, model, command, rng, n)
-    yield figure("transfer_hit_median", _median(hits), "us", 200.0, ratio, n=len(hits))
-    yield figure("transfer_rebuild_p99", _p99(rebuilds, 1e3), "ms", 5.0, ratio, n=len(rebuilds))
-    yield figure("transfer_stream_median", _median(stream, 1e3), "ms", 1.0, ratio, n=len(stream))
+    yield measured("transfer_hit_median", _median(hits), "us", 200.0, n=len(hits))
+    yield measured("transfer_rebuild_p99", _p99(rebuilds, 1e3), "ms", 5.0, n=len(rebuilds))
+    yield measured("transfer_stream_median", _median(stream, 1e3), "ms", 1.0, n=len(stream))
 
 
-def section_mpc(ratio: float, steps: int = 200) -> Iterator[dict]:
+def section_mpc(steps: int = 200) -> Iterator[dict]:
     """``bench mpc``, timing only: the station's default solver per tick, N = 20, 8 obstacle slots."""
     from bench.mpc import _timing
     from bridge.core.config import TeacherSection
@@ -196,22 +202,23 @@ def section_mpc(ratio: float, steps: int = 200) -> Iterator[dict]:
     solver = TeacherSection().mpc_solver
     r = _timing(solver, 20, 8, steps)
     # README, the MPC table: 0.26 ms median for rti-qpoases (the default); 2x that is the target
-    yield figure(f"mpc_{solver}_N20_median", r["median_ms"], "ms", 0.52, ratio, n=r["ticks"] - 1,
+    yield measured(f"mpc_{solver}_N20_median", r["median_ms"], "ms", 0.52, n=r["ticks"] - 1,
                  compiled=r["compiled"], failures=r["failures"], build_s=round(r["build_s"], 2))
 
 
 def section_bridge(seconds: float = 3.0, links: tuple[str, ...] = ("can", "udp", "mavlink")) -> Iterator[dict]:
-    """``bench bridge``, short: publish -> the driver host handing the command to its link, per link."""
+    """``bench bridge``, short: publish -> the driver host handing the command to its link, per link, each command
+    at a random phase of the host's loop (:func:`bench.bridge.run_link`: a steady clock would judge one phase)."""
     from bench.bridge import run_link
 
     for link in links:
         with tempfile.TemporaryDirectory(prefix="bench-perf-") as tmp:
-            r = run_link(link, seconds, tmp)["publish_to_driver_send_ms"]
+            r = run_link(link, seconds, tmp, random_phase=True)["publish_to_driver_send_ms"]
         if r is None:
-            yield figure(f"bridge_{link}_median", None, "ms", 1.0, error="no command came back applied")
+            yield measured(f"bridge_{link}_median", None, "ms", 1.0, error="no command came back applied")
             continue
-        yield figure(f"bridge_{link}_median", r["median"], "ms", 1.0, n=r["n"])
-        yield figure(f"bridge_{link}_p99", r["p99"], "ms", 5.0, n=r["n"])
+        yield measured(f"bridge_{link}_median", r["median"], "ms", 1.0, n=r["n"])
+        yield measured(f"bridge_{link}_p99", r["p99"], "ms", 5.0, n=r["n"])
 
 
 def section_estop(fsync_delay: float = 0.5, repeat: int = 3) -> Iterator[dict]:
@@ -224,25 +231,25 @@ def section_estop(fsync_delay: float = 0.5, repeat: int = 3) -> Iterator[dict]:
         c = cases[f"{delay:g}"]
         name = f"estop_fsync_{delay:g}s_max"
         if "skipped" in c:
-            yield skipped(name, "ms", TARGET_MS, c["skipped"])
+            yield {"skipped": skipped(name, "ms", TARGET_MS, c["skipped"])}
             continue
         if "error" in c:
-            yield figure(name, None, "ms", TARGET_MS, error=c["error"])
+            yield measured(name, None, "ms", TARGET_MS, error=c["error"])
             continue
         extra = {"median": round(c["median_ms"], 3), "n": c["n"]}
         if "fsyncs_delayed" in c:
             extra["fsyncs_delayed"] = c["fsyncs_delayed"]
-        yield figure(name, c["max_ms"], "ms", TARGET_MS, **extra)
+        yield measured(name, c["max_ms"], "ms", TARGET_MS, **extra)
 
 
-def _sections(args: argparse.Namespace) -> dict[str, tuple[bool, Callable[[float], Iterator[dict]]]]:
-    """Each section: whether its targets are calibrated, and how to run it (given its ratio)."""
+def _sections(args: argparse.Namespace) -> dict[str, tuple[bool, Callable[[], Iterator[dict]]]]:
+    """Each section: whether its targets are calibrated, and how to run it."""
     return {
-        "scm": (True, lambda r: section_scm(r)),
-        "transfer": (True, lambda r: section_transfer(r)),
-        "mpc": (True, lambda r: section_mpc(r)),
-        "bridge": (False, lambda r: section_bridge(args.bridge_seconds)),
-        "estop": (False, lambda r: section_estop(args.fsync_delay, args.estop_repeat)),
+        "scm": (True, section_scm),
+        "transfer": (True, section_transfer),
+        "mpc": (True, section_mpc),
+        "bridge": (False, lambda: section_bridge(args.bridge_seconds)),
+        "estop": (False, lambda: section_estop(args.fsync_delay, args.estop_repeat)),
     }
 
 
@@ -270,14 +277,23 @@ def run(args: argparse.Namespace) -> int:
     table = _sections(args)
     for name in chosen:
         calibrated, section = table[name]
-        ratio = 1.0
         try:
-            if calibrated:
-                ref = reference_seconds()
-                ratio = calibration_ratio(ref)
-                _line({"calibration": name, "reference_s": round(ref, 5), "reference_quiet_s": REFERENCE_S,
-                       "ratio": round(ratio, 3)})
-            for f in section(ratio):
+            if not calibrated:
+                for m in section():
+                    f = m["skipped"] if "skipped" in m else figure(**m)
+                    figures.append(f)
+                    _line(f)
+                continue
+            # the reference before and after the section, the slower kept: the load that counts is the one the
+            # section ran under, and it can change while the section runs
+            before = reference_seconds()
+            found = list(section())
+            after = reference_seconds()
+            ratio = calibration_ratio(max(before, after))
+            _line({"calibration": name, "reference_s": [round(before, 5), round(after, 5)],
+                   "reference_quiet_s": REFERENCE_S, "ratio": round(ratio, 3)})
+            for m in found:
+                f = figure(**m, ratio=ratio)
                 figures.append(f)
                 _line(f)
         except Exception as exc:  # a section that crashes measured nothing: that is a failure, said by name
