@@ -40,6 +40,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import os
 import sys
 import tempfile
 import time
@@ -302,5 +303,8 @@ def run(args: argparse.Namespace) -> int:
             figures.append(f)
             _line(f)
     s = summary(figures, time.monotonic() - t0)
+    # scmbridge runs every command with one BLAS thread (bridge/tools/cli.py): OpenBLAS's spinning threads on a
+    # loaded machine turn a 3 ms region rebuild into hundreds of ms, so a run outside the CLI says what it had
+    s["openblas_threads"] = os.environ.get("OPENBLAS_NUM_THREADS", "default")
     _line(s)
     return 1 if s["verdict"] == "fail" else 0
