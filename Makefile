@@ -20,7 +20,7 @@ PIP_COMPILE := CUSTOM_COMPILE_COMMAND="make lock" $(VENV)/bin/pip-compile --quie
 	$(if $(UPGRADE),--upgrade,)
 LOCK_NOTE := \# Locked for CPython $(LOCKED_PY) on Linux x86_64 (hashes: every file PyPI has for each pinned version).
 
-.PHONY: demo test lint bench install lock clean cli-doc
+.PHONY: demo test perf lint bench install lock clean cli-doc
 
 $(PY):
 	@$(call check_python,$(PYTHON))
@@ -45,6 +45,11 @@ TEST_WORKERS ?= 3
 test: $(STAMP)
 	$(VENV)/bin/ruff check .
 	$(PY) -m pytest -q -n $(TEST_WORKERS) $(PYTEST_ARGS)
+
+# The regression guard (CI runs it after the tests): the quick benchmarks, one JSON line per figure against its
+# target; exit 1 if a figure is over 3x its target (bench/perf.py says how, and how a slow machine is allowed for).
+perf: $(STAMP)
+	$(VENV)/bin/scmbridge bench perf
 
 lint: $(STAMP)
 	$(VENV)/bin/ruff check .
