@@ -6,7 +6,7 @@ reached the vehicle and what was learned:
 
 ``{"attack": name, "reached_vehicle": ..., "learned": ..., "ok": bool, ...}``; ``ok`` means nothing unsafe moved a
 vehicle and nothing implausible was learned. ``--short`` runs each attack briefly (the suite runs it so). The last
-line of the JSON is ``"all_ok"``. The README's reliability table quotes it.
+line of the JSON is ``"all_ok"``. docs/SECURITY.md's attack table quotes it.
 """
 
 from __future__ import annotations

@@ -47,8 +47,8 @@ STATE_HZ = 100.0  # the emulated CAN link's poses: each wheel's encoder estimate
 APPLIED_HZ = DriverSection().rate_hz  # the driver host's loop
 TILES = 5  # the paper's 8 m S-path laid end to end: 40 m, more than a robot drives in one run
 #: What the shipped station units (deploy/systemd/scmbridge-station*.service) set: one BLAS / OpenMP thread per
-#: station, so that OpenBLAS's spinning workers do not take the cores other stations need (README, "Many robots",
-#: has the figures; ``--blas-threads inherit`` measures the default).
+#: station, so that OpenBLAS's spinning workers do not take the cores other stations need (docs/BENCHMARKS.md,
+#: "Many robots", has the figures; ``--blas-threads inherit`` measures the default).
 STATION_ENV = ONE_BLAS_THREAD
 
 

@@ -3,8 +3,8 @@
 ``map_hit_us``: commands whose mapping region is already built (cached QuadTransfer); ``map_rebuild_us``: commands
 right after the region's pairs moved (the QuadTransfer is rebuilt); ``ingest_us``: adding one raw pair;
 ``map_stream_us``: the station's stream, one pair ingested and one command mapped; ``map_holes_us``: a store with holes
-off the teacher's way, where the guided policy's hole search runs and finds nothing (docs/ARCHITECTURE.md, the
-transfer's cost targets).
+off the teacher's way, where the guided policy's hole search runs and finds nothing (the targets and the figures:
+docs/BENCHMARKS.md, "The transfer step").
 """
 
 from __future__ import annotations

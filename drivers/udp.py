@@ -31,7 +31,7 @@ with the sliding-window minimum of ``receipt - stamp`` (:class:`bridge.core.cloc
 robot epoch, or a confirmed step of its clock (``bridge.core.clock``), starts it again: ``clock_restarts``;
 a stamp that does not advance, not being a clock, gives the receipt: ``stamp_fallbacks``), not at the poll that read
 them: the driver host polls at its tick, and receipt stamps on that 20 ms grid would add error to the pairs
-(``scmbridge bench pairing --link udp`` measures it; README.md, "Reliability").
+(``scmbridge bench pairing --link udp`` measures it; docs/RELIABILITY.md).
 
 Health is truthful: ``ok`` only while the socket is open and the robot's last accepted state is younger than
 ``state_timeout_s`` (so False until the first state); ``text`` says how long the robot has been silent.

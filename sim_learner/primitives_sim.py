@@ -25,7 +25,7 @@ from transfer.step import TransferStep
 from transfer.store import PairStore
 from transfer.teacher.primitives import PrimitiveLibrary, PrimitivePlanner, replan_threshold
 
-NOISE_STD = 0.05  # m, measurement noise on the learner's position (the paper: "G ~ N(0, 0.1)"; see README)
+NOISE_STD = 0.05  # m, measurement noise on the learner's position (the paper: "G ~ N(0, 0.1)"; see docs/PAPER.md)
 VEHICLE_RADIUS = 0.3
 
 

@@ -1,9 +1,10 @@
-"""The docs' commands are real: every ``scmbridge ...`` line in a fenced block of README.md, deploy/README.md and
-deploy/ROBOT.md names a command that exists and parses with that command's own parser, and the ones that need
-neither a robot nor a running lab run here (in a temporary state and config directory). The ones that need a
-running lab (engage, mission, status, estop, doctor through the router) are what tests/test_lab_in_a_box.py runs;
-the ones that need hardware or root (systemctl, useradd, pip into /opt, ip link, doctor on a CAN bus) are listed
-by name below, so a new command in the docs must be put in one of the three groups."""
+"""The docs' commands are real: every ``scmbridge ...`` line in a fenced block of README.md, deploy/README.md,
+deploy/ROBOT.md and the prose documents of docs/ (not the generated CLI.md, nor ARCHITECTURE.md, whose diagrams are
+fenced too) names a command that exists and parses with that command's own parser, and the ones that need neither a
+robot nor a running lab run here (in a temporary state and config directory). The ones that need a running lab
+(engage, mission, status, estop, doctor through the router) are what tests/test_lab_in_a_box.py runs; the ones that
+need hardware or root (systemctl, useradd, pip into /opt, ip link, doctor on a CAN bus) are listed by name below, so
+a new command in the docs must be put in one of the three groups."""
 
 from __future__ import annotations
 
@@ -19,7 +20,9 @@ import pytest
 from bridge.tools import cli
 
 ROOT = Path(__file__).resolve().parent.parent
-DOCS = [ROOT / "README.md", ROOT / "deploy" / "README.md", ROOT / "deploy" / "ROBOT.md"]
+DOCS = [ROOT / "README.md", ROOT / "deploy" / "README.md", ROOT / "deploy" / "ROBOT.md",
+        *(ROOT / "docs" / f for f in ("OPERATING.md", "PAPER.md", "FLEET.md", "SECURITY.md",
+                                      "RELIABILITY.md", "BENCHMARKS.md"))]
 #: run here, offline
 RUN_HERE = {"config show", "config check", "deploy certs", "deploy lab", "deploy acl", "deploy client", "keys udp",
             "keys mavlink", "driver"}
@@ -43,7 +46,9 @@ def documented() -> list[tuple[str, str, list[str]]]:
             for raw in block.replace("\\\n", " ").splitlines():
                 line = re.sub(r"\[[^\]]*\]", "", raw.split(" #", 1)[0])  # optional parts (they may hold a "|")
                 line = line.split(" | ", 1)[0].split(" > ", 1)[0].strip()
-                words = shlex.split(line) if line else []
+                if "scmbridge" not in line:
+                    continue  # code and output of other kinds (a python block's comment may hold a lone quote)
+                words = shlex.split(line)
                 at = next((i for i, w in enumerate(words) if (w == "scmbridge" or w.endswith("/bin/scmbridge"))
                            and (i == 0 or words[i - 1] != "-u")), None)
                 if at is None or at + 1 >= len(words) or words[at + 1].endswith(":"):

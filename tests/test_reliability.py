@@ -2,7 +2,7 @@
 
 Each fuzzed input (2000 payloads) must be counted exactly by its receiver, crash nothing, never give a vehicle a
 non-finite or out-of-limits command, and leave the link able to drive. The long forms (100k payloads per input, RSS
-rounds, a soak of minutes) are benchmarks: README "Reliability". Processes are always stopped, sessions closed,
+rounds, a soak of minutes) are benchmarks: docs/RELIABILITY.md. Processes are always stopped, sessions closed,
 traffic stays on 127.0.0.1 ports bound here and python-can ``virtual`` channels.
 """
 

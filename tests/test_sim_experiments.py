@@ -7,7 +7,7 @@ threshold with a margin far above the sweep's spread, and never by exact equalit
 each assertion (measured here, 10 seeds); the thresholds still fail the identity mapper or an affine map where the
 test says so. (The paper's exploration policy now passes the time, deviation and perturbation thresholds too, with
 less margin: the transfer step keeps it, as the guided one, from exploring next to obstacles.) Claims that do not
-hold are not tested as xfails: the README's "The paper's simulations" states them with the sweep's numbers.
+hold are not tested as xfails: docs/PAPER.md states them with the sweep's numbers.
 """
 
 from __future__ import annotations
@@ -83,7 +83,7 @@ def test_mpc_exploration_costs_at_most_15_percent_of_the_commands(sweep) -> None
 
 
 def test_mpc_baselines_reach_the_goal_and_the_papers_baseline_tracks_worse(sweep) -> None:
-    # The paper's >= 2x slowdown of the baseline is not reproduced (README): both baselines finish in about the
+    # The paper's >= 2x slowdown of the baseline is not reproduced (docs/PAPER.md): both baselines finish in about the
     # ideal teacher's time (0.97x, 0.98x). What holds: both reach the goal without collision, and the paper's
     # baseline (MPC bounded by the teacher's own range) deviates >= 1.5x the teacher over the last half
     # (measured 2.2x; deterministic, no exploration) while the SCM learner stays within 1.5x (above).
@@ -102,7 +102,7 @@ def test_mpc_seed_is_deterministic_across_processes(sweep) -> None:
 def test_grid_scm_region_error_beats_the_baseline_and_an_affine_map(sweep) -> None:
     # the exhaustive 0.1 s test on the pairs each seed learned. Measured (guided pairs, with the guided policy's
     # fills): SCM / baseline median position error 0.13-0.16 (median 0.15) on these seeds, 0.13-0.27 over 0-9;
-    # threshold 0.25 (before the fills: 0.25-0.30, median 0.29, which fails it). The full-size claim is the README's.
+    # threshold 0.25 (before the fills: 0.25-0.30, median 0.29, which fails it). The full-size claim is docs/PAPER.md's.
     ratios, affine = [], []
     for s in SEEDS:
         g = grid_experiment(seed=s, quick=True, out=None, progress=False, store=sweep["stores"][s])

@@ -79,9 +79,9 @@ class Inputs:
               capacity: int = QUEUE_CAPACITY) -> Queued[S]:
         """Declare a subscriber on ``key`` whose samples wait in Zenoh's own ring buffer until the node's loop
         takes them (:meth:`Queued.drain`): for a high-rate input (poses at 100 Hz per robot) read once a tick.
-        A Python callback per sample costs its thread the GIL each time, several times what draining costs (README,
-        "Many robots"); a ring never blocks Zenoh's receiving thread (a stalled loop loses the oldest samples, not
-        the session). Decoded and counted by :meth:`decode`, as :meth:`subscribe`'s."""
+        A Python callback per sample costs its thread the GIL each time, several times what draining costs
+        (CHANGELOG.md, "many robots"); a ring never blocks Zenoh's receiving thread (a stalled loop loses the
+        oldest samples, not the session). Decoded and counted by :meth:`decode`, as :meth:`subscribe`'s."""
         return Queued(self, session.declare_subscriber(key, zenoh.handlers.RingChannel(capacity)), kind, name, key)
 
 

@@ -9,8 +9,8 @@ pair per ``dt``), and only if the span is at least ``min_span`` (0.4 ``dt`` by d
 and telemetry gaps longer than ``max_gap`` never produce a pair. Pure: times are arguments.
 
 Why 0.4 ``dt``: telemetry at twice the command rate puts two poses about ``dt / 2`` apart inside each command, and
-the vehicle's scheduling jitter must not reject them (docs/ARCHITECTURE.md section 4; the measurement is in the
-README, "Reliability").
+the vehicle's scheduling jitter must not reject them (docs/ARCHITECTURE.md section 4; the measurement is in
+docs/RELIABILITY.md).
 
 What it learns from is checked first (forged or garbled telemetry must not be learned, nor stop learning): with
 the receipt time given, an event stamped further ahead of the last one than the time that passed between their
