@@ -129,3 +129,37 @@ def test_a_save_that_fails_off_the_tick_is_reported_on_the_status_and_retried(tm
         n = len(col.snapshot(M.status_key(robot, "station")))
         assert col.wait(lambda: any("not saved" not in s.text for s in status[n:]), 10)
     assert (tmp_path / "pairs.bin").exists() and st.persist()
+
+
+@pytest.mark.timeout(30)
+def test_the_writer_keeps_the_latest_bytes_of_each_file_and_close_writes_what_waits(tmp_path) -> None:
+    """Latest wins per file (a save waiting for the disk is replaced by a newer one of the same file, never one
+    being written); every outcome comes back once; close writes what waits; after it a save is made at once."""
+    from bridge.nodes.writer import SaveWriter
+
+    entered, release = threading.Event(), threading.Event()
+
+    def disk(path: Path, data: bytes) -> None:
+        if data == b"a1":
+            entered.set()
+            assert release.wait(10)
+        if data == b"bad":
+            raise OSError(errno.EIO, "Input/output error")
+        save_atomic(path, data)
+
+    a, b = tmp_path / "a.bin", tmp_path / "b.bin"
+    w = SaveWriter(disk)
+    w("store", a, b"a1")
+    assert entered.wait(10)  # a1 is being written (the disk stalls)
+    w("store", a, b"a2")
+    w("control", b, b"bad")
+    w("store", a, b"a3")  # replaces a2, which waited
+    assert w.replaced == 1 and w.results() == []
+    release.set()
+    w.close()
+    got = w.results()
+    assert [what for what, _ in got] == ["store", "control", "store"]
+    assert got[0][1] is None and got[2][1] is None and got[1][1].errno == errno.EIO
+    assert a.read_bytes() == b"a3" and not b.exists()
+    w("control", b, b"b1")  # closed: written at once, in this thread
+    assert b.read_bytes() == b"b1" and w.results() == [("control", None)]

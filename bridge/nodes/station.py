@@ -248,17 +248,16 @@ class Station:
             try:
                 if q.kind == "pairs":
                     q.query.reply(self.keys.pairs, M.encode(self.core.pairs(now)))
-                    continue
-                if now - q.at > CONTROL_MAX_WAIT_S:
+                elif now - q.at > CONTROL_MAX_WAIT_S:
                     what = q.request.action if isinstance(q.request, M.MissionRequest) else "malformed"
                     log.warning("mission %s dropped unanswered: it waited %.1f s for the station's loop", what,
                                 now - q.at)
-                    continue
-                if isinstance(q.request, M.MissionRequest):
-                    ans = self.core.request(q.request, now)
                 else:
-                    ans = self.core.control.answer(now, False, str(q.request))
-                q.query.reply(self.keys.control, M.encode(ans))
+                    ans = (self.core.request(q.request, now) if isinstance(q.request, M.MissionRequest)
+                           else self.core.control.answer(now, False, str(q.request)))
+                    q.query.reply(self.keys.control, M.encode(ans))
+            except Exception:  # a query must never stop the loop (it did not when it failed in its callback)
+                log.exception("%s query not answered", q.kind)
             finally:
                 q.query.drop()  # the reply is final: the asker stops waiting for more
 

@@ -33,10 +33,8 @@ class SaveWriter:
         self.save, self.name = save, name
         self.cond = threading.Condition()
         self.waiting: dict[Path, tuple[str, bytes]] = {}  # per file the latest bytes not yet being written
-        self.writing = False
         self.done: list[tuple[str, OSError | None]] = []
         self.closed = False
-        self.written = 0  # saves finished (either way), for tests and figures
         self.replaced = 0  # saves replaced by a later one of the same file before they were written
         self.thread: threading.Thread | None = None
 
@@ -61,11 +59,6 @@ class SaveWriter:
             out, self.done = self.done, []
         return out
 
-    def idle(self, timeout: float) -> bool:
-        """Wait until nothing waits or is being written (or ``timeout`` passes); True when idle."""
-        with self.cond:
-            return self.cond.wait_for(lambda: not self.waiting and not self.writing, timeout)
-
     def close(self) -> None:
         """Write what still waits, then end the thread (waits for the disk: an exit saves anyway)."""
         with self.cond:
@@ -83,7 +76,6 @@ class SaveWriter:
                     return  # closed, and everything written
                 path = next(iter(self.waiting))
                 what, data = self.waiting.pop(path)
-                self.writing = True
             self._write(what, path, data)
 
     def _write(self, what: str, path: Path, data: bytes) -> None:
@@ -97,9 +89,6 @@ class SaveWriter:
             error = OSError(f"{type(exc).__name__}: {exc}")
         with self.cond:
             self.done.append((what, error))
-            self.written += 1
-            self.writing = False
-            self.cond.notify_all()
 
 
 __all__ = ["Save", "SaveWriter"]
