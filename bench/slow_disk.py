@@ -29,6 +29,7 @@ from bridge.nodes.zsession import free_port, make_config, open_session, tcp
 from bridge.tools.mission import ask
 
 ROOT = Path(__file__).resolve().parent.parent
+ASK_TIMEOUT_S = 3.0  # how long each ``mission status`` waits for the station (asking again each second)
 
 
 def one(tree: Path, label: str, seconds: float, stall_us: int, tmp: Path) -> dict:
@@ -69,7 +70,8 @@ def one(tree: Path, label: str, seconds: float, stall_us: int, tmp: Path) -> dic
             answers: list[tuple[float, float | None]] = []
             while time.monotonic() < t0 + seconds:
                 t = time.monotonic()
-                ans = ask(session, robot, M.MissionRequest(stamp=t, action="status", source="bench"), timeout=3.0)
+                ans = ask(session, robot, M.MissionRequest(stamp=t, action="status", source="bench"),
+                      timeout=ASK_TIMEOUT_S)
                 answers.append((t - t0, time.monotonic() - t if ans is not None else None))
                 time.sleep(max(0.0, t + 0.25 - time.monotonic()))
             t1 = time.monotonic()
@@ -107,12 +109,16 @@ def figure(runs: list[dict], out: Path, stall_ms: float, load: str) -> None:
         y = [y * 1e3 for x, y in r["_answers"] if y is not None]
         b.plot(t, y, "o", color=c, ms=4,
                label=f"{r['label']}: median {r['answer_ms']['median']} ms, max {r['answer_ms']['max']} ms")
+        lost = [x for x, y in r["_answers"] if y is None]
+        if lost:
+            b.plot(lost, [ASK_TIMEOUT_S * 1e3] * len(lost), "x", color=c, ms=7,
+                   label=f"{r['label']}: {len(lost)} not answered within {ASK_TIMEOUT_S:g} s")
     a.axhline(100, color="grey", lw=0.6, ls="--")
     a.set(xlabel="s", ylabel="gap between commands (stamps), ms", yscale="log",
           title=f"station tick gaps, every fsync +{stall_ms:g} ms, store saved every tick")
-    b.set(xlabel="s", ylabel="round trip, ms", yscale="log", title="mission status query answered in")
+    b.set(xlabel="s", ylabel="round trip, ms", yscale="log", ylim=(0.5, 3e5), title="mission status query answered in")
     a.legend(fontsize=7, loc="center right")
-    b.legend(fontsize=7, loc="center right")
+    b.legend(fontsize=7, loc="upper right")
     fig.suptitle(f"a slow disk: saves in the tick under the lock (base) vs. on a writer thread (after); {load}",
                  fontsize=9)
     fig.tight_layout()
