@@ -17,8 +17,10 @@ the transfer policy maps it; ``cmd`` carries it (with the method, a validity of 
 name and epoch) and ``teacher`` the teacher's own command and plan. ``limits`` is published when the learned
 limits change and each second; ``pairs`` answers queries; ``mission`` takes a new mission (the goal state resets).
 The pair store is persisted atomically every ``persist_every_s`` and at exit, and reloaded at start; a failed save
-(a full disk) is logged, reported on status and retried, and never stops the loop. Callbacks only decode and
-store; all work is in the loop (docs/ARCHITECTURE.md).
+(a full disk) is logged, reported on status and retried, and never stops the loop; the saves are written by a writer
+thread from the bytes the tick encoded, so a slow disk never delays a tick. Callbacks only decode and store, under a
+lock the loop holds only to take what they left; all work is in the loop, which also answers the queries
+(docs/ARCHITECTURE.md).
 """
 
 from __future__ import annotations
@@ -29,6 +31,7 @@ import os
 import sys
 import threading
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import zenoh
@@ -37,7 +40,7 @@ from bridge.core import wire as M
 from bridge.core.args import positive_float, robot_arg, robots_arg
 from bridge.core.config import RATE_HZ_RANGE, StationConfig, load_mission_spec, load_station, mission_from_spec
 from bridge.core.errors import UsageError
-from bridge.core.paths import state_dir
+from bridge.core.paths import save_atomic, state_dir
 from bridge.nodes import systemd
 from bridge.nodes.mission_control import Fitness, MissionControl, Saved
 from bridge.nodes.node import FixedRate, Inputs, Queued, add_zenoh_args, stop_on_signals, zenoh_config
@@ -52,6 +55,7 @@ from bridge.nodes.station_core import (  # noqa: F401  (the station's names, as 
     load_store,
     pairs_message,
 )
+from bridge.nodes.writer import Save, SaveWriter
 from bridge.nodes.zsession import open_session
 from transfer.calibration import CalibrationPlan
 from transfer.mission import Mission
@@ -59,15 +63,35 @@ from transfer.mission import Mission
 log = logging.getLogger("scmbridge.station")
 
 
+#: a mission request that waited this long for the loop is dropped unanswered, s: its asker (``scmbridge mission``
+#: waits at most 1 s for one reply) has given up and asks again; acting on it now would act on a stale request
+CONTROL_MAX_WAIT_S = 0.9
+
+
+@dataclass
+class Asked:
+    """A query waiting for the loop: ``kind`` "control" or "pairs"; ``request`` the decoded mission request, or
+    why it is malformed (str); ``at`` its receipt time."""
+
+    kind: str
+    query: zenoh.Query
+    request: M.MissionRequest | str | None
+    at: float
+
+
 class Inbox:
     """What arrived since the last tick (taken, and so emptied, by :meth:`take`): from the callbacks, and the
-    telemetry queues read at the tick."""
+    telemetry queues read at the tick. ``foreign``: commands of another sender on this robot's key; ``queries``:
+    the ``control`` and ``pairs`` queries waiting for the loop (kind, the query, the decoded request or why it is
+    malformed, receipt time)."""
 
     def __init__(self) -> None:
         self.telemetry: list[tuple[M.LearnerState | M.Applied, float]] = []
         self.driver: tuple[M.Status, float] | None = None
         self.mission: tuple[M.MissionSpec, Mission] | None = None
         self.teacher: tuple[M.TeacherCommand, float] | None = None
+        self.foreign: list[tuple[M.Command, float]] = []
+        self.queries: list[Asked] = []
 
     def take(self, periodic: bool, input_counts: dict[str, int], missed: int) -> TickInputs:
         out = TickInputs(tuple(self.telemetry), self.driver, self.mission, self.teacher, periodic, input_counts,
@@ -104,7 +128,7 @@ class KernelBuild:
             self.done.set()
 
     def adopt(self, teacher) -> bool:
-        """Switch ``teacher`` to the compiled code if it is ready (call with its core's lock held); True once."""
+        """Switch ``teacher`` to the compiled code when ready (from its station's loop, between ticks): True once."""
         if not self.done.is_set() or self.result is None or teacher is None or teacher.compiled:
             return False
         teacher.use_compiled(self.result)
@@ -116,24 +140,35 @@ class Station:
     """One robot's station on Zenoh: the Zenoh adapter of a :class:`~bridge.nodes.station_core.StationCore`.
 
     The core does the work of each tick (pairing, the command source, the transfer step, mission control, the status
-    and persistence). Here subscribers decode, count and put what arrives into a typed :class:`Inbox`; the
-    queryables answer ``pairs`` and ``control`` at once; the fixed-rate loop hands the inbox to ``core.tick`` and
-    publishes what it returns. An external teacher's command wakes the loop, so it is mapped as it arrives. The core
-    is only ever called under this adapter's lock."""
+    and persistence). Here subscribers decode, count and put what arrives into a typed :class:`Inbox` under
+    :attr:`lock`, which the loop holds only to swap the inbox out: the tick itself runs without it, so no callback
+    ever waits for a tick (an MPC solve) or a save. The fixed-rate loop hands the inbox to ``core.tick`` and publishes
+    what it returns; the core is only ever called from the loop's thread. The queryables (``control``, ``pairs``)
+    put their query in the inbox and wake the loop, which answers it at once between two ticks (or, when it
+    arrived during one, right after it): a mission request acts on the state the ticks leave, as one tick's
+    decision is never split by it, and ``pairs`` reads a store no tick is updating. Before the loop starts and
+    after it ends a query is answered in its callback. An external teacher's command also wakes the loop, so it is
+    mapped as it arrives. The tick's saves go to a :class:`~bridge.nodes.writer.SaveWriter` (the bytes encoded in
+    the tick, written by its thread; a failure comes back to the core at the next tick, reported as before)."""
 
     def __init__(self, cfg: StationConfig, robot: str, rate_hz: float, store_path: Path, mission: Mission,
                  control: MissionControl | None = None, control_path: Path | None = None,
-                 calibration: CalibrationPlan | None = None) -> None:
+                 calibration: CalibrationPlan | None = None, save: Save = save_atomic) -> None:
         """``control``: the mission's phase machine (default: ``mission``, idle); ``control_path``: where it is
-        kept across restarts (None: not kept); ``calibration``: run this plan instead of a teacher."""
+        kept across restarts (None: not kept); ``calibration``: run this plan instead of a teacher; ``save``: how
+        the writer thread saves a file (a test slows it down; the final save at exit is always
+        :func:`~bridge.core.paths.save_atomic`)."""
         self.core = StationCore(cfg, robot, rate_hz, store_path, mission, control, control_path, calibration)
         self.robot, self.keys = robot, M.Keys(robot)
         self.period = self.core.period
         self.inputs = Inputs()
-        self.lock = threading.Lock()  # the inbox and every call into the core
+        self.lock = threading.Lock()  # the inbox (and the core while no loop runs): held briefly, never for a tick
         self.inbox = Inbox()
+        self.looping = False  # the loop runs: only its thread calls the core
+        self.writer = SaveWriter(save, name=f"station-save-{robot}")
+        self.core.writer = self.writer
         self.telemetry: list[Queued] = []  # the echoes' and the poses' queues, read at each tick (serve declares them)
-        self.wake = threading.Event()  # an external teacher's command is mapped as it arrives
+        self.wake = threading.Event()  # a query, or an external teacher's command: the loop handles it now
         self.pubs: dict[str, zenoh.Publisher] = {}
         self.ticker: FixedRate | None = None
         self.build: KernelBuild | None = None
@@ -154,27 +189,26 @@ class Station:
     # ---------------------------------------------------------------------------------------------- inputs
     def on_own_cmd(self, cmd: M.Command, now: float) -> None:
         """Commands on this robot's key: one this station did not send is another station's (or a forger's)."""
-        with self.lock:
-            self.core.heard_command(cmd, now)
+        if cmd.epoch != self.core.epoch:  # fixed at start: read without the lock
+            with self.lock:
+                self.inbox.foreign.append((cmd, now))
 
     def on_driver_status(self, st: M.Status, now: float) -> None:
         with self.lock:
             self.inbox.driver = (st, now)
 
     def on_control_query(self, query: zenoh.Query) -> None:
-        """A person's request (``scmbridge mission ...``): done or refused under the lock, answered at once."""
+        """A person's request (``scmbridge mission ...``): decoded here, done or refused by the loop and answered
+        at once (:meth:`answer`)."""
         now = time.monotonic()
         try:
             payload = query.payload
-            req = M.decode(payload.to_bytes() if payload is not None else b"", M.MissionRequest)
+            req: M.MissionRequest | str = M.decode(payload.to_bytes() if payload is not None else b"",
+                                                   M.MissionRequest)
         except M.MessageError as exc:
             self.inputs.count("malformed_control")
-            with self.lock:
-                ans = self.core.control.answer(now, False, f"malformed request: {exc}")
-        else:
-            with self.lock:
-                ans = self.core.request(req, now)
-        query.reply(self.keys.control, M.encode(ans))
+            req = f"malformed request: {exc}"
+        self._ask(Asked("control", query, req, now))
 
     def on_mission(self, spec: M.MissionSpec, now: float) -> None:
         try:
@@ -192,23 +226,72 @@ class Station:
         self.wake.set()
 
     def on_pairs_query(self, query: zenoh.Query) -> None:
+        self._ask(Asked("pairs", query, None, time.monotonic()))
+
+    def _ask(self, asked: Asked) -> None:
+        """Hand a query to the loop and wake it; answer it here when no loop runs (nothing else calls the core)."""
         with self.lock:
-            msg = self.core.pairs(time.monotonic())
-        query.reply(self.keys.pairs, M.encode(msg))
+            if self.looping:
+                self.inbox.queries.append(asked)
+            else:
+                self.answer([asked], asked.at)
+                return
+        self.wake.set()
+
+    # ------------------------------------------------------------------------------------------------ queries
+    def answer(self, queries: list[Asked], now: float) -> None:
+        """Do and answer the queries taken from the inbox (on the loop's thread, between two ticks): a mission
+        request from the last tick's fitness, ``pairs`` from the store as the last tick left it. A mission request
+        that waited more than :data:`CONTROL_MAX_WAIT_S` (a stalled loop) is dropped unanswered: its asker has
+        given up and asks again."""
+        for q in queries:
+            try:
+                if q.kind == "pairs":
+                    q.query.reply(self.keys.pairs, M.encode(self.core.pairs(now)))
+                elif now - q.at > CONTROL_MAX_WAIT_S:
+                    what = q.request.action if isinstance(q.request, M.MissionRequest) else "malformed"
+                    log.warning("mission %s dropped unanswered: it waited %.1f s for the station's loop", what,
+                                now - q.at)
+                else:
+                    ans = (self.core.request(q.request, now) if isinstance(q.request, M.MissionRequest)
+                           else self.core.control.answer(now, False, str(q.request)))
+                    q.query.reply(self.keys.control, M.encode(ans))
+            except Exception:  # a query must never stop the loop (it did not when it failed in its callback)
+                log.exception("%s query not answered", q.kind)
+            finally:
+                q.query.drop()  # the reply is final: the asker stops waiting for more
 
     # ------------------------------------------------------------------------------------------------ tick
     def tick(self, now: float, periodic: bool = True) -> TickOutputs:
-        """Hand the inbox to the core and publish what it returns."""
+        """Take the inbox (the lock held only for that), answer the queries that waited, hand the rest to the core
+        and publish what it returns."""
         with self.lock:
-            if self.build is not None and self.build.done.is_set():
-                self.build.adopt(self.teacher)
-                self.build = None
-            for q in self.telemetry:
-                self.inbox.telemetry += q.drain(now)
-            inputs = self.inbox.take(periodic, self.inputs.snapshot(), self.ticker.missed if self.ticker else 0)
-            out = self.core.tick(inputs, now)
+            inbox, self.inbox = self.inbox, Inbox()
+        if inbox.queries:
+            self.answer(inbox.queries, now)  # a pause that came before this tick stops the robot in it
+        for cmd, at in inbox.foreign:
+            self.core.heard_command(cmd, at)
+        for what, error in self.writer.results():
+            self.core.saved(what, error)
+        if self.build is not None and self.build.done.is_set():
+            self.build.adopt(self.teacher)
+            self.build = None
+        for q in self.telemetry:
+            inbox.telemetry += q.drain(now)
+        inputs = inbox.take(periodic, self.inputs.snapshot(), self.ticker.missed if self.ticker else 0)
+        out = self.core.tick(inputs, now)
         self.publish(out)
         return out
+
+    def between_ticks(self) -> bool:
+        """Woken before the next deadline: answer the queries that came; True when an external teacher's command
+        waits to be mapped now."""
+        with self.lock:
+            queries, self.inbox.queries = self.inbox.queries, []
+            teacher = self.inbox.teacher is not None
+        if queries:
+            self.answer(queries, time.monotonic())
+        return teacher and self.core.source.external
 
     def publish(self, out: TickOutputs) -> None:
         for topic, msg in (("cmd", out.command), ("teacher", out.teacher), ("limits", out.limits),
@@ -217,12 +300,24 @@ class Station:
                 self.pubs[topic].put(M.encode(msg))
 
     def persist(self) -> bool:
+        """The final save of the pair store (at exit, once the loop has ended): the writer's last saves first, then
+        this one at once; False (reported on the status and logged by the caller) when it failed."""
+        self._close_writer()
         with self.lock:
             return self.core.persist()
 
     def save_control(self) -> None:
+        """The final save of the mission state (at exit), at once."""
+        self._close_writer()
         with self.lock:
             self.core.save_control()
+
+    def _close_writer(self) -> None:
+        self.writer.close()
+        with self.lock:
+            self.core.writer = None
+            for what, error in self.writer.results():
+                self.core.saved(what, error)
 
     # ------------------------------------------------------------------------------------------------- run
     def serve(self, session: zenoh.Session, stop: threading.Event, duration: float | None,
@@ -257,6 +352,17 @@ class Station:
             systemd.ready(f"{self.robot}: {what}, mission {self.core.control.phase}")
         if phase > 0 and stop.wait(phase):
             return
+        with self.lock:
+            self.looping = True  # from here on only this thread calls the core
+        try:
+            self._loop(stop, duration, exit_at_goal)
+        finally:
+            with self.lock:  # queries left waiting are answered now; later ones in their callbacks
+                self.looping = False
+                left, self.inbox.queries = self.inbox.queries, []
+                self.answer(left, time.monotonic())
+
+    def _loop(self, stop: threading.Event, duration: float | None, exit_at_goal: bool) -> None:
         self.ticker = FixedRate(1 / self.period, stop)
         t_start = time.monotonic()
         periodic = True
@@ -266,12 +372,13 @@ class Station:
                 break
             self.tick(now, periodic)
             if periodic and exit_at_goal and self.core.finished:
-                with self.lock:
-                    status = self.core.status(now)
-                self.pubs["status"].put(M.encode(status))
+                self.pubs["status"].put(M.encode(self.core.status(now)))
                 time.sleep(3 * self.period)
                 break
-            periodic = self.ticker.wait(self.wake if external else None)
+            # until the next deadline, or an external teacher's command to map at once; queries answered meanwhile
+            while not (periodic := self.ticker.wait(self.wake)) and not stop.is_set():
+                if self.between_ticks():
+                    break
 
 
 def arguments(ap: argparse.ArgumentParser) -> None:

@@ -22,7 +22,9 @@ reported on status and retried, and never stops the loop).
 
 :class:`TickOutputs` is what to publish; the Zenoh adapter (:mod:`bridge.nodes.station`) puts it on the wire. The
 core has no threads, no module-level state and no session: a process may run many, one per robot. It is not
-thread-safe: the adapter calls it (ticks and the control and pairs queries) under one lock.
+thread-safe: the adapter calls it (ticks and the control and pairs queries) from its loop's thread only. Its saves are
+encoded in the tick and written by :attr:`StationCore.writer` when the adapter gives one (off the tick: its writer
+thread; the outcome comes back through :meth:`StationCore.saved`), else at once.
 """
 
 from __future__ import annotations
@@ -32,7 +34,7 @@ import logging
 import os
 import time
 from collections import deque
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -253,6 +255,9 @@ class StationCore:
         self.tick_ms: deque[float] = deque(maxlen=600)  # the last minute of periodic ticks' durations
         self.t_status: float | None = None  # the next status is due then (None: at the first periodic tick)
         self.t_persist: float | None = None
+        #: the adapter's writer of the tick's saves, ``(what, path, data)`` with ``what`` "store" or "control": it
+        #: writes them off the tick and reports each outcome back through :meth:`saved`; None: the tick saves at once
+        self.writer: Callable[[str, Path, bytes], None] | None = None
 
     # -------------------------------------------------------------------------------------------- queries
     @property
@@ -309,7 +314,7 @@ class StationCore:
         else:
             limits = self.limits(now, force=False)
         if self.t_persist is None or now >= self.t_persist:
-            self.persist()
+            self.save("store")
             self.t_persist = now + self.persist_every
         return TickOutputs(command, teacher, limits, status)
 
@@ -378,7 +383,7 @@ class StationCore:
         self.why, self.reason = (stop.text, stop.reason) if stop is not None else ("driving", "ok")
         self.counters.goal_reached = int(c.phase == "finished")
         if c.changed:
-            self.save_control()
+            self.save("control")
         return command, teacher
 
     def fit_to_drive(self, now: float, state: M.LearnerState | None, state_at: float, driver: M.Status | None,
@@ -513,13 +518,39 @@ class StationCore:
         return out
 
     # ------------------------------------------------------------------------------------------ persistence
+    def save(self, what: str) -> None:
+        """A save the tick asks for (``what``: "store" or "control"): its bytes encoded now (a snapshot: the store
+        and the mission go on changing) and handed to :attr:`writer`, or, without one, saved at once."""
+        if self.writer is None:
+            self.persist() if what == "store" else self.save_control()
+        elif what == "store":
+            self.writer("store", self.store_path, self.store.to_bytes())
+        elif self.control_path is not None:
+            self.writer("control", self.control_path, M.encode(self.control.saved()))
+
+    def saved(self, what: str, error: OSError | None) -> bool:
+        """A save that ended (at once, or on the adapter's writer thread): a failure is counted, reported on the
+        status and retried (the store at the next period, the mission state at the next tick)."""
+        if what == "store":
+            return self._store_saved(error)
+        if error is not None:
+            self.counters.persist_failures += 1
+            self.control.changed = True  # retried next tick
+            self.persist_error = f"mission state not saved: {error.strerror or error}"
+        return error is None
+
     def persist(self) -> bool:
-        """Save the store; a failure (disk full, permissions) is reported and retried at the next period."""
+        """Save the store now; a failure (disk full, permissions) is reported and retried at the next period."""
         try:
             save_atomic(self.store_path, self.store.to_bytes())
         except OSError as exc:
+            return self._store_saved(exc)
+        return self._store_saved(None)
+
+    def _store_saved(self, error: OSError | None) -> bool:
+        if error is not None:
             self.counters.persist_failures += 1
-            self.persist_error = f"pair store not saved: {exc.strerror or exc}"
+            self.persist_error = f"pair store not saved: {error.strerror or error}"
             log.error("%s (%s); driving on, retrying in %.0f s", self.persist_error, self.store_path,
                       self.persist_every)
             return False
@@ -529,15 +560,13 @@ class StationCore:
         return True
 
     def save_control(self) -> None:
-        """Keep the mission and its phase on disk (a restart comes back to it, never running)."""
+        """Keep the mission and its phase on disk now (a restart comes back to it, never running)."""
         if self.control_path is None:
             return
         try:
             save_atomic(self.control_path, M.encode(self.control.saved()))
         except OSError as exc:
-            self.counters.persist_failures += 1
-            self.control.changed = True  # retried next tick
-            self.persist_error = f"mission state not saved: {exc.strerror or exc}"
+            self.saved("control", exc)
 
 
 __all__ = ["DRIVER_STATUS_MAX_AGE", "GOOD_REASONS", "INTEGRITY_WINDOW_S", "PLAUSIBLE", "StationCore", "StationCounters",
