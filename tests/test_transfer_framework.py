@@ -373,7 +373,7 @@ def test_store_rejects_an_incompatible_schema_version() -> None:
     blob = b"SCMPAIRS" + zlib.crc32(payload).to_bytes(4, "little") + payload
     with pytest.raises(ValueError, match="version 99"):
         PairStore.from_bytes(blob)
-    raw["schema_version"] = 1
+    raw["schema_version"] = 2
     raw["count"] = raw["count"][:-1]
     payload = msgspec.msgpack.encode(raw)
     blob = b"SCMPAIRS" + zlib.crc32(payload).to_bytes(4, "little") + payload

@@ -100,6 +100,32 @@ class LearnerLimits:
             self._box_cache = None
         return changed
 
+    def forget(self, cell: tuple[int, int], old_T: NDArray[np.float64], old_L: NDArray[np.float64],
+               new_T: NDArray[np.float64], new_L: NDArray[np.float64]) -> None:
+        """A cell's learner changed (:meth:`transfer.store.PairStore.add`): the side of every axis where its pairs
+        before the change (``old_*``, normalised) lay on the learner's boundary forgets every boundary pair it had
+        and keeps only the cell's pairs since the change (``new_*``) that lie there, so a limit shrinks as well as
+        grows; the cell's hull point likewise."""
+        tol = self.boundary_tol
+        edge = self.hull_cnt[cell] > 0  # the cell has given boundary pairs (its row or column is at an edge)
+        for a in range(2):
+            if np.any(old_L[:, a] >= 1.0 - tol) or (edge and cell[a] == self.grid[a] - 1):
+                on = new_L[:, a] >= 1.0 - tol
+                self.bsum_hi[a], self.bcnt_hi[a] = float(new_T[on, a].sum()), int(on.sum())
+                if on.any():
+                    self.hi[a] = self.bsum_hi[a] / self.bcnt_hi[a]
+            if np.any(old_L[:, a] <= tol) or (edge and cell[a] == 0):
+                on = new_L[:, a] <= tol
+                self.bsum_lo[a], self.bcnt_lo[a] = float(new_T[on, a].sum()), int(on.sum())
+                if on.any():
+                    self.lo[a] = self.bsum_lo[a] / self.bcnt_lo[a]
+        on = np.any((new_L >= 1.0 - tol) | (new_L <= tol), axis=1) if len(new_L) else np.zeros(0, dtype=bool)
+        self.hull_sum[cell] = new_T[on].sum(axis=0) if on.any() else 0.0
+        self.hull_cnt[cell] = int(on.sum())
+        self.version += 1
+        self._box_cache = None
+        self._hull_cache = None
+
     # -------------------------------------------------------------------------------------------- queries
     @property
     def box(self) -> Bounds:

@@ -10,6 +10,21 @@ moves (and its version only changes) when the running mean has drifted by more t
 (normalised units; 0.5 % of the range by default, about the noise of one raw pair): cached SC maps stay valid while
 a cell merely collects more of the same, and are rebuilt when the pair really moves. ``revision`` counts changes of
 the refined set as a whole.
+
+*A learner that changes* (``adapt=True``; off by default while its claims are being measured: ``scmbridge sim
+drift``). The paper's store never forgets: after a thousand pairs in a cell, a change of the learner needs about a
+thousand more to move its mean halfway. With ``adapt``, each configured cell tests every new raw pair against what
+its pairs so far say for that learner command (their mean moved along the cell's own least-squares slope, each axis
+alone, pulled towards its neighbours' slope): the recency-weighted mean of these residuals (weight 1/k_min) beyond
+``change_tol`` (normalised teacher units) or ``change_sigmas`` standard deviations of its noise (estimated from the
+differences of each cell's consecutive residuals, which a change does not move) means the learner changed there. The
+cell then forgets its pairs from before the change (its cluster becomes its remembered recent pairs that agree with
+the change), its refined pair moves by the change's mean residual at once (so the map is right before the cell holds
+k_min again), the learned limits forget the cell's boundary pairs (a limit shrinks as well as grows), the revision
+changes (the SC maps of that region are rebuilt), and ``relearned`` and ``changed_at`` (the stamp given to
+:meth:`PairStore.add`) say so. Assumed: the learner's response to a command is a function of the command (a learner
+whose response depends on its history, such as an acceleration limit that binds, re-learns its cells often: measured
+in ``sim drift --scenario payload``).
 """
 
 from __future__ import annotations
@@ -25,8 +40,19 @@ from transfer.domain import Bounds
 from transfer.limits import LearnerLimits
 
 SCHEMA = "scmbridge.pairstore"
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2
+#: the versions this build reads (1: before change detection; its cells start with no recent pairs or slopes)
+READS_VERSIONS = (1, 2)
 _MAGIC = b"SCMPAIRS"
+#: a cell's learner has changed when the recency-weighted mean of its residuals is beyond this (normalised teacher
+#: units; 2 % of the teacher's range: 0.011 m/s and 0.031 rad/s for the paper's MPC teacher), or beyond
+#: ``CHANGE_SIGMAS`` standard deviations of that mean's noise, whichever is larger
+CHANGE_TOL = 0.02
+CHANGE_SIGMAS = 5.0
+#: the weight of one residual in the store's noise estimate
+NOISE_WEIGHT = 0.01
+#: raw pairs a cell remembers (to re-learn from after a change), per k_min
+RECENT_PER_K = 2
 
 
 @dataclass(frozen=True)
@@ -80,6 +106,18 @@ class _StoreBlob(msgspec.Struct, forbid_unknown_fields=True):
     pub_version: list[int]
     revision: int
     limits: _LimitsBlob
+    # schema 2: change detection (module docstring); absent in version 1
+    sum_LL: list[float] | None = None
+    sum_TL: list[float] | None = None
+    adapt: bool = False
+    relearned: int = 0
+    added: int | None = None
+    changed_at: list[float | None] | None = None
+    resid: list[float] | None = None
+    noise2: list[float] | None = None
+    recent_T: list[float] | None = None
+    recent_L: list[float] | None = None
+    recent_n: list[int] | None = None
 
 
 class PairStore:
@@ -94,6 +132,9 @@ class PairStore:
         *,
         move_tol: float = 5e-3,
         boundary_tol: float = 1e-6,
+        adapt: bool = False,
+        change_tol: float = CHANGE_TOL,
+        change_sigmas: float = CHANGE_SIGMAS,
     ) -> None:
         gv, gw = (int(grid[0]), int(grid[1]))
         if gv < 2 or gw < 2:
@@ -109,12 +150,28 @@ class PairStore:
         self.count = np.zeros((gv, gw), dtype=np.int64)
         self.sum_T = np.zeros((gv, gw, 2))  # normalised teacher parts
         self.sum_L = np.zeros((gv, gw, 2))  # normalised learner parts
+        self.sum_LL = np.zeros((gv, gw, 2))  # per axis: learner parts squared, and times the teacher parts (slopes)
+        self.sum_TL = np.zeros((gv, gw, 2))
         self.pub_T = np.zeros((gv, gw, 2))
         self.pub_L = np.zeros((gv, gw, 2))
         self.pub_version = np.zeros((gv, gw), dtype=np.int64)  # 0: no refined pair yet
         self.revision = 0
         self.limits = LearnerLimits(teacher_bounds, learner_bounds, self.grid, boundary_tol)
         self._arrays: tuple | None = None
+        # change detection (module docstring, "A learner that changes")
+        self.adapt = bool(adapt)
+        self.change_tol = float(change_tol)
+        self.change_sigmas = float(change_sigmas)
+        self.relearned = 0  # cells re-learned after a change was detected in them
+        self.added = 0  # raw pairs taken
+        self.changed_at = np.full((gv, gw), np.nan)  # the stamp of each cell's last re-learning (NaN: never)
+        self.resid = np.zeros((gv, gw, 2))  # per cell: recency-weighted mean of the residuals against its relation
+        self.noise2 = np.full(2, self.move_tol ** 2)  # the residuals' variance per axis when nothing changes
+        self.last_resid = np.full((gv, gw, 2), np.nan)  # per cell: its last residual (NaN: none since it changed)
+        r = RECENT_PER_K * self.k_min
+        self.recent_T = np.zeros((gv, gw, r, 2))  # per cell: its last raw pairs (a ring), normalised
+        self.recent_L = np.zeros((gv, gw, r, 2))
+        self.recent_n = np.zeros((gv, gw), dtype=np.int64)  # raw pairs ever put in the ring (the next slot: mod r)
 
     # ------------------------------------------------------------------------------------------ clustering
     def cell_of(self, u_L: ArrayLike) -> tuple[int, int]:
@@ -126,7 +183,7 @@ class PairStore:
         gv, gw = self.grid
         return (min(int(n[0] * gv), gv - 1), min(int(n[1] * gw), gw - 1))
 
-    def add(self, u_T_bar: ArrayLike, u_L: ArrayLike) -> AddResult:
+    def add(self, u_T_bar: ArrayLike, u_L: ArrayLike, stamp: float | None = None) -> AddResult:
         """Add one raw pair (teacher equivalent, learner command actually applied)."""
         t = np.asarray(u_T_bar, dtype=float).reshape(2)
         lcmd = np.asarray(u_L, dtype=float).reshape(2)
@@ -135,10 +192,18 @@ class PairStore:
         t_n = self.teacher_bounds.normalise(t)
         l_n = np.clip(self.learner_bounds.normalise(lcmd), 0.0, 1.0)
         cell = self._cell_n(l_n)
+        self.added += 1
+        refined_changed = False
+        if self.adapt:
+            if self.pub_version[cell] > 0 and self._changed(cell, t_n, l_n):
+                self._relearn(cell, t_n, l_n, stamp)
+                refined_changed = True
+            self._remember(cell, t_n, l_n)
         self.count[cell] += 1
         self.sum_T[cell] += t_n
         self.sum_L[cell] += l_n
-        refined_changed = False
+        self.sum_LL[cell] += l_n * l_n
+        self.sum_TL[cell] += t_n * l_n
         if self.count[cell] >= self.k_min:
             mT, mL = self.cluster_mean(cell)
             moved = max(np.max(np.abs(mT - self.pub_T[cell])), np.max(np.abs(mL - self.pub_L[cell])))
@@ -150,6 +215,102 @@ class PairStore:
                 refined_changed = True
         limits_changed = self.limits.update(t_n, l_n, cell)
         return AddResult(cell, refined_changed, limits_changed)
+
+    # ----------------------------------------------------------------------------------- change detection
+    def _slope(self, cell: tuple[int, int]) -> NDArray[np.float64]:
+        """dT/dL per axis (normalised) of the learner's response in a cell: the least-squares slope of the cell's own
+        raw pairs, each axis alone, pulled towards the slope between its refined neighbours on that axis (or the
+        identity response's, where it has none) as if ``k_min`` more pairs had spread a quarter cell around its mean:
+        a cell whose pairs all lie at one command knows no slope of its own."""
+        n = self.count[cell]
+        gv, gw = self.grid
+        prior = self.learner_bounds.span / self.teacher_bounds.span  # a learner that does what it is told
+        i, j = cell
+        for a, (lo, hi) in enumerate((((i - 1, j), (i + 1, j)), ((i, j - 1), (i, j + 1)))):
+            nb = [c for c in (lo, hi) if 0 <= c[0] < gv and 0 <= c[1] < gw and self.pub_version[c] > 0]
+            if len(nb) == 2 and abs(self.pub_L[nb[1]][a] - self.pub_L[nb[0]][a]) > 0.5 / self.grid[a]:
+                prior = prior.copy()
+                prior[a] = (self.pub_T[nb[1]][a] - self.pub_T[nb[0]][a]) / (self.pub_L[nb[1]][a] - self.pub_L[nb[0]][a])
+        if n == 0:
+            return prior
+        mL = self.sum_L[cell] / n
+        sxx = self.sum_LL[cell] - n * mL * mL
+        sxy = self.sum_TL[cell] - n * mL * (self.sum_T[cell] / n)
+        lam = self.k_min * (0.25 / np.array(self.grid, dtype=float)) ** 2
+        return (sxy + lam * prior) / (np.maximum(sxx, 0.0) + lam)
+
+    def _residual(self, cell: tuple[int, int], t_n: NDArray[np.float64], l_n: NDArray[np.float64]) -> NDArray:
+        """How far a raw pair's teacher part is from what the cell's pairs so far say for its learner part (their
+        mean moved along the cell's slope): what a change of the learner moves (normalised teacher units)."""
+        n = self.count[cell]
+        if n == 0:  # re-learned, no pair since: its refined pair is the reference
+            return t_n - self.pub_T[cell] - (l_n - self.pub_L[cell]) * self._slope(cell)
+        return t_n - (self.sum_T[cell] + (n * l_n - self.sum_L[cell]) * self._slope(cell)) / n
+
+    def _threshold(self) -> NDArray[np.float64]:
+        """A cell's mean residual beyond which its learner has changed, per axis: ``change_sigmas`` standard
+        deviations of that mean when nothing changes (from the residuals' noise), and never below ``change_tol``."""
+        a = 1.0 / self.k_min
+        return np.maximum(self.change_sigmas * np.sqrt(self.noise2 * a / (2.0 - a)), self.change_tol)
+
+    def _changed(self, cell: tuple[int, int], t_n: NDArray[np.float64], l_n: NDArray[np.float64]) -> bool:
+        """The change test of a configured cell (module docstring): the recency-weighted mean of its residuals (weight
+        1/k_min) beyond :meth:`_threshold` on either axis. A pair that does not alarm updates the noise estimate."""
+        r = self._residual(cell, t_n, l_n)
+        e = self.resid[cell] = self.resid[cell] + (r - self.resid[cell]) / self.k_min
+        thr = self._threshold()
+        if np.any(np.abs(e) > thr):
+            return True
+        # the noise is learned from the difference of a cell's consecutive residuals (half its square): a change moves
+        # both alike, so a learner that changed everywhere does not pass for a noisy one and hide its own change
+        last = self.last_resid[cell]
+        if not np.any(np.isnan(last)):
+            self.noise2 += NOISE_WEIGHT * (0.5 * (r - last) ** 2 - self.noise2)
+        self.last_resid[cell] = r
+        return False
+
+    def _remember(self, cell: tuple[int, int], t_n: NDArray[np.float64], l_n: NDArray[np.float64]) -> None:
+        k = self.recent_n[cell] % self.recent_T.shape[2]
+        self.recent_T[cell][k], self.recent_L[cell][k] = t_n, l_n
+        self.recent_n[cell] += 1
+
+    def _recent(self, cell: tuple[int, int]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """The cell's last raw pairs, oldest first (teacher parts, learner parts)."""
+        r = self.recent_T.shape[2]
+        n = int(self.recent_n[cell])
+        idx = np.arange(max(0, n - r), n) % r
+        return self.recent_T[cell][idx], self.recent_L[cell][idx]
+
+    def _relearn(self, cell: tuple[int, int], t_n: NDArray[np.float64], l_n: NDArray[np.float64],
+                 stamp: float | None) -> None:
+        """Forget what a changed cell learned before the change: its cluster becomes its recent pairs that agree with
+        the change (their residual nearer the cell's mean residual than zero), the raw pair at hand joins it as
+        usual; until it holds k_min again its refined pair is the old one moved by the change's mean residual, so
+        the map is right at once. The learned limits forget the cell's boundary pairs likewise."""
+        e = self.resid[cell]
+        T, L = self._recent(cell)
+        post = np.zeros(len(T), dtype=bool)
+        if len(T):
+            R = np.array([self._residual(cell, a, b) for a, b in zip(T, L)])
+            post = np.linalg.norm(R - e, axis=1) < np.linalg.norm(R, axis=1)
+        shift = np.vstack([R[post], self._residual(cell, t_n, l_n)]).mean(axis=0) if len(T) else e
+        self.count[cell] = int(post.sum())
+        self.sum_T[cell] = T[post].sum(axis=0) if post.any() else 0.0
+        self.sum_L[cell] = L[post].sum(axis=0) if post.any() else 0.0
+        self.sum_LL[cell] = (L[post] ** 2).sum(axis=0) if post.any() else 0.0
+        self.sum_TL[cell] = (T[post] * L[post]).sum(axis=0) if post.any() else 0.0
+        self.limits.forget(cell, T[~post], L[~post], T[post], L[post])
+        self.recent_n[cell] = 0
+        for a, b in zip(T[post], L[post]):
+            self._remember(cell, a, b)
+        self.pub_T[cell] = self.pub_T[cell] + shift
+        self.pub_version[cell] += 1
+        self.revision += 1
+        self._arrays = None
+        self.resid[cell] = 0.0
+        self.last_resid[cell] = np.nan
+        self.relearned += 1
+        self.changed_at[cell] = np.nan if stamp is None else float(stamp)
 
     def cluster_mean(self, cell: tuple[int, int]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         """The mean of a cell's raw pairs so far, (teacher part, learner part) normalised, even before it holds k_min
@@ -194,7 +355,8 @@ class PairStore:
 
     @property
     def raw_count(self) -> int:
-        return int(self.count.sum())
+        """Raw pairs the store has taken (a re-learned cell forgets its pairs, not this count)."""
+        return self.added
 
     # ----------------------------------------------------------------------------------------- persistence
     def to_bytes(self) -> bytes:
@@ -222,6 +384,17 @@ class PairStore:
                 bcnt_hi=lim.bcnt_hi.tolist(), hull_sum=lim.hull_sum.ravel().tolist(),
                 hull_cnt=lim.hull_cnt.ravel().tolist(), version=lim.version,
             ),
+            sum_LL=self.sum_LL.ravel().tolist(),
+            sum_TL=self.sum_TL.ravel().tolist(),
+            adapt=self.adapt,
+            relearned=self.relearned,
+            added=self.added,
+            changed_at=[None if np.isnan(v) else float(v) for v in self.changed_at.ravel()],
+            resid=self.resid.ravel().tolist(),
+            noise2=self.noise2.tolist(),
+            recent_T=self.recent_T.ravel().tolist(),
+            recent_L=self.recent_L.ravel().tolist(),
+            recent_n=self.recent_n.ravel().tolist(),
         )
         payload = msgspec.msgpack.encode(blob)
         return _MAGIC + zlib.crc32(payload).to_bytes(4, "little") + payload
@@ -241,9 +414,9 @@ class PairStore:
             raise ValueError(f"pair-store blob does not decode: {exc}") from exc
         if not isinstance(raw, dict) or raw.get("schema") != SCHEMA:
             raise ValueError("pair-store blob has the wrong schema")
-        if raw.get("schema_version") != SCHEMA_VERSION:
+        if raw.get("schema_version") not in READS_VERSIONS:
             raise ValueError(f"pair-store schema version {raw.get('schema_version')} is not supported "
-                             f"(this build reads version {SCHEMA_VERSION})")
+                             f"(this build reads versions {', '.join(map(str, READS_VERSIONS))})")
         try:
             b = msgspec.convert(raw, _StoreBlob)
         except msgspec.ValidationError as exc:
@@ -262,7 +435,14 @@ class PairStore:
             if len(getattr(b.limits, name)) != 2:
                 raise ValueError(f"pair-store limits field {name} must have 2 values")
         store = cls(Bounds.from_list(b.learner_bounds), Bounds.from_list(b.teacher_bounds), (gv, gw), b.k_min,
-                    move_tol=b.move_tol, boundary_tol=b.boundary_tol)
+                    move_tol=b.move_tol, boundary_tol=b.boundary_tol, adapt=b.adapt)
+        r = store.recent_T.shape[2]
+        optional = {"sum_LL": 2 * n, "sum_TL": 2 * n, "changed_at": n, "resid": 2 * n, "noise2": 2,
+                    "recent_T": 2 * n * r, "recent_L": 2 * n * r, "recent_n": n}
+        for name, want in optional.items():
+            arr = getattr(b, name)
+            if arr is not None and len(arr) != want:
+                raise ValueError(f"pair-store field {name} has {len(arr)} values, expected {want}")
         store.count = np.array(b.count, dtype=np.int64).reshape(gv, gw)
         store.sum_T = np.array(b.sum_T, dtype=float).reshape(gv, gw, 2)
         store.sum_L = np.array(b.sum_L, dtype=float).reshape(gv, gw, 2)
@@ -279,8 +459,28 @@ class PairStore:
         lim.hull_sum = np.array(b.limits.hull_sum, float).reshape(gv, gw, 2)
         lim.hull_cnt = np.array(b.limits.hull_cnt, dtype=np.int64).reshape(gv, gw)
         lim.version = b.limits.version
+        store.relearned = b.relearned
+        store.added = int(store.count.sum()) if b.added is None else b.added
+        if b.sum_LL is not None and b.sum_TL is not None:
+            store.sum_LL = np.array(b.sum_LL, dtype=float).reshape(gv, gw, 2)
+            store.sum_TL = np.array(b.sum_TL, dtype=float).reshape(gv, gw, 2)
+        else:  # version 1: the cells' slopes start from their means (as if their pairs had all been at them)
+            mL = store.sum_L / np.maximum(store.count, 1)[..., None]
+            store.sum_LL = store.count[..., None] * mL * mL
+            store.sum_TL = store.count[..., None] * mL * store.sum_T / np.maximum(store.count, 1)[..., None]
+        if b.changed_at is not None:
+            store.changed_at = np.array([np.nan if v is None else v for v in b.changed_at], dtype=float).reshape(gv, gw)
+        if b.resid is not None:
+            store.resid = np.array(b.resid, dtype=float).reshape(gv, gw, 2)
+        if b.noise2 is not None:
+            store.noise2 = np.array(b.noise2, dtype=float)
+        if b.recent_T is not None and b.recent_L is not None and b.recent_n is not None:
+            store.recent_T = np.array(b.recent_T, dtype=float).reshape(gv, gw, r, 2)
+            store.recent_L = np.array(b.recent_L, dtype=float).reshape(gv, gw, r, 2)
+            store.recent_n = np.array(b.recent_n, dtype=np.int64).reshape(gv, gw)
         arrays = [store.sum_T, store.sum_L, store.pub_T, store.pub_L, lim.lo, lim.hi, lim.bsum_lo, lim.bsum_hi,
-                  lim.hull_sum]
-        if not all(np.all(np.isfinite(a)) for a in arrays) or np.any(store.count < 0):
+                  lim.hull_sum, store.sum_LL, store.sum_TL, store.resid, store.noise2, store.recent_T, store.recent_L]
+        if (not all(np.all(np.isfinite(a)) for a in arrays) or np.any(store.count < 0) or np.any(store.recent_n < 0)
+                or np.any(store.noise2 < 0)):
             raise ValueError("pair-store blob holds non-finite or negative values")
         return store

@@ -113,6 +113,7 @@ COMMANDS: list[Command] = [
     _C("sim mpc", "sim_learner.experiments", "the paper's MPC simulation (or a seed sweep)"),
     _C("sim grid", "sim_learner.experiments", "the paper's exhaustive grid test of a learned store"),
     _C("sim primitives", "sim_learner.experiments", "the paper's motion-primitive simulation"),
+    _C("sim drift", "sim_learner.drift", "a learner that changes mid-run: battery, payload, wheel, floor (JSON)"),
     _C("bench scm", "bench.scm", "Schwarz-Christoffel map build and evaluation timings (JSON)"),
     _C("bench transfer", "bench.transfer", "transfer policy cost per command (JSON)"),
     _C("bench mpc", "bench.mpc", "MPC solve times and closed-loop results per solver (JSON)"),

@@ -1,0 +1,298 @@
+"""A learner that changes under the transfer: ``scmbridge sim drift --scenario battery|payload|wheel|floor``.
+
+The paper learns a fixed learner. A real robot changes during a run: a battery sags and the top speed drops, a payload
+slows its acceleration, a wheel starts to drag and the robot yaws, it drives onto another floor. Each scenario runs the
+paper's full-size MPC world laid end to end (:data:`TILES` S-paths, so there is time before and after the change) with
+the paper's cubic learner, and changes the learner mid-run:
+
+- ``battery``: from :data:`T_CHANGE` the learner's top speed and its yaw-rate limits fall linearly, by 30 % over 60 s
+  (what it really does under a command is capped; the commands it accepts are the same);
+- ``payload``: the learner has an acceleration limit (:data:`ACCEL`, :data:`ANG_ACCEL`; the paper's learner has none,
+  so this scenario's learner is the paper's with one), halved at :data:`T_CHANGE` at once;
+- ``wheel``: from :data:`T_CHANGE` a constant yaw-rate bias of 15 % of the learner's yaw-rate range (a dragging wheel);
+- ``floor``: when the robot passes :data:`FLOOR_AT` of the path its response curves change shape (speed: cubic ->
+  quadratic; yaw rate: a flatter cubic), as from carpet onto tiles.
+
+Every run is made twice on the same seed: with the store's change detection (:class:`transfer.store.PairStore`,
+``adapt=True``, the default) and with the paper's never-forgetting store (``adapt=False``: the ``baseline``). The JSON
+summary says, for each: ``dev_before_m`` (mean distance to the path over the 20 s before the change starts),
+``dev_after_m`` (from 15 s after the change ends to the end of the run), ``recover_s`` (from the change's end until
+the mean deviation over the next 5 s is within 1.2x ``dev_before_m``; null if never), ``reached_goal``, ``collisions``
+and ``relearned`` (cells the store re-learned). Deviation is measured from the poses of the run, every 0.1 s.
+``cmd_err_before`` / ``cmd_err_after`` (same windows) are the transfer's own error: the mean distance between what the
+learner did and what the teacher asked, normalised by the teacher's range. The path deviation also holds what the
+learner can no longer do at all: a dragging wheel that takes 35 % of its right turn away makes the S's right bends
+wider whatever the map (its yaw rate is at the new limit there, measured), and the MPC's feedback hides part of a wrong
+map on the straights; the command error shows the map itself.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from collections.abc import Sequence
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from numpy.typing import NDArray
+
+from sim_learner.dynamics import LearnerModel, mpc_learner
+from sim_learner.experiments import VEHICLE_RADIUS, _mpc_teacher, parse_seeds, scm_start
+from sim_learner.runs import DT
+from sim_learner.worlds import mpc_world
+from transfer.domain import Bounds
+from transfer.mission import Mission
+from transfer.pairs import teacher_equivalent
+from transfer.paper import MPC_TEACHER_V, MPC_TEACHER_W
+from transfer.policy import make_policy
+from transfer.step import TransferStep
+from transfer.store import PairStore
+from transfer.teacher.unicycle import step as unicycle_step
+
+SCENARIOS = ("battery", "payload", "wheel", "floor")
+#: ``none``: the same run with no change (the false-alarm rate: noise or nothing must never re-learn a cell)
+CONTROL = "none"
+#: S-paths laid end to end: about 150 s of driving, time for 20 s before a change and 45 s after the battery's
+TILES = 4
+#: when a time-driven change starts, s of the run
+T_CHANGE = 40.0
+#: the battery's fall: 30 % of the top speed and yaw-rate limits, over this many seconds
+BATTERY_FALL, BATTERY_S = 0.3, 60.0
+#: the payload learner's acceleration limits before the change (halved by it), m/s^2 and rad/s^2: the paper's learner
+#: reaches any command within a tick; with these a step across its whole speed range takes 0.17 s
+ACCEL, ANG_ACCEL = 1.5, 3.0
+#: the dragging wheel's yaw-rate bias, as a share of the learner's yaw-rate range
+WHEEL_BIAS = 0.15
+#: where on the path (share of its length) the floor changes
+FLOOR_AT = 0.3
+#: the windows of the summary, s: before the change, after its end (settling), the recovery's moving mean
+BEFORE_S, SETTLE_S, RECOVER_WINDOW_S = 20.0, 15.0, 5.0
+#: recovered: the moving mean of the deviation within this factor of the deviation before the change
+RECOVER_FACTOR = 1.2
+
+
+def h_v_floor(v: NDArray[np.float64]) -> NDArray[np.float64]:
+    """The new floor's speed response: quadratic (more grip at mid commands than the carpet's cubic)."""
+    return v**2
+
+
+def h_w_floor(w: NDArray[np.float64]) -> NDArray[np.float64]:
+    """The new floor's yaw-rate response: a flatter cubic, ``2 (w - 0.5)^3 + 0.5 (w - 0.5) + 0.5`` (still 0 and 1 at
+    the ends)."""
+    return 2.0 * (w - 0.5) ** 3 + 0.5 * (w - 0.5) + 0.5
+
+
+def tiled(world: Mission, tiles: int) -> Mission:
+    """The mission's path and obstacles laid end to end ``tiles`` times along x (the start stays)."""
+    pts = world.path.points
+    dx = float(pts[-1][0] - pts[0][0])
+    path = np.vstack([pts] + [pts[1:] + np.array([k * dx, 0.0]) for k in range(1, tiles)])
+    obs = np.vstack([world.obstacles + np.array([k * dx, 0.0, 0.0]) for k in range(tiles)])
+    return Mission(f"{world.name}-x{tiles}", type(world.path)(path), obs, world.goal_tolerance, world.start,
+                   world.frame)
+
+
+@dataclass
+class ChangingLearner:
+    """The paper's cubic learner, changed by a scenario: ``response(u, t, progress)`` is what it really does under
+    command ``u`` at time ``t`` (s of the run) with ``progress`` (share of the path covered). Keeps its own velocity
+    for the acceleration limit of the ``payload`` scenario."""
+
+    scenario: str
+    model: LearnerModel = field(default_factory=mpc_learner)
+    vel: NDArray[np.float64] = field(default_factory=lambda: np.zeros(2))
+    floor_t: float | None = None  # when the floor changed (the floor scenario's change time)
+
+    def __post_init__(self) -> None:
+        if self.scenario not in (*SCENARIOS, CONTROL):
+            raise ValueError(f"unknown scenario {self.scenario!r}; known: {', '.join(SCENARIOS)}")
+        self.floor = LearnerModel(self.model.v_range, self.model.w_range, h_v_floor, h_w_floor, name="floor")
+
+    def change(self) -> tuple[float | None, float | None]:
+        """(start, end) of the change in s of the run; None for the floor's before the robot got there."""
+        if self.scenario == "battery":
+            return T_CHANGE, T_CHANGE + BATTERY_S
+        if self.scenario == "floor":
+            return self.floor_t, self.floor_t
+        if self.scenario == CONTROL:
+            return None, None
+        return T_CHANGE, T_CHANGE
+
+    def response(self, u: NDArray[np.float64], t: float, progress: float) -> NDArray[np.float64]:
+        m = self.model
+        if self.scenario == "floor":
+            if self.floor_t is None and progress >= FLOOR_AT:
+                self.floor_t = t
+            out = (self.floor if self.floor_t is not None else m).response(u)
+        else:
+            out = m.response(u)
+        if self.scenario == "battery":
+            f = 1.0 - BATTERY_FALL * float(np.clip((t - T_CHANGE) / BATTERY_S, 0.0, 1.0))
+            out = np.array([min(out[0], f * m.v_range[1]), np.clip(out[1], f * m.w_range[0], f * m.w_range[1])])
+        elif self.scenario == "wheel" and t >= T_CHANGE:
+            out = out + np.array([0.0, WHEEL_BIAS * (m.w_range[1] - m.w_range[0])])
+        elif self.scenario == "payload":
+            k = 0.5 if t >= T_CHANGE else 1.0
+            lim = np.array([ACCEL, ANG_ACCEL]) * k * DT
+            out = self.vel + np.clip(out - self.vel, -lim, lim)
+        self.vel = np.asarray(out, dtype=float)
+        return self.vel
+
+
+@dataclass
+class DriftRun:
+    """One run: the time of each pose, the poses' distance to the path and progress, and the run's outcome."""
+
+    t: list[float] = field(default_factory=list)
+    dev: list[float] = field(default_factory=list)
+    progress: list[float] = field(default_factory=list)
+    methods: list[str] = field(default_factory=list)
+    cmd_err: list[float] = field(default_factory=list)  # |what the learner did - what the teacher asked| (normalised)
+    reached: bool = False
+    collided: bool = False
+    relearned: int = 0
+    time_s: float | None = None
+
+
+def drive(scenario: str, seed: int, adapt: bool, tiles: int = TILES, solver: str = "ipopt") -> tuple[DriftRun,
+                                                                                                      ChangingLearner]:
+    """The SCM learner from no pairs on the tiled world under ``scenario``, the store adapting or not."""
+    world = tiled(mpc_world(), tiles)
+    learner = ChangingLearner(scenario)
+    m = learner.model
+    store = PairStore(Bounds(m.v_range, m.w_range), Bounds(MPC_TEACHER_V, MPC_TEACHER_W), k_min=5, adapt=adapt)
+    step = TransferStep(make_policy(store, "scm", np.random.default_rng(seed)), dt=DT)
+    mpc = _mpc_teacher(solver)
+    mpc.reset()
+    run = DriftRun()
+    x = scm_start(world, seed)
+    t_max = 120.0 * tiles
+    for k in range(int(round(t_max / DT))):
+        t = k * DT
+        s, d = world.path.project(x[:2])
+        prog = s / world.path.length
+        run.t.append(t)
+        run.dev.append(float(d))
+        run.progress.append(float(prog))
+        res = mpc.solve(x, world.path, store.limits.box, world.obstacles)
+        mapped = step.map(res.u, x, world, res.predicted)
+        did = learner.response(mapped.u_L, t, prog)
+        run.cmd_err.append(float(np.hypot(*((did - res.u) / store.teacher_bounds.span))))
+        x1 = unicycle_step(x, did, DT)
+        store.add(teacher_equivalent(x, x1, DT), mapped.u_L, stamp=t + DT)
+        run.methods.append(mapped.method)
+        x = x1
+        if world.collides(x[:2], VEHICLE_RADIUS):
+            run.collided = True
+        if world.reached(x):
+            run.reached, run.time_s = True, (k + 1) * DT
+            break
+    run.relearned = store.relearned
+    return run, learner
+
+
+def figures(run: DriftRun, change: tuple[float | None, float | None]) -> dict:
+    """The summary's figures of one run (module docstring)."""
+    t, dev = np.asarray(run.t), np.asarray(run.dev)
+    t0, t1 = change
+    out: dict = {"reached_goal": run.reached, "collisions": run.collided, "relearned": run.relearned,
+                 "time_s": run.time_s, "dev_before_m": None, "dev_after_m": None, "recover_s": None,
+                 "cmd_err_before": None, "cmd_err_after": None, "change_s": [t0, t1]}
+    if t0 is None or t1 is None:
+        return out
+    before = (t >= t0 - BEFORE_S) & (t < t0)
+    after = t >= t1 + SETTLE_S
+    err = np.asarray(run.cmd_err)
+    if before.any():
+        out["dev_before_m"] = float(dev[before].mean())
+        out["cmd_err_before"] = float(err[before[:len(err)]].mean())
+    if after.any():
+        out["dev_after_m"] = float(dev[after].mean())
+        out["cmd_err_after"] = float(err[after[:len(err)]].mean())
+    if out["dev_before_m"] is not None:
+        bound = RECOVER_FACTOR * out["dev_before_m"]
+        n = int(round(RECOVER_WINDOW_S / DT))
+        for i in np.flatnonzero(t >= t1):
+            if i + n > len(dev):
+                break
+            if dev[i:i + n].mean() <= bound:
+                out["recover_s"] = round(float(t[i] - t1), 2)
+                break
+    return out
+
+
+def drift_summary(scenario: str, seed: int, tiles: int = TILES, solver: str = "ipopt") -> dict:
+    """One scenario on one seed: the adapting store's figures and the never-forgetting baseline's on the same run."""
+    run, learner = drive(scenario, seed, adapt=True, tiles=tiles, solver=solver)
+    base, base_learner = drive(scenario, seed, adapt=False, tiles=tiles, solver=solver)
+    return {"experiment": "drift", "scenario": scenario, "seed": seed, "tiles": tiles,
+            **figures(run, learner.change()), "baseline": figures(base, base_learner.change())}
+
+
+def _task(args: tuple[str, int, int, str]) -> dict:
+    return drift_summary(*args)
+
+
+def sweep(scenarios: Sequence[str], seeds: Sequence[int], tiles: int = TILES, workers: int = 2) -> list[dict]:
+    """Every scenario on every seed (at most ``workers`` processes)."""
+    tasks = [(sc, s, tiles, "ipopt") for sc in scenarios for s in seeds]
+    if workers <= 1 or len(tasks) == 1:
+        return [_task(a) for a in tasks]
+    with ProcessPoolExecutor(max_workers=workers) as ex:
+        return list(ex.map(_task, tasks))
+
+
+def _median(values: list[float | None]) -> float | None:
+    vals = [v for v in values if v is not None]
+    return float(np.median(vals)) if vals else None
+
+
+def sweep_stats(rows: list[dict]) -> dict:
+    """Per scenario: medians of the figures, for the adapting store and the baseline, and how many seeds recovered."""
+    out = {}
+    for sc in sorted({r["scenario"] for r in rows}):
+        rs = [r for r in rows if r["scenario"] == sc]
+
+        def stats(get, rs: list[dict] = rs) -> dict:
+            sel = [get(r) for r in rs]
+            ratio = [None if s["dev_after_m"] is None or not s["dev_before_m"] else s["dev_after_m"] / s["dev_before_m"]
+                     for s in sel]
+            return {"dev_after_to_before": _median(ratio), "recover_s": _median([s["recover_s"] for s in sel]),
+                    "recovered_within_15s": sum(s["recover_s"] is not None and s["recover_s"] <= 15.0 for s in sel),
+                    "reached_goal": sum(bool(s["reached_goal"]) for s in sel),
+                    "collisions": sum(bool(s["collisions"]) for s in sel),
+                    "relearned": _median([s["relearned"] for s in sel]), "seeds": len(sel)}
+
+        out[sc] = {"adaptive": stats(lambda r: r), "baseline": stats(lambda r: r["baseline"])}
+    return out
+
+
+def arguments(ap: argparse.ArgumentParser) -> None:
+    ap.add_argument("--scenario", choices=[*SCENARIOS, "all"], default="all", help="what changes (default: all four)")
+    ap.add_argument("--seed", type=int, default=0, help="the run's seed (exploration ties, the start's jitter)")
+    ap.add_argument("--seeds", type=parse_seeds, default=None, help="a sweep instead: 0-9, or 0,3,5")
+    ap.add_argument("--tiles", type=int, default=TILES, help="S-paths laid end to end (the run's length)")
+    ap.add_argument("--out", default=None, help="directory for the summaries (drift.json)")
+
+
+def run(args: argparse.Namespace) -> int:
+    t0 = time.perf_counter()
+    scenarios = list(SCENARIOS) if args.scenario == "all" else [args.scenario]
+    seeds = args.seeds if args.seeds is not None else [args.seed]
+    rows = sweep(scenarios, seeds, args.tiles)
+    for r in rows:
+        print(json.dumps(r), flush=True)
+    if len(rows) > 1:
+        print(json.dumps({"experiment": "drift-sweep", "seeds": list(seeds), "stats": sweep_stats(rows),
+                          "wall_s": round(time.perf_counter() - t0, 1)}))
+    if args.out:
+        out = Path(args.out)
+        out.mkdir(parents=True, exist_ok=True)
+        (out / "drift.json").write_text(json.dumps(rows, indent=1))
+    return 0
+
+
+__all__ = ["SCENARIOS", "ChangingLearner", "drift_summary", "drive", "figures", "tiled"]

@@ -1,0 +1,61 @@
+"""``scmbridge sim drift``'s learners change as its docstring says (sim_learner/drift.py), and its figures are read
+off a run as defined there. Pure and fast: the whole scenarios run in ``sim drift`` (docs/PAPER.md)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from sim_learner import drift as D
+from sim_learner.dynamics import mpc_learner
+
+M = mpc_learner()
+TOP = np.array([M.v_range[1], M.w_range[1]])
+
+
+def test_the_battery_caps_speed_and_yaw_rate_30_percent_over_60_s() -> None:
+    lr = D.ChangingLearner("battery")
+    assert lr.response(TOP, D.T_CHANGE - 1, 0.1) == pytest.approx(M.response(TOP))
+    half = lr.response(TOP, D.T_CHANGE + D.BATTERY_S / 2, 0.1)
+    assert half == pytest.approx(TOP * (1 - D.BATTERY_FALL / 2))
+    assert lr.response(TOP, D.T_CHANGE + 2 * D.BATTERY_S, 0.1) == pytest.approx(TOP * (1 - D.BATTERY_FALL))
+    assert lr.change() == (D.T_CHANGE, D.T_CHANGE + D.BATTERY_S)
+
+
+def test_the_wheel_adds_a_yaw_rate_bias_from_one_instant_and_the_floor_changes_where_the_path_says() -> None:
+    u = np.array([0.2, 0.0])
+    w = D.ChangingLearner("wheel")
+    bias = D.WHEEL_BIAS * (M.w_range[1] - M.w_range[0])
+    assert w.response(u, D.T_CHANGE - 0.1, 0.0)[1] == pytest.approx(M.response(u)[1])
+    assert w.response(u, D.T_CHANGE, 0.0)[1] == pytest.approx(M.response(u)[1] + bias)
+    f = D.ChangingLearner("floor")
+    assert f.response(u, 10.0, D.FLOOR_AT - 0.01) == pytest.approx(M.response(u))
+    assert f.change() == (None, None)
+    after = f.response(u, 33.0, D.FLOOR_AT)
+    assert f.change() == (33.0, 33.0) and not np.allclose(after, M.response(u))
+    assert f.response(u, 40.0, 0.0) == pytest.approx(after)  # the new floor stays
+
+
+def test_the_payload_halves_the_acceleration_at_once() -> None:
+    p = D.ChangingLearner("payload")
+    lo, hi = np.array([M.v_range[0], 0.0]), np.array([M.v_range[1], 0.0])
+    p.response(lo, 0.0, 0.0)
+    step = p.response(hi, 0.1, 0.0)[0] - M.v_range[0]
+    assert step == pytest.approx(D.ACCEL * 0.1)
+    p.vel = lo.copy()
+    assert p.response(hi, D.T_CHANGE, 0.0)[0] - M.v_range[0] == pytest.approx(D.ACCEL * 0.1 / 2)
+
+
+def test_the_figures_are_read_off_a_run_as_defined() -> None:
+    run = D.DriftRun()
+    for k in range(1000):  # 100 s: 1 mm before the change at 40 s, 5 mm until 60 s, 1.1 mm after
+        t = k * 0.1
+        run.t.append(t)
+        run.dev.append(0.001 if t < 40 else (0.005 if t < 60 else 0.0011))
+        run.cmd_err.append(0.0)
+    f = D.figures(run, (40.0, 40.0))
+    assert f["dev_before_m"] == pytest.approx(0.001)
+    assert f["dev_after_m"] == pytest.approx(0.005 * 5 / 45 + 0.0011 * 40 / 45, rel=1e-3)
+    assert f["recover_s"] == pytest.approx(20.0, abs=0.11)
+    run.dev = [0.001 if t < 40 else 0.005 for t in run.t]
+    assert D.figures(run, (40.0, 40.0))["recover_s"] is None

@@ -1,0 +1,123 @@
+"""The pair store's change detection (``PairStore(adapt=True)``; transfer/store.py, "A learner that changes"): noise
+alone never re-learns a cell, a changed learner re-learns every cell it is driven in within a few pairs, the learned
+limits shrink with it, and the store keeps all of it across a save. Pure: the paper's cubic learner's true response,
+with Gaussian noise on the teacher parts where a test says so."""
+
+from __future__ import annotations
+
+import zlib
+
+import msgspec
+import numpy as np
+import pytest
+
+from sim_learner.dynamics import mpc_learner
+from transfer.domain import Bounds
+from transfer.paper import MPC_TEACHER_V, MPC_TEACHER_W
+from transfer.store import PairStore
+
+LEARNER = mpc_learner()
+LB = Bounds(LEARNER.v_range, LEARNER.w_range)
+TB = Bounds(MPC_TEACHER_V, MPC_TEACHER_W)
+
+
+def _visit(store: PairStore, rng: np.random.Generator, visits: int, noise: float = 0.0, bias=(0.0, 0.0),
+           cap_v: float | None = None, cells=None) -> None:
+    """``visits`` raw pairs in every cell (or in ``cells``), in random order, at random points of each cell; the
+    learner's true response, changed by a yaw-rate ``bias`` (rad/s) or a top-speed ``cap_v`` (m/s), with ``noise``
+    (normalised teacher units) on the teacher part."""
+    gv, gw = store.grid
+    todo = [(i, j) for i in range(gv) for j in range(gw)] if cells is None else list(cells)
+    order = [c for c in todo for _ in range(visits)]
+    rng.shuffle(order)
+    for i, j in order:
+        l_n = (np.array([i, j]) + rng.uniform(0.05, 0.95, 2)) / np.array([gv, gw])
+        u = LB.denormalise(l_n)
+        r = LEARNER.response(u) + np.array(bias)
+        if cap_v is not None:
+            r[0] = min(r[0], cap_v)
+        t = r + noise * TB.span * rng.standard_normal(2)
+        store.add(t, u, stamp=float(store.raw_count))
+
+
+@pytest.mark.parametrize("noise", [0.0, 0.01, 0.03])
+def test_noise_alone_never_relearns_a_cell(noise: float) -> None:
+    """3,630 pairs per run (30 in each of the 121 cells): no false alarm, whatever the link's noise (0.03 of the
+    teacher's range per pair is 0.017 m/s and 0.047 rad/s, worse than any link measured: docs/RELIABILITY.md)."""
+    rng = np.random.default_rng(7)
+    store = PairStore(LB, TB, adapt=True)
+    _visit(store, rng, 30, noise)
+    assert store.relearned == 0
+    assert store.raw_count == 121 * 30
+    assert np.all(np.isnan(store.changed_at))
+
+
+def test_a_changed_learner_relearns_the_cells_it_drives_in_and_the_paper_store_does_not() -> None:
+    """A dragging wheel: every response turns 15 % of the yaw-rate range more to the left from one instant."""
+    bias = 0.15 * (LB.w[1] - LB.w[0])
+    shift = bias / TB.span[1]  # what the refined pairs' teacher yaw rate must move by (normalised)
+    driven = [(10, j) for j in range(2, 9)] + [(6, 5), (3, 5)]
+    stores = {}
+    for adapt in (True, False):
+        rng = np.random.default_rng(3)
+        store = PairStore(LB, TB, adapt=adapt)
+        _visit(store, rng, 40, noise=0.005)  # a well-learned store: 40 pairs a cell
+        before = store.pub_T.copy()
+        _visit(store, rng, 10, noise=0.005, bias=(0.0, bias), cells=driven)
+        stores[adapt] = (store, before)
+    store, before = stores[True]
+    moved = np.array([store.pub_T[c][1] - before[c][1] for c in driven])
+    assert store.relearned == len(driven)  # each once: a re-learned cell holds only the new relation
+    assert np.all(np.abs(moved - shift) < 0.006), (moved, shift)
+    assert all(not np.isnan(store.changed_at[c]) for c in driven)
+    untouched = np.ones(store.grid, dtype=bool)
+    for c in driven:
+        untouched[c] = False
+    assert np.all(np.isnan(store.changed_at[untouched]))
+    paper, before = stores[False]
+    moved_paper = np.array([paper.pub_T[c][1] - before[c][1] for c in driven])
+    assert paper.relearned == 0 and np.all(moved_paper < 0.3 * shift)  # 10 new pairs against 40 old ones
+
+
+def test_a_sagging_battery_shrinks_the_learned_top_speed() -> None:
+    rng = np.random.default_rng(5)
+    store = PairStore(LB, TB, adapt=True)
+    top = [(10, j) for j in range(11)]
+    for _ in range(20):  # the top speed itself, where the learned limit is measured
+        for j in range(11):
+            u = LB.denormalise(np.array([1.0, (j + 0.5) / 11]))
+            store.add(LEARNER.response(u), u)
+    _visit(store, rng, 20)
+    v_hi = store.limits.box.v[1]
+    assert v_hi == pytest.approx(LB.v[1], abs=1e-9)
+    cap = 0.7 * LB.v[1]
+    for _ in range(10):
+        for j in range(11):
+            u = LB.denormalise(np.array([1.0, (j + 0.5) / 11]))
+            r = LEARNER.response(u)
+            store.add(np.array([min(r[0], cap), r[1]]), u)
+    assert store.relearned >= 1
+    assert store.limits.box.v[1] == pytest.approx(cap, abs=1e-6)  # the limit shrank to what the learner now does
+    assert all(store.pub_T[c][0] < (cap - TB.v[0]) / TB.span[0] + 1e-6 for c in top if store.changed_at[c] >= 0)
+
+
+def test_the_change_detection_survives_a_save_and_a_version_1_store_loads() -> None:
+    rng = np.random.default_rng(9)
+    store = PairStore(LB, TB, adapt=True)
+    _visit(store, rng, 12, noise=0.01)
+    _visit(store, rng, 8, bias=(0.0, 0.07), cells=[(10, 5)])
+    again = PairStore.from_bytes(store.to_bytes())
+    assert again.adapt and again.relearned == store.relearned == 1 and again.raw_count == store.raw_count
+    for name in ("sum_LL", "sum_TL", "resid", "noise2", "recent_T", "recent_L", "recent_n", "pub_T", "count"):
+        np.testing.assert_array_equal(getattr(again, name), getattr(store, name), err_msg=name)
+    np.testing.assert_array_equal(np.isnan(again.changed_at), np.isnan(store.changed_at))
+    # a store written before change detection (schema 1): loads, with the same refined pairs and no history
+    raw = msgspec.msgpack.decode(store.to_bytes()[12:])
+    for k in ("sum_LL", "sum_TL", "adapt", "relearned", "added", "changed_at", "resid", "noise2", "recent_T",
+              "recent_L", "recent_n"):
+        raw.pop(k)
+    raw["schema_version"] = 1
+    payload = msgspec.msgpack.encode(raw)
+    old = PairStore.from_bytes(b"SCMPAIRS" + zlib.crc32(payload).to_bytes(4, "little") + payload)
+    np.testing.assert_array_equal(old.pub_T, store.pub_T)
+    assert not old.adapt and old.raw_count == int(store.count.sum()) and old.relearned == 0
