@@ -224,4 +224,180 @@ def test_a_flood_of_commands_reaches_the_link_at_most_at_max_send_hz(driver_host
     assert during.size >= 10, f"{during.size} sends during a 1.5 s flood"
     busiest = int(max(np.searchsorted(during, s + 1.0) - i for i, s in enumerate(during)))
     assert busiest <= 100 * 1.0 + 2, f"{busiest} sends in one second (max_send_hz 100)"
-    assert np.diff(during).min() >= 1 / 100 - 1e-3  # never closer than 1 / max_send_hz
+    # the send budget: a burst of two (a command just after a periodic tick goes at once), then 1 / max_send_hz each:
+    # any n + 1 sends in a row span at least (n - 1) / max_send_hz (this said "never closer than 1 / max_send_hz"
+    # before the budget allowed the burst)
+    for n in (2, 10, 50):
+        assert (during[n:] - during[:-n]).min() >= (n - 1) / 100 - 1e-3, n
+
+
+# -------------------------------------------------------------------------------- the real-time path
+@pytest.mark.timeout(120)
+def test_an_estop_stops_at_once_while_the_latch_save_stalls_and_is_saved_after(tmp_path) -> None:
+    """Finding: with every fsync of the driver host delayed 0.5 s the first stop came 1.02 s after the estop: the
+    latch was saved (write, fsync, rename, fsync the directory) under the lock the loop and every callback need. Now
+    the stop goes first and a thread of its own saves the latch after. The host runs in this process (a saver that
+    stalls half a second, as a slow disk does) over real Zenoh, with the emulated controllers on a python-can virtual
+    channel as ``--emulate`` hosts them; the confirmation of the latch still waits for its save."""
+    from bridge.core.paths import save_atomic
+    from bridge.nodes.driver_config import load_driver
+    from bridge.nodes.driver_host import DriverHost, Latch, _emulated_ecus, read_latch
+    from bridge.tools.estop import latch_states
+    from drivers import open_driver
+
+    stall = 0.5
+    saves: list[tuple[float, float, Latch]] = []  # (entered, done, what was saved)
+
+    def slow_save(path, data: bytes) -> None:
+        entered = time.monotonic()
+        time.sleep(stall)  # the disk stalls
+        save_atomic(path, data)
+        saves.append((entered, time.monotonic(), M.decode(data, Latch)))
+
+    port, robot = free_port(), f"sl{os.getpid()}"
+    cfg = load_driver(None)
+    link_cfg = msgspec.structs.replace(cfg.link.can, interface="virtual", channel=f"scm-{robot}",
+                                       initial_pose=(0.0, 0.0, 0.0))
+    latch = tmp_path / "estop.bin"
+    host = DriverHost(cfg, "can", open_driver("can", link_cfg), robot, cfg.driver.rate_hz, latch_path=latch,
+                      latch_saver=slow_save)
+    host.engage_on_start = True
+    ecus = _emulated_ecus(link_cfg, "mpc", (0.0, 0.0, 0.0))
+    host.co_located.append(ecus)
+    stop = threading.Event()
+    try:
+        with open_session(make_config(listen=[tcp(port)])) as host_session, \
+                open_session(make_config(connect=[tcp(port)])) as session:
+            serving = threading.Thread(target=host.serve, args=(host_session, stop, 60.0), daemon=True)
+            serving.start()
+            lis = Listener(session, robot)
+            keys = Keys(robot)
+            received: list[tuple[float, M.Applied]] = []  # on receipt: a stamp is the tick's start, before its wait
+
+            def on_applied(sample) -> None:
+                a = M.decode(sample.payload.to_bytes(), M.Applied)
+                with lis.lock:
+                    received.append((time.monotonic(), a))
+
+            lis.subs.append(session.declare_subscriber(keys.applied, on_applied))
+            assert lis.wait(lambda s: len(s.status) > 0 and s.status[-1].ok, 30.0), "driver host did not come up"
+            pub = session.declare_publisher(keys.cmd)
+            driving = threading.Event()
+
+            def drive() -> None:
+                seq = 0
+                while not driving.is_set():
+                    seq += 1
+                    pub.put(M.encode(_cmd(seq, 0.2, 0.0)))
+                    driving.wait(0.05)
+
+            th = threading.Thread(target=drive, daemon=True)
+            th.start()
+            try:
+                assert lis.wait(lambda s: any(a.reason == "cmd" for a in s.applied), 5.0)
+                t_estop = time.monotonic()
+                session.put(keys.estop, M.encode(M.Estop(stamp=t_estop, engaged=True, source="operator",
+                                                         reason="slow disk")))
+                assert lis.wait(lambda s: any(a.reason == "estop" for a in s.applied), 5.0), "no stop applied"
+                # asked right after, the confirmation comes once the latch is on disk (a confirmed latch survives a
+                # restart, as when the save ran in the callback)
+                t_end = time.monotonic() + 10.0
+                while time.monotonic() < t_end:
+                    st = latch_states(session, keys.estop, 2.0)
+                    if st and all(s.latched for s in st.values()):
+                        assert read_latch(latch).latched, "confirmed latched before the latch was saved"
+                        break
+                else:
+                    pytest.fail("the estop was never confirmed")
+            finally:
+                driving.set()
+                th.join(2)
+            with lis.lock:
+                first_stop = min(t for t, a in received if a.reason == "estop")
+                echoes = [t for t, _ in received]
+            assert first_stop - t_estop < stall / 2, f"first stop {first_stop - t_estop:.3f} s after the estop"
+            assert saves, "the latch was never saved"
+            entered, done, saved = saves[0]
+            assert saved.latched and saved.source == "operator" and saved.reason == "slow disk"
+            assert done > first_stop  # the stop went first; the save came after it
+            # the loop went on ticking (50 Hz) while the save stalled (echoes received in the meantime): a loop behind
+            # the save would not have
+            assert sum(entered < t < done for t in echoes) >= 10
+    finally:
+        stop.set()
+        host.close()  # flushes a save still under way (bounded)
+        ecus.stop()
+    assert read_latch(latch) == Latch(latched=True, source="operator", reason="slow disk")
+
+
+@pytest.mark.timeout(120)
+def test_a_command_just_after_a_periodic_tick_is_applied_at_once_within_the_send_budget(tmp_path) -> None:
+    """Finding (``scmbridge bench bridge``): ticks were never closer than 1 / max_send_hz, so a command that arrived
+    just after a periodic tick waited out the rest of that gap (9 ms median at 50 Hz against max_send_hz 100). Here
+    (10 Hz, max_send_hz 20: a 50 ms gap) each command is published the moment the echo of a periodic tick arrives; it
+    must be applied on the very next tick, less than 1 / max_send_hz after that periodic one (impossible with the
+    minimum gap), and the link's send budget must hold all the same."""
+    rate_hz, max_send_hz, trials = 10.0, 20.0, 20
+    port, robot = free_port(), f"ph{os.getpid()}"
+    cfg = tmp_path / "driver.toml"
+    cfg.write_text(f"[driver]\nrate_hz = {rate_hz}\nmax_send_hz = {max_send_hz}\n")
+    proc = spawn(["driver", "--engage", "--link", "can", "--emulate", "--x0", "0,0,0", "--config", str(cfg),
+                  "--robot", robot, "--listen", tcp(port), "--duration", "60"])
+    try:
+        with open_session(make_config(connect=[tcp(port)])) as session:
+            lis = Listener(session, robot)
+            keys = Keys(robot)
+            assert lis.wait(lambda s: len(s.status) > 0 and s.status[-1].ok, 30.0), "driver host did not come up"
+            pub = session.declare_publisher(keys.cmd)
+            lock = threading.Lock()
+            echoes: list[M.Applied] = []
+            published: dict[int, float] = {}  # cmd seq -> stamp of the periodic tick it followed
+            done = threading.Event()
+            state = {"seq": 0, "seen": 0}
+
+            def on_applied(sample) -> None:
+                a = M.decode(sample.payload.to_bytes(), M.Applied)
+                with lock:
+                    echoes.append(a)
+                    if a.cmd_seq != state["seq"] or a.reason != "cmd":
+                        return
+                    state["seen"] += 1
+                    if state["seen"] < 2:  # the command's own tick; the next echo of it is the periodic re-send
+                        return
+                    if len(published) >= trials:
+                        done.set()
+                        return
+                    state["seq"] += 1
+                    state["seen"] = 0
+                    published[state["seq"]] = a.stamp
+                    pub.put(M.encode(_cmd(state["seq"], 0.1, 0.0)))  # at once, from the echo's callback
+
+            sub = session.declare_subscriber(keys.applied, on_applied)
+            with lock:
+                state["seq"] = 1
+                published[1] = math.nan
+            pub.put(M.encode(_cmd(1, 0.1, 0.0)))
+            assert done.wait(30.0), f"{len(published)} of {trials} commands went round"
+            sub.undeclare()
+            with lock:
+                ticks = list(echoes)
+                sent = dict(published)
+    finally:
+        stop_group(proc)
+    prompt = 0
+    for seq, after in sent.items():
+        if math.isnan(after):
+            continue
+        i = next(k for k, a in enumerate(ticks) if a.stamp == after)
+        nxt = ticks[i + 1]
+        assert nxt.cmd_seq in (seq, seq - 1), (seq, nxt)
+        # applied on its own tick, before the next periodic one (a period after the one it followed)
+        if nxt.cmd_seq == seq and nxt.stamp - after < 1.0 / max_send_hz:
+            prompt += 1
+    # the chain (echo -> this callback -> publish -> the host) takes a few ms; beside busy loops it can take longer
+    # now and then, so most, not all; with the former minimum gap none could
+    assert prompt >= 0.7 * (len(sent) - 1), f"{prompt} of {len(sent) - 1} commands applied at once"
+    assert all(any(a.cmd_seq == s for a in ticks) for s in sent)  # every command was applied
+    stamps = np.sort([a.stamp for a in ticks])
+    for n in (2, 10):  # the send budget: a burst of two, then 1 / max_send_hz apart
+        assert (stamps[n:] - stamps[:-n]).min() >= (n - 1) / max_send_hz - 1e-3, n

@@ -35,8 +35,8 @@ class DriverSection(Cfg):
     hard_limits: Annotated[BoundsConfig, meta("every command is clamped into this box before a vehicle sees it")] = (
         DEFAULT_HARD_LIMITS)
     max_send_hz: Annotated[float, meta("the most commands per second handed to the link (a command is sent as it "
-                                       "arrives, but never sooner than 1/max_send_hz after the last)", ge=1.0,
-                                       le=1000.0)] = 100.0
+                                       "arrives; two may follow each other at once, then 1/max_send_hz apart: over "
+                                       "T seconds at most 2 + max_send_hz * T)", ge=1.0, le=1000.0)] = 100.0
     max_telemetry_age_s: Annotated[float, meta("no pose from the link for this long stops the vehicle (it would drive "
                                                "blind), s", gt=0.0, le=60.0)] = 0.5
     estop_release_sources: Annotated[tuple[SourceName, ...],

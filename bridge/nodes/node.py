@@ -231,36 +231,102 @@ class BlockedLoop:
                 self.log.warning("loop blocked for %.2f s so far, in: %s", late, self.where())
 
 
-class FixedRate:
-    """Absolute deadlines at ``rate_hz``: ``wait()`` sleeps until the next one (or until ``stop`` is set); a
-    deadline already past when a tick ends is counted in ``missed`` and the schedule restarts from now."""
+class SendBudget:
+    """A token bucket: ``burst`` ticks may follow each other at once, ``rate_hz`` a second on average; over any
+    window of T seconds at most ``burst + rate_hz * T`` ticks pass. The driver host's link budget (``max_send_hz``):
+    a command that arrives just after a periodic tick is sent at once instead of waiting out a minimum gap
+    (docs/ARCHITECTURE.md, "Threads and clocks")."""
 
-    def __init__(self, rate_hz: float, stop: threading.Event) -> None:
+    #: tokens short of a whole one that still count as one (rounding of the refill)
+    EPS = 1e-9
+
+    def __init__(self, rate_hz: float, burst: int, now: float) -> None:
+        self.interval = 1.0 / float(rate_hz)
+        self.burst = float(burst)
+        self.tokens = self.burst
+        self.t = now
+
+    def _refill(self, now: float) -> None:
+        if now > self.t:
+            self.tokens = min(self.burst, self.tokens + (now - self.t) / self.interval)
+            self.t = now
+
+    def ready_at(self, now: float) -> float:
+        """The earliest moment from ``now`` at which a tick may pass."""
+        self._refill(now)
+        short = 1.0 - self.EPS - self.tokens
+        return now if short <= 0 else now + short * self.interval
+
+    def take(self, now: float) -> None:
+        """A tick passes at ``now``."""
+        self._refill(now)
+        self.tokens -= 1.0
+
+
+class FixedRate:
+    """The one scheduler of the nodes' loops (the station's, the driver host's): deadlines at ``rate_hz``, an input
+    that should be handled now (``wake``), and optionally a budget of ticks (``max_hz``: :class:`SendBudget`).
+
+    The caller ticks once when it builds the scheduler, then calls :meth:`wait` after each tick: it returns True
+    when the next deadline is reached (a periodic tick; ``late`` says by how much it was passed) and False when
+    ``wake`` was set first. Woken, the deadline stays where it is (the next wait keeps it), or, with ``rephase``,
+    the woken tick restarts the period: the next deadline is one period after it (the driver host: a command just
+    sent makes the periodic re-send due a period later, not at once). A periodic tick that itself ends past the next
+    deadline is counted in ``missed`` and the schedule restarts from now; one late because a woken tick ran over its
+    deadline is given at once and keeps the schedule (counted only when a whole period late). With a budget no tick,
+    periodic or woken, passes while it is spent: :meth:`wait` returns when one may."""
+
+    def __init__(self, rate_hz: float, stop: threading.Event, *, wake: threading.Event | None = None,
+                 max_hz: float | None = None, burst: int = 2, rephase: bool = False) -> None:
         self.period = 1.0 / float(rate_hz)
         self.stop = stop
+        self.wake = wake
+        self.rephase = rephase
         self.t_next = time.monotonic()
         self.missed = 0
+        self.late = 0.0  # s the last periodic tick came after its deadline
         self.pending = False  # woken before the deadline: the next wait keeps the same deadline
+        self.budget = SendBudget(max_hz, burst, self.t_next) if max_hz is not None else None
+        if self.budget is not None:
+            self.budget.take(self.t_next)  # the caller's first tick, now
 
     def wait(self, wake: threading.Event | None = None) -> bool:
-        """Sleep to the next deadline; True when it is reached, False when ``wake`` was set first (an input that
-        should be handled now: the deadline stays where it is, call ``wait`` again after handling it)."""
-        if not self.pending:
+        """Sleep to the next deadline, or until ``wake`` (this call's, else the scheduler's) is set; then, with a
+        budget, until it allows a tick. True: the tick is periodic; False: woken (handle the input, call again)."""
+        wake = wake if wake is not None else self.wake
+        was_pending, self.pending = self.pending, False
+        if not was_pending:
             self.t_next += self.period
-        delay = self.t_next - time.monotonic()
+        deadline = self.t_next
+        delay = deadline - time.monotonic()
         if delay <= 0:
-            self.missed += 1
-            self.t_next = time.monotonic()
-            self.pending = False
-            return True
-        if wake is not None and wake.wait(delay):
-            wake.clear()
-            self.pending = True
-            return False
-        if wake is None:
+            if not was_pending or -delay >= self.period:
+                self.missed += 1
+                self.t_next = time.monotonic()
+            periodic = True
+        elif wake is not None:
+            periodic = not wake.wait(delay)
+        else:
             self.stop.wait(delay)
-        self.pending = False
-        return True
+            periodic = True
+        now = time.monotonic()
+        if self.budget is not None:
+            ready = self.budget.ready_at(now)
+            while ready > now and not self.stop.is_set():
+                self.stop.wait(ready - now)
+                now = time.monotonic()
+                ready = self.budget.ready_at(now)
+            self.budget.take(now)
+            periodic = periodic or now >= deadline  # the deadline came while the budget was spent: this is it
+        if wake is not None:
+            wake.clear()  # the tick that follows reads every input handed over until now
+        if periodic:
+            self.late = max(0.0, now - deadline)
+        elif self.rephase:
+            self.t_next = now
+        else:
+            self.pending = True
+        return periodic
 
 
 def stop_on_signals() -> threading.Event:
@@ -364,6 +430,6 @@ def endpoints_tried(args: argparse.Namespace) -> str:
     return ", ".join(eps)
 
 
-__all__ = ["FixedRate", "Inputs", "MemoryReport", "add_zenoh_args", "endpoints_tried", "rss_mb", "rss_parts",
-           "stop_on_signals", "zenoh_config"]
+__all__ = ["FixedRate", "Inputs", "MemoryReport", "SendBudget", "add_zenoh_args", "endpoints_tried", "rss_mb",
+           "rss_parts", "stop_on_signals", "zenoh_config"]
 
