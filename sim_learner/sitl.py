@@ -370,13 +370,18 @@ class Pilot:
 
     def setup_signing(self, key: bytes, timeout: float = 5.0) -> None:
         """SETUP_SIGNING: install ``key`` (32 bytes) in the autopilot, as a ground station does over its first
-        link; done when the vehicle's HEARTBEATs come signed. (ArduPilot still accepts unsigned messages on this
-        first port, so the pilot keeps its link.)"""
+        link; done when a HEARTBEAT comes signed with that key. The pilot keeps sending unsigned (ArduPilot accepts
+        unsigned messages on this first port whatever the key, libraries/GCS_MAVLink/GCS_Signing.cpp): it has the
+        driver host's system and component ids (255, 190), and two signed senders with the same ids share one
+        signing stream on the vehicle, whose timestamps must only grow, so each would see the other's refused as
+        replays (found here: the signed host's set-points were dropped while the pilot signed too)."""
         if len(key) != 32:
             raise ValueError("a MAVLink 2 signing key is 32 bytes")
         with self.cond:
             n = self.s.signed_heartbeats
         self.send("setup_signing", *self.target, list(key), signing_timestamp())
+        with self._send_lock:  # checks the vehicle's signatures; messages still unsigned on their way are taken
+            self.conn.setup_signing(key, sign_outgoing=False, allow_unsigned_callback=lambda *_: True)
         if not self.wait(lambda s: s.signed_heartbeats > n, timeout):
             raise SitlError(f"SETUP_SIGNING sent; no signed HEARTBEAT within {timeout} s")
 
