@@ -49,7 +49,8 @@ test: $(STAMP)
 	$(PY) -m pytest -q -n $(TEST_WORKERS) -m "not sitl" $(PYTEST_ARGS)
 
 # tests/test_sitl.py: the driver host against ArduPilot's real Rover firmware in SITL, found at
-# <repo>/../shared/sitl/ardurover (or further up) or $$SCMBRIDGE_SITL; here a missing binary fails, never skips.
+# shared/sitl/ardurover beside the repository (or further up) or $$SCMBRIDGE_SITL; here a missing binary fails, never
+# skips.
 test-sitl: $(STAMP)
 	SCMBRIDGE_SITL_REQUIRED=1 $(PY) -m pytest -q -n $(TEST_WORKERS) -m sitl $(PYTEST_ARGS)
 

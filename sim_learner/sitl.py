@@ -22,8 +22,8 @@ pilot connects first. The driver host's link is :attr:`Sitl.driver_url` (SERIAL1
 pilot's connection closed, the process group killed with bounded waits, the directory removed.
 
 Where the binary is: ``$SCMBRIDGE_SITL`` (the binary, or a directory holding it), else ``shared/sitl/ardurover`` in
-a parent directory of the repository (``<repo>/../shared/sitl/ardurover`` in CI); :func:`find_sitl` returns None
-when there is none (the tests skip).
+the directory that holds the repository (as CI has it) or one further up; :func:`find_sitl` returns None when there
+is none (the tests skip).
 """
 
 from __future__ import annotations
