@@ -179,6 +179,9 @@ class Pilot:
         self.url = url
         self.conn = mavutil.mavlink_connection(url, source_system=source_system, source_component=source_component,
                                                dialect="ardupilotmega", autoreconnect=False, retries=0)
+        self.lost = threading.Event()  # the vehicle closed the connection (SITL exited)
+        self.conn.handle_eof = self.lost.set  # pymavlink would print and spin on a closed socket
+        self.conn.handle_disconnect = self.lost.set
         self.target = (1, 1)
         self.s = _State()
         self.cond = threading.Condition()
@@ -195,7 +198,7 @@ class Pilot:
 
     def _run(self) -> None:
         next_hb = 0.0
-        while not self._stop.is_set():
+        while not self._stop.is_set() and not self.lost.is_set():
             now = time.monotonic()
             if now >= next_hb:
                 next_hb = now + 1.0
@@ -210,6 +213,8 @@ class Pilot:
                 continue
             if msg is not None:
                 self._handle(msg, time.monotonic())
+        with self.cond:  # waiters learn at once that nothing more will come
+            self.cond.notify_all()
 
     def _handle(self, msg: Any, now: float) -> None:
         kind = msg.get_type()

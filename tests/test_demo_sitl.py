@@ -14,9 +14,11 @@ from bridge.tools.demo_sitl import learner_range, mission_toml, place_mission
 
 
 def test_the_learner_range_is_the_vehicles_guided_speed_cap_and_turn_rate_limit() -> None:
-    v, w = learner_range({"CRUISE_SPEED": 3.0, "WP_SPEED": 2.0, "ATC_STR_RAT_MAX": 120.0})
-    assert v == (0.05, 2.0) and w == pytest.approx((-math.radians(120), math.radians(120)))
-    assert learner_range({"CRUISE_SPEED": 0.3, "WP_SPEED": 0.0, "ATC_STR_RAT_MAX": 15.0})[0] == (0.05, 0.3)
+    v, w = learner_range({"CRUISE_SPEED": 3.0, "WP_SPEED": 0.3, "ATC_STR_RAT_MAX": 15.0})
+    assert v == (0.05, 0.3) and w == pytest.approx((-math.pi / 12, math.pi / 12))  # the Jackal's top speeds
+    # WP_SPEED 0: CRUISE_SPEED, as Rover does; CRUISE_SPEED is never a cap on its own (it tunes the throttle)
+    assert learner_range({"CRUISE_SPEED": 2.0, "WP_SPEED": 0.0, "ATC_STR_RAT_MAX": 15.0})[0] == (0.05, 2.0)
+    assert learner_range({"CRUISE_SPEED": 0.3, "WP_SPEED": 3.0, "ATC_STR_RAT_MAX": 15.0})[0] == (0.05, 3.0)
     with pytest.raises(UsageError):
         learner_range({"CRUISE_SPEED": 0.0, "WP_SPEED": 0.0, "ATC_STR_RAT_MAX": 15.0})
 

@@ -4,8 +4,8 @@ MPC case (Section 5.2) with ArduPilot's real Rover firmware in SITL as the learn
 
 What a lab would do with a real rover, in order: the autopilot boots (:class:`sim_learner.sitl.Sitl`: own
 directory, free instance, fast boot then real time); the learner's command range is read from the vehicle's own
-parameters (the speed GUIDED is capped at, ``min(CRUISE_SPEED, WP_SPEED)``, and the turn-rate limit
-``ATC_STR_RAT_MAX``), not the paper's Jackal's; the mission is placed where the vehicle stands (a robot starts where
+parameters (the speed GUIDED is capped at, ``WP_SPEED``, and the turn-rate limit ``ATC_STR_RAT_MAX``), not the
+paper's Jackal's; the mission is placed where the vehicle stands (a robot starts where
 it is: the mission's start pose is moved onto the vehicle's pose, path and obstacles with it); the driver host
 starts not engaged and the pilot engages it by selecting GUIDED and arming from the ground station; the station
 starts from an empty pair store and drives the S-path to the goal. One JSON line sums the run up with the field
@@ -21,15 +21,18 @@ from bridge.core.errors import UsageError
 #: the learner's lowest forward speed, m/s (the paper's learner range starts there too; the MPC plans forward)
 V_MIN = 0.05
 #: the vehicle parameters the learner's range is read from, and the ones reported beside it
-RANGE_PARAMS = ("CRUISE_SPEED", "WP_SPEED", "ATC_STR_RAT_MAX")
-REPORTED_PARAMS = (*RANGE_PARAMS, "ATC_ACCEL_MAX", "ATC_DECEL_MAX", "FS_ACTION", "FS_TIMEOUT")
+RANGE_PARAMS = ("WP_SPEED", "CRUISE_SPEED", "ATC_STR_RAT_MAX")
+REPORTED_PARAMS = (*RANGE_PARAMS, "CRUISE_THROTTLE", "ATC_ACCEL_MAX", "ATC_DECEL_MAX", "FS_ACTION", "FS_TIMEOUT")
 
 
 def learner_range(params: dict[str, float]) -> tuple[tuple[float, float], tuple[float, float]]:
-    """The learner's command box from the vehicle's parameters: v in [V_MIN, min(CRUISE_SPEED, WP_SPEED)] m/s (GUIDED
-    caps a velocity target at WP_SPEED, and CRUISE_SPEED is the speed its throttle is tuned for), omega in
-    +-ATC_STR_RAT_MAX (deg/s on the vehicle, rad/s here). WP_SPEED 0 means "use CRUISE_SPEED" in Rover."""
-    v_max = params["CRUISE_SPEED"] if params["WP_SPEED"] <= 0 else min(params["CRUISE_SPEED"], params["WP_SPEED"])
+    """The learner's command box from the vehicle's parameters: v in [V_MIN, WP_SPEED] m/s (GUIDED caps a velocity
+    target at WP_SPEED; 0 there means CRUISE_SPEED, as in Rover), omega in +-ATC_STR_RAT_MAX (deg/s on the vehicle,
+    rad/s here). CRUISE_SPEED is not a limit: with CRUISE_THROTTLE it is the point the speed controller's throttle
+    feed-forward is tuned on (throttle = CRUISE_THROTTLE * v / CRUISE_SPEED). Found here: CRUISE_SPEED 0.3 on SITL's
+    rover-skid (tuned 3 m/s at 75 %) asked 75 % throttle for 0.3 m/s, and the rover drove the S-path far faster
+    than commanded."""
+    v_max = params["WP_SPEED"] if params["WP_SPEED"] > 0 else params["CRUISE_SPEED"]
     w_max = math.radians(params["ATC_STR_RAT_MAX"])
     if not (v_max > V_MIN and w_max > 0):
         raise UsageError(f"the vehicle's parameters give no usable command range: {params}")
