@@ -148,7 +148,7 @@ def test_hold_by_the_pilot_is_kept_and_the_host_stops_driving(rig: Rig) -> None:
     pilot.set_mode("HOLD")  # the person takes the vehicle; the commands keep coming
     n = len(rig.status)
     st = rig.wait_state("waiting", 5, after=n)
-    assert "waiting for the operator: mode HOLD, armed" in st.text, st.text
+    assert "operator took control: mode HOLD" in st.text, st.text
     assert rig.col.wait(lambda: rig.applied[-1].reason == "disengaged", 2)
     assert pilot.wait(lambda s: s.position is not None and math.hypot(s.position.vx, s.position.vy) < 0.05, 10)
     # and then the host never gives the vehicle GUIDED back: every HEARTBEAT since says HOLD for 4 s
