@@ -18,6 +18,7 @@ import threading
 import time
 from collections import Counter
 from contextlib import ExitStack
+from pathlib import Path
 
 import numpy as np
 
@@ -254,6 +255,141 @@ def hil(args: argparse.Namespace, robot: str) -> int:
     return 0 if summary["reached_goal"] else 1
 
 
+def _wait_state(mon, state: str, timeout: float) -> bool:
+    """Wait until the driver host's status says ``state`` (False after ``timeout`` s)."""
+    t_end = time.monotonic() + timeout
+    while time.monotonic() < t_end:
+        with mon.lock:
+            st = mon.status.get("driver")
+        if st is not None and st.state == state:
+            return True
+        time.sleep(0.05)
+    return False
+
+
+def sitl_hil(args: argparse.Namespace, robot: str = "sitl") -> int:
+    """``--sitl``: ArduPilot's Rover SITL as the learner (:mod:`bridge.tools.demo_sitl` says how). Boot SITL, engage
+    as the pilot, run the station and the driver host on MAVLink, print one JSON summary."""
+    from bridge.core.config import load_mission_spec, mission_from_spec
+    from bridge.nodes.zsession import free_port, make_config, open_session, tcp
+    from bridge.tools.demo_sitl import REPORTED_PARAMS, learner_range, mission_toml, place_mission
+    from bridge.tools.procs import Children
+    from sim_learner.experiments import VEHICLE_RADIUS
+    from sim_learner.sitl import Sitl, SitlError
+
+    if args.link not in (None, "mavlink"):
+        raise UsageError("--sitl is ArduPilot's Rover: it takes --link mavlink")
+    binary = Path(args.sitl)
+    binary = binary / "ardurover" if binary.is_dir() else binary
+    if not binary.is_file():
+        raise UsageError(f"--sitl {args.sitl}: no ArduPilot SITL binary there")
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    store = out / "pairs.bin"
+    store.unlink(missing_ok=True)  # from no pairs at all, as the paper's case
+    spec = load_mission_spec(args.mission)
+    transfer_on = args.transfer == "on"
+    t_wall = time.monotonic()
+    try:
+        sitl = Sitl(binary, model=args.sitl_model, parm_files=[args.sitl_params] if args.sitl_params else ())
+    except SitlError as exc:
+        raise UsageError(str(exc)) from None
+    mon = None
+    with ExitStack() as stack:
+        try:
+            stack.enter_context(sitl)
+        except SitlError as exc:
+            print(f"scmbridge demo: SITL did not boot: {exc}", file=sys.stderr)
+            return 1
+        pilot = sitl.pilot
+        assert pilot is not None
+        params = {n: pilot.param(n) for n in REPORTED_PARAMS}
+        v_range, w_range = learner_range(params)
+        with pilot.cond:
+            p, att = pilot.s.position, pilot.s.attitude
+        pose = (float(p.y), float(p.x), math.pi / 2 - float(att.yaw))  # NED -> ENU, as the MAVLink driver does
+        placed = place_mission(spec, pose)
+        world = mission_from_spec(placed)
+        (out / "mission.toml").write_text(mission_toml(placed))
+        (out / "station.toml").write_text(
+            f'robot = "{robot}"\n\n[learner_bounds]\nv = [{v_range[0]!r}, {v_range[1]!r}]\n'
+            f"w = [{w_range[0]!r}, {w_range[1]!r}]\n\n[transfer]\n"
+            + ('mapper = "scm"\nexploration = "guided"\n' if transfer_on
+               else 'mapper = "identity"\nexploration = "off"\n'))
+        (out / "driver.toml").write_text(
+            f'robot = "{robot}"\n\n[driver.hard_limits]\nv = [{-v_range[1]!r}, {v_range[1]!r}]\n'
+            f"w = [{w_range[0]!r}, {w_range[1]!r}]\n\n[link.mavlink]\nurl = \"{sitl.driver_url}\"\nrate_hz = 20\n")
+        print(f"SITL {args.sitl_model} instance {sitl.instance} booted in {sitl.boot_s:.1f} s; vehicle {params}; "
+              f"learner v {v_range} m/s, omega ({w_range[0]:.3f}, {w_range[1]:.3f}) rad/s; mission placed at "
+              f"({pose[0]:.2f}, {pose[1]:.2f}, {pose[2]:.2f})", flush=True)
+        port = free_port()
+        client = ["--robot", robot, "--mode", "client", "--connect", tcp(port)]
+        logs = {name: stack.enter_context(open(out / f"{name}.log", "w")) for name in ("driver", "station")}
+        session = stack.enter_context(open_session(make_config(mode="router", listen=[tcp(port)])))
+        kids = stack.enter_context(Children())
+        mon = Monitor(session, robot)
+        try:
+            kids.spawn(["driver", "--link", "mavlink", "--config", str(out / "driver.toml"), *client, "--duration",
+                        str(args.duration + 30)], logs["driver"])
+            if not _wait_state(mon, "waiting", 60):
+                print(f"scmbridge demo: the driver host did not come up; see {out}/driver.log", file=sys.stderr)
+                return 1
+            pilot.set_mode("GUIDED")  # the person engages: GUIDED and armed from the ground station
+            pilot.arm(True)
+            if not _wait_state(mon, "driving", 10):
+                print("scmbridge demo: the driver host did not take the pilot's engage", file=sys.stderr)
+                return 1
+            kids.spawn(["station", *client, "--config", str(out / "station.toml"), "--start", "--store", str(store),
+                        "--exit-at-goal", "--duration", str(args.duration), "--mission", str(out / "mission.toml")],
+                       logs["station"])
+            _watch(mon, kids, world, args.duration)
+        except KeyboardInterrupt:
+            print("\ninterrupted: stopping the demo's processes", file=sys.stderr)
+        except SitlError as exc:
+            print(f"scmbridge demo: the pilot could not engage: {exc}", file=sys.stderr)
+            return 1
+    # the processes are gone (the driver host stopped and disarmed the vehicle), and so is SITL
+    run = mon.summary(world) if mon is not None else None
+    if run is None:
+        print("the demo produced no telemetry; see the logs in", out, file=sys.stderr)
+        return 1
+    traj = run.pop("_traj")
+    with mon.lock:
+        states = list(mon.states)
+        applied = list(mon.applied)
+    driving = [a[0] for a in applied if a[1] in ("cmd", "clamped")]
+    t0 = driving[0] if driving else states[0][0]
+    poses = np.array([s[1:3] for s in states if s[0] >= t0 and s[0] <= t0 + run["time_s"] + 1e-6]) if states else None
+    dev_last_half = collided = None
+    if poses is not None and len(poses):
+        prog = np.array([world.path.project(q)[0] / world.path.length for q in poses])
+        dev = np.array([world.path.project(q)[1] for q in poses])
+        dev_last_half = float(dev[prog >= 0.5].mean()) if (prog >= 0.5).any() else None
+        collided = bool(any(world.collides(q, VEHICLE_RADIUS) for q in poses))
+    from sim_learner.experiments import reference_figures
+
+    teacher = reference_figures(False)["teacher"]  # the ideal teacher on the same path, simulated (sim mpc's)
+    scm_time = run["time_s"] if run["reached_goal"] else None
+    summary = {
+        "experiment": "mpc-sitl", "model": args.sitl_model, "transfer": args.transfer,
+        "reached_goal": run["reached_goal"], "scm_reached_goal": run["reached_goal"],
+        "teacher_time_s": teacher["time_s"], "teacher_dev_last_half_m": teacher["dev_last_half_m"],
+        "scm_time_s": scm_time, "scm_dev_last_half_m": dev_last_half,
+        "scm_time_ratio": scm_time / teacher["time_s"] if scm_time and teacher["time_s"] else None,
+        "scm_dev_ratio": (dev_last_half / teacher["dev_last_half_m"]
+                          if dev_last_half is not None and teacher["dev_last_half_m"] else None),
+        "collisions": {"teacher": teacher["collided"], "scm": collided},
+        "method_counts": run["methods"], "refined_pairs": run["refined_pairs"], "raw_pairs": run["raw_pairs"],
+        "max_dev_m": run["max_dev_m"], "goal_dist_m": run["goal_dist_m"], "driving_s": run["time_s"],
+        "learner_bounds": [list(v_range), list(w_range)], "vehicle_params": params,
+        "missed_deadlines": run["missed_deadlines"], "boot_s": round(sitl.boot_s, 1),
+        "wall_s": round(time.monotonic() - t_wall, 1)}
+    print("summary:", json.dumps(summary))
+    _figure(out, world, traj, "mavlink (ArduPilot SITL)")
+    print(f"figure: {out / 'demo_trajectory.png'}; pair store: {store}; logs: {out}/*.log")
+    return 0 if run["reached_goal"] else 1
+
+
 def _fleet_line(mons: dict[str, Monitor], world, t: float) -> str:
     """One line for the whole fleet: how many are at the goal, each robot's progress (or the spread of them)."""
     parts, at_goal, missed, pairs = [], 0, 0, 0
@@ -404,7 +540,8 @@ def fleet(args: argparse.Namespace, robots: list[str]) -> int:
 
 
 def arguments(ap: argparse.ArgumentParser) -> None:
-    ap.add_argument("--link", choices=link_names(), default="can", help="vehicle link")
+    ap.add_argument("--link", choices=link_names(), default=None,
+                    help="vehicle link (default: can; mavlink with --sitl)")
     ap.add_argument("--mission", default=None, help="mission file (default: the paper's S-path)")
     ap.add_argument("--out", default="demo_out", help="directory for the figures, the pair stores and the logs")
     ap.add_argument("--duration", type=positive_float, default=None,
@@ -414,6 +551,14 @@ def arguments(ap: argparse.ArgumentParser) -> None:
                      help="emulated learners to run at once, comma-separated names, each its own driver host and "
                           "station process (default: one robot, demo)")
     who.add_argument("--count", type=int, default=None, help="N emulated learners demo1..demoN at once")
+    ap.add_argument("--sitl", default=None, metavar="PATH",
+                    help="ArduPilot's Rover SITL binary (or its directory) as the learner, over --link mavlink")
+    ap.add_argument("--sitl-model", default="rover-skid", choices=("rover-skid", "rover", "motorboat"),
+                    help="(--sitl) the simulated body")
+    ap.add_argument("--sitl-params", default=None, metavar="FILE.parm",
+                    help="(--sitl) an extra parameter file (e.g. CRUISE_SPEED, ATC_STR_RAT_MAX: another learner)")
+    ap.add_argument("--transfer", choices=("on", "off"), default="on",
+                    help="(--sitl) off: the teacher's commands go to the vehicle unmapped (identity, no exploration)")
     ap.add_argument("--inprocess", action="store_true", help="the in-process SC transfer example instead")
     ap.add_argument("--seed", type=int, default=0, help="(--inprocess) random generator seed")
     ap.add_argument("--commands", type=int, default=8, help="(--inprocess) teacher commands to show")
@@ -427,4 +572,8 @@ def run(args: argparse.Namespace) -> int:
         args.duration = 120.0 + 30.0 * (len(robots) - 1)
     if args.inprocess:
         return inprocess(args)
+    if args.sitl is not None:
+        return sitl_hil(args)
+    if args.link is None:
+        args.link = "can"
     return hil(args, robots[0]) if len(robots) == 1 and not args.count else fleet(args, robots)

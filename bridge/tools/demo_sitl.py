@@ -1,0 +1,67 @@
+"""The parts of ``scmbridge demo --sitl PATH`` (:func:`bridge.tools.demo.sitl_hil`) that are its own: the paper's
+MPC case (Section 5.2) with ArduPilot's real Rover firmware in SITL as the learner, over the MAVLink link
+(docs/ARCHITECTURE.md §7).
+
+What a lab would do with a real rover, in order: the autopilot boots (:class:`sim_learner.sitl.Sitl`: own
+directory, free instance, fast boot then real time); the learner's command range is read from the vehicle's own
+parameters (the speed GUIDED is capped at, ``WP_SPEED``, and the turn-rate limit ``ATC_STR_RAT_MAX``), not the
+paper's Jackal's; the mission is placed where the vehicle stands (a robot starts where
+it is: the mission's start pose is moved onto the vehicle's pose, path and obstacles with it); the driver host
+starts not engaged and the pilot engages it by selecting GUIDED and arming from the ground station; the station
+starts from an empty pair store and drives the S-path to the goal. One JSON line sums the run up with the field
+names of ``scmbridge sim mpc`` (the ideal teacher's figures are that simulation's, on the same path).
+"""
+
+from __future__ import annotations
+
+import math
+
+from bridge.core.errors import UsageError
+
+#: the learner's lowest forward speed, m/s (the paper's learner range starts there too; the MPC plans forward)
+V_MIN = 0.05
+#: the vehicle parameters the learner's range is read from, and the ones reported beside it
+RANGE_PARAMS = ("WP_SPEED", "CRUISE_SPEED", "ATC_STR_RAT_MAX")
+REPORTED_PARAMS = (*RANGE_PARAMS, "CRUISE_THROTTLE", "ATC_ACCEL_MAX", "ATC_DECEL_MAX", "FS_ACTION", "FS_TIMEOUT")
+
+
+def learner_range(params: dict[str, float]) -> tuple[tuple[float, float], tuple[float, float]]:
+    """The learner's command box from the vehicle's parameters: v in [V_MIN, WP_SPEED] m/s (GUIDED caps a velocity
+    target at WP_SPEED; 0 there means CRUISE_SPEED, as in Rover), omega in +-ATC_STR_RAT_MAX (deg/s on the vehicle,
+    rad/s here). CRUISE_SPEED is not a limit: with CRUISE_THROTTLE it is the point the speed controller's throttle
+    feed-forward is tuned on (throttle = CRUISE_THROTTLE * v / CRUISE_SPEED). Found here: CRUISE_SPEED 0.3 on SITL's
+    rover-skid (tuned 3 m/s at 75 %) asked 75 % throttle for 0.3 m/s, and the rover drove the S-path far faster
+    than commanded."""
+    v_max = params["WP_SPEED"] if params["WP_SPEED"] > 0 else params["CRUISE_SPEED"]
+    w_max = math.radians(params["ATC_STR_RAT_MAX"])
+    if not (v_max > V_MIN and w_max > 0):
+        raise UsageError(f"the vehicle's parameters give no usable command range: {params}")
+    return (V_MIN, float(v_max)), (-float(w_max), float(w_max))
+
+
+def place_mission(spec, pose: tuple[float, float, float]):
+    """``spec`` moved rigidly so that its start pose lands on ``pose`` (x, y, theta; ENU): path, obstacles, start."""
+    from bridge.core import wire as M
+
+    sx, sy, sth = spec.start if spec.start is not None else (spec.path[0][0], spec.path[0][1], 0.0)
+    px, py, pth = pose
+    c, s = math.cos(pth - sth), math.sin(pth - sth)
+
+    def move(x: float, y: float) -> list[float]:
+        dx, dy = x - sx, y - sy
+        return [px + c * dx - s * dy, py + s * dx + c * dy]
+
+    return M.MissionSpec(name=f"{spec.name}@sitl", frame="sitl-local", path=[move(x, y) for x, y in spec.path],
+                         goal_tolerance=spec.goal_tolerance, obstacles=[[*move(x, y), r] for x, y, r in spec.obstacles],
+                         start=[px, py, pth])
+
+
+def mission_toml(spec) -> str:
+    """A mission file for ``spec`` (what ``scmbridge station --mission`` reads)."""
+    def num(x: float) -> str:
+        return repr(float(x))
+
+    rows = ",\n".join(f"  [{num(x)}, {num(y)}]" for x, y in spec.path)
+    obs = ",\n".join(f"  [{num(x)}, {num(y)}, {num(r)}]" for x, y, r in spec.obstacles)
+    return (f'name = "{spec.name}"\nframe = "{spec.frame}"\ngoal_tolerance = {num(spec.goal_tolerance)}\n'
+            f"start = [{', '.join(num(a) for a in spec.start)}]\nobstacles = [\n{obs}\n]\npath = [\n{rows}\n]\n")

@@ -1,0 +1,44 @@
+"""The parts of ``scmbridge demo --sitl`` that need no SITL: the learner's range read from the vehicle's parameters,
+and the mission placed where the vehicle stands (a file the station reads back)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from bridge.core.config import load_mission, load_mission_spec
+from bridge.core.errors import UsageError
+from bridge.tools.demo_sitl import learner_range, mission_toml, place_mission
+
+
+def test_the_learner_range_is_the_vehicles_guided_speed_cap_and_turn_rate_limit() -> None:
+    v, w = learner_range({"CRUISE_SPEED": 3.0, "WP_SPEED": 0.3, "ATC_STR_RAT_MAX": 15.0})
+    assert v == (0.05, 0.3) and w == pytest.approx((-math.pi / 12, math.pi / 12))  # the Jackal's top speeds
+    # WP_SPEED 0: CRUISE_SPEED, as Rover does; CRUISE_SPEED is never a cap on its own (it tunes the throttle)
+    assert learner_range({"CRUISE_SPEED": 2.0, "WP_SPEED": 0.0, "ATC_STR_RAT_MAX": 15.0})[0] == (0.05, 2.0)
+    assert learner_range({"CRUISE_SPEED": 0.3, "WP_SPEED": 3.0, "ATC_STR_RAT_MAX": 15.0})[0] == (0.05, 3.0)
+    with pytest.raises(UsageError):
+        learner_range({"CRUISE_SPEED": 0.0, "WP_SPEED": 0.0, "ATC_STR_RAT_MAX": 15.0})
+
+
+def test_the_mission_moves_rigidly_onto_the_vehicles_pose_and_reads_back(tmp_path) -> None:
+    spec = load_mission_spec(None)  # the paper's S-path, start 0.3 m beside it facing 45 degrees away
+    pose = (1.5, -2.0, 2.6)
+    placed = place_mission(spec, pose)
+    assert placed.start == pytest.approx(list(pose))
+    f = tmp_path / "mission.toml"
+    f.write_text(mission_toml(placed))
+    world, world0 = load_mission(str(f)), load_mission(None)
+    assert world.path.length == pytest.approx(world0.path.length)
+    # every distance is kept: start to goal, start to each obstacle, and the radii
+    s0, s1 = np.asarray(spec.start[:2]), np.asarray(pose[:2])
+    assert np.hypot(*(world.goal - s1)) == pytest.approx(np.hypot(*(world0.goal - s0)))
+    for (x, y, r), (x0, y0, r0) in zip(world.obstacles, world0.obstacles):
+        assert r == r0 and np.hypot(x - s1[0], y - s1[1]) == pytest.approx(np.hypot(x0 - s0[0], y0 - s0[1]))
+    # and the start's heading relative to the path's first segment is the same
+    def rel(path, start) -> float:
+        d = np.asarray(path[1]) - np.asarray(path[0])
+        return (math.atan2(d[1], d[0]) - start[2]) % (2 * math.pi)
+    assert rel(placed.path, placed.start) == pytest.approx(rel(spec.path, spec.start))
