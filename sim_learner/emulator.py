@@ -62,6 +62,9 @@ def arguments(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--watchdog", type=float, default=0.5, help="(udp) no command for this long stops it, s")
     ap.add_argument("--key-file", default=None, help="(udp) the datagram key (scmbridge keys udp): commands must "
                     "carry its tag; (mavlink) the signing key: unsigned messages are refused")
+    ap.add_argument("--signing-store", default=None, help="(mavlink) the file standing for the autopilot's storage: "
+                    "the signing timestamp is kept there across restarts, as ArduPilot keeps it (default: none, a "
+                    "key as just set by SETUP_SIGNING at each start)")
 
 
 def _mavlink(args: argparse.Namespace, vehicle: SimVehicle, stop: threading.Event) -> None:
@@ -69,7 +72,7 @@ def _mavlink(args: argparse.Namespace, vehicle: SimVehicle, stop: threading.Even
 
     port = 14550 if args.port is None else args.port
     key = load_key(args.key_file) if args.key_file else None
-    with MavlinkRover(vehicle, args.host, port, signing_key=key) as rover:
+    with MavlinkRover(vehicle, args.host, port, signing_key=key, signing_store=args.signing_store) as rover:
         print(f"learner on mavlink udp {args.host}:{rover.port}, model {args.model}", flush=True)
         stop.wait(args.duration)
 
