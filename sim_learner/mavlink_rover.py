@@ -58,8 +58,9 @@ driver that is wrong about the vehicle. Paths are in github.com/ArduPilot/ardupi
   clock when the EKF gets its origin, and ``save_signing_timestamp(true)``), and only if it grew. At boot
   (``load_signing_key``) the timestamp is the stored one plus one minute. ArduPilot saves nothing at power-off, so a
   message signed after the last save is still taken after a reboot (as a new stream: at most one minute behind);
-  everything signed before the last save is refused. Without a store (or none saved yet) the key counts as just set
-  by SETUP_SIGNING from a ground station, whose ``initial_timestamp`` is its wall clock; it is saved then.
+  everything signed before the last save is refused. Without a store (or none saved yet, or one saved for another
+  key: the store keeps a digest of the key beside the timestamp) the key counts as just set by SETUP_SIGNING from a
+  ground station, whose ``initial_timestamp`` is its wall clock; it is saved then.
 * Parameters (Rover/Parameters.cpp defaults: FS_ACTION 2 = Hold, FS_TIMEOUT 1.5 s, FS_GCS_ENABLE 0, FS_GCS_TIMEOUT 5 s;
   SYSID_MYGCS 255): PARAM_REQUEST_READ by name (index -1) or index, and PARAM_REQUEST_LIST, answered with PARAM_VALUE
   (REAL32); an unknown name gets no answer, as in AP_Param.
@@ -288,10 +289,17 @@ class MavlinkRover(ThreadedDevice):
         if self.signing_store is None:
             return None
         try:
-            value = json.loads(self.signing_store.read_text(encoding="utf-8"))["timestamp"]
+            saved = json.loads(self.signing_store.read_text(encoding="utf-8"))
+            value, key = saved["timestamp"], saved["key"]
         except (OSError, ValueError, KeyError, TypeError):
             return None
+        if key != self._key_id():  # another key: SETUP_SIGNING replaced the stored key and its timestamp
+            return None
         return int(value) if isinstance(value, int) and value > 0 else None
+
+    def _key_id(self) -> str:
+        """What the store keeps of the key (ArduPilot keeps the key itself; a file here keeps a digest)."""
+        return hashlib.blake2b(bytes(self.mav.signing.secret_key or b""), digest_size=8).hexdigest()
 
     def _save_signing_timestamp(self, now: float, force: bool = False) -> None:
         """``save_signing_timestamp``: every ``signing_save_s`` unless forced, and only a timestamp that grew."""
@@ -303,7 +311,7 @@ class MavlinkRover(ThreadedDevice):
             return
         self._signing_saved = stamp
         if self.signing_store is not None:
-            save_atomic(self.signing_store, json.dumps({"timestamp": stamp}).encode())
+            save_atomic(self.signing_store, json.dumps({"key": self._key_id(), "timestamp": stamp}).encode())
         self.signing_saves += 1
 
     @property

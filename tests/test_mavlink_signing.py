@@ -209,3 +209,17 @@ def test_without_a_persisted_timestamp_the_same_replay_would_take_a_rebooted_rov
         assert until(lambda: rover.armed, 2.0)
     finally:
         rover.stop()
+
+
+def test_the_stored_timestamp_is_the_keys_and_starts_a_minute_ahead(keys, tmp_path) -> None:
+    """load_signing_key: one minute past the stored timestamp; a store saved for another key is not this key's."""
+    key, other, _ = keys
+    store = tmp_path / "rover-signing.json"
+    vehicle = SimVehicle(mpc_learner(), (0.0, 0.0, 0.0), now=time.monotonic())
+    first = MavlinkRover(vehicle, signing_key=key, signing_store=store)
+    assert first.signing_saves == 1 and oct(store.stat().st_mode & 0o777) == "0o600"
+    saved = first.signing_timestamp
+    again = MavlinkRover(vehicle, signing_key=key, signing_store=store)
+    assert again.signing_timestamp == saved + 60 * 100_000
+    rekeyed = MavlinkRover(vehicle, signing_key=other, signing_store=store)  # SETUP_SIGNING with a new key
+    assert abs(rekeyed.signing_timestamp - signing_wall_clock()) < 100_000
