@@ -64,7 +64,7 @@ def _udp(stack: ExitStack, vehicle: Any) -> Any:
     port = free_udp_port()  # the driver's port, which the robot is pinned to
     robot = UdpRobot(vehicle, peer=("127.0.0.1", port)).start()
     stack.callback(robot.stop)
-    return _opened(stack, "udp", UdpLinkConfig(robot_port=robot.port, bind_port=port))
+    return _opened(stack, "udp", UdpLinkConfig(insecure=True, robot_port=robot.port, bind_port=port))
 
 
 #: link -> a factory of its emulated learner and an opened driver on it (both closed with the stack)

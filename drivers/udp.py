@@ -8,10 +8,9 @@ its own hard limits (see :mod:`sim_learner.udp_robot`).
 
 What the driver trusts, in order:
 
-0. with a ``key_file`` (the lab's configuration; made by ``scmbridge keys udp``), the datagram's keyed tag
-   (:mod:`bridge.core.auth`): pinning an address is not authentication, anyone on the segment can send from it.
-   A datagram without a valid tag is counted (``unauthenticated``) and dropped; the commands this driver sends are
-   sealed with the same key;
+0. the datagram's keyed tag (:mod:`bridge.core.auth`; ``key_file``, made by ``scmbridge keys udp``): pinning an
+   address is not authentication, anyone on the segment can send from it. A datagram without a valid tag is counted
+   (``unauthenticated``) and dropped; the commands this driver sends are sealed with the same key (see "Session");
 1. the source address: only datagrams from ``robot_host:robot_port`` (resolved once, at ``open``) are read; all
    others are counted as ``foreign`` and dropped undecoded;
 2. the payload: a datagram that does not decode and validate as a ``LearnerState`` is ``malformed``;
@@ -21,6 +20,35 @@ What the driver trusts, in order:
    real robot out); a new epoch (a rebooted robot) is taken once the followed stream has been silent for
    ``state_timeout_s`` (``state_foreign_epoch`` until then, ``robot_restarts`` counts the changes); an epoch left
    behind is never taken again (``state_old_epoch``). Seqs skipped inside an epoch are counted as ``state_gaps``.
+
+Session: what the robot obeys is bound to one boot of the robot and to a recent reading of its clock, so that
+datagrams recorded off the wire move nothing after the robot reboots, nor long after they were sent (a security
+review's findings: replayed keyed commands drove a robot that had just rebooted, because it remembered no sender
+and never asked how old a command was). The robot, a small MCU, keeps nothing across a reboot and shares no clock
+with the driver, so both checks compare the robot's own numbers:
+
+1. at each boot the robot draws a fresh random boot nonce (the ``epoch`` of its states, 62 bits; firmware takes it
+   from a hardware RNG or a flash boot counter, never repeated) and streams it, sealed, in every state with a
+   reading of its clock (``stamp``, its microsecond counter as seconds);
+2. the driver takes the nonce and the clock reading only from states it accepted (tag, address and the robot's
+   ``(epoch, seq)`` stream below; so a rebooted robot's nonce once the old stream is silent) and seals each command
+   as a session datagram (:func:`bridge.core.auth.seal_session`): the nonce and the newest clock reading in whole
+   microseconds, in a header the tag covers, then the ``Command``. Before its first state it sends nonce 0, which
+   no robot holds (the hello that pins a ``first``-mode robot);
+3. the robot obeys a command only if its tag verifies, it carries the robot's current nonce (``stale_session``:
+   everything sealed before a reboot), the clock reading it echoes is not in the robot's future and at most
+   ``SESSION_FRESH_S`` (0.5 s) old (``stale``: a datagram held back and released later, or replayed from earlier in
+   this boot), then it goes through the driver's ``(epoch, seq)`` stream (a replay inside the window is not above
+   the last seq) and the robot's limits; an applied command lasts at most ``valid_ms`` (and the robot's watchdog).
+
+So a recording is worthless after a reboot, and inside one boot a datagram can be delayed by at most the window,
+only if nothing later was accepted meanwhile. A robot the driver cannot hear (its states lost) stops obeying within
+the window: the driver has no fresh reading to echo. Left open: states replayed to a driver host that has just
+started are taken for a robot (it has nothing to compare them with); the commands it then seals carry a stale nonce
+and move nothing, and the real robot's stream takes over after ``state_timeout_s`` of the recording's silence.
+
+Without a key there is no authentication and so no session: anyone on the segment can drive the robot. The driver
+refuses to run so unless ``insecure = true`` (loopback tests), and says so in the log when it opens.
 
 Datagrams the kernel dropped because the socket's receive buffer was full (a flood between two polls) are counted
 too (``dropped_by_kernel``, Linux ``SO_RXQ_OVFL``); the robot's own states lost that way also show as ``state_gaps``.
@@ -41,6 +69,7 @@ Configuration: :class:`UdpLinkConfig` (``[link.udp]`` in the driver host's file)
 
 from __future__ import annotations
 
+import logging
 import math
 import socket
 import time
@@ -48,11 +77,13 @@ from dataclasses import dataclass, replace
 from typing import Annotated
 
 from bridge.core import wire as M
-from bridge.core.auth import load_key, open_sealed, seal
+from bridge.core.auth import KeyFileError, load_key, open_sealed, seal_session
 from bridge.core.clock import ClockOffset
 from bridge.core.config import Cfg, Port, Rule, meta
 from bridge.core.gate import SeqGate
 from drivers.base import DriverError, FailsafeReport, LinkHealth, Pose, whole_numbers
+
+log = logging.getLogger("scmbridge.driver.udp")
 
 #: seqs a state may jump ahead of the last one beyond what ``max_state_rate_hz`` allows for the time elapsed
 STATE_SEQ_SLACK = 10
@@ -90,7 +121,10 @@ class UdpLinkConfig(Cfg):
     clock_window_s: Annotated[float, meta("window of the robot-clock offset estimate that stamps poses at the robot's "
                                           "own stamps, s", gt=0.0, le=600.0)] = 5.0
     key_file: Annotated[str, meta("the datagram key both ends use (scmbridge keys udp): every datagram carries a keyed "
-                                  "tag and unauthenticated ones are dropped; empty: none (loopback tests only)")] = ""
+                                  "tag and unauthenticated ones are dropped; commands are bound to the robot's boot "
+                                  "and clock (the session); empty: refused unless insecure")] = ""
+    insecure: Annotated[bool, meta("run without a key_file: no authentication, no replay protection, anyone on the "
+                                   "segment drives the robot (loopback tests only; warned in the log)")] = False
 
     def __post_init__(self) -> None:
         if self.robot_port == 0:
@@ -151,14 +185,22 @@ class UdpDriver:
         self._clock = ClockOffset(config.clock_window_s)  # the robot's stamps -> our monotonic clock
         self._robot_stamp = -math.inf  # the last robot stamp taken in this epoch
         self._health = LinkHealth()
+        self.session = (0, 0)  # (the robot's boot nonce, its newest clock reading in us) from its accepted states
 
     @property
     def robot_text(self) -> str:
         return f"{self.config.robot_host}:{self.config.robot_port}"
 
     def open(self, now: float) -> None:
-        """Resolve the robot's address, bind, and greet the robot with stops until its first state arrives."""
+        """Resolve the robot's address, bind, and greet the robot with stops until its first state arrives. Without
+        a key and without ``insecure`` it refuses (:class:`bridge.core.auth.KeyFileError`: one line, no retry)."""
+        if not self.config.key_file and not self.config.insecure:
+            raise KeyFileError("the UDP link has no key_file: make one (scmbridge keys udp --robot NAME) and name it "
+                               "in [link.udp] key_file, or set insecure = true there (loopback tests only)")
         self.key = load_key(self.config.key_file, "udp") if self.config.key_file else None
+        if self.key is None:
+            log.warning("the UDP link to %s runs insecure (no key_file): no authentication, no replay protection; "
+                        "anyone on the segment can drive the robot", self.robot_text)
         self.robot_addr = resolve_ipv4(self.config.robot_host, self.config.robot_port)
         sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         try:
@@ -190,7 +232,9 @@ class UdpDriver:
                         sender="driver", epoch=self.epoch)
         data = M.encode(msg)
         try:
-            self.sock.sendto(seal(self.key, data) if self.key is not None else data, self.robot_addr)
+            if self.key is not None:
+                data = seal_session(self.key, self.session[0], self.session[1], data)
+            self.sock.sendto(data, self.robot_addr)
             self._health.frames_sent += 1
         except OSError:  # a full socket buffer (non-blocking) or an unreachable network: dropped, counted
             self._health.errors += 1
@@ -250,6 +294,7 @@ class UdpDriver:
         elif prev_epoch is not None and st.seq > prev_seq + 1:
             self.counters["state_gaps"] += st.seq - prev_seq - 1
         self.last_state_time = now
+        self.session = (st.epoch, round(st.stamp * 1e6))  # what the next commands echo (see "Session")
         if st.stamp <= self._robot_stamp:  # not a running clock (a firmware that sends 0): the receipt it is
             self.counters["stamp_fallbacks"] += 1
             return Pose(receipt, st.x, st.y, st.theta, st.v, st.omega)

@@ -22,6 +22,7 @@ from typing import TYPE_CHECKING
 from bridge.core.args import pose_arg, positive_float
 from bridge.core.auth import load_key
 from bridge.core.errors import UsageError
+from bridge.core.paths import state_dir
 
 if TYPE_CHECKING:
     from sim_learner.vehicle import SimVehicle
@@ -62,6 +63,10 @@ def arguments(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--watchdog", type=float, default=0.5, help="(udp) no command for this long stops it, s")
     ap.add_argument("--key-file", default=None, help="(udp) the datagram key (scmbridge keys udp): commands must "
                     "carry its tag; (mavlink) the signing key: unsigned messages are refused")
+    ap.add_argument("--signing-store", default=None, help="(mavlink) the file standing for the autopilot's storage: "
+                    "the signing timestamp is kept there across restarts, as ArduPilot keeps it (default: "
+                    "<state dir>/emulator/mavlink-PORT.signing; 'none': a key as just set by SETUP_SIGNING at each "
+                    "start)")
 
 
 def _mavlink(args: argparse.Namespace, vehicle: SimVehicle, stop: threading.Event) -> None:
@@ -69,7 +74,9 @@ def _mavlink(args: argparse.Namespace, vehicle: SimVehicle, stop: threading.Even
 
     port = 14550 if args.port is None else args.port
     key = load_key(args.key_file) if args.key_file else None
-    with MavlinkRover(vehicle, args.host, port, signing_key=key) as rover:
+    store = args.signing_store or str(state_dir() / "emulator" / f"mavlink-{port}.signing")
+    with MavlinkRover(vehicle, args.host, port, signing_key=key,
+                      signing_store=None if store == "none" or key is None else store) as rover:
         print(f"learner on mavlink udp {args.host}:{rover.port}, model {args.model}", flush=True)
         stop.wait(args.duration)
 

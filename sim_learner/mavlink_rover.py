@@ -46,7 +46,21 @@ driver that is wrong about the vehicle. Paths are in github.com/ArduPilot/ardupi
   received last 3.0 secs, stopping" and a stop.
 * Signing (libraries/GCS_MAVLink/GCS_Signing.cpp, as SETUP_SIGNING leaves it): with ``signing_key``, every message
   it sends is signed, and a message that is unsigned (other than RADIO_STATUS / RADIO), badly signed or whose
-  signature timestamp goes back on its stream is refused before it is handled (counted in ``bad_signatures``).
+  signature timestamp goes back on its stream is refused before it is handled (counted in ``bad_signatures``). The
+  check runs in the C library's order (generated mavlink_helpers.h ``mavlink_signature_check``): the signature
+  first, then the stream's timestamp (a new stream is taken if at most one minute behind ours), and only a verified
+  message records its stream's timestamp and raises ours; pymavlink's own check records it first, so one forged
+  packet could lock the ground station out (docs/SECURITY.md). One signing state serves sending and receiving, as
+  ``mavlink_signing_t`` does on every channel. The timestamp survives a reboot as ArduPilot keeps it:
+  ``signing_store`` stands for the autopilot's storage (StorageKeys); the timestamp is saved when a HEARTBEAT is
+  queued if ``signing_save_s`` (30 s, ``save_signing_timestamp(false)``) have passed since the last save, and at once
+  when the GPS gives the time (``update_signing_timestamp``: the timestamp rises to the GPS's UTC, here the wall
+  clock when the EKF gets its origin, and ``save_signing_timestamp(true)``), and only if it grew. At boot
+  (``load_signing_key``) the timestamp is the stored one plus one minute. ArduPilot saves nothing at power-off, so a
+  message signed after the last save is still taken after a reboot (as a new stream: at most one minute behind);
+  everything signed before the last save is refused. Without a store (or none saved yet, or one saved for another
+  key: the store keeps a digest of the key beside the timestamp) the key counts as just set by SETUP_SIGNING from a
+  ground station, whose ``initial_timestamp`` is its wall clock; it is saved then.
 * Parameters (Rover/Parameters.cpp defaults: FS_ACTION 2 = Hold, FS_TIMEOUT 1.5 s, FS_GCS_ENABLE 0, FS_GCS_TIMEOUT 5 s;
   SYSID_MYGCS 255): PARAM_REQUEST_READ by name (index -1) or index, and PARAM_REQUEST_LIST, answered with PARAM_VALUE
   (REAL32); an unknown name gets no answer, as in AP_Param.
@@ -71,24 +85,65 @@ NED (x north, y east, yaw clockwise from north) on the wire, ENU in :class:`sim_
 
 from __future__ import annotations
 
+import hashlib
+import json
 import math
 import os
 import queue
 import select
 import socket
+import struct
 import threading
 import time
 from collections.abc import Callable
+from pathlib import Path
 from typing import Any
 
 os.environ.setdefault("MAVLINK20", "1")
 from pymavlink import mavutil  # noqa: E402
 
+from bridge.core.paths import save_atomic  # noqa: E402
 from sim_learner.device import ThreadedDevice  # noqa: E402
 from sim_learner.vehicle import SimVehicle  # noqa: E402
 
 mavutil.set_dialect("ardupilotmega")
 MAV = mavutil.mavlink
+
+#: GCS_Signing.cpp: the timestamp is saved every 30 s (when a HEARTBEAT is queued), and at boot it starts one
+#: minute past the saved one; both in 10 us units since 2015-01-01 where a timestamp is meant
+SIGNING_SAVE_S = 30.0
+SIGNING_BOOT_AHEAD = 60 * 100 * 1000
+#: a new signing stream is taken if its timestamp is at most this far behind ours (mavlink_signature_check)
+SIGNING_NEW_STREAM = 6000 * 1000
+_EPOCH_2015 = 1420070400
+
+
+def signing_wall_clock() -> int:
+    """Now in MAVLink signing units (10 us since 2015-01-01 UTC), as a GPS or a ground station gives it."""
+    return int(max(0.0, time.time() - _EPOCH_2015) * 100_000)
+
+
+def _c_order_check(mav: Any) -> Callable[[bytearray, int, int], bool]:
+    """``mavlink_signature_check`` of the C library for ``mav``: the signature first, then the timestamp against the
+    stream's last one (or, for a new stream, against ours less one minute); only then are both recorded."""
+    unpack = struct.Struct("<IH").unpack
+
+    def check(msgbuf: bytearray, src_system: int, src_component: int) -> bool:
+        sig = mav.signing
+        if hashlib.sha256(bytes(sig.secret_key) + bytes(msgbuf[:-6])).digest()[:6] != bytes(msgbuf[-6:]):
+            return False
+        low, high = unpack(bytes(msgbuf[-12:-6]))
+        stamp = low + (high << 32)
+        stream = (msgbuf[-13], src_system, src_component)
+        last = sig.stream_timestamps.get(stream)
+        if (last is None and stamp + SIGNING_NEW_STREAM < sig.timestamp) or (last is not None and stamp <= last):
+            return False
+        sig.stream_timestamps[stream] = stamp
+        sig.timestamp = max(sig.timestamp, stamp)
+        return True
+
+    return check
+
 
 def _accept_unsigned(mav: Any, msg_id: int) -> bool:
     """GCS_Signing.cpp ``accept_unsigned_callback``: a radio's own status messages pass unsigned, nothing else."""
@@ -158,7 +213,8 @@ class MavlinkRover(ThreadedDevice):
                  guid_timeout: float = 3.0, init_s: float = 0.3, ekf_position_s: float = 1.0,
                  ekf_origin_s: float | None = None, initial_mode: str = "MANUAL",
                  params: dict[str, float] | None = None, decel_max: float = 2.0, coast_decel: float = 0.3,
-                 signing_key: bytes | None = None) -> None:
+                 signing_key: bytes | None = None, signing_store: str | os.PathLike[str] | None = None,
+                 signing_save_s: float = SIGNING_SAVE_S) -> None:
         super().__init__()
         if transport not in ("udp", "tcp"):
             raise ValueError(f"transport {transport!r}: udp or tcp")
@@ -204,14 +260,64 @@ class MavlinkRover(ThreadedDevice):
         self.mav.robust_parsing = True
         self._parser = MAV.MAVLink(None, srcSystem=self.sysid, srcComponent=self.compid)
         self._parser.robust_parsing = True
+        self.signing_store = Path(signing_store) if signing_store is not None else None
+        self.signing_save_s = float(signing_save_s)
+        self.signing_saves = 0  # timestamps written to the store
+        self._signing_saved = 0  # the timestamp in the store
+        self._signing_save_time = -math.inf
+        self._gps_time = False  # the GPS has given the time (update_signing_timestamp done)
         if signing_key is not None:  # GCS_Signing.cpp: once a key is set, unsigned messages are refused
-            for m in (self.mav, self._parser):
-                m.signing.secret_key = signing_key
-                m.signing.sign_outgoing = True
-                m.signing.link_id = 0
-                m.signing.timestamp = int(max(0.0, time.time() - 1420070400) * 1e5)  # 10 us since 2015
-                m.signing.allow_unsigned_callback = _accept_unsigned
+            sig = self.mav.signing
+            self._parser.signing = sig  # one mavlink_signing_t for both directions
+            sig.secret_key = signing_key
+            sig.sign_outgoing = True
+            sig.link_id = 0
+            sig.allow_unsigned_callback = _accept_unsigned
+            stored = self._load_signing_timestamp()
+            if stored is None:  # SETUP_SIGNING from a ground station: its clock, saved (handle_setup_signing)
+                sig.timestamp = signing_wall_clock()
+                self._save_signing_timestamp(time.monotonic(), force=True)
+            else:  # load_signing_key: one minute past the last recorded
+                self._signing_saved = stored
+                sig.timestamp = stored + SIGNING_BOOT_AHEAD
+            self._parser.check_signature = _c_order_check(self._parser)
         self.t0 = time.monotonic()
+
+    # --------------------------------------------------------------------------------------------- signing
+    def _load_signing_timestamp(self) -> int | None:
+        """The timestamp in the store (None: no store, nothing saved yet, or unreadable)."""
+        if self.signing_store is None:
+            return None
+        try:
+            saved = json.loads(self.signing_store.read_text(encoding="utf-8"))
+            value, key = saved["timestamp"], saved["key"]
+        except (OSError, ValueError, KeyError, TypeError):
+            return None
+        if key != self._key_id():  # another key: SETUP_SIGNING replaced the stored key and its timestamp
+            return None
+        return int(value) if isinstance(value, int) and value > 0 else None
+
+    def _key_id(self) -> str:
+        """What the store keeps of the key (ArduPilot keeps the key itself; a file here keeps a digest)."""
+        return hashlib.blake2b(bytes(self.mav.signing.secret_key or b""), digest_size=8).hexdigest()
+
+    def _save_signing_timestamp(self, now: float, force: bool = False) -> None:
+        """``save_signing_timestamp``: every ``signing_save_s`` unless forced, and only a timestamp that grew."""
+        if self.mav.signing.secret_key is None or (not force and now - self._signing_save_time < self.signing_save_s):
+            return
+        self._signing_save_time = now
+        stamp = int(self.mav.signing.timestamp)
+        if stamp <= self._signing_saved:
+            return
+        self._signing_saved = stamp
+        if self.signing_store is not None:
+            save_atomic(self.signing_store, json.dumps({"key": self._key_id(), "timestamp": stamp}).encode())
+        self.signing_saves += 1
+
+    @property
+    def signing_timestamp(self) -> int:
+        """The vehicle's signing timestamp now (10 us units since 2015)."""
+        return int(self.mav.signing.timestamp)
 
     # ------------------------------------------------------------------------------------------- transport
     def _open(self) -> None:
@@ -587,6 +693,7 @@ class MavlinkRover(ThreadedDevice):
             if not self.connected:
                 continue
             if now >= due["hb"]:
+                self._save_signing_timestamp(now)  # send_message(MSG_HEARTBEAT): save_signing_timestamp(false)
                 self._heartbeat()
                 due["hb"] = now + 1.0
             self._telemetry(now, due)
@@ -610,6 +717,10 @@ class MavlinkRover(ThreadedDevice):
 
     def _update(self, now: float) -> None:
         self._gcs_failsafe(now)
+        if not self._gps_time and self.has_origin(now) and self.mav.signing.secret_key is not None:
+            self._gps_time = True  # the GPS gives the time: update_signing_timestamp, then a forced save
+            self.mav.signing.timestamp = max(self.mav.signing.timestamp, signing_wall_clock())
+            self._save_signing_timestamp(now, force=True)
         if not self._initialised and now - self.t0 >= self.init_s:
             self._initialised = True
             self.custom_mode = INITIALISING

@@ -5,8 +5,20 @@ It behaves like the firmware it stands in for, which trusts nothing on the netwo
 - **One peer.** It obeys, and streams its state to, one configured peer: the driver host's ``(host, port)``
   (``DEFAULT_PEER`` is the driver's default ``bind_host:bind_port``). ``peer="first"`` pins the first sender of a
   valid command instead (convenient on a bench where the driver's port is not fixed, weaker: whoever speaks first
-  owns the robot until it reboots); it must be asked for. Datagrams from any other address are dropped undecoded
-  and counted (``foreign``); the state goes to the peer only (none before a ``first`` peer is pinned).
+  owns the robot until it reboots; with a key, the first sender of an authenticated datagram, even of an old
+  session, since the driver learns the session only from the states a pinned robot sends); it must be asked for.
+  Datagrams from any other address are dropped undecoded and counted (``foreign``); the state goes to the peer
+  only (none before a ``first`` peer is pinned).
+- **Authentication and session** (with ``key``, the lab's case; the protocol is in :mod:`drivers.udp`'s
+  docstring). A command must be a session datagram (:func:`bridge.core.auth.open_session`) whose keyed tag verifies
+  (``unauthenticated`` otherwise). At boot the robot draws a fresh random 62-bit ``epoch`` (its boot nonce; firmware:
+  the MCU's hardware RNG, or a boot counter kept in flash and bumped before use: it must never repeat) and streams it
+  in every sealed state with its clock (``stamp``: its microsecond counter, as seconds). A command is obeyed only if it
+  carries that nonce (``stale_session`` otherwise: everything recorded before a reboot) and echoes a reading of the
+  robot's clock that is not in its future and at most ``fresh`` s old (``stale`` otherwise: a command held back and
+  released later, or replayed from earlier in this boot). The robot keeps nothing across a reboot and needs no
+  clock agreement with the driver: both checks compare the robot's own numbers. Without a key there is no
+  authentication and so no session either (anyone on the segment can drive the robot: loopback tests only).
 - **Validation.** A datagram that does not decode and validate as a ``Command`` is dropped (``malformed``).
 - **The driver's stream.** Commands go through :class:`bridge.core.gate.SeqGate` on the driver's ``(epoch, seq)``: a
   command not above the last one (a replay, a reorder) is refused (``out_of_order``), so is a seq jump beyond what
@@ -35,7 +47,7 @@ import time
 from typing import Literal
 
 from bridge.core import wire as M
-from bridge.core.auth import open_sealed, seal
+from bridge.core.auth import open_session, seal
 from bridge.core.gate import SeqGate
 from sim_learner.device import ThreadedDevice
 from sim_learner.vehicle import SimVehicle
@@ -44,6 +56,9 @@ from sim_learner.vehicle import SimVehicle
 DEFAULT_PEER: tuple[str, int] = ("127.0.0.1", 47801)
 
 Peer = tuple[str, int] | Literal["first"]
+#: how old the robot's clock reading a command echoes may be, s (the driver echoes the newest state it took; states
+#: stream at 50 Hz, so a live link echoes readings tens of milliseconds old)
+SESSION_FRESH_S = 0.5
 
 
 def _resolve(peer: tuple[str, int]) -> tuple[str, int]:
@@ -53,6 +68,11 @@ def _resolve(peer: tuple[str, int]) -> tuple[str, int]:
     return str(info[0]), int(info[1])
 
 
+def _clock_us(now: float) -> int:
+    """The robot's clock in whole microseconds (an MCU's ``micros()``): what states carry and commands echo."""
+    return int(now * 1e6)
+
+
 class UdpRobot(ThreadedDevice):
     """See the module docstring. ``port`` 0 picks a free port (read ``.port`` after ``start``)."""
 
@@ -60,7 +80,8 @@ class UdpRobot(ThreadedDevice):
 
     def __init__(self, vehicle: SimVehicle, host: str = "127.0.0.1", port: int = 0, *, peer: Peer = DEFAULT_PEER,
                  watchdog: float = 0.5, rate: float = 50.0, v_max: float = 1.0, omega_max: float = 2.0,
-                 silence: float | None = None, epoch: int | None = None, key: bytes | None = None) -> None:
+                 silence: float | None = None, epoch: int | None = None, key: bytes | None = None,
+                 fresh: float = SESSION_FRESH_S) -> None:
         super().__init__()
         if not (v_max > 0.0 and omega_max > 0.0 and math.isfinite(v_max) and math.isfinite(omega_max)):
             raise ValueError(f"the robot's limits must be finite and > 0, not v_max={v_max}, omega_max={omega_max}")
@@ -75,10 +96,12 @@ class UdpRobot(ThreadedDevice):
         self.period = 1.0 / float(rate)
         self.v_max, self.omega_max = float(v_max), float(omega_max)
         self.silence = self.watchdog if silence is None else float(silence)
-        self.epoch = M.new_epoch() if epoch is None else int(epoch)
+        self.epoch = M.new_epoch() if epoch is None else int(epoch)  # the boot nonce (states carry it)
+        self.fresh_us = int(float(fresh) * 1e6)
         self.counters: dict[str, int] = dict.fromkeys(
-            ("received", "applied", "malformed", "foreign", "unauthenticated", "out_of_order", "seq_jump", "old_epoch",
-             "foreign_epoch", "over_limits", "watchdog_stops", "states_sent", "states_paused", "reboots"), 0)
+            ("received", "applied", "malformed", "foreign", "unauthenticated", "stale_session", "stale",
+             "out_of_order", "seq_jump", "old_epoch", "foreign_epoch", "over_limits", "watchdog_stops", "states_sent",
+             "states_paused", "reboots"), 0)
         self.gate = SeqGate(silence_s=self.silence)
         self.last_cmd: M.Command | None = None  # the last command applied (or the last stop)
         self.last_cmd_time = -math.inf
@@ -154,9 +177,19 @@ class UdpRobot(ThreadedDevice):
             c["foreign"] += 1
             return
         if self.key is not None:
-            data = open_sealed(self.key, data)
-            if data is None:
+            opened = open_session(self.key, data)
+            if opened is None:
                 c["unauthenticated"] += 1
+                return
+            boot, echo_us, data = opened
+            if self.peer is None:  # "first", keyed: the driver learns the session from the states a pinned robot sends
+                self.peer = src
+            if boot != self.epoch:  # sealed for another boot of this robot (a recording), or before the first state
+                c["stale_session"] += 1
+                return
+            age_us = _clock_us(now) - echo_us
+            if not 0 <= age_us <= self.fresh_us:  # held back, or replayed from earlier in this boot
+                c["stale"] += 1
                 return
         try:
             cmd = M.decode(data, M.Command)
@@ -189,7 +222,7 @@ class UdpRobot(ThreadedDevice):
             return
         x, y, th = self.vehicle.measured_pose(now)
         st = self.vehicle.state
-        msg = M.LearnerState(stamp=now, seq=self._seq, x=x, y=y, theta=th, v=st.v, omega=st.omega,
+        msg = M.LearnerState(stamp=_clock_us(now) / 1e6, seq=self._seq, x=x, y=y, theta=th, v=st.v, omega=st.omega,
                              source="udp-robot", epoch=self.epoch)
         self._seq += 1
         if now < self._pause_until:

@@ -50,3 +50,19 @@ def test_unsafe_or_malformed_key_files_are_refused_in_one_line(tmp_path) -> None
     f.write_text("not hex")
     with pytest.raises(auth.KeyFileError, match="32 bytes as hex"):
         auth.load_key(f)
+
+
+def test_state_files_are_private_whatever_the_umask(tmp_path) -> None:
+    """``save_atomic`` (keys, the estop latch, the pair store): the file 0600, the directories it makes 0700."""
+    from bridge.core.paths import save_atomic
+
+    old = os.umask(0)
+    try:
+        target = tmp_path / "made" / "here" / "state.bin"
+        save_atomic(target, b"one")
+        save_atomic(target, b"two")  # replaced: still private
+    finally:
+        os.umask(old)
+    assert target.read_bytes() == b"two"
+    assert oct(target.stat().st_mode & 0o777) == "0o600"
+    assert {oct(d.stat().st_mode & 0o777) for d in (target.parent, target.parent.parent)} == {"0o700"}

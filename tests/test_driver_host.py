@@ -82,7 +82,7 @@ def driver_host(request, tmp_path):
 
             bind = free_udp_port()
             device = UdpRobot(vehicle, peer=("127.0.0.1", bind)).start()
-            cfg.write_text(f"[link.udp]\nrobot_port = {device.port}\nbind_port = {bind}\n")
+            cfg.write_text(f"[link.udp]\ninsecure = true\nrobot_port = {device.port}\nbind_port = {bind}\n")
         else:
             from sim_learner.mavlink_rover import MavlinkRover
 

@@ -232,7 +232,7 @@ def test_the_udp_robot_gets_no_motion_before_engage_and_none_at_all_in_a_dry_run
     with UdpRobot(vehicle, peer=("127.0.0.1", bind)) as dev, \
             open_session(make_config(mode="router", listen=[tcp(port)])) as session, Children() as kids:
         cfg = tmp_path / "driver.toml"
-        cfg.write_text(f"[link.udp]\nrobot_port = {dev.port}\nbind_port = {bind}\n")
+        cfg.write_text(f"[link.udp]\ninsecure = true\nrobot_port = {dev.port}\nbind_port = {bind}\n")
         col = Collector(session)
         applied = col.listen(M.key(robot, "applied"), M.Applied)
         status = col.listen(M.status_key(robot, "driver"), M.Status)
@@ -289,7 +289,8 @@ def test_a_driver_host_started_before_its_vehicle_waits_for_it_and_says_so(tmp_p
     robot_port = free_udp_port()
     with open_session(make_config(mode="router", listen=[tcp(port)])) as session, Children() as kids:
         cfg = tmp_path / "driver.toml"
-        cfg.write_text(f"[link.udp]\nrobot_port = {robot_port}\nbind_port = {bind}\nopen_timeout = 0.5\n")
+        cfg.write_text(f"[link.udp]\ninsecure = true\nrobot_port = {robot_port}\nbind_port = {bind}\n"
+                       "open_timeout = 0.5\n")
         col = Collector(session)
         status = col.listen(M.status_key(robot, "driver"), M.Status)
         host = kids.spawn(["driver", "--link", "udp", "--config", str(cfg), "--robot", robot, "--mode", "client",

@@ -71,7 +71,7 @@ def test_stale_telemetry_stops_the_robot_and_a_killed_driver_host_leaves_it_to_i
     with UdpRobot(vehicle, peer=("127.0.0.1", bind), watchdog=0.5) as dev, \
             open_session(make_config(mode="router", listen=[tcp(port)])) as session, Children() as kids:
         cfg = tmp_path / "driver.toml"
-        cfg.write_text(f"[link.udp]\nrobot_port = {dev.port}\nbind_port = {bind}\n")
+        cfg.write_text(f"[link.udp]\ninsecure = true\nrobot_port = {dev.port}\nbind_port = {bind}\n")
         k, col = M.Keys(robot), Collector(session)
         applied, status = col.listen(k.applied, M.Applied), col.listen(M.status_key(robot, "driver"), M.Status)
         lock = col.lock

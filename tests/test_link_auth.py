@@ -63,7 +63,8 @@ def test_a_driver_without_the_key_cannot_move_a_robot_that_has_one(key_file) -> 
     vehicle = SimVehicle(mpc_learner(), (0.0, 0.0, 0.0), now=time.monotonic())
     bind = free_udp_port()
     with UdpRobot(vehicle, peer=("127.0.0.1", bind), key=load_key(key_file)) as robot:
-        driver = open_driver("udp", UdpLinkConfig(robot_port=robot.port, bind_port=bind, open_timeout=0.5))
+        driver = open_driver("udp", UdpLinkConfig(robot_port=robot.port, bind_port=bind, open_timeout=0.5,
+                                                  insecure=True))  # no key: an insecure driver
         try:
             with pytest.raises(DriverError, match="no state"):  # its states are sealed: not decodable without it
                 driver.open(time.monotonic())

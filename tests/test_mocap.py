@@ -116,7 +116,7 @@ def test_the_driver_host_publishes_mocap_poses_on_its_clock_and_they_pair_with_t
     cfg = tmp_path / "driver.toml"
     with UdpRobot(vehicle, peer=("127.0.0.1", bind)) as robot_dev, \
             open_session(make_config(mode="router", listen=[tcp(port)])) as session, Children() as kids:
-        cfg.write_text(f'[driver]\npose_source = "mocap"\n[link.udp]\nrobot_port = {robot_dev.port}\n'
+        cfg.write_text(f'[driver]\npose_source = "mocap"\n[link.udp]\ninsecure = true\nrobot_port = {robot_dev.port}\n'
                        f"bind_port = {bind}\n")
         k, col = M.Keys(robot), Collector(session)
         states, applied = col.listen(k.state, M.LearnerState), col.listen(k.applied, M.Applied)

@@ -128,7 +128,7 @@ class ScriptedRobot:
 def scripted():
     """An opened driver (state_timeout_s 0.3) and the scripted robot it is pinned to."""
     robot = ScriptedRobot()
-    driver = open_driver("udp", UdpLinkConfig(robot_port=robot.port, bind_port=0, state_timeout_s=0.3,
+    driver = open_driver("udp", UdpLinkConfig(insecure=True, robot_port=robot.port, bind_port=0, state_timeout_s=0.3,
                                               open_timeout=2.0))
     try:
         with robot.answering():
@@ -249,7 +249,7 @@ def test_health_is_ok_only_while_the_robots_state_is_fresh(scripted) -> None:
 
 def test_health_is_not_ok_before_the_first_state() -> None:
     with udp_socket() as silent:  # a robot that never answers
-        driver = open_driver("udp", UdpLinkConfig(robot_port=silent.getsockname()[1], bind_port=0,
+        driver = open_driver("udp", UdpLinkConfig(insecure=True, robot_port=silent.getsockname()[1], bind_port=0,
                                                   open_timeout=0.2))
         assert not health(driver).ok
         with pytest.raises(DriverError, match="no state from the UDP robot"):
@@ -303,7 +303,8 @@ def test_commands_carry_the_drivers_epoch_and_name_and_send_does_not_block(scrip
 
 def test_robot_host_is_resolved_once_at_open() -> None:
     robot = ScriptedRobot()
-    driver = open_driver("udp", UdpLinkConfig(robot_host="localhost", robot_port=robot.port, bind_port=0))
+    driver = open_driver("udp", UdpLinkConfig(insecure=True, robot_host="localhost", robot_port=robot.port,
+                                              bind_port=0))
     try:
         with robot.answering():
             driver.open(time.monotonic())
@@ -320,7 +321,7 @@ def rig():
     port = free_udp_port()
     vehicle = SimVehicle(mpc_learner(), (0.0, 0.0, 0.0), now=time.monotonic())
     robot = UdpRobot(vehicle, peer=(LOCAL, port), watchdog=0.3).start()
-    driver = open_driver("udp", UdpLinkConfig(robot_port=robot.port, bind_port=port))
+    driver = open_driver("udp", UdpLinkConfig(insecure=True, robot_port=robot.port, bind_port=port))
     try:
         driver.open(time.monotonic())
         yield driver, robot, vehicle
@@ -401,7 +402,7 @@ def test_the_robot_obeys_and_answers_only_its_configured_peer(rig) -> None:
 def test_first_sender_mode_pins_the_first_valid_sender() -> None:
     vehicle = SimVehicle(mpc_learner(), (0.0, 0.0, 0.0), now=time.monotonic())
     with UdpRobot(vehicle, peer="first", watchdog=0.3) as robot:
-        driver = open_driver("udp", UdpLinkConfig(robot_port=robot.port, bind_port=0))
+        driver = open_driver("udp", UdpLinkConfig(insecure=True, robot_port=robot.port, bind_port=0))
         try:
             with udp_socket() as stranger:
                 stranger.sendto(b"\x01not a command", (LOCAL, robot.port))  # garbage does not pin anyone
@@ -437,7 +438,7 @@ def test_a_restarted_driver_host_is_recognised_after_a_silence_and_old_commands_
     port = free_udp_port()
     vehicle = SimVehicle(mpc_learner(), (0.0, 0.0, 0.0), now=time.monotonic())
     with UdpRobot(vehicle, peer=(LOCAL, port), watchdog=0.3) as robot:
-        cfg = UdpLinkConfig(robot_port=robot.port, bind_port=port)
+        cfg = UdpLinkConfig(insecure=True, robot_port=robot.port, bind_port=port)
         first = open_driver("udp", cfg)
         first.open(time.monotonic())
         for _ in range(20):
@@ -491,7 +492,7 @@ def test_the_learner_command_serves_its_peer_only_and_refuses_a_bad_peer(tmp_pat
     proc = subprocess.Popen(py + ["--port", str(robot_port), "--peer", f"{LOCAL}:{port}", "--v-max", "0.5",
                                   "--duration", "30"], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
                             start_new_session=True)
-    driver = open_driver("udp", UdpLinkConfig(robot_port=robot_port, bind_port=port, open_timeout=20.0))
+    driver = open_driver("udp", UdpLinkConfig(insecure=True, robot_port=robot_port, bind_port=port, open_timeout=20.0))
     try:
         driver.open(time.monotonic())
         assert health(driver).ok

@@ -63,8 +63,8 @@ def udp_driver(n: int, seed: int, workdir: Path | None = None) -> dict:
         stack.callback(fake.close)
         stack.callback(stranger.close)
         robot_port = fake.getsockname()[1]
-        driver = open_driver("udp", UdpLinkConfig(robot_port=robot_port, bind_port=0, state_timeout_s=0.3,
-                                                  open_timeout=5.0))
+        driver = open_driver("udp", UdpLinkConfig(insecure=True, robot_port=robot_port, bind_port=0,
+                                                  state_timeout_s=0.3, open_timeout=5.0))
         stack.callback(driver.close)
         stream = StateStream(rng)
 
@@ -165,7 +165,8 @@ def udp_robot(n: int, seed: int, workdir: Path | None = None) -> dict:
         rss1 = rss_mb()
         peer_port = peer.getsockname()[1]
         peer.close()
-        driver = open_driver("udp", UdpLinkConfig(robot_port=robot.port, bind_port=peer_port, open_timeout=5.0))
+        driver = open_driver("udp", UdpLinkConfig(insecure=True, robot_port=robot.port, bind_port=peer_port,
+                                                  open_timeout=5.0))
         stack.callback(driver.close)
         try:
             driver.open(time.monotonic())

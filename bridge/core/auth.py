@@ -5,6 +5,11 @@ Pinning a peer's address and port is not authentication: anyone on the segment c
 which carries the sender's epoch and seq: a replay is then refused by the seq gate). Both ends read one key file
 (32 random bytes, hex, mode 0600) made by ``scmbridge keys udp --robot R`` in the state directory; a datagram
 whose tag does not verify is counted and dropped by the receiver. Pure apart from reading and writing key files.
+
+Session datagrams (the UDP shim's commands, drivers/udp.py has the protocol): ``SESSION_MAGIC + tag + boot + echo +
+payload``, ``boot`` the receiver's boot nonce and ``echo`` a reading of the receiver's own clock (microseconds), both
+unsigned 64-bit big-endian, the tag covering the magic, both and the payload. The receiver checks ``boot`` against
+its current one and ``echo`` against its clock, so nothing sealed before its reboot, or long ago, is obeyed.
 """
 
 from __future__ import annotations
@@ -14,6 +19,7 @@ import hmac
 import os
 import secrets
 import stat
+import struct
 from pathlib import Path
 
 from bridge.core.errors import UsageError
@@ -29,8 +35,32 @@ class KeyFileError(UsageError):
     """A key file that is missing, unreadable, malformed or readable by others: one line, the fix named."""
 
 
-def _tag(key: bytes, payload: bytes) -> bytes:
-    return hashlib.blake2b(MAGIC + payload, key=key, digest_size=TAG_BYTES).digest()
+SESSION_MAGIC = b"\xa5\x02"  # a session datagram (the receiver's boot nonce and clock echoed), version 1
+_SESSION = struct.Struct(">QQ")
+SESSION_OVERHEAD = len(SESSION_MAGIC) + TAG_BYTES + _SESSION.size
+U64_MAX = 2**64 - 1
+
+
+def _tag(key: bytes, payload: bytes, magic: bytes = MAGIC) -> bytes:
+    return hashlib.blake2b(magic + payload, key=key, digest_size=TAG_BYTES).digest()
+
+
+def seal_session(key: bytes, boot: int, echo_us: int, payload: bytes) -> bytes:
+    """The session datagram carrying ``payload`` for a receiver whose boot nonce is ``boot``, echoing its clock
+    reading ``echo_us`` (both clamped to unsigned 64 bits), with its tag over everything."""
+    body = _SESSION.pack(min(max(int(boot), 0), U64_MAX), min(max(int(echo_us), 0), U64_MAX)) + payload
+    return SESSION_MAGIC + _tag(key, body, SESSION_MAGIC) + body
+
+
+def open_session(key: bytes, datagram: bytes) -> tuple[int, int, bytes] | None:
+    """``(boot, echo_us, payload)`` if ``datagram`` is a session datagram sealed with ``key``, else None."""
+    if len(datagram) < SESSION_OVERHEAD or datagram[: len(SESSION_MAGIC)] != SESSION_MAGIC:
+        return None
+    tag, body = datagram[len(SESSION_MAGIC):len(SESSION_MAGIC) + TAG_BYTES], datagram[len(SESSION_MAGIC) + TAG_BYTES:]
+    if not hmac.compare_digest(tag, _tag(key, body, SESSION_MAGIC)):
+        return None
+    boot, echo_us = _SESSION.unpack_from(body)
+    return boot, echo_us, body[_SESSION.size:]
 
 
 def seal(key: bytes, payload: bytes) -> bytes:
@@ -87,4 +117,5 @@ def load_key(path: str | Path, link: str = "udp") -> bytes:
     return key
 
 
-__all__ = ["KEY_BYTES", "MAGIC", "OVERHEAD", "KeyFileError", "key_path", "load_key", "make_key", "open_sealed", "seal"]
+__all__ = ["KEY_BYTES", "MAGIC", "OVERHEAD", "SESSION_MAGIC", "SESSION_OVERHEAD", "KeyFileError", "key_path",
+           "load_key", "make_key", "open_sealed", "open_session", "seal", "seal_session"]

@@ -36,14 +36,37 @@ def cache_dir() -> Path:
     return Path(base) / "scmbridge"
 
 
+def _make_private_dirs(directory: Path) -> None:
+    """Create ``directory`` and its missing parents, each 0700 (``mkdir -p`` would give the parents the umask's)."""
+    missing = []
+    d = directory
+    while not d.exists():
+        missing.append(d)
+        if d.parent == d:
+            break
+        d = d.parent
+    for d in reversed(missing):
+        try:
+            d.mkdir(mode=0o700)
+        except FileExistsError:  # made meanwhile by another process
+            continue
+        os.chmod(d, 0o700)  # mkdir's mode goes through the umask
+
+
 def save_atomic(path: Path, data: bytes) -> None:
     """Write ``data`` so that ``path`` holds either the old or the new content, never a torn file (write, fsync,
-    rename, fsync the directory); on failure (a full disk) the temporary file is removed and the error raised."""
+    rename, fsync the directory); on failure (a full disk) the temporary file is removed and the error raised.
+
+    What a node keeps is private to its user: the file is 0600 whatever the umask (a key, the estop latch, the pairs
+    a station learns from), and the directories it creates are 0700. A directory that exists is left as its owner
+    set it (the shipped systemd units ask for ``StateDirectoryMode=0700``)."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
+    _make_private_dirs(path.parent)
     tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
     try:
-        with open(tmp, "wb") as f:
+        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC | getattr(os, "O_CLOEXEC", 0), 0o600)
+        with open(fd, "wb") as f:
+            os.fchmod(f.fileno(), 0o600)  # also a stale temporary file left by a crash with other bits
             f.write(data)
             f.flush()
             os.fsync(f.fileno())

@@ -1,6 +1,12 @@
 """The MAVLink connection to one vehicle and the command protocol on it: a pymavlink connection re-opened with
 backoff, our ground station HEARTBEAT, and COMMAND_LONGs sent one at a time, re-sent until their COMMAND_ACK (that
-names the command and, when MAVLink 2 carries them, addresses us) or out of tries."""
+names the command and, when MAVLink 2 carries them, addresses us) or out of tries.
+
+Signing: pymavlink (2.4.x, ``MAVLink.check_signature`` of every generated dialect) records a message's signature
+timestamp for its stream *before* it checks the signature, so one forged packet with a far-future timestamp makes
+every genuine message of that stream "too old" until the link is re-opened. :func:`verify_before_recording` wraps
+the check so the stream's timestamp only moves for a message whose signature verified, as the C library does
+(``mavlink_signature_check``); docs/SECURITY.md has the report."""
 
 from __future__ import annotations
 
@@ -21,6 +27,31 @@ log = logging.getLogger("scmbridge.driver.mavlink")
 
 NO_ACK = -1  # a command that got no COMMAND_ACK after all its tries
 _BACKOFF0 = 0.25
+
+
+def verify_before_recording(mav: Any) -> None:
+    """Make ``mav`` (a pymavlink ``MAVLink``) advance a signing stream's timestamp only for a message whose signature
+    verified: pymavlink's own ``check_signature`` records the timestamp first, so a forged message with a far-future
+    timestamp would lock the genuine stream out (docs/SECURITY.md). The wrapper puts the stream's entry back as it
+    was whenever the check fails; a pymavlink that checks in the right order is left unchanged in effect."""
+    check = mav.check_signature
+    if getattr(check, "verifies_before_recording", False):
+        return
+
+    def checked(msgbuf: bytearray, src_system: int, src_component: int) -> bool:
+        stamps = mav.signing.stream_timestamps
+        stream = (msgbuf[-13], src_system, src_component)  # (link id, system, component), as pymavlink keys it
+        had, before = stream in stamps, stamps.get(stream)
+        ok = bool(check(msgbuf, src_system, src_component))
+        if not ok:
+            if had:
+                stamps[stream] = before
+            else:
+                stamps.pop(stream, None)
+        return ok
+
+    checked.verifies_before_recording = True  # type: ignore[attr-defined]
+    mav.check_signature = checked
 
 
 def result_name(result: int) -> str:
@@ -64,6 +95,7 @@ class MavlinkClient:
         self.conn_time = math.inf  # when the connection was opened
         self.backoff = Backoff(_BACKOFF0, config.reconnect_max_s)
         self._bad_sig_before = 0  # refused signatures on connections closed since
+        self._warned_unsigned = False
         self._reconnect_due = 0.0
         self._hb_due = 0.0
         self._queue: deque[Command] = deque()  # commands, one at a time (an ACK names only the command)
@@ -76,6 +108,11 @@ class MavlinkClient:
             source_component=self.dialect.source_component, dialect="ardupilotmega", autoreconnect=False, retries=0)
         if self.signing_key is not None:  # MAVLink 2 signing: ours signed, unsigned or forged ones refused
             conn.setup_signing(self.signing_key, sign_outgoing=True, allow_unsigned_callback=None)
+            verify_before_recording(conn.mav)
+        elif not self._warned_unsigned:
+            self._warned_unsigned = True
+            log.warning("MAVLink signing is off on %s (no signing_key_file): anyone on the link can command the "
+                        "vehicle; make a key with scmbridge keys mavlink and give it to both ends", self.url)
         if hasattr(conn, "handle_eof"):  # TCP: pymavlink prints and would reconnect itself on EOF; we do it
             def failed() -> None:
                 self.failed = "connection closed by the vehicle"

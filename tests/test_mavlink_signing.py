@@ -1,0 +1,225 @@
+"""MAVLink 2 signing that one forged packet cannot poison, and replays refused after the vehicle reboots.
+
+Findings this answers (a hostile test, emulated links): pymavlink records a message's signing timestamp before it
+checks the signature, so one packet with a wrong key and a far-future timestamp made every later genuine message
+"too old" (the driver host's link stayed down >= 60 s; sent to the emulated rover, an estop then took 2.8 s); and
+signed traffic recorded off the wire armed and drove a rebooted emulated rover within MAVLink's one-minute window.
+docs/SECURITY.md has the pymavlink report. Real pymavlink framing over UDP on 127.0.0.1, free ports.
+"""
+
+from __future__ import annotations
+
+import socket
+import time
+from collections.abc import Callable
+
+import pytest
+from pymavlink import mavutil
+
+from bridge.core.auth import make_key
+from drivers import open_driver
+from drivers.mavlink import MavlinkLinkConfig
+from drivers.mavlink.client import verify_before_recording
+from sim_learner.dynamics import mpc_learner
+from sim_learner.mavlink_rover import GUIDED, MavlinkRover, signing_wall_clock
+from sim_learner.vehicle import SimVehicle
+
+MAV = mavutil.mavlink
+TEN_YEARS = 10 * 365 * 86400 * 100_000  # in signing units (10 us)
+
+
+class _Out:
+    """A pymavlink ``file`` that keeps what it is given."""
+
+    def __init__(self) -> None:
+        self.frames: list[bytes] = []
+
+    def write(self, data: bytes) -> None:
+        self.frames.append(bytes(data))
+
+
+def signer(key: bytes, sysid: int, compid: int, link_id: int, timestamp: int) -> tuple[MAV.MAVLink, _Out]:
+    """A MAVLink 2 sender of ``sysid/compid`` signing with ``key`` from ``timestamp``; its frames in ``out``."""
+    out = _Out()
+    mav = MAV.MAVLink(out, srcSystem=sysid, srcComponent=compid)
+    mav.signing.secret_key, mav.signing.sign_outgoing = key, True
+    mav.signing.link_id, mav.signing.timestamp = link_id, timestamp
+    return mav, out
+
+
+def until(pred: Callable[[], bool], timeout: float, step: Callable[[], object] | None = None) -> bool:
+    t_end = time.monotonic() + timeout
+    while time.monotonic() < t_end:
+        if step is not None:
+            step()
+        if pred():
+            return True
+        time.sleep(0.01)
+    return pred()
+
+
+@pytest.fixture
+def keys(tmp_path):
+    good, other = tmp_path / "good.key", tmp_path / "other.key"
+    return make_key(good), make_key(other), good
+
+
+def test_pymavlink_alone_is_poisoned_by_one_forged_packet_and_the_wrapper_is_not(keys) -> None:
+    """The defect on its own, then the project's fix on the same bytes (docs/SECURITY.md)."""
+    key, other, _ = keys
+    now = signing_wall_clock()
+    genuine, g_out = signer(key, 1, 1, 0, now)
+    forger, f_out = signer(other, 1, 1, 0, now + TEN_YEARS)
+    forger.heartbeat_send(MAV.MAV_TYPE_GROUND_ROVER, MAV.MAV_AUTOPILOT_ARDUPILOTMEGA, 0, 0, 0)
+    for _ in range(3):
+        genuine.heartbeat_send(MAV.MAV_TYPE_GROUND_ROVER, MAV.MAV_AUTOPILOT_ARDUPILOTMEGA, 0, 0, 0)
+    for fixed in (False, True):
+        rx = MAV.MAVLink(None, srcSystem=255, srcComponent=190)
+        rx.robust_parsing = True
+        rx.signing.secret_key, rx.signing.timestamp = key, now
+        if fixed:
+            verify_before_recording(rx)
+        got = [m for f in f_out.frames + g_out.frames for m in (rx.parse_buffer(f) or [])
+               if m.get_type() == "HEARTBEAT"]
+        assert rx.signing.badsig_count >= 1
+        assert len(got) == (3 if fixed else 0), (fixed, len(got))
+
+
+def test_one_forged_packet_does_not_take_the_drivers_link_down(keys) -> None:
+    key, other, key_file = keys
+    vehicle = SimVehicle(mpc_learner(), (0.0, 0.0, 0.0), now=time.monotonic())
+    with MavlinkRover(vehicle, init_s=0.1, ekf_position_s=0.2, signing_key=key) as rover:
+        driver = open_driver("mavlink", MavlinkLinkConfig(url=f"udpout:127.0.0.1:{rover.port}", open_timeout=10.0,
+                                                          heartbeat_timeout=1.5, signing_key_file=str(key_file)))
+        try:
+            driver.open(time.monotonic())
+            driver.engage(time.monotonic())
+            before = driver.health(time.monotonic()).detail.bad_signatures
+            forger, out = signer(other, rover.sysid, rover.compid, 0, signing_wall_clock() + TEN_YEARS)
+            forger.heartbeat_send(MAV.MAV_TYPE_GROUND_ROVER, MAV.MAV_AUTOPILOT_ARDUPILOTMEGA, 0, 0, 0)
+            with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:  # any source: udpout reads them all
+                s.sendto(out.frames[0], driver.client.conn.port.getsockname())
+            assert until(lambda: driver.health(time.monotonic()).detail.bad_signatures > before, 2.0,
+                         lambda: driver.poll(time.monotonic()))
+            poses: list = []
+            t_end = time.monotonic() + 2.0  # longer than heartbeat_timeout: the link would be down by then
+            while time.monotonic() < t_end:
+                poses += driver.poll(time.monotonic())
+                time.sleep(0.02)
+            h = driver.health(time.monotonic())
+            assert h.ok and len(poses) > 10, h
+            assert h.detail.bad_signatures == before + 1  # the forged packet, and no genuine message after it
+            assert rover.armed and rover.custom_mode == GUIDED
+        finally:
+            driver.close()
+
+
+def test_one_forged_packet_does_not_block_the_rover_and_a_stop_is_prompt(keys) -> None:
+    key, other, key_file = keys
+    vehicle = SimVehicle(mpc_learner(), (0.0, 0.0, 0.0), now=time.monotonic())
+    with MavlinkRover(vehicle, init_s=0.1, ekf_position_s=0.2, signing_key=key) as rover:
+        driver = open_driver("mavlink", MavlinkLinkConfig(url=f"udpout:127.0.0.1:{rover.port}", open_timeout=10.0,
+                                                          signing_key_file=str(key_file)))
+        try:
+            driver.open(time.monotonic())
+            driver.engage(time.monotonic())
+            conn = driver.client.conn
+            forger, out = signer(other, driver.config.source_system, conn.mav.srcComponent,
+                                 conn.mav.signing.link_id, signing_wall_clock() + TEN_YEARS)
+            forger.heartbeat_send(MAV.MAV_TYPE_GCS, MAV.MAV_AUTOPILOT_INVALID, 0, 0, 0)
+            before = rover.bad_signatures
+            conn.port.sendto(out.frames[0], ("127.0.0.1", rover.port))  # from the driver's own address
+            assert until(lambda: rover.bad_signatures > before, 2.0)
+            t_end = time.monotonic() + 0.6
+            while time.monotonic() < t_end:
+                driver.send(0.4, 0.0, time.monotonic())
+                driver.poll(time.monotonic())
+                time.sleep(0.02)
+            assert vehicle.advance(time.monotonic()).v > 0.1  # genuine set-points still drive it
+            t0 = time.monotonic()
+            assert until(lambda: vehicle.advance(time.monotonic()).v == 0.0, 2.0,
+                         lambda: (driver.stop(time.monotonic()), driver.poll(time.monotonic())))
+            assert time.monotonic() - t0 < 1.0  # braking at 2 m/s^2 from 0.4 m/s: 0.2 s, not seconds
+            assert rover.bad_signatures == before + 2  # the forged packet (bad signature, then not accepted unsigned)
+        finally:
+            driver.close()
+
+
+def _capture(key: bytes, target: MavlinkRover) -> list[bytes]:
+    """What a ground station says to take ``target`` over: GUIDED, arm, then a forward set-point; signed now."""
+    gcs, out = signer(key, 255, 190, 7, signing_wall_clock())
+    custom = MAV.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED
+    gcs.command_long_send(target.sysid, target.compid, MAV.MAV_CMD_DO_SET_MODE, 0, custom, GUIDED, 0, 0, 0, 0, 0)
+    gcs.command_long_send(target.sysid, target.compid, MAV.MAV_CMD_COMPONENT_ARM_DISARM, 0, 1, 0, 0, 0, 0, 0, 0)
+    for _ in range(10):
+        gcs.set_position_target_local_ned_send(0, target.sysid, target.compid, MAV.MAV_FRAME_BODY_NED, 0x05E7,
+                                               0, 0, 0, 0.3, 0, 0, 0, 0, 0, 0, 0)
+    return out.frames
+
+
+def _boot(key: bytes, port: int, store) -> tuple[MavlinkRover, SimVehicle]:
+    vehicle = SimVehicle(mpc_learner(), (0.0, 0.0, 0.0), now=time.monotonic())
+    rover = MavlinkRover(vehicle, port=port, init_s=0.1, ekf_position_s=0.2, signing_key=key, signing_store=store,
+                         signing_save_s=0.2).start()
+    assert until(lambda: rover.has_origin(time.monotonic()) and rover.mode_name == "MANUAL", 3.0)
+    return rover, vehicle
+
+
+def _replay(frames: list[bytes], port: int) -> None:
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        for f in frames:
+            s.sendto(f, ("127.0.0.1", port))
+            time.sleep(0.005)
+
+
+def test_signed_traffic_replayed_after_the_rovers_reboot_is_refused(keys, tmp_path) -> None:
+    key, _, _ = keys
+    store = tmp_path / "rover-signing.json"
+    rover, vehicle = _boot(key, 0, store)
+    port = rover.port
+    try:
+        frames = _capture(key, rover)
+        _replay(frames, port)  # the genuine traffic, as the wire carried it: it takes the rover
+        assert until(lambda: rover.armed and vehicle.distance > 0.0, 2.0)
+        saves = rover.signing_saves
+        assert until(lambda: rover.signing_saves > saves, 3.0)  # the periodic save (at a HEARTBEAT) after it
+    finally:
+        rover.stop()
+    rover, vehicle = _boot(key, port, store)  # rebooted: the same storage
+    try:
+        before = rover.bad_signatures
+        _replay(frames, port)
+        assert until(lambda: rover.bad_signatures >= before + len(frames), 2.0)
+        time.sleep(0.2)
+        assert not rover.armed and rover.mode_name == "MANUAL" and vehicle.distance == 0.0
+    finally:
+        rover.stop()
+
+
+def test_without_a_persisted_timestamp_the_same_replay_would_take_a_rebooted_rover(keys, tmp_path) -> None:
+    """The control: a vehicle that forgets its timestamp (the attack as found) takes the recorded traffic."""
+    key, _, _ = keys
+    rover, _ = _boot(key, 0, None)
+    port = rover.port
+    frames = _capture(key, rover)
+    rover.stop()
+    rover, vehicle = _boot(key, port, None)
+    try:
+        _replay(frames, port)
+        assert until(lambda: rover.armed, 2.0)
+    finally:
+        rover.stop()
+
+
+def test_the_stored_timestamp_is_the_keys_and_starts_a_minute_ahead(keys, tmp_path) -> None:
+    """load_signing_key: one minute past the stored timestamp; a store saved for another key is not this key's."""
+    key, other, _ = keys
+    store = tmp_path / "rover-signing.json"
+    vehicle = SimVehicle(mpc_learner(), (0.0, 0.0, 0.0), now=time.monotonic())
+    first = MavlinkRover(vehicle, signing_key=key, signing_store=store)
+    assert first.signing_saves == 1 and oct(store.stat().st_mode & 0o777) == "0o600"
+    saved = first.signing_timestamp
+    again = MavlinkRover(vehicle, signing_key=key, signing_store=store)
+    assert again.signing_timestamp == saved + 60 * 100_000
+    rekeyed = MavlinkRover(vehicle, signing_key=other, signing_store=store)  # SETUP_SIGNING with a new key
+    assert abs(rekeyed.signing_timestamp - signing_wall_clock()) < 100_000
