@@ -79,7 +79,7 @@ def test_generated_configs_are_what_their_generator_writes() -> None:
 
 
 def test_the_shipped_tls_router_config_is_deny_by_default_over_mutual_tls_only() -> None:
-    conf = _effective(DEPLOY / "zenoh" / "station-router-tls-acl.json5")
+    conf = _effective(DEPLOY / "zenoh" / "router-tls-acl.json5")
     assert conf["mode"] == "router" and all(e.startswith("tls/") for e in conf["listen"]["endpoints"])
     assert conf["transport"]["link"]["protocols"] == ["tls"] and conf["transport"]["link"]["tls"]["enable_mtls"]
     acl = conf["access_control"]
