@@ -79,4 +79,7 @@ def test_status_and_estop_all_work_while_the_station_is_down(tmp_path) -> None:
         stop = _tool(port, "estop", "--all", "--timeout", "10")
         assert stop.returncode == 0, (stop.stdout, stop.stderr)
         assert f"{robot}/driver-can: LATCHED by operator" in stop.stdout, stop.stdout
+        # a release from a source the host does not accept is answered, kept latched, and the tool says why
+        bad = _tool(port, "estop", "--robot", robot, "--release", "--source", "visitor", "--timeout", "2")
+        assert bad.returncode == 1 and "estop_release_sources" in bad.stderr and "'visitor'" in bad.stderr, bad
         assert router.poll() is None, said(router)

@@ -512,3 +512,38 @@ def test_the_observer_reads_everything_and_changes_nothing(lab: Lab) -> None:
     finally:
         for q in qs:
             q.undeclare()
+
+
+# ------------------------------------------------------------------------------- the tools say why (issue 32, item 6)
+def test_a_certificate_of_another_ca_is_named_as_such_by_the_tools(lab: Lab) -> None:
+    """Finding: a certificate of another CA showed as "cannot reach the Zenoh router ... is it up"; and every
+    generated CA had the same name, so nothing could have told the two apart."""
+    from bridge.core.errors import UsageError
+    from bridge.nodes.tlsid import cert_names
+    from bridge.nodes.zsession import open_session
+
+    lab_ca, other_ca = cert_names(str(lab.certs / "ca.crt")), cert_names(str(lab.other_ca / "ca.crt"))
+    assert lab_ca and other_ca and lab_ca[0] != other_ca[0] and lab_ca[0].startswith("scmbridge lab CA ")
+    with pytest.raises(UsageError) as err, open_session(lab.client("rover1", certs=lab.other_ca)):
+        pass
+    text = str(err.value)
+    assert "refuses this certificate" in text and other_ca[0] in text and lab_ca[0] in text, text
+
+
+def test_the_tools_tell_denied_from_nobody_answered_by_their_identity(lab: Lab) -> None:
+    """Finding: an observer's `engage` and `mission send` said "no driver host answered" / "no station answered":
+    the router drops a denied query without a word. The tool reads its certificate's CN and the lab's rules."""
+    from bridge.tools.identity import denial
+
+    observer, operator, rover1 = lab.client("observer"), lab.client("operator"), lab.client("rover1")
+    said = denial(observer, "rover1", "query", K1.engage, "engage a robot")
+    assert said and "identity 'observer' (role observer) may not engage a robot" in said, said
+    assert "operator (operator/queries)" in said  # who has the right
+    assert denial(operator, "rover1", "query", K1.engage, "engage") is None  # it may: nobody answered, then
+    assert denial(observer, "rover1", "query", K1.estop, "ask the latch") is None
+    assert denial(rover1, "rover1", "query", K1.control, "start a mission") is not None
+    assert denial(operator, "rover1", "put", K1.cmd, "calibrate") is not None
+    assert denial(lab.client("station"), "rover1", "put", K1.cmd, "calibrate") is None
+    # an identity the default rules do not name, or no TLS at all: it cannot be told, nothing is claimed
+    assert denial(lab.client(UNNAMED), "rover1", "query", K1.engage, "engage") is None
+    assert denial(make_config(mode="client", connect=[tcp(lab.port)]), "rover1", "query", K1.engage, "x") is None
