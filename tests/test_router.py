@@ -83,3 +83,22 @@ def test_status_and_estop_all_work_while_the_station_is_down(tmp_path) -> None:
         bad = _tool(port, "estop", "--robot", robot, "--release", "--source", "visitor", "--timeout", "2")
         assert bad.returncode == 1 and "estop_release_sources" in bad.stderr and "'visitor'" in bad.stderr, bad
         assert router.poll() is None, said(router)
+
+
+def test_the_router_tells_systemd_it_is_ready_with_what_it_listens_on(tmp_path) -> None:
+    """scmbridge-router.service is Type=notify: READY=1 once it listens, its status naming the endpoint and the access
+    control; STOPPING=1 on SIGTERM, and a clean exit."""
+    import socket
+
+    port, path = free_port(), tmp_path / "notify"
+    with socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM) as srv, Children() as kids:
+        srv.bind(str(path))
+        srv.settimeout(60.0)
+        router = kids.spawn(["router", "--listen", tcp(port)], subprocess.DEVNULL,
+                            env={**os.environ, "NOTIFY_SOCKET": str(path)})
+        got = srv.recv(1024).decode()
+        assert got.startswith("READY=1\nSTATUS=listening on ") and tcp(port) in got, got
+        assert "no access control" in got
+        os.killpg(router.pid, signal.SIGTERM)
+        assert srv.recv(1024) == b"STOPPING=1"
+        assert router.wait(20) == 0
