@@ -4,9 +4,10 @@ One router on a free 127.0.0.1 port runs the config ``scmbridge deploy acl`` wri
 certificate directory differ from the shipped file), with throwaway certificates from ``scmbridge deploy certs``.
 The fleet in the ACL is ``rover1`` and ``rover3``; ``rover2`` has a certificate of the same CA but is not named.
 
-As deployed, the station runs *inside* the router (``scmbridge station --zenoh-config station-router-tls-acl.json5``),
-so the router's own session stands for the station here; a second station session connects as a client with the
-station's certificate (a station on its own host, or a station-side tool). Clients that must be stopped by the
+As deployed, the router is a process of its own (``scmbridge router --zenoh-config router.json5``) and the station its
+client with the station's certificate: the ``station`` session here. The router's own session (``router``) also
+listens and publishes in some tests, as a process inside the router would (the old layout, where the station was
+the router): what it publishes is still filtered on the way out to each client. Clients that must be stopped by the
 router (forgers) use ``session.put``, which a Zenoh 1.x client sends to the router unconditionally; well-behaved
 nodes use declared publishers like ``bridge.nodes.station`` and ``bridge.nodes.driver_host`` do (a declared
 publisher sends
@@ -151,7 +152,7 @@ class Lab:
     other_ca: Path
     port: int
     router_conf: dict[str, Any]
-    router: zenoh.Session  # the station as deployed: its own session is the router
+    router: zenoh.Session  # the router's own session (a process inside the router)
     station: zenoh.Session  # a client with the station's certificate
     rover1: zenoh.Session  # rover1's driver host
     forger: zenoh.Session  # a second session holding rover1's credentials, trying what rover1 must not do
@@ -202,7 +203,7 @@ def lab(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Lab]:
     deploy.make_certs(other, ["rover1"], days=1)  # another CA; the certificate even carries a fleet name
     port = free_port()
     text = _cli(["acl", "--robots", ",".join(FLEET), "--listen", f"tls/127.0.0.1:{port}", "--certs", str(certs)])
-    path = d / "station-router-tls-acl.json5"
+    path = d / "router-tls-acl.json5"
     path.write_text(text)
     clients = {"station": "station", "rover1": "rover1", "forger": "rover1", "rover3": "rover3", "rover2": UNNAMED,
                "operator": "operator", "observer": "observer"}
