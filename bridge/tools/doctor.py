@@ -77,6 +77,8 @@ def check_router(args: argparse.Namespace, conf: zenoh.Config, listen_s: float) 
             time.sleep(max(0.0, listen_s - 1.0))
             sub.undeclare()
     except UsageError as exc:
+        if "refuses this certificate" in str(exc):  # the router is up: it is the certificate
+            return [Check("FAIL", "router", str(exc))]
         return [Check("FAIL", "router", f"{exc} (start the router: scmbridge-router.service, or scmbridge router "
                                         "--zenoh-config router.json5)")]
     out = [Check("ok", "router", f"reached ({endpoints_tried(args)})")]
