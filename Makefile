@@ -32,10 +32,26 @@ $(STAMP): $(PY) $(LOCK) pyproject.toml
 	$(PY) -m pip install --quiet --no-deps --no-build-isolation -e .
 	@# the compiled kernels (SC map, MPC references) once, into numba's on-disk cache, instead of in every process
 	@# that first needs them (a station starting beside others, or a test's, would spend tens of seconds)
-	$(PY) -c 'from transfer.scm import warmup; from transfer.teacher.mpc import MpcTeacher; warmup(); MpcTeacher()'
+	$(PY) -c '$(WARMUP)'
 	touch $(STAMP)
 
+# The shipped units (deploy/systemd/) run with NUMBA_CACHE_DIR=$(SERVICE_CACHE)/numba and their cache directory
+# $(SERVICE_CACHE) (CacheDirectory=scmbridge): numba uses only a cache it may write, so a service never reads the one
+# that root's install left next to the sources. Run as root (`sudo make install`, deploy/README.md step 1), install
+# fills the services' cache too and gives it to $(SERVICE_USER): a service's first start loads the kernels instead of
+# compiling them (tens of seconds). Run again after an update (it only loads what is still current).
+SERVICE_CACHE ?= /var/cache/scmbridge
+SERVICE_USER ?= scmbridge
+WARMUP := from transfer.scm import warmup; from transfer.teacher.mpc import MpcTeacher; warmup(); MpcTeacher()
+
 install: $(STAMP)
+	@if [ "$$(id -u)" = 0 ]; then \
+		echo "make install: filling the services' cache $(SERVICE_CACHE) (numba's SC kernels, the MPC's code)"; \
+		mkdir -p $(SERVICE_CACHE)/numba && \
+		SCMBRIDGE_CACHE_DIR=$(SERVICE_CACHE) NUMBA_CACHE_DIR=$(SERVICE_CACHE)/numba $(PY) -c '$(WARMUP)' && \
+		if id -u $(SERVICE_USER) >/dev/null 2>&1; then chown -R $(SERVICE_USER): $(SERVICE_CACHE); \
+		else echo "make install: no user $(SERVICE_USER) yet: systemd gives it $(SERVICE_CACHE) at the first start"; fi; \
+	fi
 
 demo: $(STAMP)
 	$(VENV)/bin/scmbridge demo $(ARGS)

@@ -28,7 +28,7 @@ RUN_HERE = {"config show", "config check", "deploy certs", "deploy lab", "deploy
             "keys mavlink", "driver"}
 #: need a running lab: tests/test_lab_in_a_box.py runs them
 NEEDS_LAB = {"doctor", "engage", "mission start", "status", "estop", "demo", "pairs show", "pairs plot", "record",
-             "replay", "report"}
+             "replay", "report", "calibrate"}
 #: need a robot, root or the network: not run here
 NEEDS_HARDWARE: set[str] = set()
 

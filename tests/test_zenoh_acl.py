@@ -4,9 +4,10 @@ One router on a free 127.0.0.1 port runs the config ``scmbridge deploy acl`` wri
 certificate directory differ from the shipped file), with throwaway certificates from ``scmbridge deploy certs``.
 The fleet in the ACL is ``rover1`` and ``rover3``; ``rover2`` has a certificate of the same CA but is not named.
 
-As deployed, the station runs *inside* the router (``scmbridge station --zenoh-config station-router-tls-acl.json5``),
-so the router's own session stands for the station here; a second station session connects as a client with the
-station's certificate (a station on its own host, or a station-side tool). Clients that must be stopped by the
+As deployed, the router is a process of its own (``scmbridge router --zenoh-config router.json5``) and the station its
+client with the station's certificate: the ``station`` session here. The router's own session (``router``) also
+listens and publishes in some tests, as a process inside the router would (the old layout, where the station was
+the router): what it publishes is still filtered on the way out to each client. Clients that must be stopped by the
 router (forgers) use ``session.put``, which a Zenoh 1.x client sends to the router unconditionally; well-behaved
 nodes use declared publishers like ``bridge.nodes.station`` and ``bridge.nodes.driver_host`` do (a declared
 publisher sends
@@ -151,7 +152,7 @@ class Lab:
     other_ca: Path
     port: int
     router_conf: dict[str, Any]
-    router: zenoh.Session  # the station as deployed: its own session is the router
+    router: zenoh.Session  # the router's own session (a process inside the router)
     station: zenoh.Session  # a client with the station's certificate
     rover1: zenoh.Session  # rover1's driver host
     forger: zenoh.Session  # a second session holding rover1's credentials, trying what rover1 must not do
@@ -202,7 +203,7 @@ def lab(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Lab]:
     deploy.make_certs(other, ["rover1"], days=1)  # another CA; the certificate even carries a fleet name
     port = free_port()
     text = _cli(["acl", "--robots", ",".join(FLEET), "--listen", f"tls/127.0.0.1:{port}", "--certs", str(certs)])
-    path = d / "station-router-tls-acl.json5"
+    path = d / "router-tls-acl.json5"
     path.write_text(text)
     clients = {"station": "station", "rover1": "rover1", "forger": "rover1", "rover3": "rover3", "rover2": UNNAMED,
                "operator": "operator", "observer": "observer"}
@@ -512,3 +513,38 @@ def test_the_observer_reads_everything_and_changes_nothing(lab: Lab) -> None:
     finally:
         for q in qs:
             q.undeclare()
+
+
+# ------------------------------------------------------------------------------- the tools say why (issue 32, item 6)
+def test_a_certificate_of_another_ca_is_named_as_such_by_the_tools(lab: Lab) -> None:
+    """Finding: a certificate of another CA showed as "cannot reach the Zenoh router ... is it up"; and every
+    generated CA had the same name, so nothing could have told the two apart."""
+    from bridge.core.errors import UsageError
+    from bridge.nodes.tlsid import cert_names
+    from bridge.nodes.zsession import open_session
+
+    lab_ca, other_ca = cert_names(str(lab.certs / "ca.crt")), cert_names(str(lab.other_ca / "ca.crt"))
+    assert lab_ca and other_ca and lab_ca[0] != other_ca[0] and lab_ca[0].startswith("scmbridge lab CA ")
+    with pytest.raises(UsageError) as err, open_session(lab.client("rover1", certs=lab.other_ca)):
+        pass
+    text = str(err.value)
+    assert "refuses this certificate" in text and other_ca[0] in text and lab_ca[0] in text, text
+
+
+def test_the_tools_tell_denied_from_nobody_answered_by_their_identity(lab: Lab) -> None:
+    """Finding: an observer's `engage` and `mission send` said "no driver host answered" / "no station answered":
+    the router drops a denied query without a word. The tool reads its certificate's CN and the lab's rules."""
+    from bridge.tools.identity import denial
+
+    observer, operator, rover1 = lab.client("observer"), lab.client("operator"), lab.client("rover1")
+    said = denial(observer, "rover1", "query", K1.engage, "engage a robot")
+    assert said and "identity 'observer' (role observer) may not engage a robot" in said, said
+    assert "operator (operator/queries)" in said  # who has the right
+    assert denial(operator, "rover1", "query", K1.engage, "engage") is None  # it may: nobody answered, then
+    assert denial(observer, "rover1", "query", K1.estop, "ask the latch") is None
+    assert denial(rover1, "rover1", "query", K1.control, "start a mission") is not None
+    assert denial(operator, "rover1", "put", K1.cmd, "calibrate") is not None
+    assert denial(lab.client("station"), "rover1", "put", K1.cmd, "calibrate") is None
+    # an identity the default rules do not name, or no TLS at all: it cannot be told, nothing is claimed
+    assert denial(lab.client(UNNAMED), "rover1", "query", K1.engage, "engage") is None
+    assert denial(make_config(mode="client", connect=[tcp(lab.port)]), "rover1", "query", K1.engage, "x") is None

@@ -18,7 +18,7 @@ import zenoh
 
 from bridge.core.backoff import Backoff
 from bridge.core.errors import UsageError
-from bridge.nodes import systemd
+from bridge.nodes import systemd, tlsid
 
 log = logging.getLogger("scmbridge.zenoh")
 
@@ -101,8 +101,9 @@ def open_session(conf: zenoh.Config, wait: threading.Event | None = None, what: 
     A tool (``wait`` None) tries once: a router that cannot be reached is one line (:class:`UsageError`). A service
     passes its stop event: it keeps trying with a backoff (0.1 s doubling to 5 s), logs once what it waits for and
     tells systemd, until it connects or ``wait`` is set (then :class:`UsageError` too: stopped while waiting). The
-    same error covers a router that is down and one that refused this TLS identity (wrong certificate or address):
-    ``scmbridge doctor`` tells them apart."""
+    same error covers a router that is down and one that refused this TLS identity (wrong address, an expired
+    certificate): ``scmbridge doctor`` tells them apart; a certificate of another CA than the lab's is named as such
+    (:func:`bridge.nodes.tlsid.refused_because`)."""
     backoff, said = Backoff(0.1, 5.0), ""
     if what and not secured(conf):
         log.warning("%s: this Zenoh session has no TLS: anyone who reaches its network can publish commands and "
@@ -113,8 +114,13 @@ def open_session(conf: zenoh.Config, wait: threading.Event | None = None, what: 
             return zenoh.open(conf)
         except zenoh.ZError as exc:
             reason = str(exc).split(" at ", 1)[0].strip()
-            text = (f"cannot reach the Zenoh router at {_endpoints(conf)} ({reason}): is it up, and does it accept "
-                    "this identity? (scmbridge doctor)")
+            refused = tlsid.refused_because(conf) if secured(conf) else ""
+            if refused:
+                text = f"cannot open a session with the Zenoh router at {_endpoints(conf)}: {refused}"
+            else:
+                text = (f"cannot reach the Zenoh router at {_endpoints(conf)} ({reason}): is it up (scmbridge "
+                        "router, scmbridge-router.service), and does it accept this identity? (scmbridge doctor "
+                        "tells them apart)")
             if wait is None:
                 raise UsageError(text) from None
             if text != said:

@@ -6,7 +6,11 @@ for ``hold_s``, driving back toward the start between commands, and stopping at 
 pairs it makes go into the station's pair store (the same file, persisted atomically), so a mission started
 afterwards with that store begins from calibrated pairs and measured limits. It uses the station's configuration
 (``[calibration]``, bounds, store) and its identity on the wire: do not run it while a station drives the same
-robot (the driver host follows one sender at a time and would refuse it). Progress is logged per command.
+robot (the driver host follows one sender at a time and would refuse it). Under the lab's access control it needs
+the station's rights (it publishes the robot's cmd and limits): run it on the base station with the station's
+client configuration (station-client.json5, the station's certificate) while the robot's station is stopped; with
+another identity (the operator's) it is denied at once (exit status 3) instead of never moving the robot.
+Progress is logged per command. The bound on time is --duration (the configuration's max_time_s by default).
 """
 
 from __future__ import annotations
@@ -19,10 +23,12 @@ import msgspec
 from bridge.core import wire as M
 from bridge.core.args import positive_float, robot_arg
 from bridge.core.config import ConfigError, load_mission, load_station
+from bridge.core.errors import Denied
 from bridge.nodes.mission_control import Fitness
 from bridge.nodes.node import add_zenoh_args, stop_on_signals, zenoh_config
 from bridge.nodes.station import Station
 from bridge.nodes.zsession import open_session
+from bridge.tools.identity import denial
 from transfer.calibration import CalibrationPlan
 
 
@@ -70,9 +76,14 @@ def run(args: argparse.Namespace) -> int:
     # running calibration is a person's act by itself: the stage starts at once
     station.control.request(M.MissionRequest(stamp=0.0, action="start", source="scmbridge calibrate"),
                             Fitness("not checked yet"), 0.0)
+    conf = zenoh_config(args)
+    denied = denial(conf, robot, "put", M.key(robot, "cmd"), "calibrate (it commands the robot as its station does)")
+    if denied:  # under the lab's access control nothing it sent would arrive: the robot would never move
+        raise Denied(f"{denied}; run calibrate with the station's identity (--zenoh-config "
+                     "/etc/scmbridge/station-client.json5) while the robot's station is stopped (deploy/README.md)")
     stop = stop_on_signals()
     try:
-        with open_session(zenoh_config(args)) as session:
+        with open_session(conf) as session:
             station.serve(session, stop, c.max_time_s + 30.0, exit_at_goal=True)
     finally:
         station.persist()

@@ -4,7 +4,8 @@ Every command, one word (``station``) or two (``config check``, ``bench fleet``)
 :data:`COMMANDS` naming the module that implements it. That module defines ``arguments(parser)`` (its options)
 and ``run(args) -> int`` (for a two-word command ``arguments_<word>`` and ``run_<word>``). Only the module of the
 command asked for is imported. Every command takes ``--log-level`` and ``--help``; ``scmbridge --version``.
-Expected failures end with one line and exit status 2 (:class:`UsageError`, a configuration error).
+Expected failures end with one line and exit status 2 (:class:`UsageError`, a configuration error); what the lab's
+access control denies, with exit status 3 (:class:`~bridge.core.errors.Denied`).
 """
 
 from __future__ import annotations
@@ -23,7 +24,7 @@ from importlib import metadata
 from pathlib import Path
 from typing import Any
 
-from bridge.core.errors import UsageError
+from bridge.core.errors import Denied, UsageError
 
 # The numerical work here is small matrices (a 20-step MPC, 2 x 2 maps): OpenBLAS's default worker threads only
 # spin between calls and steal the CPU other stations and the driver host need. Set before anything imports numpy;
@@ -82,6 +83,7 @@ _C = Command
 #: every command, in the order ``scmbridge --help`` lists them
 COMMANDS: list[Command] = [
     _C("demo", "bridge.tools.demo", "station + driver host + emulated learner over Zenoh on 127.0.0.1 (the S-path)"),
+    _C("router", "bridge.nodes.router", "the lab's Zenoh router, a process of its own: every node is its client"),
     _C("station", "bridge.nodes.station", "the base-station service: teacher + transfer loop publishing commands"),
     _C("driver", "bridge.nodes.driver_host", "the driver host: Zenoh commands -> vehicle link, telemetry -> state"),
     _C("learner", "sim_learner.emulator", "a software learner behind a vehicle link, as its own process"),
@@ -261,6 +263,9 @@ def main(argv: list[str] | None = None) -> int:
         ns.command_line = shlex.join(["scmbridge", *cmd.words, *rest])  # what a generated file says made it
         setup_logging(ns.log_level, name)
         return int(getattr(module, f"run{cmd.suffix(module)}")(ns) or 0)
+    except Denied as exc:  # the lab's access control denies it: one line, its own exit status
+        print(f"scmbridge {name}: {exc}", file=sys.stderr)
+        return Denied.EXIT
     except UsageError as exc:  # a person's mistake or an expected failure: one line, no traceback
         print(f"scmbridge {name}: error: {exc}", file=sys.stderr)
         return 2

@@ -1,9 +1,10 @@
 """``scmbridge deploy``: generate the lab's TLS + access-control router config, and throwaway certificates.
 
 The access control is generated from the wire contract (:mod:`bridge.core.wire`), never written by hand, so every robot
-gets exactly the same rules and a new topic cannot be forgotten in one robot's block. The router (the base
-station's Zenoh session in ``router`` mode) identifies each client by the common name (CN) of the certificate it
-presents over mutual TLS, and with ``default_permission: "deny"`` lets through only what a rule allows:
+gets exactly the same rules and a new topic cannot be forgotten in one robot's block. The router (``scmbridge
+router``, a process of its own on the base station: ``scmbridge-router.service``) identifies each client by the
+common name (CN) of the certificate it presents over mutual TLS, and with ``default_permission: "deny"`` lets
+through only what a rule allows:
 
 * **a robot** ``R`` publishes its own ``state``, ``applied`` and ``status/driver``; it subscribes to and receives
   only its own ``cmd`` and ``estop``, and answers ``estop`` queries (its latch state) with replies on that key;
@@ -28,11 +29,16 @@ client may publish. Keys are listed one by one (no wildcards): a wildcard key ex
 messages whose key it includes, and exact keys are also the fastest to check. Everything else (``delete``,
 liveliness, queries on the admin space ``@/**``) falls to the default, deny.
 
-As deployed, the station runs inside the router (``scmbridge station --zenoh-config station-router-tls-acl.json5``).
-The access control filters what crosses a link, so the station's own session is not subject to it (what it
-publishes is still filtered on the way out to each robot: ``rover1`` never receives ``scm/rover2/cmd``). The
-``station`` certificate is the router's TLS identity and, as a client, that of a station on another host or a
-station-side tool.
+As deployed, the router is a process of its own (``scmbridge router --zenoh-config router.json5``) and the station is
+its client like every other node (``station-client.json5``, the ``station`` certificate): when the station stops,
+the router stays, so the operator's ``status`` and ``estop --all`` still reach every driver host. The router
+presents the ``station`` certificate (the base station's, naming the addresses clients connect to) as its TLS
+identity; its own session publishes nothing. The access control is read once when the router starts: Zenoh cannot
+reload it, so a robot added to the fleet costs a router restart (deploy/README.md, "Adding a robot").
+
+:data:`ROLE_OF` and :func:`may` answer, from the same rules, whether an identity may do something: a tool whose
+query nobody answered tells "denied by the access control" from "nobody there" with them (the router drops a denied
+message silently; Zenoh tells the client nothing).
 
 ``scmbridge deploy certs`` makes a CA and one certificate per name with ``openssl``, for tests and a lab's first
 try. A lab should issue the certificates from its own PKI: a throwaway CA's key lying next to the certificates
@@ -44,6 +50,7 @@ from __future__ import annotations
 import argparse
 import ipaddress
 import json
+import secrets
 import shutil
 import subprocess
 import sys
@@ -250,7 +257,7 @@ def client_config(name: str, *, connect: str = LAB_LISTEN, certs: str | Path = L
 
 
 ROUTER_HEADER = (
-    "Lab network with mutual TLS and access control on the base station's router.",
+    "Lab network with mutual TLS and access control on the lab's router (scmbridge router, scmbridge-router.service).",
     "Default deny: a robot publishes only its own state/applied/status/driver and receives only its own cmd/estop;",
     "the station publishes cmd/teacher/limits/mission; the operator publishes estop; a certificate not named below",
     "connects but neither sends nor receives anything.",
@@ -294,9 +301,14 @@ def _openssl(args: Sequence[str]) -> None:
         raise RuntimeError(f"openssl {args[0]} failed: {res.stderr.strip()}")
 
 
-def make_ca(out: Path, *, cn: str = "scmbridge-lab-ca", days: int = 30) -> None:
+def make_ca(out: Path, *, cn: str | None = None, days: int = 30) -> None:
     """A throwaway CA (``ca.key``, ``ca.crt``) in ``out``: EC P-256, valid ``days``. A new ``out`` is made
-    private (0700) so no key is readable by others even before it is chmod-ed 0600."""
+    private (0700) so no key is readable by others even before it is chmod-ed 0600.
+
+    Each CA gets its own name (``scmbridge lab CA <random id>``, unless ``cn``): a certificate of another lab's CA
+    is then named as such by the tools and ``scmbridge doctor`` ("issued by CA X, this configuration trusts CA Y"),
+    where one name for every CA would make them look alike."""
+    cn = cn or f"scmbridge lab CA {secrets.token_hex(4)}"
     out.mkdir(mode=0o700, parents=True, exist_ok=True)
     _openssl(["req", "-x509", *_EC, "-keyout", str(out / "ca.key"), "-out", str(out / "ca.crt"), "-days", str(days),
               "-subj", f"/CN={cn}", "-addext", "basicConstraints=critical,CA:TRUE",
@@ -388,8 +400,10 @@ def arguments_acl(ap: argparse.ArgumentParser) -> None:
 
 
 def run_acl(args: argparse.Namespace) -> int:
-    """Print the base station router's Zenoh config (JSON5): mutual TLS only, no scouting, and the access control
-    generated from the wire contract for the given robots (default deny)."""
+    """Print the lab router's Zenoh config (JSON5), for scmbridge router (scmbridge-router.service reads
+    /etc/scmbridge/router.json5): mutual TLS only, no scouting, and the access control generated from the wire
+    contract for the given robots (default deny). The router reads it once at start: a grown fleet needs the file
+    regenerated and the router restarted (deploy/README.md, "Adding a robot")."""
     conf = _or_usage(lambda: router_config(args.robots, station_cn=args.station_cn, operator_cn=args.operator_cn,
                                            listen=args.listen, certs=args.certs, mocap_cn=args.mocap_cn,
                                            teacher_cn=args.teacher_cn, observer_cn=args.observer_cn or None))
@@ -474,9 +488,9 @@ def arguments_lab(ap: argparse.ArgumentParser) -> None:
 
 def run_lab(args: argparse.Namespace) -> int:
     """Make a whole secure lab in one command: a CA and the certificates (station, operator, observer, each robot),
-    the router's TLS + access-control config (the station's session), and every client's config (each robot, the
-    operator, the observer, a station on another host), ready to install. Re-running it for a grown fleet keeps the
-    CA and the certificates already made."""
+    the router's TLS + access-control config (router.json5, for scmbridge-router.service), and every client's
+    config (each robot, the operator, the observer, the station: station-client.json5), ready to install.
+    Re-running it for a grown fleet keeps the CA and the certificates already made."""
     out, tls = Path(args.out), Path(args.out) / "tls"
     _or_usage(lambda: _check_names(args.robots, "station", "operator", "observer"))
     listen = f"tls/{args.station_address[0]}:{args.port}"
@@ -484,13 +498,14 @@ def run_lab(args: argparse.Namespace) -> int:
                                              station_sans=_sans(args.station_address), days=args.days)):
         print(line)
     router = _or_usage(lambda: router_config(args.robots, listen=listen, certs=args.certs))
-    (out / "station-router.json5").write_text(render(router, args.command_line))
+    (out / "router.json5").write_text(render(router, args.command_line))
     for name in (*args.robots, "operator", "observer", "station"):
         conf = client_config(name, connect=listen, certs=args.certs)
         target = {"station": "station-client.json5"}.get(name, f"{name}.json5")
         (out / target).write_text(render(conf, args.command_line, CLIENT_HEADER))
-    print(f"wrote {out}/station-router.json5 (the base station: /etc/scmbridge/station-router.json5), "
+    print(f"wrote {out}/router.json5 (the router: /etc/scmbridge/router.json5, scmbridge-router.service), "
+          f"station-client.json5 (the station: /etc/scmbridge/station-client.json5), "
           f"{', '.join(f'{r}.json5' for r in args.robots)} (each robot: /etc/scmbridge/robot-client.json5), "
-          f"operator.json5, observer.json5, station-client.json5; certificates in {tls} (install ca.crt and each "
-          f"host's own key and certificate in {args.certs}; keep ca.key off the base station)")
+          f"operator.json5, observer.json5; certificates in {tls} (install ca.crt and each host's own key and "
+          f"certificate in {args.certs}; keep ca.key off the base station)")
     return 0

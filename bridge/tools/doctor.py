@@ -39,6 +39,7 @@ from bridge.core.config import load_station
 from bridge.core.errors import UsageError
 from bridge.nodes.driver_config import load_driver
 from bridge.nodes.node import add_zenoh_args, endpoints_tried, zenoh_config
+from bridge.nodes.tlsid import cert_names
 from bridge.nodes.zsession import open_session
 from drivers import link_names
 
@@ -76,8 +77,10 @@ def check_router(args: argparse.Namespace, conf: zenoh.Config, listen_s: float) 
             time.sleep(max(0.0, listen_s - 1.0))
             sub.undeclare()
     except UsageError as exc:
-        return [Check("FAIL", "router", f"{exc} (start the router: the station's unit, or scmbridge station "
-                                        "--zenoh-config station-router.json5)")]
+        if "refuses this certificate" in str(exc):  # the router is up: it is the certificate
+            return [Check("FAIL", "router", str(exc))]
+        return [Check("FAIL", "router", f"{exc} (start the router: scmbridge-router.service, or scmbridge router "
+                                        "--zenoh-config router.json5)")]
     out = [Check("ok", "router", f"reached ({endpoints_tried(args)})")]
     if heard or answered:
         out.append(Check("ok", "reach", f"this identity hears {len(heard)} node statuses ({', '.join(sorted(heard))})"
@@ -126,8 +129,10 @@ def check_tls(conf: zenoh.Config, expiry_days: float) -> list[Check]:
         if ca and key != "root_ca_certificate" and Path(ca).is_file():
             ver = _openssl("verify", "-CAfile", ca, path)
             if ver.returncode != 0:
-                out.append(Check("FAIL", "tls", f"{path} is not signed by the CA {ca}: every peer will refuse it "
-                                                "(all certificates of a lab come from one CA)"))
+                mine, lab = cert_names(path), cert_names(ca)
+                names = (f" (issued by CA {mine[1]!r}, the lab's is {lab[0]!r})" if mine and lab else "")
+                out.append(Check("FAIL", "tls", f"{path} is not signed by the CA {ca}{names}: every peer will refuse "
+                                                "it (all certificates of a lab come from one CA)"))
     return out
 
 

@@ -5,7 +5,8 @@ is a query on ``scm/<robot>/engage`` answered by the driver host once done: MAVL
 each confirmed by the vehicle (or the vehicle's reason for refusing); CAN: both axes in closed loop (refused, naming
 the axis, while one reports an error, unless ``--clear-faults``); UDP: the host starts sending commands. Refused
 while an estop is latched. Engaging an engaged host says so and succeeds. The station still drives only after
-``scmbridge mission start`` (or resume). Exit status: 0 done, 1 refused, 2 no driver host answered.
+``scmbridge mission start`` (or resume). Exit status: 0 done, 1 refused, 2 no driver host answered, 3 denied by the
+lab's access control (this certificate's role may not engage: the observer, a robot; deploy/README.md).
 """
 
 from __future__ import annotations
@@ -18,9 +19,10 @@ import zenoh
 
 from bridge.core import wire as M
 from bridge.core.args import positive_float, robot_arg
-from bridge.core.errors import UsageError
+from bridge.core.errors import Denied, UsageError
 from bridge.nodes.node import add_zenoh_args, endpoints_tried, zenoh_config
 from bridge.nodes.zsession import open_session
+from bridge.tools.identity import denial, unnamed_hint
 
 RETRY_S = 0.25
 
@@ -57,11 +59,16 @@ def arguments(ap: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     req = M.EngageRequest(stamp=time.monotonic(), engaged=not args.release, source=args.source,
                           clear_faults=args.clear_faults)
-    with open_session(zenoh_config(args)) as session:
+    conf = zenoh_config(args)
+    key = M.key(args.robot, "engage")
+    with open_session(conf) as session:
         answers = ask(session, args.robot, req, args.timeout)
     if not answers:
-        raise UsageError(f"no driver host answered on {M.key(args.robot, 'engage')} within {args.timeout:g} s "
-                         f"(tried {endpoints_tried(args)})")
+        denied = denial(conf, args.robot, "query", key, "release a robot" if args.release else "engage a robot")
+        if denied:
+            raise Denied(denied)
+        raise UsageError(f"no driver host answered on {key} within {args.timeout:g} s "
+                         f"(tried {endpoints_tried(args)}){unnamed_hint(conf, args.robot)}")
     for st in answers:
         print(f"{args.robot}/{st.node}: {'' if st.accepted else 'REFUSED: '}{st.text}",
               file=sys.stdout if st.accepted else sys.stderr)

@@ -8,7 +8,9 @@ and those whose nodes publish status. ``--release`` releases the latch; a driver
 source its configuration names (``estop_release_sources``), so ``--source`` must be one of them.
 
 Prints one line per driver host (latched or released, by whom). Exit status: 0 when every robot confirmed the asked
-state, 1 naming every robot that did not (or when none was found), 2 when the router cannot be reached.
+state, 1 naming every robot that did not (or when none was found), 2 when the router cannot be reached, 3 when the
+lab's access control denies this certificate's role the estop (the observer, a robot; deploy/README.md). A release
+that a driver host answers but does not take names the reason: its ``estop_release_sources``.
 """
 
 from __future__ import annotations
@@ -22,8 +24,10 @@ import zenoh
 
 from bridge.core import wire as M
 from bridge.core.args import positive_float, robot_arg, robots_arg
+from bridge.core.errors import Denied
 from bridge.nodes.node import add_zenoh_args, zenoh_config
 from bridge.nodes.zsession import open_session
+from bridge.tools.identity import denial
 
 #: seconds one try waits for a driver host's answer
 TRY_TIMEOUT_S = 0.5
@@ -106,7 +110,8 @@ def arguments(ap: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     engaged = not args.release
     deadline = time.monotonic() + args.timeout
-    with open_session(zenoh_config(args)) as session:
+    conf = zenoh_config(args)
+    with open_session(conf) as session:
         if args.all:
             robots = sorted(known_robots(session, DISCOVER_S))
             if not robots:
@@ -120,18 +125,29 @@ def run(args: argparse.Namespace) -> int:
             return M.Estop(stamp=time.monotonic(), engaged=engaged, source=args.source, reason=args.reason)
 
         answers = confirm(session, robots, msg_for, engaged, max(deadline, time.monotonic() + TRY_TIMEOUT_S))
-    failed = []
+    failed, denied = [], []
     for robot in robots:
         states = answers[robot]
-        if not states:
-            print(f"{robot}: no driver host confirmed within {args.timeout:g} s", file=sys.stderr)
-            failed.append(robot)
-            continue
         for name, st in sorted(states.items()):
             state = f"LATCHED by {st.source or 'unknown'}" if st.latched else "released"
             print(f"{name}: {state}" + (f" ({st.reason})" if st.reason else ""))
-        if any(st.latched != engaged for st in states.values()):
-            failed.append(robot)
+        if states and all(st.latched == engaged for st in states.values()):
+            continue
+        failed.append(robot)
+        # the router drops an estop this identity may not send without a word (an observer may still ask the latch)
+        why = denial(conf, robot, "put", M.key(robot, "estop"), "release an estop" if args.release else
+                     "latch an estop")
+        if why:
+            print(f"{robot}: {why}", file=sys.stderr)
+            denied.append(robot)
+        elif not states:
+            print(f"{robot}: no driver host confirmed within {args.timeout:g} s", file=sys.stderr)
+        elif args.release:  # the host answered and kept its latch: the one reason it refuses a release
+            print(f"{robot}: release not confirmed: a driver host releases only from a source named in its "
+                  f"estop_release_sources (driver configuration), and --source {args.source!r} is not one of them "
+                  "(or a new estop latched it again)", file=sys.stderr)
     if failed:
         print(f"scmbridge estop: not confirmed by {', '.join(failed)}", file=sys.stderr)
+    if denied and len(denied) == len(failed):
+        return Denied.EXIT
     return 1 if failed else 0

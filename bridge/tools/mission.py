@@ -4,7 +4,8 @@ Each is a Zenoh query on ``scm/<robot>/control`` (a :class:`bridge.core.wire.Mis
 station with what it did or why it refused, and where the mission is (``running``, ``paused: estop latched by
 operator``, ...). A station starts idle and drives only after ``start``; after an estop, an operator takeover, a
 lost link or a driver-host restart it pauses, and only ``resume`` drives on. ``send FILE`` loads a new mission
-(idle until started). Prints the answer in one line. Exit status: 0 accepted, 1 refused, 2 no station answered.
+(idle until started). Prints the answer in one line. Exit status: 0 accepted, 1 refused, 2 no station answered, 3
+denied by the lab's access control (this certificate's role may not ask: the observer, a robot; deploy/README.md).
 """
 
 from __future__ import annotations
@@ -18,9 +19,10 @@ import zenoh
 from bridge.core import wire as M
 from bridge.core.args import positive_float, robot_arg
 from bridge.core.config import load_mission_spec
-from bridge.core.errors import UsageError
+from bridge.core.errors import Denied, UsageError
 from bridge.nodes.node import add_zenoh_args, endpoints_tried, zenoh_config
 from bridge.nodes.zsession import open_session
+from bridge.tools.identity import denial, unnamed_hint
 
 #: a fresh session needs a moment to reach the station: ask again this often until --timeout
 RETRY_S = 0.25
@@ -58,11 +60,17 @@ def _arguments(ap: argparse.ArgumentParser) -> None:
 
 def _run(args: argparse.Namespace, action: str, spec: M.MissionSpec | None = None) -> int:
     req = M.MissionRequest(stamp=time.monotonic(), action=action, spec=spec, source=args.source)
-    with open_session(zenoh_config(args)) as session:
+    conf = zenoh_config(args)
+    key = M.key(args.robot, "control")
+    with open_session(conf) as session:
         st = ask(session, args.robot, req, args.timeout)
     if st is None:
-        raise UsageError(f"no station answered on {M.key(args.robot, 'control')} within {args.timeout:g} s "
-                         f"(tried {endpoints_tried(args)})")
+        what = "ask for a mission's status" if action == "status" else f"{action} a mission"
+        denied = denial(conf, args.robot, "query", key, what)
+        if denied:
+            raise Denied(denied)
+        raise UsageError(f"no station answered on {key} within {args.timeout:g} s "
+                         f"(tried {endpoints_tried(args)}){unnamed_hint(conf, args.robot)}")
     print(line(st), file=sys.stdout if st.accepted else sys.stderr)
     return 0 if st.accepted else 1
 

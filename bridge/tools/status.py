@@ -3,8 +3,9 @@ each second (``scm/<robot>/status/<node>``): driving, or the one reason it is no
 took control, waiting for engage, no pose, link down, mission paused or finished), the link, the pose's age, the
 pairs learned and the mission's progress. ``--watch`` prints it again every second until Ctrl-C.
 
-Exit status: 0 when every robot asked about is driving (or at its goal), 1 when one is not, 2 when no node
-answered (with the endpoints tried).
+Exit status: 0 when every robot asked about is driving (or at its goal), 1 when one is not (a robot whose driver host
+answers but whose station is missing is one: its ``station missing`` line says so), 2 when no node answered (with
+the endpoints tried).
 """
 
 from __future__ import annotations
@@ -96,6 +97,9 @@ def report(seen: Seen, robots: list[str] | None) -> tuple[list[str], bool]:
             lines.append(f"{robot:<12} {'-':<8} {'silent':<9} no node of this robot answered")
             all_ok = False
             continue
+        if "station" not in nodes:  # the station is down (or another host's, unreachable): say it, first
+            lines.append(f"{robot:<12} {'station':<8} {'missing':<9} no status from the robot's station: it is down "
+                         "or unreachable (the driver host stops the robot on its deadman; estop still reaches it)")
         for node in sorted(nodes, key=lambda n: (n != "station", n != "driver", n)):
             st, at = nodes[node]
             lines.append(node_line(robot, node, st, now - at))
