@@ -154,6 +154,14 @@ class _Host:
                 raise TimeoutError(f"no such applied message within {timeout:g} s")
             time.sleep(0.002)
 
+    def confirm_latch(self, session, timeout: float) -> float:
+        """Ask the host for its latch (it answers once what it latched is saved); the time the answer came."""
+        for reply in session.get(self.keys.estop, timeout=timeout):
+            if reply.ok is not None:
+                self.M.decode(reply.ok.payload.to_bytes(), self.M.EstopState)
+                return time.monotonic()
+        raise TimeoutError(f"the host did not confirm its latch within {timeout:g} s")
+
     def publish_estop(self, engaged: bool, source: str, reason: str) -> float:
         t = time.monotonic()
         self.estop.put(self.M.encode(self.M.Estop(stamp=t, engaged=engaged, source=source, reason=reason)))
@@ -221,6 +229,11 @@ def measure(fsync_delays: Sequence[float], repeat: int) -> dict:
                         continue
                     with FsyncDelay(proc.pid, delay, Path(tmp)) as slow:
                         case = _repetitions(host, repeat)
+                        # the host answers an estop query only once the latch is on disk: the saves (each fsync
+                        # delayed) finish under strace, so its log counts them
+                        t_q = time.monotonic()
+                        case["latch_confirmed_s"] = host.confirm_latch(session, 8.0 * repeat * delay + 10.0)
+                        case["latch_confirmed_s"] = round(case["latch_confirmed_s"] - t_q, 3)
                     case["fsyncs_delayed"] = slow.delayed()  # strace has detached: its log is complete
                     cases[name] = case
                 except StraceUnavailable as exc:
