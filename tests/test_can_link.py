@@ -655,3 +655,37 @@ def test_many_small_crafted_encoder_steps_cannot_add_up_to_more_than_the_wheel_c
     assert d.counters["rejected_estimates"] > 1000
     h = health(d)
     assert not h.ok and "odometry: implausible encoder estimates" in h.text
+
+
+@pytest.mark.parametrize("engage,disarm", [(False, False), (False, True), (True, False), (True, True)])
+def test_close_sends_nothing_to_axes_it_never_armed_and_idles_them_only_when_told(engage: bool, disarm: bool) -> None:
+    """Found: close ignored ``disarm`` and always sent IDLE, also on ``--dry-run`` (which promises that nothing is
+    sent to the vehicle) and for a host that was never engaged. The emulated ODrives record every frame they got."""
+    channel = f"test-{uuid.uuid4().hex[:8]}"
+    vehicle = SimVehicle(mpc_learner(), (0.0, 0.0, 0.0), now=time.monotonic())
+    with DiffDriveEcus({"interface": "virtual", "channel": channel}, vehicle, watchdog=0.3) as ecus:
+        driver = open_driver("can", CanLinkConfig(interface="virtual", channel=channel, heartbeat_timeout=0.3))
+        driver.open(time.monotonic())
+        if engage:
+            driver.engage(time.monotonic())
+        spy = can.Bus(interface="virtual", channel=channel)  # sees every frame put on the bus from now on
+        try:
+            driver.close(disarm=disarm, stop_timeout=1.0)
+            frames, t_end = [], time.monotonic() + 0.3  # the controllers' Heartbeats never stop: a bounded look
+            while time.monotonic() < t_end:
+                if (f := spy.recv(timeout=0.05)) is not None:
+                    frames.append(f.arbitration_id)
+        finally:
+            spy.shutdown()
+    cmd = database().get_message_by_name
+    idle = cmd("Set_Axis_State").frame_id & 0x1F
+    vel = cmd("Set_Input_Vel").frame_id & 0x1F
+    nodes = (ecus.left.node, ecus.right.node)
+    # what the driver sent (the controllers' own frames, Heartbeats and encoder estimates, are theirs)
+    sent = [a & 0x1F for a in frames if a >> 5 in nodes and a & 0x1F in (idle, vel, cmd("Set_Controller_Mode").frame_id
+                                                                          & 0x1F)]
+    if not engage:
+        assert sent == [], sent  # never armed by this link: nothing at all
+    else:
+        assert vel in sent  # armed by this link: stopped first
+        assert (idle in sent) == disarm

@@ -524,16 +524,21 @@ class CanDriver:
             self._health.text, self._health.reason = "closed", "closed"
             return
         try:
-            t_end = time.monotonic() + stop_timeout
-            turns = stop_speed / (2.0 * math.pi * self.radius)  # rev/s of a wheel at stop_speed
-            while self._phase == "running" and time.monotonic() < t_end:  # zero until both wheels have stopped
+            # a link that never armed the axes (not engaged, a dry run, a half-open link let go) sends nothing: the
+            # controllers are someone else's to command; one that did stops them, waits until the wheels have
+            # stopped, and only with ``disarm`` puts them in IDLE
+            if self._phase == "running":
+                t_end = time.monotonic() + stop_timeout
+                turns = stop_speed / (2.0 * math.pi * self.radius)  # rev/s of a wheel at stop_speed
+                while time.monotonic() < t_end:  # zero until both wheels have stopped
+                    self.stop(0.0)
+                    self.poll(time.monotonic(), block=0.02)
+                    if all(abs(ax.wheel.vel) < turns for ax in self.axes):
+                        break
                 self.stop(0.0)
-                self.poll(time.monotonic(), block=0.02)
-                if all(abs(ax.wheel.vel) < turns for ax in self.axes):
-                    break
-            self.stop(0.0)
-            for ax in self.axes:
-                self._send(encode(ax.node, "Set_Axis_State", {"Axis_Requested_State": AxisState.IDLE}))
+                if disarm:
+                    for ax in self.axes:
+                        self._send(encode(ax.node, "Set_Axis_State", {"Axis_Requested_State": AxisState.IDLE}))
         finally:
             if self.bus is not None:
                 with contextlib.suppress(Exception):
