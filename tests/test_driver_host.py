@@ -669,3 +669,20 @@ def test_an_insecure_udp_link_says_so_on_status_and_in_the_log(tmp_path) -> None
     res = subprocess.run([sys.executable, "-m", "bridge", "driver", "--link", "mavlink", "--insecure", "--duration",
                           "1"], capture_output=True, text=True, timeout=60)
     assert res.returncode == 2 and "--insecure is for --link udp" in res.stderr, res.stderr
+
+
+@pytest.mark.skipif(os.geteuid() == 0, reason="root writes into a read-only directory (the ENOSPC saver above "
+                                               "stands for it)")
+def test_an_estop_in_a_read_only_state_directory_is_not_saved_and_says_so(tmp_path) -> None:
+    """(a) with the real save: the state directory made read-only after the first start (a user other than root)."""
+    latch = tmp_path / "state" / "estop-r1.bin"
+    with _Robot() as robot:
+        host = robot.host(latch)
+        latch.parent.chmod(0o500)
+        try:
+            _estop(host)
+            st = host.status(time.monotonic())
+            assert st.reason == "latch_unsaved" and "NOT saved" in st.text, st.text
+            assert not _engage(host).engaged
+        finally:
+            latch.parent.chmod(0o700)

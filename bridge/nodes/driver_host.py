@@ -3,19 +3,25 @@
 It subscribes to ``scm/<robot>/cmd`` and ``scm/<robot>/estop`` and answers queries on the estop key with its latch
 state. A person is in charge: the host starts *not engaged* (a restart never takes a vehicle back) and sends nothing
 but stops until a person engages it (``scmbridge engage``: a query on ``scm/<robot>/engage``; MAVLink: also the
-operator selecting GUIDED and arming while the host runs; ``engage_on_start`` in the config). The estop latch is kept
-in the state directory and re-read at start, so it survives a restart or a reboot. Closing stops the vehicle, waits
-until it reports it has stopped, and only then disarms (a vehicle engaged by this host). Every command is decoded (so
-validated: finite, in wire range) and goes through the pure :class:`bridge.core.gate.CommandGate`: the next of its
-sender's ``(epoch, seq)`` stream, fresh (received less than min(valid_ms, cmd_timeout) ago), a stop applied as
-exactly zero, anything else clamped to the configured hard limits. The host hands the result to the link driver only
-while the link says the vehicle is fit to drive (``health().ok``) and its telemetry is fresh; otherwise it stops the
-vehicle and says why. Each tick it echoes what the vehicle really got on ``applied``, publishes the link's poses as
-``state`` (its own epoch and sequence) and, each second, a truthful ``status``. Commands are applied as they arrive
-(latency is not a multiple of the period), but the link never gets more than ``max_send_hz`` of them. An estop
-latches a stop; only a source named in ``estop_release_sources`` releases it, and a release is the operator action
-that lets the link clear its controllers' latched faults. All stamps are this host's ``time.monotonic()``, so the
-station pairs ``applied`` with ``state`` without any clock synchronisation.
+operator selecting GUIDED and arming while the host runs; ``engage_on_start`` in the config). The estop latch is
+kept in the state directory and re-read at start, so it survives a restart or a reboot; it fails safe: a latch that
+could not be saved stops the host and refuses engage until a release is saved (status reason ``latch_unsaved``), and
+a latch file missing beside the install marker, unreadable or not signed by this host starts latched
+(``inspect_latch``). The state directory must stay the same across restarts (``SCMBRIDGE_STATE_DIR``): a host given
+a fresh one says "first start in this state directory: no estop history". A link anyone on the network can drive
+(UDP ``insecure``, ``--insecure``; MAVLink without signing) is said in the log and on status
+(``unauthenticated_link``). Closing stops the vehicle, waits until it reports it has stopped, and only then disarms
+(a vehicle engaged by this host). Every command is decoded (so validated: finite, in wire range) and goes through
+the pure :class:`bridge.core.gate.CommandGate`: the next of its sender's ``(epoch, seq)`` stream, fresh (received
+less than min(valid_ms, cmd_timeout) ago), a stop applied as exactly zero, anything else clamped to the configured
+hard limits. The host hands the result to the link driver only while the link says the vehicle is fit to drive
+(``health().ok``) and its telemetry is fresh; otherwise it stops the vehicle and says why. Each tick it echoes what
+the vehicle really got on ``applied``, publishes the link's poses as ``state`` (its own epoch and sequence) and,
+each second, a truthful ``status``. Commands are applied as they arrive (latency is not a multiple of the period),
+but the link never gets more than ``max_send_hz`` of them. An estop latches a stop; only a source named in
+``estop_release_sources`` releases it, and a release is the operator action that lets the link clear its
+controllers' latched faults. All stamps are this host's ``time.monotonic()``, so the station pairs ``applied`` with
+``state`` without any clock synchronisation.
 
 ``--emulate`` (CAN only) hosts the emulated motor controllers on the same python-can ``virtual`` channel inside
 this process: the wire between driver and controllers is python-can, not a shortcut. The host lets them send what
@@ -281,8 +287,10 @@ class DriverHost:
                  dry_run: bool = False, latch_path: Path | None = None,
                  latch_saver: Callable[[Path, bytes], None] = save_atomic) -> None:
         """``dry_run``: run the whole loop and publish what would be applied, sending nothing to the vehicle;
-        ``latch_path``: where the estop latch is kept (None: in memory only); ``latch_saver``: how it is written
-        (atomically; a test slows it down)."""
+        ``latch_path``: where the estop latch is kept (None: in memory only; its install marker beside it,
+        :func:`latch_marker`); ``latch_saver``: how the writer saves it (atomically; a test slows it down or has it
+        fail as a full disk does). The first start's marker and released latch are written with
+        :func:`save_atomic` (:meth:`open_latch`)."""
         d = cfg.driver
         self.link, self.driver, self.robot = link, driver, robot
         self.keys = M.Keys(robot)
