@@ -504,8 +504,15 @@ def test_an_estop_the_disk_cannot_take_stops_refuses_engage_and_is_still_latched
             in st.text, st.text
         assert st.counters["latch_save_failures"] == 1 and driver_estop(st)  # a station takes it as an estop
         ans = _engage(host)
-        assert not ans.engaged and not ans.accepted, ans
+        assert not ans.engaged and not ans.accepted and "NOT saved" in ans.text, ans
         assert not latch.exists()  # the released file is gone: a restart must not read it
+        # scmbridge estop's query (a real Zenoh session in this process) hears it latched, and not saved
+        from bridge.tools.estop import latch_states
+
+        with open_session(make_config(listen=[tcp(free_port())])) as session:
+            session.declare_queryable(Keys("r1").estop, host.on_estop_query)
+            answers = list(latch_states(session, Keys("r1").estop, 2.0).values())
+        assert len(answers) == 1 and answers[0].latched and "NOT saved" in answers[0].reason, answers
         # the robot restarts (still on the full disk): latched, by the missing file
         robot.stop(host)
         again = robot.host(latch, saver)

@@ -459,8 +459,8 @@ class DriverHost:
             with self.lock:
                 was, self.latch_unsaved = self.latch_unsaved, ""
             if was:
-                log.warning("estop latch saved to %s (%s): the host may be engaged again", self.latch_path,
-                            "latched" if latch.latched else "released")
+                log.warning("estop latch saved to %s (%s)", self.latch_path,
+                            "latched" if latch.latched else "released: the host may be engaged again")
             return
         self.inputs.count("latch_save_failures")
         why = getattr(error, "strerror", None) or str(error)
@@ -504,12 +504,12 @@ class DriverHost:
             return M.EngageState(stamp=now, node=node, engaged=True, text="already engaged")
         with self.lock:
             latched, source = self.gate.estopped, self.gate.estop_source
+        if self.latch_unsaved:  # (latched, or released in memory while the release is not on disk)
+            return M.EngageState(stamp=now, node=node, engaged=False, accepted=False,
+                                 text=f"refused: {self.latch_unsaved}"[:1024])
         if latched:
             return M.EngageState(stamp=now, node=node, engaged=False, accepted=False,
                                  text=f"refused: estop latched by {source or 'unknown'}")
-        if self.latch_unsaved:
-            return M.EngageState(stamp=now, node=node, engaged=False, accepted=False,
-                                 text=f"refused: {self.latch_unsaved}"[:1024])
         if not self.dry_run:
             try:
                 self.driver.engage(now, clear_faults=clear)
