@@ -118,7 +118,10 @@ def mavlink_unsigned(short: bool) -> Result:
 
 
 def estop_forgotten_on_restart(short: bool) -> Result:
-    """An operator's estop, then the driver host dies and is restarted (as systemd does)."""
+    """An operator's estop, confirmed (the host answers the estop query once the latch is saved), then the driver
+    host dies and is restarted (as systemd does). The first host's save is waited for: without it the restart raced
+    the first host's writer thread (an estop not yet confirmed can be lost by a SIGKILL within milliseconds), and the
+    temporary directory could go before the save."""
     from bridge.core import wire as M
     from bridge.nodes.driver_config import DriverConfig
     from bridge.nodes.driver_host import DriverHost
@@ -130,10 +133,12 @@ def estop_forgotten_on_restart(short: bool) -> Result:
         latch = Path(d) / "estop.bin"
         first = DriverHost(DriverConfig(), "can", _NoLink(), "r1", 50.0, latch_path=latch)
         first.on_estop(M.Estop(stamp=1.0, engaged=True, source="operator", reason="attack"), 1.0)
+        assert first.latch_writer is not None and first.latch_writer.close(5.0)  # confirmed, then the host dies
         second = DriverHost(DriverConfig(), "can", _NoLink(), "r1", 50.0, latch_path=latch)
         second.engaged = True
         second.gate.offer(M.Command(stamp=2.0, seq=1, v=0.3, omega=0.0, method="scm", epoch=7), 2.0)
         d2 = second.gate.decide(2.01)
+        assert second.latch_writer is not None and second.latch_writer.close(5.0)
     return {"reached_vehicle": {"drives_after_restart": d2.driving}, "learned": None,
             "latched_after_restart": second.gate.estopped, "ok": not d2.driving and second.gate.estopped}
 

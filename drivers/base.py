@@ -142,3 +142,13 @@ class Driver(Protocol):
     def close(self, disarm: bool = True, stop_speed: float = 0.05, stop_timeout: float = 3.0) -> None:
         """Stop the vehicle, wait (at most ``stop_timeout``) until it reports less than ``stop_speed``, then (if
         ``disarm``: it was engaged by this host) disarm it or idle its axes, and release the link. Idempotent."""
+
+
+def link_unauthenticated(config: object) -> str:
+    """Why anyone on the network can command the vehicle through a link with this configuration, in words ("" when
+    the link authenticates what it obeys, or has nothing to say about it: a CAN bus is a wire inside the robot). A
+    link's configuration says it by an ``unauthenticated()`` method (the UDP link's ``insecure``, MAVLink without
+    signing); the driver host's status (counter ``unauthenticated_link``), its start log and ``scmbridge doctor``
+    repeat it, so a person sees it where they look, not only in a log line at open."""
+    method = getattr(config, "unauthenticated", None)
+    return method() if callable(method) else ""

@@ -130,6 +130,11 @@ class UdpLinkConfig(Cfg):
         if self.robot_port == 0:
             raise Rule("robot_port must be the robot's port (1-65535)")
 
+    def unauthenticated(self) -> str:
+        """Why anyone on the network can drive the robot through this link ("" when every datagram is keyed): the
+        driver host's status and ``scmbridge doctor`` say it (drivers.base.link_unauthenticated)."""
+        return "" if self.key_file else "the UDP link runs insecure = true (no key_file)"
+
 
 @dataclass(frozen=True, slots=True)
 class UdpHealthDetail:

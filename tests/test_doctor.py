@@ -91,3 +91,96 @@ def test_doctor_fails_a_can_bus_where_no_controller_answers_and_passes_one_where
     with DiffDriveEcus({"interface": "virtual", "channel": channel}, vehicle):
         found = check_vehicle("can", cfg, max_drive_on=1.0)
     assert found[0].level == "ok" and "answers" in found[0].text and "idle" in found[0].text, found
+
+
+def test_doctor_checks_the_state_directory_and_each_robots_latch(tmp_path, monkeypatch) -> None:
+    """Issue 31: ``doctor`` did not look at the state directory, where the estop latch is kept. It names the one in
+    use and fails one that cannot be created (or take a file: the suite runs as root, which a read-only chmod does
+    not stop, so a path under a regular file stands for it); warns a directory others may read, a fresh one ("first
+    start in this state directory: no estop history"), a latch a host would start with, and a latch file not
+    written by the host; passes a release its own host saved."""
+    from bridge.core import wire as M
+    from bridge.nodes.driver_host import Latch, latch_marker
+    from bridge.tools.doctor import check_state
+
+    (tmp_path / "file").write_text("not a directory")
+    monkeypatch.setenv("SCMBRIDGE_STATE_DIR", str(tmp_path / "file" / "state"))
+    found = check_state("r1")
+    assert [c.level for c in found] == ["FAIL"] and "cannot be created" in found[0].text, found
+    state = tmp_path / "state"
+    monkeypatch.setenv("SCMBRIDGE_STATE_DIR", str(state))
+    found = check_state("r1")
+    assert found[0].level == "warn" and "first start in this state directory: no estop history" in found[0].text
+    state.mkdir(mode=0o755)
+    state.chmod(0o755)
+    found = {c.name: c for c in check_state("r1")}
+    assert found["state"].level == "warn" and "mode 755" in found["state"].text, found
+    assert found["latch"].level == "warn" and "no estop history" in found["latch"].text, found
+    state.chmod(0o700)
+    latch = state / "estop-r1.bin"
+    with _host(latch) as host:  # the first start: marker and a released latch, signed
+        pass
+    found = {c.name: c for c in check_state("r1")}
+    assert found["state"].level == "ok" and str(state) in found["state"].text, found
+    assert found["latch"].level == "ok" and "released" in found["latch"].text, found
+    latch.write_bytes(M.encode(Latch(latched=False, source="operator")))  # someone else's "released"
+    found = {c.name: c for c in check_state(None)}  # every robot with a latch in the directory
+    assert found["latch"].level == "warn" and "r1: a driver host starting now is latched" in found["latch"].text
+    assert "not signed by this host" in found["latch"].text, found
+    latch.unlink()
+    found = {c.name: c for c in check_state("r1")}
+    assert found["latch"].level == "warn" and "missing" in found["latch"].text, found
+    assert latch_marker(latch).exists() and host.fresh_state
+
+
+class _host:
+    """A driver host (its link never opened) started and stopped on ``latch``."""
+
+    def __init__(self, latch) -> None:
+        from bridge.nodes.driver_config import load_driver
+        from bridge.nodes.driver_host import DriverHost
+        from drivers import open_driver
+
+        cfg = load_driver(None)
+        self.host = DriverHost(cfg, "udp", open_driver("udp"), "r1", 50.0, latch_path=latch)
+
+    def __enter__(self):
+        return self.host
+
+    def __exit__(self, *exc) -> None:
+        assert self.host.latch_writer.close(5.0)
+
+
+def test_doctor_warns_a_link_anyone_on_the_network_can_drive(tmp_path) -> None:
+    """``doctor --driver F --link udp`` with ``insecure = true`` (and ``--link mavlink`` without a signing key)
+    warns: "link unauthenticated: anyone on the network can drive it"; a keyed link passes."""
+    from bridge.tools.doctor import check_auth
+    from drivers.mavlink.config import MavlinkLinkConfig
+    from drivers.udp import UdpLinkConfig
+
+    for link, cfg in (("udp", UdpLinkConfig(insecure=True)), ("mavlink", MavlinkLinkConfig())):
+        found = check_auth(link, cfg)
+        assert [c.level for c in found] == ["warn"], found
+        assert "link unauthenticated: anyone on the network can drive it" in found[0].text, found
+        assert f"scmbridge keys {link}" in found[0].text, found
+    assert [c.level for c in check_auth("udp", UdpLinkConfig(key_file="/k"))] == ["ok"]
+    assert check_auth("can", object()) == []
+    # the command: a real router and the emulated UDP robot, the link opened and never engaged
+    from bridge.tools.procs import free_udp_port
+    from sim_learner.udp_robot import UdpRobot
+
+    bind = free_udp_port()
+    robot = UdpRobot(SimVehicle(mpc_learner(), (0.0, 0.0, 0.0), now=time.monotonic()), peer=("127.0.0.1", bind)).start()
+    cfg = tmp_path / "driver.toml"
+    cfg.write_text(f"[link.udp]\ninsecure = true\nrobot_port = {robot.port}\nbind_port = {bind}\n")
+    port = free_port()
+    try:
+        with open_session(make_config(mode="router", listen=[tcp(port)])):
+            res = _doctor("--driver", str(cfg), "--link", "udp", "--mode", "client", "--connect", tcp(port),
+                          "--duration", "0.5")
+    finally:
+        robot.stop()
+    found = _lines(res)
+    assert found["auth"][0].startswith("warn") and "insecure = true" in found["auth"][0], res.stdout
+    assert found["vehicle"][0].startswith("ok"), res.stdout
+    assert "state" in found and "Traceback" not in res.stderr, res.stdout + res.stderr

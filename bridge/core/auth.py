@@ -5,6 +5,8 @@ Pinning a peer's address and port is not authentication: anyone on the segment c
 which carries the sender's epoch and seq: a replay is then refused by the seq gate). Both ends read one key file
 (32 random bytes, hex, mode 0600) made by ``scmbridge keys udp --robot R`` in the state directory; a datagram
 whose tag does not verify is counted and dropped by the receiver. Pure apart from reading and writing key files.
+The same tags, under a magic of their own (:func:`record_tag`), mark records a node keeps on its disk and must know
+it wrote itself (the driver host's estop latch).
 
 Session datagrams (the UDP shim's commands, drivers/udp.py has the protocol): ``SESSION_MAGIC + tag + boot + echo +
 payload``, ``boot`` the receiver's boot nonce and ``echo`` a reading of the receiver's own clock (microseconds), both
@@ -36,6 +38,7 @@ class KeyFileError(UsageError):
 
 
 SESSION_MAGIC = b"\xa5\x02"  # a session datagram (the receiver's boot nonce and clock echoed), version 1
+RECORD_MAGIC = b"\xa5\x03"  # a record a node keeps on its own disk (the estop latch), version 1
 _SESSION = struct.Struct(">QQ")
 SESSION_OVERHEAD = len(SESSION_MAGIC) + TAG_BYTES + _SESSION.size
 U64_MAX = 2**64 - 1
@@ -61,6 +64,17 @@ def open_session(key: bytes, datagram: bytes) -> tuple[int, int, bytes] | None:
         return None
     boot, echo_us = _SESSION.unpack_from(body)
     return boot, echo_us, body[_SESSION.size:]
+
+
+def record_tag(key: bytes, payload: bytes) -> bytes:
+    """The keyed tag of a record a node keeps on disk and must know it wrote itself (the driver host's estop latch,
+    bridge/nodes/driver_host.py): its own magic, so a datagram's tag is never a record's even under one key."""
+    return _tag(key, payload, RECORD_MAGIC)
+
+
+def record_tag_ok(key: bytes, payload: bytes, tag: bytes) -> bool:
+    """Whether ``tag`` is :func:`record_tag` of ``payload`` under ``key`` (compared in constant time)."""
+    return hmac.compare_digest(tag, record_tag(key, payload))
 
 
 def seal(key: bytes, payload: bytes) -> bytes:
@@ -117,5 +131,6 @@ def load_key(path: str | Path, link: str = "udp") -> bytes:
     return key
 
 
-__all__ = ["KEY_BYTES", "MAGIC", "OVERHEAD", "SESSION_MAGIC", "SESSION_OVERHEAD", "KeyFileError", "key_path",
-           "load_key", "make_key", "open_sealed", "open_session", "seal", "seal_session"]
+__all__ = ["KEY_BYTES", "MAGIC", "OVERHEAD", "RECORD_MAGIC", "SESSION_MAGIC", "SESSION_OVERHEAD", "KeyFileError",
+           "key_path", "load_key", "make_key", "open_sealed", "open_session", "record_tag", "record_tag_ok", "seal",
+           "seal_session"]

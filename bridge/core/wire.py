@@ -256,9 +256,11 @@ NodeState = Literal["", "driving", "idle", "running", "paused", "finished", "abo
 #: why a node is in its state, typed: what programs decide on (the station's fitness, ``scmbridge status``), while
 #: ``text`` says it in words for people and may be reworded freely. Both nodes: ``ok`` (nothing stands in the way:
 #: driving), ``no_telemetry`` (no fresh pose). The driver host (in this order): ``estop`` (latched; also in a dry
-#: run), ``dry_run``, ``starting`` (opening the link), ``link_down``, ``not_engaged`` (no person engaged the vehicle
-#: yet, or the operator has yet to hand it over), ``operator`` (a person took the vehicle), ``fault`` (the link says
-#: the vehicle cannot drive: a controller fault, a lost controller heartbeat, ...), ``conflict`` (two command senders).
+#: run), ``latch_unsaved`` (latched, and the latch or its release could not be saved: the host refuses to engage
+#: until a release is saved; a station takes it as ``estop``), ``dry_run``, ``starting`` (opening the link),
+#: ``link_down``, ``not_engaged`` (no person engaged the vehicle yet, or the operator has yet to hand it over),
+#: ``operator`` (a person took the vehicle), ``fault`` (the link says the vehicle cannot drive: a controller fault, a
+#: lost controller heartbeat, ...), ``conflict`` (two command senders).
 #: The station: ``idle``, ``paused``, ``aborted`` (the mission's phase), ``goal_reached``, ``calibration_done``,
 #: ``robot_not_ready`` (the driver host's status is missing, late or not ok), ``teacher`` (the command source gives
 #: nothing to drive: an external teacher silent or saying stop, no primitive within the learned limits),
@@ -266,7 +268,7 @@ NodeState = Literal["", "driving", "idle", "running", "paused", "finished", "abo
 #: implausible telemetry)
 Reason = Literal["ok", "no_telemetry", "estop", "dry_run", "starting", "link_down", "not_engaged", "operator", "fault",
                  "conflict", "idle", "paused", "aborted", "goal_reached", "calibration_done", "robot_not_ready",
-                 "teacher", "persist_failed", "integrity"]
+                 "teacher", "persist_failed", "integrity", "latch_unsaved"]
 
 
 class Status(_Msg, kw_only=True):

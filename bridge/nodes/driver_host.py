@@ -3,19 +3,25 @@
 It subscribes to ``scm/<robot>/cmd`` and ``scm/<robot>/estop`` and answers queries on the estop key with its latch
 state. A person is in charge: the host starts *not engaged* (a restart never takes a vehicle back) and sends nothing
 but stops until a person engages it (``scmbridge engage``: a query on ``scm/<robot>/engage``; MAVLink: also the
-operator selecting GUIDED and arming while the host runs; ``engage_on_start`` in the config). The estop latch is kept
-in the state directory and re-read at start, so it survives a restart or a reboot. Closing stops the vehicle, waits
-until it reports it has stopped, and only then disarms (a vehicle engaged by this host). Every command is decoded (so
-validated: finite, in wire range) and goes through the pure :class:`bridge.core.gate.CommandGate`: the next of its
-sender's ``(epoch, seq)`` stream, fresh (received less than min(valid_ms, cmd_timeout) ago), a stop applied as
-exactly zero, anything else clamped to the configured hard limits. The host hands the result to the link driver only
-while the link says the vehicle is fit to drive (``health().ok``) and its telemetry is fresh; otherwise it stops the
-vehicle and says why. Each tick it echoes what the vehicle really got on ``applied``, publishes the link's poses as
-``state`` (its own epoch and sequence) and, each second, a truthful ``status``. Commands are applied as they arrive
-(latency is not a multiple of the period), but the link never gets more than ``max_send_hz`` of them. An estop
-latches a stop; only a source named in ``estop_release_sources`` releases it, and a release is the operator action
-that lets the link clear its controllers' latched faults. All stamps are this host's ``time.monotonic()``, so the
-station pairs ``applied`` with ``state`` without any clock synchronisation.
+operator selecting GUIDED and arming while the host runs; ``engage_on_start`` in the config). The estop latch is
+kept in the state directory and re-read at start, so it survives a restart or a reboot; it fails safe: a latch that
+could not be saved stops the host and refuses engage until a release is saved (status reason ``latch_unsaved``), and
+a latch file missing beside the install marker, unreadable or not signed by this host starts latched
+(``inspect_latch``). The state directory must stay the same across restarts (``SCMBRIDGE_STATE_DIR``): a host given
+a fresh one says "first start in this state directory: no estop history". A link anyone on the network can drive
+(UDP ``insecure``, ``--insecure``; MAVLink without signing) is said in the log and on status
+(``unauthenticated_link``). Closing stops the vehicle, waits until it reports it has stopped, and only then disarms
+(a vehicle engaged by this host). Every command is decoded (so validated: finite, in wire range) and goes through
+the pure :class:`bridge.core.gate.CommandGate`: the next of its sender's ``(epoch, seq)`` stream, fresh (received
+less than min(valid_ms, cmd_timeout) ago), a stop applied as exactly zero, anything else clamped to the configured
+hard limits. The host hands the result to the link driver only while the link says the vehicle is fit to drive
+(``health().ok``) and its telemetry is fresh; otherwise it stops the vehicle and says why. Each tick it echoes what
+the vehicle really got on ``applied``, publishes the link's poses as ``state`` (its own epoch and sequence) and,
+each second, a truthful ``status``. Commands are applied as they arrive (latency is not a multiple of the period),
+but the link never gets more than ``max_send_hz`` of them. An estop latches a stop; only a source named in
+``estop_release_sources`` releases it, and a release is the operator action that lets the link clear its
+controllers' latched faults. All stamps are this host's ``time.monotonic()``, so the station pairs ``applied`` with
+``state`` without any clock synchronisation.
 
 ``--emulate`` (CAN only) hosts the emulated motor controllers on the same python-can ``virtual`` channel inside
 this process: the wire between driver and controllers is python-can, not a shortcut. The host lets them send what
@@ -27,6 +33,9 @@ from __future__ import annotations
 import argparse
 import logging
 import math
+import os
+import secrets
+import stat
 import threading
 import time
 from collections import deque
@@ -40,7 +49,7 @@ import zenoh
 
 from bridge.core import wire as M
 from bridge.core.args import pose_arg, positive_float, robot_arg
-from bridge.core.auth import load_key
+from bridge.core.auth import KEY_BYTES, load_key, record_tag, record_tag_ok
 from bridge.core.backoff import Backoff
 from bridge.core.clock import ClockOffset
 from bridge.core.errors import UsageError
@@ -60,7 +69,7 @@ from bridge.nodes.node import (
 )
 from bridge.nodes.zsession import open_session
 from drivers import link_names, open_driver
-from drivers.base import Driver, DriverError, FailsafeReport, LinkHealth
+from drivers.base import Driver, DriverError, FailsafeReport, LinkHealth, link_unauthenticated
 
 log = logging.getLogger("scmbridge.driver")
 
@@ -74,14 +83,19 @@ STALL_REPORT_S = 0.25
 SEND_BURST = 2
 #: s ``close()`` waits for a latch save still under way before the process ends
 LATCH_FLUSH_S = 2.0
+#: the end of the status text of a host whose link does not authenticate (drivers.base.link_unauthenticated)
+UNAUTHENTICATED = " (link unauthenticated: anyone on the network can drive it)"
 
 
 class Latch(msgspec.Struct, kw_only=True):
-    """The estop latch as kept on the robot's disk."""
+    """The estop latch as kept on the robot's disk. ``tag``: :func:`bridge.core.auth.record_tag` over the other
+    three fields under the robot's latch key (:func:`latch_marker`), so a file this host did not write reads as
+    latched (:func:`inspect_latch`); empty in memory and in a file older than the tag."""
 
     latched: bool
     source: str = ""
     reason: str = ""
+    tag: bytes = b""
 
 
 def latch_file(robot: str) -> Path:
@@ -89,16 +103,100 @@ def latch_file(robot: str) -> Path:
     return state_dir() / f"estop-{robot}.bin"
 
 
-def read_latch(path: Path) -> Latch:
-    """The saved latch; none saved: released; unreadable: latched (the safe side), said in the log."""
+def latch_marker(path: Path) -> Path:
+    """The install marker beside the latch file ``path`` (``estop-<robot>.installed``): written atomically at the
+    first start in a state directory, and never again. It holds the robot's latch key (32 random bytes as hex, mode
+    0600), which signs every latch the host saves; its presence says this directory has an estop history, so a
+    latch file missing beside it counts as latched."""
+    return path.with_name(path.stem + ".installed")
+
+
+def _unsigned(latch: Latch) -> bytes:
+    return M.encode(Latch(latched=latch.latched, source=latch.source, reason=latch.reason))
+
+
+def sign_latch(key: bytes, latch: Latch) -> Latch:
+    """``latch`` with its tag under ``key`` (what :class:`LatchWriter` saves)."""
+    return Latch(latched=latch.latched, source=latch.source, reason=latch.reason,
+                 tag=record_tag(key, _unsigned(latch)))
+
+
+def read_marker(path: Path) -> bytes | None:
+    """The latch key in the install marker ``path``; None if there is none. Raises ValueError for a marker that is
+    not a key or that others may read (a key others know signs releases for them), OSError for one unreadable."""
     try:
-        return M.decode(path.read_bytes(), Latch)
+        st = path.stat()
+        text = path.read_text(encoding="ascii").strip()
     except FileNotFoundError:
-        return Latch(latched=False)
-    except (OSError, M.MessageError) as exc:
-        log.error("estop latch %s unreadable (%s): starting latched; release it with scmbridge estop --release",
-                  path, exc)
-        return Latch(latched=True, source="unreadable latch file", reason=str(exc)[:200])
+        return None
+    except UnicodeDecodeError as exc:
+        raise ValueError(f"{path}: not a key ({exc})") from None
+    if st.st_mode & (stat.S_IRWXG | stat.S_IRWXO):
+        raise ValueError(f"{path} is readable by others (mode {stat.S_IMODE(st.st_mode):o})")
+    try:
+        key = bytes.fromhex(text)
+    except ValueError:
+        key = b""
+    if len(key) != KEY_BYTES:
+        raise ValueError(f"{path}: not a key ({KEY_BYTES} bytes as hex)")
+    return key
+
+
+def inspect_latch(path: Path, key: bytes | None = None) -> tuple[Latch, str]:
+    """The latch a host starting now would take from ``path``, and the problem that made it latched ("" when the
+    file says it as this host saved it). ``key``: the latch key (None: read from :func:`latch_marker`).
+
+    Fail safe: only a latch file whose tag verifies under the robot's key says released; missing beside the
+    install marker, unreadable, unsigned or forged, it is latched (the source says which). No marker and no latch
+    file: this state directory has never seen an estop (a first start: released; the caller writes the marker).
+
+    Why a keyed tag (and not only "a release must name the latch it releases"): the threat found was a
+    ``released`` file written by someone else (or left by another state directory, or by an older version without
+    tags); without the key nobody makes a tag that verifies. What it cannot stop: whoever can read the marker (this
+    robot's user, root) can sign, and an older released file of this same host, copied back, verifies. The state
+    directory is the host's alone (0700, ``scmbridge doctor`` checks it) and must stay the same across restarts
+    (``SCMBRIDGE_STATE_DIR``): a host given an empty one cannot know an estop was latched elsewhere, so its start
+    log and ``doctor`` say "first start in this state directory: no estop history"."""
+    marker = latch_marker(path)
+    marker_problem = ""
+    if key is None:
+        try:
+            key = read_marker(marker)
+        except (OSError, ValueError) as exc:
+            marker_problem = f"latch key {marker} unusable: {getattr(exc, 'strerror', None) or exc}"
+    try:
+        data = path.read_bytes()
+    except FileNotFoundError:
+        if key is None and not marker_problem and not os.path.lexists(marker):
+            return Latch(latched=False), ""  # never latched in this state directory
+        return (Latch(latched=True, source="missing latch file", reason=f"{path} is missing"),
+                f"latch file {path} missing (this state directory has an estop history: {marker.name})")
+    except OSError as exc:
+        problem = f"latch file {path} unreadable: {exc.strerror or exc}"
+        return Latch(latched=True, source="unreadable latch file", reason=problem[:200]), problem
+    try:
+        saved = M.decode(data, Latch)
+    except M.MessageError as exc:
+        problem = f"latch file {path} unreadable: {exc}"
+        return Latch(latched=True, source="unreadable latch file", reason=problem[:200]), problem
+    plain = Latch(latched=saved.latched, source=saved.source, reason=saved.reason)
+    if key is not None and saved.tag and record_tag_ok(key, _unsigned(saved), saved.tag):
+        return plain, ""
+    if saved.latched:  # latched whoever wrote it
+        return plain, ""
+    why = (marker_problem or f"no latch key ({marker.name} missing)" if key is None
+           else "not signed by this host" if not saved.tag else "its tag does not verify (written by someone else)")
+    problem = f"latch file {path} says released but {why}"
+    return Latch(latched=True, source="unverified latch file", reason=problem[:200]), problem
+
+
+def read_latch(path: Path, key: bytes | None = None) -> Latch:
+    """The latch a host starting now would take (:func:`inspect_latch`), without its tag; a problem is said in the
+    log (the host starts latched: release it with scmbridge estop --release)."""
+    latch, problem = inspect_latch(path, key)
+    if problem:
+        log.error("estop %s: starting latched; release it with scmbridge estop --release", problem)
+    return latch
 
 
 class LatchWriter:
@@ -189,8 +287,10 @@ class DriverHost:
                  dry_run: bool = False, latch_path: Path | None = None,
                  latch_saver: Callable[[Path, bytes], None] = save_atomic) -> None:
         """``dry_run``: run the whole loop and publish what would be applied, sending nothing to the vehicle;
-        ``latch_path``: where the estop latch is kept (None: in memory only); ``latch_saver``: how it is written
-        (atomically; a test slows it down)."""
+        ``latch_path``: where the estop latch is kept (None: in memory only; its install marker beside it,
+        :func:`latch_marker`); ``latch_saver``: how the writer saves it (atomically; a test slows it down or has it
+        fail as a full disk does). The first start's marker and released latch are written with
+        :func:`save_atomic` (:meth:`open_latch`)."""
         d = cfg.driver
         self.link, self.driver, self.robot = link, driver, robot
         self.keys = M.Keys(robot)
@@ -230,14 +330,83 @@ class DriverHost:
         self.was_ok = False  # the link's health last tick (an operator's GUIDED + arming is a transition)
         self.last_health_connected = False
         self.last_state = ""
+        #: why anyone on the network can drive this robot through its link ("" when the link authenticates)
+        self.unauthenticated = link_unauthenticated(getattr(driver, "config", None))
         self.latch_path = latch_path
-        self.latch_writer = LatchWriter(latch_path, self.latch_saved, latch_saver) if latch_path is not None else None
+        #: why the latch on disk is not the gate's (its save failed): while set the host stops and refuses to engage;
+        #: cleared by the next save that succeeds (a person's release, on a disk that takes it)
+        self.latch_unsaved = ""
+        self.latch_saver = latch_saver
+        self.latch_key = b""  # signs every latch saved (the install marker holds it)
+        self.marker_saved = False  # the install marker is on disk (else the next latch save writes it first)
+        self.fresh_state = False  # first start in this state directory: no estop history
+        self.latch_writer: LatchWriter | None = None
         if latch_path is not None:
-            saved = read_latch(latch_path)
-            if saved.latched:
-                self.gate.estop(M.Estop(stamp=0.0, engaged=True, source=saved.source, reason=saved.reason))
-                log.warning("estop latched by %s (kept from before this start): %s", saved.source or "unknown",
-                            saved.reason or "no reason given")
+            self.open_latch(latch_path)
+            self.latch_writer = LatchWriter(latch_path, self.latch_saved, self.save_latch_file)
+
+    # ----------------------------------------------------------------------------------------------- latch
+    def open_latch(self, path: Path) -> None:
+        """Take the saved latch (:func:`inspect_latch`: anything but a release this host signed is latched) and make
+        sure the install marker is on disk; at the first start in a state directory write it and a released latch
+        (marker first: a crash between the two leaves a marker without a latch file, which reads latched). These
+        writes are the start's, with :func:`save_atomic` (a failure is logged; the first latch save tries the
+        marker again)."""
+        marker = latch_marker(path)
+        self.fresh_state = not os.path.lexists(marker) and not os.path.lexists(path)
+        try:
+            key = read_marker(marker)
+        except (OSError, ValueError):
+            key = None  # inspect_latch says why, and the latch reads latched
+        saved = read_latch(path, key)
+        self.marker_saved = key is not None
+        self.latch_key = key if key is not None else secrets.token_bytes(KEY_BYTES)
+        log.info("estop latch %s (state directory %s)", path, path.parent)
+        if self.fresh_state:
+            log.warning("first start in this state directory: no estop history (%s); the state directory must stay "
+                        "the same across restarts (SCMBRIDGE_STATE_DIR): a host started with another one cannot know "
+                        "an estop latched in this one", path.parent)
+        try:
+            if not self.marker_saved:
+                save_atomic(marker, self.latch_key.hex().encode() + b"\n")
+                self.marker_saved = True
+            if self.fresh_state:
+                save_atomic(path, M.encode(sign_latch(self.latch_key, Latch(latched=False, reason="first start"))))
+        except OSError as exc:
+            log.error("estop latch: cannot write %s (%s): an estop is kept in memory only until a save succeeds",
+                      marker if not self.marker_saved else path, exc.strerror or exc)
+        if saved.latched:
+            self.gate.estop(M.Estop(stamp=0.0, engaged=True, source=saved.source, reason=saved.reason))
+            log.warning("estop latched by %s (kept from before this start): %s", saved.source or "unknown",
+                        saved.reason or "no reason given")
+
+    def save_latch_file(self, path: Path, data: bytes) -> None:
+        """The writer's save: the install marker first if it is not on disk yet, then the latch (both with the
+        host's ``latch_saver``)."""
+        if not self.marker_saved:
+            self.latch_saver(latch_marker(path), self.latch_key.hex().encode() + b"\n")
+            self.marker_saved = True
+        self.latch_saver(path, data)
+
+    def forget_latch_file(self) -> str:
+        """After a latched save failed: remove the latch file on disk (possible on a full disk; it may say
+        released), so a restart finds it missing beside the install marker and starts latched. Returns what a
+        restart would do, in words, when that cannot be made sure."""
+        path = self.latch_path
+        if path is None:
+            return ""
+        if not self.marker_saved:
+            return "no install marker on disk either: a restart would not know of this estop"
+        try:
+            path.unlink(missing_ok=True)
+            dfd = os.open(path.parent, os.O_DIRECTORY)
+            try:
+                os.fsync(dfd)
+            finally:
+                os.close(dfd)
+        except OSError as exc:
+            return f"the old latch file could not be removed either ({exc.strerror or exc}): a restart may read it"
+        return ""
 
     # ---------------------------------------------------------------------------------------------- inputs
     def on_mocap(self, st: M.LearnerState, now: float) -> None:
@@ -277,13 +446,36 @@ class DriverHost:
         if self.latch_writer is None:
             return
         g = self.gate
-        self.latch_writer.submit(Latch(latched=g.estopped, source=g.estop_source, reason=g.estop_reason))
+        self.latch_writer.submit(sign_latch(self.latch_key, Latch(latched=g.estopped, source=g.estop_source,
+                                                                  reason=g.estop_reason)))
 
     def latch_saved(self, latch: Latch, error: Exception | None) -> None:
-        """A save's result (the writer's thread): a failure is logged and counted, and the latch in memory holds."""
-        if error is not None:
-            self.inputs.count("latch_save_failures")
-            log.error("estop latch not saved to %s: %s", self.latch_path, getattr(error, "strerror", None) or error)
+        """A save's result (the writer's thread). Fail safe: a latch that could not be saved must not come back
+        released after a restart, nor be released in memory while the disk cannot say so. A failed latched save
+        removes the latch file (a restart then finds the marker without it: latched) and sets ``latch_unsaved``;
+        a failed release latches the gate again; either way the host stops, refuses to engage and says why on
+        status (reason ``latch_unsaved``) until a save succeeds: a person's release on a disk that takes it."""
+        if error is None:
+            with self.lock:
+                was, self.latch_unsaved = self.latch_unsaved, ""
+            if was:
+                log.warning("estop latch saved to %s (%s)", self.latch_path,
+                            "latched" if latch.latched else "released: the host may be engaged again")
+            return
+        self.inputs.count("latch_save_failures")
+        why = getattr(error, "strerror", None) or str(error)
+        if latch.latched:
+            text = f"estop latched but NOT saved to {self.latch_path}: {why}; engage refused until it is saved"
+            restart = self.forget_latch_file()
+        else:
+            text = (f"estop release NOT saved to {self.latch_path}: {why}; latched again, engage refused until a "
+                    "release is saved")
+            restart = ""
+        with self.lock:
+            self.latch_unsaved = text
+            if not latch.latched and not self.gate.estopped:  # (a newer estop may have latched it meanwhile)
+                self.gate.estop(M.Estop(stamp=0.0, engaged=True, source="unsaved release", reason=text[:200]))
+        log.error("%s%s", text, f" ({restart})" if restart else "")
 
     def on_engage_query(self, query: zenoh.Query) -> None:
         """A person's ``scmbridge engage``: handed to the loop (which owns the link) and answered from there."""
@@ -312,6 +504,9 @@ class DriverHost:
             return M.EngageState(stamp=now, node=node, engaged=True, text="already engaged")
         with self.lock:
             latched, source = self.gate.estopped, self.gate.estop_source
+        if self.latch_unsaved:  # (latched, or released in memory while the release is not on disk)
+            return M.EngageState(stamp=now, node=node, engaged=False, accepted=False,
+                                 text=f"refused: {self.latch_unsaved}"[:1024])
         if latched:
             return M.EngageState(stamp=now, node=node, engaged=False, accepted=False,
                                  text=f"refused: estop latched by {source or 'unknown'}")
@@ -344,9 +539,10 @@ class DriverHost:
         self.answer_estop_query(query)
 
     def answer_estop_query(self, query: zenoh.Query, deferred: bool = False) -> None:
-        with self.lock:
-            st = M.EstopState(stamp=time.monotonic(), node=f"driver-{self.link}", latched=self.gate.estopped,
-                              source=self.gate.estop_source, reason=self.gate.estop_reason)
+        with self.lock:  # an unsaved latch is latched, and says so (estop prints it beside LATCHED)
+            st = M.EstopState(stamp=time.monotonic(), node=f"driver-{self.link}",
+                              latched=self.gate.estopped or bool(self.latch_unsaved), source=self.gate.estop_source,
+                              reason=(self.latch_unsaved or self.gate.estop_reason)[:1024])
         try:
             query.reply(self.keys.estop, M.encode(st))
         finally:
@@ -375,9 +571,12 @@ class DriverHost:
         with self.lock:
             d = self.gate.decide(now)
             clear, self.clear_requested = self.clear_requested, False
+            unsaved = self.latch_unsaved
         if clear:
             log.warning("operator released the estop: clearing the link's latched faults")
             self.driver.clear_faults(now)
+        if d.driving and unsaved:  # released in memory, but not on disk (yet): a stop until the release is saved
+            return Decision(0.0, 0.0, "estop", d.cmd_seq)
         if d.driving and not self.engaged:
             return Decision(0.0, 0.0, "disengaged", d.cmd_seq)
         if d.driving and not self.health.ok and not self.dry_run:
@@ -439,7 +638,10 @@ class DriverHost:
         with self.lock:
             counters = dict(self.gate.counters)
             estop = (self.gate.estopped, self.gate.estop_source)
+            unsaved = self.latch_unsaved
         counters.update(self.inputs.snapshot())
+        # (not ``link_unauthenticated``: that is the UDP link's count of datagrams dropped for a bad tag)
+        counters["unauthenticated_link"] = int(bool(self.unauthenticated))
         missed = self.ticker.missed if self.ticker is not None else 0
         counters.update({"link_malformed": h.malformed, "link_errors": h.errors, "missed_deadlines": missed,
                          "loop_stalls": self.stall_watch.stalls,
@@ -454,17 +656,19 @@ class DriverHost:
             problems.append("no telemetry yet" if math.isinf(pose_age) else f"no telemetry for {pose_age:.1f} s")
         if estop[0]:
             problems.insert(0, f"estop latched by {estop[1] or 'unknown'}")
+        if unsaved:
+            problems.insert(0, unsaved)
         with self.lock:
             conflict = self.gate.conflict(now)
         if conflict:
             problems.append(conflict)
-        if not self.engaged and not estop[0]:
+        if not self.engaged and not estop[0] and not unsaved:
             if self.operator_engages and h.connected and not h.ok:
                 problems.insert(0, f"waiting for the operator: {h.text.split(': ', 1)[-1]} "
                                    f"(or scmbridge engage --robot {self.robot})")
             else:
                 problems.insert(0, f"waiting for engage (scmbridge engage --robot {self.robot})")
-        state, reason = self.node_state(estop[0], h, pose_age, problems)
+        state, reason = self.node_state(estop[0] or bool(unsaved), h, pose_age, problems, bool(unsaved))
         if state != self.last_state:
             log.info("%s: %s", state, "; ".join(problems) or "driving")
             self.last_state = state
@@ -479,20 +683,24 @@ class DriverHost:
         text = f"link {self.link}: " + ("; ".join(problems) if problems else f"driving ({self.last_decision.reason})")
         if self.dry_run:
             text = "DRY RUN (nothing is sent to the vehicle): " + text
+        if self.unauthenticated:  # said whatever else is cut (the text's limit is 1024)
+            text = text[:1024 - len(UNAUTHENTICATED)] + UNAUTHENTICATED
         msg = M.Status(stamp=now, seq=self.seq["status"], node="driver", ok=not problems and not self.dry_run,
                        state=state, reason=reason,
                        rates_hz={"loop": 1.0 / self.period}, latencies_ms=lat, counters=counters, text=text[:1024])
         self.seq["status"] += 1
         return msg
 
-    def node_state(self, estop: bool, h: LinkHealth, pose_age: float,
-                   problems: list[str]) -> tuple[M.NodeState, M.Reason]:
+    def node_state(self, estop: bool, h: LinkHealth, pose_age: float, problems: list[str],
+                   unsaved: bool = False) -> tuple[M.NodeState, M.Reason]:
         """The one word ``scmbridge status`` shows for this host, and its typed reason (what the station decides
-        on: a latched estop is ``estop`` also in a dry run); from typed values only, never from a text."""
+        on: a latched estop is ``estop`` also in a dry run, ``latch_unsaved`` when it is not on disk); from typed
+        values only, never from a text."""
+        latched: M.Reason = "latch_unsaved" if unsaved else "estop"
         if self.dry_run:
-            return "dry_run", "estop" if estop else "dry_run"
+            return "dry_run", latched if estop else "dry_run"
         if estop:
-            return "estop", "estop"
+            return "estop", latched
         if not h.connected:
             return "link_down", "link_down"
         if not self.engaged:
@@ -532,6 +740,9 @@ class DriverHost:
                                                 if too_long else "")
         log.info("driver host for %s on link %s at %.0f Hz (epoch %x)%s", self.robot, self.link, 1 / self.period,
                  self.epoch, ": DRY RUN, nothing is sent to the vehicle" if self.dry_run else "")
+        if self.unauthenticated:
+            log.warning("link %s unauthenticated: %s: anyone on the network can drive it (status counter "
+                        "unauthenticated_link = 1)", self.link, self.unauthenticated)
         if self.engage_on_start:
             ans = self.handle_engage(M.EngageRequest(stamp=0.0, source="engage_on_start"), time.monotonic())
             if not ans.engaged:
@@ -627,6 +838,9 @@ def arguments(ap: argparse.ArgumentParser) -> None:
                          "that restarts)")
     ap.add_argument("--dry-run", action="store_true",
                     help="run the whole loop and publish applied, but send nothing to the vehicle (bring-up)")
+    ap.add_argument("--insecure", action="store_true",
+                    help="UDP link without a key_file ([link.udp] insecure = true): no authentication, anyone on the "
+                         "network can drive the robot (loopback tests; said in the log and on status)")
 
 
 def _emulated_ecus(cfg, model: str, x0: tuple[float, float, float]):
@@ -650,6 +864,10 @@ def run(args: argparse.Namespace) -> int:
     if args.emulate:
         link_cfg = msgspec.structs.replace(link_cfg, interface="virtual", channel=f"scm-{robot}",
                                            initial_pose=args.x0)
+    if args.insecure:  # a person's opt-in, on the command line where it is seen (and on status, and in the log)
+        if not hasattr(link_cfg, "insecure"):
+            raise UsageError(f"--insecure is for --link udp (the {args.link} link has no such setting)")
+        link_cfg = msgspec.structs.replace(link_cfg, insecure=True)
     for name in ("key_file", "signing_key_file"):  # a missing or unsafe key is one line now, not a retry loop later
         if getattr(link_cfg, name, ""):
             load_key(getattr(link_cfg, name), args.link)

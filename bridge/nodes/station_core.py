@@ -98,8 +98,11 @@ def load_store(path: Path, learner: Bounds, teacher: Bounds, grid, k_min: int) -
 
 def driver_estop(driver: M.Status) -> bool:
     """Whether a driver host's status says an estop is latched there: its typed reason (``estop``, also in a dry
-    run), never its words; a host older than that field says it by its state alone."""
-    return driver.reason == "estop" if driver.reason is not None else driver.state == "estop"
+    run; ``latch_unsaved``: latched and not on its disk), never its words; a host older than that field says it by
+    its state alone."""
+    if driver.reason is not None:
+        return driver.reason in ("estop", "latch_unsaved")
+    return driver.state == "estop"
 
 
 def pairs_message(store: PairStore, robot: str, now: float) -> M.Pairs:

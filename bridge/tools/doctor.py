@@ -10,7 +10,14 @@ Each check prints one line, ``ok``, ``warn`` or ``FAIL``, its name and what it f
   CA it names (one CA), and none expires within ``--expiry-days`` (a warning) or has expired (a failure);
 - ``access``: a router configuration with access control on is named as such (rules and subjects counted); one
   without says that anyone on its network may publish commands;
+- ``state``: the state directory (``SCMBRIDGE_STATE_DIR``, ...: which one is named) exists or can be created, takes a
+  file (written, fsynced and removed) and is 0700; ``latch``: for the driver's robot (``--driver``) or every robot
+  with a latch there, what a driver host starting now would take: released (signed by that host), latched (by whom),
+  latched because the file is missing, unreadable or not the host's own, or "first start in this state directory: no
+  estop history" (a host that ran with another state directory left its latch there);
 - ``can``: for a SocketCAN link, the interface exists and is up (with the command that brings it up);
+- ``auth``: (``--link``) whether the link authenticates what it obeys: a warning for the UDP link with
+  ``insecure = true`` and for MAVLink without signing (anyone on the network can drive the robot);
 - ``vehicle``: the link opens and the vehicle answers (``--link`` with ``--driver``; it is never engaged: no
   mode change, arming or closed loop), and its own failsafe: how long it would drive on if the driver host died,
   a warning beyond the driver's ``max_drive_on_s``.
@@ -24,7 +31,9 @@ from __future__ import annotations
 import argparse
 import datetime as dt
 import json
+import os
 import shutil
+import stat
 import subprocess
 import time
 from collections.abc import Callable
@@ -37,11 +46,14 @@ from bridge.core import wire as M
 from bridge.core.args import positive_float
 from bridge.core.config import load_station
 from bridge.core.errors import UsageError
+from bridge.core.paths import state_dir
 from bridge.nodes.driver_config import load_driver
+from bridge.nodes.driver_host import inspect_latch, latch_marker
 from bridge.nodes.node import add_zenoh_args, endpoints_tried, zenoh_config
 from bridge.nodes.tlsid import cert_names
 from bridge.nodes.zsession import open_session
 from drivers import link_names
+from drivers.base import link_unauthenticated
 
 
 @dataclass(frozen=True)
@@ -161,6 +173,84 @@ def check_can(channel: str, interface: str) -> Check:
     return Check("ok", "can", f"{channel} is up")
 
 
+def _probe(directory: Path) -> None:
+    """Write, fsync and remove a small file in ``directory`` (what a latch save needs; raises OSError if it cannot)."""
+    probe = directory / f".doctor-{os.getpid()}.probe"
+    try:
+        fd = os.open(probe, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+        try:
+            os.write(fd, b"doctor\n" * 64)
+            os.fsync(fd)
+        finally:
+            os.close(fd)
+    finally:
+        probe.unlink(missing_ok=True)
+
+
+def check_state(robot: str | None) -> list[Check]:
+    """The state directory the driver host and the station would use (``bridge.core.paths.state_dir``): it exists
+    or can be created, takes a file and is the user's alone; then each robot's estop latch as a driver host starting
+    now would take it (``robot``: the driver's; None: every robot with a latch or a marker there)."""
+    d = state_dir()
+    if not d.exists():
+        parent = d
+        while not parent.exists() and parent.parent != parent:
+            parent = parent.parent
+        if not parent.is_dir() or not os.access(parent, os.W_OK | os.X_OK):
+            return [Check("FAIL", "state", f"state directory {d} does not exist and cannot be created ({parent} is "
+                                           "not a writable directory): set SCMBRIDGE_STATE_DIR, or StateDirectory= "
+                                           "in the unit")]
+        return [Check("warn", "state", f"state directory {d} does not exist yet (the first start creates it, "
+                                       "0700): first start in this state directory: no estop history")]
+    if not d.is_dir():
+        return [Check("FAIL", "state", f"state directory {d} is not a directory")]
+    try:
+        _probe(d)
+    except OSError as exc:
+        return [Check("FAIL", "state", f"state directory {d} does not take a file ({exc.strerror or exc}): an estop "
+                                       "could not be saved (the driver host refuses to engage then); free space or "
+                                       "fix its permissions")]
+    mode = stat.S_IMODE(d.stat().st_mode)
+    out = [Check("warn", "state", f"state directory {d} is mode {mode:o}: others may read the latch key or replace "
+                                  f"the estop latch; chmod 700 {d}") if mode & 0o077
+           else Check("ok", "state", f"state directory {d} (0700, writable)")]
+    robots = [robot] if robot else sorted({p.name[len("estop-"):].rsplit(".", 1)[0]
+                                           for p in d.glob("estop-*") if p.suffix in (".bin", ".installed")})
+    for r in robots:
+        path = d / f"estop-{r}.bin"
+        marker = latch_marker(path)
+        if not os.path.lexists(path) and not os.path.lexists(marker):
+            out.append(Check("warn", "latch", f"{r}: first start in this state directory: no estop history (a driver "
+                                              f"host for {r} that ran with another state directory left its latch "
+                                              "there: SCMBRIDGE_STATE_DIR must stay the same)"))
+            continue
+        latch, problem = inspect_latch(path)
+        if problem:
+            out.append(Check("warn", "latch", f"{r}: a driver host starting now is latched: {problem} (look at the "
+                                              f"robot, then scmbridge estop --robot {r} --release)"))
+        elif latch.latched:
+            out.append(Check("warn", "latch", f"{r}: estop latched by {latch.source or 'unknown'}"
+                                              + (f" ({latch.reason})" if latch.reason else "")))
+        else:
+            out.append(Check("ok", "latch", f"{r}: released (saved by its driver host; estop history since "
+                                            f"{dt.datetime.fromtimestamp(marker.stat().st_mtime):%Y-%m-%d %H:%M})"))
+    return out
+
+
+def check_auth(link: str, link_cfg: object) -> list[Check]:
+    """Whether the link authenticates what it obeys (drivers.base.link_unauthenticated)."""
+    why = link_unauthenticated(link_cfg)
+    if why:
+        fix = {"udp": "make a key (scmbridge keys udp --robot R) and name it in [link.udp] key_file",
+               "mavlink": "make a key (scmbridge keys mavlink --robot R), name it in [link.mavlink] signing_key_file "
+                          "and give it to the autopilot"}.get(link, "")
+        return [Check("warn", "auth", f"link {link}: {why}: link unauthenticated: anyone on the network can drive "
+                                      "it" + (f"; {fix}" if fix else ""))]
+    if hasattr(link_cfg, "unauthenticated"):
+        return [Check("ok", "auth", f"link {link}: authenticated")]
+    return []
+
+
 #: link reasons that mean the vehicle has not been heard from (drivers.base.LinkReason)
 SILENT = ("link_down", "no_heartbeat", "no_telemetry")
 #: how long the vehicle has to answer once its link is open, s (a CAN controller's Heartbeat is every 100 ms, a UDP
@@ -239,6 +329,7 @@ def run(args: argparse.Namespace) -> int:
         step(lambda kind=kind, path=path: Check("ok", "config", f"{kind} {path}"))
         if kind == "driver":
             driver_cfg = cfg
+    step(lambda: check_state(driver_cfg.robot if driver_cfg is not None else None))
     conf = zenoh_config(args)
     step(lambda: check_router(args, conf, args.duration))
     step(lambda: check_tls(conf, args.expiry_days))
@@ -249,6 +340,7 @@ def run(args: argparse.Namespace) -> int:
         link_cfg = getattr(driver_cfg.link, args.link)
         if args.link == "can":
             step(lambda: check_can(link_cfg.channel, link_cfg.interface))
+        step(lambda: check_auth(args.link, link_cfg))
         step(lambda: check_vehicle(args.link, link_cfg, driver_cfg.driver.max_drive_on_s))
     failed = [c for c in checks if c.level == "FAIL"]
     print(f"{len(checks)} checks: {len(failed)} failed, {sum(c.level == 'warn' for c in checks)} warnings")

@@ -145,7 +145,8 @@ def run(args: argparse.Namespace) -> int:
         elif args.release:  # the host answered and kept its latch: the one reason it refuses a release
             print(f"{robot}: release not confirmed: a driver host releases only from a source named in its "
                   f"estop_release_sources (driver configuration), and --source {args.source!r} is not one of them "
-                  "(or a new estop latched it again)", file=sys.stderr)
+                  "(or a new estop latched it again, or the host could not save the release: its reason above)",
+                  file=sys.stderr)
     if failed:
         print(f"scmbridge estop: not confirmed by {', '.join(failed)}", file=sys.stderr)
     if denied and len(denied) == len(failed):

@@ -44,6 +44,11 @@ class MavlinkLinkConfig(Cfg):
         "MAVLink 2 signing key (scmbridge keys mavlink; the autopilot gets the same key with SETUP_SIGNING): every "
         "message we send is signed and unsigned or badly signed ones are refused; empty: no signing")] = ""
 
+    def unauthenticated(self) -> str:
+        """Why anyone on the link can command the vehicle ("" when MAVLink 2 signing is on): the driver host's status
+        and ``scmbridge doctor`` say it (drivers.base.link_unauthenticated)."""
+        return "" if self.signing_key_file else "MAVLink signing is off (no signing_key_file)"
+
     def __post_init__(self) -> None:
         if self.position_timeout < 2.0 / self.rate_hz:
             raise Rule(f"position_timeout = {self.position_timeout} s is shorter than two LOCAL_POSITION_NED "
