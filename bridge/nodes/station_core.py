@@ -308,18 +308,20 @@ class StationCore:
         """Pairs from the echoes and poses that arrived (put back in stamp order by :class:`Reorder`, so they reach
         the pairer ``REORDER_WINDOW`` after receipt), the latest pose and driver status, a new mission if one
         came."""
-        for m, at in inputs.telemetry:
-            self.reorder.push(m.stamp, 0 if isinstance(m, M.Applied) else 1, at, (m, at))
+        push = self.reorder.push
+        for m, at in inputs.telemetry:  # one walk: into the reorder window, and the latest pose
+            if isinstance(m, M.Applied):
+                push(m.stamp, 0, at, (m, at))
+            else:
+                push(m.stamp, 1, at, (m, at))
+                self.state, self.state_at = m, at
         for e, received in self.reorder.ready(now):
             if isinstance(e, M.Applied):
                 pair = self.pairer.applied(e.stamp, e.v, e.omega, e.reason, received)
             else:
-                pair = self.pairer.state(e.stamp, np.array([e.x, e.y, e.theta]), received)
+                pair = self.pairer.state(e.stamp, (e.x, e.y, e.theta), received)
             if pair is not None:
                 self.store.add(*pair)
-        for m, at in inputs.telemetry:
-            if isinstance(m, M.LearnerState):
-                self.state, self.state_at = m, at
         if inputs.teacher is not None:
             self.teacher, self.teacher_at = inputs.teacher
             self.teacher_new = True
@@ -400,10 +402,10 @@ class StationCore:
         command = self.send(now, prop)
         teacher = None
         if prop.solver is not None:
-            pred = np.asarray(prop.predicted) if prop.predicted is not None else np.zeros((0, 3))
+            pred = np.asarray(prop.predicted, dtype=float) if prop.predicted is not None else np.zeros((0, 3))
             teacher = M.TeacherCommand(
                 stamp=now, seq=command.seq, v=float(prop.u[0]), omega=float(prop.u[1]), solver=prop.solver,
-                ok=prop.ok, predicted_x=[float(a) for a in pred[:, 0]], predicted_y=[float(a) for a in pred[:, 1]],
+                ok=prop.ok, predicted_x=pred[:, 0].tolist(), predicted_y=pred[:, 1].tolist(),
                 sender="station", epoch=self.epoch)
         return "", command, teacher
 
@@ -472,10 +474,11 @@ class StationCore:
         phase = self.control.phase
         state = "driving" if self.why == "driving" else ("waiting" if phase == "running" else phase)
         tk = np.array(self.tick_ms) if self.tick_ms else np.zeros(1)
+        p50, p99 = np.percentile(tk, (50, 99)).tolist()  # one sort for both
         msg = M.Status(stamp=now, seq=self.seq["status"], node="station", ok=ok, state=state,
                        progress=min(1.0, max(0.0, self.control.progress)), rates_hz={"loop": 1 / self.period},
                        latencies_ms={"solve_median": float(np.median(sm)), "solve_max": float(sm.max()),
-                                     "tick_p50": float(np.percentile(tk, 50)), "tick_p99": float(np.percentile(tk, 99)),
+                                     "tick_p50": p50, "tick_p99": p99,
                                      "tick_max": float(tk.max())},
                        counters=c.as_dict(), text=text[:1024])
         self.seq["status"] += 1
