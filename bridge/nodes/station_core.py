@@ -179,12 +179,15 @@ class TickInputs:
 
 @dataclass(frozen=True)
 class TickOutputs:
-    """What to publish after a tick: each is None when there is nothing to send on that key."""
+    """What to publish after a tick: each is None when there is nothing to send on that key. ``command_bytes``:
+    the command as the core checked it on the wire's decoder (:func:`bridge.core.wire.validated_bytes`), to send as
+    it is."""
 
     command: M.Command | None = None
     teacher: M.TeacherCommand | None = None
     limits: M.Limits | None = None
     status: M.Status | None = None
+    command_bytes: bytes | None = None
 
 
 class StationCore:
@@ -244,6 +247,7 @@ class StationCore:
         self.tick_ms: deque[float] = deque(maxlen=600)  # the last minute of periodic ticks' durations
         self.t_status: float | None = None  # the next status is due then (None: at the first periodic tick)
         self.t_persist: float | None = None
+        self.command_bytes: tuple[M.Command, bytes] | None = None  # the last command and its checked bytes
 
     # -------------------------------------------------------------------------------------------- queries
     @property
@@ -287,7 +291,7 @@ class StationCore:
         self.ingest(inputs, now)
         command, teacher = self.control_step(now)
         if not inputs.periodic:
-            return TickOutputs(command, teacher)
+            return TickOutputs(command, teacher, command_bytes=self._bytes_of(command))
         self.tick_ms.append((time.monotonic() - t0) * 1e3)
         self.counters.ticks += 1
         self.counters.inputs = dict(inputs.input_counts)
@@ -302,7 +306,7 @@ class StationCore:
         if self.t_persist is None or now >= self.t_persist:
             self.persist()
             self.t_persist = now + self.persist_every
-        return TickOutputs(command, teacher, limits, status)
+        return TickOutputs(command, teacher, limits, status, self._bytes_of(command))
 
     def ingest(self, inputs: TickInputs, now: float) -> None:
         """Pairs from the echoes and poses that arrived (put back in stamp order by :class:`Reorder`, so they reach
@@ -425,7 +429,14 @@ class StationCore:
         cmd = M.Command(stamp=now, seq=self.seq["cmd"], v=v, omega=omega, method=method,
                         valid_ms=int(3000 * self.period), region=region or [], sender="station", epoch=self.epoch)
         self.seq["cmd"] += 1
-        return M.validated(cmd)
+        cmd, data = M.validated_bytes(cmd)
+        self.command_bytes = (cmd, data)
+        return cmd
+
+    def _bytes_of(self, command: M.Command | None) -> bytes | None:
+        """The bytes :meth:`_command` checked for ``command`` (None for any other)."""
+        last = self.command_bytes
+        return last[1] if command is not None and last is not None and last[0] is command else None
 
     def not_driving(self, fit: str) -> str:
         """The one reason the robot is not driven this tick (for the status line and the log)."""
