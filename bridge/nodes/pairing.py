@@ -91,6 +91,21 @@ def _grown(b: Bounds, margin: float) -> Bounds:
     return Bounds((-v, v), (-w, w))
 
 
+def _box(b: Bounds | None) -> tuple[float, float, float, float] | None:
+    """``b``'s limits as :meth:`Bounds.contains` (default tolerance) compares against, as floats: (v_lo, v_hi,
+    omega_lo, omega_hi); None for no bounds."""
+    if b is None:
+        return None
+    tol = 1e-12  # Bounds.contains's default
+    lo, hi = (b.lo - tol * b.span).tolist(), (b.hi + tol * b.span).tolist()
+    return lo[0], hi[0], lo[1], hi[1]
+
+
+def _inside(box: tuple[float, float, float, float] | None, u) -> bool:
+    """:meth:`Bounds.contains` of one command (v, omega) in scalar maths (once per pair); always with no box."""
+    return box is None or (box[0] <= u[0] <= box[1] and box[2] <= u[1] <= box[3])
+
+
 class IntervalPairer:
     """Turns time-ordered applied echoes and poses into command pairs (see the module docstring)."""
 
@@ -105,6 +120,8 @@ class IntervalPairer:
         self.max_speed, self.max_turn = float(max_speed), float(max_turn)
         self.command_bounds = None if command_bounds is None else _grown(command_bounds, margin)
         self.teacher_bounds = None if teacher_bounds is None else _grown(teacher_bounds, margin)
+        self._command_box = _box(self.command_bounds)
+        self._teacher_box = _box(self.teacher_bounds)
         self.anchor: tuple[float, float] | None = None  # (stamp, receipt) of the last accepted event
         self.behind: list[tuple[float, float]] = []  # (stamp, receipt) of events in a row behind the anchor
         self.pose: tuple[float, Pose] | None = None  # the last accepted pose
@@ -219,8 +236,7 @@ class IntervalPairer:
             self.rejected += 1
             return None
         teacher, learner = teacher_equivalent(np.array(x1), np.array(x2), t2 - t1), np.array(self.segment)
-        if ((self.command_bounds is not None and not self.command_bounds.contains(learner))
-                or (self.teacher_bounds is not None and not self.teacher_bounds.contains(teacher))):
+        if not (_inside(self._command_box, self.segment) and _inside(self._teacher_box, teacher.tolist())):
             self.implausible_pair += 1
             return None
         self.formed += 1
