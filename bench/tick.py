@@ -54,6 +54,8 @@ def arguments(ap: argparse.ArgumentParser) -> None:
                     "(less the simulated robots' share) and of the ticks themselves, no phases")
     ap.add_argument("--switch-interval", type=float, default=None, metavar="S",
                     help="sys.setswitchinterval for --threads (default: the station's FLEET_SWITCH_INTERVAL_S)")
+    ap.add_argument("--gc-freeze", action="store_true", help="gc.freeze() once the cores are built (start-up's objects "
+                    "out of every later collection)")
     ap.add_argument("--tiles", type=int, default=5, help="the mission: the paper's S-path laid end to end this often")
     ap.add_argument("--no-compile", action="store_true", help="the MPC's functions interpreted, not compiled")
     ap.add_argument("--zenoh", action="store_true", help="telemetry and outputs through a real Zenoh session")
@@ -234,6 +236,11 @@ def run(args: argparse.Namespace) -> int:
     clock = _Clock()
     rigs = [_Rig(f"tick{i + 1}", cfg, mission, tmp, clock, fns, session, t0) for i in range(args.robots)]
     period = rigs[0].core.period
+    if args.gc_freeze:
+        import gc
+
+        gc.collect()
+        gc.freeze()
     decode = clock.wrap("decode", M.decode)
     encode = clock.wrap("encode", M.encode)
     if args.threads:

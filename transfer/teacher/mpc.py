@@ -361,9 +361,10 @@ class _Rti:
 
     def _bounds(self, limits: Bounds) -> None:
         key = (limits.v, limits.w)
-        if key != self.bounds_of:
+        if key != self.bounds_of:  # the learned limits moved (often while the store fills)
             N = self.cfg.N
-            self.lbx[: 2 * N], self.ubx[: 2 * N] = np.tile(limits.lo, N), np.tile(limits.hi, N)
+            self.lbx[: 2 * N].reshape(N, 2)[:] = limits.lo  # = np.tile(limits.lo, N), in place
+            self.ubx[: 2 * N].reshape(N, 2)[:] = limits.hi
             self.lbx[2 * N:], self.ubx[2 * N:] = 0.0, np.inf
             self.bounds_of = key
 
@@ -374,7 +375,7 @@ class _Rti:
         self.lin.args[1][:] = p
         z[: 2 * N] = U0.ravel()
         z[2 * N] = 0.0
-        np.clip(z, self.lbx, self.ubx, out=z)
+        np.minimum(np.maximum(z, self.lbx, out=z), self.ubx, out=z)  # = np.clip, without its wrapper
         status, iters = "", 0
         for _ in range(self.cfg.rti_cold_iters if cold else 1):
             self.lin()
@@ -398,10 +399,11 @@ class _Rti:
                 return False, f"QP: {str(exc).splitlines()[-1][:120]}", iters, U0, np.zeros((N + 1, 3))
             stats = self.qp.stats()
             iters += 1
-            if not stats.get("success", False) or not np.all(np.isfinite(x)):
+            if stats.get("success", False):
+                d = np.subtract(x, z, out=self._step)
+                moved = float(np.abs(d, out=d).max())  # not finite exactly when x is not (z is finite)
+            if not stats.get("success", False) or not math.isfinite(moved):
                 return False, f"QP: {stats.get('return_status', 'failed')}", iters, U0, np.zeros((N + 1, 3))
-            d = np.subtract(x, z, out=self._step)
-            moved = float(np.abs(d, out=d).max())
             z[:] = x
             if moved < 1e-5:
                 break
