@@ -15,12 +15,19 @@ mean over the ticks after ``--skip``) and the phases: ``decode`` (the wire bytes
 pairer's calls), ``store`` (pairs added to the store, the learned limits with them), ``mpc`` (the command source's
 proposal: references, obstacles, the solve), ``transfer`` (the transfer step's mapping), ``publications`` (status,
 limits and the store's periodic save), ``encode`` (the outputs to bytes), ``core_rest`` (the rest of the core's
-tick: reordering, fitness, mission control, building the messages). With ``--zenoh`` the telemetry really crosses a
-Zenoh session (published by the simulated robot on its keys, drained from Zenoh's ring by the station's
-``Inputs.queue`` as in :meth:`bridge.nodes.station.Station.tick`) and the outputs are put on their publishers:
-``decode`` then includes taking the samples from the ring and ``publish`` the puts; ``process_ms`` is the whole
-process's CPU per tick (Zenoh's own threads too, the simulated robot included). ``--profile N`` prints the N
-functions of the most own time (cProfile) to stderr.
+tick: reordering, fitness, mission control, building the messages). ``process_ms_per_tick``: the whole process's
+CPU per tick, less the simulated robots' share.
+
+What a tick costs depends on how warm the caches are, so the figures of one run are only comparable with another
+run of the same options: back to back (the default) every cache is warm; ``--paced`` sleeps to each tick's
+deadline in real time, so code and data go cold between ticks as in a station serving a few robots on a busy
+machine; ``--robots N`` ticks N robots one after the other each period (a many-robot station: code warm, each
+robot's data cold); ``--threads`` runs each robot's loop in its own thread on its own deadlines, phases spread over
+the period, under ``station --robots``'s switch interval (the process's CPU per tick only). ``--zenoh``: the
+telemetry really crosses a Zenoh session (published by the simulated robot on its keys, drained from Zenoh's ring by
+the station's ``Inputs.queue`` as :meth:`bridge.nodes.station.Station.tick` does) and the outputs are put on their
+publishers: ``decode`` then includes taking the samples from the ring and ``publish`` the puts. ``--profile N``
+prints the N functions of the most own time (cProfile) to stderr.
 """
 
 from __future__ import annotations
