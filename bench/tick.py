@@ -21,7 +21,7 @@ CPU per tick, less the simulated robots' share.
 What a tick costs depends on how warm the caches are, so the figures of one run are only comparable with another
 run of the same options: back to back (the default) every cache is warm; ``--paced`` sleeps to each tick's
 deadline in real time, so code and data go cold between ticks as in a station serving a few robots on a busy
-machine; ``--robots N`` ticks N robots one after the other each period (a many-robot station: code warm, each
+machine; ``--count N`` ticks N robots one after the other each period (a many-robot station: code warm, each
 robot's data cold); ``--threads`` runs each robot's loop in its own thread on its own deadlines, phases spread over
 the period, under ``station --robots``'s switch interval (the process's CPU per tick only). ``--zenoh``: the
 telemetry really crosses a Zenoh session (published by the simulated robot on its keys, drained from Zenoh's ring by
@@ -54,10 +54,10 @@ APPLIED_EVERY = 2  # an echo every second pose: the driver host's 50 Hz loop
 def arguments(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--ticks", type=int, default=600, help="ticks to run (simulated time, 10 Hz)")
     ap.add_argument("--skip", type=int, default=50, help="first ticks left out of the figures (start-up, cold MPC)")
-    ap.add_argument("--robots", type=int, default=1, help="robots (cores) ticked one after the other each period, "
+    ap.add_argument("--count", type=int, default=1, help="robots (cores) ticked one after the other each period, "
                     "as the loops of a many-robot station take turns (their data go cold between two ticks)")
     ap.add_argument("--threads", action="store_true", help="each robot in its own thread on its own 10 Hz deadlines "
-                    "(as `station --robots` runs them; with --robots): only the CPU per tick of the whole process "
+                    "(as `station --robots` runs them; with --count): only the CPU per tick of the whole process "
                     "(less the simulated robots' share) and of the ticks themselves, no phases")
     ap.add_argument("--switch-interval", type=float, default=None, metavar="S",
                     help="sys.setswitchinterval for --threads (default: the station's FLEET_SWITCH_INTERVAL_S)")
@@ -217,6 +217,17 @@ class _Rig:
 
 
 def run(args: argparse.Namespace) -> int:
+    """The bench (module docstring); the pair stores and the mission in a temporary directory, removed after."""
+    from bridge.core.codegen import native_stdout_to_stderr
+
+    # qpOASES prints its banner on file descriptor 1 when a solver's memory is made: kept off the JSON
+    with tempfile.TemporaryDirectory(prefix="scmbridge-bench-tick-") as tmp, native_stdout_to_stderr():
+        res = _run(args, Path(tmp))
+    emit(res)
+    return 0
+
+
+def _run(args: argparse.Namespace, tmp: Path) -> dict:
     from bench.fleet import write_mission
     from bridge.core import wire as M
     from bridge.core.config import StationConfig, load_mission
@@ -224,7 +235,6 @@ def run(args: argparse.Namespace) -> int:
 
     warmup()
     cfg = StationConfig()
-    tmp = Path(tempfile.mkdtemp(prefix="scmbridge-bench-tick-"))
     mission = load_mission(str(write_mission(tmp / "mission.toml", args.tiles)))
     fns = None
     if cfg.teacher.kind == "mpc" and not args.no_compile:
@@ -241,7 +251,7 @@ def run(args: argparse.Namespace) -> int:
         session = open_session(make_config(listen=[tcp(free_port())]))
     t0 = 1000.0  # a monotonic clock's value
     clock = _Clock()
-    rigs = [_Rig(f"tick{i + 1}", cfg, mission, tmp, clock, fns, session, t0) for i in range(args.robots)]
+    rigs = [_Rig(f"tick{i + 1}", cfg, mission, tmp, clock, fns, session, t0) for i in range(args.count)]
     period = rigs[0].core.period
     if args.gc_freeze:
         import gc
@@ -291,16 +301,15 @@ def run(args: argparse.Namespace) -> int:
                  "process_ms_per_tick": round(proc_ms, 4),
                  "methods": dict(methods), "refined_pairs": len(core.store.refined()),
                  "raw_pairs": core.store.raw_count, "why": core.why}
-    emit(res)
     if prof is not None:
         for key in ("tottime", "cumulative"):
             s = io.StringIO()
             pstats.Stats(prof, stream=s).sort_stats(key).print_stats(args.profile)
             sys.stderr.write(s.getvalue())
-    return 0
+    return res
 
 
-def _threaded(args, rigs, period: float, t0: float, decode, encode, clock: _Clock, session) -> int:
+def _threaded(args, rigs, period: float, t0: float, decode, encode, clock: _Clock, session) -> dict:
     """--threads: every robot's loop in its own thread, ticking at the period from a phase spread over it, as
     :func:`bridge.nodes.station.run_fleet` runs them; the CPU of the process per tick less the simulated robots'."""
     import threading
@@ -347,12 +356,11 @@ def _threaded(args, rigs, period: float, t0: float, decode, encode, clock: _Cloc
         t.join()
     if session is not None:
         session.close()
-    emit({"bench": "tick", "robots": len(rigs), "threads": True, "switch_interval_s": sys.getswitchinterval(),
+    return {"bench": "tick", "robots": len(rigs), "threads": True, "switch_interval_s": sys.getswitchinterval(),
           "window_s": round(w1 - w0, 2), "ticks": n,
           "process_ms_per_tick": round((p1 - p0 - sim) / 1e6 / max(n, 1), 4),
           "tick_thread_ms_per_tick": round(sum(c[1] for c in counts) / 1e6 / max(n, 1), 4),
-          "sim_ms_per_tick": round(sim / 1e6 / max(n, 1), 4)})
-    return 0
+          "sim_ms_per_tick": round(sim / 1e6 / max(n, 1), 4)}
 
 
 def main(argv: list[str] | None = None) -> int:
