@@ -72,8 +72,9 @@ class LearnerLimits:
         lo, hi = self.lo.tolist(), self.hi.tolist()
         old = (lo[:], hi[:])
         ext_lo, ext_hi = self.ext_lo.tolist(), self.ext_hi.tolist()
-        bsum_lo, bsum_hi = self.bsum_lo.tolist(), self.bsum_hi.tolist()
+        old_ext = (ext_lo[:], ext_hi[:])
         bcnt_lo, bcnt_hi = self.bcnt_lo.tolist(), self.bcnt_hi.tolist()
+        bsum_lo, bsum_hi = self.bsum_lo.tolist(), self.bsum_hi.tolist()
         tn, ln = np.asarray(t_n, dtype=float).tolist(), np.asarray(l_n, dtype=float).tolist()
         for a in range(2):
             t, l = tn[a], ln[a]
@@ -99,15 +100,17 @@ class LearnerLimits:
             if hi[a] - lo[a] < 1e-6:
                 mid = 0.5 * (hi[a] + lo[a])
                 lo[a], hi[a] = mid - 5e-7, mid + 5e-7
-        self.lo[:], self.hi[:] = lo, hi
-        self.ext_lo[:], self.ext_hi[:] = ext_lo, ext_hi
+        changed = old != (lo, hi)
+        if changed:  # written back only when they moved (most pairs move nothing)
+            self.lo[:], self.hi[:] = lo, hi
+        if old_ext != (ext_lo, ext_hi):
+            self.ext_lo[:], self.ext_hi[:] = ext_lo, ext_hi
         if on_boundary:
             self.bsum_lo[:], self.bsum_hi[:] = bsum_lo, bsum_hi
             self.bcnt_lo[:], self.bcnt_hi[:] = bcnt_lo, bcnt_hi
             self.hull_sum[cell] += t_n
             self.hull_cnt[cell] += 1
             self._hull_cache = None
-        changed = old != (lo, hi)
         if changed or on_boundary:
             self.version += 1
             self._box_cache = None
