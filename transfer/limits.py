@@ -63,38 +63,54 @@ class LearnerLimits:
 
     # ------------------------------------------------------------------------------------------- updating
     def update(self, t_n: NDArray[np.float64], l_n: NDArray[np.float64], cell: tuple[int, int]) -> bool:
-        """Take one pair (normalised teacher part, normalised learner part); return True if the limits moved."""
-        old = (self.lo.copy(), self.hi.copy())
+        """Take one pair (normalised teacher part, normalised learner part); return True if the limits moved.
+
+        Scalar arithmetic on Python floats (one pair a tick, two axes: numpy's per-element overhead was most of the
+        cost); the same operations in the same order as on the arrays, so the same results."""
         tol = self.boundary_tol
         on_boundary = False
+        lo, hi = self.lo.tolist(), self.hi.tolist()
+        old = (lo[:], hi[:])
+        ext_lo, ext_hi = self.ext_lo.tolist(), self.ext_hi.tolist()
+        old_ext = (ext_lo[:], ext_hi[:])
+        bcnt_lo, bcnt_hi = self.bcnt_lo.tolist(), self.bcnt_hi.tolist()
+        bsum_lo, bsum_hi = self.bsum_lo.tolist(), self.bsum_hi.tolist()
+        tn, ln = np.asarray(t_n, dtype=float).tolist(), np.asarray(l_n, dtype=float).tolist()
         for a in range(2):
-            if l_n[a] >= 1.0 - tol:
+            t, l = tn[a], ln[a]
+            if l >= 1.0 - tol:
                 on_boundary = True
-                self.bsum_hi[a] += t_n[a]
-                self.bcnt_hi[a] += 1
-                self.hi[a] = self.bsum_hi[a] / self.bcnt_hi[a]
-            elif l_n[a] > self.ext_hi[a] and self.bcnt_hi[a] == 0 and l_n[a] >= _MIN_PROPORTIONAL:
-                self.hi[a] = t_n[a] / l_n[a]  # Eq. learn_capability
-            if l_n[a] <= tol:
+                bsum_hi[a] += t
+                bcnt_hi[a] += 1
+                hi[a] = bsum_hi[a] / bcnt_hi[a]
+            elif l > ext_hi[a] and bcnt_hi[a] == 0 and l >= _MIN_PROPORTIONAL:
+                hi[a] = t / l  # Eq. learn_capability
+            if l <= tol:
                 on_boundary = True
-                self.bsum_lo[a] += t_n[a]
-                self.bcnt_lo[a] += 1
-                self.lo[a] = self.bsum_lo[a] / self.bcnt_lo[a]
-            elif l_n[a] < self.ext_lo[a] and self.bcnt_lo[a] == 0 and 1.0 - l_n[a] >= _MIN_PROPORTIONAL:
-                self.lo[a] = 1.0 - (1.0 - t_n[a]) / (1.0 - l_n[a])  # its mirror for the lower side
-            self.ext_hi[a] = max(self.ext_hi[a], l_n[a])
-            self.ext_lo[a] = min(self.ext_lo[a], l_n[a])
+                bsum_lo[a] += t
+                bcnt_lo[a] += 1
+                lo[a] = bsum_lo[a] / bcnt_lo[a]
+            elif l < ext_lo[a] and bcnt_lo[a] == 0 and 1.0 - l >= _MIN_PROPORTIONAL:
+                lo[a] = 1.0 - (1.0 - t) / (1.0 - l)  # its mirror for the lower side
+            ext_hi[a] = max(ext_hi[a], l)
+            ext_lo[a] = min(ext_lo[a], l)
             # the teacher's own range is the outer limit; keep lo < hi
-            self.lo[a] = min(max(self.lo[a], 0.0), 1.0)
-            self.hi[a] = min(max(self.hi[a], 0.0), 1.0)
-            if self.hi[a] - self.lo[a] < 1e-6:
-                mid = 0.5 * (self.hi[a] + self.lo[a])
-                self.lo[a], self.hi[a] = mid - 5e-7, mid + 5e-7
+            lo[a] = min(max(lo[a], 0.0), 1.0)
+            hi[a] = min(max(hi[a], 0.0), 1.0)
+            if hi[a] - lo[a] < 1e-6:
+                mid = 0.5 * (hi[a] + lo[a])
+                lo[a], hi[a] = mid - 5e-7, mid + 5e-7
+        changed = old != (lo, hi)
+        if changed:  # written back only when they moved (most pairs move nothing)
+            self.lo[:], self.hi[:] = lo, hi
+        if old_ext != (ext_lo, ext_hi):
+            self.ext_lo[:], self.ext_hi[:] = ext_lo, ext_hi
         if on_boundary:
+            self.bsum_lo[:], self.bsum_hi[:] = bsum_lo, bsum_hi
+            self.bcnt_lo[:], self.bcnt_hi[:] = bcnt_lo, bcnt_hi
             self.hull_sum[cell] += t_n
             self.hull_cnt[cell] += 1
             self._hull_cache = None
-        changed = not (np.array_equal(old[0], self.lo) and np.array_equal(old[1], self.hi))
         if changed or on_boundary:
             self.version += 1
             self._box_cache = None

@@ -393,6 +393,13 @@ def validated(msg: M) -> M:
     return decode(encode(msg), type(msg))
 
 
+def validated_bytes(msg: M) -> tuple[M, bytes]:
+    """:func:`validated`, and the bytes it checked: the sender puts them on the wire as they are instead of
+    encoding the message a second time (the same bytes: encoding is deterministic)."""
+    data = encode(msg)
+    return decode(data, type(msg)), data
+
+
 def _every_message_type() -> list[type]:
     found, todo = [], list(_Msg.__subclasses__())
     while todo:
@@ -439,4 +446,5 @@ __all__ = [
     "status_key",
     "alive_key",
     "validated",
+    "validated_bytes",
 ]

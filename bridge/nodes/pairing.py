@@ -37,6 +37,8 @@ from transfer.pairs import teacher_equivalent
 
 DRIVING = ("cmd", "clamped")
 Pair = tuple[NDArray[np.float64], NDArray[np.float64]]
+#: a pose (x, y, theta) as the pairer keeps it: three floats (scalar maths on each pose, arrays only for a pair)
+Pose = tuple[float, float, float]
 #: events in a row that agree with each other and not with what was accepted before: follow them
 RESYNC_AFTER = 3
 #: how far an event's stamp may run ahead of its receipt, relative to the last accepted event, s
@@ -89,6 +91,21 @@ def _grown(b: Bounds, margin: float) -> Bounds:
     return Bounds((-v, v), (-w, w))
 
 
+def _box(b: Bounds | None) -> tuple[float, float, float, float] | None:
+    """``b``'s limits as :meth:`Bounds.contains` (default tolerance) compares against, as floats: (v_lo, v_hi,
+    omega_lo, omega_hi); None for no bounds."""
+    if b is None:
+        return None
+    tol = 1e-12  # Bounds.contains's default
+    lo, hi = (b.lo - tol * b.span).tolist(), (b.hi + tol * b.span).tolist()
+    return lo[0], hi[0], lo[1], hi[1]
+
+
+def _inside(box: tuple[float, float, float, float] | None, u) -> bool:
+    """:meth:`Bounds.contains` of one command (v, omega) in scalar maths (once per pair); always with no box."""
+    return box is None or (box[0] <= u[0] <= box[1] and box[2] <= u[1] <= box[3])
+
+
 class IntervalPairer:
     """Turns time-ordered applied echoes and poses into command pairs (see the module docstring)."""
 
@@ -103,17 +120,19 @@ class IntervalPairer:
         self.max_speed, self.max_turn = float(max_speed), float(max_turn)
         self.command_bounds = None if command_bounds is None else _grown(command_bounds, margin)
         self.teacher_bounds = None if teacher_bounds is None else _grown(teacher_bounds, margin)
+        self._command_box = _box(self.command_bounds)
+        self._teacher_box = _box(self.teacher_bounds)
         self.anchor: tuple[float, float] | None = None  # (stamp, receipt) of the last accepted event
         self.behind: list[tuple[float, float]] = []  # (stamp, receipt) of events in a row behind the anchor
-        self.pose: tuple[float, NDArray[np.float64]] | None = None  # the last accepted pose
-        self.odd_poses: list[tuple[float, NDArray[np.float64]]] = []  # implausible poses in a row
+        self.pose: tuple[float, Pose] | None = None  # the last accepted pose
+        self.odd_poses: list[tuple[float, Pose]] = []  # implausible poses in a row
         self.implausible_stamp = 0
         self.implausible_pose = 0
         self.implausible_pair = 0
         self.resyncs = 0
         self.segment: tuple[float, float] | None = None  # the command in force, None when not driving
-        self.first: tuple[float, NDArray[np.float64]] | None = None
-        self.last: tuple[float, NDArray[np.float64]] | None = None
+        self.first: tuple[float, Pose] | None = None
+        self.last: tuple[float, Pose] | None = None
         self.last_event = -np.inf
         self.rejected = 0
         self.formed = 0
@@ -160,10 +179,10 @@ class IntervalPairer:
         self.segment, self.first, self.last = key, None, None
         return out
 
-    def _plausible_pose(self, stamp: float, p: NDArray[np.float64]) -> bool:
+    def _plausible_pose(self, stamp: float, p: Pose) -> bool:
         """A pose the vehicle could have reached from the last accepted one (or, after a run of poses that agree
         with each other, the vehicle's new place: the interval restarts there)."""
-        if not all(math.isfinite(c) for c in p.tolist()):
+        if not (math.isfinite(p[0]) and math.isfinite(p[1]) and math.isfinite(p[2])):
             self.implausible_pose += 1
             return False
         if self.pose is None or self._reachable(self.pose, (stamp, p)):
@@ -180,15 +199,16 @@ class IntervalPairer:
             self.first, self.last = None, None  # no pair spans the jump
         return False
 
-    def _reachable(self, a: tuple[float, NDArray[np.float64]], b: tuple[float, NDArray[np.float64]]) -> bool:
+    def _reachable(self, a: tuple[float, Pose], b: tuple[float, Pose]) -> bool:
         dt = max(b[0] - a[0], self.dt / 10)  # two poses in one instant: judge them over a tenth of a pair
-        (xa, ya, tha), (xb, yb, thb) = a[1].tolist(), b[1].tolist()  # scalar maths: once per pose, a hot path
+        (xa, ya, tha), (xb, yb, thb) = a[1], b[1]  # scalar maths: once per pose, a hot path
         step = math.hypot(xb - xa, yb - ya)
         turn = abs(math.remainder(thb - tha, math.tau))
         return step <= self.max_speed * dt and turn <= self.max_turn * dt
 
-    def state(self, stamp: float, pose: NDArray[np.float64], received: float | None = None) -> Pair | None:
-        p = np.asarray(pose, dtype=float)
+    def state(self, stamp: float, pose: Pose | NDArray[np.float64], received: float | None = None) -> Pair | None:
+        """A pose (x, y, theta; three floats, or an array of them) stamped ``stamp``; the pair it closes, if any."""
+        p: Pose = pose if type(pose) is tuple else tuple(np.asarray(pose, dtype=float).tolist())
         if not self._admit(stamp, received) or not self._plausible_pose(stamp, p):
             return None
         if self.segment is None:
@@ -215,9 +235,8 @@ class IntervalPairer:
         if t2 - t1 < self.min_span:
             self.rejected += 1
             return None
-        teacher, learner = teacher_equivalent(x1, x2, t2 - t1), np.array(self.segment)
-        if ((self.command_bounds is not None and not self.command_bounds.contains(learner))
-                or (self.teacher_bounds is not None and not self.teacher_bounds.contains(teacher))):
+        teacher, learner = teacher_equivalent(np.array(x1), np.array(x2), t2 - t1), np.array(self.segment)
+        if not (_inside(self._command_box, self.segment) and _inside(self._teacher_box, teacher.tolist())):
             self.implausible_pair += 1
             return None
         self.formed += 1

@@ -296,8 +296,8 @@ class Station:
     def publish(self, out: TickOutputs) -> None:
         for topic, msg in (("cmd", out.command), ("teacher", out.teacher), ("limits", out.limits),
                            ("status", out.status)):
-            if msg is not None:
-                self.pubs[topic].put(M.encode(msg))
+            if msg is not None:  # the command as the core checked it: encoded once
+                self.pubs[topic].put(out.command_bytes if topic == "cmd" and out.command_bytes else M.encode(msg))
 
     def persist(self) -> bool:
         """The final save of the pair store (at exit, once the loop has ended): the writer's last saves first, then

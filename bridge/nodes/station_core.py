@@ -192,12 +192,15 @@ class TickInputs:
 
 @dataclass(frozen=True)
 class TickOutputs:
-    """What to publish after a tick: each is None when there is nothing to send on that key."""
+    """What to publish after a tick: each is None when there is nothing to send on that key. ``command_bytes``:
+    the command as the core checked it on the wire's decoder (:func:`bridge.core.wire.validated_bytes`), to send as
+    it is."""
 
     command: M.Command | None = None
     teacher: M.TeacherCommand | None = None
     limits: M.Limits | None = None
     status: M.Status | None = None
+    command_bytes: bytes | None = None
 
 
 class StationCore:
@@ -261,6 +264,7 @@ class StationCore:
         #: the adapter's writer of the tick's saves, ``(what, path, data)`` with ``what`` "store" or "control": it
         #: writes them off the tick and reports each outcome back through :meth:`saved`; None: the tick saves at once
         self.writer: Callable[[str, Path, bytes], None] | None = None
+        self.command_bytes: tuple[M.Command, bytes] | None = None  # the last command and its checked bytes
 
     # -------------------------------------------------------------------------------------------- queries
     @property
@@ -304,7 +308,7 @@ class StationCore:
         self.ingest(inputs, now)
         command, teacher = self.control_step(now)
         if not inputs.periodic:
-            return TickOutputs(command, teacher)
+            return TickOutputs(command, teacher, command_bytes=self._bytes_of(command))
         self.tick_ms.append((time.monotonic() - t0) * 1e3)
         self.counters.ticks += 1
         self.counters.inputs = dict(inputs.input_counts)
@@ -319,24 +323,26 @@ class StationCore:
         if self.t_persist is None or now >= self.t_persist:
             self.save("store")
             self.t_persist = now + self.persist_every
-        return TickOutputs(command, teacher, limits, status)
+        return TickOutputs(command, teacher, limits, status, self._bytes_of(command))
 
     def ingest(self, inputs: TickInputs, now: float) -> None:
         """Pairs from the echoes and poses that arrived (put back in stamp order by :class:`Reorder`, so they reach
         the pairer ``REORDER_WINDOW`` after receipt), the latest pose and driver status, a new mission if one
         came."""
-        for m, at in inputs.telemetry:
-            self.reorder.push(m.stamp, 0 if isinstance(m, M.Applied) else 1, at, (m, at))
+        push = self.reorder.push
+        for m, at in inputs.telemetry:  # one walk: into the reorder window, and the latest pose
+            if isinstance(m, M.Applied):
+                push(m.stamp, 0, at, (m, at))
+            else:
+                push(m.stamp, 1, at, (m, at))
+                self.state, self.state_at = m, at
         for e, received in self.reorder.ready(now):
             if isinstance(e, M.Applied):
                 pair = self.pairer.applied(e.stamp, e.v, e.omega, e.reason, received)
             else:
-                pair = self.pairer.state(e.stamp, np.array([e.x, e.y, e.theta]), received)
+                pair = self.pairer.state(e.stamp, (e.x, e.y, e.theta), received)
             if pair is not None:
                 self.store.add(*pair)
-        for m, at in inputs.telemetry:
-            if isinstance(m, M.LearnerState):
-                self.state, self.state_at = m, at
         if inputs.teacher is not None:
             self.teacher, self.teacher_at = inputs.teacher
             self.teacher_new = True
@@ -418,10 +424,10 @@ class StationCore:
         command = self.send(now, prop)
         teacher = None
         if prop.solver is not None:
-            pred = np.asarray(prop.predicted) if prop.predicted is not None else np.zeros((0, 3))
+            pred = np.asarray(prop.predicted, dtype=float) if prop.predicted is not None else np.zeros((0, 3))
             teacher = M.TeacherCommand(
                 stamp=now, seq=command.seq, v=float(prop.u[0]), omega=float(prop.u[1]), solver=prop.solver,
-                ok=prop.ok, predicted_x=[float(a) for a in pred[:, 0]], predicted_y=[float(a) for a in pred[:, 1]],
+                ok=prop.ok, predicted_x=pred[:, 0].tolist(), predicted_y=pred[:, 1].tolist(),
                 sender="station", epoch=self.epoch)
         return None, command, teacher
 
@@ -441,7 +447,14 @@ class StationCore:
         cmd = M.Command(stamp=now, seq=self.seq["cmd"], v=v, omega=omega, method=method,
                         valid_ms=int(3000 * self.period), region=region or [], sender="station", epoch=self.epoch)
         self.seq["cmd"] += 1
-        return M.validated(cmd)
+        cmd, data = M.validated_bytes(cmd)
+        self.command_bytes = (cmd, data)
+        return cmd
+
+    def _bytes_of(self, command: M.Command | None) -> bytes | None:
+        """The bytes :meth:`_command` checked for ``command`` (None for any other)."""
+        last = self.command_bytes
+        return last[1] if command is not None and last is not None and last[0] is command else None
 
     def not_driving(self, unfit: Why | None) -> Why:
         """The one reason the robot is not driven this tick (typed from the mission's phase, in words for the status
@@ -495,10 +508,15 @@ class StationCore:
         phase = self.control.phase
         state = "driving" if self.reason == "ok" else ("waiting" if phase == "running" else phase)
         tk = np.array(self.tick_ms) if self.tick_ms else np.zeros(1)
+<<<<<<< HEAD
         msg = M.Status(stamp=now, seq=self.seq["status"], node="station", ok=ok, state=state, reason=reason,
+=======
+        p50, p99 = np.percentile(tk, (50, 99)).tolist()  # one sort for both
+        msg = M.Status(stamp=now, seq=self.seq["status"], node="station", ok=ok, state=state,
+>>>>>>> fleet
                        progress=min(1.0, max(0.0, self.control.progress)), rates_hz={"loop": 1 / self.period},
                        latencies_ms={"solve_median": float(np.median(sm)), "solve_max": float(sm.max()),
-                                     "tick_p50": float(np.percentile(tk, 50)), "tick_p99": float(np.percentile(tk, 99)),
+                                     "tick_p50": p50, "tick_p99": p99,
                                      "tick_max": float(tk.max())},
                        counters=c.as_dict(), text=text[:1024])
         self.seq["status"] += 1

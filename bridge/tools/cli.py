@@ -121,6 +121,7 @@ COMMANDS: list[Command] = [
     _C("bench mpc", "bench.mpc", "MPC solve times and closed-loop results per solver (JSON)"),
     _C("bench bridge", "bench.bridge", "end-to-end latency and 50 Hz loop jitter over Zenoh (JSON)"),
     _C("bench fleet", "bench.fleet", "how many robots one base station holds at 10 Hz (JSON)"),
+    _C("bench tick", "bench.tick", "one station tick's CPU time by phase, in-process (JSON)"),
     _C("bench fuzz", "bench.fuzz.main", "mutated input at every trust boundary, counts checked exactly (JSON)"),
     _C("bench soak", "bench.soak", "the HIL loop driving for a long time: RSS trend, deadlines (JSON)"),
     _C("bench attack", "bench.attack", "every attack found, against the real components: what got through (JSON)"),

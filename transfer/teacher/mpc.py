@@ -323,6 +323,11 @@ class _Rti:
         self._bind_qp()
         self.slack_weight = cfg.slack_weight
         self.bounds_of: tuple | None = None
+        # scratch arrays of each iteration (the same arithmetic as fresh temporaries, without allocating them)
+        nr = self.lin.fn.nnz_out(0)
+        self._zJ = np.empty(nr)
+        self._shift = np.empty(m)
+        self._step = np.empty(nz)
 
     def _bind(self, functions: Sequence[ca.Function]) -> None:
         """Evaluate the linearisation and the rollout with ``functions`` (interpreted or compiled: same results)."""
@@ -356,9 +361,10 @@ class _Rti:
 
     def _bounds(self, limits: Bounds) -> None:
         key = (limits.v, limits.w)
-        if key != self.bounds_of:
+        if key != self.bounds_of:  # the learned limits moved (often while the store fills)
             N = self.cfg.N
-            self.lbx[: 2 * N], self.ubx[: 2 * N] = np.tile(limits.lo, N), np.tile(limits.hi, N)
+            self.lbx[: 2 * N].reshape(N, 2)[:] = limits.lo  # = np.tile(limits.lo, N), in place
+            self.ubx[: 2 * N].reshape(N, 2)[:] = limits.hi
             self.lbx[2 * N:], self.ubx[2 * N:] = 0.0, np.inf
             self.bounds_of = key
 
@@ -369,7 +375,7 @@ class _Rti:
         self.lin.args[1][:] = p
         z[: 2 * N] = U0.ravel()
         z[2 * N] = 0.0
-        np.clip(z, self.lbx, self.ubx, out=z)
+        np.minimum(np.maximum(z, self.lbx, out=z), self.ubx, out=z)  # = np.clip, without its wrapper
         status, iters = "", 0
         for _ in range(self.cfg.rti_cold_iters if cold else 1):
             self.lin()
@@ -377,9 +383,14 @@ class _Rti:
             np.dot(self.JrT, self.JrT.T, out=self.H)
             self.H *= 2.0
             self.H[-1, -1] += 2.0 * self.slack_weight
-            np.dot(self.JrT, 2.0 * (self.r - z @ self.JrT), out=self.g)
+            zJ = np.matmul(z, self.JrT, out=self._zJ)
+            np.subtract(self.r, zJ, out=zJ)
+            zJ *= 2.0
+            np.dot(self.JrT, zJ, out=self.g)
             self.g[-1] += self.slack_weight
-            shift = z @ self.AT - self.c  # c(z') ~ c(z) + A (z' - z): bounds on c become bounds on A z'
+            # c(z') ~ c(z) + A (z' - z): bounds on c become bounds on A z'
+            shift = np.matmul(z, self.AT, out=self._shift)
+            shift -= self.c
             np.add(self.lo, shift, out=self.lba)
             np.add(self.hi, shift, out=self.uba)
             try:
@@ -388,9 +399,11 @@ class _Rti:
                 return False, f"QP: {str(exc).splitlines()[-1][:120]}", iters, U0, np.zeros((N + 1, 3))
             stats = self.qp.stats()
             iters += 1
-            if not stats.get("success", False) or not np.all(np.isfinite(x)):
+            if stats.get("success", False):
+                d = np.subtract(x, z, out=self._step)
+                moved = float(np.abs(d, out=d).max())  # not finite exactly when x is not (z is finite)
+            if not stats.get("success", False) or not math.isfinite(moved):
                 return False, f"QP: {stats.get('return_status', 'failed')}", iters, U0, np.zeros((N + 1, 3))
-            moved = float(np.max(np.abs(x - z)))
             z[:] = x
             if moved < 1e-5:
                 break
@@ -412,6 +425,12 @@ class MpcTeacher:
         self._prev_pred: NDArray[np.float64] | None = None
         self._prev_u: NDArray[np.float64] | None = None
         self.u_last = np.zeros(2)
+        # the parameter vector p = [x0, refs, u_prev, obstacles] (the layout of _build_nlp), refilled each solve
+        N, K = cfg.N, cfg.max_obstacles
+        self._p = np.empty(3 + 3 * (N + 1) + 2 + 3 * K)
+        self._p_refs = self._p[3: 3 + 3 * (N + 1)].reshape(N + 1, 3)
+        self._p_uprev = self._p[3 + 3 * (N + 1): 5 + 3 * (N + 1)]
+        self._p_obs = self._p[5 + 3 * (N + 1):].reshape(K, 3)  # a row per slot: x, y, radius
 
     @property
     def compiled(self) -> bool:
@@ -436,8 +455,9 @@ class MpcTeacher:
 
     def references(self, state: NDArray[np.float64], path: Polyline, v_ref: float) -> NDArray[np.float64]:
         """N + 1 references from the closest path point, spaced by ``v_ref * dt`` (headings unwrapped)."""
-        return _refs.references(path.points, path.s, path.seg_len, path.heading, float(state[0]), float(state[1]),
-                                float(state[2]), float(v_ref * self.cfg.dt), self.cfg.N + 1)
+        x, y, th = np.asarray(state, dtype=float).tolist()
+        return _refs.references(path.points, path.s, path.seg_len, path.heading, x, y, th,
+                                float(v_ref * self.cfg.dt), self.cfg.N + 1)
 
     def obstacles_that_matter(self, state: NDArray[np.float64], obstacles: NDArray[np.float64] | None,
                               limits: Bounds) -> tuple[NDArray[np.float64], int]:
@@ -466,15 +486,22 @@ class MpcTeacher:
         cfg = self.cfg
         N = cfg.N
         state = np.asarray(state, dtype=float)
-        if not (state.shape == (3,) and all(math.isfinite(a) for a in state)):
+        xs = state.tolist() if state.shape == (3,) else None
+        if xs is None or not (math.isfinite(xs[0]) and math.isfinite(xs[1]) and math.isfinite(xs[2])):
             raise ValueError(f"MPC state must be three finite numbers, got {state}")
-        refs = self.references(state, path, limits.v[1] if v_ref is None else v_ref)
-        obs = np.zeros((3, cfg.max_obstacles))
-        obs[2, :] = -1.0
+        v = limits.v[1] if v_ref is None else v_ref
+        refs = _refs.references(path.points, path.s, path.seg_len, path.heading, xs[0], xs[1], xs[2],
+                                float(v * cfg.dt), N + 1)  # = self.references(state, path, v)
         o, dropped = self.obstacles_that_matter(state, obstacles, limits)
-        obs[:, : o.shape[0]] = o.T
-        u_prev = np.minimum(np.maximum(self.u_last, limits.lo), limits.hi)
-        p = np.concatenate([state, refs.T.ravel(order="F"), u_prev, obs.ravel(order="F")])
+        # p = [x0, refs, u_prev, obstacles], column-major as _build_nlp lays it out: refs and obstacles by rows
+        p = self._p
+        p[:3] = state
+        self._p_refs[:] = refs
+        np.minimum(np.maximum(self.u_last, limits.lo), limits.hi, out=self._p_uprev)
+        obs = self._p_obs
+        obs[:] = 0.0
+        obs[:, 2] = -1.0  # an unused slot
+        obs[: o.shape[0]] = o
         cold = self._prev_u is None
         ok, status, iters, U, Xp = self._backend.solve(p, state, self._warm(limits), limits, cold)
         if ok:
