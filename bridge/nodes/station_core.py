@@ -508,12 +508,8 @@ class StationCore:
         phase = self.control.phase
         state = "driving" if self.reason == "ok" else ("waiting" if phase == "running" else phase)
         tk = np.array(self.tick_ms) if self.tick_ms else np.zeros(1)
-<<<<<<< HEAD
-        msg = M.Status(stamp=now, seq=self.seq["status"], node="station", ok=ok, state=state, reason=reason,
-=======
         p50, p99 = np.percentile(tk, (50, 99)).tolist()  # one sort for both
-        msg = M.Status(stamp=now, seq=self.seq["status"], node="station", ok=ok, state=state,
->>>>>>> fleet
+        msg = M.Status(stamp=now, seq=self.seq["status"], node="station", ok=ok, state=state, reason=reason,
                        progress=min(1.0, max(0.0, self.control.progress)), rates_hz={"loop": 1 / self.period},
                        latencies_ms={"solve_median": float(np.median(sm)), "solve_max": float(sm.max()),
                                      "tick_p50": p50, "tick_p99": p99,
