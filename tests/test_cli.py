@@ -5,6 +5,7 @@ docs/CLI.md is exactly what the parsers say."""
 from __future__ import annotations
 
 import argparse
+import os
 import re
 import subprocess
 import sys
@@ -100,3 +101,14 @@ def test_a_missing_extra_says_which_to_install(monkeypatch, capsys) -> None:
     assert cli.main(["view", "--robot", "r1", "--duration", "0.1"]) == 2
     err = capsys.readouterr().err
     assert "needs foxglove, in the 'station' extra" in err and "Traceback" not in err
+
+
+def test_importing_the_cli_changes_nothing_in_the_process() -> None:
+    """The environment (one BLAS thread, numba's cache) is set by ``main()``, not by an import: a program or a test
+    that imports a command's module keeps its own environment."""
+    code = ("import os; before = dict(os.environ); import bridge.tools.cli; "
+            "assert dict(os.environ) == before, set(os.environ.items()) ^ set(before.items())")
+    env = {k: v for k, v in os.environ.items() if k not in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS",
+                                                              "MKL_NUM_THREADS", "NUMBA_CACHE_DIR")}
+    res = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=60)
+    assert res.returncode == 0, res.stderr

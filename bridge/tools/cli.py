@@ -27,12 +27,10 @@ from typing import Any
 from bridge.core.errors import Denied, UsageError
 
 # The numerical work here is small matrices (a 20-step MPC, 2 x 2 maps): OpenBLAS's default worker threads only
-# spin between calls and steal the CPU other stations and the driver host need. Set before anything imports numpy;
-# an explicit setting in the environment wins.
+# spin between calls and steal the CPU other stations and the driver host need. main() sets it before any command
+# imports numpy (importing this module changes nothing); an explicit setting in the environment wins.
 #: one BLAS / OpenMP thread: what every station process runs with (the shipped units set it too)
 ONE_BLAS_THREAD = {"OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
-for _var, _val in ONE_BLAS_THREAD.items():
-    os.environ.setdefault(_var, _val)
 
 
 #: optional modules and the smallest extra that brings each (pyproject.toml)
@@ -53,8 +51,6 @@ def numba_cache_dir(kernels: Path = KERNELS_DIR) -> str | None:
     os.environ["NUMBA_CACHE_DIR"] = str(cache_dir() / "numba")
     return os.environ["NUMBA_CACHE_DIR"]
 
-
-numba_cache_dir()
 
 LOG_LEVELS = ("debug", "info", "warning", "error")
 WIDTH = 110  # help text width: fixed, so docs/CLI.md does not depend on the terminal
@@ -234,7 +230,11 @@ def _terminate_like_ctrl_c() -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """Dispatch to the command's module; returns the process exit code."""
+    """Dispatch to the command's module; returns the process exit code. The process's environment is set here,
+    before any command imports numpy or numba: one BLAS thread and numba's cache directory."""
+    for var, val in ONE_BLAS_THREAD.items():
+        os.environ.setdefault(var, val)
+    numba_cache_dir()
     args = list(sys.argv[1:] if argv is None else argv)
     if not args or args[0] in ("-h", "--help", "help"):
         print(root_help())

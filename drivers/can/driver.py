@@ -158,7 +158,6 @@ class CanDriver:
                                  self.right.wheel, config.initial_pose)
         self.open_timeout = config.open_timeout
         self.heartbeat_timeout = config.heartbeat_timeout
-        self.max_wheel_speed = config.max_wheel_speed
         self.bus: can.BusABC | None = None
         self._health = LinkHealth()
         self._phase = "closed"  # closed -> arming -> running (-> arming again on clear_faults)
