@@ -15,7 +15,11 @@ echoes that arrived, forms the command pairs they really bracket (:mod:`bridge.n
 Driving: the teacher MPC, bounded by the learned limits and given the obstacles that matter, proposes a command;
 the transfer policy maps it; ``cmd`` carries it (with the method, a validity of three periods, this run's sender
 name and epoch) and ``teacher`` the teacher's own command and plan. ``limits`` is published when the learned
-limits change and each second; ``pairs`` answers queries; ``mission`` takes a new mission (the goal state resets).
+limits change and each second; ``pairs`` answers queries; ``mission`` takes a program's new mission (the goal state
+resets): in place while running, else loaded idle until a person's ``mission start`` (never a start by itself), and
+the status and the answers say where it came from and when. Mission requests other than ``status`` are taken only
+fresh and once (``bridge.core.acts``: a wall-clock time within 10 s and a nonce not seen; one without them is
+refused). Without TLS it says at start that anyone who can reach its Zenoh session may command the robot.
 The pair store is persisted atomically every ``persist_every_s`` and at exit, and reloaded at start; a failed save
 (a full disk) is logged, reported on status and retried, and never stops the loop; the saves are written by a writer
 thread from the bytes the tick encoded, so a slow disk never delays a tick. Callbacks only decode and store, under a

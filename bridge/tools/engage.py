@@ -7,7 +7,8 @@ the axis, while one reports an error, unless ``--clear-faults``); UDP: the host 
 while an estop is latched. Engaging an engaged host says so and succeeds. The station still drives only after
 ``scmbridge mission start`` (or resume). The request carries this machine's wall-clock time and a random nonce: the
 driver host refuses it if it is more than 10 s off its own clock or was seen before (a recorded request replayed;
-synchronise the machines' clocks). Exit status: 0 done, 1 refused, 2 no driver host answered, 3 denied by the
+synchronise the machines' clocks), and refuses one without them (an older tool, a recorded old-format payload).
+``--release`` (a stop) is always honoured. Exit status: 0 done, 1 refused, 2 no driver host answered, 3 denied by the
 lab's access control (this certificate's role may not engage: the observer, a robot; deploy/README.md).
 """
 

@@ -7,7 +7,8 @@ answers, those whose driver host's liveliness token is present (a stalled host k
 and those whose nodes publish status. ``--release`` releases the latch; a driver host honours it only from a
 source its configuration names (``estop_release_sources``), so ``--source`` must be one of them, and only when it
 is fresh and new: each release carries this machine's wall-clock time and a random nonce, and a driver host refuses
-one more than 10 s off its own clock or seen before (a recorded release replayed). A stop is always honoured.
+one more than 10 s off its own clock or seen before (a recorded release replayed) or without them (an older
+tool), and the latch it answers with says why. A stop is always honoured.
 
 Prints one line per driver host (latched or released, by whom). Exit status: 0 when every robot confirmed the asked
 state, 1 naming every robot that did not (or when none was found), 2 when the router cannot be reached, 3 when the

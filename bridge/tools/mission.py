@@ -5,7 +5,8 @@ station with what it did or why it refused, and where the mission is (``running`
 operator``, ...). A station starts idle and drives only after ``start``; after an estop, an operator takeover, a
 lost link or a driver-host restart it pauses, and only ``resume`` drives on. ``send FILE`` loads a new mission
 (idle until started). Each request carries this machine's wall-clock time and a random nonce: the station refuses one
-more than 10 s off its own clock or seen before (a recorded request replayed; synchronise the machines' clocks). A
+more than 10 s off its own clock or seen before (a recorded request replayed; synchronise the machines' clocks), and
+one without them (an older tool, a recorded old-format payload); ``status`` needs neither. A
 mission published on ``scm/<robot>/mission`` by a program (not a person's ``send``) is named in the answer, with
 when it came, so it is looked at before ``start``. Prints the answer in one line. Exit status: 0 accepted, 1
 refused, 2 no station answered, 3 denied by the lab's access control (this certificate's role may not ask: the
