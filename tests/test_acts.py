@@ -45,6 +45,24 @@ def test_a_request_is_taken_fresh_and_once_and_one_without_time_or_nonce_never()
     assert small.check(now, "3", now).kind == "flooded"  # a flood is refused, the nonces are not forgotten
 
 
+# ------------------------------------------------------------------------------------- the loopback default
+SAYS = ("anyone who can reach this Zenoh session — on the loopback default, any user of this machine — may engage, "
+        "start missions and release estops")
+
+
+def test_without_tls_the_nodes_and_doctor_say_anyone_on_the_machine_may_command(caplog) -> None:
+    from bridge.tools.doctor import check_tls
+
+    port = free_port()
+    with caplog.at_level("WARNING", logger="scmbridge"), \
+            open_session(make_config(mode="peer", listen=[tcp(port)]), what="driver host"):
+        pass
+    assert any(SAYS in r.getMessage() and r.getMessage().startswith("driver host: ") for r in caplog.records), \
+        [r.getMessage() for r in caplog.records]
+    (check,) = check_tls(make_config(mode="peer", listen=[tcp(port)]), 30.0)
+    assert check.level == "warn" and SAYS in check.text, check
+
+
 # --------------------------------------------------------------------------------------------- helpers
 def _get(session, key: str, payload: bytes, kind: type, timeout: float = 5.0):
     """The one answer to one query (sent once: a recorded request must not be re-sent by a retry)."""
