@@ -164,7 +164,8 @@ class _Host:
 
     def publish_estop(self, engaged: bool, source: str, reason: str) -> float:
         t = time.monotonic()
-        self.estop.put(self.M.encode(self.M.Estop(stamp=t, engaged=engaged, source=source, reason=reason)))
+        self.estop.put(self.M.encode(self.M.Estop(stamp=t, engaged=engaged, source=source, reason=reason,
+                                                  wall_time=time.time(), nonce=self.M.new_nonce())))
         return t
 
 

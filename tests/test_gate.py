@@ -83,6 +83,38 @@ def test_a_second_or_forged_sender_puts_the_stream_in_conflict_for_health() -> N
     assert "seq_jump" in g.conflict(3.1)
 
 
+def test_two_senders_on_one_epoch_stop_the_vehicle_until_one_is_silent() -> None:
+    """Finding (issue 31): a forged command at seq + 1 right after each real one (the station's epoch copied) was
+    applied on 341 of 341 ticks while the host said "driving (cmd)". The real command then arrives at a seq already
+    taken, with other content: two senders on one epoch. The vehicle stops until that has not happened for the
+    silence timeout; a replayed copy of a command taken is not a conflict."""
+    g = CommandGate(LIMITS, cmd_timeout=0.3)
+    t = 100.0
+    for k in range(1, 11):  # the station at 10 Hz
+        assert g.offer(M.Command(stamp=t - 50, seq=k, v=0.2, omega=0.0, method="scm", epoch=STATION), t)
+        t += 0.1
+    assert g.decide(t - 0.05).reason == "cmd"
+    applied_forged = 0
+    for k in range(11, 41):  # 3 s: each real command, then the forger's copy at seq + 1 one ms after it
+        g.offer(M.Command(stamp=t - 50, seq=k, v=0.2, omega=0.0, method="scm", epoch=STATION), t)
+        g.offer(M.Command(stamp=t - 50 + 0.001, seq=k + 1, v=0.5, omega=1.0, method="scm", epoch=STATION), t + 0.001)
+        for dt in (0.002, 0.05, 0.098):  # the host's ticks until the next real command
+            d = g.decide(t + dt)
+            applied_forged += d.v == 0.5
+        t += 0.1
+    assert applied_forged <= 3, applied_forged  # at most until the next real command (one tick of 10 Hz)
+    assert g.decide(t - 0.05) == Decision(0.0, 0.0, "conflict", 40 + 1)
+    assert g.counters["seq_conflicts"] >= 29 and "two senders on one command epoch" in g.conflict(t)
+    for k in range(42, 52):  # the forger stops; the station goes on: driving again once it has been quiet 0.3 s
+        g.offer(M.Command(stamp=t - 50, seq=k, v=0.2, omega=0.0, method="scm", epoch=STATION), t)
+        t += 0.1
+    assert g.decide(t - 0.05) == Decision(0.2, 0.0, "cmd", 51)
+    # a replayed copy of a command taken is a duplicate, not a second sender
+    before = g.counters["seq_conflicts"]
+    assert not g.offer(M.Command(stamp=t - 0.1 - 50, seq=51, v=0.2, omega=0.0, method="scm", epoch=STATION), t)
+    assert g.counters["seq_conflicts"] == before and g.decide(t + 0.01).reason == "cmd"
+
+
 def test_seq_gate_allows_gaps_from_lost_messages() -> None:
     s = SeqGate(silence_s=0.5)
     assert s.accept(7, 1, 0.0) is None

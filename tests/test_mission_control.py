@@ -82,6 +82,36 @@ def test_send_loads_a_mission_idle_and_a_restart_never_comes_back_running() -> N
     assert spec_of(load_mission()).path == load_mission_spec().path
 
 
+def test_a_published_mission_never_starts_the_robot_and_is_named_until_a_person_starts_it() -> None:
+    """Finding (issue 31): a MissionSpec published on scm/<robot>/mission after the goal restarted the robot with no
+    person's act (x 1.5 -> 2.85 m). While running it replaces the path in place; in every other phase it loads idle;
+    either way the answers say where it came from and when, until a person starts or sends one."""
+    from bridge.core.config import mission_from_spec
+
+    new = M.MissionSpec(name="program", path=[[0.0, 0.0], [1.0, 0.0]])
+    for phase in ("idle", "paused", "finished", "aborted"):
+        c = MissionControl("r1", load_mission_spec(), phase)
+        c.replace(new, mission_from_spec(new), by="a publisher on scm/r1/mission", at=1.7e9)
+        ans = c.request(_req("status"), FIT, 0.0)
+        assert c.phase == "idle" and not c.may_drive(FIT), phase
+        assert ans.replaced_by == "a publisher on scm/r1/mission" and ans.replaced_at == 1.7e9
+        assert "not a person's request" in c.reason and "mission start" in c.reason
+    c = MissionControl("r1", load_mission_spec())
+    c.request(_req("start"), FIT, 0.0)
+    c.replace(new, mission_from_spec(new), by="a publisher on scm/r1/mission", at=1.7e9)
+    assert c.phase == "running" and c.may_drive(FIT) and c.mission.name == "program"  # in place
+    assert c.request(_req("status"), FIT, 0.0).replaced_by
+    c.reached()
+    c.replace(new, mission_from_spec(new))
+    assert c.phase == "idle" and "scm/r1/mission" in c.replaced_by  # after the goal: idle
+    ans = c.request(_req("start"), FIT, 0.0)  # the person's start is told where it came from, once
+    assert ans.accepted and ans.replaced_by and c.phase == "running"
+    assert not c.request(_req("status"), FIT, 0.0).replaced_by
+    c.replace(new, mission_from_spec(new))
+    c.request(_req("send", spec=new), FIT, 0.0)  # a person's own send
+    assert not c.request(_req("status"), FIT, 0.0).replaced_by
+
+
 def _mission(client: list[str], *args: str) -> subprocess.CompletedProcess:
     return subprocess.run([sys.executable, "-m", "bridge", "mission", *args, *client], capture_output=True,
                           text=True, timeout=60)

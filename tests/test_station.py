@@ -180,7 +180,9 @@ def test_exploration_is_a_setting_and_never_happens_near_an_obstacle(tmp_path) -
 @pytest.mark.timeout(120)
 def test_a_running_station_takes_a_new_mission_over_zenoh_and_its_goal_state_resets(tmp_path) -> None:
     """Finding: the mission was hard-wired and `reached` stayed set after the goal. A new MissionSpec on
-    scm/<robot>/mission replaces it (goal state reset) and the station drives to the new goal."""
+    scm/<robot>/mission replaces it (goal state reset) and the station drives to the new goal. Finding (issue 31):
+    one published after the goal restarted the robot with no person's act; now it loads idle, says where it came
+    from, and drives only after a person's start."""
     import math
 
     from bridge.core.config import load_mission
@@ -204,6 +206,18 @@ def test_a_running_station_takes_a_new_mission_over_zenoh_and_its_goal_state_res
                                                              goal_tolerance=0.2)))
             assert col.wait(lambda n=goal_no: status and status[-1].counters.get("missions") == n
                             and status[-1].counters.get("goal_reached") == 0, 10), f"mission {goal_no} not taken"
+            if goal_no == 2:  # after the goal: loaded idle, the robot stays where it is until a person starts it
+                with col.lock:
+                    x_goal = (states[-1].x, states[-1].y)
+                assert col.wait(lambda: status[-1].state == "idle" and "not a person's request" in status[-1].text,
+                                5), status[-1].text
+                time.sleep(1.0)
+                with col.lock:
+                    assert math.dist(x_goal, (states[-1].x, states[-1].y)) < 0.02, "it drove without a person"
+                    assert status[-1].state == "idle"
+                started = subprocess.run([sys.executable, "-m", "bridge", "mission", "start", *client],
+                                         capture_output=True, text=True, timeout=60)
+                assert started.returncode == 0, started.stdout + started.stderr
             assert col.wait(lambda: status[-1].counters.get("goal_reached") == 1 and status[-1].text ==
                             "goal reached", 30), f"goal {goal_no} not reached"
         import msgspec

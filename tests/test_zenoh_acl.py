@@ -249,10 +249,13 @@ def test_the_generated_rules_give_each_identity_only_its_own_keys() -> None:
     assert allowed("robot/rover1", "egress", "put") == {K1.cmd, K1.estop}
     assert allowed("robot/rover1", "ingress", "declare_subscriber") == {K1.cmd, K1.estop}
     assert allowed("robot/rover1", "ingress", "reply") == {K1.estop, K1.engage}
-    assert allowed("operator", "ingress", "put") == {K1.estop, K3.estop}
+    # a new mission for a running station is a person's act: the operator's, never the station's certificate
+    assert allowed("operator", "ingress", "put") == {K1.estop, K3.estop, K1.mission, K3.mission}
     station_puts = allowed("station", "ingress", "put")
-    assert {K1.cmd, K3.cmd, K1.teacher, K1.limits, K1.mission} <= station_puts
-    assert not station_puts & {K1.state, K1.applied, K1.estop, M.status_key("rover1", "driver")}
+    assert {K1.cmd, K3.cmd, K1.teacher, K1.limits} <= station_puts
+    assert not station_puts & {K1.state, K1.applied, K1.estop, K1.mission, K3.mission,
+                               M.status_key("rover1", "driver")}
+    assert {K1.mission, K3.mission} <= allowed("station", "egress", "put")  # it receives them
     assert allowed("station", "ingress", "reply") == {K1.pairs, K3.pairs, K1.control, K3.control}
     assert allowed("observer", "ingress", "put") == set() and allowed("observer", "ingress", "query") == {
         K1.pairs, K3.pairs, K1.estop, K3.estop, deploy.ALL_ESTOPS}  # never control or engage: they change things
@@ -331,6 +334,19 @@ def test_rover1_cannot_publish_estop_not_even_to_release_its_own(lab: Lab) -> No
         keep_sending([lambda: lab.forger.put(K1.estop, release)])
         assert station_sees.wait_for(engage)
     assert not driver_sees.has(release) and not station_sees.has(release), "rover1 released its own estop"
+
+
+def test_only_the_operator_publishes_a_mission_and_the_station_receives_it(lab: Lab) -> None:
+    """Finding (issue 31): under `deploy lab` the station's certificate could replace a robot's mission, and the
+    operator then started it unwarned. Only the operator's identity may put on scm/<robot>/mission."""
+    legit, forged = tag("operator-mission"), tag("station-mission")
+    with subscribed(lab.station, K1.mission) as station_sees, subscribed(lab.router, K1.mission) as router_sees, \
+            publishers(lab.operator, K1.mission) as (mission,):
+        assert send_until(lambda: mission.put(legit), lambda: station_sees.has(legit))  # control: the path is open
+        keep_sending([lambda: lab.station.put(K1.mission, forged), lambda: lab.rover1.put(K1.mission, forged),
+                      lambda: lab.observer.put(K1.mission, forged)])
+        assert router_sees.wait_for(legit)
+    assert not router_sees.has(forged), "a certificate other than the operator's published a mission"
 
 
 def test_rover1_publishes_its_telemetry_and_the_station_receives_it(lab: Lab) -> None:

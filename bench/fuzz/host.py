@@ -21,6 +21,7 @@ import msgspec
 from bench.fuzz.harness import Crashes, Tally, result, wait_until
 from bench.fuzz.messages import COMMAND, ESTOP, CommandStream, MsgMutator, wire_ok
 from bridge.core import wire as M
+from bridge.core.acts import ActGuard
 from bridge.core.gate import DRIVING
 from bridge.nodes.driver_config import DEFAULT_HARD_LIMITS
 from bridge.nodes.node import rss_mb
@@ -225,25 +226,32 @@ def _estop_dict(rng: random.Random) -> dict:
     msg = {"stamp": time.monotonic(), "seq": rng.randrange(1000), "engaged": rng.random() < 0.5,
            "source": rng.choice(["operator", "operator", "fuzzer", "", "station", "Operator", "operator "]),
            "reason": rng.choice(["", "test", "x" * 100])}
+    if rng.random() < 0.5:  # a release is taken only fresh and once (bridge.core.acts): half are stamped
+        msg.update(wall_time=time.time() - rng.choice([0.0, 0.0, 30.0, -30.0]), nonce=M.new_nonce())
     return msg
 
 
 class LatchModel:
     """The documented estop rule (docs/ARCHITECTURE.md section 6), counted as the driver host counts it: anyone
-    engages; only a configured source releases; ``estops`` counts engagements of an unlatched host,
-    ``estop_releases`` and ``estop_release_refused`` the releases of a latched one."""
+    engages; only a configured source releases, and only fresh and once (``bridge.core.acts``); ``estops`` counts
+    engagements of an unlatched host, ``estop_releases`` and ``estop_release_refused`` (a source not configured) or
+    ``estop_release_refused_<kind>`` (stale, replayed, not stamped) the releases of a latched one."""
 
     def __init__(self, release_sources: tuple[str, ...] = ("operator",)) -> None:
         self.sources = release_sources
         self.latched = False
         self.counts = Counter()
+        self.guard = ActGuard()
 
     def offer(self, e: M.Estop) -> None:
         if e.engaged:
             self.counts["estops"] += not self.latched
             self.latched = True
         elif self.latched:
-            if e.source in self.sources:
+            why = self.guard.check(e.wall_time, e.nonce, time.time())
+            if why is not None:
+                self.counts[f"estop_release_refused_{why.kind}"] += 1
+            elif e.source in self.sources:
                 self.counts["estop_releases"] += 1
                 self.latched = False
             else:
@@ -288,7 +296,8 @@ def _estop_on(rig: HostRig, n: int, rng: random.Random) -> dict:
         epub.put(data)
         if rng.random() < 0.05:
             cpub.put(msgspec.msgpack.encode(stream()))
-    latch_keys = ("estops", "estop_releases", "estop_release_refused")
+    latch_keys = ("estops", "estop_releases", "estop_release_refused",
+                  *(f"estop_release_refused_{k}" for k in ActGuard().refused))
     want = sum(model.counts.values())
     after = _settle(rig, lambda c: _delta(c, before, ("malformed_estop", *latch_keys)), bad + want,
                     30.0 + n / 2000)
@@ -296,7 +305,8 @@ def _estop_on(rig: HostRig, n: int, rng: random.Random) -> dict:
     latch = {k: _delta(after, before, (k,)) for k in latch_keys}
     rss1 = rig.rss()
     # the operator releases (a configured source), and a new station run drives
-    epub.put(M.encode(M.Estop(stamp=time.monotonic(), engaged=False, source="operator", reason="bench")))
+    epub.put(M.encode(M.Estop(stamp=time.monotonic(), engaged=False, source="operator", reason="bench",
+                              wall_time=time.time(), nonce=M.new_nonce())))
     epub.undeclare()
     cpub.undeclare()
     drive = rig.drives()

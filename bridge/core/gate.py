@@ -16,16 +16,25 @@ sequence numbers"):
   messages in the sender's order (seqs and stamps rising) show its faster clock, even read in batches.
 
 :class:`CommandGate` is the driver host's gate for ``cmd``: freshness (validity and the deadman), the estop latch
-(released only by a source the configuration names), clamping to the hard limits where that keeps the command's
-direction (otherwise a stop: never -99 m/s into +0.05), and "a stop is a stop": a
-``stop`` method, an exact zero command, the deadman or an estop reach the vehicle as exactly zero, whatever the
-limits say.
+(released only by a source the configuration names), two senders on one epoch (a conflict: the vehicle stops),
+clamping to the hard limits where that keeps the command's direction (otherwise a stop: never -99 m/s into +0.05),
+and "a stop is a stop": a ``stop`` method, an exact zero command, the deadman or an estop reach the vehicle as
+exactly zero, whatever the limits say.
+
+Two senders on one epoch are a conflict, not a stream. One sender counts its seqs up by one from one thread and
+Zenoh delivers one publisher's messages in order, so within the followed epoch a command at or below the last seq
+taken that is not an exact copy of the command taken at that seq (a replay is a copy) was sent by someone else: a
+forger who copied the station's epoch and publishes seq + 1 right after each real command (found by a hostile test:
+341 forged commands of 341 applied over 6 s, the host saying "driving (cmd)"). The forged seq is taken first, so the
+real command arrives at a seq already taken, with other content. The gate then stops the vehicle (``conflict``) until
+no such command has come for the silence timeout, and :meth:`CommandGate.conflict` says so for the host's health.
 """
 
 from __future__ import annotations
 
 import logging
 import math
+from collections import OrderedDict
 from dataclasses import dataclass, field
 
 from bridge.core import wire as M
@@ -157,6 +166,8 @@ CONFLICT_WINDOW_S = 2.0
 #: the fastest a station may send commands (its configuration's rate bound is 200 Hz) and the seqs of slack on top
 MAX_COMMAND_RATE_HZ = 250.0
 COMMAND_SEQ_SLACK = 5
+#: commands of the followed epoch kept (by seq) to tell a replayed copy from another sender's command at that seq
+TAKEN_KEPT = 256
 
 
 def in_range(value: float, limits: tuple[float, float]) -> float | None:
@@ -178,7 +189,7 @@ class Decision:
 
     v: float
     omega: float
-    reason: str  # cmd | clamped | refused | stop | deadman | estop | stale | start
+    reason: str  # cmd | clamped | refused | stop | deadman | estop | stale | start | conflict
     cmd_seq: int | None = None
 
     @property
@@ -202,8 +213,10 @@ class CommandGate:
     counters: dict[str, int] = field(default_factory=lambda: {
         "accepted": 0, "out_of_order": 0, "old_epoch": 0, "foreign_epoch": 0, "seq_jump": 0, "stamp_jump": 0,
         "resyncs": 0, "deadman_trips": 0, "stale": 0, "clamped": 0, "refused_range": 0, "stops": 0, "estops": 0,
-        "estop_releases": 0, "estop_release_refused": 0})
+        "estop_releases": 0, "estop_release_refused": 0, "seq_conflicts": 0, "conflict_stops": 0})
     refused_at: dict[str, float] = field(default_factory=dict)  # why -> when a command was last refused for it
+    conflict_at: float = -math.inf  # when a second sender on the followed epoch was last seen
+    _taken: OrderedDict[int, M.Command] = field(default_factory=OrderedDict)  # the followed epoch's, by seq
     _deadman_active: bool = True
 
     def __post_init__(self) -> None:
@@ -213,8 +226,17 @@ class CommandGate:
             self.seq = SeqGate(silence_s=self.cmd_timeout, max_rate_hz=MAX_COMMAND_RATE_HZ, slack=COMMAND_SEQ_SLACK)
 
     def offer(self, cmd: M.Command, now: float) -> bool:
-        """A decoded command arrived at ``now``; False (and counted) if it is not the next of its sender's stream."""
+        """A decoded command arrived at ``now``; False (and counted) if it is not the next of its sender's stream.
+        A command of the followed epoch at a seq already passed that is not a copy of the one taken there is a second
+        sender on that epoch: counted (``seq_conflicts``), and the vehicle stops (:meth:`decide`)."""
+        followed = self.seq.epoch
         why = self.seq.accept(cmd.epoch, cmd.seq, now, cmd.stamp)
+        if cmd.epoch == followed and why in ("out_of_order", "resync") and self._taken.get(cmd.seq) != cmd:
+            if now - self.conflict_at >= self.seq.silence_s:
+                log.warning("two senders on command epoch %x: seq %d came again with other content (a forger "
+                            "copying the station's epoch?): the vehicle stops", cmd.epoch, cmd.seq)
+            self.counters["seq_conflicts"] += 1
+            self.conflict_at = now
         if why == "clock_resync":  # the real sender, only faster than its clock was learned: no forger after all
             self.counters["resyncs"] += 1
             self.refused_at.pop("stamp_jump", None)
@@ -226,12 +248,22 @@ class CommandGate:
             return False
         self.latest, self.received_at = cmd, now
         self.counters["accepted"] += 1
+        if cmd.epoch != followed:
+            self._taken.clear()
+        self._taken[cmd.seq] = cmd
+        while len(self._taken) > TAKEN_KEPT:
+            self._taken.popitem(last=False)
         return True
 
     def conflict(self, now: float, window: float = CONFLICT_WINDOW_S) -> str | None:
         """Why the command stream cannot be trusted right now, or None: within ``window`` s, commands of a second
         sender (another epoch while the followed one is alive) or forged ones (a seq or stamp jump) were refused.
-        The vehicle is still driven by the followed sender; health must say so (ok false), not "driving"."""
+        The vehicle is still driven by the followed sender; health must say so (ok false), not "driving". Two
+        senders on one epoch (:meth:`offer`) also stop the vehicle."""
+        if now - self.conflict_at < window:
+            return (f"two senders on one command epoch: {self.counters['seq_conflicts']} commands came at a seq "
+                    "already taken, with other content (a forger copying the station's epoch); the vehicle is "
+                    f"stopped until they have stopped for {self.seq.silence_s:g} s")
         recent = {why: t for why, t in self.refused_at.items() if now - t < window}
         if "foreign_epoch" in recent:
             return (f"a second sender on cmd: {self.counters['foreign_epoch']} commands of another epoch refused "
@@ -278,6 +310,9 @@ class CommandGate:
         if cmd.method == "stop" or (cmd.v == 0.0 and cmd.omega == 0.0):
             self.counters["stops"] += 1
             return Decision(0.0, 0.0, "stop", cmd.seq)  # a stop is a stop, whatever the limits
+        if now - self.conflict_at < self.seq.silence_s:  # two senders on one epoch: which one is this?
+            self.counters["conflict_stops"] += 1
+            return Decision(0.0, 0.0, "conflict", cmd.seq)
         v, w = in_range(cmd.v, self.limits.v), in_range(cmd.omega, self.limits.w)
         if v is None or w is None:  # the vehicle cannot do it in that direction: a stop, never the other way
             self.counters["refused_range"] += 1

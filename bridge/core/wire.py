@@ -86,6 +86,12 @@ def new_epoch() -> int:
     return secrets.randbits(62) + 1
 
 
+def new_nonce() -> str:
+    """A person's request's nonce (:class:`EngageRequest`, :class:`MissionRequest`, an estop release): 128 random
+    bits in hex; the receiver refuses a nonce it has seen within the validity window (``bridge.core.acts``)."""
+    return secrets.token_hex(16)
+
+
 # --------------------------------------------------------------------------------------------------- messages
 
 # Finite floats: a NaN or inf fails the ge/le comparison at decode time and is rejected.
@@ -98,6 +104,10 @@ Rate = Annotated[float, Meta(ge=-100.0, le=100.0)]  # rad/s
 Name = Annotated[str, Meta(max_length=64)]
 Epoch = Annotated[int, Meta(ge=0, le=2**63 - 1)]  # 0: a sender that does not say (tests, old tools)
 Text = Annotated[str, Meta(max_length=1024)]
+#: a wall-clock time (``time.time()``, s since 1970): what a person's request is stamped with, since the tool and the
+#: node that acts on it may be different machines; 0: not stamped (an old tool: refused where it matters)
+WallTime = Annotated[float, Meta(ge=0.0, le=1e11)]
+Nonce = Annotated[str, Meta(max_length=64)]
 
 Method = Literal["scm", "affine", "barycentric", "direct", "perturb", "stop", "calibrate"]
 
@@ -161,7 +171,8 @@ class Applied(_Msg, kw_only=True):
     (``reason`` says why: stop (a stop command), refused (outside what the vehicle can do in that direction: never
     mirrored into motion the other way), deadman, estop, stale, start (no command yet), fault (a controller error),
     operator (the vehicle's operator took control), link_down, no_telemetry (no pose from the vehicle lately),
-    disengaged (no person has engaged the vehicle since the host started)).
+    disengaged (no person has engaged the vehicle since the host started), conflict (two senders on one command
+    epoch: stopped until one of them has been silent for the silence timeout)).
     """
 
     stamp: Stamp
@@ -169,7 +180,7 @@ class Applied(_Msg, kw_only=True):
     v: Speed
     omega: Rate
     reason: Literal["cmd", "clamped", "refused", "stop", "deadman", "estop", "stale", "start", "fault",
-                    "operator", "link_down", "no_telemetry", "disengaged"]
+                    "operator", "link_down", "no_telemetry", "disengaged", "conflict"]
     cmd_seq: Seq | None = None
 
 
@@ -292,7 +303,9 @@ class Status(_Msg, kw_only=True):
 
 class Estop(_Msg, kw_only=True):
     """``scm/<robot>/estop``: stop now. ``engaged=False`` releases a latched estop, but only from a ``source`` the
-    driver host's configuration names (releasing is as deliberate as engaging). The key is also a queryable: a
+    driver host's configuration names (releasing is as deliberate as engaging), stamped with a fresh wall-clock
+    ``wall_time`` and a ``nonce`` not seen before (a release without them, recorded and replayed, or from an old
+    tool, is refused). A stop (``engaged=True``) is always honoured, stamped or not. The key is also a queryable: a
     ``get`` on it returns each driver host's :class:`EstopState`."""
 
     stamp: Stamp
@@ -300,6 +313,8 @@ class Estop(_Msg, kw_only=True):
     engaged: bool = True
     source: Name = ""
     reason: Text = ""
+    wall_time: WallTime = 0.0
+    nonce: Nonce = ""
 
 
 class EstopState(_Msg, kw_only=True):
@@ -310,6 +325,8 @@ class EstopState(_Msg, kw_only=True):
     latched: bool
     source: Name = ""
     reason: Text = ""
+    #: why the last release was refused (a source not configured, a stale or replayed request), for a few seconds
+    release_refused: Text = ""
 
 
 MissionAction = Literal["start", "pause", "resume", "abort", "send", "status"]
@@ -317,12 +334,18 @@ MissionPhase = Literal["idle", "running", "paused", "finished", "aborted"]
 
 
 class MissionRequest(_Msg, kw_only=True):
-    """A query on ``scm/<robot>/control``: a person's request to the station (``send`` carries the new mission)."""
+    """A query on ``scm/<robot>/control``: a person's request to the station (``send`` carries the new mission).
+
+    Every action but ``status`` must carry a fresh wall-clock ``wall_time`` (within 10 s of the station's clock) and
+    a ``nonce`` the station has not seen: a request recorded and replayed, or one from an old tool without them, is
+    refused (``bridge.core.acts``)."""
 
     stamp: Stamp
     action: MissionAction
     spec: MissionSpec | None = None
     source: Name = ""
+    wall_time: WallTime = 0.0
+    nonce: Nonce = ""
 
 
 class MissionState(_Msg, kw_only=True):
@@ -338,16 +361,25 @@ class MissionState(_Msg, kw_only=True):
     text: Text = ""
     reason: Text = ""
     progress: Annotated[float, Meta(ge=0.0, le=1.0)] = 0.0
+    #: the mission came from a publisher on ``scm/<robot>/mission``, not from a person's ``send``: where from and
+    #: when (wall clock), so the operator looks at it before ``start`` (empty once a person started or sent one)
+    replaced_by: Text = ""
+    replaced_at: WallTime = 0.0
 
 
 class EngageRequest(_Msg, kw_only=True):
     """A query on ``scm/<robot>/engage``: a person asks the driver host to take the vehicle into its control
-    (``engaged=False``: hand it back, stopped; ``clear_faults``: also clear what the controllers latched)."""
+    (``engaged=False``: hand it back, stopped; ``clear_faults``: also clear what the controllers latched).
+
+    Engaging needs a fresh wall-clock ``wall_time`` and a ``nonce`` the host has not seen (a recorded request
+    replayed, or one from an old tool, is refused); handing the vehicle back (a stop) is always honoured."""
 
     stamp: Stamp
     engaged: bool = True
     source: Name = ""
     clear_faults: bool = False
+    wall_time: WallTime = 0.0
+    nonce: Nonce = ""
 
 
 class EngageState(_Msg, kw_only=True):
@@ -443,6 +475,7 @@ __all__ = [
     "encode",
     "key",
     "new_epoch",
+    "new_nonce",
     "status_key",
     "alive_key",
     "validated",

@@ -48,6 +48,7 @@ import numpy as np
 import zenoh
 
 from bridge.core import wire as M
+from bridge.core.acts import ActGuard, Refusal
 from bridge.core.args import pose_arg, positive_float, robot_arg
 from bridge.core.auth import KEY_BYTES, load_key, record_tag, record_tag_ok
 from bridge.core.backoff import Backoff
@@ -85,6 +86,8 @@ SEND_BURST = 2
 LATCH_FLUSH_S = 2.0
 #: the end of the status text of a host whose link does not authenticate (drivers.base.link_unauthenticated)
 UNAUTHENTICATED = " (link unauthenticated: anyone on the network can drive it)"
+#: s an estop query's answer says why the last release was refused
+RELEASE_REFUSED_SHOWN_S = 10.0
 
 
 class Latch(msgspec.Struct, kw_only=True):
@@ -325,6 +328,9 @@ class DriverHost:
         self.co_located: list[Any] = []
         self.operator_engages = bool(getattr(driver, "operator_engages", False))
         self.engage_queries: list[tuple[zenoh.Query, M.EngageRequest]] = []  # answered by the loop thread
+        #: engage requests and estop releases are taken fresh and once (bridge.core.acts); under the lock
+        self.acts = ActGuard()
+        self.release_refused: tuple[str, float] = ("", -math.inf)  # why the last release was refused, and when
         self.stop_speed, self.stop_timeout, self.max_drive_on = d.stop_speed, d.stop_timeout, d.max_drive_on_s
         self.failsafe_report: FailsafeReport | None = None
         self.was_ok = False  # the link's health last tick (an operator's GUIDED + arming is a transition)
@@ -428,9 +434,19 @@ class DriverHost:
 
     def on_estop(self, e: M.Estop, now: float) -> None:
         """The gate latches (or releases) under the lock and the loop is woken to send the stop at once; the latch
-        is saved after, by the writer's thread: no file I/O under a lock the loop or a callback takes."""
+        is saved after, by the writer's thread: no file I/O under a lock the loop or a callback takes. A stop is
+        always taken; a release only when fresh and new (:mod:`bridge.core.acts`) and from a configured source."""
         with self.lock:
-            changed = self.gate.estop(e)
+            why = self.acts.check(e.wall_time, e.nonce, time.time()) if not e.engaged and self.gate.estopped else None
+            if why is not None:
+                self.inputs.count(f"estop_release_refused_{why.kind}")
+            refused = self.gate.counters["estop_release_refused"]
+            changed = why is None and self.gate.estop(e)
+            if self.gate.counters["estop_release_refused"] > refused:  # (the gate logged it)
+                why = Refusal("source", f"refused: {e.source!r} is not one of this host's estop_release_sources "
+                              f"{list(self.gate.release_sources)}")
+            if why is not None:
+                self.release_refused = (why.text, now)
             if changed and not e.engaged:
                 self.clear_requested = True
             if changed:
@@ -438,6 +454,8 @@ class DriverHost:
         self.wake.set()
         if changed:
             log.warning("estop %s by %r: %s", "engaged" if e.engaged else "released", e.source, e.reason)
+        elif why is not None and why.kind != "source":
+            log.warning("estop release by %r %s", e.source, why.text)
 
     def save_latch(self) -> None:
         """Have the latch kept on disk (called under the lock, at each change, so the last latch handed over is the
@@ -488,8 +506,17 @@ class DriverHost:
                 stamp=time.monotonic(), node=f"driver-{self.link}", engaged=self.engaged, accepted=False,
                 text=f"malformed request: {exc}"[:1024])))
             return
-        with self.lock:
-            self.engage_queries.append((query, req))
+        with self.lock:  # engaging is taken fresh and once (bridge.core.acts); handing the vehicle back always
+            why = self.acts.check(req.wall_time, req.nonce, time.time()) if req.engaged else None
+            if why is None:
+                self.engage_queries.append((query, req))
+        if why is not None:
+            self.inputs.count(f"engage_refused_{why.kind}")
+            log.warning("engage by %r %s", req.source, why.text)
+            query.reply(self.keys.engage, M.encode(M.EngageState(
+                stamp=time.monotonic(), node=f"driver-{self.link}", engaged=self.engaged, accepted=False,
+                text=why.text[:1024])))
+            return
         self.wake.set()
 
     def handle_engage(self, req: M.EngageRequest, now: float, clear: bool = False) -> M.EngageState:
@@ -540,9 +567,12 @@ class DriverHost:
 
     def answer_estop_query(self, query: zenoh.Query, deferred: bool = False) -> None:
         with self.lock:  # an unsaved latch is latched, and says so (estop prints it beside LATCHED)
-            st = M.EstopState(stamp=time.monotonic(), node=f"driver-{self.link}",
+            now = time.monotonic()
+            why, at = self.release_refused
+            st = M.EstopState(stamp=now, node=f"driver-{self.link}",
                               latched=self.gate.estopped or bool(self.latch_unsaved), source=self.gate.estop_source,
-                              reason=(self.latch_unsaved or self.gate.estop_reason)[:1024])
+                              reason=(self.latch_unsaved or self.gate.estop_reason)[:1024],
+                              release_refused=why[:1024] if now - at < RELEASE_REFUSED_SHOWN_S else "")
         try:
             query.reply(self.keys.estop, M.encode(st))
         finally:

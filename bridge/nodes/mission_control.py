@@ -9,11 +9,19 @@ fault, the driver host restarting) moves ``running`` to ``paused`` with that rea
 person resumes it; a resume is refused, with the reason, while an estop is latched or the robot is not fit.
 ``send`` replaces the mission and goes to ``idle``; ``abort`` stops for good until a new ``start``. A restarted
 station comes back with its saved mission, never running (a running mission comes back paused).
+
+A mission published on ``scm/<robot>/mission`` (a program feeding goals, not a person's request) never starts a robot
+by itself: while running it replaces the path in place (a started robot follows the new goal); in every other phase
+(after the goal, idle, paused, aborted) it loads ``idle`` and waits for a person's ``start``. Either way the answers
+and the station's status say where it came from and when, so the operator is warned before starting it. (Found by a
+hostile test: a mission published after the goal restarted the robot with no person's act.) Under the lab's access
+control only the operator's certificate may publish it (``scmbridge deploy``).
 """
 
 from __future__ import annotations
 
 import logging
+import time
 from dataclasses import dataclass
 
 import msgspec
@@ -64,6 +72,9 @@ class MissionControl:
         self.changed = True  # the phase or mission changed since the last save
         self.version = 0  # counts mission replacements (the station resets its teacher on a new one)
         self.unfit_since: float | None = None  # since when the robot has not been fit while running
+        #: the mission came from a publisher on the mission key, not a person's send: from where, when (wall clock)
+        self.replaced_by = ""
+        self.replaced_at = 0.0
 
     # ------------------------------------------------------------------------------------------- restarts
     @classmethod
@@ -93,6 +104,7 @@ class MissionControl:
                 return self.answer(now, False, f"mission refused: {exc}")
             self.spec, self.mission, self.progress = req.spec, mission, 0.0
             self.version += 1
+            self.replaced_by, self.replaced_at = "", 0.0  # a person's own mission
             self._go("idle", f"new mission{who}: scmbridge mission start to drive it")
             return self.answer(now, True, f"mission {req.spec.name!r} loaded; idle until started")
         if act in ("start", "resume"):
@@ -107,8 +119,10 @@ class MissionControl:
                 self.progress = 0.0  # start again from the beginning
             done = "started" if act == "start" else "resumed"
             self._go("running", f"{done}{who}")
-            return self.answer(now, True, f"mission {self.spec.name!r} {done}" + (
+            ans = self.answer(now, True, f"mission {self.spec.name!r} {done}" + (
                 f"; waiting for the robot: {fit.why}" if fit.why else ""))
+            self.replaced_by, self.replaced_at = "", 0.0  # a person started it, told where it came from
+            return ans
         if act == "pause":
             if self.phase != "running":
                 return self.answer(now, False, f"nothing to pause: the mission is {self.phase}")
@@ -121,13 +135,20 @@ class MissionControl:
             return self.answer(now, True, "aborted: stopped until a new start")
         return self.answer(now, False, f"unknown action {act!r}")
 
-    def replace(self, spec: M.MissionSpec, mission: Mission) -> None:
-        """A program's new mission on ``scm/<robot>/mission`` for a station a person started: it replaces the
-        mission; a finished one goes on with the new goal, every other phase stays as it is."""
+    def replace(self, spec: M.MissionSpec, mission: Mission, by: str = "", at: float = 0.0) -> None:
+        """A program's new mission on ``scm/<robot>/mission`` (``by``: where it came from; ``at``: when, wall
+        clock): while running it replaces the path in place; in any other phase it loads idle, and only a person's
+        start drives it (never the mission message itself)."""
         self.spec, self.mission, self.progress = spec, mission, 0.0
         self.version += 1
-        if self.phase == "finished":
-            self._go("running", f"new mission {spec.name!r} after the goal")
+        by = by or f"a publisher on scm/{self.robot}/mission"
+        self.replaced_by, self.replaced_at = by, at
+        when = time.strftime("%H:%M:%S", time.localtime(at)) if at > 0 else "an unknown time"
+        if self.phase == "running":
+            log.warning("mission %r: path replaced in place while running, from %s at %s", spec.name, by, when)
+        else:
+            self._go("idle", f"new mission {spec.name!r} from {by} at {when}, not a person's request: check it, "
+                     f"then scmbridge mission start --robot {self.robot}")
         self.changed = True
 
     # ------------------------------------------------------------------------------------------------ tick
@@ -164,7 +185,8 @@ class MissionControl:
     def answer(self, now: float, accepted: bool, text: str) -> M.MissionState:
         return M.MissionState(stamp=now, robot=self.robot, phase=self.phase, mission=self.spec.name,
                               accepted=accepted, text=text[:1024], reason=self.reason[:1024],
-                              progress=min(1.0, max(0.0, self.progress)))
+                              progress=min(1.0, max(0.0, self.progress)), replaced_by=self.replaced_by[:1024],
+                              replaced_at=max(0.0, self.replaced_at))
 
 
 def spec_of(mission: Mission) -> M.MissionSpec:

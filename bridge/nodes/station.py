@@ -15,7 +15,11 @@ echoes that arrived, forms the command pairs they really bracket (:mod:`bridge.n
 Driving: the teacher MPC, bounded by the learned limits and given the obstacles that matter, proposes a command;
 the transfer policy maps it; ``cmd`` carries it (with the method, a validity of three periods, this run's sender
 name and epoch) and ``teacher`` the teacher's own command and plan. ``limits`` is published when the learned
-limits change and each second; ``pairs`` answers queries; ``mission`` takes a new mission (the goal state resets).
+limits change and each second; ``pairs`` answers queries; ``mission`` takes a program's new mission (the goal state
+resets): in place while running, else loaded idle until a person's ``mission start`` (never a start by itself), and
+the status and the answers say where it came from and when. Mission requests other than ``status`` are taken only
+fresh and once (``bridge.core.acts``: a wall-clock time within 10 s and a nonce not seen; one without them is
+refused). Without TLS it says at start that anyone who can reach its Zenoh session may command the robot.
 The pair store is persisted atomically every ``persist_every_s`` and at exit, and reloaded at start; a failed save
 (a full disk) is logged, reported on status and retried, and never stops the loop; the saves are written by a writer
 thread from the bytes the tick encoded, so a slow disk never delays a tick. Callbacks only decode and store, under a
@@ -37,6 +41,7 @@ from pathlib import Path
 import zenoh
 
 from bridge.core import wire as M
+from bridge.core.acts import ActGuard
 from bridge.core.args import positive_float, robot_arg, robots_arg
 from bridge.core.config import RATE_HZ_RANGE, StationConfig, load_mission_spec, load_station, mission_from_spec
 from bridge.core.errors import UsageError
@@ -165,6 +170,7 @@ class Station:
         self.lock = threading.Lock()  # the inbox (and the core while no loop runs): held briefly, never for a tick
         self.inbox = Inbox()
         self.looping = False  # the loop runs: only its thread calls the core
+        self.acts = ActGuard()  # mission requests are taken fresh and once (bridge.core.acts); under the lock
         self.writer = SaveWriter(save, name=f"station-save-{robot}")
         self.core.writer = self.writer
         self.telemetry: list[Queued] = []  # the echoes' and the poses' queues, read at each tick (serve declares them)
@@ -199,7 +205,8 @@ class Station:
 
     def on_control_query(self, query: zenoh.Query) -> None:
         """A person's request (``scmbridge mission ...``): decoded here, done or refused by the loop and answered
-        at once (:meth:`answer`)."""
+        at once (:meth:`answer`). Every action but ``status`` must be fresh and new (:mod:`bridge.core.acts`): a
+        recorded request replayed, or one without a time and nonce, is answered with the refusal and does nothing."""
         now = time.monotonic()
         try:
             payload = query.payload
@@ -208,6 +215,13 @@ class Station:
         except M.MessageError as exc:
             self.inputs.count("malformed_control")
             req = f"malformed request: {exc}"
+        if isinstance(req, M.MissionRequest) and req.action != "status":
+            with self.lock:
+                why = self.acts.check(req.wall_time, req.nonce, time.time())
+            if why is not None:
+                self.inputs.count(f"control_refused_{why.kind}")
+                log.warning("mission %s by %r %s", req.action, req.source, why.text)
+                req = why.text
         self._ask(Asked("control", query, req, now))
 
     def on_mission(self, spec: M.MissionSpec, now: float) -> None:

@@ -346,8 +346,9 @@ class StationCore:
         if inputs.teacher is not None:
             self.teacher, self.teacher_at = inputs.teacher
             self.teacher_new = True
-        if inputs.mission is not None:
-            self.control.replace(*inputs.mission)
+        if inputs.mission is not None:  # a program's, not a person's: named and timed for the operator
+            self.control.replace(*inputs.mission, by=f"a publisher on {M.key(self.robot, 'mission')}",
+                                 at=time.time())
         if inputs.driver is not None:
             st, at = inputs.driver
             restarted = st.seq < self.driver_seq  # a new driver host process: it counts from 0 again
@@ -461,6 +462,8 @@ class StationCore:
         line and the log), whatever the words: a paused mission whose reason is empty still stops."""
         c = self.control
         if c.phase == "idle":
+            if c.replaced_by:  # a program's mission, loaded idle: say where it came from before anyone starts it
+                return Why(f"idle: {c.reason}", "idle")
             return Why(f"idle: waiting for a person (scmbridge mission start --robot {self.robot})", "idle")
         if c.phase == "finished":
             return Why("goal reached", "goal_reached")

@@ -85,6 +85,13 @@ def _endpoints(conf: zenoh.Config) -> str:
     return ", ".join(str(e) for e in eps) or "the Zenoh defaults"
 
 
+#: what a node without TLS says at its start, and ``scmbridge doctor`` too: who may command the robot then
+NO_TLS_WARNING = ("this Zenoh session has no TLS: anyone who can reach this Zenoh session — on the loopback default, "
+                  "any user of this machine — may engage, start missions and release estops, and publish commands "
+                  "(for the demo and tests only; a lab uses the TLS and access-control configuration `scmbridge "
+                  "deploy` makes, deploy/README.md)")
+
+
 def secured(conf: zenoh.Config) -> bool:
     """Whether the configuration speaks TLS only (mutual: a certificate of the lab's CA, checked by the router)."""
     try:
@@ -106,9 +113,7 @@ def open_session(conf: zenoh.Config, wait: threading.Event | None = None, what: 
     (:func:`bridge.nodes.tlsid.refused_because`)."""
     backoff, said = Backoff(0.1, 5.0), ""
     if what and not secured(conf):
-        log.warning("%s: this Zenoh session has no TLS: anyone who reaches its network can publish commands and "
-                    "estop releases (for the demo and tests on loopback only; a lab uses the configuration "
-                    "`scmbridge deploy` makes, deploy/README.md)", what)
+        log.warning("%s: %s", what, NO_TLS_WARNING)
     while True:
         try:
             return zenoh.open(conf)

@@ -8,11 +8,11 @@ through only what a rule allows:
 
 * **a robot** ``R`` publishes its own ``state``, ``applied`` and ``status/driver``; it subscribes to and receives
   only its own ``cmd`` and ``estop``, and answers ``estop`` queries (its latch state) with replies on that key;
-* **the station** publishes ``cmd``, ``teacher``, ``limits``, ``mission`` and its ``status/station`` for every
-  robot, receives the robots' ``state``, ``applied``, ``status/driver`` (and ``mission``), and answers ``pairs``
-  queries;
-* **the operator** publishes ``estop`` (engage and release: one key) for every robot and may query ``estop`` and
-  ``pairs``;
+* **the station** publishes ``cmd``, ``teacher``, ``limits`` and its ``status/station`` for every robot, receives
+  the robots' ``state``, ``applied``, ``status/driver`` and ``mission``, and answers ``pairs`` queries;
+* **the operator** publishes ``estop`` (engage and release: one key) and ``mission`` (a new mission for a running
+  station: only a person's identity may replace what a robot drives to; the station's certificate may not) for
+  every robot and may query ``estop`` and ``pairs``;
 * optionally **a motion-capture bridge** (``--mocap-cn``) publishes ``mocap`` for every robot (which each robot's
   driver host receives), and **an external teacher** (``--teacher-cn``) publishes ``teacher`` for every robot and
   receives ``state`` and ``limits`` (``[teacher] kind = "external"``);
@@ -66,7 +66,7 @@ from bridge.core.errors import UsageError
 ROBOT_PUBLISHES = ("state", "applied")
 ROBOT_RECEIVES = ("cmd", "estop")
 #: what the station publishes for each robot, and what it listens to
-STATION_PUBLISHES = ("cmd", "teacher", "limits", "mission")
+STATION_PUBLISHES = ("cmd", "teacher", "limits")
 STATION_RECEIVES = ("state", "applied", "mission")
 
 #: the lab address placeholder of the shipped files (deploy/README.md: replace it with the lab interface's)
@@ -150,6 +150,7 @@ def access_control(robots: Sequence[str], *, station_cn: str = "station", operat
     estops = [k.estop for k in each]
     controls = [k.control for k in each]
     engages = [k.engage for k in each]
+    missions = [k.mission for k in each]
     cmds = [k.cmd for k in each]
     station = [
         _rule("station/publishes", "ingress", ["put"], s_pubs),
@@ -165,9 +166,12 @@ def access_control(robots: Sequence[str], *, station_cn: str = "station", operat
         _rule("station/hears-cmd", "ingress", ["declare_subscriber"], cmds),  # another sender on its robot's key
         _rule("station/receives-cmd", "egress", ["put"], cmds),
     ]
-    # the operator: estop (engage and release), engage, missions, pairs, and everything an observer may read
+    # the operator: estop (engage and release), engage, missions (requests, and a new mission for a running station:
+    # the station's certificate may not publish one), pairs, and everything an observer may read
     operator = [
         _rule("operator/estop", "ingress", ["put"], estops),
+        _rule("operator/missions", "ingress", ["put"], missions),
+        _rule("operator/missions-matching", "egress", ["declare_subscriber"], missions),
         _rule("operator/estop-latches", "ingress", ["query"], [*estops, ALL_ESTOPS]),
         _rule("operator/estop-matching", "egress", ["declare_subscriber", "declare_queryable"], estops),
         _rule("operator/estop-replies", "egress", ["reply"], estops),
@@ -259,7 +263,7 @@ def client_config(name: str, *, connect: str = LAB_LISTEN, certs: str | Path = L
 ROUTER_HEADER = (
     "Lab network with mutual TLS and access control on the lab's router (scmbridge router, scmbridge-router.service).",
     "Default deny: a robot publishes only its own state/applied/status/driver and receives only its own cmd/estop;",
-    "the station publishes cmd/teacher/limits/mission; the operator publishes estop; a certificate not named below",
+    "the station publishes cmd/teacher/limits; the operator publishes estop/mission; a certificate not named below",
     "connects but neither sends nor receives anything.",
 )
 CLIENT_HEADER = (

@@ -112,7 +112,9 @@ def check_tls(conf: zenoh.Config, expiry_days: float) -> list[Check]:
     tls = _json(conf, "transport/link/tls")
     if not isinstance(tls, dict) or not any(isinstance(v, str) and v for v in tls.values()):
         return [Check("warn", "tls", "no TLS in this Zenoh configuration: traffic is neither encrypted nor "
-                                     "authenticated (scmbridge deploy makes the lab's TLS configuration)")]
+                                     "authenticated: anyone who can reach this Zenoh session — on the loopback "
+                                     "default, any user of this machine — may engage, start missions and release "
+                                     "estops (scmbridge deploy makes the lab's TLS configuration)")]
     if shutil.which("openssl") is None:
         return [Check("warn", "tls", "openssl is not installed: certificates not checked")]
     ca = tls.get("root_ca_certificate")

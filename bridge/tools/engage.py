@@ -5,7 +5,10 @@ is a query on ``scm/<robot>/engage`` answered by the driver host once done: MAVL
 each confirmed by the vehicle (or the vehicle's reason for refusing); CAN: both axes in closed loop (refused, naming
 the axis, while one reports an error, unless ``--clear-faults``); UDP: the host starts sending commands. Refused
 while an estop is latched. Engaging an engaged host says so and succeeds. The station still drives only after
-``scmbridge mission start`` (or resume). Exit status: 0 done, 1 refused, 2 no driver host answered, 3 denied by the
+``scmbridge mission start`` (or resume). The request carries this machine's wall-clock time and a random nonce: the
+driver host refuses it if it is more than 10 s off its own clock or was seen before (a recorded request replayed;
+synchronise the machines' clocks), and refuses one without them (an older tool, a recorded old-format payload).
+``--release`` (a stop) is always honoured. Exit status: 0 done, 1 refused, 2 no driver host answered, 3 denied by the
 lab's access control (this certificate's role may not engage: the observer, a robot; deploy/README.md).
 """
 
@@ -18,6 +21,7 @@ import time
 import zenoh
 
 from bridge.core import wire as M
+from bridge.core.acts import stamped
 from bridge.core.args import positive_float, robot_arg
 from bridge.core.errors import Denied, UsageError
 from bridge.nodes.node import add_zenoh_args, endpoints_tried, zenoh_config
@@ -28,11 +32,13 @@ RETRY_S = 0.25
 
 
 def ask(session: zenoh.Session, robot: str, req: M.EngageRequest, timeout: float) -> list[M.EngageState]:
-    """Every driver host's answer to ``req`` (asking again until one answers or ``timeout`` passes)."""
+    """Every driver host's answer to ``req`` (asking again until one answers or ``timeout`` passes). Each try is
+    stamped now, with a new nonce (:func:`bridge.core.acts.stamped`): a driver host takes an engage request fresh and
+    once."""
     t_end = time.monotonic() + timeout
     while True:
         out = []
-        for reply in session.get(M.key(robot, "engage"), payload=M.encode(req),
+        for reply in session.get(M.key(robot, "engage"), payload=M.encode(stamped(req)),
                                  timeout=max(0.1, t_end - time.monotonic())):
             if reply.ok is None:
                 continue

@@ -5,7 +5,10 @@ its driver host (a query on the same key, answered with the latch state) until i
 try, for up to ``--timeout`` seconds. ``--all`` means every robot known on the network: those whose driver host
 answers, those whose driver host's liveliness token is present (a stalled host keeps it until its session expires)
 and those whose nodes publish status. ``--release`` releases the latch; a driver host honours it only from a
-source its configuration names (``estop_release_sources``), so ``--source`` must be one of them.
+source its configuration names (``estop_release_sources``), so ``--source`` must be one of them, and only when it
+is fresh and new: each release carries this machine's wall-clock time and a random nonce, and a driver host refuses
+one more than 10 s off its own clock or seen before (a recorded release replayed) or without them (an older
+tool), and the latch it answers with says why. A stop is always honoured.
 
 Prints one line per driver host (latched or released, by whom). Exit status: 0 when every robot confirmed the asked
 state, 1 naming every robot that did not (or when none was found), 2 when the router cannot be reached, 3 when the
@@ -122,7 +125,8 @@ def run(args: argparse.Namespace) -> int:
             robots = [args.robot] if args.robot else list(args.robots)
 
         def msg_for() -> M.Estop:
-            return M.Estop(stamp=time.monotonic(), engaged=engaged, source=args.source, reason=args.reason)
+            return M.Estop(stamp=time.monotonic(), engaged=engaged, source=args.source, reason=args.reason,
+                           wall_time=time.time(), nonce=M.new_nonce())  # a release is taken fresh and once
 
         answers = confirm(session, robots, msg_for, engaged, max(deadline, time.monotonic() + TRY_TIMEOUT_S))
     failed, denied = [], []
@@ -142,7 +146,11 @@ def run(args: argparse.Namespace) -> int:
             denied.append(robot)
         elif not states:
             print(f"{robot}: no driver host confirmed within {args.timeout:g} s", file=sys.stderr)
-        elif args.release:  # the host answered and kept its latch: the one reason it refuses a release
+        elif args.release and any(st.release_refused for st in states.values()):  # the host says why
+            for name, st in sorted(states.items()):
+                if st.release_refused:
+                    print(f"{name}: release {st.release_refused}", file=sys.stderr)
+        elif args.release:  # the host answered and kept its latch, without saying why (an older host)
             print(f"{robot}: release not confirmed: a driver host releases only from a source named in its "
                   f"estop_release_sources (driver configuration), and --source {args.source!r} is not one of them "
                   "(or a new estop latched it again, or the host could not save the release: its reason above)",

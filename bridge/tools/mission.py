@@ -4,8 +4,13 @@ Each is a Zenoh query on ``scm/<robot>/control`` (a :class:`bridge.core.wire.Mis
 station with what it did or why it refused, and where the mission is (``running``, ``paused: estop latched by
 operator``, ...). A station starts idle and drives only after ``start``; after an estop, an operator takeover, a
 lost link or a driver-host restart it pauses, and only ``resume`` drives on. ``send FILE`` loads a new mission
-(idle until started). Prints the answer in one line. Exit status: 0 accepted, 1 refused, 2 no station answered, 3
-denied by the lab's access control (this certificate's role may not ask: the observer, a robot; deploy/README.md).
+(idle until started). Each request carries this machine's wall-clock time and a random nonce: the station refuses one
+more than 10 s off its own clock or seen before (a recorded request replayed; synchronise the machines' clocks), and
+one without them (an older tool, a recorded old-format payload); ``status`` needs neither. A
+mission published on ``scm/<robot>/mission`` by a program (not a person's ``send``) is named in the answer, with
+when it came, so it is looked at before ``start``. Prints the answer in one line. Exit status: 0 accepted, 1
+refused, 2 no station answered, 3 denied by the lab's access control (this certificate's role may not ask: the
+observer, a robot; deploy/README.md).
 """
 
 from __future__ import annotations
@@ -17,6 +22,7 @@ import time
 import zenoh
 
 from bridge.core import wire as M
+from bridge.core.acts import stamped
 from bridge.core.args import positive_float, robot_arg
 from bridge.core.config import load_mission_spec
 from bridge.core.errors import Denied, UsageError
@@ -33,7 +39,8 @@ def ask(session: zenoh.Session, robot: str, req: M.MissionRequest, timeout: floa
     t_end = time.monotonic() + timeout
     while True:
         left = t_end - time.monotonic()
-        for reply in session.get(M.key(robot, "control"), payload=M.encode(req), timeout=max(0.05, min(1.0, left))):
+        payload = M.encode(stamped(req))  # each try stamped now, with a new nonce: taken fresh and once
+        for reply in session.get(M.key(robot, "control"), payload=payload, timeout=max(0.05, min(1.0, left))):
             if reply.ok is None:
                 continue
             try:
@@ -48,7 +55,11 @@ def ask(session: zenoh.Session, robot: str, req: M.MissionRequest, timeout: floa
 def line(st: M.MissionState) -> str:
     head = f"{st.robot}: {'' if st.accepted else 'REFUSED: '}{st.text}"
     where = f"mission {st.mission!r} {st.phase}" + (f" ({st.reason})" if st.reason and st.phase != "running" else "")
-    return f"{head} | {where}, {100 * st.progress:.0f}% done"
+    out = f"{head} | {where}, {100 * st.progress:.0f}% done"
+    if st.replaced_by:  # not a person's send: say so before anyone starts it
+        at = time.strftime("%H:%M:%S", time.localtime(st.replaced_at)) if st.replaced_at else "?"
+        out += f" | WARNING: this mission came from {st.replaced_by} at {at}, not from a person's send: check it"
+    return out
 
 
 def _arguments(ap: argparse.ArgumentParser) -> None:
