@@ -464,7 +464,11 @@ def _saved(host) -> None:
 
 
 def _estop(host, engaged: bool = True, source: str = "operator") -> None:
-    host.on_estop(M.Estop(stamp=time.monotonic(), engaged=engaged, source=source, reason="test"), time.monotonic())
+    """An estop as the person's tool sends it (a release fresh and with its nonce: bridge/core/acts.py)."""
+    from bridge.core.acts import stamped
+
+    host.on_estop(stamped(M.Estop(stamp=time.monotonic(), engaged=engaged, source=source, reason="test")),
+                  time.monotonic())
     _saved(host)
 
 
