@@ -145,8 +145,9 @@ class Station:
     ever waits for a tick (an MPC solve) or a save. The fixed-rate loop hands the inbox to ``core.tick`` and publishes
     what it returns; the core is only ever called from the loop's thread. The queryables (``control``, ``pairs``)
     put their query in the inbox and wake the loop, which answers it at once between two ticks (or, when it
-    arrived during one, right after it): a mission request acts on the state the ticks leave, as one tick's
-    decision is never split by it, and ``pairs`` reads a store no tick is updating. Before the loop starts and
+    arrived during one, right after it): a mission request acts on the state the ticks leave and the driver host's
+    latest status (one sent on an engage or a release a moment before is heard), as one tick's decision is never
+    split by it, and ``pairs`` reads a store no tick is updating. Before the loop starts and
     after it ends a query is answered in its callback. An external teacher's command also wakes the loop, so it is
     mapped as it arrives. The tick's saves go to a :class:`~bridge.nodes.writer.SaveWriter` (the bytes encoded in
     the tick, written by its thread; a failure comes back to the core at the next tick, reported as before)."""
@@ -268,6 +269,8 @@ class Station:
         with self.lock:
             inbox, self.inbox = self.inbox, Inbox()
         if inbox.queries:
+            if inbox.driver is not None:  # a request is judged on the robot as it is now
+                self.core.note_driver(*inbox.driver)
             self.answer(inbox.queries, now)  # a pause that came before this tick stops the robot in it
         for cmd, at in inbox.foreign:
             self.core.heard_command(cmd, at)
@@ -289,7 +292,10 @@ class Station:
         with self.lock:
             queries, self.inbox.queries = self.inbox.queries, []
             teacher = self.inbox.teacher is not None
+            driver = self.inbox.driver if queries else None
         if queries:
+            if driver is not None:  # the driver host's status that came since the tick: an engage, a release
+                self.core.note_driver(*driver)
             self.answer(queries, time.monotonic())
         return teacher and self.core.source.external
 
