@@ -149,7 +149,7 @@ def _seen(statuses: dict[tuple[str, str], M.Status]):
 
 def test_status_says_an_estop_is_not_ok_at_the_goal_names_a_missing_driver_and_shows_parked() -> None:
     parked = M.Status(stamp=0.0, seq=1, node="station", ok=True, state="parked", reason="goal_reached",
-                      text="goal reached: parked at the goal", progress=1.0)
+                      text="goal reached", progress=1.0)
     fit = FIT
     estop = M.Status(stamp=0.0, seq=1, node="driver", ok=False, state="estop", reason="estop",
                      text="link can: estop latched by operator")
@@ -168,7 +168,7 @@ def test_status_exits_1_for_an_estopped_robot_whose_mission_is_finished_over_zen
     """The command itself, over real Zenoh: docs/CLI.md's exit status (0 driving or parked, 1 otherwise)."""
     port = free_port()
     parked = M.Status(stamp=0.0, seq=0, node="station", ok=True, state="parked", reason="goal_reached",
-                      text="goal reached: parked at the goal", progress=1.0)
+                      text="goal reached", progress=1.0)
     estop = M.Status(stamp=0.0, seq=0, node="driver", ok=False, state="estop", reason="estop",
                      text="link can: estop latched by operator")
     stop = threading.Event()
@@ -305,3 +305,36 @@ def test_a_never_engaged_mavlink_host_does_not_say_the_operator_took_a_vehicle_f
         assert "operator took control" not in said and "MANUAL" in said, said
     finally:
         rover.stop()
+
+
+def test_the_qpoases_banner_is_printed_once_per_process_at_most() -> None:
+    """Finding: qpOASES printed its licence banner twice per robot (the solver, then its buffer, each make a memory),
+    whatever ``printLevel`` says."""
+    code = ("from bridge.core.codegen import build_mpc\nfrom transfer.teacher.mpc import MpcConfig\n"
+            "for _ in range(3):\n    build_mpc(MpcConfig(N=10, dt=0.1, solver='rti-qpoases'))\nprint('built')\n")
+    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert res.returncode == 0 and res.stdout == "built\n", res.stdout + res.stderr
+    assert res.stderr.count("qpOASES -- An Implementation") == 1, res.stderr
+
+
+def test_the_learned_hull_encloses_every_refined_pair() -> None:
+    """Finding: of the boundary pairs alone, a run that met only the learner's top speed had a sliver of a hull (the
+    pairs plot's dashed envelope) that left out nearly every refined pair."""
+    import numpy as np
+
+    from transfer.domain import Bounds
+    from transfer.store import PairStore
+
+    rng = np.random.default_rng(1)
+    learner, teacher = Bounds((0.0, 0.5), (-0.5, 0.5)), Bounds((0.0, 1.0), (-1.0, 1.0))
+    store = PairStore(learner, teacher, k_min=3)
+    for _ in range(3000):
+        u = learner.denormalise(rng.uniform(0, 1, 2))
+        if rng.random() < 0.1:
+            u[0] = 0.5  # the top speed: the only boundary it meets
+        store.add([1.5 * u[0] + 0.05 * rng.normal(), 1.2 * u[1] * (1 - 0.5 * u[0]) + 0.02 * rng.normal()], u)
+    refined = np.array([p.u_T for p in store.refined()])
+    assert len(refined) > 100
+    assert np.all(store.limits.contains(refined, use_hull=True, tol=1e-6))
+    again = PairStore.from_bytes(store.to_bytes())  # a reloaded store draws the same hull
+    np.testing.assert_allclose(again.limits.hull, store.limits.hull)

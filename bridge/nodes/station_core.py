@@ -485,7 +485,7 @@ class StationCore:
         if c.phase == "idle":
             return Why(f"idle: waiting for a person (scmbridge mission start --robot {self.robot})", "idle")
         if c.phase == "finished":
-            return Why("goal reached: parked at the goal", "goal_reached")
+            return Why("goal reached", "goal_reached")
         if c.phase == "running":
             if unfit is None:  # (may_drive refuses a running mission only for an unfit robot)
                 unfit = Why("not fit", "robot_not_ready")
