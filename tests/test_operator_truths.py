@@ -338,3 +338,28 @@ def test_the_learned_hull_encloses_every_refined_pair() -> None:
     assert np.all(store.limits.contains(refined, use_hull=True, tol=1e-6))
     again = PairStore.from_bytes(store.to_bytes())  # a reloaded store draws the same hull
     np.testing.assert_allclose(again.limits.hull, store.limits.hull)
+
+
+def test_the_missing_extra_hint_names_an_install_that_brings_the_package() -> None:
+    """Finding: a robot install's `station --help` said `pip install --no-deps ... '.[station]'`, which installs no
+    package of the extra. The hint's lock pins every package an extra's command needs."""
+    from pathlib import Path
+
+    from bridge.tools.cli import EXTRA_OF, FULL_INSTALL
+
+    lock_name = FULL_INSTALL.split("-r ", 1)[1].split()[0]
+    lock = (Path(__file__).resolve().parent.parent / lock_name).read_text()
+    dists = {"foxglove": "foxglove-sdk"}
+    for module in EXTRA_OF:
+        assert f"\n{dists.get(module, module)}==" in lock, module
+    assert "--no-deps" in FULL_INSTALL and "'.[" not in FULL_INSTALL
+
+
+def test_the_demo_line_counts_every_method() -> None:
+    from bridge.tools.demo import method_counts
+
+    counters = {"method_scm": 3, "method_barycentric": 40, "method_affine": 2, "method_direct": 1,
+                "method_perturb": 0, "method_stop": 5, "refined_pairs": 9}
+    line = method_counts(counters)
+    shown = dict(w.split("=") for w in line.split())
+    assert sum(int(v) for v in shown.values()) == 51 and shown["barycentric"] == "40" and "affine" in shown, line

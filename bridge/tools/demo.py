@@ -86,6 +86,17 @@ def inprocess(args: argparse.Namespace) -> int:
     return 0
 
 
+#: the methods the live line always shows (the transfer's, in the order a run uses them), then any other one counted
+LINE_METHODS = ("scm", "barycentric", "direct", "perturb", "stop")
+
+
+def method_counts(counters: dict[str, int]) -> str:
+    """``scm=12 barycentric=230 direct=4 perturb=0 stop=9``: every command the station sent, by method, so the counts
+    add up to what it sent (finding: the line left out barycentric, its most used method)."""
+    others = sorted(k[7:] for k in counters if k.startswith("method_") and k[7:] not in LINE_METHODS)
+    return " ".join(f"{m}={counters.get(f'method_{m}', 0)}" for m in (*LINE_METHODS[:-1], *others, LINE_METHODS[-1]))
+
+
 class Monitor:
     """The demo's view of the run: the learner's states and each node's latest status, from Zenoh callbacks."""
 
@@ -130,8 +141,7 @@ class Monitor:
             return f"t={t:5.1f}s waiting for station and driver..."
         c = st.counters
         s_arc, dev = world.path.project(np.array(pos[1:3]))
-        return (f"t={t:5.1f}s rate={st.rates_hz.get('loop', 0):.0f}Hz scm={c.get('method_scm', 0)} "
-                f"direct={c.get('method_direct', 0)} perturb={c.get('method_perturb', 0)} "
+        return (f"t={t:5.1f}s rate={st.rates_hz.get('loop', 0):.0f}Hz {method_counts(c)} "
                 f"pairs={c.get('refined_pairs', 0)} dev={100 * dev:5.1f}cm "
                 f"progress={100 * s_arc / world.path.length:5.1f}% [{st.text}]")
 
