@@ -363,3 +363,52 @@ def test_the_demo_line_counts_every_method() -> None:
     line = method_counts(counters)
     shown = dict(w.split("=") for w in line.split())
     assert sum(int(v) for v in shown.values()) == 51 and shown["barycentric"] == "40" and "affine" in shown, line
+
+
+# ---------------------------------------------------------------------------------------------------- report
+class _Entry:
+    """A recorded message as the report reads it (its key, its receive time, its decoded message)."""
+
+    def __init__(self, topic: str, log_time: int, msg) -> None:
+        self.topic, self.log_time, self.msg = topic, log_time, msg
+
+    def message(self):
+        return self.msg
+
+
+def test_the_report_counts_driving_apart_from_an_estop_and_says_same_machine_from_the_statuses() -> None:
+    """Finding: `time_s` 54.1 s held a 14 s estop, and the report said "different machines" for one machine."""
+    from bridge.core.config import mission_from_spec
+    from bridge.tools.demo import Monitor
+    from bridge.tools.report import FeedSession, command_latency, machines
+
+    mission = mission_from_spec(M.MissionSpec(name="line", path=[[0.0, 0.0], [0.8, 0.0]], goal_tolerance=0.05))
+    feed, k = FeedSession(), M.Keys("r1")
+    mon = Monitor(feed, "r1")
+    t, x = 100.0, 0.0
+    for step in range(160):  # 8 s at 20 Hz: 2 s driving, a 2 s estop, 2 s driving to the goal, parked 2 s
+        t += 0.05
+        moving = step * 0.05 < 2.0 or 4.0 <= step * 0.05 < 6.0
+        x = min(0.8, x + 0.01) if moving else x
+        reason = "cmd" if moving else ("estop" if step * 0.05 < 4.0 else "stop")
+        feed.put(k.applied, M.encode(M.Applied(stamp=t, seq=step, v=0.2 if moving else 0.0, omega=0.0,
+                                               reason=reason, cmd_seq=step)))
+        feed.put(k.state, M.encode(M.LearnerState(stamp=t, seq=step, x=x, y=0.0, theta=0.0)))
+    feed.put(M.status_key("r1", "station"), M.encode(M.Status(stamp=t, seq=1, node="station",
+                                                              counters={"goal_reached": 1})))
+    s = mon.summary(mission)
+    assert 5.6 <= s["time_s"] <= 5.9 and 3.6 <= s["driving_s"] <= 3.9 and 1.9 <= s["paused_s"] <= 2.1, s
+
+    def status(node: str, host: str | None) -> _Entry:
+        return _Entry(M.status_key("r1", node), 1, M.Status(stamp=1.0, seq=1, node=node, host=host))
+
+    cmd = _Entry(k.cmd, 10, M.Command(stamp=5.0, seq=7, v=0.1, omega=0.0, method="scm"))
+    applied = _Entry(k.applied, 12, M.Applied(stamp=5.002, seq=1, v=0.1, omega=0.0, reason="cmd", cmd_seq=7))
+    one = [status("station", "lab/abc"), status("driver", "lab/abc"), cmd, applied]
+    two = [status("station", "lab/abc"), status("driver", "robot/def"), cmd, applied]
+    old = [status("station", None), status("driver", None), cmd, applied]
+    assert machines(one, "r1")["same"] is True and machines(two, "r1")["same"] is False
+    assert machines(old, "r1")["same"] is None
+    assert command_latency(one, "r1", True)[0]["stamps_one_clock"]
+    assert not command_latency(two, "r1", False)[0]["stamps_one_clock"]
+    assert command_latency(old, "r1", None)[0]["stamps_one_clock"]  # old nodes: judged from the numbers
