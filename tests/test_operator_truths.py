@@ -263,7 +263,7 @@ def test_a_request_right_after_an_engage_or_a_release_is_accepted_and_status_say
         assert col.wait(lambda: f"scmbridge mission resume --robot {robot}" in status[-1].text, 1.5), \
             status[-1].text
         assert time.monotonic() - t_rel < 1.0 and "estop" not in status[-1].text, status[-1].text
-        res = subprocess.run([sys.executable, "-m", "bridge", "status", *client, "--timeout", "1.0"],
+        res = subprocess.run([sys.executable, "-m", "bridge", "status", *client],
                              capture_output=True, text=True, timeout=60)
         assert res.returncode == 1 and "mission resume --robot" in res.stdout and "estop" not in res.stdout, res.stdout
 
@@ -275,6 +275,19 @@ def test_a_request_right_after_an_engage_or_a_release_is_accepted_and_status_say
         chained = subprocess.run(f"{scm} estop --robot {robot} --release {z} && {scm} mission resume --robot "
                                  f"{robot} {z}", shell=True, capture_output=True, text=True, timeout=90)
         assert chained.returncode == 0 and "resumed" in chained.stdout, chained.stdout + chained.stderr
+
+        # docs/OPERATING.md's way back from the goal, as written (this robot's name, this router's endpoint)
+        sys.path.insert(0, os.path.dirname(__file__))
+        from test_docs_commands import documented
+
+        back = [(n, a) for d, n, a in documented() if d == "docs/OPERATING.md" and n.startswith("mission ")]
+        assert [n for n, _ in back] == ["mission send", "mission start"], back
+        for name, args in back:
+            res = subprocess.run([sys.executable, "-m", "bridge", *name.split(),
+                                  *[robot if a == "rover1" else a for a in args], "--mode", "client", "--connect",
+                                  tcp(port)], capture_output=True, text=True, timeout=60)
+            assert res.returncode == 0, (name, res.stdout + res.stderr)
+        assert "paper-s-path-reversed" in res.stdout and "started" in res.stdout, res.stdout
 
 
 @pytest.mark.timeout(120)

@@ -303,6 +303,17 @@ class StationCore:
             ans = msgspec.structs.replace(ans, reason=self.not_driving(unfit).text[:1024])
         return ans
 
+    def refused_for_the_robot(self, req: M.MissionRequest, now: float) -> bool:
+        """Whether ``req`` would be refused now only because of the robot's fitness: a start while an estop is
+        latched, a resume of a paused mission while the robot is not fit."""
+        c = self.control
+        if req.action not in ("start", "resume") or c.phase == "running":
+            return False
+        if req.action == "resume" and c.phase != "paused":
+            return False
+        _, fit = self.assess_fitness(now)
+        return fit.estop or (req.action == "resume" and bool(fit.why))
+
     def at_goal(self) -> bool:
         """The latest pose is at the mission's goal by the mission's own rule (a station that follows a mission)."""
         state = self.state
