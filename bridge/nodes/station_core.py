@@ -345,10 +345,13 @@ class StationCore:
         self.counters.inputs = dict(inputs.input_counts)
         self.counters.missed_deadlines = inputs.missed_deadlines
         status = limits = None
-        if self.t_status is None or now >= self.t_status or self.status_changed(now):
+        if self.t_status is None or now >= self.t_status:
             status = self.status(now)
             limits = self.limits(now, force=True)
             self.t_status = now + STATUS_EVERY_S
+        elif self.status_changed(now):  # at once, between the periodic ones (their grid stays)
+            status = self.status(now)
+            limits = self.limits(now, force=False)
         else:
             limits = self.limits(now, force=False)
         if self.t_persist is None or now >= self.t_persist:
