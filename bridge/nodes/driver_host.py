@@ -13,10 +13,9 @@ while the link says the vehicle is fit to drive (``health().ok``) and its teleme
 vehicle and says why. Each tick it echoes what the vehicle really got on ``applied``, publishes the link's poses as
 ``state`` (its own epoch and sequence) and a truthful ``status``, each second and at once when it changes.
 Commands are applied as they arrive (latency is not a multiple of the period), but the link never gets more than
-``max_send_hz`` of them. An estop
-latches a stop; only a source named in ``estop_release_sources`` releases it, and a release is the operator action
-that lets the link clear its controllers' latched faults. All stamps are this host's ``time.monotonic()``, so the
-station pairs ``applied`` with ``state`` without any clock synchronisation.
+``max_send_hz`` of them. An estop latches a stop; only a source named in ``estop_release_sources`` releases it, and
+a release is the operator action that lets the link clear its controllers' latched faults. All stamps are this
+host's ``time.monotonic()``, so the station pairs ``applied`` with ``state`` without any clock synchronisation.
 
 ``--emulate`` (CAN only) hosts the emulated motor controllers on the same python-can ``virtual`` channel inside
 this process: the wire between driver and controllers is python-can, not a shortcut. The host lets them send what
