@@ -516,7 +516,7 @@ class StationCore:
         c = self.control
         cause = "paused" if c.paused_by_robot else (c.reason or "paused")
         if unfit is not None:
-            return f"{cause}: {unfit.text}" if c.paused_by_robot else f"{cause}; the robot is not ready: {unfit.text}"
+            return f"{cause}: {unfit.text}" if c.paused_by_robot else f"{cause}; waiting for the robot: {unfit.text}"
         return f"{cause}; the robot is ready: scmbridge mission resume --robot {self.robot} to drive on"
 
     # ---------------------------------------------------------------------------------------- publications
