@@ -82,3 +82,65 @@ def test_a_secure_lab_on_loopback_is_driven_and_stopped_by_its_operator(tmp_path
         assert res.returncode == 0 and f"{ROBOT}/driver-can: LATCHED by operator" in res.stdout, res.stdout + res.stderr
         stopped = _until(lambda: "estop latched by operator" in _scm("status", "--all", *z["observer"]).stdout, 30)
         assert stopped
+
+
+def _documented(name: str, *words: str) -> list[str]:
+    """The arguments of the command ``scmbridge NAME ...`` the deployment docs show with these words, as written."""
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    from test_docs_commands import documented
+
+    for _, n, args in documented():
+        if n == name and "operator.json5" in args and all(w in args for w in words):
+            return [*name.split(), *args]
+    raise AssertionError(f"the docs show no `scmbridge {name} {' '.join(words)} --zenoh-config operator.json5`")
+
+
+@pytest.mark.skipif(shutil.which("openssl") is None, reason="openssl is not installed")
+@pytest.mark.timeout(240)
+def test_the_operators_documented_commands_run_as_written_in_the_lab(tmp_path: Path) -> None:
+    """deploy/README.md's and deploy/ROBOT.md's operator commands (``--zenoh-config operator.json5``), word for word,
+    run from the directory `deploy lab` wrote: the preflight, engage, start, status (once and --watch), estop and its
+    release."""
+    made = _scm("deploy", "lab", "--robots", ROBOT, "--station-address", "127.0.0.1", "--port", str(free_port()),
+                "--certs", str(tmp_path / "tls"), "--out", str(tmp_path))
+    assert made.returncode == 0, made.stderr
+    x0 = ",".join(f"{a:.6f}" for a in load_mission().start)
+
+    def scm(args: list[str], timeout: float = 90) -> subprocess.CompletedProcess:
+        return subprocess.run([sys.executable, "-m", "bridge", *args], capture_output=True, text=True,
+                              timeout=timeout, cwd=tmp_path)
+
+    with Children() as kids:
+        kids.spawn(["router", "--zenoh-config", str(tmp_path / "router.json5"), "--duration", "220"],
+                   subprocess.DEVNULL)
+        kids.spawn(["station", "--robot", ROBOT, "--zenoh-config", str(tmp_path / "station-client.json5"), "--store",
+                    str(tmp_path / "pairs.bin"), "--duration", "200"], subprocess.DEVNULL)
+        kids.spawn(["driver", "--link", "can", "--emulate", "--x0", x0, "--robot", ROBOT, "--zenoh-config",
+                    str(tmp_path / f"{ROBOT}.json5"), "--duration", "200"], subprocess.DEVNULL)
+        doctor = _until(lambda: (r := scm(_documented("doctor"))).returncode == 0 and "1 driver hosts answer"
+                        in r.stdout and r, 60)
+        assert doctor, "the documented doctor never passed"
+        for name in ("engage", "mission start"):
+            res = scm(_documented(name, "--robot"))
+            assert res.returncode == 0, (name, res.stdout + res.stderr)
+        once = _documented("status", "--robot")
+        driving = _until(lambda: (r := scm(once)).returncode == 0 and r, 60)
+        assert driving and "driving" in driving.stdout, driving
+        watch = subprocess.Popen([sys.executable, "-m", "bridge", *_documented("status", "--all", "--watch")],
+                                 stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=tmp_path,
+                                 start_new_session=True)
+        try:
+            first = [watch.stdout.readline() for _ in range(2)]
+            assert all(line.startswith(ROBOT) for line in first), first
+            watch.send_signal(2)  # Ctrl-C
+            assert watch.wait(timeout=30) == 0
+        finally:
+            if watch.poll() is None:
+                watch.kill()
+                watch.wait()
+        res = scm(_documented("estop", "--robot"))
+        assert res.returncode == 0 and "LATCHED by operator" in res.stdout, res.stdout + res.stderr
+        res = scm(_documented("estop", "--robot", "--release"))
+        assert res.returncode == 0 and "released" in res.stdout, res.stdout + res.stderr
+        res = scm(_documented("estop", "--all"))
+        assert res.returncode == 0 and "LATCHED by operator" in res.stdout, res.stdout + res.stderr

@@ -1,6 +1,6 @@
 """The live view, checked in a real client: `scmbridge view` as its own process serves the Foxglove WebSocket
-protocol (subprotocol foxglove.sdk.v1); a WebSocket client subscribes the way Foxglove does and receives the robot's
-pose, its scene and its commands and health as they are published on Zenoh."""
+protocol (subprotocols foxglove.sdk.v1 and foxglove.websocket.v1); a WebSocket client subscribes the way Foxglove
+does and receives the robot's pose, its scene and its commands and health as they are published on Zenoh."""
 
 from __future__ import annotations
 
@@ -29,15 +29,20 @@ def _port(proc, timeout: float = 30.0) -> int:
 
 
 @pytest.mark.timeout(90)
-def test_a_foxglove_client_sees_pose_scene_commands_and_health_live(tmp_path) -> None:
+@pytest.mark.parametrize("subprotocol", ["foxglove.sdk.v1", "foxglove.websocket.v1"])
+def test_a_foxglove_client_sees_pose_scene_commands_and_health_live(tmp_path, subprotocol: str) -> None:
+    """Both names of the protocol: the SDK's, and the first one (Lichtblick, older Foxglove Studio), which the SDK's
+    server alone answered with HTTP 400 (finding, issue 32)."""
     zport, robot = free_port(), f"lv{os.getpid()}"
     with open_session(make_config(mode="router", listen=[tcp(zport)])) as session:
         view = spawn(["view", "--robot", robot, "--port", "0", "--mode", "client", "--connect", tcp(zport),
                       "--duration", "60"], subprocess.PIPE)
         try:
             port = _port(view)
-            with websockets.connect(f"ws://127.0.0.1:{port}", subprotocols=["foxglove.sdk.v1"],
-                                    open_timeout=10) as ws:
+            with websockets.connect(f"ws://127.0.0.1:{port}", subprotocols=[subprotocol], open_timeout=10) as ws:
+                assert ws.subprotocol == subprotocol
+                hello = json.loads(ws.recv(timeout=10))
+                assert hello["op"] == "serverInfo" and hello["name"] == "scmbridge", hello
                 keys = M.Keys(robot)
                 channels: dict[str, dict] = {}
                 subscribed: dict[int, str] = {}
@@ -93,3 +98,38 @@ def test_a_foxglove_client_sees_pose_scene_commands_and_health_live(tmp_path) ->
     assert (cmd["v"], cmd["omega"], cmd["method"]) == (0.25, -0.1, "scm")
     health = json.loads(got[f"/{robot}/status/driver"][-1])
     assert health["ok"] is False and "operator took control" in health["text"]
+
+
+def test_the_front_lets_in_both_names_and_leaves_other_handshakes_to_the_sdk() -> None:
+    """The front before the SDK's own server, in this process: a client offering only the first name is served
+    (serverInfo, its name handed back); one offering neither gets the SDK's 400, as without the front."""
+    import warnings
+
+    from bridge.tools.ws_front import SubprotocolFront, translate_request, translate_response
+
+    head, legacy = translate_request(b"GET / HTTP/1.1\r\nHost: h\r\n"
+                                     b"Sec-WebSocket-Protocol: foxglove.websocket.v1\r\n\r\n")
+    assert legacy and b"foxglove.websocket.v1, foxglove.sdk.v1\r\n\r\n" in head, head
+    answer = translate_response(b"HTTP/1.1 101 Switching Protocols\r\n"
+                                b"sec-websocket-protocol: foxglove.sdk.v1\r\n\r\n")
+    assert answer.endswith(b"Sec-WebSocket-Protocol: foxglove.websocket.v1\r\n\r\n"), answer  # its CR LF kept
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", DeprecationWarning)
+        import foxglove
+
+    server = foxglove.start_server(name="front-test", host="127.0.0.1", port=0)
+    front = SubprotocolFront("127.0.0.1", 0, server.port)
+    try:
+        for proto in ("foxglove.websocket.v1", "foxglove.sdk.v1"):
+            with websockets.connect(f"ws://127.0.0.1:{front.port}", subprotocols=[proto], open_timeout=10) as ws:
+                assert ws.subprotocol == proto and json.loads(ws.recv(timeout=10))["op"] == "serverInfo"
+        from websockets.exceptions import InvalidStatus
+
+        with pytest.raises(InvalidStatus) as refused:
+            websockets.connect(f"ws://127.0.0.1:{front.port}", subprotocols=["other.v1"], open_timeout=10)
+        assert refused.value.response.status_code == 400
+        assert front.legacy_clients == 1
+    finally:
+        front.stop()
+        server.stop()

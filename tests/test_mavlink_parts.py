@@ -51,8 +51,11 @@ def test_the_judgement_names_one_reason_in_the_order_a_person_acts_on() -> None:
     v = Vehicle(custom_mode=15, armed=True, hb_time=9.5, pos_time=9.9)
     assert judge(v, OPEN, now, MODES, 3.0, 1.0).reason == "ok"
     cases = [
-        (Vehicle(custom_mode=4, armed=True, hb_time=9.5, pos_time=9.9), OPEN, "operator",
+        (Vehicle(custom_mode=4, armed=True, hb_time=9.5, pos_time=9.9, guided_seen=True), OPEN, "operator",
          "operator took control: mode HOLD"),
+        # a vehicle never in GUIDED since the driver opened (booted in MANUAL): nobody took it from this host
+        (Vehicle(custom_mode=4, armed=False, hb_time=9.5, pos_time=9.9), OPEN, "operator",
+         "not in GUIDED (the operator's): mode HOLD, disarmed"),
         (Vehicle(custom_mode=4, armed=False, hb_time=9.5, rebooted=True), OPEN, "rebooted",
          "vehicle rebooted: mode HOLD, disarmed"),
         (Vehicle(custom_mode=15, armed=False, hb_time=9.5, pos_time=9.9), OPEN, "disarmed",

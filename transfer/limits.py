@@ -14,10 +14,14 @@ domain: the teacher equivalents of the learner's extreme commands. Two ways to l
 
 All arithmetic is on normalised coordinates: the teacher side by the teacher's bounds, the learner side by the
 learner's. Exposed as the axis-aligned ``box`` (what bounds the MPC inputs and filters primitives) and the convex
-``hull`` of the boundary pairs' teacher parts (the paper's dashed envelope).
+``hull`` of the boundary pairs' teacher parts and the refined pairs' (the paper's dashed envelope: every command the
+learner has been seen to follow is inside it; finding, issue 32: of the boundary pairs alone, a run that met only the
+learner's top speed had a sliver of a hull that left out 118 of its 121 refined pairs).
 """
 
 from __future__ import annotations
+
+from collections.abc import Callable
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -60,6 +64,13 @@ class LearnerLimits:
         self.version = 0
         self._box_cache: Bounds | None = None
         self._hull_cache: NDArray[np.float64] | None = None
+        #: the refined pairs' normalised teacher parts (the store gives them; it drops the hull's cache when they
+        #: change): the hull encloses them too
+        self.refined_points: Callable[[], NDArray[np.float64]] | None = None
+
+    def refined_changed(self) -> None:
+        """The store's refined pairs changed: the hull is computed again when next asked."""
+        self._hull_cache = None
 
     # ------------------------------------------------------------------------------------------- updating
     def update(self, t_n: NDArray[np.float64], l_n: NDArray[np.float64], cell: tuple[int, int]) -> bool:
@@ -155,11 +166,13 @@ class LearnerLimits:
 
     @property
     def hull(self) -> NDArray[np.float64]:
-        """Convex hull (counter-clockwise (K, 2) vertices, teacher units) of the boundary pairs' teacher parts; the
-        box's corners while fewer than three non-collinear boundary points are known."""
+        """Convex hull (counter-clockwise (K, 2) vertices, teacher units) of the boundary pairs' teacher parts and
+        the refined pairs'; the box's corners while fewer than three non-collinear such points are known."""
         if self._hull_cache is None:
             mask = self.hull_cnt > 0
             pts = self.hull_sum[mask] / self.hull_cnt[mask][:, None]
+            if self.refined_points is not None:
+                pts = np.vstack([pts, np.asarray(self.refined_points(), dtype=float).reshape(-1, 2)])
             hull_n = None
             if pts.shape[0] >= 3:
                 try:

@@ -157,6 +157,7 @@ class PairStore:
         self.pub_version = np.zeros((gv, gw), dtype=np.int64)  # 0: no refined pair yet
         self.revision = 0
         self.limits = LearnerLimits(teacher_bounds, learner_bounds, self.grid, boundary_tol)
+        self.limits.refined_points = lambda: self.refined_arrays()[2]
         self._arrays: tuple | None = None
         # change detection (module docstring, "A learner that changes")
         self.adapt = bool(adapt)
@@ -212,6 +213,7 @@ class PairStore:
                 self.pub_version[cell] += 1
                 self.revision += 1
                 self._arrays = None
+                self.limits.refined_changed()
                 refined_changed = True
         limits_changed = self.limits.update(t_n, l_n, cell)
         return AddResult(cell, refined_changed, limits_changed)
@@ -307,6 +309,7 @@ class PairStore:
         self.pub_version[cell] += 1
         self.revision += 1
         self._arrays = None
+        self.limits.refined_changed()
         self.resid[cell] = 0.0
         self.last_resid[cell] = np.nan
         self.relearned += 1

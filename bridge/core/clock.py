@@ -22,6 +22,7 @@ read in one batch, a busy radio), restart the estimate from them, within a few s
 from __future__ import annotations
 
 from collections import deque
+from pathlib import Path
 
 #: a sample whose offset differs from the estimate by more than this is odd (delivery jitter is a few ms), s
 STEP = 0.05
@@ -90,3 +91,20 @@ class ClockOffset:
     @property
     def offset(self) -> float | None:
         return self._d[0][1] if self._d else None
+
+
+def machine() -> str:
+    """This machine and its boot, as a node's status says it (``Status.host``: ``lab-pc/3f2a9c1e``): two nodes
+    with the same one share ``time.monotonic()`` (Linux's CLOCK_MONOTONIC counts from the boot), so ``scmbridge
+    report`` can tell one machine from two without guessing from the stamps."""
+    import socket
+
+    try:
+        boot = Path("/proc/sys/kernel/random/boot_id").read_text().strip().replace("-", "")[:8]
+    except OSError:
+        boot = "noboot"
+    return f"{socket.gethostname()[:55]}/{boot}"
+
+
+#: this process's machine and boot (:func:`machine`)
+HOST = machine()

@@ -115,15 +115,44 @@ def _build(cc: str, source: str, lib: Path) -> None:
 def native_stdout_to_stderr() -> Iterator[None]:
     """Send what native code writes on file descriptor 1 to descriptor 2 meanwhile: qpOASES prints its licence
     banner on stdout each time a solver's memory is made, which would corrupt a command's JSON output (``bench``)
-    and repeat in a service's log once per robot."""
+    and repeat in a service's log once per robot. The banner goes through once per process (it came twice per robot:
+    the solver and its buffer each make a memory); everything else native code wrote is passed on as it is."""
     sys.stdout.flush()
     saved = os.dup(1)
-    try:
-        os.dup2(2, 1)
-        yield
-    finally:
-        os.dup2(saved, 1)
-        os.close(saved)
+    with tempfile.TemporaryFile() as caught:
+        try:
+            os.dup2(caught.fileno(), 1)
+            yield
+        finally:
+            os.dup2(saved, 1)
+            os.close(saved)
+            caught.seek(0)
+            text = _without_repeated_banners(caught.read().decode("utf-8", "replace"))
+            if text.strip():
+                sys.stderr.write(text)
+                sys.stderr.flush()
+
+
+#: the first and the last line of qpOASES's licence banner
+_BANNER = ("qpOASES -- An Implementation of the Online Active Set Strategy.",
+           "See the GNU Lesser General Public License for more details.")
+_banner_shown = False
+
+
+def _without_repeated_banners(text: str) -> str:
+    """``text`` with every qpOASES banner removed but the first of this process."""
+    global _banner_shown
+    out: list[str] = []
+    skipping = False
+    for line in text.splitlines(keepends=True):
+        if line.strip() == _BANNER[0]:
+            skipping = _banner_shown
+            _banner_shown = True
+        if not skipping:
+            out.append(line)
+        if line.strip() == _BANNER[1]:
+            skipping = False
+    return "".join(out)
 
 
 def build_mpc(config, compile: bool = False):

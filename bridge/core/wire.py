@@ -261,7 +261,7 @@ class MissionSpec(_Msg, kw_only=True):
 
 #: what a node is doing, for ``scmbridge status`` and the log; ``text`` gives the one reason in words
 NodeState = Literal["", "driving", "idle", "running", "paused", "finished", "aborted", "waiting", "estop", "operator",
-                    "link_down", "fault", "no_pose", "starting", "dry_run"]
+                    "link_down", "fault", "no_pose", "starting", "dry_run", "parked"]
 
 
 #: why a node is in its state, typed: what programs decide on (the station's fitness, ``scmbridge status``), while
@@ -286,7 +286,8 @@ class Status(_Msg, kw_only=True):
     """``scm/<robot>/status/<node>``: health of one node; counters only grow. ``state`` says in one word what the
     node is doing (``driving``, ``paused``, ``estop``, ...), ``reason`` why (typed: :data:`Reason`; None from a node
     older than the field) and ``text`` why in words, for people only; ``progress`` is the station's share of its
-    mission done (0..1)."""
+    mission done (0..1); ``host`` the node's machine and boot (``lab-pc/3f2a9c1e``: equal for two nodes that share a
+    monotonic clock; None from a node older than the field)."""
 
     stamp: Stamp
     seq: Seq
@@ -299,6 +300,7 @@ class Status(_Msg, kw_only=True):
     counters: dict[Name, Annotated[int, Meta(ge=0)]] = {}
     text: Text = ""
     reason: Reason | None = None
+    host: Name | None = None
 
 
 class Estop(_Msg, kw_only=True):

@@ -16,12 +16,12 @@ the pure :class:`bridge.core.gate.CommandGate`: the next of its sender's ``(epoc
 less than min(valid_ms, cmd_timeout) ago), a stop applied as exactly zero, anything else clamped to the configured
 hard limits. The host hands the result to the link driver only while the link says the vehicle is fit to drive
 (``health().ok``) and its telemetry is fresh; otherwise it stops the vehicle and says why. Each tick it echoes what
-the vehicle really got on ``applied``, publishes the link's poses as ``state`` (its own epoch and sequence) and,
-each second, a truthful ``status``. Commands are applied as they arrive (latency is not a multiple of the period),
-but the link never gets more than ``max_send_hz`` of them. An estop latches a stop; only a source named in
-``estop_release_sources`` releases it, and a release is the operator action that lets the link clear its
-controllers' latched faults. All stamps are this host's ``time.monotonic()``, so the station pairs ``applied`` with
-``state`` without any clock synchronisation.
+the vehicle really got on ``applied``, publishes the link's poses as ``state`` (its own epoch and sequence) and a
+truthful ``status``, each second and at once when it changes. Commands are applied as they arrive (latency is not a
+multiple of the period), but the link never gets more than ``max_send_hz`` of them. An estop latches a stop; only a
+source named in ``estop_release_sources`` releases it, and a release is the operator action that lets the link clear
+its controllers' latched faults. All stamps are this host's ``time.monotonic()``, so the station pairs ``applied``
+with ``state`` without any clock synchronisation.
 
 ``--emulate`` (CAN only) hosts the emulated motor controllers on the same python-can ``virtual`` channel inside
 this process: the wire between driver and controllers is python-can, not a shortcut. The host lets them send what
@@ -52,7 +52,7 @@ from bridge.core.acts import ActGuard, Refusal
 from bridge.core.args import pose_arg, positive_float, robot_arg
 from bridge.core.auth import KEY_BYTES, load_key, record_tag, record_tag_ok
 from bridge.core.backoff import Backoff
-from bridge.core.clock import ClockOffset
+from bridge.core.clock import HOST, ClockOffset
 from bridge.core.errors import UsageError
 from bridge.core.gate import CommandGate, Decision
 from bridge.core.paths import save_atomic, state_dir
@@ -88,6 +88,10 @@ LATCH_FLUSH_S = 2.0
 UNAUTHENTICATED = " (link unauthenticated: anyone on the network can drive it)"
 #: s an estop query's answer says why the last release was refused
 RELEASE_REFUSED_SHOWN_S = 10.0
+#: a status goes out each this many seconds, and at once on a change of ok, state or reason, but at most
+#: STATUS_MAX_HZ a second (a flapping link cannot flood the station)
+STATUS_EVERY_S = 1.0
+STATUS_MAX_HZ = 20.0
 
 
 class Latch(msgspec.Struct, kw_only=True):
@@ -338,6 +342,9 @@ class DriverHost:
         self.last_state = ""
         #: why anyone on the network can drive this robot through its link ("" when the link authenticates)
         self.unauthenticated = link_unauthenticated(getattr(driver, "config", None))
+        #: the last status sent: (ok, state, reason), when, and when the next periodic one is due (status_due)
+        self.status_sent: tuple[bool, str, str] | None = None
+        self.status_at, self.status_next = -math.inf, -math.inf
         self.latch_path = latch_path
         #: why the latch on disk is not the gate's (its save failed): while set the host stops and refuses to engage;
         #: cleared by the next save that succeeds (a person's release, on a disk that takes it)
@@ -662,22 +669,15 @@ class DriverHost:
         return [M.LearnerState(stamp=p.stamp, seq=self.seq["state"] + i, x=p.x, y=p.y, theta=p.theta, v=p.v,
                                omega=p.omega, source=self.link, epoch=self.epoch) for i, p in enumerate(link)]
 
-    def status(self, now: float) -> M.Status:
-        """Health as it is: ok only if the link is fit, the telemetry fresh and no estop is latched."""
+    def assess(self, now: float) -> tuple[list[str], M.NodeState, M.Reason, float]:
+        """What stands in the way of driving now (in words, most important first), the state and typed reason they
+        give, and the pose's age: cheap enough for every tick (:meth:`status_due` compares it with the last status
+        sent)."""
         h = self.health
         with self.lock:
-            counters = dict(self.gate.counters)
             estop = (self.gate.estopped, self.gate.estop_source)
             unsaved = self.latch_unsaved
-        counters.update(self.inputs.snapshot())
-        # (not ``link_unauthenticated``: that is the UDP link's count of datagrams dropped for a bad tag)
-        counters["unauthenticated_link"] = int(bool(self.unauthenticated))
-        missed = self.ticker.missed if self.ticker is not None else 0
-        counters.update({"link_malformed": h.malformed, "link_errors": h.errors, "missed_deadlines": missed,
-                         "loop_stalls": self.stall_watch.stalls,
-                         "frames_sent": h.frames_sent, "frames_received": h.frames_received, "ticks": len(self.ticks)})
-        if h.detail is not None:
-            counters.update({f"link_{k}": v for k, v in h.detail.status_counters().items()})
+            conflict = self.gate.conflict(now)
         pose_age = now - self.last_pose
         problems = []
         if not h.ok:
@@ -688,8 +688,6 @@ class DriverHost:
             problems.insert(0, f"estop latched by {estop[1] or 'unknown'}")
         if unsaved:
             problems.insert(0, unsaved)
-        with self.lock:
-            conflict = self.gate.conflict(now)
         if conflict:
             problems.append(conflict)
         if not self.engaged and not estop[0] and not unsaved:
@@ -699,6 +697,38 @@ class DriverHost:
             else:
                 problems.insert(0, f"waiting for engage (scmbridge engage --robot {self.robot})")
         state, reason = self.node_state(estop[0] or bool(unsaved), h, pose_age, problems, bool(unsaved))
+        return problems, state, reason, pose_age
+
+    def status_due(self, now: float) -> tuple[list[str], M.NodeState, M.Reason, float] | None:
+        """This tick's assessment when a status should go out now: each second, and at once (at most
+        ``STATUS_MAX_HZ`` a second) when ``ok``, the state or the typed reason changed since the last one sent. The
+        station judges the robot's fitness on this status: an engage, a release or a restart reaches it in the tick
+        that made it, not up to a second later (issue 32: a `mission resume` right after `engage` was refused)."""
+        assessed = self.assess(now)
+        problems, state, reason, _ = assessed
+        key = (not problems and not self.dry_run, state, reason)
+        if now >= self.status_next:  # the periodic ones keep their own grid, whatever went out between them
+            self.status_next = now + STATUS_EVERY_S
+            return assessed
+        if key != self.status_sent and now - self.status_at >= 1.0 / STATUS_MAX_HZ:
+            return assessed
+        return None
+
+    def status(self, now: float, assessed: tuple[list[str], M.NodeState, M.Reason, float] | None = None) -> M.Status:
+        """Health as it is: ok only if the link is fit, the telemetry fresh and no estop is latched."""
+        h = self.health
+        with self.lock:
+            counters = dict(self.gate.counters)
+        counters.update(self.inputs.snapshot())
+        # (not ``link_unauthenticated``: that is the UDP link's count of datagrams dropped for a bad tag)
+        counters["unauthenticated_link"] = int(bool(self.unauthenticated))
+        missed = self.ticker.missed if self.ticker is not None else 0
+        counters.update({"link_malformed": h.malformed, "link_errors": h.errors, "missed_deadlines": missed,
+                         "loop_stalls": self.stall_watch.stalls,
+                         "frames_sent": h.frames_sent, "frames_received": h.frames_received, "ticks": len(self.ticks)})
+        if h.detail is not None:
+            counters.update({f"link_{k}": v for k, v in h.detail.status_counters().items()})
+        problems, state, reason, pose_age = assessed or self.assess(now)
         if state != self.last_state:
             log.info("%s: %s", state, "; ".join(problems) or "driving")
             self.last_state = state
@@ -715,10 +745,12 @@ class DriverHost:
             text = "DRY RUN (nothing is sent to the vehicle): " + text
         if self.unauthenticated:  # said whatever else is cut (the text's limit is 1024)
             text = text[:1024 - len(UNAUTHENTICATED)] + UNAUTHENTICATED
-        msg = M.Status(stamp=now, seq=self.seq["status"], node="driver", ok=not problems and not self.dry_run,
-                       state=state, reason=reason,
-                       rates_hz={"loop": 1.0 / self.period}, latencies_ms=lat, counters=counters, text=text[:1024])
+        ok = not problems and not self.dry_run
+        msg = M.Status(stamp=now, seq=self.seq["status"], node="driver", ok=ok, state=state, reason=reason,
+                       rates_hz={"loop": 1.0 / self.period}, latencies_ms=lat, counters=counters, text=text[:1024],
+                       host=HOST)
         self.seq["status"] += 1
+        self.status_sent, self.status_at = (ok, state, reason), now
         return msg
 
     def node_state(self, estop: bool, h: LinkHealth, pose_age: float, problems: list[str],
@@ -826,7 +858,7 @@ class DriverHost:
         after), and a periodic tick after a command tick was pushed back the same way (loop jitter p99 9.9 ms); a
         token bucket alone on the fixed schedule sent 100 ticks a second against a budget of 100 and queued (2.4 ms
         median)."""
-        t_start = t_status = time.monotonic()
+        t_start = time.monotonic()
         self.ticker = ticker = FixedRate(1.0 / self.period, stop, wake=self.wake, max_hz=self.max_send_hz,
                                          burst=SEND_BURST, rephase=True)
         periodic = True
@@ -843,9 +875,9 @@ class DriverHost:
                 if periodic:
                     self.ticks.append(now)
                 self.tick(now)
-                if now >= t_status:
-                    self._put("status", self.status(now))
-                    t_status = now + 1.0
+                assessed = self.status_due(now)
+                if assessed is not None:
+                    self._put("status", self.status(now, assessed))
                 periodic = ticker.wait()
                 if periodic:
                     self.late.append(ticker.late)

@@ -36,6 +36,8 @@ log = logging.getLogger("scmbridge.station")
 
 #: a pose or a driver status late for this long after driving pauses the mission (a lost link), s
 PAUSE_AFTER_S = 2.0
+#: the mission state is saved again when its progress grew by this much (a restart shows where it was)
+SAVE_PROGRESS_STEP = 0.01
 
 
 class Saved(msgspec.Struct, kw_only=True):
@@ -44,6 +46,7 @@ class Saved(msgspec.Struct, kw_only=True):
     phase: M.MissionPhase
     reason: str = ""
     spec: M.MissionSpec
+    progress: float = 0.0  # the share of the path done (a file older than this field: 0, or 1 when finished)
 
 
 @dataclass
@@ -69,24 +72,33 @@ class MissionControl:
         self.reason = reason or ("waiting for a person: scmbridge mission start" if phase == "idle" else "")
         self.drove = False  # running and driven since the last start/resume (a stop after that pauses)
         self.progress = 0.0
+        self.saved_progress = 0.0  # the progress last saved: a restart comes back to it (within SAVE_PROGRESS_STEP)
         self.changed = True  # the phase or mission changed since the last save
         self.version = 0  # counts mission replacements (the station resets its teacher on a new one)
         self.unfit_since: float | None = None  # since when the robot has not been fit while running
         #: the mission came from a publisher on the mission key, not a person's send: from where, when (wall clock)
         self.replaced_by = ""
         self.replaced_at = 0.0
+        #: paused because the robot stopped being fit (its reason now is the station's to say), not by a person or a
+        #: restart (that reason stays true)
+        self.paused_by_robot = False
 
     # ------------------------------------------------------------------------------------------- restarts
     @classmethod
     def restored(cls, robot: str, saved: Saved) -> MissionControl:
         """A restarted station: its saved mission, never running."""
         if saved.phase == "running":
-            return cls(robot, saved.spec, "paused", "the station restarted: resume to drive on")
-        return cls(robot, saved.spec, saved.phase, saved.reason)
+            c = cls(robot, saved.spec, "paused", "paused: the station restarted")
+        else:
+            c = cls(robot, saved.spec, saved.phase, saved.reason)
+        c.progress = 1.0 if saved.phase == "finished" else min(1.0, max(0.0, saved.progress))
+        return c
 
     def saved(self) -> Saved:
         self.changed = False
-        return Saved(phase=self.phase, reason=self.reason, spec=self.spec)
+        self.saved_progress = self.progress
+        return Saved(phase=self.phase, reason=self.reason, spec=self.spec,
+                     progress=min(1.0, max(0.0, float(self.progress))))
 
     # ------------------------------------------------------------------------------------------- requests
     def request(self, req: M.MissionRequest, fit: Fitness, now: float) -> M.MissionState:
@@ -161,10 +173,17 @@ class MissionControl:
             self.unfit_since = now if self.unfit_since is None else self.unfit_since
             if self.drove and (fit.immediate or now - self.unfit_since >= PAUSE_AFTER_S):
                 self._go("paused", f"paused: {fit.why}")
+                self.paused_by_robot = True
             return False
         self.unfit_since = None
         self.drove = True
         return True
+
+    @property
+    def unsaved(self) -> bool:
+        """Something a restart should come back to changed since the last save: the phase, the mission, or the
+        progress by ``SAVE_PROGRESS_STEP``."""
+        return self.changed or abs(self.progress - self.saved_progress) >= SAVE_PROGRESS_STEP
 
     def reached(self) -> None:
         self.progress = 1.0
@@ -179,6 +198,7 @@ class MissionControl:
         if phase != self.phase or reason != self.reason:
             log.info("mission %r: %s -> %s (%s)", self.spec.name, self.phase, phase, reason)
         self.phase, self.reason, self.changed = phase, reason, True
+        self.paused_by_robot = False
         if phase == "running":
             self.drove = False
 

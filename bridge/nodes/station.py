@@ -71,6 +71,10 @@ log = logging.getLogger("scmbridge.station")
 #: a mission request that waited this long for the loop is dropped unanswered, s: its asker (``scmbridge mission``
 #: waits at most 1 s for one reply) has given up and asks again; acting on it now would act on a stale request
 CONTROL_MAX_WAIT_S = 0.9
+#: a start or resume that the robot's fitness alone would refuse waits up to this long for a driver host status that
+#: arrives after it, s: one sent on an engage or an estop release confirmed just before the request may still be on
+#: its way (the host publishes it within a tick or two of the change; its answer to the person can come first)
+SETTLE_S = 0.3
 
 
 @dataclass
@@ -150,8 +154,9 @@ class Station:
     ever waits for a tick (an MPC solve) or a save. The fixed-rate loop hands the inbox to ``core.tick`` and publishes
     what it returns; the core is only ever called from the loop's thread. The queryables (``control``, ``pairs``)
     put their query in the inbox and wake the loop, which answers it at once between two ticks (or, when it
-    arrived during one, right after it): a mission request acts on the state the ticks leave, as one tick's
-    decision is never split by it, and ``pairs`` reads a store no tick is updating. Before the loop starts and
+    arrived during one, right after it): a mission request acts on the state the ticks leave and the driver host's
+    latest status (one sent on an engage or a release a moment before is heard), as one tick's decision is never
+    split by it, and ``pairs`` reads a store no tick is updating. Before the loop starts and
     after it ends a query is answered in its callback. An external teacher's command also wakes the loop, so it is
     mapped as it arrives. The tick's saves go to a :class:`~bridge.nodes.writer.SaveWriter` (the bytes encoded in
     the tick, written by its thread; a failure comes back to the core at the next tick, reported as before)."""
@@ -202,6 +207,9 @@ class Station:
     def on_driver_status(self, st: M.Status, now: float) -> None:
         with self.lock:
             self.inbox.driver = (st, now)
+            waiting = bool(self.inbox.queries)
+        if waiting:  # a request may be waiting for it (SETTLE_S)
+            self.wake.set()
 
     def on_control_query(self, query: zenoh.Query) -> None:
         """A person's request (``scmbridge mission ...``): decoded here, done or refused by the loop and answered
@@ -253,11 +261,19 @@ class Station:
         self.wake.set()
 
     # ------------------------------------------------------------------------------------------------ queries
-    def answer(self, queries: list[Asked], now: float) -> None:
+    def answer(self, queries: list[Asked], now: float, settle: bool = False) -> None:
         """Do and answer the queries taken from the inbox (on the loop's thread, between two ticks): a mission
-        request from the last tick's fitness, ``pairs`` from the store as the last tick left it. A mission request
+        request from the robot's fitness now, ``pairs`` from the store as the last tick left it. A mission request
         that waited more than :data:`CONTROL_MAX_WAIT_S` (a stalled loop) is dropped unanswered: its asker has
-        given up and asks again."""
+        given up and asks again. With ``settle`` (the loop's thread, the lock not held), a start or resume that only
+        the robot's fitness refuses goes back to the inbox until a driver host status arrives after it, at most
+        :data:`SETTLE_S` (finding, issue 32: `engage` then `mission resume` at once was refused "waiting for
+        engage": the host's answer to the engage can reach the person before its status reaches the station)."""
+        later = [q for q in queries if settle and self._settling(q, now)]
+        if later:
+            with self.lock:
+                self.inbox.queries[:0] = later
+            queries = [q for q in queries if q not in later]
         for q in queries:
             try:
                 if q.kind == "pairs":
@@ -275,6 +291,12 @@ class Station:
             finally:
                 q.query.drop()  # the reply is final: the asker stops waiting for more
 
+    def _settling(self, q: Asked, now: float) -> bool:
+        """A start or resume the robot's fitness alone would refuse, younger than :data:`SETTLE_S`, with no driver
+        host status heard since it arrived."""
+        return (q.kind == "control" and isinstance(q.request, M.MissionRequest) and now - q.at < SETTLE_S
+                and self.core.driver_at <= q.at and self.core.refused_for_the_robot(q.request, now))
+
     # ------------------------------------------------------------------------------------------------ tick
     def tick(self, now: float, periodic: bool = True) -> TickOutputs:
         """Take the inbox (the lock held only for that), answer the queries that waited, hand the rest to the core
@@ -282,7 +304,9 @@ class Station:
         with self.lock:
             inbox, self.inbox = self.inbox, Inbox()
         if inbox.queries:
-            self.answer(inbox.queries, now)  # a pause that came before this tick stops the robot in it
+            if inbox.driver is not None:  # a request is judged on the robot as it is now
+                self.core.note_driver(*inbox.driver)
+            self.answer(inbox.queries, now, settle=True)  # a pause that came before this tick stops the robot in it
         for cmd, at in inbox.foreign:
             self.core.heard_command(cmd, at)
         for what, error in self.writer.results():
@@ -303,8 +327,11 @@ class Station:
         with self.lock:
             queries, self.inbox.queries = self.inbox.queries, []
             teacher = self.inbox.teacher is not None
+            driver = self.inbox.driver if queries else None
         if queries:
-            self.answer(queries, time.monotonic())
+            if driver is not None:  # the driver host's status that came since the tick: an engage, a release
+                self.core.note_driver(*driver)
+            self.answer(queries, time.monotonic(), settle=True)
         return teacher and self.core.source.external
 
     def publish(self, out: TickOutputs) -> None:

@@ -38,9 +38,11 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import msgspec
 import numpy as np
 
 from bridge.core import wire as M
+from bridge.core.clock import HOST
 from bridge.core.config import StationConfig
 from bridge.core.paths import save_atomic
 from bridge.nodes.mission_control import Fitness, MissionControl, spec_of
@@ -64,8 +66,10 @@ INTEGRITY_WINDOW_S = 5.0
 PLAUSIBLE = 1.5
 #: the station's reasons under which it does what it should (its status is then ok, unless its work is untrustworthy)
 GOOD_REASONS: tuple[M.Reason, ...] = ("ok", "goal_reached", "calibration_done")
-#: the status (and the forced limits) go out this often, s
+#: the status (and the forced limits) go out this often, s; and at once when what it says changes, but at most
+#: STATUS_MAX_HZ a second
 STATUS_EVERY_S = 1.0
+STATUS_MAX_HZ = 20.0
 #: between two forced ones, the limits go out when an edge of their box moved more than this fraction of the
 #: teacher's range (half a percent: the store's own tolerance for moving a refined pair)
 LIMITS_MOVE_TOL = 0.005
@@ -260,6 +264,9 @@ class StationCore:
         self.solve_ms: deque[float] = deque(maxlen=100)
         self.tick_ms: deque[float] = deque(maxlen=600)  # the last minute of periodic ticks' durations
         self.t_status: float | None = None  # the next status is due then (None: at the first periodic tick)
+        self.unfit_reason: M.Reason | None = None  # why the robot was not fit at the last tick (None: fit)
+        self.status_sent: tuple | None = None  # the status_key of the last status sent, and when
+        self.status_at = -np.inf
         self.t_persist: float | None = None
         #: the adapter's writer of the tick's saves, ``(what, path, data)`` with ``what`` "store" or "control": it
         #: writes them off the tick and reports each outcome back through :meth:`saved`; None: the tick saves at once
@@ -286,11 +293,42 @@ class StationCore:
         return f"mission {self.mission.name}" if self.source.follows_mission else self.source.what
 
     def request(self, req: M.MissionRequest, now: float) -> M.MissionState:
-        """A person's mission request, done or refused from the last tick's fitness."""
-        ans = self.control.request(req, self.fitness, now)
+        """A person's mission request, done or refused from the robot's fitness now: the latest driver host status
+        and pose (the adapter hands over a status that came since the last tick first, :meth:`note_driver`), not the
+        last tick's verdict. A start with the robot already at the goal is refused (it would finish at once), saying
+        how to drive back. The answer's reason is the mission's as the status says it now."""
+        unfit, self.fitness = self.assess_fitness(now)
+        if req.action == "start" and self.control.phase != "running" and self.at_goal():
+            ans = self.control.answer(now, False, f"refused: the robot is at the goal of {self.mission.name!r} "
+                                      "already (a start would end at once); to drive back, send the mission reversed: "
+                                      f"scmbridge mission send FILE --reverse --robot {self.robot}, then start it")
+        else:
+            ans = self.control.request(req, self.fitness, now)
         if req.action != "status":
             log.info("mission %s%s: %s", req.action, f" by {req.source}" if req.source else "", ans.text)
+        if self.control.phase in ("paused", "finished"):
+            ans = msgspec.structs.replace(ans, reason=self.not_driving(unfit).text[:1024])
         return ans
+
+    def refused_for_the_robot(self, req: M.MissionRequest, now: float) -> bool:
+        """Whether ``req`` would be refused now only because of the robot's fitness: a start while an estop is
+        latched, a resume of a paused mission while the robot is not fit."""
+        c = self.control
+        if req.action not in ("start", "resume") or c.phase == "running":
+            return False
+        if req.action == "resume" and c.phase != "paused":
+            return False
+        _, fit = self.assess_fitness(now)
+        return fit.estop or (req.action == "resume" and bool(fit.why))
+
+    def at_goal(self) -> bool:
+        """The latest pose is at the mission's goal by the mission's own rule (a station that follows a mission)."""
+        state = self.state
+        if state is None or not self.source.follows_mission:
+            return False
+        path = self.mission.path
+        s, _ = closest(path.points, path.s, path.seg_len, state.x, state.y)
+        return bool(self.mission.reached_at(s, [state.x, state.y]))
 
     def pairs(self, now: float) -> M.Pairs:
         return pairs_message(self.store, self.robot, now)
@@ -318,6 +356,9 @@ class StationCore:
             status = self.status(now)
             limits = self.limits(now, force=True)
             self.t_status = now + STATUS_EVERY_S
+        elif self.status_changed(now):  # at once, between the periodic ones (their grid stays)
+            status = self.status(now)
+            limits = self.limits(now, force=False)
         else:
             limits = self.limits(now, force=False)
         if self.t_persist is None or now >= self.t_persist:
@@ -349,14 +390,8 @@ class StationCore:
         if inputs.mission is not None:  # a program's, not a person's: named and timed for the operator
             self.control.replace(*inputs.mission, by=f"a publisher on {M.key(self.robot, 'mission')}",
                                  at=time.time())
-        if inputs.driver is not None:
-            st, at = inputs.driver
-            restarted = st.seq < self.driver_seq  # a new driver host process: it counts from 0 again
-            self.driver_seq = st.seq
-            self.driver, self.driver_at = st, at
-            if restarted:  # after a new mission: a finished mission that goes on is paused all the same
-                log.warning("the driver host restarted")
-                self.control.driver_restarted()
+        if inputs.driver is not None:  # after a new mission: a finished mission that goes on is paused all the same
+            self.note_driver(*inputs.driver)
         if self.control.version != self.mission_version:  # from the mission topic or a person's send
             self.mission_version = self.control.version
             mission = self.mission
@@ -365,13 +400,30 @@ class StationCore:
             log.info("new mission %r: %d waypoints, %.1f m, %d obstacles", mission.name, len(mission.path.points),
                      mission.path.length, len(mission.obstacles))
 
-    def control_step(self, now: float) -> tuple[M.Command | None, M.TeacherCommand | None]:
-        """Drive, or publish a stop and say why: the command and teacher message of this tick."""
-        state, driver = self.state, self.driver
-        unfit = self.fit_to_drive(now, state, self.state_at, driver, self.driver_at)
+    def note_driver(self, st: M.Status, at: float) -> None:
+        """The driver host's latest status (at a tick, or before a mission request is answered between two ticks);
+        the same status twice is harmless. A lower seq than the last one: a new driver host process (it counts
+        from 0 again), which pauses a running mission."""
+        if st.seq < self.driver_seq:
+            log.warning("the driver host restarted")
+            self.control.driver_restarted()
+        self.driver_seq = st.seq
+        self.driver, self.driver_at = st, at
+
+    def assess_fitness(self, now: float) -> tuple[Why | None, Fitness]:
+        """Why the robot may not be driven now (None: it may), and the :class:`Fitness` mission control decides on,
+        from the latest driver host status and pose."""
+        driver = self.driver
+        unfit = self.fit_to_drive(now, self.state, self.state_at, driver, self.driver_at)
         estop = driver is not None and driver_estop(driver)
         late = driver is None or now - self.driver_at > DRIVER_STATUS_MAX_AGE or driver.ok  # a pose or status late
-        self.fitness = Fitness(unfit.text if unfit is not None else "", estop, immediate=not late)
+        return unfit, Fitness(unfit.text if unfit is not None else "", estop, immediate=not late)
+
+    def control_step(self, now: float) -> tuple[M.Command | None, M.TeacherCommand | None]:
+        """Drive, or publish a stop and say why: the command and teacher message of this tick."""
+        state = self.state
+        unfit, self.fitness = self.assess_fitness(now)
+        self.unfit_reason = unfit.reason if unfit is not None else None
         c = self.control
         if self.source.follows_mission and unfit is None and c.phase == "running":
             path = self.mission.path  # the closest point in one compiled loop: a mission path has thousands of segments
@@ -392,7 +444,7 @@ class StationCore:
             log.info("driving (mission %r)", self.mission.name)
         self.why, self.reason = (stop.text, stop.reason) if stop is not None else ("driving", "ok")
         self.counters.goal_reached = int(c.phase == "finished")
-        if c.changed:
+        if c.unsaved:
             self.save("control")
         return command, teacher
 
@@ -471,7 +523,20 @@ class StationCore:
             if unfit is None:  # (may_drive refuses a running mission only for an unfit robot)
                 unfit = Why("not fit", "robot_not_ready")
             return Why(f"waiting for the robot: {unfit.text}", unfit.reason)
-        return Why(c.reason or c.phase, "paused" if c.phase == "paused" else "aborted")  # paused: why; aborted: by whom
+        if c.phase == "paused":
+            return Why(self.paused_text(unfit), "paused")
+        return Why(c.reason or c.phase, "aborted")  # by whom
+
+    def paused_text(self, unfit: Why | None) -> str:
+        """Why a paused mission is paused, as it is now, and the next step: a pause the robot caused (an estop, a lost
+        pose, ...) says the robot's reason now, or that it is fit again, and a person's (or a restart's) stays, and
+        either way says how to drive on once the robot is fit (issue 32: after the release the status still said
+        "estop latched", and after a driver host's crash "no pose for 2.5 s" with the poses back)."""
+        c = self.control
+        cause = "paused" if c.paused_by_robot else (c.reason or "paused")
+        if unfit is not None:
+            return f"{cause}: {unfit.text}" if c.paused_by_robot else f"{cause}; waiting for the robot: {unfit.text}"
+        return f"{cause}; the robot is ready: scmbridge mission resume --robot {self.robot} to drive on"
 
     # ---------------------------------------------------------------------------------------- publications
     def limits(self, now: float, force: bool) -> M.Limits | None:
@@ -509,7 +574,8 @@ class StationCore:
         ok = reason in GOOD_REASONS
         text = "; ".join([self.why, *([self.persist_error] if self.persist_error else []), *problems])
         phase = self.control.phase
-        state = "driving" if self.reason == "ok" else ("waiting" if phase == "running" else phase)
+        state: M.NodeState = "driving" if self.reason == "ok" else ("waiting" if phase == "running" else
+                                                                    "parked" if phase == "finished" else phase)
         tk = np.array(self.tick_ms) if self.tick_ms else np.zeros(1)
         p50, p99 = np.percentile(tk, (50, 99)).tolist()  # one sort for both
         msg = M.Status(stamp=now, seq=self.seq["status"], node="station", ok=ok, state=state, reason=reason,
@@ -517,9 +583,22 @@ class StationCore:
                        latencies_ms={"solve_median": float(np.median(sm)), "solve_max": float(sm.max()),
                                      "tick_p50": p50, "tick_p99": p99,
                                      "tick_max": float(tk.max())},
-                       counters=c.as_dict(), text=text[:1024])
+                       counters=c.as_dict(), text=text[:1024], host=HOST)
         self.seq["status"] += 1
+        self.status_sent, self.status_at = self.status_key(), now
         return msg
+
+    def status_key(self) -> tuple:
+        """What a person reads the status for, typed: the station's reason and phase, why the robot is (not) fit
+        and the driver host's reason, whether saves fail (not the words: "no pose for 2.3 s" changes every tick)."""
+        driver = self.driver.reason if self.driver is not None else None
+        return self.reason, self.control.phase, self.unfit_reason, driver, bool(self.persist_error)
+
+    def status_changed(self, now: float) -> bool:
+        """Whether the status a person reads changed since the last one sent (:meth:`status_key`): it then goes out
+        at this tick, at most ``STATUS_MAX_HZ`` a second, not up to a second later."""
+        return (self.status_sent is not None and now - self.status_at >= 1.0 / STATUS_MAX_HZ
+                and self.status_key() != self.status_sent)
 
     def integrity(self, now: float) -> list[str]:
         """What makes this station's work untrustworthy right now (its status is then not ok): another sender's

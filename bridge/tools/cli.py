@@ -36,6 +36,10 @@ ONE_BLAS_THREAD = {"OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1", "MKL_NUM
 #: optional modules and the smallest extra that brings each (pyproject.toml)
 EXTRA_OF = {"foxglove": "station", "mcap": "record", "casadi": "station", "numba": "station", "scipy": "station",
             "matplotlib": "sims"}
+#: the station side's install from the source tree: the full lock, hash-checked, then the project offline (the
+#: Makefile's bootstrap; `pip install --no-deps '.[station]'` cannot work: --no-deps drops the extra's packages)
+FULL_INSTALL = ("pip install --require-hashes --only-binary=:all: -r requirements/dev.txt && "
+                "pip install --no-deps --no-build-isolation .")
 #: where the SC kernels live (numba caches next to them when it may)
 KERNELS_DIR = Path(__file__).resolve().parents[2] / "transfer" / "scm"
 
@@ -274,9 +278,9 @@ def main(argv: list[str] | None = None) -> int:
         extra = EXTRA_OF.get((exc.name or "").split(".")[0])
         if extra is None:
             raise
-        print(f"scmbridge {name}: error: this command needs {exc.name}, in the '{extra}' extra: "
-              f"pip install --no-deps --no-build-isolation '.[{extra}]' from the lock (deploy/ROBOT.md)",
-              file=sys.stderr)
+        print(f"scmbridge {name}: error: this command needs {exc.name}, in the '{extra}' extra, which a robot's "
+              f"install leaves out; it runs on a station computer, installed from the full lock: `{FULL_INSTALL}` "
+              "(README.md, Set-up)", file=sys.stderr)
         return 2
     except Terminated as exc:
         print(f"scmbridge {name}: {exc}: stopped", file=sys.stderr)

@@ -2,7 +2,9 @@
 
 It subscribes to ``scm/<robot>/**`` (``--robot``, repeatable) or ``scm/**`` (``--all``) and serves the Foxglove
 WebSocket protocol (the Foxglove SDK's server, on 127.0.0.1:8765 by default): open Foxglove (app or browser) and
-connect to ``ws://HOST:PORT``. Per robot:
+connect to ``ws://HOST:PORT``. Clients that speak the protocol by its first name, ``foxglove.websocket.v1``
+(Lichtblick, older Foxglove Studio), are let in as well as the SDK's ``foxglove.sdk.v1`` (the SDK's server accepts only
+the latter; :mod:`bridge.tools.ws_front`). Per robot:
 
 - ``/<robot>/pose`` (``foxglove.PoseInFrame`` in frame ``world``) and ``/<robot>/scene`` (``foxglove.SceneUpdate``:
   the mission's path, its obstacles as cylinders, the goal, the trail driven so far, the teacher's predicted plan),
@@ -35,6 +37,7 @@ from bridge.core.args import positive_float, robot_arg, robots_arg
 from bridge.core.config import load_mission, mission_from_spec
 from bridge.nodes.node import add_zenoh_args, stop_on_signals, zenoh_config
 from bridge.nodes.zsession import open_session
+from bridge.tools.ws_front import SubprotocolFront
 from transfer.mission import Mission
 
 with warnings.catch_warnings():
@@ -201,15 +204,22 @@ def run(args: argparse.Namespace) -> int:
     for robot in named:
         view.robot(robot)
     stop = stop_on_signals()
-    server = foxglove.start_server(name="scmbridge", host=args.host, port=args.port)
+    # the SDK's server on a loopback port of its own, behind the front that also lets foxglove.websocket.v1 clients in
+    server = foxglove.start_server(name="scmbridge", host="127.0.0.1", port=0)
+    try:
+        front = SubprotocolFront(args.host, args.port, server.port)
+    except OSError:
+        server.stop()
+        raise
     writer: Any = foxglove.open_mcap(args.mcap, allow_overwrite=True) if args.mcap else None
     try:
         with open_session(zenoh_config(args)) as session:
             for sel in selectors:
                 session.declare_subscriber(sel, view.on_sample)
-            print(f"foxglove live view on ws://{args.host}:{server.port} ({', '.join(selectors)})", flush=True)
+            print(f"foxglove live view on ws://{args.host}:{front.port} ({', '.join(selectors)})", flush=True)
             stop.wait(args.duration)
     finally:
+        front.stop()
         server.stop()
         if writer is not None:
             writer.close()

@@ -4,21 +4,24 @@ Each is a Zenoh query on ``scm/<robot>/control`` (a :class:`bridge.core.wire.Mis
 station with what it did or why it refused, and where the mission is (``running``, ``paused: estop latched by
 operator``, ...). A station starts idle and drives only after ``start``; after an estop, an operator takeover, a
 lost link or a driver-host restart it pauses, and only ``resume`` drives on. ``send FILE`` loads a new mission
-(idle until started). Each request carries this machine's wall-clock time and a random nonce: the station refuses one
-more than 10 s off its own clock or seen before (a recorded request replayed; synchronise the machines' clocks), and
-one without them (an older tool, a recorded old-format payload); ``status`` needs neither. A
-mission published on ``scm/<robot>/mission`` by a program (not a person's ``send``) is named in the answer, with
-when it came, so it is looked at before ``start``. Prints the answer in one line. Exit status: 0 accepted, 1
-refused, 2 no station answered, 3 denied by the lab's access control (this certificate's role may not ask: the
-observer, a robot; deploy/README.md).
+(idle until started); ``send FILE --reverse`` the same mission from its goal back to its start (a ``start`` with the
+robot already at the goal is refused: it would end at once). Each request carries this machine's wall-clock time and
+a random nonce: the station refuses one more than 10 s off its own clock or seen before (a recorded request
+replayed; synchronise the machines' clocks), and one without them (an older tool, a recorded old-format payload);
+``status`` needs neither. A mission published on ``scm/<robot>/mission`` by a program (not a person's ``send``) is
+named in the answer, with when it came, so it is looked at before ``start``. Prints the answer in one line. Exit
+status: 0 accepted, 1 refused, 2 no station answered, 3 denied by the lab's access control (this certificate's role
+may not ask: the observer, a robot; deploy/README.md).
 """
 
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 import time
 
+import msgspec
 import zenoh
 
 from bridge.core import wire as M
@@ -132,11 +135,27 @@ def run_status(args: argparse.Namespace) -> int:
 
 
 def arguments_send(ap: argparse.ArgumentParser) -> None:
-    ap.add_argument("file", help="the mission file (TOML: scmbridge config show --kind mission)")
+    ap.add_argument("file", help="the mission file (TOML: scmbridge config show --kind mission), or a shipped "
+                    "mission's name (paper-s-path)")
+    ap.add_argument("--reverse", action="store_true",
+                    help="the mission driven backwards along its path: from its goal back to its start (a robot "
+                         "parked at the goal; a start there is refused, it would end at once)")
     _arguments(ap)
 
 
+def reversed_spec(spec: M.MissionSpec) -> M.MissionSpec:
+    """The same mission from its goal back to its start: the path reversed, the start pose at the old goal facing
+    along the reversed path's first segment, the obstacles and the tolerance as they are."""
+    path = [list(p) for p in reversed(spec.path)]
+    k = next(i for i in range(1, len(path)) if path[i] != path[0])  # the first point away from the new start
+    heading = math.atan2(path[k][1] - path[0][1], path[k][0] - path[0][0])
+    name = spec.name[:55] + "-reversed"
+    return msgspec.structs.replace(spec, name=name, path=path, start=[path[0][0], path[0][1], heading])
+
+
 def run_send(args: argparse.Namespace) -> int:
-    """Load a new mission into the station (idle until started)."""
+    """Load a new mission into the station (idle until started); ``--reverse``: drive it back from its goal."""
     spec = load_mission_spec(args.file)  # a mistake is one line here, before anything is sent
+    if args.reverse:
+        spec = reversed_spec(spec)
     return _run(args, "send", spec)

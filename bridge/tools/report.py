@@ -1,6 +1,7 @@
 """``scmbridge report run.mcap --out DIR``: the run a recording holds, as figures and the demo's summary figures.
 
-The summary (reached goal, time, mean/max deviation from the mission path, method counts, pairs, missed deadlines,
+The summary (reached goal, time, the driving time apart from pauses and estops (``driving_s``, ``paused_s``),
+mean/max deviation from the mission path, method counts, pairs, missed deadlines,
 median solve time) is computed by the demo's own :class:`bridge.tools.demo.Monitor`: the recorded ``state`` and
 ``status`` messages are fed, in arrival order, to the same subscription callbacks the live monitor runs, so a
 recorded demo run gives the figures the live demo printed (``tests/test_record.py`` checks it end to end).
@@ -15,9 +16,11 @@ latency, solve times and loop jitter, missed deadlines). ``report.json`` holds t
 
 - *by stamps*: ``applied.stamp - cmd.stamp``. The station stamps ``cmd`` and the driver host stamps ``applied``,
   each with its own ``time.monotonic()``: they are one clock only when both run on one machine (Linux's
-  CLOCK_MONOTONIC is per boot). The report says whether the numbers look like one clock (none below -1 ms, median
-  under 1 s) and otherwise discards them. ``cmd.stamp`` is the start of the station's tick, before the teacher's
-  solve and the transfer, so this is tick-to-vehicle: solve + map + transport + the driver host's gate.
+  CLOCK_MONOTONIC is per boot). Each node's status names its machine and boot (``Status.host``): equal, the stamps
+  are one clock ("same machine"); different, they are not; a recording of nodes older than that field falls back to
+  whether the numbers look like one clock (none below -1 ms, median under 1 s), and otherwise discards them.
+  ``cmd.stamp`` is the start of the station's tick, before the teacher's solve and the transfer, so this is
+  tick-to-vehicle: solve + map + transport + the driver host's gate.
 - *by receipt*: the difference of the recorder's receive times, always one clock: publish-to-applied (no solve),
   plus the difference between the two messages' paths to the recorder (station -> recorder vs driver host ->
   recorder).
@@ -120,9 +123,22 @@ def _stats_ms(x: list[float]) -> dict[str, float] | None:
             "max": round(float(a.max()), 3), "min": round(float(a.min()), 3)}
 
 
-def command_latency(entries: list[Entry], robot: str) -> tuple[dict[str, Any], list[tuple[float, float, float]]]:
+def machines(entries: list[Entry], robot: str) -> dict[str, Any]:
+    """Where the station and the driver host ran, from their statuses' ``host`` (machine and boot): ``same`` True
+    when both are known and equal (one monotonic clock), False when both are known and differ, None when a status
+    does not say (a node older than the field)."""
+    hosts: dict[str, str | None] = {}
+    for node in ("station", "driver"):
+        said = [st.host for _, st in status_series(entries, robot, node) if st.host]
+        hosts[node] = said[-1] if said else None
+    known = hosts["station"] is not None and hosts["driver"] is not None
+    return {**hosts, "same": (hosts["station"] == hosts["driver"]) if known else None}
+
+
+def command_latency(entries: list[Entry], robot: str, same_machine: bool | None = None,
+                    ) -> tuple[dict[str, Any], list[tuple[float, float, float]]]:
     """Command-to-applied latency (see the module docstring): figures, and ``(t_ns, by_stamps_s, by_receipt_s)``
-    per command."""
+    per command. ``same_machine``: what the nodes' statuses say (None: unknown, judged from the numbers)."""
     kc, ka = M.key(robot, "cmd"), M.key(robot, "applied")
     cmds: dict[int, list[tuple[int, float]]] = {}
     first_applied: dict[int, tuple[int, float]] = {}
@@ -144,7 +160,8 @@ def command_latency(entries: list[Entry], robot: str) -> tuple[dict[str, Any], l
         rows.append((t_c, stamp_a - stamp_c, (t_a - t_c) / 1e9))
     rows.sort()
     by_stamps = [r[1] for r in rows]
-    one_clock = bool(by_stamps) and min(by_stamps) > -1e-3 and float(np.median(by_stamps)) < 1.0
+    looks_one = bool(by_stamps) and min(by_stamps) > -1e-3 and float(np.median(by_stamps)) < 1.0
+    one_clock = bool(by_stamps) and (looks_one if same_machine is None else same_machine)
     out = {"commands": sum(len(v) for v in cmds.values()), "paired": len(rows),
            "by_stamps_ms": _stats_ms(by_stamps) if one_clock else None,
            "stamps_one_clock": one_clock,
@@ -267,14 +284,15 @@ def report(files: list[str], out: Path, robot: str | None = None, mission_file: 
         raise ValueError(f"no state of robot {robot!r} in the recording (robots: {', '.join(found) or 'none'})")
     mission, mission_source = pick_mission(entries, robot, mission_file)
     summary, traj = demo_summary(entries, robot, mission)
-    latency, rows = command_latency(entries, robot)
+    where = machines(entries, robot)
+    latency, rows = command_latency(entries, robot, where["same"])
     per_topic = Counter(e.topic for e in entries)
     result = {
         "summary": summary, "robot": robot, "mission": {"name": mission.name, "source": mission_source},
         "files": [str(f) for f in files], "truncated": rec.truncated,
         "messages": dict(sorted(per_topic.items())),
         "duration_s": round((entries[-1].log_time - entries[0].log_time) / 1e9, 3) if entries else 0.0,
-        "cmd_to_applied": latency,
+        "cmd_to_applied": latency, "machines": where,
     }
     if summary is None:
         result["note"] = "no station status recorded: the demo's summary needs the station's counters"
@@ -313,9 +331,12 @@ def run(args: argparse.Namespace) -> int:
              (("by_stamps_ms", "by stamps (from the station's tick, solve included)"),
               ("by_receipt_ms", "by the recorder's receipt")) if lat[k]]
     if parts:
-        print(f"command to applied over {lat['paired']} commands: " + "; ".join(parts)
-              + ("" if lat["stamps_one_clock"] else " (the stamps are not one clock: station and driver host on "
-                 "different machines)"))
+        same = result["machines"]["same"]
+        where = (" (station and driver host on the same machine)" if same else
+                 " (station and driver host on different machines: their stamps are not one clock)" if same is False
+                 else "" if lat["stamps_one_clock"] else
+                 " (the stamps do not look like one clock; the recorded statuses do not say the nodes' machines)")
+        print(f"command to applied over {lat['paired']} commands: " + "; ".join(parts) + where)
     print(f"report: {out / 'report.json'}" + (f"; figures: {', '.join(result['figures'])}" if "figures" in result
                                               else ""))
     return 0 if result["summary"] is not None else 1

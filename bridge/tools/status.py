@@ -3,9 +3,13 @@ each second (``scm/<robot>/status/<node>``): driving, or the one reason it is no
 took control, waiting for engage, no pose, link down, mission paused or finished), the link, the pose's age, the
 pairs learned and the mission's progress. ``--watch`` prints it again every second until Ctrl-C.
 
-Exit status: 0 when every robot asked about is driving (or at its goal), 1 when one is not (a robot whose driver host
-answers but whose station is missing is one: its ``station missing`` line says so), 2 when no node answered (with
-the endpoints tried).
+Nodes publish their status each second and at once when it changes, so what it prints is how things stand when
+it is asked. A paused mission says what stands in the way now, or, once the robot is fit again, ``scmbridge mission
+resume``; a robot parked at its goal is ``parked``.
+
+Exit status: 0 when every robot asked about is driving (or parked at its goal) with no estop latched, 1 when one is
+not (a robot whose station or driver host is missing is one: its ``missing`` line says so; an estop latched on a
+robot whose mission is finished is one), 2 when no node answered (with the endpoints tried).
 """
 
 from __future__ import annotations
@@ -15,6 +19,8 @@ import sys
 import threading
 import time
 from dataclasses import dataclass, field
+
+import msgspec
 
 from bridge.core import wire as M
 from bridge.core.args import positive_float, robot_arg, robots_arg
@@ -26,7 +32,7 @@ from bridge.nodes.zsession import open_session
 STALE_S = 3.0
 #: the station's states in which its robot is doing what it should (driving, or done): for a station older than the
 #: typed reason
-GOOD = ("driving", "running", "finished")
+GOOD = ("driving", "running", "finished", "parked")
 #: the station's typed reasons (``Status.reason``) under which its robot is doing what it should (driving, at its goal)
 GOOD_REASONS = ("ok", "goal_reached")
 
@@ -56,6 +62,11 @@ def _state(st: M.Status) -> str:
     return st.state or ("ok" if st.ok else "not ok")
 
 
+def driver_estop(st: M.Status) -> bool:
+    """A driver host's status says an estop is latched: its typed reason (its state for a host older than it)."""
+    return st.reason == "estop" if st.reason is not None else st.state == "estop"
+
+
 def node_line(robot: str, node: str, st: M.Status, age: float) -> str:
     """``rover1  driver   estop     estop latched by operator | pose 0.02 s``: what a person needs at a glance."""
     if age > STALE_S:
@@ -73,10 +84,13 @@ def node_line(robot: str, node: str, st: M.Status, age: float) -> str:
 
 
 def robot_ok(statuses: dict[str, tuple[M.Status, float]], now: float) -> bool:
-    """A robot is fine when its station and its driver host are heard and the station drives (or is done), by the
-    station's typed reason (its state for a station older than that field), never its words."""
+    """A robot is fine when its station and its driver host are heard, no estop is latched on it, and the station
+    drives (or is parked at the goal), by the typed reasons (the states for a node older than that field), never
+    the words."""
     station, driver = statuses.get("station"), statuses.get("driver")
     if station is None or driver is None or now - station[1] > STALE_S or now - driver[1] > STALE_S:
+        return False
+    if driver_estop(driver[0]):
         return False
     st = station[0]
     if st.reason is not None:
@@ -100,8 +114,14 @@ def report(seen: Seen, robots: list[str] | None) -> tuple[list[str], bool]:
         if "station" not in nodes:  # the station is down (or another host's, unreachable): say it, first
             lines.append(f"{robot:<12} {'station':<8} {'missing':<9} no status from the robot's station: it is down "
                          "or unreachable (the driver host stops the robot on its deadman; estop still reaches it)")
+        if "driver" not in nodes:
+            lines.append(f"{robot:<12} {'driver':<8} {'missing':<9} no status from the robot's driver host: it is down "
+                         "or unreachable (the vehicle's own failsafe stops it; scmbridge doctor)")
+        parked = "station" in nodes and nodes["station"][0].state == "parked"
         for node in sorted(nodes, key=lambda n: (n != "station", n != "driver", n)):
             st, at = nodes[node]
+            if node == "driver" and parked and st.state == "driving":  # fit, and held at the goal by the station
+                st = msgspec.structs.replace(st, state="parked")
             lines.append(node_line(robot, node, st, now - at))
         all_ok &= robot_ok(nodes, now)
     return lines, all_ok

@@ -165,6 +165,7 @@ class MavlinkDriver:
         mav = self.dialect.mav
         if t == "HEARTBEAT":
             v.custom_mode = int(msg.custom_mode)
+            v.guided_seen = v.guided_seen or v.custom_mode == self.modes.guided
             v.armed = bool(msg.base_mode & mav.MAV_MODE_FLAG_SAFETY_ARMED)
             v.hb_time = now
         elif t == "LOCAL_POSITION_NED":

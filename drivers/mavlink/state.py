@@ -36,6 +36,9 @@ class Vehicle:
     pos_time: float | None = None  # the last LOCAL_POSITION_NED
     boot_ms: int = 0  # the vehicle's time since boot in its last message
     rebooted: bool = False  # its clock went back: it forgot our message intervals (cleared once it drives again)
+    #: it has been in GUIDED since this driver opened: only then did an operator take it (a vehicle found in MANUAL
+    #: at start was never ours)
+    guided_seen: bool = False
     texts: deque[tuple[float, str]] = field(default_factory=deque)  # (receive time, STATUSTEXT), bounded
     text_count: int = 0
 
@@ -88,7 +91,8 @@ def judge(v: Vehicle, link: LinkView, now: float, modes: RoverModes, heartbeat_t
             text = f"no heartbeat for {hb_age:.1f} s"
         return Verdict(False, False, text, "link_down")
     if v.custom_mode != modes.guided:
-        who = "vehicle rebooted" if v.rebooted else "operator took control"
+        who = ("vehicle rebooted" if v.rebooted else "operator took control" if v.guided_seen
+               else "not in GUIDED (the operator's)")
         why: LinkReason = "rebooted" if v.rebooted else "operator"
         return Verdict(True, False, f"{who}: mode {modes.name(v.custom_mode)}{'' if v.armed else ', disarmed'}", why)
     if not v.armed:
