@@ -25,6 +25,7 @@ import pytest
 from collect import Collector
 
 from bridge.core import wire as M
+from bridge.core.acts import stamped
 from bridge.core.config import StationConfig, load_mission, load_mission_spec
 from bridge.nodes.mission_control import Fitness, MissionControl, spec_of
 from bridge.nodes.station_core import StationCore, TickInputs
@@ -210,8 +211,8 @@ def _ask_mission(session, robot: str, action: str) -> M.MissionState:
 
 
 def _estop(session, robot: str, engaged: bool) -> None:
-    def msg() -> M.Estop:
-        return M.Estop(stamp=time.monotonic(), engaged=engaged, source="operator", reason="test")
+    def msg() -> M.Estop:  # as the person's tool sends it: fresh, with its nonce (bridge/core/acts.py)
+        return stamped(M.Estop(stamp=time.monotonic(), engaged=engaged, source="operator", reason="test"))
 
     answers = confirm(session, [robot], msg, engaged, time.monotonic() + 10.0)
     assert answers[robot] and all(st.latched == engaged for st in answers[robot].values()), answers
