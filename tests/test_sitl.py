@@ -240,3 +240,39 @@ def test_mavlink2_signing_the_keyed_host_drives_an_unsigned_third_link_does_not(
     assert _reach(pilot, 0.5, 10), pilot.speed
     counters = rig.status[-1].counters
     assert counters["link_bad_signatures"] == 0, counters  # every message from the vehicle carried the key
+
+
+def test_one_forged_packet_with_a_far_future_timestamp_does_not_block_the_real_autopilots_signed_link(
+        tmp_path, rig: Rig) -> None:
+    """The reference for the emulated rover's and the driver's fix (docs/SECURITY.md, "MAVLink: a forged packet
+    poisons pymavlink's signing state"): ArduPilot checks a packet's signature before it takes its timestamp, so one
+    packet signed with a wrong key and stamped a year ahead changes nothing; the next genuinely signed set-points
+    drive the vehicle. (pymavlink before the project's fix took the forged timestamp and refused every later
+    genuine message as too old.)"""
+    pilot = rig.sitl.pilot
+    key = make_key(tmp_path / "link.key")
+    pilot.setup_signing(key)
+    pilot.set_mode("GUIDED")
+    pilot.arm(True)
+    third = Pilot(rig.sitl.spare_url, source_system=254)
+    try:
+        assert third.wait(lambda s: s.heartbeats > 0, 5)
+        third.sign_with(b"\x5a" * 32)  # a wrong key ...
+        with third._send_lock:
+            # ... and a timestamp a year ahead (units of 10 us since 2015, as MAVLink 2 signing counts)
+            third.conn.mav.signing.timestamp += int(365 * 86400 * 1e5)
+        for _ in range(5):
+            third.velocity(1.0, 0.0)  # forged: refused, and its timestamp must not be taken
+            time.sleep(0.05)
+        assert pilot.speed < 0.02, pilot.speed
+        third.sign_with(key)  # the right key, the timestamp of now: what a genuine sender sends next
+        t_end = time.monotonic() + 5
+        while time.monotonic() < t_end and pilot.speed < 0.3:
+            third.velocity(0.5, 0.0)
+            time.sleep(0.05)
+        assert pilot.speed >= 0.3, pilot.speed
+        while pilot.speed > 0.05 and time.monotonic() < t_end + 5:
+            third.velocity(0.0, 0.0)
+            time.sleep(0.05)
+    finally:
+        third.close()
