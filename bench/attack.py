@@ -13,6 +13,7 @@ line of the JSON is ``"all_ok"``. docs/SECURITY.md's attack table quotes it.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import math
 import tempfile
 import time
@@ -711,6 +712,12 @@ class _LatchRig:
         return {"engaged": ans.engaged, "distance_m": _moved(self.vehicle, start), "latched": host.gate.estopped,
                 "latched_by": host.gate.estop_source}
 
+    def control(self, host, seconds: float) -> float:
+        """The control: the person releases the estop (saved, signed) and the host engages and drives, so a row's
+        "0.0 m" is the latch's doing, not a rig that cannot drive; the metres driven."""
+        self.estop(host, engaged=False)
+        return self.engage_and_drive(host, seconds)["distance_m"]
+
     def __enter__(self) -> _LatchRig:
         return self
 
@@ -725,8 +732,8 @@ def latch_disk_full_at_estop(short: bool) -> Result:
     host's saver: the bench runs as root, which a read-only directory does not stop), then the host restarts on the
     same state directory and someone engages. bridge/nodes/driver_host.py: the failed save removes the old (released)
     file and refuses engage, so the restart finds the marker without a file: latched. before (``latch_saved``'s
-    handling off: the failure ignored, the old released file left; --short): engaged after the restart, drove 0.073 m
-    in 0.5 s."""
+    handling off: the failure ignored, the old released file left; --short, two runs): engaged after the restart,
+    drove 0.073 m in 0.5 s both times."""
     import errno
     import os
     import threading
@@ -747,24 +754,31 @@ def latch_disk_full_at_estop(short: bool) -> Result:
         rig.estop(host)
         refused_before_restart = not rig.engage_and_drive(host, 0.1)["engaged"]
         rig.stop(host)
-        after = rig.engage_and_drive(rig.host(latch, saver), 0.5 if short else 1.5)
+        host = rig.host(latch, saver)
+        after = rig.engage_and_drive(host, 0.5 if short else 1.5)
+        full.clear()  # space freed: a person's release is saved, and the host drives again
+        control = rig.control(host, 0.3)
     return {"reached_vehicle": after, "learned": None, "engage_refused_before_restart": refused_before_restart,
-            "ok": not after["engaged"] and after["distance_m"] < 0.01 and refused_before_restart}
+            "control_drove_m": control,
+            "ok": not after["engaged"] and after["distance_m"] < 0.01 and refused_before_restart and control > 0.01}
 
 
 def latch_file_deleted(short: bool) -> Result:
     """The operator latched the estop; while the host was stopped the latch file was deleted; the host restarts and
     someone engages. The install marker beside it says this directory has an estop history: a missing file is
-    latched. before (``inspect_latch`` as a plain read: missing means never latched; --short): engaged, drove
-    0.092 m in 0.5 s."""
+    latched. before (``inspect_latch`` as a plain read: missing means never latched; --short, two runs): engaged,
+    drove 0.092 and 0.073 m in 0.5 s."""
     with tempfile.TemporaryDirectory() as d, _LatchRig() as rig:
         latch = Path(d) / "estop-r1.bin"
         host = rig.host(latch)
         rig.estop(host)
         rig.stop(host)
         latch.unlink()
-        after = rig.engage_and_drive(rig.host(latch), 0.5 if short else 1.5)
-    return {"reached_vehicle": after, "learned": None, "ok": not after["engaged"] and after["distance_m"] < 0.01}
+        host = rig.host(latch)
+        after = rig.engage_and_drive(host, 0.5 if short else 1.5)
+        control = rig.control(host, 0.3)
+    return {"reached_vehicle": after, "learned": None, "control_drove_m": control,
+            "ok": not after["engaged"] and after["distance_m"] < 0.01 and control > 0.01}
 
 
 def latch_file_forged_release(short: bool) -> Result:
@@ -772,7 +786,7 @@ def latch_file_forged_release(short: bool) -> Result:
     this host did not sign (unsigned, a made-up tag, another state directory's host's own signed release, signed
     with a random key); after each, the host restarts and someone engages. Only a release under the robot's latch
     key (its install marker, 0600) is believed. before (``inspect_latch`` as a plain read: any file saying released
-    believed; --short): engaged on 4 of 4, drove 0.061 m in all (0.15 s each)."""
+    believed; --short, two runs): engaged on 4 of 4, drove 0.061 and 0.048 m in all (0.15 s each)."""
     import os
 
     from bridge.core import wire as M
@@ -796,8 +810,9 @@ def latch_file_forged_release(short: bool) -> Result:
             engaged += after["engaged"]
             moved += after["distance_m"]
             rig.stop(host)
+        control = rig.control(rig.host(latch), 0.8)  # (a new host: the robot follows its epoch 0.3 s after the last)
     return {"reached_vehicle": {"engaged": engaged, "of": len(forged), "distance_m": round(moved, 3)},
-            "learned": None, "ok": engaged == 0 and moved < 0.01}
+            "learned": None, "control_drove_m": control, "ok": engaged == 0 and moved < 0.01 and control > 0.01}
 
 
 def latch_other_state_dir(short: bool) -> Result:
@@ -856,27 +871,39 @@ class _ZenohHost:
 
         self.robot = f"atk{uuid.uuid4().hex[:8]}"
         self.keys = M.Keys(self.robot)
-        self.dir = tempfile.TemporaryDirectory()
-        port = free_port()
-        self.router = open_session(make_config(mode="router", listen=[tcp(port)]))
-        self.client = lambda: open_session(make_config(mode="client", connect=[tcp(port)]))
-        bind = free_udp_port()
-        self.device, self.vehicle = _udp_robot(None, ("127.0.0.1", bind))
-        cfg = load_driver(None)
-        self.host = DriverHost(cfg, "udp", open_driver("udp", UdpLinkConfig(insecure=True, robot_port=self.device.port,
-                                                                            bind_port=bind)),
-                               self.robot, cfg.driver.rate_hz, latch_path=Path(self.dir.name) / "estop.bin")
         self.lock = threading.Lock()
         self.applied: list = []
-        self.sub = self.router.declare_subscriber(self.keys.applied, self._on_applied)
-        self.host_session = self.client()
         self.stop = threading.Event()
-        self.thread = threading.Thread(target=self.host.serve, args=(self.host_session, self.stop, None),
-                                       name="attack-driver-host", daemon=True)
-        self.thread.start()
-        _until(lambda: self.host.ticker is not None, 10.0)
-        self.attacker = self.client()
+        self.stack = contextlib.ExitStack()  # everything started, closed in reverse (also when a start fails)
+        try:
+            state = Path(self.stack.enter_context(tempfile.TemporaryDirectory()))
+            port = free_port()
+            self.router = self.stack.enter_context(open_session(make_config(mode="router", listen=[tcp(port)])))
+            self.client = lambda: open_session(make_config(mode="client", connect=[tcp(port)]))
+            bind = free_udp_port()
+            self.device, self.vehicle = _udp_robot(None, ("127.0.0.1", bind))
+            self.stack.callback(self.device.stop)
+            self.sub = self.router.declare_subscriber(self.keys.applied, self._on_applied)
+            self.stack.callback(self.sub.undeclare)
+            cfg = load_driver(None)
+            link = open_driver("udp", UdpLinkConfig(insecure=True, robot_port=self.device.port, bind_port=bind))
+            self.host = DriverHost(cfg, "udp", link, self.robot, cfg.driver.rate_hz, latch_path=state / "estop.bin")
+            host_session = self.stack.enter_context(self.client())
+            self.thread = threading.Thread(target=self.host.serve, args=(host_session, self.stop, None),
+                                           name="attack-driver-host", daemon=True)
+            self.thread.start()
+            self.stack.callback(self._stop_host)
+            _until(lambda: self.host.ticker is not None, 10.0)
+            self.attacker = self.stack.enter_context(self.client())
+        except BaseException:
+            self.stack.close()
+            raise
         return self
+
+    def _stop_host(self) -> None:
+        self.stop.set()
+        self.thread.join(timeout=10.0)
+        self.host.close()
 
     def _on_applied(self, sample) -> None:
         from bridge.core import wire as M
@@ -899,15 +926,7 @@ class _ZenohHost:
         return None
 
     def __exit__(self, *exc: object) -> None:
-        self.stop.set()
-        self.thread.join(timeout=10.0)
-        self.host.close()
-        for s in (self.attacker, self.host_session):
-            s.close()
-        self.sub.undeclare()
-        self.router.close()
-        self.device.stop()
-        self.dir.cleanup()
+        self.stack.close()
 
 
 class _Station:
@@ -945,20 +964,21 @@ def replayed_engage_and_release(short: bool) -> Result:
     """Over Zenoh, with a station publishing commands: a person's engage and a person's estop release, recorded off
     the network, replayed after the person handed the robot back / latched the estop again; the same requests
     stamped a minute ago; and old-format ones (no time, no nonce). bridge/core/acts.ActGuard takes a request fresh
-    and once. before (``ActGuard.check`` off, --short): the replayed, the stale and the old-format release each
-    released the latch and each engage engaged; 34 ticks drove, 0.151 m."""
+    and once. before (``ActGuard.check`` off, --short, two runs): the replayed, the stale and the old-format release
+    each released the latch and each engage engaged; 34 and 32 ticks drove, 0.151 and 0.152 m."""
     from bridge.core import wire as M
     from bridge.core.acts import stamped
 
     out: dict = {}
     with _ZenohHost() as rig, _Station(rig, 0.3):
         engage = M.encode(stamped(M.EngageRequest(stamp=1.0, source="operator")))  # recorded
-        rig.engage(engage)
+        ans = rig.engage(engage)
+        first = {"engage_engaged": bool(ans and ans.engaged)}  # the recording is potent
         release = M.encode(stamped(M.Estop(stamp=1.0, engaged=False, source="operator")))
         rig.attacker.put(rig.keys.estop, M.encode(M.Estop(stamp=1.0, source="operator", reason="attack")))
         _until(lambda: rig.host.gate.estopped, 2.0)
         rig.attacker.put(rig.keys.estop, release)  # the person's release, recorded off the network
-        _until(lambda: not rig.host.gate.estopped, 2.0)
+        first["release_released"] = _until(lambda: not rig.host.gate.estopped, 2.0)
         # the person hands the robot back and latches the estop: the robot is parked
         rig.engage(M.encode(M.EngageRequest(stamp=1.0, engaged=False, source="operator")))
         rig.attacker.put(rig.keys.estop, M.encode(M.Estop(stamp=1.0, source="operator", reason="parked")))
@@ -979,16 +999,24 @@ def replayed_engage_and_release(short: bool) -> Result:
         moved = _moved(rig.vehicle, start)
         driven = sum(a.v != 0.0 for a in rig.since(t0))
         refused = {k: v for k, v in rig.host.inputs.snapshot().items() if "refused" in k and v}
+        # the control: the person's own tool (fresh, a new nonce) releases and engages, and the station drives
+        rig.attacker.put(rig.keys.estop, M.encode(stamped(M.Estop(stamp=1.0, engaged=False, source="operator"))))
+        _until(lambda: not rig.host.gate.estopped, 2.0)
+        ans = rig.engage(M.encode(stamped(M.EngageRequest(stamp=1.0, source="operator"))))
+        t1 = time.monotonic()
+        control = bool(ans and ans.engaged) and _until(lambda: any(a.v != 0.0 for a in rig.since(t1)), 2.0)
     took = any(r["released"] or r["engaged"] for r in out.values())
     return {"reached_vehicle": {"distance_m": moved, "ticks_driven": driven, **out}, "learned": None,
-            "refused": refused, "ok": not took and moved < 0.01 and driven == 0}
+            "refused": refused, "when_first_sent": first, "control_drives": control,
+            "ok": not took and moved < 0.01 and driven == 0 and all(first.values()) and control}
 
 
 def forger_at_seq_plus_one(short: bool) -> Result:
     """Over Zenoh, while the station drives the engaged robot at 0.2 m/s: a forger hears each command and publishes
     a copy at seq + 1 (the station's epoch) with v = 0.45, 1 ms after it. The real command then comes at a seq
     already taken with other content: two senders on one epoch, a conflict that stops the robot while it lasts.
-    before (the gate's conflict check off, --short): 50 of 50 ticks applied the forger's 0.45 m/s; status ok."""
+    before (the gate's conflict check off, --short, two runs): 50 of 50 and 49 of 49 ticks applied the forger's
+    0.45 m/s; status ok."""
     import threading
 
     from bridge.core import wire as M
@@ -996,7 +1024,7 @@ def forger_at_seq_plus_one(short: bool) -> Result:
 
     with _ZenohHost() as rig, _Station(rig, 0.2):
         rig.engage(M.encode(stamped(M.EngageRequest(stamp=1.0, source="operator"))))
-        _until(lambda: any(a.v == 0.2 for a in rig.since(0.0)), 3.0)
+        drove = _until(lambda: any(a.v == 0.2 for a in rig.since(0.0)), 3.0)  # the station drives it
         sent = [0]
         stop = threading.Event()
         with rig.client() as s:
@@ -1021,8 +1049,9 @@ def forger_at_seq_plus_one(short: bool) -> Result:
     forged = sum(a.v == 0.45 for a in during)
     return {"reached_vehicle": {"ticks": len(during), "forged_applied": forged,
                                 "stopped_for_conflict": sum(a.reason == "conflict" for a in during)},
-            "learned": None, "forged_sent": sent[0], "status": {"ok": status.ok, "reason": status.reason},
-            "ok": forged == 0 and len(during) > 10 and sent[0] > 5}
+            "learned": None, "forged_sent": sent[0], "station_drove_first": drove,
+            "status": {"ok": status.ok, "reason": status.reason}, "ok": forged == 0 and len(during) > 10 and sent[0] > 5
+            and drove}
 
 
 def mission_after_goal(short: bool) -> Result:
