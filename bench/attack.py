@@ -1055,27 +1055,57 @@ def forger_at_seq_plus_one(short: bool) -> Result:
 
 
 def mission_after_goal(short: bool) -> Result:
-    """A MissionSpec published on ``scm/<robot>/mission`` after the robot reached its goal (anyone may publish on
-    the loopback default), taken as the station takes it (decoded and validated from the attacker's bytes, then
-    :meth:`bridge.nodes.mission_control.MissionControl.replace`, the station's phase machine): it must load idle, and
-    only a person's start drives. before (791b027's replace: a finished mission goes on with the new goal): phase
-    "running", may_drive True: the station drives with no person's act."""
-    from bridge.core import wire as M
-    from bridge.core.config import load_mission_spec, mission_from_spec
-    from bridge.nodes.mission_control import Fitness, MissionControl
+    """A real station (bridge/nodes/station.py, its loop on a client session of a router on a free port) whose
+    mission reached its goal ("finished"); an attacker's session publishes a MissionSpec on ``scm/<robot>/mission``
+    (anyone may on the loopback default) and asks the station's ``control`` for its phase: the new mission must
+    load idle, and only a person's start drives. before (791b027's ``MissionControl.replace``: a finished mission
+    goes on with the new goal; two runs): phase "running" both times: the station drives with no person's act."""
+    import threading
 
-    control = MissionControl("r1", load_mission_spec())
-    fit = Fitness("")
-    control.request(M.MissionRequest(stamp=0.0, action="start", source="operator"), fit, 0.0)
-    drove = control.may_drive(fit)
-    control.reached()
-    data = M.encode(M.MissionSpec(name="attacker", path=[[0.0, 0.0], [2.0, 0.0]]))  # off the attacker's session
-    spec = M.decode(data, M.MissionSpec)
-    control.replace(spec, mission_from_spec(spec), by="a publisher on scm/r1/mission", at=time.time())
-    drives = control.may_drive(fit)
-    return {"reached_vehicle": {"phase": control.phase, "station_drives": drives}, "learned": None,
-            "drove_to_the_goal_first": drove, "said": control.reason[:120],
-            "ok": drove and not drives and control.phase == "idle"}
+    from bridge.core import wire as M
+    from bridge.core.config import StationConfig, load_mission, load_mission_spec
+    from bridge.nodes.mission_control import MissionControl
+    from bridge.nodes.station import Station
+    from bridge.nodes.zsession import free_port, make_config, open_session, tcp
+
+    robot, port = f"atk{uuid.uuid4().hex[:8]}", free_port()
+    stop = threading.Event()
+    with contextlib.ExitStack() as stack:
+        d = Path(stack.enter_context(tempfile.TemporaryDirectory()))
+        stack.enter_context(open_session(make_config(mode="router", listen=[tcp(port)])))
+        station = Station(StationConfig(), robot, 10.0, d / "pairs.bin", load_mission(),
+                          control=MissionControl(robot, load_mission_spec(), "finished"))
+        stack.callback(station.persist)  # (closes its writer thread; the save goes to the temporary directory)
+        session = stack.enter_context(open_session(make_config(mode="client", connect=[tcp(port)])))
+        loop = threading.Thread(target=station.serve, args=(session, stop, None, False, False), name="attack-station",
+                                daemon=True)
+        loop.start()
+        stack.callback(loop.join, 10.0)
+        stack.callback(stop.set)
+        _until(lambda: station.looping, 10.0)
+        attacker = stack.enter_context(open_session(make_config(mode="client", connect=[tcp(port)])))
+
+        def ask() -> M.MissionState | None:
+            for reply in attacker.get(M.key(robot, "control"), timeout=5.0,
+                                      payload=M.encode(M.MissionRequest(stamp=1.0, action="status"))):
+                if reply.ok is not None:
+                    return M.decode(reply.ok.payload.to_bytes(), M.MissionState)
+            return None
+
+        first = ask()
+        attacker.put(M.key(robot, "mission"), M.encode(M.MissionSpec(name="attacker", path=[[0.0, 0.0], [2.0, 0.0]])))
+        after, t_end = None, time.monotonic() + (2.0 if short else 5.0)
+        while time.monotonic() < t_end:  # until the station has taken it (its next tick)
+            after = ask()
+            if after is not None and after.mission == "attacker":
+                break
+            time.sleep(0.05)
+        taken = after is not None and after.mission == "attacker"
+    phase = after.phase if after is not None else "no answer"
+    return {"reached_vehicle": {"phase": phase, "station_drives": phase == "running"}, "learned": None,
+            "phase_before": first.phase if first is not None else "no answer", "mission_taken": taken,
+            "said": (after.reason if after is not None else "")[:120],
+            "ok": taken and phase == "idle" and first is not None and first.phase == "finished"}
 
 
 ATTACKS: dict[str, Callable[[bool], Result]] = {
