@@ -329,6 +329,8 @@ class _Tap:
 
 
 def _udp_robot(key: bytes | None, peer: tuple[str, int], port: int = 0):
+    """The emulated UDP robot (keyed with ``key``, obeying ``peer``) started on ``port`` (0: a free one), and the
+    simulated vehicle it drives."""
     from sim_learner.dynamics import mpc_learner
     from sim_learner.udp_robot import UdpRobot
     from sim_learner.vehicle import SimVehicle
@@ -338,16 +340,19 @@ def _udp_robot(key: bytes | None, peer: tuple[str, int], port: int = 0):
 
 
 def _moved(vehicle, start: tuple[float, float]) -> float:
+    """How far ``vehicle`` is now from ``start``, m (rounded to the millimetre)."""
     body = vehicle.advance(time.monotonic())
     return round(math.hypot(body.x - start[0], body.y - start[1]), 3)
 
 
 def _here(vehicle) -> tuple[float, float]:
+    """Where ``vehicle`` is now (x, y)."""
     body = vehicle.advance(time.monotonic())
     return body.x, body.y
 
 
 def _drive_udp(driver, seconds: float, v: float) -> None:
+    """The real UDP driver sends (v, 0) every 20 ms for ``seconds`` and reads what the robot says."""
     t_end = time.monotonic() + seconds
     while time.monotonic() < t_end:
         driver.send(v, 0.0, time.monotonic())
