@@ -1,8 +1,9 @@
 """``scmbridge bench attack``: every attack a hostile probe found, run against the real components (JSON).
 
 Each attack sets up what it needs (the emulated devices on loopback or a python-can ``virtual`` channel, the real
-drivers, the driver host's gate and latch, the station's pairer and pair store, the clock estimate) and reports what
-reached the vehicle and what was learned:
+drivers, the driver host's gate and latch, the station's pairer and pair store, the clock estimate; for issue 31's
+findings real UDP sockets and a man in the middle, pymavlink framing, a real DriverHost on a real state directory,
+real Zenoh sessions) and reports what reached the vehicle and what was learned:
 
 ``{"attack": name, "reached_vehicle": ..., "learned": ..., "ok": bool, ...}``; ``ok`` means nothing unsafe moved a
 vehicle and nothing implausible was learned. ``--short`` runs each attack briefly (the suite runs it so). The last
@@ -12,6 +13,7 @@ line of the JSON is ``"all_ok"``. docs/SECURITY.md's attack table quotes it.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import math
 import tempfile
 import time
@@ -266,10 +268,859 @@ def second_station(short: bool) -> Result:
     return {"reached_vehicle": None, "learned": None, "station_ok": s.ok, "text": s.text, "ok": not s.ok}
 
 
+# ------------------------------------------------------------------------------------------------------------------
+# Issue 31: replays, the signing timestamp, latch tampering, who may act. Each row below runs the real components
+# (UDP sockets on 127.0.0.1 with the emulated robot and the real UDP driver, pymavlink framing against the driver's
+# client and the emulated rover, a real DriverHost with a real state directory, real Zenoh sessions where the attack
+# goes through Zenoh). Each docstring's "before (...)" is what the same row measured with that fix taken out (on the
+# base commit 791b027 where the row's API exists there, else with that one check switched off by a throwaway script),
+# measured beside other load (2 shared cores); docs/SECURITY.md's attack table lists them.
+
+
+class _Tap:
+    """A man in the middle on 127.0.0.1: one UDP socket the driver takes for the robot and the robot for its peer;
+    forwards both ways, records what the driver sends (unless ``hold``: then it records and keeps it back)."""
+
+    def __init__(self, driver_port: int) -> None:
+        import socket
+        import threading
+
+        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self.sock.bind(("127.0.0.1", 0))
+        self.sock.settimeout(0.02)
+        self.addr = self.sock.getsockname()
+        self.driver = ("127.0.0.1", driver_port)
+        self.robot: tuple[str, int] | None = None
+        self.recorded: list[tuple[float, bytes]] = []
+        self.hold = False
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="attack-tap", daemon=True)
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            try:
+                data, src = self.sock.recvfrom(65536)
+            except OSError:  # (a timeout is one)
+                continue
+            if src == self.driver:
+                self.recorded.append((time.monotonic(), data))
+                if not self.hold and self.robot is not None:
+                    self.sock.sendto(data, self.robot)
+            elif src == self.robot:
+                self.sock.sendto(data, self.driver)
+
+    def replay(self, datagrams: list[tuple[float, bytes]], paced: bool = True) -> None:
+        """``datagrams`` to the robot from the tap (the address it obeys), at their recorded pace."""
+        assert self.robot is not None
+        t0, r0 = time.monotonic(), datagrams[0][0] if datagrams else 0.0
+        for t, data in datagrams:
+            if paced:
+                time.sleep(max(0.0, (t - r0) - (time.monotonic() - t0)))
+            self.sock.sendto(data, self.robot)
+
+    def __enter__(self) -> _Tap:
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self._stop.set()
+        self._thread.join(timeout=2.0)
+        self.sock.close()
+
+
+def _udp_robot(key: bytes | None, peer: tuple[str, int], port: int = 0):
+    """The emulated UDP robot (keyed with ``key``, obeying ``peer``) started on ``port`` (0: a free one), and the
+    simulated vehicle it drives."""
+    from sim_learner.dynamics import mpc_learner
+    from sim_learner.udp_robot import UdpRobot
+    from sim_learner.vehicle import SimVehicle
+
+    vehicle = SimVehicle(mpc_learner(), (0.0, 0.0, 0.0), now=time.monotonic())
+    return UdpRobot(vehicle, port=port, peer=peer, key=key, watchdog=0.3).start(), vehicle
+
+
+def _moved(vehicle, start: tuple[float, float]) -> float:
+    """How far ``vehicle`` is now from ``start``, m (rounded to the millimetre)."""
+    body = vehicle.advance(time.monotonic())
+    return round(math.hypot(body.x - start[0], body.y - start[1]), 3)
+
+
+def _here(vehicle) -> tuple[float, float]:
+    """Where ``vehicle`` is now (x, y)."""
+    body = vehicle.advance(time.monotonic())
+    return body.x, body.y
+
+
+def _drive_udp(driver, seconds: float, v: float) -> None:
+    """The real UDP driver sends (v, 0) every 20 ms for ``seconds`` and reads what the robot says."""
+    t_end = time.monotonic() + seconds
+    while time.monotonic() < t_end:
+        driver.send(v, 0.0, time.monotonic())
+        driver.poll(time.monotonic())
+        time.sleep(0.02)
+
+
+def _udp_record(key_file: Path, tap: _Tap, seconds: float) -> list[tuple[float, bytes]]:
+    """The real UDP driver drives the robot at 0.3 m/s through the tap for ``seconds``: what it sent."""
+    from drivers import open_driver
+    from drivers.udp import UdpLinkConfig
+
+    driver = open_driver("udp", UdpLinkConfig(robot_port=tap.addr[1], bind_port=tap.driver[1],
+                                              key_file=str(key_file), open_timeout=5.0))
+    try:
+        driver.open(time.monotonic())
+        n0 = len(tap.recorded)
+        _drive_udp(driver, seconds, 0.3)
+        return tap.recorded[n0:]
+    finally:
+        driver.close()
+
+
+def udp_replay_after_reboot(short: bool) -> Result:
+    """Keyed command datagrams recorded off the wire (a tap between the real UDP driver and the emulated robot) and
+    replayed from the robot's peer address right after the robot rebooted (a new instance on the same port: it keeps
+    nothing across a power cycle). drivers/udp.py's session (the robot's boot nonce and a recent reading of its clock
+    under the keyed tag) makes the recording stale. before (791b027, --short, two runs): the replay drove the rebooted
+    robot 0.355 and 0.359 m (49 of 49 and 50 of 50 replayed commands applied)."""
+    from bridge.core.auth import make_key
+    from bridge.tools.procs import free_udp_port
+
+    with tempfile.TemporaryDirectory() as d:
+        key_file = Path(d) / "udp.key"
+        key = make_key(key_file)
+        bind = free_udp_port()
+        with _Tap(bind) as tap:
+            robot, vehicle = _udp_robot(key, tap.addr)
+            tap.robot = ("127.0.0.1", robot.port)
+            try:
+                capture = _udp_record(key_file, tap, 1.0 if short else 1.5)
+                potent = round(vehicle.distance, 3)
+                port = robot.port
+                robot.stop()
+                robot, vehicle = _udp_robot(key, tap.addr, port)  # the reboot
+                start, applied = _here(vehicle), robot.counters["applied"]
+                tap.replay(capture)
+                time.sleep(0.2)
+                moved, obeyed = _moved(vehicle, start), robot.counters["applied"] - applied
+                refused = {k: v for k, v in robot.counters.items() if k in ("stale_session", "stale",
+                                                                           "unauthenticated") and v}
+            finally:
+                robot.stop()
+    return {"reached_vehicle": {"distance_m": moved, "replayed_commands_applied": obeyed}, "learned": None,
+            "recording": {"datagrams": len(capture), "drove_m_when_recorded": potent}, "refused": refused,
+            "ok": moved < 0.01 and obeyed == 0 and len(capture) > 10 and potent > 0.1}
+
+
+def udp_held_back_commands(short: bool) -> Result:
+    """The tap keeps the driver's commands back (the robot's states still reach the driver) and sends them all
+    later, after the session's freshness window: each echoes a reading of the robot's clock too old to obey.
+    before (791b027, --short, two runs): the held-back burst moved the robot 0.09 m (30 of 30 commands applied)."""
+    from bridge.core.auth import make_key
+    from bridge.tools.procs import free_udp_port
+    from drivers import open_driver
+    from drivers.udp import UdpLinkConfig
+
+    with tempfile.TemporaryDirectory() as d:
+        key_file = Path(d) / "udp.key"
+        key = make_key(key_file)
+        bind = free_udp_port()
+        with _Tap(bind) as tap:
+            robot, vehicle = _udp_robot(key, tap.addr)
+            tap.robot = ("127.0.0.1", robot.port)
+            driver = open_driver("udp", UdpLinkConfig(robot_port=tap.addr[1], bind_port=bind, key_file=str(key_file),
+                                                      open_timeout=5.0))
+            try:
+                driver.open(time.monotonic())
+                tap.hold = True
+                n0 = len(tap.recorded)
+                _drive_udp(driver, 0.6 if short else 1.0, 0.3)
+                held = tap.recorded[n0:]
+                time.sleep(0.6)  # the session's freshness window is 0.5 s (sim_learner/udp_robot.SESSION_FRESH_S)
+                start, applied = _here(vehicle), robot.counters["applied"]
+                tap.replay(held, paced=False)
+                time.sleep(0.3)
+                moved, obeyed = _moved(vehicle, start), robot.counters["applied"] - applied
+                refused = {k: v for k, v in robot.counters.items() if k in ("stale_session", "stale") and v}
+            finally:
+                driver.close()
+                robot.stop()
+    return {"reached_vehicle": {"distance_m": moved, "held_commands_applied": obeyed}, "learned": None,
+            "held": len(held), "refused": refused, "ok": moved < 0.01 and obeyed == 0 and len(held) > 10}
+
+
+_TEN_YEARS = 10 * 365 * 86400 * 100_000  # in MAVLink signing units (10 us)
+
+
+class _Frames:
+    """A pymavlink ``file`` that keeps the frames it is given."""
+
+    def __init__(self) -> None:
+        self.frames: list[bytes] = []
+
+    def write(self, data: bytes) -> None:
+        self.frames.append(bytes(data))
+
+
+def _signer(key: bytes, sysid: int, compid: int, link_id: int, timestamp: int):
+    """A MAVLink 2 sender of ``sysid/compid`` signing with ``key`` from ``timestamp``; its frames in ``.file``."""
+    from pymavlink import mavutil
+
+    out = _Frames()
+    mav = mavutil.mavlink.MAVLink(out, srcSystem=sysid, srcComponent=compid)
+    mav.signing.secret_key, mav.signing.sign_outgoing = key, True
+    mav.signing.link_id, mav.signing.timestamp = link_id, timestamp
+    return mav, out
+
+
+def _until(pred: Callable[[], bool], timeout: float, step: Callable[[], object] | None = None) -> bool:
+    t_end = time.monotonic() + timeout
+    while time.monotonic() < t_end:
+        if step is not None:
+            step()
+        if pred():
+            return True
+        time.sleep(0.01)
+    return pred()
+
+
+def mavlink_forged_timestamp_at_driver(short: bool) -> Result:
+    """One packet signed with a wrong key and a timestamp ten years ahead, sent to the driver's MAVLink client on a
+    signed link to the emulated rover: the driver must keep hearing the rover (pymavlink records a stream's
+    timestamp before it checks the signature; drivers/mavlink/client.verify_before_recording puts it back).
+    before (the wrapper off, --short): no pose heard after it, the link down ("no heartbeat for 1.4 s"), 52
+    genuine messages refused as bad signatures."""
+    import socket
+
+    from pymavlink import mavutil
+
+    from bridge.core.auth import make_key
+    from drivers import open_driver
+    from drivers.mavlink import MavlinkLinkConfig
+    from sim_learner.dynamics import mpc_learner
+    from sim_learner.mavlink_rover import MavlinkRover, signing_wall_clock
+    from sim_learner.vehicle import SimVehicle
+
+    mav = mavutil.mavlink
+    with tempfile.TemporaryDirectory() as d:
+        key_file = Path(d) / "mav.key"
+        key = make_key(key_file)
+        vehicle = SimVehicle(mpc_learner(), (0.0, 0.0, 0.0), now=time.monotonic())
+        with MavlinkRover(vehicle, init_s=0.1, ekf_position_s=0.2, signing_key=key) as rover:
+            driver = open_driver("mavlink", MavlinkLinkConfig(url=f"udpout:127.0.0.1:{rover.port}", open_timeout=10.0,
+                                                              heartbeat_timeout=1.0,
+                                                              signing_key_file=str(key_file)))
+            try:
+                driver.open(time.monotonic())
+                driver.engage(time.monotonic())
+                forger, out = _signer(bytes(32), rover.sysid, rover.compid, 0, signing_wall_clock() + _TEN_YEARS)
+                forger.heartbeat_send(mav.MAV_TYPE_GROUND_ROVER, mav.MAV_AUTOPILOT_ARDUPILOTMEGA, 0, 0, 0)
+                before = driver.health(time.monotonic()).detail.bad_signatures
+                with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:  # udpout reads from any source
+                    s.sendto(out.frames[0], driver.client.conn.port.getsockname())
+                _until(lambda: driver.health(time.monotonic()).detail.bad_signatures > before, 2.0,
+                       lambda: driver.poll(time.monotonic()))
+                poses = 0
+                t_end = time.monotonic() + (1.3 if short else 2.5)  # past the 1 s heartbeat timeout
+                while time.monotonic() < t_end:
+                    poses += len(driver.poll(time.monotonic()))
+                    time.sleep(0.02)
+                h = driver.health(time.monotonic())
+            finally:
+                driver.close()
+    return {"reached_vehicle": None, "learned": None,
+            "link": {"ok": h.ok, "text": h.text, "poses_after_forgery": poses,
+                     "bad_signatures": h.detail.bad_signatures - before},
+            "ok": h.ok and poses > 10}
+
+
+def mavlink_forged_timestamp_at_rover(short: bool) -> Result:
+    """The driver drives the emulated rover at 0.4 m/s on a signed link; the same forged packet is sent to the rover
+    from the driver's own address on the driver's signing stream; then the driver's genuine stop must reach the rover
+    promptly (the rover checks in the C library's order: signature, then timestamp). before (pymavlink's order in
+    the rover, --short): the rover stood after 3.05 s (it refused the driver's stream; its GUIDED timeout stopped
+    it), after: 0.17 s."""
+    from pymavlink import mavutil
+
+    from bridge.core.auth import make_key
+    from drivers import open_driver
+    from drivers.mavlink import MavlinkLinkConfig
+    from sim_learner.dynamics import mpc_learner
+    from sim_learner.mavlink_rover import MavlinkRover, signing_wall_clock
+    from sim_learner.vehicle import SimVehicle
+
+    mav = mavutil.mavlink
+    with tempfile.TemporaryDirectory() as d:
+        key_file = Path(d) / "mav.key"
+        key = make_key(key_file)
+        vehicle = SimVehicle(mpc_learner(), (0.0, 0.0, 0.0), now=time.monotonic())
+        with MavlinkRover(vehicle, init_s=0.1, ekf_position_s=0.2, signing_key=key) as rover:
+            driver = open_driver("mavlink", MavlinkLinkConfig(url=f"udpout:127.0.0.1:{rover.port}", open_timeout=10.0,
+                                                              signing_key_file=str(key_file)))
+            try:
+                driver.open(time.monotonic())
+                driver.engage(time.monotonic())
+                conn = driver.client.conn
+                forger, out = _signer(bytes(32), driver.config.source_system, conn.mav.srcComponent,
+                                      conn.mav.signing.link_id, signing_wall_clock() + _TEN_YEARS)
+                forger.heartbeat_send(mav.MAV_TYPE_GCS, mav.MAV_AUTOPILOT_INVALID, 0, 0, 0)
+                t_end = time.monotonic() + 0.5
+                while time.monotonic() < t_end:  # the genuine station drives it
+                    driver.send(0.4, 0.0, time.monotonic())
+                    driver.poll(time.monotonic())
+                    time.sleep(0.02)
+                speed = round(vehicle.advance(time.monotonic()).v, 3)
+                bad = rover.bad_signatures
+                conn.port.sendto(out.frames[0], ("127.0.0.1", rover.port))  # from the driver's own address
+                _until(lambda: rover.bad_signatures > bad, 2.0)
+                t0 = time.monotonic()  # the genuine stop, sent each poll until the rover stands
+                stopped = _until(lambda: vehicle.advance(time.monotonic()).v == 0.0, 4.0,
+                                 lambda: (driver.stop(time.monotonic()), driver.poll(time.monotonic())))
+                stop_s = round(time.monotonic() - t0, 2)
+            finally:
+                driver.close()
+    return {"reached_vehicle": {"speed_before_stop": speed, "stop_s": stop_s, "stopped": stopped}, "learned": None,
+            "ok": stopped and stop_s < 1.0 and speed > 0.1}
+
+
+def mavlink_replay_after_reboot(short: bool) -> Result:
+    """Signed traffic of a ground station (GUIDED, arm, a forward set-point) recorded off the wire while it took the
+    emulated rover, replayed after the rover rebooted: the rover keeps its signing timestamp in its storage (as
+    ArduPilot does) and starts a minute past it, so the recording is too old. before (no store: a rover that
+    forgets its timestamp at boot, as the emulated rover did on 791b027; --short): armed, GUIDED, 0.014 m in 0.3 s."""
+    import socket
+
+    from pymavlink import mavutil
+
+    from bridge.core.auth import make_key
+    from sim_learner.dynamics import mpc_learner
+    from sim_learner.mavlink_rover import GUIDED, MavlinkRover, signing_wall_clock
+    from sim_learner.vehicle import SimVehicle
+
+    mav = mavutil.mavlink
+
+    def boot(key: bytes, port: int, store: Path):
+        vehicle = SimVehicle(mpc_learner(), (0.0, 0.0, 0.0), now=time.monotonic())
+        rover = MavlinkRover(vehicle, port=port, init_s=0.1, ekf_position_s=0.2, signing_key=key, signing_store=store,
+                             signing_save_s=0.2).start()
+        _until(lambda: rover.has_origin(time.monotonic()) and rover.mode_name == "MANUAL", 3.0)
+        return rover, vehicle
+
+    def replay(frames: list[bytes], port: int) -> None:
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+            for f in frames:
+                s.sendto(f, ("127.0.0.1", port))
+                time.sleep(0.005)
+
+    with tempfile.TemporaryDirectory() as d:
+        key = make_key(Path(d) / "mav.key")
+        store = Path(d) / "rover-signing.json"
+        rover, vehicle = boot(key, 0, store)
+        port = rover.port
+        try:
+            gcs, out = _signer(key, 255, 190, 7, signing_wall_clock())
+            custom = mav.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED
+            gcs.command_long_send(rover.sysid, rover.compid, mav.MAV_CMD_DO_SET_MODE, 0, custom, GUIDED, 0, 0, 0, 0, 0)
+            gcs.command_long_send(rover.sysid, rover.compid, mav.MAV_CMD_COMPONENT_ARM_DISARM, 0, 1, 0, 0, 0, 0, 0, 0)
+            for _ in range(10):
+                gcs.set_position_target_local_ned_send(0, rover.sysid, rover.compid, mav.MAV_FRAME_BODY_NED, 0x05E7,
+                                                       0, 0, 0, 0.3, 0, 0, 0, 0, 0, 0, 0)
+            replay(out.frames, port)  # the genuine traffic, as the wire carried it: it takes the rover
+            potent = _until(lambda: rover.armed and vehicle.distance > 0.0, 2.0)
+            saves = rover.signing_saves
+            _until(lambda: rover.signing_saves > saves, 3.0)  # its periodic save (at a HEARTBEAT) after it
+        finally:
+            rover.stop()
+        rover, vehicle = boot(key, port, store)  # rebooted: the same storage
+        try:
+            bad = rover.bad_signatures
+            replay(out.frames, port)
+            _until(lambda: rover.bad_signatures >= bad + len(out.frames) or rover.armed, 2.0)
+            time.sleep(0.3 if short else 1.0)
+            reached = {"armed": rover.armed, "mode": rover.mode_name, "distance_m": round(vehicle.distance, 3)}
+            refused = rover.bad_signatures - bad
+        finally:
+            rover.stop()
+    return {"reached_vehicle": reached, "learned": None, "recording_took_the_rover": potent, "refused": refused,
+            "ok": potent and not reached["armed"] and reached["distance_m"] == 0.0 and reached["mode"] == "MANUAL"}
+
+
+# ------------------------------------------------------------------------------------- the estop latch on disk
+class _NullPub:
+    """Where the in-process host's applied, state and status go (these rows judge the vehicle, not the messages)."""
+
+    def put(self, data: bytes) -> None:
+        pass
+
+
+class _LatchRig:
+    """The emulated UDP robot on loopback and real DriverHosts for it, each a start of the host on a real state
+    directory (a restart is a new DriverHost on the same directory), driven in this process."""
+
+    def __init__(self) -> None:
+        from bridge.tools.procs import free_udp_port
+        from drivers.udp import UdpLinkConfig
+
+        bind = free_udp_port()
+        self.device, self.vehicle = _udp_robot(None, ("127.0.0.1", bind))
+        self.link_cfg = UdpLinkConfig(insecure=True, robot_port=self.device.port, bind_port=bind)
+        self.hosts: list = []
+
+    def host(self, latch: Path, saver: Callable[[Path, bytes], None] | None = None):
+        from bridge.core.paths import save_atomic
+        from bridge.nodes.driver_config import load_driver
+        from bridge.nodes.driver_host import DriverHost
+        from drivers import open_driver
+
+        cfg = load_driver(None)
+        host = DriverHost(cfg, "udp", open_driver("udp", self.link_cfg), "r1", cfg.driver.rate_hz, latch_path=latch,
+                          latch_saver=saver or save_atomic)
+        host.pubs = {k: _NullPub() for k in ("applied", "state", "status")}
+        host.driver.open(time.monotonic())
+        self.hosts.append(host)
+        return host
+
+    def stop(self, host) -> None:
+        host.driver.close(disarm=False, stop_timeout=0.0)
+        host.latch_writer.close(5.0)
+        self.hosts.remove(host)
+
+    def estop(self, host, engaged: bool = True) -> None:
+        """An operator's estop (or release, as the person's tool sends it: fresh, with its nonce), waited until
+        saved or failed."""
+        import threading
+
+        from bridge.core import wire as M
+        from bridge.core.acts import stamped
+
+        host.on_estop(stamped(M.Estop(stamp=time.monotonic(), engaged=engaged, source="operator", reason="attack")),
+                      time.monotonic())
+        done = threading.Event()
+        if host.latch_writer.defer(done.set):
+            done.wait(5.0)
+
+    def engage_and_drive(self, host, seconds: float) -> dict:
+        """Someone engages (a fresh request: the attack is on the disk, not on the request) and a station drives at
+        0.3 m/s for ``seconds``: what the robot did."""
+        from bridge.core import wire as M
+        from bridge.core.acts import stamped
+
+        ans = host.handle_engage(stamped(M.EngageRequest(stamp=time.monotonic(), source="operator")), time.monotonic())
+        start, epoch, seq = _here(self.vehicle), M.new_epoch(), 0
+        t_end = time.monotonic() + seconds
+        while time.monotonic() < t_end:
+            seq += 1
+            now = time.monotonic()
+            host.on_cmd(M.Command(stamp=now, seq=seq, v=0.3, omega=0.0, method="scm", epoch=epoch), now)
+            host.tick(now)
+            time.sleep(0.02)
+        host.tick(time.monotonic())
+        return {"engaged": ans.engaged, "distance_m": _moved(self.vehicle, start), "latched": host.gate.estopped,
+                "latched_by": host.gate.estop_source}
+
+    def control(self, host, seconds: float) -> float:
+        """The control: the person releases the estop (saved, signed) and the host engages and drives, so a row's
+        "0.0 m" is the latch's doing, not a rig that cannot drive; the metres driven."""
+        self.estop(host, engaged=False)
+        return self.engage_and_drive(host, seconds)["distance_m"]
+
+    def __enter__(self) -> _LatchRig:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        for host in list(self.hosts):
+            self.stop(host)
+        self.device.stop()
+
+
+def latch_disk_full_at_estop(short: bool) -> Result:
+    """The robot's disk is full when the operator's estop comes (the latch save fails with ENOSPC, injected as the
+    host's saver: the bench runs as root, which a read-only directory does not stop), then the host restarts on the
+    same state directory and someone engages. bridge/nodes/driver_host.py: the failed save removes the old (released)
+    file and refuses engage, so the restart finds the marker without a file: latched. before (``latch_saved``'s
+    handling off: the failure ignored, the old released file left; --short, two runs): engaged after the restart,
+    drove 0.073 m in 0.5 s both times."""
+    import errno
+    import os
+    import threading
+
+    from bridge.core.paths import save_atomic
+
+    full = threading.Event()
+
+    def saver(path: Path, data: bytes) -> None:
+        if full.is_set():
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(path))
+        save_atomic(path, data)
+
+    with tempfile.TemporaryDirectory() as d, _LatchRig() as rig:
+        latch = Path(d) / "state" / "estop-r1.bin"
+        host = rig.host(latch, saver)
+        full.set()
+        rig.estop(host)
+        refused_before_restart = not rig.engage_and_drive(host, 0.1)["engaged"]
+        rig.stop(host)
+        host = rig.host(latch, saver)
+        after = rig.engage_and_drive(host, 0.5 if short else 1.5)
+        full.clear()  # space freed: a person's release is saved, and the host drives again
+        control = rig.control(host, 0.3)
+    return {"reached_vehicle": after, "learned": None, "engage_refused_before_restart": refused_before_restart,
+            "control_drove_m": control,
+            "ok": not after["engaged"] and after["distance_m"] < 0.01 and refused_before_restart and control > 0.01}
+
+
+def latch_file_deleted(short: bool) -> Result:
+    """The operator latched the estop; while the host was stopped the latch file was deleted; the host restarts and
+    someone engages. The install marker beside it says this directory has an estop history: a missing file is
+    latched. before (``inspect_latch`` as a plain read: missing means never latched; --short, two runs): engaged,
+    drove 0.092 and 0.073 m in 0.5 s."""
+    with tempfile.TemporaryDirectory() as d, _LatchRig() as rig:
+        latch = Path(d) / "estop-r1.bin"
+        host = rig.host(latch)
+        rig.estop(host)
+        rig.stop(host)
+        latch.unlink()
+        host = rig.host(latch)
+        after = rig.engage_and_drive(host, 0.5 if short else 1.5)
+        control = rig.control(host, 0.3)
+    return {"reached_vehicle": after, "learned": None, "control_drove_m": control,
+            "ok": not after["engaged"] and after["distance_m"] < 0.01 and control > 0.01}
+
+
+def latch_file_forged_release(short: bool) -> Result:
+    """The operator latched the estop; while the host was stopped the latch file was replaced by a "released" one
+    this host did not sign (unsigned, a made-up tag, another state directory's host's own signed release, signed
+    with a random key); after each, the host restarts and someone engages. Only a release under the robot's latch
+    key (its install marker, 0600) is believed. before (``inspect_latch`` as a plain read: any file saying released
+    believed; --short, two runs): engaged on 4 of 4, drove 0.061 and 0.048 m in all (0.15 s each)."""
+    import os
+
+    from bridge.core import wire as M
+    from bridge.nodes.driver_host import Latch, sign_latch
+
+    engaged, moved = 0, 0.0
+    with tempfile.TemporaryDirectory() as d, _LatchRig() as rig:
+        latch, other = Path(d) / "a" / "estop-r1.bin", Path(d) / "b" / "estop-r1.bin"
+        rig.stop(rig.host(other))  # another state directory's host: its own key, a released file it signed
+        host = rig.host(latch)
+        rig.estop(host)
+        rig.stop(host)
+        forged = [M.encode(Latch(latched=False, source="operator")),
+                  M.encode(Latch(latched=False, source="operator", tag=os.urandom(16))),
+                  other.read_bytes(),
+                  M.encode(sign_latch(os.urandom(32), Latch(latched=False, source="operator")))]
+        for data in forged:
+            latch.write_bytes(data)
+            host = rig.host(latch)
+            after = rig.engage_and_drive(host, 0.15 if short else 0.5)
+            engaged += after["engaged"]
+            moved += after["distance_m"]
+            rig.stop(host)
+        control = rig.control(rig.host(latch), 0.8)  # (a new host: the robot follows its epoch 0.3 s after the last)
+    return {"reached_vehicle": {"engaged": engaged, "of": len(forged), "distance_m": round(moved, 3)},
+            "learned": None, "control_drove_m": control, "ok": engaged == 0 and moved < 0.01 and control > 0.01}
+
+
+def latch_other_state_dir(short: bool) -> Result:
+    """The operator latched the estop; the host restarts with another (empty) state directory (a changed
+    SCMBRIDGE_STATE_DIR). It cannot know of the estop latched in the first one; what it must do is say so, at start:
+    "first start in this state directory: no estop history" (log, and ``scmbridge doctor``), once. before
+    (791b027's DriverHost, the same two directories): released, and nothing logged."""
+    import logging
+
+    class _Said(logging.Handler):
+        def __init__(self) -> None:
+            super().__init__(logging.INFO)
+            self.texts: list[str] = []
+
+        def emit(self, record: logging.LogRecord) -> None:
+            self.texts.append(record.getMessage())
+
+    said = _Said()
+    logger = logging.getLogger("scmbridge.driver")
+    level = logger.level
+    logger.addHandler(said)
+    logger.setLevel(logging.INFO)
+    try:
+        with tempfile.TemporaryDirectory() as d, _LatchRig() as rig:
+            first = rig.host(Path(d) / "one" / "estop-r1.bin")
+            rig.estop(first)
+            rig.stop(first)
+            said.texts.clear()
+            other = rig.host(Path(d) / "two" / "estop-r1.bin")
+            told = any("first start in this state directory: no estop history" in t for t in said.texts)
+            fresh = other.fresh_state
+            rig.stop(other)
+    finally:
+        logger.removeHandler(said)
+        logger.setLevel(level)
+    return {"reached_vehicle": None, "learned": None, "said_no_estop_history": told, "fresh_state": fresh,
+            "ok": told and fresh}
+
+
+# ------------------------------------------------------------------------------------ who may act, over Zenoh
+class _ZenohHost:
+    """A router session on a free loopback port; a real DriverHost for the emulated UDP robot serving on a client
+    session of it (its own thread, as ``scmbridge driver`` runs); a state directory of its own; the attacker's
+    client session; a subscriber counting what the host applied."""
+
+    def __enter__(self) -> _ZenohHost:
+        import threading
+
+        from bridge.core import wire as M
+        from bridge.nodes.driver_config import load_driver
+        from bridge.nodes.driver_host import DriverHost
+        from bridge.nodes.zsession import free_port, make_config, open_session, tcp
+        from bridge.tools.procs import free_udp_port
+        from drivers import open_driver
+        from drivers.udp import UdpLinkConfig
+
+        self.robot = f"atk{uuid.uuid4().hex[:8]}"
+        self.keys = M.Keys(self.robot)
+        self.lock = threading.Lock()
+        self.applied: list = []
+        self.stop = threading.Event()
+        self.stack = contextlib.ExitStack()  # everything started, closed in reverse (also when a start fails)
+        try:
+            state = Path(self.stack.enter_context(tempfile.TemporaryDirectory()))
+            port = free_port()
+            self.router = self.stack.enter_context(open_session(make_config(mode="router", listen=[tcp(port)])))
+            self.client = lambda: open_session(make_config(mode="client", connect=[tcp(port)]))
+            bind = free_udp_port()
+            self.device, self.vehicle = _udp_robot(None, ("127.0.0.1", bind))
+            self.stack.callback(self.device.stop)
+            self.sub = self.router.declare_subscriber(self.keys.applied, self._on_applied)
+            self.stack.callback(self.sub.undeclare)
+            cfg = load_driver(None)
+            link = open_driver("udp", UdpLinkConfig(insecure=True, robot_port=self.device.port, bind_port=bind))
+            self.host = DriverHost(cfg, "udp", link, self.robot, cfg.driver.rate_hz, latch_path=state / "estop.bin")
+            host_session = self.stack.enter_context(self.client())
+            self.thread = threading.Thread(target=self.host.serve, args=(host_session, self.stop, None),
+                                           name="attack-driver-host", daemon=True)
+            self.thread.start()
+            self.stack.callback(self._stop_host)
+            _until(lambda: self.host.ticker is not None, 10.0)
+            self.attacker = self.stack.enter_context(self.client())
+        except BaseException:
+            self.stack.close()
+            raise
+        return self
+
+    def _stop_host(self) -> None:
+        self.stop.set()
+        self.thread.join(timeout=10.0)
+        self.host.close()
+
+    def _on_applied(self, sample) -> None:
+        from bridge.core import wire as M
+
+        a = M.decode(sample.payload.to_bytes(), M.Applied)
+        with self.lock:
+            self.applied.append((time.monotonic(), a))
+
+    def since(self, t0: float) -> list:
+        with self.lock:
+            return [a for t, a in self.applied if t > t0]
+
+    def engage(self, payload: bytes):
+        """One query on the engage key (sent once: a retry would not be a replay): the host's answer."""
+        from bridge.core import wire as M
+
+        for reply in self.attacker.get(self.keys.engage, payload=payload, timeout=5.0):
+            if reply.ok is not None:
+                return M.decode(reply.ok.payload.to_bytes(), M.EngageState)
+        return None
+
+    def __exit__(self, *exc: object) -> None:
+        self.stack.close()
+
+
+class _Station:
+    """A station-like sender on its own client session: one epoch, commands (v, 0) at 20 Hz; optionally a forger
+    beside it that copies each command at seq + 1 with other velocities (the epoch is readable off the network)."""
+
+    def __init__(self, rig: _ZenohHost, v: float) -> None:
+        import threading
+
+        self.rig, self.v = rig, v
+        self.stop = threading.Event()
+        self.thread = threading.Thread(target=self._run, name="attack-station", daemon=True)
+
+    def _run(self) -> None:
+        from bridge.core import wire as M
+
+        with self.rig.client() as s:
+            pub = s.declare_publisher(self.rig.keys.cmd)
+            epoch, seq = M.new_epoch(), 0
+            while not self.stop.wait(0.05):
+                seq += 1
+                pub.put(M.encode(M.Command(stamp=time.monotonic(), seq=seq, v=self.v, omega=0.0, method="scm",
+                                           sender="station", epoch=epoch)))
+
+    def __enter__(self) -> _Station:
+        self.thread.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop.set()
+        self.thread.join(timeout=5.0)
+
+
+def replayed_engage_and_release(short: bool) -> Result:
+    """Over Zenoh, with a station publishing commands: a person's engage and a person's estop release, recorded off
+    the network, replayed after the person handed the robot back / latched the estop again; the same requests
+    stamped a minute ago; and old-format ones (no time, no nonce). bridge/core/acts.ActGuard takes a request fresh
+    and once. before (``ActGuard.check`` off, --short, two runs): the replayed, the stale and the old-format release
+    each released the latch and each engage engaged; 34 and 32 ticks drove, 0.151 and 0.152 m."""
+    from bridge.core import wire as M
+    from bridge.core.acts import stamped
+
+    out: dict = {}
+    with _ZenohHost() as rig, _Station(rig, 0.3):
+        engage = M.encode(stamped(M.EngageRequest(stamp=1.0, source="operator")))  # recorded
+        ans = rig.engage(engage)
+        first = {"engage_engaged": bool(ans and ans.engaged)}  # the recording is potent
+        release = M.encode(stamped(M.Estop(stamp=1.0, engaged=False, source="operator")))
+        rig.attacker.put(rig.keys.estop, M.encode(M.Estop(stamp=1.0, source="operator", reason="attack")))
+        _until(lambda: rig.host.gate.estopped, 2.0)
+        rig.attacker.put(rig.keys.estop, release)  # the person's release, recorded off the network
+        first["release_released"] = _until(lambda: not rig.host.gate.estopped, 2.0)
+        # the person hands the robot back and latches the estop: the robot is parked
+        rig.engage(M.encode(M.EngageRequest(stamp=1.0, engaged=False, source="operator")))
+        rig.attacker.put(rig.keys.estop, M.encode(M.Estop(stamp=1.0, source="operator", reason="parked")))
+        _until(lambda: rig.host.gate.estopped, 2.0)
+        start, t0 = _here(rig.vehicle), time.monotonic()
+        stale = dict(stamp=1.0, wall_time=time.time() - 60.0)
+        for kind, rel, eng in (
+                ("replayed", release, engage),
+                ("stale", M.encode(M.Estop(engaged=False, source="operator", nonce=M.new_nonce(), **stale)),
+                 M.encode(M.EngageRequest(source="operator", nonce=M.new_nonce(), **stale))),
+                ("unstamped", M.encode(M.Estop(stamp=1.0, engaged=False, source="operator")),
+                 M.encode(M.EngageRequest(stamp=1.0, source="operator")))):
+            rig.attacker.put(rig.keys.estop, rel)
+            time.sleep(0.1)
+            ans = rig.engage(eng)
+            out[kind] = {"released": not rig.host.gate.estopped, "engaged": bool(ans and ans.engaged)}
+        time.sleep(0.3 if short else 1.0)
+        moved = _moved(rig.vehicle, start)
+        driven = sum(a.v != 0.0 for a in rig.since(t0))
+        refused = {k: v for k, v in rig.host.inputs.snapshot().items() if "refused" in k and v}
+        # the control: the person's own tool (fresh, a new nonce) releases and engages, and the station drives
+        rig.attacker.put(rig.keys.estop, M.encode(stamped(M.Estop(stamp=1.0, engaged=False, source="operator"))))
+        _until(lambda: not rig.host.gate.estopped, 2.0)
+        ans = rig.engage(M.encode(stamped(M.EngageRequest(stamp=1.0, source="operator"))))
+        t1 = time.monotonic()
+        control = bool(ans and ans.engaged) and _until(lambda: any(a.v != 0.0 for a in rig.since(t1)), 2.0)
+    took = any(r["released"] or r["engaged"] for r in out.values())
+    return {"reached_vehicle": {"distance_m": moved, "ticks_driven": driven, **out}, "learned": None,
+            "refused": refused, "when_first_sent": first, "control_drives": control,
+            "ok": not took and moved < 0.01 and driven == 0 and all(first.values()) and control}
+
+
+def forger_at_seq_plus_one(short: bool) -> Result:
+    """Over Zenoh, while the station drives the engaged robot at 0.2 m/s: a forger hears each command and publishes
+    a copy at seq + 1 (the station's epoch) with v = 0.45, 1 ms after it. The real command then comes at a seq
+    already taken with other content: two senders on one epoch, a conflict that stops the robot while it lasts.
+    before (the gate's conflict check off, --short, two runs): 50 of 50 and 49 of 49 ticks applied the forger's
+    0.45 m/s; status ok."""
+    import threading
+
+    from bridge.core import wire as M
+    from bridge.core.acts import stamped
+
+    with _ZenohHost() as rig, _Station(rig, 0.2):
+        rig.engage(M.encode(stamped(M.EngageRequest(stamp=1.0, source="operator"))))
+        drove = _until(lambda: any(a.v == 0.2 for a in rig.since(0.0)), 3.0)  # the station drives it
+        sent = [0]
+        stop = threading.Event()
+        with rig.client() as s:
+            pub = s.declare_publisher(rig.keys.cmd)
+
+            def on_cmd(sample) -> None:
+                c = M.decode(sample.payload.to_bytes(), M.Command)
+                if stop.is_set() or c.v == 0.45:
+                    return
+                pub.put(M.encode(M.Command(stamp=c.stamp + 0.001, seq=c.seq + 1, v=0.45, omega=0.5, method=c.method,
+                                           sender=c.sender, epoch=c.epoch)))
+                sent[0] += 1
+
+            sub = s.declare_subscriber(rig.keys.cmd, on_cmd)
+            t0 = time.monotonic()
+            _until(lambda: sent[0] > 0, 2.0)
+            time.sleep(1.0 if short else 3.0)
+            stop.set()
+            sub.undeclare()
+        during = rig.since(t0 + 0.2)  # from a few ticks after the first forgery
+        status = rig.host.status(time.monotonic())
+    forged = sum(a.v == 0.45 for a in during)
+    return {"reached_vehicle": {"ticks": len(during), "forged_applied": forged,
+                                "stopped_for_conflict": sum(a.reason == "conflict" for a in during)},
+            "learned": None, "forged_sent": sent[0], "station_drove_first": drove,
+            "status": {"ok": status.ok, "reason": status.reason}, "ok": forged == 0 and len(during) > 10 and sent[0] > 5
+            and drove}
+
+
+def mission_after_goal(short: bool) -> Result:
+    """A real station (bridge/nodes/station.py, its loop on a client session of a router on a free port) whose
+    mission reached its goal ("finished"); an attacker's session publishes a MissionSpec on ``scm/<robot>/mission``
+    (anyone may on the loopback default) and asks the station's ``control`` for its phase: the new mission must
+    load idle, and only a person's start drives. before (791b027's ``MissionControl.replace``: a finished mission
+    goes on with the new goal; two runs): phase "running" both times: the station drives with no person's act."""
+    import threading
+
+    from bridge.core import wire as M
+    from bridge.core.config import StationConfig, load_mission, load_mission_spec
+    from bridge.nodes.mission_control import MissionControl
+    from bridge.nodes.station import Station
+    from bridge.nodes.zsession import free_port, make_config, open_session, tcp
+
+    robot, port = f"atk{uuid.uuid4().hex[:8]}", free_port()
+    stop = threading.Event()
+    with contextlib.ExitStack() as stack:
+        d = Path(stack.enter_context(tempfile.TemporaryDirectory()))
+        stack.enter_context(open_session(make_config(mode="router", listen=[tcp(port)])))
+        station = Station(StationConfig(), robot, 10.0, d / "pairs.bin", load_mission(),
+                          control=MissionControl(robot, load_mission_spec(), "finished"))
+        stack.callback(station.persist)  # (closes its writer thread; the save goes to the temporary directory)
+        session = stack.enter_context(open_session(make_config(mode="client", connect=[tcp(port)])))
+        loop = threading.Thread(target=station.serve, args=(session, stop, None, False, False), name="attack-station",
+                                daemon=True)
+        loop.start()
+        stack.callback(loop.join, 10.0)
+        stack.callback(stop.set)
+        _until(lambda: station.looping, 10.0)
+        attacker = stack.enter_context(open_session(make_config(mode="client", connect=[tcp(port)])))
+
+        def ask() -> M.MissionState | None:
+            for reply in attacker.get(M.key(robot, "control"), timeout=5.0,
+                                      payload=M.encode(M.MissionRequest(stamp=1.0, action="status"))):
+                if reply.ok is not None:
+                    return M.decode(reply.ok.payload.to_bytes(), M.MissionState)
+            return None
+
+        first = ask()
+        attacker.put(M.key(robot, "mission"), M.encode(M.MissionSpec(name="attacker", path=[[0.0, 0.0], [2.0, 0.0]])))
+        after, t_end = None, time.monotonic() + (2.0 if short else 5.0)
+        while time.monotonic() < t_end:  # until the station has taken it (its next tick)
+            after = ask()
+            if after is not None and after.mission == "attacker":
+                break
+            time.sleep(0.05)
+        taken = after is not None and after.mission == "attacker"
+    phase = after.phase if after is not None else "no answer"
+    return {"reached_vehicle": {"phase": phase, "station_drives": phase == "running"}, "learned": None,
+            "phase_before": first.phase if first is not None else "no answer", "mission_taken": taken,
+            "said": (after.reason if after is not None else "")[:120],
+            "ok": taken and phase == "idle" and first is not None and first.phase == "finished"}
+
+
 ATTACKS: dict[str, Callable[[bool], Result]] = {
     f.__name__: f for f in (forged_command_in_epoch, udp_spoof, mavlink_unsigned, estop_forgotten_on_restart,
                             forged_state_stamp, forged_state_and_applied, poisoned_store, can_odometry,
-                            mocap_forged_sample, second_station)}
+                            mocap_forged_sample, second_station, udp_replay_after_reboot, udp_held_back_commands,
+                            mavlink_forged_timestamp_at_driver, mavlink_forged_timestamp_at_rover,
+                            mavlink_replay_after_reboot, latch_disk_full_at_estop, latch_file_deleted,
+                            latch_file_forged_release, latch_other_state_dir, replayed_engage_and_release,
+                            forger_at_seq_plus_one, mission_after_goal)}
 
 
 def run_all(short: bool = False, names: list[str] | None = None) -> dict:
