@@ -62,8 +62,10 @@ driver that is wrong about the vehicle. Paths are in github.com/ArduPilot/ardupi
   key: the store keeps a digest of the key beside the timestamp) the key counts as just set by SETUP_SIGNING from a
   ground station, whose ``initial_timestamp`` is its wall clock; it is saved then.
 * Parameters (Rover/Parameters.cpp defaults: FS_ACTION 2 = Hold, FS_TIMEOUT 1.5 s, FS_GCS_ENABLE 0, FS_GCS_TIMEOUT 5 s;
-  SYSID_MYGCS 255): PARAM_REQUEST_READ by name (index -1) or index, and PARAM_REQUEST_LIST, answered with PARAM_VALUE
-  (REAL32); an unknown name gets no answer, as in AP_Param.
+  SYSID_MYGCS 255; and what it models under Rover's names: WP_SPEED = ``wp_speed``, ATC_STR_RAT_MAX = ``str_rat_max``
+  in deg/s, ATC_DECEL_MAX = ``decel_max``, as a ground station reads the learner's range): PARAM_REQUEST_READ by
+  name (index -1) or index, and PARAM_REQUEST_LIST, answered with PARAM_VALUE (REAL32); an unknown name gets no
+  answer, as in AP_Param.
 * GCS failsafe (Rover/Rover.cpp ``gcs_failsafe_check``, Rover/failsafe.cpp ``failsafe_trigger``): with FS_GCS_ENABLE
   set, no HEARTBEAT from the ground station (system SYSID_MYGCS) for FS_GCS_TIMEOUT starts the failsafe; if it
   persists FS_TIMEOUT while armed, FS_ACTION is taken (1 RTL, modelled as Hold since RTL is not; 2 Hold; 0 nothing)
@@ -228,7 +230,10 @@ class MavlinkRover(ThreadedDevice):
         self.custom_mode = INITIALISING
         self.armed = False
         self.safety_switch = False  # True: the hardware safety switch is still on, arming refused
-        self.params: dict[str, float] = {**PARAM_DEFAULTS, **(params or {})}
+        # what it models is readable under Rover's names (a ground station reads the learner's range from them)
+        modelled = {"WP_SPEED": float(wp_speed), "ATC_STR_RAT_MAX": math.degrees(float(str_rat_max)),
+                    "ATC_DECEL_MAX": float(decel_max)}
+        self.params: dict[str, float] = {**PARAM_DEFAULTS, **modelled, **(params or {})}
         self.decel_max, self.coast_decel = float(decel_max), float(coast_decel)
         self.slowing_at: float | None = None  # the body slows down by itself since then (braking or coasting)
         self.disarms: list[tuple[float, float]] = []  # (time, body speed) of every disarm, for tests
