@@ -86,8 +86,8 @@ one run each): mode names and numbers, the COMMAND_ACKs (an unknown mode: FAILED
 GUIDED timeout (its text 2.9 s after the last set-point on both), FS_ACTION 2 / FS_TIMEOUT 1.5 / FS_GCS_ENABLE 0 and
 a stopped rover after HOLD agree. What differs, and stays so on purpose:
 
-* Boot: SITL reaches a healthy EKF in ~4 s of wall time at speedup 10 (its GPS comes at 9.6 s at speedup 1); here ``init_s`` and
-  ``ekf_position_s`` (0.3 s and 1 s by default) so that tests are fast.
+* Boot: SITL reaches a healthy EKF in ~4 s of wall time at speedup 10 (its GPS comes at 9.6 s at speedup 1); here
+  ``init_s`` and ``ekf_position_s`` (0.3 s and 1 s by default) so that tests are fast.
 * Braking: SITL brakes at ATC_ACCEL_MAX (1 m/s^2; ATC_DECEL_MAX 0 means "the same") behind its speed filter: 0.6 m/s
   to below 0.05 m/s in 0.95 s on a zero set-point, 0.75 s on HOLD, GUIDED timeout to stopped 3.75 s; here
   ``decel_max`` 2 m/s^2 by default (0.4 s, 0.31 s, 3.2 s). Tests that need the firmware's figure pass

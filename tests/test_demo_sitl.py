@@ -64,7 +64,7 @@ def half_s_path() -> MissionSpec:
 
 
 @pytest.mark.sitl
-@pytest.mark.timeout(150)
+@pytest.mark.timeout(120)
 def test_a_transfer_run_on_sitl_reaches_the_goal_of_the_first_bend_without_collision(tmp_path) -> None:
     """``scmbridge demo --sitl`` as a person runs it, with the weak profile, transfer on, from no pairs at all."""
     binary = find_sitl()
@@ -79,7 +79,7 @@ def test_a_transfer_run_on_sitl_reaches_the_goal_of_the_first_bend_without_colli
     done = subprocess.run([sys.executable, "-m", "bridge", "demo", "--link", "mavlink", "--sitl", str(binary),
                            "--sitl-params", str(ROOT / "deploy" / "examples" / "sitl-weak.parm"), "--transfer", "on",
                            "--mission", str(mission), "--duration", "60", "--out", str(tmp_path / "out")],
-                          capture_output=True, text=True, timeout=140, cwd=ROOT)
+                          capture_output=True, text=True, timeout=100, cwd=ROOT)  # 45-47 s (3 runs)
     wall = time.monotonic() - t0
     lines = [ln for ln in done.stdout.splitlines() if ln.startswith("summary: ")]
     assert lines, f"no summary after {wall:.0f} s: {done.stdout[-1500:]}{done.stderr[-1500:]}"
