@@ -58,15 +58,15 @@ demo: $(STAMP)
 
 # The suite mostly waits on real time (stations at 10 Hz, links, deadmen): three workers share two cores well.
 TEST_WORKERS ?= 3
-# The tests against ArduPilot's Rover SITL are `make test-sitl` (28 s on three workers, 55 s on one): the suite
+# The tests against ArduPilot's Rover SITL are `make test-sitl` (102 s on one worker with the transfer run): the suite
 # alone already takes 5 min 47 s of its 6.
 test: $(STAMP)
 	$(VENV)/bin/ruff check .
 	$(PY) -m pytest -q -n $(TEST_WORKERS) -m "not sitl" $(PYTEST_ARGS)
 
-# tests/test_sitl.py: the driver host against ArduPilot's real Rover firmware in SITL, found at
-# shared/sitl/ardurover beside the repository (or further up) or $$SCMBRIDGE_SITL; here a missing binary fails, never
-# skips.
+# tests/test_sitl.py, tests/test_demo_sitl.py: the driver host and one transfer run against ArduPilot's real Rover
+# firmware in SITL, found at shared/sitl/ardurover beside the repository (or further up) or $$SCMBRIDGE_SITL; here a
+# missing binary fails, never skips.
 test-sitl: $(STAMP)
 	SCMBRIDGE_SITL_REQUIRED=1 $(PY) -m pytest -q -n $(TEST_WORKERS) -m sitl $(PYTEST_ARGS)
 

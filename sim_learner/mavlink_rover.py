@@ -43,7 +43,7 @@ driver that is wrong about the vehicle. Paths are in github.com/ArduPilot/ardupi
   rover coasts, slowing at ``coast_decel`` m/s^2 (friction). Other targets are taken at once (the learner's response
   models its dynamics).
 * GUID_TIMEOUT (Rover/mode_guided.cpp): no new target for ``guid_timeout`` s (3 by default) -> STATUSTEXT "target not
-  received last 3.0 secs, stopping" and a stop.
+  received last 3secs, stopping" (the firmware's words, as SITL sends them) and a stop.
 * Signing (libraries/GCS_MAVLink/GCS_Signing.cpp, as SETUP_SIGNING leaves it): with ``signing_key``, every message
   it sends is signed, and a message that is unsigned (other than RADIO_STATUS / RADIO), badly signed or whose
   signature timestamp goes back on its stream is refused before it is handled (counted in ``bad_signatures``). The
@@ -62,8 +62,10 @@ driver that is wrong about the vehicle. Paths are in github.com/ArduPilot/ardupi
   key: the store keeps a digest of the key beside the timestamp) the key counts as just set by SETUP_SIGNING from a
   ground station, whose ``initial_timestamp`` is its wall clock; it is saved then.
 * Parameters (Rover/Parameters.cpp defaults: FS_ACTION 2 = Hold, FS_TIMEOUT 1.5 s, FS_GCS_ENABLE 0, FS_GCS_TIMEOUT 5 s;
-  SYSID_MYGCS 255): PARAM_REQUEST_READ by name (index -1) or index, and PARAM_REQUEST_LIST, answered with PARAM_VALUE
-  (REAL32); an unknown name gets no answer, as in AP_Param.
+  SYSID_MYGCS 255; and what it models under Rover's names: WP_SPEED = ``wp_speed``, ATC_STR_RAT_MAX = ``str_rat_max``
+  in deg/s, ATC_DECEL_MAX = ``decel_max``, as a ground station reads the learner's range): PARAM_REQUEST_READ by
+  name (index -1) or index, and PARAM_REQUEST_LIST, answered with PARAM_VALUE (REAL32); an unknown name gets no
+  answer, as in AP_Param.
 * GCS failsafe (Rover/Rover.cpp ``gcs_failsafe_check``, Rover/failsafe.cpp ``failsafe_trigger``): with FS_GCS_ENABLE
   set, no HEARTBEAT from the ground station (system SYSID_MYGCS) for FS_GCS_TIMEOUT starts the failsafe; if it
   persists FS_TIMEOUT while armed, FS_ACTION is taken (1 RTL, modelled as Hold since RTL is not; 2 Hold; 0 nothing)
@@ -77,6 +79,26 @@ driver that is wrong about the vehicle. Paths are in github.com/ArduPilot/ardupi
   at its scheduler tick (``GCS::update_receive``, 400 Hz in Rover/Rover.cpp) and only while the port is connected, and
   EOF marks the port disconnected at once. So a command that arrives just before its sender closes the socket is
   never handled (a disarm sent by a driver that closes without waiting for the ACK).
+
+Measured against the firmware itself (ArduPilot Rover 4.7.0-dev SITL, rover-skid, stock parameters, 2026-11-27; the
+same scenarios run on both in tests/test_sitl.py, and the figures below with a ground station on each vehicle's link,
+one run each): mode names and numbers, the COMMAND_ACKs (an unknown mode: FAILED, then "No such mode 77"), the
+GUIDED timeout (its text 2.9 s after the last set-point on both), FS_ACTION 2 / FS_TIMEOUT 1.5 / FS_GCS_ENABLE 0 and
+a stopped rover after HOLD agree. What differs, and stays so on purpose:
+
+* Boot: SITL reaches a healthy EKF in ~4 s of wall time at speedup 10 (its GPS comes at 9.6 s at speedup 1); here
+  ``init_s`` and ``ekf_position_s`` (0.3 s and 1 s by default) so that tests are fast.
+* Braking: SITL brakes at ATC_ACCEL_MAX (1 m/s^2; ATC_DECEL_MAX 0 means "the same") behind its speed filter: 0.6 m/s
+  to below 0.05 m/s in 0.95 s on a zero set-point, 0.75 s on HOLD, GUIDED timeout to stopped 3.75 s; here
+  ``decel_max`` 2 m/s^2 by default (0.4 s, 0.31 s, 3.2 s). Tests that need the firmware's figure pass
+  ``decel_max=1.0``.
+* Coasting: SITL's simulated body has no inertia of its own (its speed follows the throttle with a ~0.3 s lag), so a
+  rover disarmed at 0.6 m/s is still in 0.67 s, faster than it brakes; here it coasts at ``coast_decel`` 0.3 m/s^2
+  (1.9 s), as a real rover rolls on: a driver that disarms before the rover stops is caught here, not in SITL.
+* Parameters: SITL answers every parameter of the firmware; here only FS_*, WP_SPEED, ATC_STR_RAT_MAX,
+  ATC_DECEL_MAX and SYSID_MYGCS, which Rover 4.7 no longer has (SITL gives no PARAM_VALUE for it).
+* The pilot: SITL has a ground station port (SERIAL0) beside the driver's; here there is one link, and the person's
+  switches are :meth:`rc_mode_switch` / :meth:`rc_arm`.
 
 The operator's side: :meth:`rc_mode_switch` and :meth:`rc_arm` do what a transmitter's mode switch and arming switch
 do; :meth:`radio_blackout` cuts the link both ways; :meth:`foreign` sends as another system on the same link. Frames:
@@ -228,7 +250,10 @@ class MavlinkRover(ThreadedDevice):
         self.custom_mode = INITIALISING
         self.armed = False
         self.safety_switch = False  # True: the hardware safety switch is still on, arming refused
-        self.params: dict[str, float] = {**PARAM_DEFAULTS, **(params or {})}
+        # what it models is readable under Rover's names (a ground station reads the learner's range from them)
+        modelled = {"WP_SPEED": float(wp_speed), "ATC_STR_RAT_MAX": math.degrees(float(str_rat_max)),
+                    "ATC_DECEL_MAX": float(decel_max)}
+        self.params: dict[str, float] = {**PARAM_DEFAULTS, **modelled, **(params or {})}
         self.decel_max, self.coast_decel = float(decel_max), float(coast_decel)
         self.slowing_at: float | None = None  # the body slows down by itself since then (braking or coasting)
         self.disarms: list[tuple[float, float]] = []  # (time, body speed) of every disarm, for tests
@@ -727,7 +752,7 @@ class MavlinkRover(ThreadedDevice):
             self._set_mode(self.initial_mode, now)  # INITIAL_MODE, whatever was set during boot
         if self.target is not None and now - self.target_time > self.guid_timeout:
             self.target = None
-            self._text(f"target not received last {self.guid_timeout:.1f} secs, stopping")
+            self._text(f"target not received last {self.guid_timeout:g}secs, stopping")  # SITL: "last 3secs"
             self._slow_down(now)
         elif self.slowing_at is not None:
             self._slow_down(now)

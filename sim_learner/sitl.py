@@ -410,7 +410,11 @@ class Sitl:
         self.binary = found
         self.model = model
         self.params = dict(params or {})
-        self.parm_files = [Path(p) for p in parm_files]
+        # absolute: SITL runs in its own directory, and a defaults file it cannot read is a PANIC
+        self.parm_files = [Path(p).resolve() for p in parm_files]
+        for p in self.parm_files:
+            if not p.is_file():
+                raise SitlError(f"no parameter file {p}")
         self.boot_speedup = boot_speedup
         self.boot_timeout = boot_timeout
         self.instance = instance
@@ -507,18 +511,26 @@ class Sitl:
         def left() -> float:
             if self.proc is None or self.proc.poll() is not None:
                 raise SitlError(f"SITL exited while booting: {self.log_tail(600)}")
+            if "PANIC" in self.log_tail(4000):  # it panics and then spins (e.g. a defaults file it cannot parse)
+                raise SitlError(f"SITL panicked while booting: {self.log_tail(600)}")
             return max(0.0, deadline - time.monotonic())
 
-        if not pilot.wait(lambda s: s.heartbeats > 0, left()):
+        def until(pred: Callable[[_State], bool]) -> bool:
+            """``pilot.wait`` in half-second slices, so that a SITL that died or panicked is seen at once."""
+            while (rest := left()) > 0:
+                if pilot.wait(pred, min(0.5, rest)):
+                    return True
+            return False
+
+        if not until(lambda s: s.heartbeats > 0):
             raise SitlError(f"SITL boot: no HEARTBEAT on {pilot.url} within {self.boot_timeout} s")
         for msg_id, hz in ((MAV.MAVLINK_MSG_ID_LOCAL_POSITION_NED, 20), (MAV.MAVLINK_MSG_ID_ATTITUDE, 20),
                            (MAV.MAVLINK_MSG_ID_VFR_HUD, 10), (MAV.MAVLINK_MSG_ID_EKF_STATUS_REPORT, 2)):
             pilot.interval(msg_id, hz)  # in vehicle time: faster in wall time while booting
-        if not pilot.wait(lambda s: s.position is not None, left()):
+        if not until(lambda s: s.position is not None):
             raise SitlError(f"SITL boot: no LOCAL_POSITION_NED (no EKF origin) within {self.boot_timeout} s; "
                             f"vehicle said {pilot.texts()[-4:]}")
-        if not pilot.wait(lambda s: s.ekf_flags & EKF_POS_HORIZ_ABS and s.mode not in ("INITIALISING", "unknown"),
-                          left()):
+        if not until(lambda s: s.ekf_flags & EKF_POS_HORIZ_ABS and s.mode not in ("INITIALISING", "unknown")):
             raise SitlError(f"SITL boot: the EKF has no absolute position (GPS) within {self.boot_timeout} s; "
                             f"vehicle said {pilot.texts()[-4:]}")
         pilot.set_param("SIM_SPEEDUP", 1.0, timeout=min(5.0, left()))

@@ -166,7 +166,7 @@ def test_rover_stops_when_set_points_stop() -> None:
         assert vehicle.advance(time.monotonic()).v > 0
         wait_for(driver, lambda: False, 1.0)  # > GUID_TIMEOUT (0.6 s here; ArduPilot's 3 s by default)
         assert vehicle.advance(time.monotonic()).v == 0.0
-        assert "target not received last 0.6 secs, stopping" in rover.statustexts
+        assert "target not received last 0.6secs, stopping" in rover.statustexts  # the firmware's words
         assert MavlinkRover(vehicle).guid_timeout == 3.0
 
 
