@@ -380,6 +380,8 @@ def test_mavlink2_signing_the_keyed_host_drives_an_unsigned_third_link_does_not(
     assert counters["link_bad_signatures"] == 0, counters  # every message from the vehicle carried the key
 
 
+@pytest.mark.sitl
+@pytest.mark.parametrize("sitl", ["sitl"], indirect=True)  # the real one (the emulator: test_mavlink_signing.py)
 def test_one_forged_packet_with_a_far_future_timestamp_does_not_block_the_real_autopilots_signed_link(
         tmp_path, rig: Rig) -> None:
     """The reference for the emulated rover's and the driver's fix (docs/SECURITY.md, "MAVLink: a forged packet
