@@ -31,6 +31,11 @@ STATION_BAD = [
     ("[teacher_bounds]\nv = [0.05, true]\nw = [-1, 1]\n", "teacher_bounds.v[1]", "expected a number"),
     ("station = 3\n", "station", "expected a table"),
     ("[stations]\nrate_hz = 10\n", "stations", "did you mean 'station'"),
+    # a dict's values and keys (these were msgspec tracebacks while the validator walked the types by hand)
+    ('[fleet.shards]\nbase1 = ["a/b"]\n', "fleet.shards.base1[0]", "'a/b' does not match"),
+    ('[fleet.shards]\n"a b" = ["r1"]\n', "fleet.shards", "key 'a b' does not match"),
+    ("[fleet]\nshards = 3\n", "fleet.shards", "expected a table, got a whole number"),
+    ("[fleet.shards]\nbase1 = []\n", "fleet", "serves no robot"),
 ]
 DRIVER_BAD = [
     ("[driver]\ncmd_timout = 0.05\n", "driver.cmd_timout", "did you mean 'cmd_timeout'"),
@@ -53,6 +58,17 @@ DRIVER_BAD = [
     ("[driver]\nestop_release_sources = []\n", "driver.estop_release_sources", "at least 1"),
     ("[driver]\ncmd_timeout = 1e-300\n", "driver.cmd_timeout", ">= 0.02"),
     ("[driver.hard_limits]\nv = [-1e9, 1e9]\nw = [-1, 1]\n", "driver", "beyond any rover"),
+    # a float whose type has no range is finite too (its rule would otherwise speak of nan)
+    ("[link.can]\nleft_sign = nan\n", "link.can.left_sign", "expected a finite number, got nan"),
+    ("[link.can]\ninitial_pose = [0, 0, 2e9]\n", "link.can.initial_pose[2]", "between -1e9 and 1e9"),
+]
+MISSION_BAD = [
+    ('name = "m"\n', "path", "required key is missing"),
+    ("path = [[0, 0], [0, 0]]\n", "", "the path has no length"),
+    ("path = [[0, 0], [1, nan]]\n", "path[1][1]", "expected a finite number, got nan"),
+    ("path = [[0, 0], [1, 0]]\nobstacles = [[1, 1]]\n", "obstacles[0]", "needs at least 3 (length 2)"),
+    ('path = [[0, 0], [1, 0]]\nstart = "x"\n', "start", "expected a list, got text"),
+    ('path = [[0, 0], [1, 0]]\nnam = "x"\n', "nam", "did you mean 'name'"),
 ]
 
 
@@ -67,6 +83,17 @@ def test_every_mistake_is_one_line_naming_the_key(tmp_path, text: str, where: st
     assert "\n" not in line and line.startswith(f"{f}: {where}"), line
     assert problem in line, line
     assert "`" not in line and "Expected" not in line, f"msgspec's own wording leaked: {line}"
+
+
+@pytest.mark.parametrize(("text", "where", "problem"), MISSION_BAD)
+def test_every_mistake_in_a_mission_file_is_one_line(tmp_path, text: str, where: str, problem: str) -> None:
+    f = tmp_path / "bad.toml"
+    f.write_text(text)
+    with pytest.raises(C.ConfigError) as err:
+        config_cmd.check(str(f), "mission")
+    line = str(err.value)
+    assert "\n" not in line and line.startswith(f"{f}: {where}: " if where else f"{f}: "), line
+    assert problem in line and "`" not in line and "Expected" not in line, line
 
 
 def test_missing_and_malformed_files_are_one_line_too(tmp_path) -> None:

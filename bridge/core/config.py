@@ -2,10 +2,11 @@
 
 The driver host's configuration (:mod:`bridge.nodes.driver_config`) and each link's (``CONFIG`` in its module under
 ``drivers/``) are built from the same pieces: :class:`Cfg` (unknown keys are errors), :func:`meta` (a key's meaning
-and range), :class:`Rule` (a cross-field rule) and the validator here. Every command that takes a configuration
-decodes it here before it opens any link or session. A mistake is refused with :class:`ConfigError`, whose text is
-one line naming the file, the key path and the problem (for an unknown key, the nearest valid name): ``driver.toml:
-driver.cmd_timout: unknown key (did you mean 'cmd_timeout'?)``. Numbers are finite and within the ranges written in
+and range), :class:`Rule` (a cross-field rule) and the decoder here (``msgspec.convert``, its errors put in the
+project's words). Every command that takes a configuration decodes it here before it opens any link or session. A
+mistake is refused with :class:`ConfigError`, whose text is one line naming the file, the key path and the problem
+(for an unknown key, the nearest valid name): ``driver.toml: driver.cmd_timout: unknown key (did you mean
+'cmd_timeout'?)``. Numbers are finite and within the ranges written in
 their types; cross-field rules (``min < max``, distinct CAN nodes) are checked in ``__post_init__``. ``scmbridge
 config check FILE`` validates a file and ``scmbridge config show --kind station|driver|mission`` prints a commented
 default made from these types (docs/ARCHITECTURE.md, "Configuration").
@@ -46,9 +47,9 @@ class ConfigError(UsageError, ValueError):
         super().__init__(f"{source}: {where}: {problem}" if where else f"{source}: {problem}")
 
 
-class Rule(Exception):
-    """A cross-field rule a configuration breaks (raised by ``__post_init__``; not a ValueError, so msgspec passes it
-    through untouched and the validator reports it at the table it belongs to)."""
+class Rule(ValueError):
+    """A cross-field rule a configuration breaks (raised by ``__post_init__``; a ValueError, so ``msgspec.convert``
+    reports it with the path of the table it belongs to)."""
 
 
 def meta(description: str, **bounds: float) -> Meta:
@@ -203,6 +204,14 @@ C = TypeVar("C", bound=Struct)
 
 # ------------------------------------------------------------------------------------------------- decoding
 Path_ = tuple[str | int, ...]
+#: msgspec's type names in its messages, as a person reads them
+_WORDS = {"int": "a whole number", "float": "a number", "str": "text", "bool": "true or false", "array": "a list",
+          "object": "a table", "null": "nothing"}
+_GOT = {**_WORDS, "bool": "true/false"}
+#: a msgspec ValidationError's text: the problem, then where (a dict key's own problem says ``key`` in the dict)
+_AT = re.compile(r"(?s)(.*?)(?: - at `(key)` in `(\$[^`]*)`| - at `(\$[^`]*)`)?")
+#: one step of msgspec's path: ``.field``, ``[index]``, or ``[...]`` (a dict's value, its key unnamed)
+_STEP = re.compile(r"\.(\w+)|\[(\d+)\]|(\[\.\.\.\])")
 
 
 def _where(path: Path_) -> str:
@@ -214,143 +223,109 @@ def _where(path: Path_) -> str:
 
 
 def _constraints(tp: Any) -> tuple[Any, list[Meta]]:
-    """The type under ``Annotated[...]`` layers and every ``Meta`` on the way."""
+    """The type under ``Annotated[...]`` layers and ``... | None``, and every ``Meta`` on the way."""
     metas: list[Meta] = []
-    while get_origin(tp) is Annotated:
-        args = get_args(tp)
-        metas += [m for m in args[1:] if isinstance(m, Meta)]
-        tp = args[0]
-    return tp, metas
+    while True:
+        if get_origin(tp) is Annotated:
+            metas += [m for m in get_args(tp)[1:] if isinstance(m, Meta)]
+            tp = get_args(tp)[0]
+        elif get_origin(tp) in (Union, types.UnionType) and len(options := [
+                a for a in get_args(tp) if a is not type(None)]) == 1:
+            tp = options[0]
+        else:
+            return tp, metas
 
 
 def _fmt(x: float) -> str:
     return repr(float(x)) if isinstance(x, float) else str(x)
 
 
-def _check_meta(value: Any, metas: list[Meta], path: Path_) -> None:
-    """The ranges, lengths and patterns written in the type."""
-    for m in metas:
-        for attr, ok, text in (("gt", lambda v, b: v > b, "must be > {}"), ("ge", lambda v, b: v >= b, "must be >= {}"),
-                               ("lt", lambda v, b: v < b, "must be < {}"), ("le", lambda v, b: v <= b,
-                                                                             "must be <= {}")):
-            bound = getattr(m, attr)
-            if bound is not None and isinstance(value, (int, float)) and not ok(value, bound):
-                if abs(bound) == 1e9:
-                    raise _Problem(path, "a finite number" if not math.isfinite(value) else "out of range",
-                                   f"expected a number between -1e9 and 1e9, got {_fmt(value)}")
-                raise _Problem(path, "out of range", text.format(_fmt(bound)) + f", got {_fmt(value)}")
-        if m.min_length is not None and len(value) < m.min_length:
-            raise _Problem(path, "too short", f"needs at least {m.min_length} (length {len(value)})")
-        if m.max_length is not None and len(value) > m.max_length:
-            raise _Problem(path, "too long", f"at most {m.max_length} allowed (length {len(value)})")
-        if m.pattern is not None and isinstance(value, str) and not re.search(m.pattern, value):
-            desc = f" ({m.description})" if m.description else ""
-            raise _Problem(path, "bad text", f"{value!r} does not match {m.pattern}{desc}")
-
-
-class _Problem(Exception):
-    """One problem found by :func:`validate`: where, what kind, and the words for a person."""
-
-    def __init__(self, path: Path_, kind: str, detail: str) -> None:
-        super().__init__(detail)
-        self.path, self.kind, self.detail = path, kind, detail
-
-
-_NAMES = {bool: "true or false", int: "a whole number", float: "a number", str: "text"}
-
-
-def _kind_name(tp: Any) -> str:
-    tp, _ = _constraints(tp)
-    if isinstance(tp, type) and issubclass(tp, Struct):
-        return "a table"
-    if get_origin(tp) in (list, tuple):
-        return "a list"
-    if get_origin(tp) is Literal:
-        return "one of " + ", ".join(repr(a) for a in get_args(tp))
-    return _NAMES.get(tp, getattr(tp, "__name__", str(tp)))
-
-
-def _got(value: Any) -> str:
-    return {bool: "true/false", int: "a whole number", float: "a number", str: "text", list: "a list",
-            dict: "a table"}.get(type(value), type(value).__name__)
-
-
-def validate(value: Any, tp: Any, path: Path_ = ()) -> None:
-    """Check ``value`` (as decoded from TOML) against the type ``tp`` and raise :class:`_Problem` at the first
-    mistake, with its path and kind. Walks the type itself, so every message is ours, not msgspec's."""
-    base, metas = _constraints(tp)
-    origin = get_origin(base)
-    if origin in (Union, types.UnionType):
-        options = [a for a in get_args(base)]
-        if value is None and type(None) in options:
-            return
-        errors = []
-        for option in options:
-            if option is type(None):
-                continue
-            try:
-                validate(value, option, path)
-                return
-            except _Problem as exc:
-                errors.append(exc)
-        raise errors[0]
-    if isinstance(base, type) and issubclass(base, Struct):
-        _validate_struct(value, base, path)
-    elif origin is Literal:
-        if value not in get_args(base) or type(value) is bool and True in get_args(base):
-            raise _Problem(path, "not one of", f"must be {_kind_name(base)}, got {value!r}")
-    elif origin in (list, tuple):
-        if not isinstance(value, list):
-            raise _Problem(path, "wrong type", f"expected a list, got {_got(value)}")
-        args = get_args(base)
-        if origin is tuple and not (len(args) == 2 and args[1] is Ellipsis):
-            if len(value) != len(args):
-                raise _Problem(path, "wrong length", f"expected a list of length {len(args)}, got length {len(value)}")
-            for k, (item, item_tp) in enumerate(zip(value, args)):
-                validate(item, item_tp, (*path, k))
-        else:
-            for k, item in enumerate(value):
-                validate(item, args[0], (*path, k))
-    elif base is bool:
-        if not isinstance(value, bool):
-            raise _Problem(path, "wrong type", f"expected true or false, got {_got(value)}")
-    elif base is int:
-        if not isinstance(value, int) or isinstance(value, bool):
-            raise _Problem(path, "wrong type", f"expected a whole number, got {_got(value)}")
-    elif base is float:
-        if not isinstance(value, (int, float)) or isinstance(value, bool):
-            raise _Problem(path, "wrong type", f"expected a number, got {_got(value)}")
-        if not math.isfinite(value):
-            raise _Problem(path, "not finite", f"expected a finite number, got {value}")
-    elif base is str and not isinstance(value, str):
-        raise _Problem(path, "wrong type", f"expected text, got {_got(value)}")
-    _check_meta(value, metas, path)
-
-
-def _validate_struct(value: Any, kind: type[Struct], path: Path_) -> None:
-    if not isinstance(value, dict):
-        raise _Problem(path, "wrong type", f"expected a table, got {_got(value)}")
-    hints = get_type_hints(kind, include_extras=True)
-    fields = list(kind.__struct_fields__)
-    for key in value:
-        if key not in hints:
-            close = difflib.get_close_matches(str(key), fields, n=1, cutoff=0.5)
-            hint = f" (did you mean '{close[0]}'?)" if close else f" (valid: {', '.join(fields)})"
-            raise _Problem((*path, key), "unknown key", f"unknown key{hint}")
-    required = set(fields) - set(kind.__struct_defaults__ and fields[len(fields) - len(kind.__struct_defaults__):])
-    for name in fields:
-        if name in value:
-            validate(value[name], hints[name], (*path, name))
-        elif name in required:
-            raise _Problem((*path, name), "missing key", "required key is missing")
+def _converts(value: Any, tp: Any) -> bool:
     try:
-        msgspec.convert(value, kind)
-    except Rule as exc:
-        raise _Problem(path, "rule", str(exc)) from None
-    except msgspec.ValidationError as exc:  # a wire Struct's own rule (a mission file): its ValueError is the cause
-        if not isinstance(exc.__cause__, ValueError):
-            raise
-        raise _Problem(path, "rule", str(exc.__cause__)) from None
+        msgspec.convert(value, tp)
+    except msgspec.ValidationError:
+        return False
+    return True
+
+
+def _child(tp: Any, value: Any, step: str | int | None) -> tuple[Any, Any, str | int]:
+    """The type and the TOML value one step down msgspec's path (``step`` None: a dict's value, found again as the
+    first entry that does not convert)."""
+    base, _ = _constraints(tp)
+    args = get_args(base)
+    if isinstance(base, type) and issubclass(base, Struct):
+        return get_type_hints(base, include_extras=True)[step], value[step], step
+    if get_origin(base) is dict:
+        key = next(k for k, v in value.items() if not _converts(v, args[1])) if step is None else step
+        return args[1], value[key], key
+    if get_origin(base) is tuple and not (len(args) == 2 and args[1] is Ellipsis):
+        return args[step], value[step], step
+    return args[0], value[step], step
+
+
+def _non_finite(value: Any, path: Path_) -> tuple[Path_, float] | None:
+    """The first NaN or infinity in a TOML value, with its path (a float without a range accepts them)."""
+    if isinstance(value, float) and not math.isfinite(value):
+        return path, value
+    items = value.items() if isinstance(value, dict) else enumerate(value) if isinstance(value, list) else ()
+    for k, v in items:
+        if bad := _non_finite(v, (*path, k)):
+            return bad
+    return None
+
+
+def _problem(text: str, tp: Any, value: Any) -> str:
+    """msgspec's complaint ``text`` about ``value`` (of type ``tp``) in the words of docs/ARCHITECTURE.md §5."""
+    base, metas = _constraints(tp)
+    if get_origin(base) is Literal:
+        return f"must be one of {', '.join(repr(a) for a in get_args(base))}, got {value!r}"
+    if isinstance(value, float) and not math.isfinite(value) and text.startswith("Expected `float`"):
+        return f"expected a finite number, got {value}"
+    if m := re.fullmatch(r"Expected `\w+` (>=|>|<=|<) (\S+)", text):
+        if m[2].lstrip("-") == "1000000000.0":  # Finite
+            return f"expected a number between -1e9 and 1e9, got {_fmt(value)}"
+        return f"must be {m[1]} {m[2]}, got {_fmt(value)}"
+    if m := re.fullmatch(r"Expected `\w+` of length (>=|<=) (\d+)", text):
+        return ("needs at least {}" if m[1] == ">=" else "at most {} allowed").format(m[2]) + f" (length {len(value)})"
+    if m := re.fullmatch(r"Expected `array` of length (\d+), got (\d+)", text):
+        return f"expected a list of length {m[1]}, got length {m[2]}"
+    if text.startswith("Expected `str` matching regex"):
+        pattern = next(m for m in metas if m.pattern is not None)
+        desc = next((f" ({m.description})" for m in metas if m.description), "")
+        return f"{value!r} does not match {pattern.pattern}{desc}"
+    if m := re.fullmatch(r"Expected `([^`]+)`, got `(\w+)`", text):
+        want = " or ".join(_WORDS.get(w, w) for w in m[1].split(" | ") if w != "null")
+        return f"expected {want}, got {_GOT.get(m[2], m[2])}"
+    return text.replace("`", "'")  # pragma: no cover - a message msgspec did not write when this was
+
+
+def _config_error(exc: msgspec.ValidationError, table: dict[str, Any], kind: type[Struct], source: str) -> ConfigError:
+    """msgspec's error as the project's one line: the file, the key path in dotted form, the problem."""
+    text, key, key_in, at = _AT.fullmatch(str(exc)).groups()  # type: ignore[union-attr]
+    tp, value, path = kind, table, ()
+    try:
+        for m in _STEP.finditer(key_in or at or "$"):
+            tp, value, step = _child(tp, value, m[1] or (int(m[2]) if m[2] else None))
+            path = (*path, step)
+    except (KeyError, IndexError, TypeError, StopIteration):  # pragma: no cover - a path msgspec names is there
+        return ConfigError(source, _where(path), text.replace("`", "'"))
+    if isinstance(exc.__cause__, ValueError):  # a Rule (or a wire Struct's ValueError) from __post_init__
+        bad = _non_finite(value, path)
+        return ConfigError(source, _where(bad[0]), f"expected a finite number, got {bad[1]}") if bad else (
+            ConfigError(source, _where(path), str(exc.__cause__)))
+    if text.startswith("Object contains unknown field"):
+        fields = list(_constraints(tp)[0].__struct_fields__)
+        unknown = next(k for k in value if k not in fields)
+        close = difflib.get_close_matches(str(unknown), fields, n=1, cutoff=0.5)
+        hint = f" (did you mean '{close[0]}'?)" if close else f" (valid: {', '.join(fields)})"
+        return ConfigError(source, _where((*path, unknown)), f"unknown key{hint}")
+    if m := re.fullmatch(r"Object missing required field `(\w+)`", text):
+        return ConfigError(source, _where((*path, m[1])), "required key is missing")
+    if key:  # a dict's key
+        key_tp = get_args(_constraints(tp)[0])[0]
+        bad_key = next(k for k in value if not _converts(k, key_tp))
+        return ConfigError(source, _where(path), "key " + _problem(text, key_tp, bad_key))
+    return ConfigError(source, _where(path), _problem(text, tp, value))
 
 
 def parse_toml(data: bytes, source: str) -> dict[str, Any]:
@@ -382,12 +357,16 @@ def read_table(path: str | Path) -> dict[str, Any]:
 
 
 def from_table(table: dict[str, Any], kind: type[C], source: str) -> C:
-    """``table`` validated (:func:`validate`) and converted into ``kind``; :class:`ConfigError` naming the key."""
+    """``table`` converted into ``kind`` (``msgspec.convert``: the types' ranges, unknown keys, the ``Rule``s of
+    ``__post_init__``); :class:`ConfigError` naming the key, and for an unknown key the nearest valid name. Every
+    number is finite, also one whose type has no range."""
     try:
-        validate(table, kind)
-    except _Problem as exc:
-        raise ConfigError(source, _where(exc.path), exc.detail) from None
-    return msgspec.convert(table, kind)
+        out = msgspec.convert(table, kind)
+    except msgspec.ValidationError as exc:
+        raise _config_error(exc, table, kind, source) from None
+    if bad := _non_finite(table, ()):
+        raise ConfigError(source, _where(bad[0]), f"expected a finite number, got {bad[1]}")
+    return out
 
 
 def decode_toml(data: bytes | str, kind: type[C], source: str = "<config>") -> C:
