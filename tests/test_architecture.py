@@ -106,6 +106,12 @@ def test_the_method_is_pure_and_depends_on_no_io_package() -> None:
             assert not re.search(r"^\s*(import|from)\s+(zenoh|socket|threading|time|can|pymavlink)\b", text, re.M), m
 
 
+def test_no_module_of_the_method_exceeds_650_lines() -> None:
+    """Issue 34: the method's modules stay small enough to read whole (the SC kernels are split by job for it)."""
+    long = {m: n for m in MODULES if m.startswith("transfer") and (n := len(MODULES[m].read_text().splitlines())) > 650}
+    assert not long, long
+
+
 def test_the_wire_schema_is_a_leaf() -> None:
     assert GRAPH["bridge.core.wire"] == set()
 

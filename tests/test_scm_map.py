@@ -2,7 +2,13 @@
 
 from __future__ import annotations
 
+import importlib
 import math
+import os
+import pkgutil
+import subprocess
+import sys
+from pathlib import Path
 
 import mpmath
 import numpy as np
@@ -11,8 +17,9 @@ import scipy.special
 from hypothesis import HealthCheck, assume, example, given, settings
 from hypothesis import strategies as st
 
-from transfer.scm import QuadTransfer, RectangleMap, is_simple_ccw
-from transfer.scm import _kernels as kern
+import transfer.scm as scm
+from transfer.scm import QuadTransfer, RectangleMap, _ellipj, _quadrature, is_simple_ccw
+from transfer.scm._cache import kernel_dispatchers
 
 PROPS = settings(
     max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow, HealthCheck.filter_too_much]
@@ -29,7 +36,7 @@ def test_complex_sn_cn_dn_against_mpmath(L: float) -> None:
     mpmath.mp.dps = 60
     for _ in range(6):
         u = complex(rng.uniform(-K, K), rng.uniform(0, Kp))
-        sn, cn, dn = kern.ellipjc(u, m, kp, Kp)
+        sn, cn, dn = _ellipj.ellipjc(u, m, kp, Kp)
         ref = [complex(mpmath.ellipfun(f, mpmath.mpc(u.real, u.imag), m=mpmath.mpf(m))) for f in ("sn", "cn", "dn")]
         for got, want in zip((sn, cn, dn), ref):
             assert abs(got - want) <= 1e-12 * max(1.0, abs(want)), (u, got, want)
@@ -41,19 +48,19 @@ def test_sn_identities_and_real_axis(m: float) -> None:
     kp = math.sqrt(-math.expm1(-2 * math.pi * L))
     K, Kp = float(scipy.special.ellipk(m)), float(scipy.special.ellipkm1(m))
     for x in np.linspace(-K, K, 7):
-        sn, cn, dn = kern.ellipjc(complex(x, 0.0), m, kp, Kp)
+        sn, cn, dn = _ellipj.ellipjc(complex(x, 0.0), m, kp, Kp)
         s, c, d, _ = scipy.special.ellipj(x, m)
         assert abs(sn - s) < 1e-13 and abs(cn - c) < 1e-13 and abs(dn - d) < 1e-13
     rng = np.random.default_rng(3)
     for _ in range(10):
         u = complex(rng.uniform(-K, K), rng.uniform(0, Kp))
-        sn, cn, dn = kern.ellipjc(u, m, kp, Kp)
+        sn, cn, dn = _ellipj.ellipjc(u, m, kp, Kp)
         scale = max(1.0, abs(sn) ** 2)
         assert abs(sn * sn + cn * cn - 1) < 1e-12 * scale
         assert abs(dn * dn + m * sn * sn - 1) < 1e-12 * scale
         # Jacobi imaginary shift: sn(u + iK') = 1 / (k sn u), through the reflected branch of the algorithm
         if u.imag < Kp / 2 and m > 1e-10:
-            sn2, _, _ = kern.ellipjc(u + 1j * Kp, m, kp, Kp)
+            sn2, _, _ = _ellipj.ellipjc(u + 1j * Kp, m, kp, Kp)
             want = 1.0 / (math.sqrt(m) * sn)
             assert abs(sn2 - want) <= 1e-11 * abs(want)
 
@@ -304,13 +311,13 @@ def test_a_sliver_quadrilateral_is_refused_after_a_bounded_search(monkeypatch) -
     corners are almost collinear; Newton failed on them and the multi-start fallback took 0.1-1.4 s each, inside
     a station's tick. A quadrilateral now has one bracketed solve after Newton."""
     calls = {"n": 0}
-    real = kern.side_integrals
+    real = _quadrature.side_integrals
 
     def counted(*a):
         calls["n"] += 1
         return real(*a)
 
-    monkeypatch.setattr(kern, "side_integrals", counted)
+    monkeypatch.setattr(_quadrature, "side_integrals", counted)
     with pytest.raises(ValueError, match="too thin"):
         RectangleMap(SLIVER)
     assert calls["n"] <= 2000  # Newton's damped steps and one Brent search (the multi-start took many thousands)
@@ -366,3 +373,36 @@ def test_shapes_and_pair_form_are_preserved() -> None:
     np.testing.assert_allclose(y, x * np.array([0.5, 1.0]), atol=1e-10)
     f = RectangleMap([0, 2, 2 + 1j, 1j])
     assert f.to_unit_square(np.ones((2, 3)) * (1 + 0.5j)).shape == (2, 3)
+
+
+def test_every_kernel_module_shares_one_cache_key() -> None:
+    """The kernels are split over several files by job; numba keys each cache on its own file only. Every module of
+    transfer.scm that defines a kernel is in the shared key, so an edit to any of them recompiles all (transfer/scm/
+    _cache.py says why)."""
+    mods = [importlib.import_module(f"transfer.scm.{m.name}") for m in pkgutil.iter_modules(scm.__path__)]
+    assert {m.__name__ for m in mods if kernel_dispatchers(m)} == {m.__name__ for m in scm._KERNEL_MODULES}
+    stamps = {d._cache._cache_file._source_stamp for d in kernel_dispatchers(*scm._KERNEL_MODULES)}
+    assert len(stamps) == 1
+
+
+def test_an_edit_to_one_kernel_file_recompiles_a_caller_in_another(tmp_path: Path) -> None:
+    """numba alone would load the caller's cached code, with the old callee compiled in, after the callee's file
+    changed (numba issue 1833); with the shared stamp the caller is compiled again. Two tiny modules, a real numba
+    cache in tmp_path, one fresh process before and one after the edit."""
+    (tmp_path / "scm_callee_k.py").write_text("from numba import njit\n\n@njit(cache=True)\ndef g():\n    return 1\n")
+    (tmp_path / "scm_caller_k.py").write_text(
+        "from numba import njit\nfrom scm_callee_k import g\n\n@njit(cache=True)\ndef f():\n    return g()\n")
+    probe = ("import scm_callee_k, scm_caller_k\nfrom transfer.scm._cache import share_source_stamp\n"
+             "share_source_stamp(scm_callee_k, scm_caller_k)\nprint(scm_caller_k.f())\n")
+    root = Path(__file__).resolve().parent.parent
+    env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path / "cache"),
+           "PYTHONPATH": os.pathsep.join([str(tmp_path), str(root)])}
+
+    def run() -> str:
+        return subprocess.run([sys.executable, "-c", probe], env=env, capture_output=True, text=True, timeout=120,
+                              check=True).stdout.strip()
+
+    assert run() == "1"
+    assert list((tmp_path / "cache").rglob("scm_caller_k.f-*.nbc"))  # the caller really was cached
+    (tmp_path / "scm_callee_k.py").write_text("from numba import njit\n\n@njit(cache=True)\ndef g():\n    return 2\n")
+    assert run() == "2"

@@ -12,8 +12,14 @@ that out of a control loop.
 
 from __future__ import annotations
 
+from transfer.scm import _ellipj, _evaluate, _parameters, _polygon, _quadrature, _scalar
+from transfer.scm._cache import share_source_stamp
 from transfer.scm.geometry import as_complex, check_corners, check_polygon, is_simple_ccw, turning_exponents
 from transfer.scm.rectmap import QuadTransfer, RectangleMap
+
+#: the kernel modules, by job; their on-disk caches share one key (see ``_cache``): set before anything compiles
+_KERNEL_MODULES = (_scalar, _polygon, _quadrature, _parameters, _ellipj, _evaluate)
+share_source_stamp(*_KERNEL_MODULES)
 
 
 def warmup() -> None:

@@ -8,9 +8,9 @@ from collections.abc import Sequence
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from transfer.scm import _kernels as kern
+from transfer.scm._polygon import polygon_defect
 
-#: the words for each defect code of :func:`transfer.scm._kernels.polygon_defect`
+#: the words for each defect code of :func:`transfer.scm._polygon.polygon_defect`
 _DEFECTS = {
     1: "vertices contain non-finite numbers (NaN or inf)",
     2: "repeated vertices: vertex {i} and vertex {j} coincide",
@@ -46,7 +46,7 @@ def check_polygon(vertices: ArrayLike, *, min_vertices: int = 4) -> NDArray[np.c
     w = _vertices(vertices)
     if w.size < min_vertices:
         raise ValueError(f"a polygon needs at least {min_vertices} vertices, got {w.size}")
-    code, i, j = kern.polygon_defect(w)
+    code, i, j = polygon_defect(w)
     if code:
         raise ValueError(_DEFECTS[code].format(i=i, j=j, i1=(i + 1) % w.size, j1=(j + 1) % w.size))
     return w
@@ -58,7 +58,7 @@ def is_simple_ccw(vertices: ArrayLike) -> bool:
         w = _vertices(vertices)
     except (TypeError, ValueError):
         return False
-    return w.size >= 4 and kern.polygon_defect(w)[0] == 0
+    return w.size >= 4 and polygon_defect(w)[0] == 0
 
 
 def _vertices(vertices: ArrayLike) -> NDArray[np.complex128]:

@@ -34,7 +34,7 @@ import scipy.optimize
 import scipy.special
 from numpy.typing import ArrayLike, NDArray
 
-from transfer.scm import _kernels as kern
+from transfer.scm import _evaluate, _parameters, _polygon, _quadrature
 from transfer.scm.geometry import as_complex, check_corners, check_polygon, turning_exponents
 
 #: unit-square images of the four user corners
@@ -94,7 +94,7 @@ class RectangleMap:
         self._ic = np.array([(cs[(self._r + k) % 4] - start) % n for k in range(4)], dtype=np.int64)  # ic[0] = 0
         self._w = w[self._order]
         self._beta = beta_all[self._order]
-        self._qx, self._qw, self._lx, self._lw = kern.jacobi_table(self._beta, 14)
+        self._qx, self._qw, self._lx, self._lw = _quadrature.jacobi_table(self._beta, 14)
         return lens
 
     def _solve_parameters(self, lens: list[float]) -> NDArray[np.float64]:
@@ -115,14 +115,14 @@ class RectangleMap:
         if n == 4:  # the quadrilateral of the control path: its one unknown, log L, solved in compiled code
             args = (beta, _SIG4, self._qx, self._qw, self._lx, self._lw, float(ratios[0]))
             y0 = math.log(L0)  # the guess of _initial_guess, which has nothing else to place
-            y1, _, ok = kern.quad_newton(y0, *args, 1e-2 * self.tol)
+            y1, _, ok = _parameters.quad_newton(y0, *args, 1e-2 * self.tol)
             y = np.array([y1]) if ok else self._solve_bracketed(
-                lambda y: np.array([kern.quad_residual(float(y[0]), *args)]), y0, 10.0 * self.tol)
+                lambda y: np.array([_parameters.quad_residual(float(y[0]), *args)]), y0, 10.0 * self.tol)
         else:
 
             def residual(y: NDArray[np.float64]) -> NDArray[np.float64]:
                 z, sig = self._prevertices(y)
-                I = kern.side_integrals(z, beta, sig, self._qx, self._qw, self._lx, self._lw, n - 2)
+                I = _quadrature.side_integrals(z, beta, sig, self._qx, self._qw, self._lx, self._lw, n - 2)
                 with np.errstate(divide="ignore", invalid="ignore"):
                     F = np.log(np.abs(I[1:])) - np.log(np.abs(I[0])) - ratios
                 # a configuration where quadrature breaks down (crowding) is far from the solution: say so finitely
@@ -137,7 +137,7 @@ class RectangleMap:
             raise ValueError(f"SC prevertices crowd (separation {sep:.1e} < {_CROWDING:.0e}): polygon too elongated "
                              "between its corners for an accurate rectangle map")
         self._z, self._sig = z, sig
-        I0 = kern.side_integrals(z, beta, sig, self._qx, self._qw, self._lx, self._lw, 1)[0]
+        I0 = _quadrature.side_integrals(z, beta, sig, self._qx, self._qw, self._lx, self._lw, 1)[0]
         self._c = complex((wi[1] - wi[0]) / I0)
         return y
 
@@ -222,7 +222,7 @@ class RectangleMap:
 
     def _solve(self, residual, y0: NDArray[np.float64]) -> NDArray[np.float64]:
         """The parameter problem of a polygon with more than four vertices (MINPACK hybrd from a ladder of starts;
-        the quadrilateral's one unknown is solved by :func:`~transfer.scm._kernels.quad_newton`)."""
+        the quadrilateral's one unknown is solved by :func:`~transfer.scm._parameters.quad_newton`)."""
         best, best_err = y0, np.inf
         L0 = math.exp(y0[0])
         # the guess's L0 comes from the polygon's side lengths, which a reflex corner can make far off: retry from
@@ -312,7 +312,7 @@ class RectangleMap:
 
     # ------------------------------------------------------------------------------------------- evaluation
     def _forward_internal(self, cs: NDArray[np.int64], ds: NDArray[np.complex128]) -> NDArray[np.complex128]:
-        return kern.forward_many(cs, ds, *self._args())
+        return _evaluate.forward_many(cs, ds, *self._args())
 
     def _ensure_table(self) -> tuple[NDArray[np.complex128], NDArray[np.complex128]]:
         if self._table is None:
@@ -328,7 +328,7 @@ class RectangleMap:
     def _inverse_internal(self, w: NDArray[np.complex128]) -> tuple[NDArray[np.int64], NDArray[np.complex128],
                                                                     NDArray[np.float64]]:
         tu, tw = self._ensure_table()
-        return kern.inverse_many(
+        return _evaluate.inverse_many(
             w, tu, tw, *self._args(), self._alpha_c, self.tol * max(self.scale, 1e-300), self._radius
         )
 
@@ -346,7 +346,7 @@ class RectangleMap:
         )
 
     def _inside(self, w: NDArray[np.complex128]) -> NDArray[np.bool_]:
-        return kern.points_in_polygon(w, self.vertices, 1e-10 * max(self.scale, 1e-300))
+        return _polygon.points_in_polygon(w, self.vertices, 1e-10 * max(self.scale, 1e-300))
 
     def to_unit_square(self, w: ArrayLike, *, outside: str = "raise") -> NDArray[np.complex128]:
         """Polygon points (complex, any shape) -> unit-square points.
@@ -435,7 +435,7 @@ class QuadTransfer:
         if self._kt is None:
             self._kt = (self.teacher._ktuple(), self.learner._ktuple(inverse=False))
         safe = np.where(np.isfinite(flat), flat, self.teacher.vertices[0] * 0 + 1e300)
-        out = kern.transfer_many(safe, self._kt[0], self._kt[1], _NEAR_CORNER)
+        out = _evaluate.transfer_many(safe, self._kt[0], self._kt[1], _NEAR_CORNER)
         if outside == "raise" and not np.all(np.isfinite(out)):
             bad = flat[~np.isfinite(out)][0]
             raise ValueError(f"point {bad} lies outside the teacher polygon; it is not mapped")
