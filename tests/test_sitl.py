@@ -416,3 +416,113 @@ def test_one_forged_packet_with_a_far_future_timestamp_does_not_block_the_real_a
             time.sleep(0.05)
     finally:
         third.close()
+
+
+class _InjectingProxy:
+    """A TCP hop between the driver and the vehicle's SERIAL1 that forwards whole MAVLink packets (parsed, not byte
+    chunks, so something can be put between two of them) and can put a forged packet into the vehicle -> driver
+    stream: what a device on the link (a radio, a companion computer) could do."""
+
+    def __init__(self, upstream_port: int) -> None:
+        import socket
+
+        from pymavlink import mavutil
+
+        self.listener = socket.create_server(("127.0.0.1", 0))
+        self.port = self.listener.getsockname()[1]
+        self.up = socket.create_connection(("127.0.0.1", upstream_port), timeout=5)
+        self.parser = mavutil.mavlink.MAVLink(None)  # no key: it frames signed packets without judging them
+        self.parser.robust_parsing = True
+        self.lock = threading.Lock()
+        self.down = None
+        self.link_ids: set[int] = set()
+        self.stop = threading.Event()
+        threading.Thread(target=self._accept, daemon=True).start()
+
+    def _accept(self) -> None:
+        self.down, _ = self.listener.accept()
+        threading.Thread(target=self._pump, args=(self.down, self.up, False), daemon=True).start()
+        self._pump(self.up, self.down, True)
+
+    def _pump(self, src, dst, parse: bool) -> None:
+        src.settimeout(0.2)
+        while not self.stop.is_set():
+            try:
+                data = src.recv(4096)
+            except TimeoutError:
+                continue
+            except OSError:
+                return
+            if not data:
+                return
+            if not parse:
+                dst.sendall(data)
+                continue
+            for msg in self.parser.parse_buffer(data) or []:
+                buf = bytes(msg.get_msgbuf())
+                if buf[0] == 0xFD and buf[2] & 0x01:  # MAVLink 2, signed: the link id opens the 13-byte signature
+                    self.link_ids.add(buf[-13])
+                with self.lock:
+                    dst.sendall(buf)
+
+    def inject(self, frame: bytes) -> None:
+        with self.lock:
+            self.down.sendall(frame)
+
+    def close(self) -> None:
+        self.stop.set()
+        for s in (self.listener, self.up, self.down):
+            if s is not None:
+                s.close()
+
+
+@pytest.mark.sitl
+@pytest.mark.parametrize("sitl", ["sitl"], indirect=True)  # the real autopilot on the other side
+def test_one_forged_packet_on_the_real_autopilots_signed_link_does_not_take_the_drivers_link_down(
+        tmp_path, rig: Rig) -> None:
+    """The driver's side of the same attack (docs/SECURITY.md): one packet stamped ten years ahead with a wrong key,
+    put into the vehicle -> driver stream on the vehicle's own signing stream (its system, component and link id),
+    must not make the driver refuse the autopilot's genuine messages as too old: the link stays up, the poses keep
+    coming, the bad signature is counted. (pymavlink alone recorded the forged timestamp first: the link went down.)"""
+    from pymavlink import mavutil
+
+    from bridge.core.auth import load_key
+    from drivers import open_driver
+    from drivers.mavlink import MavlinkLinkConfig
+
+    pilot = rig.sitl.pilot
+    key_file = tmp_path / "link.key"
+    key = make_key(key_file)
+    assert load_key(key_file, "mavlink") == key
+    pilot.setup_signing(key)
+    proxy = _InjectingProxy(int(rig.sitl.driver_url.rsplit(":", 1)[1]))
+    driver = open_driver("mavlink", MavlinkLinkConfig(url=f"tcp:127.0.0.1:{proxy.port}", open_timeout=20.0,
+                                                      heartbeat_timeout=1.0, signing_key_file=str(key_file)))
+    try:
+        driver.open(time.monotonic())
+        t_end = time.monotonic() + 10
+        while time.monotonic() < t_end and not proxy.link_ids:  # the vehicle's link id, from its signed packets
+            driver.poll(time.monotonic())
+            time.sleep(0.02)
+        assert proxy.link_ids, "no signed packet from the vehicle"
+        ten_years = int(10 * 365 * 86400 * 1e5)  # MAVLink 2 signing counts 10 us
+        for link_id in sorted(proxy.link_ids):
+            forger = mavutil.mavlink.MAVLink(None, srcSystem=1, srcComponent=1)
+            forger.signing.secret_key, forger.signing.sign_outgoing = bytes(32), True
+            now = int((time.time() - 1420070400) * 1e5)  # MAVLink 2 signing's clock: 10 us since 2015
+            forger.signing.link_id, forger.signing.timestamp = link_id, now + ten_years
+            hb = forger.heartbeat_encode(mavutil.mavlink.MAV_TYPE_GROUND_ROVER,
+                                         mavutil.mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA, 0, 0, 0)
+            proxy.inject(bytes(hb.pack(forger)))
+        bad = driver.health(time.monotonic()).detail.bad_signatures
+        poses, t_end = 0, time.monotonic() + 3.0  # past the 1 s heartbeat timeout, three times
+        while time.monotonic() < t_end:
+            poses += len(driver.poll(time.monotonic()))
+            time.sleep(0.02)
+        h = driver.health(time.monotonic())
+        assert h.connected and h.reason != "no_heartbeat", h.text
+        assert h.detail.bad_signatures >= 1, (bad, h.detail)  # the forged packet was seen and refused
+        assert poses >= 20, poses  # the autopilot's genuine, signed positions kept coming
+    finally:
+        driver.close(disarm=False, stop_timeout=0.0)
+        proxy.close()
