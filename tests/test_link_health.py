@@ -62,7 +62,7 @@ def test_the_driver_hosts_status_carries_the_links_counts_under_the_same_keys(li
 
 def test_a_mavlink_vehicle_that_has_spoken_adds_its_mode_number() -> None:
     driver = drivers.open_driver("mavlink")
-    driver.v.custom_mode, driver.v.armed = 15, True  # as a GUIDED, armed HEARTBEAT leaves them
+    driver.vehicle.custom_mode, driver.vehicle.armed = 15, True  # as a GUIDED, armed HEARTBEAT leaves them
     detail = driver.health(0.0).detail
     assert detail.mode == "GUIDED" and detail.status_counters()["custom_mode"] == 15
     assert detail.status_counters()["armed"] == 1

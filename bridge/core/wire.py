@@ -399,7 +399,7 @@ class MessageError(ValueError):
     """A payload that failed to decode or validate; the receiver counts it and drops it."""
 
 
-M = TypeVar("M", bound=Struct)
+MsgT = TypeVar("MsgT", bound=Struct)
 
 _encoder = msgspec.msgpack.Encoder()
 _decoders: dict[type, msgspec.msgpack.Decoder] = {}
@@ -410,7 +410,7 @@ def encode(msg: Struct) -> bytes:
     return _encoder.encode(msg)
 
 
-def decode(data: bytes | bytearray | memoryview, kind: type[M]) -> M:
+def decode(data: bytes | bytearray | memoryview, kind: type[MsgT]) -> MsgT:
     """Decode *and validate* ``data`` as ``kind``; raise :class:`MessageError` naming the problem."""
     dec = _decoders.get(kind)
     if dec is None:
@@ -422,12 +422,12 @@ def decode(data: bytes | bytearray | memoryview, kind: type[M]) -> M:
         raise MessageError(f"bad {kind.__name__}: {exc}") from exc
 
 
-def validated(msg: M) -> M:
+def validated(msg: MsgT) -> MsgT:
     """Round-trip a locally built message through the decoder: the cheap way to check it before sending."""
     return decode(encode(msg), type(msg))
 
 
-def validated_bytes(msg: M) -> tuple[M, bytes]:
+def validated_bytes(msg: MsgT) -> tuple[MsgT, bytes]:
     """:func:`validated`, and the bytes it checked: the sender puts them on the wire as they are instead of
     encoding the message a second time (the same bytes: encoding is deterministic)."""
     data = encode(msg)

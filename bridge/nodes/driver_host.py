@@ -629,7 +629,7 @@ class DriverHost:
         and the telemetry's age are now judged on what has arrived; a link that really went silent still fails."""
         if self.engage_queries:
             self.answer_engage_queries()
-        for st in self.poses(now):
+        for st in self.read_link(now):
             try:
                 self._put("state", M.validated(st))
             except M.MessageError:
@@ -655,9 +655,10 @@ class DriverHost:
                                        cmd_seq=d.cmd_seq))
         self.seq["applied"] += 1
 
-    def poses(self, now: float) -> list[M.LearnerState]:
-        """This tick's poses: the link's telemetry, or the motion-capture samples (the link is polled either way:
-        its frames carry the vehicle's health)."""
+    def read_link(self, now: float) -> list[M.LearnerState]:
+        """Let the co-located emulated devices send what is due, read the link, and return this tick's poses: the
+        link's telemetry, or the motion-capture samples (the link is read either way: its frames carry the vehicle's
+        health)."""
         for device in self.co_located:
             device.emit_due()
         link = self.driver.poll(now)

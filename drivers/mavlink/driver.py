@@ -93,7 +93,7 @@ class MavlinkDriver:
         self.target = (config.target_system, config.target_component)
         self.open_timeout = config.open_timeout
         self.disarm_on_close = config.disarm_on_close
-        self.v = Vehicle(texts=deque(maxlen=config.statustext_keep))
+        self.vehicle = Vehicle(texts=deque(maxlen=config.statustext_keep))
         self.poses = PoseBuilder()
         self._health = LinkHealth()
         self._counts = {"foreign": 0, "setpoints_sent": 0, "setpoints_withheld": 0, "setpoints_deferred": 0,
@@ -120,16 +120,16 @@ class MavlinkDriver:
     # ------------------------------------------------------------------------------------------ properties
     @property
     def custom_mode(self) -> int | None:
-        return self.v.custom_mode
+        return self.vehicle.custom_mode
 
     @property
     def armed(self) -> bool:
-        return self.v.armed
+        return self.vehicle.armed
 
     @property
     def statustexts(self) -> list[str]:
         """The vehicle's last STATUSTEXTs (at most ``statustext_keep``), oldest first."""
-        return [t for _, t in self.v.texts]
+        return [t for _, t in self.vehicle.texts]
 
     @property
     def conn(self) -> Any:
@@ -161,7 +161,7 @@ class MavlinkDriver:
             return
         self._health.frames_received += 1
         now = time.monotonic()
-        v = self.v
+        v = self.vehicle
         mav = self.dialect.mav
         if t == "HEARTBEAT":
             v.custom_mode = int(msg.custom_mode)
@@ -198,23 +198,23 @@ class MavlinkDriver:
 
     def _boot_ms(self, boot_ms: int) -> None:
         """A vehicle clock that jumps back by more than a second rebooted: it forgot our message intervals."""
-        if boot_ms + 1000 < self.v.boot_ms:
-            self.v.rebooted = True
-            log.warning("the vehicle rebooted (time since boot %d ms, was %d ms)", boot_ms, self.v.boot_ms)
+        if boot_ms + 1000 < self.vehicle.boot_ms:
+            self.vehicle.rebooted = True
+            log.warning("the vehicle rebooted (time since boot %d ms, was %d ms)", boot_ms, self.vehicle.boot_ms)
             self._clock.reset()  # a new vehicle clock: forget the old offset
             self.poses.reset()  # times of the old clock
             self._request_streams()
-        self.v.boot_ms = int(boot_ms)
+        self.vehicle.boot_ms = int(boot_ms)
 
     # -------------------------------------------------------------------------------------------- commands
     def _refusal(self, what: str, result: int, since: float, wait_text: bool = True) -> str:
         """``"arming refused: MAV_RESULT_FAILED (PreArm: ...)"``, waiting briefly (``wait_text``, in blocking
         calls only) for the STATUSTEXT that explains it: ArduPilot sends it after the ACK (its text queue)."""
-        texts = [t for ts, t in self.v.texts if ts >= since]
+        texts = [t for ts, t in self.vehicle.texts if ts >= since]
         if wait_text and not texts and result != NO_ACK:
-            n = self.v.text_count
-            self.client.wait(lambda: self.v.text_count != n, time.monotonic() + min(0.5, self.config.ack_timeout))
-            texts = [t for ts, t in self.v.texts if ts >= since]
+            n = self.vehicle.text_count
+            self.client.wait(lambda: self.vehicle.text_count != n, time.monotonic() + min(0.5, self.config.ack_timeout))
+            texts = [t for ts, t in self.vehicle.texts if ts >= since]
         text = f"{what} refused: {result_name(result)}" + (f" ({'; '.join(texts)})" if texts else "")
         self._last_refusal = text
         log.warning("%s", text)
@@ -265,7 +265,7 @@ class MavlinkDriver:
                 time.sleep(client.backoff.delay)
                 client.backoff.grow()
         client.heartbeat(time.monotonic(), force=True)
-        v = self.v
+        v = self.vehicle
         if not client.wait(lambda: v.hb_time is not None and v.custom_mode != self.modes.initialising, t_end):
             if v.hb_time is None:
                 others = f" (heard other systems: {sorted(set(self._foreign_ids))})" if self._foreign_ids else ""
@@ -298,8 +298,8 @@ class MavlinkDriver:
         t_end = time.monotonic() + self.open_timeout
         self._enter_guided(t_end)
         self._arm(t_end)
-        if self.v.custom_mode != self.modes.guided:
-            raise DriverError(f"operator took control while engaging: mode {self.modes.name(self.v.custom_mode)}")
+        if self.vehicle.custom_mode != self.modes.guided:
+            raise DriverError(f"operator took control while engaging: mode {self.modes.name(self.vehicle.custom_mode)}")
         self._update_state(time.monotonic())
         log.info("vehicle engaged: GUIDED, armed")
 
@@ -324,10 +324,10 @@ class MavlinkDriver:
         return FailsafeReport(drive_on_s=drive_on, text=text, params=dict(p))
 
     def _texts_note(self) -> str:
-        return f"; vehicle said: {'; '.join(self.statustexts)}" if self.v.texts else ""
+        return f"; vehicle said: {'; '.join(self.statustexts)}" if self.vehicle.texts else ""
 
     def _enter_guided(self, t_end: float) -> None:
-        v, mav, guided = self.v, self.dialect.mav, self.modes.guided
+        v, mav, guided = self.vehicle, self.dialect.mav, self.modes.guided
         while v.custom_mode != guided:
             sent = time.monotonic()
             r = self.client.run(mav.MAV_CMD_DO_SET_MODE, (mav.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, guided),
@@ -347,7 +347,7 @@ class MavlinkDriver:
                                   f"{self.modes.name(v.custom_mode)}){self._texts_note()}")
 
     def _arm(self, t_end: float) -> None:
-        v, mav = self.v, self.dialect.mav
+        v, mav = self.vehicle, self.dialect.mav
         while not v.armed:
             if v.custom_mode != self.modes.guided:
                 raise DriverError(f"operator took control while opening: mode {self.modes.name(v.custom_mode)}")
@@ -363,20 +363,20 @@ class MavlinkDriver:
 
     # --------------------------------------------------------------------------------------------- state
     def _position_fresh(self, now: float) -> bool:
-        return position_fresh(self.v, now, self.config.position_timeout)
+        return position_fresh(self.vehicle, now, self.config.position_timeout)
 
     def _judge(self, now: float) -> Verdict:
         """The vehicle at ``now`` from what it last said (:func:`drivers.mavlink.state.judge`). Pure."""
         c = self.client
         link = LinkView(opened=self._opened, closed=self._closed, connection=c.conn is not None,
                         connected_at=c.conn_time, lost_reason=c.lost_reason, url=self.url)
-        return judge(self.v, link, now, self.modes, self.config.heartbeat_timeout, self.config.position_timeout)
+        return judge(self.vehicle, link, now, self.modes, self.config.heartbeat_timeout, self.config.position_timeout)
 
     def _update_state(self, now: float) -> None:
         """Judge the vehicle at ``now`` and act on a change: log it, count a lost link, ask a vehicle whose heartbeat
         came back for its streams again (never its mode or arming)."""
         state = self._judge(now)
-        v = self.v
+        v = self.vehicle
         if state.reason == "ok":
             v.rebooted = False
         if self._opened and not self._closed:
@@ -444,7 +444,7 @@ class MavlinkDriver:
         if self._closed or self.client.conn is None:
             return
         self.client.service(now)
-        if self.client.conn is None or self.v.custom_mode != self.modes.guided:
+        if self.client.conn is None or self.vehicle.custom_mode != self.modes.guided:
             return
         if self._setpoint_due((0.0, 0.0), now):
             self._setpoint(0.0, 0.0, now)
@@ -462,7 +462,7 @@ class MavlinkDriver:
 
     def health(self, now: float) -> LinkHealth:
         state = self._judge(now)
-        v = self.v
+        v = self.vehicle
         detail = MavlinkHealthDetail(
             mode=self.modes.name(v.custom_mode), custom_mode=v.custom_mode, armed=v.armed,
             heartbeat_age=None if v.hb_time is None else round(now - v.hb_time, 3),
@@ -499,7 +499,7 @@ class MavlinkDriver:
         try:
             now = time.monotonic()
             self._pump(0.0)
-            v = self.v
+            v = self.vehicle
             if v.custom_mode == guided:
                 self._setpoint(0.0, 0.0, now)
                 t_stop = now + stop_timeout
