@@ -10,6 +10,7 @@ working directory: two services started in one directory must not share a file b
 from __future__ import annotations
 
 import os
+import time
 from pathlib import Path
 
 
@@ -79,3 +80,12 @@ def save_atomic(path: Path, data: bytes) -> None:
         os.fsync(dfd)
     finally:
         os.close(dfd)
+
+
+def quarantine(path: Path) -> Path:
+    """Move a file that cannot be used aside (``NAME.corrupt-<unix time>`` beside it): kept for a person to look at,
+    never lost and never read again; returns where it went."""
+    path = Path(path)
+    aside = path.with_name(path.name + f".corrupt-{int(time.time())}")
+    os.replace(path, aside)
+    return aside

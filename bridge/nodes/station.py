@@ -31,7 +31,6 @@ from __future__ import annotations
 
 import argparse
 import logging
-import os
 import sys
 import threading
 import time
@@ -45,7 +44,7 @@ from bridge.core.acts import ActGuard
 from bridge.core.args import positive_float, robot_arg, robots_arg
 from bridge.core.config import RATE_HZ_RANGE, StationConfig, load_mission_spec, load_station, mission_from_spec
 from bridge.core.errors import UsageError
-from bridge.core.paths import save_atomic, state_dir
+from bridge.core.paths import quarantine, save_atomic, state_dir
 from bridge.nodes import systemd
 from bridge.nodes.mission_control import Fitness, MissionControl, Saved
 from bridge.nodes.node import FixedRate, Inputs, Queued, add_zenoh_args, stop_on_signals, zenoh_config
@@ -455,8 +454,7 @@ def restore_control(robot: str, mission_arg: str | None, default_mission: str | 
         try:
             return MissionControl.restored(robot, M.decode(path.read_bytes(), Saved))
         except (OSError, M.MessageError, ValueError) as exc:
-            aside = path.with_name(path.name + f".corrupt-{int(time.time())}")
-            os.replace(path, aside)
+            aside = quarantine(path)
             log.error("mission state %s unusable (%s); moved to %s, starting idle", path, exc, aside)
     return MissionControl(robot, load_mission_spec(default_mission))
 

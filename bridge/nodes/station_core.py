@@ -31,7 +31,6 @@ from __future__ import annotations
 
 import dataclasses
 import logging
-import os
 import time
 from collections import deque
 from collections.abc import Callable, Mapping
@@ -44,7 +43,7 @@ import numpy as np
 from bridge.core import wire as M
 from bridge.core.clock import HOST
 from bridge.core.config import StationConfig
-from bridge.core.paths import save_atomic
+from bridge.core.paths import quarantine, save_atomic
 from bridge.nodes.mission_control import Fitness, MissionControl, spec_of
 from bridge.nodes.pairing import IntervalPairer, Reorder
 from bridge.nodes.sources import CalibrationSource, CommandSource, Proposal, SourceContext, Why, make_source
@@ -75,6 +74,13 @@ STATUS_MAX_HZ = 20.0
 LIMITS_MOVE_TOL = 0.005
 
 
+def command_extent(learner: Bounds, teacher: Bounds) -> tuple[float, float]:
+    """The largest speed and yaw rate (absolute) either command box holds: what a plausible pair stays within (times
+    ``PLAUSIBLE``) and what the pairer's teacher box spans."""
+    return (float(max(abs(x) for x in (*learner.v, *teacher.v))),
+            float(max(abs(x) for x in (*learner.w, *teacher.w))))
+
+
 def load_store(path: Path, learner: Bounds, teacher: Bounds, grid, k_min: int) -> tuple[PairStore, str]:
     """The persisted store if there is a valid one, else a new one. A file that is corrupt, made for other bounds,
     holds a pair no vehicle could have produced, or would break the wire contract when served (``pairs``) is
@@ -85,8 +91,7 @@ def load_store(path: Path, learner: Bounds, teacher: Bounds, grid, k_min: int) -
             store = PairStore.from_bytes(path.read_bytes())
             if store.learner_bounds != learner or store.teacher_bounds != teacher:
                 raise ValueError("its command bounds differ from this configuration")
-            top_v = PLAUSIBLE * max(abs(x) for x in (*learner.v, *teacher.v))
-            top_w = PLAUSIBLE * max(abs(x) for x in (*learner.w, *teacher.w))
+            top_v, top_w = (PLAUSIBLE * x for x in command_extent(learner, teacher))
             for p in store.refined():
                 if not all(abs(float(u[0])) <= top_v and abs(float(u[1])) <= top_w for u in (p.u_T, p.u_L)):
                     raise ValueError(f"pair {p.id} (teacher {p.u_T[0]:.3g}, {p.u_T[1]:.3g}; learner "
@@ -94,8 +99,7 @@ def load_store(path: Path, learner: Bounds, teacher: Bounds, grid, k_min: int) -
             M.validated(pairs_message(store, "learner", 0.0))  # what the pairs queryable would serve
             return store, f"reloaded {len(store.refined())} refined pairs from {path}"
         except ValueError as exc:
-            aside = path.with_name(path.name + f".corrupt-{int(time.time())}")
-            os.replace(path, aside)
+            aside = quarantine(path)
             log.error("pair store %s unusable (%s); quarantined as %s, starting empty", path, exc, aside)
     return PairStore(learner, teacher, tuple(grid), k_min), "new pair store"
 
@@ -232,8 +236,7 @@ class StationCore:
         self.transfer = TransferStep(policy, dt=self.period, explore=tcfg.exploration != "off",
                                      clearance=tcfg.explore_clearance_m)
         self.source: CommandSource = source or make_source(cfg, self.period, calibration)
-        top_v = float(max(abs(x) for x in (*learner.v, *teacher.v)))
-        top_w = float(max(abs(x) for x in (*learner.w, *teacher.w)))
+        top_v, top_w = command_extent(learner, teacher)
         self.pairer = IntervalPairer(scfg.pair_dt, max_speed=PLAUSIBLE * top_v + 0.1, max_turn=PLAUSIBLE * top_w + 0.2,
                                      command_bounds=learner, teacher_bounds=Bounds((-top_v, top_v), (-top_w, top_w)),
                                      margin=PLAUSIBLE)
