@@ -166,3 +166,11 @@ def test_the_stations_fill_budget_default_is_the_guided_policys() -> None:
 
     assert C.TransferSection().fill_budget == FILL_BUDGET
     assert GuidedPolicy.__init__.__kwdefaults__["fill_budget"] == FILL_BUDGET
+
+
+def test_the_stations_change_detection_defaults_are_the_stores() -> None:
+    # repeated for the same reason: the store's own default change tolerance and its off-by-default adaptation
+    from transfer.store import CHANGE_TOL, PairStore
+
+    assert C.TransferSection().change_tol == CHANGE_TOL
+    assert C.TransferSection().adapt is PairStore.__init__.__kwdefaults__["adapt"] is False

@@ -16,7 +16,8 @@ from sim_learner.dynamics import mpc_learner
 MPC_KEYS = {"method_scm", "method_direct", "method_perturb", "method_affine", "method_barycentric", "method_stop",
             "obstacles_dropped", "persist_failures", "missions", "explore_vetoed", "missed_deadlines",
             "refined_pairs", "raw_pairs", "pairs_rejected", "pairs_formed", "pairs_out_of_order",
-            "implausible_stamps", "implausible_poses", "implausible_pairs", "pairer_resyncs", "goal_reached", "ticks"}
+            "implausible_stamps", "implausible_poses", "implausible_pairs", "pairer_resyncs", "goal_reached",
+            "cells_relearned", "ticks"}
 
 
 def _driver(seq: int = 1, ok: bool = True) -> M.Status:
@@ -168,3 +169,37 @@ def test_a_driver_host_restart_pauses_a_running_mission(tmp_path, restart_seq: i
     core.tick(TickInputs(driver=(_driver(10), 1.0)), 1.0)
     core.tick(TickInputs(driver=(_driver(restart_seq), 2.0)), 2.0)
     assert core.control.phase == "paused"
+
+
+def test_a_store_learned_on_another_day_is_checked_against_todays_pairs_when_adapt_is_on(tmp_path) -> None:
+    """``[transfer] adapt``: the station loads yesterday's store, and the cells whose learner answers otherwise today
+    (a dragging wheel: 15 % of the yaw-rate range) are re-learned from today's pairs and counted on the status."""
+    import msgspec
+
+    from transfer.store import PairStore
+
+    learner = mpc_learner()
+    cfg = msgspec.convert({"transfer": {"adapt": True}}, StationConfig)
+    lb, tb = cfg.learner_bounds.bounds(), cfg.teacher_bounds.bounds()
+    yesterday = PairStore(lb, tb)
+    rng = np.random.default_rng(4)
+    for i in range(11):
+        for j in range(11):
+            for _ in range(8):
+                u = lb.denormalise((np.array([i, j]) + rng.uniform(0.1, 0.9, 2)) / 11)
+                yesterday.add(learner.response(u), u)
+    (tmp_path / "p.bin").write_bytes(yesterday.to_bytes())
+    core = StationCore(cfg, "r1", 10.0, tmp_path / "p.bin", load_mission())
+    assert core.store.adapt and core.store.change_tol == cfg.transfer.change_tol
+    assert core.store.n_configured() == 121 and core.store.relearned == 0  # loaded as it was
+    bias = np.array([0.0, 0.15 * (lb.w[1] - lb.w[0])])
+    for _ in range(8):  # today: the top-speed row driven, as the mission does
+        for j in range(11):
+            u = lb.denormalise(np.array([(10 + rng.uniform(0.1, 0.9)) / 11, (j + rng.uniform(0.1, 0.9)) / 11]))
+            core.store.add(learner.response(u) + bias, u, stamp=5.0)
+    assert core.store.relearned == 11 and np.all(core.store.changed_at[10] == 5.0)
+    assert np.all(np.isnan(core.store.changed_at[:10]))  # the cells not driven today are not touched
+    out = core.tick(TickInputs(), 6.0)
+    assert out.status is not None and out.status.counters["cells_relearned"] == 11
+    off = StationCore(StationConfig(), "r2", 10.0, tmp_path / "p.bin", load_mission())
+    assert not off.store.adapt  # the default: the paper's never-forgetting store

@@ -118,6 +118,14 @@ class TransferSection(Cfg):
     fill_budget: Annotated[float, meta(
         "guided: the share of the commands served from the learned region that may fill a hole of the map, driving "
         "the teacher's curve slower (0: never)", ge=0.0, lt=1.0)] = 0.08
+    adapt: Annotated[bool, meta(
+        "re-learn a cell whose learner changed (a sagging battery, a dragging wheel, a new floor; docs/PAPER.md, "
+        "'a learner that changes'), also the cells of a store learned on another day; off by default while its "
+        "claims are measured (scmbridge sim drift)")] = False
+    # = transfer.store.CHANGE_TOL, repeated for the same reason as fill_budget
+    change_tol: Annotated[float, meta(
+        "adapt: a cell's recent pairs this far from its refined pair (share of the teacher's range) mean its learner "
+        "changed (or five standard deviations of their noise, if more)", ge=0.001, le=0.5)] = 0.02
 
 
 class TeacherSection(Cfg):

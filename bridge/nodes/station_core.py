@@ -156,6 +156,7 @@ class StationCounters:
     implausible_pairs: int = 0
     pairer_resyncs: int = 0
     goal_reached: int = 0
+    cells_relearned: int = 0  # cells whose learner changed, re-learned (transfer.store, ``adapt``)
     calibration_index: int | None = None
     calibration_total: int | None = None
     ticks: int = 0
@@ -229,7 +230,10 @@ class StationCore:
         self.max_pose_age = scfg.max_pose_age_s
         learner, teacher = cfg.learner_bounds.bounds(), cfg.teacher_bounds.bounds()
         self.store, how = load_store(self.store_path, learner, teacher, tcfg.grid, tcfg.k_min)
-        log.info("%s", how)
+        # this configuration decides whether cells are re-learned after a change, whatever the file was saved with:
+        # a store learned on another day is then checked against the first pairs of the run, cell by cell
+        self.store.adapt, self.store.change_tol = tcfg.adapt, tcfg.change_tol
+        log.info("%s%s", how, "; cells whose learner changed are re-learned" if tcfg.adapt else "")
         policy = make_policy(self.store, tcfg.mapper, np.random.default_rng(tcfg.seed),
                              **({"exploration": "paper"} if tcfg.exploration == "paper"
                                 else {"exploration": "guided", "fill_budget": tcfg.fill_budget}))
@@ -386,7 +390,10 @@ class StationCore:
             else:
                 pair = self.pairer.state(e.stamp, (e.x, e.y, e.theta), received)
             if pair is not None:
-                self.store.add(*pair)
+                relearned = self.store.relearned
+                res = self.store.add(*pair, stamp=received)
+                if self.store.relearned > relearned:
+                    log.warning("cell %s re-learned: its learner no longer answers as its pairs said", res.cell)
         if inputs.teacher is not None:
             self.teacher, self.teacher_at = inputs.teacher
             self.teacher_new = True
@@ -565,6 +572,7 @@ class StationCore:
         sm = np.array(self.solve_ms) if self.solve_ms else np.zeros(1)
         c, p = self.counters, self.pairer
         c.refined_pairs, c.raw_pairs = len(self.store.refined()), self.store.raw_count
+        c.cells_relearned = self.store.relearned
         c.pairs_rejected, c.pairs_formed, c.pairs_out_of_order = p.rejected, p.formed, p.out_of_order
         c.implausible_stamps, c.implausible_poses, c.implausible_pairs = (p.implausible_stamp, p.implausible_pose,
                                                                           p.implausible_pair)
