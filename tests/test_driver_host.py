@@ -312,6 +312,8 @@ def test_an_estop_stops_at_once_while_the_latch_save_stalls_and_is_saved_after(t
             finally:
                 driving.set()
                 th.join(2)
+                stop.set()  # the host's loop ends before its session closes (it would publish on a closed one)
+                serving.join(5)
             with lis.lock:
                 first_stop = min(t for t, a in received if a.reason == "estop")
                 echoes = [t for t, _ in received]
