@@ -277,9 +277,10 @@ def second_station(short: bool) -> Result:
 # measured beside other load (2 shared cores); docs/SECURITY.md's attack table lists them.
 
 
-class _Tap:
+class Tap:
     """A man in the middle on 127.0.0.1: one UDP socket the driver takes for the robot and the robot for its peer;
-    forwards both ways, records what the driver sends (unless ``hold``: then it records and keeps it back)."""
+    forwards both ways, records what the driver sends (unless ``hold``: then it records and keeps it back). A replay
+    leaves from that socket, the very address the robot obeys (tests/test_udp_replay.py uses it too)."""
 
     def __init__(self, driver_port: int) -> None:
         import socket
@@ -318,7 +319,7 @@ class _Tap:
                 time.sleep(max(0.0, (t - r0) - (time.monotonic() - t0)))
             self.sock.sendto(data, self.robot)
 
-    def __enter__(self) -> _Tap:
+    def __enter__(self) -> Tap:
         self._thread.start()
         return self
 
@@ -360,7 +361,7 @@ def _drive_udp(driver, seconds: float, v: float) -> None:
         time.sleep(0.02)
 
 
-def _udp_record(key_file: Path, tap: _Tap, seconds: float) -> list[tuple[float, bytes]]:
+def _udp_record(key_file: Path, tap: Tap, seconds: float) -> list[tuple[float, bytes]]:
     """The real UDP driver drives the robot at 0.3 m/s through the tap for ``seconds``: what it sent."""
     from drivers import open_driver
     from drivers.udp import UdpLinkConfig
@@ -389,7 +390,7 @@ def udp_replay_after_reboot(short: bool) -> Result:
         key_file = Path(d) / "udp.key"
         key = make_key(key_file)
         bind = free_udp_port()
-        with _Tap(bind) as tap:
+        with Tap(bind) as tap:
             robot, vehicle = _udp_robot(key, tap.addr)
             tap.robot = ("127.0.0.1", robot.port)
             try:
@@ -424,7 +425,7 @@ def udp_held_back_commands(short: bool) -> Result:
         key_file = Path(d) / "udp.key"
         key = make_key(key_file)
         bind = free_udp_port()
-        with _Tap(bind) as tap:
+        with Tap(bind) as tap:
             robot, vehicle = _udp_robot(key, tap.addr)
             tap.robot = ("127.0.0.1", robot.port)
             driver = open_driver("udp", UdpLinkConfig(robot_port=tap.addr[1], bind_port=bind, key_file=str(key_file),
@@ -448,10 +449,10 @@ def udp_held_back_commands(short: bool) -> Result:
             "held": len(held), "refused": refused, "ok": moved < 0.01 and obeyed == 0 and len(held) > 10}
 
 
-_TEN_YEARS = 10 * 365 * 86400 * 100_000  # in MAVLink signing units (10 us)
+TEN_YEARS = 10 * 365 * 86400 * 100_000  # in MAVLink signing units (10 us)
 
 
-class _Frames:
+class Frames:
     """A pymavlink ``file`` that keeps the frames it is given."""
 
     def __init__(self) -> None:
@@ -461,18 +462,20 @@ class _Frames:
         self.frames.append(bytes(data))
 
 
-def _signer(key: bytes, sysid: int, compid: int, link_id: int, timestamp: int):
-    """A MAVLink 2 sender of ``sysid/compid`` signing with ``key`` from ``timestamp``; its frames in ``.file``."""
+def signer(key: bytes, sysid: int, compid: int, link_id: int, timestamp: int):
+    """A MAVLink 2 sender of ``sysid/compid`` signing with ``key`` from ``timestamp``, link ``link_id``; its frames
+    in the returned :class:`Frames` (the attack rows and tests/test_mavlink_signing.py, tests/test_sitl.py)."""
     from pymavlink import mavutil
 
-    out = _Frames()
+    out = Frames()
     mav = mavutil.mavlink.MAVLink(out, srcSystem=sysid, srcComponent=compid)
     mav.signing.secret_key, mav.signing.sign_outgoing = key, True
     mav.signing.link_id, mav.signing.timestamp = link_id, timestamp
     return mav, out
 
 
-def _until(pred: Callable[[], bool], timeout: float, step: Callable[[], object] | None = None) -> bool:
+def until(pred: Callable[[], bool], timeout: float, step: Callable[[], object] | None = None) -> bool:
+    """Whether ``pred()`` holds within ``timeout`` s, calling ``step()`` (a poll) before each look."""
     t_end = time.monotonic() + timeout
     while time.monotonic() < t_end:
         if step is not None:
@@ -512,12 +515,12 @@ def mavlink_forged_timestamp_at_driver(short: bool) -> Result:
             try:
                 driver.open(time.monotonic())
                 driver.engage(time.monotonic())
-                forger, out = _signer(bytes(32), rover.sysid, rover.compid, 0, signing_wall_clock() + _TEN_YEARS)
+                forger, out = signer(bytes(32), rover.sysid, rover.compid, 0, signing_wall_clock() + TEN_YEARS)
                 forger.heartbeat_send(mav.MAV_TYPE_GROUND_ROVER, mav.MAV_AUTOPILOT_ARDUPILOTMEGA, 0, 0, 0)
                 before = driver.health(time.monotonic()).detail.bad_signatures
                 with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:  # udpout reads from any source
                     s.sendto(out.frames[0], driver.client.conn.port.getsockname())
-                _until(lambda: driver.health(time.monotonic()).detail.bad_signatures > before, 2.0,
+                until(lambda: driver.health(time.monotonic()).detail.bad_signatures > before, 2.0,
                        lambda: driver.poll(time.monotonic()))
                 poses = 0
                 t_end = time.monotonic() + (1.3 if short else 2.5)  # past the 1 s heartbeat timeout
@@ -560,8 +563,8 @@ def mavlink_forged_timestamp_at_rover(short: bool) -> Result:
                 driver.open(time.monotonic())
                 driver.engage(time.monotonic())
                 conn = driver.client.conn
-                forger, out = _signer(bytes(32), driver.config.source_system, conn.mav.srcComponent,
-                                      conn.mav.signing.link_id, signing_wall_clock() + _TEN_YEARS)
+                forger, out = signer(bytes(32), driver.config.source_system, conn.mav.srcComponent,
+                                      conn.mav.signing.link_id, signing_wall_clock() + TEN_YEARS)
                 forger.heartbeat_send(mav.MAV_TYPE_GCS, mav.MAV_AUTOPILOT_INVALID, 0, 0, 0)
                 t_end = time.monotonic() + 0.5
                 while time.monotonic() < t_end:  # the genuine station drives it
@@ -571,9 +574,9 @@ def mavlink_forged_timestamp_at_rover(short: bool) -> Result:
                 speed = round(vehicle.advance(time.monotonic()).v, 3)
                 bad = rover.bad_signatures
                 conn.port.sendto(out.frames[0], ("127.0.0.1", rover.port))  # from the driver's own address
-                _until(lambda: rover.bad_signatures > bad, 2.0)
+                until(lambda: rover.bad_signatures > bad, 2.0)
                 t0 = time.monotonic()  # the genuine stop, sent each poll until the rover stands
-                stopped = _until(lambda: vehicle.advance(time.monotonic()).v == 0.0, 4.0,
+                stopped = until(lambda: vehicle.advance(time.monotonic()).v == 0.0, 4.0,
                                  lambda: (driver.stop(time.monotonic()), driver.poll(time.monotonic())))
                 stop_s = round(time.monotonic() - t0, 2)
             finally:
@@ -602,7 +605,7 @@ def mavlink_replay_after_reboot(short: bool) -> Result:
         vehicle = SimVehicle(mpc_learner(), (0.0, 0.0, 0.0), now=time.monotonic())
         rover = MavlinkRover(vehicle, port=port, init_s=0.1, ekf_position_s=0.2, signing_key=key, signing_store=store,
                              signing_save_s=0.2).start()
-        _until(lambda: rover.has_origin(time.monotonic()) and rover.mode_name == "MANUAL", 3.0)
+        until(lambda: rover.has_origin(time.monotonic()) and rover.mode_name == "MANUAL", 3.0)
         return rover, vehicle
 
     def replay(frames: list[bytes], port: int) -> None:
@@ -617,7 +620,7 @@ def mavlink_replay_after_reboot(short: bool) -> Result:
         rover, vehicle = boot(key, 0, store)
         port = rover.port
         try:
-            gcs, out = _signer(key, 255, 190, 7, signing_wall_clock())
+            gcs, out = signer(key, 255, 190, 7, signing_wall_clock())
             custom = mav.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED
             gcs.command_long_send(rover.sysid, rover.compid, mav.MAV_CMD_DO_SET_MODE, 0, custom, GUIDED, 0, 0, 0, 0, 0)
             gcs.command_long_send(rover.sysid, rover.compid, mav.MAV_CMD_COMPONENT_ARM_DISARM, 0, 1, 0, 0, 0, 0, 0, 0)
@@ -625,16 +628,16 @@ def mavlink_replay_after_reboot(short: bool) -> Result:
                 gcs.set_position_target_local_ned_send(0, rover.sysid, rover.compid, mav.MAV_FRAME_BODY_NED, 0x05E7,
                                                        0, 0, 0, 0.3, 0, 0, 0, 0, 0, 0, 0)
             replay(out.frames, port)  # the genuine traffic, as the wire carried it: it takes the rover
-            potent = _until(lambda: rover.armed and vehicle.distance > 0.0, 2.0)
+            potent = until(lambda: rover.armed and vehicle.distance > 0.0, 2.0)
             saves = rover.signing_saves
-            _until(lambda: rover.signing_saves > saves, 3.0)  # its periodic save (at a HEARTBEAT) after it
+            until(lambda: rover.signing_saves > saves, 3.0)  # its periodic save (at a HEARTBEAT) after it
         finally:
             rover.stop()
         rover, vehicle = boot(key, port, store)  # rebooted: the same storage
         try:
             bad = rover.bad_signatures
             replay(out.frames, port)
-            _until(lambda: rover.bad_signatures >= bad + len(out.frames) or rover.armed, 2.0)
+            until(lambda: rover.bad_signatures >= bad + len(out.frames) or rover.armed, 2.0)
             time.sleep(0.3 if short else 1.0)
             reached = {"armed": rover.armed, "mode": rover.mode_name, "distance_m": round(vehicle.distance, 3)}
             refused = rover.bad_signatures - bad
@@ -898,7 +901,7 @@ class _ZenohHost:
                                            name="attack-driver-host", daemon=True)
             self.thread.start()
             self.stack.callback(self._stop_host)
-            _until(lambda: self.host.ticker is not None, 10.0)
+            until(lambda: self.host.ticker is not None, 10.0)
             self.attacker = self.stack.enter_context(self.client())
         except BaseException:
             self.stack.close()
@@ -981,13 +984,13 @@ def replayed_engage_and_release(short: bool) -> Result:
         first = {"engage_engaged": bool(ans and ans.engaged)}  # the recording is potent
         release = M.encode(stamped(M.Estop(stamp=1.0, engaged=False, source="operator")))
         rig.attacker.put(rig.keys.estop, M.encode(M.Estop(stamp=1.0, source="operator", reason="attack")))
-        _until(lambda: rig.host.gate.estopped, 2.0)
+        until(lambda: rig.host.gate.estopped, 2.0)
         rig.attacker.put(rig.keys.estop, release)  # the person's release, recorded off the network
-        first["release_released"] = _until(lambda: not rig.host.gate.estopped, 2.0)
+        first["release_released"] = until(lambda: not rig.host.gate.estopped, 2.0)
         # the person hands the robot back and latches the estop: the robot is parked
         rig.engage(M.encode(M.EngageRequest(stamp=1.0, engaged=False, source="operator")))
         rig.attacker.put(rig.keys.estop, M.encode(M.Estop(stamp=1.0, source="operator", reason="parked")))
-        _until(lambda: rig.host.gate.estopped, 2.0)
+        until(lambda: rig.host.gate.estopped, 2.0)
         start, t0 = _here(rig.vehicle), time.monotonic()
         stale = dict(stamp=1.0, wall_time=time.time() - 60.0)
         for kind, rel, eng in (
@@ -1006,10 +1009,10 @@ def replayed_engage_and_release(short: bool) -> Result:
         refused = {k: v for k, v in rig.host.inputs.snapshot().items() if "refused" in k and v}
         # the control: the person's own tool (fresh, a new nonce) releases and engages, and the station drives
         rig.attacker.put(rig.keys.estop, M.encode(stamped(M.Estop(stamp=1.0, engaged=False, source="operator"))))
-        _until(lambda: not rig.host.gate.estopped, 2.0)
+        until(lambda: not rig.host.gate.estopped, 2.0)
         ans = rig.engage(M.encode(stamped(M.EngageRequest(stamp=1.0, source="operator"))))
         t1 = time.monotonic()
-        control = bool(ans and ans.engaged) and _until(lambda: any(a.v != 0.0 for a in rig.since(t1)), 2.0)
+        control = bool(ans and ans.engaged) and until(lambda: any(a.v != 0.0 for a in rig.since(t1)), 2.0)
     took = any(r["released"] or r["engaged"] for r in out.values())
     return {"reached_vehicle": {"distance_m": moved, "ticks_driven": driven, **out}, "learned": None,
             "refused": refused, "when_first_sent": first, "control_drives": control,
@@ -1029,7 +1032,7 @@ def forger_at_seq_plus_one(short: bool) -> Result:
 
     with _ZenohHost() as rig, _Station(rig, 0.2):
         rig.engage(M.encode(stamped(M.EngageRequest(stamp=1.0, source="operator"))))
-        drove = _until(lambda: any(a.v == 0.2 for a in rig.since(0.0)), 3.0)  # the station drives it
+        drove = until(lambda: any(a.v == 0.2 for a in rig.since(0.0)), 3.0)  # the station drives it
         sent = [0]
         stop = threading.Event()
         with rig.client() as s:
@@ -1045,7 +1048,7 @@ def forger_at_seq_plus_one(short: bool) -> Result:
 
             sub = s.declare_subscriber(rig.keys.cmd, on_cmd)
             t0 = time.monotonic()
-            _until(lambda: sent[0] > 0, 2.0)
+            until(lambda: sent[0] > 0, 2.0)
             time.sleep(1.0 if short else 3.0)
             stop.set()
             sub.undeclare()
@@ -1087,7 +1090,7 @@ def mission_after_goal(short: bool) -> Result:
         loop.start()
         stack.callback(loop.join, 10.0)
         stack.callback(stop.set)
-        _until(lambda: station.looping, 10.0)
+        until(lambda: station.looping, 10.0)
         attacker = stack.enter_context(open_session(make_config(mode="client", connect=[tcp(port)])))
 
         def ask() -> M.MissionState | None:

@@ -11,11 +11,11 @@ from __future__ import annotations
 
 import socket
 import time
-from collections.abc import Callable
 
 import pytest
 from pymavlink import mavutil
 
+from bench.attack import TEN_YEARS, signer, until
 from bridge.core.auth import make_key
 from drivers import open_driver
 from drivers.mavlink import MavlinkLinkConfig
@@ -25,37 +25,6 @@ from sim_learner.mavlink_rover import GUIDED, MavlinkRover, signing_wall_clock
 from sim_learner.vehicle import SimVehicle
 
 MAV = mavutil.mavlink
-TEN_YEARS = 10 * 365 * 86400 * 100_000  # in signing units (10 us)
-
-
-class _Out:
-    """A pymavlink ``file`` that keeps what it is given."""
-
-    def __init__(self) -> None:
-        self.frames: list[bytes] = []
-
-    def write(self, data: bytes) -> None:
-        self.frames.append(bytes(data))
-
-
-def signer(key: bytes, sysid: int, compid: int, link_id: int, timestamp: int) -> tuple[MAV.MAVLink, _Out]:
-    """A MAVLink 2 sender of ``sysid/compid`` signing with ``key`` from ``timestamp``; its frames in ``out``."""
-    out = _Out()
-    mav = MAV.MAVLink(out, srcSystem=sysid, srcComponent=compid)
-    mav.signing.secret_key, mav.signing.sign_outgoing = key, True
-    mav.signing.link_id, mav.signing.timestamp = link_id, timestamp
-    return mav, out
-
-
-def until(pred: Callable[[], bool], timeout: float, step: Callable[[], object] | None = None) -> bool:
-    t_end = time.monotonic() + timeout
-    while time.monotonic() < t_end:
-        if step is not None:
-            step()
-        if pred():
-            return True
-        time.sleep(0.01)
-    return pred()
 
 
 @pytest.fixture

@@ -4,9 +4,10 @@ Finding this answers (a hostile test, emulated links): keyed command datagrams r
 into a UDP robot right after it rebooted drove it 1.74-1.80 m at 0.3 m/s in 4 of 5 reboots, while its driver host
 said "estop latched": the robot forgot every sender at boot and never asked how old a command was.
 
-The wire tap is a real man in the middle: one UDP socket on 127.0.0.1 that the driver takes for the robot and the
-robot takes for its peer; it forwards both ways and records (or holds back) what the driver sends. A replay leaves
-from that socket, i.e. from the very address the robot obeys. Real sockets, free ports, everything closed.
+The wire tap is a real man in the middle (``bench.attack.Tap``, which the attack bench's replay rows use too): one
+UDP socket on 127.0.0.1 that the driver takes for the robot and the robot takes for its peer; it forwards both ways
+and records (or holds back) what the driver sends. A replay leaves from that socket, i.e. from the very address the
+robot obeys. Real sockets, free ports, everything closed.
 """
 
 from __future__ import annotations
@@ -19,6 +20,7 @@ from collections.abc import Iterator
 
 import pytest
 
+from bench.attack import Tap
 from bridge.core import wire as M
 from bridge.core.auth import KeyFileError, load_key, make_key, open_session, seal
 from bridge.tools.procs import free_udp_port
@@ -30,53 +32,6 @@ from sim_learner.vehicle import SimVehicle
 
 LOCAL = "127.0.0.1"
 
-
-class Tap:
-    """The man in the middle: forwards robot -> driver, and driver -> robot unless holding; records the latter."""
-
-    def __init__(self, driver_port: int) -> None:
-        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        self.sock.bind((LOCAL, 0))
-        self.sock.settimeout(0.02)
-        self.addr = self.sock.getsockname()
-        self.driver = (LOCAL, driver_port)
-        self.robot: tuple[str, int] | None = None
-        self.recorded: list[tuple[float, bytes]] = []  # (time, datagram) the driver sent
-        self.hold = False
-        self.forward_driver = True
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, name="tap", daemon=True)
-
-    def _run(self) -> None:
-        while not self._stop.is_set():
-            try:
-                data, src = self.sock.recvfrom(65536)
-            except (TimeoutError, OSError):
-                continue
-            if src == self.driver:
-                self.recorded.append((time.monotonic(), data))
-                if self.forward_driver and not self.hold and self.robot is not None:
-                    self.sock.sendto(data, self.robot)
-            elif src == self.robot:
-                self.sock.sendto(data, self.driver)
-
-    def replay(self, datagrams: list[tuple[float, bytes]], paced: bool = True) -> None:
-        """Send ``datagrams`` to the robot from this socket (the robot's peer address), at their recorded pace."""
-        assert self.robot is not None
-        t0, r0 = time.monotonic(), datagrams[0][0] if datagrams else 0.0
-        for t, data in datagrams:
-            if paced:
-                time.sleep(max(0.0, (t - r0) - (time.monotonic() - t0)))
-            self.sock.sendto(data, self.robot)
-
-    def __enter__(self) -> Tap:
-        self._thread.start()
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self._stop.set()
-        self._thread.join(timeout=2.0)
-        self.sock.close()
 
 
 @pytest.fixture
@@ -151,7 +106,6 @@ def test_commands_recorded_before_a_reboot_do_not_move_the_robot_after_it(key_fi
                 driver = None
                 if driver_host == "estop latched":  # a driver host that only sends stops (its latch holds)
                     driver = stack.enter_context(_driver(key_file, tap))
-                    tap.forward_driver = True
                 applied = robot.counters["applied"]
                 stopper_done = threading.Event()
 
