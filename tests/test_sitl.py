@@ -39,7 +39,7 @@ from bridge.nodes.zsession import free_port, make_config, open_session, tcp
 from bridge.tools.estop import confirm, latch_states
 from bridge.tools.procs import Children
 from sim_learner.dynamics import LearnerModel
-from sim_learner.mavlink_rover import MavlinkRover
+from sim_learner.mavlink_rover import MavlinkRover, signing_wall_clock
 from sim_learner.sitl import Pilot, Sample, Sitl, SitlError, find_sitl, where_sitl_is_looked_for
 from sim_learner.vehicle import SimVehicle
 
@@ -340,6 +340,18 @@ def test_sigint_while_driving_stops_the_vehicle_before_it_disarms(rig: Rig) -> N
     assert pilot.mode == "GUIDED"  # the mode is the person's: left as it was
 
 
+def _drives_then_stops(link: Pilot, pilot: Pilot) -> None:
+    """Set-points from ``link`` (signed as it now is) take the vehicle to 0.3 m/s within 5 s, then stop it."""
+    t_end = time.monotonic() + 5
+    while time.monotonic() < t_end and pilot.speed < 0.3:
+        link.velocity(0.5, 0.0)
+        time.sleep(0.05)
+    assert pilot.speed >= 0.3, pilot.speed
+    while pilot.speed > 0.05 and time.monotonic() < t_end + 5:
+        link.velocity(0.0, 0.0)
+        time.sleep(0.05)
+
+
 @pytest.mark.sitl
 @pytest.mark.parametrize("sitl", ["sitl"], indirect=True)  # the emulator has no third link and no SETUP_SIGNING
 def test_mavlink2_signing_the_keyed_host_drives_an_unsigned_third_link_does_not(tmp_path, rig: Rig) -> None:
@@ -357,14 +369,7 @@ def test_mavlink2_signing_the_keyed_host_drives_an_unsigned_third_link_does_not(
             time.sleep(0.05)
         assert pilot.speed < 0.02 and math.dist(pilot.position, (0.0, 0.0)) < 0.05, pilot.speed
         third.sign_with(key)  # the same link signed with the key: taken (so the link itself was fine)
-        t_end = time.monotonic() + 5
-        while time.monotonic() < t_end and pilot.speed < 0.3:
-            third.velocity(0.5, 0.0)
-            time.sleep(0.05)
-        assert pilot.speed >= 0.3, pilot.speed
-        while pilot.speed > 0.05 and time.monotonic() < t_end + 5:
-            third.velocity(0.0, 0.0)
-            time.sleep(0.05)
+        _drives_then_stops(third, pilot)
     finally:
         third.close()
     pilot.set_mode("HOLD")  # the host must find the vehicle the person's, then see it given back
@@ -406,14 +411,7 @@ def test_one_forged_packet_with_a_far_future_timestamp_does_not_block_the_real_a
             time.sleep(0.05)
         assert pilot.speed < 0.02, pilot.speed
         third.sign_with(key)  # the right key, the timestamp of now: what a genuine sender sends next
-        t_end = time.monotonic() + 5
-        while time.monotonic() < t_end and pilot.speed < 0.3:
-            third.velocity(0.5, 0.0)
-            time.sleep(0.05)
-        assert pilot.speed >= 0.3, pilot.speed
-        while pilot.speed > 0.05 and time.monotonic() < t_end + 5:
-            third.velocity(0.0, 0.0)
-            time.sleep(0.05)
+        _drives_then_stops(third, pilot)
     finally:
         third.close()
 
@@ -486,6 +484,7 @@ def test_one_forged_packet_on_the_real_autopilots_signed_link_does_not_take_the_
     coming, the bad signature is counted. (pymavlink alone recorded the forged timestamp first: the link went down.)"""
     from pymavlink import mavutil
 
+    from bench.attack import TEN_YEARS, signer
     from bridge.core.auth import load_key
     from drivers import open_driver
     from drivers.mavlink import MavlinkLinkConfig
@@ -505,15 +504,11 @@ def test_one_forged_packet_on_the_real_autopilots_signed_link_does_not_take_the_
             driver.poll(time.monotonic())
             time.sleep(0.02)
         assert proxy.link_ids, "no signed packet from the vehicle"
-        ten_years = int(10 * 365 * 86400 * 1e5)  # MAVLink 2 signing counts 10 us
-        for link_id in sorted(proxy.link_ids):
-            forger = mavutil.mavlink.MAVLink(None, srcSystem=1, srcComponent=1)
-            forger.signing.secret_key, forger.signing.sign_outgoing = bytes(32), True
-            now = int((time.time() - 1420070400) * 1e5)  # MAVLink 2 signing's clock: 10 us since 2015
-            forger.signing.link_id, forger.signing.timestamp = link_id, now + ten_years
-            hb = forger.heartbeat_encode(mavutil.mavlink.MAV_TYPE_GROUND_ROVER,
-                                         mavutil.mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA, 0, 0, 0)
-            proxy.inject(bytes(hb.pack(forger)))
+        for link_id in sorted(proxy.link_ids):  # a wrong key, ten years ahead, on the vehicle's own stream
+            forger, out = signer(bytes(32), 1, 1, link_id, signing_wall_clock() + TEN_YEARS)
+            forger.heartbeat_send(mavutil.mavlink.MAV_TYPE_GROUND_ROVER, mavutil.mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA,
+                                  0, 0, 0)
+            proxy.inject(out.frames[0])
         bad = driver.health(time.monotonic()).detail.bad_signatures
         poses, t_end = 0, time.monotonic() + 3.0  # past the 1 s heartbeat timeout, three times
         while time.monotonic() < t_end:
