@@ -406,10 +406,12 @@ def test_one_forged_packet_with_a_far_future_timestamp_does_not_block_the_real_a
         with third._send_lock:
             # ... and a timestamp a year ahead (units of 10 us since 2015, as MAVLink 2 signing counts)
             third.conn.mav.signing.timestamp += int(365 * 86400 * 1e5)
-        for _ in range(5):
-            third.velocity(1.0, 0.0)  # forged: refused, and its timestamp must not be taken
+        start = pilot.position
+        for _ in range(20):  # 1 s of forged 1 m/s set-points: refused (taken, they would move it decimetres), and
+            third.velocity(1.0, 0.0)  # their timestamp must not be taken
             time.sleep(0.05)
-        assert pilot.speed < 0.02, pilot.speed
+        # judged on the position: at rest SITL's reported speed itself wanders up to about 0.02 m/s (seen: 0.02002)
+        assert math.dist(pilot.position, start) < 0.05, (start, pilot.position, pilot.speed)
         third.sign_with(key)  # the right key, the timestamp of now: what a genuine sender sends next
         _drives_then_stops(third, pilot)
     finally:
