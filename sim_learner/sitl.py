@@ -167,7 +167,58 @@ class _State:
     samples: list[Sample] = field(default_factory=list)
 
 
-class Pilot:
+class VehicleView:
+    """What a person's link sees of the vehicle, read under ``self.cond`` from ``self.s`` (its mode, arming, last
+    LOCAL_POSITION_NED and ATTITUDE, the samples kept): shared by :class:`Pilot` (SITL) and the tests' pilot of the
+    emulated rover, which fill ``s`` each their own way."""
+
+    cond: threading.Condition
+    s: Any
+
+    @staticmethod
+    def _speed(p: Any) -> float:
+        return math.hypot(p.vx, p.vy) if p is not None else 0.0
+
+    def wait(self, pred: Callable[[_State], bool], timeout: float) -> bool:
+        """Wait (on the reader's notifications, not a sleep) until ``pred(state)`` holds; False after ``timeout``."""
+        with self.cond:
+            return self.cond.wait_for(lambda: pred(self.s), timeout)
+
+    @property
+    def mode(self) -> str:
+        with self.cond:
+            return self.s.mode
+
+    @property
+    def armed(self) -> bool:
+        with self.cond:
+            return self.s.armed
+
+    @property
+    def speed(self) -> float:
+        """The horizontal speed of the last LOCAL_POSITION_NED, m/s."""
+        with self.cond:
+            return self._speed(self.s.position)
+
+    @property
+    def yaw_rate(self) -> float:
+        """ATTITUDE's yawspeed, rad/s, clockwise positive (NED)."""
+        with self.cond:
+            return float(self.s.attitude.yawspeed) if self.s.attitude is not None else 0.0
+
+    @property
+    def position(self) -> tuple[float, float]:
+        """(north, east) of the last LOCAL_POSITION_NED, m."""
+        with self.cond:
+            p = self.s.position
+            return (p.x, p.y) if p is not None else (0.0, 0.0)
+
+    def samples(self, since: float = -math.inf) -> list[Sample]:
+        with self.cond:
+            return [x for x in self.s.samples if x.t >= since]
+
+
+class Pilot(VehicleView):
     """The ground station on SITL's SERIAL0: a person's link to the vehicle.
 
     A thread reads every message (keeping the vehicle's mode, arming, position, speed and the answers to our
@@ -249,10 +300,6 @@ class Pilot:
                 s.samples.append(Sample(now, s.armed, s.mode, self._speed(p), p.x if p else 0.0, p.y if p else 0.0))
             self.cond.notify_all()
 
-    @staticmethod
-    def _speed(p: Any) -> float:
-        return math.hypot(p.vx, p.vy) if p is not None else 0.0
-
     def close(self) -> None:
         self._stop.set()
         self._thread.join(2.0)
@@ -260,44 +307,6 @@ class Pilot:
             self.conn.close()
 
     # ------------------------------------------------------------------------------------------ watching
-    def wait(self, pred: Callable[[_State], bool], timeout: float) -> bool:
-        """Wait (on the reader's notifications, not a sleep) until ``pred(state)`` holds; False after ``timeout``."""
-        with self.cond:
-            return self.cond.wait_for(lambda: pred(self.s), timeout)
-
-    @property
-    def mode(self) -> str:
-        with self.cond:
-            return self.s.mode
-
-    @property
-    def armed(self) -> bool:
-        with self.cond:
-            return self.s.armed
-
-    @property
-    def speed(self) -> float:
-        """The horizontal speed of the last LOCAL_POSITION_NED, m/s."""
-        with self.cond:
-            return self._speed(self.s.position)
-
-    @property
-    def yaw_rate(self) -> float:
-        """ATTITUDE's yawspeed, rad/s, clockwise positive (NED)."""
-        with self.cond:
-            return float(self.s.attitude.yawspeed) if self.s.attitude is not None else 0.0
-
-    @property
-    def position(self) -> tuple[float, float]:
-        """(north, east) of the last LOCAL_POSITION_NED, m."""
-        with self.cond:
-            p = self.s.position
-            return (p.x, p.y) if p is not None else (0.0, 0.0)
-
-    def samples(self, since: float = -math.inf) -> list[Sample]:
-        with self.cond:
-            return [x for x in self.s.samples if x.t >= since]
-
     def texts(self) -> list[str]:
         with self.cond:
             return list(self.s.texts)

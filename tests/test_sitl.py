@@ -25,7 +25,7 @@ import subprocess
 import threading
 import time
 import uuid
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from pathlib import Path
 from types import SimpleNamespace
 from typing import Any
@@ -40,13 +40,13 @@ from bridge.tools.estop import confirm, latch_states
 from bridge.tools.procs import Children
 from sim_learner.dynamics import LearnerModel
 from sim_learner.mavlink_rover import MavlinkRover, signing_wall_clock
-from sim_learner.sitl import Pilot, Sample, Sitl, SitlError, find_sitl, where_sitl_is_looked_for
+from sim_learner.sitl import Pilot, Sample, Sitl, SitlError, VehicleView, find_sitl, where_sitl_is_looked_for
 from sim_learner.vehicle import SimVehicle
 
 pytestmark = [pytest.mark.timeout(120)]
 
 
-class EmulatedPilot:
+class EmulatedPilot(VehicleView):
     """The person at the emulated rover, with :class:`Pilot`'s methods: the transmitter's switches for the mode and
     arming, and a state (``position``: LOCAL_POSITION_NED's x, y, vx, vy; ``attitude``: ATTITUDE's yaw, yawspeed;
     ``mode``, ``armed``, ``heartbeats``) read at 20 Hz on the vehicle's thread, as SITL's pilot receives it."""
@@ -84,41 +84,6 @@ class EmulatedPilot:
     def close(self) -> None:
         self._stop.set()
         self._thread.join(2.0)
-
-    def wait(self, pred: Callable[[Any], bool], timeout: float) -> bool:
-        with self.cond:
-            return self.cond.wait_for(lambda: pred(self.s), timeout)
-
-    @property
-    def mode(self) -> str:
-        with self.cond:
-            return self.s.mode
-
-    @property
-    def armed(self) -> bool:
-        with self.cond:
-            return self.s.armed
-
-    @property
-    def speed(self) -> float:
-        with self.cond:
-            p = self.s.position
-            return math.hypot(p.vx, p.vy) if p is not None else 0.0
-
-    @property
-    def yaw_rate(self) -> float:
-        with self.cond:
-            return self.s.attitude.yawspeed if self.s.attitude is not None else 0.0
-
-    @property
-    def position(self) -> tuple[float, float]:
-        with self.cond:
-            p = self.s.position
-            return (p.x, p.y) if p is not None else (0.0, 0.0)
-
-    def samples(self, since: float = -math.inf) -> list[Sample]:
-        with self.cond:
-            return [x for x in self.s.samples if x.t >= since]
 
     def set_mode(self, name: str, timeout: float = 5.0) -> None:
         if not self.rover.rc_mode_switch(name):
