@@ -789,17 +789,26 @@ def latch_file_deleted(short: bool) -> Result:
             "ok": not after["engaged"] and after["distance_m"] < 0.01 and control > 0.01}
 
 
+def forged_releases(other: Path) -> list[bytes]:
+    """"Released" latch files someone else wrote: unsigned, with a made-up tag, the one another state directory's
+    host signed (``other``), and one signed with another key (also tests/test_driver_host.py)."""
+    import os
+
+    from bridge.core import wire as M
+    from bridge.nodes.driver_host import Latch, sign_latch
+
+    return [M.encode(Latch(latched=False, source="operator")),
+            M.encode(Latch(latched=False, source="operator", tag=os.urandom(16))),
+            other.read_bytes(),
+            M.encode(sign_latch(os.urandom(32), Latch(latched=False, source="operator")))]
+
+
 def latch_file_forged_release(short: bool) -> Result:
     """The operator latched the estop; while the host was stopped the latch file was replaced by a "released" one
     this host did not sign (unsigned, a made-up tag, another state directory's host's own signed release, signed
     with a random key); after each, the host restarts and someone engages. Only a release under the robot's latch
     key (its install marker, 0600) is believed. before (``inspect_latch`` as a plain read: any file saying released
     believed; --short, two runs): engaged on 4 of 4, drove 0.061 and 0.048 m in all (0.15 s each)."""
-    import os
-
-    from bridge.core import wire as M
-    from bridge.nodes.driver_host import Latch, sign_latch
-
     engaged, moved = 0, 0.0
     with tempfile.TemporaryDirectory() as d, _LatchRig() as rig:
         latch, other = Path(d) / "a" / "estop-r1.bin", Path(d) / "b" / "estop-r1.bin"
@@ -807,10 +816,7 @@ def latch_file_forged_release(short: bool) -> Result:
         host = rig.host(latch)
         rig.estop(host)
         rig.stop(host)
-        forged = [M.encode(Latch(latched=False, source="operator")),
-                  M.encode(Latch(latched=False, source="operator", tag=os.urandom(16))),
-                  other.read_bytes(),
-                  M.encode(sign_latch(os.urandom(32), Latch(latched=False, source="operator")))]
+        forged = forged_releases(other)
         for data in forged:
             latch.write_bytes(data)
             host = rig.host(latch)

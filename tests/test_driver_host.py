@@ -596,7 +596,8 @@ def test_a_released_latch_file_written_by_someone_else_counts_as_latched(tmp_pat
     signed by another robot's host, or one beside a marker others may read, all start latched."""
     import shutil
 
-    from bridge.nodes.driver_host import Latch, latch_marker, sign_latch
+    from bench.attack import forged_releases
+    from bridge.nodes.driver_host import latch_marker
 
     latch = tmp_path / "a" / "estop-r1.bin"
     other = tmp_path / "b" / "estop-r1.bin"
@@ -605,11 +606,7 @@ def test_a_released_latch_file_written_by_someone_else_counts_as_latched(tmp_pat
         host = robot.host(latch)
         _estop(host)
         robot.stop(host)
-        forged = [M.encode(Latch(latched=False, source="operator")),
-                  M.encode(Latch(latched=False, source="operator", tag=os.urandom(16))),
-                  other.read_bytes(),
-                  M.encode(sign_latch(os.urandom(32), Latch(latched=False, source="operator")))]
-        for data in forged:
+        for data in forged_releases(other):
             latch.write_bytes(data)
             host = robot.host(latch)
             assert host.gate.estopped and host.gate.estop_source == "unverified latch file", data
