@@ -64,7 +64,7 @@ test: $(STAMP)
 	$(VENV)/bin/ruff check .
 	$(PY) -m pytest -q -n $(TEST_WORKERS) -m "not sitl" $(PYTEST_ARGS)
 
-# tests/test_sitl.py, tests/test_demo_sitl.py: the driver host and one transfer run against ArduPilot's real Rover
+# tests/integration/test_sitl.py, tests/integration/test_demo_sitl.py: the driver host and one transfer run against ArduPilot's real Rover
 # firmware in SITL, found at shared/sitl/ardurover beside the repository (or further up) or $$SCMBRIDGE_SITL; here a
 # missing binary fails, never skips.
 test-sitl: $(STAMP)
@@ -91,7 +91,7 @@ bench: $(STAMP)
 	$(VENV)/bin/scmbridge bench transfer
 	$(VENV)/bin/scmbridge bench mpc
 
-# docs/CLI.md is generated from the parsers (tests/test_cli.py checks it is current)
+# docs/CLI.md is generated from the parsers (tests/repo/test_cli.py checks it is current)
 cli-doc: $(STAMP)
 	$(PY) -c 'from bridge.tools.cli import reference; import sys; sys.stdout.write(reference())' > docs/CLI.md
 

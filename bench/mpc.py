@@ -32,7 +32,7 @@ def arguments(ap: argparse.ArgumentParser) -> None:
 
 
 def _timing(solver: str, N: int, slots: int, steps: int) -> dict:
-    from bridge.core.codegen import build_mpc
+    from bridge.teacher.codegen import build_mpc
     from sim_learner.dynamics import MPC_LEARNER_V, MPC_LEARNER_W
     from sim_learner.runs import Run, mean_dev_last_half
     from sim_learner.worlds import mpc_world

@@ -218,7 +218,7 @@ class _Rig:
 
 def run(args: argparse.Namespace) -> int:
     """The bench (module docstring); the pair stores and the mission in a temporary directory, removed after."""
-    from bridge.core.codegen import native_stdout_to_stderr
+    from bridge.teacher.codegen import native_stdout_to_stderr
 
     # qpOASES prints its banner on file descriptor 1 when a solver's memory is made: kept off the JSON
     with tempfile.TemporaryDirectory(prefix="scmbridge-bench-tick-") as tmp, native_stdout_to_stderr():
@@ -238,7 +238,7 @@ def _run(args: argparse.Namespace, tmp: Path) -> dict:
     mission = load_mission(str(write_mission(tmp / "mission.toml", args.tiles)))
     fns = None
     if cfg.teacher.kind == "mpc" and not args.no_compile:
-        from bridge.core.codegen import build_mpc, compile_functions
+        from bridge.teacher.codegen import build_mpc, compile_functions
         from transfer.teacher.mpc import MpcConfig
 
         probe = build_mpc(MpcConfig(N=cfg.station.horizon, dt=1.0 / cfg.station.rate_hz,

@@ -4,8 +4,8 @@ The robot lock (``requirements/robot.txt``) is resolved on Linux x86_64, but pip
 file the index has for each pinned version, so the same lock installs on a Linux aarch64 robot (Raspberry Pi,
 Jetson) when each pin has a file for it: a pure-Python wheel, a CPython 3.11 (or abi3) manylinux aarch64 wheel, or
 an sdist. This script asks the index (PEP 691 JSON) once, when the lock is made, and writes
-``requirements/robot-files.json``: for each pin, its files with their sha256; ``tests/test_install.py`` then checks,
-with no network, that every pin has an aarch64-installable file whose hash the lock carries.
+``requirements/robot-files.json``: for each pin, its files with their sha256; ``tests/repo/test_install.py`` then
+checks, with no network, that every pin has an aarch64-installable file whose hash the lock carries.
 
     python requirements/platforms.py [requirements/robot.txt] [--index https://pypi.org/simple]
 """

@@ -87,8 +87,8 @@ def mpc_case(quick: bool) -> MpcCase:
 @functools.lru_cache(maxsize=4)
 def _mpc_teacher(solver: str = "ipopt") -> MpcTeacher:
     """One MPC per process and solver (built once; ``reset`` before every run clears its warm start); the
-    real-time iteration runs compiled code where the machine can build it (:mod:`bridge.core.codegen`)."""
-    from bridge.core.codegen import build_mpc
+    real-time iteration runs compiled code where the machine can build it (:mod:`bridge.teacher.codegen`)."""
+    from bridge.teacher.codegen import build_mpc
 
     return build_mpc(MpcConfig(N=20, dt=DT, solver=solver), compile=True)
 

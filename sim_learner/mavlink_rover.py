@@ -81,10 +81,10 @@ driver that is wrong about the vehicle. Paths are in github.com/ArduPilot/ardupi
   never handled (a disarm sent by a driver that closes without waiting for the ACK).
 
 Measured against the firmware itself (ArduPilot Rover 4.7.0-dev SITL, rover-skid, stock parameters, 2026-11-27; the
-same scenarios run on both in tests/test_sitl.py, and the figures below with a ground station on each vehicle's link,
-one run each): mode names and numbers, the COMMAND_ACKs (an unknown mode: FAILED, then "No such mode 77"), the
-GUIDED timeout (its text 2.9 s after the last set-point on both), FS_ACTION 2 / FS_TIMEOUT 1.5 / FS_GCS_ENABLE 0 and
-a stopped rover after HOLD agree. What differs, and stays so on purpose:
+same scenarios run on both in tests/integration/test_sitl.py, and the figures below with a ground station on each
+vehicle's link, one run each): mode names and numbers, the COMMAND_ACKs (an unknown mode: FAILED, then "No such
+mode 77"), the GUIDED timeout (its text 2.9 s after the last set-point on both), FS_ACTION 2 / FS_TIMEOUT 1.5 /
+FS_GCS_ENABLE 0 and a stopped rover after HOLD agree. What differs, and stays so on purpose:
 
 * Boot: SITL reaches a healthy EKF in ~4 s of wall time at speedup 10 (its GPS comes at 9.6 s at speedup 1); here
   ``init_s`` and ``ekf_position_s`` (0.3 s and 1 s by default) so that tests are fast.

@@ -114,7 +114,8 @@ class TransferSection(Cfg):
         "from the learned region)")] = "guided"
     explore_clearance_m: Annotated[float, meta("no exploration closer than this to an obstacle's edge, whatever the "
                                                "exploration setting, m", ge=0.0, le=100.0)] = 0.3
-    # = transfer.policy.FILL_BUDGET, repeated: this module stays free of the numerical stack (tests/test_config.py)
+    # = transfer.policy.FILL_BUDGET, repeated: this module stays free of the numerical stack
+    # (tests/unit/bridge/core/test_config.py)
     fill_budget: Annotated[float, meta(
         "guided: the share of the commands served from the learned region that may fill a hole of the map, driving "
         "the teacher's curve slower (0: never)", ge=0.0, lt=1.0)] = 0.08

@@ -223,7 +223,7 @@ def make_source(cfg: StationConfig, period: float, calibration: CalibrationPlan 
         return CalibrationSource(calibration)
     t = cfg.teacher
     if t.kind == "mpc":
-        from bridge.core.codegen import build_mpc
+        from bridge.teacher.codegen import build_mpc
         from transfer.teacher.mpc import MpcConfig
 
         # compiled in the background by the Zenoh side (station.KernelBuild), never here: a core is built at once

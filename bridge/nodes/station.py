@@ -113,7 +113,7 @@ FLEET_SWITCH_INTERVAL_S = 0.0005
 
 
 class KernelBuild:
-    """The MPC's compiled code, built in a background thread (:mod:`bridge.core.codegen`: once per machine, then
+    """The MPC's compiled code, built in a background thread (:mod:`bridge.teacher.codegen`: once per machine, then
     loaded from the cache in milliseconds) while the stations already run the same functions interpreted; each loop
     switches its teacher to it between two ticks (:meth:`adopt`). Never a build inside a tick. One build serves
     every robot of a process whose MPC solves the same problem."""
@@ -128,7 +128,7 @@ class KernelBuild:
             self.done.set()
 
     def _build(self, kernels: list) -> None:
-        from bridge.core.codegen import compile_functions
+        from bridge.teacher.codegen import compile_functions
 
         try:
             self.result = compile_functions(kernels)

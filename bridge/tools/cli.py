@@ -292,7 +292,7 @@ def main(argv: list[str] | None = None) -> int:
 def reference() -> str:
     """docs/CLI.md: every command's help page, generated from the parsers (``make cli-doc``)."""
     out = ["# scmbridge command reference", "",
-           "Generated from the parsers by `make cli-doc` (tests/test_cli.py checks it is current).", "",
+           "Generated from the parsers by `make cli-doc` (tests/repo/test_cli.py checks it is current).", "",
            "```", root_help(), "```", ""]
     for cmd in COMMANDS:
         out += [f"## scmbridge {cmd.name}", "", "```", parser_for(cmd).format_help().rstrip(), "```", ""]

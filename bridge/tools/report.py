@@ -4,7 +4,7 @@ The summary (reached goal, time, the driving time apart from pauses and estops (
 mean/max deviation from the mission path, method counts, pairs, missed deadlines,
 median solve time) is computed by the demo's own :class:`bridge.tools.demo.Monitor`: the recorded ``state`` and
 ``status`` messages are fed, in arrival order, to the same subscription callbacks the live monitor runs, so a
-recorded demo run gives the figures the live demo printed (``tests/test_record.py`` checks it end to end).
+recorded demo run gives the figures the live demo printed (``tests/integration/test_record.py`` checks it end to end).
 
 The mission is the last ``mission`` message recorded for the robot, else ``--mission FILE``, else the shipped
 S-path (the demo's default). Figures in ``DIR``: ``trajectory.png`` (the learner's poses over the mission),

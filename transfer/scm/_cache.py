@@ -28,7 +28,8 @@ def share_source_stamp(*modules: ModuleType) -> bytes:
 
     Must run before any of them compiles (``transfer.scm.__init__`` runs it at import; nothing compiles at import).
     Relies on numba's ``Cache._cache_file._source_stamp`` (numba is pinned in requirements.lock;
-    tests/test_scm_map.py checks that an edit to a callee's file recompiles its caller in another file)."""
+    tests/unit/transfer/scm/test_rectmap.py checks that an edit to a callee's file recompiles its caller in another
+    file)."""
     files = [d._cache._cache_file for d in kernel_dispatchers(*modules) if not isinstance(d._cache, NullCache)]
     shared = hashlib.sha256("\n".join(sorted({repr(f._source_stamp) for f in files})).encode()).digest()
     for f in files:

@@ -7,7 +7,7 @@ R(u) = log(sn(u | m)) / pi onto the strip {0 <= Im s <= 1} and F the strip SC ma
 The user-facing coordinates are those of the *unit square*: the rectangle scaled per axis so that corners[0]
 -> 0, corners[1] -> 1, corners[2] -> 1 + 1j, corners[3] -> 1j. The conformal image is ``modulus * a + 1j * b``.
 
-Numerical choices (each re-derived and tested, see tests/test_scm_*.py):
+Numerical choices (each re-derived and tested, see tests/unit/transfer/scm/test_rectmap.py):
 - Labelling: internally the first side is a long side of the rectangle (so L is not exponentially small) and the
   vertex preceding the first corner is not a straight angle; both are exact 90/180 degree rotations of the unit
   square, undone on output.

@@ -14,7 +14,7 @@ Two ways to solve the same problem (``MpcConfig.solver``, docs/ARCHITECTURE.md "
   the least-squares cost, obstacle rows linearised) and solves one dense QP with an active-set solver that keeps its
   working set from tick to tick. A cold start (the first tick, after ``reset``) iterates up to ``rti_cold_iters``
   times. The QP's data come from a CasADi function that a caller may hand to a ``compiler`` (generated C, built once
-  and cached by :mod:`bridge.core.codegen`); without one it runs in CasADi's virtual machine.
+  and cached by :mod:`bridge.teacher.codegen`); without one it runs in CasADi's virtual machine.
 
 References are sampled along the path from the point closest to the vehicle, spaced by the distance the teacher
 covers in one step at the top of its current speed bound. The obstacles the problem's slots hold are the nearest

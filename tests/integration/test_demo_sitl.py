@@ -1,0 +1,106 @@
+"""The parts of ``scmbridge demo --sitl`` that need no SITL: the learner's range read from the vehicle's parameters,
+and the mission placed where the vehicle stands (a file the station reads back); and one transfer run on SITL
+(marked ``sitl``): the weak, distorted rover of deploy/examples/sitl-weak.parm on the first bend of the S-path."""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from bridge.core.config import load_mission, load_mission_spec
+from bridge.core.errors import UsageError
+from bridge.core.wire import MissionSpec
+from bridge.tools.demo_sitl import learner_range, mission_toml, place_mission
+from sim_learner.sitl import Sitl, find_sitl, where_sitl_is_looked_for
+from sim_learner.sitl_response import measure
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def test_the_learner_range_is_the_vehicles_guided_speed_cap_and_turn_rate_limit() -> None:
+    v, w = learner_range({"CRUISE_SPEED": 3.0, "WP_SPEED": 0.3, "ATC_STR_RAT_MAX": 15.0})
+    assert v == (0.05, 0.3) and w == pytest.approx((-math.pi / 12, math.pi / 12))  # the Jackal's top speeds
+    # WP_SPEED 0: CRUISE_SPEED, as Rover does; CRUISE_SPEED is never a cap on its own (it tunes the throttle)
+    assert learner_range({"CRUISE_SPEED": 2.0, "WP_SPEED": 0.0, "ATC_STR_RAT_MAX": 15.0})[0] == (0.05, 2.0)
+    assert learner_range({"CRUISE_SPEED": 0.3, "WP_SPEED": 3.0, "ATC_STR_RAT_MAX": 15.0})[0] == (0.05, 3.0)
+    with pytest.raises(UsageError):
+        learner_range({"CRUISE_SPEED": 0.0, "WP_SPEED": 0.0, "ATC_STR_RAT_MAX": 15.0})
+
+
+def test_the_mission_moves_rigidly_onto_the_vehicles_pose_and_reads_back(tmp_path) -> None:
+    spec = load_mission_spec(None)  # the paper's S-path, start 0.3 m beside it facing 45 degrees away
+    pose = (1.5, -2.0, 2.6)
+    placed = place_mission(spec, pose)
+    assert placed.start == pytest.approx(list(pose))
+    f = tmp_path / "mission.toml"
+    f.write_text(mission_toml(placed))
+    world, world0 = load_mission(str(f)), load_mission(None)
+    assert world.path.length == pytest.approx(world0.path.length)
+    # every distance is kept: start to goal, start to each obstacle, and the radii
+    s0, s1 = np.asarray(spec.start[:2]), np.asarray(pose[:2])
+    assert np.hypot(*(world.goal - s1)) == pytest.approx(np.hypot(*(world0.goal - s0)))
+    for (x, y, r), (x0, y0, r0) in zip(world.obstacles, world0.obstacles):
+        assert r == r0 and np.hypot(x - s1[0], y - s1[1]) == pytest.approx(np.hypot(x0 - s0[0], y0 - s0[1]))
+    # and the start's heading relative to the path's first segment is the same
+    def rel(path, start) -> float:
+        d = np.asarray(path[1]) - np.asarray(path[0])
+        return (math.atan2(d[1], d[0]) - start[2]) % (2 * math.pi)
+    assert rel(placed.path, placed.start) == pytest.approx(rel(spec.path, spec.start))
+
+
+def half_s_path() -> MissionSpec:
+    """The S-path's first bend (x <= 4 m: 4.8 m of arc, its start pose and the two obstacles beside that bend)."""
+    spec = load_mission_spec(None)
+    return MissionSpec(name="s-path-first-bend", frame=spec.frame, goal_tolerance=spec.goal_tolerance,
+                       start=spec.start, path=[p for p in spec.path if p[0] <= 4.0],
+                       obstacles=[o for o in spec.obstacles if o[0] <= 4.0])
+
+
+def _binary() -> Path:
+    binary = find_sitl()
+    if binary is None:
+        why = f"ArduPilot SITL not found at {where_sitl_is_looked_for()}: set SCMBRIDGE_SITL"
+        if os.environ.get("SCMBRIDGE_SITL_REQUIRED"):
+            pytest.fail(why)
+        pytest.skip(why)
+    return binary
+
+
+@pytest.mark.sitl
+@pytest.mark.timeout(60)
+def test_the_weak_profile_makes_the_rover_fall_short_of_its_commands_as_its_table_says() -> None:
+    """Two points of deploy/examples/sitl-weak.parm's table, measured again: speed and turn rate about half."""
+    with Sitl(_binary(), model="rover-skid", parm_files=[ROOT / "deploy" / "examples" / "sitl-weak.parm"]) as sitl:
+        pts = measure(sitl, [0.6], [0.0, 0.3], hold_s=4.0)
+    straight, turning = pts
+    assert 0.45 < straight.v_ratio < 0.65, straight  # table: 0.56
+    assert 0.45 < turning.w_ratio < 0.65 and 0.45 < turning.v_ratio < 0.65, turning  # table: 0.58, 0.55
+
+
+@pytest.mark.sitl
+@pytest.mark.timeout(120)
+def test_a_transfer_run_on_sitl_reaches_the_goal_of_the_first_bend_without_collision(tmp_path) -> None:
+    """``scmbridge demo --sitl`` as a person runs it, with the weak profile, transfer on, from no pairs at all."""
+    binary = _binary()
+    mission = tmp_path / "mission.toml"
+    mission.write_text(mission_toml(half_s_path()))
+    t0 = time.monotonic()
+    done = subprocess.run([sys.executable, "-m", "bridge", "demo", "--link", "mavlink", "--sitl", str(binary),
+                           "--sitl-params", str(ROOT / "deploy" / "examples" / "sitl-weak.parm"), "--transfer", "on",
+                           "--mission", str(mission), "--duration", "60", "--out", str(tmp_path / "out")],
+                          capture_output=True, text=True, timeout=100, cwd=ROOT)  # 45-47 s (3 runs)
+    wall = time.monotonic() - t0
+    lines = [ln for ln in done.stdout.splitlines() if ln.startswith("summary: ")]
+    assert lines, f"no summary after {wall:.0f} s: {done.stdout[-1500:]}{done.stderr[-1500:]}"
+    run = json.loads(lines[-1][len("summary: "):])
+    assert run["reached_goal"] and run["collisions"]["scm"] is False, run
+    assert run["refined_pairs"] > 0 and run["method_counts"].get("perturb", 0) > 0, run  # it learned, as it drove
+    assert done.returncode == 0, done.stderr[-1500:]

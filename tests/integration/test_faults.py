@@ -1,0 +1,128 @@
+"""Faults the station and the driver host must survive or stop on: stale telemetry (at both ends), a full disk
+under the pair store, a driver host killed while the robot drives (the robot's own watchdog stops it)."""
+
+from __future__ import annotations
+
+import errno
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+
+from bridge.core import wire as M
+from bridge.core.config import StationConfig, load_mission
+from bridge.nodes.sources import Why
+from bridge.nodes.station_core import StationCore
+from bridge.nodes.zsession import free_port, make_config, open_session, tcp
+from bridge.tools.procs import Children, free_udp_port
+from sim_learner.dynamics import mpc_learner
+from sim_learner.udp_robot import UdpRobot
+from sim_learner.vehicle import SimVehicle
+from tests.collect import Collector
+
+
+def _status(ok: bool = True, text: str = "link can: driving (cmd)") -> M.Status:
+    return M.Status(stamp=1.0, seq=1, node="driver", ok=ok, text=text)
+
+
+def test_the_station_drives_only_a_fit_robot_from_a_fresh_pose(tmp_path) -> None:
+    """Finding: the station planned from the last pose whatever its age. It now stops and says why."""
+    st = StationCore(StationConfig(), "r1", 10.0, tmp_path / "p.bin", load_mission())
+    pose = M.LearnerState(stamp=1.0, seq=1, x=0.0, y=0.0, theta=0.0)
+    assert st.fit_to_drive(10.0, pose, 9.9, _status(), 9.5) is None
+    assert st.fit_to_drive(10.0, pose, 9.2, _status(), 9.5) == Why("no pose for 0.8 s", "no_telemetry")
+    assert st.fit_to_drive(10.0, None, -np.inf, _status(), 9.5) == Why("no pose yet", "no_telemetry")
+    why = st.fit_to_drive(10.0, pose, 9.9, _status(False, "link mavlink: operator took control: mode HOLD"), 9.5)
+    assert why == Why("robot not ready: link mavlink: operator took control: mode HOLD", "robot_not_ready")
+    late = st.fit_to_drive(10.0, pose, 9.9, _status(), 5.0)
+    assert late.text.startswith("robot not ready: no driver host status") and late.reason == "robot_not_ready"
+
+
+def test_a_full_disk_is_reported_retried_and_leaves_no_temporary_file(tmp_path, monkeypatch) -> None:
+    """Finding: OSError on persist killed the station in a restart loop and left .tmp files."""
+    st = StationCore(StationConfig(), "r1", 10.0, tmp_path / "p.bin", load_mission())
+    real_fsync = os.fsync
+
+    def full(fd: int) -> None:
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(os, "fsync", full)
+    st.persist()  # no exception: the loop goes on
+    assert st.counters.persist_failures == 1 and "No space left on device" in st.persist_error
+    assert not list(tmp_path.glob(".*.tmp")) and not (tmp_path / "p.bin").exists()
+    status = st.status(1.0)
+    assert not status.ok and "pair store not saved" in status.text
+    monkeypatch.setattr(os, "fsync", real_fsync)
+    st.persist()  # the next period: saved
+    assert st.persist_error == "" and (tmp_path / "p.bin").exists()
+
+
+@pytest.mark.timeout(90)
+def test_stale_telemetry_stops_the_robot_and_a_killed_driver_host_leaves_it_to_its_own_watchdog(tmp_path) -> None:
+    """Findings: with stale telemetry the driver host kept applying commands (the robot drove blind); and the
+    robot must stop by itself when its driver host dies (kill -9), within its watchdog."""
+    port, robot = free_port(), f"ft{os.getpid()}"
+    vehicle = SimVehicle(mpc_learner(), (0.0, 0.0, 0.0), now=time.monotonic())
+    bind = free_udp_port()
+    with UdpRobot(vehicle, peer=("127.0.0.1", bind), watchdog=0.5) as dev, \
+            open_session(make_config(mode="router", listen=[tcp(port)])) as session, Children() as kids:
+        cfg = tmp_path / "driver.toml"
+        cfg.write_text(f"[link.udp]\ninsecure = true\nrobot_port = {dev.port}\nbind_port = {bind}\n")
+        k, col = M.Keys(robot), Collector(session)
+        applied, status = col.listen(k.applied, M.Applied), col.listen(M.status_key(robot, "driver"), M.Status)
+        lock = col.lock
+        host = kids.spawn(["driver", "--engage", "--link", "udp", "--config", str(cfg), "--robot", robot, "--mode",
+                           "client", "--connect", tcp(port), "--duration", "80"])
+        pub = session.declare_publisher(k.cmd)
+        epoch, seq = M.new_epoch(), 0
+
+        def drive(seconds: float) -> None:
+            nonlocal seq
+            t_end = time.monotonic() + seconds
+            while time.monotonic() < t_end:
+                pub.put(M.encode(M.Command(stamp=time.monotonic(), seq=seq, v=0.2, omega=0.0, method="scm",
+                                           epoch=epoch)))
+                seq += 1
+                time.sleep(0.05)
+
+        t_end = time.monotonic() + 30
+        while time.monotonic() < t_end and not any(s.ok for s in list(status)):
+            time.sleep(0.1)
+        drive(1.0)
+        with lock:
+            assert any(a.reason == "cmd" for a in applied)
+        dev.pause_telemetry(1.5)
+        t_pause = time.monotonic()
+        drive(1.2)
+        with lock:
+            late = [a for a in applied if a.stamp > t_pause + 0.8]
+            texts = [s.text for s in status if s.stamp > t_pause + 0.5]
+        assert late and all(a.v == 0.0 and a.reason in ("no_telemetry", "fault") for a in late), \
+            {a.reason for a in late}
+        assert any("no state from the robot" in t or "no telemetry" in t for t in texts), texts
+        time.sleep(0.6)
+        drive(1.0)  # telemetry is back: driving again
+        with lock:
+            assert applied[-1].reason == "cmd"
+        moving_before = vehicle.state.v
+        os.killpg(host.pid, signal.SIGKILL)
+        t_kill = time.monotonic()
+        drive(0.3)  # the station keeps sending; nobody passes it on
+        time.sleep(0.6)
+        assert moving_before > 0.0 and vehicle.state.v == 0.0 and not vehicle.moving
+        assert time.monotonic() - t_kill < 2.0
+
+
+def test_a_failed_final_save_is_an_error_and_a_non_zero_exit(tmp_path) -> None:
+    """Finding: with a full disk at SIGTERM the last save failed, the log said "pair store saved", exit 0."""
+    port = free_port()
+    with open_session(make_config(mode="router", listen=[tcp(port)])):
+        res = subprocess.run([sys.executable, "-m", "bridge", "station", "--robot", "fs1", "--mode", "client",
+                              "--connect", tcp(port), "--store", "/proc/scmbridge-test/pairs.bin", "--duration", "2"],
+                             capture_output=True, text=True, timeout=120)
+    assert res.returncode == 1, res.stderr[-2000:]
+    assert "pair store NOT saved" in res.stderr and "pair store saved to" not in res.stderr

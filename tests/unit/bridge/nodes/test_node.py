@@ -1,0 +1,68 @@
+"""The nodes' one scheduler (``bridge.nodes.node.FixedRate``) and its send budget (``SendBudget``): the station ticks
+on absolute deadlines; the driver host also at once when woken, re-phasing its period, within the link's budget
+(docs/ARCHITECTURE.md, "Threads and clocks"). Only lower bounds of time are asserted (a wait never ends early);
+how soon a woken tick comes is the driver host's tests' (tests/integration/test_driver_host.py)."""
+
+from __future__ import annotations
+
+import random
+import threading
+import time
+
+import numpy as np
+
+from bridge.nodes.node import FixedRate, SendBudget
+
+
+def test_the_budget_lets_two_through_at_once_then_one_per_interval_and_bounds_every_window() -> None:
+    b = SendBudget(100.0, 2, now=0.0)
+    assert b.ready_at(0.0) == 0.0
+    b.take(0.0)
+    assert b.ready_at(0.0) == 0.0  # the burst: a command right after a periodic tick goes at once
+    b.take(0.0)
+    assert abs(b.ready_at(0.0) - 0.01) < 1e-9  # then 1 / rate_hz
+    # greedy sends against requests at random times: over any window of T seconds at most 2 + rate * T
+    rng = random.Random(1)
+    b, sends, now = SendBudget(100.0, 2, now=0.0), [], 0.0
+    for _ in range(5000):
+        now += rng.expovariate(300.0) if rng.random() < 0.8 else rng.uniform(0.0, 0.05)
+        t = b.ready_at(now)
+        b.take(t)
+        sends.append(t)
+        now = t
+    s = np.asarray(sends)
+    for n in (2, 3, 10, 100):
+        assert (s[n:] - s[:-n]).min() >= (n - 1) / 100.0 - 1e-9, n
+    busiest = max(np.searchsorted(s, t + 1.0) - i for i, t in enumerate(s))
+    assert busiest <= 2 + 100
+
+
+def test_woken_ticks_keep_the_deadline_or_rephase_it_and_the_budget_holds() -> None:
+    stop, wake = threading.Event(), threading.Event()
+    keep = FixedRate(20.0, stop, wake=wake)  # the station: absolute deadlines
+    deadline = keep.t_next + keep.period
+    wake.set()
+    assert keep.wait() is False and not wake.is_set()
+    assert keep.wait() is True and keep.t_next == deadline and time.monotonic() >= deadline - 1e-3
+    assert keep.missed == 0
+
+    ticker = FixedRate(20.0, stop, wake=wake, max_hz=40.0, rephase=True)  # the driver host
+    t_built = ticker.t_next  # the caller's first tick: one of the budget's two
+    wake.set()
+    t0 = time.monotonic()
+    assert ticker.wait() is False
+    t1 = time.monotonic()
+    assert t0 <= ticker.t_next <= t1  # the woken tick restarted the period: the next deadline is one after it
+    wake.set()  # a third tick in a row waits for the budget: 1 / max_hz after the first
+    assert ticker.wait() is False and time.monotonic() >= t_built + 1 / 40.0 - 1e-3
+    t3 = ticker.t_next
+    assert ticker.wait() is True and time.monotonic() >= t3 + ticker.period - 1e-3
+
+def test_a_tick_that_overruns_its_period_is_a_missed_deadline_and_the_schedule_restarts() -> None:
+    stop = threading.Event()
+    ticker = FixedRate(100.0, stop)
+    time.sleep(0.05)  # the tick itself overran several periods
+    t = time.monotonic()
+    assert ticker.wait() is True and ticker.missed == 1 and ticker.t_next >= t
+    assert ticker.late >= 0.05 - ticker.period - 1e-3
+    assert ticker.wait() is True and ticker.missed == 1  # back on a schedule from then
