@@ -443,10 +443,9 @@ def _every_message_type() -> list[type]:
     return found
 
 
-# Every message type's decoder is built here, at import, by one thread. Finding (bench fleet, 16 robots in one
-# station process): the robots' threads each built the decoders on first use, and msgspec (0.22) building a
-# Decoder while another thread decodes crashes the process (SIGSEGV; reproduced with 16 threads in about one run
-# of six). A type outside this module still gets its decoder on first use.
+# Every message type's decoder is built here, at import, by one thread: msgspec (0.22) building a Decoder while
+# another thread decodes can crash the process (SIGSEGV), so the many robot threads of one station process must
+# never build one on first use. A type outside this module still gets its decoder on first use.
 for _kind in _every_message_type():
     _decoders[_kind] = msgspec.msgpack.Decoder(_kind)
 

@@ -5,7 +5,7 @@ router; it carries no scmbridge logic, only Zenoh's routing and, with the file `
 lab``) writes, mutual TLS and the access control. Running it apart from the station is what lets the operator's
 tools work while the station is down: ``scmbridge status`` still says what each driver host reports (and that the
 station is missing) and ``scmbridge estop --all`` still reaches every robot's driver host, instead of both failing
-with "cannot reach the Zenoh router" and the robots stopping only by their deadman (issue 32, item 4).
+with "cannot reach the Zenoh router" and the robots stopping only by their deadman.
 
 The router's access control is read once, when it starts: Zenoh cannot change it at runtime (zenoh.io, "Access
 Control": "ACL config cannot be updated at runtime, and requires a restart"), so a robot added to the fleet costs a

@@ -2,7 +2,7 @@
 
 Under the lab's mutual TLS the router knows a client by its certificate's common name (CN) and drops, silently,
 whatever its access control denies: Zenoh tells the client nothing (docs/ARCHITECTURE.md, "Zenoh"). The tools read
-their own identity here so that they can say *why* nothing answered (issue 32, item 6): "denied: identity observer
+their own identity here so that they can say *why* nothing answered: "denied: identity observer
 may not engage" (:mod:`bridge.tools.identity`), or, when the session does not open at all, "the router refuses this
 certificate: it was issued by CA X, the lab's CA is Y". Read with ``openssl`` (as ``scmbridge doctor`` does); every
 function returns None or says nothing when it cannot tell (no TLS, no openssl, an unreadable file): a hint, never a

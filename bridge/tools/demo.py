@@ -93,7 +93,7 @@ ECHO_GAP_S = 0.5
 
 def driving_time(applied: list[tuple[float, str, int | None]], t0: float, t1: float) -> float:
     """Seconds between ``t0`` and ``t1`` during which the vehicle was driven (applied reason ``cmd`` or
-    ``clamped``): a run's time apart from its pauses, estops and waits (finding: a 54.1 s run held a 14 s estop)."""
+    ``clamped``): a run's time apart from its pauses, estops and waits, which can be a large share of a run."""
     echoes = sorted((a[0], a[1] in ("cmd", "clamped")) for a in applied if t0 <= a[0] <= t1)
     return float(sum(min(b[0] - a[0], ECHO_GAP_S) for a, b in zip(echoes, echoes[1:]) if a[1]))
 
@@ -104,7 +104,7 @@ LINE_METHODS = ("scm", "barycentric", "direct", "perturb", "stop")
 
 def method_counts(counters: dict[str, int]) -> str:
     """``scm=12 barycentric=230 direct=4 perturb=0 stop=9``: every command the station sent, by method, so the counts
-    add up to what it sent (finding: the line left out barycentric, its most used method)."""
+    add up to what it sent."""
     others = sorted(k[7:] for k in counters if k.startswith("method_") and k[7:] not in LINE_METHODS)
     return " ".join(f"{m}={counters.get(f'method_{m}', 0)}" for m in (*LINE_METHODS[:-1], *others, LINE_METHODS[-1]))
 

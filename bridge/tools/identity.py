@@ -1,4 +1,4 @@
-"""Denied or nobody there? What the lab's access control lets this tool's identity do (issue 32, item 6).
+"""Denied or nobody there? What the lab's access control lets this tool's identity do.
 
 A router drops what its access control denies without a word to the client: an observer's ``engage`` and a robot's
 certificate asking ``mission start`` see exactly what they would see with nobody answering. A tool that knows its
