@@ -125,6 +125,7 @@ COMMANDS: list[Command] = [
     _C("bench fuzz", "bench.fuzz.main", "mutated input at every trust boundary, counts checked exactly (JSON)"),
     _C("bench soak", "bench.soak", "the HIL loop driving for a long time: RSS trend, deadlines (JSON)"),
     _C("bench attack", "bench.attack", "every attack found, against the real components: what got through (JSON)"),
+    _C("bench figures", "bench.figures", "the figures the docs quote, measured again by one command (JSON, table)"),
     _C("bench pairing", "bench.pairing", "a link's command pairs against the learner's true response (JSON)"),
     _C("bench estop", "bench.estop", "estop publish to the first applied stop, with the host's fsyncs slowed (JSON)"),
     _C("bench perf", "bench.perf", "the quick benchmarks judged against their targets: CI's regression guard (JSON)"),
