@@ -198,7 +198,8 @@ class Station:
 
     # ---------------------------------------------------------------------------------------------- inputs
     def on_own_cmd(self, cmd: M.Command, now: float) -> None:
-        """Commands on this robot's key: one this station did not send is another station's (or a forger's)."""
+        """Commands on this robot's key from other sessions (this one's own are not delivered): one this station did
+        not send is another station's (or a forger's)."""
         if cmd.epoch != self.core.epoch:  # fixed at start: read without the lock
             with self.lock:
                 self.inbox.foreign.append((cmd, now))
@@ -374,7 +375,9 @@ class Station:
         self.inputs.subscribe(session, M.status_key(self.robot, "driver"), M.Status, "driver_status",
                               self.on_driver_status)
         self.inputs.subscribe(session, k.mission, M.MissionSpec, "mission", self.on_mission)
-        self.inputs.subscribe(session, k.cmd, M.Command, "own_cmd", self.on_own_cmd)
+        # another sender's commands on this robot's key; the station's own are not delivered back to it (they were
+        # encoded and checked once, in the core: decoding each again here would only find its own epoch)
+        self.inputs.subscribe(session, k.cmd, M.Command, "own_cmd", self.on_own_cmd, remote_only=True)
         if external:
             self.inputs.subscribe(session, k.teacher, M.TeacherCommand, "teacher", self.on_teacher)
         session.declare_queryable(k.pairs, self.on_pairs_query)
