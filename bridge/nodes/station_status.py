@@ -132,13 +132,14 @@ class StationCounters:
     missed_deadlines: int = 0
     refined_pairs: int = 0
     raw_pairs: int = 0
-    pairs_rejected: int = 0
-    pairs_formed: int = 0
-    pairs_out_of_order: int = 0
-    implausible_stamps: int = 0
-    implausible_poses: int = 0
-    implausible_pairs: int = 0
-    pairer_resyncs: int = 0
+    # the pairer's own counts under their status names (the pairer's name in each field's metadata: observe)
+    pairs_rejected: int = field(default=0, metadata={"pairer": "rejected"})
+    pairs_formed: int = field(default=0, metadata={"pairer": "formed"})
+    pairs_out_of_order: int = field(default=0, metadata={"pairer": "out_of_order"})
+    implausible_stamps: int = field(default=0, metadata={"pairer": "implausible_stamp"})
+    implausible_poses: int = field(default=0, metadata={"pairer": "implausible_pose"})
+    implausible_pairs: int = field(default=0, metadata={"pairer": "implausible_pair"})
+    pairer_resyncs: int = field(default=0, metadata={"pairer": "resyncs"})
     goal_reached: int = 0
     cells_relearned: int = 0  # cells whose learner changed, re-learned (transfer.store, ``adapt``)
     calibration_index: int | None = None
@@ -156,12 +157,8 @@ class StationCounters:
         """Take the counts the pairer, the store and the mission keep themselves (before a status)."""
         self.refined_pairs, self.raw_pairs, self.cells_relearned = (len(store.refined()), store.raw_count,
                                                                     store.relearned)
-        p = pairer
-        self.pairs_rejected, self.pairs_formed, self.pairs_out_of_order = p.rejected, p.formed, p.out_of_order
-        self.implausible_stamps, self.implausible_poses, self.implausible_pairs = (p.implausible_stamp,
-                                                                                   p.implausible_pose,
-                                                                                   p.implausible_pair)
-        self.pairer_resyncs = p.resyncs
+        for name, attr in _PAIRER_COUNTS:
+            setattr(self, name, getattr(pairer, attr))
         self.goal_reached = int(control.phase == "finished")
 
     def as_dict(self) -> dict[str, int]:
@@ -175,6 +172,11 @@ class StationCounters:
             else:
                 out[f.name] = int(v)
         return out
+
+
+#: (status counter, pairer attribute), derived once from :class:`StationCounters`'s fields
+_PAIRER_COUNTS = tuple((f.name, f.metadata["pairer"]) for f in dataclasses.fields(StationCounters)
+                       if "pairer" in f.metadata)
 
 
 def status_key(reason: M.Reason, phase: M.MissionPhase, unfit_reason: M.Reason | None,

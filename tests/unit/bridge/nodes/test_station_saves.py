@@ -1,0 +1,80 @@
+"""A station's saves (bridge.nodes.station_saves): when the pair store is saved, what a failure leaves for the
+status, and the writer's outcomes coming back; real files in a temporary directory, times passed in, no Zenoh."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from bridge.core import wire as M
+from bridge.nodes.mission_control import Fitness, MissionControl, Saved
+from bridge.nodes.station_saves import StationSaves
+from bridge.nodes.station_status import StationCounters
+from bridge.nodes.writer import SaveWriter
+from sim_learner.dynamics import MPC_LEARNER_V, MPC_LEARNER_W, MPC_TEACHER_V, MPC_TEACHER_W
+from transfer.domain import Bounds
+from transfer.store import PairStore
+
+SPEC = M.MissionSpec(name="line", path=[[0.0, 0.0], [2.0, 0.0]])
+
+
+def _saves(tmp_path: Path, store_path: Path | None = None, control_path: Path | None = None,
+           every: float = 1.0) -> StationSaves:
+    store = PairStore(Bounds(MPC_LEARNER_V, MPC_LEARNER_W), Bounds(MPC_TEACHER_V, MPC_TEACHER_W), k_min=1)
+    return StationSaves(store, store_path or tmp_path / "pairs.bin", MissionControl("r1", SPEC), control_path,
+                        StationCounters(), every)
+
+
+def test_the_store_is_saved_at_the_first_periodic_tick_and_then_each_period(tmp_path) -> None:
+    s = _saves(tmp_path, every=1.0)
+    handed: list[tuple[str, Path, float]] = []
+    s.writer = lambda what, path, data: handed.append((what, path, len(data)))  # the adapter's writer's signature
+    for now in (10.0, 10.5, 10.99, 11.0, 11.5, 12.0):
+        s.periodic(now)
+    assert [w for w, _, _ in handed] == ["store"] * 3 and {p for _, p, _ in handed} == {tmp_path / "pairs.bin"}
+    assert s.next_at == 13.0
+
+
+def test_without_a_writer_a_save_is_made_at_once_and_a_mission_without_a_path_is_not_kept(tmp_path) -> None:
+    s = _saves(tmp_path)
+    s.save("store")
+    assert (tmp_path / "pairs.bin").exists() and s.error == ""
+    s.save("control")  # no control path: nothing, and no error
+    handed: list[str] = []
+    s.writer = lambda what, path, data: handed.append(what)
+    s.save("control")
+    assert handed == [] and s.error == "" and s.counters.persist_failures == 0
+
+
+def test_a_failed_store_save_is_counted_reported_and_cleared_by_the_next_that_succeeds(tmp_path) -> None:
+    (tmp_path / "not-a-dir").write_text("")
+    s = _saves(tmp_path, store_path=tmp_path / "not-a-dir" / "pairs.bin")
+    assert s.persist() is False
+    assert s.error.startswith("pair store not saved: ") and s.counters.persist_failures == 1
+    assert s.saved("store", None) is True and s.error == ""  # the writer's next save succeeded
+
+
+def test_a_failed_mission_save_is_retried_at_the_next_tick(tmp_path) -> None:
+    (tmp_path / "not-a-dir").write_text("")
+    s = _saves(tmp_path, control_path=tmp_path / "not-a-dir" / "mission.bin")
+    s.control.saved()  # as after a save: nothing changed since
+    assert not s.control.changed
+    s.save_control()
+    assert s.error.startswith("mission state not saved: ") and s.counters.persist_failures == 1
+    assert s.control.changed  # the next tick asks again
+    assert s.saved("control", OSError(28, "No space left on device")) is False
+    assert s.error == "mission state not saved: No space left on device" and s.counters.persist_failures == 2
+
+
+def test_the_writer_writes_the_ticks_snapshots_and_its_outcomes_come_back(tmp_path) -> None:
+    s = _saves(tmp_path, control_path=tmp_path / "mission.bin")
+    writer = SaveWriter(name="test-saves")
+    s.writer = writer
+    s.control.request(M.MissionRequest(stamp=0.0, action="abort", source="test"), Fitness(), 0.0)
+    s.save("store")
+    s.save("control")
+    writer.close()  # writes what waits: no waiting on a clock
+    outcomes = writer.results()
+    assert sorted(w for w, _ in outcomes) == ["control", "store"] and all(e is None for _, e in outcomes)
+    assert all(s.saved(w, e) for w, e in outcomes)
+    assert M.decode((tmp_path / "mission.bin").read_bytes(), Saved).phase == "aborted"
+    assert PairStore.from_bytes((tmp_path / "pairs.bin").read_bytes()).raw_count == 0
