@@ -121,8 +121,8 @@ class _Rig:
         core.store.add = clock.wrap("store", core.store.add)
         core.source.propose = clock.wrap("mpc", core.source.propose)
         core.transfer.map = clock.wrap("transfer", core.transfer.map)
-        for what in ("status", "limits", "persist"):
-            setattr(core, what, clock.wrap("publications", getattr(core, what)))
+        for owner, what in ((core, "status"), (core.limits_report, "message"), (core.saves, "persist")):
+            setattr(owner, what, clock.wrap("publications", getattr(owner, what)))
         self.wire: list[tuple[bytes, type]] = []  # this period's telemetry as bytes (without --zenoh)
         self.session = session
         self.driver = None

@@ -176,7 +176,7 @@ class Station:
         self.looping = False  # the loop runs: only its thread calls the core
         self.acts = ActGuard()  # mission requests are taken fresh and once (bridge.core.acts); under the lock
         self.writer = SaveWriter(save, name=f"station-save-{robot}")
-        self.core.writer = self.writer
+        self.core.saves.writer = self.writer
         self.telemetry: list[Queued] = []  # the echoes' and the poses' queues, read at each tick (serve declares them)
         self.wake = threading.Event()  # a query, or an external teacher's command: the loop handles it now
         self.pubs: dict[str, zenoh.Publisher] = {}
@@ -198,7 +198,8 @@ class Station:
 
     # ---------------------------------------------------------------------------------------------- inputs
     def on_own_cmd(self, cmd: M.Command, now: float) -> None:
-        """Commands on this robot's key: one this station did not send is another station's (or a forger's)."""
+        """Commands on this robot's key from other sessions (this one's own are not delivered): one this station did
+        not send is another station's (or a forger's)."""
         if cmd.epoch != self.core.epoch:  # fixed at start: read without the lock
             with self.lock:
                 self.inbox.foreign.append((cmd, now))
@@ -212,7 +213,7 @@ class Station:
 
     def on_control_query(self, query: zenoh.Query) -> None:
         """A person's request (``scmbridge mission ...``): decoded here, done or refused by the loop and answered
-        at once (:meth:`answer`). Every action but ``status`` must be fresh and new (:mod:`bridge.core.acts`): a
+        at once (:meth:`_answer`). Every action but ``status`` must be fresh and new (:mod:`bridge.core.acts`): a
         recorded request replayed, or one without a time and nonce, is answered with the refusal and does nothing."""
         now = time.monotonic()
         try:
@@ -255,12 +256,12 @@ class Station:
             if self.looping:
                 self.inbox.queries.append(asked)
             else:
-                self.answer([asked], asked.at)
+                self._answer([asked], asked.at)
                 return
         self.wake.set()
 
     # ------------------------------------------------------------------------------------------------ queries
-    def answer(self, queries: list[Asked], now: float, settle: bool = False) -> None:
+    def _answer(self, queries: list[Asked], now: float, settle: bool = False) -> None:
         """Do and answer the queries taken from the inbox (on the loop's thread, between two ticks): a mission
         request from the robot's fitness now, ``pairs`` from the store as the last tick left it. A mission request
         that waited more than :data:`CONTROL_MAX_WAIT_S` (a stalled loop) is dropped unanswered: its asker has
@@ -305,11 +306,11 @@ class Station:
         if inbox.queries:
             if inbox.driver is not None:  # a request is judged on the robot as it is now
                 self.core.note_driver(*inbox.driver)
-            self.answer(inbox.queries, now, settle=True)  # a pause that came before this tick stops the robot in it
+            self._answer(inbox.queries, now, settle=True)  # a pause that came before this tick stops the robot in it
         for cmd, at in inbox.foreign:
             self.core.heard_command(cmd, at)
         for what, error in self.writer.results():
-            self.core.saved(what, error)
+            self.core.saves.saved(what, error)
         if self.build is not None and self.build.done.is_set():
             self.build.adopt(self.teacher)
             self.build = None
@@ -317,7 +318,7 @@ class Station:
             inbox.telemetry += q.drain(now)
         inputs = inbox.take(periodic, self.inputs.snapshot(), self.ticker.missed if self.ticker else 0)
         out = self.core.tick(inputs, now)
-        self.publish(out)
+        self._publish(out)
         return out
 
     def between_ticks(self) -> bool:
@@ -330,10 +331,10 @@ class Station:
         if queries:
             if driver is not None:  # the driver host's status that came since the tick: an engage, a release
                 self.core.note_driver(*driver)
-            self.answer(queries, time.monotonic(), settle=True)
+            self._answer(queries, time.monotonic(), settle=True)
         return teacher and self.core.source.external
 
-    def publish(self, out: TickOutputs) -> None:
+    def _publish(self, out: TickOutputs) -> None:
         for topic, msg in (("cmd", out.command), ("teacher", out.teacher), ("limits", out.limits),
                            ("status", out.status)):
             if msg is not None:  # the command as the core checked it: encoded once
@@ -344,20 +345,20 @@ class Station:
         this one at once; False (reported on the status and logged by the caller) when it failed."""
         self._close_writer()
         with self.lock:
-            return self.core.persist()
+            return self.core.saves.persist()
 
     def save_control(self) -> None:
         """The final save of the mission state (at exit), at once."""
         self._close_writer()
         with self.lock:
-            self.core.save_control()
+            self.core.saves.save_control()
 
     def _close_writer(self) -> None:
         self.writer.close()
         with self.lock:
-            self.core.writer = None
+            self.core.saves.writer = None
             for what, error in self.writer.results():
-                self.core.saved(what, error)
+                self.core.saves.saved(what, error)
 
     # ------------------------------------------------------------------------------------------------- run
     def serve(self, session: zenoh.Session, stop: threading.Event, duration: float | None,
@@ -374,7 +375,9 @@ class Station:
         self.inputs.subscribe(session, M.status_key(self.robot, "driver"), M.Status, "driver_status",
                               self.on_driver_status)
         self.inputs.subscribe(session, k.mission, M.MissionSpec, "mission", self.on_mission)
-        self.inputs.subscribe(session, k.cmd, M.Command, "own_cmd", self.on_own_cmd)
+        # another sender's commands on this robot's key; the station's own are not delivered back to it (they were
+        # encoded and checked once, in the core: decoding each again here would only find its own epoch)
+        self.inputs.subscribe(session, k.cmd, M.Command, "own_cmd", self.on_own_cmd, remote_only=True)
         if external:
             self.inputs.subscribe(session, k.teacher, M.TeacherCommand, "teacher", self.on_teacher)
         session.declare_queryable(k.pairs, self.on_pairs_query)
@@ -400,7 +403,7 @@ class Station:
             with self.lock:  # queries left waiting are answered now; later ones in their callbacks
                 self.looping = False
                 left, self.inbox.queries = self.inbox.queries, []
-                self.answer(left, time.monotonic())
+                self._answer(left, time.monotonic())
 
     def _loop(self, stop: threading.Event, duration: float | None, exit_at_goal: bool) -> None:
         self.ticker = FixedRate(1 / self.period, stop)
@@ -474,12 +477,12 @@ def _station(cfg: StationConfig, robot: str, rate: float, args: argparse.Namespa
 def _save(station: Station) -> bool:
     saved = station.persist()
     station.save_control()
-    path, n = station.core.store_path, len(station.store.refined())
+    path, n = station.core.saves.store_path, len(station.store.refined())
     if saved:
         log.info("%s: pair store saved to %s (%d refined pairs)", station.robot, path, n)
     else:
         log.error("%s: pair store NOT saved to %s: %s (%d refined pairs lost at this exit)", station.robot, path,
-                  station.core.persist_error, n)
+                  station.core.saves.error, n)
     return saved
 
 

@@ -23,17 +23,21 @@ reported on status and retried, and never stops the loop).
 :class:`TickOutputs` is what to publish; the Zenoh adapter (:mod:`bridge.nodes.station`) puts it on the wire. The
 core has no threads, no module-level state and no session: a process may run many, one per robot. It is not
 thread-safe: the adapter calls it (ticks and the control and pairs queries) from its loop's thread only. Its saves are
-encoded in the tick and written by :attr:`StationCore.writer` when the adapter gives one (off the tick: its writer
-thread; the outcome comes back through :meth:`StationCore.saved`), else at once.
+encoded in the tick and written by the writer the adapter gives :attr:`StationCore.saves`
+(:class:`bridge.nodes.station_saves.StationSaves`: off the tick, on the writer's thread; the outcome comes back
+through its ``saved``), else at once.
+
+The core's jobs off the tick's path live beside it, one each: whether the robot is fit to drive
+(:mod:`bridge.nodes.station_fitness`, pure), what the station says about itself (its status, its limits, why it does
+not drive; :mod:`bridge.nodes.station_status`) and its saves (:mod:`bridge.nodes.station_saves`).
 """
 
 from __future__ import annotations
 
-import dataclasses
 import logging
 import time
 from collections import deque
-from collections.abc import Callable, Mapping
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -41,12 +45,25 @@ import msgspec
 import numpy as np
 
 from bridge.core import wire as M
-from bridge.core.clock import HOST
 from bridge.core.config import StationConfig
-from bridge.core.paths import quarantine, save_atomic
+from bridge.core.paths import quarantine
 from bridge.nodes.mission_control import Fitness, MissionControl, spec_of
 from bridge.nodes.pairing import IntervalPairer, Reorder
 from bridge.nodes.sources import CalibrationSource, CommandSource, Proposal, SourceContext, Why, make_source
+from bridge.nodes.station_fitness import DRIVER_STATUS_MAX_AGE, assess_fitness, driver_estop
+from bridge.nodes.station_saves import StationSaves
+from bridge.nodes.station_status import (
+    GOOD_REASONS,
+    INTEGRITY_WINDOW_S,
+    STATUS_EVERY_S,
+    Integrity,
+    LimitsReport,
+    StationCounters,
+    StatusFacts,
+    StatusReport,
+    not_driving,
+    status_key,
+)
 from transfer.calibration import CalibrationPlan
 from transfer.domain import Bounds
 from transfer.mission import Mission
@@ -57,21 +74,8 @@ from transfer.teacher._refs import closest
 
 log = logging.getLogger("scmbridge.station")
 
-#: a driver host publishes status each second: after this long without one, the robot is not known to be fit
-DRIVER_STATUS_MAX_AGE = 3.0
-#: an integrity problem (another sender, implausible telemetry) keeps the status not ok this long, s
-INTEGRITY_WINDOW_S = 5.0
 #: what the learner can really do is its box (or the teacher's) times this; beyond it a pose or pair is implausible
 PLAUSIBLE = 1.5
-#: the station's reasons under which it does what it should (its status is then ok, unless its work is untrustworthy)
-GOOD_REASONS: tuple[M.Reason, ...] = ("ok", "goal_reached", "calibration_done")
-#: the status (and the forced limits) go out this often, s; and at once when what it says changes, but at most
-#: STATUS_MAX_HZ a second
-STATUS_EVERY_S = 1.0
-STATUS_MAX_HZ = 20.0
-#: between two forced ones, the limits go out when an edge of their box moved more than this fraction of the
-#: teacher's range (half a percent: the store's own tolerance for moving a refined pair)
-LIMITS_MOVE_TOL = 0.005
 
 
 def command_extent(learner: Bounds, teacher: Bounds) -> tuple[float, float]:
@@ -104,15 +108,6 @@ def load_store(path: Path, learner: Bounds, teacher: Bounds, grid, k_min: int) -
     return PairStore(learner, teacher, tuple(grid), k_min), "new pair store"
 
 
-def driver_estop(driver: M.Status) -> bool:
-    """Whether a driver host's status says an estop is latched there: its typed reason (``estop``, also in a dry
-    run; ``latch_unsaved``: latched and not on its disk), never its words; a host older than that field says it by
-    its state alone."""
-    if driver.reason is not None:
-        return driver.reason in ("estop", "latch_unsaved")
-    return driver.state == "estop"
-
-
 def pairs_message(store: PairStore, robot: str, now: float) -> M.Pairs:
     """The ``pairs`` reply: the refined pairs and the learned limits."""
     recs = [M.PairRecord(id=p.id, version=p.version, count=p.count, teacher_v=float(p.u_T[0]),
@@ -122,63 +117,6 @@ def pairs_message(store: PairStore, robot: str, now: float) -> M.Pairs:
                    limits_hull=[[float(a), float(b)] for a, b in store.limits.hull],
                    teacher_bounds=store.teacher_bounds.as_list(), learner_bounds=store.learner_bounds.as_list(),
                    grid=[int(store.grid[0]), int(store.grid[1])])
-
-
-@dataclass
-class StationCounters:
-    """Every counter on the station's status. :meth:`as_dict` gives the status's ``counters``: the optional ones
-    (None, or a zero ``method_calibrate`` / ``foreign_commands``) only once they mean something; ``inputs`` are
-    the transport's own counts (``malformed_<input>``), merged as they are."""
-
-    method_scm: int = 0
-    method_direct: int = 0
-    method_perturb: int = 0
-    method_affine: int = 0
-    method_barycentric: int = 0
-    method_stop: int = 0
-    method_calibrate: int = 0
-    obstacles_dropped: int = 0
-    persist_failures: int = 0
-    missions: int = 0
-    explore_vetoed: int = 0
-    primitive_replans: int | None = None
-    primitives_allowed: int | None = None
-    foreign_commands: int = 0
-    inputs: dict[str, int] = field(default_factory=dict)
-    missed_deadlines: int = 0
-    refined_pairs: int = 0
-    raw_pairs: int = 0
-    pairs_rejected: int = 0
-    pairs_formed: int = 0
-    pairs_out_of_order: int = 0
-    implausible_stamps: int = 0
-    implausible_poses: int = 0
-    implausible_pairs: int = 0
-    pairer_resyncs: int = 0
-    goal_reached: int = 0
-    cells_relearned: int = 0  # cells whose learner changed, re-learned (transfer.store, ``adapt``)
-    calibration_index: int | None = None
-    calibration_total: int | None = None
-    ticks: int = 0
-
-    _SHOWN_IF_NONZERO = ("method_calibrate", "foreign_commands")
-
-    def count_method(self, method: str) -> None:
-        """One more command sent by ``method`` (a wire ``Command`` method)."""
-        name = f"method_{method}"
-        setattr(self, name, getattr(self, name) + 1)
-
-    def as_dict(self) -> dict[str, int]:
-        out: dict[str, int] = {}
-        for f in dataclasses.fields(self):
-            v = getattr(self, f.name)
-            if f.name == "inputs":
-                out.update(v)
-            elif v is None or (f.name in self._SHOWN_IF_NONZERO and v == 0):
-                continue
-            else:
-                out[f.name] = int(v)
-        return out
 
 
 @dataclass(frozen=True)
@@ -213,8 +151,11 @@ class TickOutputs:
 
 
 class StationCore:
-    """One robot's station: pairing, the command source, the transfer step, mission control, persistence and the
-    status (module docstring)."""
+    """One robot's station: its tick (pairing, the command source, the transfer step, mission control) and the
+    mission requests between ticks (module docstring). Beside it, each with one job: whether the robot is fit
+    (:mod:`bridge.nodes.station_fitness`), what the station says about itself (:mod:`bridge.nodes.station_status`:
+    :attr:`report`, :attr:`limits_report`, :attr:`integrity`) and its saves (:attr:`saves`,
+    :mod:`bridge.nodes.station_saves`)."""
 
     def __init__(self, cfg: StationConfig, robot: str, rate_hz: float, store_path: Path, mission: Mission,
                  control: MissionControl | None = None, control_path: Path | None = None,
@@ -225,11 +166,9 @@ class StationCore:
         scfg, tcfg = cfg.station, cfg.transfer
         self.robot = robot
         self.period = 1.0 / rate_hz
-        self.store_path = Path(store_path)
-        self.persist_every = scfg.persist_every_s
         self.max_pose_age = scfg.max_pose_age_s
         learner, teacher = cfg.learner_bounds.bounds(), cfg.teacher_bounds.bounds()
-        self.store, how = load_store(self.store_path, learner, teacher, tcfg.grid, tcfg.k_min)
+        self.store, how = load_store(Path(store_path), learner, teacher, tcfg.grid, tcfg.k_min)
         # this configuration decides whether cells are re-learned after a change, whatever the file was saved with:
         # a store learned on another day is then checked against the first pairs of the run, cell by cell
         self.store.adapt, self.store.change_tol = tcfg.adapt, tcfg.change_tol
@@ -246,11 +185,15 @@ class StationCore:
                                      margin=PLAUSIBLE)
         self.reorder = Reorder()
         self.control = control or MissionControl(robot, spec_of(mission))
-        self.control_path = control_path
         self.fitness = Fitness()
         self.counters = StationCounters()
+        self.saves = StationSaves(self.store, Path(store_path), self.control, control_path, self.counters,
+                                  scfg.persist_every_s)
+        self.report = StatusReport()
+        self.limits_report = LimitsReport(self.store, robot)
+        self.integrity = Integrity()
         self.epoch = M.new_epoch()
-        self.seq = {"cmd": 0, "status": 0}
+        self.seq = {"cmd": 0}
         # the latest of each input, kept across ticks
         self.state: M.LearnerState | None = None
         self.state_at = -np.inf
@@ -260,24 +203,13 @@ class StationCore:
         self.teacher: M.TeacherCommand | None = None
         self.teacher_at = -np.inf
         self.teacher_new = False  # an external teacher's command not yet given to the source
-        self.foreign_cmd_at, self.foreign_epoch = -np.inf, 0  # the last command of another sender on our key
-        self.implausible_seen: tuple[int, float] = (0, -np.inf)  # (count, when it last grew)
         self.mission_version = self.control.version
         self.why = "starting"  # the one reason this station does (not) drive, in words (status text, log) ...
         self.reason: M.Reason = "starting"  # ... and typed: what its status's ok and reason are decided on
-        self.persist_error = ""
-        self.limits_sent: tuple[list[float], int] | None = None
-        self.limits_version = 0
         self.solve_ms: deque[float] = deque(maxlen=100)
         self.tick_ms: deque[float] = deque(maxlen=600)  # the last minute of periodic ticks' durations
         self.t_status: float | None = None  # the next status is due then (None: at the first periodic tick)
         self.unfit_reason: M.Reason | None = None  # why the robot was not fit at the last tick (None: fit)
-        self.status_sent: tuple | None = None  # the status_key of the last status sent, and when
-        self.status_at = -np.inf
-        self.t_persist: float | None = None
-        #: the adapter's writer of the tick's saves, ``(what, path, data)`` with ``what`` "store" or "control": it
-        #: writes them off the tick and reports each outcome back through :meth:`saved`; None: the tick saves at once
-        self.writer: Callable[[str, Path, bytes], None] | None = None
         self.command_bytes: tuple[M.Command, bytes] | None = None  # the last command and its checked bytes
 
     # -------------------------------------------------------------------------------------------- queries
@@ -304,8 +236,8 @@ class StationCore:
         and pose (the adapter hands over a status that came since the last tick first, :meth:`note_driver`), not the
         last tick's verdict. A start with the robot already at the goal is refused (it would finish at once), saying
         how to drive back. The answer's reason is the mission's as the status says it now."""
-        unfit, self.fitness = self.assess_fitness(now)
-        if req.action == "start" and self.control.phase != "running" and self.at_goal():
+        unfit, self.fitness = self._fitness(now)
+        if req.action == "start" and self.control.phase != "running" and self._at_goal():
             ans = self.control.answer(now, False, f"refused: the robot is at the goal of {self.mission.name!r} "
                                       "already (a start would end at once); to drive back, send the mission reversed: "
                                       f"scmbridge mission send FILE --reverse --robot {self.robot}, then start it")
@@ -314,7 +246,7 @@ class StationCore:
         if req.action != "status":
             log.info("mission %s%s: %s", req.action, f" by {req.source}" if req.source else "", ans.text)
         if self.control.phase in ("paused", "finished"):
-            ans = msgspec.structs.replace(ans, reason=self.not_driving(unfit).text[:1024])
+            ans = msgspec.structs.replace(ans, reason=not_driving(self.control, self.robot, unfit).text[:1024])
         return ans
 
     def refused_for_the_robot(self, req: M.MissionRequest, now: float) -> bool:
@@ -325,10 +257,10 @@ class StationCore:
             return False
         if req.action == "resume" and c.phase != "paused":
             return False
-        _, fit = self.assess_fitness(now)
-        return fit.estop or (req.action == "resume" and bool(fit.why))
+        _, fitness = self._fitness(now)
+        return fitness.estop or (req.action == "resume" and bool(fitness.why))
 
-    def at_goal(self) -> bool:
+    def _at_goal(self) -> bool:
         """The latest pose is at the mission's goal by the mission's own rule (a station that follows a mission)."""
         state = self.state
         if state is None or not self.source.follows_mission:
@@ -338,12 +270,13 @@ class StationCore:
         return bool(self.mission.reached_at(s, [state.x, state.y]))
 
     def pairs(self, now: float) -> M.Pairs:
+        """The ``pairs`` reply now: the refined pairs and the learned limits."""
         return pairs_message(self.store, self.robot, now)
 
     def heard_command(self, cmd: M.Command, now: float) -> None:
         """A command on this robot's key: one this station did not send is another station's (or a forger's)."""
         if cmd.epoch != self.epoch:
-            self.foreign_cmd_at, self.foreign_epoch = now, cmd.epoch
+            self.integrity.foreign_command(cmd.epoch, now)
             self.counters.foreign_commands += 1
 
     # ----------------------------------------------------------------------------------------------- tick
@@ -361,16 +294,14 @@ class StationCore:
         status = limits = None
         if self.t_status is None or now >= self.t_status:
             status = self.status(now)
-            limits = self.limits(now, force=True)
+            limits = self.limits_report.message(now, force=True)
             self.t_status = now + STATUS_EVERY_S
-        elif self.status_changed(now):  # at once, between the periodic ones (their grid stays)
+        elif self.report.changed(now, self._status_key()):  # at once, between the periodic ones (their grid stays)
             status = self.status(now)
-            limits = self.limits(now, force=False)
+            limits = self.limits_report.message(now, force=False)
         else:
-            limits = self.limits(now, force=False)
-        if self.t_persist is None or now >= self.t_persist:
-            self.save("store")
-            self.t_persist = now + self.persist_every
+            limits = self.limits_report.message(now, force=False)
+        self.saves.periodic(now)  # the pair store each persist_every_s
         return TickOutputs(command, teacher, limits, status, self._bytes_of(command))
 
     def ingest(self, inputs: TickInputs, now: float) -> None:
@@ -420,19 +351,15 @@ class StationCore:
         self.driver_seq = st.seq
         self.driver, self.driver_at = st, at
 
-    def assess_fitness(self, now: float) -> tuple[Why | None, Fitness]:
+    def _fitness(self, now: float) -> tuple[Why | None, Fitness]:
         """Why the robot may not be driven now (None: it may), and the :class:`Fitness` mission control decides on,
-        from the latest driver host status and pose."""
-        driver = self.driver
-        unfit = self.fit_to_drive(now, self.state, self.state_at, driver, self.driver_at)
-        estop = driver is not None and driver_estop(driver)
-        late = driver is None or now - self.driver_at > DRIVER_STATUS_MAX_AGE or driver.ok  # a pose or status late
-        return unfit, Fitness(unfit.text if unfit is not None else "", estop, immediate=not late)
+        from the latest driver host status and pose (:func:`bridge.nodes.station_fitness.assess_fitness`)."""
+        return assess_fitness(now, self.state, self.state_at, self.driver, self.driver_at, self.max_pose_age)
 
     def control_step(self, now: float) -> tuple[M.Command | None, M.TeacherCommand | None]:
         """Drive, or publish a stop and say why: the command and teacher message of this tick."""
         state = self.state
-        unfit, self.fitness = self.assess_fitness(now)
+        unfit, self.fitness = self._fitness(now)
         self.unfit_reason = unfit.reason if unfit is not None else None
         c = self.control
         if self.source.follows_mission and unfit is None and c.phase == "running":
@@ -442,7 +369,7 @@ class StationCore:
             if self.mission.reached_at(s, [state.x, state.y]):
                 c.reached()
         command = teacher = None
-        stop = None if c.may_drive(self.fitness, now) else self.not_driving(unfit)
+        stop = None if c.may_drive(self.fitness, now) else not_driving(c, self.robot, unfit)
         if stop is None:
             stop, command, teacher = self.drive(now, state)
         if stop is not None:
@@ -455,22 +382,8 @@ class StationCore:
         self.why, self.reason = (stop.text, stop.reason) if stop is not None else ("driving", "ok")
         self.counters.goal_reached = int(c.phase == "finished")
         if c.unsaved:
-            self.save("control")
+            self.saves.save("control")
         return command, teacher
-
-    def fit_to_drive(self, now: float, state: M.LearnerState | None, state_at: float, driver: M.Status | None,
-                     driver_at: float) -> Why | None:
-        """None if the station may drive the robot now, else why not (typed, and in words for status and the log).
-        Decided on typed fields only (the driver host's ``ok``, the stamps): its ``text`` is only quoted."""
-        if driver is None or now - driver_at > DRIVER_STATUS_MAX_AGE:
-            return Why("robot not ready: no driver host status", "robot_not_ready")
-        if not driver.ok:
-            return Why(f"robot not ready: {driver.text}", "robot_not_ready")
-        if state is None:
-            return Why("no pose yet", "no_telemetry")
-        if now - state_at > self.max_pose_age:
-            return Why(f"no pose for {now - state_at:.1f} s", "no_telemetry")
-        return None
 
     def drive(self, now: float, state: M.LearnerState) -> tuple[Why | None, M.Command | None, M.TeacherCommand | None]:
         """The source's proposal, mapped and made a command; or why not."""
@@ -519,164 +432,23 @@ class StationCore:
         last = self.command_bytes
         return last[1] if command is not None and last is not None and last[0] is command else None
 
-    def not_driving(self, unfit: Why | None) -> Why:
-        """The one reason the robot is not driven this tick (typed from the mission's phase, in words for the status
-        line and the log), whatever the words: a paused mission whose reason is empty still stops."""
-        c = self.control
-        if c.phase == "idle":
-            if c.replaced_by:  # a program's mission, loaded idle: say where it came from before anyone starts it
-                return Why(f"idle: {c.reason}", "idle")
-            return Why(f"idle: waiting for a person (scmbridge mission start --robot {self.robot})", "idle")
-        if c.phase == "finished":
-            return Why("goal reached", "goal_reached")
-        if c.phase == "running":
-            if unfit is None:  # (may_drive refuses a running mission only for an unfit robot)
-                unfit = Why("not fit", "robot_not_ready")
-            return Why(f"waiting for the robot: {unfit.text}", unfit.reason)
-        if c.phase == "paused":
-            return Why(self.paused_text(unfit), "paused")
-        return Why(c.reason or c.phase, "aborted")  # by whom
-
-    def paused_text(self, unfit: Why | None) -> str:
-        """Why a paused mission is paused, as it is now, and the next step: a pause the robot caused (an estop, a lost
-        pose, ...) says the robot's reason now, or that it is fit again, and a person's (or a restart's) stays, and
-        either way says how to drive on once the robot is fit (issue 32: after the release the status still said
-        "estop latched", and after a driver host's crash "no pose for 2.5 s" with the poses back)."""
-        c = self.control
-        cause = "paused" if c.paused_by_robot else (c.reason or "paused")
-        if unfit is not None:
-            return f"{cause}: {unfit.text}" if c.paused_by_robot else f"{cause}; waiting for the robot: {unfit.text}"
-        return f"{cause}; the robot is ready: scmbridge mission resume --robot {self.robot} to drive on"
-
     # ---------------------------------------------------------------------------------------- publications
-    def limits(self, now: float, force: bool) -> M.Limits | None:
-        """The learned limits when their box moved by more than :data:`LIMITS_MOVE_TOL` of the teacher's range since
-        the last message, or with ``force`` (each second) as they are; a new version whenever what is sent changed.
-        (Every pair on a boundary nudges the box's mean a little: the hull is built for a message, not each tick.)"""
-        box = self.store.limits.box.as_list()
-        sent = self.limits_sent
-        if sent is not None and not force:
-            sv, sw = self.store.teacher_bounds.span.tolist()
-            tol = (sv, sv, sw, sw)
-            if all(abs(a - b) <= LIMITS_MOVE_TOL * t for a, b, t in zip(box, sent[0], tol)):
-                return None
-        hull = [[float(a), float(b)] for a, b in self.store.limits.hull]
-        key = (box, len(hull))
-        if sent != key:
-            self.limits_version += 1
-        self.limits_sent = key
-        return M.Limits(stamp=now, robot=self.robot, version=self.limits_version, box=box, hull=hull)
-
     def status(self, now: float) -> M.Status:
-        """The station's status: ok, state, the one reason, progress, latencies and every counter."""
-        sm = np.array(self.solve_ms) if self.solve_ms else np.zeros(1)
-        c, p = self.counters, self.pairer
-        c.refined_pairs, c.raw_pairs = len(self.store.refined()), self.store.raw_count
-        c.cells_relearned = self.store.relearned
-        c.pairs_rejected, c.pairs_formed, c.pairs_out_of_order = p.rejected, p.formed, p.out_of_order
-        c.implausible_stamps, c.implausible_poses, c.implausible_pairs = (p.implausible_stamp, p.implausible_pose,
-                                                                          p.implausible_pair)
-        c.pairer_resyncs = p.resyncs
-        c.goal_reached = int(self.control.phase == "finished")
-        problems = self.integrity(now)
-        reason = self.reason
-        if reason in GOOD_REASONS and (self.persist_error or problems):  # doing what it should, but untrustworthy
-            reason = "persist_failed" if self.persist_error else "integrity"
-        ok = reason in GOOD_REASONS
-        text = "; ".join([self.why, *([self.persist_error] if self.persist_error else []), *problems])
-        phase = self.control.phase
-        state: M.NodeState = "driving" if self.reason == "ok" else ("waiting" if phase == "running" else
-                                                                    "parked" if phase == "finished" else phase)
-        tk = np.array(self.tick_ms) if self.tick_ms else np.zeros(1)
-        p50, p99 = np.percentile(tk, (50, 99)).tolist()  # one sort for both
-        msg = M.Status(stamp=now, seq=self.seq["status"], node="station", ok=ok, state=state, reason=reason,
-                       progress=min(1.0, max(0.0, self.control.progress)), rates_hz={"loop": 1 / self.period},
-                       latencies_ms={"solve_median": float(np.median(sm)), "solve_max": float(sm.max()),
-                                     "tick_p50": p50, "tick_p99": p99,
-                                     "tick_max": float(tk.max())},
-                       counters=c.as_dict(), text=text[:1024], host=HOST)
-        self.seq["status"] += 1
-        self.status_sent, self.status_at = self.status_key(), now
-        return msg
+        """The station's status now (:class:`bridge.nodes.station_status.StatusReport`): ok, state, the one reason,
+        progress, latencies and every counter."""
+        c = self.counters
+        c.observe(self.pairer, self.store, self.control)
+        facts = StatusFacts(reason=self.reason, why=self.why, phase=self.control.phase,
+                            progress=self.control.progress, persist_error=self.saves.error,
+                            problems=self.integrity.problems(now, self.pairer), counters=c.as_dict(),
+                            tick_ms=self.tick_ms, solve_ms=self.solve_ms, rate_hz=1 / self.period,
+                            key=self._status_key())
+        return self.report.message(now, facts)
 
-    def status_key(self) -> tuple:
-        """What a person reads the status for, typed: the station's reason and phase, why the robot is (not) fit
-        and the driver host's reason, whether saves fail (not the words: "no pose for 2.3 s" changes every tick)."""
+    def _status_key(self) -> tuple:
+        """What a person reads the status for (:func:`bridge.nodes.station_status.status_key`)."""
         driver = self.driver.reason if self.driver is not None else None
-        return self.reason, self.control.phase, self.unfit_reason, driver, bool(self.persist_error)
-
-    def status_changed(self, now: float) -> bool:
-        """Whether the status a person reads changed since the last one sent (:meth:`status_key`): it then goes out
-        at this tick, at most ``STATUS_MAX_HZ`` a second, not up to a second later."""
-        return (self.status_sent is not None and now - self.status_at >= 1.0 / STATUS_MAX_HZ
-                and self.status_key() != self.status_sent)
-
-    def integrity(self, now: float) -> list[str]:
-        """What makes this station's work untrustworthy right now (its status is then not ok): another sender's
-        commands on this robot's key, telemetry dropped as implausible before pairing, in the last few seconds."""
-        out = []
-        if now - self.foreign_cmd_at < INTEGRITY_WINDOW_S:
-            out.append(f"another sender publishes commands for this robot (epoch {self.foreign_epoch:x}): a second "
-                       "station or a forger")
-        p = self.pairer
-        bad = p.implausible_stamp + p.implausible_pose + p.implausible_pair
-        if bad > self.implausible_seen[0]:
-            self.implausible_seen = (bad, now)
-        if now - self.implausible_seen[1] < INTEGRITY_WINDOW_S:
-            out.append(f"implausible telemetry dropped before pairing ({p.implausible_stamp} stamps, "
-                       f"{p.implausible_pose} poses, {p.implausible_pair} pairs so far)")
-        return out
-
-    # ------------------------------------------------------------------------------------------ persistence
-    def save(self, what: str) -> None:
-        """A save the tick asks for (``what``: "store" or "control"): its bytes encoded now (a snapshot: the store
-        and the mission go on changing) and handed to :attr:`writer`, or, without one, saved at once."""
-        if self.writer is None:
-            self.persist() if what == "store" else self.save_control()
-        elif what == "store":
-            self.writer("store", self.store_path, self.store.to_bytes())
-        elif self.control_path is not None:
-            self.writer("control", self.control_path, M.encode(self.control.saved()))
-
-    def saved(self, what: str, error: OSError | None) -> bool:
-        """A save that ended (at once, or on the adapter's writer thread): a failure is counted, reported on the
-        status and retried (the store at the next period, the mission state at the next tick)."""
-        if what == "store":
-            return self._store_saved(error)
-        if error is not None:
-            self.counters.persist_failures += 1
-            self.control.changed = True  # retried next tick
-            self.persist_error = f"mission state not saved: {error.strerror or error}"
-        return error is None
-
-    def persist(self) -> bool:
-        """Save the store now; a failure (disk full, permissions) is reported and retried at the next period."""
-        try:
-            save_atomic(self.store_path, self.store.to_bytes())
-        except OSError as exc:
-            return self._store_saved(exc)
-        return self._store_saved(None)
-
-    def _store_saved(self, error: OSError | None) -> bool:
-        if error is not None:
-            self.counters.persist_failures += 1
-            self.persist_error = f"pair store not saved: {error.strerror or error}"
-            log.error("%s (%s); driving on, retrying in %.0f s", self.persist_error, self.store_path,
-                      self.persist_every)
-            return False
-        if self.persist_error:
-            log.info("pair store saved again to %s", self.store_path)
-        self.persist_error = ""
-        return True
-
-    def save_control(self) -> None:
-        """Keep the mission and its phase on disk now (a restart comes back to it, never running)."""
-        if self.control_path is None:
-            return
-        try:
-            save_atomic(self.control_path, M.encode(self.control.saved()))
-        except OSError as exc:
-            self.saved("control", exc)
+        return status_key(self.reason, self.control.phase, self.unfit_reason, driver, bool(self.saves.error))
 
 
 __all__ = ["DRIVER_STATUS_MAX_AGE", "GOOD_REASONS", "INTEGRITY_WINDOW_S", "PLAUSIBLE", "StationCore", "StationCounters",

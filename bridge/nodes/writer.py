@@ -25,7 +25,7 @@ Save = Callable[[Path, bytes], None]
 
 class SaveWriter:
     """One writer thread (started at the first save) for one loop's files. Call it as ``writer(what, path, data)``
-    (the signature of :attr:`bridge.nodes.station_core.StationCore.writer`); :meth:`results` gives the outcomes
+    (the signature of :attr:`bridge.nodes.station_saves.StationSaves.writer`); :meth:`results` gives the outcomes
     since the last call as ``(what, error)``, ``error`` None for a save that succeeded. :meth:`close` writes what
     is still waiting and ends the thread (before a loop's final, synchronous save)."""
 

@@ -17,6 +17,7 @@ from bridge.core import wire as M
 from bridge.core.config import StationConfig, load_mission
 from bridge.nodes.sources import Why
 from bridge.nodes.station_core import StationCore
+from bridge.nodes.station_fitness import why_not_drive
 from bridge.nodes.zsession import free_port, make_config, open_session, tcp
 from bridge.tools.procs import Children, free_udp_port
 from sim_learner.dynamics import mpc_learner
@@ -31,14 +32,14 @@ def _status(ok: bool = True, text: str = "link can: driving (cmd)") -> M.Status:
 
 def test_the_station_drives_only_a_fit_robot_from_a_fresh_pose(tmp_path) -> None:
     """Finding: the station planned from the last pose whatever its age. It now stops and says why."""
-    st = StationCore(StationConfig(), "r1", 10.0, tmp_path / "p.bin", load_mission())
+    age = StationConfig().station.max_pose_age_s  # what a StationCore judges the pose by (0.5 s)
     pose = M.LearnerState(stamp=1.0, seq=1, x=0.0, y=0.0, theta=0.0)
-    assert st.fit_to_drive(10.0, pose, 9.9, _status(), 9.5) is None
-    assert st.fit_to_drive(10.0, pose, 9.2, _status(), 9.5) == Why("no pose for 0.8 s", "no_telemetry")
-    assert st.fit_to_drive(10.0, None, -np.inf, _status(), 9.5) == Why("no pose yet", "no_telemetry")
-    why = st.fit_to_drive(10.0, pose, 9.9, _status(False, "link mavlink: operator took control: mode HOLD"), 9.5)
+    assert why_not_drive(10.0, pose, 9.9, _status(), 9.5, age) is None
+    assert why_not_drive(10.0, pose, 9.2, _status(), 9.5, age) == Why("no pose for 0.8 s", "no_telemetry")
+    assert why_not_drive(10.0, None, -np.inf, _status(), 9.5, age) == Why("no pose yet", "no_telemetry")
+    why = why_not_drive(10.0, pose, 9.9, _status(False, "link mavlink: operator took control: mode HOLD"), 9.5, age)
     assert why == Why("robot not ready: link mavlink: operator took control: mode HOLD", "robot_not_ready")
-    late = st.fit_to_drive(10.0, pose, 9.9, _status(), 5.0)
+    late = why_not_drive(10.0, pose, 9.9, _status(), 5.0, age)
     assert late.text.startswith("robot not ready: no driver host status") and late.reason == "robot_not_ready"
 
 
@@ -51,14 +52,14 @@ def test_a_full_disk_is_reported_retried_and_leaves_no_temporary_file(tmp_path, 
         raise OSError(errno.ENOSPC, "No space left on device")
 
     monkeypatch.setattr(os, "fsync", full)
-    st.persist()  # no exception: the loop goes on
-    assert st.counters.persist_failures == 1 and "No space left on device" in st.persist_error
+    st.saves.persist()  # no exception: the loop goes on
+    assert st.counters.persist_failures == 1 and "No space left on device" in st.saves.error
     assert not list(tmp_path.glob(".*.tmp")) and not (tmp_path / "p.bin").exists()
     status = st.status(1.0)
     assert not status.ok and "pair store not saved" in status.text
     monkeypatch.setattr(os, "fsync", real_fsync)
-    st.persist()  # the next period: saved
-    assert st.persist_error == "" and (tmp_path / "p.bin").exists()
+    st.saves.persist()  # the next period: saved
+    assert st.saves.error == "" and (tmp_path / "p.bin").exists()
 
 
 @pytest.mark.timeout(90)

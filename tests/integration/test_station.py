@@ -225,3 +225,47 @@ def test_a_running_station_takes_a_new_mission_over_zenoh_and_its_goal_state_res
         bad = msgspec.msgpack.encode({"name": "bad", "path": [[0.0, 0.0], [0.0, 0.0]]})  # no length: refused
         session.put(keys.mission, bad)
         assert col.wait(lambda: status[-1].counters.get("malformed_mission", 0) == 1, 5)
+
+
+@pytest.mark.timeout(60)
+def test_a_station_hears_another_senders_commands_and_is_not_handed_its_own_back(tmp_path) -> None:
+    """Issue 34: the station's subscription to its robot's ``cmd`` key (to hear a second station or a forger)
+    decoded each of the station's own commands again, only to find its own epoch. Its session now does not deliver
+    them back; a command from another session is still heard and makes its status not ok."""
+    import threading
+
+    from bridge.core.config import StationConfig, load_mission
+    from bridge.nodes.station import KernelBuild, Station
+
+    robot, port, stop = f"echo{os.getpid()}", free_port(), threading.Event()
+    st = Station(StationConfig(), robot, 10.0, tmp_path / "p.bin", load_mission())
+    st.build = KernelBuild(None)  # no MPC code generation: this station never drives (its mission is idle)
+    heard: list[int] = []
+    real = st.on_own_cmd
+
+    def spy(cmd: M.Command, now: float) -> None:
+        heard.append(cmd.epoch)
+        real(cmd, now)
+
+    st.on_own_cmd = spy  # what serve() subscribes
+    with open_session(make_config(mode="router", listen=[tcp(port)])) as server:
+        loop = threading.Thread(target=st.serve, args=(server, stop, 30.0, False), kwargs={"announce": False},
+                                name="test-station", daemon=True)
+        loop.start()
+        try:
+            with open_session(make_config(mode="client", connect=[tcp(port)])) as client:
+                col = Collector(client)
+                cmds = col.listen(Keys(robot).cmd, M.Command)
+                status = col.listen(M.status_key(robot, "station"), M.Status)
+                assert col.wait(lambda: len(cmds) >= 5 and len(status) >= 1, 20), "the station never published"
+                assert heard == []  # five of its own stops went out: none came back to it
+                forged = M.Command(stamp=1.0, seq=1, v=0.0, omega=0.0, method="stop", epoch=st.core.epoch ^ 1)
+                client.put(Keys(robot).cmd, M.encode(forged))
+                assert col.wait(lambda: any("another sender publishes commands" in s.text and not s.ok
+                                            for s in status), 10)
+        finally:
+            stop.set()
+            loop.join(timeout=10)
+            assert not loop.is_alive()
+    assert heard == [st.core.epoch ^ 1]
+    assert st.core.counters.foreign_commands == 1

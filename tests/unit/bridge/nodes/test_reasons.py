@@ -140,7 +140,7 @@ def test_the_stations_ok_and_state_come_from_its_typed_reason_whatever_its_words
         st = core.status(1.1)
         assert (st.ok, st.reason, st.text) == (ok, why.reason, text), st
         assert st.state == "waiting"  # the mission runs, the source stops it: whatever the words say
-        core.persist_error = "pair store not saved: No space left on device"
+        core.saves.error = "pair store not saved: No space left on device"
         st = core.status(1.2)
         assert not st.ok and st.reason == ("persist_failed" if ok else why.reason)
 

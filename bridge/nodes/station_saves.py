@@ -1,0 +1,106 @@
+"""What a station keeps across restarts, and how a failed save is reported (docs/ARCHITECTURE.md, "A person is in
+charge" and "Threads and clocks"): the pair store every ``persist_every_s`` and the mission state whenever it
+changed.
+
+A save the tick asks for is encoded in the tick (a snapshot: the store and the mission go on changing) and handed to
+:attr:`StationSaves.writer` when the adapter gives one (:class:`bridge.nodes.writer.SaveWriter`: its thread writes
+it, off the tick, and the outcome comes back through :meth:`StationSaves.saved`), else written at once. A failure
+(a full disk, permissions) never stops the loop: it is counted (``persist_failures``), kept in
+:attr:`StationSaves.error` for the status (not ok, reason ``persist_failed``, the words in its text), logged, and
+retried (the store at the next period, the mission state at the next tick); a save that succeeds again clears it.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable
+from pathlib import Path
+
+from bridge.core import wire as M
+from bridge.core.paths import save_atomic
+from bridge.nodes.mission_control import MissionControl
+from bridge.nodes.station_status import StationCounters
+from transfer.store import PairStore
+
+log = logging.getLogger("scmbridge.station")
+
+#: a writer of saves off the tick: ``(what, path, data)``, ``what`` "store" or "control"
+Writer = Callable[[str, Path, bytes], None]
+
+
+class StationSaves:
+    """One station's saves: its pair store to ``store_path`` each ``every`` seconds (:meth:`periodic`), its mission
+    state to ``control_path`` (None: not kept) when the tick asks (:meth:`save`), and the final saves at exit
+    (:meth:`persist`, :meth:`save_control`). Not thread-safe: the core's thread only (outcomes of the writer's
+    thread come back through :meth:`saved`, called by the adapter on that thread)."""
+
+    def __init__(self, store: PairStore, store_path: Path, control: MissionControl, control_path: Path | None,
+                 counters: StationCounters, every: float) -> None:
+        self.store, self.store_path = store, Path(store_path)
+        self.control, self.control_path = control, control_path
+        self.counters, self.every = counters, every
+        #: the adapter's writer of the tick's saves (see :data:`Writer`): it writes them off the tick and reports
+        #: each outcome back through :meth:`saved`; None: saved at once
+        self.writer: Writer | None = None
+        self.error = ""  # the last save's failure in words ("" when the last one of each file succeeded)
+        self.next_at: float | None = None  # the store's next save is due then (None: at the first periodic tick)
+
+    def periodic(self, now: float) -> None:
+        """The pair store's save when it is due (each ``every`` seconds from the first periodic tick)."""
+        if self.next_at is None or now >= self.next_at:
+            self.save("store")
+            self.next_at = now + self.every
+
+    def save(self, what: str) -> None:
+        """A save the tick asks for (``what``: "store" or "control"): its bytes encoded now and handed to
+        :attr:`writer`, or, without one, saved at once."""
+        if self.writer is None:
+            self.persist() if what == "store" else self.save_control()
+        elif what == "store":
+            self.writer("store", self.store_path, self.store.to_bytes())
+        elif self.control_path is not None:
+            self.writer("control", self.control_path, M.encode(self.control.saved()))
+
+    def saved(self, what: str, error: OSError | None) -> bool:
+        """A save that ended (at once, or on the adapter's writer thread), ``error`` None when it succeeded: a failure
+        is counted, reported on the status and retried (the store at the next period, the mission state at the next
+        tick). True: it succeeded."""
+        if what == "store":
+            return self._store_saved(error)
+        if error is not None:
+            self.counters.persist_failures += 1
+            self.control.changed = True  # retried next tick
+            self.error = f"mission state not saved: {error.strerror or error}"
+        return error is None
+
+    def persist(self) -> bool:
+        """Save the store now (and at exit); a failure (disk full, permissions) is reported and retried at the next
+        period. True: saved."""
+        try:
+            save_atomic(self.store_path, self.store.to_bytes())
+        except OSError as exc:
+            return self._store_saved(exc)
+        return self._store_saved(None)
+
+    def save_control(self) -> None:
+        """Keep the mission and its phase on disk now (a restart comes back to it, never running)."""
+        if self.control_path is None:
+            return
+        try:
+            save_atomic(self.control_path, M.encode(self.control.saved()))
+        except OSError as exc:
+            self.saved("control", exc)
+
+    def _store_saved(self, error: OSError | None) -> bool:
+        if error is not None:
+            self.counters.persist_failures += 1
+            self.error = f"pair store not saved: {error.strerror or error}"
+            log.error("%s (%s); driving on, retrying in %.0f s", self.error, self.store_path, self.every)
+            return False
+        if self.error:
+            log.info("pair store saved again to %s", self.store_path)
+        self.error = ""
+        return True
+
+
+__all__ = ["StationSaves", "Writer"]
