@@ -389,7 +389,7 @@ def test_health_is_pure_asking_changes_nothing_and_reads_no_clock(rig: Rig, monk
     d = rig.driver
     assert rig.wait(lambda: health(d).ok, 1.5), health(d).text
     now = time.monotonic()
-    before = (d._phase, dict(d.counters), dict(d._hb_lost), [(ax.fault, ax.heartbeat_at) for ax in d.axes])
+    before = (d.axes.phase, dict(d.counters), dict(d.axes.lost), [(ax.fault, ax.heartbeat_at) for ax in d.axes])
 
     def no_clock() -> float:
         raise AssertionError("health() read the clock")
@@ -400,7 +400,7 @@ def test_health_is_pure_asking_changes_nothing_and_reads_no_clock(rig: Rig, monk
         later, h = d.health(now + 5.0), d.health(now)
     assert not later.ok and re.search(r"left controller \(node 0\): no heartbeat for 5\.\d\d s", later.text), later.text
     assert h.ok and h.text == "ready" and h == d.health(now)
-    assert (d._phase, dict(d.counters), dict(d._hb_lost), [(ax.fault, ax.heartbeat_at) for ax in d.axes]) == before
+    assert (d.axes.phase, dict(d.counters), dict(d.axes.lost), [(ax.fault, ax.heartbeat_at) for ax in d.axes]) == before
     assert isinstance(h.detail, CanHealthDetail) and h.detail.left.state == "CLOSED_LOOP_CONTROL"
     assert h.detail.right.node == 1 and not h.detail.right.fault and h.detail.counters.heartbeat_losses == 0
     rig.run(0.1, 0.2, 0.0, host=True)
@@ -643,7 +643,7 @@ def test_many_small_crafted_encoder_steps_cannot_add_up_to_more_than_the_wheel_c
     """Finding: crafted encoder frames, each a small plausible step, gave 101 m of odometry error in 2 s (status
     ok). Each wheel's travel now has a budget refilled at what it can really turn; the link says so when tampered."""
     d = CanDriver(CanLinkConfig(max_wheel_speed=10.0))
-    d._phase = "running"
+    d.axes.phase = "running"
     t = 0.0
     d._encoder(d.left, 0.0, 0.0, t)
     d._encoder(d.right, 0.0, 0.0, t)
