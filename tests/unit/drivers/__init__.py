@@ -1,0 +1,1 @@
+"""Unit tests on a fake clock (tests/unit/conftest.py), no sleeps."""
