@@ -1,46 +1,10 @@
-"""Unit tests run on a fake clock: time moves only when a test (or a driver's injected ``sleep``) moves it, so no test
-sleeps and none depends on how loaded the machine is (docs/ARCHITECTURE.md section 4: every driver takes its clock)."""
+"""Unit tests run on a fake clock (:class:`fakeclock.FakeClock`): time moves only when a test (or a driver's injected
+``sleep``) moves it, so no test sleeps and none depends on how loaded the machine is."""
 
 from __future__ import annotations
 
-from collections.abc import Callable
-
 import pytest
-
-
-class FakeClock:
-    """A monotonic clock (call it) that moves only by :meth:`advance` or :meth:`sleep`, with a wall clock a fixed
-    offset away (:meth:`wall`, for python-can's stamps). ``on_read`` callbacks run at each reading of the clock (a
-    device the test plays answers what the driver sent so far) and ``on_sleep`` ones at each sleep, after the time
-    moved; both read the time as ``clock.t``."""
-
-    def __init__(self, t: float = 1000.0, wall_offset: float = 1.7e9) -> None:
-        self.t = t
-        self.wall_offset = wall_offset
-        self.on_read: list[Callable[[], None]] = []
-        self.on_sleep: list[Callable[[], None]] = []
-        self.slept = 0.0
-
-    def __call__(self) -> float:
-        for hook in self.on_read:
-            hook()
-        return self.t
-
-    def wall(self) -> float:
-        """The wall clock (``time.time``'s stand-in) at this moment."""
-        return self.t + self.wall_offset
-
-    def advance(self, dt: float) -> float:
-        """Move the clock ``dt`` s on; returns the new time."""
-        self.t += dt
-        return self.t
-
-    def sleep(self, dt: float) -> None:
-        """``time.sleep``'s stand-in: the clock moves ``dt`` s at once, then the ``on_sleep`` callbacks run."""
-        self.slept += dt
-        self.advance(dt)
-        for hook in self.on_sleep:
-            hook()
+from fakeclock import FakeClock
 
 
 @pytest.fixture
