@@ -19,7 +19,7 @@ from drivers.base import Clock, DriverError, FailsafeReport, LinkHealth, Pose, S
 from drivers.mavlink.client import NO_ACK, Command, MavlinkClient, result_name
 from drivers.mavlink.config import MavlinkLinkConfig
 from drivers.mavlink.dialect import load_pymavlink
-from drivers.mavlink.pose import Attitude, PoseBuilder, Position, telemetry_valid
+from drivers.mavlink.pose import Attitude, PoseBuilder, Position, ground_speed, telemetry_valid
 from drivers.mavlink.state import (
     FAILSAFE_PARAMS,
     NOT_OPENED,
@@ -289,9 +289,10 @@ class MavlinkDriver:
             raise DriverError(f"the vehicle is still initialising after {self.open_timeout} s")
         client.backoff.reset()
         self._request_streams()
-        if not client.wait(lambda: self._position_fresh(self.clock()) and self.poses.att is not None, t_end):
+        fresh = self.config.position_timeout
+        if not client.wait(lambda: position_fresh(v, self.clock(), fresh) and self.poses.att is not None, t_end):
             raise DriverError(f"vehicle position not ready within {self.open_timeout} s: no LOCAL_POSITION_NED "
-                              f"(ArduPilot sends it only once its EKF has an origin){self._texts_note()}")
+                              f"(ArduPilot sends it only once its EKF has an origin){self.vehicle.note()}")
         self._read_params(FAILSAFE_PARAMS, min(t_end, self.clock() + PARAMS_WAIT_S))
         self._opened = True
         self._link_up = True
@@ -330,9 +331,6 @@ class MavlinkDriver:
         """What the vehicle does on its own when this host dies (:func:`drivers.mavlink.state.failsafe_report`)."""
         return failsafe_report(self.params)
 
-    def _texts_note(self) -> str:
-        return f"; vehicle said: {'; '.join(self.statustexts)}" if self.vehicle.texts else ""
-
     def _enter_guided(self, t_end: float) -> None:
         v, mav, guided = self.vehicle, self.dialect.mav, self.modes.guided
         while v.custom_mode != guided:
@@ -347,11 +345,11 @@ class MavlinkDriver:
             else:
                 text = self._refusal("mode change to GUIDED", r, sent)
                 if self.clock() + RETRY_AFTER_S >= t_end:
-                    raise DriverError(text + self._texts_note())
+                    raise DriverError(text + self.vehicle.note())
                 self.client.wait(lambda: False, self.clock() + RETRY_AFTER_S)
             if self.clock() >= t_end and v.custom_mode != guided:
                 raise DriverError(f"vehicle not in GUIDED within {self.open_timeout} s (mode "
-                                  f"{self.modes.name(v.custom_mode)}){self._texts_note()}")
+                                  f"{self.modes.name(v.custom_mode)}){self.vehicle.note()}")
 
     def _arm(self, t_end: float) -> None:
         v, mav = self.vehicle, self.dialect.mav
@@ -369,9 +367,6 @@ class MavlinkDriver:
             self.client.wait(lambda: False, self.clock() + RETRY_AFTER_S)  # pre-arm checks can clear (the EKF settling)
 
     # --------------------------------------------------------------------------------------------- state
-    def _position_fresh(self, now: float) -> bool:
-        return position_fresh(self.vehicle, now, self.config.position_timeout)
-
     def _judge(self, now: float) -> Verdict:
         """The vehicle at ``now`` from what it last said (:func:`drivers.mavlink.state.judge`). Pure."""
         c = self.client
@@ -470,13 +465,6 @@ class MavlinkDriver:
     def clear_faults(self, now: float) -> None:
         """Nothing to clear on this link: the operator puts the vehicle back in GUIDED and arms it himself."""
 
-    def _speed(self) -> float | None:
-        """The vehicle's own speed over ground from its last LOCAL_POSITION_NED, m/s (None before one)."""
-        p = self.poses.pending
-        last = self._last_position
-        pos = p if p is not None else last
-        return None if pos is None else math.hypot(pos.vx, pos.vy)
-
     def close(self, disarm: bool = True, stop_speed: float = 0.05, stop_timeout: float = 3.0) -> None:
         """Stop a vehicle that is still ours (GUIDED): zero set-points until it reports (LOCAL_POSITION_NED) a speed
         below ``stop_speed`` (at most ``stop_timeout``: a rover disarmed while moving coasts), then disarm it
@@ -499,7 +487,7 @@ class MavlinkDriver:
                 self._setpoint(0.0, 0.0, now)
                 t_stop = now + stop_timeout
                 while v.armed and v.custom_mode == guided and self.clock() < t_stop:
-                    speed = self._speed()
+                    speed = ground_speed(self.poses.pending or self._last_position)
                     if speed is not None and speed < stop_speed and self._last_position_time > now:
                         break
                     self._setpoint(0.0, 0.0, self.clock())
@@ -507,7 +495,7 @@ class MavlinkDriver:
                 else:
                     if v.armed and v.custom_mode == guided:
                         log.warning("the vehicle still reports %.2f m/s after %.1f s of zero set-points",
-                                    self._speed() or math.nan, stop_timeout)
+                                    ground_speed(self.poses.pending or self._last_position) or math.nan, stop_timeout)
                 now = self.clock()
                 if disarm and self.disarm_on_close and v.armed and v.custom_mode == guided:
                     t_end = now + self.config.close_timeout

@@ -51,6 +51,11 @@ class Attitude:
     yawspeed: float
 
 
+def ground_speed(p: Position | None) -> float | None:
+    """The vehicle's own speed over ground from a LOCAL_POSITION_NED, m/s (None without one)."""
+    return None if p is None else math.hypot(p.vx, p.vy)
+
+
 def enu_pose(p: Position, att: Attitude, prev: Attitude | None) -> Pose:
     """An ENU pose from a position and the heading at its time: interpolated between the ATTITUDEs around it
     (``prev``, ``att``), else carried from the nearest one with its yaw rate (at most ``ATTITUDE_MAX_LAG`` away).

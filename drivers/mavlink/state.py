@@ -65,6 +65,10 @@ class Vehicle:
         self.boot_ms = int(boot_ms)
         return went_back
 
+    def note(self) -> str:
+        """What the vehicle said lately, for an error text (``"; vehicle said: ..."``; "" when it said nothing)."""
+        return f"; vehicle said: {'; '.join(t for _, t in self.texts)}" if self.texts else ""
+
     def said_since(self, since: float) -> list[str]:
         """The STATUSTEXTs received at or after ``since``."""
         return [t for ts, t in self.texts if ts >= since]
