@@ -220,7 +220,7 @@ def can_odometry(short: bool) -> Result:
     from drivers.can import CanDriver, CanLinkConfig
 
     d = CanDriver(CanLinkConfig(max_wheel_speed=10.0))
-    d._phase = "running"
+    d.axes.phase = "running"
     d._encoder(d.left, 0.0, 0.0, 0.0)
     d._encoder(d.right, 0.0, 0.0, 0.0)
     n = 1000 if short else 4000  # frames per wheel at 2 kHz

@@ -4,14 +4,23 @@ A driver owns the wire to one vehicle. It never decides *what* to send (the driv
 finiteness and hard limits, and owns the deadman); it only turns an already-checked learner command (v, omega)
 into the link's own frames and turns the vehicle's telemetry back into poses.
 
-All times are the driver host's ``time.monotonic()`` seconds, passed in, so that the pose stamps and the
-applied-command echo the station pairs with each other come from one clock.
+All times are the driver host's monotonic seconds, so that the pose stamps and the applied-command echo the station
+pairs with each other come from one clock: passed in (``now``) where the protocol has them, and otherwise read from
+the clock the driver was built with (a :data:`Clock`, ``time.monotonic`` by default; a driver's only direct use of
+the time module is that default). A driver that waits (its ``open``, ``engage``, ``close``) sets its deadlines on that
+clock and sleeps with the :data:`Sleep` it was given, so a test on a fake clock drives it without real time.
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field, fields
 from typing import Literal, Protocol, runtime_checkable
+
+#: a monotonic clock in seconds (``time.monotonic``, or a test's fake)
+Clock = Callable[[], float]
+#: a wait of so many seconds on that clock (``time.sleep``, or a test's fake that advances its clock)
+Sleep = Callable[[float], None]
 
 
 class DriverError(RuntimeError):

@@ -22,10 +22,10 @@ What the driver trusts, in order:
    behind is never taken again (``state_old_epoch``). Seqs skipped inside an epoch are counted as ``state_gaps``.
 
 Session: what the robot obeys is bound to one boot of the robot and to a recent reading of its clock, so that
-datagrams recorded off the wire move nothing after the robot reboots, nor long after they were sent (a security
-review's findings: replayed keyed commands drove a robot that had just rebooted, because it remembered no sender
-and never asked how old a command was). The robot, a small MCU, keeps nothing across a reboot and shares no clock
-with the driver, so both checks compare the robot's own numbers:
+datagrams recorded off the wire move nothing after the robot reboots, nor long after they were sent: a key alone
+would let a recording of keyed commands drive a robot that has just rebooted (it remembers no sender) or drive it
+long after they were sent (a key says nothing of age). The robot, a small MCU, keeps nothing across a reboot and
+shares no clock with the driver, so both checks compare the robot's own numbers:
 
 1. at each boot the robot draws a fresh random boot nonce (the ``epoch`` of its states, 62 bits; firmware takes it
    from a hardware RNG or a flash boot counter, never repeated) and streams it, sealed, in every state with a
@@ -81,7 +81,7 @@ from bridge.core.auth import KeyFileError, load_key, open_sealed, seal_session
 from bridge.core.clock import ClockOffset
 from bridge.core.config import Cfg, Port, Rule, meta
 from bridge.core.gate import SeqGate
-from drivers.base import DriverError, FailsafeReport, LinkHealth, Pose, whole_numbers
+from drivers.base import Clock, DriverError, FailsafeReport, LinkHealth, Pose, Sleep, whole_numbers
 
 log = logging.getLogger("scmbridge.driver.udp")
 
@@ -92,6 +92,9 @@ MAX_DATAGRAMS_PER_POLL = 512
 #: how long a command may be applied after the robot receives it (the robot's watchdog usually acts first)
 CMD_VALID_MS = 300
 _REFUSALS = ("out_of_order", "seq_jump", "old_epoch", "foreign_epoch")
+#: s between two hellos (stops) while ``open`` waits for the robot's first state, and between two stops while
+#: ``close`` waits for the robot to report it has stopped
+GREET_PERIOD_S = 0.02
 #: Linux: each datagram carries the socket's count of datagrams dropped for want of buffer space (socket(7))
 SO_RXQ_OVFL = getattr(socket, "SO_RXQ_OVFL", 40)
 _ANC_SPACE = socket.CMSG_SPACE(4)
@@ -167,12 +170,15 @@ def resolve_ipv4(host: str, port: int) -> tuple[str, int]:
 
 
 class UdpDriver:
-    """The UDP shim behind the :class:`drivers.base.Driver` protocol (see the module docstring)."""
+    """The UDP shim behind the :class:`drivers.base.Driver` protocol (see the module docstring). ``clock`` stamps
+    each datagram's receipt and sets the deadlines of ``open`` and ``close``, which wait between their stops with
+    ``sleep`` (:mod:`drivers.base`: a test on a fake clock runs them without real time)."""
 
     name = "udp"
 
-    def __init__(self, config: UdpLinkConfig) -> None:
+    def __init__(self, config: UdpLinkConfig, *, clock: Clock = time.monotonic, sleep: Sleep = time.sleep) -> None:
         self.config = config
+        self.clock, self.sleep = clock, sleep
         self.bind = (config.bind_host, config.bind_port)
         self.open_timeout = config.open_timeout
         self.state_timeout = config.state_timeout_s
@@ -221,11 +227,11 @@ class UdpDriver:
             pass
         self.sock = sock
         self._health.connected = True
-        t_end = time.monotonic() + self.open_timeout
-        while time.monotonic() < t_end:
-            self.stop(time.monotonic())  # a stop is also the hello (a robot in first-sender mode pins us)
-            time.sleep(0.02)
-            if self.poll(time.monotonic()):
+        t_end = self.clock() + self.open_timeout
+        while self.clock() < t_end:
+            self.stop(self.clock())  # a stop is also the hello (a robot in first-sender mode pins us)
+            self.sleep(GREET_PERIOD_S)
+            if self.poll(self.clock()):
                 return
         raise DriverError(f"no state from the UDP robot at {self.robot_text} within {self.open_timeout} s")
 
@@ -265,7 +271,7 @@ class UdpDriver:
             for level, kind, value in anc:
                 if level == socket.SOL_SOCKET and kind == SO_RXQ_OVFL and len(value) >= 4:
                     self.counters["dropped_by_kernel"] = int.from_bytes(value[:4], "little")
-            receipt = time.monotonic()
+            receipt = self.clock()
             self._health.frames_received += 1
             if src[:2] != self.robot_addr:
                 self.counters["foreign"] += 1
@@ -339,14 +345,14 @@ class UdpDriver:
         if self.sock is None:
             return
         try:
-            t_end = time.monotonic() + stop_timeout
-            while time.monotonic() < t_end:  # stops until the robot says it has stopped
-                self.stop(time.monotonic())
-                time.sleep(0.02)
-                poses = self.poll(time.monotonic())
+            t_end = self.clock() + stop_timeout
+            while self.clock() < t_end:  # stops until the robot says it has stopped
+                self.stop(self.clock())
+                self.sleep(GREET_PERIOD_S)
+                poses = self.poll(self.clock())
                 if poses and poses[-1].v is not None and abs(poses[-1].v) < stop_speed:
                     break
-            self.stop(time.monotonic())
+            self.stop(self.clock())
         finally:
             self.sock.close()
             self.sock = None

@@ -1,8 +1,9 @@
 """CAN link: a differential-drive base with one ODrive motor controller (firmware 0.6, CANSimple) per wheel.
 
 Cut by job: :mod:`.config` (``[link.can]``), :mod:`.codec` (CANSimple frames from the shipped DBC, pure),
-:mod:`.odometry` (encoder estimates -> pose with the plausibility checks, pure) and :mod:`.driver` (:class:`CanDriver`:
-bus supervision, the controllers' faults and heartbeats, arming). Enumerations and error names are in
+:mod:`.odometry` (encoder estimates -> pose with the plausibility checks, pure), :mod:`.axis` (the two controllers as a
+state machine: Heartbeats, latched faults, arming, the verdict; pure) and :mod:`.driver` (:class:`CanDriver`: the bus
+supervisor wiring them). Enumerations and error names are in
 :mod:`drivers.odrive`. python-can and cantools are imported when a driver is built or a frame coded, not with the
 package: the configuration needs neither.
 """

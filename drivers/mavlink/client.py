@@ -19,7 +19,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from bridge.core.backoff import Backoff
-from drivers.base import LinkHealth
+from drivers.base import Clock, LinkHealth, Sleep
 from drivers.mavlink.config import MavlinkLinkConfig
 from drivers.mavlink.dialect import Dialect, load_pymavlink
 
@@ -78,11 +78,15 @@ class Command:
 
 class MavlinkClient:
     """The connection and the command protocol. Messages read while it waits for an ACK go to ``on_message`` (the
-    driver's dispatch); the counts it keeps land in the driver's ``health`` and ``counts``."""
+    driver's dispatch); the counts it keeps land in the driver's ``health`` and ``counts``. Deadlines (re-sends, our
+    HEARTBEAT, reconnects, :meth:`wait`) are on ``clock``; reads block on the connection in real time, and with no
+    connection :meth:`receive` waits with ``sleep`` (:mod:`drivers.base`)."""
 
     def __init__(self, config: MavlinkLinkConfig, dialect: Dialect, health: LinkHealth, counts: dict[str, int],
-                 on_message: Callable[[Any], None]) -> None:
+                 on_message: Callable[[Any], None], *, clock: Clock = time.monotonic,
+                 sleep: Sleep = time.sleep) -> None:
         self.config = config
+        self.clock, self.sleep = clock, sleep
         self.dialect = dialect
         self.url, self.baud = config.url, config.baud
         self.target = (config.target_system, config.target_component)
@@ -120,7 +124,7 @@ class MavlinkClient:
             conn.handle_disconnect = failed
         self.conn = conn
         self.failed = None
-        self.conn_time = time.monotonic()  # the vehicle counts as heard only once it speaks on this connection
+        self.conn_time = self.clock()  # the vehicle counts as heard only once it speaks on this connection
 
     def close(self) -> None:
         """Close the pymavlink connection if there is one (a failing close is not an error worth more)."""
@@ -195,21 +199,22 @@ class MavlinkClient:
 
     # -------------------------------------------------------------------------------------------- receive
     def receive(self, block: float, handle: Callable[[Any], None]) -> None:
-        """Hand each message that arrived to ``handle`` (waiting up to ``block`` s for the first one)."""
+        """Hand each message that arrived to ``handle``: waiting (a real blocking read) up to ``block`` s for the first
+        one, then what is already there."""
         if self.conn is None:
             if block > 0:
-                time.sleep(block)
+                self.sleep(block)
             return
-        t_end = time.monotonic() + block
+        timeout = block
         while self.conn is not None and self.failed is None:
-            remaining = t_end - time.monotonic()
             try:
-                msg = self.conn.recv_match(blocking=remaining > 0, timeout=max(remaining, 0.0) or None)
+                msg = self.conn.recv_match(blocking=timeout > 0, timeout=timeout if timeout > 0 else None)
             except Exception as exc:  # a serial port unplugged, a socket reset
                 self.failed = f"{type(exc).__name__}: {exc}"
                 break
             if msg is None:
                 break
+            timeout = 0.0
             handle(msg)
 
     def ack(self, msg: Any) -> None:
@@ -232,7 +237,7 @@ class MavlinkClient:
         """Queue a COMMAND_LONG (sent when those before it are done); ``on_done`` gets it with its result."""
         c = Command(command, tuple(float(p) for p in params) + (0.0,) * (7 - len(params)), what, on_done=on_done)
         self._queue.append(c)
-        self._service_commands(time.monotonic())
+        self._service_commands(self.clock())
         return c
 
     def _service_commands(self, now: float) -> None:
@@ -262,7 +267,7 @@ class MavlinkClient:
     def wait(self, done: Callable[[], bool], t_end: float) -> bool:
         """Receive and service until ``done()`` or ``t_end``."""
         while True:
-            now = time.monotonic()
+            now = self.clock()
             self.service(now)
             if done():
                 return True
@@ -278,5 +283,5 @@ class MavlinkClient:
         by_state = c.result is None and done is not None and done()
         if c.result is None:  # out of time (or confirmed by the vehicle's state) before an ACK
             c.result = NO_ACK
-            self._service_commands(time.monotonic())
+            self._service_commands(self.clock())
         return self.dialect.mav.MAV_RESULT_ACCEPTED if by_state else c.result

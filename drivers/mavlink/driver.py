@@ -1,7 +1,8 @@
 """The MAVLink driver: an ArduPilot Rover in GUIDED mode behind the :class:`drivers.base.Driver` protocol, wiring
-the connection and its command protocol (:mod:`.client`), the vehicle's state and its judgement (:mod:`.state`) and
-the pose builder (:mod:`.pose`). The operator always wins: only :meth:`MavlinkDriver.engage`, a person's act, selects
-GUIDED and arms."""
+the connection and its command protocol (:mod:`.client`), the vehicle's state and the pure decisions on it
+(:mod:`.state`: the judgement, its changes, set-point pacing, the failsafe report) and the pose builder (:mod:`.pose`).
+The operator always wins: only :meth:`MavlinkDriver.engage`, a person's act, selects GUIDED and arms. Times come from
+the clock it is given (``clock``, ``time.monotonic`` by default), so its tests run on a fake clock."""
 
 from __future__ import annotations
 
@@ -14,19 +15,36 @@ from typing import Any
 
 from bridge.core.auth import load_key
 from bridge.core.clock import ClockOffset
-from drivers.base import DriverError, FailsafeReport, LinkHealth, Pose, whole_numbers
+from drivers.base import Clock, DriverError, FailsafeReport, LinkHealth, Pose, Sleep, whole_numbers
 from drivers.mavlink.client import NO_ACK, Command, MavlinkClient, result_name
 from drivers.mavlink.config import MavlinkLinkConfig
 from drivers.mavlink.dialect import load_pymavlink
-from drivers.mavlink.pose import Attitude, PoseBuilder, Position, telemetry_valid
-from drivers.mavlink.state import NOT_OPENED, LinkView, Vehicle, Verdict, judge, position_fresh
+from drivers.mavlink.pose import Attitude, PoseBuilder, Position, ground_speed, telemetry_valid
+from drivers.mavlink.state import (
+    FAILSAFE_PARAMS,
+    NOT_OPENED,
+    LinkView,
+    SetpointPacer,
+    Vehicle,
+    Verdict,
+    change,
+    failsafe_report,
+    judge,
+    position_fresh,
+)
 
 log = logging.getLogger("scmbridge.driver.mavlink")
 
-#: the vehicle's own failsafe settings read at open (Rover/Parameters.cpp, GCS failsafe in Rover/failsafe.cpp)
-FAILSAFE_PARAMS = ("FS_GCS_ENABLE", "FS_GCS_TIMEOUT", "FS_ACTION", "FS_TIMEOUT")
-#: Rover stops a GUIDED velocity target not renewed for this long (Rover/mode_guided.cpp), s
-GUIDED_TIMEOUT_S = 3.0
+#: s a refusal waits, at most, for the STATUSTEXT that explains it (ArduPilot sends it after the COMMAND_ACK)
+REFUSAL_TEXT_WAIT_S = 0.5
+#: s between two tries of a mode change or an arming the vehicle refused (pre-arm checks can clear)
+RETRY_AFTER_S = 1.0
+#: s a GUIDED the vehicle accepted has to show in its HEARTBEAT
+MODE_CONFIRM_S = 2.5
+#: s the failsafe parameters have, at most, to answer at open
+PARAMS_WAIT_S = 2.0
+#: s between two zero set-points while ``close`` waits for the vehicle to stop
+CLOSE_PERIOD_S = 0.05
 #: SET_POSITION_TARGET_LOCAL_NED's type_mask for "Use Vel+Yaw Rate" (ArduPilot's "Rover Commands in Guided Mode")
 TYPE_MASK_VEL_YAWRATE = 0x05E7
 
@@ -74,6 +92,9 @@ class MavlinkDriver:
     every message this driver sends is signed, and an unsigned or badly signed message, or one whose signature
     timestamp goes back, is refused (``health(now).detail.bad_signatures``).
 
+    ``clock`` stamps what arrives and sets every deadline (:mod:`drivers.base`); reads block on the connection in real
+    time, and the waits without a connection sleep with ``sleep``.
+
     Supervision: no HEARTBEAT for ``heartbeat_timeout`` -> ``connected`` and ``ok`` False, ``"no heartbeat for 3.2
     s"``; a connection that failed (TCP EOF, a serial error) is re-opened with backoff, UDP just keeps listening.
     When heartbeats return the message intervals are asked again (a rebooted autopilot forgot them) and ``ok`` comes
@@ -85,7 +106,8 @@ class MavlinkDriver:
     #: the operator putting the vehicle in GUIDED and arming it, seen while the host runs, is a person's engage
     operator_engages = True
 
-    def __init__(self, config: MavlinkLinkConfig) -> None:
+    def __init__(self, config: MavlinkLinkConfig, *, clock: Clock = time.monotonic, sleep: Sleep = time.sleep) -> None:
+        self.clock, self.sleep = clock, sleep
         self.dialect = load_pymavlink()
         self.modes = self.dialect.modes
         self.config = config
@@ -96,18 +118,14 @@ class MavlinkDriver:
         self.vehicle = Vehicle(texts=deque(maxlen=config.statustext_keep))
         self.poses = PoseBuilder()
         self._health = LinkHealth()
-        self._counts = {"foreign": 0, "setpoints_sent": 0, "setpoints_withheld": 0, "setpoints_deferred": 0,
-                        "stray_acks": 0,
+        self._counts = {"foreign": 0, "setpoints_sent": 0, "setpoints_withheld": 0, "stray_acks": 0,
                         "reconnects": 0, "link_losses": 0, "invalid_values": 0, "clock_restarts": 0}
         self.client = MavlinkClient(config, self.dialect, self._health, self._counts,
-                                    on_message=lambda msg: self._handle(msg, []))
-        self._t0 = time.monotonic()
+                                    on_message=lambda msg: self._handle(msg, []), clock=clock, sleep=sleep)
+        self._t0 = clock()
         self._opened = False  # open() succeeded: from now on the mode and arming are the operator's
         self._closed = False
-        self._sp_last: tuple[float, float] | None = None
-        self._sp_time = -math.inf
-        self._sp_period = 1.0 / config.setpoint_rate_hz
-        self._sp_min_gap = 1.0 / config.max_setpoint_hz
+        self._pacer = SetpointPacer(1.0 / config.setpoint_rate_hz, 1.0 / config.max_setpoint_hz)
         self._link_up = False
         self._state: Verdict = NOT_OPENED
         self._foreign_ids: deque[tuple[int, int]] = deque(maxlen=8)
@@ -160,14 +178,11 @@ class MavlinkDriver:
             self._counts["invalid_values"] += 1
             return
         self._health.frames_received += 1
-        now = time.monotonic()
+        now = self.clock()
         v = self.vehicle
         mav = self.dialect.mav
         if t == "HEARTBEAT":
-            v.custom_mode = int(msg.custom_mode)
-            v.guided_seen = v.guided_seen or v.custom_mode == self.modes.guided
-            v.armed = bool(msg.base_mode & mav.MAV_MODE_FLAG_SAFETY_ARMED)
-            v.hb_time = now
+            v.heard(msg.custom_mode, bool(msg.base_mode & mav.MAV_MODE_FLAG_SAFETY_ARMED), now, self.modes.guided)
         elif t == "LOCAL_POSITION_NED":
             self._boot_ms(msg.time_boot_ms)
             v.pos_time = now
@@ -197,24 +212,24 @@ class MavlinkDriver:
             log.log(level, "vehicle: %s", text)
 
     def _boot_ms(self, boot_ms: int) -> None:
-        """A vehicle clock that jumps back by more than a second rebooted: it forgot our message intervals."""
-        if boot_ms + 1000 < self.vehicle.boot_ms:
-            self.vehicle.rebooted = True
-            log.warning("the vehicle rebooted (time since boot %d ms, was %d ms)", boot_ms, self.vehicle.boot_ms)
+        """A vehicle clock that went back (:meth:`Vehicle.boot`): it rebooted and forgot our message intervals."""
+        was = self.vehicle.boot_ms
+        if self.vehicle.boot(boot_ms):
+            log.warning("the vehicle rebooted (time since boot %d ms, was %d ms)", boot_ms, was)
             self._clock.reset()  # a new vehicle clock: forget the old offset
             self.poses.reset()  # times of the old clock
             self._request_streams()
-        self.vehicle.boot_ms = int(boot_ms)
 
     # -------------------------------------------------------------------------------------------- commands
     def _refusal(self, what: str, result: int, since: float, wait_text: bool = True) -> str:
         """``"arming refused: MAV_RESULT_FAILED (PreArm: ...)"``, waiting briefly (``wait_text``, in blocking
         calls only) for the STATUSTEXT that explains it: ArduPilot sends it after the ACK (its text queue)."""
-        texts = [t for ts, t in self.vehicle.texts if ts >= since]
+        texts = self.vehicle.said_since(since)
         if wait_text and not texts and result != NO_ACK:
             n = self.vehicle.text_count
-            self.client.wait(lambda: self.vehicle.text_count != n, time.monotonic() + min(0.5, self.config.ack_timeout))
-            texts = [t for ts, t in self.vehicle.texts if ts >= since]
+            self.client.wait(lambda: self.vehicle.text_count != n,
+                             self.clock() + min(REFUSAL_TEXT_WAIT_S, self.config.ack_timeout))
+            texts = self.vehicle.said_since(since)
         text = f"{what} refused: {result_name(result)}" + (f" ({'; '.join(texts)})" if texts else "")
         self._last_refusal = text
         log.warning("%s", text)
@@ -252,7 +267,7 @@ class MavlinkDriver:
 
         then the failsafe parameters (PARAM_REQUEST_READ / PARAM_VALUE), reported by :meth:`failsafe`."""
         client = self.client
-        t_end = time.monotonic() + self.open_timeout
+        t_end = self.clock() + self.open_timeout
         self._closed = False
         if self.config.signing_key_file:
             client.signing_key = load_key(self.config.signing_key_file, "mavlink")
@@ -260,11 +275,11 @@ class MavlinkDriver:
             try:
                 client.connect()
             except Exception as exc:  # pymavlink raises plain OSError/SerialException/...
-                if time.monotonic() + client.backoff.delay > t_end:
+                if self.clock() + client.backoff.delay > t_end:
                     raise DriverError(f"cannot open MAVLink connection {self.url}: {exc}") from exc
-                time.sleep(client.backoff.delay)
+                self.sleep(client.backoff.delay)
                 client.backoff.grow()
-        client.heartbeat(time.monotonic(), force=True)
+        client.heartbeat(self.clock(), force=True)
         v = self.vehicle
         if not client.wait(lambda: v.hb_time is not None and v.custom_mode != self.modes.initialising, t_end):
             if v.hb_time is None:
@@ -274,13 +289,14 @@ class MavlinkDriver:
             raise DriverError(f"the vehicle is still initialising after {self.open_timeout} s")
         client.backoff.reset()
         self._request_streams()
-        if not client.wait(lambda: self._position_fresh(time.monotonic()) and self.poses.att is not None, t_end):
+        fresh = self.config.position_timeout
+        if not client.wait(lambda: position_fresh(v, self.clock(), fresh) and self.poses.att is not None, t_end):
             raise DriverError(f"vehicle position not ready within {self.open_timeout} s: no LOCAL_POSITION_NED "
-                              f"(ArduPilot sends it only once its EKF has an origin){self._texts_note()}")
-        self._read_params(FAILSAFE_PARAMS, min(t_end, time.monotonic() + 2.0))
+                              f"(ArduPilot sends it only once its EKF has an origin){self.vehicle.note()}")
+        self._read_params(FAILSAFE_PARAMS, min(t_end, self.clock() + PARAMS_WAIT_S))
         self._opened = True
         self._link_up = True
-        self._update_state(time.monotonic())
+        self._update_state(self.clock())
         log.info("vehicle on %s: mode %s, %s, position streaming; %s", self.url, self.modes.name(v.custom_mode),
                  "armed" if v.armed else "disarmed", self.failsafe().text)
 
@@ -295,12 +311,12 @@ class MavlinkDriver:
            MAV_RESULT_FAILED (PreArm: Hardware safety switch)"``."""
         if self._closed or not self._opened:
             raise DriverError("MAVLink link not open")
-        t_end = time.monotonic() + self.open_timeout
+        t_end = self.clock() + self.open_timeout
         self._enter_guided(t_end)
         self._arm(t_end)
         if self.vehicle.custom_mode != self.modes.guided:
             raise DriverError(f"operator took control while engaging: mode {self.modes.name(self.vehicle.custom_mode)}")
-        self._update_state(time.monotonic())
+        self._update_state(self.clock())
         log.info("vehicle engaged: GUIDED, armed")
 
     def _read_params(self, names: tuple[str, ...], t_end: float) -> None:
@@ -312,59 +328,45 @@ class MavlinkDriver:
         self.client.wait(lambda: all(n in self.params for n in names), t_end)
 
     def failsafe(self) -> FailsafeReport:
-        """What the vehicle does on its own when this host dies (stops sending set-points and heartbeats)."""
-        p = self.params
-        gcs = p.get("FS_GCS_ENABLE")
-        known = ", ".join(f"{k}={p[k]:g}" for k in FAILSAFE_PARAMS if k in p) or "no failsafe parameter answered"
-        drive_on = GUIDED_TIMEOUT_S  # Rover/mode_guided.cpp: no new target for 3 s -> stop (not a parameter)
-        if gcs and p.get("FS_ACTION", 0) and "FS_GCS_TIMEOUT" in p:
-            drive_on = min(drive_on, p["FS_GCS_TIMEOUT"] + p.get("FS_TIMEOUT", 0.0))
-        text = (f"if the host dies the vehicle drives on for up to {drive_on:g} s (GUIDED stops after "
-                f"{GUIDED_TIMEOUT_S:g} s without a target; {known})")
-        return FailsafeReport(drive_on_s=drive_on, text=text, params=dict(p))
-
-    def _texts_note(self) -> str:
-        return f"; vehicle said: {'; '.join(self.statustexts)}" if self.vehicle.texts else ""
+        """What the vehicle does on its own when this host dies (:func:`drivers.mavlink.state.failsafe_report`)."""
+        return failsafe_report(self.params)
 
     def _enter_guided(self, t_end: float) -> None:
         v, mav, guided = self.vehicle, self.dialect.mav, self.modes.guided
         while v.custom_mode != guided:
-            sent = time.monotonic()
+            sent = self.clock()
             r = self.client.run(mav.MAV_CMD_DO_SET_MODE, (mav.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, guided),
                                 "mode change to GUIDED", t_end)
             if r == mav.MAV_RESULT_ACCEPTED:  # the HEARTBEAT says whether it held
-                self.client.wait(lambda: v.custom_mode == guided, min(t_end, time.monotonic() + 2.5))
+                self.client.wait(lambda: v.custom_mode == guided, min(t_end, self.clock() + MODE_CONFIRM_S))
                 if v.custom_mode != guided:
                     log.warning("GUIDED accepted but the vehicle reports mode %s; asking again",
                                 self.modes.name(v.custom_mode))
             else:
                 text = self._refusal("mode change to GUIDED", r, sent)
-                if time.monotonic() + 1.0 >= t_end:
-                    raise DriverError(text + self._texts_note())
-                self.client.wait(lambda: False, time.monotonic() + 1.0)
-            if time.monotonic() >= t_end and v.custom_mode != guided:
+                if self.clock() + RETRY_AFTER_S >= t_end:
+                    raise DriverError(text + self.vehicle.note())
+                self.client.wait(lambda: False, self.clock() + RETRY_AFTER_S)
+            if self.clock() >= t_end and v.custom_mode != guided:
                 raise DriverError(f"vehicle not in GUIDED within {self.open_timeout} s (mode "
-                                  f"{self.modes.name(v.custom_mode)}){self._texts_note()}")
+                                  f"{self.modes.name(v.custom_mode)}){self.vehicle.note()}")
 
     def _arm(self, t_end: float) -> None:
         v, mav = self.vehicle, self.dialect.mav
         while not v.armed:
             if v.custom_mode != self.modes.guided:
-                raise DriverError(f"operator took control while opening: mode {self.modes.name(v.custom_mode)}")
-            sent = time.monotonic()
+                raise DriverError(f"operator took control while engaging: mode {self.modes.name(v.custom_mode)}")
+            sent = self.clock()
             r = self.client.run(mav.MAV_CMD_COMPONENT_ARM_DISARM, (1, 0), "arming", t_end)
             if r == mav.MAV_RESULT_ACCEPTED:  # ArduPilot acks arming only once armed; HEARTBEATs say so from now on
                 v.armed = True
                 return
             text = self._refusal("arming", r, sent)
-            if time.monotonic() + 1.0 >= t_end:
+            if self.clock() + RETRY_AFTER_S >= t_end:
                 raise DriverError(text)
-            self.client.wait(lambda: False, time.monotonic() + 1.0)  # pre-arm checks can clear (the EKF settling)
+            self.client.wait(lambda: False, self.clock() + RETRY_AFTER_S)  # pre-arm checks can clear (the EKF settling)
 
     # --------------------------------------------------------------------------------------------- state
-    def _position_fresh(self, now: float) -> bool:
-        return position_fresh(self.vehicle, now, self.config.position_timeout)
-
     def _judge(self, now: float) -> Verdict:
         """The vehicle at ``now`` from what it last said (:func:`drivers.mavlink.state.judge`). Pure."""
         c = self.client
@@ -380,15 +382,16 @@ class MavlinkDriver:
         if state.reason == "ok":
             v.rebooted = False
         if self._opened and not self._closed:
-            if state.reason != self._state.reason:
+            what = change(self._state, state, self._link_up)
+            if what.said:
                 if state.ok:
                     log.info("vehicle accepts commands: %s", state.text)
                 else:
                     log.warning("vehicle does not accept commands: %s", state.text)
-            if state.reason == "link_down" and self._link_up:
+            if what.lost:
                 self._link_up = False
                 self._counts["link_losses"] += 1
-            elif state.connected and not self._link_up:
+            elif what.back:
                 self._link_up = True
                 self.client.backoff.reset()
                 log.info("heartbeat back from the vehicle (mode %s, %s)", self.modes.name(v.custom_mode),
@@ -409,21 +412,7 @@ class MavlinkDriver:
                 0, 0, 0, float(v), 0, 0, 0, 0, 0, 0, float(-omega))):
             return
         self._counts["setpoints_sent"] += 1
-        self._sp_last, self._sp_time = (float(v), float(omega)), now
-
-    def _setpoint_due(self, cmd: tuple[float, float], now: float) -> bool:
-        """An unchanged command every ``setpoint_rate_hz`` (ArduPilot stops after GUID_TIMEOUT, 3 s, without one); a
-        changed one at once, but never more than ``max_setpoint_hz`` set-points a second (the radio's budget); a stop
-        after motion always at once."""
-        if cmd == (0.0, 0.0) and self._sp_last not in (None, (0.0, 0.0)):
-            return True
-        gap = now - self._sp_time
-        if cmd != self._sp_last:
-            if gap >= self._sp_min_gap:
-                return True
-            self._counts["setpoints_deferred"] += 1
-            return False
-        return gap >= self._sp_period
+        self._pacer.sent((float(v), float(omega)), now)
 
     def send(self, v: float, omega: float, now: float) -> None:
         """A set-point, only while :meth:`health` is ok (never a mode change or an arming: the operator's)."""
@@ -435,7 +424,7 @@ class MavlinkDriver:
             self._counts["setpoints_withheld"] += 1
             return
         cmd = (float(v), float(omega))
-        if self._setpoint_due(cmd, now):
+        if self._pacer.due(cmd, now):
             self._setpoint(*cmd, now)
 
     def stop(self, now: float) -> None:
@@ -446,7 +435,7 @@ class MavlinkDriver:
         self.client.service(now)
         if self.client.conn is None or self.vehicle.custom_mode != self.modes.guided:
             return
-        if self._setpoint_due((0.0, 0.0), now):
+        if self._pacer.due((0.0, 0.0), now):
             self._setpoint(0.0, 0.0, now)
 
     def poll(self, now: float) -> list[Pose]:
@@ -468,19 +457,13 @@ class MavlinkDriver:
             heartbeat_age=None if v.hb_time is None else round(now - v.hb_time, 3),
             position_age=None if v.pos_time is None else round(now - v.pos_time, 3),
             statustexts=tuple(self.statustexts), last_refusal=self._last_refusal,
-            bad_signatures=self.client.bad_signatures(), foreign_ids=tuple(self._foreign_ids), **self._counts)
+            bad_signatures=self.client.bad_signatures(), foreign_ids=tuple(self._foreign_ids),
+            setpoints_deferred=self._pacer.deferred, **self._counts)
         return replace(self._health, connected=state.connected, ok=state.ok, text=state.text, reason=state.reason,
                        detail=detail)
 
     def clear_faults(self, now: float) -> None:
         """Nothing to clear on this link: the operator puts the vehicle back in GUIDED and arms it himself."""
-
-    def _speed(self) -> float | None:
-        """The vehicle's own speed over ground from its last LOCAL_POSITION_NED, m/s (None before one)."""
-        p = self.poses.pending
-        last = self._last_position
-        pos = p if p is not None else last
-        return None if pos is None else math.hypot(pos.vx, pos.vy)
 
     def close(self, disarm: bool = True, stop_speed: float = 0.05, stop_timeout: float = 3.0) -> None:
         """Stop a vehicle that is still ours (GUIDED): zero set-points until it reports (LOCAL_POSITION_NED) a speed
@@ -493,27 +476,27 @@ class MavlinkDriver:
             return
         if self.client.conn is None:
             self._closed = True
-            self._update_state(time.monotonic())
+            self._update_state(self.clock())
             return
         mav, guided = self.dialect.mav, self.modes.guided
         try:
-            now = time.monotonic()
+            now = self.clock()
             self._pump(0.0)
             v = self.vehicle
             if v.custom_mode == guided:
                 self._setpoint(0.0, 0.0, now)
                 t_stop = now + stop_timeout
-                while v.armed and v.custom_mode == guided and time.monotonic() < t_stop:
-                    speed = self._speed()
+                while v.armed and v.custom_mode == guided and self.clock() < t_stop:
+                    speed = ground_speed(self.poses.pending or self._last_position)
                     if speed is not None and speed < stop_speed and self._last_position_time > now:
                         break
-                    self._setpoint(0.0, 0.0, time.monotonic())
-                    self.client.wait(lambda: False, time.monotonic() + 0.05)
+                    self._setpoint(0.0, 0.0, self.clock())
+                    self.client.wait(lambda: False, self.clock() + CLOSE_PERIOD_S)
                 else:
                     if v.armed and v.custom_mode == guided:
                         log.warning("the vehicle still reports %.2f m/s after %.1f s of zero set-points",
-                                    self._speed() or math.nan, stop_timeout)
-                now = time.monotonic()
+                                    ground_speed(self.poses.pending or self._last_position) or math.nan, stop_timeout)
+                now = self.clock()
                 if disarm and self.disarm_on_close and v.armed and v.custom_mode == guided:
                     t_end = now + self.config.close_timeout
                     r = self.client.run(mav.MAV_CMD_COMPONENT_ARM_DISARM, (0, 0), "disarm", t_end,
@@ -528,4 +511,4 @@ class MavlinkDriver:
         finally:
             self.client.close()
             self._closed = True
-            self._update_state(time.monotonic())
+            self._update_state(self.clock())

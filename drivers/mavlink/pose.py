@@ -51,11 +51,16 @@ class Attitude:
     yawspeed: float
 
 
+def ground_speed(p: Position | None) -> float | None:
+    """The vehicle's own speed over ground from a LOCAL_POSITION_NED, m/s (None without one)."""
+    return None if p is None else math.hypot(p.vx, p.vy)
+
+
 def enu_pose(p: Position, att: Attitude, prev: Attitude | None) -> Pose:
     """An ENU pose from a position and the heading at its time: interpolated between the ATTITUDEs around it
     (``prev``, ``att``), else carried from the nearest one with its yaw rate (at most ``ATTITUDE_MAX_LAG`` away).
-    ArduPilot schedules each message on its own interval: a heading from up to one period earlier mixed the previous
-    command's turn into the pairs."""
+    ArduPilot schedules each message on its own interval, so the last ATTITUDE can be up to a period older than the
+    position; the heading at the position's own time keeps the previous command's turn out of the pairs."""
     yaw = att.yaw
     if prev is not None and prev.ms <= p.ms < att.ms:
         yaw = prev.yaw + math.remainder(att.yaw - prev.yaw, 2.0 * math.pi) * (p.ms - prev.ms) / (att.ms - prev.ms)

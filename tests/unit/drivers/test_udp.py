@@ -1,219 +1,132 @@
-"""Nothing replayed moves a UDP robot: the session of drivers/udp.py ("Session") against recordings.
-
-Finding this answers (a hostile test, emulated links): keyed command datagrams recorded off the wire and replayed
-into a UDP robot right after it rebooted drove it 1.74-1.80 m at 0.3 m/s in 4 of 5 reboots, while its driver host
-said "estop latched": the robot forgot every sender at boot and never asked how old a command was.
-
-The wire tap is a real man in the middle (``bench.attack.Tap``, which the attack bench's replay rows use too): one
-UDP socket on 127.0.0.1 that the driver takes for the robot and the robot takes for its peer; it forwards both ways
-and records (or holds back) what the driver sends. A replay leaves from that socket, i.e. from the very address the
-robot obeys. Real sockets, free ports, everything closed.
-"""
+"""drivers.udp.UdpDriver on real UDP sockets (127.0.0.1, free ports) and a fake clock: the robot is played by the test
+at each of the driver's sleeps (open and close wait with the ``sleep`` they were given), so its answers come at fake
+times the test chose and nothing sleeps. The robot's own firmware behaviour is tests/test_udp_link.py's."""
 
 from __future__ import annotations
 
-import contextlib
 import socket
-import threading
-import time
 from collections.abc import Iterator
 
 import pytest
 
-from bench.attack import Tap
 from bridge.core import wire as M
-from bridge.core.auth import KeyFileError, load_key, make_key, open_session, seal
-from bridge.tools.procs import free_udp_port
-from drivers import open_driver
-from drivers.udp import UdpLinkConfig
-from sim_learner.dynamics import mpc_learner
-from sim_learner.udp_robot import SESSION_FRESH_S, UdpRobot
-from sim_learner.vehicle import SimVehicle
+from drivers.base import DriverError
+from drivers.udp import GREET_PERIOD_S, UdpDriver, UdpLinkConfig
+from tests.fakeclock import FakeClock
 
-LOCAL = "127.0.0.1"
 
+class Robot:
+    """A robot's socket: each :meth:`answer` reads the commands the driver sent (waiting for the first, bounded) and
+    sends one state from its own clock, which runs ``offset`` s from the driver's."""
+
+    def __init__(self, clock: FakeClock, offset: float = -900.0) -> None:
+        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self.sock.bind(("127.0.0.1", 0))
+        self.sock.settimeout(2.0)
+        self.port = self.sock.getsockname()[1]
+        self.clock, self.offset = clock, offset
+        self.epoch, self.seq = M.new_epoch(), 0
+        self.commands: list[M.Command] = []
+        self.peer: tuple[str, int] | None = None
+        self.v = 0.3
+        self.silent = False
+
+    def answer(self) -> None:
+        data, self.peer = self.sock.recvfrom(65536)  # the command the driver just sent (already in the buffer)
+        self.commands.append(M.decode(data, M.Command))
+        self.sock.setblocking(False)
+        try:
+            while True:
+                data, _ = self.sock.recvfrom(65536)
+                self.commands.append(M.decode(data, M.Command))
+        except BlockingIOError:
+            pass
+        finally:
+            self.sock.settimeout(2.0)
+        if not self.silent:
+            self.state(self.clock.t + self.offset)
+
+    def state(self, stamp: float) -> None:
+        assert self.peer is not None
+        self.seq += 1
+        st = M.LearnerState(stamp=stamp, seq=self.seq, x=1.0, y=2.0, theta=0.5, v=self.v, omega=0.0,
+                            epoch=self.epoch)
+        self.sock.sendto(M.encode(st), self.peer)
 
 
 @pytest.fixture
-def key_file(tmp_path):
-    path = tmp_path / "udp.key"
-    make_key(path)
-    return path
+def robot(clock: FakeClock) -> Iterator[Robot]:
+    r = Robot(clock)
+    clock.on_sleep.append(r.answer)
+    yield r
+    r.sock.close()
 
 
-def _robot(key: bytes, peer: tuple[str, int], port: int = 0) -> tuple[UdpRobot, SimVehicle]:
-    vehicle = SimVehicle(mpc_learner(), (0.0, 0.0, 0.0), now=time.monotonic())
-    return UdpRobot(vehicle, port=port, peer=peer, key=key, watchdog=0.3).start(), vehicle
+def driver(clock: FakeClock, robot: Robot, **cfg: object) -> UdpDriver:
+    return UdpDriver(UdpLinkConfig(robot_port=robot.port, bind_port=0, insecure=True, **cfg),  # type: ignore[arg-type]
+                     clock=clock, sleep=clock.sleep)
 
 
-def _drive(driver, seconds: float, v: float) -> None:
-    t_end = time.monotonic() + seconds
-    while time.monotonic() < t_end:
-        driver.send(v, 0.0, time.monotonic())
-        driver.poll(time.monotonic())
-        time.sleep(0.02)
-
-
-def _position(vehicle: SimVehicle) -> tuple[float, float]:
-    body = vehicle.advance(time.monotonic())
-    return body.x, body.y
-
-
-def _moved(vehicle: SimVehicle, start: tuple[float, float]) -> float:
-    body = vehicle.advance(time.monotonic())
-    return float(((body.x - start[0]) ** 2 + (body.y - start[1]) ** 2) ** 0.5)
-
-
-@contextlib.contextmanager
-def _driver(key_file, tap: Tap) -> Iterator:
-    driver = open_driver("udp", UdpLinkConfig(robot_port=tap.addr[1], bind_port=tap.driver[1],
-                                              key_file=str(key_file), open_timeout=5.0))
+def test_open_greets_with_a_stop_until_the_first_state_and_health_follows_the_fake_clock(clock: FakeClock,
+                                                                                           robot: Robot) -> None:
+    d = driver(clock, robot)
+    t0 = clock.t
+    d.open(t0)
     try:
-        driver.open(time.monotonic())
-        yield driver
+        assert [c.method for c in robot.commands] == ["stop"] and robot.commands[0].v == 0.0
+        assert clock.t == pytest.approx(t0 + GREET_PERIOD_S)  # one greeting period, on the fake clock
+        h = d.health(clock.t)
+        assert (h.ok, h.reason, h.text) == (True, "ok", "ready")
+        late = d.health(clock.t + 0.51)  # state_timeout_s = 0.5
+        assert (late.ok, late.reason, late.text) == (False, "no_telemetry", "no state from the robot for 0.5 s")
     finally:
-        driver.close()
+        d.close(stop_timeout=0.0)
 
 
-def _record_a_drive(key_file, tap: Tap, robot: UdpRobot, vehicle: SimVehicle) -> list[tuple[float, bytes]]:
-    """The driver drives the robot at 0.3 m/s for 1.5 s through the tap; what it sent, as recorded."""
-    with _driver(key_file, tap) as driver:
-        n0 = len(tap.recorded)
-        _drive(driver, 1.5, 0.3)
-        assert vehicle.distance > 0.2 and robot.counters["applied"] > 20  # the recording is potent
-        capture = tap.recorded[n0:]
-    return capture
+def test_open_gives_up_after_open_timeout_on_the_fake_clock(clock: FakeClock, robot: Robot) -> None:
+    robot.silent = True
+    d = driver(clock, robot, open_timeout=0.5)
+    t0 = clock.t
+    with pytest.raises(DriverError, match="no state from the UDP robot at 127.0.0.1:.* within 0.5 s"):
+        d.open(t0)
+    assert t0 + 0.5 <= clock.t <= t0 + 0.5 + GREET_PERIOD_S + 1e-9  # the deadline, on the fake clock
+    assert len(robot.commands) == round((clock.t - t0) / GREET_PERIOD_S)  # a hello each period until then
+    d.close(stop_timeout=0.0)
 
 
-@pytest.mark.parametrize("reboot", ["new instance", "reboot hook"])
-@pytest.mark.parametrize("driver_host", ["none", "estop latched"])
-def test_commands_recorded_before_a_reboot_do_not_move_the_robot_after_it(key_file, reboot, driver_host) -> None:
-    key = load_key(key_file)
-    bind = free_udp_port()
-    with Tap(bind) as tap:
-        robot, vehicle = _robot(key, tap.addr)
-        tap.robot = (LOCAL, robot.port)
-        try:
-            capture = _record_a_drive(key_file, tap, robot, vehicle)
-            if reboot == "new instance":  # a power cycle: a new process would be the same (nothing is kept)
-                port = robot.port
-                robot.stop()
-                robot, vehicle = _robot(key, tap.addr, port)
-            else:
-                robot.reboot()
-            start = _position(vehicle)
-            with contextlib.ExitStack() as stack:
-                driver = None
-                if driver_host == "estop latched":  # a driver host that only sends stops (its latch holds)
-                    driver = stack.enter_context(_driver(key_file, tap))
-                applied = robot.counters["applied"]
-                stopper_done = threading.Event()
-
-                def stops() -> None:
-                    while driver is not None and not stopper_done.is_set():
-                        driver.stop(time.monotonic())
-                        driver.poll(time.monotonic())
-                        time.sleep(0.02)
-
-                t = threading.Thread(target=stops, daemon=True)
-                t.start()
-                try:
-                    tap.replay(capture)
-                    time.sleep(0.3)
-                finally:
-                    stopper_done.set()
-                    t.join(timeout=2.0)
-                assert _moved(vehicle, start) < 0.01, robot.counters
-                assert robot.counters["stale_session"] >= len(capture) - 5, robot.counters
-                if driver is None:
-                    assert robot.counters["applied"] == applied  # nothing of the recording was obeyed
-        finally:
-            robot.stop()
-
-
-def test_commands_held_back_and_released_later_are_refused_as_stale(key_file) -> None:
-    key = load_key(key_file)
-    bind = free_udp_port()
-    with Tap(bind) as tap:
-        robot, vehicle = _robot(key, tap.addr)
-        tap.robot = (LOCAL, robot.port)
-        try:
-            with _driver(key_file, tap) as driver:
-                tap.hold = True  # the robot's states still reach the driver; its commands are kept back
-                n0 = len(tap.recorded)
-                _drive(driver, 1.0, 0.3)
-                held = tap.recorded[n0:]
-                assert vehicle.distance == 0.0
-                time.sleep(SESSION_FRESH_S + 0.1)
-                start = _position(vehicle)
-                stale = robot.counters["stale"]
-                tap.replay(held, paced=False)
-                assert _wait(lambda: robot.counters["stale"] >= stale + len(held), 2.0), robot.counters
-                assert _moved(vehicle, start) < 0.01 and not robot.moving
-                tap.hold = False
-        finally:
-            robot.stop()
-
-
-def _wait(pred, timeout: float) -> bool:
-    t_end = time.monotonic() + timeout
-    while time.monotonic() < t_end:
-        if pred():
-            return True
-        time.sleep(0.01)
-    return pred()
-
-
-def test_a_keyed_link_follows_the_robot_into_its_new_session_after_a_reboot(key_file) -> None:
-    key = load_key(key_file)
-    bind = free_udp_port()
-    robot, vehicle = _robot(key, (LOCAL, bind))
-    driver = open_driver("udp", UdpLinkConfig(robot_port=robot.port, bind_port=bind, key_file=str(key_file)))
+def test_poses_are_stamped_on_the_drivers_clock_from_the_robots_own_stamps(clock: FakeClock, robot: Robot) -> None:
+    d = driver(clock, robot)
+    d.open(clock.t)
     try:
-        driver.open(time.monotonic())
-        _drive(driver, 0.3, 0.2)
-        assert driver.session[0] == robot.epoch and robot.counters["applied"] > 5
-        old = robot.epoch
-        robot.reboot()
-        applied = robot.counters["applied"]
-        t_end = time.monotonic() + 3.0
-        while time.monotonic() < t_end and robot.counters["applied"] <= applied:
-            _drive(driver, 0.05, 0.2)
-        assert robot.counters["applied"] > applied and driver.session[0] == robot.epoch != old
-        assert robot.counters["stale_session"] > 0  # the commands sealed for the old boot, until the new one was heard
-        assert driver.health(time.monotonic()).detail.robot_restarts == 1
+        first = clock.t  # the first state was stamped at the robot's clock and received at once
+        sample = clock.t + robot.offset
+        for k in (1, 2, 3):  # sampled every 20 ms, received late by 0, 30 and 10 ms
+            robot.state(sample + 0.02 * k)
+        clock.advance(0.07)
+        poses = d.poll(clock.t)
+        assert [p.stamp for p in poses] == pytest.approx([first + 0.02, first + 0.04, first + 0.06])
+        assert d.counters["clock_restarts"] == 0 and d.counters["stamp_fallbacks"] == 0
+        robot.state(0.0)  # a stamp that does not advance: no clock, its receipt it is
+        poses = d.poll(clock.t)
+        assert [p.stamp for p in poses] == [clock.t] and d.counters["stamp_fallbacks"] == 1
     finally:
-        driver.close()
-        robot.stop()
+        d.close(stop_timeout=0.0)
 
 
-def test_a_command_sealed_the_old_way_or_for_no_session_is_refused(key_file) -> None:
-    key = load_key(key_file)
-    bind = free_udp_port()
-    robot, vehicle = _robot(key, (LOCAL, bind))
-    try:
-        cmd = M.encode(M.Command(stamp=1.0, seq=1, v=0.3, omega=0.0, method="scm", sender="driver", epoch=7))
-        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-            s.bind((LOCAL, bind))
-            s.sendto(seal(key, cmd), (LOCAL, robot.port))  # a valid tag of the old format: no session
-            assert _wait(lambda: robot.counters["unauthenticated"] == 1, 1.0)
-            s.settimeout(1.0)
-            data, _ = s.recvfrom(65536)  # the robot's state, sealed: no session datagram
-            assert open_session(key, data) is None
-        assert not robot.moving and vehicle.distance == 0.0
-    finally:
-        robot.stop()
-
-
-def test_an_unkeyed_udp_link_refuses_to_open_unless_insecure(caplog) -> None:
-    with pytest.raises(KeyFileError, match="insecure = true"):
-        open_driver("udp", UdpLinkConfig(bind_port=0)).open(time.monotonic())
-    vehicle = SimVehicle(mpc_learner(), (0.0, 0.0, 0.0), now=time.monotonic())
-    with UdpRobot(vehicle, peer="first") as robot:
-        driver = open_driver("udp", UdpLinkConfig(robot_port=robot.port, bind_port=0, insecure=True))
-        try:
-            with caplog.at_level("WARNING", logger="scmbridge.driver.udp"):
-                driver.open(time.monotonic())
-            assert "runs insecure" in caplog.text
-        finally:
-            driver.close()
+def test_commands_carry_the_drivers_epoch_and_seq_and_close_stops_until_the_robot_has(clock: FakeClock,
+                                                                                     robot: Robot) -> None:
+    d = driver(clock, robot)
+    d.open(clock.t)
+    d.send(0.2, 0.1, clock.advance(0.02))
+    d.send(0.2, 0.1, clock.advance(0.02))
+    robot.answer()
+    sent = robot.commands[-2:]
+    assert [(c.method, c.v, c.omega, c.sender, c.epoch) for c in sent] == [("scm", 0.2, 0.1, "driver", d.epoch)] * 2
+    assert sent[1].seq == sent[0].seq + 1 and sent[1].stamp == pytest.approx(sent[0].stamp + 0.02)
+    robot.v = 0.2
+    clock.on_sleep.append(lambda: setattr(robot, "v", robot.v - 0.1))  # the robot slows down on the stops
+    t0 = clock.t
+    d.close(stop_speed=0.05, stop_timeout=3.0)
+    # it reports 0.2, 0.1, then 0.0 m/s: three stops, a period apart
+    assert robot.commands[-1].method == "stop" and clock.t == pytest.approx(t0 + 3 * GREET_PERIOD_S)
+    assert d.health(clock.t).reason == "closed"
