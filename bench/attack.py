@@ -135,12 +135,12 @@ def estop_forgotten_on_restart(short: bool) -> Result:
         latch = Path(d) / "estop.bin"
         first = DriverHost(DriverConfig(), "can", _NoLink(), "r1", 50.0, latch_path=latch)
         first.on_estop(M.Estop(stamp=1.0, engaged=True, source="operator", reason="attack"), 1.0)
-        assert first.latch_writer is not None and first.latch_writer.close(5.0)  # confirmed, then the host dies
+        assert first.latch.close(5.0)  # confirmed, then the host dies
         second = DriverHost(DriverConfig(), "can", _NoLink(), "r1", 50.0, latch_path=latch)
         second.engaged = True
         second.gate.offer(M.Command(stamp=2.0, seq=1, v=0.3, omega=0.0, method="scm", epoch=7), 2.0)
         d2 = second.gate.decide(2.01)
-        assert second.latch_writer is not None and second.latch_writer.close(5.0)
+        assert second.latch.close(5.0)
     return {"reached_vehicle": {"drives_after_restart": d2.driving}, "learned": None,
             "latched_after_restart": second.gate.estopped, "ok": not d2.driving and second.gate.estopped}
 
@@ -685,7 +685,7 @@ class _LatchRig:
 
     def stop(self, host) -> None:
         host.driver.close(disarm=False, stop_timeout=0.0)
-        host.latch_writer.close(5.0)
+        host.latch.close(5.0)
         self.hosts.remove(host)
 
     def estop(self, host, engaged: bool = True) -> None:
@@ -699,7 +699,7 @@ class _LatchRig:
         host.on_estop(stamped(M.Estop(stamp=time.monotonic(), engaged=engaged, source="operator", reason="attack")),
                       time.monotonic())
         done = threading.Event()
-        if host.latch_writer.defer(done.set):
+        if host.latch.defer(done.set):
             done.wait(5.0)
 
     def engage_and_drive(self, host, seconds: float) -> dict:
@@ -739,10 +739,10 @@ class _LatchRig:
 def latch_disk_full_at_estop(short: bool) -> Result:
     """The robot's disk is full when the operator's estop comes (the latch save fails with ENOSPC, injected as the
     host's saver: the bench runs as root, which a read-only directory does not stop), then the host restarts on the
-    same state directory and someone engages. bridge/nodes/driver_host.py: the failed save removes the old (released)
-    file and refuses engage, so the restart finds the marker without a file: latched. before (``latch_saved``'s
-    handling off: the failure ignored, the old released file left; --short, two runs): engaged after the restart,
-    drove 0.073 m in 0.5 s both times."""
+    same state directory and someone engages. bridge/nodes/latch_store.py: the failed save removes the old
+    (released) file and the host refuses engage, so the restart finds the marker without a file: latched. before
+    (the save result's handling off: the failure ignored, the old released file left; --short, two runs): engaged
+    after the restart, drove 0.073 m in 0.5 s both times."""
     import errno
     import os
     import threading
@@ -796,7 +796,7 @@ def forged_releases(other: Path) -> list[bytes]:
     import os
 
     from bridge.core import wire as M
-    from bridge.nodes.driver_host import Latch, sign_latch
+    from bridge.nodes.latch_store import Latch, sign_latch
 
     return [M.encode(Latch(latched=False, source="operator")),
             M.encode(Latch(latched=False, source="operator", tag=os.urandom(16))),
@@ -858,7 +858,7 @@ def latch_other_state_dir(short: bool) -> Result:
             said.texts.clear()
             other = rig.host(Path(d) / "two" / "estop-r1.bin")
             told = any("first start in this state directory: no estop history" in t for t in said.texts)
-            fresh = other.fresh_state
+            fresh = other.latch.fresh_state
             rig.stop(other)
     finally:
         logger.removeHandler(said)

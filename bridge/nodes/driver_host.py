@@ -7,9 +7,9 @@ operator selecting GUIDED and arming while the host runs; ``engage_on_start`` in
 kept in the state directory and re-read at start, so it survives a restart or a reboot; it fails safe: a latch that
 could not be saved stops the host and refuses engage until a release is saved (status reason ``latch_unsaved``), and
 a latch file missing beside the install marker, unreadable or not signed by this host starts latched
-(``inspect_latch``). The state directory must stay the same across restarts (``SCMBRIDGE_STATE_DIR``): a host given
-a fresh one says "first start in this state directory: no estop history". A link anyone on the network can drive
-(UDP ``insecure``, ``--insecure``; MAVLink without signing) is said in the log and on status
+(:mod:`bridge.nodes.latch_store`). The state directory must stay the same across restarts (``SCMBRIDGE_STATE_DIR``):
+a host given a fresh one says "first start in this state directory: no estop history". A link anyone on the network
+can drive (UDP ``insecure``, ``--insecure``; MAVLink without signing) is said in the log and on status
 (``unauthenticated_link``). Closing stops the vehicle, waits until it reports it has stopped, and only then disarms
 (a vehicle engaged by this host). Every command is decoded (so validated: finite, in wire range) and goes through
 the pure :class:`bridge.core.gate.CommandGate`: the next of its sender's ``(epoch, seq)`` stream, fresh (received
@@ -26,6 +26,11 @@ with ``state`` without any clock synchronisation.
 ``--emulate`` (CAN only) hosts the emulated motor controllers on the same python-can ``virtual`` channel inside
 this process: the wire between driver and controllers is python-can, not a shortcut. The host lets them send what
 is due before each read of the bus, as controllers on their own hardware would have.
+
+The host is the wiring (issue 34: one job per class): Zenoh callbacks -> the pure pieces -> the link, in its loop.
+The pieces are :mod:`bridge.core.gate` (the command gate), :mod:`bridge.nodes.engagement` (a person's consent and the
+last word on each decision), :mod:`bridge.nodes.pose_feed` (the poses published, motion capture restamped),
+:mod:`bridge.nodes.host_status` (the status) and :mod:`bridge.nodes.latch_store` (the estop latch on disk).
 """
 
 from __future__ import annotations
@@ -33,9 +38,6 @@ from __future__ import annotations
 import argparse
 import logging
 import math
-import os
-import secrets
-import stat
 import threading
 import time
 from collections import deque
@@ -44,20 +46,21 @@ from pathlib import Path
 from typing import Any
 
 import msgspec
-import numpy as np
 import zenoh
 
 from bridge.core import wire as M
 from bridge.core.acts import ActGuard, Refusal
 from bridge.core.args import pose_arg, positive_float, robot_arg
-from bridge.core.auth import KEY_BYTES, load_key, record_tag, record_tag_ok
+from bridge.core.auth import load_key
 from bridge.core.backoff import Backoff
-from bridge.core.clock import HOST, ClockOffset
 from bridge.core.errors import UsageError
 from bridge.core.gate import CommandGate, Decision
-from bridge.core.paths import save_atomic, state_dir
+from bridge.core.paths import save_atomic
 from bridge.nodes import systemd
 from bridge.nodes.driver_config import DriverConfig, load_driver
+from bridge.nodes.engagement import Engagement, OperatorEvent, Outcome, overrule
+from bridge.nodes.host_status import Assessment, HostFacts, HostStatus, host_counters, node_state
+from bridge.nodes.latch_store import LatchStore, SaveResult, latch_file
 from bridge.nodes.node import (
     BlockedLoop,
     FixedRate,
@@ -68,6 +71,7 @@ from bridge.nodes.node import (
     stop_on_signals,
     zenoh_config,
 )
+from bridge.nodes.pose_feed import PoseFeed
 from bridge.nodes.zsession import open_session
 from drivers import link_names, open_driver
 from drivers.base import Driver, DriverError, FailsafeReport, LinkHealth, link_unauthenticated
@@ -84,220 +88,34 @@ STALL_REPORT_S = 0.25
 SEND_BURST = 2
 #: s ``close()`` waits for a latch save still under way before the process ends
 LATCH_FLUSH_S = 2.0
-#: the end of the status text of a host whose link does not authenticate (drivers.base.link_unauthenticated)
-UNAUTHENTICATED = " (link unauthenticated: anyone on the network can drive it)"
 #: s an estop query's answer says why the last release was refused
 RELEASE_REFUSED_SHOWN_S = 10.0
-#: a status goes out each this many seconds, and at once on a change of ok, state or reason, but at most
-#: STATUS_MAX_HZ a second (a flapping link cannot flood the station)
-STATUS_EVERY_S = 1.0
-STATUS_MAX_HZ = 20.0
-
-
-class Latch(msgspec.Struct, kw_only=True):
-    """The estop latch as kept on the robot's disk. ``tag``: :func:`bridge.core.auth.record_tag` over the other
-    three fields under the robot's latch key (:func:`latch_marker`), so a file this host did not write reads as
-    latched (:func:`inspect_latch`); empty in memory and in a file older than the tag."""
-
-    latched: bool
-    source: str = ""
-    reason: str = ""
-    tag: bytes = b""
-
-
-def latch_file(robot: str) -> Path:
-    """Where a robot's estop latch is kept (the state directory survives restarts and reboots)."""
-    return state_dir() / f"estop-{robot}.bin"
-
-
-def latch_marker(path: Path) -> Path:
-    """The install marker beside the latch file ``path`` (``estop-<robot>.installed``): written atomically at the
-    first start in a state directory, and never again. It holds the robot's latch key (32 random bytes as hex, mode
-    0600), which signs every latch the host saves; its presence says this directory has an estop history, so a
-    latch file missing beside it counts as latched."""
-    return path.with_name(path.stem + ".installed")
-
-
-def _unsigned(latch: Latch) -> bytes:
-    return M.encode(Latch(latched=latch.latched, source=latch.source, reason=latch.reason))
-
-
-def sign_latch(key: bytes, latch: Latch) -> Latch:
-    """``latch`` with its tag under ``key`` (what :class:`LatchWriter` saves)."""
-    return Latch(latched=latch.latched, source=latch.source, reason=latch.reason,
-                 tag=record_tag(key, _unsigned(latch)))
-
-
-def read_marker(path: Path) -> bytes | None:
-    """The latch key in the install marker ``path``; None if there is none. Raises ValueError for a marker that is
-    not a key or that others may read (a key others know signs releases for them), OSError for one unreadable."""
-    try:
-        st = path.stat()
-        text = path.read_text(encoding="ascii").strip()
-    except FileNotFoundError:
-        return None
-    except UnicodeDecodeError as exc:
-        raise ValueError(f"{path}: not a key ({exc})") from None
-    if st.st_mode & (stat.S_IRWXG | stat.S_IRWXO):
-        raise ValueError(f"{path} is readable by others (mode {stat.S_IMODE(st.st_mode):o})")
-    try:
-        key = bytes.fromhex(text)
-    except ValueError:
-        key = b""
-    if len(key) != KEY_BYTES:
-        raise ValueError(f"{path}: not a key ({KEY_BYTES} bytes as hex)")
-    return key
-
-
-def inspect_latch(path: Path, key: bytes | None = None) -> tuple[Latch, str]:
-    """The latch a host starting now would take from ``path``, and the problem that made it latched ("" when the
-    file says it as this host saved it). ``key``: the latch key (None: read from :func:`latch_marker`).
-
-    Fail safe: only a latch file whose tag verifies under the robot's key says released; missing beside the
-    install marker, unreadable, unsigned or forged, it is latched (the source says which). No marker and no latch
-    file: this state directory has never seen an estop (a first start: released; the caller writes the marker).
-
-    Why a keyed tag (and not only "a release must name the latch it releases"): the threat found was a
-    ``released`` file written by someone else (or left by another state directory, or by an older version without
-    tags); without the key nobody makes a tag that verifies. What it cannot stop: whoever can read the marker (this
-    robot's user, root) can sign, and an older released file of this same host, copied back, verifies. The state
-    directory is the host's alone (0700, ``scmbridge doctor`` checks it) and must stay the same across restarts
-    (``SCMBRIDGE_STATE_DIR``): a host given an empty one cannot know an estop was latched elsewhere, so its start
-    log and ``doctor`` say "first start in this state directory: no estop history"."""
-    marker = latch_marker(path)
-    marker_problem = ""
-    if key is None:
-        try:
-            key = read_marker(marker)
-        except (OSError, ValueError) as exc:
-            marker_problem = f"latch key {marker} unusable: {getattr(exc, 'strerror', None) or exc}"
-    try:
-        data = path.read_bytes()
-    except FileNotFoundError:
-        if key is None and not marker_problem and not os.path.lexists(marker):
-            return Latch(latched=False), ""  # never latched in this state directory
-        return (Latch(latched=True, source="missing latch file", reason=f"{path} is missing"),
-                f"latch file {path} missing (this state directory has an estop history: {marker.name})")
-    except OSError as exc:
-        problem = f"latch file {path} unreadable: {exc.strerror or exc}"
-        return Latch(latched=True, source="unreadable latch file", reason=problem[:200]), problem
-    try:
-        saved = M.decode(data, Latch)
-    except M.MessageError as exc:
-        problem = f"latch file {path} unreadable: {exc}"
-        return Latch(latched=True, source="unreadable latch file", reason=problem[:200]), problem
-    plain = Latch(latched=saved.latched, source=saved.source, reason=saved.reason)
-    if key is not None and saved.tag and record_tag_ok(key, _unsigned(saved), saved.tag):
-        return plain, ""
-    if saved.latched:  # latched whoever wrote it
-        return plain, ""
-    why = (marker_problem or f"no latch key ({marker.name} missing)" if key is None
-           else "not signed by this host" if not saved.tag else "its tag does not verify (written by someone else)")
-    problem = f"latch file {path} says released but {why}"
-    return Latch(latched=True, source="unverified latch file", reason=problem[:200]), problem
-
-
-def read_latch(path: Path, key: bytes | None = None) -> Latch:
-    """The latch a host starting now would take (:func:`inspect_latch`), without its tag; a problem is said in the
-    log (the host starts latched: release it with scmbridge estop --release)."""
-    latch, problem = inspect_latch(path, key)
-    if problem:
-        log.error("estop %s: starting latched; release it with scmbridge estop --release", problem)
-    return latch
-
-
-class LatchWriter:
-    """Keeps the estop latch on disk off the control path: :meth:`submit` hands over the latch and returns at once;
-    one thread saves it (``save``: write, fsync, rename, fsync the directory; milliseconds on a fast disk, seconds on
-    a slow or failing one). The latest latch wins: what is submitted while a save runs is saved once, after it.
-    ``done(latch, error)`` is called in that thread after each save with None or what went wrong: the one place where
-    a save's result is known. A stop never waits for the disk (measured: with each fsync delayed 0.5 s the first
-    stop came 1.02 s after the estop while the save ran under the lock the loop needs); a confirmation of the latch
-    does (:meth:`defer`)."""
-
-    def __init__(self, path: Path, done: Callable[[Latch, Exception | None], None],
-                 save: Callable[[Path, bytes], None] = save_atomic) -> None:
-        self.path, self.done, self.save = path, done, save
-        self.cond = threading.Condition()
-        self.pending: Latch | None = None
-        self.submitted = self.saved = 0  # versions: every latch submitted up to ``saved`` was saved (or tried)
-        self.waiters: list[tuple[int, Callable[[], None]]] = []
-        self.closing = False
-        self.thread = threading.Thread(target=self._run, name="latch-writer", daemon=True)
-        self.thread.start()
-
-    def submit(self, latch: Latch) -> None:
-        """Save ``latch`` soon (never blocks on the disk: callers may hold the host's lock, to keep the order)."""
-        with self.cond:
-            self.pending = latch
-            self.submitted += 1
-            self.cond.notify_all()
-
-    def defer(self, fn: Callable[[], None]) -> bool:
-        """True: ``fn`` runs in the writer's thread once every latch submitted so far has been saved (or its save
-        failed); False: nothing is waiting to be saved (``fn`` is not called: the caller goes on at once)."""
-        with self.cond:
-            if self.saved >= self.submitted:
-                return False
-            self.waiters.append((self.submitted, fn))
-            return True
-
-    def _run(self) -> None:
-        while True:
-            with self.cond:
-                while self.pending is None and not self.closing:
-                    self.cond.wait()
-                if self.pending is None:
-                    return
-                latch, version, self.pending = self.pending, self.submitted, None
-            error: Exception | None = None
-            try:
-                self.save(self.path, M.encode(latch))
-            except Exception as exc:  # a full disk, a read-only file system, a bug: said and counted by done()
-                error = exc
-            try:
-                self.done(latch, error)
-            except Exception:
-                log.exception("estop latch: handling the save's result failed")
-            with self.cond:
-                self.saved = version
-                ready = [fn for v, fn in self.waiters if v <= version]
-                self.waiters = [(v, fn) for v, fn in self.waiters if v > version]
-                self.cond.notify_all()
-            for fn in ready:
-                try:
-                    fn()
-                except Exception:
-                    log.exception("estop latch: answering after the save failed")
-
-    def close(self, timeout: float) -> bool:
-        """Save what is still pending, bounded by ``timeout`` s, and end the thread; False if it did not finish."""
-        with self.cond:
-            self.closing = True
-            self.cond.notify_all()
-        self.thread.join(timeout)
-        return not self.thread.is_alive()
-
-
-def blocked_reason(health: LinkHealth) -> str:
-    """The ``applied`` reason for a vehicle the link says is not fit to drive (from its typed reason, never its
-    words)."""
-    if not health.connected:
-        return "link_down"
-    return "operator" if health.reason == "operator" else "fault"
 
 
 class DriverHost:
-    """One robot's driver host: the gate, the link and the Zenoh side (see the module docstring)."""
+    """One robot's driver host: the wiring between Zenoh, its pieces and the link (see the module docstring).
+
+    The pieces, each with one job: the gate (:class:`bridge.core.gate.CommandGate`: which command the vehicle may
+    get), the engagement (:class:`bridge.nodes.engagement.Engagement`: whether a person let it drive, and the last
+    word on each decision), the pose feed (:class:`bridge.nodes.pose_feed.PoseFeed`: the poses published, motion
+    capture put on this host's clock), the status (:class:`bridge.nodes.host_status.HostStatus`) and the estop latch
+    on disk (:class:`bridge.nodes.latch_store.LatchStore`). The host owns the Zenoh callbacks, the loop and the link.
+
+    Threads and locks (docs/ARCHITECTURE.md section 4): ``lock`` guards what Zenoh's callback threads and the loop
+    share: the gate, the act guard, the engage queries waiting for the loop, the pose feed's motion-capture inbox,
+    ``latch_unsaved``, ``release_refused`` and ``clear_requested``. The engagement, the status, the link and the
+    pose feed's stream are the loop thread's alone. The latch store's writer has its own lock and calls back
+    (:meth:`_latch_saved`) from its own thread, taking ``lock`` only to apply what a save came to; nothing does file
+    I/O under ``lock``."""
 
     def __init__(self, cfg: DriverConfig, link: str, driver: Driver, robot: str, rate_hz: float, *,
                  dry_run: bool = False, latch_path: Path | None = None,
                  latch_saver: Callable[[Path, bytes], None] = save_atomic) -> None:
         """``dry_run``: run the whole loop and publish what would be applied, sending nothing to the vehicle;
         ``latch_path``: where the estop latch is kept (None: in memory only; its install marker beside it,
-        :func:`latch_marker`); ``latch_saver``: how the writer saves it (atomically; a test slows it down or has it
-        fail as a full disk does). The first start's marker and released latch are written with
-        :func:`save_atomic` (:meth:`open_latch`)."""
+        :func:`bridge.nodes.latch_store.latch_marker`); ``latch_saver``: how the writer saves it (atomically; a test
+        slows it down or has it fail as a full disk does). The first start's marker and released latch are written
+        with :func:`save_atomic` (:meth:`LatchStore.open`)."""
         d = cfg.driver
         self.link, self.driver, self.robot = link, driver, robot
         self.keys = M.Keys(robot)
@@ -306,12 +124,10 @@ class DriverHost:
         self.max_telemetry_age = d.max_telemetry_age_s
         self.gate = CommandGate(d.hard_limits.bounds(), d.cmd_timeout, tuple(d.estop_release_sources))
         self.inputs = Inputs()
-        self.lock = threading.Lock()  # the gate is shared with Zenoh's callback threads
+        self.lock = threading.Lock()  # see the class docstring: what Zenoh's callback threads and the loop share
         self.wake = threading.Event()
         self.clear_requested = False
-        self.epoch = M.new_epoch()
-        self.seq = {"applied": 0, "state": 0, "status": 0}
-        self.last_pose = -math.inf
+        self.seq_applied = 0
         self.last_decision = Decision(0.0, 0.0, "start")
         self.health = LinkHealth()
         self.ticker: FixedRate | None = None  # the loop's scheduler (deadlines, wake-ups, the send budget)
@@ -322,116 +138,54 @@ class DriverHost:
         self.ticks: deque[float] = deque(maxlen=500)  # start times of the periodic ticks
         self.late: deque[float] = deque(maxlen=500)  # s each periodic tick came after its deadline (jitter)
         self.pubs: dict[str, zenoh.Publisher] = {}
-        self.pose_source = d.pose_source
-        self.mocap_clock = ClockOffset(d.mocap_window_s)
-        self.mocap: list[M.LearnerState] = []  # restamped samples waiting for the loop
+        self.poses = PoseFeed("mocap" if d.pose_source == "mocap" else link, M.new_epoch(), d.mocap_window_s)
         self.dry_run = dry_run
-        self.engaged = False  # a person engaged the vehicle since this host started
+        self.operator_engages = bool(getattr(driver, "operator_engages", False))
+        self.engagement = Engagement(follows_operator=self.operator_engages and not dry_run)
         self.engage_on_start = d.engage_on_start
         #: emulated devices hosted in this process (``--emulate``): each ``emit_due()`` runs before the link is read
         self.co_located: list[Any] = []
-        self.operator_engages = bool(getattr(driver, "operator_engages", False))
         self.engage_queries: list[tuple[zenoh.Query, M.EngageRequest]] = []  # answered by the loop thread
         #: engage requests and estop releases are taken fresh and once (bridge.core.acts); under the lock
         self.acts = ActGuard()
         self.release_refused: tuple[str, float] = ("", -math.inf)  # why the last release was refused, and when
         self.stop_speed, self.stop_timeout, self.max_drive_on = d.stop_speed, d.stop_timeout, d.max_drive_on_s
         self.failsafe_report: FailsafeReport | None = None
-        self.was_ok = False  # the link's health last tick (an operator's GUIDED + arming is a transition)
-        self.last_health_connected = False
         self.last_state = ""
         #: why anyone on the network can drive this robot through its link ("" when the link authenticates)
         self.unauthenticated = link_unauthenticated(getattr(driver, "config", None))
-        #: the last status sent: (ok, state, reason), when, and when the next periodic one is due (status_due)
-        self.status_sent: tuple[bool, str, str] | None = None
-        self.status_at, self.status_next = -math.inf, -math.inf
+        self.reporter = HostStatus(robot, link, period=self.period, max_telemetry_age=self.max_telemetry_age,
+                                   operator_engages=self.operator_engages, unauthenticated=self.unauthenticated,
+                                   max_drive_on=self.max_drive_on)
         self.latch_path = latch_path
         #: why the latch on disk is not the gate's (its save failed): while set the host stops and refuses to engage;
         #: cleared by the next save that succeeds (a person's release, on a disk that takes it)
         self.latch_unsaved = ""
-        self.latch_saver = latch_saver
-        self.latch_key = b""  # signs every latch saved (the install marker holds it)
-        self.marker_saved = False  # the install marker is on disk (else the next latch save writes it first)
-        self.fresh_state = False  # first start in this state directory: no estop history
-        self.latch_writer: LatchWriter | None = None
-        if latch_path is not None:
-            self.open_latch(latch_path)
-            self.latch_writer = LatchWriter(latch_path, self.latch_saved, self.save_latch_file)
-
-    # ----------------------------------------------------------------------------------------------- latch
-    def open_latch(self, path: Path) -> None:
-        """Take the saved latch (:func:`inspect_latch`: anything but a release this host signed is latched) and make
-        sure the install marker is on disk; at the first start in a state directory write it and a released latch
-        (marker first: a crash between the two leaves a marker without a latch file, which reads latched). These
-        writes are the start's, with :func:`save_atomic` (a failure is logged; the first latch save tries the
-        marker again)."""
-        marker = latch_marker(path)
-        self.fresh_state = not os.path.lexists(marker) and not os.path.lexists(path)
-        try:
-            key = read_marker(marker)
-        except (OSError, ValueError):
-            key = None  # inspect_latch says why, and the latch reads latched
-        saved = read_latch(path, key)
-        self.marker_saved = key is not None
-        self.latch_key = key if key is not None else secrets.token_bytes(KEY_BYTES)
-        log.info("estop latch %s (state directory %s)", path, path.parent)
-        if self.fresh_state:
-            log.warning("first start in this state directory: no estop history (%s); the state directory must stay "
-                        "the same across restarts (SCMBRIDGE_STATE_DIR): a host started with another one cannot know "
-                        "an estop latched in this one", path.parent)
-        try:
-            if not self.marker_saved:
-                save_atomic(marker, self.latch_key.hex().encode() + b"\n")
-                self.marker_saved = True
-            if self.fresh_state:
-                save_atomic(path, M.encode(sign_latch(self.latch_key, Latch(latched=False, reason="first start"))))
-        except OSError as exc:
-            log.error("estop latch: cannot write %s (%s): an estop is kept in memory only until a save succeeds",
-                      marker if not self.marker_saved else path, exc.strerror or exc)
+        self.latch = LatchStore(latch_path, self._latch_saved, latch_saver)
+        saved = self.latch.open()
         if saved.latched:
             self.gate.estop(M.Estop(stamp=0.0, engaged=True, source=saved.source, reason=saved.reason))
             log.warning("estop latched by %s (kept from before this start): %s", saved.source or "unknown",
                         saved.reason or "no reason given")
 
-    def save_latch_file(self, path: Path, data: bytes) -> None:
-        """The writer's save: the install marker first if it is not on disk yet, then the latch (both with the
-        host's ``latch_saver``)."""
-        if not self.marker_saved:
-            self.latch_saver(latch_marker(path), self.latch_key.hex().encode() + b"\n")
-            self.marker_saved = True
-        self.latch_saver(path, data)
+    @property
+    def engaged(self) -> bool:
+        """A person (or the operator, on MAVLink) engaged the vehicle since this host started."""
+        return self.engagement.engaged
 
-    def forget_latch_file(self) -> str:
-        """After a latched save failed: remove the latch file on disk (possible on a full disk; it may say
-        released), so a restart finds it missing beside the install marker and starts latched. Returns what a
-        restart would do, in words, when that cannot be made sure."""
-        path = self.latch_path
-        if path is None:
-            return ""
-        if not self.marker_saved:
-            return "no install marker on disk either: a restart would not know of this estop"
-        try:
-            path.unlink(missing_ok=True)
-            dfd = os.open(path.parent, os.O_DIRECTORY)
-            try:
-                os.fsync(dfd)
-            finally:
-                os.close(dfd)
-        except OSError as exc:
-            return f"the old latch file could not be removed either ({exc.strerror or exc}): a restart may read it"
-        return ""
+    @engaged.setter
+    def engaged(self, value: bool) -> None:  # (tests and benchmarks start from an engaged host)
+        self.engagement.engaged = value
 
     # ---------------------------------------------------------------------------------------------- inputs
     def on_mocap(self, st: M.LearnerState, now: float) -> None:
-        """A motion-capture sample: its own stamp put on this host's clock (:mod:`bridge.core.clock`). A sample
-        stamped ahead of any possible delivery is dropped (``mocap_dropped``: forged, or a clock step not yet
-        confirmed); a confirmed step of the bridge's clock restarts the estimate (``mocap_clock_restarts``)."""
+        """A motion-capture sample: its own stamp put on this host's clock (:class:`PoseFeed`). A sample stamped
+        ahead of any possible delivery is dropped (``mocap_dropped``: forged, or a clock step not yet confirmed); a
+        confirmed step of the bridge's clock restarts the estimate (``mocap_clock_restarts``)."""
         with self.lock:
-            t, verdict = self.mocap_clock.judge(st.stamp, now)
+            verdict = self.poses.offer_mocap(st, now)
             if verdict != "ok":
                 self.inputs.count("mocap_clock_restarts" if verdict == "restarted" else "mocap_dropped")
-            if t is not None and t > 0:
-                self.mocap.append(msgspec.structs.replace(st, stamp=t))
 
     def on_cmd(self, cmd: M.Command, now: float) -> None:
         with self.lock:
@@ -456,51 +210,32 @@ class DriverHost:
                 self.release_refused = (why.text, now)
             if changed and not e.engaged:
                 self.clear_requested = True
-            if changed:
-                self.save_latch()
+            if changed:  # under the lock, at each change: the last latch handed over is the gate's latest
+                self.latch.submit(self.gate.estopped, self.gate.estop_source, self.gate.estop_reason)
         self.wake.set()
         if changed:
             log.warning("estop %s by %r: %s", "engaged" if e.engaged else "released", e.source, e.reason)
         elif why is not None and why.kind != "source":
             log.warning("estop release by %r %s", e.source, why.text)
 
-    def save_latch(self) -> None:
-        """Have the latch kept on disk (called under the lock, at each change, so the last latch handed over is the
-        gate's latest, and a query answered after it waits for its save): :class:`LatchWriter` returns at once; the
-        save's result comes to :meth:`latch_saved`."""
-        if self.latch_writer is None:
-            return
-        g = self.gate
-        self.latch_writer.submit(sign_latch(self.latch_key, Latch(latched=g.estopped, source=g.estop_source,
-                                                                  reason=g.estop_reason)))
-
-    def latch_saved(self, latch: Latch, error: Exception | None) -> None:
+    def _latch_saved(self, result: SaveResult) -> None:
         """A save's result (the writer's thread). Fail safe: a latch that could not be saved must not come back
-        released after a restart, nor be released in memory while the disk cannot say so. A failed latched save
-        removes the latch file (a restart then finds the marker without it: latched) and sets ``latch_unsaved``;
-        a failed release latches the gate again; either way the host stops, refuses to engage and says why on
-        status (reason ``latch_unsaved``) until a save succeeds: a person's release on a disk that takes it."""
-        if error is None:
+        released after a restart (the store has removed the old file), nor be released in memory while the disk
+        cannot say so: a failed release latches the gate again; either way the host stops, refuses to engage and
+        says why on status (reason ``latch_unsaved``) until a save succeeds: a person's release on a disk that
+        takes it."""
+        if result.saved:
             with self.lock:
                 was, self.latch_unsaved = self.latch_unsaved, ""
             if was:
                 log.warning("estop latch saved to %s (%s)", self.latch_path,
-                            "latched" if latch.latched else "released: the host may be engaged again")
+                            "latched" if result.latch.latched else "released: the host may be engaged again")
             return
         self.inputs.count("latch_save_failures")
-        why = getattr(error, "strerror", None) or str(error)
-        if latch.latched:
-            text = f"estop latched but NOT saved to {self.latch_path}: {why}; engage refused until it is saved"
-            restart = self.forget_latch_file()
-        else:
-            text = (f"estop release NOT saved to {self.latch_path}: {why}; latched again, engage refused until a "
-                    "release is saved")
-            restart = ""
         with self.lock:
-            self.latch_unsaved = text
-            if not latch.latched and not self.gate.estopped:  # (a newer estop may have latched it meanwhile)
-                self.gate.estop(M.Estop(stamp=0.0, engaged=True, source="unsaved release", reason=text[:200]))
-        log.error("%s%s", text, f" ({restart})" if restart else "")
+            self.latch_unsaved = result.text
+            if result.relatch and not self.gate.estopped:  # (a newer estop may have latched it meanwhile)
+                self.gate.estop(M.Estop(stamp=0.0, engaged=True, source="unsaved release", reason=result.text[:200]))
 
     def on_engage_query(self, query: zenoh.Query) -> None:
         """A person's ``scmbridge engage``: handed to the loop (which owns the link) and answered from there."""
@@ -527,35 +262,33 @@ class DriverHost:
         self.wake.set()
 
     def handle_engage(self, req: M.EngageRequest, now: float, clear: bool = False) -> M.EngageState:
-        """Engage (or hand back) the vehicle, in the loop thread; the answer says what was done or why not."""
+        """Engage (or hand back) the vehicle, in the loop thread; the answer says what was done or why not (the
+        engagement rules, :meth:`Engagement.request`; the link's own refusal)."""
         node = f"driver-{self.link}"
         who = f" by {req.source}" if req.source else ""
-        if not req.engaged:
-            was, self.engaged = self.engaged, False
-            log.warning("disengaged%s: the vehicle gets stops only", who)
-            return M.EngageState(stamp=now, node=node, engaged=False, text="disengaged" if was else "not engaged")
-        if self.engaged:
-            return M.EngageState(stamp=now, node=node, engaged=True, text="already engaged")
         with self.lock:
-            latched, source = self.gate.estopped, self.gate.estop_source
-        if self.latch_unsaved:  # (latched, or released in memory while the release is not on disk)
-            return M.EngageState(stamp=now, node=node, engaged=False, accepted=False,
-                                 text=f"refused: {self.latch_unsaved}"[:1024])
-        if latched:
-            return M.EngageState(stamp=now, node=node, engaged=False, accepted=False,
-                                 text=f"refused: estop latched by {source or 'unknown'}")
+            latched, source, unsaved = self.gate.estopped, self.gate.estop_source, self.latch_unsaved
+        ruling = self.engagement.request(req.engaged, now, estopped=latched, estop_source=source, unsaved=unsaved)
+        outcome = ruling.outcome
+        if outcome in (Outcome.DISENGAGED, Outcome.NOT_ENGAGED):
+            log.warning("disengaged%s: the vehicle gets stops only", who)
+            return M.EngageState(stamp=now, node=node, engaged=False, text=outcome.value)
+        if outcome is Outcome.ALREADY_ENGAGED:
+            return M.EngageState(stamp=now, node=node, engaged=True, text=outcome.value)
+        if not outcome.accepted:
+            return M.EngageState(stamp=now, node=node, engaged=False, accepted=False, text=ruling.text[:1024])
         if not self.dry_run:
             try:
                 self.driver.engage(now, clear_faults=clear)
             except DriverError as exc:
                 log.warning("engage%s refused: %s", who, exc)
                 return M.EngageState(stamp=now, node=node, engaged=False, accepted=False, text=str(exc)[:1024])
-        self.engaged = True
+        self.engagement.confirm(now)
         log.warning("engaged%s: the vehicle follows the station's commands", who)
         return M.EngageState(stamp=now, node=node, engaged=True, text="engaged" + (" (dry run)" if self.dry_run
                                                                                   else ""))
 
-    def answer_engage_queries(self) -> None:
+    def _answer_engage_queries(self) -> None:
         with self.lock:
             pending, self.engage_queries = self.engage_queries, []
         for query, req in pending:
@@ -568,11 +301,11 @@ class DriverHost:
     def on_estop_query(self, query: zenoh.Query) -> None:
         """Answered with the latch state; while a change of it is being saved, from the writer's thread once saved
         (a confirmed latch survives a restart, as when the save ran in the estop's callback)."""
-        if self.latch_writer is not None and self.latch_writer.defer(lambda: self.answer_estop_query(query, True)):
+        if self.latch.defer(lambda: self._answer_estop_query(query, True)):
             return
-        self.answer_estop_query(query)
+        self._answer_estop_query(query)
 
-    def answer_estop_query(self, query: zenoh.Query, deferred: bool = False) -> None:
+    def _answer_estop_query(self, query: zenoh.Query, deferred: bool = False) -> None:
         with self.lock:  # an unsaved latch is latched, and says so (estop prints it beside LATCHED)
             now = time.monotonic()
             why, at = self.release_refused
@@ -587,24 +320,17 @@ class DriverHost:
                 query.drop()
 
     # ------------------------------------------------------------------------------------------------ tick
-    def follow_operator(self, health: LinkHealth) -> None:
-        """MAVLink: the operator taking the vehicle (leaving GUIDED) disengages; the operator putting it in GUIDED
-        and arming it while the host runs (a transition, never a state found at start) engages."""
-        if not self.operator_engages or self.dry_run:
-            return
-        operator = health.connected and not health.ok and health.reason == "operator"
-        if self.engaged and operator:
-            self.engaged = False
-            log.warning("disengaged: %s", health.text)
-        elif not self.engaged and health.ok and not self.was_ok and self.last_health_connected:
-            self.engaged = True
-            log.warning("engaged by the operator: %s", health.text)
-
     def decide(self, now: float) -> Decision:
-        """The gate's decision, overruled by engagement, the link's health and the telemetry's age."""
-        self.health = self.driver.health(now)
-        self.follow_operator(self.health)
-        self.was_ok, self.last_health_connected = self.health.ok, self.health.connected
+        """The gate's decision, overruled by engagement, the link's health and the telemetry's age
+        (:func:`bridge.nodes.engagement.overrule`). MAVLink: the operator taking the vehicle (leaving GUIDED)
+        disengages; the operator putting it in GUIDED and arming it while the host runs engages
+        (:meth:`Engagement.follow`)."""
+        self.health = h = self.driver.health(now)
+        event = self.engagement.follow(h, now)
+        if event is OperatorEvent.TOOK:
+            log.warning("disengaged: %s", h.text)
+        elif event is OperatorEvent.GAVE:
+            log.warning("engaged by the operator: %s", h.text)
         with self.lock:
             d = self.gate.decide(now)
             clear, self.clear_requested = self.clear_requested, False
@@ -612,15 +338,8 @@ class DriverHost:
         if clear:
             log.warning("operator released the estop: clearing the link's latched faults")
             self.driver.clear_faults(now)
-        if d.driving and unsaved:  # released in memory, but not on disk (yet): a stop until the release is saved
-            return Decision(0.0, 0.0, "estop", d.cmd_seq)
-        if d.driving and not self.engaged:
-            return Decision(0.0, 0.0, "disengaged", d.cmd_seq)
-        if d.driving and not self.health.ok and not self.dry_run:
-            return Decision(0.0, 0.0, blocked_reason(self.health), d.cmd_seq)
-        if d.driving and now - self.last_pose > self.max_telemetry_age:
-            return Decision(0.0, 0.0, "no_telemetry", d.cmd_seq)
-        return d
+        return overrule(d, now, engaged=self.engaged, unsaved=bool(unsaved), health=h, dry_run=self.dry_run,
+                        last_pose=self.poses.last_pose, max_telemetry_age=self.max_telemetry_age)
 
     def tick(self, now: float) -> None:
         """Read the link, then decide and send. Finding (the shard test beside two busy loops): the host judged the
@@ -628,16 +347,15 @@ class DriverHost:
         unread on the bus counted as lost, the status said "no heartbeat" and the station paused the mission. Health
         and the telemetry's age are now judged on what has arrived; a link that really went silent still fails."""
         if self.engage_queries:
-            self.answer_engage_queries()
-        for st in self.read_link(now):
+            self._answer_engage_queries()
+        for st in self._read_link(now):
             try:
                 self._put("state", M.validated(st))
             except M.MessageError:
                 self.inputs.count("telemetry_out_of_range")
                 log.warning("telemetry out of range, not published: %s", st)
                 continue
-            self.seq["state"] += 1
-            self.last_pose = max(self.last_pose, now)
+            self.poses.published(now)
         d = self.decide(now)
         if self.dry_run:
             pass  # what would be sent is published on applied; the vehicle gets nothing
@@ -651,128 +369,63 @@ class DriverHost:
             elif not self.last_decision.driving:
                 log.info("vehicle driving (%s)", d.reason)
         self.last_decision = d
-        self._put("applied", M.Applied(stamp=now, seq=self.seq["applied"], v=d.v, omega=d.omega, reason=d.reason,
+        self._put("applied", M.Applied(stamp=now, seq=self.seq_applied, v=d.v, omega=d.omega, reason=d.reason,
                                        cmd_seq=d.cmd_seq))
-        self.seq["applied"] += 1
+        self.seq_applied += 1
 
-    def read_link(self, now: float) -> list[M.LearnerState]:
+    def _read_link(self, now: float) -> list[M.LearnerState]:
         """Let the co-located emulated devices send what is due, read the link, and return this tick's poses: the
         link's telemetry, or the motion-capture samples (the link is read either way: its frames carry the vehicle's
         health)."""
         for device in self.co_located:
             device.emit_due()
         link = self.driver.poll(now)
-        if self.pose_source == "mocap":
+        samples: list[M.LearnerState] = []
+        if self.poses.mocap_source:
             with self.lock:
-                samples, self.mocap = self.mocap, []
-            return [msgspec.structs.replace(s, seq=self.seq["state"] + i, epoch=self.epoch, source="mocap")
-                    for i, s in enumerate(sorted(samples, key=lambda s: s.stamp))]
-        return [M.LearnerState(stamp=p.stamp, seq=self.seq["state"] + i, x=p.x, y=p.y, theta=p.theta, v=p.v,
-                               omega=p.omega, source=self.link, epoch=self.epoch) for i, p in enumerate(link)]
+                samples = self.poses.take_mocap()
+        return self.poses.states(link, samples)
 
-    def assess(self, now: float) -> tuple[list[str], M.NodeState, M.Reason, float]:
-        """What stands in the way of driving now (in words, most important first), the state and typed reason they
-        give, and the pose's age: cheap enough for every tick (:meth:`status_due` compares it with the last status
-        sent)."""
-        h = self.health
+    # ---------------------------------------------------------------------------------------------- status
+    def _assess(self, now: float) -> Assessment:
+        """This instant's facts (the shared ones read under the lock) and what they come to
+        (:meth:`HostStatus.assess`)."""
         with self.lock:
-            estop = (self.gate.estopped, self.gate.estop_source)
+            estopped, source = self.gate.estopped, self.gate.estop_source
             unsaved = self.latch_unsaved
             conflict = self.gate.conflict(now)
-        pose_age = now - self.last_pose
-        problems = []
-        if not h.ok:
-            problems.append(h.text)
-        if pose_age > self.max_telemetry_age:
-            problems.append("no telemetry yet" if math.isinf(pose_age) else f"no telemetry for {pose_age:.1f} s")
-        if estop[0]:
-            problems.insert(0, f"estop latched by {estop[1] or 'unknown'}")
-        if unsaved:
-            problems.insert(0, unsaved)
-        if conflict:
-            problems.append(conflict)
-        if not self.engaged and not estop[0] and not unsaved:
-            if self.operator_engages and h.connected and not h.ok:
-                problems.insert(0, f"waiting for the operator: {h.text.split(': ', 1)[-1]} "
-                                   f"(or scmbridge engage --robot {self.robot})")
-            else:
-                problems.insert(0, f"waiting for engage (scmbridge engage --robot {self.robot})")
-        state, reason = self.node_state(estop[0] or bool(unsaved), h, pose_age, problems, bool(unsaved))
-        return problems, state, reason, pose_age
+        facts = HostFacts(health=self.health, engaged=self.engaged, last_pose=self.poses.last_pose,
+                          estopped=estopped, estop_source=source, unsaved=unsaved, conflict=conflict,
+                          dry_run=self.dry_run)
+        return self.reporter.assess(facts, now)
 
-    def status_due(self, now: float) -> tuple[list[str], M.NodeState, M.Reason, float] | None:
-        """This tick's assessment when a status should go out now: each second, and at once (at most
-        ``STATUS_MAX_HZ`` a second) when ``ok``, the state or the typed reason changed since the last one sent. The
-        station judges the robot's fitness on this status: an engage, a release or a restart reaches it in the tick
-        that made it, not up to a second later (issue 32: a `mission resume` right after `engage` was refused)."""
-        assessed = self.assess(now)
-        problems, state, reason, _ = assessed
-        key = (not problems and not self.dry_run, state, reason)
-        if now >= self.status_next:  # the periodic ones keep their own grid, whatever went out between them
-            self.status_next = now + STATUS_EVERY_S
-            return assessed
-        if key != self.status_sent and now - self.status_at >= 1.0 / STATUS_MAX_HZ:
-            return assessed
-        return None
-
-    def status(self, now: float, assessed: tuple[list[str], M.NodeState, M.Reason, float] | None = None) -> M.Status:
+    def status(self, now: float, assessed: Assessment | None = None) -> M.Status:
         """Health as it is: ok only if the link is fit, the telemetry fresh and no estop is latched."""
-        h = self.health
         with self.lock:
-            counters = dict(self.gate.counters)
-        counters.update(self.inputs.snapshot())
-        # (not ``link_unauthenticated``: that is the UDP link's count of datagrams dropped for a bad tag)
-        counters["unauthenticated_link"] = int(bool(self.unauthenticated))
-        missed = self.ticker.missed if self.ticker is not None else 0
-        counters.update({"link_malformed": h.malformed, "link_errors": h.errors, "missed_deadlines": missed,
-                         "loop_stalls": self.stall_watch.stalls,
-                         "frames_sent": h.frames_sent, "frames_received": h.frames_received, "ticks": len(self.ticks)})
-        if h.detail is not None:
-            counters.update({f"link_{k}": v for k, v in h.detail.status_counters().items()})
-        problems, state, reason, pose_age = assessed or self.assess(now)
-        if state != self.last_state:
-            log.info("%s: %s", state, "; ".join(problems) or "driving")
-            self.last_state = state
-        lat = {"telemetry_age": min(pose_age, 1e6) * 1e3}
-        if len(self.late) > 2:
-            dev = np.asarray(self.late) * 1e3
-            lat.update({"jitter_p50": float(np.percentile(dev, 50)), "jitter_p99": float(np.percentile(dev, 99)),
-                        "jitter_max": float(dev.max())})
-        if self.failsafe_report is not None and (self.failsafe_report.drive_on_s is None
-                                                 or self.failsafe_report.drive_on_s > self.max_drive_on):
-            lat["failsafe_drive_on"] = min(1e9, 1e3 * (self.failsafe_report.drive_on_s or 1e6))
-        text = f"link {self.link}: " + ("; ".join(problems) if problems else f"driving ({self.last_decision.reason})")
-        if self.dry_run:
-            text = "DRY RUN (nothing is sent to the vehicle): " + text
-        if self.unauthenticated:  # said whatever else is cut (the text's limit is 1024)
-            text = text[:1024 - len(UNAUTHENTICATED)] + UNAUTHENTICATED
-        ok = not problems and not self.dry_run
-        msg = M.Status(stamp=now, seq=self.seq["status"], node="driver", ok=ok, state=state, reason=reason,
-                       rates_hz={"loop": 1.0 / self.period}, latencies_ms=lat, counters=counters, text=text[:1024],
-                       host=HOST)
-        self.seq["status"] += 1
-        self.status_sent, self.status_at = (ok, state, reason), now
-        return msg
+            gate_counters = dict(self.gate.counters)
+        counters = host_counters(gate_counters, self.inputs.snapshot(), self.health,
+                                 unauthenticated=bool(self.unauthenticated),
+                                 missed=self.ticker.missed if self.ticker is not None else 0,
+                                 stalls=self.stall_watch.stalls, ticks=len(self.ticks))
+        a = assessed if assessed is not None else self._assess(now)
+        if a.state != self.last_state:
+            log.info("%s: %s", a.state, "; ".join(a.problems) or "driving")
+            self.last_state = a.state
+        return self.reporter.build(now, a, counters=counters, late=self.late, failsafe=self.failsafe_report,
+                                   driving_reason=self.last_decision.reason)
 
     def node_state(self, estop: bool, h: LinkHealth, pose_age: float, problems: list[str],
                    unsaved: bool = False) -> tuple[M.NodeState, M.Reason]:
-        """The one word ``scmbridge status`` shows for this host, and its typed reason (what the station decides
-        on: a latched estop is ``estop`` also in a dry run, ``latch_unsaved`` when it is not on disk); from typed
-        values only, never from a text."""
-        latched: M.Reason = "latch_unsaved" if unsaved else "estop"
-        if self.dry_run:
-            return "dry_run", latched if estop else "dry_run"
-        if estop:
-            return "estop", latched
-        if not h.connected:
-            return "link_down", "link_down"
-        if not self.engaged:
-            return "waiting", "not_engaged"
-        if not h.ok:
-            return ("operator", "operator") if h.reason == "operator" else ("fault", "fault")
-        if pose_age > self.max_telemetry_age:
-            return "no_pose", "no_telemetry"
-        return ("driving", "ok") if not problems else ("fault", "conflict")  # (the one problem left: two senders)
+        """The one word ``scmbridge status`` shows for this host, and its typed reason
+        (:func:`bridge.nodes.host_status.node_state` with this host's engagement and dry run)."""
+        return node_state(estop, h, pose_age, problems, unsaved, engaged=self.engaged, dry_run=self.dry_run,
+                          max_telemetry_age=self.max_telemetry_age)
+
+    def _status_due(self, now: float) -> Assessment | None:
+        """This tick's assessment when a status should go out now (:meth:`HostStatus.due`: each second, and at
+        once on a change of ok, state or reason)."""
+        assessed = self._assess(now)
+        return assessed if self.reporter.due(assessed, now) else None
 
     # ------------------------------------------------------------------------------------------------ run
     def _put(self, topic: str, msg: msgspec.Struct) -> None:
@@ -786,15 +439,13 @@ class DriverHost:
         session.declare_queryable(k.estop, self.on_estop_query)
         session.declare_queryable(k.engage, self.on_engage_query)
         self.alive = session.liveliness().declare_token(M.alive_key(self.robot, "driver"))
-        if self.pose_source == "mocap":
+        if self.poses.mocap_source:
             self.inputs.subscribe(session, k.mocap, M.LearnerState, "mocap", self.on_mocap)
         self.pubs = {"applied": session.declare_publisher(k.applied), "state": session.declare_publisher(k.state),
                      "status": session.declare_publisher(M.status_key(self.robot, "driver"))}
-        self._put("status", M.Status(stamp=time.monotonic(), seq=self.seq["status"], node="driver", ok=False,
-                                     state="starting", reason="starting",
-                                     text=f"link {self.link}: opening (vehicle not yet ready)"))
-        self.seq["status"] += 1
-        if not self.open_link(stop):
+        self._put("status", self.reporter.starting(time.monotonic(), "starting",
+                                                   f"link {self.link}: opening (vehicle not yet ready)"))
+        if not self._open_link(stop):
             return
         self.failsafe_report = self.driver.failsafe()
         too_long = self.failsafe_report.drive_on_s is None or self.failsafe_report.drive_on_s > self.max_drive_on
@@ -802,7 +453,7 @@ class DriverHost:
                                                 f" (more than max_drive_on_s = {self.max_drive_on:g} s)"
                                                 if too_long else "")
         log.info("driver host for %s on link %s at %.0f Hz (epoch %x)%s", self.robot, self.link, 1 / self.period,
-                 self.epoch, ": DRY RUN, nothing is sent to the vehicle" if self.dry_run else "")
+                 self.poses.epoch, ": DRY RUN, nothing is sent to the vehicle" if self.dry_run else "")
         if self.unauthenticated:
             log.warning("link %s unauthenticated: %s: anyone on the network can drive it (status counter "
                         "unauthenticated_link = 1)", self.link, self.unauthenticated)
@@ -813,7 +464,7 @@ class DriverHost:
         systemd.ready(f"{self.robot}: link {self.link} open, " + ("engaged" if self.engaged else "waiting for engage"))
         self.loop(stop, duration)
 
-    def open_link(self, stop: threading.Event) -> bool:
+    def _open_link(self, stop: threading.Event) -> bool:
         """Open the link, retrying with a backoff while the vehicle (or the CAN interface) is not there, saying what
         it waits for on status, in the log (once per reason) and to systemd; False if stopped meanwhile."""
         backoff, said = Backoff(*OPEN_BACKOFF), ""
@@ -827,9 +478,7 @@ class DriverHost:
                     log.warning("%s; trying again (every %.0f s at most)", text, backoff.maximum)
                     said = text
                 systemd.status(text[:200])
-                self._put("status", M.Status(stamp=time.monotonic(), seq=self.seq["status"], node="driver",
-                                             ok=False, state="starting", reason="link_down", text=text[:1024]))
-                self.seq["status"] += 1
+                self._put("status", self.reporter.starting(time.monotonic(), "link_down", text))
                 self.driver.close(disarm=False, stop_timeout=0.0)  # a half-open link is let go before the retry
                 stop.wait(backoff.delay)
                 backoff.grow()
@@ -845,7 +494,7 @@ class DriverHost:
                 return
             self.driver.close(disarm=self.engaged, stop_speed=self.stop_speed, stop_timeout=self.stop_timeout)
         finally:
-            if self.latch_writer is not None and not self.latch_writer.close(LATCH_FLUSH_S):
+            if not self.latch.close(LATCH_FLUSH_S):
                 log.error("estop latch: the save to %s did not finish within %.0f s of closing", self.latch_path,
                           LATCH_FLUSH_S)
 
@@ -876,7 +525,7 @@ class DriverHost:
                 if periodic:
                     self.ticks.append(now)
                 self.tick(now)
-                assessed = self.status_due(now)
+                assessed = self._status_due(now)
                 if assessed is not None:
                     self._put("status", self.status(now, assessed))
                 periodic = ticker.wait()

@@ -48,7 +48,7 @@ from bridge.core.config import load_station
 from bridge.core.errors import UsageError
 from bridge.core.paths import state_dir
 from bridge.nodes.driver_config import load_driver
-from bridge.nodes.driver_host import inspect_latch, latch_marker
+from bridge.nodes.latch_store import inspect_latch, latch_marker
 from bridge.nodes.node import add_zenoh_args, endpoints_tried, zenoh_config
 from bridge.nodes.tlsid import cert_names
 from bridge.nodes.zsession import open_session

@@ -100,7 +100,7 @@ def test_doctor_checks_the_state_directory_and_each_robots_latch(tmp_path, monke
     start in this state directory: no estop history"), a latch a host would start with, and a latch file not
     written by the host; passes a release its own host saved."""
     from bridge.core import wire as M
-    from bridge.nodes.driver_host import Latch, latch_marker
+    from bridge.nodes.latch_store import Latch, latch_marker
     from bridge.tools.doctor import check_state
 
     (tmp_path / "file").write_text("not a directory")
@@ -130,7 +130,7 @@ def test_doctor_checks_the_state_directory_and_each_robots_latch(tmp_path, monke
     latch.unlink()
     found = {c.name: c for c in check_state("r1")}
     assert found["latch"].level == "warn" and "missing" in found["latch"].text, found
-    assert latch_marker(latch).exists() and host.fresh_state
+    assert latch_marker(latch).exists() and host.latch.fresh_state
 
 
 class _host:
@@ -148,7 +148,7 @@ class _host:
         return self.host
 
     def __exit__(self, *exc) -> None:
-        assert self.host.latch_writer.close(5.0)
+        assert self.host.latch.close(5.0)
 
 
 def test_doctor_warns_a_link_anyone_on_the_network_can_drive(tmp_path) -> None:

@@ -241,7 +241,8 @@ def test_an_estop_stops_at_once_while_the_latch_save_stalls_and_is_saved_after(t
     channel as ``--emulate`` hosts them; the confirmation of the latch still waits for its save."""
     from bridge.core.paths import save_atomic
     from bridge.nodes.driver_config import load_driver
-    from bridge.nodes.driver_host import DriverHost, Latch, _emulated_ecus, read_latch
+    from bridge.nodes.driver_host import DriverHost, _emulated_ecus
+    from bridge.nodes.latch_store import Latch, read_latch
     from bridge.tools.estop import latch_states
     from drivers import open_driver
 
@@ -449,7 +450,7 @@ class _Robot:
     def stop(self, host) -> None:
         """The host stops (its link closed, its latch writer finished)."""
         host.driver.close(disarm=False, stop_timeout=0.0)
-        assert host.latch_writer.close(5.0)
+        assert host.latch.close(5.0)
         self.hosts.remove(host)
 
     def __exit__(self, *exc) -> None:
@@ -461,7 +462,7 @@ class _Robot:
 def _saved(host) -> None:
     """Wait until every latch handed to the host's writer has been saved (or its save failed)."""
     done = threading.Event()
-    if host.latch_writer.defer(done.set):
+    if host.latch.defer(done.set):
         assert done.wait(10.0), "the latch save never finished"
 
 
@@ -485,7 +486,7 @@ def test_an_estop_the_disk_cannot_take_stops_refuses_engage_and_is_still_latched
     release, the host engages."""
     import errno
 
-    from bridge.nodes.driver_host import latch_marker, read_latch
+    from bridge.nodes.latch_store import latch_marker, read_latch
     from bridge.nodes.station_core import driver_estop
 
     latch = tmp_path / "state" / "estop-r1.bin"
@@ -544,7 +545,7 @@ def test_a_release_that_cannot_be_saved_after_a_saved_estop_latches_again(tmp_pa
     at once and says why, so memory never drives while the disk says latched."""
     import errno
 
-    from bridge.nodes.driver_host import read_latch
+    from bridge.nodes.latch_store import read_latch
 
     latch = tmp_path / "estop-r1.bin"
     full = threading.Event()
@@ -571,7 +572,7 @@ def test_a_release_that_cannot_be_saved_after_a_saved_estop_latches_again(tmp_pa
 def test_a_latch_file_deleted_while_the_host_was_stopped_counts_as_latched(tmp_path) -> None:
     """(b) The install marker says this state directory has an estop history: a latch file missing beside it
     (deleted, released or latched, while the host was stopped) is latched until a person releases it."""
-    from bridge.nodes.driver_host import read_latch
+    from bridge.nodes.latch_store import read_latch
 
     latch = tmp_path / "estop-r1.bin"
     with _Robot() as robot:
@@ -597,7 +598,7 @@ def test_a_released_latch_file_written_by_someone_else_counts_as_latched(tmp_pat
     import shutil
 
     from bench.attack import forged_releases
-    from bridge.nodes.driver_host import latch_marker
+    from bridge.nodes.latch_store import latch_marker
 
     latch = tmp_path / "a" / "estop-r1.bin"
     other = tmp_path / "b" / "estop-r1.bin"
@@ -639,7 +640,7 @@ def test_a_host_in_another_state_directory_says_it_has_no_estop_history(tmp_path
             with caplog.at_level(logging.INFO, logger="scmbridge.driver"):
                 host = robot.host(tmp_path / "fresh" / "estop-r1.bin")
             said = "first start in this state directory: no estop history" in caplog.text
-            assert host.fresh_state == first and said == first, caplog.text
+            assert host.latch.fresh_state == first and said == first, caplog.text
             assert f"state directory {tmp_path / 'fresh'}" in caplog.text
             assert not host.gate.estopped
             robot.stop(host)

@@ -128,6 +128,29 @@ def test_the_station_core_runs_without_zenoh_threads_or_module_state() -> None:
         assert not forbidden.search(MODULES[m].read_text()), f"the station core reaches {m}, which imports it"
 
 
+@pytest.mark.parametrize("mod", ["bridge.nodes.engagement", "bridge.nodes.host_status", "bridge.nodes.pose_feed"])
+def test_the_driver_hosts_pieces_are_pure(mod: str) -> None:
+    """Issue 34: the driver host is the wiring; its engagement, status and pose feed take times and facts as
+    arguments: no Zenoh, no threads, no clock, no files or sockets in the module itself."""
+    forbidden = re.compile(r"^\s*(import|from)\s+(zenoh|threading|time|socket|os|pathlib|logging)\b", re.M)
+    assert not forbidden.search(MODULES[mod].read_text()), f"{mod} imports I/O, a clock or threads"
+
+
+def test_no_class_on_the_driver_hosts_control_path_has_more_than_15_public_methods() -> None:
+    """Issue 34: one job per class. (Properties are not counted: they read state, they do no job.)"""
+    big = {}
+    for mod in ("bridge.nodes.driver_host", "bridge.nodes.engagement", "bridge.nodes.host_status",
+                "bridge.nodes.pose_feed", "bridge.nodes.latch_store", "bridge.core.gate"):
+        for cls in ast.walk(ast.parse(MODULES[mod].read_text())):
+            if isinstance(cls, ast.ClassDef):
+                public = [f.name for f in cls.body if isinstance(f, ast.FunctionDef) and not f.name.startswith("_")
+                          and not any(getattr(d, "id", getattr(d, "attr", "")) in ("property", "setter")
+                                      for d in f.decorator_list)]
+                if len(public) > 15:
+                    big[f"{mod}.{cls.name}"] = public
+    assert not big, big
+
+
 @pytest.mark.parametrize("mod", ["bridge.nodes.driver_host", "drivers.can", "drivers.mavlink", "drivers.udp"])
 def test_the_robot_side_needs_no_numerical_stack(mod: str) -> None:
     heavy = re.compile(r"^\s*(import|from)\s+(scipy|casadi|numba|matplotlib)\b", re.M)

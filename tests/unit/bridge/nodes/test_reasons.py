@@ -11,7 +11,8 @@ import pytest
 from bridge.core import wire as M
 from bridge.core.config import StationConfig, load_mission
 from bridge.nodes.driver_config import DriverConfig
-from bridge.nodes.driver_host import DriverHost, blocked_reason
+from bridge.nodes.driver_host import DriverHost
+from bridge.nodes.engagement import blocked_reason
 from bridge.nodes.mission_control import MissionControl, spec_of
 from bridge.nodes.sources import Proposal, Why
 from bridge.nodes.station_core import StationCore, TickInputs, driver_estop
@@ -43,7 +44,7 @@ def _host(reason: str, text: str, operator_engages: bool, now: float) -> DriverH
     """An engaged host with a fresh pose and a fresh command to drive, on a link not fit for the given reason."""
     health = LinkHealth(connected=True, ok=False, text=text, reason=reason)
     host = DriverHost(DriverConfig(), "mavlink", _Link(health, operator_engages), "r1", 50.0)
-    host.engaged, host.was_ok, host.last_health_connected, host.last_pose = True, True, True, now
+    host.engaged, host.engagement.was_ok, host.engagement.was_connected, host.poses.last_pose = True, True, True, now
     host.on_cmd(M.Command(stamp=now, seq=1, v=0.2, omega=0.0, method="scm", sender="station", epoch=7), now)
     return host
 

@@ -1,0 +1,135 @@
+"""The estop latch on disk (bridge/nodes/latch_store.py), without a driver host: the first start writes the install
+marker and a released latch, only a latch signed by this host says released, a failed save is made fail safe
+before the host hears of it. A real directory (tmp_path); a full disk is an injected saver; no sleep: each wait is
+on the writer's own confirmation (LatchStore.defer), bounded."""
+
+from __future__ import annotations
+
+import errno
+import os
+import threading
+from pathlib import Path
+
+from bridge.core import wire as M
+from bridge.core.paths import save_atomic
+from bridge.nodes.latch_store import Latch, LatchStore, SaveResult, inspect_latch, latch_marker, read_latch
+
+
+class _Disk:
+    """A saver that fails as a full disk while ``full`` is set."""
+
+    def __init__(self) -> None:
+        self.full = threading.Event()
+        self.saves: list[Path] = []
+
+    def __call__(self, path: Path, data: bytes) -> None:
+        if self.full.is_set():
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(path))
+        save_atomic(path, data)
+        self.saves.append(path)
+
+
+def _store(path: Path | None, disk=save_atomic) -> tuple[LatchStore, list[SaveResult]]:
+    results: list[SaveResult] = []
+    store = LatchStore(path, results.append, disk)
+    return store, results
+
+
+def _saved(store: LatchStore) -> None:
+    done = threading.Event()
+    if store.defer(done.set):
+        assert done.wait(10.0), "the latch save never finished"
+
+
+def test_the_first_start_writes_the_marker_and_a_released_latch_and_the_next_start_reads_it(tmp_path) -> None:
+    path = tmp_path / "state" / "estop-r1.bin"
+    store, _ = _store(path)
+    assert not store.open().latched and store.fresh_state and store.marker_saved
+    assert oct(latch_marker(path).stat().st_mode & 0o777) == "0o600"
+    assert inspect_latch(path) == (Latch(latched=False, reason="first start"), "")
+    assert store.close(5.0)
+    again, _ = _store(path)
+    assert not again.open().latched and not again.fresh_state and again.key == store.key
+    assert again.close(5.0)
+
+
+def test_a_latch_submitted_is_saved_signed_and_the_latest_wins(tmp_path) -> None:
+    path = tmp_path / "estop-r1.bin"
+    store, results = _store(path)
+    store.open()
+    store.submit(True, "operator", "first")
+    store.submit(True, "operator", "second")
+    _saved(store)
+    assert read_latch(path) == Latch(latched=True, source="operator", reason="second")
+    assert results and all(r.saved for r in results) and results[-1].latch.reason == "second"
+    store.submit(False, "operator", "released")
+    _saved(store)
+    assert inspect_latch(path) == (Latch(latched=False, source="operator", reason="released"), "")
+    assert not store.defer(lambda: None)  # nothing waiting: the caller goes on at once
+    assert store.close(5.0)
+
+
+def test_a_latched_save_that_fails_removes_the_old_file_so_a_restart_starts_latched(tmp_path) -> None:
+    path = tmp_path / "estop-r1.bin"
+    disk = _Disk()
+    store, results = _store(path, disk)
+    store.open()
+    disk.full.set()
+    store.submit(True, "operator", "test")
+    _saved(store)
+    r = results[-1]
+    assert not r.saved and not r.relatch and r.error == os.strerror(errno.ENOSPC)
+    assert r.text == (f"estop latched but NOT saved to {path}: No space left on device; engage refused until it is "
+                      "saved")
+    assert not path.exists()  # the released file is gone, before the host heard of it
+    latch, problem = inspect_latch(path)
+    assert latch.latched and latch.source == "missing latch file" and "missing" in problem
+    assert store.close(5.0)
+
+
+def test_a_release_that_fails_is_to_be_latched_again(tmp_path) -> None:
+    path = tmp_path / "estop-r1.bin"
+    disk = _Disk()
+    store, results = _store(path, disk)
+    store.open()
+    store.submit(True, "operator", "test")
+    _saved(store)
+    disk.full.set()
+    store.submit(False, "operator", "release")
+    _saved(store)
+    r = results[-1]
+    assert not r.saved and r.relatch and "estop release NOT saved to" in r.text
+    assert read_latch(path).latched  # the disk still says latched
+    assert store.close(5.0)
+
+
+def test_the_marker_missing_at_start_is_written_by_the_first_save(tmp_path) -> None:
+    path = tmp_path / "estop-r1.bin"
+    disk = _Disk()
+    store, _ = _store(path, disk)
+    store.open()
+    latch_marker(path).unlink()
+    store.marker_saved = False  # (as when the start could not write it)
+    store.submit(True, "operator", "test")
+    _saved(store)
+    assert disk.saves == [latch_marker(path), path] and read_latch(path).latched
+    assert store.close(5.0)
+
+
+def test_a_released_file_not_signed_by_this_host_reads_latched(tmp_path) -> None:
+    path = tmp_path / "estop-r1.bin"
+    store, _ = _store(path)
+    store.open()
+    assert store.close(5.0)
+    path.write_bytes(M.encode(Latch(latched=False, source="operator")))
+    again, _ = _store(path)
+    latch = again.open()
+    assert latch.latched and latch.source == "unverified latch file"
+    assert again.close(5.0)
+
+
+def test_a_store_in_memory_only_does_nothing_on_disk() -> None:
+    store, results = _store(None)
+    assert store.open() == Latch(latched=False) and not store.fresh_state
+    store.submit(True, "operator", "test")
+    assert not store.defer(lambda: None) and store.forget() == "" and store.close(0.1) and results == []
