@@ -110,27 +110,52 @@ def make_key(path: Path, *, force: bool = False) -> bytes:
     return key
 
 
-def load_key(path: str | Path, link: str = "udp") -> bytes:
-    """The key in ``path``; refuses a missing, malformed or group/world-readable file with one line."""
-    path = Path(path)
+class KeyProblem(ValueError):
+    """A key file that exists but is not a usable key: ``kind`` is ``"mode"`` (others may read it) or ``"format"``
+    (not :data:`KEY_BYTES` bytes as hex, or not text)."""
+
+    def __init__(self, kind: str, text: str) -> None:
+        super().__init__(text)
+        self.kind = kind
+
+
+def read_key_file(path: Path) -> bytes:
+    """The key held in ``path`` as hex, under the checks every key file of the project gets (a link's key and the
+    estop latch's install marker alike): readable by its owner only, exactly :data:`KEY_BYTES` bytes. Raises
+    FileNotFoundError when there is none, OSError when it cannot be read, :class:`KeyProblem` otherwise; the callers
+    word the error for their user."""
+    st = path.stat()
     try:
-        st = path.stat()
         text = path.read_text(encoding="ascii").strip()
-    except FileNotFoundError:
-        raise KeyFileError(f"key file {path} not found (make one: scmbridge keys {link} --robot NAME)") from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise KeyFileError(f"key file {path}: cannot read it ({exc})") from None
+    except UnicodeDecodeError as exc:
+        raise KeyProblem("format", f"{path}: not a key ({exc})") from None
     if st.st_mode & (stat.S_IRWXG | stat.S_IRWXO):
-        raise KeyFileError(f"key file {path} is readable by others (mode {stat.S_IMODE(st.st_mode):o}); chmod 600 it")
+        raise KeyProblem("mode", f"{path} is readable by others (mode {stat.S_IMODE(st.st_mode):o})")
     try:
         key = bytes.fromhex(text)
     except ValueError:
         key = b""
     if len(key) != KEY_BYTES:
-        raise KeyFileError(f"key file {path}: expected {KEY_BYTES} bytes as hex (scmbridge keys makes one)")
+        raise KeyProblem("format", f"{path}: not a key ({KEY_BYTES} bytes as hex)")
     return key
 
 
+def load_key(path: str | Path, link: str = "udp") -> bytes:
+    """The key in ``path``; refuses a missing, malformed or group/world-readable file with one line."""
+    path = Path(path)
+    try:
+        return read_key_file(path)
+    except FileNotFoundError:
+        raise KeyFileError(f"key file {path} not found (make one: scmbridge keys {link} --robot NAME)") from None
+    except KeyProblem as exc:
+        if exc.kind == "mode":
+            mode = stat.S_IMODE(path.stat().st_mode)
+            raise KeyFileError(f"key file {path} is readable by others (mode {mode:o}); chmod 600 it") from None
+        raise KeyFileError(f"key file {path}: expected {KEY_BYTES} bytes as hex (scmbridge keys makes one)") from None
+    except OSError as exc:
+        raise KeyFileError(f"key file {path}: cannot read it ({exc})") from None
+
+
 __all__ = ["KEY_BYTES", "MAGIC", "OVERHEAD", "RECORD_MAGIC", "SESSION_MAGIC", "SESSION_OVERHEAD", "KeyFileError",
-           "key_path", "load_key", "make_key", "open_sealed", "open_session", "record_tag", "record_tag_ok", "seal",
-           "seal_session"]
+           "KeyProblem", "key_path", "load_key", "make_key", "open_sealed", "open_session", "read_key_file",
+           "record_tag", "record_tag_ok", "seal", "seal_session"]

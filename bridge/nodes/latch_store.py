@@ -18,7 +18,6 @@ from __future__ import annotations
 import logging
 import os
 import secrets
-import stat
 import threading
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -27,7 +26,7 @@ from pathlib import Path
 import msgspec
 
 from bridge.core import wire as M
-from bridge.core.auth import KEY_BYTES, record_tag, record_tag_ok
+from bridge.core.auth import KEY_BYTES, read_key_file, record_tag, record_tag_ok
 from bridge.core.paths import save_atomic, state_dir
 
 log = logging.getLogger("scmbridge.driver")  # the driver host's log: the latch is its own
@@ -68,24 +67,13 @@ def sign_latch(key: bytes, latch: Latch) -> Latch:
 
 
 def read_marker(path: Path) -> bytes | None:
-    """The latch key in the install marker ``path``; None if there is none. Raises ValueError for a marker that is
-    not a key or that others may read (a key others know signs releases for them), OSError for one unreadable."""
+    """The latch key in the install marker ``path``; None if there is none. Raises ValueError (a
+    :class:`bridge.core.auth.KeyProblem`) for a marker that is not a key or that others may read (a key others know
+    signs releases for them), OSError for one unreadable: the checks of every key file (:func:`read_key_file`)."""
     try:
-        st = path.stat()
-        text = path.read_text(encoding="ascii").strip()
+        return read_key_file(path)
     except FileNotFoundError:
         return None
-    except UnicodeDecodeError as exc:
-        raise ValueError(f"{path}: not a key ({exc})") from None
-    if st.st_mode & (stat.S_IRWXG | stat.S_IRWXO):
-        raise ValueError(f"{path} is readable by others (mode {stat.S_IMODE(st.st_mode):o})")
-    try:
-        key = bytes.fromhex(text)
-    except ValueError:
-        key = b""
-    if len(key) != KEY_BYTES:
-        raise ValueError(f"{path}: not a key ({KEY_BYTES} bytes as hex)")
-    return key
 
 
 def inspect_latch(path: Path, key: bytes | None = None) -> tuple[Latch, str]:
