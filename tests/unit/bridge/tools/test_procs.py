@@ -73,11 +73,10 @@ def test_a_child_that_has_exited_is_left_alone() -> None:
     assert proc.returncode == 4
 
 
-def test_spawn_runs_scmbridge_in_its_own_group_and_said_reads_its_log() -> None:
+def test_spawn_runs_scmbridge_and_said_reads_its_log() -> None:
     proc = spawn(["--version"])
     try:
         assert proc.wait(60) == 0
-        assert os.getpgid(os.getpid()) != proc.pid  # a group of its own (its pid is its group id)
         text = said(proc)
         assert text.strip() and "\n" in text
         assert said(proc, tail=3) == text[-3:]
@@ -88,12 +87,13 @@ def test_spawn_runs_scmbridge_in_its_own_group_and_said_reads_its_log() -> None:
     assert other.wait(60) == 0 and other.log is None and said(other) == ""
 
 
-def test_children_are_all_stopped_on_leaving_and_their_logs_closed() -> None:
+def test_children_run_in_their_own_groups_and_are_all_stopped_on_leaving_their_logs_closed() -> None:
     with Children() as kids:
         a = kids.spawn(["router", "--listen", tcp(free_port()), "--duration", "60"], LOG)
         b = kids.spawn(["--version"])
         assert b.wait(60) == 0
         assert kids.any_exited() and a.poll() is None  # the router runs on
+        assert os.getpgid(a.pid) == a.pid != os.getpgid(0)  # in a group of its own: its pid is its group id
         assert "--version ... (exit 0)" in kids.said()
     assert a.returncode is not None and a.log.closed and b.log.closed  # stopped by leaving, not by its duration
 
