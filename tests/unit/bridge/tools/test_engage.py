@@ -60,3 +60,22 @@ def test_nobody_answering_is_an_empty_list_once_the_timeout_passes() -> None:
         t0 = time.monotonic()
         assert engage.ask(s, "nobody", M.EngageRequest(stamp=0.0), timeout=0.5) == []
         assert time.monotonic() - t0 < 5.0
+
+
+def test_two_driver_hosts_of_one_robot_each_answer() -> None:
+    """Finding (tests/unit/bridge/tools/test_estop.py): Zenoh's default reply consolidation kept one reply per key,
+    so of two hosts answering on ``scm/<robot>/engage`` the tool printed one. Clients of one router on loopback."""
+    from bridge.nodes.zsession import free_port, tcp
+
+    port = free_port()
+    client = make_config(mode="client", connect=[tcp(port)])
+    with zenoh.open(make_config(mode="router", listen=[tcp(port)])) as _router, \
+            zenoh.open(client) as h1, zenoh.open(client) as h2, zenoh.open(client) as tool:
+        for s, node in ((h1, "driver"), (h2, "driver2")):
+            st = M.EngageState(stamp=1.0, node=node, engaged=True)
+            s.declare_queryable(M.key("r1", "engage"), lambda q, st=st: q.reply(M.key("r1", "engage"), M.encode(st)))
+        got: list = []
+        t_end = time.monotonic() + 20
+        while len(got) < 2 and time.monotonic() < t_end:  # until the router knows both queryables (bounded)
+            got = engage.ask(tool, "r1", M.EngageRequest(stamp=0.0), timeout=1.0)
+    assert sorted(st.node for st in got) == ["driver", "driver2"]

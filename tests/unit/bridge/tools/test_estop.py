@@ -87,3 +87,22 @@ def test_confirm_sends_again_at_each_try_until_the_asked_state_is_confirmed() ->
     assert answers["gone"] == {}  # nobody answered it: the tool names it
     assert len(slow.received) >= 2 and len({m.nonce for m in slow.received}) == len(slow.received)  # sent again
     assert len(quick.received) <= len(slow.received)  # a confirmed robot is not sent to again
+
+
+def test_two_driver_hosts_of_one_robot_are_each_heard() -> None:
+    """Finding (this file): both hosts answer on ``scm/<robot>/estop``, and Zenoh's default reply consolidation kept
+    one reply per key, so the tool saw (and confirmed) one host only. Clients of one router on loopback, as a lab."""
+    from bridge.nodes.zsession import free_port, tcp
+
+    port = free_port()
+    client = make_config(mode="client", connect=[tcp(port)])
+    with zenoh.open(make_config(mode="router", listen=[tcp(port)])) as _router, \
+            zenoh.open(client) as h1, zenoh.open(client) as h2, zenoh.open(client) as tool:
+        for s, node, latched in ((h1, "driver", True), (h2, "driver2", False)):
+            st = M.EstopState(stamp=1.0, node=node, latched=latched)
+            s.declare_queryable(M.key("r1", "estop"), lambda q, st=st: q.reply(M.key("r1", "estop"), M.encode(st)))
+        got: dict = {}
+        t_end = time.monotonic() + 20
+        while len(got) < 2 and time.monotonic() < t_end:  # until the router knows both queryables (bounded)
+            got = estop.latch_states(tool, M.key("r1", "estop"), 1.0)
+    assert {k: st.latched for k, st in got.items()} == {"r1/driver": True, "r1/driver2": False}
