@@ -4,6 +4,7 @@ configuration's own types (every key with its default, unit and range)."""
 from __future__ import annotations
 
 import argparse
+import json
 import math
 import sys
 from importlib import resources
@@ -30,11 +31,13 @@ def _toml_value(v: Any) -> str:
     if isinstance(v, bool):
         return "true" if v else "false"
     if isinstance(v, float):
-        return repr(v) if math.isfinite(v) else "nan"
+        if math.isnan(v):
+            return "nan"
+        return repr(v) if math.isfinite(v) else ("inf" if v > 0 else "-inf")  # TOML's own, never nan for inf
     if isinstance(v, int):
         return str(v)
-    if isinstance(v, str):
-        return '"' + v.replace("\\", "\\\\").replace('"', '\\"') + '"'
+    if isinstance(v, str):  # a basic string: JSON's escapes are TOML's (control characters escaped, not raw)
+        return json.dumps(v, ensure_ascii=False).replace("\x7f", "\\u007f")
     if isinstance(v, (list, tuple)):
         return "[" + ", ".join(_toml_value(a) for a in v) + "]"
     if isinstance(v, dict):  # an inline table

@@ -38,8 +38,10 @@ def ask(session: zenoh.Session, robot: str, req: M.EngageRequest, timeout: float
     t_end = time.monotonic() + timeout
     while True:
         out = []
+        # every host answers on the same key: Zenoh's default consolidation would keep one reply per key
         for reply in session.get(M.key(robot, "engage"), payload=M.encode(stamped(req)),
-                                 timeout=max(0.1, t_end - time.monotonic())):
+                                 timeout=max(0.1, t_end - time.monotonic()),
+                                 consolidation=zenoh.ConsolidationMode.NONE):
             if reply.ok is None:
                 continue
             try:

@@ -41,7 +41,8 @@ DISCOVER_S = 1.2
 def latch_states(session: zenoh.Session, selector: str, timeout: float) -> dict[str, M.EstopState]:
     """``{robot/node: EstopState}`` from every driver host that answers a query on ``selector`` in time."""
     out: dict[str, M.EstopState] = {}
-    for reply in session.get(selector, timeout=timeout):
+    # every host of a robot answers on the same key: Zenoh's default consolidation would keep one reply per key
+    for reply in session.get(selector, timeout=timeout, consolidation=zenoh.ConsolidationMode.NONE):
         if reply.ok is None:
             continue
         try:

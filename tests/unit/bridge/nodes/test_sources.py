@@ -1,0 +1,144 @@
+"""The station's command sources (:mod:`bridge.nodes.sources`), each asked directly with a pose, a time and a
+:class:`SourceContext`: the external teacher's every answer at its edges, the motion primitives refusing to plan
+without learned limits, the calibration stage's learner commands and its end, and :func:`make_source`'s choice.
+Times are arguments; nothing sleeps. (The MPC source needs its solver: it is tested through the station core in
+tests/unit/bridge/nodes/test_station_core.py, which also drives an external teacher through the core.)"""
+
+from __future__ import annotations
+
+import msgspec
+import numpy as np
+import pytest
+
+from bridge.core import wire as M
+from bridge.core.config import StationConfig, load_mission
+from bridge.nodes.sources import (
+    CalibrationSource,
+    ExternalSource,
+    PrimitivesSource,
+    Proposal,
+    SourceContext,
+    Why,
+    make_source,
+)
+from bridge.nodes.station_core import StationCounters
+from transfer.calibration import CalibrationPlan
+from transfer.domain import Bounds
+from transfer.store import PairStore
+
+LEARNER = Bounds(v=(-0.4, 0.4), w=(-1.0, 1.0))
+TEACHER = Bounds(v=(-1.0, 1.0), w=(-2.0, 2.0))
+POSE = M.LearnerState(stamp=1.0, seq=1, x=0.5, y=-0.25, theta=0.1)
+
+
+def _ctx(**kw) -> SourceContext:
+    return SourceContext(mission=load_mission(), store=PairStore(LEARNER, TEACHER), counters=StationCounters(), **kw)
+
+
+def _teacher(v: float = 0.3, omega: float = 0.1, ok: bool = True) -> M.TeacherCommand:
+    return M.TeacherCommand(stamp=1.0, seq=1, v=v, omega=omega, solver="lab", ok=ok)
+
+
+def test_a_why_is_the_teachers_unless_it_says_otherwise() -> None:
+    assert Why("x") == Why("x", "teacher") and Why("x", "calibration_done").reason == "calibration_done"
+    p = Proposal(np.zeros(2))
+    assert (p.method, p.solver, p.ok, p.pose, p.predicted, p.solve_ms) == (None, None, True, None, None, None)
+
+
+def test_the_external_teacher_waits_until_it_has_spoken() -> None:
+    src = ExternalSource(0.5)
+    assert (src.what, src.follows_mission, src.external) == ("external teacher", False, True)
+    assert src.propose(10.0, POSE, _ctx()) == Why("waiting for the external teacher")
+
+
+def test_a_new_teacher_command_is_proposed_once_for_mapping_with_the_pose() -> None:
+    src = ExternalSource(0.5)
+    p = src.propose(10.0, POSE, _ctx(teacher=_teacher(0.3, -0.2), teacher_at=9.9, teacher_new=True))
+    assert isinstance(p, Proposal) and p.method is None and p.solver is None  # a teacher command: mapped
+    np.testing.assert_array_equal(p.u, [0.3, -0.2])
+    np.testing.assert_array_equal(p.pose, [0.5, -0.25])
+    assert src.propose(10.0, POSE, _ctx(teacher=_teacher(), teacher_at=9.9, teacher_new=False)) is None
+
+
+def test_a_silent_teacher_stops_the_robot_after_its_timeout_not_before() -> None:
+    src = ExternalSource(0.5)
+    assert isinstance(src.propose(10.5, POSE, _ctx(teacher=_teacher(), teacher_at=10.0, teacher_new=True)), Proposal)
+    why = src.propose(10.75, POSE, _ctx(teacher=_teacher(), teacher_at=10.0, teacher_new=True))
+    assert why == Why("no teacher command for 0.8 s")  # stale even if never mapped
+
+
+@pytest.mark.parametrize("cmd", [_teacher(ok=False), _teacher(0.0, 0.0), _teacher(0.0, -0.0)])
+def test_a_teacher_that_says_stop_stops_the_robot(cmd: M.TeacherCommand) -> None:
+    assert ExternalSource(1.0).propose(10.0, POSE, _ctx(teacher=cmd, teacher_at=10.0, teacher_new=True)) == Why(
+        "the teacher says stop")
+
+
+def test_a_teacher_command_with_one_axis_zero_is_still_a_command() -> None:
+    p = ExternalSource(1.0).propose(10.0, POSE, _ctx(teacher=_teacher(0.0, 0.5), teacher_at=10.0, teacher_new=True))
+    assert isinstance(p, Proposal)
+
+
+def _primitives() -> PrimitivesSource:
+    src = make_source(msgspec.convert({"teacher": {"kind": "primitives"}}, StationConfig), 0.1)
+    assert isinstance(src, PrimitivesSource) and src.follows_mission and not src.external
+    return src
+
+
+def test_the_primitives_plan_only_with_those_inside_the_learned_limits() -> None:
+    """A fresh store's limits are the teacher's full range (transfer.limits: online adaptation starts there), so
+    every primitive of the station's teacher range is allowed and counted, and the command is one of them."""
+    src, cfg = _primitives(), StationConfig()
+    ctx = SourceContext(mission=load_mission(), store=PairStore(cfg.learner_bounds.bounds(),
+                                                                cfg.teacher_bounds.bounds()),
+                        counters=StationCounters())
+    p = src.propose(0.0, POSE, ctx)
+    lib = src.follower.planner.lib.commands
+    assert isinstance(p, Proposal) and p.method is None  # a teacher command: mapped by the transfer step
+    assert any(np.allclose(p.u, c) for c in lib)
+    assert ctx.counters.primitives_allowed == len(lib) and ctx.counters.primitive_replans == src.follower.replans
+
+
+def test_the_primitives_refuse_to_plan_when_no_primitive_is_within_the_learned_limits() -> None:
+    src = _primitives()
+    slow = PairStore(LEARNER, Bounds(v=(-1.0, 0.01), w=(-2.0, 2.0)))  # limits below every primitive's speed
+    ctx = SourceContext(mission=load_mission(), store=slow, counters=StationCounters())
+    assert src.propose(0.0, POSE, ctx) == Why("no primitive within the learned limits: calibrate first (scmbridge "
+                                              "calibrate)")
+    assert ctx.counters.primitives_allowed is None  # nothing counted for a refusal
+    assert not src.done()
+
+
+def test_calibration_sends_the_plans_learner_commands_as_they_are_and_counts_its_progress() -> None:
+    plan = CalibrationPlan(LEARNER, (2, 2), hold_s=1.0, max_distance=5.0)
+    src = make_source(StationConfig(), 0.1, calibration=plan)
+    assert isinstance(src, CalibrationSource) and not src.follows_mission and not src.external
+    ctx = _ctx()
+    first = src.propose(0.0, POSE, ctx)
+    assert isinstance(first, Proposal) and first.method == "calibrate" and first.pose is None
+    np.testing.assert_array_equal(first.u, plan.commands[0])
+    assert (ctx.counters.calibration_index, ctx.counters.calibration_total) == (0, 4)
+    assert src.progress == (0, 4, "drive")
+    second = src.propose(1.05, POSE, ctx)  # held for hold_s: the next command (the pose has not moved)
+    np.testing.assert_array_equal(second.u, plan.commands[1])
+    assert ctx.counters.calibration_index == 1 and not src.done()
+
+
+def test_calibration_ends_with_its_reason_and_stays_done() -> None:
+    plan = CalibrationPlan(LEARNER, (2, 2), hold_s=1.0, max_distance=1.0)
+    src = CalibrationSource(plan)
+    ctx = _ctx()
+    src.propose(0.0, POSE, ctx)
+    far = msgspec.structs.replace(POSE, x=POSE.x + 2.0)
+    why = src.propose(0.5, far, ctx)
+    assert isinstance(why, Why) and why.reason == "calibration_done"
+    assert why.text.startswith("calibration: stopped at the distance bound")
+    assert src.done() and src.propose(0.6, POSE, ctx) == why  # finished for good
+
+
+def test_make_source_builds_the_external_teacher_with_its_timeout_and_refuses_an_unknown_kind() -> None:
+    src = make_source(msgspec.convert({"teacher": {"kind": "external", "timeout_s": 0.7}}, StationConfig), 0.1)
+    assert isinstance(src, ExternalSource) and src.timeout_s == 0.7
+    cfg = StationConfig()
+    bogus = msgspec.structs.replace(cfg, teacher=msgspec.structs.replace(cfg.teacher, kind="oracle"))
+    with pytest.raises(ValueError, match="unknown teacher kind 'oracle'"):
+        make_source(bogus, 0.1)
