@@ -9,6 +9,7 @@ once as received and once as applied or refused."""
 from __future__ import annotations
 
 import math
+import time
 
 import pytest
 
@@ -121,11 +122,12 @@ def test_keyed_commands_must_carry_this_boots_nonce_and_a_fresh_echo_of_its_cloc
 
 
 def test_reboot_holds_the_wheels_draws_a_new_nonce_and_forgets_the_stream() -> None:
-    r = _robot(peer="first")
-    r._handle(_cmd(9), ("127.0.0.1", 2222), 1.0)
+    t = time.monotonic()  # reboot() is a test hook on the real clock: this test's times are on it too
+    r = UdpRobot(SimVehicle(LINEAR, now=t), peer="first", epoch=77)
+    r._handle(_cmd(9), ("127.0.0.1", 2222), t)
     assert r.vehicle.moving
     r.reboot(epoch=4242)
     assert r.epoch == 4242 and r._seq == 0 and not r.vehicle.moving and r.peer is None and r.last_cmd is None
     assert r.counters["reboots"] == 1
-    r._handle(_cmd(1), ("127.0.0.1", 3333), 2.0)  # the same driver epoch at a lower seq: a fresh gate takes it
+    r._handle(_cmd(1), ("127.0.0.1", 3333), time.monotonic())  # the driver's epoch at a lower seq: a fresh gate
     assert r.counters["applied"] == 2 and r.peer == ("127.0.0.1", 3333)
