@@ -1,0 +1,108 @@
+"""transfer/limits.py: the learner's limits on the teacher's domain (paper Section 4.2, Eq. learn_capability).
+
+The calibrated box and the online rules (proportional extrapolation, boundary pairs averaged) are tested through the
+pair store in tests/unit/transfer/test_step.py, the shrinking of a limit after a change of the learner in
+tests/unit/transfer/test_store.py; here ``calibration_commands`` and ``LearnerLimits``' own API directly: what
+``update`` returns and counts, the collapsed-box guard, the hull and its fallback, ``forget`` and ``contains``."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from transfer.domain import Bounds
+from transfer.limits import LearnerLimits, calibration_commands
+
+TB = Bounds((0.0, 2.0), (-1.0, 1.0))
+LB = Bounds((0.0, 1.0), (-0.5, 0.5))
+
+
+def _limits() -> LearnerLimits:
+    return LearnerLimits(TB, LB, (11, 11), 1e-6)
+
+
+def test_calibration_commands_span_the_box_with_its_extremes() -> None:
+    g = calibration_commands(LB, 3)
+    assert g.shape == (9, 2)
+    for corner in LB.corners():
+        assert any(np.allclose(corner, u) for u in g)
+    assert np.all(LB.contains(g))
+    assert sorted(set(g[:, 0])) == [0.0, 0.5, 1.0] and sorted(set(g[:, 1])) == [-0.5, 0.0, 0.5]
+    g = calibration_commands(LB, (2, 4))
+    assert g.shape == (8, 2) and len(set(g[:, 0])) == 2 and len(set(g[:, 1])) == 4
+    for bad in (1, (2, 1), (0, 3)):
+        with pytest.raises(ValueError, match="a calibration grid needs n >= 2 on each axis"):
+            calibration_commands(LB, bad)
+
+
+def test_before_any_pair_the_limits_are_the_teachers_range() -> None:
+    lim = _limits()
+    assert lim.box == TB and lim.version == 0
+    np.testing.assert_array_equal(lim.hull, TB.corners())
+    assert lim.contains([1.9, 0.9]) and not lim.contains([2.1, 0.0])
+
+
+def test_update_says_whether_the_limits_moved_and_counts_versions() -> None:
+    lim = _limits()
+    # a learner that behaves as the teacher inside: the proportional bound is the teacher's own: nothing moves
+    assert lim.update(np.array([0.5, 0.5]), np.array([0.5, 0.5]), (5, 5)) is False
+    assert lim.version == 0
+    # a pair on the learner's top speed marks the bound itself
+    assert lim.update(np.array([0.8, 0.5]), np.array([1.0, 0.5]), (10, 5)) is True
+    assert lim.version == 1 and lim.hi[0] == pytest.approx(0.8)
+    assert lim.box.v == pytest.approx((0.0, 1.6))
+    # the same boundary pair again: the bound stays (the mean of equal pairs) but the boundary set grew
+    assert lim.update(np.array([0.8, 0.5]), np.array([1.0, 0.5]), (10, 5)) is False
+    assert lim.version == 2 and lim.bcnt_hi[0] == 2
+
+
+def test_bounds_that_meet_keep_a_box_of_positive_width() -> None:
+    lim = _limits()
+    lim.update(np.array([0.3, 0.5]), np.array([1.0, 0.5]), (10, 5))  # top speed at 0.3
+    lim.update(np.array([0.6, 0.5]), np.array([0.0, 0.5]), (0, 5))  # lowest speed at 0.6: above the top
+    assert lim.hi[0] - lim.lo[0] == pytest.approx(1e-6)
+    assert 0.5 * (lim.hi[0] + lim.lo[0]) == pytest.approx(0.45)
+    b = lim.box  # still a valid Bounds (min < max)
+    assert b.v[0] < b.v[1]
+
+
+def test_the_hull_encloses_the_boundary_pairs_and_the_refined_pairs() -> None:
+    lim = _limits()
+    for t, l, cell in (([0.9, 0.5], [1.0, 0.5], (10, 5)), ([0.5, 0.1], [0.5, 0.0], (5, 0)),
+                       ([0.5, 0.9], [0.5, 1.0], (5, 10))):
+        lim.update(np.array(t), np.array(l), cell)
+    hull = lim.hull
+    assert hull.shape == (3, 2)
+    np.testing.assert_allclose(sorted(map(tuple, hull)), sorted(map(tuple, TB.denormalise(
+        [[0.9, 0.5], [0.5, 0.1], [0.5, 0.9]]))))
+    assert lim.contains([1.2, 0.0], use_hull=True) and not lim.contains([0.2, 0.0], use_hull=True)
+    refined = np.array([[0.1, 0.5]])
+    lim.refined_points = lambda: refined
+    assert len(lim.hull) == 3  # cached until told the refined pairs changed
+    lim.refined_changed()
+    assert len(lim.hull) == 4 and lim.contains([0.4, 0.0], use_hull=True)
+    got = lim.contains(np.array([[0.4, 0.0], [1.9, 0.9], [1.0, 0.0]]), use_hull=True)
+    assert isinstance(got, np.ndarray) and got.tolist() == [True, False, True]
+
+
+def test_collinear_points_give_the_box_as_the_hull() -> None:
+    lim = _limits()
+    for w, cell in ((0.2, (10, 2)), (0.5, (10, 5)), (0.8, (10, 8))):  # three pairs on the top-speed line
+        lim.update(np.array([0.8, w]), np.array([1.0, w]), cell)
+    np.testing.assert_array_equal(lim.hull, lim.box.corners())
+
+
+def test_forget_replaces_a_cells_boundary_pairs_by_those_since_the_change() -> None:
+    lim = _limits()
+    for _ in range(3):
+        lim.update(np.array([0.8, 0.5]), np.array([1.0, 0.5]), (10, 5))
+    v = lim.version
+    old_L = np.array([[1.0, 0.5]] * 3)
+    lim.forget((10, 5), np.array([[0.8, 0.5]] * 3), old_L, np.array([[0.6, 0.5]]), np.array([[1.0, 0.5]]))
+    assert lim.hi[0] == pytest.approx(0.6) and lim.bcnt_hi[0] == 1  # the limit shrank
+    assert lim.version == v + 1
+    np.testing.assert_allclose(lim.hull_sum[10, 5], [0.6, 0.5])
+    assert lim.hull_cnt[10, 5] == 1
+    # nothing on the boundary since the change: the cell gives no boundary pair and no hull point any more
+    lim.forget((10, 5), np.array([[0.6, 0.5]]), np.array([[1.0, 0.5]]), np.zeros((0, 2)), np.zeros((0, 2)))
+    assert lim.bcnt_hi[0] == 0 and lim.hull_cnt[10, 5] == 0
