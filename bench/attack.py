@@ -280,7 +280,7 @@ def second_station(short: bool) -> Result:
 class Tap:
     """A man in the middle on 127.0.0.1: one UDP socket the driver takes for the robot and the robot for its peer;
     forwards both ways, records what the driver sends (unless ``hold``: then it records and keeps it back). A replay
-    leaves from that socket, the very address the robot obeys (tests/unit/drivers/test_udp.py uses it too)."""
+    leaves from that socket, the very address the robot obeys (tests/integration/test_udp_replay.py uses it too)."""
 
     def __init__(self, driver_port: int) -> None:
         import socket
@@ -464,7 +464,7 @@ class Frames:
 
 def signer(key: bytes, sysid: int, compid: int, link_id: int, timestamp: int):
     """A MAVLink 2 sender of ``sysid/compid`` signing with ``key`` from ``timestamp``, link ``link_id``; its frames
-    in the returned :class:`Frames` (the attack rows and tests/unit/drivers/mavlink/test_signing.py,
+    in the returned :class:`Frames` (the attack rows and tests/integration/test_mavlink_signing.py,
     tests/integration/test_sitl.py)."""
     from pymavlink import mavutil
 

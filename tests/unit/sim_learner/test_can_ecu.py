@@ -1,7 +1,7 @@
 """sim_learner/can_ecu.py: the emulated ODrive 0.6 controllers of a differential-drive learner, on a fake clock.
 
 Their behaviour frame by frame on a live bus (arming, position-control default, Estop, Clear_Errors, the watchdog,
-injected errors, unplugging, a short frame) is tested in tests/unit/drivers/can/test_driver.py, with the driver
+injected errors, unplugging, a short frame) is tested in tests/integration/test_can_link.py, with the driver
 against them there too. Here the controllers are fed frames and times directly (no thread, no sleep): the wheel
 kinematics and its signs, the velocity limit, the input modes, IDLE as a disarm, input_vel kept across a disarm,
 what is ignored or counted as malformed, the encoder counts following the body, and a remote request answered."""

@@ -1,8 +1,8 @@
 """sim_learner/mavlink_rover.py: the emulated ArduPilot Rover's rules, fed MAVLink messages on a fake clock.
 
-Over a real link it is tested in tests/unit/drivers/mavlink/test_driver.py (ACKs to the sender, refusals with their
+Over a real link it is tested in tests/integration/test_mavlink_link.py (ACKs to the sender, refusals with their
 texts, set-points ignored outside GUIDED or without an origin, non-finite parameters and set-points, RC switches),
-tests/unit/drivers/mavlink/test_signing.py (signing) and against the firmware in tests/integration/test_sitl.py. Here
+tests/integration/test_mavlink_signing.py (signing) and against the firmware in tests/integration/test_sitl.py. Here
 no socket and no thread: the rover's own handlers are given parsed messages and times, and what it would send is
 read back from its encoder. What that adds: the boot (a GUIDED set during boot is lost), the mode and arming rules
 the link tests do not reach, GUID_TIMEOUT and braking at ATC_DECEL_MAX, coasting when disarmed, message intervals,

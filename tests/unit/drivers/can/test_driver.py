@@ -1,730 +1,255 @@
-"""The CAN link on a real python-can bus (``virtual`` interface, in-process) against emulated ODrive 0.6 controllers:
-frames, start-up, odometry, controller faults and the operator's clear, lost heartbeats, bus failures, garbage.
-
-The expected values here are transcribed from ODrive's published 0.6 definitions, not from the driver:
-``src/ODriveEnums.h`` of odriverobotics/ODriveArduino and ``odrive_base/include/can_simple_messages.hpp`` of
-odriverobotics/ros_odrive (see drivers/odrive.py)."""
+"""drivers.can.driver.CanDriver, the bus supervisor, on a real python-can bus (``virtual``, in this process) and a fake
+clock: two ODrive 0.6 controllers are played by the test in its own thread (:class:`Controllers`), answering what the
+driver sent each time the driver reads its clock, so every step happens at a time the test chose and nothing sleeps.
+The full emulated controllers on real time are tests/test_can_link.py's."""
 
 from __future__ import annotations
 
-import math
-import re
-import struct
-import threading
-import time
 import uuid
 from collections.abc import Iterator
 
 import can
 import pytest
-from hypothesis import given, settings
-from hypothesis import strategies as st
 
-from bridge.core.config import Rule
-from drivers import open_driver
-from drivers.base import Driver, LinkHealth, Pose
-from drivers.can import CanDriver, CanHealthDetail, CanLinkConfig, database, decode, encode
-from drivers.odrive import AxisState, ControlMode, InputMode, ODriveError, ProcedureResult, error_names
-from sim_learner import can_ecu
-from sim_learner.can_ecu import DiffDriveEcus
-from sim_learner.dynamics import mpc_learner
-from sim_learner.vehicle import SimVehicle
+from drivers.can import CanDriver, CanLinkConfig, decode, encode
+from drivers.odrive import AxisState, ControlMode, InputMode, ODriveError
 from tests.fakeclock import FakeClock
 
-
-def health(driver: Driver) -> LinkHealth:
-    """The driver's health now (as the driver host asks for it each tick)."""
-    return driver.health(time.monotonic())
-
-# (cmd_id, length, {signal: (start bit, bit length, signed, float)}) per ODrive 0.6's generated CANSimple messages
-REFERENCE_0_6 = {
-    "Heartbeat": (0x01, 8, {"Axis_Error": (0, 32, False, False), "Axis_State": (32, 8, False, False),
-                            "Procedure_Result": (40, 8, False, False), "Trajectory_Done_Flag": (48, 1, False, False)}),
-    "Estop": (0x02, 0, {}),
-    "Set_Axis_State": (0x07, 8, {"Axis_Requested_State": (0, 32, False, False)}),
-    "Get_Encoder_Estimates": (0x09, 8, {"Pos_Estimate": (0, 32, True, True), "Vel_Estimate": (32, 32, True, True)}),
-    "Set_Controller_Mode": (0x0B, 8, {"Control_Mode": (0, 32, False, False), "Input_Mode": (32, 32, False, False)}),
-    "Set_Input_Vel": (0x0D, 8, {"Input_Vel": (0, 32, True, True), "Input_Torque_FF": (32, 32, True, True)}),
-    "Clear_Errors": (0x18, 1, {"Identify": (0, 8, False, False)}),
-}
-# ODrive.Error (0.6), every bit
-ODRIVE_ERROR_0_6 = {
-    0x1: "INITIALIZING", 0x2: "SYSTEM_LEVEL", 0x4: "TIMING_ERROR", 0x8: "MISSING_ESTIMATE", 0x10: "BAD_CONFIG",
-    0x20: "DRV_FAULT", 0x40: "MISSING_INPUT", 0x100: "DC_BUS_OVER_VOLTAGE", 0x200: "DC_BUS_UNDER_VOLTAGE",
-    0x400: "DC_BUS_OVER_CURRENT", 0x800: "DC_BUS_OVER_REGEN_CURRENT", 0x1000: "CURRENT_LIMIT_VIOLATION",
-    0x2000: "MOTOR_OVER_TEMP", 0x4000: "INVERTER_OVER_TEMP", 0x8000: "VELOCITY_LIMIT_VIOLATION",
-    0x10000: "POSITION_LIMIT_VIOLATION", 0x1000000: "WATCHDOG_TIMER_EXPIRED", 0x2000000: "ESTOP_REQUESTED",
-    0x4000000: "SPINOUT_DETECTED", 0x8000000: "BRAKE_RESISTOR_DISARMED", 0x10000000: "THERMISTOR_DISCONNECTED",
-    0x40000000: "CALIBRATION_ERROR",
-}
+CLOSED, IDLE = AxisState.CLOSED_LOOP_CONTROL, AxisState.IDLE
+HEARTBEAT_PERIOD = 0.1  # ODrive's default
 
 
-# ------------------------------------------------------------------------------------------ frames and tables
-def test_dbc_matches_the_odrive_0_6_reference_signal_by_signal() -> None:
-    db = database()
-    assert {m.name for m in db.messages} == set(REFERENCE_0_6)
-    for name, (cmd, length, signals) in REFERENCE_0_6.items():
-        m = db.get_message_by_name(name)
-        assert (m.frame_id, m.length) == (cmd, length), name
-        got = {s.name: (s.start, s.length, s.is_signed, s.is_float) for s in m.signals}
-        assert got == signals, name
-        assert all(s.byte_order == "little_endian" for s in m.signals), name
+class Controllers:
+    """Two ODrive 0.6 controllers (nodes 0 and 1) on a virtual bus. :meth:`step` (run at each reading of the fake
+    clock) takes the frames the driver sent, answers as a 0.6 device does (closed loop on request unless an error is
+    set, Clear_Errors clears it) and sends its Heartbeats when one is due on the fake clock or its state changed,
+    stamped with the fake wall clock as a receiving interface would stamp them."""
+
+    def __init__(self, channel: str, clock: FakeClock) -> None:
+        self.bus = can.Bus(interface="virtual", channel=channel, preserve_timestamps=True)
+        self.clock = clock
+        self.state = {0: int(IDLE), 1: int(IDLE)}
+        self.error = {0: 0, 1: 0}
+        self.input_vel = {0: 0.0, 1: 0.0}
+        self.mode = {0: (0, 0), 1: (0, 0)}
+        self.muted: set[int] = set()
+        self.received: list[tuple[int, str, dict]] = []
+        self._due = -float("inf")
+
+    def step(self) -> None:
+        changed = False
+        while (f := self.bus.recv(timeout=0)) is not None:
+            node, name, sig = decode(f)
+            if node not in self.state or node in self.muted:
+                continue
+            self.received.append((node, name, sig))
+            if name == "Set_Axis_State":
+                want = int(sig["Axis_Requested_State"])
+                self.state[node] = want if want == IDLE or not self.error[node] else self.state[node]
+                changed = True
+            elif name == "Clear_Errors":
+                self.error[node], changed = 0, True
+            elif name == "Set_Controller_Mode":
+                self.mode[node] = (int(sig["Control_Mode"]), int(sig["Input_Mode"]))
+            elif name == "Set_Input_Vel":
+                self.input_vel[node] = float(sig["Input_Vel"])
+        if changed or self.clock.t >= self._due:
+            self.heartbeats()
+
+    def heartbeats(self) -> None:
+        self._due = self.clock.t + HEARTBEAT_PERIOD
+        for node in self.state:
+            if node not in self.muted:
+                f = encode(node, "Heartbeat", {"Axis_Error": self.error[node], "Axis_State": self.state[node],
+                                               "Procedure_Result": 0, "Trajectory_Done_Flag": 0})
+                f.timestamp = self.clock.wall()
+                self.bus.send(f)
+
+    def fault(self, node: int, error: int) -> None:
+        """The controller stops on its own (an error disarms it), and says so in its next Heartbeat."""
+        self.error[node], self.state[node] = error, int(IDLE)
+
+    def sent(self, name: str) -> list[tuple[int, dict]]:
+        """What the driver sent of message ``name`` so far, and forget it."""
+        out = [(n, s) for n, nm, s in self.received if nm == name]
+        self.received = [r for r in self.received if r[1] != name]
+        return out
 
 
-def test_error_table_and_enumerations_are_odrive_0_6() -> None:
-    assert {int(e): e.name for e in ODriveError if e.value} == ODRIVE_ERROR_0_6
-    assert error_names(0x01000000) == ["WATCHDOG_TIMER_EXPIRED"]  # 0.5's 0x800 is DC_BUS_OVER_REGEN_CURRENT in 0.6
-    assert error_names(0x02000040) == ["MISSING_INPUT", "ESTOP_REQUESTED"]
-    assert error_names(0x80 | 0x800) == ["0x00000080", "DC_BUS_OVER_REGEN_CURRENT"]  # an undefined bit is shown
-    assert (AxisState.IDLE, AxisState.CLOSED_LOOP_CONTROL) == (1, 8)
-    assert (ControlMode.VELOCITY_CONTROL, ControlMode.POSITION_CONTROL) == (2, 3)
-    assert (InputMode.INACTIVE, InputMode.PASSTHROUGH, InputMode.VEL_RAMP) == (0, 1, 2)
-    assert (ProcedureResult.BUSY, ProcedureResult.DISARMED, ProcedureResult.INVALID_STATE) == (1, 3, 13)
-    # the emulator's own transcription agrees with the driver's (both from the reference, neither from the other)
-    assert can_ecu.WATCHDOG_TIMER_EXPIRED == ODriveError.WATCHDOG_TIMER_EXPIRED
-    assert can_ecu.ESTOP_REQUESTED == ODriveError.ESTOP_REQUESTED
-
-
-def test_cansimple_ids_and_layout_are_odrive_0_6() -> None:
-    f = encode(3, "Set_Input_Vel", {"Input_Vel": 1.5, "Input_Torque_FF": -0.25})
-    assert f.arbitration_id == (3 << 5) | 0x0D and not f.is_extended_id
-    assert bytes(f.data) == bytes.fromhex("0000c03f000080be")  # two little-endian float32
-    hb = encode(1, "Heartbeat", {"Axis_Error": 0x01000000, "Axis_State": 8, "Procedure_Result": 1,
-                                 "Trajectory_Done_Flag": 1})
-    assert hb.arbitration_id == 0x21 and bytes(hb.data) == struct.pack("<IBBBx", 0x01000000, 8, 1, 1)
-    mode = encode(0, "Set_Controller_Mode", {"Control_Mode": 2, "Input_Mode": 1})
-    assert mode.arbitration_id == 0x0B and bytes(mode.data) == struct.pack("<II", 2, 1)
-    assert bytes(encode(0, "Set_Axis_State", {"Axis_Requested_State": 8}).data) == struct.pack("<Ixxxx", 8)
-    assert decode(encode(2, "Get_Encoder_Estimates", {"Pos_Estimate": 2.5, "Vel_Estimate": -1.0})) == (
-        2, "Get_Encoder_Estimates", {"Pos_Estimate": 2.5, "Vel_Estimate": -1.0})
-    with pytest.raises(ValueError, match="data bytes"):
-        decode(can.Message(arbitration_id=0x0D, data=b"\x00\x00", is_extended_id=False))
-    with pytest.raises(ValueError, match="not finite"):
-        decode(can.Message(arbitration_id=0x09, data=bytes.fromhex("0000c07f00000000"), is_extended_id=False))
-
-
-@settings(max_examples=60, deadline=None)
-@given(st.integers(0, 0x7FF), st.binary(max_size=8))
-def test_random_frames_never_crash_and_garbage_is_counted(arb: int, data: bytes) -> None:
-    frame = can.Message(arbitration_id=arb, data=data, is_extended_id=False)
-    try:
-        node, name, sig = decode(frame)
-    except ValueError:
-        return
-    assert 0 <= node < 64 and isinstance(sig, dict)
-
-
-def test_config_refuses_a_backoff_bound_below_its_start() -> None:
-    with pytest.raises(Rule, match="reopen_backoff_max"):
-        CanLinkConfig(reopen_backoff=1.0, reopen_backoff_max=0.5)
-    cfg = CanLinkConfig()
-    assert 0.3 <= cfg.heartbeat_timeout <= 0.5  # 3-5 of ODrive's default 0.1 s heartbeat periods
-
-
-# ------------------------------------------------------------------------------------------ the rig
 class Rig:
-    """Emulated controllers + driver + a third bus node (``spy``) on one fresh virtual channel."""
+    def __init__(self, clock: FakeClock) -> None:
+        self.clock = clock
+        self.channel = f"unit-{uuid.uuid4().hex[:8]}"
+        self.controllers = Controllers(self.channel, clock)
+        self.bus_fails = False
+        self.opened_at: list[float] = []  # fake times the driver built its bus
+        self.driver = CanDriver(CanLinkConfig(interface="virtual", channel=self.channel, heartbeat_timeout=0.3,
+                                              reopen_backoff=0.05, reopen_backoff_max=0.2, open_timeout=1.0),
+                                clock=clock, wall_clock=clock.wall, open_bus=self.open_bus)
+        clock.on_read.append(self.controllers.step)
 
-    def __init__(self, channel: str, driver: CanDriver, ecus: DiffDriveEcus, vehicle: SimVehicle,
-                 spy: can.BusABC) -> None:
-        self.channel, self.driver, self.ecus, self.vehicle, self.spy = channel, driver, ecus, vehicle, spy
+    def open_bus(self) -> can.BusABC:
+        self.opened_at.append(self.clock.t)
+        if self.bus_fails:
+            raise can.CanInitializationError("interface gone")
+        return can.Bus(interface="virtual", channel=self.channel)
 
-    def body(self):
-        return self.vehicle.advance(time.monotonic())
-
-    def run(self, seconds: float, v: float = 0.0, w: float = 0.0, *, host: bool = False) -> list[Pose]:
-        """Call the driver for ``seconds`` at ~50 Hz: ``send(v, w)`` every tick (``host=True``: as the driver host
-        does, ``send`` only while ``health().ok``, else ``stop``), then ``poll``."""
-        poses: list[Pose] = []
-        t_end = time.monotonic() + seconds
-        while time.monotonic() < t_end:
-            now = time.monotonic()
-            if host and not health(self.driver).ok:
-                self.driver.stop(now)
-            else:
-                self.driver.send(v, w, now)
-            poses += self.driver.poll(now, block=0.02)
-            time.sleep(max(0.0, now + 0.02 - time.monotonic()))  # a 50 Hz tick, as the driver host's
-        return poses
-
-    def wait(self, pred, timeout: float, v: float = 0.0, w: float = 0.0) -> bool:
-        t_end = time.monotonic() + timeout
-        while time.monotonic() < t_end:
-            self.run(0.02, v, w, host=True)
-            if pred():
-                return True
-        return False
+    def tick(self, dt: float = 0.02, v: float = 0.0, w: float = 0.0) -> None:
+        """One driver-host tick ``dt`` after the last: send (or stop while not ok), then poll."""
+        now = self.clock.advance(dt)
+        d = self.driver
+        if d.health(now).ok:
+            d.send(v, w, now)
+        else:
+            d.stop(now)
+        d.poll(now)
 
 
 @pytest.fixture
-def rig() -> Iterator[Rig]:
-    channel = f"test-{uuid.uuid4().hex[:8]}"
-    vehicle = SimVehicle(mpc_learner(), (1.0, 2.0, 0.5), now=time.monotonic())
-    ecus = DiffDriveEcus({"interface": "virtual", "channel": channel}, vehicle, watchdog=0.3).start()
-    driver = open_driver("can", CanLinkConfig(interface="virtual", channel=channel, initial_pose=(1.0, 2.0, 0.5),
-                                              heartbeat_timeout=0.3, reopen_backoff=0.05, reopen_backoff_max=0.2))
-    spy = can.Bus(interface="virtual", channel=channel)
+def rig(clock: FakeClock) -> Iterator[Rig]:
+    r = Rig(clock)
     try:
-        driver.open(time.monotonic())
-        driver.engage(time.monotonic())  # a person's act: both axes into closed loop
-        yield Rig(channel, driver, ecus, vehicle, spy)
+        yield r
     finally:
-        driver.close()
-        ecus.stop()
-        spy.shutdown()
+        r.driver.close(stop_timeout=0.0)
+        r.controllers.bus.shutdown()
 
 
-def _master_frames(ecus: DiffDriveEcus, node: int, since: float) -> list[int]:
-    """cmd ids the driver sent to ``node`` since ``since`` (emulator clock = time.monotonic)."""
-    with ecus._lock:
-        return [c for t, n, c, _ in ecus.received if n == node and t >= since]
-
-
-# ------------------------------------------------------------------------------------------ the emulator
-def test_emulated_controller_behaves_as_odrive_0_6() -> None:
-    """Raw frames from a master bus, no driver: what a 0.6 device does with each (the emulator's own contract)."""
-    channel = f"test-{uuid.uuid4().hex[:8]}"
-    vehicle = SimVehicle(mpc_learner(), (0.0, 0.0, 0.0), now=time.monotonic())
-    master = can.Bus(interface="virtual", channel=channel)
-
-    def tx(node: int, cmd: int, data: bytes = b"") -> None:
-        master.send(can.Message(arbitration_id=(node << 5) | cmd, data=data, is_extended_id=False))
-
-    def heartbeat(node: int) -> tuple[int, int, int, int]:
-        """The next Heartbeat of ``node`` sent from now on (older ones are drained)."""
-        while master.recv(timeout=0) is not None:
-            pass
-        t_end = time.monotonic() + 1.0
-        while time.monotonic() < t_end:
-            f = master.recv(timeout=0.05)
-            if f is not None and f.arbitration_id == (node << 5) | 0x01:
-                assert len(f.data) == 8
-                return struct.unpack("<IBBBx", bytes(f.data))
-        raise AssertionError("no heartbeat")
-
-    def settle(pred, timeout: float = 1.0) -> bool:
-        t_end = time.monotonic() + timeout
-        while time.monotonic() < t_end:
-            if pred():
-                return True
-            time.sleep(0.01)
-        return False
-
-    with DiffDriveEcus({"interface": "virtual", "channel": channel}, vehicle, watchdog=0.3,
-                       heartbeat_period=0.05) as ecus:
-        try:
-            assert heartbeat(0)[:2] == (0, 1)  # no error, IDLE
-            tx(0, 0x07, struct.pack("<I", 8))  # a 4-byte Set_Axis_State, as ODrive's own example sends it
-            tx(1, 0x07, struct.pack("<I", 8))
-            assert settle(lambda: ecus.axis(0).state == 8 and ecus.axis(1).state == 8)
-            # factory control mode is position control: Set_Input_Vel alone does not turn the wheels
-            for _ in range(15):
-                tx(0, 0x0D, struct.pack("<ff", 2.0, 0.0))
-                tx(1, 0x0D, struct.pack("<ff", -2.0, 0.0))
-                time.sleep(0.02)
-            assert ecus.axis(0).control_mode == 3 and vehicle.advance(time.monotonic()).v == 0.0
-            tx(0, 0x0B, struct.pack("<II", 2, 1))  # velocity control, passthrough
-            tx(1, 0x0B, struct.pack("<II", 2, 1))
-            tx(0, 0x0D, struct.pack("<ff", 2.0, 0.0))
-            tx(1, 0x0D, struct.pack("<ff", -2.0, 0.0))
-            assert settle(lambda: vehicle.advance(time.monotonic()).v > 0.0)
-            # Estop: idle, ESTOP_REQUESTED, and the other wheel alone pivots the body
-            tx(1, 0x02)
-            assert settle(lambda: ecus.axis(1).state == 1)
-            assert ecus.axis(1).error == 0x02000000 and ecus.axis(1).procedure_result == 3
-            assert abs(vehicle.advance(time.monotonic()).omega) > 0.0
-            # closed loop is refused while the error is set; Clear_Errors clears it and does not re-arm
-            tx(1, 0x07, struct.pack("<I", 8))
-            time.sleep(0.05)
-            assert ecus.axis(1).state == 1 and ecus.axis(1).procedure_result == 13
-            tx(1, 0x18, b"\x00")
-            assert settle(lambda: ecus.axis(1).error == 0)
-            time.sleep(0.1)
-            assert ecus.axis(1).state == 1
-            # the watchdog: no feed for 0.3 s -> idle with WATCHDOG_TIMER_EXPIRED, wheels held
-            assert settle(lambda: ecus.axis(0).state == 1, timeout=1.0)
-            assert ecus.axis(0).error == 0x01000000 and vehicle.advance(time.monotonic()).v == 0.0
-            err, state, result, _ = heartbeat(0)
-            assert (err, state, result) == (0x01000000, 1, 3)
-            # injected error; an unplugged node falls silent
-            ecus.inject_error(1, 0x20)
-            assert heartbeat(1)[0] == 0x20
-            ecus.unplug(1)
-            time.sleep(0.1)
-            while master.recv(timeout=0) is not None:
-                pass
-            t_end = time.monotonic() + 0.3
-            while time.monotonic() < t_end:
-                f = master.recv(timeout=0.05)
-                assert f is None or f.arbitration_id >> 5 != 1
-            # a short Set_Input_Vel is malformed, ignored
-            before = ecus.malformed
-            tx(0, 0x0D, b"\x00\x00")
-            assert settle(lambda: ecus.malformed == before + 1)
-        finally:
-            master.shutdown()
-
-
-def test_emulated_frames_carry_the_time_the_controller_measured_not_when_its_thread_got_the_cpu_back() -> None:
-    """Finding (series 12, run 3, beside two busy loops): the emulator's thread, preempted between measuring the
-    wheels and writing the frame, sent a frame stamped ~0.35 s after the position it carried; the next frame, on
-    time, looked like a jump no wheel can make, the driver rejected it and the fleet demo's mission paused. A real
-    controller transmits as it measures and the host's kernel stamps the frame on arrival."""
-    channel = f"test-{uuid.uuid4().hex[:8]}"
-    vehicle = SimVehicle(mpc_learner(), (0.0, 0.0, 0.0), now=time.monotonic())
-    readings = iter([time.monotonic() - 0.3])  # the measurement; every later reading is 0.3 s on: the preemption
-    ecus = DiffDriveEcus({"interface": "virtual", "channel": channel}, vehicle,
-                         clock=lambda: next(readings, None) or time.monotonic())
-    spy = can.Bus(interface="virtual", channel=channel)
-    try:
-        ecus._open()
-        ecus.emit_due()
-        frames = [spy.recv(timeout=1.0) for _ in range(4)]  # both encoder estimates and both Heartbeats
-        assert all(f is not None for f in frames)
-        assert {f.arbitration_id & 0x1F for f in frames} == {0x01, 0x09}
-        assert all(abs(f.timestamp - (time.time() - 0.3)) < 0.1 for f in frames), [f.timestamp for f in frames]
-    finally:
-        ecus._close()
-        spy.shutdown()
-
-
-# ------------------------------------------------------------------------------------------ start-up, driving
-def test_open_sets_velocity_control_and_passthrough_before_closed_loop(rig: Rig) -> None:
-    for node in (0, 1):
-        with rig.ecus._lock:
-            seq = [(c, d) for _, n, c, d in rig.ecus.received if n == node]
-        modes = [i for i, (c, d) in enumerate(seq) if c == 0x0B and struct.unpack("<II", d) == (2, 1)]
-        arm = [i for i, (c, d) in enumerate(seq) if c == 0x07 and struct.unpack_from("<I", d)[0] == 8]
-        assert modes and arm and modes[0] < arm[0], seq
-        ax = rig.ecus.axis(node)
-        assert (ax.state, ax.control_mode, ax.input_mode) == (8, 2, 1)
-    h = health(rig.driver)
-    assert h.ok and h.text == "ready" and h.reason == "ok"
-
-
-def test_commands_reach_the_bus_as_wheel_speeds_and_odometry_returns_the_pose(rig: Rig) -> None:
-    v, w = 0.25, 0.1
-    poses = rig.run(1.5, v, w)
-    # the frames on the wire, read by a third bus: Input_Vel = sign * (v -/+ w b / 2) / (2 pi r)
-    seen = {}
-    while (f := rig.spy.recv(timeout=0)) is not None:
-        try:
-            node, name, sig = decode(f)
-        except ValueError:
-            continue
-        if name == "Set_Input_Vel":
-            seen[node] = sig["Input_Vel"]
-    k = 1 / (2 * math.pi * 0.1)
-    assert seen[0] == pytest.approx((v - w * 0.2) * k, rel=1e-6)
-    assert seen[1] == pytest.approx(-(v + w * 0.2) * k, rel=1e-6)
-    # odometry follows the learner body (its degraded response, not the command), up to the motion since the
-    # last pose's own stamp
-    body = rig.body()
-    last = poses[-1]
-    lag = max(0.0, time.monotonic() - last.stamp)
-    assert math.hypot(last.x - body.x, last.y - body.y) < 0.01 + abs(body.v) * lag
-    assert abs(last.theta - body.theta) < 0.01 + abs(body.omega) * lag
-    assert body.x > 1.1  # it moved
-    assert all(b.stamp >= a.stamp for a, b in zip(poses, poses[1:]))
-
-
-# ------------------------------------------------------------------------------------------ controller faults
-def _assert_held_while_sending(rig: Rig, seconds: float = 1.0) -> None:
-    """Keep calling send(0.3, 0) for ``seconds``: the body must not move and no driving set-point may reach a
-    wheel; the driver must not clear or re-arm anything by itself."""
-    rig.run(0.15, 0.3, 0.0)  # let the stop take effect
-    t0 = time.monotonic()
-    b0 = rig.body()
-    x0, y0, th0 = b0.x, b0.y, b0.theta
-    rig.run(seconds, 0.3, 0.0)
-    b1 = rig.body()
-    assert math.hypot(b1.x - x0, b1.y - y0) < 1e-6 and abs(b1.theta - th0) < 1e-6 and b1.v == 0.0
-    for node in (0, 1):
-        sent = _master_frames(rig.ecus, node, t0)
-        assert 0x18 not in sent and 0x07 not in sent, f"driver cleared or re-armed node {node} by itself"
-        ax = rig.ecus.axis(node)
-        assert ax.input_vel == 0.0 or not ax.plugged  # a wheel that hears the driver got zero, not the command
-
-
-def _cleared_and_driving(rig: Rig) -> None:
-    rig.driver.clear_faults(time.monotonic())
-    assert rig.wait(lambda: health(rig.driver).ok, 1.5), health(rig.driver).text
-    x0 = rig.body().x
-    rig.run(0.6, 0.3, 0.0, host=True)
-    assert rig.body().v > 0.0 and rig.body().x != x0
-
-
-def test_an_axis_error_stops_both_wheels_is_named_and_waits_for_the_operator(rig: Rig) -> None:
-    rig.run(0.4, 0.3, 0.0)
-    assert rig.body().v > 0.0
-    rig.ecus.inject_error(0, ODriveError.DRV_FAULT)
-    assert rig.wait(lambda: not health(rig.driver).ok, 0.5, 0.3)
-    h = health(rig.driver)
-    assert "left axis error: DRV_FAULT" in h.text and h.reason == "fault"
-    _assert_held_while_sending(rig)
-    assert rig.ecus.axis(0).state == 1 and rig.ecus.axis(1).state == 8  # left idle, right held in closed loop
-    assert not health(rig.driver).ok and health(rig.driver).detail.counters.faults == 1
-    _cleared_and_driving(rig)
-
-
-@pytest.mark.parametrize("trip", ["watchdog", "estop from another node"])
-def test_a_controllers_own_stop_is_never_overridden(rig: Rig, trip: str) -> None:
-    rig.run(0.4, 0.3, 0.0)
-    assert rig.body().v > 0.0
-    if trip == "watchdog":
-        time.sleep(0.6)  # the driver host hangs: no set-point for > the controllers' watchdog (0.3 s)
-        node, name = 0, "left axis error: WATCHDOG_TIMER_EXPIRED"
-    else:
-        rig.spy.send(encode(1, "Estop"))
-        node, name = 1, "right axis error: ESTOP_REQUESTED"
-    assert rig.wait(lambda: not health(rig.driver).ok, 0.5, 0.3)
-    _assert_held_while_sending(rig)
-    assert rig.ecus.axis(node).state == 1
-    assert name in health(rig.driver).text
-    _cleared_and_driving(rig)
-
-
-def test_health_is_pure_asking_changes_nothing_and_reads_no_clock(rig: Rig, monkeypatch: pytest.MonkeyPatch) -> None:
-    """``health(now)`` reports the state at ``now`` as the last poll left it: asking about a moment when both
-    controllers would have been silent for 5 s neither latches nor counts anything, and no clock is read."""
+def engaged(rig: Rig) -> CanDriver:
     d = rig.driver
-    assert rig.wait(lambda: health(d).ok, 1.5), health(d).text
-    now = time.monotonic()
-    before = (d.axes.phase, dict(d.counters), dict(d.axes.lost), [(ax.fault, ax.heartbeat_at) for ax in d.axes])
-
-    def no_clock() -> float:
-        raise AssertionError("health() read the clock")
-
-    with monkeypatch.context() as m:
-        m.setattr(time, "monotonic", no_clock)
-        m.setattr(time, "time", no_clock)
-        later, h = d.health(now + 5.0), d.health(now)
-    assert not later.ok and re.search(r"left controller \(node 0\): no heartbeat for 5\.\d\d s", later.text), later.text
-    assert h.ok and h.text == "ready" and h == d.health(now)
-    assert (d.axes.phase, dict(d.counters), dict(d.axes.lost), [(ax.fault, ax.heartbeat_at) for ax in d.axes]) == before
-    assert isinstance(h.detail, CanHealthDetail) and h.detail.left.state == "CLOSED_LOOP_CONTROL"
-    assert h.detail.right.node == 1 and not h.detail.right.fault and h.detail.counters.heartbeat_losses == 0
-    rig.run(0.1, 0.2, 0.0, host=True)
-    assert health(d).ok and d.counters["heartbeat_losses"] == 0
+    d.open(rig.clock.t)
+    d.engage(rig.clock.t)
+    return d
 
 
-def test_a_lost_heartbeat_stops_the_base_and_names_the_node(rig: Rig) -> None:
-    rig.run(0.4, 0.3, 0.0)
-    rig.ecus.unplug(1)  # the right controller's cable
-    t0 = time.monotonic()
-    assert rig.wait(lambda: not health(rig.driver).ok and "node 1" in health(rig.driver).text, 1.0, 0.3)
-    assert time.monotonic() - t0 < 0.3 + 0.25  # heartbeat_timeout + one heartbeat period + slack
-    assert "right controller (node 1): no heartbeat" in health(rig.driver).text
-    assert health(rig.driver).reason == "no_heartbeat"
-    _assert_held_while_sending(rig, 0.8)
-    # plugged back: its own watchdog tripped meanwhile, which is a latched fault for the operator
-    rig.ecus.replug(1)
-    assert rig.wait(lambda: "right axis error: WATCHDOG_TIMER_EXPIRED" in health(rig.driver).text, 1.0)
-    rig.run(0.3, 0.3, 0.0)
-    assert not health(rig.driver).ok and rig.ecus.axis(1).state == 1
-    assert health(rig.driver).detail.counters.heartbeat_losses >= 1
-    _cleared_and_driving(rig)
-
-
-def test_controllers_emulated_in_the_hosts_process_speak_on_time_though_their_thread_is_starved(rig: Rig) -> None:
-    """Finding (the fleet demo beside two busy loops): the controllers emulated inside a driver host (``--emulate``)
-    ran on a thread the loaded interpreter did not schedule for 0.9 s; their Heartbeats stopped where real
-    controllers' would not, and the station rightly paused that robot for a lost link. The host now lets them send
-    what is due before each read of the bus (``DriverHost.co_located``)."""
-    rig.run(0.4, 0.3, 0.0)
-    rig.ecus._stop.set()  # the controllers' own thread is never scheduled again (their bus stays open)
-    rig.ecus._thread.join(timeout=2.0)
-    t_end = time.monotonic() + 1.0  # > 3 heartbeat_timeout
-    while time.monotonic() < t_end:
-        now = time.monotonic()
-        rig.ecus.emit_due()  # what the driver host does before it polls
-        rig.driver.send(0.3, 0.0, now)
-        rig.driver.poll(now, block=0.02)
-    h = health(rig.driver)
-    assert h.ok and h.detail.counters.heartbeat_losses == 0, h.text
-    rig.run(0.6, 0.3, 0.0)  # without it, as before: the link is lost
-    assert health(rig.driver).detail.counters.heartbeat_losses >= 1
-
-
-def test_a_driver_host_that_stalled_reads_the_heartbeats_waiting_on_the_bus_before_it_judges_the_link(
-        rig: Rig) -> None:
-    """Finding (the shard test beside two busy loops): a driver host that was not scheduled for 0.6 s judged the
-    link's health before reading the bus, so the controllers' Heartbeats waiting there unread counted as lost, its
-    status said "no heartbeat" and the station paused the mission. The host now reads the link first."""
-    from bridge.nodes.driver_config import DriverConfig
-    from bridge.nodes.driver_host import DriverHost
-
-    class Pub:
-        def put(self, data: bytes) -> None:
-            pass
-
-    rig.ecus.watchdog = 1.0  # controllers whose watchdog outlasts the stall (else they fault, as they must)
-    host = DriverHost(DriverConfig(), "can", rig.driver, "r1", 50.0)
-    host.pubs = {"state": Pub(), "applied": Pub()}
-    host.engaged = True
-    t_end = time.monotonic() + 10.0
-    while time.monotonic() < t_end and not host.health.ok:  # ticking at 50 Hz until the link is fit
-        host.tick(time.monotonic())
-        time.sleep(0.02)
-    assert host.health.ok, host.health.text
-    time.sleep(0.6)  # the host stalls for twice heartbeat_timeout; the controllers keep sending
-    host.tick(time.monotonic())
-    assert host.health.ok, host.health.text
-    assert health(rig.driver).detail.counters.heartbeat_losses == 0
-
-
-# ------------------------------------------------------------------------------------------ bus failures
-def test_a_failed_bus_is_reported_and_reopened_with_bounded_backoff(rig: Rig, monkeypatch) -> None:
+def test_open_only_listens_and_engage_arms_velocity_control_then_closed_loop(rig: Rig) -> None:
     d = rig.driver
-    rig.run(0.2, 0.2, 0.0, host=True)
-    attempts: list[float] = []
-    real_open = d._open_bus
+    d.open(rig.clock.t)
+    assert rig.controllers.received == []  # listening: not a frame to the controllers
+    h = d.health(rig.clock.t)
+    assert (h.ok, h.reason, h.text) == (False, "not_engaged", "axes idle: not engaged")
+    d.engage(rig.clock.t)
+    for node in (0, 1):
+        names = [nm for n, nm, _ in rig.controllers.received if n == node]
+        assert names.index("Set_Controller_Mode") < names.index("Set_Axis_State")
+        assert rig.controllers.mode[node] == (ControlMode.VELOCITY_CONTROL, InputMode.PASSTHROUGH)
+        assert rig.controllers.state[node] == CLOSED
+    h = d.health(rig.clock.t)
+    assert (h.ok, h.reason, h.text) == (True, "ok", "ready")
 
-    def failing_open():
-        attempts.append(time.monotonic())
-        raise can.CanInitializationError("interface gone")
 
-    monkeypatch.setattr(d, "_open_bus", failing_open)
+def test_commands_go_out_as_wheel_turn_rates(rig: Rig) -> None:
+    engaged(rig)
+    rig.tick(v=0.25, w=0.1)
+    k = 1 / (2 * 3.141592653589793 * 0.1)
+    assert rig.controllers.input_vel[0] == pytest.approx((0.25 - 0.1 * 0.2) * k, rel=1e-6)
+    assert rig.controllers.input_vel[1] == pytest.approx(-(0.25 + 0.1 * 0.2) * k, rel=1e-6)
+
+
+def test_a_controller_fault_zeroes_both_wheels_in_the_same_poll_and_waits_for_the_operator(rig: Rig) -> None:
+    d = engaged(rig)
+    for _ in range(5):
+        rig.tick(v=0.3)
+    assert rig.controllers.input_vel[1] != 0.0
+    rig.controllers.fault(0, ODriveError.DRV_FAULT)
+    rig.controllers.received.clear()
+    now = rig.clock.advance(HEARTBEAT_PERIOD)
+    d.poll(now)  # the Heartbeat that says so: both wheels get zero at once, not at the host's next tick
+    assert rig.controllers.input_vel == {0: 0.0, 1: 0.0}
+    h = d.health(now)
+    assert (h.ok, h.reason, h.text) == (False, "fault", "left axis error: DRV_FAULT") and h.detail.counters.faults == 1
+    for _ in range(50):  # a second of the host asking to drive: zero only, nothing cleared or re-armed
+        d.send(0.3, 0.0, rig.clock.advance(0.02))
+        d.poll(rig.clock.t)
+    assert {s["Input_Vel"] for _, s in rig.controllers.sent("Set_Input_Vel")} == {0.0}
+    assert rig.controllers.sent("Clear_Errors") == [] and rig.controllers.sent("Set_Axis_State") == []
+    d.clear_faults(rig.clock.t)  # the operator
+    for _ in range(3):
+        rig.tick()
+    assert d.health(rig.clock.t).ok and rig.controllers.state[0] == CLOSED
+
+
+def test_a_silent_controller_is_named_after_heartbeat_timeout_on_the_fake_clock(rig: Rig) -> None:
+    d = engaged(rig)
+    rig.controllers.muted.add(1)
+    rig.controllers.heartbeats()
+    t0 = rig.clock.t
+    for _ in range(15):  # 0.3 s: still within heartbeat_timeout of the last Heartbeat
+        rig.tick(v=0.2)
+    assert d.health(rig.clock.t).ok and rig.clock.t == pytest.approx(t0 + 0.3)
+    rig.tick(v=0.2)
+    h = d.health(rig.clock.t)
+    assert (h.ok, h.reason, h.text) == (False, "no_heartbeat", "right controller (node 1): no heartbeat for 0.32 s")
+    assert h.detail.counters.heartbeat_losses == 1
+
+
+def test_a_failed_bus_is_reopened_with_a_backoff_that_doubles_up_to_its_bound(rig: Rig) -> None:
+    """The waits between reopen attempts are reopen_backoff doubled per failed attempt, bounded by
+    reopen_backoff_max (0.05 -> 0.1 -> 0.2 -> 0.2 ...), measured on the fake clock."""
+    d = engaged(rig)
+    rig.bus_fails = True
+    attempts_before = len(rig.opened_at)
     assert d.bus is not None
-    d.bus.shutdown()  # the bus dies under the driver: recv/send raise can.CanOperationError
-    rig.run(1.0, 0.2, 0.0, host=True)
-    h = health(d)
-    assert not h.ok and not h.connected and "CAN bus down" in h.text and "interface gone" in h.text
-    assert h.reason == "link_down"
+    d.bus.shutdown()  # the bus dies under the driver: its next receive raises
+    rig.tick()
+    failed_at = rig.clock.t
+    for _ in range(100):  # 1 s at 100 Hz
+        rig.tick(0.01)
+    h = d.health(rig.clock.t)
+    assert (h.ok, h.connected, h.reason) == (False, False, "link_down")
+    assert h.text.startswith("CAN bus down (reopen failed: interface gone); reopening in ")
     assert h.detail.counters.bus_failures == 1
-    # the waits between the attempts are test_reopen_attempts_wait_a_backoff_that_doubles_up_to_its_bound's (on a
-    # fake clock); here, that it was retried and the wait reached its bound
-    assert len(attempts) >= 2 and d._backoff.delay == 0.2, attempts
-    monkeypatch.setattr(d, "_open_bus", real_open)
-    # back: the controllers' frames flow again; their watchdogs (0.3 s) tripped during the 1 s outage, which
-    # the driver reports and leaves to the operator
-    assert rig.wait(lambda: health(d).connected and "WATCHDOG_TIMER_EXPIRED" in health(d).text, 2.0), (
-        health(d).text)
-    assert health(d).detail.counters.reopens == 1 and not health(d).ok
-    n = health(d).frames_received
-    rig.run(0.3, 0.2, 0.0, host=True)
-    assert health(d).frames_received > n
-    _cleared_and_driving(rig)
+    attempts = rig.opened_at[attempts_before:]
+    assert attempts[0] - failed_at == pytest.approx(0.05, abs=0.011)
+    gaps = [b - a for a, b in zip(attempts, attempts[1:])]
+    assert gaps == pytest.approx([0.1] + [0.2] * (len(gaps) - 1), abs=0.011) and len(gaps) >= 4
+    rig.bus_fails = False  # back: the controllers' frames flow again on the new bus
+    for _ in range(30):
+        rig.tick(0.01)
+    h = d.health(rig.clock.t)
+    assert h.connected and h.detail.counters.reopens == 1
 
 
-def test_reopen_attempts_wait_a_backoff_that_doubles_up_to_its_bound() -> None:
-    """The waits between the attempts to reopen a failed bus: reopen_backoff, doubled after each failed attempt up to
-    reopen_backoff_max (0.05, 0.1, 0.2, 0.2, ... s), on the driver's fake clock polled every 10 ms."""
-    clock = FakeClock()
-    channel = f"test-{uuid.uuid4().hex[:8]}"
-    peer = can.Bus(interface="virtual", channel=channel)
-    attempts: list[float] = []
-    failing = False
+def test_poses_carry_the_frames_own_stamp_on_the_drivers_clock(rig: Rig) -> None:
+    d = engaged(rig)
+    c = rig.controllers
 
-    def open_bus() -> can.BusABC:
-        attempts.append(clock.t)
-        if failing:
-            raise can.CanInitializationError("interface gone")
-        bus = can.Bus(interface="virtual", channel=channel)
-        for node in (0, 1):  # the controllers' Heartbeats, waiting for the driver's first poll
-            peer.send(encode(node, "Heartbeat", {"Axis_Error": 0, "Axis_State": 1, "Procedure_Result": 0,
-                                                 "Trajectory_Done_Flag": 0}))
-        return bus
+    def estimates(pos: float, wall: float) -> None:
+        for node, sign in ((0, 1.0), (1, -1.0)):
+            f = encode(node, "Get_Encoder_Estimates", {"Pos_Estimate": sign * pos, "Vel_Estimate": 0.0})
+            f.timestamp = wall
+            c.bus.send(f)
 
-    d = CanDriver(CanLinkConfig(interface="virtual", channel=channel, reopen_backoff=0.05, reopen_backoff_max=0.2),
-                  clock=clock, wall_clock=clock.wall, open_bus=open_bus)
-    try:
-        d.open(clock.t)
-        failing = True
-        assert d.bus is not None
-        d.bus.shutdown()
-        d.poll(clock.advance(0.01))  # the receive fails: the bus is released, a reopen scheduled
-        failed_at, attempts[:] = clock.t, []
-        for _ in range(100):
-            d.poll(clock.advance(0.01))
-        gaps = [b - a for a, b in zip(attempts, attempts[1:])]
-        assert attempts[0] - failed_at == pytest.approx(0.05, abs=0.011), attempts
-        assert gaps == pytest.approx([0.1] + [0.2] * (len(gaps) - 1), abs=0.011) and len(gaps) >= 4, gaps
-        assert d.counters["bus_failures"] == 1 and not d.health(clock.t).connected
-    finally:
-        d.close(stop_timeout=0.0)
-        peer.shutdown()
+    estimates(0.0, rig.clock.wall() - 0.40)  # the anchor
+    estimates(0.001, rig.clock.wall() - 0.30)  # received by the bus 0.3 s before this poll
+    poses = d.poll(rig.clock.t)
+    assert len(poses) == 1 and poses[0].stamp == pytest.approx(rig.clock.t - 0.30, abs=1e-6)
+    fallbacks = d.counters["stamp_fallbacks"]
+    estimates(0.002, 0.0)  # no stamp
+    estimates(0.003, rig.clock.wall() + 30.0)  # from a wall clock that stepped
+    poses = d.poll(rig.clock.t)
+    assert [p.stamp for p in poses] == [rig.clock.t, rig.clock.t] and d.counters["stamp_fallbacks"] == fallbacks + 4
 
 
-def test_error_frames_are_counted_apart_from_garbage_and_bus_off_reopens(rig: Rig) -> None:
-    d = rig.driver
-    h0 = health(d)
-    malformed0, errors0 = h0.malformed, h0.errors
-    rig.spy.send(can.Message(arbitration_id=0x004, is_error_frame=True, data=bytes(8)))  # controller problem
-    rig.run(0.1)
-    h = health(d)
-    assert h.detail.counters.error_frames == 1 and h.errors == errors0 + 1 and h.malformed == malformed0
-    assert h.ok and h.detail.counters.bus_failures == 0
-    rig.spy.send(can.Message(arbitration_id=0x040, is_error_frame=True, data=bytes(8)))  # CAN_ERR_BUSOFF
-    rig.run(0.05)
-    h = health(d)
-    assert h.detail.counters.bus_failures == 1 and h.malformed == malformed0
-    assert rig.wait(lambda: health(d).ok, 2.0), health(d).text
-    assert health(d).detail.counters.reopens == 1
+def test_health_reads_no_clock_and_changes_nothing(rig: Rig) -> None:
+    d = engaged(rig)
+    rig.tick()
+    reads: list[float] = []
+    rig.clock.on_read.append(lambda: reads.append(rig.clock.t))
+    now = rig.clock.t
+    before = (d.axes.phase, d.counters, dict(d.axes.lost))
+    later, h = d.health(now + 5.0), d.health(now)
+    assert reads == [] and not later.ok and h.ok and h == d.health(now)
+    assert (d.axes.phase, d.counters, dict(d.axes.lost)) == before
 
 
-def test_driver_counts_malformed_frames_on_its_bus(rig: Rig) -> None:
-    before = health(rig.driver).malformed
-    rig.spy.send(can.Message(arbitration_id=(0 << 5) | 0x09, data=b"\x01\x02", is_extended_id=False))
-    rig.spy.send(can.Message(arbitration_id=(1 << 5) | 0x1F, data=b"", is_extended_id=False))
-    rig.driver.poll(time.monotonic(), block=0.1)
-    assert health(rig.driver).malformed >= before + 2
-
-
-# ------------------------------------------------------------------------------------------ odometry
-def test_implausible_encoder_estimates_never_reach_the_pose(rig: Rig) -> None:
-    d = rig.driver
-    poses = rig.run(0.3, 0.25, 0.0)
-    garbage = [(3.0e38, 0.0), (2000.0, 0.0), (0.0, 1e6), (-1e8, 0.0)]
-    for pos, vel in garbage:
-        for node in (0, 1):
-            rig.spy.send(encode(node, "Get_Encoder_Estimates", {"Pos_Estimate": pos, "Vel_Estimate": vel}))
-        poses += rig.run(0.05, 0.25, 0.0)
-    for data in (struct.pack("<ff", math.nan, 0.0), struct.pack("<ff", 0.0, math.inf)):
-        rig.spy.send(can.Message(arbitration_id=0x09, data=data, is_extended_id=False))
-    poses += rig.run(0.5, 0.25, 0.0)
-    assert all(math.isfinite(p.x) and math.isfinite(p.y) and abs(p.x - 1.0) < 2.0 for p in poses)
-    body = rig.body()
-    lag = max(0.0, time.monotonic() - poses[-1].stamp)
-    assert math.hypot(poses[-1].x - body.x, poses[-1].y - body.y) < 0.01 + abs(body.v) * lag
-    assert health(d).detail.counters.rejected_estimates >= 2 * len(garbage)
-    assert health(d).malformed >= 2 * len(garbage) + 2
-
-
-def test_a_real_encoder_jump_resyncs_the_reference_without_moving_the_pose() -> None:
-    d = CanDriver(CanLinkConfig(max_wheel_speed=5.0))
-    t = 0.0
-    for step in range(5):  # driving straight: left +0.01 rev, right -0.01 rev per 10 ms
-        t = step * 0.01
-        d._encoder(d.left, 0.01 * step, 1.0, t)
-        d._encoder(d.right, -0.01 * step, -1.0, t)
-    x_before = d.pose[0]
-    assert x_before > 0.0
-    for k in range(1, 4):  # the left controller rebooted: its position starts again near 500 rev
-        t += 0.01
-        d._encoder(d.left, 500.0 + 0.01 * k, 1.0, t)
-        d._encoder(d.right, -0.04 - 0.01 * k, -1.0, t)
-    assert d.counters["resyncs"] == 1 and d.counters["rejected_estimates"] == 3
-    assert d.pose[0] == pytest.approx(x_before, abs=1e-9)  # the jump was not integrated
-    for k in range(4, 8):
-        t += 0.01
-        d._encoder(d.left, 500.0 + 0.01 * k, 1.0, t)
-        d._encoder(d.right, -0.04 - 0.01 * k, -1.0, t)
-    assert d.pose[0] > x_before + 3 * 0.01 * 2 * math.pi * 0.1 * 0.99  # it integrates again from the new anchor
-
-
-class FakeControllers:
-    """Heartbeats (closed loop, no error) for nodes 0 and 1 from a thread; ``tx`` sends crafted frames with the
-    wall-clock stamp they carry (``preserve_timestamps``: the stamp a receiving interface would have set)."""
-
-    def __init__(self, channel: str) -> None:
-        self.bus = can.Bus(interface="virtual", channel=channel, preserve_timestamps=True)
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._beat, daemon=True)
-        self._lock = threading.Lock()
-
-    def _beat(self) -> None:
-        while not self._stop.wait(0.05):
-            for node in (0, 1):
-                f = encode(node, "Heartbeat", {"Axis_Error": 0, "Axis_State": 8, "Procedure_Result": 1,
-                                               "Trajectory_Done_Flag": 1})
-                f.timestamp = time.time()
-                self.tx(f)
-
-    def tx(self, frame: can.Message) -> None:
-        with self._lock:
-            self.bus.send(frame)
-
-    def __enter__(self) -> FakeControllers:
-        self._thread.start()
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self._stop.set()
-        self._thread.join(timeout=2.0)
-        self.bus.shutdown()
-
-
-def test_poses_carry_the_frames_own_receive_time_on_the_monotonic_clock() -> None:
-    channel = f"test-{uuid.uuid4().hex[:8]}"
-    driver = open_driver("can", CanLinkConfig(interface="virtual", channel=channel))
-    with FakeControllers(channel) as fake:
-        try:
-            driver.open(time.monotonic())
-
-            def pair(pos: float, wall: float) -> None:
-                for node, sign in ((0, 1.0), (1, -1.0)):
-                    f = encode(node, "Get_Encoder_Estimates", {"Pos_Estimate": sign * pos, "Vel_Estimate": 0.0})
-                    f.timestamp = wall
-                    fake.tx(f)
-
-            pair(0.0, time.time() - 0.40)  # the anchor
-            pair(0.01, time.time() - 0.30)  # received (by the bus) 0.3 s before the driver host polls
-            time.sleep(0.05)
-            mono_expected = time.monotonic() - 0.35
-            poses = driver.poll(time.monotonic())
-            assert len(poses) == 1 and poses[0].stamp == pytest.approx(mono_expected, abs=0.03)
-            # no stamp, or one from a wall clock that stepped: the receive time, counted
-            fallbacks = driver.counters["stamp_fallbacks"]
-            pair(0.02, 0.0)
-            pair(0.03, time.time() + 30.0)
-            time.sleep(0.02)
-            t_poll = time.monotonic()
-            poses = driver.poll(t_poll)
-            assert len(poses) == 2 and all(t_poll - 0.05 <= p.stamp <= time.monotonic() for p in poses)
-            assert driver.counters["stamp_fallbacks"] >= fallbacks + 4
-        finally:
-            driver.close()
-
-
-def test_many_small_crafted_encoder_steps_cannot_add_up_to_more_than_the_wheel_can_do() -> None:
-    """Finding: crafted encoder frames, each a small plausible step, gave 101 m of odometry error in 2 s (status
-    ok). Each wheel's travel now has a budget refilled at what it can really turn; the link says so when tampered."""
-    clock = FakeClock()
-    d = CanDriver(CanLinkConfig(max_wheel_speed=10.0), clock=clock, wall_clock=clock.wall)
-    d.axes.phase = "running"
-    t = 0.0
-    d._encoder(d.left, 0.0, 0.0, t)
-    d._encoder(d.right, 0.0, 0.0, t)
-    for k in range(1, 4001):  # 2 s of frames at 2 kHz, each 0.02 rev ahead (40 rev/s if believed): standing still
-        t = k * 0.0005
-        d._encoder(d.left, 0.02 * k, 0.0, t)
-        d._encoder(d.right, -0.02 * k, 0.0, t)
-    assert abs(d.pose[0]) < 0.7, d.pose  # at most what a wheel told to stand still may roll (not 100 m)
-    assert d.counters["rejected_estimates"] > 1000
-    h = d.health(clock.t)
-    assert not h.ok and "odometry: implausible encoder estimates" in h.text
-
-
-@pytest.mark.parametrize("engage,disarm", [(False, False), (False, True), (True, False), (True, True)])
-def test_close_sends_nothing_to_axes_it_never_armed_and_idles_them_only_when_told(engage: bool, disarm: bool) -> None:
-    """Found: close ignored ``disarm`` and always sent IDLE, also on ``--dry-run`` (which promises that nothing is
-    sent to the vehicle) and for a host that was never engaged. The emulated ODrives record every frame they got."""
-    channel = f"test-{uuid.uuid4().hex[:8]}"
-    vehicle = SimVehicle(mpc_learner(), (0.0, 0.0, 0.0), now=time.monotonic())
-    with DiffDriveEcus({"interface": "virtual", "channel": channel}, vehicle, watchdog=0.3) as ecus:
-        driver = open_driver("can", CanLinkConfig(interface="virtual", channel=channel, heartbeat_timeout=0.3))
-        driver.open(time.monotonic())
-        if engage:
-            driver.engage(time.monotonic())
-        spy = can.Bus(interface="virtual", channel=channel)  # sees every frame put on the bus from now on
-        try:
-            driver.close(disarm=disarm, stop_timeout=1.0)
-            frames, t_end = [], time.monotonic() + 0.3  # the controllers' Heartbeats never stop: a bounded look
-            while time.monotonic() < t_end:
-                if (f := spy.recv(timeout=0.05)) is not None:
-                    frames.append(f.arbitration_id)
-        finally:
-            spy.shutdown()
-    cmd = database().get_message_by_name
-    idle = cmd("Set_Axis_State").frame_id & 0x1F
-    vel = cmd("Set_Input_Vel").frame_id & 0x1F
-    nodes = (ecus.left.node, ecus.right.node)
-    # what the driver sent (the controllers' own frames, Heartbeats and encoder estimates, are theirs)
-    sent = [a & 0x1F for a in frames if a >> 5 in nodes and a & 0x1F in (idle, vel, cmd("Set_Controller_Mode").frame_id
-                                                                          & 0x1F)]
-    if not engage:
-        assert sent == [], sent  # never armed by this link: nothing at all
-    else:
-        assert vel in sent  # armed by this link: stopped first
-        assert (idle in sent) == disarm
+def test_close_stops_the_wheels_and_idles_the_axes_only_when_told(rig: Rig) -> None:
+    d = engaged(rig)
+    rig.tick(v=0.3)
+    rig.controllers.sent("Set_Input_Vel")
+    d.close(disarm=True, stop_timeout=0.0)
+    assert rig.controllers.sent("Set_Input_Vel") == [(0, {"Input_Vel": 0.0, "Input_Torque_FF": 0.0}),
+                                                   (1, {"Input_Vel": 0.0, "Input_Torque_FF": 0.0})]
+    rig.controllers.step()
+    assert rig.controllers.state == {0: IDLE, 1: IDLE}
+    assert d.health(rig.clock.t).reason == "closed"
