@@ -2,8 +2,8 @@
 
 Over real sockets with the driver (its peer, limits, watchdog, reboots, fuzzing) it is tested in
 tests/integration/test_udp_link.py and tests/integration/test_udp_replay.py. Here each rule of the module docstring is
-fed datagrams and times directly (no thread, no socket, no sleep): the peer, the keyed session (nonce and the echo's age),
-validation, the driver's stream, its own limits (refused, not clamped), stops, and that every datagram is counted
+fed datagrams and times directly (no thread, no socket, no sleep): the peer, the keyed session (nonce and the echo's
+age), validation, the driver's stream, its own limits (refused, not clamped), stops, and that every datagram is counted
 once as received and once as applied or refused."""
 
 from __future__ import annotations
