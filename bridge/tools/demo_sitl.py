@@ -63,5 +63,6 @@ def mission_toml(spec) -> str:
 
     rows = ",\n".join(f"  [{num(x)}, {num(y)}]" for x, y in spec.path)
     obs = ",\n".join(f"  [{num(x)}, {num(y)}, {num(r)}]" for x, y, r in spec.obstacles)
+    start = "" if spec.start is None else f"start = [{', '.join(num(a) for a in spec.start)}]\n"  # a start is optional
     return (f'name = "{spec.name}"\nframe = "{spec.frame}"\ngoal_tolerance = {num(spec.goal_tolerance)}\n'
-            f"start = [{', '.join(num(a) for a in spec.start)}]\nobstacles = [\n{obs}\n]\npath = [\n{rows}\n]\n")
+            f"{start}obstacles = [\n{obs}\n]\npath = [\n{rows}\n]\n")
