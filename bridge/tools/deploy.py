@@ -36,8 +36,9 @@ presents the ``station`` certificate (the base station's, naming the addresses c
 identity; its own session publishes nothing. The access control is read once when the router starts: Zenoh cannot
 reload it, so a robot added to the fleet costs a router restart (deploy/README.md, "Adding a robot").
 
-:data:`ROLE_OF` and :func:`may` answer, from the same rules, whether an identity may do something: a tool whose
-query nobody answered tells "denied by the access control" from "nobody there" with them (the router drops a denied
+:func:`bridge.tools.identity.role_of` and :func:`bridge.tools.identity.denial` answer, from the same rules, whether
+an identity may do something: a tool whose query nobody answered tells "denied by the access control" from "nobody
+there" with them (the router drops a denied
 message silently; Zenoh tells the client nothing).
 
 ``scmbridge deploy certs`` makes a CA and one certificate per name with ``openssl``, for tests and a lab's first
