@@ -155,13 +155,14 @@ class StationCounters:
     implausible_poses: int = 0
     implausible_pairs: int = 0
     pairer_resyncs: int = 0
+    pairs_unsettled: int = 0  # pairs dropped because their command had not settled ([station] pair_settle_s)
     goal_reached: int = 0
     cells_relearned: int = 0  # cells whose learner changed, re-learned (transfer.store, ``adapt``)
     calibration_index: int | None = None
     calibration_total: int | None = None
     ticks: int = 0
 
-    _SHOWN_IF_NONZERO = ("method_calibrate", "foreign_commands")
+    _SHOWN_IF_NONZERO = ("method_calibrate", "foreign_commands", "pairs_unsettled")
 
     def count_method(self, method: str) -> None:
         """One more command sent by ``method`` (a wire ``Command`` method)."""
@@ -243,7 +244,7 @@ class StationCore:
         top_v, top_w = command_extent(learner, teacher)
         self.pairer = IntervalPairer(scfg.pair_dt, max_speed=PLAUSIBLE * top_v + 0.1, max_turn=PLAUSIBLE * top_w + 0.2,
                                      command_bounds=learner, teacher_bounds=Bounds((-top_v, top_v), (-top_w, top_w)),
-                                     margin=PLAUSIBLE)
+                                     margin=PLAUSIBLE, settle_s=scfg.pair_settle_s, settle_tol=scfg.pair_settle_tol)
         self.reorder = Reorder()
         self.control = control or MissionControl(robot, spec_of(mission))
         self.control_path = control_path
@@ -576,7 +577,7 @@ class StationCore:
         c.pairs_rejected, c.pairs_formed, c.pairs_out_of_order = p.rejected, p.formed, p.out_of_order
         c.implausible_stamps, c.implausible_poses, c.implausible_pairs = (p.implausible_stamp, p.implausible_pose,
                                                                           p.implausible_pair)
-        c.pairer_resyncs = p.resyncs
+        c.pairer_resyncs, c.pairs_unsettled = p.resyncs, p.unsettled
         c.goal_reached = int(self.control.phase == "finished")
         problems = self.integrity(now)
         reason = self.reason
