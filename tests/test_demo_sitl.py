@@ -18,7 +18,7 @@ import pytest
 from bridge.core.config import load_mission, load_mission_spec
 from bridge.core.errors import UsageError
 from bridge.core.wire import MissionSpec
-from bridge.tools.demo_sitl import learner_range, mission_toml, place_mission
+from bridge.tools.demo_sitl import learner_range, mission_toml, param_change, place_mission, teacher_reference
 from sim_learner.sitl import Sitl, find_sitl, where_sitl_is_looked_for
 from sim_learner.sitl_response import measure
 
@@ -54,6 +54,27 @@ def test_the_mission_moves_rigidly_onto_the_vehicles_pose_and_reads_back(tmp_pat
         d = np.asarray(path[1]) - np.asarray(path[0])
         return (math.atan2(d[1], d[0]) - start[2]) % (2 * math.pi)
     assert rel(placed.path, placed.start) == pytest.approx(rel(spec.path, spec.start))
+
+
+def test_the_teacher_reference_is_a_finished_run_on_sitl_and_a_parameter_change_is_read_strictly(tmp_path) -> None:
+    ref = {"model": "rover-skid", "transfer": "off", "reached_goal": True, "scm_time_s": 41.0,
+           "scm_dev_last_half_m": 0.006, "collisions": {"scm": False},
+           "vehicle_params": {"WP_SPEED": 0.6, "ATC_STR_RAT_MAX": 45.0}}
+    f = tmp_path / "summary.json"
+    f.write_text(json.dumps(ref))
+    got = teacher_reference(f)
+    assert (got["time_s"], got["dev_last_half_m"], got["collided"]) == (41.0, 0.006, False)
+    assert "rover-skid" in got["source"] and "transfer off" in got["source"] and "45" in got["source"]
+    log = tmp_path / "demo.log"  # the demo's own output: its last summary line
+    log.write_text("SITL booted\nsummary: " + json.dumps({**ref, "scm_time_s": 40.0}) + "\nfigure: x\n")
+    assert teacher_reference(log)["time_s"] == 40.0
+    f.write_text(json.dumps({**ref, "reached_goal": False, "scm_time_s": None}))
+    with pytest.raises(UsageError):
+        teacher_reference(f)  # a run that did not finish is no teacher's reference
+    assert param_change("30:cruise_throttle=45") == (30.0, "CRUISE_THROTTLE", 45.0)
+    for bad in ("30", "x:A=1", "-1:A=1", "5:=1", "5:A=nan"):
+        with pytest.raises(UsageError):
+            param_change(bad)
 
 
 def half_s_path() -> MissionSpec:

@@ -113,3 +113,58 @@ def mission_toml(spec) -> str:
     obs = ",\n".join(f"  [{num(x)}, {num(y)}, {num(r)}]" for x, y, r in spec.obstacles)
     return (f'name = "{spec.name}"\nframe = "{spec.frame}"\ngoal_tolerance = {num(spec.goal_tolerance)}\n'
             f"start = [{', '.join(num(a) for a in spec.start)}]\nobstacles = [\n{obs}\n]\npath = [\n{rows}\n]\n")
+
+
+def param_change(text: str) -> tuple[float, str, float]:
+    """``--param-at S:NAME=VALUE``: the vehicle's parameter NAME set to VALUE S seconds after the station started
+    (issue 35's learner that changes under the transfer, through the autopilot's own parameters)."""
+    try:
+        at, rest = text.split(":", 1)
+        name, value = rest.split("=", 1)
+        s, v = float(at), float(value)
+    except ValueError:
+        raise UsageError(f"--param-at {text!r}: expected SECONDS:NAME=VALUE, e.g. 30:CRUISE_THROTTLE=45") from None
+    if not (s >= 0 and math.isfinite(s) and math.isfinite(v) and name.strip().isidentifier()):
+        raise UsageError(f"--param-at {text!r}: expected SECONDS:NAME=VALUE with SECONDS >= 0")
+    return s, name.strip().upper(), v
+
+
+class ParamChanges:
+    """Sets the vehicle's parameters at their times through the pilot's link (PARAM_SET, done when the vehicle's
+    PARAM_VALUE says so), as a person at the ground station would mid-run; ``done`` holds (monotonic time, name,
+    value, error or "") for each. A thread of its own, waiting on an event (``stop`` ends it at once)."""
+
+    def __init__(self, pilot: Any, changes: list[tuple[float, str, float]]) -> None:
+        import threading
+
+        self.pilot = pilot
+        self.changes = sorted(changes)
+        self.done: list[tuple[float, str, float, str]] = []
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="param-changes", daemon=True)
+        self.t0 = math.nan
+
+    def start(self, t0: float) -> None:
+        self.t0 = t0
+        if self.changes:
+            self._thread.start()
+
+    def _run(self) -> None:
+        import time
+
+        for at, name, value in self.changes:
+            if self._stop.wait(max(0.0, self.t0 + at - time.monotonic())):
+                return
+            err = ""
+            try:
+                self.pilot.set_param(name, value)
+            except Exception as exc:  # noqa: BLE001  (reported in the summary, never fatal to the run)
+                err = str(exc)
+            self.done.append((time.monotonic(), name, value, err))
+            print(f"PARAM_SET {name} = {value:g} at {time.monotonic() - self.t0:.1f} s"
+                  + (f": {err}" if err else ""), flush=True)
+
+    def stop(self) -> None:
+        self._stop.set()
+        if self._thread.is_alive():
+            self._thread.join(5.0)
