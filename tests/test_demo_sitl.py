@@ -18,7 +18,14 @@ import pytest
 from bridge.core.config import load_mission, load_mission_spec
 from bridge.core.errors import UsageError
 from bridge.core.wire import MissionSpec
-from bridge.tools.demo_sitl import learner_range, mission_toml, param_change, place_mission, teacher_reference
+from bridge.tools.demo_sitl import (
+    ParamChanges,
+    learner_range,
+    mission_toml,
+    param_change,
+    place_mission,
+    teacher_reference,
+)
 from sim_learner.sitl import Sitl, find_sitl, where_sitl_is_looked_for
 from sim_learner.sitl_response import measure
 
@@ -104,6 +111,23 @@ def test_the_weak_profile_makes_the_rover_fall_short_of_its_commands_as_its_tabl
     straight, turning = pts
     assert 0.45 < straight.v_ratio < 0.65, straight  # table: 0.56
     assert 0.45 < turning.w_ratio < 0.65 and 0.45 < turning.v_ratio < 0.65, turning  # table: 0.58, 0.55
+
+
+@pytest.mark.sitl
+@pytest.mark.timeout(60)
+def test_a_parameter_changed_mid_run_is_set_on_the_vehicle_at_its_time() -> None:
+    """``--param-at``: the pilot's PARAM_SET, made at its time and confirmed by the vehicle's PARAM_VALUE."""
+    with Sitl(_binary(), model="rover-skid", parm_files=[ROOT / "deploy" / "examples" / "sitl-weak.parm"]) as sitl:
+        pilot = sitl.pilot
+        assert pilot is not None and pilot.param("CRUISE_THROTTLE") == 65.0
+        changes = ParamChanges(pilot, [param_change("0.5:CRUISE_THROTTLE=45")])
+        t0 = time.monotonic()
+        changes.start(t0)
+        assert changes.finished.wait(15.0)
+        changes.stop()
+        (at, name, value, err), = changes.done
+        assert (name, value, err) == ("CRUISE_THROTTLE", 45.0, "") and at >= t0 + 0.5
+        assert pilot.param("CRUISE_THROTTLE") == 45.0
 
 
 @pytest.mark.sitl

@@ -141,6 +141,7 @@ class ParamChanges:
         self.changes = sorted(changes)
         self.done: list[tuple[float, str, float, str]] = []
         self._stop = threading.Event()
+        self.finished = threading.Event()  # every change made (or stopped before)
         self._thread = threading.Thread(target=self._run, name="param-changes", daemon=True)
         self.t0 = math.nan
 
@@ -148,8 +149,16 @@ class ParamChanges:
         self.t0 = t0
         if self.changes:
             self._thread.start()
+        else:
+            self.finished.set()
 
     def _run(self) -> None:
+        try:
+            self._changes()
+        finally:
+            self.finished.set()
+
+    def _changes(self) -> None:
         import time
 
         for at, name, value in self.changes:
