@@ -91,6 +91,13 @@ class StationSection(Cfg):
     rate_hz: Annotated[float, meta("control tick rate, Hz (the paper's 10 Hz)", ge=RATE_HZ_RANGE[0],
                                    le=RATE_HZ_RANGE[1])] = 10.0
     pair_dt: Annotated[float, meta("pairing interval, s", ge=0.01, le=10.0)] = 0.1
+    pair_settle_s: Annotated[float, meta(
+        "keep only pairs whose learner command had been steady (within pair_settle_tol) this long before the pair's "
+        "interval, s; for a vehicle whose body lags its command (ArduPilot Rover: ~0.3 s), so that the probe of a "
+        "learned limit is held until the speed settles; 0: every pair, as the paper's learners", ge=0.0, le=5.0)] = 0.0
+    pair_settle_tol: Annotated[float, meta(
+        "pair_settle_s: how far the commands of that time may differ from the pair's, share of the learner's range "
+        "on each axis", gt=0.0, le=1.0)] = 0.05
     horizon: Annotated[int, meta("MPC horizon N, steps", ge=2, le=200)] = 20
     persist_every_s: Annotated[float, meta("save the pair store this often, s", ge=0.1, le=86400.0)] = 5.0
     store_path: Annotated[str, meta("pair store file; empty: pairs-<robot>.bin in the state directory")] = ""

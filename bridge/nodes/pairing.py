@@ -20,6 +20,18 @@ faster than ``max_speed`` or turns faster than ``max_turn`` from the last accept
 (``implausible_pose``) unless ``RESYNC_AFTER`` poses in a row agree with each other (the robot was relocated: the
 interval restarts, no pair spans the jump); a pair whose learner command lies outside ``command_bounds`` or whose
 teacher part lies outside ``teacher_bounds`` (symmetric, times ``margin``) is never formed (``implausible_pair``).
+
+*Settled pairs only* (``settle_s`` > 0; off by default, as the paper's learners answer within one tick). A vehicle
+whose body lags its command (ArduPilot Rover SITL's skid body: about 0.3 s to its speed) moves, over the 0.1 s
+after a command changes, partly as the *earlier* commands asked: the pair then says the learner reaches less than it
+does, most of all for a step to the learner's top command, the probe that fixes a learned limit (paper §4.2, Eq.
+learn_capability: its boundary pair *is* the limit). With ``settle_s``, a pair is kept only if every command in
+force during the ``settle_s`` before its interval began was within ``settle_tol`` of its own (each axis, as a share
+of ``command_bounds``' span; in command units without bounds) and the vehicle was driving throughout; others are
+counted (``unsettled``) and dropped. The transfer's probe of a never-driven limit is sent again at each tick until a
+boundary pair is learned (:meth:`transfer.policy._PolicyBase._probe_limits`), so dropping its first pairs holds the
+probe until the speed has settled, and only the settled pair fixes the limit. docs/BENCHMARKS.md, "The transfer on
+SITL", has the figures.
 """
 
 from __future__ import annotations
@@ -27,6 +39,7 @@ from __future__ import annotations
 import heapq
 import itertools
 import math
+from collections import deque
 from typing import Any
 
 import numpy as np
@@ -111,9 +124,14 @@ class IntervalPairer:
 
     def __init__(self, dt: float, min_span: float | None = None, max_gap: float | None = None, *,
                  max_speed: float = math.inf, max_turn: float = math.inf, command_bounds: Bounds | None = None,
-                 teacher_bounds: Bounds | None = None, margin: float = 1.5) -> None:
+                 teacher_bounds: Bounds | None = None, margin: float = 1.5, settle_s: float = 0.0,
+                 settle_tol: float = 0.05) -> None:
+        """``settle_s``, ``settle_tol``: keep only pairs whose command had been steady that long, within that share
+        of the command range (module docstring, "Settled pairs only"); ``settle_s`` 0: every pair, as the paper."""
         if dt <= 0:
             raise ValueError("dt must be positive")
+        if settle_s < 0 or settle_tol <= 0:
+            raise ValueError("settle_s must be >= 0 and settle_tol > 0")
         self.dt = float(dt)
         self.min_span = 0.4 * self.dt if min_span is None else float(min_span)
         self.max_gap = 2.0 * self.dt if max_gap is None else float(max_gap)
@@ -122,6 +140,13 @@ class IntervalPairer:
         self.teacher_bounds = None if teacher_bounds is None else _grown(teacher_bounds, margin)
         self._command_box = _box(self.command_bounds)
         self._teacher_box = _box(self.teacher_bounds)
+        self.settle_s = float(settle_s)
+        span = (1.0, 1.0) if command_bounds is None else tuple(float(x) for x in command_bounds.span)
+        self._settle_tol = (float(settle_tol) * span[0], float(settle_tol) * span[1])  # command units, per axis
+        #: (stamp, command or None for a stop) of each change of the command, the last one in force now; kept as far
+        #: back as a pair's settling window can reach
+        self._changes: deque[tuple[float, tuple[float, float] | None]] = deque()
+        self.unsettled = 0  # pairs dropped because their command had not been steady for settle_s
         self.anchor: tuple[float, float] | None = None  # (stamp, receipt) of the last accepted event
         self.behind: list[tuple[float, float]] = []  # (stamp, receipt) of events in a row behind the anchor
         self.pose: tuple[float, Pose] | None = None  # the last accepted pose
@@ -177,7 +202,27 @@ class IntervalPairer:
             return None
         out = self._close()
         self.segment, self.first, self.last = key, None, None
+        if self.settle_s > 0:
+            changes = self._changes
+            changes.append((stamp, key))
+            while len(changes) >= 2 and changes[1][0] < stamp - self.settle_s:
+                changes.popleft()  # no longer in force within any later pair's window (each starts after `stamp`)
         return out
+
+    def _steady_since(self) -> float:
+        """Since when the commands in force have been within the settling tolerance of the current segment's
+        (the stamp of the earliest change in that run; +inf when not driving)."""
+        changes = self._changes
+        if not changes or changes[-1][1] is None:
+            return math.inf
+        ref = changes[-1][1]
+        tv, tw = self._settle_tol
+        since = changes[-1][0]
+        for t, u in reversed(changes):
+            if u is None or abs(u[0] - ref[0]) > tv or abs(u[1] - ref[1]) > tw:
+                break
+            since = t
+        return since
 
     def _plausible_pose(self, stamp: float, p: Pose) -> bool:
         """A pose the vehicle could have reached from the last accepted one (or, after a run of poses that agree
@@ -234,6 +279,9 @@ class IntervalPairer:
         (t1, x1), (t2, x2) = self.first, self.last
         if t2 - t1 < self.min_span:
             self.rejected += 1
+            return None
+        if self.settle_s > 0 and t1 - self._steady_since() < self.settle_s:
+            self.unsettled += 1
             return None
         teacher, learner = teacher_equivalent(np.array(x1), np.array(x2), t2 - t1), np.array(self.segment)
         if not (_inside(self._command_box, self.segment) and _inside(self._teacher_box, teacher.tolist())):

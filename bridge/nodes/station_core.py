@@ -182,7 +182,7 @@ class StationCore:
         top_v, top_w = command_extent(learner, teacher)
         self.pairer = IntervalPairer(scfg.pair_dt, max_speed=PLAUSIBLE * top_v + 0.1, max_turn=PLAUSIBLE * top_w + 0.2,
                                      command_bounds=learner, teacher_bounds=Bounds((-top_v, top_v), (-top_w, top_w)),
-                                     margin=PLAUSIBLE)
+                                     margin=PLAUSIBLE, settle_s=scfg.pair_settle_s, settle_tol=scfg.pair_settle_tol)
         self.reorder = Reorder()
         self.control = control or MissionControl(robot, spec_of(mission))
         self.fitness = Fitness()

@@ -111,7 +111,7 @@ class Integrity:
 class StationCounters:
     """Every counter on the station's status. :meth:`as_dict` gives the status's ``counters``, derived from the
     fields (a new counter is one field): the optional ones (None, or a zero ``method_calibrate`` /
-    ``foreign_commands``) only once they mean something; ``inputs`` are the transport's own counts
+    ``foreign_commands`` / ``pairs_unsettled``) only once they mean something; ``inputs`` are the transport's own counts
     (``malformed_<input>``), merged as they are."""
 
     method_scm: int = 0
@@ -140,13 +140,15 @@ class StationCounters:
     implausible_poses: int = field(default=0, metadata={"pairer": "implausible_pose"})
     implausible_pairs: int = field(default=0, metadata={"pairer": "implausible_pair"})
     pairer_resyncs: int = field(default=0, metadata={"pairer": "resyncs"})
+    # pairs dropped because their command had not settled ([station] pair_settle_s)
+    pairs_unsettled: int = field(default=0, metadata={"pairer": "unsettled"})
     goal_reached: int = 0
     cells_relearned: int = 0  # cells whose learner changed, re-learned (transfer.store, ``adapt``)
     calibration_index: int | None = None
     calibration_total: int | None = None
     ticks: int = 0
 
-    _SHOWN_IF_NONZERO = ("method_calibrate", "foreign_commands")
+    _SHOWN_IF_NONZERO = ("method_calibrate", "foreign_commands", "pairs_unsettled")
 
     def count_method(self, method: str) -> None:
         """One more command sent by ``method`` (a wire ``Command`` method)."""

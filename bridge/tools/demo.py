@@ -296,7 +296,17 @@ def sitl_hil(args: argparse.Namespace, robot: str = "sitl") -> int:
     as the pilot, run the station and the driver host on MAVLink, print one JSON summary."""
     from bridge.core.config import load_mission_spec, mission_from_spec
     from bridge.nodes.zsession import free_port, make_config, open_session, tcp
-    from bridge.tools.demo_sitl import REPORTED_PARAMS, learner_range, mission_toml, place_mission
+    from bridge.tools.demo_sitl import (
+        PAIR_SETTLE_S,
+        REPORTED_PARAMS,
+        ParamChanges,
+        learned_limits,
+        learner_range,
+        mission_toml,
+        param_change,
+        place_mission,
+        teacher_reference,
+    )
     from bridge.tools.procs import Children
     from sim_learner.experiments import VEHICLE_RADIUS
     from sim_learner.sitl import Sitl, SitlError
@@ -313,6 +323,11 @@ def sitl_hil(args: argparse.Namespace, robot: str = "sitl") -> int:
     store.unlink(missing_ok=True)  # from no pairs at all, as the paper's case
     spec = load_mission_spec(args.mission)
     transfer_on = args.transfer == "on"
+    settle = PAIR_SETTLE_S if args.pair_settle is None else float(args.pair_settle)
+    if not 0.0 <= settle <= 5.0:
+        raise UsageError(f"--pair-settle {settle}: between 0 and 5 s")
+    ref = teacher_reference(args.teacher_ref) if args.teacher_ref else None
+    changes = [param_change(x) for x in args.param_at]
     t_wall = time.monotonic()
     try:
         sitl = Sitl(binary, model=args.sitl_model, parm_files=[args.sitl_params] if args.sitl_params else ())
@@ -327,6 +342,7 @@ def sitl_hil(args: argparse.Namespace, robot: str = "sitl") -> int:
             return 1
         pilot = sitl.pilot
         assert pilot is not None
+        changer = ParamChanges(pilot, changes)
         params = {n: pilot.param(n) for n in REPORTED_PARAMS}
         v_range, w_range = learner_range(params)
         with pilot.cond:
@@ -337,9 +353,10 @@ def sitl_hil(args: argparse.Namespace, robot: str = "sitl") -> int:
         (out / "mission.toml").write_text(mission_toml(placed))
         (out / "station.toml").write_text(
             f'robot = "{robot}"\n\n[learner_bounds]\nv = [{v_range[0]!r}, {v_range[1]!r}]\n'
-            f"w = [{w_range[0]!r}, {w_range[1]!r}]\n\n[transfer]\n"
+            f"w = [{w_range[0]!r}, {w_range[1]!r}]\n\n[station]\npair_settle_s = {settle!r}\n\n[transfer]\n"
             + ('mapper = "scm"\nexploration = "guided"\n' if transfer_on
-               else 'mapper = "identity"\nexploration = "off"\n'))
+               else 'mapper = "identity"\nexploration = "off"\n')
+            + ("adapt = true\n" if args.adapt else ""))
         (out / "driver.toml").write_text(
             f'robot = "{robot}"\n\n[driver.hard_limits]\nv = [{-v_range[1]!r}, {v_range[1]!r}]\n'
             f"w = [{w_range[0]!r}, {w_range[1]!r}]\n\n[link.mavlink]\nurl = \"{sitl.driver_url}\"\nrate_hz = 20\n")
@@ -366,12 +383,15 @@ def sitl_hil(args: argparse.Namespace, robot: str = "sitl") -> int:
             kids.spawn(["station", *client, "--config", str(out / "station.toml"), "--start", "--store", str(store),
                         "--exit-at-goal", "--duration", str(args.duration), "--mission", str(out / "mission.toml")],
                        logs["station"])
+            changer.start(time.monotonic())
             _watch(mon, kids, world, args.duration)
         except KeyboardInterrupt:
             print("\ninterrupted: stopping the demo's processes", file=sys.stderr)
         except SitlError as exc:
             print(f"scmbridge demo: the pilot could not engage: {exc}", file=sys.stderr)
             return 1
+        finally:
+            changer.stop()
     # the processes are gone (the driver host stopped and disarmed the vehicle), and so is SITL
     run = mon.summary(world) if mon is not None else None
     if run is None:
@@ -385,30 +405,52 @@ def sitl_hil(args: argparse.Namespace, robot: str = "sitl") -> int:
     t0 = driving[0] if driving else states[0][0]
     poses = np.array([s[1:3] for s in states if s[0] >= t0 and s[0] <= t0 + run["time_s"] + 1e-6]) if states else None
     dev_last_half = collided = None
+    devs_at: list[tuple[float, float]] = []  # (stamp, deviation) of the driving time
     if poses is not None and len(poses):
         prog = np.array([world.path.project(q)[0] / world.path.length for q in poses])
         dev = np.array([world.path.project(q)[1] for q in poses])
+        devs_at = list(zip([s[0] for s in states if t0 <= s[0] <= t0 + run["time_s"] + 1e-6], dev.tolist()))
         dev_last_half = float(dev[prog >= 0.5].mean()) if (prog >= 0.5).any() else None
         collided = bool(any(world.collides(q, VEHICLE_RADIUS) for q in poses))
+    with mon.lock:
+        st = mon.status.get("station")
+    relearned = st.counters.get("cells_relearned") if st is not None else None
+    changed = []
+    for at, name, value, err in changer.done:  # the learner changed mid-run: the deviation before and after
+        before = [d for t, d in devs_at if at - 20.0 <= t < at]
+        after = [d for t, d in devs_at if t >= at + 15.0]
+        changed.append({"at_s": round(at - t0, 1), "name": name, "value": value, "error": err or None,
+                        "dev_before_m": round(float(np.mean(before)), 4) if before else None,
+                        "dev_after_m": round(float(np.mean(after)), 4) if after else None})
     from sim_learner.experiments import reference_figures
 
-    teacher = reference_figures(False)["teacher"]  # the ideal teacher on the same path, simulated (sim mpc's)
+    sim = reference_figures(False)["teacher"]  # the ideal teacher on the same path, simulated (sim mpc's)
+    teacher = ref if ref is not None else {**sim, "source": "simulated ideal teacher (scmbridge sim mpc)"}
     scm_time = run["time_s"] if run["reached_goal"] else None
+
+    def ratio(a: float | None, b: float | None) -> float | None:
+        return a / b if a is not None and b else None
+
     summary = {
         "experiment": "mpc-sitl", "model": args.sitl_model, "transfer": args.transfer,
         "reached_goal": run["reached_goal"], "scm_reached_goal": run["reached_goal"],
         "teacher_time_s": teacher["time_s"], "teacher_dev_last_half_m": teacher["dev_last_half_m"],
+        "teacher_reference": teacher["source"],
         "scm_time_s": scm_time, "scm_dev_last_half_m": dev_last_half,
-        "scm_time_ratio": scm_time / teacher["time_s"] if scm_time and teacher["time_s"] else None,
-        "scm_dev_ratio": (dev_last_half / teacher["dev_last_half_m"]
-                          if dev_last_half is not None and teacher["dev_last_half_m"] else None),
+        "scm_time_ratio": ratio(scm_time, teacher["time_s"]),
+        "scm_dev_ratio": ratio(dev_last_half, teacher["dev_last_half_m"]),
+        "sim_teacher_time_s": sim["time_s"], "sim_teacher_dev_last_half_m": sim["dev_last_half_m"],
+        "scm_time_ratio_sim": ratio(scm_time, sim["time_s"]),
         "collisions": {"teacher": teacher["collided"], "scm": collided},
         "method_counts": run["methods"], "refined_pairs": run["refined_pairs"], "raw_pairs": run["raw_pairs"],
+        "pair_settle_s": settle, "learned_limits": learned_limits(store), "adapt": bool(args.adapt),
+        "cells_relearned": relearned, "param_changes": changed,
         "max_dev_m": run["max_dev_m"], "goal_dist_m": run["goal_dist_m"], "driving_s": run["driving_s"],
         "learner_bounds": [list(v_range), list(w_range)], "vehicle_params": params,
         "missed_deadlines": run["missed_deadlines"], "boot_s": round(sitl.boot_s, 1),
         "wall_s": round(time.monotonic() - t_wall, 1)}
     print("summary:", json.dumps(summary))
+    (out / "summary.json").write_text(json.dumps(summary, indent=1) + "\n")  # what --teacher-ref reads
     _figure(out, world, traj, "mavlink (ArduPilot SITL)")
     print(f"figure: {out / 'demo_trajectory.png'}; pair store: {store}; logs: {out}/*.log")
     return 0 if run["reached_goal"] else 1
@@ -583,6 +625,18 @@ def arguments(ap: argparse.ArgumentParser) -> None:
                     help="(--sitl) an extra parameter file (e.g. CRUISE_SPEED, ATC_STR_RAT_MAX: another learner)")
     ap.add_argument("--transfer", choices=("on", "off"), default="on",
                     help="(--sitl) off: the teacher's commands go to the vehicle unmapped (identity, no exploration)")
+    ap.add_argument("--pair-settle", type=float, default=None, metavar="S",
+                    help="(--sitl) the station's [station] pair_settle_s: pairs only where the command had been "
+                         "steady S seconds (default 0.5 for SITL's lagging body; 0: every pair, as the paper)")
+    ap.add_argument("--teacher-ref", default=None, metavar="SUMMARY.json",
+                    help="(--sitl) the summary of the teacher driving SITL itself (a stock rover, --transfer off): "
+                         "its time and deviation become teacher_time_s and teacher_dev_last_half_m (default: the "
+                         "simulated teacher's)")
+    ap.add_argument("--param-at", action="append", default=[], metavar="S:NAME=VALUE",
+                    help="(--sitl) set the vehicle's parameter NAME to VALUE S seconds after the station started "
+                         "(PARAM_SET from the ground station: a learner that changes mid-run); repeatable")
+    ap.add_argument("--adapt", action="store_true",
+                    help="(--sitl) the station's [transfer] adapt = true: re-learn cells whose learner changed")
     ap.add_argument("--inprocess", action="store_true", help="the in-process SC transfer example instead")
     ap.add_argument("--seed", type=int, default=0, help="(--inprocess) random generator seed")
     ap.add_argument("--commands", type=int, default=8, help="(--inprocess) teacher commands to show")

@@ -1,6 +1,6 @@
 """drivers.udp.UdpDriver on real UDP sockets (127.0.0.1, free ports) and a fake clock: the robot is played by the test
 at each of the driver's sleeps (open and close wait with the ``sleep`` they were given), so its answers come at fake
-times the test chose and nothing sleeps. The robot's own firmware behaviour is tests/test_udp_link.py's."""
+times the test chose and nothing sleeps. The robot's own firmware behaviour is tests/integration/test_udp_link.py's."""
 
 from __future__ import annotations
 

@@ -1,7 +1,7 @@
 """drivers.can.driver.CanDriver, the bus supervisor, on a real python-can bus (``virtual``, in this process) and a fake
 clock: two ODrive 0.6 controllers are played by the test in its own thread (:class:`Controllers`), answering what the
 driver sent each time the driver reads its clock, so every step happens at a time the test chose and nothing sleeps.
-The full emulated controllers on real time are tests/test_can_link.py's."""
+The full emulated controllers on real time are tests/integration/test_can_link.py's."""
 
 from __future__ import annotations
 

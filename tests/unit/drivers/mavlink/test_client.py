@@ -1,7 +1,7 @@
 """The MAVLink link's pure decisions (drivers.mavlink.state) and its driver and client on a fake clock: messages are
 real pymavlink frames (encoded, then parsed back), the command protocol runs over a real pymavlink UDP connection on
 127.0.0.1, and every time is the fake clock's. The driver against an emulated rover on real time is
-tests/test_mavlink_link.py's."""
+tests/integration/test_mavlink_link.py's."""
 
 from __future__ import annotations
 
