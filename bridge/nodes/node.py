@@ -53,9 +53,11 @@ class Inputs:
             return dict(self.counts)
 
     def subscribe(self, session: zenoh.Session, key: str, kind: type[S], name: str,
-                  handler: Callable[[S, float], None]) -> Any:
+                  handler: Callable[[S, float], None], remote_only: bool = False) -> Any:
         """Declare a subscriber on ``key`` that decodes (and so validates) each sample as ``kind``; a sample that
         does not decode is counted as ``malformed_<name>`` and dropped; ``handler(msg, receive_time)`` gets the rest.
+        ``remote_only``: what this session itself publishes on ``key`` is not delivered (Zenoh's
+        ``Locality.REMOTE``): a node that listens on a key it publishes on, for other senders only.
         """
 
         def on_sample(sample: zenoh.Sample) -> None:
@@ -64,6 +66,8 @@ class Inputs:
             if msg is not None:
                 handler(msg, now)
 
+        if remote_only:
+            return session.declare_subscriber(key, on_sample, allowed_origin=zenoh.Locality.REMOTE)
         return session.declare_subscriber(key, on_sample)
 
     def decode(self, sample: zenoh.Sample, kind: type[S], name: str, key: str) -> S | None:
