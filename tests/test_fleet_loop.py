@@ -45,8 +45,10 @@ def _station(tmp_path: Path, robot: str) -> Station:
 
 
 @pytest.mark.timeout(90)
-def test_one_thread_ticks_every_robot_at_its_phase_and_a_failing_robot_stops_alone(tmp_path) -> None:
-    robots = [f"fl{os.getpid()}x{k}" for k in range(3)]
+@pytest.mark.parametrize("threads", [1, 2])
+def test_one_thread_ticks_every_robot_at_its_phase_and_a_failing_robot_stops_alone(tmp_path, threads) -> None:
+    """With ``threads`` 2 the robots are dealt to two loop threads in phase order; every rule holds the same."""
+    robots = [f"fl{os.getpid()}x{k}t{threads}" for k in range(3)]
     stations = [_station(tmp_path, r) for r in robots]
     bad = stations[1]
     calls = {"bad": 0, "own_cmd": 0}
@@ -68,7 +70,7 @@ def test_one_thread_ticks_every_robot_at_its_phase_and_a_failing_robot_stops_alo
 
     first.on_own_cmd = counting
     port, stop = free_port(), threading.Event()
-    fleet = FleetLoop(stations, stop, 30.0, False)
+    fleet = FleetLoop(stations, stop, 30.0, False, threads=threads)
     with open_session(make_config(mode="router", listen=[tcp(port)])) as server:
         for st in stations:
             st.declare(server)

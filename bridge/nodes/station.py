@@ -110,6 +110,8 @@ class Inbox:
 
 #: how often a many-robot station hands the GIL over, s (Python's default is 5 ms; see run_fleet)
 FLEET_SWITCH_INTERVAL_S = 0.0005
+#: threads that tick a many-robot process's robots (:class:`FleetLoop`; ``station --loop-threads``)
+DEFAULT_LOOP_THREADS = 1
 
 
 class KernelBuild:
@@ -488,40 +490,55 @@ class FleetWake:
 
 
 class FleetLoop:
-    """Every robot of a process ticked by one thread (``station --robots``, ``--shard``): each robot on its own
-    deadlines (:class:`Deadlines`, its first at its phase: the robots' ticks spread evenly over the period), the one
-    due first ticked first, woken robots (a query, an external teacher's command) handled between two ticks as a
-    robot's own loop handles them. One thread instead of a thread per robot: the robots' loops no longer queue for
-    the interpreter lock against each other (and Zenoh's threads), which cost CPU on every hand-over and let a late
-    tick progress slowly through many frames (docs/FLEET.md). Zenoh's callbacks are unchanged: they fill each
-    robot's inbox. A robot whose tick raises is logged and left stopped (its driver host's deadman stops the
-    vehicle); the others drive on."""
+    """Every robot of a process ticked by one thread (``station --robots``, ``--shard``), or by a few
+    (``threads``, ``station --loop-threads``), each robot always by the same one: each robot on its own deadlines
+    (:class:`Deadlines`, its first at its phase: the robots' ticks spread evenly over the period, and dealt to the
+    threads in phase order, so one thread's robots are spread over the period too), the one due first ticked first,
+    woken robots (a query, an external teacher's command) handled between two ticks as a robot's own loop handles
+    them. One thread instead of a thread per robot: the robots' loops no longer queue for the interpreter lock
+    against each other (and Zenoh's threads), which cost CPU on every hand-over and let a late tick progress slowly
+    through many frames (docs/FLEET.md). Zenoh's callbacks are unchanged: they fill each robot's inbox. A robot
+    whose tick raises is logged and left stopped (its driver host's deadman stops the vehicle); the others drive
+    on."""
 
     def __init__(self, stations: list[Station], stop: threading.Event, duration: float | None,
-                 exit_at_goal: bool) -> None:
+                 exit_at_goal: bool, threads: int = 1) -> None:
         self.stations, self.stop = stations, stop
         self.duration, self.exit_at_goal = duration, exit_at_goal
-        self.wake = threading.Event()
+        k = max(1, min(int(threads), len(stations)))
+        self.groups = [stations[i::k] for i in range(k)]
+        self.wakes = [threading.Event() for _ in self.groups]
         self.failed: list[str] = []
-        for st in stations:
-            st.wake = FleetWake(self.wake)
+        for group, wake in zip(self.groups, self.wakes):
+            for st in group:
+                st.wake = FleetWake(wake)
 
     def run(self) -> None:
         """Tick every robot until ``stop`` (or ``duration``, or, with ``exit_at_goal``, each robot's goal)."""
         n = len(self.stations)
         t0 = time.monotonic()
-        active: list[Station] = []
-        start: dict[str, float] = {}
         for i, st in enumerate(self.stations):
             st.ticker = Deadlines(st.period, t0 + i * st.period / n)
-            start[st.robot] = st.ticker.t_next
             st.begin()
-            active.append(st)
-        linger = t0
+        if len(self.groups) == 1:
+            self._run(self.groups[0], self.wakes[0])
+            return
+        loops = [threading.Thread(target=self._run, args=(g, w), name=f"station-loop-{k}", daemon=True)
+                 for k, (g, w) in enumerate(zip(self.groups, self.wakes))]
+        for t in loops:
+            t.start()
+        for t in loops:
+            t.join()
+
+    def _run(self, group: list[Station], wake: threading.Event) -> None:
+        """One thread's loop over its robots (``group``, woken by ``wake``)."""
+        active = list(group)
+        start = {st.robot: st.ticker.t_next for st in active}
+        linger = time.monotonic()
         try:
             while active and not self.stop.is_set():
-                if self.wake.is_set():  # inputs to handle now; then whatever is due (a stream of wakes
-                    self.wake.clear()   # never starves the deadlines)
+                if wake.is_set():  # inputs to handle now; then whatever is due (a stream of wakes never starves
+                    wake.clear()   # the deadlines)
                     for st in list(active):
                         if st.wake.take() and not self._woken(st):
                             active.remove(st)
@@ -531,7 +548,7 @@ class FleetLoop:
                 now = time.monotonic()
                 delay = st.ticker.t_next - now
                 if delay > 0:
-                    self.wake.wait(delay)
+                    wake.wait(delay)
                     continue
                 if self.duration is not None and now - start[st.robot] >= self.duration:
                     self._finish(st, active)
@@ -595,6 +612,9 @@ def arguments(ap: argparse.ArgumentParser) -> None:
                          "deadlines, pair store and mission; one Zenoh session and one compiled MPC for all)")
     ap.add_argument("--shard", default=None, help="serve the robots the config's [fleet] shards give this station "
                     "host (one process, as --robots)")
+    ap.add_argument("--loop-threads", type=int, default=DEFAULT_LOOP_THREADS, metavar="N",
+                    help="threads that tick the robots of --robots / --shard, each robot always by the same one "
+                         f"(default {DEFAULT_LOOP_THREADS}; docs/FLEET.md)")
     ap.add_argument("--mission", default=None, help="mission file (TOML; overrides the config)")
     add_zenoh_args(ap)
     ap.add_argument("--rate", type=positive_float, default=None, help="control tick rate, Hz (overrides the config)")
@@ -706,7 +726,8 @@ def run_fleet(cfg: StationConfig, robots: list[str], rate: float, args: argparse
     for st in stations.values():
         st.build = build
     stop = stop_on_signals()
-    fleet = FleetLoop(list(stations.values()), stop, args.duration, args.exit_at_goal)
+    fleet = FleetLoop(list(stations.values()), stop, args.duration, args.exit_at_goal,
+                      threads=getattr(args, "loop_threads", DEFAULT_LOOP_THREADS))
     try:
         with open_session(zenoh_config(args), wait=stop, what="station") as session:
             for st in stations.values():
