@@ -484,9 +484,12 @@ class FleetWake:
         self.flag = False
 
     def take(self) -> bool:
-        """Whether it was set (and it is cleared)."""
-        was, self.flag = self.flag, False
-        return was
+        """Whether it was set (and it is cleared). Cleared only when it was read set: a set between the read and
+        the clear is then covered by the inbox read after it, and a set after a read that found it clear is kept."""
+        if self.flag:
+            self.flag = False
+            return True
+        return False
 
 
 class FleetLoop:
@@ -559,7 +562,10 @@ class FleetLoop:
                     self._finish(st, active, failed=True)
                     continue
                 if self.exit_at_goal and st.core.finished:
-                    st.pubs["status"].put(M.encode(st.core.status(now)))
+                    try:
+                        st.pubs["status"].put(M.encode(st.core.status(now)))
+                    except Exception:  # the robot is done: its last status is a courtesy
+                        log.exception("%s: final status not published", st.robot)
                     linger = time.monotonic() + 3 * st.period  # the status reaches its subscribers
                     self._finish(st, active)
             if not self.stop.is_set() and linger > time.monotonic():
@@ -726,15 +732,24 @@ def run_fleet(cfg: StationConfig, robots: list[str], rate: float, args: argparse
     for st in stations.values():
         st.build = build
     stop = stop_on_signals()
-    fleet = FleetLoop(list(stations.values()), stop, args.duration, args.exit_at_goal,
-                      threads=getattr(args, "loop_threads", DEFAULT_LOOP_THREADS))
+    failed: list[str] = []
     try:
         with open_session(zenoh_config(args), wait=stop, what="station") as session:
+            declared = []
             for st in stations.values():
-                st.declare(session)
+                try:
+                    st.declare(session)
+                    declared.append(st)
+                except Exception as exc:  # one robot's failure stops that robot only
+                    failed.append(st.robot)
+                    log.exception("%s: station not started (%s); its robot stops by its deadman, the others drive on",
+                                  st.robot, exc)
+            fleet = FleetLoop(declared, stop, args.duration, args.exit_at_goal,
+                              threads=getattr(args, "loop_threads", DEFAULT_LOOP_THREADS))
             systemd.ready(f"{len(stations)} robots: {', '.join(stations)}")
-            log.info("serving %d robots from one process: %s", len(stations), ", ".join(stations))
+            log.info("serving %d robots from one process: %s", len(declared), ", ".join(s.robot for s in declared))
             fleet.run()
+            failed += fleet.failed
     finally:
         saved = [_save(st) for st in stations.values()]
-    return 0 if all(saved) and not fleet.failed and len(stations) == len(robots) else 1
+    return 0 if all(saved) and not failed and len(stations) == len(robots) else 1
