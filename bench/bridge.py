@@ -8,11 +8,18 @@ on this machine). The driver host's loop runs at 50 Hz for the whole run: jitter
 its ``status``; memory is the driver host's RSS at the start and the end of the run. Links: ``can`` (controllers
 inside the driver host), ``udp`` and ``mavlink`` (the emulated robot / rover as its own process). The time to the
 emulated device receiving a command is not measured here (it is another process).
+
+``--beside-station N``: a real ``scmbridge station --robots`` process ticks N robots on the same router and machine
+for the whole run, driving the fleet bench's simulated robots (:mod:`bench.fleet`: one process publishing their
+poses, echoes and statuses as driver hosts do): the latency and the jitter are then measured beside a station's
+ticks (its CPU, its Zenoh traffic through the router), as a one-machine lab runs them. The station's own figures
+over the run (missed deadlines, tick p99, CPU) are reported beside the link's.
 """
 
 from __future__ import annotations
 
 import argparse
+import os
 import subprocess
 import threading
 import time
@@ -39,14 +46,94 @@ def _rss_kb(pid: int) -> int | None:
     return None
 
 
-def run_link(link: str, seconds: float, workdir: str, random_phase: bool = False) -> dict:
+def _cpu_s(pid: int) -> float:
+    """CPU seconds (user + system) of process ``pid`` so far (0 if it has gone)."""
+    from bench.fleet import _cpu_s as cpu
+
+    return cpu(pid)
+
+
+class BesideStation:
+    """A real station process ticking ``robots`` robots (``side1..sideN``) on the router at ``port``, driving the fleet
+    bench's simulated robots (one more process), for ``life`` seconds; :meth:`up` waits until every robot drives,
+    :meth:`mark` and :meth:`figures` give the station's missed deadlines, tick p99 and CPU between two moments."""
+
+    def __init__(self, kids: Children, session, port: int, robots: int, workdir: Path, life: float) -> None:
+        from bench.fleet import STATION_ENV, write_mission
+        from bridge.core import wire as M
+        from bridge.nodes.zsession import tcp
+
+        self.M = M
+        self.robots = [f"side{k + 1}" for k in range(robots)]
+        self.status: dict[str, M.Status] = {}
+        self.lock = threading.Lock()
+        wd = Path(workdir) / f"beside-{port}"
+        wd.mkdir(parents=True, exist_ok=True)
+        mission = write_mission(wd / "mission.toml")
+        session.declare_subscriber(f"{M.PREFIX}/*/status/station", self._on_status)
+        names = ",".join(self.robots)
+        kids.spawn(["bench", "fleet", "--simulate", names, "--connect", tcp(port), "--mission", str(mission),
+                    "--sim-duration", str(life)], subprocess.DEVNULL)
+        self.proc = kids.spawn(["station", "--start", "--robots", names, "--mode", "client", "--connect", tcp(port),
+                                "--mission", str(mission), "--duration", str(life)], subprocess.DEVNULL,
+                               env=dict(os.environ, **STATION_ENV, SCMBRIDGE_STATE_DIR=str(wd)))
+        self.t0: tuple[float, float, dict[str, M.Status]] | None = None
+
+    def _on_status(self, sample) -> None:
+        robot = str(sample.key_expr).split("/")[1]
+        try:
+            st = self.M.decode(sample.payload.to_bytes(), self.M.Status)
+        except self.M.MessageError:
+            return
+        with self.lock:
+            self.status[robot] = st
+
+    def up(self, timeout: float) -> bool:
+        """Wait until every robot's station says it drives (its status reason ``ok``)."""
+        t_end = time.monotonic() + timeout
+        while time.monotonic() < t_end and self.proc.poll() is None:
+            with self.lock:
+                if all(r in self.status and self.status[r].reason == "ok" for r in self.robots):
+                    return True
+            time.sleep(0.1)
+        return False
+
+    def mark(self) -> None:
+        with self.lock:
+            self.t0 = (time.monotonic(), _cpu_s(self.proc.pid), dict(self.status))
+
+    def figures(self) -> dict:
+        """The station over the run since :meth:`mark`: ticks, missed deadlines (every robot), worst tick p99, CPU."""
+        t1, cpu1 = time.monotonic(), _cpu_s(self.proc.pid)
+        with self.lock:
+            now = dict(self.status)
+        assert self.t0 is not None
+        t0, cpu0, before = self.t0
+        ticks = missed = 0
+        p99 = []
+        for r in self.robots:
+            a, b = before.get(r), now.get(r)
+            if a is None or b is None:
+                continue
+            ticks += b.counters.get("ticks", 0) - a.counters.get("ticks", 0)
+            missed += b.counters.get("missed_deadlines", 0) - a.counters.get("missed_deadlines", 0)
+            p99.append(b.latencies_ms.get("tick_p99", float("nan")))
+        return {"robots": len(self.robots), "ticks": ticks, "missed_deadlines": missed,
+                "tick_p99_ms_worst": round(max(p99), 2) if p99 else None,
+                "cpu_cores": round((cpu1 - cpu0) / max(t1 - t0, 1e-9), 3),
+                "cpu_ms_per_tick": round((cpu1 - cpu0) / max(ticks, 1) * 1e3, 3)}
+
+
+def run_link(link: str, seconds: float, workdir: str, random_phase: bool = False, beside: int = 0) -> dict:
     """Commands at 50 Hz for ``seconds`` through the driver host on ``link``; latency, loop timing, memory.
 
     The host's loop ticks at 50 Hz too, and it sends at most ``max_send_hz`` (100 Hz): a command that arrives less
     than 10 ms after the last tick waits for the rest of that gap. Commands sent on a steady 50 Hz clock keep one
     phase to the host's ticks for the whole run, so the median is that phase's wait: 0.3 ms in one run, 5 ms in
     the next. ``random_phase`` sends each command at a random point of its 20 ms slot instead (50 Hz on average),
-    so every phase is sampled in every run: what ``bench perf`` judges, where a figure must not be a lottery."""
+    so every phase is sampled in every run: what ``bench perf`` judges, where a figure must not be a lottery.
+    ``beside``: that many robots ticked by a real station process on the same router for the whole run
+    (:class:`BesideStation`), which is up and driving before the first command is measured."""
     rng = np.random.default_rng(0)
 
     from bridge.core import wire as M
@@ -76,6 +163,11 @@ def run_link(link: str, seconds: float, workdir: str, random_phase: bool = False
 
         session.declare_subscriber(keys.applied, on_applied)
         session.declare_subscriber(status_key(robot, "driver"), on_status)
+        station = None
+        if beside > 0:
+            station = BesideStation(kids, session, port, beside, Path(workdir), seconds + 120 + 10 * beside)
+            if not station.up(60.0 + 10.0 * beside):
+                raise RuntimeError(f"the station beside the link did not drive its {beside} robot(s) in time")
         driver_args = emulated_link(kids, link, Path(workdir), "0,0,0", seconds + 40, rate_hz=50)
         driver = kids.spawn(["driver", "--engage", *driver_args, "--robot", robot, "--mode", "client", "--connect",
                              tcp(port), "--rate", "50", "--duration", str(seconds + 30)], subprocess.DEVNULL)
@@ -86,6 +178,8 @@ def run_link(link: str, seconds: float, workdir: str, random_phase: bool = False
                     break
             time.sleep(0.05)
         rss0 = _rss_kb(driver.pid)
+        if station is not None:
+            station.mark()
         pub = session.declare_publisher(keys.cmd)
         seq = 0
         t0 = time.monotonic()
@@ -102,6 +196,7 @@ def run_link(link: str, seconds: float, workdir: str, random_phase: bool = False
             time.sleep(max(0.0, t_next + jitter - time.monotonic()))
         time.sleep(1.2)
         rss1 = _rss_kb(driver.pid)
+        beside_figures = station.figures() if station is not None else None
     with lock:
         ms = np.array(lat) * 1e3
         last = status[-1] if status else None
@@ -114,6 +209,7 @@ def run_link(link: str, seconds: float, workdir: str, random_phase: bool = False
                       "missed_deadlines": c.get("missed_deadlines"),
                       "missed_fraction": c.get("missed_deadlines", 0) / (LOOP_HZ * (seconds + 1))},
         "driver_rss_kb": {"start": rss0, "end": rss1},
+        **({"beside_station": beside_figures} if beside_figures is not None else {}),
     }
 
 
@@ -121,6 +217,9 @@ def arguments(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--duration", type=float, default=60.0, help="seconds of the CAN run (loop timing and memory)")
     ap.add_argument("--link-duration", type=float, default=15.0, help="seconds of the udp and mavlink runs")
     ap.add_argument("--links", default="can,udp,mavlink")
+    ap.add_argument("--beside-station", type=int, default=0, metavar="N",
+                    help="a real station process ticks N robots (the fleet bench's simulated ones) on the same "
+                         "router for the whole run: the figures beside a station's ticks (default 0: none)")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -129,7 +228,11 @@ def run(args: argparse.Namespace) -> int:
     out: dict = {"links": {}}
     with tempfile.TemporaryDirectory() as tmp:
         for link in args.links.split(","):
-            out["links"][link] = run_link(link, args.duration if link == "can" else args.link_duration, tmp)
-    out["targets"] = {"p99_ms": 5.0, "missed_deadlines_fraction": 0.01, "memory": "no growth"}
+            out["links"][link] = run_link(link, args.duration if link == "can" else args.link_duration, tmp,
+                                          beside=args.beside_station)
+    out["beside_station_robots"] = args.beside_station
+    out["load"] = [round(a, 2) for a in os.getloadavg()]
+    out["targets"] = {"median_ms": 1.0, "p99_ms": 5.0, "jitter_p99_ms": 2.0, "missed_deadlines_fraction": 0.01,
+                      "memory": "no growth"}
     emit(out)
     return 0

@@ -271,7 +271,8 @@ def _load() -> list[float]:
 
 
 def run_level(n: int, seconds: float, warmup: float, mission: Path, workdir: Path, log,
-              env: dict[str, str] | None = None, layout: str = "processes", shards: int = 2) -> dict:
+              env: dict[str, str] | None = None, layout: str = "processes", shards: int = 2,
+              loop_threads: int | None = None) -> dict:
     """N stations and the simulated robots behind one router; the window's figures (see the module docstring).
     ``layout``: ``processes``, a station process per robot; ``one``, every robot in one ``station --robots``;
     ``shards``, the robots split over ``shards`` such processes (as station hosts of a sharded lab would be)."""
@@ -321,9 +322,10 @@ def run_level(n: int, seconds: float, warmup: float, mission: Path, workdir: Pat
                           str(mission), "--sim-duration", str(life)], log)
         if layout in ("one", "shards"):  # the pair stores and missions in the state directory (workdir)
             groups = [robots] if layout == "one" else [robots[k::shards] for k in range(min(shards, n))]
+            threads = ["--loop-threads", str(loop_threads)] if loop_threads is not None else []
             stations = {f"shard{k}": kids.spawn(["station", "--start", "--robots", ",".join(g), "--mode", "client",
                                                  "--connect", tcp(port), "--mission", str(mission), "--duration",
-                                                 str(life)], log,
+                                                 str(life), *threads], log,
                                                 env=dict(env or os.environ, SCMBRIDGE_STATE_DIR=str(workdir)))
                         for k, g in enumerate(groups)}
         else:
@@ -441,6 +443,8 @@ def arguments(ap: argparse.ArgumentParser) -> None:
                          "shards: the robots split over --shards such processes")
     ap.add_argument("--shards", type=int, default=os.cpu_count() or 1, help="station processes of --layout shards "
                     "(default: one per core)")
+    ap.add_argument("--loop-threads", type=int, default=None, metavar="N",
+                    help="the station processes' `--loop-threads` (layouts one and shards; default: the station's)")
     ap.add_argument("--blas-threads", choices=["1", "inherit"], default="1",
                     help="1: the stations run as the shipped units run them (OPENBLAS_NUM_THREADS=1, "
                          "OMP_NUM_THREADS=1); inherit: OpenBLAS's default, one thread per core")
@@ -474,7 +478,8 @@ def run(args: argparse.Namespace) -> int:
                 wd = Path(tmp) / f"n{n}"
                 wd.mkdir()
                 t0 = time.monotonic()
-                level = run_level(n, args.duration, args.warmup, mission, wd, log, env, args.layout, args.shards)
+                level = run_level(n, args.duration, args.warmup, mission, wd, log, env, args.layout, args.shards,
+                                  args.loop_threads)
                 level["wall_s"] = round(time.monotonic() - t0, 1)
                 out["levels"].append(level)
                 brief = {k: level.get(k) for k in ("robots", "held", "missed_fraction_worst", "tick_p99_ms_worst",

@@ -23,7 +23,8 @@ run of the same options: back to back (the default) every cache is warm; ``--pac
 deadline in real time, so code and data go cold between ticks as in a station serving a few robots on a busy
 machine; ``--count N`` ticks N robots one after the other each period (a many-robot station: code warm, each
 robot's data cold); ``--threads`` runs each robot's loop in its own thread on its own deadlines, phases spread over
-the period, under ``station --robots``'s switch interval (the process's CPU per tick only). ``--zenoh``: the
+the period, under ``station --robots``'s switch interval, as that command ran its robots until one thread ticked
+them all (the process's CPU per tick only). ``--zenoh``: the
 telemetry really crosses a Zenoh session (published by the simulated robot on its keys, drained from Zenoh's ring by
 the station's ``Inputs.queue`` as :meth:`bridge.nodes.station.Station.tick` does) and the outputs are put on their
 publishers: ``decode`` then includes taking the samples from the ring and ``publish`` the puts. ``--profile N``
@@ -57,8 +58,9 @@ def arguments(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--count", type=int, default=1, help="robots (cores) ticked one after the other each period, "
                     "as the loops of a many-robot station take turns (their data go cold between two ticks)")
     ap.add_argument("--threads", action="store_true", help="each robot in its own thread on its own 10 Hz deadlines "
-                    "(as `station --robots` runs them; with --count): only the CPU per tick of the whole process "
-                    "(less the simulated robots' share) and of the ticks themselves, no phases")
+                    "(as `station --robots` ran them until one thread ticked them all; with --count): only the CPU per "
+                    "tick of the whole process (less the simulated robots' share) and of the ticks themselves, no "
+                    "phases")
     ap.add_argument("--switch-interval", type=float, default=None, metavar="S",
                     help="sys.setswitchinterval for --threads (default: the station's FLEET_SWITCH_INTERVAL_S)")
     ap.add_argument("--gc-freeze", action="store_true", help="gc.freeze() once the cores are built (start-up's objects "
@@ -311,7 +313,8 @@ def _run(args: argparse.Namespace, tmp: Path) -> dict:
 
 def _threaded(args, rigs, period: float, t0: float, decode, encode, clock: _Clock, session) -> dict:
     """--threads: every robot's loop in its own thread, ticking at the period from a phase spread over it, as
-    :func:`bridge.nodes.station.run_fleet` runs them; the CPU of the process per tick less the simulated robots'."""
+    ``station --robots`` ran them before one thread ticked them all (:class:`bridge.nodes.station.FleetLoop`); the
+    CPU of the process per tick less the simulated robots'."""
     import threading
 
     from bridge.nodes.station import FLEET_SWITCH_INTERVAL_S

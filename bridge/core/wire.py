@@ -410,15 +410,25 @@ def encode(msg: Struct) -> bytes:
     return _encoder.encode(msg)
 
 
-def decode(data: bytes | bytearray | memoryview, kind: type[MsgT]) -> MsgT:
-    """Decode *and validate* ``data`` as ``kind``; raise :class:`MessageError` naming the problem."""
+#: what a decoder raises for a payload that is not a valid message (msgspec lets invalid UTF-8 in a str field escape
+#: as UnicodeDecodeError: found by hypothesis)
+DECODE_ERRORS = (msgspec.ValidationError, msgspec.DecodeError, UnicodeDecodeError)
+
+
+def decoder(kind: type[MsgT]) -> msgspec.msgpack.Decoder:
+    """The one decoder of ``kind`` (it validates as it decodes): ``decoder(kind).decode(data)`` is :func:`decode`
+    without the wrapping, for a loop that decodes many samples and handles :data:`DECODE_ERRORS` itself."""
     dec = _decoders.get(kind)
     if dec is None:
         dec = _decoders[kind] = msgspec.msgpack.Decoder(kind)
+    return dec
+
+
+def decode(data: bytes | bytearray | memoryview, kind: type[MsgT]) -> MsgT:
+    """Decode *and validate* ``data`` as ``kind``; raise :class:`MessageError` naming the problem."""
     try:
-        return dec.decode(data)
-    except (msgspec.ValidationError, msgspec.DecodeError, UnicodeDecodeError) as exc:
-        # msgspec lets invalid UTF-8 in a str field escape as UnicodeDecodeError (found by hypothesis)
+        return decoder(kind).decode(data)
+    except DECODE_ERRORS as exc:
         raise MessageError(f"bad {kind.__name__}: {exc}") from exc
 
 

@@ -56,8 +56,8 @@ class Inputs:
                   handler: Callable[[S, float], None], remote_only: bool = False) -> Any:
         """Declare a subscriber on ``key`` that decodes (and so validates) each sample as ``kind``; a sample that
         does not decode is counted as ``malformed_<name>`` and dropped; ``handler(msg, receive_time)`` gets the rest.
-        ``remote_only``: not what this session itself puts (a node listening for other senders on a key it
-        publishes on: its own messages are never delivered back to it, so never decoded again).
+        ``remote_only``: what this session itself publishes on ``key`` is not delivered (Zenoh's
+        ``Locality.REMOTE``): a node that listens on a key it publishes on, for other senders only.
         """
 
         def on_sample(sample: zenoh.Sample) -> None:
@@ -97,12 +97,16 @@ class Queued(Generic[S]):
 
     def drain(self, now: float) -> list[tuple[S, float]]:
         """Every sample waiting, decoded, in arrival order, each with ``now`` as its receipt time (the samples
-        arrived since the last read, at most one loop period ago); the malformed ones counted and dropped."""
+        arrived since the last read, at most one loop period ago); the malformed ones counted and dropped (by
+        :meth:`Inputs.decode`, as a subscription's). The valid ones go through the message's decoder directly: a
+        station drains about 15 samples per robot and tick."""
         out: list[tuple[S, float]] = []
-        while (sample := self.subscriber.try_recv()) is not None:
-            msg = self.inputs.decode(sample, self.kind, self.name, self.key)
-            if msg is not None:
-                out.append((msg, now))
+        recv, dec = self.subscriber.try_recv, M.decoder(self.kind).decode
+        while (sample := recv()) is not None:
+            try:
+                out.append((dec(sample.payload.to_bytes()), now))
+            except M.DECODE_ERRORS:
+                self.inputs.decode(sample, self.kind, self.name, self.key)  # counts it, says why, drops it
         return out
 
 

@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import operator
 import sys
 import threading
 import time
@@ -110,6 +111,8 @@ class Inbox:
 
 #: how often a many-robot station hands the GIL over, s (Python's default is 5 ms; see run_fleet)
 FLEET_SWITCH_INTERVAL_S = 0.0005
+#: threads that tick a many-robot process's robots (:class:`FleetLoop`; ``station --loop-threads``)
+DEFAULT_LOOP_THREADS = 1
 
 
 class KernelBuild:
@@ -180,7 +183,7 @@ class Station:
         self.telemetry: list[Queued] = []  # the echoes' and the poses' queues, read at each tick (serve declares them)
         self.wake = threading.Event()  # a query, or an external teacher's command: the loop handles it now
         self.pubs: dict[str, zenoh.Publisher] = {}
-        self.ticker: FixedRate | None = None
+        self.ticker: FixedRate | Deadlines | None = None  # its deadlines (and missed ones)
         self.build: KernelBuild | None = None
         self.teacher = self.core.source.teacher if isinstance(self.core.source, MpcSource) else None
 
@@ -365,8 +368,19 @@ class Station:
               exit_at_goal: bool, announce: bool = True, phase: float = 0.0) -> None:
         """Declare this robot's keys on ``session`` and run its fixed-rate loop until ``stop`` (or ``duration``, or
         the goal with ``exit_at_goal``). ``announce``: tell systemd the service is ready (one robot per process).
-        ``phase``: seconds to wait before the first tick (a many-robot process spreads its robots' ticks over the
-        period)."""
+        ``phase``: seconds to wait before the first tick. (A many-robot process declares each robot's keys with
+        :meth:`declare` and ticks them all from one thread: :class:`FleetLoop`.)"""
+        self.declare(session, announce)
+        if phase > 0 and stop.wait(phase):
+            return
+        self.begin()
+        try:
+            self._loop(stop, duration, exit_at_goal)
+        finally:
+            self.end()
+
+    def declare(self, session: zenoh.Session, announce: bool = False) -> None:
+        """Declare this robot's inputs, queryables and publishers on ``session`` (nothing is ticked yet)."""
         k = self.keys
         external = self.core.source.external
         # poses (100 Hz) and echoes (50 Hz) wait in Zenoh's ring until the tick reads them: no callback per sample
@@ -375,8 +389,8 @@ class Station:
         self.inputs.subscribe(session, M.status_key(self.robot, "driver"), M.Status, "driver_status",
                               self.on_driver_status)
         self.inputs.subscribe(session, k.mission, M.MissionSpec, "mission", self.on_mission)
-        # another sender's commands on this robot's key; the station's own are not delivered back to it (they were
-        # encoded and checked once, in the core: decoding each again here would only find its own epoch)
+        # another sender's commands on this robot's key; this session's own (every command it publishes) never
+        # reach the callback: Zenoh drops them at the source (a decode and a GIL handover per command saved)
         self.inputs.subscribe(session, k.cmd, M.Command, "own_cmd", self.on_own_cmd, remote_only=True)
         if external:
             self.inputs.subscribe(session, k.teacher, M.TeacherCommand, "teacher", self.on_teacher)
@@ -393,17 +407,18 @@ class Station:
                  self.core.control.phase, self.core.epoch)
         if announce:
             systemd.ready(f"{self.robot}: {what}, mission {self.core.control.phase}")
-        if phase > 0 and stop.wait(phase):
-            return
+
+    def begin(self) -> None:
+        """From here on only the loop's thread calls the core (queries wait in the inbox for it)."""
         with self.lock:
-            self.looping = True  # from here on only this thread calls the core
-        try:
-            self._loop(stop, duration, exit_at_goal)
-        finally:
-            with self.lock:  # queries left waiting are answered now; later ones in their callbacks
-                self.looping = False
-                left, self.inbox.queries = self.inbox.queries, []
-                self._answer(left, time.monotonic())
+            self.looping = True
+
+    def end(self) -> None:
+        """The loop has ended: queries left waiting are answered now; later ones in their callbacks."""
+        with self.lock:
+            self.looping = False
+            left, self.inbox.queries = self.inbox.queries, []
+            self._answer(left, time.monotonic())
 
     def _loop(self, stop: threading.Event, duration: float | None, exit_at_goal: bool) -> None:
         self.ticker = FixedRate(1 / self.period, stop)
@@ -424,6 +439,183 @@ class Station:
                     break
 
 
+class Deadlines:
+    """One robot's periodic deadlines in a many-robot process (:class:`FleetLoop`): the rules of
+    :class:`~bridge.nodes.node.FixedRate` (no send budget, no rephase) without its waiting, which the one scheduler
+    thread does for every robot. ``t_next`` is the next periodic tick's deadline. A periodic tick that ends at or
+    past the next deadline is counted in ``missed`` and the schedule restarts from its end (the next tick is due at
+    once); a tick woken between two deadlines keeps the schedule, and is counted only when it ended a whole period
+    past the deadline. Missed deadlines are counted per robot exactly as a loop of its own counts them."""
+
+    def __init__(self, period: float, first: float) -> None:
+        self.period = float(period)
+        self.t_next = float(first)
+        self.missed = 0
+        self.late = 0.0  # s the last periodic tick started after its deadline
+
+    def ticked(self, end: float, periodic: bool) -> None:
+        """A tick (``periodic``, or woken by an input) ended at ``end``."""
+        if periodic:
+            self.t_next += self.period
+            if end >= self.t_next:
+                self.missed += 1
+                self.t_next = end
+        elif end - self.t_next >= self.period:
+            self.missed += 1
+            self.t_next = end
+
+
+class FleetWake:
+    """A robot's wake-up in a many-robot process: its own flag (what :class:`Station` sets: a query, an external
+    teacher's command) and the scheduler's one event, set with it, so that the one thread waits on one event for
+    every robot. The flag is set after what it announces is in the inbox, and taken (read and cleared) before the
+    inbox is: nothing handed over is left unseen."""
+
+    def __init__(self, shared: threading.Event) -> None:
+        self.shared = shared
+        self.flag = False
+
+    def set(self) -> None:
+        self.flag = True
+        self.shared.set()
+
+    def is_set(self) -> bool:
+        return self.flag
+
+    def clear(self) -> None:
+        self.flag = False
+
+    def take(self) -> bool:
+        """Whether it was set (and it is cleared). Cleared only when it was read set: a set between the read and
+        the clear is then covered by the inbox read after it, and a set after a read that found it clear is kept."""
+        if self.flag:
+            self.flag = False
+            return True
+        return False
+
+
+#: the key of the robot due first (C-implemented: called for every robot at every turn of the loop)
+_NEXT_DEADLINE = operator.attrgetter("ticker.t_next")
+
+
+class FleetLoop:
+    """Every robot of a process ticked by one thread (``station --robots``, ``--shard``), or by a few
+    (``threads``, ``station --loop-threads``), each robot always by the same one: each robot on its own deadlines
+    (:class:`Deadlines`, its first at its phase: the robots' ticks spread evenly over the period, and dealt to the
+    threads in phase order, so one thread's robots are spread over the period too), the one due first ticked first,
+    woken robots (a query, an external teacher's command) handled between two ticks as a robot's own loop handles
+    them. One thread instead of a thread per robot: the robots' loops no longer queue for the interpreter lock
+    against each other (and Zenoh's threads), which cost CPU on every hand-over and let a late tick progress slowly
+    through many frames (docs/FLEET.md). Zenoh's callbacks are unchanged: they fill each robot's inbox. A robot
+    whose tick raises is logged and left stopped (its driver host's deadman stops the vehicle); the others drive
+    on."""
+
+    def __init__(self, stations: list[Station], stop: threading.Event, duration: float | None,
+                 exit_at_goal: bool, threads: int = 1) -> None:
+        self.stations, self.stop = stations, stop
+        self.duration, self.exit_at_goal = duration, exit_at_goal
+        k = max(1, min(int(threads), len(stations)))
+        self.groups = [stations[i::k] for i in range(k)]
+        self.wakes = [threading.Event() for _ in self.groups]
+        self.failed: list[str] = []
+        for group, wake in zip(self.groups, self.wakes):
+            for st in group:
+                st.wake = FleetWake(wake)
+
+    def run(self) -> None:
+        """Tick every robot until ``stop`` (or ``duration``, or, with ``exit_at_goal``, each robot's goal)."""
+        n = len(self.stations)
+        t0 = time.monotonic()
+        for i, st in enumerate(self.stations):
+            st.ticker = Deadlines(st.period, t0 + i * st.period / n)
+            st.begin()
+        if len(self.groups) == 1:
+            self._run(self.groups[0], self.wakes[0])
+            return
+        loops = [threading.Thread(target=self._run, args=(g, w), name=f"station-loop-{k}", daemon=True)
+                 for k, (g, w) in enumerate(zip(self.groups, self.wakes))]
+        for t in loops:
+            t.start()
+        for t in loops:
+            t.join()
+
+    def _run(self, group: list[Station], wake: threading.Event) -> None:
+        """One thread's loop over its robots (``group``, woken by ``wake``)."""
+        active = list(group)
+        start = {st.robot: st.ticker.t_next for st in active}
+        linger = time.monotonic()
+        try:
+            while active and not self.stop.is_set():
+                if wake.is_set():  # inputs to handle now; then whatever is due (a stream of wakes never starves
+                    wake.clear()   # the deadlines)
+                    for st in list(active):
+                        if st.wake.take() and not self._woken(st):
+                            active.remove(st)
+                    if not active:
+                        break
+                st = min(active, key=_NEXT_DEADLINE)
+                now = time.monotonic()
+                delay = st.ticker.t_next - now
+                if delay > 0:
+                    wake.wait(delay)
+                    continue
+                if self.duration is not None and now - start[st.robot] >= self.duration:
+                    self._finish(st, active)
+                    continue
+                st.wake.clear()  # the periodic tick reads every input handed over until now
+                st.ticker.late = -delay
+                if not self._tick(st, now, True):
+                    self._finish(st, active, failed=True)
+                    continue
+                if self.exit_at_goal and st.core.finished:
+                    try:
+                        st.pubs["status"].put(M.encode(st.core.status(now)))
+                    except Exception:  # the robot is done: its last status is a courtesy
+                        log.exception("%s: final status not published", st.robot)
+                    linger = time.monotonic() + 3 * st.period  # the status reaches its subscribers
+                    self._finish(st, active)
+            if not self.stop.is_set() and linger > time.monotonic():
+                self.stop.wait(linger - time.monotonic())
+        finally:
+            for st in active:
+                st.end()
+
+    def _tick(self, st: Station, now: float, periodic: bool) -> bool:
+        """One tick of ``st`` and its deadlines' bookkeeping; False when it failed."""
+        try:
+            st.tick(now, periodic)
+        except Exception as exc:  # one robot's failure stops that robot only
+            log.exception("%s: station loop failed (%s); its robot stops by its deadman, the others drive on",
+                          st.robot, exc)
+            return False
+        st.ticker.ticked(time.monotonic(), periodic)
+        return True
+
+    def _woken(self, st: Station) -> bool:
+        """A robot woken before its deadline: its queries answered, an external teacher's command mapped now;
+        False when that failed (the robot is then stopped)."""
+        try:
+            teacher = st.between_ticks()
+        except Exception as exc:
+            log.exception("%s: station loop failed (%s); its robot stops by its deadman, the others drive on",
+                          st.robot, exc)
+            teacher, ok = False, False
+        else:
+            ok = True
+        if ok and teacher:
+            ok = self._tick(st, time.monotonic(), False)
+        if not ok:
+            self.failed.append(st.robot)
+            st.end()
+        return ok
+
+    def _finish(self, st: Station, active: list[Station], failed: bool = False) -> None:
+        active.remove(st)
+        if failed:
+            self.failed.append(st.robot)
+        st.end()
+
+
 def arguments(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--config", help="station TOML (scmbridge config show --kind station)")
     ap.add_argument("--robot", type=robot_arg, default=None, help="robot name (overrides the config)")
@@ -432,6 +624,9 @@ def arguments(ap: argparse.ArgumentParser) -> None:
                          "deadlines, pair store and mission; one Zenoh session and one compiled MPC for all)")
     ap.add_argument("--shard", default=None, help="serve the robots the config's [fleet] shards give this station "
                     "host (one process, as --robots)")
+    ap.add_argument("--loop-threads", type=int, default=DEFAULT_LOOP_THREADS, metavar="N",
+                    help="threads that tick the robots of --robots / --shard, each robot always by the same one "
+                         f"(default {DEFAULT_LOOP_THREADS}; docs/FLEET.md)")
     ap.add_argument("--mission", default=None, help="mission file (TOML; overrides the config)")
     add_zenoh_args(ap)
     ap.add_argument("--rate", type=positive_float, default=None, help="control tick rate, Hz (overrides the config)")
@@ -518,15 +713,15 @@ def run(args: argparse.Namespace) -> int:
 
 
 def run_fleet(cfg: StationConfig, robots: list[str], rate: float, args: argparse.Namespace) -> int:
-    """Every robot's station in this one process over one Zenoh session: each robot its own thread and fixed-rate
-    loop (its deadlines and missed ones its own: a slow robot never delays another), store, mission and status;
-    the SC kernels and the MPC's compiled code are built once and shared. A robot whose station cannot be built
-    (an unreadable mission) or whose loop fails is logged and left stopped (its driver host's deadman stops the
-    vehicle); the others drive on."""
+    """Every robot's station in this one process over one Zenoh session, all ticked by one thread
+    (:class:`FleetLoop`): each robot on its own deadlines (missed ones its own), with its own store, mission and
+    status; the SC kernels and the MPC's compiled code are built once and shared. A robot whose station cannot be
+    built (an unreadable mission) or whose tick fails is logged and left stopped (its driver host's deadman stops
+    the vehicle); the others drive on."""
     from transfer.scm import warmup
 
-    # many loops share one interpreter: hand the GIL over every 0.5 ms (Python's default is 5 ms), so a tick that is
-    # due never waits behind another robot's long computation for more than that
+    # Zenoh's callbacks and the writer threads still take the GIL from the one loop thread: hand it over every
+    # 0.5 ms (Python's default is 5 ms), so a callback (which only fills an inbox) never waits long behind a tick
     sys.setswitchinterval(FLEET_SWITCH_INTERVAL_S)
     stations: dict[str, Station] = {}
     for robot in robots:
@@ -544,28 +739,23 @@ def run_fleet(cfg: StationConfig, robots: list[str], rate: float, args: argparse
         st.build = build
     stop = stop_on_signals()
     failed: list[str] = []
-
-    def serve(st: Station, phase: float) -> None:
-        try:
-            st.serve(session, stop, args.duration, args.exit_at_goal, announce=False, phase=phase)
-        except Exception as exc:  # one robot's failure stops that robot only
-            failed.append(st.robot)
-            log.exception("%s: station loop failed (%s); its robot stops by its deadman, the others drive on",
-                          st.robot, exc)
-
     try:
         with open_session(zenoh_config(args), wait=stop, what="station") as session:
-            # the robots' ticks spread evenly over the period: started together, every robot would be due at the same
-            # instant each period and the last to get the interpreter lock would wait for all the others' ticks
-            threads = [threading.Thread(target=serve, args=(st, i / len(stations) / rate),
-                                        name=f"station-{r}", daemon=True)
-                       for i, (r, st) in enumerate(stations.items())]
-            for t in threads:
-                t.start()
+            declared = []
+            for st in stations.values():
+                try:
+                    st.declare(session)
+                    declared.append(st)
+                except Exception as exc:  # one robot's failure stops that robot only
+                    failed.append(st.robot)
+                    log.exception("%s: station not started (%s); its robot stops by its deadman, the others drive on",
+                                  st.robot, exc)
+            fleet = FleetLoop(declared, stop, args.duration, args.exit_at_goal,
+                              threads=getattr(args, "loop_threads", DEFAULT_LOOP_THREADS))
             systemd.ready(f"{len(stations)} robots: {', '.join(stations)}")
-            log.info("serving %d robots from one process: %s", len(stations), ", ".join(stations))
-            for t in threads:
-                t.join()
+            log.info("serving %d robots from one process: %s", len(declared), ", ".join(s.robot for s in declared))
+            fleet.run()
+            failed += fleet.failed
     finally:
         saved = [_save(st) for st in stations.values()]
     return 0 if all(saved) and not failed and len(stations) == len(robots) else 1
