@@ -40,9 +40,10 @@ from transfer.domain import Bounds
 from transfer.limits import LearnerLimits
 
 SCHEMA = "scmbridge.pairstore"
-SCHEMA_VERSION = 2
-#: the versions this build reads (1: before change detection; its cells start with no recent pairs or slopes)
-READS_VERSIONS = (1, 2)
+SCHEMA_VERSION = 3
+#: the versions this build reads (1: before change detection; its cells start with no recent pairs or slopes; 2:
+#: before the per-cell change count, which starts at 1 for a cell with a change time and 0 otherwise)
+READS_VERSIONS = (1, 2, 3)
 _MAGIC = b"SCMPAIRS"
 #: a cell's learner has changed when the recency-weighted mean of its residuals is beyond this (normalised teacher
 #: units; 2 % of the teacher's range: 0.011 m/s and 0.031 rad/s for the paper's MPC teacher), or beyond
@@ -118,6 +119,18 @@ class _StoreBlob(msgspec.Struct, forbid_unknown_fields=True):
     recent_T: list[float] | None = None
     recent_L: list[float] | None = None
     recent_n: list[int] | None = None
+    # schema 3: how often each cell was re-learned; absent in versions 1 and 2
+    changes: list[int] | None = None
+
+
+@dataclass(frozen=True)
+class CellChange:
+    """A cell whose learner changed: its id (the refined pair's), how often it was re-learned, and the stamp of the
+    last time (what the caller gave :meth:`PairStore.add`: the station gives wall-clock seconds; None: no stamp)."""
+
+    id: int
+    count: int
+    at: float | None
 
 
 class PairStore:
@@ -166,6 +179,7 @@ class PairStore:
         self.relearned = 0  # cells re-learned after a change was detected in them
         self.added = 0  # raw pairs taken
         self.changed_at = np.full((gv, gw), np.nan)  # the stamp of each cell's last re-learning (NaN: never)
+        self.changes = np.zeros((gv, gw), dtype=np.int64)  # how often each cell was re-learned
         self.resid = np.zeros((gv, gw, 2))  # per cell: recency-weighted mean of the residuals against its relation
         self.noise2 = np.full(2, self.move_tol ** 2)  # the residuals' variance per axis when nothing changes
         self.last_resid = np.full((gv, gw, 2), np.nan)  # per cell: its last residual (NaN: none since it changed)
@@ -313,7 +327,17 @@ class PairStore:
         self.resid[cell] = 0.0
         self.last_resid[cell] = np.nan
         self.relearned += 1
+        self.changes[cell] += 1
         self.changed_at[cell] = np.nan if stamp is None else float(stamp)
+
+    def changed_cells(self) -> list[CellChange]:
+        """The cells re-learned since the store began (this run or an earlier one it was loaded from), the most
+        recently changed last (cells without a stamp first)."""
+        ids = np.flatnonzero(self.changes.ravel() > 0)
+        at = self.changed_at.ravel()
+        out = [CellChange(int(i), int(self.changes.ravel()[i]), None if np.isnan(at[i]) else float(at[i]))
+               for i in ids]
+        return sorted(out, key=lambda c: (c.at is not None, c.at or 0.0, c.id))
 
     def cluster_mean(self, cell: tuple[int, int]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         """The mean of a cell's raw pairs so far, (teacher part, learner part) normalised, even before it holds k_min
@@ -398,6 +422,7 @@ class PairStore:
             recent_T=self.recent_T.ravel().tolist(),
             recent_L=self.recent_L.ravel().tolist(),
             recent_n=self.recent_n.ravel().tolist(),
+            changes=self.changes.ravel().tolist(),
         )
         payload = msgspec.msgpack.encode(blob)
         return _MAGIC + zlib.crc32(payload).to_bytes(4, "little") + payload
@@ -441,7 +466,7 @@ class PairStore:
                     move_tol=b.move_tol, boundary_tol=b.boundary_tol, adapt=b.adapt)
         r = store.recent_T.shape[2]
         optional = {"sum_LL": 2 * n, "sum_TL": 2 * n, "changed_at": n, "resid": 2 * n, "noise2": 2,
-                    "recent_T": 2 * n * r, "recent_L": 2 * n * r, "recent_n": n}
+                    "recent_T": 2 * n * r, "recent_L": 2 * n * r, "recent_n": n, "changes": n}
         for name, want in optional.items():
             arr = getattr(b, name)
             if arr is not None and len(arr) != want:
@@ -473,6 +498,10 @@ class PairStore:
             store.sum_TL = store.count[..., None] * mL * store.sum_T / np.maximum(store.count, 1)[..., None]
         if b.changed_at is not None:
             store.changed_at = np.array([np.nan if v is None else v for v in b.changed_at], dtype=float).reshape(gv, gw)
+        if b.changes is not None:
+            store.changes = np.array(b.changes, dtype=np.int64).reshape(gv, gw)
+        else:  # versions 1 and 2: a cell with a change time changed once at least
+            store.changes = (~np.isnan(store.changed_at)).astype(np.int64)
         if b.resid is not None:
             store.resid = np.array(b.resid, dtype=float).reshape(gv, gw, 2)
         if b.noise2 is not None:
@@ -484,6 +513,6 @@ class PairStore:
         arrays = [store.sum_T, store.sum_L, store.pub_T, store.pub_L, lim.lo, lim.hi, lim.bsum_lo, lim.bsum_hi,
                   lim.hull_sum, store.sum_LL, store.sum_TL, store.resid, store.noise2, store.recent_T, store.recent_L]
         if (not all(np.all(np.isfinite(a)) for a in arrays) or np.any(store.count < 0) or np.any(store.recent_n < 0)
-                or np.any(store.noise2 < 0)):
+                or np.any(store.changes < 0) or np.any(store.noise2 < 0)):
             raise ValueError("pair-store blob holds non-finite or negative values")
         return store
