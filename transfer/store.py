@@ -54,6 +54,8 @@ CHANGE_SIGMAS = 5.0
 NOISE_WEIGHT = 0.01
 #: raw pairs a cell remembers (to re-learn from after a change), per k_min
 RECENT_PER_K = 2
+#: a cell's own noise estimate is the mean of its last this many residual differences, per k_min
+CELL_NOISE_PER_K = 4
 
 
 @dataclass(frozen=True)
@@ -119,8 +121,10 @@ class _StoreBlob(msgspec.Struct, forbid_unknown_fields=True):
     recent_T: list[float] | None = None
     recent_L: list[float] | None = None
     recent_n: list[int] | None = None
-    # schema 3: how often each cell was re-learned; absent in versions 1 and 2
+    # schema 3: how often each cell was re-learned, each cell's own noise estimate; absent in versions 1 and 2
     changes: list[int] | None = None
+    cell_noise2: list[float] | None = None
+    cell_noise_n: list[int] | None = None
 
 
 @dataclass(frozen=True)
@@ -183,6 +187,8 @@ class PairStore:
         self.resid = np.zeros((gv, gw, 2))  # per cell: recency-weighted mean of the residuals against its relation
         self.noise2 = np.full(2, self.move_tol ** 2)  # the residuals' variance per axis when nothing changes
         self.last_resid = np.full((gv, gw, 2), np.nan)  # per cell: its last residual (NaN: none since it changed)
+        self.cell_noise2 = np.zeros((gv, gw, 2))  # per cell: its own residuals' variance per axis (same estimator)
+        self.cell_noise_n = np.zeros((gv, gw), dtype=np.int64)  # residual differences in it since its last change
         r = RECENT_PER_K * self.k_min
         self.recent_T = np.zeros((gv, gw, r, 2))  # per cell: its last raw pairs (a ring), normalised
         self.recent_L = np.zeros((gv, gw, r, 2))
@@ -263,25 +269,35 @@ class PairStore:
             return t_n - self.pub_T[cell] - (l_n - self.pub_L[cell]) * self._slope(cell)
         return t_n - (self.sum_T[cell] + (n * l_n - self.sum_L[cell]) * self._slope(cell)) / n
 
-    def _threshold(self) -> NDArray[np.float64]:
+    def _threshold(self, cell: tuple[int, int] | None = None) -> NDArray[np.float64]:
         """A cell's mean residual beyond which its learner has changed, per axis: ``change_sigmas`` standard
-        deviations of that mean when nothing changes (from the residuals' noise), and never below ``change_tol``."""
+        deviations of that mean when nothing changes (from the residuals' noise: the store's, or the cell's own where
+        it has one and it is larger), and never below ``change_tol``."""
         a = 1.0 / self.k_min
-        return np.maximum(self.change_sigmas * np.sqrt(self.noise2 * a / (2.0 - a)), self.change_tol)
+        noise2 = self.noise2
+        if cell is not None and self.cell_noise_n[cell] >= self.k_min:
+            noise2 = np.maximum(noise2, self.cell_noise2[cell])
+        return np.maximum(self.change_sigmas * np.sqrt(noise2 * a / (2.0 - a)), self.change_tol)
 
     def _changed(self, cell: tuple[int, int], t_n: NDArray[np.float64], l_n: NDArray[np.float64]) -> bool:
         """The change test of a configured cell (module docstring): the recency-weighted mean of its residuals (weight
-        1/k_min) beyond :meth:`_threshold` on either axis. A pair that does not alarm updates the noise estimate."""
+        1/k_min) beyond :meth:`_threshold` on either axis. A cell re-learned before is tested again only once it has
+        its own noise estimate (k_min residual differences since): its few new pairs' mean is not yet a relation to
+        test against, and a learner whose response depends on its history (an acceleration limit that binds) shows
+        there how far its pairs scatter. A pair that does not alarm updates the noise estimates."""
         r = self._residual(cell, t_n, l_n)
         e = self.resid[cell] = self.resid[cell] + (r - self.resid[cell]) / self.k_min
-        thr = self._threshold()
-        if np.any(np.abs(e) > thr):
+        tested = self.changes[cell] == 0 or self.cell_noise_n[cell] >= self.k_min
+        if tested and np.any(np.abs(e) > self._threshold(cell)):
             return True
         # the noise is learned from the difference of a cell's consecutive residuals (half its square): a change moves
         # both alike, so a learner that changed everywhere does not pass for a noisy one and hide its own change
         last = self.last_resid[cell]
         if not np.any(np.isnan(last)):
-            self.noise2 += NOISE_WEIGHT * (0.5 * (r - last) ** 2 - self.noise2)
+            d2 = 0.5 * (r - last) ** 2
+            self.noise2 += NOISE_WEIGHT * (d2 - self.noise2)
+            n = self.cell_noise_n[cell] = self.cell_noise_n[cell] + 1
+            self.cell_noise2[cell] += (d2 - self.cell_noise2[cell]) / min(n, CELL_NOISE_PER_K * self.k_min)
         self.last_resid[cell] = r
         return False
 
@@ -326,6 +342,7 @@ class PairStore:
         self.limits.refined_changed()
         self.resid[cell] = 0.0
         self.last_resid[cell] = np.nan
+        self.cell_noise_n[cell] = 0
         self.relearned += 1
         self.changes[cell] += 1
         self.changed_at[cell] = np.nan if stamp is None else float(stamp)
@@ -423,6 +440,8 @@ class PairStore:
             recent_L=self.recent_L.ravel().tolist(),
             recent_n=self.recent_n.ravel().tolist(),
             changes=self.changes.ravel().tolist(),
+            cell_noise2=self.cell_noise2.ravel().tolist(),
+            cell_noise_n=self.cell_noise_n.ravel().tolist(),
         )
         payload = msgspec.msgpack.encode(blob)
         return _MAGIC + zlib.crc32(payload).to_bytes(4, "little") + payload
@@ -466,7 +485,8 @@ class PairStore:
                     move_tol=b.move_tol, boundary_tol=b.boundary_tol, adapt=b.adapt)
         r = store.recent_T.shape[2]
         optional = {"sum_LL": 2 * n, "sum_TL": 2 * n, "changed_at": n, "resid": 2 * n, "noise2": 2,
-                    "recent_T": 2 * n * r, "recent_L": 2 * n * r, "recent_n": n, "changes": n}
+                    "recent_T": 2 * n * r, "recent_L": 2 * n * r, "recent_n": n, "changes": n,
+                    "cell_noise2": 2 * n, "cell_noise_n": n}
         for name, want in optional.items():
             arr = getattr(b, name)
             if arr is not None and len(arr) != want:
@@ -502,6 +522,9 @@ class PairStore:
             store.changes = np.array(b.changes, dtype=np.int64).reshape(gv, gw)
         else:  # versions 1 and 2: a cell with a change time changed once at least
             store.changes = (~np.isnan(store.changed_at)).astype(np.int64)
+        if b.cell_noise2 is not None and b.cell_noise_n is not None:  # versions 1 and 2: no cell has its own yet
+            store.cell_noise2 = np.array(b.cell_noise2, dtype=float).reshape(gv, gw, 2)
+            store.cell_noise_n = np.array(b.cell_noise_n, dtype=np.int64).reshape(gv, gw)
         if b.resid is not None:
             store.resid = np.array(b.resid, dtype=float).reshape(gv, gw, 2)
         if b.noise2 is not None:
@@ -511,8 +534,10 @@ class PairStore:
             store.recent_L = np.array(b.recent_L, dtype=float).reshape(gv, gw, r, 2)
             store.recent_n = np.array(b.recent_n, dtype=np.int64).reshape(gv, gw)
         arrays = [store.sum_T, store.sum_L, store.pub_T, store.pub_L, lim.lo, lim.hi, lim.bsum_lo, lim.bsum_hi,
-                  lim.hull_sum, store.sum_LL, store.sum_TL, store.resid, store.noise2, store.recent_T, store.recent_L]
+                  lim.hull_sum, store.sum_LL, store.sum_TL, store.resid, store.noise2, store.recent_T, store.recent_L,
+                  store.cell_noise2]
         if (not all(np.all(np.isfinite(a)) for a in arrays) or np.any(store.count < 0) or np.any(store.recent_n < 0)
-                or np.any(store.changes < 0) or np.any(store.noise2 < 0)):
+                or np.any(store.changes < 0) or np.any(store.noise2 < 0) or np.any(store.cell_noise2 < 0)
+                or np.any(store.cell_noise_n < 0)):
             raise ValueError("pair-store blob holds non-finite or negative values")
         return store
