@@ -143,3 +143,28 @@ def test_each_cells_change_count_and_time_survive_a_save_and_a_version_2_store_l
     payload = msgspec.msgpack.encode(raw)
     old = PairStore.from_bytes(b"SCMPAIRS" + zlib.crc32(payload).to_bytes(4, "little") + payload)
     assert old.changed_cells() == [type(c)(115, 1, c.at)] and old.relearned == 2
+
+
+def test_a_cell_whose_pairs_scatter_is_not_relearned_over_and_over_and_still_sees_a_real_change() -> None:
+    """A learner whose response depends on its history (an acceleration limit that binds, as ``sim drift
+    --scenario payload``): in one cell its pairs scatter +-0.04 of the teacher's range about the relation, far more
+    than elsewhere. The store re-learns that cell at most once or twice (then it has its own noise estimate and tests
+    against it) instead of over and over, and a real change there (0.15 of the range) is still found."""
+    rng = np.random.default_rng(11)
+    store = PairStore(LB, TB, adapt=True)
+    _visit(store, rng, 20, noise=0.005)
+    cell = (10, 5)
+
+    def scattered(n: int, shift: float = 0.0) -> None:
+        for _ in range(n):
+            l_n = (np.array(cell) + rng.uniform(0.05, 0.95, 2)) / 11
+            u = LB.denormalise(l_n)
+            lag = rng.choice((-1.0, 1.0)) * 0.04 * rng.uniform(0.5, 1.0, 2)
+            store.add(LEARNER.response(u) + (lag + np.array([0.0, shift])) * TB.span, u)
+
+    scattered(300)
+    assert store.changes[cell] <= 2, store.changes[cell]
+    assert store.relearned == store.changes[cell]  # no other cell
+    before = store.changes[cell]
+    scattered(20, shift=0.15)
+    assert store.changes[cell] == before + 1
