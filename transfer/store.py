@@ -64,6 +64,8 @@ NOISE_WEIGHT = 0.01
 RECENT_PER_K = 2
 #: a cell's own noise estimate is the mean of its last this many residual differences, per k_min
 CELL_NOISE_PER_K = 4
+#: a cell with fewer pairs than this (per k_min) and no noise estimate of its own is not tested yet
+YOUNG_K = 4
 
 
 @dataclass(frozen=True)
@@ -295,7 +297,7 @@ class PairStore:
         there how far its pairs scatter. A pair that does not alarm updates the noise estimates."""
         r = self._residual(cell, t_n, l_n)
         e = self.resid[cell] = self.resid[cell] + (r - self.resid[cell]) / self.k_min
-        tested = self.changes[cell] == 0 or self.cell_noise_n[cell] >= self.k_min
+        tested = self.cell_noise_n[cell] >= self.k_min or (self.changes[cell] == 0 and self.count[cell] >= YOUNG_K * self.k_min)
         if tested and np.any(np.abs(e) > self._threshold(cell)):
             return True
         # the noise is learned from the difference of a cell's consecutive residuals (half its square): a change moves
