@@ -23,8 +23,9 @@ pairs from before the change (its cluster becomes its remembered recent pairs th
 pair moves by the change's mean residual at once (so the map is right before the cell holds k_min again), the learned
 limits forget the cell's boundary pairs (a limit shrinks as well as grows), the revision changes (the SC maps of that
 region are rebuilt), and ``relearned``, ``changes`` (per cell) and ``changed_at`` (the stamp given to
-:meth:`PairStore.add`) say so. A re-learned cell is tested again only once it has its own noise estimate (k_min
-residual differences since).
+:meth:`PairStore.add`) say so. A cell is tested only once it has its own noise estimate (k_min residual differences;
+for a re-learned cell, since its change), or, never re-learned, holds ``YOUNG_K`` k_min pairs: the residuals of a cell
+with few pairs carry its slope's error, a bias their differences do not show.
 
 Assumed: the learner's response to a command is a function of the command, the same wherever the robot is and
 whatever it did before, changing seldom (a step or a ramp, then steady for at least tens of pairs per cell). Where it
@@ -291,13 +292,16 @@ class PairStore:
 
     def _changed(self, cell: tuple[int, int], t_n: NDArray[np.float64], l_n: NDArray[np.float64]) -> bool:
         """The change test of a configured cell (module docstring): the recency-weighted mean of its residuals (weight
-        1/k_min) beyond :meth:`_threshold` on either axis. A cell re-learned before is tested again only once it has
-        its own noise estimate (k_min residual differences since): its few new pairs' mean is not yet a relation to
-        test against, and a learner whose response depends on its history (an acceleration limit that binds) shows
-        there how far its pairs scatter. A pair that does not alarm updates the noise estimates."""
+        1/k_min) beyond :meth:`_threshold` on either axis. A cell is tested only once it has its own noise estimate
+        (k_min residual differences; for a re-learned cell, since its change) or, never re-learned, holds ``YOUNG_K``
+        k_min pairs: a few pairs' mean and slope are not yet a relation to test against (the unchanged runs' false
+        alarms were all in such cells), and a learner whose response depends on its history (an acceleration limit
+        that binds) shows in a cell's own estimate how far its pairs scatter. A pair that does not alarm updates the
+        noise estimates."""
         r = self._residual(cell, t_n, l_n)
         e = self.resid[cell] = self.resid[cell] + (r - self.resid[cell]) / self.k_min
-        tested = self.cell_noise_n[cell] >= self.k_min or (self.changes[cell] == 0 and self.count[cell] >= YOUNG_K * self.k_min)
+        tested = (self.cell_noise_n[cell] >= self.k_min
+                  or (self.changes[cell] == 0 and self.count[cell] >= YOUNG_K * self.k_min))
         if tested and np.any(np.abs(e) > self._threshold(cell)):
             return True
         # the noise is learned from the difference of a cell's consecutive residuals (half its square): a change moves
