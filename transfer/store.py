@@ -33,7 +33,8 @@ breaks: a response that depends on the learner's history (an acceleration limit 
 payload``) makes a cell's pairs scatter; the cell's own noise estimate then raises its threshold, so the store
 re-learns such a cell once or twice rather than over and over, and finds in it only changes larger than that scatter.
 A change smaller than ``change_tol`` is never found (``sim drift --scenario floor``: the new floor differs by about
-that much on the cells the mission drives). docs/PAPER.md ("Beyond the paper") has the measured figures.
+the default's 2 % on the cells the mission drives; 1 % finds it). docs/PAPER.md ("Beyond the paper") has the measured
+figures.
 """
 
 from __future__ import annotations
