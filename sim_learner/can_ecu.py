@@ -28,6 +28,11 @@ Each wheel is one ODrive with one axis (as an ODrive Pro / S1), answering on its
 - watchdog: in closed loop with no feed for ``watchdog`` s -> IDLE, WATCHDOG_TIMER_EXPIRED, DISARMED.
 - Estop -> IDLE, ESTOP_REQUESTED, DISARMED.
 - Clear_Errors clears the errors and does *not* re-arm: the axis stays IDLE until a Set_Axis_State.
+- a learner that changes (``drift``, :class:`Drift`; docs/PAPER.md "Beyond the paper"): from ``at`` seconds after
+  the wheels first turn, over ``over`` seconds, ``battery`` lowers the top speed the motors reach (a sagging bus
+  voltage: the speed a motor reaches is the bus voltage over its Kv) by ``amount`` of the speed of the learner's
+  fastest command, and ``wheel`` makes the left wheel drag (its speed falls by ``amount``: the robot yaws left).
+  ``scmbridge driver --emulate --drift battery`` and ``scmbridge learner --link can --drift wheel:20`` schedule one.
 - test hooks: :meth:`DiffDriveEcus.inject_error` (an axis error that disarms, as a DRV fault would),
   :meth:`DiffDriveEcus.unplug` / :meth:`DiffDriveEcus.replug` (the node's cable pulled: it neither sends nor
   receives, so its Heartbeat stops and, if it was armed, its watchdog trips).
@@ -71,6 +76,47 @@ RESULT_SUCCESS, RESULT_BUSY, RESULT_CANCELLED, RESULT_DISARMED, RESULT_INVALID_S
 WATCHDOG_TIMER_EXPIRED, ESTOP_REQUESTED = 0x01000000, 0x02000000
 
 
+#: ``--drift`` kinds (the module docstring), and the defaults of a bare ``--drift KIND``: s after the wheels first
+#: turn, s the change takes, how much changes
+DRIFTS = ("battery", "wheel")
+DRIFT_AT, DRIFT_OVER = 20.0, 10.0
+DRIFT_AMOUNT = {"battery": 0.3, "wheel": 0.1}
+
+
+@dataclass(frozen=True)
+class Drift:
+    """A scheduled change of the emulated learner (the module docstring): ``kind`` from ``at`` s after the wheels
+    first turn, reached linearly over ``over`` s, by ``amount``."""
+
+    kind: str
+    at: float = DRIFT_AT
+    over: float = DRIFT_OVER
+    amount: float = 0.0
+
+    @classmethod
+    def parse(cls, text: str) -> Drift:
+        """``KIND[:AT[:OVER[:AMOUNT]]]``, e.g. ``battery`` or ``wheel:25:0:0.1``; ValueError saying what is wrong."""
+        parts = text.split(":")
+        if parts[0] not in DRIFTS or len(parts) > 4:
+            raise ValueError(f"--drift {text!r}: expected KIND[:AT[:OVER[:AMOUNT]]] with KIND one of "
+                             f"{', '.join(DRIFTS)}")
+        try:
+            nums = [float(p) for p in parts[1:]]
+        except ValueError:
+            raise ValueError(f"--drift {text!r}: AT, OVER and AMOUNT are numbers (s, s, share)") from None
+        at, over, amount = [*nums, *(DRIFT_AT, DRIFT_OVER, DRIFT_AMOUNT[parts[0]])[len(nums):]]
+        if not (0.0 <= at < 1e6 and 0.0 <= over < 1e6 and 0.0 < amount < 1.0):
+            raise ValueError(f"--drift {text!r}: AT and OVER must be >= 0 and AMOUNT in (0, 1)")
+        return cls(parts[0], at, over, amount)
+
+    def share(self, since_driven: float) -> float:
+        """How much of the change has happened ``since_driven`` s after the wheels first turned (0..1)."""
+        t = since_driven - self.at
+        if t < 0.0:
+            return 0.0
+        return 1.0 if self.over <= 0.0 else min(1.0, t / self.over)
+
+
 @dataclass
 class _EcuAxis:
     node: int
@@ -103,7 +149,7 @@ class DiffDriveEcus(ThreadedDevice):
                  left_sign: float = 1.0, right_sign: float = -1.0, wheel_radius: float = 0.1,
                  track_width: float = 0.4, watchdog: float = 0.5, encoder_period: float = 0.01,
                  heartbeat_period: float = 0.1, control_mode: int = POSITION_CONTROL, vel_limit: float = 2.0,
-                 clock=time.monotonic) -> None:
+                 drift: Drift | None = None, clock=time.monotonic) -> None:
         super().__init__()
         self.bus_kwargs = dict(bus_kwargs)
         self.vehicle = vehicle
@@ -114,6 +160,11 @@ class DiffDriveEcus(ThreadedDevice):
         self.vel_limit = float(vel_limit)
         self.watchdog, self.encoder_period, self.heartbeat_period = watchdog, encoder_period, heartbeat_period
         self.clock = clock
+        self.drift = drift
+        self.driven_at: float | None = None  # when the wheels first turned (the drift's schedule counts from it)
+        #: the wheel speed (m/s) of the learner's fastest command: what a sagging battery's top speed falls from
+        m = vehicle.model
+        self.top_speed = m.v_range[1] + max(abs(m.w_range[0]), abs(m.w_range[1])) * self.track / 2.0
         self.malformed = 0
         self.received: list[tuple[float, int, int, bytes]] = []  # (time, node, cmd_id, data), the last 1000
         self._lock = threading.RLock()
@@ -247,8 +298,21 @@ class DiffDriveEcus(ThreadedDevice):
         vr = max(-lim, min(lim, self.right.driven_speed())) * self.right.sign * circ
         if vl == 0.0 and vr == 0.0:
             self.vehicle.stop(now)
-        else:
-            self.vehicle.command(0.5 * (vl + vr), (vr - vl) / self.track, now)
+            return
+        if self.driven_at is None:
+            self.driven_at = now
+        if self.drift is not None:
+            vl, vr = self._drifted(vl, vr, now)
+        self.vehicle.command(0.5 * (vl + vr), (vr - vl) / self.track, now)
+
+    def _drifted(self, vl: float, vr: float, now: float) -> tuple[float, float]:
+        """The wheels' speeds (m/s) as the changed learner reaches them (``drift``: the module docstring)."""
+        assert self.drift is not None and self.driven_at is not None
+        k = self.drift.amount * self.drift.share(now - self.driven_at)
+        if self.drift.kind == "battery":
+            cap = (1.0 - k) * self.top_speed
+            return max(-cap, min(cap, vl)), max(-cap, min(cap, vr))
+        return (1.0 - k) * vl, vr  # wheel: the left one drags
 
     def _integrate(self, now: float) -> None:
         """Encoder counts follow the body's real motion (the learner's response, not the set-point): each wheel's

@@ -55,6 +55,10 @@ def arguments(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--duration", type=positive_float, default=None, help="stop after this many seconds")
     ap.add_argument("--wheel-radius", type=float, default=0.1)
     ap.add_argument("--track-width", type=float, default=0.4)
+    ap.add_argument("--drift", default=None, metavar="KIND[:AT[:OVER[:AMOUNT]]]",
+                    help="(can) the learner changes at run time: battery (the motors' top speed falls) or wheel (the "
+                         "left wheel drags), AT s after the wheels first turn, over OVER s (default 20:10; "
+                         "sim_learner/can_ecu.py)")
     ap.add_argument("--peer", default=None, help="(udp) the driver host's HOST:PORT, the only sender obeyed and "
                     "answered (default 127.0.0.1:47801, the driver's default bind), or 'first': pin the first "
                     "valid sender")
@@ -94,12 +98,14 @@ def _udp(args: argparse.Namespace, vehicle: SimVehicle, stop: threading.Event) -
 
 
 def _can(args: argparse.Namespace, vehicle: SimVehicle, stop: threading.Event) -> None:
-    from sim_learner.can_ecu import DiffDriveEcus
+    from sim_learner.can_ecu import DiffDriveEcus, Drift
 
     bus_kwargs = {"interface": args.interface, "channel": args.channel}
     if args.interface == "udp_multicast":
         bus_kwargs["fd"] = False
-    with DiffDriveEcus(bus_kwargs, vehicle, wheel_radius=args.wheel_radius, track_width=args.track_width):
+    drift = Drift.parse(args.drift) if args.drift else None
+    with DiffDriveEcus(bus_kwargs, vehicle, wheel_radius=args.wheel_radius, track_width=args.track_width,
+                       drift=drift):
         print(f"learner on {args.interface}:{args.channel}, model {args.model}", flush=True)
         stop.wait(args.duration)
 
@@ -114,6 +120,15 @@ EMULATORS: dict[str, Callable[[argparse.Namespace, SimVehicle, threading.Event],
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.drift is not None:
+        if args.link != "can":
+            raise UsageError("--drift changes the emulated CAN controllers (--link can)")
+        from sim_learner.can_ecu import Drift
+
+        try:
+            Drift.parse(args.drift)
+        except ValueError as exc:
+            raise UsageError(str(exc)) from None
     if args.link == "udp":
         _peer_arg(args.peer)  # a mistake is one line before anything starts
         if not (0 < args.v_max < 1e3 and 0 < args.omega_max < 1e3 and 0 < args.watchdog < 60):

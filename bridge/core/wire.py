@@ -196,6 +196,15 @@ class PairRecord(_Msg, kw_only=True, array_like=True):
     learner_omega: Rate
 
 
+class CellChange(_Msg, kw_only=True, array_like=True):
+    """A refinement cell whose learner changed and was re-learned (``[transfer] adapt``): its id (the refined pair's),
+    how often, and the station's wall-clock time of the last change (``time.time()``; None: not known)."""
+
+    id: Annotated[int, Meta(ge=0)]
+    count: Annotated[int, Meta(ge=1)]
+    at: WallTime | None = None
+
+
 class Pairs(_Msg, kw_only=True):
     """``scm/<robot>/pairs``: the refined pairs and the learned limits on the teacher domain (query reply)."""
 
@@ -211,6 +220,9 @@ class Pairs(_Msg, kw_only=True):
     teacher_bounds: Annotated[list[Annotated[float, Meta(ge=-100, le=100)]], Meta(min_length=4, max_length=4)] | None = None  # noqa: E501
     learner_bounds: Annotated[list[Annotated[float, Meta(ge=-100, le=100)]], Meta(min_length=4, max_length=4)] | None = None  # noqa: E501
     grid: Annotated[list[Annotated[int, Meta(ge=1, le=1000)]], Meta(min_length=2, max_length=2)] | None = None
+    # the cells re-learned because their learner changed, the most recent last (empty, so not sent, when none was or
+    # from a station older than the field)
+    changed: Annotated[list[CellChange], Meta(max_length=100_000)] = []
 
 
 Bound = Annotated[float, Meta(ge=-100, le=100)]
@@ -282,6 +294,10 @@ Reason = Literal["ok", "no_telemetry", "estop", "dry_run", "starting", "link_dow
                  "teacher", "persist_failed", "integrity", "latch_unsaved"]
 
 
+#: how many changed cells a station's status names (the most recent; ``scmbridge pairs show`` names them all)
+STATUS_CHANGED_CELLS = 16
+
+
 class Status(_Msg, kw_only=True):
     """``scm/<robot>/status/<node>``: health of one node; counters only grow. ``state`` says in one word what the
     node is doing (``driving``, ``paused``, ``estop``, ...), ``reason`` why (typed: :data:`Reason`; None from a node
@@ -301,6 +317,9 @@ class Status(_Msg, kw_only=True):
     text: Text = ""
     reason: Reason | None = None
     host: Name | None = None
+    #: the station's: the ids of the cells it re-learned because their learner changed (``[transfer] adapt``), the
+    #: most recent last, at most :data:`STATUS_CHANGED_CELLS` of them (empty, so not sent, when none was)
+    changed_cells: Annotated[list[Annotated[int, Meta(ge=0, le=1_000_000)]], Meta(max_length=64)] = []
 
 
 class Estop(_Msg, kw_only=True):
@@ -464,6 +483,7 @@ __all__ = [
     "TOPICS",
     "Applied",
     "Command",
+    "CellChange",
     "EngageRequest",
     "EngageState",
     "Estop",

@@ -545,6 +545,9 @@ def arguments(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--emulate", action="store_true", help="host emulated CAN motor controllers in-process")
     ap.add_argument("--model", default="mpc", help="learner model for --emulate (mpc, experiment, scaled)")
     ap.add_argument("--x0", type=pose_arg, default=(0.0, 0.0, 0.0), help="start pose x,y,theta for --emulate")
+    ap.add_argument("--drift", default=None, metavar="KIND[:AT[:OVER[:AMOUNT]]]",
+                    help="for --emulate: the learner changes at run time, battery (the motors' top speed falls) or "
+                         "wheel (the left wheel drags), AT s after the wheels first turn, over OVER s (default 20:10)")
     ap.add_argument("--engage", action="store_true",
                     help="engage the vehicle at start, as engage_on_start (a person at the keyboard; never in a unit "
                          "that restarts)")
@@ -555,21 +558,32 @@ def arguments(ap: argparse.ArgumentParser) -> None:
                          "network can drive the robot (loopback tests; said in the log and on status)")
 
 
-def _emulated_ecus(cfg, model: str, x0: tuple[float, float, float]):
-    """The learner's two emulated motor controllers on the driver's virtual CAN channel (``--emulate``)."""
-    from sim_learner.can_ecu import DiffDriveEcus
+def _emulated_ecus(cfg, model: str, x0: tuple[float, float, float], drift: str | None = None):
+    """The learner's two emulated motor controllers on the driver's virtual CAN channel (``--emulate``), changing
+    at run time as ``drift`` says (``--drift``)."""
+    from sim_learner.can_ecu import DiffDriveEcus, Drift
     from sim_learner.dynamics import model_by_name
     from sim_learner.vehicle import SimVehicle
 
     vehicle = SimVehicle(model_by_name(model), x0, now=time.monotonic())
     return DiffDriveEcus({"interface": "virtual", "channel": cfg.channel}, vehicle, left_node=cfg.left_node,
                          right_node=cfg.right_node, left_sign=cfg.left_sign, right_sign=cfg.right_sign,
-                         wheel_radius=cfg.wheel_radius, track_width=cfg.track_width).start()
+                         wheel_radius=cfg.wheel_radius, track_width=cfg.track_width,
+                         drift=Drift.parse(drift) if drift else None).start()
 
 
 def run(args: argparse.Namespace) -> int:
     if args.emulate and args.link != "can":
         raise UsageError("--emulate hosts CAN motor controllers; run `scmbridge learner` for the other links")
+    if args.drift is not None:
+        if not args.emulate:
+            raise UsageError("--drift changes the emulated controllers: give --emulate")
+        from sim_learner.can_ecu import Drift
+
+        try:
+            Drift.parse(args.drift)
+        except ValueError as exc:
+            raise UsageError(str(exc)) from None
     cfg = load_driver(args.config)  # a mistake ends here, before any link or session opens
     robot = M.check_robot(args.robot or cfg.robot)
     link_cfg = getattr(cfg.link, args.link)
@@ -587,7 +601,7 @@ def run(args: argparse.Namespace) -> int:
                       dry_run=args.dry_run, latch_path=latch_file(robot))
     host.engage_on_start = host.engage_on_start or args.engage
     stop = stop_on_signals()
-    ecus = _emulated_ecus(link_cfg, args.model, args.x0) if args.emulate else None
+    ecus = _emulated_ecus(link_cfg, args.model, args.x0, args.drift) if args.emulate else None
     if ecus is not None:
         host.co_located.append(ecus)
     try:

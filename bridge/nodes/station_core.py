@@ -109,14 +109,16 @@ def load_store(path: Path, learner: Bounds, teacher: Bounds, grid, k_min: int) -
 
 
 def pairs_message(store: PairStore, robot: str, now: float) -> M.Pairs:
-    """The ``pairs`` reply: the refined pairs and the learned limits."""
+    """The ``pairs`` reply: the refined pairs, the learned limits and the cells re-learned (``[transfer] adapt``)."""
     recs = [M.PairRecord(id=p.id, version=p.version, count=p.count, teacher_v=float(p.u_T[0]),
                          teacher_omega=float(p.u_T[1]), learner_v=float(p.u_L[0]), learner_omega=float(p.u_L[1]))
             for p in store.refined()]
     return M.Pairs(stamp=now, robot=robot, pairs=recs, limits_box=store.limits.box.as_list(),
                    limits_hull=[[float(a), float(b)] for a, b in store.limits.hull],
                    teacher_bounds=store.teacher_bounds.as_list(), learner_bounds=store.learner_bounds.as_list(),
-                   grid=[int(store.grid[0]), int(store.grid[1])])
+                   grid=[int(store.grid[0]), int(store.grid[1])],
+                   changed=[M.CellChange(id=c.id, count=c.count, at=c.at if c.at is not None and 0 <= c.at <= 1e11
+                                         else None) for c in store.changed_cells()])
 
 
 @dataclass(frozen=True)
@@ -322,7 +324,7 @@ class StationCore:
                 pair = self.pairer.state(e.stamp, (e.x, e.y, e.theta), received)
             if pair is not None:
                 relearned = self.store.relearned
-                res = self.store.add(*pair, stamp=received)
+                res = self.store.add(*pair, stamp=time.time() - (now - received))  # when a cell changed: wall clock
                 if self.store.relearned > relearned:
                     log.warning("cell %s re-learned: its learner no longer answers as its pairs said", res.cell)
         if inputs.teacher is not None:
@@ -442,7 +444,8 @@ class StationCore:
                             progress=self.control.progress, persist_error=self.saves.error,
                             problems=self.integrity.problems(now, self.pairer), counters=c.as_dict(),
                             tick_ms=self.tick_ms, solve_ms=self.solve_ms, rate_hz=1 / self.period,
-                            key=self._status_key())
+                            key=self._status_key(),
+                            changed_cells=[k.id for k in self.store.changed_cells()[-M.STATUS_CHANGED_CELLS:]])
         return self.report.message(now, facts)
 
     def _status_key(self) -> tuple:

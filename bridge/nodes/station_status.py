@@ -206,7 +206,7 @@ class StatusFacts:
     """What one status message says, gathered by the core: its typed ``reason`` and words ``why`` (the one reason
     it does or does not drive), the mission's ``phase`` and ``progress``, a failing save's ``persist_error`` (empty:
     none), the integrity ``problems``, the ``counters``, the recent ``tick_ms`` and ``solve_ms``, the loop's
-    ``rate_hz`` and its :func:`status_key`."""
+    ``rate_hz``, its :func:`status_key` and the ids of the cells re-learned last (``changed_cells``)."""
 
     reason: M.Reason
     why: str
@@ -219,6 +219,7 @@ class StatusFacts:
     solve_ms: Iterable[float]
     rate_hz: float
     key: tuple
+    changed_cells: list[str] = field(default_factory=list)
 
 
 class StatusReport:
@@ -249,7 +250,7 @@ class StatusReport:
                        progress=min(1.0, max(0.0, facts.progress)), rates_hz={"loop": facts.rate_hz},
                        latencies_ms={"solve_median": float(np.median(sm)), "solve_max": float(sm.max()),
                                      "tick_p50": p50, "tick_p99": p99, "tick_max": float(tk.max())},
-                       counters=facts.counters, text=text[:1024], host=HOST)
+                       counters=facts.counters, text=text[:1024], host=HOST, changed_cells=facts.changed_cells)
         self.seq += 1
         self.sent_key, self.sent_at = facts.key, now
         return msg

@@ -4,7 +4,9 @@ A driver host with the emulated learner on the chosen link, a station (teacher M
 pairs) and this process as the Zenoh hub; the learner drives the mission (the paper's S-path) while a live line
 shows progress; at the end a summary, the figures and the logs in ``--out``. ``--count N`` or ``--robots a,b,c``:
 several robots, each its own driver host and station, behind the same hub. It ends at the goal, after ``--duration``
-or on Ctrl-C, leaving no process behind; exit 1 names any robot that did not reach its goal.
+or on Ctrl-C, leaving no process behind; exit 1 names any robot that did not reach its goal. ``--drift battery`` (one
+robot on CAN): the emulated learner changes mid-run (``sim_learner.can_ecu.Drift``) and the station re-learns the
+cells that no longer hold (``[transfer] adapt``); the summary names them.
 """
 
 from __future__ import annotations
@@ -193,6 +195,7 @@ class Monitor:
                 "methods": methods,
                 "refined_pairs": c.get("refined_pairs"), "raw_pairs": c.get("raw_pairs"),
                 "missed_deadlines": c.get("missed_deadlines"), "solve_ms_median": st.latencies_ms.get("solve_median"),
+                "cells_relearned": c.get("cells_relearned"), "changed_cells": list(st.changed_cells),
                 "_traj": np.array([s[1:] for s in states])}
 
 
@@ -248,6 +251,10 @@ def hil(args: argparse.Namespace, robot: str) -> int:
     port = free_port()
     x0 = ",".join(f"{a:.6f}" for a in world.start)
     client = ["--robot", robot, "--mode", "client", "--connect", tcp(port)]
+    station_cfg: list[str] = []
+    if args.drift:  # the learner changes: the station re-learns the cells that no longer hold
+        (out / "station.toml").write_text("[transfer]\nadapt = true\n")
+        station_cfg = ["--config", str(out / "station.toml")]
     mon = None
     with ExitStack() as stack:
         logs = {name: stack.enter_context(open(out / f"{name}.log", "w")) for name in ("driver", "station")}
@@ -258,9 +265,11 @@ def hil(args: argparse.Namespace, robot: str) -> int:
         mon = Monitor(session, robot)
         try:
             driver_args = emulated_link(kids, args.link, out, x0, args.duration + 15, logs["driver"])
-            kids.spawn(["driver", "--engage", *driver_args, *client, "--duration", str(args.duration + 15)],
+            drift = ["--drift", args.drift] if args.drift else []
+            kids.spawn(["driver", "--engage", *driver_args, *drift, *client, "--duration", str(args.duration + 15)],
                        logs["driver"])
-            kids.spawn(["station", *client, "--start", "--store", str(store), "--exit-at-goal", "--duration",
+            kids.spawn(["station", *client, *station_cfg, "--start", "--store", str(store), "--exit-at-goal",
+                        "--duration",
                         str(args.duration), *(["--mission", args.mission] if args.mission else [])], logs["station"])
             _watch(mon, kids, world, args.duration)
         except KeyboardInterrupt:
@@ -637,6 +646,10 @@ def arguments(ap: argparse.ArgumentParser) -> None:
                          "(PARAM_SET from the ground station: a learner that changes mid-run); repeatable")
     ap.add_argument("--adapt", action="store_true",
                     help="(--sitl) the station's [transfer] adapt = true: re-learn cells whose learner changed")
+    ap.add_argument("--drift", default=None, metavar="KIND[:AT[:OVER[:AMOUNT]]]",
+                    help="(one robot, --link can) the learner changes mid-run: battery (the motors' top speed falls "
+                         "30 %%) or wheel (the left wheel drags), AT s after the wheels first turn, over OVER s "
+                         "(default 20:10); the station re-learns the changed cells ([transfer] adapt)")
     ap.add_argument("--inprocess", action="store_true", help="the in-process SC transfer example instead")
     ap.add_argument("--seed", type=int, default=0, help="(--inprocess) random generator seed")
     ap.add_argument("--commands", type=int, default=8, help="(--inprocess) teacher commands to show")
@@ -648,6 +661,15 @@ def run(args: argparse.Namespace) -> int:
     robots = args.robots or ([f"demo{k + 1}" for k in range(args.count)] if args.count else ["demo"])
     if args.duration is None:
         args.duration = 120.0 + 30.0 * (len(robots) - 1)
+    if args.drift is not None:
+        from sim_learner.can_ecu import Drift
+
+        if args.link not in (None, "can") or len(robots) != 1 or args.count or args.inprocess or args.sitl is not None:
+            raise UsageError("--drift changes one emulated CAN robot: --link can, one robot")
+        try:
+            Drift.parse(args.drift)
+        except ValueError as exc:
+            raise UsageError(str(exc)) from None
     if args.inprocess:
         return inprocess(args)
     if args.sitl is not None:

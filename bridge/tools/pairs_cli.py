@@ -13,8 +13,9 @@ Two sources, one view:
   carries its bounds and grid.
 
 ``show`` prints a table (id, cluster size, teacher (v, omega), learner (v, omega)), the learned limits (box and
-hull), how many grid cells are configured and, live, the latest command; ``--json`` prints the same as one JSON
-object for machines. ``plot --out FILE.png`` draws the paper's pair of command-domain figures
+hull), how many grid cells are configured, the cells re-learned because their learner changed (``[transfer] adapt``:
+how often and when last, docs/PAPER.md "Beyond the paper") and, live, the latest command; ``--json`` prints the same
+as one JSON object for machines. ``plot --out FILE.png`` draws the paper's pair of command-domain figures
 (:func:`sim_learner.plots.command_domains_figure`): the teacher domain with its bounds, the learned limits, the refined
 pairs' teacher parts and their Delaunay triangulation, and the learner domain with its bounds, the grid and the
 pairs' learner parts, with the region that mapped the latest command highlighted on both. :func:`pairs_figure`
@@ -89,6 +90,9 @@ class Learned:
     k_min: int | None = None
     latest: LatestCommand | None = None
     warnings: list[str] = field(default_factory=list)
+    #: cells re-learned because their learner changed (``[transfer] adapt``): (id, how often, when: the stamp given
+    #: to the store, wall-clock seconds from a station; None: unknown), the most recent last
+    changed: list[tuple[int, int, float | None]] = field(default_factory=list)
 
     @property
     def cells(self) -> int:
@@ -146,6 +150,7 @@ class Learned:
             "raw_pairs": self.raw_pairs,
             "k_min": self.k_min,
             "latest_command": latest,
+            "changed_cells": [{"id": i, "count": n, "at": at, "when": when(at)} for i, n, at in self.changed],
             "warnings": list(self.warnings),
         }
 
@@ -175,7 +180,8 @@ def from_store(store: PairStore, source: str) -> Learned:
         learner=store.learner_bounds.denormalise(L).reshape(-1, 2), teacher_bounds=store.teacher_bounds,
         learner_bounds=store.learner_bounds, grid=store.grid, limits_box=store.limits.box,
         hull=np.asarray(store.limits.hull, dtype=float).reshape(-1, 2), bounds_from="the store",
-        raw_pairs=store.raw_count, k_min=store.k_min)
+        raw_pairs=store.raw_count, k_min=store.k_min,
+        changed=[(c.id, c.count, c.at) for c in store.changed_cells()])
 
 
 def from_message(msg: M.Pairs, teacher_bounds: Bounds, learner_bounds: Bounds, grid: tuple[int, int],
@@ -196,7 +202,8 @@ def from_message(msg: M.Pairs, teacher_bounds: Bounds, learner_bounds: Bounds, g
         teacher=np.array([[r.teacher_v, r.teacher_omega] for r in recs], dtype=float).reshape(-1, 2),
         learner=np.array([[r.learner_v, r.learner_omega] for r in recs], dtype=float).reshape(-1, 2),
         teacher_bounds=teacher_bounds, learner_bounds=learner_bounds, grid=grid, limits_box=box,
-        hull=np.array(msg.limits_hull, dtype=float).reshape(-1, 2), bounds_from=bounds_from, latest=latest)
+        hull=np.array(msg.limits_hull, dtype=float).reshape(-1, 2), bounds_from=bounds_from, latest=latest,
+        changed=[(c.id, c.count, c.at) for c in msg.changed])
     if len(out.ids) and int(out.ids.max()) >= out.cells:
         out.warnings.append(f"pair id {int(out.ids.max())} is beyond the {grid[0]} x {grid[1]} grid of {bounds_from}: "
                             "the station runs with another grid (give its --config)")
@@ -320,6 +327,19 @@ def gather(args: argparse.Namespace) -> Learned:
 
 
 # ------------------------------------------------------------------------------------------------- outputs
+#: a change stamp at or above this is wall-clock seconds (a station's); below, a run's own clock (a simulation's)
+WALL_CLOCK_FROM = 1e9
+
+
+def when(at: float | None) -> str:
+    """A cell's change time in words: UTC for a station's wall-clock stamp, seconds for a run's own clock."""
+    if at is None:
+        return "time unknown"
+    if at >= WALL_CLOCK_FROM:
+        return time.strftime("%Y-%m-%d %H:%M:%S UTC", time.gmtime(at))
+    return f"t = {at:.1f} s"
+
+
 def _range(b: Bounds) -> str:
     return f"v [{b.v[0]:.3f}, {b.v[1]:.3f}] m/s, omega [{b.w[0]:+.3f}, {b.w[1]:+.3f}] rad/s"
 
@@ -341,6 +361,14 @@ def table(view: Learned) -> str:
     lines.append(f"learned limits (hull, {len(view.hull)} vertices): {hull or '-'}")
     lines.append(f"teacher bounds: {_range(view.teacher_bounds)}")
     lines.append(f"learner bounds: {_range(view.learner_bounds)}  (bounds and grid from {view.bounds_from})")
+    if view.changed:
+        lines.append(f"changed cells (their learner no longer answered as their pairs said; re-learned): "
+                     f"{len(view.changed)}")
+        gw = view.grid[1]
+        for i, n, at in view.changed:
+            lines.append(f"  cell {i:>4} (v {i // gw}, omega {i % gw} on the grid): re-learned {n}x, last {when(at)}")
+    else:
+        lines.append("changed cells: none")
     if view.robot is not None:
         c = view.latest
         if c is None:
@@ -439,4 +467,4 @@ def run_plot(args: argparse.Namespace) -> int:
 
 
 __all__ = ["Learned", "LatestCommand", "PairsError", "draw", "from_message", "from_store", "pairs_figure",
-           "table"]
+           "table", "when"]

@@ -77,6 +77,8 @@ def node_line(robot: str, node: str, st: M.Status, age: float) -> str:
     pairs = st.counters.get("refined_pairs")
     if pairs is not None:
         parts.append(f"pairs {pairs}")
+    if st.changed_cells:
+        parts.append(f"re-learned cells {', '.join(map(str, st.changed_cells))}")
     pose_ms = st.latencies_ms.get("telemetry_age")
     if pose_ms is not None:
         parts.append("pose never" if pose_ms >= 1e8 else f"pose {pose_ms / 1e3:.2f} s old")

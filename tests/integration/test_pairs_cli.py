@@ -174,3 +174,43 @@ def test_no_station_is_one_line_and_exit_status_2() -> None:
                "--out", "never.png", timeout=30)
     assert res.returncode == 2 and len(res.stderr.splitlines()) == 1 and tcp(port) in res.stderr
     assert not (ROOT / "never.png").exists()
+
+
+def test_show_names_the_cells_whose_learner_changed_and_when(tmp_path: Path, capsys) -> None:
+    """A store with change detection (``[transfer] adapt``) whose learner changed in the top-speed row (a dragging
+    wheel: 15 % of the yaw-rate range) names those cells, how often and when (the station's wall-clock stamps), from
+    the file and through the station's ``Pairs`` reply on the wire."""
+    from bridge.core import wire as M
+
+    learner = mpc_learner()
+    lb = Bounds(learner.v_range, learner.w_range)
+    st = PairStore(lb, Bounds(MPC_TEACHER_V, MPC_TEACHER_W), k_min=5, adapt=True)
+    rng = np.random.default_rng(2)
+    wall = 1_795_000_000.0  # 2026-11-18 UTC
+    bias = np.array([0.0, 0.15 * (lb.w[1] - lb.w[0])])
+    for k, shift in enumerate((np.zeros(2), bias)):
+        for _ in range(10 if k == 0 else 8):
+            for i in range(11):
+                for j in range(11):
+                    if k and i != 10:  # today only the top-speed row is driven
+                        continue
+                    u = lb.denormalise((np.array([i, j]) + rng.uniform(0.1, 0.9, 2)) / 11)
+                    st.add(learner.response(u) + shift, u, stamp=wall + k * 3600.0)
+    changed = st.changed_cells()
+    assert [c.id for c in sorted(changed, key=lambda c: c.id)] == [110 + j for j in range(11)]
+    assert all(c.count == 1 and c.at == wall + 3600.0 for c in changed)
+    f = tmp_path / "pairs.bin"
+    save_atomic(f, st.to_bytes())
+    assert cli_main(["pairs", "show", "--store", str(f), "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert sorted(c["id"] for c in out["changed_cells"]) == [110 + j for j in range(11)]
+    assert all(c["count"] == 1 and c["at"] == wall + 3600.0 for c in out["changed_cells"])
+    assert cli_main(["pairs", "show", "--store", str(f)]) == 0
+    text = capsys.readouterr().out
+    assert "changed cells (their learner no longer answered as their pairs said; re-learned): 11" in text
+    assert "cell  115 (v 10, omega 5 on the grid): re-learned 1x, last 2026-11-18 12:06:40 UTC" in text
+    # the station's reply carries them (an optional field: absent, so not sent, while no cell changed)
+    msg = M.decode(M.encode(pairs_message(st, "r", 1.0)), M.Pairs)
+    view = from_message(msg, st.teacher_bounds, st.learner_bounds, st.grid, "test", "test")
+    assert view.changed == [(c.id, c.count, c.at) for c in changed]
+    assert b"changed" not in M.encode(pairs_message(cubic_store(), "r", 1.0))

@@ -32,7 +32,7 @@ def test_status_names_the_reason_each_robot_is_not_driving() -> None:
     port = free_port()
     statuses = {
         ("rover1", "station"): M.Status(stamp=0, seq=0, node="station", ok=True, state="driving", text="driving",
-                                        progress=0.42, counters={"refined_pairs": 17}),
+                                        progress=0.42, counters={"refined_pairs": 17}, changed_cells=[115, 116]),
         ("rover1", "driver"): M.Status(stamp=0, seq=0, node="driver", ok=True, state="driving",
                                        text="link can: driving (cmd)", latencies_ms={"telemetry_age": 20.0}),
         ("rover2", "station"): M.Status(stamp=0, seq=0, node="station", ok=False, state="paused",
@@ -57,6 +57,7 @@ def test_status_names_the_reason_each_robot_is_not_driving() -> None:
         ["rover1", "station", "driving"], ["rover1", "driver", "driving"],
         ["rover2", "station", "paused"], ["rover2", "driver", "estop"]], lines
     assert "mission 42%" in lines[0] and "pairs 17" in lines[0] and "pose 0.02 s old" in lines[1]
+    assert "re-learned cells 115, 116" in lines[0]  # the cells whose learner changed ([transfer] adapt)
     assert "estop latched by operator" in lines[2] and "estop latched by operator" in lines[3]
     assert one.returncode == 0 and len(one.stdout.strip().splitlines()) == 2, one
     assert ghost.returncode == 2 and "no node's status arrived" in ghost.stderr and "Traceback" not in ghost.stderr

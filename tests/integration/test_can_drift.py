@@ -1,0 +1,120 @@
+"""A learner that changes, on the CAN link (docs/PAPER.md, "Beyond the paper"): the emulated ODrive controllers
+change at run time as scheduled (``--drift``: a sagging battery lowers the motors' top speed, a dragging wheel yaws
+the robot; ``sim_learner.can_ecu.Drift``), and the whole HIL loop (``scmbridge demo``: station, driver host with the
+controllers on its virtual CAN bus, Zenoh on 127.0.0.1) drives through a battery sag with the station's change
+detection on: it re-learns the cells that no longer hold, names them, and reaches the goal. Every process started
+here is stopped; every wait is bounded."""
+
+from __future__ import annotations
+
+import json
+import math
+import struct
+import subprocess
+import time
+import uuid
+from pathlib import Path
+
+import can
+import pytest
+
+from bridge.tools.procs import Children
+from sim_learner.can_ecu import DRIFT_AMOUNT, DiffDriveEcus, Drift
+from sim_learner.dynamics import mpc_learner
+from sim_learner.vehicle import SimVehicle
+from transfer.store import PairStore
+
+
+def test_a_drift_is_parsed_with_its_defaults_and_a_mistake_is_named() -> None:
+    assert Drift.parse("battery") == Drift("battery", 20.0, 10.0, DRIFT_AMOUNT["battery"])
+    assert Drift.parse("wheel:5:0:0.2") == Drift("wheel", 5.0, 0.0, 0.2)
+    for bad in ("sag", "battery:x", "battery:1:2:1.5", "wheel:-1", "battery:1:2:0.1:9"):
+        with pytest.raises(ValueError, match="--drift"):
+            Drift.parse(bad)
+    d = Drift("battery", 10.0, 4.0, 0.3)
+    assert [d.share(t) for t in (0.0, 10.0, 12.0, 14.0, 99.0)] == [0.0, 0.0, 0.5, 1.0, 1.0]
+    assert Drift("wheel", 3.0, 0.0, 0.1).share(3.0) == 1.0
+
+
+def _drive(drift: Drift, times: list[float], v: float = 0.3) -> list[tuple[float, float]]:
+    """Raw CANSimple frames from a master on a virtual bus: both axes in closed-loop velocity control, the wheels
+    fed a straight ``v`` (m/s) at each of ``times`` on the controllers' own (here a test's) clock; the body command
+    the vehicle got after each feed."""
+    clock = [0.0]
+    channel = f"drift-{uuid.uuid4().hex[:8]}"
+    vehicle = SimVehicle(mpc_learner(), (0.0, 0.0, 0.0), now=0.0)
+    master = can.Bus(interface="virtual", channel=channel)
+    got = []
+    ecus = DiffDriveEcus({"interface": "virtual", "channel": channel}, vehicle, drift=drift, clock=lambda: clock[0])
+    turns = v / (2.0 * math.pi * ecus.radius)
+
+    def tx(node: int, cmd: int, data: bytes) -> None:
+        master.send(can.Message(arbitration_id=(node << 5) | cmd, data=data, is_extended_id=False))
+
+    def settle(pred) -> None:
+        t_end = time.monotonic() + 5.0
+        while not pred():
+            assert time.monotonic() < t_end, "the controllers did not take the frames within 5 s"
+            time.sleep(0.005)
+
+    with ecus:
+        try:
+            for node in (0, 1):
+                tx(node, 0x0B, struct.pack("<II", 2, 1))  # velocity control, passthrough
+                tx(node, 0x07, struct.pack("<I", 8))  # closed loop
+            settle(lambda: ecus.axis(0).state == 8 and ecus.axis(1).state == 8 and ecus.axis(1).control_mode == 2)
+            for k, t in enumerate(times):
+                clock[0] = t
+                speed = turns * (1.0 + 1e-6 * k)  # a new value each time: the test sees when it was taken
+                tx(0, 0x0D, struct.pack("<ff", speed, 0.0))
+                tx(1, 0x0D, struct.pack("<ff", -speed, 0.0))
+                settle(lambda s=speed: ecus.axis(0).input_vel == pytest.approx(s, rel=1e-7)
+                       and ecus.axis(1).input_vel == pytest.approx(-s, rel=1e-7))
+                settle(lambda: vehicle.t >= clock[0])
+                got.append(vehicle.cmd)
+        finally:
+            master.shutdown()
+    return got
+
+
+def test_a_sagging_battery_lowers_the_top_speed_the_wheels_reach_from_when_they_first_turned() -> None:
+    m = mpc_learner()
+    top = m.v_range[1] + max(abs(m.w_range[0]), abs(m.w_range[1])) * 0.4 / 2  # the fastest command's wheel speed
+    got = _drive(Drift("battery", 1.0, 2.0, 0.3), [5.0, 5.5, 7.0, 9.0])  # the wheels first turn at 5 s
+    assert [g[0] for g in got[:2]] == pytest.approx([0.3, 0.3], rel=1e-5)  # before the change: what was asked
+    assert got[2][0] == pytest.approx(0.85 * top, rel=1e-5) and 0.85 * top < 0.3  # halfway through the sag
+    assert got[3][0] == pytest.approx(0.7 * top, rel=1e-5) and got[3][1] == pytest.approx(0.0, abs=1e-9)
+
+
+def test_a_dragging_left_wheel_yaws_the_robot_left() -> None:
+    got = _drive(Drift("wheel", 0.0, 0.0, 0.1), [1.0, 2.0])
+    for v, omega in got:
+        assert v == pytest.approx(0.3 * 0.95, rel=1e-5) and omega == pytest.approx(0.03 / 0.4, rel=1e-4)
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(420)
+def test_the_hil_loop_relearns_the_cells_a_sagging_battery_changed_and_reaches_the_goal(tmp_path: Path) -> None:
+    """``scmbridge demo --link can --drift battery``: the motors' top speed falls 30 % over 10 s, 20 s after the
+    wheels first turn (from no pairs: the S-path's cells are learned by then); the station runs with
+    ``[transfer] adapt``. The demo's summary, the station's log and its saved store agree on the cells re-learned."""
+    out = tmp_path / "demo"
+    with Children() as kids:
+        demo = kids.spawn(["demo", "--link", "can", "--drift", "battery", "--duration", "150", "--out", str(out)],
+                          subprocess.PIPE)
+        try:
+            stdout, _ = demo.communicate(timeout=360)
+        except subprocess.TimeoutExpired:
+            pytest.fail("the demo did not end within 360 s")
+    lines = [ln for ln in stdout.decode().splitlines() if ln.startswith("summary: ")]
+    assert demo.returncode == 0 and lines, stdout.decode()[-3000:]
+    summary = json.loads(lines[0][len("summary: "):])
+    assert summary["reached_goal"], summary
+    assert summary["cells_relearned"] > 0 and summary["changed_cells"], summary
+    store = PairStore.from_bytes((out / "pairs.bin").read_bytes())
+    assert store.adapt and store.relearned >= summary["cells_relearned"]
+    changed = {c.id for c in store.changed_cells()}
+    assert set(summary["changed_cells"]) <= changed
+    assert all(c.at is not None and c.at > 1e9 for c in store.changed_cells())  # when: the station's wall clock
+    log = (out / "station.log").read_text()
+    assert log.count("re-learned: its learner no longer answers") == store.relearned
