@@ -11,6 +11,14 @@ domain: the teacher equivalents of the learner's extreme commands. Two ways to l
   boundary it *is* the bound (averaged over all boundary pairs of that side, to tame noise); inside, the bound is
   the proportional extrapolation of the paper's Eq. learn_capability, ``u_T,norm|max = u_T,norm / u_L,norm``
   (and its mirror ``1 - (1 - u_T,norm) / (1 - u_L,norm)`` for the lower side), until a boundary pair arrives.
+  A bound is set only by pairs at its own edge: a pair whose teacher part is at (or beyond) the teacher's opposite
+  edge extrapolates nothing on this side. The mirror assumes that the learner's top command gives the teacher's top;
+  a pair that already gives the teacher's top part-way up the learner's range (a learner wider than the teacher:
+  the stock SITL rover's 120 deg/s under the teacher's 45) refutes it, and the extrapolation would put the lower
+  bound at the teacher's top (found on SITL, docs/BENCHMARKS.md: omega in [0.785, 0.785], the teacher turning one
+  way only); likewise a pair at the teacher's bottom and the upper bound. A pair just inside that edge still
+  extrapolates a narrow range (the paper's rule), which the probe of the never-driven limit then measures
+  (:mod:`transfer.policy`).
 
 All arithmetic is on normalised coordinates: the teacher side by the teacher's bounds, the learner side by the
 learner's. Exposed as the axis-aligned ``box`` (what bounds the MPC inputs and filters primitives) and the convex
@@ -94,14 +102,14 @@ class LearnerLimits:
                 bsum_hi[a] += t
                 bcnt_hi[a] += 1
                 hi[a] = bsum_hi[a] / bcnt_hi[a]
-            elif l > ext_hi[a] and bcnt_hi[a] == 0 and l >= _MIN_PROPORTIONAL:
+            elif l > ext_hi[a] and bcnt_hi[a] == 0 and l >= _MIN_PROPORTIONAL and t > tol:
                 hi[a] = t / l  # Eq. learn_capability
             if l <= tol:
                 on_boundary = True
                 bsum_lo[a] += t
                 bcnt_lo[a] += 1
                 lo[a] = bsum_lo[a] / bcnt_lo[a]
-            elif l < ext_lo[a] and bcnt_lo[a] == 0 and 1.0 - l >= _MIN_PROPORTIONAL:
+            elif l < ext_lo[a] and bcnt_lo[a] == 0 and 1.0 - l >= _MIN_PROPORTIONAL and t < 1.0 - tol:
                 lo[a] = 1.0 - (1.0 - t) / (1.0 - l)  # its mirror for the lower side
             ext_hi[a] = max(ext_hi[a], l)
             ext_lo[a] = min(ext_lo[a], l)

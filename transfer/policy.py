@@ -108,6 +108,14 @@ EXPLORATIONS = ("paper", "guided")
 ALONG_LIMIT_TOL = 1e-3
 #: the guided policy's default share of region-served commands that may fill holes of the map (module docstring)
 FILL_BUDGET = 0.08
+#: at which learner speed the probe of a never-driven yaw-rate limit is sent: ``at-command`` (the default, the
+#: paper's: at the speed the command maps to, the learner's slowest while nothing is learned) or ``at-top-speed``
+#: (opt-in: the learner's top speed). A learner that cannot turn in place (an Ackermann rover, docs/BENCHMARKS.md
+#: "The transfer on SITL") probed at its slowest speed barely turns, and the learned box then allows almost no turn
+#: at *any* speed, so the teacher never asks for the faster turning commands that would teach it otherwise; probed
+#: at its top speed it shows the turn rate it has when it drives (and the box then allows that rate at every speed:
+#: a box cannot say that turning needs speed either way)
+TURN_PROBES = ("at-command", "at-top-speed")
 
 
 def planned_commands(predicted: ArrayLike, dt: float, k: int = 10) -> NDArray[np.float64]:
@@ -153,14 +161,18 @@ class _PolicyBase:
 
     def __init__(self, store: PairStore, mapper: str | Mapper = "scm", rng: np.random.Generator | None = None,
                  *, seed: int | None = None, saturate: float = 0.1, probe_tol: float = 1e-6,
-                 inset: float = 0.1) -> None:
+                 inset: float = 0.1, turn_probe: str = "at-command") -> None:
         """``mapper``: a mapper name (``scm``, ``barycentric``, ``affine``, ``identity``) or object; ``rng`` (or
         ``seed``): the random generator of the exploration; ``saturate``: normalised teacher distance to the
         learned region below which commands are served from the region instead of explored; ``probe_tol``: how
         close to a never-driven learned limit a command must be to probe it; ``inset``: how far (fraction of a
-        cell) inside the chosen cell a guided perturbation lands."""
+        cell) inside the chosen cell a guided perturbation lands; ``turn_probe``: at which learner speed the probe
+        of a never-driven yaw-rate limit is sent (:data:`TURN_PROBES`)."""
         if not 0.0 <= inset < 0.5:
             raise ValueError(f"inset must be in [0, 0.5), got {inset}")
+        if turn_probe not in TURN_PROBES:
+            raise ValueError(f"unknown turn_probe {turn_probe!r}; known: {', '.join(TURN_PROBES)}")
+        self.turn_probe = turn_probe
         self.store = store
         self.saturate = float(saturate)
         self.probe_tol = float(probe_tol)
@@ -245,15 +257,17 @@ class _PolicyBase:
         lim = self.store.limits
         lb = self.store.learner_bounds
         u = np.array(base, dtype=float)
-        probed = False
+        probed = [False, False]
         for a in range(2):
             if lim.bcnt_hi[a] == 0 and t_n[a] >= lim.hi[a] - self.probe_tol:
                 u[a] = lb.hi[a]
-                probed = True
+                probed[a] = True
             elif lim.bcnt_lo[a] == 0 and t_n[a] <= lim.lo[a] + self.probe_tol:
                 u[a] = lb.lo[a]
-                probed = True
-        return u if probed else None
+                probed[a] = True
+        if probed[1] and self.turn_probe == "at-top-speed":
+            u[0] = lb.hi[0]  # a learner whose turn rate grows with its speed turns most at its top speed
+        return u if any(probed) else None
 
     def _map_chain(self, t_n: NDArray[np.float64]) -> tuple[NDArray[np.float64], str, Region] | None:
         """The mapper's region for t_n, else the barycentric interpolation of its triangle."""
@@ -368,7 +382,8 @@ class GuidedPolicy(_PolicyBase):
         return Mapped(lb.clip(lb.denormalise(self._nearest_in_cell(target, lb.normalise(u)))), "perturb")
 
     def __init__(self, store: PairStore, mapper: str | Mapper = "scm", rng: np.random.Generator | None = None,
-                 *, fill_budget: float = FILL_BUDGET, fill_depth: float = 0.3, **options: float | None) -> None:
+                 *, fill_budget: float = FILL_BUDGET, fill_depth: float = 0.3,
+                 **options: float | str | None) -> None:
         """``fill_budget``: the share of the commands served from the learned region that may fill a hole of the
         map (0: never); ``fill_depth``: the slowest a fill asks for, as a fraction of the teacher's speed (what the
         learner then drives is the map's guess in the hole, which the fill measures); the other
@@ -546,7 +561,7 @@ POLICIES: dict[str, type[_PolicyBase]] = {"paper": PaperPolicy, "guided": Guided
 
 
 def make_policy(store: PairStore, mapper: str | Mapper = "scm", rng: np.random.Generator | None = None, *,
-                exploration: str = "guided", **options: float | int | None) -> Policy:
+                exploration: str = "guided", **options: float | int | str | None) -> Policy:
     """A policy by its exploration's name (``guided`` or ``paper``); ``options`` as the policies take them."""
     try:
         cls = POLICIES[exploration]

@@ -126,6 +126,12 @@ class TransferSection(Cfg):
     fill_budget: Annotated[float, meta(
         "guided: the share of the commands served from the learned region that may fill a hole of the map, driving "
         "the teacher's curve slower (0: never)", ge=0.0, lt=1.0)] = 0.08
+    # = transfer.policy.TURN_PROBES, repeated for the same reason as fill_budget
+    turn_probe: Annotated[Literal["at-command", "at-top-speed"], meta(
+        "at which learner speed the probe of a never-driven yaw-rate limit is sent: at-command (the paper's: the "
+        "speed the command maps to, the slowest while nothing is learned); at-top-speed (for a learner that cannot "
+        "turn in place, e.g. an Ackermann rover: probed at its slowest speed it barely turns, and the learned limits "
+        "then allow almost no turn at any speed)")] = "at-command"
     adapt: Annotated[bool, meta(
         "re-learn a cell whose learner changed (a sagging battery, a dragging wheel, a new floor; docs/PAPER.md, "
         "'a learner that changes'), also the cells of a store learned on another day; off by default while its "

@@ -175,7 +175,7 @@ class StationCore:
         # a store learned on another day is then checked against the first pairs of the run, cell by cell
         self.store.adapt, self.store.change_tol = tcfg.adapt, tcfg.change_tol
         log.info("%s%s", how, "; cells whose learner changed are re-learned" if tcfg.adapt else "")
-        policy = make_policy(self.store, tcfg.mapper, np.random.default_rng(tcfg.seed),
+        policy = make_policy(self.store, tcfg.mapper, np.random.default_rng(tcfg.seed), turn_probe=tcfg.turn_probe,
                              **({"exploration": "paper"} if tcfg.exploration == "paper"
                                 else {"exploration": "guided", "fill_budget": tcfg.fill_budget}))
         self.transfer = TransferStep(policy, dt=self.period, explore=tcfg.exploration != "off",

@@ -365,7 +365,8 @@ def sitl_hil(args: argparse.Namespace, robot: str = "sitl") -> int:
             f"w = [{w_range[0]!r}, {w_range[1]!r}]\n\n[station]\npair_settle_s = {settle!r}\n\n[transfer]\n"
             + ('mapper = "scm"\nexploration = "guided"\n' if transfer_on
                else 'mapper = "identity"\nexploration = "off"\n')
-            + ("adapt = true\n" if args.adapt else ""))
+            + ("adapt = true\n" if args.adapt else "")
+            + (f'turn_probe = "{args.turn_probe}"\n' if args.turn_probe != "at-command" else ""))
         (out / "driver.toml").write_text(
             f'robot = "{robot}"\n\n[driver.hard_limits]\nv = [{-v_range[1]!r}, {v_range[1]!r}]\n'
             f"w = [{w_range[0]!r}, {w_range[1]!r}]\n\n[link.mavlink]\nurl = \"{sitl.driver_url}\"\nrate_hz = 20\n")
@@ -453,6 +454,7 @@ def sitl_hil(args: argparse.Namespace, robot: str = "sitl") -> int:
         "collisions": {"teacher": teacher["collided"], "scm": collided},
         "method_counts": run["methods"], "refined_pairs": run["refined_pairs"], "raw_pairs": run["raw_pairs"],
         "pair_settle_s": settle, "learned_limits": learned_limits(store), "adapt": bool(args.adapt),
+        "turn_probe": args.turn_probe,
         "cells_relearned": relearned, "param_changes": changed,
         "max_dev_m": run["max_dev_m"], "goal_dist_m": run["goal_dist_m"], "driving_s": run["driving_s"],
         "learner_bounds": [list(v_range), list(w_range)], "vehicle_params": params,
@@ -650,6 +652,9 @@ def arguments(ap: argparse.ArgumentParser) -> None:
                     help="(one robot, --link can) the learner changes mid-run: battery (the motors' top speed falls "
                          "30 %%) or wheel (the left wheel drags), AT s after the wheels first turn, over OVER s "
                          "(default 20:10); the station re-learns the changed cells ([transfer] adapt)")
+    ap.add_argument("--turn-probe", choices=("at-command", "at-top-speed"), default="at-command",
+                    help="(--sitl) the station's [transfer] turn_probe: probe the yaw-rate limits at the learner's top "
+                         "speed (a learner that cannot turn in place, --sitl-model rover) instead of at the command's")
     ap.add_argument("--inprocess", action="store_true", help="the in-process SC transfer example instead")
     ap.add_argument("--seed", type=int, default=0, help="(--inprocess) random generator seed")
     ap.add_argument("--commands", type=int, default=8, help="(--inprocess) teacher commands to show")

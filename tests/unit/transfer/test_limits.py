@@ -7,11 +7,14 @@ tests/unit/transfer/test_store.py; here ``calibration_commands`` and ``LearnerLi
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 
 from transfer.domain import Bounds
 from transfer.limits import LearnerLimits, calibration_commands
+from transfer.store import PairStore
 
 TB = Bounds((0.0, 2.0), (-1.0, 1.0))
 LB = Bounds((0.0, 1.0), (-0.5, 0.5))
@@ -106,3 +109,46 @@ def test_forget_replaces_a_cells_boundary_pairs_by_those_since_the_change() -> N
     # nothing on the boundary since the change: the cell gives no boundary pair and no hull point any more
     lim.forget((10, 5), np.array([[0.6, 0.5]]), np.array([[1.0, 0.5]]), np.zeros((0, 2)), np.zeros((0, 2)))
     assert lim.bcnt_hi[0] == 0 and lim.hull_cnt[10, 5] == 0
+
+
+# the SITL finding (docs/BENCHMARKS.md, "The transfer on SITL"): the stock rover's yaw-rate range (120 deg/s) is wider
+# than the teacher's (45 deg/s), so the teacher's top yaw rate lies part-way up the learner's range
+TEACHER_SITL = Bounds((0.0, 0.6), (-math.pi / 4, math.pi / 4))
+LEARNER_WIDE = Bounds((0.0, 1.0), (-math.radians(120.0), math.radians(120.0)))
+
+
+@pytest.mark.parametrize("overshoot", [0.0, 0.02])
+def test_a_pair_at_the_teachers_top_yaw_rate_does_not_set_the_lower_yaw_rate_limit(overshoot: float) -> None:
+    store = PairStore(LEARNER_WIDE, TEACHER_SITL)
+    w_top = TEACHER_SITL.w[1]
+    # the teacher's top yaw rate sent directly, followed exactly (or a little beyond: the teacher part is measured)
+    store.add([0.3, w_top * (1.0 + overshoot)], [0.3, w_top])
+    box = store.limits.box
+    # it says the learner reaches the teacher's top (the upper limit stays the teacher's) and nothing about turning
+    # the other way: the lower limit stays the teacher's bottom (it was the teacher's top: [0.785, 0.785])
+    assert box.w == pytest.approx(TEACHER_SITL.w)
+    assert store.limits.contains([0.3, -0.5]) and store.limits.contains([0.3, 0.0])
+
+
+def test_a_pair_at_the_teachers_bottom_yaw_rate_does_not_set_the_upper_yaw_rate_limit() -> None:
+    store = PairStore(LEARNER_WIDE, TEACHER_SITL)
+    w_bot = TEACHER_SITL.w[0]
+    store.add([0.3, w_bot * 1.02], [0.3, w_bot])
+    assert store.limits.box.w == pytest.approx(TEACHER_SITL.w)
+
+
+def test_a_pair_inside_the_teachers_range_still_extrapolates_both_sides() -> None:
+    # the paper's rule where it holds (Eq. learn_capability and its mirror): unchanged by the edge rule above
+    lim = _limits()
+    lim.update(np.array([0.5, 0.9]), np.array([0.5, 0.75]), (5, 8))
+    assert lim.lo[1] == pytest.approx(1.0 - 0.1 / 0.25)
+    lim = _limits()
+    lim.update(np.array([0.1, 0.5]), np.array([0.25, 0.5]), (2, 5))
+    assert lim.hi[0] == pytest.approx(0.4)  # a convex learner's low pair underestimates: the probe measures it
+
+
+def test_after_a_pair_at_the_teachers_top_a_straight_pair_sets_the_lower_limit_by_the_mirror() -> None:
+    store = PairStore(LEARNER_WIDE, TEACHER_SITL)
+    store.add([0.3, TEACHER_SITL.w[1]], [0.3, TEACHER_SITL.w[1]])
+    store.add([0.3, 0.0], [0.3, 0.0])  # straight ahead: the learner's middle gives the teacher's middle
+    assert store.limits.box.w == pytest.approx(TEACHER_SITL.w)

@@ -563,3 +563,25 @@ def test_the_hole_search_costs_at_most_about_one_map_per_command_when_no_hole_is
         assert calls <= 2.1 * n, (holes, calls / n)
         if not holes:
             assert calls == n
+
+
+@pytest.mark.parametrize("exploration", ["paper", "guided"])
+def test_turn_probe_at_top_speed_probes_a_yaw_rate_limit_at_the_learners_top_speed(exploration: str) -> None:
+    """``turn_probe="at-top-speed"`` (opt-in, for a learner that cannot turn in place): the probe of a never-driven
+    yaw-rate limit is sent at the learner's top speed; by default (the paper's) at the speed the command maps to."""
+    s = PairStore(LB, TB, k_min=5)
+    s.add(TB.denormalise([0.1, 0.5]), LB.denormalise([0.0, 0.5]))  # the slowest speed, straight: a boundary pair
+    top_w = s.limits.box.w[1]
+    base = make_policy(s, "scm", seed=0, exploration=exploration)
+    m = base.map([0.1, top_w])  # slow, at the top yaw rate: the yaw-rate limit is probed at the command's speed
+    assert m.method == "perturb" and m.u_L[1] == LB.w[1] and m.u_L[0] < 0.5 * (LB.v[0] + LB.v[1])
+    fast = make_policy(s, "scm", seed=0, exploration=exploration, turn_probe="at-top-speed")
+    m = fast.map([0.1, top_w])
+    assert m.method == "perturb" and m.u_L[1] == LB.w[1] and m.u_L[0] == LB.v[1]
+    m = fast.map([0.1, s.limits.box.w[0]])  # the lower yaw-rate limit likewise
+    assert m.method == "perturb" and m.u_L[1] == LB.w[0] and m.u_L[0] == LB.v[1]
+    # a speed probe alone is not moved: it is at the learner's top (or bottom) speed already, its yaw rate as mapped
+    m = fast.map([s.limits.box.v[1], 0.0])
+    assert m.method == "perturb" and m.u_L[0] == LB.v[1] and abs(m.u_L[1] - LB.w[1]) > 1e-9
+    with pytest.raises(ValueError, match="unknown turn_probe"):
+        make_policy(s, "scm", seed=0, exploration=exploration, turn_probe="fast")

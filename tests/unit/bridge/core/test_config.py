@@ -174,3 +174,14 @@ def test_the_stations_change_detection_defaults_are_the_stores() -> None:
 
     assert C.TransferSection().change_tol == CHANGE_TOL
     assert C.TransferSection().adapt is PairStore.__init__.__kwdefaults__["adapt"] is False
+
+
+def test_the_stations_turn_probe_choices_and_default_are_the_policys() -> None:
+    # repeated for the same reason: the policy's own choices, and its default (the paper's) unless configured
+    import typing
+
+    from transfer.policy import TURN_PROBES, PaperPolicy
+
+    hint = typing.get_type_hints(C.TransferSection, include_extras=True)["turn_probe"]
+    assert typing.get_args(typing.get_args(hint)[0]) == TURN_PROBES
+    assert C.TransferSection().turn_probe == PaperPolicy.__init__.__kwdefaults__["turn_probe"] == TURN_PROBES[0]
