@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import math
 import operator
 import sys
 import threading
@@ -441,11 +442,15 @@ class Station:
 
 class Deadlines:
     """One robot's periodic deadlines in a many-robot process (:class:`FleetLoop`): the rules of
-    :class:`~bridge.nodes.node.FixedRate` (no send budget, no rephase) without its waiting, which the one scheduler
-    thread does for every robot. ``t_next`` is the next periodic tick's deadline. A periodic tick that ends at or
-    past the next deadline is counted in ``missed`` and the schedule restarts from its end (the next tick is due at
-    once); a tick woken between two deadlines keeps the schedule, and is counted only when it ended a whole period
-    past the deadline. Missed deadlines are counted per robot exactly as a loop of its own counts them."""
+    :class:`~bridge.nodes.node.FixedRate` for what counts as missed (no send budget, no rephase), without its waiting,
+    which the one scheduler thread does for every robot. ``t_next`` is the next periodic tick's deadline. A periodic
+    tick that ends at or past the next deadline is counted in ``missed``; a tick woken between two deadlines keeps the
+    schedule, and is counted only when it ended a whole period past the deadline. Missed deadlines are counted per
+    robot exactly as a loop of its own counts them. After a miss the schedule keeps its phase: the next tick is due at
+    the first of the robot's own deadlines after the late one ended (a loop of its own restarts at once instead). The
+    robots of a process are spread over the period so that they do not queue for the one thread; restarting each at
+    the end of a stall would bunch every robot the stall delayed at one instant, and the queue behind them would make
+    the next ticks late too."""
 
     def __init__(self, period: float, first: float) -> None:
         self.period = float(period)
@@ -458,11 +463,14 @@ class Deadlines:
         if periodic:
             self.t_next += self.period
             if end >= self.t_next:
-                self.missed += 1
-                self.t_next = end
+                self._missed(end)
         elif end - self.t_next >= self.period:
-            self.missed += 1
-            self.t_next = end
+            self._missed(end)
+
+    def _missed(self, end: float) -> None:
+        """Count a miss; the next deadline is the first of this robot's own after ``end``."""
+        self.missed += 1
+        self.t_next += self.period * (math.floor((end - self.t_next) / self.period) + 1)
 
 
 class FleetWake:
