@@ -99,7 +99,7 @@ def read_perf(out: str) -> list[Row]:
             continue
         value = "-" if f.get("value") is None else f"{_fmt(f['value'])} {f.get('unit', '')}".strip()
         claim = f"target {_fmt(f.get('target'))} {f.get('unit', '')}, {f['verdict']}"
-        if f.get("ratio") and f["ratio"] != 1:
+        if f.get("ratio") and f["ratio"] > 1.005:
             claim += f" (targets scaled x{f['ratio']:.2f} for this machine's speed)"
         rows.append(Row(f["name"], value, claim))
     if not rows:
