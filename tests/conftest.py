@@ -24,3 +24,21 @@ def _own_state_and_cache(tmp_path_factory, monkeypatch) -> None:
     monkeypatch.setenv("SCMBRIDGE_NO_COMPILE", "1")
     if "SCMBRIDGE_CACHE_DIR" not in os.environ:
         monkeypatch.setenv("SCMBRIDGE_CACHE_DIR", str(tmp_path_factory.getbasetemp() / "cache"))
+
+
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    """The longest tests (``slow``: whole HIL loops, demos, soaks) spread evenly through the run: xdist hands each
+    worker a contiguous share of the tests to start with (``--dist worksteal`` then rebalances what is left), so
+    slow tests that sit together in one file's or one directory's stretch would run one after another on one worker
+    while the others finish early."""
+    slow = [it for it in items if it.get_closest_marker("slow") is not None]
+    if not slow:
+        return
+    rest = [it for it in items if it.get_closest_marker("slow") is None]
+    step = max(1, len(rest) // len(slow))
+    out: list[pytest.Item] = []
+    for i, it in enumerate(rest):
+        if i % step == 0 and slow:
+            out.append(slow.pop(0))
+        out.append(it)
+    items[:] = out + slow

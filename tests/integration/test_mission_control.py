@@ -122,6 +122,7 @@ def _estop(client: list[str], *args: str) -> subprocess.CompletedProcess:
                           timeout=60)
 
 
+@pytest.mark.slow
 @pytest.mark.timeout(180)
 def test_a_station_drives_only_after_a_person_and_an_estop_release_or_a_driver_restart_leaves_it_paused(
         tmp_path) -> None:

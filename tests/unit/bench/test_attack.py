@@ -3,9 +3,12 @@ unsafe reaches a vehicle and nothing implausible is learned (each attack is also
 
 from __future__ import annotations
 
+import pytest
+
 from bench.attack import ATTACKS, run_all
 
 
+@pytest.mark.slow
 def test_no_attack_gets_through() -> None:
     res = run_all(short=True)
     failed = [a for a in res["attacks"] if not a["ok"]]

@@ -12,6 +12,7 @@ import json
 import logging
 import socket
 import threading
+import time
 
 import pytest
 import zenoh
@@ -143,9 +144,11 @@ def test_two_sessions_on_loopback_reach_each_other_and_close() -> None:
     port = free_port()
     with zenoh.open(make_config(listen=[tcp(port)])) as a, open_session(make_config(connect=[tcp(port)])) as b:
         a.declare_queryable("scmtest/echo", lambda q: q.reply("scmtest/echo", b"pong"))
-        replies = []
-        for _ in range(50):  # the peers find each other within ~0.1 s; bounded
+        replies: list[bytes] = []
+        deadline = time.monotonic() + 20.0  # the peers find each other within ~0.1 s quiet; bounded for a busy machine
+        while not replies and time.monotonic() < deadline:
+            # a get with no route to the queryable yet returns at once, empty: poll until the route is there
             replies = [r.ok.payload.to_bytes() for r in b.get("scmtest/echo", timeout=0.5) if r.ok is not None]
-            if replies:
-                break
+            if not replies:
+                time.sleep(0.05)
         assert replies == [b"pong"]
