@@ -103,7 +103,10 @@ def test_one_thread_ticks_every_robot_at_its_phase_and_a_failing_robot_stops_alo
             loop.join(timeout=10)
         assert not loop.is_alive()
     assert fleet.failed == [robots[1]]
-    assert len(snap[robots[1]]) == 4  # its four good ticks, then nothing
+    assert calls["bad"] == 5  # its four good ticks, the failing one, and never again
+    # no command after its failure (its first ones may go out before this test's subscriber is connected: the loop
+    # starts ticking before the client session is open, so the count is at most four, not exactly four)
+    assert len(snap[robots[1]]) <= 4
     assert calls["own_cmd"] == 0 and stations[0].core.counters.foreign_commands == 0
     # each robot on its own phase: the three robots' commands come a third of a period apart
     phase = {r: float(np.median(np.mod(np.array(snap[r][5:]), PERIOD))) for r in (robots[0], robots[2])}
