@@ -52,6 +52,11 @@ class Mapper(Protocol):
         """The point of the mapper's region nearest to ``t`` and its distance; None before there is a region."""
         ...
 
+    def map_many(self, P: NDArray[np.float64]) -> list[tuple[NDArray[np.float64], Region] | None]:
+        """``map_normalised`` of every row of ``P`` ``(n, 2)``: the same results, computed together where the
+        mapper can (a hole search maps a row of slowed commands: :meth:`transfer.policy.GuidedPolicy._fill_target`)."""
+        ...
+
 
 class _Triangulated:
     """Shared Delaunay triangulation of the refined pairs' normalised teacher parts, rebuilt on store revision."""
@@ -122,8 +127,25 @@ class _Triangulated:
         i = int(np.argmax(np.nan_to_num(depth, nan=-np.inf)))
         return i if depth[i] >= -SIMPLEX_EPS else -1
 
+    def _simplices(self, P: NDArray[np.float64]) -> NDArray[np.int64]:
+        """:meth:`_simplex` of every row of ``P`` ``(n, 2)`` in one pass over the triangles (the same arithmetic,
+        element by element, so the same triangles)."""
+        if self.tri is None:
+            return np.full(len(P), -1, dtype=np.int64)
+        tr = self._transforms()
+        d0, d1 = P[:, :1] - tr[:, 2, 0], P[:, 1:] - tr[:, 2, 1]
+        l0 = tr[:, 0, 0] * d0 + tr[:, 0, 1] * d1
+        l1 = tr[:, 1, 0] * d0 + tr[:, 1, 1] * d1
+        depth = np.fmin(np.fmin(l0, l1), 1.0 - l0 - l1)
+        i = np.argmax(np.nan_to_num(depth, nan=-np.inf), axis=1)
+        return np.where(depth[np.arange(len(P)), i] >= -SIMPLEX_EPS, i, -1)
+
     def map_normalised(self, t: NDArray[np.float64]) -> tuple[NDArray[np.float64], Region] | None:
         raise NotImplementedError
+
+    def map_many(self, P: NDArray[np.float64]) -> list[tuple[NDArray[np.float64], Region] | None]:
+        """``map_normalised`` of every row of ``P`` (:class:`Mapper`); one by one here."""
+        return [self.map_normalised(p) for p in P]
 
     def nearest_on_hull(self, t: NDArray[np.float64]) -> tuple[NDArray[np.float64], float] | None:
         """The point of the triangulated region nearest to t (just inside its hull), and its distance."""
@@ -229,6 +251,41 @@ class ScmMapper(_Triangulated):
                 return out, tuple(int(self.ids[v]) for v in quad)
         return None
 
+    def map_many(self, P: NDArray[np.float64]) -> list[tuple[NDArray[np.float64], Region] | None]:
+        """``map_normalised`` of every row of ``P`` (:class:`Mapper`): the triangles located in one pass, and the
+        rows that try the same quadrilateral mapped by one call of its SC map (it maps each point on its own, so
+        the results are those of one call per row)."""
+        self._sync()
+        res: list[tuple[NDArray[np.float64], Region] | None] = [None] * len(P)
+        if self.tri is None or not len(P):
+            return res
+        simplex = self._simplices(P)
+        cands: dict[int, list[tuple[Region, tuple]]] = {}
+        trying: dict[int, int] = {}  # row -> index of the candidate quadrilateral it tries next
+        for i, s in enumerate(simplex.tolist()):
+            if s >= 0:
+                if s not in cands:
+                    c = self._by_simplex.get(s)
+                    cands[s] = c if c is not None else self._by_simplex.setdefault(s, self._candidates(s))
+                if cands[s]:
+                    trying[i] = 0
+        while trying:
+            groups: dict[tuple, tuple[Region, list[int]]] = {}
+            for i, k in trying.items():
+                quad, key = cands[int(simplex[i])][k]
+                groups.setdefault(key, (quad, []))[1].append(i)
+            later: dict[int, int] = {}
+            for key, (quad, rows) in groups.items():
+                qt = self._transfer(quad, key)
+                out = qt(P[rows], outside="nan") if qt is not None else None
+                for j, i in enumerate(rows):
+                    if out is not None and np.all(np.isfinite(out[j])):
+                        res[i] = out[j], tuple(int(self.ids[v]) for v in quad)
+                    elif trying[i] + 1 < len(cands[int(simplex[i])]):
+                        later[i] = trying[i] + 1
+            trying = later
+        return res
+
 
 class BarycentricMapper(_Triangulated):
     """Piecewise-linear interpolation on the Delaunay triangles of the refined pairs."""
@@ -246,6 +303,20 @@ class BarycentricMapper(_Triangulated):
         bary = np.array([lam[0], lam[1], 1.0 - lam.sum()])
         verts = self.tri.simplices[s]
         return bary @ self.L[verts], tuple(int(self.ids[v]) for v in verts)
+
+    def map_many(self, P: NDArray[np.float64]) -> list[tuple[NDArray[np.float64], Region] | None]:
+        """``map_normalised`` of every row of ``P`` (:class:`Mapper`), every row's triangle and weights at once."""
+        self._sync()
+        if self.tri is None or not len(P):
+            return [None] * len(P)
+        simplex = self._simplices(P)
+        tr = self._transforms()[simplex]
+        lam = np.einsum("nij,nj->ni", tr[:, :2], P - tr[:, 2])
+        bary = np.column_stack([lam, 1.0 - lam.sum(axis=1)])
+        verts = self.tri.simplices[simplex]
+        out = np.einsum("nk,nkj->nj", bary, self.L[verts])
+        ids = self.ids[verts]
+        return [(out[i], tuple(ids[i].tolist())) if simplex[i] >= 0 else None for i in range(len(P))]
 
 
 class AffineMapper(_Triangulated):
@@ -289,6 +360,10 @@ class IdentityMapper:
 
     def nearest_on_hull(self, t: NDArray[np.float64]) -> tuple[NDArray[np.float64], float]:
         return np.asarray(t, dtype=float).copy(), 0.0
+
+    def map_many(self, P: NDArray[np.float64]) -> list[tuple[NDArray[np.float64], Region] | None]:
+        """``map_normalised`` of every row of ``P`` (:class:`Mapper`)."""
+        return [self.map_normalised(p) for p in P]
 
 
 MAPPERS = {"scm": ScmMapper, "barycentric": BarycentricMapper, "affine": AffineMapper, "identity": IdentityMapper}

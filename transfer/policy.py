@@ -108,6 +108,9 @@ EXPLORATIONS = ("paper", "guided")
 ALONG_LIMIT_TOL = 1e-3
 #: the guided policy's default share of region-served commands that may fill holes of the map (module docstring)
 FILL_BUDGET = 0.08
+#: how many of a hole search's best candidates (ranked on the linear map) are checked on the mapper itself, best
+#: first, before the search gives up (each costs up to two maps)
+FILL_CHECKS = 3
 #: at which learner speed the probe of a never-driven yaw-rate limit is sent: ``at-command`` (the default, the
 #: paper's: at the speed the command maps to, the learner's slowest while nothing is learned) or ``at-top-speed``
 #: (opt-in: the learner's top speed). A learner that cannot turn in place (an Ackermann rover, docs/BENCHMARKS.md
@@ -184,6 +187,8 @@ class _PolicyBase:
         self._fallback = (BarycentricMapper(store)
                           if not identity and not isinstance(self.mapper, BarycentricMapper) else None)
         self.rng = rng if rng is not None else np.random.default_rng(seed)
+        self._rows_of: tuple | None = None  # the refined arrays the cached rows of _limit_row belong to
+        self._rows: dict[tuple[int, int], tuple[NDArray[np.int64], NDArray[np.float64]]] = {}
 
     def map(self, u_T: ArrayLike, *, plan: Plan = None, explore: bool = True) -> Mapped:
         """The learner command for teacher command ``u_T`` (see the module docstring for every case)."""
@@ -220,7 +225,8 @@ class _PolicyBase:
         collinear in the teacher domain, so the 2-D regions along the limit are slivers whose maps are
         ill-conditioned; along the row the map is one-dimensional. None when ``t_n`` is not at such a limit or lies
         beyond the row's pairs."""
-        ids, _, T, L = self.store.refined_arrays()
+        arrays = self.store.refined_arrays()
+        ids, _, T, L = arrays
         if ids.size < 2:
             return None
         lim, grid = self.store.limits, self.store.grid
@@ -231,11 +237,9 @@ class _PolicyBase:
                     (lim.bcnt_lo[a] > 0 and t_n[a] <= lim.lo[a] + ALONG_LIMIT_TOL, 0, 0.0)):
                 if not at_limit:
                     continue
-                on_row = np.flatnonzero(np.unravel_index(ids, grid)[a] == row)  # the pairs of cells on that row
+                on_row, xs = self._limit_row(arrays, a, row)
                 if on_row.size < 2:
                     continue
-                on_row = on_row[np.argsort(T[on_row, b], kind="stable")]
-                xs = T[on_row, b]
                 x = float(t_n[b])
                 if not xs[0] <= x <= xs[-1]:
                     continue
@@ -247,6 +251,54 @@ class _PolicyBase:
                 l_n[a], l_n[b] = extreme, L[i0, b] + w * (L[i1, b] - L[i0, b])
                 return l_n, "barycentric", (int(ids[i0]), int(ids[i1]))
         return None
+
+    def _limit_row(self, arrays: tuple, a: int, row: int) -> tuple[NDArray[np.int64], NDArray[np.float64]]:
+        """The refined pairs of the cells on ``row`` of axis ``a`` (indices into ``arrays``, the store's
+        :meth:`~transfer.store.PairStore.refined_arrays`) sorted along the other axis, and their teacher parts on
+        it; computed once per set of refined pairs (every command at a limit reads them)."""
+        if self._rows_of is not arrays:
+            self._rows_of, self._rows = arrays, {}
+        got = self._rows.get((a, row))
+        if got is None:
+            ids, _, T, _ = arrays
+            b = 1 - a
+            on_row = np.flatnonzero(np.unravel_index(ids, self.store.grid)[a] == row)  # the pairs on that row
+            on_row = on_row[np.argsort(T[on_row, b], kind="stable")]
+            got = self._rows[(a, row)] = (on_row, T[on_row, b])
+        return got
+
+    def _unperturbed_many(self, ts: NDArray[np.float64], *, linear: bool = False) -> tuple[NDArray[np.float64],
+                                                                                           list[str]]:
+        """:meth:`_unperturbed` of every row of ``ts`` ``(n, 2)`` (teacher units): the learner commands ``(n, 2)``
+        and the methods, the same as one call per row; the mapper locates and maps the rows not at a learned limit
+        together (:meth:`transfer.mappers.Mapper.map_many`). ``linear``: the piecewise-linear map on the same
+        triangles instead of the mapper (no SC map is built: a guess that ranks a hole search's candidates; it
+        has a region exactly where the mapper's chain has one, so "direct" means the same)."""
+        tb, lb = self.store.teacher_bounds, self.store.learner_bounds
+        ts_n = tb.normalise(ts)
+        out = np.empty_like(ts_n)
+        methods = [""] * len(ts_n)
+        rest: list[int] = []
+        for i in range(len(ts_n)):
+            along = self._along_limit(ts_n[i])
+            if along is not None:
+                out[i], methods[i] = along[0], along[1]
+            else:
+                rest.append(i)
+        chain = (self._fallback or self.mapper,) if linear else (self.mapper, self._fallback)
+        for mapper in chain:
+            if not rest or mapper is None:
+                continue
+            unmapped = []
+            for i, got in zip(rest, mapper.map_many(ts_n[rest])):
+                if got is not None and np.all(np.isfinite(got[0])):
+                    out[i], methods[i] = got[0], mapper.name
+                else:
+                    unmapped.append(i)
+            rest = unmapped
+        for i in rest:
+            out[i], methods[i], _, _ = self._estimate(ts[i], ts_n[i])
+        return lb.clip(lb.denormalise(out)), methods
 
     def _probe_limits(self, t_n: NDArray[np.float64], base: NDArray[np.float64]) -> NDArray[np.float64] | None:
         """A teacher command saturated at a learned limit whose learner boundary has never been seen: send the
@@ -455,34 +507,49 @@ class GuidedPolicy(_PolicyBase):
         ``s * u_T`` is farthest from every refined pair (normalised teacher units: the map's biggest hole on the
         teacher's way). (cell, learner command), or None.
 
-        A search costs a map per slowed speed, and a second one (the yaw rate) only where that speed's row of cells
-        has a hole. One that found nothing makes the next wait as many commands as it cost maps
-        (``_search_after``): searching then costs at most one map per command, amortised. (Spreading a search over
-        several commands, each speed tried at its own tick's teacher command, was tried: the grid's SCM error grew
-        from 0.106x to 0.15x the baseline's, seeds 10-19.)"""
+        The candidates are ranked on the linear map of the same triangles (every slowed speed, and the yaw rate
+        where that speed's row of cells has a hole: no SC map is built for a guess), and the best of them is then
+        mapped with the mapper itself; if the mapper puts it in a configured cell the next is tried, at most
+        ``FILL_CHECKS``. One that found nothing makes the next wait as many commands as it tried speeds and yaw
+        rates (``_search_after``). (Spreading a search over several commands, each speed tried at its own tick's
+        teacher command, was tried: the grid's SCM error grew from 0.106x to 0.15x the baseline's, seeds 10-19.)"""
         store = self.store
         tb, lb = store.teacher_bounds, store.learner_bounds
         gv = store.grid[0]
         _, _, T, _ = store.refined_arrays()
+        slowed = t * self._speeds[:, None]
+        below = np.flatnonzero(tb.normalise(slowed)[:, 0] < store.limits.lo[0])  # no slower than the speed limit
+        n = int(below[0]) if below.size else len(slowed)
+        # ranked on the linear map (every slowed command at once, no SC map built), then the yaw rate at the
+        # teacher's speed where that speed's row of cells has a hole
+        v_n = lb.normalise(self._unperturbed_many(slowed[:n], linear=True)[0])[:, 0]
+        rows = np.minimum((v_n * gv).astype(int), gv - 1)
+        open_ = [i for i in range(n) if not store.pub_version[rows[i]].all()]
+        cost = n + len(open_)
+        ranked: list[tuple[tuple[bool, float], int]] = []
+        if open_:
+            s = self._speeds[open_]
+            u_w, methods = self._unperturbed_many(np.stack([np.full(len(open_), t[0]), t[1] * s], axis=1),
+                                                  linear=True)
+            for j, i in enumerate(open_):
+                if methods[j] == "direct":  # no learned region for that yaw rate (as _at_speed)
+                    continue
+                l_n = lb.normalise(u_w[j])
+                l_n[0] = v_n[i]
+                cell = store.cell_of(lb.clip(lb.denormalise(l_n)))
+                if store.is_configured(cell):
+                    continue
+                ts_n = tb.normalise(slowed[i])
+                ranked.append(((bool(store.count[cell] > 0),
+                                float(np.min(np.hypot(*(T - ts_n).T))) if len(T) else 0.0), i))
+        ranked.sort(key=lambda e: e[0], reverse=True)  # stable: of equal keys the fastest first
         best: tuple[tuple[bool, float], tuple[int, int], NDArray[np.float64]] | None = None
-        cost = 0
-        for s in self._speeds:
-            ts = t * s
-            ts_n = tb.normalise(ts)
-            if ts_n[0] < store.limits.lo[0]:
-                break
-            v_n = float(lb.normalise(self._unperturbed(ts, ts_n)[0])[0])
-            cost += 1
-            if store.pub_version[min(int(v_n * gv), gv - 1)].all():
-                continue  # every cell at that speed is configured: whatever the yaw rate, no hole there
-            u = self._at_speed(t, v_n, float(s))
-            cost += 1
-            if u is None:
+        for key, i in sorted(ranked[:FILL_CHECKS], key=lambda e: e[1]):  # the best few, on the map itself
+            v = float(lb.normalise(self._unperturbed(slowed[i], tb.normalise(slowed[i]))[0])[0])
+            u = self._at_speed(t, v, float(self._speeds[i]))
+            if u is None or store.is_configured(cell := store.cell_of(u)):
                 continue
-            cell = store.cell_of(u)
-            if store.is_configured(cell):
-                continue
-            key = (bool(store.count[cell] > 0), float(np.min(np.hypot(*(T - ts_n).T))) if len(T) else 0.0)
+            key = (bool(store.count[cell] > 0), key[1])
             if best is None or key > best[0]:
                 best = (key, cell, u)
         if best is None:

@@ -143,3 +143,29 @@ def test_min_angle_of_simple_shapes() -> None:
     assert _min_angle(sq) == pytest.approx(math.pi / 2)
     kite = np.array([[0.0, 0.0], [2.0, -0.2], [4.0, 0.0], [2.0, 0.2]])
     assert _min_angle(kite) == pytest.approx(2 * math.atan2(0.2, 2.0))
+
+
+@pytest.mark.parametrize("cls", [ScmMapper, BarycentricMapper, AffineMapper, IdentityMapper])
+def test_map_many_gives_each_rows_own_map_inside_outside_and_on_the_pairs(cls) -> None:
+    """``map_many``: a hole search maps a row of commands at once; each row's result is the one ``map_normalised``
+    gives it alone (the SC mapper's bit for bit: it groups the rows of one quadrilateral into one call of a map
+    that maps each point on its own), None where it has no region."""
+    s = _grid_store(lambda l: np.array([l[0] ** 1.5, 0.8 * l[1] + 0.1 * l[0]]))
+    rng = np.random.default_rng(5)
+    P = np.vstack([rng.uniform(-0.1, 1.1, (60, 2)), s.refined_arrays()[2][:5], [[0.5, 0.5], [0.5, 0.5]]])
+    alone, many = cls(s), cls(s)
+    got = many.map_many(P)
+    assert len(got) == len(P) and cls(s).map_many(np.zeros((0, 2))) == []
+    for p, g in zip(P, got):
+        want = alone.map_normalised(p)
+        assert (g is None) == (want is None), p
+        if want is not None:
+            assert g[1] == want[1]
+            if cls is BarycentricMapper:  # the weights of every row at once: the same to rounding
+                np.testing.assert_allclose(g[0], want[0], rtol=0, atol=1e-14)
+            else:
+                assert g[0].tolist() == want[0].tolist()
+    if cls is ScmMapper:
+        assert many.builds == alone.builds  # each quadrilateral built once either way
+    assert any(g is None for g in got) or cls is IdentityMapper
+    assert any(g is not None for g in got)

@@ -133,3 +133,34 @@ def test_a_plan_given_as_a_function_is_read_only_when_a_cell_is_chosen() -> None
     m = p.map(np.array([5.5, 4.8]) / 11 + np.array([0.02, 0.0]), plan=plan)  # beyond saturate: explores
     assert m.method == "perturb" and calls == [1]
     assert s.cell_of(m.u_L) == (6, 5)  # the neighbour that serves the plan too
+
+
+def test_unperturbed_many_is_each_rows_own_unperturbed_mapping_and_its_linear_guess_has_the_same_region() -> None:
+    """``_unperturbed_many`` (a hole search's rows at once) gives each row what ``_unperturbed`` gives it alone, at a
+    learned limit, inside the SC region and outside it (the estimate); ``linear=True`` (the search's ranking, no
+    SC map built) is the piecewise-linear map of the same triangles and says "direct" on exactly the same rows."""
+    from sim_learner.experiments import mpc_case
+
+    case = mpc_case(False)
+    store = PairStore(case.learner_bounds, case.teacher_bounds, k_min=1)
+    lb, tb = case.learner_bounds, case.teacher_bounds
+    for i in range(11):
+        for j in range(11):
+            if i < 3 and j < 4:
+                continue  # a hole at the slow hard right turns: rows outside the region
+            u = lb.denormalise(np.array([(i + 0.5) / 11, (j + 0.5) / 11]))
+            store.add(case.learner.response(u), u)
+    p = GuidedPolicy(store, "scm", seed=0)
+    rng = np.random.default_rng(3)
+    ts = tb.denormalise(np.vstack([rng.uniform(-0.05, 1.05, (80, 2)),
+                                   [[store.limits.hi[0], 0.5], [store.limits.lo[0], 0.3]]]))
+    u, methods = p._unperturbed_many(ts)
+    for k, t in enumerate(ts):
+        u1, m1, _, _ = p._unperturbed(t, tb.normalise(t))
+        assert methods[k] == m1 and u[k].tolist() == u1.tolist(), (t, methods[k], m1)
+    assert {"direct", "scm"} <= set(methods)
+    lin, lin_methods = p._unperturbed_many(ts, linear=True)
+    assert [m == "direct" for m in lin_methods] == [m == "direct" for m in methods]
+    assert "scm" not in lin_methods and np.all(lb.contains(lin))
+    inside = [k for k, m in enumerate(methods) if m == "scm"]
+    assert np.max(np.abs(lb.normalise(lin[inside]) - lb.normalise(u[inside]))) < 0.05  # a guess, and a close one

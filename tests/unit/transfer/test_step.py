@@ -12,7 +12,7 @@ from hypothesis import strategies as st
 from transfer.domain import Bounds
 from transfer.limits import calibration_commands
 from transfer.pairs import teacher_equivalent
-from transfer.policy import GuidedPolicy, make_policy
+from transfer.policy import FILL_CHECKS, GuidedPolicy, make_policy
 from transfer.store import PairStore
 from transfer.teacher.unicycle import step
 
@@ -547,22 +547,40 @@ def test_the_hole_search_costs_at_most_about_one_map_per_command_when_no_hole_is
                     store.add(case.learner.response(u), u)
         p = make_policy(store, "scm", seed=0)
         calls = 0
-        inner = p._unperturbed
+        inner, inner_many = p._unperturbed, p._unperturbed_many
 
         def counted(*a, _inner=inner):
             nonlocal calls
             calls += 1
             return _inner(*a)
 
-        p._unperturbed = counted
+        def counted_many(ts, _inner=inner_many, **kw):  # a search's rows, mapped at once: a map each all the same
+            nonlocal calls
+            calls += len(ts)
+            return _inner(ts, **kw)
+
+        searches = 0
+        inner_search = p._fill_target
+
+        def counted_search(t, _inner=inner_search):
+            nonlocal searches
+            searches += 1
+            return _inner(t)
+
+        p._unperturbed, p._unperturbed_many, p._fill_target = counted, counted_many, counted_search
         t = case.learner.response(lb.denormalise(np.array([0.9, 0.5])))  # straight ahead, fast: nothing to fill
         n = 600
-        methods = {p.map(t).method for _ in range(n)}
+        p.map(t)
+        builds = p.mapper.builds  # the command's own region
+        methods = {p.map(t).method for _ in range(n - 1)}
         assert "perturb" not in methods
         # one map for the command itself, at most about one more for the searches, amortised
         assert calls <= 2.1 * n, (holes, calls / n)
         if not holes:
             assert calls == n
+        # the searches rank their candidates on the linear map: an SC map is built only to check the best few
+        assert (searches > 0) == bool(holes)
+        assert p.mapper.builds - builds <= 2 * FILL_CHECKS * searches, (holes, searches, p.mapper.builds - builds)
 
 
 @pytest.mark.parametrize("exploration", ["paper", "guided"])
