@@ -199,7 +199,7 @@ def forged_state_and_applied(short: bool) -> Result:
 def poisoned_store(short: bool) -> Result:
     """A persisted store holding a pair no vehicle can make (teacher v = 121): served after a restart?"""
     from bridge.core.paths import save_atomic
-    from bridge.nodes.station import load_store
+    from bridge.nodes.station_core import load_store
     from transfer.domain import Bounds
     from transfer.paper import MPC_LEARNER_V, MPC_LEARNER_W, MPC_TEACHER_V, MPC_TEACHER_W
     from transfer.store import PairStore

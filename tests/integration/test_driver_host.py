@@ -487,7 +487,7 @@ def test_an_estop_the_disk_cannot_take_stops_refuses_engage_and_is_still_latched
     import errno
 
     from bridge.nodes.latch_store import latch_marker, read_latch
-    from bridge.nodes.station_core import driver_estop
+    from bridge.nodes.station_fitness import driver_estop
 
     latch = tmp_path / "state" / "estop-r1.bin"
     full = threading.Event()
