@@ -19,7 +19,8 @@ import pytest
 from bridge.core.config import load_mission
 from bridge.nodes.zsession import free_port, tcp
 from bridge.tools.procs import Children, said
-from tests.lab import start_router, until
+from tests.lab import start_router
+from tests.wait import until
 
 
 def _tool(port: int, *args: str, timeout: float = 60) -> subprocess.CompletedProcess:
