@@ -18,7 +18,7 @@ import math
 import tempfile
 import time
 import uuid
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import numpy as np
@@ -54,9 +54,24 @@ def forged_command_in_epoch(short: bool) -> Result:
             "ok": forged_applied == 0 and locked == 0}
 
 
+def unsealed_command(driver, k: int = 0, v: float = 0.95) -> bytes:
+    """A Command datagram a forger makes without the key: unsealed, with the real UDP ``driver``'s epoch and its next
+    seq (+ ``k``), both readable off an open network, at ``v`` m/s (0.95: within the robot's own limit of 1.0)."""
+    from bridge.core import wire as M
+
+    return M.encode(M.Command(stamp=time.monotonic(), seq=driver.seq + 1 + k, v=v, omega=0.0, method="scm",
+                              valid_ms=300, sender="driver", epoch=driver.epoch))
+
+
+def spoof_from(robot, data: bytes, source: tuple[str, int]) -> None:
+    """``data`` handled by the emulated UDP ``robot`` as if it came from ``source`` (the driver's address: an attacker
+    on its segment, which pinning an address and port does not stop)."""
+    with robot._lock:
+        robot._handle(data, source, time.monotonic())
+
+
 def udp_spoof(short: bool) -> Result:
     """An unsealed Command (v = 0.95, the robot's own limit 1.0) from the driver's own address and epoch."""
-    from bridge.core import wire as M
     from bridge.core.auth import make_key
     from bridge.tools.procs import free_udp_port
     from drivers import open_driver
@@ -75,10 +90,7 @@ def udp_spoof(short: bool) -> Result:
             try:
                 driver.open(time.monotonic())
                 for k in range(5 if short else 50):
-                    forged = M.encode(M.Command(stamp=time.monotonic(), seq=driver.seq + 1 + k, v=0.95, omega=0.0,
-                                                method="scm", valid_ms=300, sender="driver", epoch=driver.epoch))
-                    with robot._lock:  # as if sent from the driver's address (an attacker on its segment)
-                        robot._handle(forged, ("127.0.0.1", bind), time.monotonic())
+                    spoof_from(robot, unsealed_command(driver, k), ("127.0.0.1", bind))
                 moved = vehicle.distance
                 refused = robot.counters["unauthenticated"]
             finally:
@@ -199,7 +211,7 @@ def forged_state_and_applied(short: bool) -> Result:
 def poisoned_store(short: bool) -> Result:
     """A persisted store holding a pair no vehicle can make (teacher v = 121): served after a restart?"""
     from bridge.core.paths import save_atomic
-    from bridge.nodes.station import load_store
+    from bridge.nodes.station_core import load_store
     from transfer.domain import Bounds
     from transfer.paper import MPC_LEARNER_V, MPC_LEARNER_W, MPC_TEACHER_V, MPC_TEACHER_W
     from transfer.store import PairStore
@@ -329,7 +341,7 @@ class Tap:
         self.sock.close()
 
 
-def _udp_robot(key: bytes | None, peer: tuple[str, int], port: int = 0):
+def udp_robot(key: bytes | None, peer: tuple[str, int], port: int = 0):
     """The emulated UDP robot (keyed with ``key``, obeying ``peer``) started on ``port`` (0: a free one), and the
     simulated vehicle it drives."""
     from sim_learner.dynamics import mpc_learner
@@ -340,19 +352,19 @@ def _udp_robot(key: bytes | None, peer: tuple[str, int], port: int = 0):
     return UdpRobot(vehicle, port=port, peer=peer, key=key, watchdog=0.3).start(), vehicle
 
 
-def _moved(vehicle, start: tuple[float, float]) -> float:
+def distance_from(vehicle, start: tuple[float, float]) -> float:
     """How far ``vehicle`` is now from ``start``, m (rounded to the millimetre)."""
     body = vehicle.advance(time.monotonic())
     return round(math.hypot(body.x - start[0], body.y - start[1]), 3)
 
 
-def _here(vehicle) -> tuple[float, float]:
+def position(vehicle) -> tuple[float, float]:
     """Where ``vehicle`` is now (x, y)."""
     body = vehicle.advance(time.monotonic())
     return body.x, body.y
 
 
-def _drive_udp(driver, seconds: float, v: float) -> None:
+def drive_udp(driver, seconds: float, v: float) -> None:
     """The real UDP driver sends (v, 0) every 20 ms for ``seconds`` and reads what the robot says."""
     t_end = time.monotonic() + seconds
     while time.monotonic() < t_end:
@@ -361,8 +373,10 @@ def _drive_udp(driver, seconds: float, v: float) -> None:
         time.sleep(0.02)
 
 
-def _udp_record(key_file: Path, tap: Tap, seconds: float) -> list[tuple[float, bytes]]:
-    """The real UDP driver drives the robot at 0.3 m/s through the tap for ``seconds``: what it sent."""
+@contextlib.contextmanager
+def tapped_driver(key_file: Path, tap: Tap) -> Iterator:
+    """The real UDP driver keyed with ``key_file``, talking to the robot through ``tap`` (from the port the tap takes
+    for the driver), open; closed on exit."""
     from drivers import open_driver
     from drivers.udp import UdpLinkConfig
 
@@ -370,11 +384,18 @@ def _udp_record(key_file: Path, tap: Tap, seconds: float) -> list[tuple[float, b
                                               key_file=str(key_file), open_timeout=5.0))
     try:
         driver.open(time.monotonic())
-        n0 = len(tap.recorded)
-        _drive_udp(driver, seconds, 0.3)
-        return tap.recorded[n0:]
+        yield driver
     finally:
         driver.close()
+
+
+def udp_record(key_file: Path, tap: Tap, seconds: float) -> list[tuple[float, bytes]]:
+    """The real UDP driver drives the robot at 0.3 m/s through the tap for ``seconds``: what it sent (the recording a
+    replay is made of)."""
+    with tapped_driver(key_file, tap) as driver:
+        n0 = len(tap.recorded)
+        drive_udp(driver, seconds, 0.3)
+        return tap.recorded[n0:]
 
 
 def udp_replay_after_reboot(short: bool) -> Result:
@@ -391,18 +412,18 @@ def udp_replay_after_reboot(short: bool) -> Result:
         key = make_key(key_file)
         bind = free_udp_port()
         with Tap(bind) as tap:
-            robot, vehicle = _udp_robot(key, tap.addr)
+            robot, vehicle = udp_robot(key, tap.addr)
             tap.robot = ("127.0.0.1", robot.port)
             try:
-                capture = _udp_record(key_file, tap, 1.0 if short else 1.5)
+                capture = udp_record(key_file, tap, 1.0 if short else 1.5)
                 potent = round(vehicle.distance, 3)
                 port = robot.port
                 robot.stop()
-                robot, vehicle = _udp_robot(key, tap.addr, port)  # the reboot
-                start, applied = _here(vehicle), robot.counters["applied"]
+                robot, vehicle = udp_robot(key, tap.addr, port)  # the reboot
+                start, applied = position(vehicle), robot.counters["applied"]
                 tap.replay(capture)
                 time.sleep(0.2)
-                moved, obeyed = _moved(vehicle, start), robot.counters["applied"] - applied
+                moved, obeyed = distance_from(vehicle, start), robot.counters["applied"] - applied
                 refused = {k: v for k, v in robot.counters.items() if k in ("stale_session", "stale",
                                                                            "unauthenticated") and v}
             finally:
@@ -418,32 +439,27 @@ def udp_held_back_commands(short: bool) -> Result:
     before (791b027, --short, two runs): the held-back burst moved the robot 0.09 m (30 of 30 commands applied)."""
     from bridge.core.auth import make_key
     from bridge.tools.procs import free_udp_port
-    from drivers import open_driver
-    from drivers.udp import UdpLinkConfig
 
     with tempfile.TemporaryDirectory() as d:
         key_file = Path(d) / "udp.key"
         key = make_key(key_file)
         bind = free_udp_port()
         with Tap(bind) as tap:
-            robot, vehicle = _udp_robot(key, tap.addr)
+            robot, vehicle = udp_robot(key, tap.addr)
             tap.robot = ("127.0.0.1", robot.port)
-            driver = open_driver("udp", UdpLinkConfig(robot_port=tap.addr[1], bind_port=bind, key_file=str(key_file),
-                                                      open_timeout=5.0))
             try:
-                driver.open(time.monotonic())
-                tap.hold = True
-                n0 = len(tap.recorded)
-                _drive_udp(driver, 0.6 if short else 1.0, 0.3)
-                held = tap.recorded[n0:]
-                time.sleep(0.6)  # the session's freshness window is 0.5 s (sim_learner/udp_robot.SESSION_FRESH_S)
-                start, applied = _here(vehicle), robot.counters["applied"]
-                tap.replay(held, paced=False)
-                time.sleep(0.3)
-                moved, obeyed = _moved(vehicle, start), robot.counters["applied"] - applied
-                refused = {k: v for k, v in robot.counters.items() if k in ("stale_session", "stale") and v}
+                with tapped_driver(key_file, tap) as driver:
+                    tap.hold = True
+                    n0 = len(tap.recorded)
+                    drive_udp(driver, 0.6 if short else 1.0, 0.3)
+                    held = tap.recorded[n0:]
+                    time.sleep(0.6)  # the session's freshness window is 0.5 s (sim_learner/udp_robot.SESSION_FRESH_S)
+                    start, applied = position(vehicle), robot.counters["applied"]
+                    tap.replay(held, paced=False)
+                    time.sleep(0.3)
+                    moved, obeyed = distance_from(vehicle, start), robot.counters["applied"] - applied
+                    refused = {k: v for k, v in robot.counters.items() if k in ("stale_session", "stale") and v}
             finally:
-                driver.close()
                 robot.stop()
     return {"reached_vehicle": {"distance_m": moved, "held_commands_applied": obeyed}, "learned": None,
             "held": len(held), "refused": refused, "ok": moved < 0.01 and obeyed == 0 and len(held) > 10}
@@ -475,6 +491,73 @@ def signer(key: bytes, sysid: int, compid: int, link_id: int, timestamp: int):
     return mav, out
 
 
+def forged_heartbeat(sysid: int, compid: int, link_id: int = 0, *, key: bytes = bytes(32), now: int | None = None,
+                     gcs: bool = False) -> bytes:
+    """One HEARTBEAT on the signing stream ``sysid/compid/link_id``, signed with a key that is not the link's
+    (``key``, default all zeros) and stamped ten years ahead of ``now`` (default the signing wall clock): the packet
+    that poisoned pymavlink's signing state (docs/SECURITY.md). A rover's heartbeat, or a ground station's (``gcs``)."""
+    from pymavlink import mavutil
+
+    from sim_learner.mavlink_rover import signing_wall_clock
+
+    mav = mavutil.mavlink
+    forger, out = signer(key, sysid, compid, link_id, (signing_wall_clock() if now is None else now) + TEN_YEARS)
+    if gcs:
+        forger.heartbeat_send(mav.MAV_TYPE_GCS, mav.MAV_AUTOPILOT_INVALID, 0, 0, 0)
+    else:
+        forger.heartbeat_send(mav.MAV_TYPE_GROUND_ROVER, mav.MAV_AUTOPILOT_ARDUPILOTMEGA, 0, 0, 0)
+    return out.frames[0]
+
+
+def takeover_frames(key: bytes, sysid: int, compid: int) -> list[bytes]:
+    """What a ground station (255/190, signing link 7) signed with ``key`` says now to take the vehicle
+    ``sysid/compid`` over: GUIDED, arm, then ten forward set-points at 0.3 m/s; the frames, as the wire carries them
+    (the recording a replay is made of)."""
+    from pymavlink import mavutil
+
+    from sim_learner.mavlink_rover import GUIDED, signing_wall_clock
+
+    mav = mavutil.mavlink
+    gcs, out = signer(key, 255, 190, 7, signing_wall_clock())
+    custom = mav.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED
+    gcs.command_long_send(sysid, compid, mav.MAV_CMD_DO_SET_MODE, 0, custom, GUIDED, 0, 0, 0, 0, 0)
+    gcs.command_long_send(sysid, compid, mav.MAV_CMD_COMPONENT_ARM_DISARM, 0, 1, 0, 0, 0, 0, 0, 0)
+    for _ in range(10):
+        gcs.set_position_target_local_ned_send(0, sysid, compid, mav.MAV_FRAME_BODY_NED, 0x05E7, 0, 0, 0, 0.3, 0, 0,
+                                               0, 0, 0, 0, 0)
+    return out.frames
+
+
+def send_frames(frames: list[bytes], port: int) -> None:
+    """``frames`` to 127.0.0.1:``port`` from a socket of their own, 5 ms apart (a replay of a recording)."""
+    import socket
+
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        for f in frames:
+            s.sendto(f, ("127.0.0.1", port))
+            time.sleep(0.005)
+
+
+def boot_signing_rover(key: bytes, port: int, store: Path | None):
+    """The emulated rover signing with ``key`` started on ``port`` (0: a free one) with its signing timestamp kept in
+    ``store`` (None: forgotten at each boot), and the simulated vehicle it drives; waited for (3 s at most) until it
+    has its origin and is in MANUAL (the caller checks it is)."""
+    from sim_learner.dynamics import mpc_learner
+    from sim_learner.mavlink_rover import MavlinkRover
+    from sim_learner.vehicle import SimVehicle
+
+    vehicle = SimVehicle(mpc_learner(), (0.0, 0.0, 0.0), now=time.monotonic())
+    rover = MavlinkRover(vehicle, port=port, init_s=0.1, ekf_position_s=0.2, signing_key=key, signing_store=store,
+                         signing_save_s=0.2).start()
+    until(lambda: rover_ready(rover), 3.0)
+    return rover, vehicle
+
+
+def rover_ready(rover) -> bool:
+    """Whether the emulated ``rover`` has its origin and is in MANUAL (booted, nobody took it yet)."""
+    return rover.has_origin(time.monotonic()) and rover.mode_name == "MANUAL"
+
+
 def until(pred: Callable[[], bool], timeout: float, step: Callable[[], object] | None = None) -> bool:
     """Whether ``pred()`` holds within ``timeout`` s, calling ``step()`` (a poll) before each look."""
     t_end = time.monotonic() + timeout
@@ -495,16 +578,13 @@ def mavlink_forged_timestamp_at_driver(short: bool) -> Result:
     genuine messages refused as bad signatures."""
     import socket
 
-    from pymavlink import mavutil
-
     from bridge.core.auth import make_key
     from drivers import open_driver
     from drivers.mavlink import MavlinkLinkConfig
     from sim_learner.dynamics import mpc_learner
-    from sim_learner.mavlink_rover import MavlinkRover, signing_wall_clock
+    from sim_learner.mavlink_rover import MavlinkRover
     from sim_learner.vehicle import SimVehicle
 
-    mav = mavutil.mavlink
     with tempfile.TemporaryDirectory() as d:
         key_file = Path(d) / "mav.key"
         key = make_key(key_file)
@@ -516,11 +596,10 @@ def mavlink_forged_timestamp_at_driver(short: bool) -> Result:
             try:
                 driver.open(time.monotonic())
                 driver.engage(time.monotonic())
-                forger, out = signer(bytes(32), rover.sysid, rover.compid, 0, signing_wall_clock() + TEN_YEARS)
-                forger.heartbeat_send(mav.MAV_TYPE_GROUND_ROVER, mav.MAV_AUTOPILOT_ARDUPILOTMEGA, 0, 0, 0)
+                forged = forged_heartbeat(rover.sysid, rover.compid)
                 before = driver.health(time.monotonic()).detail.bad_signatures
                 with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:  # udpout reads from any source
-                    s.sendto(out.frames[0], driver.client.conn.port.getsockname())
+                    s.sendto(forged, driver.client.conn.port.getsockname())
                 until(lambda: driver.health(time.monotonic()).detail.bad_signatures > before, 2.0,
                        lambda: driver.poll(time.monotonic()))
                 poses = 0
@@ -543,16 +622,13 @@ def mavlink_forged_timestamp_at_rover(short: bool) -> Result:
     promptly (the rover checks in the C library's order: signature, then timestamp). before (pymavlink's order in
     the rover, --short): the rover stood after 3.05 s (it refused the driver's stream; its GUIDED timeout stopped
     it), after: 0.17 s."""
-    from pymavlink import mavutil
-
     from bridge.core.auth import make_key
     from drivers import open_driver
     from drivers.mavlink import MavlinkLinkConfig
     from sim_learner.dynamics import mpc_learner
-    from sim_learner.mavlink_rover import MavlinkRover, signing_wall_clock
+    from sim_learner.mavlink_rover import MavlinkRover
     from sim_learner.vehicle import SimVehicle
 
-    mav = mavutil.mavlink
     with tempfile.TemporaryDirectory() as d:
         key_file = Path(d) / "mav.key"
         key = make_key(key_file)
@@ -564,9 +640,8 @@ def mavlink_forged_timestamp_at_rover(short: bool) -> Result:
                 driver.open(time.monotonic())
                 driver.engage(time.monotonic())
                 conn = driver.client.conn
-                forger, out = signer(bytes(32), driver.config.source_system, conn.mav.srcComponent,
-                                      conn.mav.signing.link_id, signing_wall_clock() + TEN_YEARS)
-                forger.heartbeat_send(mav.MAV_TYPE_GCS, mav.MAV_AUTOPILOT_INVALID, 0, 0, 0)
+                forged = forged_heartbeat(driver.config.source_system, conn.mav.srcComponent,
+                                          conn.mav.signing.link_id, gcs=True)
                 t_end = time.monotonic() + 0.5
                 while time.monotonic() < t_end:  # the genuine station drives it
                     driver.send(0.4, 0.0, time.monotonic())
@@ -574,7 +649,7 @@ def mavlink_forged_timestamp_at_rover(short: bool) -> Result:
                     time.sleep(0.02)
                 speed = round(vehicle.advance(time.monotonic()).v, 3)
                 bad = rover.bad_signatures
-                conn.port.sendto(out.frames[0], ("127.0.0.1", rover.port))  # from the driver's own address
+                conn.port.sendto(forged, ("127.0.0.1", rover.port))  # from the driver's own address
                 until(lambda: rover.bad_signatures > bad, 2.0)
                 t0 = time.monotonic()  # the genuine stop, sent each poll until the rover stands
                 stopped = until(lambda: vehicle.advance(time.monotonic()).v == 0.0, 4.0,
@@ -591,54 +666,26 @@ def mavlink_replay_after_reboot(short: bool) -> Result:
     emulated rover, replayed after the rover rebooted: the rover keeps its signing timestamp in its storage (as
     ArduPilot does) and starts a minute past it, so the recording is too old. before (no store: a rover that
     forgets its timestamp at boot, as the emulated rover did on 791b027; --short): armed, GUIDED, 0.014 m in 0.3 s."""
-    import socket
-
-    from pymavlink import mavutil
-
     from bridge.core.auth import make_key
-    from sim_learner.dynamics import mpc_learner
-    from sim_learner.mavlink_rover import GUIDED, MavlinkRover, signing_wall_clock
-    from sim_learner.vehicle import SimVehicle
-
-    mav = mavutil.mavlink
-
-    def boot(key: bytes, port: int, store: Path):
-        vehicle = SimVehicle(mpc_learner(), (0.0, 0.0, 0.0), now=time.monotonic())
-        rover = MavlinkRover(vehicle, port=port, init_s=0.1, ekf_position_s=0.2, signing_key=key, signing_store=store,
-                             signing_save_s=0.2).start()
-        until(lambda: rover.has_origin(time.monotonic()) and rover.mode_name == "MANUAL", 3.0)
-        return rover, vehicle
-
-    def replay(frames: list[bytes], port: int) -> None:
-        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-            for f in frames:
-                s.sendto(f, ("127.0.0.1", port))
-                time.sleep(0.005)
 
     with tempfile.TemporaryDirectory() as d:
         key = make_key(Path(d) / "mav.key")
         store = Path(d) / "rover-signing.json"
-        rover, vehicle = boot(key, 0, store)
+        rover, vehicle = boot_signing_rover(key, 0, store)
         port = rover.port
         try:
-            gcs, out = signer(key, 255, 190, 7, signing_wall_clock())
-            custom = mav.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED
-            gcs.command_long_send(rover.sysid, rover.compid, mav.MAV_CMD_DO_SET_MODE, 0, custom, GUIDED, 0, 0, 0, 0, 0)
-            gcs.command_long_send(rover.sysid, rover.compid, mav.MAV_CMD_COMPONENT_ARM_DISARM, 0, 1, 0, 0, 0, 0, 0, 0)
-            for _ in range(10):
-                gcs.set_position_target_local_ned_send(0, rover.sysid, rover.compid, mav.MAV_FRAME_BODY_NED, 0x05E7,
-                                                       0, 0, 0, 0.3, 0, 0, 0, 0, 0, 0, 0)
-            replay(out.frames, port)  # the genuine traffic, as the wire carried it: it takes the rover
+            frames = takeover_frames(key, rover.sysid, rover.compid)
+            send_frames(frames, port)  # the genuine traffic, as the wire carried it: it takes the rover
             potent = until(lambda: rover.armed and vehicle.distance > 0.0, 2.0)
             saves = rover.signing_saves
             until(lambda: rover.signing_saves > saves, 3.0)  # its periodic save (at a HEARTBEAT) after it
         finally:
             rover.stop()
-        rover, vehicle = boot(key, port, store)  # rebooted: the same storage
+        rover, vehicle = boot_signing_rover(key, port, store)  # rebooted: the same storage
         try:
             bad = rover.bad_signatures
-            replay(out.frames, port)
-            until(lambda: rover.bad_signatures >= bad + len(out.frames) or rover.armed, 2.0)
+            send_frames(frames, port)
+            until(lambda: rover.bad_signatures >= bad + len(frames) or rover.armed, 2.0)
             time.sleep(0.3 if short else 1.0)
             reached = {"armed": rover.armed, "mode": rover.mode_name, "distance_m": round(vehicle.distance, 3)}
             refused = rover.bad_signatures - bad
@@ -665,7 +712,7 @@ class _LatchRig:
         from drivers.udp import UdpLinkConfig
 
         bind = free_udp_port()
-        self.device, self.vehicle = _udp_robot(None, ("127.0.0.1", bind))
+        self.device, self.vehicle = udp_robot(None, ("127.0.0.1", bind))
         self.link_cfg = UdpLinkConfig(insecure=True, robot_port=self.device.port, bind_port=bind)
         self.hosts: list = []
 
@@ -709,7 +756,7 @@ class _LatchRig:
         from bridge.core.acts import stamped
 
         ans = host.handle_engage(stamped(M.EngageRequest(stamp=time.monotonic(), source="operator")), time.monotonic())
-        start, epoch, seq = _here(self.vehicle), M.new_epoch(), 0
+        start, epoch, seq = position(self.vehicle), M.new_epoch(), 0
         t_end = time.monotonic() + seconds
         while time.monotonic() < t_end:
             seq += 1
@@ -718,7 +765,7 @@ class _LatchRig:
             host.tick(now)
             time.sleep(0.02)
         host.tick(time.monotonic())
-        return {"engaged": ans.engaged, "distance_m": _moved(self.vehicle, start), "latched": host.gate.estopped,
+        return {"engaged": ans.engaged, "distance_m": distance_from(self.vehicle, start), "latched": host.gate.estopped,
                 "latched_by": host.gate.estop_source}
 
     def control(self, host, seconds: float) -> float:
@@ -896,7 +943,7 @@ class _ZenohHost:
             self.router = self.stack.enter_context(open_session(make_config(mode="router", listen=[tcp(port)])))
             self.client = lambda: open_session(make_config(mode="client", connect=[tcp(port)]))
             bind = free_udp_port()
-            self.device, self.vehicle = _udp_robot(None, ("127.0.0.1", bind))
+            self.device, self.vehicle = udp_robot(None, ("127.0.0.1", bind))
             self.stack.callback(self.device.stop)
             self.sub = self.router.declare_subscriber(self.keys.applied, self._on_applied)
             self.stack.callback(self.sub.undeclare)
@@ -998,7 +1045,7 @@ def replayed_engage_and_release(short: bool) -> Result:
         rig.engage(M.encode(M.EngageRequest(stamp=1.0, engaged=False, source="operator")))
         rig.attacker.put(rig.keys.estop, M.encode(M.Estop(stamp=1.0, source="operator", reason="parked")))
         until(lambda: rig.host.gate.estopped, 2.0)
-        start, t0 = _here(rig.vehicle), time.monotonic()
+        start, t0 = position(rig.vehicle), time.monotonic()
         stale = dict(stamp=1.0, wall_time=time.time() - 60.0)
         for kind, rel, eng in (
                 ("replayed", release, engage),
@@ -1011,7 +1058,7 @@ def replayed_engage_and_release(short: bool) -> Result:
             ans = rig.engage(eng)
             out[kind] = {"released": not rig.host.gate.estopped, "engaged": bool(ans and ans.engaged)}
         time.sleep(0.3 if short else 1.0)
-        moved = _moved(rig.vehicle, start)
+        moved = distance_from(rig.vehicle, start)
         driven = sum(a.v != 0.0 for a in rig.since(t0))
         refused = {k: v for k, v in rig.host.inputs.snapshot().items() if "refused" in k and v}
         # the control: the person's own tool (fresh, a new nonce) releases and engages, and the station drives

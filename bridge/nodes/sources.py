@@ -63,7 +63,7 @@ class SourceContext:
 
     mission: Mission
     store: PairStore
-    counters: Any  # the station's counters (bridge.nodes.station_core.StationCounters: that module imports this)
+    counters: Any  # the station's counters (bridge.nodes.station_status.StationCounters: that module imports this)
     why: str = "starting"
     teacher: M.TeacherCommand | None = None
     teacher_at: float = -np.inf

@@ -51,16 +51,7 @@ from bridge.nodes import systemd
 from bridge.nodes.mission_control import Fitness, MissionControl, Saved
 from bridge.nodes.node import FixedRate, Inputs, Queued, add_zenoh_args, stop_on_signals, zenoh_config
 from bridge.nodes.sources import MpcSource
-from bridge.nodes.station_core import (  # noqa: F401  (the station's names, as before the split)
-    DRIVER_STATUS_MAX_AGE,
-    INTEGRITY_WINDOW_S,
-    PLAUSIBLE,
-    StationCore,
-    TickInputs,
-    TickOutputs,
-    load_store,
-    pairs_message,
-)
+from bridge.nodes.station_core import StationCore, TickInputs, TickOutputs
 from bridge.nodes.writer import Save, SaveWriter
 from bridge.nodes.zsession import open_session
 from transfer.calibration import CalibrationPlan

@@ -50,11 +50,9 @@ from bridge.core.paths import quarantine
 from bridge.nodes.mission_control import Fitness, MissionControl, spec_of
 from bridge.nodes.pairing import IntervalPairer, Reorder
 from bridge.nodes.sources import CalibrationSource, CommandSource, Proposal, SourceContext, Why, make_source
-from bridge.nodes.station_fitness import DRIVER_STATUS_MAX_AGE, assess_fitness, driver_estop
+from bridge.nodes.station_fitness import assess_fitness
 from bridge.nodes.station_saves import StationSaves
 from bridge.nodes.station_status import (
-    GOOD_REASONS,
-    INTEGRITY_WINDOW_S,
     STATUS_EVERY_S,
     Integrity,
     LimitsReport,
@@ -454,5 +452,4 @@ class StationCore:
         return status_key(self.reason, self.control.phase, self.unfit_reason, driver, bool(self.saves.error))
 
 
-__all__ = ["DRIVER_STATUS_MAX_AGE", "GOOD_REASONS", "INTEGRITY_WINDOW_S", "PLAUSIBLE", "StationCore", "StationCounters",
-           "TickInputs", "TickOutputs", "driver_estop", "load_store", "pairs_message"]
+__all__ = ["PLAUSIBLE", "StationCore", "TickInputs", "TickOutputs", "load_store", "pairs_message"]

@@ -22,6 +22,7 @@ from bridge.nodes.zsession import free_port, make_config, open_session, tcp
 from bridge.tools.estop import latch_states
 from bridge.tools.procs import Children
 from tests.collect import Collector
+from tests.wait import until
 
 
 # ------------------------------------------------------------------------------------------------ the guard
@@ -76,15 +77,6 @@ def _latch(session, robot: str) -> M.EstopState:
     states = latch_states(session, M.key(robot, "estop"), 2.0)
     assert len(states) == 1, states
     return next(iter(states.values()))
-
-
-def _until(pred, timeout: float) -> bool:
-    t_end = time.monotonic() + timeout
-    while time.monotonic() < t_end:
-        if pred():
-            return True
-        time.sleep(0.02)
-    return pred()
 
 
 class Sender(threading.Thread):
@@ -172,22 +164,22 @@ def test_a_replayed_or_unstamped_engage_or_release_does_nothing_and_says_so(host
         # an estop latches whatever it carries (a stop is always honoured)
         estop = M.key(robot, "estop")
         session.put(estop, M.encode(M.Estop(stamp=1.0, source="anyone", reason="test")))
-        assert _until(lambda: _latch(session, robot).latched, 5)
+        assert until(lambda: _latch(session, robot).latched, 5)
         # a release without time and nonce, or recorded and replayed, or stale: refused, and the latch says why
         session.put(estop, M.encode(M.Estop(stamp=1.0, engaged=False, source="operator")))
-        assert _until(lambda: "no time and nonce" in _latch(session, robot).release_refused, 5)
+        assert until(lambda: "no time and nonce" in _latch(session, robot).release_refused, 5)
         assert _latch(session, robot).latched
         release = M.encode(M.Estop(stamp=1.0, engaged=False, source="operator", wall_time=time.time(),
                                    nonce=M.new_nonce()))
         session.put(estop, release)
-        assert _until(lambda: not _latch(session, robot).latched, 5)
+        assert until(lambda: not _latch(session, robot).latched, 5)
         session.put(estop, M.encode(M.Estop(stamp=1.0, source="operator", reason="again")))
-        assert _until(lambda: _latch(session, robot).latched, 5)
+        assert until(lambda: _latch(session, robot).latched, 5)
         session.put(estop, release)  # the recorded release, replayed
-        assert _until(lambda: "already received" in _latch(session, robot).release_refused, 5)
+        assert until(lambda: "already received" in _latch(session, robot).release_refused, 5)
         session.put(estop, M.encode(M.Estop(stamp=1.0, engaged=False, source="operator",
                                             wall_time=time.time() - 60.0, nonce=M.new_nonce())))
-        assert _until(lambda: "s ago" in _latch(session, robot).release_refused, 5)
+        assert until(lambda: "s ago" in _latch(session, robot).release_refused, 5)
         assert _latch(session, robot).latched
         # the tool fills both: a person's release is taken, and then a person's engage
         cli = [sys.executable, "-m", "bridge"]
@@ -242,7 +234,7 @@ def test_a_forger_at_seq_plus_one_on_the_stations_epoch_stops_the_robot_and_stat
         assert col.wait(lambda: status[-1].ok and any(a.reason == "cmd" and a.v == 0.2 for a in applied), 10)
         forger.start()
         assert forger.ready.wait(10)
-        assert _until(lambda: forger.sent > 0, 5)
+        assert until(lambda: forger.sent > 0, 5)
         t_forge = time.monotonic()
         assert col.wait(lambda: any(a.reason == "conflict" for a in _since(col, robot, t_forge)), 2.0)
         with col.lock:
@@ -307,13 +299,13 @@ def test_mission_requests_are_taken_fresh_and_once_and_a_published_mission_never
         # a program's mission while running replaces the path in place, and says where it came from
         here = M.MissionSpec(name="program-1", path=[[0.0, 0.0], [1.0, 0.0]])
         session.put(M.key(robot, "mission"), M.encode(here))
-        assert _until(lambda: ask(M.MissionRequest(stamp=1.0, action="status")).mission == "program-1", 5)
+        assert until(lambda: ask(M.MissionRequest(stamp=1.0, action="status")).mission == "program-1", 5)
         ans = ask(M.MissionRequest(stamp=1.0, action="status"))
         assert ans.phase == "running" and M.key(robot, "mission") in ans.replaced_by and ans.replaced_at > 0, ans
         # after an abort (as after the goal, or idle), a program's mission loads idle: it never starts the robot
         assert ask(req("abort")).phase == "aborted"
         session.put(M.key(robot, "mission"), M.encode(M.MissionSpec(name="program-2", path=[[0.0, 0.0], [2.0, 0.0]])))
-        assert _until(lambda: ask(M.MissionRequest(stamp=1.0, action="status")).mission == "program-2", 5)
+        assert until(lambda: ask(M.MissionRequest(stamp=1.0, action="status")).mission == "program-2", 5)
         ans = ask(M.MissionRequest(stamp=1.0, action="status"))
         assert ans.phase == "idle" and "not a person's request" in ans.reason and ans.replaced_by, ans
         assert col.wait(lambda: status[-1].state == "idle" and "not a person's request" in status[-1].text, 5), \

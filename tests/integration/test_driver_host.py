@@ -19,6 +19,7 @@ from bridge.core import wire as M
 from bridge.core.wire import Keys, status_key
 from bridge.nodes.zsession import free_port, make_config, open_session, tcp
 from bridge.tools.procs import spawn, stop_group
+from tests.latch import FullDisk, wait_saved
 from transfer.domain import Bounds
 
 LIMITS = Bounds((-0.5, 0.5), (-1.0, 1.0))
@@ -412,8 +413,8 @@ def test_a_command_just_after_a_periodic_tick_is_applied_at_once_within_the_send
 # ``engage`` + ``mission resume`` drove it. The same when the file was deleted, replaced by a "released" one, or the
 # host restarted with another state directory. Each case below runs the real DriverHost in this process with a real
 # state directory (a "restart" is a new DriverHost on the same directory) and the UDP link to the emulated robot on
-# loopback. A full disk is an injected saver raising ENOSPC: the suite runs as root, which a read-only chmod does not
-# stop, and a tmpfs of its own needs privileges the suite does not assume.
+# loopback. A full disk is an injected saver raising ENOSPC (tests.latch.FullDisk: the suite runs as root, which a
+# read-only chmod does not stop, and a tmpfs of its own needs privileges the suite does not assume).
 
 
 class _Robot:
@@ -459,20 +460,13 @@ class _Robot:
         self.device.stop()
 
 
-def _saved(host) -> None:
-    """Wait until every latch handed to the host's writer has been saved (or its save failed)."""
-    done = threading.Event()
-    if host.latch.defer(done.set):
-        assert done.wait(10.0), "the latch save never finished"
-
-
 def _estop(host, engaged: bool = True, source: str = "operator") -> None:
     """An estop as the person's tool sends it (a release fresh and with its nonce: bridge/core/acts.py)."""
     from bridge.core.acts import stamped
 
     host.on_estop(stamped(M.Estop(stamp=time.monotonic(), engaged=engaged, source=source, reason="test")),
                   time.monotonic())
-    _saved(host)
+    wait_saved(host.latch)
 
 
 def _engage(host) -> M.EngageState:
@@ -484,20 +478,12 @@ def test_an_estop_the_disk_cannot_take_stops_refuses_engage_and_is_still_latched
     ``latch_unsaved``, and the path and error in words), engage is refused, the old latch file (released) is
     removed so a restart starts latched; a release on the still-full disk latches again; once the disk takes a
     release, the host engages."""
-    import errno
-
     from bridge.nodes.latch_store import latch_marker, read_latch
-    from bridge.nodes.station_core import driver_estop
+    from bridge.nodes.station_fitness import driver_estop
 
     latch = tmp_path / "state" / "estop-r1.bin"
-    full = threading.Event()
-
-    def saver(path, data: bytes) -> None:
-        from bridge.core.paths import save_atomic
-
-        if full.is_set():
-            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(path))
-        save_atomic(path, data)
+    saver = FullDisk()
+    full = saver.full
 
     with _Robot() as robot:
         host = robot.host(latch, saver)
@@ -548,14 +534,8 @@ def test_a_release_that_cannot_be_saved_after_a_saved_estop_latches_again(tmp_pa
     from bridge.nodes.latch_store import read_latch
 
     latch = tmp_path / "estop-r1.bin"
-    full = threading.Event()
-
-    def saver(path, data: bytes) -> None:
-        from bridge.core.paths import save_atomic
-
-        if full.is_set():
-            raise OSError(errno.EROFS, os.strerror(errno.EROFS), str(path))
-        save_atomic(path, data)
+    saver = FullDisk(errno.EROFS)
+    full = saver.full
 
     with _Robot() as robot:
         host = robot.host(latch, saver)

@@ -36,17 +36,9 @@ from sim_learner.mavlink_rover import MavlinkRover
 from sim_learner.udp_robot import UdpRobot
 from sim_learner.vehicle import SimVehicle
 from tests.collect import Collector
+from tests.wait import until
 
 TAKE_OVER = (MAV.MAV_CMD_DO_SET_MODE, MAV.MAV_CMD_COMPONENT_ARM_DISARM)
-
-
-def _until(pred, timeout: float, step: float = 0.02) -> bool:
-    t_end = time.monotonic() + timeout
-    while time.monotonic() < t_end:
-        if pred():
-            return True
-        time.sleep(step)
-    return False
 
 
 def _cli(port: int, *args: str) -> subprocess.CompletedProcess:
@@ -60,7 +52,7 @@ def rover_in_hold():
     vehicle = SimVehicle(mpc_learner(), (0.0, 0.0, 0.0), now=time.monotonic())
     rover = MavlinkRover(vehicle, init_s=0.2, ekf_position_s=0.4).start()
     try:
-        assert _until(lambda: rover.mode_name == "MANUAL", 10)
+        assert until(lambda: rover.mode_name == "MANUAL", 10)
         assert rover.rc_mode_switch("HOLD")
         yield rover
     finally:
@@ -119,7 +111,7 @@ def test_engage_on_start_is_the_one_way_a_host_engages_by_itself(tmp_path, rover
     with open_session(make_config(mode="router", listen=[tcp(port)])), Children() as kids:
         kids.spawn(["driver", "--link", "mavlink", "--config", cfg, "--robot", robot, "--mode", "client", "--connect",
                     tcp(port), "--duration", "60"], out=subprocess.DEVNULL)
-        assert _until(lambda: rover.mode_name == "GUIDED" and rover.armed, 60)
+        assert until(lambda: rover.mode_name == "GUIDED" and rover.armed, 60)
 
 
 @pytest.mark.timeout(120)
@@ -178,7 +170,7 @@ def test_the_estop_latch_survives_a_driver_host_restart(tmp_path) -> None:
         os.killpg(host.pid, signal.SIGKILL)
         host.wait(timeout=5)
         kids.spawn(driver, out=subprocess.DEVNULL)
-        assert _until(lambda: latch_states(session, M.key(robot, "estop"), 1.0), 60)
+        assert until(lambda: latch_states(session, M.key(robot, "estop"), 1.0), 60)
         assert not any(s.latched for s in latch_states(session, M.key(robot, "estop"), 1.0).values())
 
 
@@ -209,7 +201,7 @@ def test_no_axis_enters_closed_loop_before_engage_and_a_faulted_axis_needs_a_per
         assert not closed_loop and not h.ok and "not engaged" in h.text
         assert all(ecus.axis(n).state == 1 for n in (0, 1))  # IDLE
         ecus.inject_error(0, 0x1000)  # the left controller reports an error (a DRV fault)
-        assert _until(lambda: (driver.poll(time.monotonic()), driver.left.error)[1] != 0, 3)
+        assert until(lambda: (driver.poll(time.monotonic()), driver.left.error)[1] != 0, 3)
         with pytest.raises(DriverError, match="left axis error.*--clear-faults"):
             driver.engage(time.monotonic())
         assert not closed_loop
@@ -275,7 +267,7 @@ def test_the_vehicles_failsafe_is_read_at_open_and_the_gcs_failsafe_acts_as_rove
         assert fs.drive_on_s == 1.5 and "FS_GCS_ENABLE=1" in fs.text
         driver.engage(time.monotonic())
         # the host "dies": no more heartbeats nor set-points from it; FS_GCS_TIMEOUT + FS_TIMEOUT after the last one
-        assert _until(lambda: rover.mode_name == "HOLD", 5)
+        assert until(lambda: rover.mode_name == "HOLD", 5)
         assert 1.5 - 0.05 <= time.monotonic() - rover.gcs_seen <= 2.5 and "Failsafe: GCS" in rover.statustexts
     finally:
         driver.close()

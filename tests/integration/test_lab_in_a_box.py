@@ -11,7 +11,6 @@ from __future__ import annotations
 import shutil
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import pytest
@@ -19,21 +18,14 @@ import pytest
 from bridge.core.config import load_mission
 from bridge.nodes.zsession import free_port
 from bridge.tools.procs import Children
+from tests.lab import start_router
+from tests.wait import until
 
 ROBOT = "rover1"
 
 
 def _scm(*args: str, timeout: float = 90) -> subprocess.CompletedProcess:
     return subprocess.run([sys.executable, "-m", "bridge", *args], capture_output=True, text=True, timeout=timeout)
-
-
-def _until(fn, timeout: float, step: float = 0.5):
-    t_end = time.monotonic() + timeout
-    while True:
-        res = fn()
-        if res or time.monotonic() > t_end:
-            return res
-        time.sleep(step)
 
 
 @pytest.mark.skipif(shutil.which("openssl") is None, reason="openssl is not installed")
@@ -46,8 +38,7 @@ def test_a_secure_lab_on_loopback_is_driven_and_stopped_by_its_operator(tmp_path
     z = {n: ["--zenoh-config", str(tmp_path / f"{n}.json5")] for n in (ROBOT, "operator", "observer")}
     x0 = ",".join(f"{a:.6f}" for a in load_mission().start)
     with Children() as kids:
-        kids.spawn(["router", "--zenoh-config", str(tmp_path / "router.json5"), "--duration", "220"],
-                   subprocess.DEVNULL)
+        start_router(kids, "--zenoh-config", str(tmp_path / "router.json5"))
         kids.spawn(["station", "--robot", ROBOT, "--zenoh-config", str(tmp_path / "station-client.json5"), "--store",
                     str(tmp_path / "pairs.bin"), "--duration", "200"], subprocess.DEVNULL)
         kids.spawn(["driver", "--link", "can", "--emulate", "--x0", x0, "--robot", ROBOT, *z[ROBOT], "--duration",
@@ -58,12 +49,13 @@ def test_a_secure_lab_on_loopback_is_driven_and_stopped_by_its_operator(tmp_path
             rows = {tuple(ln.split()[:3]) for ln in r.stdout.splitlines()}
             return r if (ROBOT, "station", "idle") in rows and any(x[:2] == (ROBOT, "driver") for x in rows) else None
 
-        seen = _until(both, 60)
+        seen = until(both, 60, 0.5)
         assert seen and "waiting" in seen.stdout, seen and seen.stdout + seen.stderr
         for cmd in (["engage", "--robot", ROBOT], ["mission", "start", "--robot", ROBOT]):
             res = _scm(*cmd, *z["operator"])
             assert res.returncode == 0, res.stdout + res.stderr
-        driving = _until(lambda: (r := _scm("status", "--robot", ROBOT, *z["observer"])).returncode == 0 and r, 60)
+        driving = until(lambda: (r := _scm("status", "--robot", ROBOT, *z["observer"])).returncode == 0 and r, 60,
+                        0.5)
         assert driving and "driving" in driving.stdout, driving and driving.stdout + driving.stderr
         # the observer can change nothing, and is told it is denied (exit 3), not that nobody answered (exit 2)
         for cmd in (["engage", "--robot", ROBOT, "--release"], ["mission", "pause", "--robot", ROBOT],
@@ -80,7 +72,8 @@ def test_a_secure_lab_on_loopback_is_driven_and_stopped_by_its_operator(tmp_path
         # the operator stops every robot
         res = _scm("estop", "--all", *z["operator"])
         assert res.returncode == 0 and f"{ROBOT}/driver-can: LATCHED by operator" in res.stdout, res.stdout + res.stderr
-        stopped = _until(lambda: "estop latched by operator" in _scm("status", "--all", *z["observer"]).stdout, 30)
+        stopped = until(lambda: "estop latched by operator" in _scm("status", "--all", *z["observer"]).stdout, 30,
+                        0.5)
         assert stopped
 
 
@@ -110,20 +103,19 @@ def test_the_operators_documented_commands_run_as_written_in_the_lab(tmp_path: P
                               timeout=timeout, cwd=tmp_path)
 
     with Children() as kids:
-        kids.spawn(["router", "--zenoh-config", str(tmp_path / "router.json5"), "--duration", "220"],
-                   subprocess.DEVNULL)
+        start_router(kids, "--zenoh-config", str(tmp_path / "router.json5"))
         kids.spawn(["station", "--robot", ROBOT, "--zenoh-config", str(tmp_path / "station-client.json5"), "--store",
                     str(tmp_path / "pairs.bin"), "--duration", "200"], subprocess.DEVNULL)
         kids.spawn(["driver", "--link", "can", "--emulate", "--x0", x0, "--robot", ROBOT, "--zenoh-config",
                     str(tmp_path / f"{ROBOT}.json5"), "--duration", "200"], subprocess.DEVNULL)
-        doctor = _until(lambda: (r := scm(_documented("doctor"))).returncode == 0 and "1 driver hosts answer"
-                        in r.stdout and r, 60)
+        doctor = until(lambda: (r := scm(_documented("doctor"))).returncode == 0 and "1 driver hosts answer"
+                        in r.stdout and r, 60, 0.5)
         assert doctor, "the documented doctor never passed"
         for name in ("engage", "mission start"):
             res = scm(_documented(name, "--robot"))
             assert res.returncode == 0, (name, res.stdout + res.stderr)
         once = _documented("status", "--robot")
-        driving = _until(lambda: (r := scm(once)).returncode == 0 and r, 60)
+        driving = until(lambda: (r := scm(once)).returncode == 0 and r, 60, 0.5)
         assert driving and "driving" in driving.stdout, driving
         watch = subprocess.Popen([sys.executable, "-m", "bridge", *_documented("status", "--all", "--watch")],
                                  stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=tmp_path,

@@ -1,7 +1,8 @@
 """Authenticated links: the UDP shim's keyed datagram tags and MAVLink 2 signing, against the emulated devices.
 
 Findings this answers: a spoofed UDP datagram with v = 0.95 (within the robot's own limit) drove the robot at its
-body maximum for 0.6 s: pinning an address and port is not authentication."""
+body maximum for 0.6 s: pinning an address and port is not authentication. The forged datagram is bench.attack's
+(``unsealed_command``, ``spoof_from``: the attack bench's ``udp_spoof`` row sends the same)."""
 
 from __future__ import annotations
 
@@ -11,7 +12,7 @@ import time
 import pytest
 from pymavlink.dialects.v20 import ardupilotmega as MAV
 
-from bridge.core import wire as M
+from bench.attack import drive_udp, spoof_from, unsealed_command
 from bridge.core.auth import load_key, make_key
 from bridge.tools.procs import free_udp_port
 from drivers import open_driver
@@ -22,14 +23,6 @@ from sim_learner.dynamics import mpc_learner
 from sim_learner.mavlink_rover import MavlinkRover
 from sim_learner.udp_robot import UdpRobot
 from sim_learner.vehicle import SimVehicle
-
-
-def _drive(driver, seconds: float, v: float) -> None:
-    t_end = time.monotonic() + seconds
-    while time.monotonic() < t_end:
-        driver.send(v, 0.0, time.monotonic())
-        driver.poll(time.monotonic())
-        time.sleep(0.02)
 
 
 @pytest.fixture
@@ -47,12 +40,9 @@ def test_only_datagrams_sealed_with_the_key_move_the_udp_robot(key_file) -> None
         try:
             driver.open(time.monotonic())
             # a forger who knows the driver's epoch and seq and sends from the driver's own address, unsealed
-            forged = M.encode(M.Command(stamp=time.monotonic(), seq=driver.seq + 1, v=0.95, omega=0.0,
-                                        method="scm", valid_ms=300, sender="driver", epoch=driver.epoch))
-            with robot._lock:
-                robot._handle(forged, ("127.0.0.1", bind), time.monotonic())
+            spoof_from(robot, unsealed_command(driver), ("127.0.0.1", bind))
             assert robot.counters["unauthenticated"] == 1 and not robot.moving and vehicle.distance == 0.0
-            _drive(driver, 0.5, 0.3)  # the driver's own, sealed: they drive it
+            drive_udp(driver, 0.5, 0.3)  # the driver's own, sealed: they drive it
             assert vehicle.distance > 0.05 and robot.counters["applied"] > 0
             assert driver.counters["unauthenticated"] == 0 and driver.health(time.monotonic()).ok
         finally:
@@ -103,7 +93,7 @@ def test_mavlink_signing_refuses_every_unsigned_or_foreign_signed_message(tmp_pa
             driver.open(time.monotonic())
             driver.engage(time.monotonic())
             assert rover.armed and rover.mode_name == "GUIDED"
-            _drive(driver, 0.6, 0.4)
+            drive_udp(driver, 0.6, 0.4)
             assert vehicle.distance > 0.05
         finally:
             driver.close()

@@ -4,7 +4,9 @@ Findings this answers (a hostile test, emulated links): pymavlink records a mess
 checks the signature, so one packet with a wrong key and a far-future timestamp made every later genuine message
 "too old" (the driver host's link stayed down >= 60 s; sent to the emulated rover, an estop then took 2.8 s); and
 signed traffic recorded off the wire armed and drove a rebooted emulated rover within MAVLink's one-minute window.
-docs/SECURITY.md has the pymavlink report. Real pymavlink framing over UDP on 127.0.0.1, free ports.
+docs/SECURITY.md has the pymavlink report. Real pymavlink framing over UDP on 127.0.0.1, free ports; the forged
+packet, the recorded takeover and the rover that keeps its signing timestamp are bench.attack's (its rows send the
+same).
 """
 
 from __future__ import annotations
@@ -15,7 +17,7 @@ import time
 import pytest
 from pymavlink import mavutil
 
-from bench.attack import TEN_YEARS, signer, until
+from bench.attack import boot_signing_rover, forged_heartbeat, rover_ready, send_frames, signer, takeover_frames, until
 from bridge.core.auth import make_key
 from drivers import open_driver
 from drivers.mavlink import MavlinkLinkConfig
@@ -38,8 +40,7 @@ def test_pymavlink_alone_is_poisoned_by_one_forged_packet_and_the_wrapper_is_not
     key, other, _ = keys
     now = signing_wall_clock()
     genuine, g_out = signer(key, 1, 1, 0, now)
-    forger, f_out = signer(other, 1, 1, 0, now + TEN_YEARS)
-    forger.heartbeat_send(MAV.MAV_TYPE_GROUND_ROVER, MAV.MAV_AUTOPILOT_ARDUPILOTMEGA, 0, 0, 0)
+    forged = forged_heartbeat(1, 1, 0, key=other, now=now)
     for _ in range(3):
         genuine.heartbeat_send(MAV.MAV_TYPE_GROUND_ROVER, MAV.MAV_AUTOPILOT_ARDUPILOTMEGA, 0, 0, 0)
     for fixed in (False, True):
@@ -48,7 +49,7 @@ def test_pymavlink_alone_is_poisoned_by_one_forged_packet_and_the_wrapper_is_not
         rx.signing.secret_key, rx.signing.timestamp = key, now
         if fixed:
             verify_before_recording(rx)
-        got = [m for f in f_out.frames + g_out.frames for m in (rx.parse_buffer(f) or [])
+        got = [m for f in [forged, *g_out.frames] for m in (rx.parse_buffer(f) or [])
                if m.get_type() == "HEARTBEAT"]
         assert rx.signing.badsig_count >= 1
         assert len(got) == (3 if fixed else 0), (fixed, len(got))
@@ -64,10 +65,9 @@ def test_one_forged_packet_does_not_take_the_drivers_link_down(keys) -> None:
             driver.open(time.monotonic())
             driver.engage(time.monotonic())
             before = driver.health(time.monotonic()).detail.bad_signatures
-            forger, out = signer(other, rover.sysid, rover.compid, 0, signing_wall_clock() + TEN_YEARS)
-            forger.heartbeat_send(MAV.MAV_TYPE_GROUND_ROVER, MAV.MAV_AUTOPILOT_ARDUPILOTMEGA, 0, 0, 0)
+            forged = forged_heartbeat(rover.sysid, rover.compid, 0, key=other)
             with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:  # any source: udpout reads them all
-                s.sendto(out.frames[0], driver.client.conn.port.getsockname())
+                s.sendto(forged, driver.client.conn.port.getsockname())
             assert until(lambda: driver.health(time.monotonic()).detail.bad_signatures > before, 2.0,
                          lambda: driver.poll(time.monotonic()))
             poses: list = []
@@ -93,11 +93,10 @@ def test_one_forged_packet_does_not_block_the_rover_and_a_stop_is_prompt(keys) -
             driver.open(time.monotonic())
             driver.engage(time.monotonic())
             conn = driver.client.conn
-            forger, out = signer(other, driver.config.source_system, conn.mav.srcComponent,
-                                 conn.mav.signing.link_id, signing_wall_clock() + TEN_YEARS)
-            forger.heartbeat_send(MAV.MAV_TYPE_GCS, MAV.MAV_AUTOPILOT_INVALID, 0, 0, 0)
+            forged = forged_heartbeat(driver.config.source_system, conn.mav.srcComponent, conn.mav.signing.link_id,
+                                      key=other, gcs=True)
             before = rover.bad_signatures
-            conn.port.sendto(out.frames[0], ("127.0.0.1", rover.port))  # from the driver's own address
+            conn.port.sendto(forged, ("127.0.0.1", rover.port))  # from the driver's own address
             assert until(lambda: rover.bad_signatures > before, 2.0)
             t_end = time.monotonic() + 0.6
             while time.monotonic() < t_end:
@@ -114,31 +113,10 @@ def test_one_forged_packet_does_not_block_the_rover_and_a_stop_is_prompt(keys) -
             driver.close()
 
 
-def _capture(key: bytes, target: MavlinkRover) -> list[bytes]:
-    """What a ground station says to take ``target`` over: GUIDED, arm, then a forward set-point; signed now."""
-    gcs, out = signer(key, 255, 190, 7, signing_wall_clock())
-    custom = MAV.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED
-    gcs.command_long_send(target.sysid, target.compid, MAV.MAV_CMD_DO_SET_MODE, 0, custom, GUIDED, 0, 0, 0, 0, 0)
-    gcs.command_long_send(target.sysid, target.compid, MAV.MAV_CMD_COMPONENT_ARM_DISARM, 0, 1, 0, 0, 0, 0, 0, 0)
-    for _ in range(10):
-        gcs.set_position_target_local_ned_send(0, target.sysid, target.compid, MAV.MAV_FRAME_BODY_NED, 0x05E7,
-                                               0, 0, 0, 0.3, 0, 0, 0, 0, 0, 0, 0)
-    return out.frames
-
-
 def _boot(key: bytes, port: int, store) -> tuple[MavlinkRover, SimVehicle]:
-    vehicle = SimVehicle(mpc_learner(), (0.0, 0.0, 0.0), now=time.monotonic())
-    rover = MavlinkRover(vehicle, port=port, init_s=0.1, ekf_position_s=0.2, signing_key=key, signing_store=store,
-                         signing_save_s=0.2).start()
-    assert until(lambda: rover.has_origin(time.monotonic()) and rover.mode_name == "MANUAL", 3.0)
+    rover, vehicle = boot_signing_rover(key, port, store)
+    assert rover_ready(rover)  # booted: its origin, in MANUAL
     return rover, vehicle
-
-
-def _replay(frames: list[bytes], port: int) -> None:
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-        for f in frames:
-            s.sendto(f, ("127.0.0.1", port))
-            time.sleep(0.005)
 
 
 def test_signed_traffic_replayed_after_the_rovers_reboot_is_refused(keys, tmp_path) -> None:
@@ -147,8 +125,8 @@ def test_signed_traffic_replayed_after_the_rovers_reboot_is_refused(keys, tmp_pa
     rover, vehicle = _boot(key, 0, store)
     port = rover.port
     try:
-        frames = _capture(key, rover)
-        _replay(frames, port)  # the genuine traffic, as the wire carried it: it takes the rover
+        frames = takeover_frames(key, rover.sysid, rover.compid)  # GUIDED, arm, forward: signed now
+        send_frames(frames, port)  # the genuine traffic, as the wire carried it: it takes the rover
         assert until(lambda: rover.armed and vehicle.distance > 0.0, 2.0)
         saves = rover.signing_saves
         assert until(lambda: rover.signing_saves > saves, 3.0)  # the periodic save (at a HEARTBEAT) after it
@@ -157,7 +135,7 @@ def test_signed_traffic_replayed_after_the_rovers_reboot_is_refused(keys, tmp_pa
     rover, vehicle = _boot(key, port, store)  # rebooted: the same storage
     try:
         before = rover.bad_signatures
-        _replay(frames, port)
+        send_frames(frames, port)
         assert until(lambda: rover.bad_signatures >= before + len(frames), 2.0)
         time.sleep(0.2)
         assert not rover.armed and rover.mode_name == "MANUAL" and vehicle.distance == 0.0
@@ -170,11 +148,11 @@ def test_without_a_persisted_timestamp_the_same_replay_would_take_a_rebooted_rov
     key, _, _ = keys
     rover, _ = _boot(key, 0, None)
     port = rover.port
-    frames = _capture(key, rover)
+    frames = takeover_frames(key, rover.sysid, rover.compid)  # GUIDED, arm, forward: signed now
     rover.stop()
     rover, vehicle = _boot(key, port, None)
     try:
-        _replay(frames, port)
+        send_frames(frames, port)
         assert until(lambda: rover.armed, 2.0)
     finally:
         rover.stop()

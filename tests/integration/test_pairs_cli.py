@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from bridge.core.paths import save_atomic
-from bridge.nodes.station import pairs_message
+from bridge.nodes.station_core import pairs_message
 from bridge.nodes.zsession import free_port, tcp
 from bridge.tools.cli import main as cli_main
 from bridge.tools.pairs_cli import from_message, from_store, pairs_figure

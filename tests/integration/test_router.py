@@ -13,23 +13,14 @@ import os
 import signal
 import subprocess
 import sys
-import time
 
 import pytest
 
 from bridge.core.config import load_mission
 from bridge.nodes.zsession import free_port, tcp
 from bridge.tools.procs import Children, said
-
-
-def _until(fn, timeout: float, step: float = 0.2):
-    """``fn()`` once it is truthy, or its last value after ``timeout`` s."""
-    t_end = time.monotonic() + timeout
-    while True:
-        res = fn()
-        if res or time.monotonic() > t_end:
-            return res
-        time.sleep(step)
+from tests.lab import start_router
+from tests.wait import until
 
 
 def _tool(port: int, *args: str, timeout: float = 60) -> subprocess.CompletedProcess:
@@ -51,9 +42,7 @@ def test_status_and_estop_all_work_while_the_station_is_down(tmp_path) -> None:
     x0 = ",".join(f"{a:.6f}" for a in load_mission().start)
     client = ["--mode", "client", "--connect", tcp(port)]
     with Children() as kids:
-        router = kids.spawn(["router", "--listen", tcp(port), "--duration", "220"])
-        assert _until(lambda: "listening on" in said(router) or router.poll() is not None, 60), said(router)
-        assert router.poll() is None, said(router)
+        router = start_router(kids, "--listen", tcp(port))
         station = kids.spawn(["station", "--robot", robot, "--store", str(tmp_path / "pairs.bin"), *client,
                               "--duration", "220"])
         kids.spawn(["driver", "--engage", "--link", "can", "--emulate", "--x0", x0, "--robot", robot, *client,
@@ -64,7 +53,7 @@ def test_status_and_estop_all_work_while_the_station_is_down(tmp_path) -> None:
             rows = [ln.split()[:2] for ln in res.stdout.splitlines()]
             return res if [robot, "station"] in rows and [robot, "driver"] in rows else None
 
-        seen = _until(both_heard, 150, 0.5)
+        seen = until(both_heard, 150, 0.5)
         assert seen, kids.said()
 
         # the station dies without a word; the router, and with it every other node, stays

@@ -38,7 +38,7 @@ from bridge.nodes.zsession import free_port, make_config, open_session, tcp
 from bridge.tools.estop import confirm, latch_states
 from bridge.tools.procs import Children
 from sim_learner.dynamics import LearnerModel
-from sim_learner.mavlink_rover import MavlinkRover, signing_wall_clock
+from sim_learner.mavlink_rover import MavlinkRover
 from sim_learner.sitl import Pilot, Sample, Sitl, SitlError, VehicleView, find_sitl, where_sitl_is_looked_for
 from sim_learner.vehicle import SimVehicle
 from tests.collect import Collector
@@ -449,9 +449,7 @@ def test_one_forged_packet_on_the_real_autopilots_signed_link_does_not_take_the_
     put into the vehicle -> driver stream on the vehicle's own signing stream (its system, component and link id),
     must not make the driver refuse the autopilot's genuine messages as too old: the link stays up, the poses keep
     coming, the bad signature is counted. (pymavlink alone recorded the forged timestamp first: the link went down.)"""
-    from pymavlink import mavutil
-
-    from bench.attack import TEN_YEARS, signer
+    from bench.attack import forged_heartbeat
     from bridge.core.auth import load_key
     from drivers import open_driver
     from drivers.mavlink import MavlinkLinkConfig
@@ -472,10 +470,7 @@ def test_one_forged_packet_on_the_real_autopilots_signed_link_does_not_take_the_
             time.sleep(0.02)
         assert proxy.link_ids, "no signed packet from the vehicle"
         for link_id in sorted(proxy.link_ids):  # a wrong key, ten years ahead, on the vehicle's own stream
-            forger, out = signer(bytes(32), 1, 1, link_id, signing_wall_clock() + TEN_YEARS)
-            forger.heartbeat_send(mavutil.mavlink.MAV_TYPE_GROUND_ROVER, mavutil.mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA,
-                                  0, 0, 0)
-            proxy.inject(out.frames[0])
+            proxy.inject(forged_heartbeat(1, 1, link_id))
         bad = driver.health(time.monotonic()).detail.bad_signatures
         poses, t_end = 0, time.monotonic() + 3.0  # past the 1 s heartbeat timeout, three times
         while time.monotonic() < t_end:

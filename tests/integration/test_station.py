@@ -17,7 +17,7 @@ from bridge.core import wire as M
 from bridge.core.paths import save_atomic
 from bridge.core.wire import Keys
 from bridge.nodes.pairing import IntervalPairer
-from bridge.nodes.station import load_store
+from bridge.nodes.station_core import load_store
 from bridge.nodes.zsession import free_port, make_config, open_session, tcp
 from bridge.tools.procs import spawn, stop_group
 from sim_learner.dynamics import MPC_LEARNER_V, MPC_LEARNER_W, MPC_TEACHER_V, MPC_TEACHER_W

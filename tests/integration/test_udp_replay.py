@@ -4,7 +4,8 @@ Finding this answers (a hostile test, emulated links): keyed command datagrams r
 into a UDP robot right after it rebooted drove it 1.74-1.80 m at 0.3 m/s in 4 of 5 reboots, while its driver host
 said "estop latched": the robot forgot every sender at boot and never asked how old a command was.
 
-The wire tap is a real man in the middle (``bench.attack.Tap``, which the attack bench's replay rows use too): one
+The wire tap is a real man in the middle (``bench.attack.Tap``, which the attack bench's replay rows use too, as
+they use its emulated robot, its recording of a drive and its distance): one
 UDP socket on 127.0.0.1 that the driver takes for the robot and the robot takes for its peer; it forwards both ways
 and records (or holds back) what the driver sends. A replay leaves from that socket, i.e. from the very address the
 robot obeys. Real sockets, free ports, everything closed.
@@ -16,11 +17,10 @@ import contextlib
 import socket
 import threading
 import time
-from collections.abc import Iterator
 
 import pytest
 
-from bench.attack import Tap
+from bench.attack import Tap, distance_from, drive_udp, position, tapped_driver, udp_record, udp_robot, until
 from bridge.core import wire as M
 from bridge.core.auth import KeyFileError, load_key, make_key, open_session, seal
 from bridge.tools.procs import free_udp_port
@@ -41,47 +41,10 @@ def key_file(tmp_path):
     return path
 
 
-def _robot(key: bytes, peer: tuple[str, int], port: int = 0) -> tuple[UdpRobot, SimVehicle]:
-    vehicle = SimVehicle(mpc_learner(), (0.0, 0.0, 0.0), now=time.monotonic())
-    return UdpRobot(vehicle, port=port, peer=peer, key=key, watchdog=0.3).start(), vehicle
-
-
-def _drive(driver, seconds: float, v: float) -> None:
-    t_end = time.monotonic() + seconds
-    while time.monotonic() < t_end:
-        driver.send(v, 0.0, time.monotonic())
-        driver.poll(time.monotonic())
-        time.sleep(0.02)
-
-
-def _position(vehicle: SimVehicle) -> tuple[float, float]:
-    body = vehicle.advance(time.monotonic())
-    return body.x, body.y
-
-
-def _moved(vehicle: SimVehicle, start: tuple[float, float]) -> float:
-    body = vehicle.advance(time.monotonic())
-    return float(((body.x - start[0]) ** 2 + (body.y - start[1]) ** 2) ** 0.5)
-
-
-@contextlib.contextmanager
-def _driver(key_file, tap: Tap) -> Iterator:
-    driver = open_driver("udp", UdpLinkConfig(robot_port=tap.addr[1], bind_port=tap.driver[1],
-                                              key_file=str(key_file), open_timeout=5.0))
-    try:
-        driver.open(time.monotonic())
-        yield driver
-    finally:
-        driver.close()
-
-
 def _record_a_drive(key_file, tap: Tap, robot: UdpRobot, vehicle: SimVehicle) -> list[tuple[float, bytes]]:
     """The driver drives the robot at 0.3 m/s for 1.5 s through the tap; what it sent, as recorded."""
-    with _driver(key_file, tap) as driver:
-        n0 = len(tap.recorded)
-        _drive(driver, 1.5, 0.3)
-        assert vehicle.distance > 0.2 and robot.counters["applied"] > 20  # the recording is potent
-        capture = tap.recorded[n0:]
+    capture = udp_record(key_file, tap, 1.5)
+    assert vehicle.distance > 0.2 and robot.counters["applied"] > 20  # the recording is potent
     return capture
 
 
@@ -91,21 +54,21 @@ def test_commands_recorded_before_a_reboot_do_not_move_the_robot_after_it(key_fi
     key = load_key(key_file)
     bind = free_udp_port()
     with Tap(bind) as tap:
-        robot, vehicle = _robot(key, tap.addr)
+        robot, vehicle = udp_robot(key, tap.addr)
         tap.robot = (LOCAL, robot.port)
         try:
             capture = _record_a_drive(key_file, tap, robot, vehicle)
             if reboot == "new instance":  # a power cycle: a new process would be the same (nothing is kept)
                 port = robot.port
                 robot.stop()
-                robot, vehicle = _robot(key, tap.addr, port)
+                robot, vehicle = udp_robot(key, tap.addr, port)
             else:
                 robot.reboot()
-            start = _position(vehicle)
+            start = position(vehicle)
             with contextlib.ExitStack() as stack:
                 driver = None
                 if driver_host == "estop latched":  # a driver host that only sends stops (its latch holds)
-                    driver = stack.enter_context(_driver(key_file, tap))
+                    driver = stack.enter_context(tapped_driver(key_file, tap))
                 applied = robot.counters["applied"]
                 stopper_done = threading.Event()
 
@@ -123,7 +86,7 @@ def test_commands_recorded_before_a_reboot_do_not_move_the_robot_after_it(key_fi
                 finally:
                     stopper_done.set()
                     t.join(timeout=2.0)
-                assert _moved(vehicle, start) < 0.01, robot.counters
+                assert distance_from(vehicle, start) < 0.01, robot.counters
                 assert robot.counters["stale_session"] >= len(capture) - 5, robot.counters
                 if driver is None:
                     assert robot.counters["applied"] == applied  # nothing of the recording was obeyed
@@ -135,50 +98,41 @@ def test_commands_held_back_and_released_later_are_refused_as_stale(key_file) ->
     key = load_key(key_file)
     bind = free_udp_port()
     with Tap(bind) as tap:
-        robot, vehicle = _robot(key, tap.addr)
+        robot, vehicle = udp_robot(key, tap.addr)
         tap.robot = (LOCAL, robot.port)
         try:
-            with _driver(key_file, tap) as driver:
+            with tapped_driver(key_file, tap) as driver:
                 tap.hold = True  # the robot's states still reach the driver; its commands are kept back
                 n0 = len(tap.recorded)
-                _drive(driver, 1.0, 0.3)
+                drive_udp(driver, 1.0, 0.3)
                 held = tap.recorded[n0:]
                 assert vehicle.distance == 0.0
                 time.sleep(SESSION_FRESH_S + 0.1)
-                start = _position(vehicle)
+                start = position(vehicle)
                 stale = robot.counters["stale"]
                 tap.replay(held, paced=False)
-                assert _wait(lambda: robot.counters["stale"] >= stale + len(held), 2.0), robot.counters
-                assert _moved(vehicle, start) < 0.01 and not robot.moving
+                assert until(lambda: robot.counters["stale"] >= stale + len(held), 2.0), robot.counters
+                assert distance_from(vehicle, start) < 0.01 and not robot.moving
                 tap.hold = False
         finally:
             robot.stop()
 
 
-def _wait(pred, timeout: float) -> bool:
-    t_end = time.monotonic() + timeout
-    while time.monotonic() < t_end:
-        if pred():
-            return True
-        time.sleep(0.01)
-    return pred()
-
-
 def test_a_keyed_link_follows_the_robot_into_its_new_session_after_a_reboot(key_file) -> None:
     key = load_key(key_file)
     bind = free_udp_port()
-    robot, vehicle = _robot(key, (LOCAL, bind))
+    robot, vehicle = udp_robot(key, (LOCAL, bind))
     driver = open_driver("udp", UdpLinkConfig(robot_port=robot.port, bind_port=bind, key_file=str(key_file)))
     try:
         driver.open(time.monotonic())
-        _drive(driver, 0.3, 0.2)
+        drive_udp(driver, 0.3, 0.2)
         assert driver.session[0] == robot.epoch and robot.counters["applied"] > 5
         old = robot.epoch
         robot.reboot()
         applied = robot.counters["applied"]
         t_end = time.monotonic() + 3.0
         while time.monotonic() < t_end and robot.counters["applied"] <= applied:
-            _drive(driver, 0.05, 0.2)
+            drive_udp(driver, 0.05, 0.2)
         assert robot.counters["applied"] > applied and driver.session[0] == robot.epoch != old
         assert robot.counters["stale_session"] > 0  # the commands sealed for the old boot, until the new one was heard
         assert driver.health(time.monotonic()).detail.robot_restarts == 1
@@ -190,13 +144,13 @@ def test_a_keyed_link_follows_the_robot_into_its_new_session_after_a_reboot(key_
 def test_a_command_sealed_the_old_way_or_for_no_session_is_refused(key_file) -> None:
     key = load_key(key_file)
     bind = free_udp_port()
-    robot, vehicle = _robot(key, (LOCAL, bind))
+    robot, vehicle = udp_robot(key, (LOCAL, bind))
     try:
         cmd = M.encode(M.Command(stamp=1.0, seq=1, v=0.3, omega=0.0, method="scm", sender="driver", epoch=7))
         with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
             s.bind((LOCAL, bind))
             s.sendto(seal(key, cmd), (LOCAL, robot.port))  # a valid tag of the old format: no session
-            assert _wait(lambda: robot.counters["unauthenticated"] == 1, 1.0)
+            assert until(lambda: robot.counters["unauthenticated"] == 1, 1.0)
             s.settimeout(1.0)
             data, _ = s.recvfrom(65536)  # the robot's state, sealed: no session datagram
             assert open_session(key, data) is None

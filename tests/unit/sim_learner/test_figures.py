@@ -12,24 +12,15 @@ from pathlib import Path
 import matplotlib.image as mpimg
 import matplotlib.pyplot as plt
 import numpy as np
-import pytest
 from matplotlib.patches import Circle
 
 from sim_learner.figures import METHOD_CODES, draw_mission, grid_figures, mpc_figures, primitives_figures
 from sim_learner.runs import Run
 from sim_learner.worlds import mpc_world
+from tests.boxes import LB, TB
 from transfer.domain import Bounds
 from transfer.store import PairStore
 from transfer.teacher.primitives import PrimitiveLibrary
-
-TB = Bounds((0.05, 0.6), (-math.pi / 4, math.pi / 4))
-LB = Bounds((0.05, 0.3), (-math.pi / 16, math.pi / 12))
-
-
-@pytest.fixture(autouse=True)
-def _close_figures():
-    yield
-    plt.close("all")
 
 
 def _store() -> PairStore:

@@ -6,24 +6,14 @@ frames (widened to whatever is drawn outside the bounds), the mapping region of 
 
 from __future__ import annotations
 
-import math
-
 import matplotlib.pyplot as plt
 import numpy as np
 import pytest
 from matplotlib.patches import Polygon, Rectangle
 
 from sim_learner.plots import command_domains_figure, draw_box, draw_pairs, pair_colors
+from tests.boxes import LB, TB
 from transfer.domain import Bounds
-
-TB = Bounds((0.05, 0.6), (-math.pi / 4, math.pi / 4))
-LB = Bounds((0.05, 0.3), (-math.pi / 16, math.pi / 12))
-
-
-@pytest.fixture(autouse=True)
-def _close_figures():
-    yield
-    plt.close("all")
 
 
 def test_pair_colors_are_one_per_pair_from_viridis() -> None:

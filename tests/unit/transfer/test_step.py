@@ -9,15 +9,13 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from tests.boxes import LB, TB
 from transfer.domain import Bounds
 from transfer.limits import calibration_commands
 from transfer.pairs import teacher_equivalent
 from transfer.policy import FILL_CHECKS, GuidedPolicy, make_policy
 from transfer.store import PairStore
 from transfer.teacher.unicycle import step
-
-TB = Bounds((0.05, 0.6), (-math.pi / 4, math.pi / 4))
-LB = Bounds((0.05, 0.3), (-math.pi / 16, math.pi / 12))
 
 
 # ------------------------------------------------------------------------------------------------ pairing

@@ -1,44 +1,24 @@
 """The estop latch on disk (bridge/nodes/latch_store.py), without a driver host: the first start writes the install
 marker and a released latch, only a latch signed by this host says released, a failed save is made fail safe
-before the host hears of it. A real directory (tmp_path); a full disk is an injected saver; no sleep: each wait is
-on the writer's own confirmation (LatchStore.defer), bounded."""
+before the host hears of it. A real directory (tmp_path); a full disk is an injected saver (tests/latch.py); no
+sleep: each wait is on the writer's own confirmation (LatchStore.defer), bounded."""
 
 from __future__ import annotations
 
 import errno
 import os
-import threading
 from pathlib import Path
 
 from bridge.core import wire as M
 from bridge.core.paths import save_atomic
 from bridge.nodes.latch_store import Latch, LatchStore, SaveResult, inspect_latch, latch_marker, read_latch
-
-
-class _Disk:
-    """A saver that fails as a full disk while ``full`` is set."""
-
-    def __init__(self) -> None:
-        self.full = threading.Event()
-        self.saves: list[Path] = []
-
-    def __call__(self, path: Path, data: bytes) -> None:
-        if self.full.is_set():
-            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(path))
-        save_atomic(path, data)
-        self.saves.append(path)
+from tests.latch import FullDisk, wait_saved
 
 
 def _store(path: Path | None, disk=save_atomic) -> tuple[LatchStore, list[SaveResult]]:
     results: list[SaveResult] = []
     store = LatchStore(path, results.append, disk)
     return store, results
-
-
-def _saved(store: LatchStore) -> None:
-    done = threading.Event()
-    if store.defer(done.set):
-        assert done.wait(10.0), "the latch save never finished"
 
 
 def test_the_first_start_writes_the_marker_and_a_released_latch_and_the_next_start_reads_it(tmp_path) -> None:
@@ -59,11 +39,11 @@ def test_a_latch_submitted_is_saved_signed_and_the_latest_wins(tmp_path) -> None
     store.open()
     store.submit(True, "operator", "first")
     store.submit(True, "operator", "second")
-    _saved(store)
+    wait_saved(store)
     assert read_latch(path) == Latch(latched=True, source="operator", reason="second")
     assert results and all(r.saved for r in results) and results[-1].latch.reason == "second"
     store.submit(False, "operator", "released")
-    _saved(store)
+    wait_saved(store)
     assert inspect_latch(path) == (Latch(latched=False, source="operator", reason="released"), "")
     assert not store.defer(lambda: None)  # nothing waiting: the caller goes on at once
     assert store.close(5.0)
@@ -71,12 +51,12 @@ def test_a_latch_submitted_is_saved_signed_and_the_latest_wins(tmp_path) -> None
 
 def test_a_latched_save_that_fails_removes_the_old_file_so_a_restart_starts_latched(tmp_path) -> None:
     path = tmp_path / "estop-r1.bin"
-    disk = _Disk()
+    disk = FullDisk()
     store, results = _store(path, disk)
     store.open()
     disk.full.set()
     store.submit(True, "operator", "test")
-    _saved(store)
+    wait_saved(store)
     r = results[-1]
     assert not r.saved and not r.relatch and r.error == os.strerror(errno.ENOSPC)
     assert r.text == (f"estop latched but NOT saved to {path}: No space left on device; engage refused until it is "
@@ -89,14 +69,14 @@ def test_a_latched_save_that_fails_removes_the_old_file_so_a_restart_starts_latc
 
 def test_a_release_that_fails_is_to_be_latched_again(tmp_path) -> None:
     path = tmp_path / "estop-r1.bin"
-    disk = _Disk()
+    disk = FullDisk()
     store, results = _store(path, disk)
     store.open()
     store.submit(True, "operator", "test")
-    _saved(store)
+    wait_saved(store)
     disk.full.set()
     store.submit(False, "operator", "release")
-    _saved(store)
+    wait_saved(store)
     r = results[-1]
     assert not r.saved and r.relatch and "estop release NOT saved to" in r.text
     assert read_latch(path).latched  # the disk still says latched
@@ -105,13 +85,13 @@ def test_a_release_that_fails_is_to_be_latched_again(tmp_path) -> None:
 
 def test_the_marker_missing_at_start_is_written_by_the_first_save(tmp_path) -> None:
     path = tmp_path / "estop-r1.bin"
-    disk = _Disk()
+    disk = FullDisk()
     store, _ = _store(path, disk)
     store.open()
     latch_marker(path).unlink()
     store.marker_saved = False  # (as when the start could not write it)
     store.submit(True, "operator", "test")
-    _saved(store)
+    wait_saved(store)
     assert disk.saves == [latch_marker(path), path] and read_latch(path).latched
     assert store.close(5.0)
 

@@ -97,7 +97,7 @@ def test_a_store_with_a_pair_no_vehicle_could_make_is_quarantined_not_served(tmp
     """Finding: a learned pair with teacher v = 121 m/s was persisted; afterwards the station's pairs reply broke the
     wire contract and `pairs show --robot` exited 2 on every restart."""
     from bridge.core.paths import save_atomic
-    from bridge.nodes.station import load_store
+    from bridge.nodes.station_core import load_store
     from transfer.store import PairStore
 
     poisoned = PairStore(LB, TB, k_min=1)
@@ -114,7 +114,8 @@ def test_another_sender_on_the_robots_commands_or_implausible_telemetry_make_the
     """Finding: `ok` stayed true with two stations publishing for one robot, and while pairing was halted."""
     from bridge.core import wire as M
     from bridge.core.config import StationConfig, load_mission
-    from bridge.nodes.station_core import INTEGRITY_WINDOW_S, StationCore
+    from bridge.nodes.station_core import StationCore
+    from bridge.nodes.station_status import INTEGRITY_WINDOW_S
 
     st = StationCore(StationConfig(), "r1", 10.0, tmp_path / "p.bin", load_mission())
     st.why, st.reason = "driving", "ok"  # as after a tick that drove

@@ -15,7 +15,8 @@ from bridge.nodes.driver_host import DriverHost
 from bridge.nodes.engagement import blocked_reason
 from bridge.nodes.mission_control import MissionControl, spec_of
 from bridge.nodes.sources import Proposal, Why
-from bridge.nodes.station_core import StationCore, TickInputs, driver_estop
+from bridge.nodes.station_core import StationCore, TickInputs
+from bridge.nodes.station_fitness import driver_estop
 from bridge.tools.status import robot_ok
 from drivers.base import LinkHealth
 

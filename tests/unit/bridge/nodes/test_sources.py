@@ -21,7 +21,7 @@ from bridge.nodes.sources import (
     Why,
     make_source,
 )
-from bridge.nodes.station_core import StationCounters
+from bridge.nodes.station_status import StationCounters
 from transfer.calibration import CalibrationPlan
 from transfer.domain import Bounds
 from transfer.store import PairStore

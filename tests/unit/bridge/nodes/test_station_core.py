@@ -9,7 +9,8 @@ import pytest
 from bridge.core import wire as M
 from bridge.core.config import StationConfig, load_mission
 from bridge.nodes.sources import ExternalSource, MpcSource, PrimitivesSource, Proposal, Why, make_source
-from bridge.nodes.station_core import StationCore, StationCounters, TickInputs
+from bridge.nodes.station_core import StationCore, TickInputs
+from bridge.nodes.station_status import StationCounters
 from sim_learner.dynamics import mpc_learner
 
 #: the status counter keys of a station that has driven with the MPC (the keys tools and tests read)
