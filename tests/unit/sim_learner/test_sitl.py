@@ -8,7 +8,7 @@ from sim_learner.sitl import Sitl
 
 def test_a_relative_binary_and_its_default_params_are_found_from_sitls_own_directory(tmp_path, monkeypatch) -> None:
     """SITL runs in a directory of its own: a binary named relative to the caller's (``scmbridge demo --sitl
-    ../shared/sitl/ardurover``) was not found there (FileNotFoundError), nor its default_params."""
+    ../sitl/ardurover``) was not found there (FileNotFoundError), nor its default_params."""
     (tmp_path / "sitl").mkdir()
     (tmp_path / "sitl" / "ardurover").write_bytes(b"")
     (tmp_path / "work").mkdir()
