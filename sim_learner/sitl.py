@@ -416,7 +416,9 @@ class Sitl:
             raise SitlError(f"ArduPilot SITL not found at {binary or where_sitl_is_looked_for()}: set {ENV}")
         if model not in MODELS:
             raise SitlError(f"unknown SITL model {model!r}: one of {', '.join(MODELS)}")
-        self.binary = found
+        # absolute too: started in its own directory, a relative binary (``--sitl ../sitl/ardurover``) and the
+        # default_params beside it are not found there
+        self.binary = found.resolve()
         self.model = model
         self.params = dict(params or {})
         # absolute: SITL runs in its own directory, and a defaults file it cannot read is a PANIC

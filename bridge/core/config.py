@@ -107,7 +107,7 @@ class StationSection(Cfg):
 
 
 class TransferSection(Cfg):
-    """``[transfer]``: refinement grid and the mapper."""
+    """``[transfer]``: refinement grid, the mapper, the exploration and what bounds the teacher (``limits``)."""
 
     grid: Annotated[tuple[Annotated[int, Meta(ge=2, le=100)], Annotated[int, Meta(ge=2, le=100)]],
                     meta("cells of the normalised learner domain [n_v, n_omega]")] = (11, 11)
@@ -119,6 +119,13 @@ class TransferSection(Cfg):
         "teacher's plan, and fill the map's holes on the teacher's curve, slower, within fill_budget; paper: the "
         "paper's algorithm as published; off: never perturb (map, or extrapolate "
         "from the learned region)")] = "guided"
+    limits: Annotated[Literal["learned", "teacher"], meta(
+        "what bounds the station's own teacher (the MPC's inputs, the primitives it plans with): learned, the "
+        "learner's limits learned from the pairs (the paper's method, Section 4.2); teacher, the teacher's own range "
+        "(teacher_bounds), as if nothing were known of the learner: with mapper = \"identity\" and exploration = "
+        "\"off\" the paper's baseline learner, which applies the teacher's commands directly (Section 5.2; "
+        "scmbridge sim mpc's teacher_range baseline). Pairs are still formed and stored, and the limits message "
+        "still says what was learned; an external teacher bounds itself")] = "learned"
     explore_clearance_m: Annotated[float, meta("no exploration closer than this to an obstacle's edge, whatever the "
                                                "exploration setting, m", ge=0.0, le=100.0)] = 0.3
     # = transfer.policy.FILL_BUDGET, repeated: this module stays free of the numerical stack

@@ -15,7 +15,7 @@ from __future__ import annotations
 import logging
 import time
 from dataclasses import dataclass
-from typing import Any, Protocol
+from typing import Any, Literal, Protocol
 
 import numpy as np
 from numpy.typing import NDArray
@@ -23,6 +23,7 @@ from numpy.typing import NDArray
 from bridge.core import wire as M
 from bridge.core.config import StationConfig
 from transfer.calibration import CalibrationPlan
+from transfer.domain import Bounds
 from transfer.mission import Mission
 from transfer.store import PairStore
 from transfer.teacher.primitives import PrimitiveFollower, PrimitiveLibrary, PrimitivePlanner
@@ -59,7 +60,9 @@ class Proposal:
 @dataclass
 class SourceContext:
     """What a source may read (and count) when it proposes: the mission, the pair store (its learned limits), the
-    station's counters, the last tick's reason and the external teacher's latest command."""
+    station's counters, the last tick's reason, the external teacher's latest command, and what bounds the teacher
+    (``limits``, the station's ``[transfer] limits``): a source asks :meth:`box` and :meth:`allows`, never the
+    store's limits directly."""
 
     mission: Mission
     store: PairStore
@@ -68,6 +71,20 @@ class SourceContext:
     teacher: M.TeacherCommand | None = None
     teacher_at: float = -np.inf
     teacher_new: bool = False
+    limits: Literal["learned", "teacher"] = "learned"
+
+    def box(self) -> Bounds:
+        """The box the teacher plans within: the learned limits' (the paper's method, Section 4.2), or with
+        ``limits`` "teacher" the teacher's own range, as the paper's baseline learner, which knows nothing of the
+        learner and applies the teacher's commands directly (Section 5.2; docs/PAPER.md)."""
+        return self.store.limits.box if self.limits == "learned" else self.store.teacher_bounds
+
+    def allows(self, commands: NDArray[np.float64]) -> NDArray[np.bool_]:
+        """Which teacher ``commands`` (n x 2) the teacher may use: those inside the learned limits' hull, or with
+        ``limits`` "teacher" those inside the teacher's own range."""
+        if self.limits == "learned":
+            return np.asarray(self.store.limits.contains(commands, use_hull=True, tol=1e-6))
+        return np.asarray(self.store.teacher_bounds.contains(commands, 1e-6))
 
 
 class CommandSource(Protocol):
@@ -98,7 +115,8 @@ def _pose(state: M.LearnerState) -> NDArray[np.float64]:
 
 
 class MpcSource:
-    """The built-in MPC: follows the mission's path, bounded by the learned limits' box, given its obstacles."""
+    """The built-in MPC: follows the mission's path, bounded by the learned limits' box (or the teacher's own range:
+    :meth:`SourceContext.box`), given its obstacles."""
 
     what = "mpc"
     follows_mission = True
@@ -110,7 +128,7 @@ class MpcSource:
     def propose(self, now: float, pose: M.LearnerState, ctx: SourceContext) -> Proposal:
         x = _pose(pose)
         t0 = time.perf_counter()
-        res = self.teacher.solve(x, ctx.mission.path, ctx.store.limits.box, ctx.mission.obstacles)
+        res = self.teacher.solve(x, ctx.mission.path, ctx.box(), ctx.mission.obstacles)
         solve_ms = (time.perf_counter() - t0) * 1e3
         ctx.counters.obstacles_dropped += res.obstacles_dropped
         return Proposal(np.asarray(res.u, dtype=float), x, res.predicted, solver=res.solver, ok=res.ok,
@@ -136,7 +154,7 @@ class PrimitivesSource:
 
     def propose(self, now: float, pose: M.LearnerState, ctx: SourceContext) -> Proposal | Why:
         lib = self.follower.planner.lib
-        allowed = np.asarray(ctx.store.limits.contains(lib.commands, use_hull=True, tol=1e-6))
+        allowed = ctx.allows(lib.commands)
         if not allowed.any():
             return Why("no primitive within the learned limits: calibrate first (scmbridge calibrate)")
         x = _pose(pose)

@@ -13,7 +13,8 @@ why not:
   operator``, ``waiting for the robot: ...``, ``goal reached``).
 
 Driving: the command source (:mod:`bridge.nodes.sources`: the MPC, the motion primitives, an external teacher or
-the calibration stage, chosen once from the configuration) proposes a command at the latest pose; a teacher
+the calibration stage, chosen once from the configuration) proposes a command at the latest pose, bounded by the
+learned limits (or, ``[transfer] limits = "teacher"``, by the teacher's own range: the paper's baseline); a teacher
 command is mapped by the one transfer step (:class:`transfer.step.TransferStep`) and goes out as ``cmd`` (with the
 method, a validity of three periods, this run's sender name and epoch), the station's own teacher's command and
 plan as ``teacher``. A periodic tick also gives ``limits`` when the learned limits change and each second, the
@@ -179,6 +180,12 @@ class StationCore:
         self.transfer = TransferStep(policy, dt=self.period, explore=tcfg.exploration != "off",
                                      clearance=tcfg.explore_clearance_m)
         self.source: CommandSource = source or make_source(cfg, self.period, calibration)
+        # what bounds the teacher: the learned limits, or the teacher's own range (the paper's baseline)
+        self.teacher_limits = tcfg.limits
+        if tcfg.limits == "teacher":
+            log.info("the teacher is bounded by its own range, not by the learned limits ([transfer] limits = "
+                     "\"teacher\"%s)", ": the paper's baseline" if tcfg.mapper == "identity"
+                     and tcfg.exploration == "off" else "")
         top_v, top_w = command_extent(learner, teacher)
         self.pairer = IntervalPairer(scfg.pair_dt, max_speed=PLAUSIBLE * top_v + 0.1, max_turn=PLAUSIBLE * top_w + 0.2,
                                      command_bounds=learner, teacher_bounds=Bounds((-top_v, top_v), (-top_w, top_w)),
@@ -388,7 +395,7 @@ class StationCore:
     def drive(self, now: float, state: M.LearnerState) -> tuple[Why | None, M.Command | None, M.TeacherCommand | None]:
         """The source's proposal, mapped and made a command; or why not."""
         ctx = SourceContext(self.mission, self.store, self.counters, self.why, self.teacher, self.teacher_at,
-                            self.teacher_new)
+                            self.teacher_new, self.teacher_limits)
         self.teacher_new = False
         prop = self.source.propose(now, state, ctx)
         if isinstance(prop, Why):

@@ -29,6 +29,23 @@ from bridge.core.errors import UsageError
 from bridge.nodes.node import Inputs
 from drivers import link_names
 
+#: ``--transfer``'s station settings (``[transfer]`` mapper, exploration and, by default, limits): on, the SC transfer;
+#: off, the paper's baseline learner (Section 5.2), which applies the teacher's commands directly, unaware of its
+#: own dynamics: unmapped (identity: only clipped to the learner's range, as ``sim mpc``'s learner clamps them), no
+#: exploration, and the MPC bounded by the teacher's own range, ``sim mpc``'s ``teacher_range`` baseline
+TRANSFER = {"on": ("scm", "guided", "learned"), "off": ("identity", "off", "teacher")}
+
+
+def transfer_table(transfer: str, limits: str | None) -> str:
+    """The station's ``[transfer]`` lines (its header included) for ``--transfer`` and ``--limits`` (None: the
+    transfer's own, :data:`TRANSFER`). ``--transfer off --limits learned`` is the teacher's commands unmapped under
+    the MPC bounded by the limits learned from the pairs (what ``--transfer off`` did at first: ``sim mpc``'s
+    ``true_range`` baseline with learned limits in place of the true ones; on a vehicle that follows its commands,
+    the teacher's reference, docs/BENCHMARKS.md "The transfer on SITL")."""
+    mapper, exploration, default_limits = TRANSFER[transfer]
+    return (f'[transfer]\nmapper = "{mapper}"\nexploration = "{exploration}"\n'
+            f'limits = "{limits or default_limits}"\n')
+
 
 def inprocess(args: argparse.Namespace) -> int:
 
@@ -251,10 +268,11 @@ def hil(args: argparse.Namespace, robot: str) -> int:
     port = free_port()
     x0 = ",".join(f"{a:.6f}" for a in world.start)
     client = ["--robot", robot, "--mode", "client", "--connect", tcp(port)]
-    station_cfg: list[str] = []
-    if args.drift:  # the learner changes: the station re-learns the cells that no longer hold
-        (out / "station.toml").write_text("[transfer]\nadapt = true\n")
-        station_cfg = ["--config", str(out / "station.toml")]
+    # --transfer off: the paper's baseline; --drift: the learner changes, the station re-learns the cells that no
+    # longer hold
+    (out / "station.toml").write_text(transfer_table(args.transfer, args.limits)
+                                      + ("adapt = true\n" if args.drift else ""))
+    station_cfg = ["--config", str(out / "station.toml")]
     mon = None
     with ExitStack() as stack:
         logs = {name: stack.enter_context(open(out / f"{name}.log", "w")) for name in ("driver", "station")}
@@ -331,7 +349,6 @@ def sitl_hil(args: argparse.Namespace, robot: str = "sitl") -> int:
     store = out / "pairs.bin"
     store.unlink(missing_ok=True)  # from no pairs at all, as the paper's case
     spec = load_mission_spec(args.mission)
-    transfer_on = args.transfer == "on"
     settle = PAIR_SETTLE_S if args.pair_settle is None else float(args.pair_settle)
     if not 0.0 <= settle <= 5.0:
         raise UsageError(f"--pair-settle {settle}: between 0 and 5 s")
@@ -362,9 +379,8 @@ def sitl_hil(args: argparse.Namespace, robot: str = "sitl") -> int:
         (out / "mission.toml").write_text(mission_toml(placed))
         (out / "station.toml").write_text(
             f'robot = "{robot}"\n\n[learner_bounds]\nv = [{v_range[0]!r}, {v_range[1]!r}]\n'
-            f"w = [{w_range[0]!r}, {w_range[1]!r}]\n\n[station]\npair_settle_s = {settle!r}\n\n[transfer]\n"
-            + ('mapper = "scm"\nexploration = "guided"\n' if transfer_on
-               else 'mapper = "identity"\nexploration = "off"\n')
+            f"w = [{w_range[0]!r}, {w_range[1]!r}]\n\n[station]\npair_settle_s = {settle!r}\n\n"
+            + transfer_table(args.transfer, args.limits)
             + ("adapt = true\n" if args.adapt else "")
             + (f'turn_probe = "{args.turn_probe}"\n' if args.turn_probe != "at-command" else ""))
         (out / "driver.toml").write_text(
@@ -443,6 +459,7 @@ def sitl_hil(args: argparse.Namespace, robot: str = "sitl") -> int:
 
     summary = {
         "experiment": "mpc-sitl", "model": args.sitl_model, "transfer": args.transfer,
+        "limits": args.limits or TRANSFER[args.transfer][2],
         "reached_goal": run["reached_goal"], "scm_reached_goal": run["reached_goal"],
         "teacher_time_s": teacher["time_s"], "teacher_dev_last_half_m": teacher["dev_last_half_m"],
         "teacher_reference": teacher["source"],
@@ -635,12 +652,20 @@ def arguments(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--sitl-params", default=None, metavar="FILE.parm",
                     help="(--sitl) an extra parameter file (e.g. CRUISE_SPEED, ATC_STR_RAT_MAX: another learner)")
     ap.add_argument("--transfer", choices=("on", "off"), default="on",
-                    help="(--sitl) off: the teacher's commands go to the vehicle unmapped (identity, no exploration)")
+                    help="(one robot) off: the paper's baseline learner: the teacher's commands go to the vehicle "
+                         "unmapped (identity, clipped to the learner's range), no exploration, the MPC bounded by the "
+                         "teacher's own range (sim mpc's teacher_range baseline); pairs are still learned and reported")
+    ap.add_argument("--limits", choices=("learned", "teacher"), default=None,
+                    help="(one robot) the station's [transfer] limits, what bounds the MPC: learned (default with "
+                         "--transfer on) or the teacher's own range (default with off); --transfer off --limits "
+                         "learned: the teacher's commands unmapped under the learned limits, how the teacher's "
+                         "reference is made on SITL (docs/BENCHMARKS.md)")
     ap.add_argument("--pair-settle", type=float, default=None, metavar="S",
                     help="(--sitl) the station's [station] pair_settle_s: pairs only where the command had been "
                          "steady S seconds (default 0.5 for SITL's lagging body; 0: every pair, as the paper)")
     ap.add_argument("--teacher-ref", default=None, metavar="SUMMARY.json",
-                    help="(--sitl) the summary of the teacher driving SITL itself (a stock rover, --transfer off): "
+                    help="(--sitl) the summary of the teacher driving SITL itself (a stock rover given the learner's "
+                         "range, --transfer off --limits learned): "
                          "its time and deviation become teacher_time_s and teacher_dev_last_half_m (default: the "
                          "simulated teacher's)")
     ap.add_argument("--param-at", action="append", default=[], metavar="S:NAME=VALUE",
@@ -675,6 +700,8 @@ def run(args: argparse.Namespace) -> int:
             Drift.parse(args.drift)
         except ValueError as exc:
             raise UsageError(str(exc)) from None
+    if (args.transfer != "on" or args.limits is not None) and (len(robots) != 1 or args.count or args.inprocess):
+        raise UsageError("--transfer and --limits set one robot's station: not with --robots, --count or --inprocess")
     if args.inprocess:
         return inprocess(args)
     if args.sitl is not None:

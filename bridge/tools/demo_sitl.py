@@ -54,10 +54,12 @@ def learned_limits(store_path: Path) -> dict[str, list[float]] | None:
 
 def teacher_reference(path: str | Path) -> dict[str, Any]:
     """The teacher's figures from the summary (``summary.json``, or a file whose last ``summary:`` line is one) of
-    a run of the teacher on SITL itself: the stock rover, ``--transfer off`` (the teacher's commands applied to a
-    vehicle that follows them). SITL's own deviation floor (an EKF position, a 10 Hz loop over MAVLink, the body's
-    lag) is several millimetres, the simulated teacher's 1.1 mm: the paper's deviation claim compares like with like
-    only against a run on SITL."""
+    a run of the teacher on SITL itself: the stock rover given the learner's range, ``--transfer off --limits
+    learned`` (the teacher's commands, under the MPC bounded by what the vehicle was seen to reach, applied to a
+    vehicle that follows them: the paper's ideal teacher; a summary from before ``--limits`` existed says
+    ``transfer off`` and was made so too). SITL's own deviation floor (an EKF position, a 10 Hz loop over MAVLink,
+    the body's lag) is several millimetres, the simulated teacher's 1.1 mm: the paper's deviation claim compares
+    like with like only against a run on SITL."""
     text = Path(path).read_text()
     lines = [ln[len("summary: "):] for ln in text.splitlines() if ln.startswith("summary: ")]
     try:
@@ -70,7 +72,8 @@ def teacher_reference(path: str | Path) -> dict[str, Any]:
     return {"time_s": ref["scm_time_s"], "dev_last_half_m": ref["scm_dev_last_half_m"],
             "collided": bool(ref.get("collisions", {}).get("scm")),
             "source": f"SITL {ref.get('model')} (WP_SPEED {params.get('WP_SPEED')}, ATC_STR_RAT_MAX "
-                      f"{params.get('ATC_STR_RAT_MAX')}), transfer {ref.get('transfer')}: {Path(path).name}"}
+                      f"{params.get('ATC_STR_RAT_MAX')}), transfer {ref.get('transfer')}, limits "
+                      f"{ref.get('limits', 'learned')}: {Path(path).name}"}
 
 
 def learner_range(params: dict[str, float]) -> tuple[tuple[float, float], tuple[float, float]]:

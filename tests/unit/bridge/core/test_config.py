@@ -23,6 +23,7 @@ STATION_BAD = [
     ("[teacher_bounds]\nv = [0.6, 0.05]\nw = [-1, 1]\n", "teacher_bounds", "min must be < max"),
     ("[learner_bounds]\nv = [0.1]\nw = [-1, 1]\n", "learner_bounds.v", "length 2"),
     ('[transfer]\nmapper = "magic"\n', "transfer.mapper", "scm"),
+    ('[transfer]\nlimits = "true"\n', "transfer.limits", "must be one of 'learned', 'teacher', got 'true'"),
     ("[transfer]\ngrid = [1, 11]\n", "transfer.grid[0]", ">= 2"),
     ('[teacher]\nkind = "oracle"\n', "teacher.kind", "external"),
     ("[calibration]\nreturn_radius_m = 3.0\nmax_distance_m = 2.0\n", "calibration", "must be below"),
@@ -185,3 +186,12 @@ def test_the_stations_turn_probe_choices_and_default_are_the_policys() -> None:
     hint = typing.get_type_hints(C.TransferSection, include_extras=True)["turn_probe"]
     assert typing.get_args(typing.get_args(hint)[0]) == TURN_PROBES
     assert C.TransferSection().turn_probe == PaperPolicy.__init__.__kwdefaults__["turn_probe"] == TURN_PROBES[0]
+
+
+def test_the_teacher_is_bounded_by_the_learned_limits_unless_a_station_says_the_paper_baseline() -> None:
+    # [transfer] limits: learned by default (the method); teacher, with identity and no exploration, the paper's
+    # baseline learner (bridge.nodes.sources.SourceContext.box)
+    assert C.TransferSection().limits == "learned"
+    base = C.decode_toml('[transfer]\nmapper = "identity"\nexploration = "off"\nlimits = "teacher"\n',
+                         C.StationConfig)
+    assert (base.transfer.mapper, base.transfer.exploration, base.transfer.limits) == ("identity", "off", "teacher")

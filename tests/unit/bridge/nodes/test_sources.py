@@ -1,6 +1,8 @@
 """The station's command sources (:mod:`bridge.nodes.sources`), each asked directly with a pose, a time and a
 :class:`SourceContext`: the external teacher's every answer at its edges, the motion primitives refusing to plan
-without learned limits, the calibration stage's learner commands and its end, and :func:`make_source`'s choice.
+without learned limits, the calibration stage's learner commands and its end, :func:`make_source`'s choice, and
+what bounds the teacher (:meth:`SourceContext.box`, :meth:`SourceContext.allows`: the learned limits, or the
+teacher's own range for the paper's baseline).
 Times are arguments; nothing sleeps. (The MPC source needs its solver: it is tested through the station core in
 tests/unit/bridge/nodes/test_station_core.py, which also drives an external teacher through the core.)"""
 
@@ -142,3 +144,37 @@ def test_make_source_builds_the_external_teacher_with_its_timeout_and_refuses_an
     bogus = msgspec.structs.replace(cfg, teacher=msgspec.structs.replace(cfg.teacher, kind="oracle"))
     with pytest.raises(ValueError, match="unknown teacher kind 'oracle'"):
         make_source(bogus, 0.1)
+
+
+def _learned(limits: str) -> SourceContext:
+    """A context whose store has learned the learner's top speed at 0.5 of the teacher's 1.0 (a boundary pair)."""
+    store = PairStore(LEARNER, TEACHER)
+    store.add([0.5, 0.0], [0.4, 0.0])  # the learner's top command gives half the teacher's top speed
+    assert store.limits.box.v[1] == pytest.approx(0.5)
+    return SourceContext(mission=load_mission(), store=store, counters=StationCounters(), limits=limits)
+
+
+def test_the_teacher_is_bounded_by_the_learned_limits_unless_limits_say_its_own_range() -> None:
+    """``[transfer] limits``: learned (the default, the paper's method) bounds the teacher by the box and hull
+    learned from the pairs; teacher (the paper's baseline learner) by the teacher's own range, whatever was learned.
+    The store learns the same in both."""
+    learned, own = _learned("learned"), _learned("teacher")
+    assert _ctx().limits == "learned"
+    assert learned.box() == learned.store.limits.box and learned.box().v[1] == pytest.approx(0.5)
+    assert own.box() == TEACHER and own.store.limits.box == learned.store.limits.box
+    fast = np.array([[0.8, 0.0], [0.3, 0.0], [1.5, 0.0]])  # beyond the learned limit, inside it, beyond the teacher
+    assert learned.allows(fast).tolist() == [False, True, False]
+    assert own.allows(fast).tolist() == [True, True, False]
+
+
+def test_the_primitives_of_the_baseline_plan_with_the_teachers_whole_library() -> None:
+    src, cfg = _primitives(), StationConfig()
+    lib = src.follower.planner.lib.commands
+    counts = {}
+    for limits in ("learned", "teacher"):
+        store = PairStore(cfg.learner_bounds.bounds(), cfg.teacher_bounds.bounds())
+        store.add([0.3, 0.0], [cfg.learner_bounds.v[1], 0.0])  # the learner's top speed: half the teacher's
+        ctx = SourceContext(mission=load_mission(), store=store, counters=StationCounters(), limits=limits)
+        assert isinstance(src.propose(0.0, POSE, ctx), Proposal)
+        counts[limits] = ctx.counters.primitives_allowed
+    assert counts["learned"] < len(lib) and counts["teacher"] == len(lib)

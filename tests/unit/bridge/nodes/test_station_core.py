@@ -206,3 +206,49 @@ def test_a_store_learned_on_another_day_is_checked_against_todays_pairs_when_ada
     assert [c.id for c in core.pairs(6.0).changed] == list(range(110, 121))  # and in the pairs reply, with when
     off = StationCore(StationConfig(), "r2", 10.0, tmp_path / "p.bin", load_mission())
     assert not off.store.adapt  # the default: the paper's never-forgetting store
+
+
+def _drive(core: StationCore, ticks: int) -> list[tuple[np.ndarray, np.ndarray, str, np.ndarray]]:
+    """``ticks`` ticks of ``core`` driving the paper's learner from the mission's start: (teacher command, command
+    sent, method, learned box [v_lo, v_hi, w_lo, w_hi] the tick ended with) for each command the core sent."""
+    robot, dt, pending, sent = _Robot(core.mission.start), 0.1, [], []
+    for k in range(1, ticks + 1):
+        now = k * dt
+        out = core.tick(TickInputs(telemetry=((robot.state(now), now), *pending), driver=(_driver(k), now)), now)
+        pending = [(robot.apply(out.command, now, dt), now + 2e-3)]
+        if out.teacher is not None:
+            sent.append((np.array([out.teacher.v, out.teacher.omega]), np.array([out.command.v, out.command.omega]),
+                         out.command.method, np.array(core.store.limits.box.as_list())))
+    return sent
+
+
+@pytest.mark.parametrize("limits", ["teacher", "learned"])
+def test_the_papers_baseline_applies_the_teachers_commands_unbounded_by_what_it_learns(tmp_path, limits) -> None:
+    """``[transfer]`` mapper identity, exploration off and limits teacher (``scmbridge demo --transfer off``): the
+    paper's baseline learner (Section 5.2). Its MPC plans within the teacher's own range, beyond what the learner was
+    seen to reach, and each command goes out as the teacher's, clipped to the learner's range only; the pairs are
+    still learned. With limits learned (the teacher's commands under the learned limits: how the teacher's reference
+    is made on SITL) the MPC keeps within the learned box once it has learned one."""
+    import msgspec
+
+    cfg = msgspec.convert({"transfer": {"mapper": "identity", "exploration": "off", "limits": limits}},
+                          StationConfig)
+    core = StationCore(cfg, "r1", 10.0, tmp_path / "p.bin", load_mission())
+    assert core.teacher_limits == limits
+    core.tick(TickInputs(driver=(_driver(0), 0.0)), 0.0)
+    _start(core)
+    sent = _drive(core, 60)
+    lb = cfg.learner_bounds.bounds()
+    assert len(sent) >= 55 and {m for _, _, m, _ in sent} == {"direct"}  # never mapped, never explored
+    for u_T, u, _, _ in sent:
+        np.testing.assert_allclose(u, lb.clip(u_T), atol=1e-9)  # the teacher's command, clipped by the learner's
+    assert core.store.raw_count > 0  # pairs are formed and stored all the same
+    # how far each teacher command lies beyond the box learned before it (the box the MPC was bounded by, or not)
+    beyond = [max(u_T[0] - box[1], box[2] - u_T[1], u_T[1] - box[3]) for (u_T, _, _, _), (_, _, _, box)
+              in zip(sent[1:], sent[:-1])]
+    if limits == "teacher":
+        # the learner's top speed learned (about 0.3 of the teacher's 0.6), and the teacher asking beyond it
+        assert core.store.limits.box.v[1] < 0.4 < cfg.teacher_bounds.v[1]
+        assert max(beyond) > 0.05, max(beyond)
+    else:
+        assert max(beyond) < 1e-6, max(beyond)

@@ -139,3 +139,33 @@ def test_the_live_line_shows_rate_methods_pairs_and_progress() -> None:
     line = run.mon.line(LINE, 3.0)
     assert line.startswith("t=  3.0s rate=20Hz scm=2 barycentric=0")
     assert "pairs=7" in line and "dev=  2.0cm" in line and "progress= 50.0%" in line and line.endswith("[driving]")
+
+
+# ------------------------------------------------------------------------------------------------ --transfer
+@pytest.mark.parametrize(("transfer", "limits", "want"), [
+    ("on", None, ("scm", "guided", "learned")),
+    ("off", None, ("identity", "off", "teacher")),  # the paper's baseline: sim mpc's teacher_range baseline
+    ("off", "learned", ("identity", "off", "learned")),  # the teacher's reference on SITL (and --transfer off before)
+    ("on", "teacher", ("scm", "guided", "teacher")),
+])
+def test_transfer_and_limits_are_the_stations_transfer_table(transfer: str, limits: str | None, want) -> None:
+    from bridge.core.config import StationConfig, decode_toml
+    from bridge.tools.demo import TRANSFER, transfer_table
+
+    t = decode_toml(transfer_table(transfer, limits) + "adapt = true\n", StationConfig).transfer
+    assert (t.mapper, t.exploration, t.limits) == want and t.adapt
+    assert TRANSFER["off"] == ("identity", "off", "teacher")
+
+
+@pytest.mark.parametrize("argv", [["--transfer", "off", "--count", "2"], ["--limits", "teacher", "--inprocess"],
+                                  ["--transfer", "off", "--robots", "a,b"]])
+def test_transfer_and_limits_set_one_robots_station_only(argv: list[str]) -> None:
+    import argparse
+
+    from bridge.core.errors import UsageError
+    from bridge.tools.demo import arguments, run
+
+    ap = argparse.ArgumentParser()
+    arguments(ap)
+    with pytest.raises(UsageError, match="one robot"):
+        run(ap.parse_args(argv))
