@@ -138,12 +138,17 @@ class Monitor:
         self.status: dict = {}
         self.applied: list[tuple[float, str, int | None]] = []  # (stamp, reason, cmd_seq): the driver host's clock
         self.cmds: dict[int, str] = {}  # seq -> method (the station's current run)
+        # (this process's monotonic time of receipt, box [v_min, v_max, w_min, w_max]) each time the learned limits
+        # changed: what the station knew of the learner before and after a change of it (``--param-at``)
+        self.limits: list[tuple[float, list[float]]] = []
+        self.driving = threading.Event()  # the vehicle has driven a command (applied reason cmd or clamped)
         self.lock = threading.Lock()
         self.inputs = Inputs()
         keys = M.Keys(robot)
         self.inputs.subscribe(session, keys.state, M.LearnerState, "state", self._state)
         self.inputs.subscribe(session, keys.applied, M.Applied, "applied", self._applied)
         self.inputs.subscribe(session, keys.cmd, M.Command, "cmd", self._cmd)
+        self.inputs.subscribe(session, keys.limits, M.Limits, "limits", self._limits)
         for node in ("station", "driver"):
             self.inputs.subscribe(session, M.status_key(robot, node), M.Status, "status", self._status)
 
@@ -158,10 +163,24 @@ class Monitor:
     def _applied(self, a, now: float) -> None:
         with self.lock:
             self.applied.append((a.stamp, a.reason, a.cmd_seq))
+        if a.reason in ("cmd", "clamped"):
+            self.driving.set()
 
     def _cmd(self, c, now: float) -> None:
         with self.lock:
             self.cmds[c.seq] = c.method
+
+    def _limits(self, lim, now: float) -> None:
+        with self.lock:
+            box = [float(x) for x in lim.box]
+            if not self.limits or self.limits[-1][1] != box:  # published each second: kept when they change
+                self.limits.append((now, box))
+
+    def limits_at(self, t: float) -> list[float] | None:
+        """The learned limits' box the station last published before ``t`` (this process's monotonic time)."""
+        with self.lock:
+            before = [box for at, box in self.limits if at < t]
+        return before[-1] if before else None
 
     def line(self, world, t: float) -> str:
         """One line of live progress."""
@@ -194,6 +213,9 @@ class Monitor:
         run = [s for s in states if t0 <= s[0] <= t1] or states
         traj = np.array([s[1:] for s in run])
         devs = np.array([world.path.project(p[:2])[1] for p in traj])
+        from sim_learner.experiments import VEHICLE_RADIUS
+
+        collided = bool(any(world.collides(p[:2], VEHICLE_RADIUS) for p in traj))
         c = st.counters
         seqs = [a[2] for a in applied if a[2] is not None and t0 <= a[0] <= t1]
         if seqs and cmds:  # the commands of the driving time (not the stops parked at the goal)
@@ -207,6 +229,7 @@ class Monitor:
                 "parked_before_s": round(max(0.0, t0 - states[0][0]), 1),
                 "parked_after_s": round(max(0.0, states[-1][0] - t1), 1),
                 "mean_dev_m": round(float(devs.mean()), 4), "max_dev_m": round(float(devs.max()), 4),
+                "collided": collided,  # a disc of the paper's vehicle radius touched an obstacle
                 # how far from the goal point it stopped (the station's goal flag alone could be a pose far away)
                 "goal_dist_m": round(float(np.hypot(*(traj[-1, :2] - np.asarray(world.goal)))), 3),
                 "methods": methods,
@@ -409,7 +432,7 @@ def sitl_hil(args: argparse.Namespace, robot: str = "sitl") -> int:
             kids.spawn(["station", *client, "--config", str(out / "station.toml"), "--start", "--store", str(store),
                         "--exit-at-goal", "--duration", str(args.duration), "--mission", str(out / "mission.toml")],
                        logs["station"])
-            changer.start(time.monotonic())
+            changer.start(None, after=mon.driving)  # --param-at counts from the first command driven
             _watch(mon, kids, world, args.duration)
         except KeyboardInterrupt:
             print("\ninterrupted: stopping the demo's processes", file=sys.stderr)
@@ -445,9 +468,13 @@ def sitl_hil(args: argparse.Namespace, robot: str = "sitl") -> int:
     for at, name, value, err in changer.done:  # the learner changed mid-run: the deviation before and after
         before = [d for t, d in devs_at if at - 20.0 <= t < at]
         after = [d for t, d in devs_at if t >= at + 15.0]
+        box = mon.limits_at(at)  # what the station had learned of the vehicle before it changed
         changed.append({"at_s": round(at - t0, 1), "name": name, "value": value, "error": err or None,
+                        "read_back": changer.read_back.get(name),
                         "dev_before_m": round(float(np.mean(before)), 4) if before else None,
-                        "dev_after_m": round(float(np.mean(after)), 4) if after else None})
+                        "dev_after_m": round(float(np.mean(after)), 4) if after else None,
+                        "limits_before": None if box is None else
+                        {"v": [round(x, 4) for x in box[:2]], "w": [round(x, 4) for x in box[2:]]}})
     from sim_learner.experiments import reference_figures
 
     sim = reference_figures(False)["teacher"]  # the ideal teacher on the same path, simulated (sim mpc's)
@@ -669,8 +696,9 @@ def arguments(ap: argparse.ArgumentParser) -> None:
                          "its time and deviation become teacher_time_s and teacher_dev_last_half_m (default: the "
                          "simulated teacher's)")
     ap.add_argument("--param-at", action="append", default=[], metavar="S:NAME=VALUE",
-                    help="(--sitl) set the vehicle's parameter NAME to VALUE S seconds after the station started "
-                         "(PARAM_SET from the ground station: a learner that changes mid-run); repeatable")
+                    help="(--sitl) set the vehicle's parameter NAME to VALUE S seconds after the vehicle first "
+                         "drove a command of the station (PARAM_SET from the ground station, confirmed by its "
+                         "PARAM_VALUE: a learner that changes mid-run); repeatable")
     ap.add_argument("--adapt", action="store_true",
                     help="(--sitl) the station's [transfer] adapt = true: re-learn cells whose learner changed")
     ap.add_argument("--drift", default=None, metavar="KIND[:AT[:OVER[:AMOUNT]]]",

@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import json
 import math
+import threading
 from pathlib import Path
 from typing import Any
 
@@ -120,8 +121,9 @@ def mission_toml(spec) -> str:
 
 
 def param_change(text: str) -> tuple[float, str, float]:
-    """``--param-at S:NAME=VALUE``: the vehicle's parameter NAME set to VALUE S seconds after the station started
-    (a learner that changes under the transfer, through the autopilot's own parameters)."""
+    """``--param-at S:NAME=VALUE``: the vehicle's parameter NAME set to VALUE S seconds after the vehicle first
+    drove a command of the station (a learner that changes under the transfer, through the autopilot's own
+    parameters)."""
     try:
         at, rest = text.split(":", 1)
         name, value = rest.split("=", 1)
@@ -136,28 +138,41 @@ def param_change(text: str) -> tuple[float, str, float]:
 class ParamChanges:
     """Sets the vehicle's parameters at their times through the pilot's link (PARAM_SET, done when the vehicle's
     PARAM_VALUE says so), as a person at the ground station would mid-run; ``done`` holds (monotonic time, name,
-    value, error or "") for each. A thread of its own, waiting on an event (``stop`` ends it at once)."""
+    value, error or "") for each, and ``read_back`` the value the vehicle's PARAM_VALUE then said for each name (the
+    vehicle acknowledged the change; absent where it did not). A thread of its own, waiting on an event (``stop``
+    ends it at once)."""
 
     def __init__(self, pilot: Any, changes: list[tuple[float, str, float]]) -> None:
-        import threading
-
         self.pilot = pilot
         self.changes = sorted(changes)
         self.done: list[tuple[float, str, float, str]] = []
+        self.read_back: dict[str, float] = {}
         self._stop = threading.Event()
         self.finished = threading.Event()  # every change made (or stopped before)
         self._thread = threading.Thread(target=self._run, name="param-changes", daemon=True)
         self.t0 = math.nan
+        self._after: threading.Event | None = None
 
-    def start(self, t0: float) -> None:
-        self.t0 = t0
+    def start(self, t0: float | None, after: threading.Event | None = None) -> None:
+        """Make the changes at their times from ``t0`` (monotonic), or, with ``after``, from when that event is set
+        (the vehicle's first driven command: a change counted from the station's start would land before any
+        driving whenever the station is slow to come up, 2-20 s depending on the machine's load)."""
+        self.t0 = math.nan if t0 is None else t0
+        self._after = after
         if self.changes:
             self._thread.start()
         else:
             self.finished.set()
 
     def _run(self) -> None:
+        import time
+
         try:
+            if self._after is not None:
+                while not self._after.wait(0.1):
+                    if self._stop.is_set():
+                        return
+                self.t0 = time.monotonic()
             self._changes()
         finally:
             self.finished.set()
@@ -170,7 +185,11 @@ class ParamChanges:
                 return
             err = ""
             try:
-                self.pilot.set_param(name, value)
+                self.pilot.set_param(name, value)  # returns once the vehicle's PARAM_VALUE says the new value
+                with self.pilot.cond:
+                    got = self.pilot.s.params.get(name)
+                if got is not None:
+                    self.read_back[name] = float(got)
             except Exception as exc:  # noqa: BLE001  (reported in the summary, never fatal to the run)
                 err = str(exc)
             self.done.append((time.monotonic(), name, value, err))

@@ -16,12 +16,15 @@ import uuid
 from pathlib import Path
 
 import can
+import numpy as np
 import pytest
 
 from bridge.tools.procs import Children
+from drivers.can.config import CanLinkConfig
 from sim_learner.can_ecu import DRIFT_AMOUNT, DiffDriveEcus, Drift
 from sim_learner.dynamics import mpc_learner
 from sim_learner.vehicle import SimVehicle
+from transfer.pairs import teacher_equivalent
 from transfer.store import PairStore
 
 
@@ -92,20 +95,19 @@ def test_a_dragging_left_wheel_yaws_the_robot_left() -> None:
         assert v == pytest.approx(0.3 * 0.95, rel=1e-5) and omega == pytest.approx(0.03 / 0.4, rel=1e-4)
 
 
-@pytest.mark.slow
-@pytest.mark.timeout(420)
-def test_the_hil_loop_relearns_the_cells_a_sagging_battery_changed_and_reaches_the_goal(tmp_path: Path) -> None:
-    """``scmbridge demo --link can --drift battery``: the motors' top speed falls 30 % over 10 s, 20 s after the
-    wheels first turn (from no pairs: the S-path's cells are learned by then); the station runs with
-    ``[transfer] adapt``. The demo's summary, the station's log and its saved store agree on the cells re-learned."""
+def _demo(tmp_path: Path, drift: str, duration: float, timeout: float) -> tuple[dict, PairStore, str]:
+    """``scmbridge demo --link can --drift DRIFT`` (the station with ``[transfer] adapt``) run to its end: its
+    summary, its saved pair store and the station's log; the demo must have reached the goal and re-learned cells,
+    and its summary, log and saved store agree on them (the cells named, how many re-learnings, when: the station's
+    wall clock)."""
     out = tmp_path / "demo"
     with Children() as kids:
-        demo = kids.spawn(["demo", "--link", "can", "--drift", "battery", "--duration", "150", "--out", str(out)],
+        demo = kids.spawn(["demo", "--link", "can", "--drift", drift, "--duration", str(duration), "--out", str(out)],
                           subprocess.PIPE)
         try:
-            stdout, _ = demo.communicate(timeout=360)
+            stdout, _ = demo.communicate(timeout=timeout)
         except subprocess.TimeoutExpired:
-            pytest.fail("the demo did not end within 360 s")
+            pytest.fail(f"the demo did not end within {timeout} s")
     lines = [ln for ln in stdout.decode().splitlines() if ln.startswith("summary: ")]
     assert demo.returncode == 0 and lines, stdout.decode()[-3000:]
     summary = json.loads(lines[0][len("summary: "):])
@@ -118,3 +120,58 @@ def test_the_hil_loop_relearns_the_cells_a_sagging_battery_changed_and_reaches_t
     assert all(c.at is not None and c.at > 1e9 for c in store.changed_cells())  # when: the station's wall clock
     log = (out / "station.log").read_text()
     assert log.count("re-learned: its learner no longer answers") == store.relearned
+    return summary, store, log
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(420)
+def test_the_hil_loop_relearns_the_cells_a_sagging_battery_changed_and_reaches_the_goal(tmp_path: Path) -> None:
+    """``scmbridge demo --link can --drift battery``: the motors' top speed falls 30 % over 10 s, 20 s after the
+    wheels first turn (from no pairs: the S-path's cells are learned by then); the station runs with
+    ``[transfer] adapt``. The demo's summary, the station's log and its saved store agree on the cells re-learned."""
+    _demo(tmp_path, "battery", 150, 360)
+
+
+def _response(u_L: np.ndarray, drag: float = 0.0) -> np.ndarray:
+    """What the emulated learner does with the body command ``u_L`` over one tick, as the teacher's command that
+    would do the same (f_T^-1, the pair's teacher part), with its left wheel's speed cut by ``drag`` (a share: the
+    emulated controllers' ``wheel`` drift, at the driver's track width)."""
+    v, w = float(u_L[0]), float(u_L[1])
+    half = CanLinkConfig().track_width / 2.0
+    left, right = (1.0 - drag) * (v - w * half), v + w * half
+    body = np.array([0.5 * (left + right), (right - left) / (2.0 * half)])
+    x0 = np.zeros(3)
+    return teacher_equivalent(x0, mpc_learner().step(x0, body, 0.1), 0.1)
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(240)
+def test_the_hil_loop_relearns_the_cells_a_dragging_wheel_changed_in_the_direction_of_the_drag(tmp_path: Path) -> None:
+    """``scmbridge demo --link can --drift wheel:15``: from 15 s after the wheels first turn (the S-path's first
+    bend learned by then, its right bends still to come) the left wheel reaches 10 % less than it is driven at, so
+    the robot yaws left and slows; the station runs with ``[transfer] adapt``. What a controls engineer checks: the
+    goal reached without a collision; the cells re-learned named alike by the summary, the log and the saved store;
+    and each re-learned cell's refined pair moved from what its learner command did before the change towards what
+    the dragging wheel makes of it (the emulator's model, :func:`_response`), in the drag's direction by at least a
+    third of its effect. Where the drag yaws the command, its teacher part turns left by at least a third of what the
+    drag adds: the map now asks the learner for a command turning further right (an opposite omega offset) for the
+    same teacher command. Measured on the 9 yawed cells re-learned in 6 runs: 67-100 % of the drag's turn (the 67 %
+    not looked into: the same cell, 93-100 % in four other runs). About 50 s of wall time (46 s of driving).
+
+    What does not hold, and is not asserted (docs/PAPER.md, "Beyond the paper"): the learner cannot follow a right
+    turn after the change (at its right-most command it turns an eighth to a quarter as fast as before, whatever the
+    map), and the learned right-turn limit follows it down only where pairs come at that command after the change."""
+    summary, store, _ = _demo(tmp_path, "wheel:15", 120, 200)
+    assert summary["collided"] is False, summary
+    refined = {r.id: r for r in store.refined()}
+    relearned = [refined[c.id] for c in store.changed_cells() if c.id in refined]
+    assert relearned, (store.changed_cells(), sorted(refined))
+    yawed = 0
+    for r in relearned:
+        before, after = _response(r.u_L), _response(r.u_L, DRIFT_AMOUNT["wheel"])
+        wanted, moved = after - before, r.u_T - before  # what the drag did to this command; what the store learned
+        assert float(moved @ wanted) >= float(wanted @ wanted) / 3.0 > 0.0, (r, before, after)
+        if wanted[1] > 0.01:  # the drag yaws this command left (not where the command's turn is clipped)
+            assert moved[1] >= wanted[1] / 3.0, (r, before, after)
+            yawed += 1
+    assert yawed, [(r.id, r.u_L) for r in relearned]  # and the re-learned cells include one the drag yaws

@@ -79,3 +79,44 @@ def test_a_mission_without_obstacles_or_start_still_makes_a_file() -> None:
     spec = M.MissionSpec(name="bare", path=[[0.0, 0.0], [1.0, 0.0]])
     back = decode_toml(mission_toml(spec), MissionSpec, "mission.toml")
     assert back.path == spec.path and back.obstacles == [] and back.start is None
+
+
+class _Autopilot:
+    """The vehicle's parameter table as a pilot's link sees it (``set_param`` returns once the vehicle's
+    PARAM_VALUE says the new value, as :meth:`sim_learner.sitl.Pilot.set_param` does)."""
+
+    def __init__(self) -> None:
+        import threading
+        from types import SimpleNamespace
+
+        self.cond = threading.Condition()
+        self.s = SimpleNamespace(params={"CRUISE_THROTTLE": 65.0})
+
+    def set_param(self, name: str, value: float) -> None:
+        with self.cond:
+            self.s.params[name] = float(value)
+
+
+def test_a_parameter_change_counts_from_the_first_driven_command_and_says_what_the_vehicle_read_back() -> None:
+    """``--param-at``: S seconds after the vehicle first drove (the event), not after the station started, which
+    takes 2-20 s to come up; the vehicle's PARAM_VALUE is kept beside the change; stopped before the vehicle drove,
+    nothing changes."""
+    import threading
+    import time
+
+    from bridge.tools.demo_sitl import ParamChanges, param_change
+
+    pilot, driving = _Autopilot(), threading.Event()
+    changes = ParamChanges(pilot, [param_change("0.2:CRUISE_THROTTLE=45")])
+    changes.start(None, after=driving)
+    assert not changes.finished.wait(0.3) and changes.done == []  # the vehicle has not driven yet
+    t_drove = time.monotonic()
+    driving.set()
+    assert changes.finished.wait(10.0)
+    (at, name, value, err), = changes.done
+    assert (name, value, err) == ("CRUISE_THROTTLE", 45.0, "") and at >= t_drove + 0.2
+    assert changes.read_back == {"CRUISE_THROTTLE": 45.0}
+    never = ParamChanges(_Autopilot(), [param_change("0:CRUISE_THROTTLE=45")])
+    never.start(None, after=threading.Event())
+    never.stop()
+    assert never.finished.wait(5.0) and never.done == [] and never.read_back == {}
