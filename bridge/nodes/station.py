@@ -175,6 +175,7 @@ class Station:
         self.telemetry: list[Queued] = []  # the echoes' and the poses' queues, read at each tick (serve declares them)
         self.wake = threading.Event()  # a query, or an external teacher's command: the loop handles it now
         self.pubs: dict[str, zenoh.Publisher] = {}
+        self.teacher_listener: zenoh.MatchingListener | None = None  # whether anyone subscribes to the teacher
         self.ticker: FixedRate | Deadlines | None = None  # its deadlines (and missed ones)
         self.build: KernelBuild | None = None
         self.teacher = self.core.source.teacher if isinstance(self.core.source, MpcSource) else None
@@ -371,6 +372,10 @@ class Station:
         finally:
             self.end()
 
+    def _on_teacher_matching(self, status: zenoh.MatchingStatus) -> None:
+        """A subscriber of the teacher topic came or the last one went (Zenoh's callback thread)."""
+        self.core.teacher_heard = bool(status.matching)
+
     def declare(self, session: zenoh.Session, announce: bool = False) -> None:
         """Declare this robot's inputs, queryables and publishers on ``session`` (nothing is ticked yet)."""
         k = self.keys
@@ -390,7 +395,11 @@ class Station:
         session.declare_queryable(k.control, self.on_control_query)
         self.pubs = {t: session.declare_publisher(getattr(k, t)) for t in ("cmd", "limits")}
         if not external:
-            self.pubs["teacher"] = session.declare_publisher(k.teacher)
+            # the teacher message (the MPC's command and plan, for a person's viewer or a recorder) is built and
+            # sent only while someone subscribes to it: a fleet's robots mostly have no viewer
+            pub = self.pubs["teacher"] = session.declare_publisher(k.teacher)
+            self.teacher_listener = pub.declare_matching_listener(self._on_teacher_matching)
+            self.core.teacher_heard = bool(pub.matching_status.matching)
         self.pubs["status"] = session.declare_publisher(M.status_key(self.robot, "station"))
         if self.build is None:
             self.build = KernelBuild(self.teacher)

@@ -210,6 +210,9 @@ class StationCore:
         self.teacher: M.TeacherCommand | None = None
         self.teacher_at = -np.inf
         self.teacher_new = False  # an external teacher's command not yet given to the source
+        #: whether anyone subscribes to the teacher topic (the station follows Zenoh's matching status): the teacher
+        #: message is built only then
+        self.teacher_heard = True
         self.mission_version = self.control.version
         self.why = "starting"  # the one reason this station does (not) drive, in words (status text, log) ...
         self.reason: M.Reason = "starting"  # ... and typed: what its status's ok and reason are decided on
@@ -406,7 +409,7 @@ class StationCore:
             self.solve_ms.append(prop.solve_ms)
         command = self.send(now, prop)
         teacher = None
-        if prop.solver is not None:
+        if prop.solver is not None and self.teacher_heard:
             pred = np.asarray(prop.predicted, dtype=float) if prop.predicted is not None else np.zeros((0, 3))
             teacher = M.TeacherCommand(
                 stamp=now, seq=command.seq, v=float(prop.u[0]), omega=float(prop.u[1]), solver=prop.solver,

@@ -72,12 +72,22 @@ def test_a_core_drives_a_robot_by_ticks_alone_and_reports_todays_counters(tmp_pa
             assert out.teacher is not None and out.teacher.seq == out.command.seq
             assert out.teacher.epoch == out.command.epoch == core.epoch
     assert "stop" not in methods and core.why == "driving"
+    # nobody subscribes to the teacher topic (the station follows Zenoh's matching status): no teacher message is
+    # built, and the command is the same as ever
+    core.teacher_heard = False
+    for k in range(40, 43):
+        now = k * 0.1
+        out = core.tick(TickInputs(telemetry=((robot.state(now), now), *pending), driver=(_driver(k), now),
+                                   input_counts={"malformed_state": 2}), now)
+        pending = [(robot.apply(out.command, now, dt), now + 2e-3)]
+        assert out.command.method != "stop" and out.teacher is None
+    core.teacher_heard = True
     status = core.status(4.0)
     assert status.ok and status.state == "driving"
     assert set(status.counters) == MPC_KEYS | {"malformed_state"}
     c = status.counters
-    assert c["ticks"] == 40 and c["method_stop"] == 1 and c["malformed_state"] == 2
-    assert sum(c[f"method_{m}"] for m in ("scm", "direct", "perturb", "affine", "barycentric")) == 39
+    assert c["ticks"] == 43 and c["method_stop"] == 1 and c["malformed_state"] == 2
+    assert sum(c[f"method_{m}"] for m in ("scm", "direct", "perturb", "affine", "barycentric")) == 42
     assert c["pairs_formed"] > 0 and c["raw_pairs"] == c["pairs_formed"]
 
 
