@@ -434,20 +434,25 @@ class GuidedPolicy(_PolicyBase):
         return Mapped(lb.clip(lb.denormalise(self._nearest_in_cell(target, lb.normalise(u)))), "perturb")
 
     def __init__(self, store: PairStore, mapper: str | Mapper = "scm", rng: np.random.Generator | None = None,
-                 *, fill_budget: float = FILL_BUDGET, fill_depth: float = 0.3,
+                 *, fill_budget: float = FILL_BUDGET, fill_depth: float = 0.3, fill_phase: float = 0.0,
                  **options: float | str | None) -> None:
         """``fill_budget``: the share of the commands served from the learned region that may fill a hole of the
         map (0: never); ``fill_depth``: the slowest a fill asks for, as a fraction of the teacher's speed (what the
-        learner then drives is the map's guess in the hole, which the fill measures); the other
+        learner then drives is the map's guess in the hole, which the fill measures); ``fill_phase`` (0 to 1): how
+        much of the first burst's budget is saved up from the start (a station gives each robot its own, so that
+        the robots of a fleet that start together do not all search for a hole in the same tick); the other
         options as :class:`_PolicyBase` takes them."""
         super().__init__(store, mapper, rng, **options)  # type: ignore[arg-type]
         if not 0.0 <= fill_budget < 1.0:
             raise ValueError(f"fill_budget must be in [0, 1), got {fill_budget}")
         if not 0.0 < fill_depth < 1.0:
             raise ValueError(f"fill_depth must be in (0, 1), got {fill_depth}")
+        if not 0.0 <= fill_phase < 1.0:
+            raise ValueError(f"fill_phase must be in [0, 1), got {fill_phase}")
         self.fill_budget = float(fill_budget)
         self.fill_depth = float(fill_depth)
-        self._fill_tokens = 0.0  # earned at fill_budget per command served from the region, at most one cell's k_min
+        # earned at fill_budget per command served from the region, at most one cell's k_min
+        self._fill_tokens = float(fill_phase) * store.k_min
         self._fill_cell: tuple[int, int] | None = None  # the hole the current burst fills; None between bursts
         self._speeds = np.linspace(1.0, self.fill_depth, 29)[1:]  # the slowed speeds s a hole search tries
         self._served = 0  # commands served from the region so far: the clock of the hole search

@@ -37,6 +37,16 @@ S = TypeVar("S", bound=Struct)
 QUEUE_CAPACITY = 1024
 
 
+
+def freeze_startup_heap() -> None:
+    """Collect once, then move every object alive after a node's start-up (its stores, solvers, sessions, modules)
+    out of the garbage collector's reach (``gc.freeze``), so that a full collection scans only what the running
+    loop made since. A station of 50 robots paused 50-76 ms in each full collection (docs/BENCHMARKS.md, "Many
+    robots"), in whichever thread allocated: the robots queued behind the pause missed their deadlines."""
+    gc.collect()
+    gc.freeze()
+
+
 class Inputs:
     """Thread-safe counters of a node's inputs (``malformed_<name>``, ...), shared by its callbacks and its loop."""
 

@@ -49,7 +49,15 @@ from bridge.core.errors import UsageError
 from bridge.core.paths import quarantine, save_atomic, state_dir
 from bridge.nodes import systemd
 from bridge.nodes.mission_control import Fitness, MissionControl, Saved
-from bridge.nodes.node import FixedRate, Inputs, Queued, add_zenoh_args, stop_on_signals, zenoh_config
+from bridge.nodes.node import (
+    FixedRate,
+    Inputs,
+    Queued,
+    add_zenoh_args,
+    freeze_startup_heap,
+    stop_on_signals,
+    zenoh_config,
+)
 from bridge.nodes.sources import MpcSource
 from bridge.nodes.station_core import StationCore, TickInputs, TickOutputs
 from bridge.nodes.writer import Save, SaveWriter
@@ -762,6 +770,7 @@ def run_fleet(cfg: StationConfig, robots: list[str], rate: float, args: argparse
                               threads=getattr(args, "loop_threads", DEFAULT_LOOP_THREADS))
             systemd.ready(f"{len(stations)} robots: {', '.join(stations)}")
             log.info("serving %d robots from one process: %s", len(declared), ", ".join(s.robot for s in declared))
+            freeze_startup_heap()
             fleet.run()
             failed += fleet.failed
     finally:

@@ -37,6 +37,7 @@ from __future__ import annotations
 
 import logging
 import time
+import zlib
 from collections import deque
 from collections.abc import Mapping
 from dataclasses import dataclass, field
@@ -151,6 +152,13 @@ class TickOutputs:
     command_bytes: bytes | None = None
 
 
+
+def robot_phase(robot: str) -> float:
+    """A robot's phase in [0, 1), the same in every process and on every run (a hash of its name): where its
+    periodic work (the hole searches' budget, the store's saves) falls, so that a fleet started together spreads
+    it instead of doing it all in one tick of its process's loop."""
+    return zlib.crc32(robot.encode()) / 2**32
+
 class StationCore:
     """One robot's station: its tick (pairing, the command source, the transfer step, mission control) and the
     mission requests between ticks (module docstring). Beside it, each with one job: whether the robot is fit
@@ -174,9 +182,12 @@ class StationCore:
         # a store learned on another day is then checked against the first pairs of the run, cell by cell
         self.store.adapt, self.store.change_tol = tcfg.adapt, tcfg.change_tol
         log.info("%s%s", how, "; cells whose learner changed are re-learned" if tcfg.adapt else "")
+        # this robot's own phase of the periodic work (the hole searches' budget, the store's saves): the robots of
+        # a fleet that start together each do it at their own tick, not all in one period of the process's loop
+        phase = robot_phase(robot)
         policy = make_policy(self.store, tcfg.mapper, np.random.default_rng(tcfg.seed), turn_probe=tcfg.turn_probe,
                              **({"exploration": "paper"} if tcfg.exploration == "paper"
-                                else {"exploration": "guided", "fill_budget": tcfg.fill_budget}))
+                                else {"exploration": "guided", "fill_budget": tcfg.fill_budget, "fill_phase": phase}))
         self.transfer = TransferStep(policy, dt=self.period, explore=tcfg.exploration != "off",
                                      clearance=tcfg.explore_clearance_m)
         self.source: CommandSource = source or make_source(cfg, self.period, calibration)
@@ -195,7 +206,7 @@ class StationCore:
         self.fitness = Fitness()
         self.counters = StationCounters()
         self.saves = StationSaves(self.store, Path(store_path), self.control, control_path, self.counters,
-                                  scfg.persist_every_s)
+                                  scfg.persist_every_s, phase)
         self.report = StatusReport()
         self.limits_report = LimitsReport(self.store, robot)
         self.integrity = Integrity()
@@ -462,4 +473,4 @@ class StationCore:
         return status_key(self.reason, self.control.phase, self.unfit_reason, driver, bool(self.saves.error))
 
 
-__all__ = ["PLAUSIBLE", "StationCore", "TickInputs", "TickOutputs", "load_store", "pairs_message"]
+__all__ = ["PLAUSIBLE", "StationCore", "TickInputs", "TickOutputs", "load_store", "pairs_message", "robot_phase"]

@@ -35,8 +35,12 @@ class StationSaves:
     thread come back through :meth:`saved`, called by the adapter on that thread)."""
 
     def __init__(self, store: PairStore, store_path: Path, control: MissionControl, control_path: Path | None,
-                 counters: StationCounters, every: float) -> None:
+                 counters: StationCounters, every: float, phase: float = 0.0) -> None:
+        """``every``: the store's save period, s; ``phase`` (0 to 1): the second save comes ``(1 + phase) * every``
+        after the first (at the first periodic tick), then every ``every``: the robots of a fleet that start
+        together do not all save in the same tick."""
         self.store, self.store_path = store, Path(store_path)
+        self.phase = float(phase)
         self.control, self.control_path = control, control_path
         self.counters, self.every = counters, every
         #: the adapter's writer of the tick's saves (see :data:`Writer`): it writes them off the tick and reports
@@ -46,10 +50,11 @@ class StationSaves:
         self.next_at: float | None = None  # the store's next save is due then (None: at the first periodic tick)
 
     def periodic(self, now: float) -> None:
-        """The pair store's save when it is due (each ``every`` seconds from the first periodic tick)."""
+        """The pair store's save when it is due (at the first periodic tick, then as :meth:`__init__` says)."""
         if self.next_at is None or now >= self.next_at:
+            first = self.next_at is None
             self.save("store")
-            self.next_at = now + self.every
+            self.next_at = now + self.every * (1.0 + self.phase if first else 1.0)
 
     def save(self, what: str) -> None:
         """A save the tick asks for (``what``: "store" or "control"): its bytes encoded now and handed to

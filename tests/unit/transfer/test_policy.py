@@ -65,6 +65,8 @@ def test_unknown_names_and_options_out_of_range_are_refused() -> None:
         GuidedPolicy(s, fill_budget=1.0)
     with pytest.raises(ValueError, match=r"fill_depth must be in \(0, 1\), got 0.0"):
         GuidedPolicy(s, fill_depth=0.0)
+    with pytest.raises(ValueError, match=r"fill_phase must be in \[0, 1\), got 1.0"):
+        GuidedPolicy(s, fill_phase=1.0)
     p = make_policy(s, exploration="paper")
     for bad in ([math.inf, 0.0], [0.0, math.nan]):
         with pytest.raises(ValueError, match="teacher command must be finite"):

@@ -526,6 +526,22 @@ def test_guided_fills_the_maps_holes_on_the_teachers_curve_slower_within_its_bud
                                                        store2, t, 200))
 
 
+def test_a_fill_phase_moves_a_robots_first_burst_earlier_and_keeps_its_budget() -> None:
+    """``fill_phase``: a station gives each robot its own, so that a fleet's robots, started together on the same
+    mission, do not all search for a hole in the same tick; the budget over a run stays the same."""
+    case, _ = _top_speed_store()
+    t = np.array([case.true_box.v[1], 0.12])
+    first, fills = {}, {}
+    for phase in (0.0, 0.5, 0.9):
+        _, store = _top_speed_store()
+        steps = _drive(make_policy(store, "scm", seed=0, fill_phase=phase), case, store, t, 400)
+        at = [k for k, (m, _) in enumerate(steps) if m.method == "perturb"]
+        first[phase], fills[phase] = at[0], len(at)
+    assert first[0.0] > first[0.5] > first[0.9]
+    assert first[0.0] - first[0.9] >= 0.8 * store.k_min / 0.08 - 2  # the phase's share of a burst's saving-up
+    assert max(fills.values()) - min(fills.values()) <= store.k_min  # at most one cell's budget more
+
+
 def test_the_hole_search_costs_at_most_about_one_map_per_command_when_no_hole_is_on_the_teachers_way() -> None:
     """The steady state of a station: a learned store, the fill budget saved up, and no hole on the teacher's way.
     A search that found nothing waits as many commands as it cost maps, and a store with no hole is never searched

@@ -9,7 +9,7 @@ import pytest
 from bridge.core import wire as M
 from bridge.core.config import StationConfig, load_mission
 from bridge.nodes.sources import ExternalSource, MpcSource, PrimitivesSource, Proposal, Why, make_source
-from bridge.nodes.station_core import StationCore, TickInputs
+from bridge.nodes.station_core import StationCore, TickInputs, robot_phase
 from bridge.nodes.station_status import StationCounters
 from sim_learner.dynamics import mpc_learner
 
@@ -262,3 +262,13 @@ def test_the_papers_baseline_applies_the_teachers_commands_unbounded_by_what_it_
         assert max(beyond) > 0.05, max(beyond)
     else:
         assert max(beyond) < 1e-6, max(beyond)
+
+
+def test_a_robots_phase_is_its_own_the_same_on_every_run_and_spreads_a_fleet() -> None:
+    """``robot_phase``: where a robot's periodic work falls (its hole searches' budget, its store's saves): a hash of
+    its name, so the same in every process, and spread over [0, 1) across a fleet's names."""
+    phases = [robot_phase(f"fleet{i}") for i in range(1, 101)]
+    assert all(0.0 <= p < 1.0 for p in phases) and robot_phase("fleet1") == phases[0]
+    assert len(set(phases)) == 100
+    counts, _ = np.histogram(phases, bins=4, range=(0.0, 1.0))
+    assert counts.min() >= 15  # no quarter of the period left empty, none holding most of the fleet

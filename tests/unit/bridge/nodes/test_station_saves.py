@@ -18,10 +18,10 @@ SPEC = M.MissionSpec(name="line", path=[[0.0, 0.0], [2.0, 0.0]])
 
 
 def _saves(tmp_path: Path, store_path: Path | None = None, control_path: Path | None = None,
-           every: float = 1.0) -> StationSaves:
+           every: float = 1.0, phase: float = 0.0) -> StationSaves:
     store = PairStore(Bounds(MPC_LEARNER_V, MPC_LEARNER_W), Bounds(MPC_TEACHER_V, MPC_TEACHER_W), k_min=1)
     return StationSaves(store, store_path or tmp_path / "pairs.bin", MissionControl("r1", SPEC), control_path,
-                        StationCounters(), every)
+                        StationCounters(), every, phase)
 
 
 def test_the_store_is_saved_at_the_first_periodic_tick_and_then_each_period(tmp_path) -> None:
@@ -32,6 +32,23 @@ def test_the_store_is_saved_at_the_first_periodic_tick_and_then_each_period(tmp_
         s.periodic(now)
     assert [w for w, _, _ in handed] == ["store"] * 3 and {p for _, p, _ in handed} == {tmp_path / "pairs.bin"}
     assert s.next_at == 13.0
+
+
+def test_a_robots_phase_delays_its_second_save_only_so_that_a_fleet_started_together_spreads_its_saves(
+        tmp_path) -> None:
+    saved: dict[float, list[float]] = {}
+    for phase in (0.0, 0.25, 0.75):
+        s = _saves(tmp_path, every=4.0, phase=phase)
+        handed: list[str] = []
+        s.writer = lambda what, path, data, _h=handed: _h.append(what)
+        for k in range(0, 141):
+            now = 10.0 + 0.1 * k
+            n = len(handed)
+            s.periodic(now)
+            if len(handed) > n:
+                saved.setdefault(phase, []).append(now)
+    starts = {p: [round(t, 1) for t in ts] for p, ts in saved.items()}
+    assert starts == {0.0: [10.0, 14.0, 18.0, 22.0], 0.25: [10.0, 15.0, 19.0, 23.0], 0.75: [10.0, 17.0, 21.0]}
 
 
 def test_without_a_writer_a_save_is_made_at_once_and_a_mission_without_a_path_is_not_kept(tmp_path) -> None:
