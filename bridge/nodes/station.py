@@ -719,6 +719,7 @@ def run(args: argparse.Namespace) -> int:
     from transfer.scm import warmup
 
     warmup()  # compile / load the SC kernels before the first tick
+    freeze_startup_heap()
     stop = stop_on_signals()
     try:
         with open_session(zenoh_config(args), wait=stop, what="station") as session:

@@ -66,3 +66,22 @@ def test_a_tick_that_overruns_its_period_is_a_missed_deadline_and_the_schedule_r
     assert ticker.wait() is True and ticker.missed == 1 and ticker.t_next >= t
     assert ticker.late >= 0.05 - ticker.period - 1e-3
     assert ticker.wait() is True and ticker.missed == 1  # back on a schedule from then
+
+
+def test_freezing_the_start_up_heap_leaves_a_full_collection_only_what_came_after() -> None:
+    """``freeze_startup_heap`` (a station's start-up: its stores, solvers and modules out of every later full
+    collection). In a child process: freezing pytest's own heap would change every later test's collections."""
+    import subprocess
+    import sys
+
+    code = (
+        "import gc\n"
+        "from bridge.nodes.node import freeze_startup_heap\n"
+        "startup = [[i] for i in range(50000)]\n"
+        "freeze_startup_heap()\n"
+        "frozen = gc.get_freeze_count()\n"
+        "later = [[i] for i in range(100)]\n"
+        "print(frozen >= 50000, len(gc.get_objects()) < frozen // 10)\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60, check=True)
+    assert out.stdout.split() == ["True", "True"], out.stdout + out.stderr
