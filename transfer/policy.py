@@ -68,17 +68,20 @@ learner speed the map gives for ``s * v_T`` and the yaw rate it gives for ``s * 
 mission drives, so that row is learned; exact when the learner's yaw-rate response does not depend on its speed; no
 fill where that yaw rate has no learned region). Among the candidates in unconfigured cells it fills a cell an
 earlier burst began, else the one whose teacher command is farthest from every refined pair (the map's biggest hole
-on the teacher's way). A burst sends k_min commands into that cell, each at the learner speed of the cell's pairs so
-far and at the yaw rate that gives the teacher's curvature at the speed those pairs measured (only the first command
-of a burst relies on the map's guess of the hole's speed); the command stays in the burst's cell while that yaw rate
-is within one cell of it (moved into it: a cell is finished at a yaw-rate error of at most one cell), else the burst
-moves to that yaw rate's cell if it is unconfigured, and ends otherwise (or with no learned yaw rate). Fills are
-paid from a token budget: ``fill_budget`` per command served from the region, at most one cell's k_min saved, and a
-burst starts only with k_min saved; a search for a hole that found none makes the next wait as many commands as it
-cost maps (a learned store with no hole on the teacher's way is a station's steady state: its commands must not pay a
-search each), and a store with no unconfigured cell is never searched. They cost time, not path: the robot slows
-down along the curve the teacher asked for. Like every perturbation they never happen where ``explore`` is False
-(near obstacles).
+on the teacher's way); the candidates are ranked on the piecewise-linear map of the same triangles (no SC map is
+built for a guess) and the best ``FILL_CHECKS`` of them mapped with the SC map itself. A burst sends k_min commands
+into that cell, each at the learner speed of the cell's pairs so far and at the yaw rate that gives the teacher's
+curvature at the speed those pairs measured (only the first command of a burst relies on the map's guess of the
+hole's speed); the command stays in the burst's cell while that yaw rate is within one cell of it (moved into it: a
+cell is finished at a yaw-rate error of at most one cell), else the burst moves to that yaw rate's cell if it is
+unconfigured, and ends otherwise (or with no learned yaw rate). Fills are paid from a token budget: ``fill_budget``
+per command served from the region, at most one cell's k_min saved, and a burst starts only with k_min saved
+(``fill_phase`` of it saved from the start: a station's robots each start at their own, so that a fleet started
+together does not search in one tick); a search for a hole that found none makes the next wait as many commands as
+it cost maps (a learned store with no hole on the teacher's way is a station's steady state: its commands must not
+pay a search each), and a store with no unconfigured cell is never searched. They cost time, not path: the robot
+slows down along the curve the teacher asked for. Like every perturbation they never happen where ``explore`` is
+False (near obstacles).
 
 ``explore=False`` (the caller's choice, e.g. near obstacles: :class:`transfer.step.TransferStep` decides it) means
 no perturbation of any kind, for both policies: the command is the guided policy's region map (with its barycentric
