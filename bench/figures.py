@@ -9,8 +9,9 @@ printed beside its figures), reads the JSON that command prints, and keeps the f
 - ``mpc`` and ``mpc_hidden``: the paper's MPC claims, ``scmbridge sim mpc --seeds 0-9`` and on seeds the tests do not
   use, ``--seeds 10-19 --policy guided`` (medians over the seeds);
 - ``grid``: the paper's exhaustive test, ``scmbridge sim grid --seeds 10-19``;
-- ``fleet`` (only when asked: it needs a quiet machine and about 80 s): ``scmbridge bench fleet --layout shards
-  --sizes 50 --duration 30 --warmup 10``.
+- ``fleet`` (only when asked: it needs a quiet machine and about 160 s): ``scmbridge bench fleet --layout shards
+  --sizes 50,100 --duration 30 --warmup 10`` (the goal: a hundred robots held at <= 1 ms of station CPU per
+  robot-tick; at fifty, what a process costs whatever its robots is shared by half as many).
 
 It prints one JSON line per job, then the whole table. ``--write`` puts the table into docs/BENCHMARKS.md between its
 ``figures:begin`` and ``figures:end`` markers (the date, the machine's load before and after, the Python), and the
@@ -149,11 +150,13 @@ def read_grid(out: str) -> list[Row]:
 
 def read_fleet(out: str) -> list[Row]:
     s = json.loads(out[out.index("{"):])
-    rows = [Row("fleet_robots_held", str(s["robots_held"]), ">= 50, no robot missing 1 % of its deadlines")]
+    rows = [Row("fleet_robots_held", str(s["robots_held"]), ">= 100 (the goal; >= 50 the floor), no robot missing "
+                "1 % of its deadlines")]
     for lv in s["levels"]:
         n = lv["robots"]
         rows.append(Row(f"fleet_{n}_missed_worst", _fmt(lv.get("missed_fraction_worst")), "< 0.01"))
-        rows.append(Row(f"fleet_{n}_station_cpu_ms_per_tick", _fmt(lv.get("station_cpu_ms_per_tick")), "<= 1 ms"))
+        rows.append(Row(f"fleet_{n}_station_cpu_ms_per_tick", _fmt(lv.get("station_cpu_ms_per_tick")),
+                        "<= 1 ms (the goal)" if n >= 100 else ""))
         rows.append(Row(f"fleet_{n}_tick_p99_ms_worst", _fmt(lv.get("tick_p99_ms_worst")), "< 100 ms"))
         rows.append(Row(f"fleet_{n}_station_rss_mb_total", _fmt(lv.get("station_rss_mb_total"))))
     return rows
@@ -166,7 +169,8 @@ def jobs(tmp: str) -> list[Job]:
         Job("mpc", ["sim", "mpc", "--seeds", "0-9", "--out", f"{tmp}/mpc"], read_mpc),
         Job("mpc_hidden", ["sim", "mpc", "--seeds", "10-19", "--policy", "guided", "--out", f"{tmp}/mpc10"], read_mpc),
         Job("grid", ["sim", "grid", "--seeds", "10-19", "--out", f"{tmp}/grid"], read_grid),
-        Job("fleet", ["bench", "fleet", "--layout", "shards", "--sizes", "50", "--duration", "30", "--warmup", "10"],
+        Job("fleet", ["bench", "fleet", "--layout", "shards", "--sizes", "50,100", "--duration", "30", "--warmup",
+                      "10"],
             read_fleet, default=False),
     ]
 

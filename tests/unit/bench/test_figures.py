@@ -62,6 +62,14 @@ def test_the_fleets_levels_give_the_held_size_and_the_cpu_per_robot_tick() -> No
                                           "station_rss_mb_total": 560.0}]}
     rows = {r.name: r.value for r in F.read_fleet(json.dumps(out, indent=2))}
     assert rows["fleet_robots_held"] == "50" and rows["fleet_50_station_cpu_ms_per_tick"] == "0.93"
+    out["robots_held"] = 100
+    out["levels"].append({"robots": 100, "missed_fraction_worst": 0.0, "station_cpu_ms_per_tick": 0.97,
+                          "tick_p99_ms_worst": 6.0, "station_rss_mb_total": 663.0})
+    got = {r.name: r for r in F.read_fleet(json.dumps(out))}
+    assert got["fleet_robots_held"].value == "100" and got["fleet_100_station_cpu_ms_per_tick"].value == "0.97"
+    # the goal's target is the hundred robots' (at fifty a process's own cost is shared by half as many)
+    assert got["fleet_100_station_cpu_ms_per_tick"].claim.startswith("<= 1 ms")
+    assert not got["fleet_50_station_cpu_ms_per_tick"].claim
 
 
 def test_a_failed_job_is_a_row_that_says_so_and_never_a_figure() -> None:
