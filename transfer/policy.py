@@ -111,8 +111,8 @@ EXPLORATIONS = ("paper", "guided")
 ALONG_LIMIT_TOL = 1e-3
 #: the guided policy's default share of region-served commands that may fill holes of the map (module docstring)
 FILL_BUDGET = 0.08
-#: how many of a hole search's best candidates (ranked on the linear map) are checked on the mapper itself, best
-#: first, before the search gives up (each costs up to two maps)
+#: how many of a hole search's best candidates (ranked on the linear map) are mapped with the mapper itself, the
+#: best of them on it taken (each costs up to two maps)
 FILL_CHECKS = 3
 #: at which learner speed the probe of a never-driven yaw-rate limit is sent: ``at-command`` (the default, the
 #: paper's: at the speed the command maps to, the learner's slowest while nothing is learned) or ``at-top-speed``
@@ -516,11 +516,12 @@ class GuidedPolicy(_PolicyBase):
         teacher's way). (cell, learner command), or None.
 
         The candidates are ranked on the linear map of the same triangles (every slowed speed, and the yaw rate
-        where that speed's row of cells has a hole: no SC map is built for a guess), and the best of them is then
-        mapped with the mapper itself; if the mapper puts it in a configured cell the next is tried, at most
-        ``FILL_CHECKS``. One that found nothing makes the next wait as many commands as it tried speeds and yaw
-        rates (``_search_after``). (Spreading a search over several commands, each speed tried at its own tick's
-        teacher command, was tried: the grid's SCM error grew from 0.106x to 0.15x the baseline's, seeds 10-19.)"""
+        where that speed's row of cells has a hole: no SC map is built for a guess); the best ``FILL_CHECKS`` of
+        them are then mapped with the mapper itself, and the best of those in an unconfigured cell on it is taken
+        (ranked again with that cell). One that found nothing makes the next wait as many commands as it tried
+        speeds and yaw rates (``_search_after``). (Spreading a search over several commands, each speed tried at its
+        own tick's teacher command, was tried: the grid's SCM error grew from 0.106x to 0.15x the baseline's, seeds
+        10-19.)"""
         store = self.store
         tb, lb = store.teacher_bounds, store.learner_bounds
         gv = store.grid[0]
