@@ -11,6 +11,7 @@ access control denies, with exit status 3 (:class:`~bridge.core.errors.Denied`).
 from __future__ import annotations
 
 import argparse
+import faulthandler
 import importlib
 import inspect
 import logging
@@ -232,6 +233,12 @@ def _terminate_like_ctrl_c() -> None:
 
     for sig in (signal.SIGTERM, signal.SIGHUP):
         signal.signal(sig, handler)
+    # `kill -USR2 PID`: every thread's Python stack on stderr, the process going on (where a command that does not
+    # stop is waiting: docs/OPERATING.md)
+    try:
+        faulthandler.register(signal.SIGUSR2, file=sys.__stderr__, all_threads=True)
+    except (AttributeError, ValueError, OSError):  # a stderr without a file descriptor: nowhere to print them
+        pass
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -9,9 +9,11 @@ lab's TLS + access control `estop --all` did nothing and the operator's tools sa
 from __future__ import annotations
 
 import shutil
+import signal
 import subprocess
 import sys
 import tempfile
+import time
 from pathlib import Path
 
 import pytest
@@ -128,7 +130,13 @@ def test_the_operators_documented_commands_run_as_written_in_the_lab(tmp_path: P
             first = [watch.stdout.readline() for _ in range(2)]
             assert all(line.startswith(ROBOT) for line in first), first
             watch.send_signal(2)  # Ctrl-C
-            code = watch.wait(timeout=30)
+            try:
+                code = watch.wait(timeout=30)
+            except subprocess.TimeoutExpired:  # where it waits: every thread's stack (`kill -USR2`), then fail
+                watch.send_signal(signal.SIGUSR2)
+                time.sleep(2.0)
+                errors.seek(0)
+                pytest.fail(f"status --watch did not stop within 30 s of Ctrl-C:\n{errors.read().decode()[-6000:]}")
             errors.seek(0)
             assert code == 0, errors.read()[-3000:]
         finally:
