@@ -233,6 +233,9 @@ def _terminate_like_ctrl_c() -> None:
 
     for sig in (signal.SIGTERM, signal.SIGHUP):
         signal.signal(sig, handler)
+    # Ctrl-C raises KeyboardInterrupt also where the parent ignored SIGINT (a shell script's background job, some CI
+    # runners' steps): Python keeps an inherited SIG_IGN, and a `status --watch` started so ran on after its Ctrl-C
+    signal.signal(signal.SIGINT, signal.default_int_handler)
     # `kill -USR2 PID`: every thread's Python stack on stderr, the process going on (where a command that does not
     # stop is waiting: docs/OPERATING.md)
     try:

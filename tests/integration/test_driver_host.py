@@ -212,14 +212,16 @@ def test_a_flood_of_commands_reaches_the_link_at_most_at_max_send_hz(driver_host
     pub = session.declare_publisher(Keys(robot).cmd)
     t0 = time.monotonic()
     seq = 0
-    while time.monotonic() - t0 < 1.5:  # ~600 commands a second, every one new and valid
+    while time.monotonic() - t0 < 1.5:  # 300-1000 commands a second (the machine's load), every one new and valid
         seq += 1
         pub.put(M.encode(_cmd(seq, 0.2, 0.05 * (seq % 3))))
-        time.sleep(0.0015)
+        time.sleep(0.001)
     time.sleep(0.2)
     with lis.lock:
         during = np.sort([a.stamp for a in lis.applied if t0 <= a.stamp <= t0 + 1.5])
-    assert seq > 500
+    # a flood: at least three times what the link may get (100 a second); this process made 478 in 1.5 s with a
+    # 1.5 ms sleep in a fresh clone's suite beside two busy loops
+    assert seq >= 3 * 100 * 1.5
     # every one-second window of the flood (a fixed one came up empty once beside two busy loops: the host had
     # published nothing in it), and at least some sends to judge
     assert during.size >= 10, f"{during.size} sends during a 1.5 s flood"

@@ -21,7 +21,7 @@ def _own_signals_and_env(monkeypatch: pytest.MonkeyPatch):
     """main() installs SIGTERM/SIGHUP handlers and sets one-BLAS-thread defaults: both are undone after each test."""
     for var in cli.ONE_BLAS_THREAD:
         monkeypatch.setenv(var, "1")
-    saved = {s: signal.getsignal(s) for s in (signal.SIGTERM, signal.SIGHUP)}
+    saved = {s: signal.getsignal(s) for s in (signal.SIGTERM, signal.SIGHUP, signal.SIGINT)}
     yield
     for s, h in saved.items():
         signal.signal(s, h)
@@ -127,3 +127,13 @@ def test_main_gives_the_process_one_blas_thread_unless_told_otherwise(monkeypatc
     import os
 
     assert os.environ["OMP_NUM_THREADS"] == "1" and os.environ["OPENBLAS_NUM_THREADS"] == "4"
+
+
+def test_ctrl_c_raises_keyboardinterrupt_also_where_the_parent_ignored_sigint() -> None:
+    """A tool started where SIGINT is ignored (a shell script's background job, a CI runner's step: Python keeps an
+    inherited SIG_IGN) still stops on Ctrl-C: ``status --watch`` so started ran on after its Ctrl-C."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    cli._terminate_like_ctrl_c()
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+    with pytest.raises(KeyboardInterrupt):
+        signal.raise_signal(signal.SIGINT)
