@@ -220,6 +220,13 @@ class ScmMapper(_Triangulated):
         scored.sort(key=lambda e: -e[0])
         return [(q, key) for _, q, key in scored]
 
+    def _candidates_of(self, s: int) -> list[tuple[Region, tuple]]:
+        """:meth:`_candidates` of simplex s, computed once per triangulation."""
+        cands = self._by_simplex.get(s)
+        if cands is None:
+            cands = self._by_simplex[s] = self._candidates(s)
+        return cands
+
     def _transfer(self, quad: Region, key: tuple) -> QuadTransfer | None:
         if key in self._quads:
             self._quads.move_to_end(key)
@@ -239,10 +246,7 @@ class ScmMapper(_Triangulated):
         s = self._simplex(t)
         if s < 0:
             return None
-        cands = self._by_simplex.get(s)
-        if cands is None:
-            cands = self._by_simplex[s] = self._candidates(s)
-        for quad, key in cands:
+        for quad, key in self._candidates_of(s):
             qt = self._transfer(quad, key)
             if qt is None:
                 continue
@@ -265,8 +269,7 @@ class ScmMapper(_Triangulated):
         for i, s in enumerate(simplex.tolist()):
             if s >= 0:
                 if s not in cands:
-                    c = self._by_simplex.get(s)
-                    cands[s] = c if c is not None else self._by_simplex.setdefault(s, self._candidates(s))
+                    cands[s] = self._candidates_of(s)
                 if cands[s]:
                     trying[i] = 0
         while trying:

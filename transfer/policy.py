@@ -543,9 +543,7 @@ class GuidedPolicy(_PolicyBase):
             for j, i in enumerate(open_):
                 if methods[j] == "direct":  # no learned region for that yaw rate (as _at_speed)
                     continue
-                l_n = lb.normalise(u_w[j])
-                l_n[0] = v_n[i]
-                cell = store.cell_of(lb.clip(lb.denormalise(l_n)))
+                cell = store.cell_of(self._at_learner_speed(u_w[j], v_n[i]))
                 if store.is_configured(cell):
                     continue
                 ts_n = tb.normalise(slowed[i])
@@ -571,12 +569,17 @@ class GuidedPolicy(_PolicyBase):
         at the teacher's own speed ``v_T``, where the mission drives and the map is learned: the teacher's curvature
         at ``s * v_T``, if the learner's yaw-rate response does not depend on its speed. None when the map has no
         learned region for that yaw rate."""
-        lb, tb = self.store.learner_bounds, self.store.teacher_bounds
+        tb = self.store.teacher_bounds
         t_w = np.array([t[0], t[1] * s])
         u_w, method, _, _ = self._unperturbed(t_w, tb.normalise(t_w))
         if method == "direct":
             return None
-        l_n = lb.normalise(u_w)
+        return self._at_learner_speed(u_w, v_n)
+
+    def _at_learner_speed(self, u: NDArray[np.float64], v_n: float) -> NDArray[np.float64]:
+        """Learner command ``u`` with its speed replaced by normalised learner speed ``v_n``, clipped to the box."""
+        lb = self.store.learner_bounds
+        l_n = lb.normalise(u)
         l_n[0] = v_n
         return lb.clip(lb.denormalise(l_n))
 
