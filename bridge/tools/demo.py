@@ -121,6 +121,14 @@ def driving_time(applied: list[tuple[float, str, int | None]], t0: float, t1: fl
 LINE_METHODS = ("scm", "barycentric", "direct", "perturb", "stop")
 
 
+def touched_an_obstacle(world, points) -> bool:
+    """Whether a disc of the paper's vehicle radius at any of the ``points`` (n x 2, m) touched an obstacle of the
+    mission ``world`` (the demo's summary, as ``sim mpc`` judges its runs)."""
+    from sim_learner.experiments import VEHICLE_RADIUS
+
+    return bool(any(world.collides(p, VEHICLE_RADIUS) for p in points))
+
+
 def method_counts(counters: dict[str, int]) -> str:
     """``scm=12 barycentric=230 direct=4 perturb=0 stop=9``: every command the station sent, by method, so the counts
     add up to what it sent."""
@@ -213,9 +221,7 @@ class Monitor:
         run = [s for s in states if t0 <= s[0] <= t1] or states
         traj = np.array([s[1:] for s in run])
         devs = np.array([world.path.project(p[:2])[1] for p in traj])
-        from sim_learner.experiments import VEHICLE_RADIUS
-
-        collided = bool(any(world.collides(p[:2], VEHICLE_RADIUS) for p in traj))
+        collided = touched_an_obstacle(world, traj[:, :2])
         c = st.counters
         seqs = [a[2] for a in applied if a[2] is not None and t0 <= a[0] <= t1]
         if seqs and cmds:  # the commands of the driving time (not the stops parked at the goal)
@@ -358,7 +364,6 @@ def sitl_hil(args: argparse.Namespace, robot: str = "sitl") -> int:
         teacher_reference,
     )
     from bridge.tools.procs import Children
-    from sim_learner.experiments import VEHICLE_RADIUS
     from sim_learner.sitl import Sitl, SitlError
 
     if args.link not in (None, "mavlink"):
@@ -460,7 +465,7 @@ def sitl_hil(args: argparse.Namespace, robot: str = "sitl") -> int:
         dev = np.array([world.path.project(q)[1] for q in poses])
         devs_at = list(zip([s[0] for s in states if t0 <= s[0] <= t0 + run["time_s"] + 1e-6], dev.tolist()))
         dev_last_half = float(dev[prog >= 0.5].mean()) if (prog >= 0.5).any() else None
-        collided = bool(any(world.collides(q, VEHICLE_RADIUS) for q in poses))
+        collided = touched_an_obstacle(world, poses)
     with mon.lock:
         st = mon.status.get("station")
     relearned = st.counters.get("cells_relearned") if st is not None else None

@@ -10,7 +10,7 @@ import pytest
 
 from bridge.core import wire as M
 from bridge.core.config import mission_from_spec
-from bridge.tools.demo import ECHO_GAP_S, LINE_METHODS, Monitor, driving_time, method_counts
+from bridge.tools.demo import ECHO_GAP_S, LINE_METHODS, Monitor, driving_time, method_counts, touched_an_obstacle
 from bridge.tools.report import FeedSession
 
 LINE = mission_from_spec(M.MissionSpec(name="line", path=[[0.0, 0.0], [1.0, 0.0]], goal_tolerance=0.05))
@@ -169,3 +169,13 @@ def test_transfer_and_limits_set_one_robots_station_only(argv: list[str]) -> Non
     arguments(ap)
     with pytest.raises(UsageError, match="one robot"):
         run(ap.parse_args(argv))
+
+
+def test_a_run_touched_an_obstacle_when_the_vehicles_disc_at_any_pose_reaches_one() -> None:
+    from sim_learner.experiments import VEHICLE_RADIUS
+
+    world = mission_from_spec(M.MissionSpec(name="o", path=[[0.0, 0.0], [4.0, 0.0]], obstacles=[[2.0, 1.0, 0.3]]))
+    clear = [[0.0, 0.0], [2.0, 1.0 - 0.3 - VEHICLE_RADIUS - 0.01], [4.0, 0.0]]
+    assert not touched_an_obstacle(world, clear)
+    assert touched_an_obstacle(world, [*clear, [2.0, 1.0 - 0.3 - VEHICLE_RADIUS + 0.01]])
+    assert not touched_an_obstacle(world, [])
