@@ -85,12 +85,13 @@ def mpc_case(quick: bool) -> MpcCase:
 
 
 @functools.lru_cache(maxsize=4)
-def _mpc_teacher(solver: str = "ipopt") -> MpcTeacher:
-    """One MPC per process and solver (built once; ``reset`` before every run clears its warm start); the
-    real-time iteration runs compiled code where the machine can build it (:mod:`bridge.teacher.codegen`)."""
+def _mpc_teacher(solver: str = "ipopt", curve_margin: float = 0.0) -> MpcTeacher:
+    """One MPC per process, solver and ``curve_margin`` (built once; ``reset`` before every run clears its warm
+    start); the real-time iteration runs compiled code where the machine can build it
+    (:mod:`bridge.teacher.codegen`)."""
     from bridge.teacher.codegen import build_mpc
 
-    return build_mpc(MpcConfig(N=20, dt=DT, solver=solver), compile=True)
+    return build_mpc(MpcConfig(N=20, dt=DT, solver=solver, curve_margin=curve_margin), compile=True)
 
 
 def closed_loop_mpc(name: str, world: World, mpc: MpcTeacher, bounds_fn: Callable[[], Bounds], apply_fn: ApplyFn,

@@ -166,6 +166,10 @@ class TeacherSection(Cfg):
         "nonlinear program each tick (the reference, about ten times slower)")] = "rti-qpoases"
     obstacle_slots: Annotated[int, meta("mpc: obstacles the MPC considers at once, the nearest within its reach",
                                         ge=1, le=64)] = 12
+    curve_margin: Annotated[float, meta(
+        "mpc: slow down for a bend the learned yaw-rate limit cannot turn at the top speed, using this share of "
+        "the limit (0.9 leaves a tenth for the correction; a learner that turns less than it did, e.g. a dragging "
+        "wheel); 0 keeps the paper's MPC at its top speed everywhere", ge=0.0, le=1.0)] = 0.0
 
 
 class CalibrationSection(Cfg):

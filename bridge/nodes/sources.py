@@ -246,7 +246,7 @@ def make_source(cfg: StationConfig, period: float, calibration: CalibrationPlan 
 
         # compiled in the background by the Zenoh side (station.KernelBuild), never here: a core is built at once
         return MpcSource(build_mpc(MpcConfig(N=cfg.station.horizon, dt=period, max_obstacles=t.obstacle_slots,
-                                             solver=t.mpc_solver)))
+                                             solver=t.mpc_solver, curve_margin=t.curve_margin)))
     if t.kind == "primitives":
         lib = PrimitiveLibrary(cfg.teacher_bounds.bounds(), t.primitives_grid, duration=t.primitive_s, dt=period)
         return PrimitivesSource(PrimitiveFollower(PrimitivePlanner(lib, k_d=1.0, k_theta=2.0, horizon=2)))

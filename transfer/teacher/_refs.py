@@ -58,3 +58,24 @@ def references(points: np.ndarray, s_cum: np.ndarray, seg_len: np.ndarray, headi
         prev_raw = h
         out[k, 2] = prev
     return out
+
+
+@njit(cache=True, error_model="numpy")
+def curve_speed(points: np.ndarray, s_cum: np.ndarray, seg_len: np.ndarray, curvature: np.ndarray, x: float,
+                y: float, v_max: float, v_min: float, w_lo: float, w_hi: float, margin: float,
+                horizon: float) -> float:
+    """The top speed at which every bend of the path within ``horizon`` s (at ``v_max``) of the point closest to
+    (x, y) can be turned at ``margin`` of the yaw-rate bound on its side (``w_hi`` for a left bend, ``w_lo`` for a
+    right one): ``v = margin * |w| / |curvature|``, never above ``v_max`` nor below ``v_min``."""
+    s0, _ = closest(points, s_cum, seg_len, x, y)
+    s1 = s0 + v_max * horizon
+    v = v_max
+    i = max(np.searchsorted(s_cum, s0, side="left"), 0)
+    while i < s_cum.shape[0] and s_cum[i] <= s1:
+        k = curvature[i]
+        if k > 0.0:
+            v = min(v, margin * max(w_hi, 0.0) / k)
+        elif k < 0.0:
+            v = min(v, margin * min(w_lo, 0.0) / k)
+        i += 1
+    return max(v, v_min)

@@ -22,6 +22,13 @@ class Polyline:
         self.s = np.concatenate([[0.0], np.cumsum(self.seg_len)])
         self.length = float(self.s[-1])
         self.heading = np.arctan2(seg[:, 1], seg[:, 0])
+        #: signed curvature at each vertex, 1/m (left turns positive): the heading's change there over the mean of
+        #: the two segments' lengths; 0 at the ends. A corner of a coarse polyline is a turn over its segments.
+        self.curvature = np.zeros(p.shape[0])
+        if p.shape[0] > 2:
+            turn = np.diff(self.heading)
+            turn = (turn + np.pi) % (2.0 * np.pi) - np.pi
+            self.curvature[1:-1] = turn / np.maximum(0.5 * (self.seg_len[:-1] + self.seg_len[1:]), 1e-9)
         self._seg = seg
         self._len2 = np.maximum(self.seg_len**2, 1e-18)
 

@@ -11,7 +11,7 @@ import math
 import numpy as np
 import pytest
 
-from transfer.teacher._refs import closest, references
+from transfer.teacher._refs import closest, curve_speed, references
 from transfer.teacher.path import Polyline
 
 
@@ -54,3 +54,37 @@ def test_reference_headings_are_unwrapped_next_to_the_vehicles() -> None:
     r = references(circle.points, circle.s, circle.seg_len, circle.heading, 1.0, 0.0, math.pi / 2, 0.1, 60)
     assert np.all(np.abs(np.diff(r[:, 2])) < math.pi)
     assert r[-1, 2] - r[0, 2] > math.pi  # it kept counting up instead of wrapping back
+
+
+def _arc(radius: float, sweep: float, n: int = 200, left: bool = True) -> Polyline:
+    """A straight 2 m lead-in, then an arc of ``radius`` turning ``sweep`` rad to the left (or right)."""
+    a = np.linspace(0.0, sweep, n)
+    sign = 1.0 if left else -1.0
+    arc = np.stack([2.0 + radius * np.sin(a), sign * radius * (1.0 - np.cos(a))], axis=1)
+    return Polyline(np.vstack([[[0.0, 0.0]], arc]))
+
+
+def test_the_curvature_of_an_arc_is_one_over_its_radius_signed_by_its_side() -> None:
+    left, right = _arc(2.0, math.pi / 2), _arc(2.0, math.pi / 2, left=False)
+    np.testing.assert_allclose(left.curvature[2:-1], 0.5, rtol=1e-3)
+    np.testing.assert_allclose(right.curvature[2:-1], -0.5, rtol=1e-3)
+    assert left.curvature[0] == 0.0 and left.curvature[-1] == 0.0
+    # a coarse polyline's corner: the turn over the mean of its two segments, wrapped (a left turn of pi/2)
+    sq = Polyline(np.array([[0.0, 0.0], [2.0, 0.0], [2.0, 2.0]]))
+    assert sq.curvature[1] == pytest.approx((math.pi / 2) / 2.0)
+
+
+def test_the_speed_for_a_bend_uses_the_yaw_rate_bound_on_its_side() -> None:
+    p = _arc(2.0, math.pi / 2)  # curvature 0.5 to the left from s = 2 m
+    args = (p.points, p.s, p.seg_len, p.curvature)
+    # far from the bend (the horizon reaches 1 m of path at 0.5 m/s over 2 s): the top speed
+    assert curve_speed(*args, 0.0, 0.0, 0.5, 0.05, -0.3, 0.2, 0.9, 2.0) == pytest.approx(0.5)
+    # in reach of it: 0.9 of the left bound over the curvature, whatever the right bound
+    assert curve_speed(*args, 1.5, 0.0, 0.5, 0.05, -0.3, 0.2, 0.9, 2.0) == pytest.approx(0.9 * 0.2 / 0.5, rel=1e-3)
+    assert curve_speed(*args, 1.5, 0.0, 0.5, 0.05, -0.01, 0.2, 0.9, 2.0) == pytest.approx(0.36, rel=1e-3)
+    # a bend the bound turns at the top speed: no change; one it cannot turn at all: the floor
+    assert curve_speed(*args, 1.5, 0.0, 0.5, 0.05, -0.3, 0.4, 0.9, 2.0) == pytest.approx(0.5)
+    assert curve_speed(*args, 1.5, 0.0, 0.5, 0.05, -0.3, -0.1, 0.9, 2.0) == pytest.approx(0.05)
+    r = _arc(2.0, math.pi / 2, left=False)
+    assert curve_speed(r.points, r.s, r.seg_len, r.curvature, 1.5, 0.0, 0.5, 0.05, -0.1, 0.8, 0.9, 2.0) == \
+        pytest.approx(0.9 * 0.1 / 0.5, rel=1e-3)
