@@ -27,6 +27,17 @@ region are rebuilt), and ``relearned``, ``changes`` (per cell) and ``changed_at`
 for a re-learned cell, since its change), or, never re-learned, holds ``YOUNG_K`` k_min pairs: the residuals of a cell
 with few pairs carry its slope's error, a bias their differences do not show.
 
+*A shared change.* A cell is re-learned only once the robot drives in it again, so a change that moves every cell
+alike (a dragging wheel: a yaw-rate bias whatever the command) would be met cell by cell, each bend of the path
+driven on a stale map until its cells are re-learned. When a second cell re-learns within ``SHARED_WINDOW_K`` k_min
+raw pairs of another and their changes agree (within ``SHARED_AGREE`` of ``change_tol`` on each axis), every other
+configured cell that has not changed meanwhile moves its refined pair by the two changes' mean, provisionally
+(``prov``; ``shared`` counts these events). Its own pairs then decide: a cell whose learner did change as the others
+did alarms the change test and is re-learned from its own pairs; one whose learner did not (the change was not
+shared) has its shift revoked after k_min pairs whose residuals lie nearer no change than the shift. A provisional
+shift is neither a re-learning (``relearned``, ``changed_at`` are untouched) nor saved (``to_bytes`` writes the
+refined pairs without it).
+
 Assumed: the learner's response to a command is a function of the command, the same wherever the robot is and
 whatever it did before, changing seldom (a step or a ramp, then steady for at least tens of pairs per cell). Where it
 breaks: a response that depends on the learner's history (an acceleration limit that binds: ``sim drift --scenario
@@ -68,6 +79,10 @@ RECENT_PER_K = 2
 CELL_NOISE_PER_K = 4
 #: a cell with fewer pairs than this (per k_min) and no noise estimate of its own is not tested yet
 YOUNG_K = 4
+#: a shared change: two cells re-learned within this many raw pairs (per k_min) of each other whose changes agree
+SHARED_WINDOW_K = 40
+#: ... within this share of ``change_tol`` on each axis
+SHARED_AGREE = 0.5
 
 
 @dataclass(frozen=True)
@@ -205,6 +220,13 @@ class PairStore:
         self.recent_T = np.zeros((gv, gw, r, 2))  # per cell: its last raw pairs (a ring), normalised
         self.recent_L = np.zeros((gv, gw, r, 2))
         self.recent_n = np.zeros((gv, gw), dtype=np.int64)  # raw pairs ever put in the ring (the next slot: mod r)
+        # a shared change (module docstring): the changes of the last re-learnings (cell, change, ``added`` then), and
+        # per cell the provisional shift of its refined pair (normalised teacher units; 0: none) and the raw pairs
+        # it took since. Not persisted: a saved store holds its refined pairs without their provisional shifts.
+        self._changes_seen: list[tuple[tuple[int, int], NDArray[np.float64], int]] = []
+        self.prov = np.zeros((gv, gw, 2))
+        self.prov_n = np.zeros((gv, gw), dtype=np.int64)
+        self.shared = 0  # shared changes applied
 
     # ------------------------------------------------------------------------------------------ clustering
     def cell_of(self, u_L: ArrayLike) -> tuple[int, int]:
@@ -231,6 +253,8 @@ class PairStore:
             if self.pub_version[cell] > 0 and self._changed(cell, t_n, l_n):
                 self._relearn(cell, t_n, l_n, stamp)
                 refined_changed = True
+            elif self.prov[cell].any():
+                refined_changed = self._check_provision(cell)
             self._remember(cell, t_n, l_n)
         self.count[cell] += 1
         self.sum_T[cell] += t_n
@@ -239,6 +263,7 @@ class PairStore:
         self.sum_TL[cell] += t_n * l_n
         if self.count[cell] >= self.k_min:
             mT, mL = self.cluster_mean(cell)
+            mT = mT + self.prov[cell]  # a provisional shift (a shared change) stays until the cell's pairs decide
             moved = max(np.max(np.abs(mT - self.pub_T[cell])), np.max(np.abs(mL - self.pub_L[cell])))
             if self.pub_version[cell] == 0 or moved > self.move_tol:
                 self.pub_T[cell], self.pub_L[cell] = mT, mL
@@ -350,17 +375,69 @@ class PairStore:
         self.recent_n[cell] = 0
         for a, b in zip(T[post], L[post]):
             self._remember(cell, a, b)
-        self.pub_T[cell] = self.pub_T[cell] + shift
+        self.pub_T[cell] = self.pub_T[cell] - self.prov[cell] + shift
+        self.prov[cell] = 0.0
         self.pub_version[cell] += 1
         self.revision += 1
         self._arrays = None
         self.limits.refined_changed()
+        self._share(cell, shift)
         self.resid[cell] = 0.0
         self.last_resid[cell] = np.nan
         self.cell_noise_n[cell] = 0
         self.relearned += 1
         self.changes[cell] += 1
         self.changed_at[cell] = np.nan if stamp is None else float(stamp)
+
+    def _share(self, cell: tuple[int, int], change: NDArray[np.float64]) -> None:
+        """A shared change (module docstring): when another cell re-learned within ``SHARED_WINDOW_K`` k_min raw pairs
+        with a change that agrees with this one (within ``SHARED_AGREE`` of ``change_tol`` on each axis), every other
+        configured cell that has not changed in that window moves its refined pair by the agreeing changes' mean, for
+        now: its own pairs then confirm it (the change test re-learns the cell) or revoke it
+        (:meth:`_check_provision`)."""
+        window = SHARED_WINDOW_K * self.k_min
+        self._changes_seen = [c for c in self._changes_seen if self.added - c[2] <= window and c[0] != cell]
+        agree = [c[1] for c in self._changes_seen
+                 if np.all(np.abs(c[1] - change) <= SHARED_AGREE * self.change_tol)]
+        self._changes_seen.append((cell, np.array(change, dtype=float), self.added))
+        if not agree:
+            return
+        recent = {c[0] for c in self._changes_seen}
+        s = np.mean([change, *agree], axis=0)
+        moved = False
+        for c in zip(*np.nonzero(self.pub_version > 0)):
+            c = (int(c[0]), int(c[1]))
+            if c in recent or np.all(np.abs(self.prov[c] - s) <= SHARED_AGREE * self.change_tol):
+                continue
+            self.pub_T[c] += s - self.prov[c]
+            self.prov[c] = s
+            self.prov_n[c] = 0
+            self.pub_version[c] += 1
+            moved = True
+        if moved:
+            self.shared += 1
+            self.revision += 1
+            self._arrays = None
+            self.limits.refined_changed()
+
+    def _check_provision(self, cell: tuple[int, int]) -> bool:
+        """A provisionally shifted cell took a raw pair that did not alarm its change test: after k_min such pairs,
+        if the recency-weighted mean of its residuals lies nearer no change than the shift, its learner did not
+        change as the others did and the shift is revoked (its refined pair is its cluster's mean again). Returns
+        whether the refined pair moved."""
+        self.prov_n[cell] += 1
+        if self.prov_n[cell] < self.k_min:
+            return False
+        e, p = self.resid[cell], self.prov[cell]
+        if np.linalg.norm(e - p) <= np.linalg.norm(e):
+            return False
+        self.pub_T[cell] -= p
+        self.prov[cell] = 0.0
+        self.pub_version[cell] += 1
+        self.revision += 1
+        self._arrays = None
+        self.limits.refined_changed()
+        return True
 
     def changed_cells(self) -> list[CellChange]:
         """The cells re-learned since the store began (this run or an earlier one it was loaded from), the most
@@ -433,7 +510,7 @@ class PairStore:
             count=self.count.ravel().tolist(),
             sum_T=self.sum_T.ravel().tolist(),
             sum_L=self.sum_L.ravel().tolist(),
-            pub_T=self.pub_T.ravel().tolist(),
+            pub_T=(self.pub_T - self.prov).ravel().tolist(),
             pub_L=self.pub_L.ravel().tolist(),
             pub_version=self.pub_version.ravel().tolist(),
             revision=self.revision,
