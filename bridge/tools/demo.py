@@ -47,6 +47,11 @@ def transfer_table(transfer: str, limits: str | None) -> str:
             f'limits = "{limits or default_limits}"\n')
 
 
+def teacher_table(args: argparse.Namespace) -> str:
+    """The station's ``[teacher]`` lines for ``--curve-margin`` (none for 0: the paper's MPC, the default)."""
+    return f"\n[teacher]\ncurve_margin = {args.curve_margin!r}\n" if args.curve_margin else ""
+
+
 def inprocess(args: argparse.Namespace) -> int:
 
     from sim_learner.dynamics import MPC_TEACHER_V, MPC_TEACHER_W, mpc_learner
@@ -300,7 +305,7 @@ def hil(args: argparse.Namespace, robot: str) -> int:
     # --transfer off: the paper's baseline; --drift: the learner changes, the station re-learns the cells that no
     # longer hold
     (out / "station.toml").write_text(transfer_table(args.transfer, args.limits)
-                                      + ("adapt = true\n" if args.drift else ""))
+                                      + ("adapt = true\n" if args.drift else "") + teacher_table(args))
     station_cfg = ["--config", str(out / "station.toml")]
     mon = None
     with ExitStack() as stack:
@@ -410,7 +415,8 @@ def sitl_hil(args: argparse.Namespace, robot: str = "sitl") -> int:
             f"w = [{w_range[0]!r}, {w_range[1]!r}]\n\n[station]\npair_settle_s = {settle!r}\n\n"
             + transfer_table(args.transfer, args.limits)
             + ("adapt = true\n" if args.adapt else "")
-            + (f'turn_probe = "{args.turn_probe}"\n' if args.turn_probe != "at-command" else ""))
+            + (f'turn_probe = "{args.turn_probe}"\n' if args.turn_probe != "at-command" else "")
+            + teacher_table(args))
         (out / "driver.toml").write_text(
             f'robot = "{robot}"\n\n[driver.hard_limits]\nv = [{-v_range[1]!r}, {v_range[1]!r}]\n'
             f"w = [{w_range[0]!r}, {w_range[1]!r}]\n\n[link.mavlink]\nurl = \"{sitl.driver_url}\"\nrate_hz = 20\n")
@@ -503,7 +509,7 @@ def sitl_hil(args: argparse.Namespace, robot: str = "sitl") -> int:
         "collisions": {"teacher": teacher["collided"], "scm": collided},
         "method_counts": run["methods"], "refined_pairs": run["refined_pairs"], "raw_pairs": run["raw_pairs"],
         "pair_settle_s": settle, "learned_limits": learned_limits(store), "adapt": bool(args.adapt),
-        "turn_probe": args.turn_probe,
+        "curve_margin": args.curve_margin, "turn_probe": args.turn_probe,
         "cells_relearned": relearned, "param_changes": changed,
         "max_dev_m": run["max_dev_m"], "goal_dist_m": run["goal_dist_m"], "driving_s": run["driving_s"],
         "learner_bounds": [list(v_range), list(w_range)], "vehicle_params": params,
@@ -713,6 +719,10 @@ def arguments(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--turn-probe", choices=("at-command", "at-top-speed"), default="at-command",
                     help="(--sitl) the station's [transfer] turn_probe: probe the yaw-rate limits at the learner's top "
                          "speed (a learner that cannot turn in place, --sitl-model rover) instead of at the command's")
+    ap.add_argument("--curve-margin", type=float, default=0.0, metavar="SHARE",
+                    help="(one robot) the station's [teacher] curve_margin: the MPC slows for a bend the learned "
+                         "yaw-rate limit cannot turn at its top speed, using this share of the limit (e.g. 0.9 with "
+                         "--drift wheel; default 0: the paper's MPC)")
     ap.add_argument("--inprocess", action="store_true", help="the in-process SC transfer example instead")
     ap.add_argument("--seed", type=int, default=0, help="(--inprocess) random generator seed")
     ap.add_argument("--commands", type=int, default=8, help="(--inprocess) teacher commands to show")
@@ -733,6 +743,10 @@ def run(args: argparse.Namespace) -> int:
             Drift.parse(args.drift)
         except ValueError as exc:
             raise UsageError(str(exc)) from None
+    if not 0.0 <= args.curve_margin <= 1.0:
+        raise UsageError(f"--curve-margin must be in [0, 1], got {args.curve_margin}")
+    if args.curve_margin and (len(robots) != 1 or args.count or args.inprocess):
+        raise UsageError("--curve-margin sets one robot's station: not with --robots, --count or --inprocess")
     if (args.transfer != "on" or args.limits is not None) and (len(robots) != 1 or args.count or args.inprocess):
         raise UsageError("--transfer and --limits set one robot's station: not with --robots, --count or --inprocess")
     if args.inprocess:

@@ -171,6 +171,25 @@ def test_transfer_and_limits_set_one_robots_station_only(argv: list[str]) -> Non
         run(ap.parse_args(argv))
 
 
+def test_the_curve_margin_is_the_stations_teacher_table_and_sets_one_robots_station_only() -> None:
+    import argparse
+
+    from bridge.core.config import StationConfig, decode_toml
+    from bridge.core.errors import UsageError
+    from bridge.tools.demo import arguments, run, teacher_table, transfer_table
+
+    ap = argparse.ArgumentParser()
+    arguments(ap)
+    cfg = decode_toml(transfer_table("on", None) + "adapt = true\n" + teacher_table(ap.parse_args(
+        ["--curve-margin", "0.9"])), StationConfig)
+    assert cfg.teacher.curve_margin == 0.9 and cfg.transfer.adapt
+    assert teacher_table(ap.parse_args([])) == "" and StationConfig().teacher.curve_margin == 0.0
+    with pytest.raises(UsageError, match="one robot"):
+        run(ap.parse_args(["--curve-margin", "0.9", "--count", "2"]))
+    with pytest.raises(UsageError, match=r"\[0, 1\]"):
+        run(ap.parse_args(["--curve-margin", "1.5"]))
+
+
 def test_a_run_touched_an_obstacle_when_the_vehicles_disc_at_any_pose_reaches_one() -> None:
     from sim_learner.experiments import VEHICLE_RADIUS
 
