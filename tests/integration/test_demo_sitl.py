@@ -1,6 +1,8 @@
 """The parts of ``scmbridge demo --sitl`` that need no SITL: the learner's range read from the vehicle's parameters,
 and the mission placed where the vehicle stands (a file the station reads back); and one transfer run on SITL
-(marked ``sitl``): the weak, distorted rover of deploy/examples/sitl-weak.parm on the first bend of the S-path."""
+(marked ``sitl``): the weak, distorted rover of deploy/examples/sitl-weak.parm on the first bend of the S-path; and
+the paper's claims on the whole S-path with the rover of deploy/examples/sitl-weak-turn.parm, which cannot turn its
+bends at its own top speed: the teacher's reference, the transfer and the paper's baseline."""
 
 from __future__ import annotations
 
@@ -152,3 +154,45 @@ def test_a_transfer_run_on_sitl_reaches_the_goal_of_the_first_bend_without_colli
     # (with every pair it was 0.17-0.32: the probe read SITL's speed lag part-way up)
     assert run["pair_settle_s"] > 0 and 0.3 < run["learned_limits"]["v"][1] < 0.4, run
     assert done.returncode == 0, done.stderr[-1500:]
+
+
+def _demo(binary: Path, out: Path, *args: str) -> dict:
+    """One ``scmbridge demo --sitl`` run as a person makes it (the paper's S-path), its summary."""
+    t0 = time.monotonic()
+    done = subprocess.run([sys.executable, "-m", "bridge", "demo", "--link", "mavlink", "--sitl", str(binary),
+                           "--duration", "120", "--out", str(out), *args],
+                          capture_output=True, text=True, timeout=200, cwd=ROOT)  # 60-75 s each (quiet)
+    wall = time.monotonic() - t0
+    lines = [ln for ln in done.stdout.splitlines() if ln.startswith("summary: ")]
+    assert lines, f"no summary after {wall:.0f} s: {done.stdout[-1500:]}{done.stderr[-1500:]}"
+    return json.loads(lines[-1][len("summary: "):])
+
+
+@pytest.mark.sitl
+@pytest.mark.timeout(600)
+def test_a_rover_that_cannot_turn_the_s_path_at_its_top_speed_follows_it_through_the_transfer_and_not_without(
+        tmp_path) -> None:
+    """The paper's claims on SITL (docs/BENCHMARKS.md, "The transfer on SITL", where the runs are): the teacher's
+    reference (the stock rover given the weak rover's range), the transfer from no pairs, and the paper's baseline
+    (the teacher's commands as they are), one after the other, the teacher's MPC slowing for the bends it learns the
+    rover cannot turn at speed. Measured (3 runs): the transfer 0.77x the reference's last-half deviation (claim
+    1.5x) in 1.22-1.23x its time (claim 1.25x; asserted here with room for a loaded machine: SITL runs in real
+    time, and its first 10 s are the exploration from no pairs); the baseline 6.7-6.9x its deviation (claim: 2x, or
+    a collision, or the goal missed)."""
+    binary = _binary()
+    ex = ROOT / "deploy" / "examples"
+    ref = _demo(binary, tmp_path / "ref", "--sitl-params", str(ex / "sitl-teacher-weak-turn.parm"), "--transfer",
+                "off", "--limits", "learned", "--curve-margin", "0.9")
+    assert ref["reached_goal"] and ref["collisions"]["scm"] is False, ref
+    ref_json = str(tmp_path / "ref" / "summary.json")
+    weak = ("--sitl-params", str(ex / "sitl-weak-turn.parm"), "--teacher-ref", ref_json)
+    run = _demo(binary, tmp_path / "scm", *weak, "--curve-margin", "0.9")
+    assert run["teacher_time_s"] == ref["scm_time_s"] and run["curve_margin"] == 0.9, run
+    assert run["reached_goal"] and run["collisions"]["scm"] is False, run
+    assert 0.15 < run["learned_limits"]["w"][1] < 0.22, run  # what the rover turns: 0.17-0.18 rad/s
+    assert run["scm_dev_last_half_m"] <= 1.5 * run["teacher_dev_last_half_m"], run
+    assert run["scm_time_s"] <= 1.5 * run["teacher_time_s"], run
+    base = _demo(binary, tmp_path / "base", *weak, "--transfer", "off")
+    assert base["transfer"] == "off", base
+    assert (base["collisions"]["scm"] or not base["reached_goal"]
+            or base["scm_dev_last_half_m"] >= 2.0 * base["teacher_dev_last_half_m"]), base
