@@ -18,7 +18,7 @@ Two ways to solve the same problem (``MpcConfig.solver``, docs/ARCHITECTURE.md "
 
 References are sampled along the path from the point closest to the vehicle, spaced by the distance the teacher
 covers in one step at the top of its current speed bound, or slower where a bend within the horizon's reach is
-sharper than that speed and the yaw-rate bound on the bend's side can turn: a learner whose turn rate is bounded
+sharper than the yaw-rate bound on the bend's side can turn at that speed: a learner whose turn rate is bounded
 (learned limits narrower than the teacher's, a dragging wheel that takes a side's turn away) is asked to slow down
 for the bend, as a driver does, instead of falling behind references it cannot follow and cutting the bend wide
 (``MpcConfig.curve_margin``: the share of the yaw-rate bound the slower speed uses, the rest is left for the
