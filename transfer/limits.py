@@ -8,7 +8,10 @@ domain: the teacher equivalents of the learner's extreme commands. Two ways to l
   learner part lies on the learner's boundary marks the bound directly.
 - **Online adaptation**: start from the teacher's full range; a pair whose learner part is a new outlier (beyond
   every learner part seen so far on that axis and side) updates the bound on that side: on the learner's
-  boundary it *is* the bound (averaged over all boundary pairs of that side, to tame noise); inside, the bound is
+  boundary it *is* the bound (averaged over all boundary pairs of that side, to tame noise; with a ``memory`` of M
+  pairs, the store's change detection, over the last M or so: a running mean whose count stops at M is a
+  recency-weighted one, so a limit follows a learner that lost or gained reach by its boundary pairs alone, where the
+  paper's mean of every pair ever taken needs as many again to move halfway); inside, the bound is
   the proportional extrapolation of the paper's Eq. learn_capability, ``u_T,norm|max = u_T,norm / u_L,norm``
   (and its mirror ``1 - (1 - u_T,norm) / (1 - u_L,norm)`` for the lower side), until a boundary pair arrives.
   A bound is set only by pairs at its own edge: a pair whose teacher part is at (or beyond) the teacher's opposite
@@ -53,7 +56,11 @@ def calibration_commands(learner_bounds: Bounds, n: int | tuple[int, int] = 5) -
 class LearnerLimits:
     """Per-axis lower/upper bounds on the normalised teacher domain plus the boundary points for the hull."""
 
-    def __init__(self, teacher_bounds: Bounds, learner_bounds: Bounds, grid: tuple[int, int], boundary_tol: float):
+    def __init__(self, teacher_bounds: Bounds, learner_bounds: Bounds, grid: tuple[int, int], boundary_tol: float,
+                 memory: int = 0):
+        if memory < 0 or memory == 1:
+            raise ValueError(f"limits memory must be 0 (never forget) or at least 2 pairs, got {memory}")
+        self.memory = int(memory)  # boundary pairs a bound's mean weighs (module docstring); 0: every pair alike
         self.teacher_bounds = teacher_bounds
         self.learner_bounds = learner_bounds
         self.grid = grid
@@ -95,10 +102,14 @@ class LearnerLimits:
         bcnt_lo, bcnt_hi = self.bcnt_lo.tolist(), self.bcnt_hi.tolist()
         bsum_lo, bsum_hi = self.bsum_lo.tolist(), self.bsum_hi.tolist()
         tn, ln = np.asarray(t_n, dtype=float).tolist(), np.asarray(l_n, dtype=float).tolist()
+        mem = self.memory
         for a in range(2):
             t, l = tn[a], ln[a]
             if l >= 1.0 - tol:
                 on_boundary = True
+                if mem and bcnt_hi[a] >= mem:  # the running mean's count stops at the memory: recency-weighted
+                    bsum_hi[a] *= (mem - 1) / bcnt_hi[a]
+                    bcnt_hi[a] = mem - 1
                 bsum_hi[a] += t
                 bcnt_hi[a] += 1
                 hi[a] = bsum_hi[a] / bcnt_hi[a]
@@ -106,6 +117,9 @@ class LearnerLimits:
                 hi[a] = t / l  # Eq. learn_capability
             if l <= tol:
                 on_boundary = True
+                if mem and bcnt_lo[a] >= mem:
+                    bsum_lo[a] *= (mem - 1) / bcnt_lo[a]
+                    bcnt_lo[a] = mem - 1
                 bsum_lo[a] += t
                 bcnt_lo[a] += 1
                 lo[a] = bsum_lo[a] / bcnt_lo[a]

@@ -21,7 +21,9 @@ differences of consecutive residuals, which a change does not move: the store's 
 the larger of the two once the cell has k_min of its own) means the learner changed there. The cell then forgets its
 pairs from before the change (its cluster becomes its remembered recent pairs that agree with the change), its refined
 pair moves by the change's mean residual at once (so the map is right before the cell holds k_min again), the learned
-limits forget the cell's boundary pairs (a limit shrinks as well as grows), the revision changes (the SC maps of that
+limits forget the cell's boundary pairs (a limit shrinks as well as grows; with ``adapt`` a limit is also the
+recency-weighted mean of about ``LIMIT_MEMORY_K`` k_min boundary pairs, so it follows a learner that lost reach by
+its boundary pairs alone, before any cell is re-learned), the revision changes (the SC maps of that
 region are rebuilt), and ``relearned``, ``changes`` (per cell) and ``changed_at`` (the stamp given to
 :meth:`PairStore.add`) say so. A cell is tested only once it has its own noise estimate (k_min residual differences;
 for a re-learned cell, since its change), or, never re-learned, holds ``YOUNG_K`` k_min pairs: the residuals of a cell
@@ -79,6 +81,9 @@ RECENT_PER_K = 2
 CELL_NOISE_PER_K = 4
 #: a cell with fewer pairs than this (per k_min) and no noise estimate of its own is not tested yet
 YOUNG_K = 4
+#: with change detection a learned limit is the recency-weighted mean of about this many boundary pairs (per k_min) of
+#: its side (:class:`transfer.limits.LearnerLimits` ``memory``); without it, of every one, as in the paper
+LIMIT_MEMORY_K = 4
 #: a shared change: two cells re-learned within this many raw pairs (per k_min) of each other whose changes agree
 SHARED_WINDOW_K = 40
 #: ... within this share of ``change_tol`` on each axis
@@ -200,7 +205,8 @@ class PairStore:
         self.pub_L = np.zeros((gv, gw, 2))
         self.pub_version = np.zeros((gv, gw), dtype=np.int64)  # 0: no refined pair yet
         self.revision = 0
-        self.limits = LearnerLimits(teacher_bounds, learner_bounds, self.grid, boundary_tol)
+        self.limits = LearnerLimits(teacher_bounds, learner_bounds, self.grid, boundary_tol,
+                                    memory=LIMIT_MEMORY_K * int(k_min) if adapt else 0)
         self.limits.refined_points = lambda: self.refined_arrays()[2]
         self._arrays: tuple | None = None
         # change detection (module docstring, "A learner that changes")

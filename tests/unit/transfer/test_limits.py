@@ -152,3 +152,26 @@ def test_after_a_pair_at_the_teachers_top_a_straight_pair_sets_the_lower_limit_b
     store.add([0.3, TEACHER_SITL.w[1]], [0.3, TEACHER_SITL.w[1]])
     store.add([0.3, 0.0], [0.3, 0.0])  # straight ahead: the learner's middle gives the teacher's middle
     assert store.limits.box.w == pytest.approx(TEACHER_SITL.w)
+
+
+def test_with_a_memory_a_bound_follows_its_boundary_pairs_and_without_it_every_pair_weighs_alike() -> None:
+    """A learner that lost a third of its top speed: 100 boundary pairs at the old top, then 20 at the new one. With
+    a memory of 20 pairs (the store's with change detection, k_min 5) the bound has moved 1 - (19/20)^20 = 64 % of the
+    way to the new top; the paper's mean of every pair a sixth. Before the change both are the old top."""
+    old, new = 0.9, 0.6
+    cell = (10, 5)
+    for memory in (0, 20):
+        lim = LearnerLimits(TB, LB, (11, 11), 1e-6, memory=memory)
+        for k in range(100):
+            lim.update(np.array([old + 0.01 * (-1) ** k, 0.5]), np.array([1.0, 0.5]), cell)
+        assert lim.hi[0] == pytest.approx(old, abs=0.002)  # the alternating noise, weighed by recency or not
+        for _ in range(20):
+            lim.update(np.array([new, 0.5]), np.array([1.0, 0.5]), cell)
+        moved = (old - lim.hi[0]) / (old - new)
+        if memory:
+            assert moved == pytest.approx(1 - (19 / 20) ** 20, abs=0.01) and lim.bcnt_hi[0] == 20
+        else:
+            assert moved == pytest.approx(20 / 120, abs=0.01) and lim.bcnt_hi[0] == 120
+    with pytest.raises(ValueError, match="memory"):
+        LearnerLimits(TB, LB, (11, 11), 1e-6, memory=1)
+    assert PairStore(LB, TB, adapt=True).limits.memory == 20 and PairStore(LB, TB).limits.memory == 0
