@@ -274,9 +274,7 @@ class PairStore:
             if self.pub_version[cell] == 0 or moved > self.move_tol:
                 self.pub_T[cell], self.pub_L[cell] = mT, mL
                 self.pub_version[cell] += 1
-                self.revision += 1
-                self._arrays = None
-                self.limits.refined_changed()
+                self._refined_set_changed()
                 refined_changed = True
         limits_changed = self.limits.update(t_n, l_n, cell)
         return AddResult(cell, refined_changed, limits_changed)
@@ -384,9 +382,7 @@ class PairStore:
         self.pub_T[cell] = self.pub_T[cell] - self.prov[cell] + shift
         self.prov[cell] = 0.0
         self.pub_version[cell] += 1
-        self.revision += 1
-        self._arrays = None
-        self.limits.refined_changed()
+        self._refined_set_changed()
         self._share(cell, shift)
         self.resid[cell] = 0.0
         self.last_resid[cell] = np.nan
@@ -394,6 +390,13 @@ class PairStore:
         self.relearned += 1
         self.changes[cell] += 1
         self.changed_at[cell] = np.nan if stamp is None else float(stamp)
+
+    def _refined_set_changed(self) -> None:
+        """A refined pair appeared or moved: the set's revision changes (the SC maps of its regions are rebuilt), the
+        cached arrays and the hull are computed again when next asked."""
+        self.revision += 1
+        self._arrays = None
+        self.limits.refined_changed()
 
     def _share(self, cell: tuple[int, int], change: NDArray[np.float64]) -> None:
         """A shared change (module docstring): when another cell re-learned within ``SHARED_WINDOW_K`` k_min raw pairs
@@ -422,9 +425,7 @@ class PairStore:
             moved = True
         if moved:
             self.shared += 1
-            self.revision += 1
-            self._arrays = None
-            self.limits.refined_changed()
+            self._refined_set_changed()
 
     def _check_provision(self, cell: tuple[int, int]) -> bool:
         """A provisionally shifted cell took a raw pair that did not alarm its change test: after k_min such pairs,
@@ -440,9 +441,7 @@ class PairStore:
         self.pub_T[cell] -= p
         self.prov[cell] = 0.0
         self.pub_version[cell] += 1
-        self.revision += 1
-        self._arrays = None
-        self.limits.refined_changed()
+        self._refined_set_changed()
         return True
 
     def changed_cells(self) -> list[CellChange]:

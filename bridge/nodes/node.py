@@ -37,7 +37,6 @@ S = TypeVar("S", bound=Struct)
 QUEUE_CAPACITY = 1024
 
 
-
 def freeze_startup_heap() -> None:
     """Collect once, then move every object alive after a node's start-up (its stores, solvers, sessions, modules)
     out of the garbage collector's reach (``gc.freeze``), so that a full collection scans only what the running

@@ -152,12 +152,12 @@ class TickOutputs:
     command_bytes: bytes | None = None
 
 
-
 def robot_phase(robot: str) -> float:
     """A robot's phase in [0, 1), the same in every process and on every run (a hash of its name): where its
     periodic work (the hole searches' budget, the store's saves) falls, so that a fleet started together spreads
     it instead of doing it all in one tick of its process's loop."""
     return zlib.crc32(robot.encode()) / 2**32
+
 
 class StationCore:
     """One robot's station: its tick (pairing, the command source, the transfer step, mission control) and the

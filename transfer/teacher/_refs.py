@@ -70,7 +70,7 @@ def curve_speed(points: np.ndarray, s_cum: np.ndarray, seg_len: np.ndarray, curv
     s0, _ = closest(points, s_cum, seg_len, x, y)
     s1 = s0 + v_max * horizon
     v = v_max
-    i = max(np.searchsorted(s_cum, s0, side="left"), 0)
+    i = np.searchsorted(s_cum, s0, side="left")
     while i < s_cum.shape[0] and s_cum[i] <= s1:
         k = curvature[i]
         if k > 0.0:

@@ -438,8 +438,9 @@ class MpcTeacher:
         # the references' compiled loop loaded (or compiled, once per machine) now, not in the first tick
         _refs.references(np.array([[0.0, 0.0], [1.0, 0.0]]), np.array([0.0, 1.0]), np.array([1.0]), np.zeros(1),
                          0.0, 0.0, 0.0, 0.1, 2)
-        _refs.curve_speed(np.array([[0.0, 0.0], [1.0, 0.0]]), np.array([0.0, 1.0]), np.array([1.0]), np.zeros(2),
-                          0.0, 0.0, 1.0, 0.1, -1.0, 1.0, 0.9, 1.0)
+        if cfg.curve_margin > 0.0:  # likewise the slowing for bends, where it is used
+            _refs.curve_speed(np.array([[0.0, 0.0], [1.0, 0.0]]), np.array([0.0, 1.0]), np.array([1.0]), np.zeros(2),
+                              0.0, 0.0, 1.0, 0.1, -1.0, 1.0, 0.9, 1.0)
         self._prev_pred: NDArray[np.float64] | None = None
         self._prev_u: NDArray[np.float64] | None = None
         self.u_last = np.zeros(2)
