@@ -23,6 +23,17 @@ domain: the teacher equivalents of the learner's extreme commands. Two ways to l
   extrapolates a narrow range (the paper's rule), which the probe of the never-driven limit then measures
   (:mod:`transfer.policy`).
 
+**A learner that cannot turn in place** (an Ackermann rover, ``needs_speed``): its yaw-rate limit on each side is not a
+number but a curvature, ``omega <= kappa * v`` (at standstill it cannot turn at all; at the top speed its turn
+rate is the box's). Each side's ``kappa`` is the least-squares slope through the standstill point of that side's
+boundary pairs, in teacher units: ``kappa = sum(v omega) / sum(v^2)`` over the pairs whose learner part lies on the
+learner's yaw-rate edge (the full lock), weighted by ``v^2`` so the fast pairs, whose speed is measured best, count
+most (with the same ``memory`` as the box). The box's yaw-rate edge is then ``kappa`` times the box's top speed,
+and :attr:`LearnerLimits.curvature` gives the MPC the two slopes as linear constraints (``transfer.teacher.mpc``).
+Finding (issue 33, docs/BENCHMARKS.md): on SITL's Ackermann rover the mean of its boundary pairs, taken at whatever
+speed each came, allowed its top turn rate at its slowest speed, where it turns a tenth of it, and a turn probe sent
+at the slowest speed learned that it could not turn left at all (+0.001 rad/s).
+
 All arithmetic is on normalised coordinates: the teacher side by the teacher's bounds, the learner side by the
 learner's. Exposed as the axis-aligned ``box`` (what bounds the MPC inputs and filters primitives) and the convex
 ``hull`` of the boundary pairs' teacher parts and the refined pairs' (the paper's dashed envelope: every command the
@@ -32,6 +43,7 @@ learner's top speed had a sliver of a hull that left out 118 of its 121 refined 
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 
 import numpy as np
@@ -57,10 +69,13 @@ class LearnerLimits:
     """Per-axis lower/upper bounds on the normalised teacher domain plus the boundary points for the hull."""
 
     def __init__(self, teacher_bounds: Bounds, learner_bounds: Bounds, grid: tuple[int, int], boundary_tol: float,
-                 memory: int = 0):
+                 memory: int = 0, needs_speed: bool = False):
         if memory < 0 or memory == 1:
             raise ValueError(f"limits memory must be 0 (never forget) or at least 2 pairs, got {memory}")
         self.memory = int(memory)  # boundary pairs a bound's mean weighs (module docstring); 0: every pair alike
+        #: the learner cannot turn in place: its yaw-rate edges are curvatures (module docstring); the sums below are
+        #: kept either way, so a store can be read with either setting
+        self.needs_speed = bool(needs_speed)
         self.teacher_bounds = teacher_bounds
         self.learner_bounds = learner_bounds
         self.grid = grid
@@ -73,6 +88,11 @@ class LearnerLimits:
         self.bsum_hi = np.zeros(2)
         self.bcnt_lo = np.zeros(2, dtype=np.int64)
         self.bcnt_hi = np.zeros(2, dtype=np.int64)
+        # per yaw-rate side (0: lower, 1: upper): sums of v*omega and v^2 of its boundary pairs (teacher units)
+        self.turn_vw = np.zeros(2)
+        self.turn_vv = np.zeros(2)
+        self.turn_n = np.zeros(2, dtype=np.int64)
+        self.turn_prop = np.full(2, np.nan)  # each side's curvature extrapolated from its outliers (NaN: none yet)
         gv, gw = grid
         self.hull_sum = np.zeros((gv, gw, 2))  # boundary cells: running mean of teacher parts on the boundary
         self.hull_cnt = np.zeros((gv, gw), dtype=np.int64)
@@ -133,6 +153,12 @@ class LearnerLimits:
             if hi[a] - lo[a] < 1e-6:
                 mid = 0.5 * (hi[a] + lo[a])
                 lo[a], hi[a] = mid - 5e-7, mid + 5e-7
+        if ln[1] >= 1.0 - tol or ln[1] <= tol:  # on the learner's yaw-rate edge: a sample of that side's curvature
+            self._turn_sample(1 if ln[1] >= 1.0 - tol else 0, tn[0], tn[1])
+        elif ln[1] > old_ext[1][1] or ln[1] < old_ext[0][1]:  # a new outlier inside it: Eq. learn_capability's
+            self._turn_extrapolate(1 if ln[1] > old_ext[1][1] else 0, tn, ln)
+        if self.needs_speed:
+            self._turn_edges(lo, hi)
         changed = old != (lo, hi)
         if changed:  # written back only when they moved (most pairs move nothing)
             self.lo[:], self.hi[:] = lo, hi
@@ -148,6 +174,109 @@ class LearnerLimits:
             self.version += 1
             self._box_cache = None
         return changed
+
+    def set_needs_speed(self, on: bool) -> None:
+        """Read the limits as those of a learner that cannot turn in place (``on``), or one that can: the box's
+        yaw-rate edges follow at once (from the curvatures, or back to the mean of the boundary pairs)."""
+        on = bool(on)
+        if on == self.needs_speed:
+            return
+        self.needs_speed = on
+        lo, hi = self.lo.tolist(), self.hi.tolist()
+        if on:
+            self._turn_edges(lo, hi)
+        else:
+            if self.bcnt_hi[1]:
+                hi[1] = float(self.bsum_hi[1] / self.bcnt_hi[1])
+            if self.bcnt_lo[1]:
+                lo[1] = float(self.bsum_lo[1] / self.bcnt_lo[1])
+        self.lo[:], self.hi[:] = lo, hi
+        self.version += 1
+        self._box_cache = None
+        self._hull_cache = None
+
+    def turn_state(self) -> dict[str, list]:
+        """The curvatures' sums as the store saves them (``turn_prop`` None: none extrapolated on that side)."""
+        return {"turn_vw": self.turn_vw.tolist(), "turn_vv": self.turn_vv.tolist(), "turn_n": self.turn_n.tolist(),
+                "turn_prop": [None if math.isnan(k) else float(k) for k in self.turn_prop]}
+
+    def set_turn_state(self, vw: list, vv: list | None, n: list | None, prop: list | None) -> None:
+        """Load what :meth:`turn_state` gave; ValueError for anything a saved store cannot hold."""
+        if vv is None or n is None or prop is None or not len(vw) == len(vv) == len(n) == len(prop) == 2:
+            raise ValueError("pair-store limits fields turn_vw, turn_vv, turn_n, turn_prop need 2 values each")
+        a_vw, a_vv, a_n = np.array(vw, dtype=float), np.array(vv, dtype=float), np.array(n, dtype=np.int64)
+        a_prop = np.array([np.nan if k is None else k for k in prop], dtype=float)
+        if (not np.all(np.isfinite(a_vw)) or not np.all(np.isfinite(a_vv)) or np.any(np.isinf(a_prop))
+                or np.any(a_vv < 0) or np.any(a_n < 0)):
+            raise ValueError("pair-store blob holds non-finite or negative values (the limits' curvatures)")
+        self.turn_vw, self.turn_vv, self.turn_n, self.turn_prop = a_vw, a_vv, a_n, a_prop
+
+    def _turn_sample(self, side: int, tv_n: float, tw_n: float) -> None:
+        """One boundary pair of yaw-rate side ``side`` (0: lower, 1: upper), its normalised teacher part: into the
+        side's curvature sums (teacher units, recency-weighted with the box's ``memory``); a pair at standstill or
+        backwards says nothing of a curvature."""
+        tb = self.teacher_bounds
+        v = tb.v[0] + tv_n * (tb.v[1] - tb.v[0])
+        if v <= 0.0:
+            return
+        w = tb.w[0] + tw_n * (tb.w[1] - tb.w[0])
+        n, mem = int(self.turn_n[side]), self.memory
+        if mem and n >= mem:
+            keep = (mem - 1) / n
+            self.turn_vw[side] *= keep
+            self.turn_vv[side] *= keep
+            n = mem - 1
+        self.turn_vw[side] += v * w
+        self.turn_vv[side] += v * v
+        self.turn_n[side] = n + 1
+
+    def _turn_extrapolate(self, side: int, tn: list[float], ln: list[float]) -> None:
+        """A new outlier of yaw-rate side ``side`` inside the learner's edge (normalised parts ``tn``, ``ln``): while
+        the side has no full-lock pair, its curvature is the pair's own (omega / v) over the share of the side's
+        full lock it was commanded, the paper's proportional extrapolation (Eq. learn_capability) read as a
+        curvature; too slow a pair, or too small a share, says too little."""
+        if self.turn_n[side]:
+            return
+        tb, lb = self.teacher_bounds, self.learner_bounds
+        v = tb.v[0] + tn[0] * (tb.v[1] - tb.v[0])
+        w = tb.w[0] + tn[1] * (tb.w[1] - tb.w[0])
+        w_l = lb.w[0] + ln[1] * (lb.w[1] - lb.w[0])
+        lock = lb.w[1] if side else lb.w[0]
+        share = w_l / lock if lock else 0.0
+        if share < _MIN_PROPORTIONAL or tn[0] < _MIN_PROPORTIONAL or v <= 0.0 or (w > 0.0) != bool(side) or w == 0.0:
+            return
+        self.turn_prop[side] = (w / v) / share
+
+    def _kappa(self, side: int) -> float:
+        """Side ``side``'s learned curvature (rad/m; the lower side's <= 0 <= the upper's): from its full-lock
+        pairs, else extrapolated from its outliers (:meth:`_turn_extrapolate`), else +-inf. A vehicle can always
+        drive straight, so a slope past zero (a pair read part-way into a turn the other way) is taken as zero."""
+        if self.turn_n[side] == 0 or self.turn_vv[side] <= 0.0:
+            prop = float(self.turn_prop[side])
+            if math.isnan(prop):
+                return math.inf if side else -math.inf
+            return max(prop, 0.0) if side else min(prop, 0.0)
+        k = float(self.turn_vw[side] / self.turn_vv[side])
+        return max(k, 0.0) if side else min(k, 0.0)
+
+    def _turn_edges(self, lo: list[float], hi: list[float]) -> None:
+        """``needs_speed``: the box's yaw-rate edges (normalised, in place) are each side's curvature times the box's
+        top speed, on the sides that have boundary pairs."""
+        tb = self.teacher_bounds
+        v_top = max(tb.v[0] + hi[0] * (tb.v[1] - tb.v[0]), 0.0)
+        span_w = tb.w[1] - tb.w[0]
+        for side in (0, 1):
+            k = self._kappa(side)
+            if math.isinf(k):
+                continue
+            wn = min(max((k * v_top - tb.w[0]) / span_w, 0.0), 1.0)
+            if side:
+                hi[1] = wn
+            else:
+                lo[1] = wn
+        if hi[1] - lo[1] < 1e-6:
+            mid = 0.5 * (hi[1] + lo[1])
+            lo[1], hi[1] = mid - 5e-7, mid + 5e-7
 
     def forget(self, cell: tuple[int, int], old_T: NDArray[np.float64], old_L: NDArray[np.float64],
                new_T: NDArray[np.float64], new_L: NDArray[np.float64]) -> None:
@@ -168,6 +297,19 @@ class LearnerLimits:
                 self.bsum_lo[a], self.bcnt_lo[a] = float(new_T[on, a].sum()), int(on.sum())
                 if on.any():
                     self.lo[a] = self.bsum_lo[a] / self.bcnt_lo[a]
+        for side, was, on in ((1, np.any(old_L[:, 1] >= 1.0 - tol) or (edge and cell[1] == self.grid[1] - 1),
+                               new_L[:, 1] >= 1.0 - tol),
+                              (0, np.any(old_L[:, 1] <= tol) or (edge and cell[1] == 0), new_L[:, 1] <= tol)):
+            if was:  # the yaw-rate side's curvature likewise
+                self.turn_vw[side] = self.turn_vv[side] = 0.0
+                self.turn_n[side] = 0
+                self.turn_prop[side] = np.nan
+                for tv, tw in new_T[on].tolist():
+                    self._turn_sample(side, tv, tw)
+        if self.needs_speed:
+            lo, hi = self.lo.tolist(), self.hi.tolist()
+            self._turn_edges(lo, hi)
+            self.lo[:], self.hi[:] = lo, hi
         on = np.any((new_L >= 1.0 - tol) | (new_L <= tol), axis=1) if len(new_L) else np.zeros(0, dtype=bool)
         self.hull_sum[cell] = new_T[on].sum(axis=0) if on.any() else 0.0
         self.hull_cnt[cell] = int(on.sum())
@@ -185,6 +327,34 @@ class LearnerLimits:
             hi = tb.denormalise(self.hi)
             self._box_cache = Bounds((float(lo[0]), float(hi[0])), (float(lo[1]), float(hi[1])))
         return self._box_cache
+
+    @property
+    def curvature(self) -> tuple[float, float] | None:
+        """``needs_speed``: the learned curvatures (rad/m) of the lower and the upper yaw-rate side, ``(k_lo, k_hi)``
+        with ``k_lo * v <= omega <= k_hi * v`` (teacher units; +-inf for a side with no boundary pair yet);
+        None for a learner that turns in place."""
+        return self.learned_curvature() if self.needs_speed else None
+
+    def turn_edges_at(self, v_n: float) -> tuple[float, float]:
+        """The normalised yaw-rate edges ``(lo, hi)`` at normalised teacher speed ``v_n``: with ``needs_speed`` each
+        learned side's curvature times that speed (the line the MPC's inputs may reach), else the box's."""
+        lo, hi = float(self.lo[1]), float(self.hi[1])
+        if not self.needs_speed:
+            return lo, hi
+        tb = self.teacher_bounds
+        v = max(tb.v[0] + v_n * (tb.v[1] - tb.v[0]), 0.0)
+        span_w = tb.w[1] - tb.w[0]
+        k_lo, k_hi = self._kappa(0), self._kappa(1)
+        if not math.isinf(k_lo):
+            lo = max(lo, (k_lo * v - tb.w[0]) / span_w)
+        if not math.isinf(k_hi):
+            hi = min(hi, (k_hi * v - tb.w[0]) / span_w)
+        return lo, hi
+
+    def learned_curvature(self) -> tuple[float, float]:
+        """The two sides' curvatures learned from their boundary pairs (rad/m; +-inf: none yet), whatever
+        ``needs_speed`` says (for a learner that turns in place they bound nothing: ``pairs show`` prints them)."""
+        return self._kappa(0), self._kappa(1)
 
     @property
     def hull(self) -> NDArray[np.float64]:

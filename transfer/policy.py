@@ -227,17 +227,18 @@ class _PolicyBase:
         the two neighbouring refined pairs of the boundary row of cells on that side. Those pairs are (nearly)
         collinear in the teacher domain, so the 2-D regions along the limit are slivers whose maps are
         ill-conditioned; along the row the map is one-dimensional. None when ``t_n`` is not at such a limit or lies
-        beyond the row's pairs."""
+        beyond the row's pairs. A learner that cannot turn in place has its curvature at ``t_n``'s speed as its
+        yaw-rate limit (``turn_edges_at``): commands there go to the full lock, which keeps it learned."""
         arrays = self.store.refined_arrays()
         ids, _, T, L = arrays
         if ids.size < 2:
             return None
         lim, grid = self.store.limits, self.store.grid
-        for a in (0, 1):
-            b = 1 - a
+        for a, b in ((0, 1), (1, 0)):
+            lo, hi = (lim.lo[a], lim.hi[a]) if a == 0 or not lim.needs_speed else lim.turn_edges_at(float(t_n[0]))
             for at_limit, row, extreme in (
-                    (lim.bcnt_hi[a] > 0 and t_n[a] >= lim.hi[a] - ALONG_LIMIT_TOL, grid[a] - 1, 1.0),
-                    (lim.bcnt_lo[a] > 0 and t_n[a] <= lim.lo[a] + ALONG_LIMIT_TOL, 0, 0.0)):
+                    (lim.bcnt_hi[a] > 0 and t_n[a] >= hi - ALONG_LIMIT_TOL, grid[a] - 1, 1.0),
+                    (lim.bcnt_lo[a] > 0 and t_n[a] <= lo + ALONG_LIMIT_TOL, 0, 0.0)):
                 if not at_limit:
                     continue
                 on_row, xs = self._limit_row(arrays, a, row)

@@ -63,10 +63,11 @@ from transfer.domain import Bounds
 from transfer.limits import LearnerLimits
 
 SCHEMA = "scmbridge.pairstore"
-SCHEMA_VERSION = 3
+SCHEMA_VERSION = 4
 #: the versions this build reads (1: before change detection; its cells start with no recent pairs or slopes; 2:
-#: before the per-cell change count, which starts at 1 for a cell with a change time and 0 otherwise)
-READS_VERSIONS = (1, 2, 3)
+#: before the per-cell change count, which starts at 1 for a cell with a change time and 0 otherwise; 3: before the
+#: yaw-rate curvatures, which start with no boundary pair: a learner that cannot turn in place learns them again)
+READS_VERSIONS = (1, 2, 3, 4)
 _MAGIC = b"SCMPAIRS"
 #: a cell's learner has changed when the recency-weighted mean of its residuals is beyond this (normalised teacher
 #: units; 2 % of the teacher's range: 0.011 m/s and 0.031 rad/s for the paper's MPC teacher), or beyond
@@ -122,6 +123,11 @@ class _LimitsBlob(msgspec.Struct, forbid_unknown_fields=True):
     hull_sum: list[float]
     hull_cnt: list[int]
     version: int
+    # schema 4: the yaw-rate sides' curvatures (transfer.limits, a learner that cannot turn in place)
+    turn_vw: list[float] | None = None
+    turn_vv: list[float] | None = None
+    turn_n: list[int] | None = None
+    turn_prop: list[float | None] | None = None  # null: none extrapolated
 
 
 class _StoreBlob(msgspec.Struct, forbid_unknown_fields=True):
@@ -523,7 +529,7 @@ class PairStore:
                 lo=lim.lo.tolist(), hi=lim.hi.tolist(), ext_lo=lim.ext_lo.tolist(), ext_hi=lim.ext_hi.tolist(),
                 bsum_lo=lim.bsum_lo.tolist(), bsum_hi=lim.bsum_hi.tolist(), bcnt_lo=lim.bcnt_lo.tolist(),
                 bcnt_hi=lim.bcnt_hi.tolist(), hull_sum=lim.hull_sum.ravel().tolist(),
-                hull_cnt=lim.hull_cnt.ravel().tolist(), version=lim.version,
+                hull_cnt=lim.hull_cnt.ravel().tolist(), version=lim.version, **lim.turn_state(),
             ),
             sum_LL=self.sum_LL.ravel().tolist(),
             sum_TL=self.sum_TL.ravel().tolist(),
@@ -604,6 +610,8 @@ class PairStore:
         lim.hull_sum = np.array(b.limits.hull_sum, float).reshape(gv, gw, 2)
         lim.hull_cnt = np.array(b.limits.hull_cnt, dtype=np.int64).reshape(gv, gw)
         lim.version = b.limits.version
+        if b.limits.turn_vw is not None:  # schema 4 (else none learned yet)
+            lim.set_turn_state(b.limits.turn_vw, b.limits.turn_vv, b.limits.turn_n, b.limits.turn_prop)
         store.relearned = b.relearned
         store.added = int(store.count.sum()) if b.added is None else b.added
         if b.sum_LL is not None and b.sum_TL is not None:

@@ -74,6 +74,10 @@ class MpcConfig:
     #: the references slow down for a bend the yaw-rate bound cannot turn at the top speed (module docstring), leaving
     #: this share of the bound for the correction; 0 (the paper's MPC) keeps them at the top speed everywhere
     curve_margin: float = 0.0
+    #: a learner that cannot turn in place (an Ackermann rover): the inputs also obey ``k_lo v <= omega <= k_hi v``,
+    #: the learned curvatures given to :meth:`MpcTeacher.solve` (two linear rows a stage; without it the problem has
+    #: none of them, and costs what it did)
+    turn_needs_speed: bool = False
 
     def __post_init__(self) -> None:
         if self.solver not in SOLVERS:
@@ -83,6 +87,9 @@ class MpcConfig:
         if not 0.0 <= self.curve_margin <= 1.0:
             raise ValueError(f"MPC curve_margin must be in [0, 1] (0: references at the top speed), got {self}")
 
+
+#: a curvature this large (rad/m) bounds nothing a teacher's range allows: an unknown side (infinite) is given as it
+CURVATURE_FREE = 1e3
 
 #: the ways to solve the MPC (module docstring); "ipopt" is the reference
 SOLVERS = ("ipopt", "rti-qpoases", "rti-daqp")
@@ -130,6 +137,7 @@ def _build_nlp(cfg: MpcConfig) -> tuple[dict, _Rows]:
     refs = ca.SX.sym("refs", 3, N + 1)
     u_prev = ca.SX.sym("u_prev", 2)
     obs = ca.SX.sym("obs", 3, K)  # x, y, radius (radius <= 0: unused slot)
+    kappa = ca.SX.sym("kappa", 2 if cfg.turn_needs_speed else 0)  # the learned curvatures (k_lo, k_hi), rad/m
     w, rows, cost = [], _Rows(), 0
     for k in range(N + 1):
         w.append(X[:, k])
@@ -148,10 +156,19 @@ def _build_nlp(cfg: MpcConfig) -> tuple[dict, _Rows]:
             du = U[:, k] - (u_prev if k == 0 else U[:, k - 1])
             cost += cfg.r_u * ca.sumsqr(U[:, k]) + cfg.r_du * ca.sumsqr(du)
             rows.add(du, [-cfg.du_max[0], -cfg.du_max[1]], [cfg.du_max[0], cfg.du_max[1]])
+            if cfg.turn_needs_speed:  # omega - k_hi v <= 0 <= omega - k_lo v
+                rows.add(ca.vertcat(*_turn_rows(U[:, k], kappa)), [-ca.inf, 0.0], [0.0, ca.inf])
             xn = ca.vertcat(*euler(X[0, k], X[1, k], X[2, k], U[0, k], U[1, k], cfg.dt, ca.cos, ca.sin))
             rows.add(X[:, k + 1] - xn, [0.0] * 3, [0.0] * 3)
-    p = ca.vertcat(x0, ca.vec(refs), u_prev, ca.vec(obs))
+    p = ca.vertcat(x0, ca.vec(refs), u_prev, ca.vec(obs), kappa)
     return {"x": ca.vertcat(*w), "f": cost, "g": ca.vertcat(*rows.g), "p": p}, rows
+
+
+def _turn_rows(u, kappa) -> tuple:
+    """A learner that cannot turn in place: the rows ``omega - k_hi v`` (<= 0) and ``omega - k_lo v`` (>= 0) of one
+    stage's input ``u``, each scaled to a unit normal (a side not learned yet has a slope of
+    :data:`CURVATURE_FREE`: its row stays well conditioned, and inactive)."""
+    return tuple((u[1] - kappa[i] * u[0]) / ca.sqrt(1.0 + kappa[i] ** 2) for i in (1, 0))
 
 
 def _obstacle_rows(rows: _Rows, cfg: MpcConfig, xk, sk, obs) -> None:
@@ -251,8 +268,9 @@ def _build_rti(cfg: MpcConfig) -> tuple[ca.Function, ca.Function]:
     U, S = ca.SX.sym("U", 2, N), ca.SX.sym("S")
     x0, refs, u_prev = ca.SX.sym("x0", 3), ca.SX.sym("refs", 3, N + 1), ca.SX.sym("u_prev", 2)
     obs = ca.SX.sym("obs", 3, K)
+    kappa = ca.SX.sym("kappa", 2 if cfg.turn_needs_speed else 0)
     z = ca.vertcat(ca.vec(U), S)
-    p = ca.vertcat(x0, ca.vec(refs), u_prev, ca.vec(obs))
+    p = ca.vertcat(x0, ca.vec(refs), u_prev, ca.vec(obs), kappa)
     X = [x0]
     for k in range(N):
         X.append(ca.vertcat(*euler(X[-1][0], X[-1][1], X[-1][2], U[0, k], U[1, k], cfg.dt, ca.cos, ca.sin)))
@@ -274,11 +292,15 @@ def _build_rti(cfg: MpcConfig) -> tuple[ca.Function, ca.Function]:
             rr = obs[2, j] + cfg.obstacle_margin
             obstacle_lo.append(ca.if_else(obs[2, j] > 0, rr**2, -ca.inf))
     box = [c for k in range(1, N + 1) for c in (X[k][0], X[k][1])]
-    c = ca.vertcat(*rate, *obstacle, *box)
+    # a learner that cannot turn in place: omega - k_hi v <= 0 <= omega - k_lo v at every stage
+    turn = [c for k in range(N) for c in _turn_rows(U[:, k], kappa)] if cfg.turn_needs_speed else []
+    c = ca.vertcat(*rate, *obstacle, *box, *turn)
     dmax = np.tile(np.asarray(cfg.du_max, dtype=float), N)
     xb = cfg.state_box
-    lo = ca.vertcat(ca.DM(-dmax), *obstacle_lo, ca.DM(np.tile([xb[0], xb[2]], N)))
-    hi = ca.vertcat(ca.DM(dmax), ca.inf * ca.DM.ones(K * N), ca.DM(np.tile([xb[1], xb[3]], N)))
+    lo = ca.vertcat(ca.DM(-dmax), *obstacle_lo, ca.DM(np.tile([xb[0], xb[2]], N)),
+                    ca.DM(np.tile([-np.inf, 0.0], N if turn else 0)))
+    hi = ca.vertcat(ca.DM(dmax), ca.inf * ca.DM.ones(K * N), ca.DM(np.tile([xb[1], xb[3]], N)),
+                    ca.DM(np.tile([0.0, np.inf], N if turn else 0)))
     lin = ca.Function("mpc_rti_lin", [z, p], [r, ca.densify(ca.jacobian(r, z)), c, ca.densify(ca.jacobian(c, z)),
                                               lo, hi], ["z", "p"], ["r", "jr", "c", "jc", "lo", "hi"])
     roll = ca.Function("mpc_rti_roll", [z, p], [ca.horzcat(*X).T], ["z", "p"], ["x"])
@@ -446,10 +468,12 @@ class MpcTeacher:
         self.u_last = np.zeros(2)
         # the parameter vector p = [x0, refs, u_prev, obstacles] (the layout of _build_nlp), refilled each solve
         N, K = cfg.N, cfg.max_obstacles
-        self._p = np.empty(3 + 3 * (N + 1) + 2 + 3 * K)
+        nk = 2 if cfg.turn_needs_speed else 0
+        self._p = np.empty(3 + 3 * (N + 1) + 2 + 3 * K + nk)
         self._p_refs = self._p[3: 3 + 3 * (N + 1)].reshape(N + 1, 3)
         self._p_uprev = self._p[3 + 3 * (N + 1): 5 + 3 * (N + 1)]
-        self._p_obs = self._p[5 + 3 * (N + 1):].reshape(K, 3)  # a row per slot: x, y, radius
+        self._p_obs = self._p[5 + 3 * (N + 1): 5 + 3 * (N + 1) + 3 * K].reshape(K, 3)  # a row per slot: x, y, radius
+        self._p_kappa = self._p[5 + 3 * (N + 1) + 3 * K:]  # the curvatures (turn_needs_speed)
 
     @property
     def compiled(self) -> bool:
@@ -500,8 +524,11 @@ class MpcTeacher:
         limits: Bounds,
         obstacles: NDArray[np.float64] | None = None,
         v_ref: float | None = None,
+        curvature: tuple[float, float] | None = None,
     ) -> MpcResult:
-        """One MPC solve from ``state``; inputs bounded by ``limits`` (the learned limits)."""
+        """One MPC solve from ``state``; inputs bounded by ``limits`` (the learned limits) and, with
+        ``turn_needs_speed``, by ``curvature`` (``(k_lo, k_hi)``, rad/m: ``k_lo v <= omega <= k_hi v``; an infinite
+        side or None leaves that side to the box)."""
         cfg = self.cfg
         N = cfg.N
         state = np.asarray(state, dtype=float)
@@ -529,6 +556,11 @@ class MpcTeacher:
         obs[:] = 0.0
         obs[:, 2] = -1.0  # an unused slot
         obs[: o.shape[0]] = o
+        if cfg.turn_needs_speed:
+            k_lo, k_hi = curvature if curvature is not None else (-math.inf, math.inf)
+            if not (k_lo <= 0.0 <= k_hi):  # straight ahead stays feasible (NaN fails too)
+                raise ValueError(f"MPC curvature must be (k_lo <= 0, k_hi >= 0), got {curvature}")
+            self._p_kappa[0], self._p_kappa[1] = max(k_lo, -CURVATURE_FREE), min(k_hi, CURVATURE_FREE)
         cold = self._prev_u is None
         ok, status, iters, U, Xp = self._backend.solve(p, state, self._warm(limits), limits, cold)
         if ok:

@@ -175,3 +175,85 @@ def test_with_a_memory_a_bound_follows_its_boundary_pairs_and_without_it_every_p
     with pytest.raises(ValueError, match="memory"):
         LearnerLimits(TB, LB, (11, 11), 1e-6, memory=1)
     assert PairStore(LB, TB, adapt=True).limits.memory == 20 and PairStore(LB, TB).limits.memory == 0
+
+
+def _full_lock(lim: LearnerLimits, v: float, w: float, side: int = 1) -> bool:
+    """One pair at the learner's yaw-rate edge (side 1: the upper; 0: the lower) whose motion was (v, w), teacher
+    units."""
+    t_n = TB.normalise(np.array([v, w]))
+    l_n = np.array([0.5, 1.0 if side else 0.0])
+    return lim.update(t_n, l_n, (5, 10 if side else 0))
+
+
+def test_a_learner_that_cannot_turn_in_place_learns_its_curvature_per_side() -> None:
+    """``needs_speed``: each yaw-rate side's bound is the least-squares slope through standstill of its full-lock
+    pairs; the box's yaw-rate edge is that slope times the box's top speed, and a side with no pair is unbounded
+    (infinite) and keeps the box's rule. A learner that turns in place has no curvature bound but still keeps the
+    sums (``pairs show`` prints them)."""
+    lim = LearnerLimits(TB, LB, (11, 11), 1e-6, needs_speed=True)
+    assert lim.curvature == (-math.inf, math.inf)
+    for v in (0.2, 0.5, 1.0, 1.6):
+        _full_lock(lim, v, 0.5 * v)
+    k_lo, k_hi = lim.curvature
+    assert k_lo == -math.inf and k_hi == pytest.approx(0.5)
+    assert lim.box.w[1] == pytest.approx(0.5 * lim.box.v[1])  # the box's top speed is the teacher's (2.0): 1.0
+    assert lim.box.w[0] == TB.w[0]
+    # the upper edge at a speed is that speed's share of the turn; the lower one, unknown, is the box's
+    lo, hi = lim.turn_edges_at(float(TB.normalise(np.array([0.4, 0.0]))[0]))
+    assert TB.denormalise(np.array([0.0, hi]))[1] == pytest.approx(0.2)
+    assert lo == pytest.approx(lim.lo[1])
+    for v in (0.4, 1.2):
+        _full_lock(lim, v, -0.3 * v, side=0)
+    assert lim.curvature[0] == pytest.approx(-0.3)
+    assert lim.box.w[0] == pytest.approx(-0.3 * lim.box.v[1])
+    # a turn read the wrong way (part-way out of a turn the other way) cannot forbid driving straight
+    bad = LearnerLimits(TB, LB, (11, 11), 1e-6, needs_speed=True)
+    _full_lock(bad, 0.5, -0.05)
+    assert bad.curvature[1] == 0.0 and bad.box.w[1] >= 0.0
+    # a learner that turns in place: no bound, the same sums
+    skid = LearnerLimits(TB, LB, (11, 11), 1e-6)
+    for v in (0.2, 0.5, 1.0, 1.6):
+        _full_lock(skid, v, 0.5 * v)
+    assert skid.curvature is None and skid.learned_curvature()[1] == pytest.approx(0.5)
+    assert skid.box.w[1] == pytest.approx(np.mean([0.1, 0.25, 0.5, 0.8]))  # the mean of its boundary pairs
+    skid.set_needs_speed(True)
+    assert skid.box.w[1] == pytest.approx(0.5 * skid.box.v[1])
+    skid.set_needs_speed(False)
+    assert skid.box.w[1] == pytest.approx(np.mean([0.1, 0.25, 0.5, 0.8]))
+
+
+def test_a_learned_curvature_follows_a_change_with_a_memory_and_forgets_with_its_cell() -> None:
+    """With a ``memory`` the curvature is recency-weighted, so a rover whose steering lost reach is followed by its
+    full-lock pairs alone; ``forget`` of a cell on the yaw-rate edge keeps only its pairs since the change."""
+    lim = LearnerLimits(TB, LB, (11, 11), 1e-6, memory=8, needs_speed=True)
+    for _ in range(50):
+        _full_lock(lim, 1.0, 0.8)
+    for _ in range(30):
+        _full_lock(lim, 1.0, 0.4)
+    assert lim.curvature[1] == pytest.approx(0.4, abs=0.01)
+    never = LearnerLimits(TB, LB, (11, 11), 1e-6, needs_speed=True)
+    for w in [0.8] * 50 + [0.4] * 30:
+        _full_lock(never, 1.0, w)
+    assert never.curvature[1] == pytest.approx((50 * 0.8 + 30 * 0.4) / 80)
+    old_T, old_L = TB.normalise(np.array([[1.0, 0.8]] * 3)), np.array([[0.5, 1.0]] * 3)
+    new_T, new_L = TB.normalise(np.array([[1.0, 0.3]] * 2)), np.array([[0.5, 1.0]] * 2)
+    never.forget((5, 10), old_T, old_L, new_T, new_L)
+    assert never.curvature[1] == pytest.approx(0.3)
+    assert never.box.w[1] == pytest.approx(0.3 * never.box.v[1])
+
+
+def test_before_a_full_lock_pair_a_curvature_is_extrapolated_from_the_outliers() -> None:
+    """Eq. learn_capability read as a curvature: a pair commanded at a share of the full lock, the first beyond
+    every earlier one on its side, gives (omega / v) / share until a full-lock pair arrives; too slow a pair or too
+    small a share gives nothing, and the full-lock pairs then decide."""
+    lim = LearnerLimits(TB, LB, (11, 11), 1e-6, needs_speed=True)
+    t_n = TB.normalise(np.array([1.0, 0.3]))  # omega / v = 0.3, commanded at 60 % of the lock (0.3 of 0.5)
+    lim.update(t_n, LB.normalise(np.array([0.5, 0.3])), (5, 8))
+    assert lim.curvature[1] == pytest.approx(0.5) and math.isinf(lim.curvature[0])
+    assert lim.box.w[1] == pytest.approx(0.5 * lim.box.v[1])
+    lim.update(TB.normalise(np.array([0.1, 0.05])), LB.normalise(np.array([0.05, 0.4])), (0, 9))  # too slow
+    assert lim.curvature[1] == pytest.approx(0.5)
+    lim.update(TB.normalise(np.array([1.0, -0.02])), LB.normalise(np.array([0.5, -0.05])), (5, 4))  # too small
+    assert math.isinf(lim.curvature[0])
+    _full_lock(lim, 1.0, 0.4)
+    assert lim.curvature[1] == pytest.approx(0.4)

@@ -617,3 +617,28 @@ def test_turn_probe_at_top_speed_probes_a_yaw_rate_limit_at_the_learners_top_spe
     assert m.method == "perturb" and m.u_L[0] == LB.v[1] and abs(m.u_L[1] - LB.w[1]) > 1e-9
     with pytest.raises(ValueError, match="unknown turn_probe"):
         make_policy(s, "scm", seed=0, exploration=exploration, turn_probe="fast")
+
+
+def test_a_command_on_a_learned_curvature_maps_to_the_full_lock() -> None:
+    """A learner that cannot turn in place (an Ackermann rover, ``needs_speed``): the MPC's commands on its learned
+    curvature (omega = k v at any speed below the top) map to the full lock, the learner's yaw-rate extreme, with
+    the speed interpolated along the full-lock row of pairs, so each gives another full-lock pair and the curvature
+    keeps being learned (mapped a little short of the lock, an underestimate would stay); inside the curvature the
+    ordinary mapping decides, and a learner that turns in place keeps the box's edge."""
+    s = PairStore(LB, TB, k_min=1)
+    s.limits.set_needs_speed(True)
+    lock = LB.w[1]
+    for v_l, v_t in ((0.1, 0.1), (0.2, 0.25), (0.3, 0.4)):  # full-lock pairs: omega = 0.5 v at every speed
+        s.add([v_t, 0.5 * v_t], [v_l, lock])
+    s.add([0.2, 0.0], [0.18, 0.0])
+    s.add([0.3, -0.05], [0.28, -0.05])
+    assert s.limits.curvature[1] == pytest.approx(0.5)
+    policy = make_policy(s, seed=0)
+    m = policy.map([0.3, 0.15], explore=False)  # on the curvature, between the 2nd and 3rd full-lock pairs
+    assert m.method == "barycentric" and len(m.region) == 2
+    np.testing.assert_allclose(m.u_L, [0.2 + (0.3 - 0.25) / 0.15 * 0.1, lock], atol=1e-9)
+    assert policy.map([0.3, 0.1], explore=False).u_L[1] < lock  # inside it
+    slower = policy.map([0.12, 0.06], explore=False)  # slower, on the curvature too: along the full-lock row
+    assert len(slower.region) == 2 and slower.u_L[1] == lock
+    s.limits.set_needs_speed(False)  # the box's edge is the mean of the full-lock pairs' yaw rates, 0.125
+    assert len(policy.map([0.12, 0.06], explore=False).region) != 2

@@ -5,6 +5,7 @@ with Gaussian noise on the teacher parts where a test says so."""
 
 from __future__ import annotations
 
+import math
 import zlib
 
 import msgspec
@@ -198,3 +199,29 @@ def test_a_cell_whose_pairs_scatter_is_not_relearned_over_and_over_and_still_see
     before = store.changes[cell]
     scattered(20, shift=0.15)
     assert store.changes[cell] == before + 1
+
+
+def test_the_learned_curvatures_survive_a_save_and_a_version_3_store_loads_without_them() -> None:
+    """Schema 4 keeps the yaw-rate sides' curvature sums (a learner that cannot turn in place); a store written by
+    schema 3 loads with none (its curvatures are learned again from its first full-lock pairs); a negative count is
+    refused."""
+    store = PairStore(LB, TB, k_min=1)
+    for v in (0.05, 0.1, 0.2):
+        store.add([2 * v, 0.6 * 2 * v], [v, LB.w[1]])
+    k = store.limits.learned_curvature()
+    assert k[1] == pytest.approx(0.6) and math.isinf(k[0])
+    again = PairStore.from_bytes(store.to_bytes())
+    assert again.limits.learned_curvature() == k
+    np.testing.assert_array_equal(again.limits.turn_n, store.limits.turn_n)
+    raw = msgspec.msgpack.decode(store.to_bytes()[12:])
+    for name in ("turn_vw", "turn_vv", "turn_n"):
+        raw["limits"].pop(name)
+    raw["schema_version"] = 3
+    payload = msgspec.msgpack.encode(raw)
+    old = PairStore.from_bytes(b"SCMPAIRS" + zlib.crc32(payload).to_bytes(4, "little") + payload)
+    assert all(math.isinf(x) for x in old.limits.learned_curvature())
+    raw = msgspec.msgpack.decode(store.to_bytes()[12:])
+    raw["limits"]["turn_n"] = [0, -1]
+    payload = msgspec.msgpack.encode(raw)
+    with pytest.raises(ValueError, match="non-finite or negative"):
+        PairStore.from_bytes(b"SCMPAIRS" + zlib.crc32(payload).to_bytes(4, "little") + payload)

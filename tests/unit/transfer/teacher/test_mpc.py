@@ -183,3 +183,40 @@ def test_slowing_for_the_bends_a_yaw_rate_bound_cannot_turn_tracks_them_closer()
     assert _drive(MpcConfig(N=15), wide) == _drive(MpcConfig(N=15, curve_margin=0.9), wide)
     with pytest.raises(ValueError, match="curve_margin"):
         MpcConfig(curve_margin=1.5)
+
+
+@pytest.mark.parametrize("solver", SOLVERS)
+def test_a_learner_that_cannot_turn_in_place_is_planned_within_its_curvature(solver: str) -> None:
+    """``turn_needs_speed``: every input of the plan keeps k_lo v <= omega <= k_hi v (an Ackermann rover's full
+    lock), on a path whose bends the box alone would turn at its slowest speed; an unknown side (infinite) leaves
+    that side to the box; a curvature that forbids driving straight is refused."""
+    pts = np.array([[0.0, 0.0], [1.0, 0.0]] + [[1.0 + math.sin(a), 1.0 - math.cos(a)]
+                                                for a in np.linspace(0.1, math.pi, 20)])
+    path, box = Polyline(pts), Bounds((0.05, 0.6), (-0.785, 0.785))
+    free = MpcTeacher(MpcConfig(N=15, solver=solver))
+    bound = MpcTeacher(MpcConfig(N=15, solver=solver, turn_needs_speed=True))
+    excess_free = excess = 0.0
+    for mpc, curvature in ((free, None), (bound, (-0.4, 0.5))):
+        x = np.array([0.0, 0.0, 0.0])
+        for _ in range(60):
+            res = mpc.solve(x, path, box, curvature=curvature)
+            assert res.ok
+            v, w = res.u
+            worst = max(w - 0.5 * v, -0.4 * v - w)
+            if curvature is None:
+                excess_free = max(excess_free, worst)
+            else:
+                excess = max(excess, worst)
+            x = step(x, res.u, 0.1)
+    assert excess_free > 0.1  # the box alone turns harder than the curvature allows
+    assert excess <= 1e-5
+    open_side = MpcTeacher(MpcConfig(N=15, solver=solver, turn_needs_speed=True))
+    x = np.array([0.0, 0.0, 0.0])
+    turned = 0.0
+    for _ in range(40):
+        res = open_side.solve(x, path, box, curvature=(-0.4, math.inf))
+        turned = max(turned, float(res.u[1] - 0.5 * res.u[0]))
+        x = step(x, res.u, 0.1)
+    assert turned > 0.1  # the left side, not learned yet, is the box's
+    with pytest.raises(ValueError, match="curvature"):
+        bound.solve(np.zeros(3), path, box, curvature=(0.2, 0.5))
