@@ -95,6 +95,10 @@ class StationSection(Cfg):
         "keep only pairs whose learner command had been steady (within pair_settle_tol) this long before the pair's "
         "interval, s; for a vehicle whose body lags its command (ArduPilot Rover: ~0.3 s), so that the probe of a "
         "learned limit is held until the speed settles; 0: every pair, as the paper's learners", ge=0.0, le=5.0)] = 0.0
+    pair_settle_edge_s: Annotated[float, meta(
+        "pair_settle_s for a command on an edge of the learner's range (the probe of a limit, a step from rest to "
+        "the top), if longer: for a body slower to reach its top than to follow a mission's small steps (ArduPilot's "
+        "Ackermann rover: ~2 s); 0: pair_settle_s for every command", ge=0.0, le=10.0)] = 0.0
     pair_settle_tol: Annotated[float, meta(
         "pair_settle_s: how far the commands of that time may differ from the pair's, share of the learner's range "
         "on each axis", gt=0.0, le=1.0)] = 0.05
@@ -139,6 +143,12 @@ class TransferSection(Cfg):
         "speed the command maps to, the slowest while nothing is learned); at-top-speed (for a learner that cannot "
         "turn in place, e.g. an Ackermann rover: probed at its slowest speed it barely turns, and the learned limits "
         "then allow almost no turn at any speed)")] = "at-command"
+    turn: Annotated[Literal["in-place", "needs-speed"], meta(
+        "in-place: the learner can turn at any speed (a skid-steer or differential drive; the paper's); "
+        "needs-speed: it cannot turn in place (an Ackermann rover): its yaw-rate limit on each side is learned as a "
+        "curvature (omega <= kappa v, shown in the limits and pairs show), the MPC plans within it, and the yaw-rate "
+        "limits are probed at the learner's top speed (whatever turn_probe says); the teacher's speed must then be "
+        "forward only (teacher_bounds v >= 0)")] = "in-place"
     adapt: Annotated[bool, meta(
         "re-learn a cell whose learner changed (a sagging battery, a dragging wheel, a new floor; docs/PAPER.md, "
         "'a learner that changes'), also the cells of a store learned on another day; off by default while its "
@@ -225,6 +235,11 @@ class StationConfig(Cfg):
     teacher: TeacherSection = field(default_factory=TeacherSection)
     calibration: CalibrationSection = field(default_factory=CalibrationSection)
     fleet: FleetSection = field(default_factory=FleetSection)
+
+    def __post_init__(self) -> None:
+        if self.transfer.turn == "needs-speed" and self.teacher_bounds.v[0] < 0.0:
+            raise Rule(f'transfer.turn = "needs-speed" takes a forward-only teacher (teacher_bounds v >= 0), got v = '
+                       f"{list(self.teacher_bounds.v)}: a curvature bound omega <= kappa v does not hold backwards")
 
     def store_file(self, robot: str | None = None) -> Path:
         """The pair store: ``store_path``, else ``pairs-<robot>.bin`` in the state directory (never the working

@@ -232,7 +232,8 @@ class Limits(_Msg, kw_only=True):
     """``scm/<robot>/limits``: the learned learner limits on the teacher domain, for a teacher that bounds itself.
 
     ``box`` is [v_min, v_max, omega_min, omega_max]; ``hull`` the convex hull's vertices (counter-clockwise, teacher
-    units). ``version`` grows whenever the limits change. Published by the station when they change and each second.
+    units); ``curvature`` the yaw-rate bound per unit of speed of a learner that cannot turn in place. ``version``
+    grows whenever the limits change. Published by the station when they change and each second.
     """
 
     stamp: Stamp
@@ -240,6 +241,10 @@ class Limits(_Msg, kw_only=True):
     version: Annotated[int, Meta(ge=0)]
     box: Annotated[list[Bound], Meta(min_length=4, max_length=4)]
     hull: Annotated[list[Annotated[list[Bound], Meta(min_length=2, max_length=2)]], Meta(max_length=10_000)] = []
+    #: a learner that cannot turn in place (``[transfer] turn = "needs-speed"``): the learned curvatures [k_lo, k_hi]
+    #: (rad/m), k_lo v <= omega <= k_hi v; a side not learned yet is null; absent for a learner that turns in place
+    curvature: Annotated[list[Annotated[float, Meta(ge=-1e6, le=1e6)] | None], Meta(min_length=2, max_length=2)] \
+        | None = None
 
 
 XY = Annotated[list[Coord], Meta(min_length=2, max_length=2)]

@@ -30,8 +30,10 @@ force during the ``settle_s`` before its interval began was within ``settle_tol`
 of ``command_bounds``' span; in command units without bounds) and the vehicle was driving throughout; others are
 counted (``unsettled``) and dropped. The transfer's probe of a never-driven limit is sent again at each tick until a
 boundary pair is learned (:meth:`transfer.policy._PolicyBase._probe_limits`), so dropping its first pairs holds the
-probe until the speed has settled, and only the settled pair fixes the limit. docs/BENCHMARKS.md, "The transfer on
-SITL", has the figures.
+probe until the speed has settled, and only the settled pair fixes the limit. A body that takes longer to reach its
+top from rest than to follow the small steps of a mission's commands (SITL's Ackermann body: about 2 s) gets a
+longer hold for the commands on an edge of the learner's range (``settle_edge_s``), so its probes are read settled
+without thinning every other pair as much. docs/BENCHMARKS.md, "The transfer on SITL", has the figures.
 """
 
 from __future__ import annotations
@@ -125,13 +127,17 @@ class IntervalPairer:
     def __init__(self, dt: float, min_span: float | None = None, max_gap: float | None = None, *,
                  max_speed: float = math.inf, max_turn: float = math.inf, command_bounds: Bounds | None = None,
                  teacher_bounds: Bounds | None = None, margin: float = 1.5, settle_s: float = 0.0,
-                 settle_tol: float = 0.05) -> None:
+                 settle_tol: float = 0.05, settle_edge_s: float = 0.0) -> None:
         """``settle_s``, ``settle_tol``: keep only pairs whose command had been steady that long, within that share
-        of the command range (module docstring, "Settled pairs only"); ``settle_s`` 0: every pair, as the paper."""
+        of the command range (module docstring, "Settled pairs only"); ``settle_s`` 0: every pair, as the paper.
+        ``settle_edge_s``: as long for a command on an edge of ``command_bounds`` (the probe of a limit), if longer
+        than ``settle_s``."""
         if dt <= 0:
             raise ValueError("dt must be positive")
-        if settle_s < 0 or settle_tol <= 0:
-            raise ValueError("settle_s must be >= 0 and settle_tol > 0")
+        if settle_s < 0 or settle_tol <= 0 or settle_edge_s < 0:
+            raise ValueError("settle_s and settle_edge_s must be >= 0 and settle_tol > 0")
+        if settle_edge_s > settle_s and (settle_s == 0 or command_bounds is None):
+            raise ValueError("settle_edge_s needs settle_s > 0 and the command bounds whose edges it applies to")
         self.dt = float(dt)
         self.min_span = 0.4 * self.dt if min_span is None else float(min_span)
         self.max_gap = 2.0 * self.dt if max_gap is None else float(max_gap)
@@ -141,6 +147,11 @@ class IntervalPairer:
         self._command_box = _box(self.command_bounds)
         self._teacher_box = _box(self.teacher_bounds)
         self.settle_s = float(settle_s)
+        self.settle_edge_s = max(float(settle_edge_s), self.settle_s)
+        #: the command bounds' edges (v_lo, v_hi, w_lo, w_hi), within a millionth of their span
+        self._edges = None if command_bounds is None else (
+            *(float(x) for x in command_bounds.v), *(float(x) for x in command_bounds.w))
+        self._edge_eps = (1.0, 1.0) if command_bounds is None else tuple(1e-6 * float(x) for x in command_bounds.span)
         span = (1.0, 1.0) if command_bounds is None else tuple(float(x) for x in command_bounds.span)
         self._settle_tol = (float(settle_tol) * span[0], float(settle_tol) * span[1])  # command units, per axis
         #: (stamp, command or None for a stop) of each change of the command, the last one in force now; kept as far
@@ -205,7 +216,7 @@ class IntervalPairer:
         if self.settle_s > 0:
             changes = self._changes
             changes.append((stamp, key))
-            while len(changes) >= 2 and changes[1][0] < stamp - self.settle_s:
+            while len(changes) >= 2 and changes[1][0] < stamp - self.settle_edge_s:
                 changes.popleft()  # no longer in force within any later pair's window (each starts after `stamp`)
         return out
 
@@ -223,6 +234,18 @@ class IntervalPairer:
                 break
             since = t
         return since
+
+    def _settle_for(self, u: tuple[float, float]) -> float:
+        """How long command ``u`` must have been steady: ``settle_edge_s`` on an edge of the command bounds (the
+        largest step a body answers, from rest to its top: the probe that fixes a limit), else ``settle_s``."""
+        e = self._edges
+        if e is None or self.settle_edge_s == self.settle_s:
+            return self.settle_s
+        ev, ew = self._edge_eps
+        v, w = u
+        if v <= e[0] + ev or v >= e[1] - ev or w <= e[2] + ew or w >= e[3] - ew:
+            return self.settle_edge_s
+        return self.settle_s
 
     def _plausible_pose(self, stamp: float, p: Pose) -> bool:
         """A pose the vehicle could have reached from the last accepted one (or, after a run of poses that agree
@@ -280,7 +303,7 @@ class IntervalPairer:
         if t2 - t1 < self.min_span:
             self.rejected += 1
             return None
-        if self.settle_s > 0 and t1 - self._steady_since() < self.settle_s:
+        if self.settle_s > 0 and t1 - self._steady_since() < self._settle_for(self.segment):
             self.unsettled += 1
             return None
         teacher, learner = teacher_equivalent(np.array(x1), np.array(x2), t2 - t1), np.array(self.segment)

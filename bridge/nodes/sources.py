@@ -79,6 +79,12 @@ class SourceContext:
         learner and applies the teacher's commands directly (Section 5.2; docs/PAPER.md)."""
         return self.store.limits.box if self.limits == "learned" else self.store.teacher_bounds
 
+    def curvature(self) -> tuple[float, float] | None:
+        """The learned curvatures ``(k_lo, k_hi)`` that bound the teacher's turn rate by its speed, for a learner
+        that cannot turn in place (``[transfer] turn = "needs-speed"``; None otherwise, or with ``limits``
+        "teacher")."""
+        return self.store.limits.curvature if self.limits == "learned" else None
+
     def allows(self, commands: NDArray[np.float64]) -> NDArray[np.bool_]:
         """Which teacher ``commands`` (n x 2) the teacher may use: those inside the learned limits' hull, or with
         ``limits`` "teacher" those inside the teacher's own range."""
@@ -128,7 +134,7 @@ class MpcSource:
     def propose(self, now: float, pose: M.LearnerState, ctx: SourceContext) -> Proposal:
         x = _pose(pose)
         t0 = time.perf_counter()
-        res = self.teacher.solve(x, ctx.mission.path, ctx.box(), ctx.mission.obstacles)
+        res = self.teacher.solve(x, ctx.mission.path, ctx.box(), ctx.mission.obstacles, curvature=ctx.curvature())
         solve_ms = (time.perf_counter() - t0) * 1e3
         ctx.counters.obstacles_dropped += res.obstacles_dropped
         return Proposal(np.asarray(res.u, dtype=float), x, res.predicted, solver=res.solver, ok=res.ok,
@@ -246,7 +252,8 @@ def make_source(cfg: StationConfig, period: float, calibration: CalibrationPlan 
 
         # compiled in the background by the Zenoh side (station.KernelBuild), never here: a core is built at once
         return MpcSource(build_mpc(MpcConfig(N=cfg.station.horizon, dt=period, max_obstacles=t.obstacle_slots,
-                                             solver=t.mpc_solver, curve_margin=t.curve_margin)))
+                                             solver=t.mpc_solver, curve_margin=t.curve_margin,
+                                             turn_needs_speed=cfg.transfer.turn == "needs-speed")))
     if t.kind == "primitives":
         lib = PrimitiveLibrary(cfg.teacher_bounds.bounds(), t.primitives_grid, duration=t.primitive_s, dt=period)
         return PrimitivesSource(PrimitiveFollower(PrimitivePlanner(lib, k_d=1.0, k_theta=2.0, horizon=2)))

@@ -185,7 +185,10 @@ class StationCore:
         # this robot's own phase of the periodic work (the hole searches' budget, the store's saves): the robots of
         # a fleet that start together each do it at their own tick, not all in one period of the process's loop
         phase = robot_phase(robot)
-        policy = make_policy(self.store, tcfg.mapper, np.random.default_rng(tcfg.seed), turn_probe=tcfg.turn_probe,
+        # a learner that cannot turn in place: its yaw-rate limits are curvatures, probed where it turns most
+        self.store.limits.set_needs_speed(tcfg.turn == "needs-speed")
+        turn_probe = "at-top-speed" if tcfg.turn == "needs-speed" else tcfg.turn_probe
+        policy = make_policy(self.store, tcfg.mapper, np.random.default_rng(tcfg.seed), turn_probe=turn_probe,
                              **({"exploration": "paper"} if tcfg.exploration == "paper"
                                 else {"exploration": "guided", "fill_budget": tcfg.fill_budget, "fill_phase": phase}))
         self.transfer = TransferStep(policy, dt=self.period, explore=tcfg.exploration != "off",
@@ -200,7 +203,8 @@ class StationCore:
         top_v, top_w = command_extent(learner, teacher)
         self.pairer = IntervalPairer(scfg.pair_dt, max_speed=PLAUSIBLE * top_v + 0.1, max_turn=PLAUSIBLE * top_w + 0.2,
                                      command_bounds=learner, teacher_bounds=Bounds((-top_v, top_v), (-top_w, top_w)),
-                                     margin=PLAUSIBLE, settle_s=scfg.pair_settle_s, settle_tol=scfg.pair_settle_tol)
+                                     margin=PLAUSIBLE, settle_s=scfg.pair_settle_s, settle_tol=scfg.pair_settle_tol,
+                                     settle_edge_s=scfg.pair_settle_edge_s if scfg.pair_settle_s > 0 else 0.0)
         self.reorder = Reorder()
         self.control = control or MissionControl(robot, spec_of(mission))
         self.fitness = Fitness()

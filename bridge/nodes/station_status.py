@@ -19,6 +19,7 @@ reason; this module turns that into what people and programs read:
 from __future__ import annotations
 
 import dataclasses
+import math
 from collections.abc import Iterable
 from dataclasses import dataclass, field
 
@@ -282,7 +283,9 @@ class LimitsReport:
         if sent != key:
             self.version += 1
         self.sent = key
-        return M.Limits(stamp=now, robot=self.robot, version=self.version, box=box, hull=hull)
+        k = self.store.limits.curvature
+        curvature = None if k is None else [None if math.isinf(x) else round(x, 6) for x in k]
+        return M.Limits(stamp=now, robot=self.robot, version=self.version, box=box, hull=hull, curvature=curvature)
 
 
 __all__ = ["GOOD_REASONS", "INTEGRITY_WINDOW_S", "LIMITS_MOVE_TOL", "STATUS_EVERY_S", "STATUS_MAX_HZ", "Integrity",

@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
 import threading
 import time
@@ -93,6 +94,8 @@ class Learned:
     #: cells re-learned because their learner changed (``[transfer] adapt``): (id, how often, when: the stamp given
     #: to the store, wall-clock seconds from a station; None: unknown), the most recent last
     changed: list[tuple[int, int, float | None]] = field(default_factory=list)
+    #: the yaw-rate sides' curvatures learned at the full lock (rad/m, lower and upper; None: none yet), from a store
+    curvature: tuple[float | None, float | None] | None = None
 
     @property
     def cells(self) -> int:
@@ -142,7 +145,8 @@ class Learned:
                        "learner": [float(u[0]), float(u[1])]}
                       for i, v, n, t, u in zip(self.ids, self.versions, self.counts, self.teacher, self.learner)],
             "limits": {"box": self.limits_box.as_list() if self.limits_box is not None else None,
-                       "hull": [[float(a), float(b)] for a, b in self.hull]},
+                       "hull": [[float(a), float(b)] for a, b in self.hull],
+                       "curvature": list(self.curvature) if self.curvature is not None else None},
             "cells": {"configured": len(self.ids), "total": self.cells, "grid": list(self.grid)},
             "teacher_bounds": self.teacher_bounds.as_list(),
             "learner_bounds": self.learner_bounds.as_list(),
@@ -181,7 +185,8 @@ def from_store(store: PairStore, source: str) -> Learned:
         learner_bounds=store.learner_bounds, grid=store.grid, limits_box=store.limits.box,
         hull=np.asarray(store.limits.hull, dtype=float).reshape(-1, 2), bounds_from="the store",
         raw_pairs=store.raw_count, k_min=store.k_min,
-        changed=[(c.id, c.count, c.at) for c in store.changed_cells()])
+        changed=[(c.id, c.count, c.at) for c in store.changed_cells()],
+        curvature=tuple(None if math.isinf(k) else k for k in store.limits.learned_curvature()))  # type: ignore[arg-type]
 
 
 def from_message(msg: M.Pairs, teacher_bounds: Bounds, learner_bounds: Bounds, grid: tuple[int, int],
@@ -357,6 +362,10 @@ def table(view: Learned) -> str:
                  f"(grid {view.grid[0]} x {view.grid[1]}){extra}")
     if view.limits_box is not None:
         lines.append(f"learned limits on the teacher domain (box): {_range(view.limits_box)}")
+    if view.curvature is not None and any(k is not None for k in view.curvature):
+        k_lo, k_hi = ("-" if k is None else f"{k:+.3f}" for k in view.curvature)
+        lines.append(f"learned curvature at the full lock: {k_lo} .. {k_hi} rad/m (k_lo v <= omega <= k_hi v: a "
+                     "bound of the teacher with [transfer] turn = \"needs-speed\")")
     hull = " ".join(f"({a:.3f}, {b:+.3f})" for a, b in view.hull)
     lines.append(f"learned limits (hull, {len(view.hull)} vertices): {hull or '-'}")
     lines.append(f"teacher bounds: {_range(view.teacher_bounds)}")

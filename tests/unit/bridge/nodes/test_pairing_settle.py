@@ -138,3 +138,38 @@ def test_the_station_takes_the_setting_from_its_configuration(tmp_path) -> None:
                                                      0.1 * cfg.learner_bounds.bounds().span[1]))
     with pytest.raises(ValueError):
         IntervalPairer(0.1, settle_s=-1.0)
+    # a learner that cannot turn in place, slow to its top: the edge's hold, curvatures, the MPC's rows, the probe
+    g = tmp_path / "ackermann.toml"
+    g.write_text('[station]\npair_settle_s = 1.0\npair_settle_edge_s = 2.5\n[transfer]\nturn = "needs-speed"\n')
+    core = StationCore(load_station(g), "r1", 10.0, tmp_path / "q.bin", load_mission())
+    assert core.pairer.settle_s == 1.0 and core.pairer.settle_edge_s == 2.5
+    assert core.store.limits.needs_speed and core.transfer.policy.turn_probe == "at-top-speed"
+    assert core.source.teacher.cfg.turn_needs_speed
+
+
+def test_a_command_on_an_edge_of_the_range_is_held_longer_with_settle_edge_s() -> None:
+    """``settle_edge_s``: a body slower to reach its top from rest than to follow small steps (SITL's Ackermann
+    rover, about 2 s) has its probe of a limit (a command on an edge of the learner's range) held that long, while
+    the mission's commands inside the range keep ``settle_s``; without the bounds whose edges it names, or without
+    ``settle_s``, it is refused."""
+    global TAU
+    slow = 0.8  # a body four times slower than the skid's
+    old, TAU = TAU, slow
+    try:
+        plain = IntervalPairer(0.1, command_bounds=LB, settle_s=0.5)
+        pairs, _ = drive(plain, mpc_like(0.6, 40), LaggingRover(v0=0.0))
+        first_plain = pairs[0][0][0]
+        edge = IntervalPairer(0.1, command_bounds=LB, settle_s=0.5, settle_edge_s=2.0)
+        pairs, _ = drive(edge, mpc_like(0.6, 40), LaggingRover(v0=0.0))
+        # 0.6 is the learner's top: held 2 s, the first pair reads the body at 92 % of its steady speed, not 53 %
+        assert first_plain < 0.6 * GAIN * 0.6 < 0.9 * GAIN * 0.6 < pairs[0][0][0]
+        assert edge.unsettled == 20 and plain.unsettled == 5
+        inside = IntervalPairer(0.1, command_bounds=LB, settle_s=0.5, settle_edge_s=2.0)
+        drive(inside, mpc_like(0.4, 40), LaggingRover(v0=0.0))
+        assert inside.unsettled == 5  # inside the range: settle_s
+    finally:
+        TAU = old
+    with pytest.raises(ValueError, match="settle_edge_s needs"):
+        IntervalPairer(0.1, settle_s=0.5, settle_edge_s=2.0)
+    with pytest.raises(ValueError, match="settle_edge_s needs"):
+        IntervalPairer(0.1, command_bounds=LB, settle_edge_s=2.0)

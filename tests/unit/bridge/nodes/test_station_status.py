@@ -145,3 +145,31 @@ def test_limits_go_out_when_their_box_moved_or_forced_with_a_new_version_only_wh
     moved = report.message(1.1, force=False)
     assert moved is not None and moved.version == 2 and moved.box != first.box
     M.validated(moved)
+
+
+def test_the_limits_of_a_learner_that_cannot_turn_in_place_carry_its_curvatures_and_a_config_needs_a_forward_teacher(
+        tmp_path) -> None:
+    """``[transfer] turn = "needs-speed"``: the ``limits`` message carries [k_lo, k_hi] (null for a side not learned
+    yet; absent for a learner that turns in place), and a teacher that may drive backwards is refused, since
+    omega <= k v does not hold there."""
+    import pytest
+
+    from bridge.core.config import ConfigError, load_station
+
+    lb, tb = Bounds(MPC_LEARNER_V, MPC_LEARNER_W), Bounds(MPC_TEACHER_V, MPC_TEACHER_W)
+    store = PairStore(lb, tb, k_min=1)
+    assert LimitsReport(store, "r1").message(0.0, force=True).curvature is None
+    store.limits.set_needs_speed(True)
+    assert LimitsReport(store, "r1").message(0.0, force=True).curvature == [None, None]
+    store.add([0.3, 0.15], [lb.v[1], lb.w[1]])  # a full-lock pair: 0.5 rad/s per m/s to the left
+    msg = LimitsReport(store, "r1").message(0.0, force=True)
+    assert msg.curvature == [None, 0.5] and msg.box[3] == pytest.approx(0.5 * msg.box[1])
+    M.validated(msg)
+    assert load_station(None).transfer.turn == "in-place"
+    ok = tmp_path / "ok.toml"
+    ok.write_text('[transfer]\nturn = "needs-speed"\n')
+    assert load_station(ok).transfer.turn == "needs-speed"
+    bad = tmp_path / "bad.toml"
+    bad.write_text('[transfer]\nturn = "needs-speed"\n[teacher_bounds]\nv = [-0.5, 0.5]\nw = [-1.0, 1.0]\n')
+    with pytest.raises(ConfigError, match="forward-only teacher"):
+        load_station(bad)
