@@ -212,6 +212,8 @@ def test_a_store_learned_on_another_day_is_checked_against_todays_pairs_when_ada
     assert np.all(np.isnan(core.store.changed_at[:10]))  # the cells not driven today are not touched
     out = core.tick(TickInputs(), 6.0)
     assert out.status is not None and out.status.counters["cells_relearned"] == 11
+    # the cells not driven moved provisionally by the change the top row agreed on: counted on the status
+    assert core.store.shared > 0 and out.status.counters["shared_changes"] == core.store.shared
     assert out.status.changed_cells == list(range(110, 121))  # named on the status (scmbridge status prints them)
     assert [c.id for c in core.pairs(6.0).changed] == list(range(110, 121))  # and in the pairs reply, with when
     off = StationCore(StationConfig(), "r2", 10.0, tmp_path / "p.bin", load_mission())
