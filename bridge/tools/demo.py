@@ -358,6 +358,8 @@ def sitl_hil(args: argparse.Namespace, robot: str = "sitl") -> int:
     from bridge.core.config import load_mission_spec, mission_from_spec
     from bridge.nodes.zsession import free_port, make_config, open_session, tcp
     from bridge.tools.demo_sitl import (
+        PAIR_SETTLE_ACKERMANN_S,
+        PAIR_SETTLE_EDGE_ACKERMANN_S,
         PAIR_SETTLE_S,
         REPORTED_PARAMS,
         ParamChanges,
@@ -366,6 +368,7 @@ def sitl_hil(args: argparse.Namespace, robot: str = "sitl") -> int:
         mission_toml,
         param_change,
         place_mission,
+        start_on_path,
         teacher_reference,
     )
     from bridge.tools.procs import Children
@@ -382,11 +385,19 @@ def sitl_hil(args: argparse.Namespace, robot: str = "sitl") -> int:
     store = out / "pairs.bin"
     store.unlink(missing_ok=True)  # from no pairs at all, as the paper's case
     spec = load_mission_spec(args.mission)
-    settle = PAIR_SETTLE_S if args.pair_settle is None else float(args.pair_settle)
+    ackermann = args.sitl_model == "rover"
+    settle = ((PAIR_SETTLE_ACKERMANN_S if ackermann else PAIR_SETTLE_S) if args.pair_settle is None
+              else float(args.pair_settle))
+    settle_edge = PAIR_SETTLE_EDGE_ACKERMANN_S if ackermann and args.pair_settle is None and settle > 0 else 0.0
     if not 0.0 <= settle <= 5.0:
         raise UsageError(f"--pair-settle {settle}: between 0 and 5 s")
     ref = teacher_reference(args.teacher_ref) if args.teacher_ref else None
     changes = [param_change(x) for x in args.param_at]
+    # an Ackermann rover cannot turn in place: its yaw-rate limits are curvatures (docs/BENCHMARKS.md)
+    turn = args.turn or ("needs-speed" if args.sitl_model == "rover" else "in-place")
+    start = args.start or ("on-path" if turn == "needs-speed" else "mission")
+    if start == "on-path":
+        spec = start_on_path(spec)
     t_wall = time.monotonic()
     try:
         sitl = Sitl(binary, model=args.sitl_model, parm_files=[args.sitl_params] if args.sitl_params else ())
@@ -412,10 +423,12 @@ def sitl_hil(args: argparse.Namespace, robot: str = "sitl") -> int:
         (out / "mission.toml").write_text(mission_toml(placed))
         (out / "station.toml").write_text(
             f'robot = "{robot}"\n\n[learner_bounds]\nv = [{v_range[0]!r}, {v_range[1]!r}]\n'
-            f"w = [{w_range[0]!r}, {w_range[1]!r}]\n\n[station]\npair_settle_s = {settle!r}\n\n"
+            f"w = [{w_range[0]!r}, {w_range[1]!r}]\n\n[station]\npair_settle_s = {settle!r}\n"
+            + (f"pair_settle_edge_s = {settle_edge!r}\n" if settle_edge > settle else "") + "\n"
             + transfer_table(args.transfer, args.limits)
             + ("adapt = true\n" if args.adapt else "")
             + (f'turn_probe = "{args.turn_probe}"\n' if args.turn_probe != "at-command" else "")
+            + (f'turn = "{turn}"\n' if turn != "in-place" else "")
             + teacher_table(args))
         (out / "driver.toml").write_text(
             f'robot = "{robot}"\n\n[driver.hard_limits]\nv = [{-v_range[1]!r}, {v_range[1]!r}]\n'
@@ -508,8 +521,10 @@ def sitl_hil(args: argparse.Namespace, robot: str = "sitl") -> int:
         "scm_time_ratio_sim": ratio(scm_time, sim["time_s"]),
         "collisions": {"teacher": teacher["collided"], "scm": collided},
         "method_counts": run["methods"], "refined_pairs": run["refined_pairs"], "raw_pairs": run["raw_pairs"],
-        "pair_settle_s": settle, "learned_limits": learned_limits(store), "adapt": bool(args.adapt),
-        "curve_margin": args.curve_margin, "turn_probe": args.turn_probe,
+        "pair_settle_s": settle, "pair_settle_edge_s": max(settle_edge, settle),
+        "learned_limits": learned_limits(store), "adapt": bool(args.adapt),
+        "curve_margin": args.curve_margin, "turn": turn, "start": start,
+        "turn_probe": "at-top-speed" if turn == "needs-speed" else args.turn_probe,  # what the station does
         "cells_relearned": relearned, "param_changes": changed,
         "max_dev_m": run["max_dev_m"], "goal_dist_m": run["goal_dist_m"], "driving_s": run["driving_s"],
         "learner_bounds": [list(v_range), list(w_range)], "vehicle_params": params,
@@ -700,7 +715,8 @@ def arguments(ap: argparse.ArgumentParser) -> None:
                          "reference is made on SITL (docs/BENCHMARKS.md)")
     ap.add_argument("--pair-settle", type=float, default=None, metavar="S",
                     help="(--sitl) the station's [station] pair_settle_s: pairs only where the command had been "
-                         "steady S seconds (default 0.5 for SITL's lagging body; 0: every pair, as the paper)")
+                         "steady S seconds (default 0.5 for SITL's lagging skid body; 1 for its Ackermann body, and "
+                         "2.5 for its commands on an edge of its range; 0: every pair, as the paper)")
     ap.add_argument("--teacher-ref", default=None, metavar="SUMMARY.json",
                     help="(--sitl) the summary of the teacher driving SITL itself (a stock rover given the learner's "
                          "range, --transfer off --limits learned): "
@@ -719,6 +735,15 @@ def arguments(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--turn-probe", choices=("at-command", "at-top-speed"), default="at-command",
                     help="(--sitl) the station's [transfer] turn_probe: probe the yaw-rate limits at the learner's top "
                          "speed (a learner that cannot turn in place, --sitl-model rover) instead of at the command's")
+    ap.add_argument("--turn", choices=("in-place", "needs-speed"), default=None,
+                    help="(--sitl) the station's [transfer] turn: needs-speed for a vehicle that cannot turn in place "
+                         "(its yaw-rate limits learned as curvatures, the MPC planning within them; default with "
+                         "--sitl-model rover), in-place for one that can (the default otherwise)")
+    ap.add_argument("--start", choices=("mission", "on-path"), default=None,
+                    help="(--sitl) where the vehicle starts relative to the mission: mission, its start pose (the "
+                         "paper's: 0.3 m beside the path facing 45 degrees away, a turn on the spot); on-path, on the "
+                         "path's first point facing along it, as a car-like vehicle is placed (default with --turn "
+                         "needs-speed)")
     ap.add_argument("--curve-margin", type=float, default=0.0, metavar="SHARE",
                     help="(one robot) the station's [teacher] curve_margin: the MPC slows for a bend the learned "
                          "yaw-rate limit cannot turn at its top speed, using this share of the limit (e.g. 0.9 with "
@@ -749,6 +774,8 @@ def run(args: argparse.Namespace) -> int:
         raise UsageError("--curve-margin sets one robot's station: not with --robots, --count or --inprocess")
     if (args.transfer != "on" or args.limits is not None) and (len(robots) != 1 or args.count or args.inprocess):
         raise UsageError("--transfer and --limits set one robot's station: not with --robots, --count or --inprocess")
+    if args.sitl is None and (args.turn is not None or args.start is not None):
+        raise UsageError("--turn and --start set the SITL demo's station and mission: they take --sitl")
     if args.inprocess:
         return inprocess(args)
     if args.sitl is not None:

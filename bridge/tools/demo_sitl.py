@@ -38,6 +38,13 @@ REPORTED_PARAMS = (*RANGE_PARAMS, "CRUISE_THROTTLE", "ATC_ACCEL_MAX", "ATC_DECEL
 #: the station's ``[station] pair_settle_s`` on SITL unless ``--pair-settle`` says otherwise: about twice the skid
 #: body's speed lag (0.3 s), so a pair's command had been in force long enough for the speed to follow it
 PAIR_SETTLE_S = 0.5
+#: the same on the Ackermann body (``--sitl-model rover``), and ``[station] pair_settle_edge_s`` for its commands on
+#: an edge of its range: it reaches its top from rest in about 2 s (sitl-weak-ackermann.parm's table: after 2 s of a
+#: 4 s hold); with 0.5 or 1 s for every pair its probe of the top speed read 0.12-0.21 m/s of its 0.36 and the
+#: teacher, held to that, took twice as long; with 2 s for every pair only 28-55 pairs were kept in a run, too few for
+#: a map, and the teacher's commands went to it as they were (docs/BENCHMARKS.md)
+PAIR_SETTLE_ACKERMANN_S = 1.0
+PAIR_SETTLE_EDGE_ACKERMANN_S = 2.5
 
 
 def learned_limits(store_path: Path) -> dict[str, list[float]] | None:
@@ -50,7 +57,12 @@ def learned_limits(store_path: Path) -> dict[str, list[float]] | None:
     except (OSError, ValueError):
         return None
     box = store.limits.box
-    return {"v": [round(float(x), 4) for x in box.v], "w": [round(float(x), 4) for x in box.w]}
+    out: dict[str, list[float] | list[float | None]] = {"v": [round(float(x), 4) for x in box.v],
+                                                        "w": [round(float(x), 4) for x in box.w]}
+    k = store.limits.learned_curvature()  # at the full lock (a bound with [transfer] turn = "needs-speed")
+    if not all(math.isinf(x) for x in k):
+        out["curvature"] = [None if math.isinf(x) else round(x, 4) for x in k]
+    return out
 
 
 def teacher_reference(path: str | Path) -> dict[str, Any]:
@@ -106,6 +118,18 @@ def place_mission(spec, pose: tuple[float, float, float]):
     return M.MissionSpec(name=f"{spec.name}@sitl", frame="sitl-local", path=[move(x, y) for x, y in spec.path],
                          goal_tolerance=spec.goal_tolerance, obstacles=[[*move(x, y), r] for x, y, r in spec.obstacles],
                          start=[px, py, pth])
+
+
+def start_on_path(spec):
+    """``spec`` with its start on the path's first point, facing along the path's first segment: where a car-like
+    vehicle is placed. From the paper's start (0.3 m beside the path facing 45 degrees away: a turn on the spot) a
+    vehicle that cannot turn in place joins the path only after a loop, and even the ideal teacher, bounded by the
+    weak Ackermann rover's curvature, then deviates 0.39 m over the last half and touches an obstacle
+    (docs/BENCHMARKS.md, "The transfer on SITL")."""
+    import msgspec
+
+    (x0, y0), (x1, y1) = spec.path[0], spec.path[1]
+    return msgspec.structs.replace(spec, start=[float(x0), float(y0), math.atan2(y1 - y0, x1 - x0)])
 
 
 def mission_toml(spec) -> str:
