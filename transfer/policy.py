@@ -4,9 +4,8 @@ Two policies implement one :class:`Policy` protocol, ``map(u_T, *, plan=None, ex
 :class:`Mapped` ``(u_L, method, region)``: :class:`PaperPolicy` and :class:`GuidedPolicy` (``make_policy(store,
 mapper, exploration=...)`` builds one by name). They decide differently what happens where no mapping region holds
 u_T; both map through the region the same way where one does, and both share one unperturbed mapping for
-``explore=False``. The result is always finite and inside the
-learner's hard bounds; a non-finite u_T is refused with ValueError. With the ``identity`` mapper (the paper's
-baseline) every command is ``"direct"``, the teacher command clipped into the learner's box.
+``explore=False``. The result is always finite and inside the learner's hard bounds; a non-finite u_T is refused
+with ValueError. With the ``identity`` mapper (the paper's baseline) every command is ``"direct"``, clipped.
 
 :class:`PaperPolicy`: the paper's algorithm as published (``plan`` is ignored). ``method`` is
 
@@ -36,8 +35,8 @@ unconfigured cell nearest to that estimate. ``method`` is
   exploring around a command the learned pairs already enclose; and a command at a learned limit whose boundary
   has been driven (within ``ALONG_LIMIT_TOL``, as a bounded MPC's saturated commands are): the learner's extreme
   on that axis and, on the other, linear interpolation between the two neighbouring refined pairs of the boundary
-  row of cells (those pairs are nearly collinear in the teacher domain, so the 2-D regions there are slivers);
-  this holds for every policy's unperturbed mapping;
+  row of cells (those pairs are nearly collinear in the teacher domain, so the 2-D regions there are slivers; with
+  the store's ``adapt``, beyond the row's pairs the region's map); this holds for every policy's unperturbed mapping;
 - ``"direct"``: no region holds u_T, and the teacher command is applied directly *relative to the learned region*:
   the estimate is the linear interpolation of the region's nearest point ``q`` (on a hull edge, between that
   edge's two pairs) plus the offset ``u_T - q`` taken one-to-one in physical units, clipped into the learner's
@@ -88,8 +87,7 @@ no perturbation of any kind, for both policies: the command is the guided policy
 fallback) or its estimate; the paper's algorithm has no such mode, so it shares the guided one. ``plan`` is an
 optional (K, 2) array of the teacher's next planned commands (teacher units, after u_T; :func:`planned_commands`
 recovers them from an MPC's predicted states), or a function returning it, called only when a cell is chosen;
-it only steers which cell is explored.
-The method names are those of the bridge's ``Command`` message.
+it only steers which cell is explored. The method names are those of the bridge's ``Command`` message.
 """
 
 from __future__ import annotations
@@ -178,11 +176,8 @@ class _PolicyBase:
             raise ValueError(f"inset must be in [0, 0.5), got {inset}")
         if turn_probe not in TURN_PROBES:
             raise ValueError(f"unknown turn_probe {turn_probe!r}; known: {', '.join(TURN_PROBES)}")
-        self.turn_probe = turn_probe
-        self.store = store
-        self.saturate = float(saturate)
-        self.probe_tol = float(probe_tol)
-        self.inset = float(inset)
+        self.turn_probe, self.store = turn_probe, store
+        self.saturate, self.probe_tol, self.inset = float(saturate), float(probe_tol), float(inset)
         self.mapper: Mapper = make_mapper(mapper, store) if isinstance(mapper, str) else mapper
         identity = isinstance(self.mapper, IdentityMapper)
         self._affine = None if identity else AffineMapper(store)
@@ -226,9 +221,10 @@ class _PolicyBase:
         sit exactly there): the learner's extreme on that axis, and on the other the linear interpolation between
         the two neighbouring refined pairs of the boundary row of cells on that side. Those pairs are (nearly)
         collinear in the teacher domain, so the 2-D regions along the limit are slivers whose maps are
-        ill-conditioned; along the row the map is one-dimensional. None when ``t_n`` is not at such a limit or lies
-        beyond the row's pairs. A learner that cannot turn in place has its curvature at ``t_n``'s speed as its
-        yaw-rate limit (``turn_edges_at``): commands there go to the full lock, which keeps it learned."""
+        ill-conditioned; along the row the map is one-dimensional. None when ``t_n`` is not at such a limit, or lies
+        beyond the row's pairs (with ``adapt``: the extreme, the other axis mapped: the limit keeps its boundary
+        pairs coming). A learner that cannot turn in place has its curvature at ``t_n``'s speed as its yaw-rate
+        limit (``turn_edges_at``): commands there go to the full lock, which keeps it learned."""
         arrays = self.store.refined_arrays()
         ids, _, T, L = arrays
         if ids.size < 2:
@@ -246,7 +242,10 @@ class _PolicyBase:
                     continue
                 x = float(t_n[b])
                 if not xs[0] <= x <= xs[-1]:
-                    continue
+                    if not self.store.adapt:
+                        continue
+                    got = self._map_chain(t_n) or self._estimate(self.store.teacher_bounds.denormalise(t_n), t_n)
+                    return np.where(np.arange(2) == a, extreme, got[0]), got[1], got[2]
                 k = min(max(int(np.searchsorted(xs, x, side="right")), 1), on_row.size - 1)
                 i0, i1 = on_row[k - 1], on_row[k]
                 span = T[i1, b] - T[i0, b]

@@ -29,7 +29,9 @@ out of reach: 94-125 mm of deviation in each, 16x the deviation before the chang
 paper", has the figures with it). It is not the default because it changes the paper's experiment: on the paper's
 quick world the ideal teacher's last-half deviation falls from 11.3 to 1.6 mm and the SCM learner's from 8 to 3 mm,
 so the paper's ratio to the teacher rises from 0.7 to 2.1. The obstacles the problem's slots hold are the nearest
-within the horizon's reach. A failed solve never yields garbage: the shifted previous plan is used if there is one
+within the horizon's reach. A learner that cannot turn in place (``MpcConfig.turn_needs_speed``) adds the learned
+curvatures as two linear rows a stage, ``k_lo v <= omega <= k_hi v`` (docs/ARCHITECTURE.md, "The teacher's MPC").
+A failed solve never yields garbage: the shifted previous plan is used if there is one
 (and the result says ``fallback=True``), else a stop.
 
 Pure: no clocks, no files; the caller times ``solve``.
@@ -466,7 +468,8 @@ class MpcTeacher:
         self._prev_pred: NDArray[np.float64] | None = None
         self._prev_u: NDArray[np.float64] | None = None
         self.u_last = np.zeros(2)
-        # the parameter vector p = [x0, refs, u_prev, obstacles] (the layout of _build_nlp), refilled each solve
+        # the parameter vector p = [x0, refs, u_prev, obstacles, curvatures if turn_needs_speed] (the layout of
+        # _build_nlp), refilled each solve
         N, K = cfg.N, cfg.max_obstacles
         nk = 2 if cfg.turn_needs_speed else 0
         self._p = np.empty(3 + 3 * (N + 1) + 2 + 3 * K + nk)

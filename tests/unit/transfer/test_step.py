@@ -642,3 +642,25 @@ def test_a_command_on_a_learned_curvature_maps_to_the_full_lock() -> None:
     assert len(slower.region) == 2 and slower.u_L[1] == lock
     s.limits.set_needs_speed(False)  # the box's edge is the mean of the full-lock pairs' yaw rates, 0.125
     assert len(policy.map([0.12, 0.06], explore=False).region) != 2
+
+
+def test_with_change_detection_a_command_beyond_a_limits_row_of_pairs_still_goes_to_the_learners_extreme() -> None:
+    """``adapt``: a command at a driven limit beyond the row's pairs on the other axis maps to the learner's extreme
+    there too, its other axis mapped as without it, so the limit keeps getting boundary pairs and can follow a
+    learner that lost reach (found on SITL: after a turn-rate cut the teacher's commands at the learned limit lay just
+    beyond the row's pairs, were mapped short of the learner's extreme, and the limit never moved). Without it (the
+    paper's store) such a command is not "along the limit": the ordinary mapping decides, as before."""
+    got = {}
+    for adapt in (False, True):
+        s = PairStore(LB, TB, k_min=1, adapt=adapt)
+        top = LB.v[1]
+        for w_l, w_t in ((-0.15, -0.12), (0.0, 0.02), (0.2, 0.15)):
+            s.add([top, w_t], [top, w_l])
+        s.add([0.1, 0.0], [0.12, 0.0])
+        policy = make_policy(s, seed=0)
+        t_n = TB.normalise(np.array([s.limits.box.v[1], 0.17]))  # at the top speed, beyond the row's 0.15
+        got[adapt] = (policy._along_limit(t_n), policy.map(TB.denormalise(t_n), explore=False))
+    assert got[False][0] is None
+    l_n, method, region = got[True][0]
+    assert l_n[0] == 1.0 and got[True][1].u_L[0] == LB.v[1]  # the learner's top
+    assert got[True][1].u_L[1] == pytest.approx(got[False][1].u_L[1])  # the yaw rate as the paper's store maps it
