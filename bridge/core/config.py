@@ -125,7 +125,8 @@ class TransferSection(Cfg):
         "from the learned region)")] = "guided"
     limits: Annotated[Literal["learned", "teacher"], meta(
         "what bounds the station's own teacher (the MPC's inputs, the primitives it plans with): learned, the "
-        "learner's limits learned from the pairs (the paper's method, Section 4.2); teacher, the teacher's own range "
+        "learner's limits learned from the pairs (the paper's method, Section 4.2; with mapper = \"identity\" no wider "
+        "than the learner's own range, which the commands are clipped to); teacher, the teacher's own range "
         "(teacher_bounds), as if nothing were known of the learner: with mapper = \"identity\" and exploration = "
         "\"off\" the paper's baseline learner, which applies the teacher's commands directly (Section 5.2; "
         "scmbridge sim mpc's teacher_range baseline). Pairs are still formed and stored, and the limits message "

@@ -196,6 +196,7 @@ class StationCore:
         self.source: CommandSource = source or make_source(cfg, self.period, calibration)
         # what bounds the teacher: the learned limits, or the teacher's own range (the paper's baseline)
         self.teacher_limits = tcfg.limits
+        self.direct_within = learner if tcfg.mapper == "identity" else None  # (SourceContext.box)
         if tcfg.limits == "teacher":
             log.info("the teacher is bounded by its own range, not by the learned limits ([transfer] limits = "
                      "\"teacher\"%s)", ": the paper's baseline" if tcfg.mapper == "identity"
@@ -413,7 +414,7 @@ class StationCore:
     def drive(self, now: float, state: M.LearnerState) -> tuple[Why | None, M.Command | None, M.TeacherCommand | None]:
         """The source's proposal, mapped and made a command; or why not."""
         ctx = SourceContext(self.mission, self.store, self.counters, self.why, self.teacher, self.teacher_at,
-                            self.teacher_new, self.teacher_limits)
+                            self.teacher_new, self.teacher_limits, self.direct_within)
         self.teacher_new = False
         prop = self.source.propose(now, state, ctx)
         if isinstance(prop, Why):

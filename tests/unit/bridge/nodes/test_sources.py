@@ -178,3 +178,24 @@ def test_the_primitives_of_the_baseline_plan_with_the_teachers_whole_library() -
         assert isinstance(src.propose(0.0, POSE, ctx), Proposal)
         counts[limits] = ctx.counters.primitives_allowed
     assert counts["learned"] < len(lib) and counts["teacher"] == len(lib)
+
+
+def test_learned_limits_under_commands_sent_as_they_are_end_at_the_learners_range() -> None:
+    """``[transfer] mapper = "identity"`` with learned limits (``--transfer off --limits learned``, a reference run):
+    the teacher's commands are clipped to the learner's range on the way, so a learned limit beyond it (one noisy
+    pair read 0.40 m/s of a rover's 0.36 on SITL) must not let the plan run ahead of the vehicle; an axis the learner's
+    range does not cut keeps the learned edge, and the mapped transfer keeps the learned box as it is."""
+    store = PairStore(LEARNER, TEACHER)
+    store.add([0.5, 0.0], [LEARNER.v[1], 0.0])  # its top command read faster than the learner's range
+    assert store.limits.box.v[1] > LEARNER.v[1]
+    direct = SourceContext(mission=load_mission(), store=store, counters=StationCounters(), direct_within=LEARNER)
+    box = direct.box()
+    lb = store.limits.box
+    assert box.v == (max(lb.v[0], LEARNER.v[0]), LEARNER.v[1])
+    assert box.w == (max(lb.w[0], LEARNER.w[0]), min(lb.w[1], LEARNER.w[1]))
+    assert direct.box() is box  # built once for the same pair of boxes
+    mapped = SourceContext(mission=load_mission(), store=store, counters=StationCounters())
+    assert mapped.box() == store.limits.box
+    own = SourceContext(mission=load_mission(), store=store, counters=StationCounters(), limits="teacher",
+                        direct_within=LEARNER)
+    assert own.box() == TEACHER  # the paper's baseline: the teacher's own range, as before
