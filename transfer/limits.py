@@ -261,7 +261,7 @@ class LearnerLimits:
 
     def _turn_edges(self, lo: list[float], hi: list[float]) -> None:
         """``needs_speed``: the box's yaw-rate edges (normalised, in place) are each side's curvature times the box's
-        top speed, on the sides that have boundary pairs."""
+        top speed, on the sides that have one (learned or extrapolated)."""
         tb = self.teacher_bounds
         v_top = max(tb.v[0] + hi[0] * (tb.v[1] - tb.v[0]), 0.0)
         span_w = tb.w[1] - tb.w[0]
@@ -331,8 +331,8 @@ class LearnerLimits:
     @property
     def curvature(self) -> tuple[float, float] | None:
         """``needs_speed``: the learned curvatures (rad/m) of the lower and the upper yaw-rate side, ``(k_lo, k_hi)``
-        with ``k_lo * v <= omega <= k_hi * v`` (teacher units; +-inf for a side with no boundary pair yet);
-        None for a learner that turns in place."""
+        with ``k_lo * v <= omega <= k_hi * v`` (teacher units; +-inf for a side with neither a full-lock pair nor an
+        extrapolation yet); None for a learner that turns in place."""
         return self.learned_curvature() if self.needs_speed else None
 
     def turn_edges_at(self, v_n: float) -> tuple[float, float]:
@@ -352,7 +352,7 @@ class LearnerLimits:
         return lo, hi
 
     def learned_curvature(self) -> tuple[float, float]:
-        """The two sides' curvatures learned from their boundary pairs (rad/m; +-inf: none yet), whatever
+        """The two sides' curvatures, from their full-lock pairs or extrapolated (rad/m; +-inf: none yet), whatever
         ``needs_speed`` says (for a learner that turns in place they bound nothing: ``pairs show`` prints them)."""
         return self._kappa(0), self._kappa(1)
 

@@ -269,27 +269,37 @@ class LimitsReport:
 
     def __init__(self, store: PairStore, robot: str) -> None:
         self.store, self.robot = store, robot
-        self.sent: tuple[list[float], int] | None = None  # the box and the hull's size last sent
+        self.sent: tuple[list[float], int, list | None] | None = None  # the box, the hull's size, the curvatures
         self.version = 0
 
     def message(self, now: float, force: bool) -> M.Limits | None:
         """The limits to send at ``now`` (None: nothing moved enough). (Every pair on a boundary nudges the box's
-        mean a little: the hull is built for a message, not each tick.)"""
+        mean a little: the hull is built for a message, not each tick.) A learner that cannot turn in place sends
+        them when a learned curvature moved too (its box's yaw-rate edge may sit at the teacher's range)."""
         box = self.store.limits.box.as_list()
+        k = self.store.limits.curvature
+        curvature = None if k is None else [None if math.isinf(x) else round(x, 6) for x in k]
         sent = self.sent
         if sent is not None and not force:
             sv, sw = self.store.teacher_bounds.span.tolist()
             tol = (sv, sv, sw, sw)
-            if all(abs(a - b) <= LIMITS_MOVE_TOL * t for a, b, t in zip(box, sent[0], tol)):
+            if (all(abs(a - b) <= LIMITS_MOVE_TOL * t for a, b, t in zip(box, sent[0], tol))
+                    and (curvature is None or not _curvature_moved(curvature, sent[2]))):
                 return None
         hull = [[float(a), float(b)] for a, b in self.store.limits.hull]
-        key = (box, len(hull))
+        key = (box, len(hull), curvature)
         if sent != key:
             self.version += 1
         self.sent = key
-        k = self.store.limits.curvature
-        curvature = None if k is None else [None if math.isinf(x) else round(x, 6) for x in k]
         return M.Limits(stamp=now, robot=self.robot, version=self.version, box=box, hull=hull, curvature=curvature)
+
+
+def _curvature_moved(now: list, before: list | None) -> bool:
+    """A learned curvature appeared, or moved by more than :data:`LIMITS_MOVE_TOL` of itself (rad/m)."""
+    if before is None:
+        return True
+    return any((a is None) != (b is None) or (a is not None and abs(a - b) > LIMITS_MOVE_TOL * max(abs(b), 1e-3))
+               for a, b in zip(now, before))
 
 
 __all__ = ["GOOD_REASONS", "INTEGRITY_WINDOW_S", "LIMITS_MOVE_TOL", "STATUS_EVERY_S", "STATUS_MAX_HZ", "Integrity",

@@ -162,9 +162,14 @@ def test_the_limits_of_a_learner_that_cannot_turn_in_place_carry_its_curvatures_
     store.limits.set_needs_speed(True)
     assert LimitsReport(store, "r1").message(0.0, force=True).curvature == [None, None]
     store.add([0.3, 0.15], [lb.v[1], lb.w[1]])  # a full-lock pair: 0.5 rad/s per m/s to the left
-    msg = LimitsReport(store, "r1").message(0.0, force=True)
+    report = LimitsReport(store, "r1")
+    msg = report.message(0.0, force=True)
     assert msg.curvature == [None, 0.5] and msg.box[3] == pytest.approx(0.5 * msg.box[1])
     M.validated(msg)
+    assert report.message(0.1, force=False) is None  # nothing moved
+    store.limits.turn_vw[1] *= 1.2  # the curvature moves (as a full-lock pair would move it), the box not yet
+    moved = report.message(0.2, force=False)
+    assert moved is not None and moved.curvature == [None, 0.6] and moved.version == msg.version + 1
     assert load_station(None).transfer.turn == "in-place"
     ok = tmp_path / "ok.toml"
     ok.write_text('[transfer]\nturn = "needs-speed"\n')
