@@ -734,7 +734,7 @@ def arguments(ap: argparse.ArgumentParser) -> None:
                          "(default 20:10); the station re-learns the changed cells ([transfer] adapt)")
     ap.add_argument("--turn-probe", choices=("at-command", "at-top-speed"), default="at-command",
                     help="(--sitl) the station's [transfer] turn_probe: probe the yaw-rate limits at the learner's top "
-                         "speed (a learner that cannot turn in place, --sitl-model rover) instead of at the command's")
+                         "speed instead of at the command's (--turn needs-speed does so whatever this says)")
     ap.add_argument("--turn", choices=("in-place", "needs-speed"), default=None,
                     help="(--sitl) the station's [transfer] turn: needs-speed for a vehicle that cannot turn in place "
                          "(its yaw-rate limits learned as curvatures, the MPC planning within them; default with "
