@@ -187,7 +187,7 @@ def test_slowing_for_the_bends_a_yaw_rate_bound_cannot_turn_tracks_them_closer()
 
 @pytest.mark.parametrize("solver", SOLVERS)
 def test_a_learner_that_cannot_turn_in_place_is_planned_within_its_curvature(solver: str) -> None:
-    """``turn_needs_speed``: every input of the plan keeps k_lo v <= omega <= k_hi v (an Ackermann rover's full
+    """``turn_needs_speed``: every command it gives keeps k_lo v <= omega <= k_hi v (an Ackermann rover's full
     lock), on a path whose bends the box alone would turn at its slowest speed; an unknown side (infinite) leaves
     that side to the box; a curvature that forbids driving straight is refused."""
     pts = np.array([[0.0, 0.0], [1.0, 0.0]] + [[1.0 + math.sin(a), 1.0 - math.cos(a)]
