@@ -65,6 +65,19 @@ def calibration_commands(learner_bounds: Bounds, n: int | tuple[int, int] = 5) -
     return learner_bounds.denormalise(np.stack([V.ravel(), W.ravel()], axis=-1))
 
 
+def _recency(n: int, memory: int) -> tuple[float, int]:
+    """A running mean's count stopped at ``memory`` (0: never): the factor to scale its sum by before the next term
+    and the count it then has, so the mean weighs about the last ``memory`` terms (recency-weighted)."""
+    return ((memory - 1) / n, memory - 1) if memory and n >= memory else (1.0, n)
+
+
+def _keep_apart(lo: list[float], hi: list[float], a: int) -> None:
+    """Axis ``a``'s normalised edges (in place) a millionth apart at least: a collapsed box stays a box."""
+    if hi[a] - lo[a] < 1e-6:
+        mid = 0.5 * (hi[a] + lo[a])
+        lo[a], hi[a] = mid - 5e-7, mid + 5e-7
+
+
 class LearnerLimits:
     """Per-axis lower/upper bounds on the normalised teacher domain plus the boundary points for the hull."""
 
@@ -127,9 +140,8 @@ class LearnerLimits:
             t, l = tn[a], ln[a]
             if l >= 1.0 - tol:
                 on_boundary = True
-                if mem and bcnt_hi[a] >= mem:  # the running mean's count stops at the memory: recency-weighted
-                    bsum_hi[a] *= (mem - 1) / bcnt_hi[a]
-                    bcnt_hi[a] = mem - 1
+                keep, bcnt_hi[a] = _recency(bcnt_hi[a], mem)
+                bsum_hi[a] *= keep
                 bsum_hi[a] += t
                 bcnt_hi[a] += 1
                 hi[a] = bsum_hi[a] / bcnt_hi[a]
@@ -137,9 +149,8 @@ class LearnerLimits:
                 hi[a] = t / l  # Eq. learn_capability
             if l <= tol:
                 on_boundary = True
-                if mem and bcnt_lo[a] >= mem:
-                    bsum_lo[a] *= (mem - 1) / bcnt_lo[a]
-                    bcnt_lo[a] = mem - 1
+                keep, bcnt_lo[a] = _recency(bcnt_lo[a], mem)
+                bsum_lo[a] *= keep
                 bsum_lo[a] += t
                 bcnt_lo[a] += 1
                 lo[a] = bsum_lo[a] / bcnt_lo[a]
@@ -150,9 +161,7 @@ class LearnerLimits:
             # the teacher's own range is the outer limit; keep lo < hi
             lo[a] = min(max(lo[a], 0.0), 1.0)
             hi[a] = min(max(hi[a], 0.0), 1.0)
-            if hi[a] - lo[a] < 1e-6:
-                mid = 0.5 * (hi[a] + lo[a])
-                lo[a], hi[a] = mid - 5e-7, mid + 5e-7
+            _keep_apart(lo, hi, a)
         if ln[1] >= 1.0 - tol or ln[1] <= tol:  # on the learner's yaw-rate edge: a sample of that side's curvature
             self._turn_sample(1 if ln[1] >= 1.0 - tol else 0, tn[0], tn[1])
         elif ln[1] > old_ext[1][1] or ln[1] < old_ext[0][1]:  # a new outlier inside it: Eq. learn_capability's
@@ -215,17 +224,13 @@ class LearnerLimits:
         """One boundary pair of yaw-rate side ``side`` (0: lower, 1: upper), its normalised teacher part: into the
         side's curvature sums (teacher units, recency-weighted with the box's ``memory``); a pair at standstill or
         backwards says nothing of a curvature."""
-        tb = self.teacher_bounds
-        v = tb.v[0] + tv_n * (tb.v[1] - tb.v[0])
+        v = self._teacher(0, tv_n)
         if v <= 0.0:
             return
-        w = tb.w[0] + tw_n * (tb.w[1] - tb.w[0])
-        n, mem = int(self.turn_n[side]), self.memory
-        if mem and n >= mem:
-            keep = (mem - 1) / n
-            self.turn_vw[side] *= keep
-            self.turn_vv[side] *= keep
-            n = mem - 1
+        w = self._teacher(1, tw_n)
+        keep, n = _recency(int(self.turn_n[side]), self.memory)
+        self.turn_vw[side] *= keep
+        self.turn_vv[side] *= keep
         self.turn_vw[side] += v * w
         self.turn_vv[side] += v * v
         self.turn_n[side] = n + 1
@@ -237,9 +242,8 @@ class LearnerLimits:
         curvature; too slow a pair, or too small a share, says too little."""
         if self.turn_n[side]:
             return
-        tb, lb = self.teacher_bounds, self.learner_bounds
-        v = tb.v[0] + tn[0] * (tb.v[1] - tb.v[0])
-        w = tb.w[0] + tn[1] * (tb.w[1] - tb.w[0])
+        lb = self.learner_bounds
+        v, w = self._teacher(0, tn[0]), self._teacher(1, tn[1])
         w_l = lb.w[0] + ln[1] * (lb.w[1] - lb.w[0])
         lock = lb.w[1] if side else lb.w[0]
         share = w_l / lock if lock else 0.0
@@ -262,21 +266,27 @@ class LearnerLimits:
     def _turn_edges(self, lo: list[float], hi: list[float]) -> None:
         """``needs_speed``: the box's yaw-rate edges (normalised, in place) are each side's curvature times the box's
         top speed, on the sides that have one (learned or extrapolated)."""
+        v_top = max(self._teacher(0, hi[0]), 0.0)
+        for side, edges in ((0, lo), (1, hi)):
+            wn = self._turn_edge(side, v_top)
+            if wn is not None:
+                edges[1] = min(max(wn, 0.0), 1.0)
+        _keep_apart(lo, hi, 1)
+
+    def _teacher(self, a: int, x_n: float) -> float:
+        """Normalised teacher coordinate ``x_n`` of axis ``a`` (0: v, 1: omega) in teacher units (one scalar: what
+        ``Bounds.denormalise`` does to arrays)."""
+        lo, hi = self.teacher_bounds.v if a == 0 else self.teacher_bounds.w
+        return lo + x_n * (hi - lo)
+
+    def _turn_edge(self, side: int, v: float) -> float | None:
+        """Side ``side``'s yaw-rate edge at speed ``v`` (teacher units), its curvature times ``v``, normalised and not
+        clipped; None while the side has no curvature."""
+        k = self._kappa(side)
+        if math.isinf(k):
+            return None
         tb = self.teacher_bounds
-        v_top = max(tb.v[0] + hi[0] * (tb.v[1] - tb.v[0]), 0.0)
-        span_w = tb.w[1] - tb.w[0]
-        for side in (0, 1):
-            k = self._kappa(side)
-            if math.isinf(k):
-                continue
-            wn = min(max((k * v_top - tb.w[0]) / span_w, 0.0), 1.0)
-            if side:
-                hi[1] = wn
-            else:
-                lo[1] = wn
-        if hi[1] - lo[1] < 1e-6:
-            mid = 0.5 * (hi[1] + lo[1])
-            lo[1], hi[1] = mid - 5e-7, mid + 5e-7
+        return (k * v - tb.w[0]) / (tb.w[1] - tb.w[0])
 
     def forget(self, cell: tuple[int, int], old_T: NDArray[np.float64], old_L: NDArray[np.float64],
                new_T: NDArray[np.float64], new_L: NDArray[np.float64]) -> None:
@@ -341,15 +351,9 @@ class LearnerLimits:
         lo, hi = float(self.lo[1]), float(self.hi[1])
         if not self.needs_speed:
             return lo, hi
-        tb = self.teacher_bounds
-        v = max(tb.v[0] + v_n * (tb.v[1] - tb.v[0]), 0.0)
-        span_w = tb.w[1] - tb.w[0]
-        k_lo, k_hi = self._kappa(0), self._kappa(1)
-        if not math.isinf(k_lo):
-            lo = max(lo, (k_lo * v - tb.w[0]) / span_w)
-        if not math.isinf(k_hi):
-            hi = min(hi, (k_hi * v - tb.w[0]) / span_w)
-        return lo, hi
+        v = max(self._teacher(0, v_n), 0.0)
+        e_lo, e_hi = self._turn_edge(0, v), self._turn_edge(1, v)
+        return (lo if e_lo is None else max(lo, e_lo)), (hi if e_hi is None else min(hi, e_hi))
 
     def learned_curvature(self) -> tuple[float, float]:
         """The two sides' curvatures, from their full-lock pairs or extrapolated (rad/m; +-inf: none yet), whatever
