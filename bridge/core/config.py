@@ -159,6 +159,11 @@ class TransferSection(Cfg):
         "adapt: a cell's recent pairs this far from its refined pair (share of the teacher's range) mean its learner "
         "changed (or five standard deviations of their noise, if more)", ge=0.001, le=0.5)] = 0.02
 
+    def probe_turns(self) -> str:
+        """Where the station probes the yaw-rate limits (``turn_probe``'s values): at the top speed for a learner that
+        cannot turn in place, whatever ``turn_probe`` says (the one place this rule lives)."""
+        return "at-top-speed" if self.turn == "needs-speed" else self.turn_probe
+
 
 class TeacherSection(Cfg):
     """``[teacher]``: who computes the teacher commands the station maps."""

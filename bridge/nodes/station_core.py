@@ -187,8 +187,7 @@ class StationCore:
         phase = robot_phase(robot)
         # a learner that cannot turn in place: its yaw-rate limits are curvatures, probed where it turns most
         self.store.limits.set_needs_speed(tcfg.turn == "needs-speed")
-        turn_probe = "at-top-speed" if tcfg.turn == "needs-speed" else tcfg.turn_probe
-        policy = make_policy(self.store, tcfg.mapper, np.random.default_rng(tcfg.seed), turn_probe=turn_probe,
+        policy = make_policy(self.store, tcfg.mapper, np.random.default_rng(tcfg.seed), turn_probe=tcfg.probe_turns(),
                              **({"exploration": "paper"} if tcfg.exploration == "paper"
                                 else {"exploration": "guided", "fill_budget": tcfg.fill_budget, "fill_phase": phase}))
         self.transfer = TransferStep(policy, dt=self.period, explore=tcfg.exploration != "off",

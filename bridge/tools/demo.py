@@ -355,7 +355,7 @@ def _wait_state(mon, state: str, timeout: float) -> bool:
 def sitl_hil(args: argparse.Namespace, robot: str = "sitl") -> int:
     """``--sitl``: ArduPilot's Rover SITL as the learner (:mod:`bridge.tools.demo_sitl` says how). Boot SITL, engage
     as the pilot, run the station and the driver host on MAVLink, print one JSON summary."""
-    from bridge.core.config import load_mission_spec, mission_from_spec
+    from bridge.core.config import load_mission_spec, load_station, mission_from_spec
     from bridge.nodes.zsession import free_port, make_config, open_session, tcp
     from bridge.tools.demo_sitl import (
         PAIR_SETTLE_ACKERMANN_S,
@@ -394,7 +394,7 @@ def sitl_hil(args: argparse.Namespace, robot: str = "sitl") -> int:
     ref = teacher_reference(args.teacher_ref) if args.teacher_ref else None
     changes = [param_change(x) for x in args.param_at]
     # an Ackermann rover cannot turn in place: its yaw-rate limits are curvatures (docs/BENCHMARKS.md)
-    turn = args.turn or ("needs-speed" if args.sitl_model == "rover" else "in-place")
+    turn = args.turn or ("needs-speed" if ackermann else "in-place")
     start = args.start or ("on-path" if turn == "needs-speed" else "mission")
     if start == "on-path":
         spec = start_on_path(spec)
@@ -524,7 +524,7 @@ def sitl_hil(args: argparse.Namespace, robot: str = "sitl") -> int:
         "pair_settle_s": settle, "pair_settle_edge_s": max(settle_edge, settle),
         "learned_limits": learned_limits(store), "adapt": bool(args.adapt),
         "curve_margin": args.curve_margin, "turn": turn, "start": start,
-        "turn_probe": "at-top-speed" if turn == "needs-speed" else args.turn_probe,  # what the station does
+        "turn_probe": load_station(out / "station.toml").transfer.probe_turns(),  # what the station does
         "cells_relearned": relearned, "param_changes": changed,
         "max_dev_m": run["max_dev_m"], "goal_dist_m": run["goal_dist_m"], "driving_s": run["driving_s"],
         "learner_bounds": [list(v_range), list(w_range)], "vehicle_params": params,
