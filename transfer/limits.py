@@ -164,8 +164,12 @@ class LearnerLimits:
             _keep_apart(lo, hi, a)
         if ln[1] >= 1.0 - tol or ln[1] <= tol:  # on the learner's yaw-rate edge: a sample of that side's curvature
             self._turn_sample(1 if ln[1] >= 1.0 - tol else 0, tn[0], tn[1])
-        elif ln[1] > old_ext[1][1] or ln[1] < old_ext[0][1]:  # a new outlier inside it: Eq. learn_capability's
-            self._turn_extrapolate(1 if ln[1] > old_ext[1][1] else 0, tn, ln)
+        else:  # a new outlier inside it: Eq. learn_capability's (the first pair is a new outlier on both sides;
+            # _turn_extrapolate keeps it only for the side its turn is on)
+            if ln[1] > old_ext[1][1]:
+                self._turn_extrapolate(1, tn, ln)
+            if ln[1] < old_ext[0][1]:
+                self._turn_extrapolate(0, tn, ln)
         if self.needs_speed:
             self._turn_edges(lo, hi)
         changed = old != (lo, hi)

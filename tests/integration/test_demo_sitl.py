@@ -231,10 +231,10 @@ def test_an_ackermann_rover_learns_that_it_cannot_turn_in_place_and_follows_the_
     run = _demo(binary, tmp_path / "scm", *weak)
     assert run["turn"] == "needs-speed" and run["start"] == "on-path" and run["pair_settle_edge_s"] > 2, run
     assert run["reached_goal"] and run["collisions"]["scm"] is False, run
-    # it cannot turn in place: omega <= k v on the sides it learned (both in 3 of 4 runs, the left in the fourth)
-    k_lo, k_hi = run["learned_limits"]["curvature"]
-    assert (k_lo is None or -1.3 < k_lo < -0.6) and (k_hi is None or 0.6 < k_hi < 1.3), run
-    assert k_lo is not None or k_hi is not None, run
+    # it cannot turn in place: omega <= k v on each side (its first settled pairs are a bend each way; a run whose
+    # first pair was a right turn once learned no right curvature: tests/unit/transfer/test_limits.py)
+    k_lo, k_hi = run["learned_limits"].get("curvature", (None, None))  # none learned: the assertion below says so
+    assert k_lo is not None and k_hi is not None and -1.3 < k_lo < -0.6 and 0.6 < k_hi < 1.3, run
     assert 0.3 < run["learned_limits"]["v"][1] < 0.4, run  # the probe of its top speed read settled: 0.36 m/s
     assert run["scm_dev_last_half_m"] <= 1.5 * run["teacher_dev_last_half_m"], run
     assert run["scm_time_s"] <= 1.5 * run["teacher_time_s"], run

@@ -257,3 +257,18 @@ def test_before_a_full_lock_pair_a_curvature_is_extrapolated_from_the_outliers()
     assert math.isinf(lim.curvature[0])
     _full_lock(lim, 1.0, 0.4)
     assert lim.curvature[1] == pytest.approx(0.4)
+
+
+def test_the_first_pair_of_a_run_extrapolates_the_curvature_of_the_side_it_turns_to_either_way() -> None:
+    """The first pair is a new outlier on both sides of the yaw rate; it extrapolates the side its turn is on. Found
+    on SITL's Ackermann rover: a run whose first settled pair was a right turn was read as the left side's outlier,
+    which a right turn cannot extrapolate, and the right side's curvature was never learned (its later pairs were
+    not beyond that first one)."""
+    for sign, side in ((-1.0, 0), (1.0, 1)):
+        lim = LearnerLimits(TB, LB, (11, 11), 1e-6, needs_speed=True)
+        lim.update(TB.normalise(np.array([1.0, sign * 0.3])), LB.normalise(np.array([0.5, sign * 0.3])), (5, 5))
+        assert lim.curvature[side] == pytest.approx(sign * 0.5)  # (omega / v) / share of the lock (0.3 of 0.5)
+        assert math.isinf(lim.curvature[1 - side])
+        # the same turn again is no new outlier: the side keeps what it has
+        lim.update(TB.normalise(np.array([1.0, sign * 0.29])), LB.normalise(np.array([0.5, sign * 0.3])), (5, 5))
+        assert lim.curvature[side] == pytest.approx(sign * 0.5)
