@@ -61,6 +61,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from transfer.domain import Bounds
 from transfer.limits import LearnerLimits
+from transfer.store_blob import LimitsBlob, StoreBlob
 
 SCHEMA = "scmbridge.pairstore"
 SCHEMA_VERSION = 4
@@ -109,60 +110,6 @@ class AddResult:
     cell: tuple[int, int]
     refined_changed: bool
     limits_changed: bool
-
-
-class _LimitsBlob(msgspec.Struct, forbid_unknown_fields=True):
-    lo: list[float]
-    hi: list[float]
-    ext_lo: list[float]
-    ext_hi: list[float]
-    bsum_lo: list[float]
-    bsum_hi: list[float]
-    bcnt_lo: list[int]
-    bcnt_hi: list[int]
-    hull_sum: list[float]
-    hull_cnt: list[int]
-    version: int
-    # schema 4: the yaw-rate sides' curvatures (transfer.limits, a learner that cannot turn in place)
-    turn_vw: list[float] | None = None
-    turn_vv: list[float] | None = None
-    turn_n: list[int] | None = None
-    turn_prop: list[float | None] | None = None  # null: none extrapolated
-
-
-class _StoreBlob(msgspec.Struct, forbid_unknown_fields=True):
-    schema: str
-    schema_version: int
-    learner_bounds: list[float]
-    teacher_bounds: list[float]
-    grid: list[int]
-    k_min: int
-    move_tol: float
-    boundary_tol: float
-    count: list[int]
-    sum_T: list[float]
-    sum_L: list[float]
-    pub_T: list[float]
-    pub_L: list[float]
-    pub_version: list[int]
-    revision: int
-    limits: _LimitsBlob
-    # schema 2: change detection (module docstring); absent in version 1
-    sum_LL: list[float] | None = None
-    sum_TL: list[float] | None = None
-    adapt: bool = False
-    relearned: int = 0
-    added: int | None = None
-    changed_at: list[float | None] | None = None
-    resid: list[float] | None = None
-    noise2: list[float] | None = None
-    recent_T: list[float] | None = None
-    recent_L: list[float] | None = None
-    recent_n: list[int] | None = None
-    # schema 3: how often each cell was re-learned, each cell's own noise estimate; absent in versions 1 and 2
-    changes: list[int] | None = None
-    cell_noise2: list[float] | None = None
-    cell_noise_n: list[int] | None = None
 
 
 @dataclass(frozen=True)
@@ -509,7 +456,7 @@ class PairStore:
     def to_bytes(self) -> bytes:
         """Versioned MessagePack blob with a CRC, so corruption is detected on load."""
         lim = self.limits
-        blob = _StoreBlob(
+        blob = StoreBlob(
             schema=SCHEMA,
             schema_version=SCHEMA_VERSION,
             learner_bounds=self.learner_bounds.as_list(),
@@ -525,7 +472,7 @@ class PairStore:
             pub_L=self.pub_L.ravel().tolist(),
             pub_version=self.pub_version.ravel().tolist(),
             revision=self.revision,
-            limits=_LimitsBlob(
+            limits=LimitsBlob(
                 lo=lim.lo.tolist(), hi=lim.hi.tolist(), ext_lo=lim.ext_lo.tolist(), ext_hi=lim.ext_hi.tolist(),
                 bsum_lo=lim.bsum_lo.tolist(), bsum_hi=lim.bsum_hi.tolist(), bcnt_lo=lim.bcnt_lo.tolist(),
                 bcnt_hi=lim.bcnt_hi.tolist(), hull_sum=lim.hull_sum.ravel().tolist(),
@@ -568,7 +515,7 @@ class PairStore:
             raise ValueError(f"pair-store schema version {raw.get('schema_version')} is not supported "
                              f"(this build reads versions {', '.join(map(str, READS_VERSIONS))})")
         try:
-            b = msgspec.convert(raw, _StoreBlob)
+            b = msgspec.convert(raw, StoreBlob)
         except msgspec.ValidationError as exc:
             raise ValueError(f"pair-store blob is malformed: {exc}") from exc
         gv, gw = b.grid
