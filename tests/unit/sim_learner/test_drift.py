@@ -78,3 +78,20 @@ def test_after_a_dragging_wheel_the_adapting_store_tracks_far_closer_than_the_pa
     adaptive = float(np.median([r["dev_after_m"] / r["dev_before_m"] for r in rows]))
     baseline = float(np.median([r["baseline"]["dev_after_m"] / r["baseline"]["dev_before_m"] for r in rows]))
     assert adaptive < 0.5 * baseline
+
+
+def test_on_a_new_floor_the_adapting_store_drives_closer_than_the_papers_though_no_cell_changed_past_the_tolerance(
+        ) -> None:
+    """The floor scenario on two S-paths (the floor 28.6 s in, about 40 s of driving after it), seeds the claims do not
+    use, judged on the median: the new floor differs by less than ``change_tol`` on the cells the mission drives, so
+    the refined pairs follow it by their recent pairs (transfer/store.py, "A small change"). Every run reaches the goal
+    without a collision, and the adapting store's deviation from 15 s after the change to the end is under 0.7x the
+    never-forgetting store's. Measured (seeds 0-2): 1.0-1.5 mm against 2.3-2.7 mm; before the refined pairs followed
+    the recent pairs, 2.1-2.5 mm (docs/PAPER.md, "Beyond the paper")."""
+    rows = [D.drift_summary("floor", seed, tiles=2) for seed in (0, 1, 2)]
+    for r in rows:
+        for s in (r, r["baseline"]):
+            assert s["reached_goal"] and not s["collisions"]
+    adaptive = float(np.median([r["dev_after_m"] for r in rows]))
+    baseline = float(np.median([r["baseline"]["dev_after_m"] for r in rows]))
+    assert adaptive < 0.7 * baseline, (adaptive, baseline)
