@@ -257,15 +257,15 @@ class PairStore:
         identity response's, where it has none) as if ``k_min`` more pairs had spread a quarter cell around its mean:
         a cell whose pairs all lie at one command knows no slope of its own."""
         n = int(self.count[cell])
-        gv, gw = self.grid
+        grid = self.grid
         prior = list(self._prior)  # a learner that does what it is told
         i, j = cell
         pv, pT, pL = self.pub_version, self.pub_T, self.pub_L
         # scalar arithmetic (two axes: numpy's per-call overhead was most of the cost), in the arrays' order
         for a, lo, hi in ((0, (i - 1, j), (i + 1, j)), (1, (i, j - 1), (i, j + 1))):
-            if lo[a] >= 0 and hi[a] < (gv, gw)[a] and pv[lo] > 0 and pv[hi] > 0:
+            if lo[a] >= 0 and hi[a] < grid[a] and pv[lo] > 0 and pv[hi] > 0:
                 dL = float(pL[hi][a] - pL[lo][a])
-                if abs(dL) > 0.5 / self.grid[a]:
+                if abs(dL) > 0.5 / grid[a]:
                     prior[a] = float(pT[hi][a] - pT[lo][a]) / dL
         if n == 0:
             return np.array(prior)
@@ -274,7 +274,7 @@ class PairStore:
             mL = float(self.sum_L[cell][a]) / n
             sxx = float(self.sum_LL[cell][a]) - n * mL * mL
             sxy = float(self.sum_TL[cell][a]) - n * mL * (float(self.sum_T[cell][a]) / n)
-            q = 0.25 / float(self.grid[a])
+            q = 0.25 / float(grid[a])
             lam = self.k_min * (q * q)
             out[a] = (sxy + lam * prior[a]) / (max(sxx, 0.0) + lam)
         return np.array(out)
