@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import logging
+import re
 import socket
 import threading
 from collections.abc import Sequence
@@ -35,6 +36,28 @@ def tcp(port: int, host: str = "127.0.0.1") -> str:
     return f"tcp/{host}:{port}"
 
 
+def config_error(text: str, limit: int = 300) -> str:
+    """Zenoh's complaint about a config file as one line of at most ``limit`` characters, saying where.
+
+    Zenoh's errors are multi-line parser reports (json5's ``--> 1:9`` with a caret under the line and ``= expected
+    ...``) or a serde ``Message { msg: "...", location: Some(Location { line: 1, column: 3 }) }``, both ending in the
+    Rust source file that raised them; an operator needs the message and the file's line and column.
+    """
+    text = re.sub(r"\s+at /\S+\.rs:\d+\.?\s*$", "", text.strip())
+    msg = re.search(r'msg: "(.*?)"(?:, location: Some\(Location \{ line: (\d+), column: (\d+))?', text, re.S)
+    pest = re.search(r"-->\s*(\d+):(\d+)", text)
+    if msg is not None:
+        line = msg.group(1)
+        if msg.group(2):
+            line = f"line {msg.group(2)}, column {msg.group(3)}: {line}"
+    elif pest is not None:
+        said = [m.strip() for m in re.findall(r"^\s*=\s*(.+)$", text, re.M)]
+        line = f"line {pest.group(1)}, column {pest.group(2)}: {'; '.join(said) or 'not JSON5'}"
+    else:
+        line = " ".join(part.strip() for part in text.splitlines() if part.strip())
+    return line if len(line) <= limit else line[: limit - 3] + "..."
+
+
 def make_config(
     *,
     mode: str = "peer",
@@ -54,8 +77,7 @@ def make_config(
             conf = zenoh.Config.from_file(str(config_file))
             text = Path(config_file).read_text()
         except (zenoh.ZError, OSError, UnicodeDecodeError) as exc:
-            first = str(exc).strip().splitlines()
-            raise UsageError(f"--zenoh-config {config_file}: {' '.join(first[:4]).split(' at /')[0][:300]}") from None
+            raise UsageError(f"--zenoh-config {config_file}: {config_error(str(exc))}") from None
         if "shared_memory" not in text:  # off unless the lab's file says otherwise
             conf.insert_json5("transport/shared_memory/enabled", "false")
     else:
