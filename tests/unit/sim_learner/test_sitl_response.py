@@ -15,7 +15,7 @@ import pytest
 from sim_learner.dynamics import LearnerModel
 from sim_learner.mavlink_rover import MAV, MavlinkRover
 from sim_learner.sitl import Pilot
-from sim_learner.sitl_response import Point, hold, table
+from sim_learner.sitl_response import Point, forward_speed, hold, table
 from sim_learner.vehicle import SimVehicle
 
 
@@ -43,6 +43,7 @@ def test_hold_reads_back_what_an_exactly_responding_rover_did() -> None:
         try:
             for msg_id in (MAV.MAVLINK_MSG_ID_LOCAL_POSITION_NED, MAV.MAVLINK_MSG_ID_ATTITUDE):
                 pilot.interval(msg_id, 20.0)
+                time.sleep(0.025)  # the two streams half a period apart, as a busy machine (and SITL) may have them
             assert pilot.wait(lambda s: s.position is not None, 5.0)  # the EKF has its origin: GUIDED can arm
             pilot.set_mode("GUIDED")
             pilot.arm(True)
@@ -52,3 +53,19 @@ def test_hold_reads_back_what_an_exactly_responding_rover_did() -> None:
             assert vehicle.cmd == pytest.approx((0.3, 0.2))  # ENU counter-clockwise, sent clockwise on the wire
         finally:
             pilot.close()
+
+
+def test_the_forward_speed_takes_the_heading_at_the_velocitys_instant() -> None:
+    class Msg:
+        def __init__(self, **kw: float) -> None:
+            self.__dict__.update(kw)
+
+    yaw_then, rate = 0.5, -0.2  # NED: clockwise positive, so this rover turns counter-clockwise
+    yaw_at_velocity = yaw_then + rate * 0.040
+    pos = Msg(time_boot_ms=1040, vx=0.3 * math.cos(yaw_at_velocity), vy=0.3 * math.sin(yaw_at_velocity))
+    att = Msg(time_boot_ms=1000, yaw=yaw_then, yawspeed=rate)
+    assert forward_speed(pos, att) == pytest.approx(0.3, abs=1e-12)
+    wrapped = Msg(time_boot_ms=(2**32 - 40) & 0xFFFFFFFF, yaw=yaw_then, yawspeed=rate)  # the clock wrapped between
+    assert forward_speed(Msg(time_boot_ms=0, vx=pos.vx, vy=pos.vy), wrapped) == pytest.approx(0.3, abs=1e-12)
+    backwards = Msg(time_boot_ms=1040, vx=-pos.vx, vy=-pos.vy)
+    assert forward_speed(backwards, att) == pytest.approx(-0.3, abs=1e-12)
