@@ -4,7 +4,9 @@
 right after the region's pairs moved (the QuadTransfer is rebuilt); ``ingest_us``: adding one raw pair;
 ``map_stream_us``: the station's stream, one pair ingested and one command mapped; ``map_holes_us``: a store with holes
 off the teacher's way, where the guided policy's hole search runs and finds nothing (the targets and the figures:
-docs/BENCHMARKS.md, "The transfer step").
+docs/BENCHMARKS.md, "The transfer step"). ``--adapt``: the same with the store's change detection and its refined
+pairs following their recent pairs (``PairStore(adapt=True)``, the station's ``[transfer] adapt``), whose cost is
+all in the ingest.
 """
 
 from __future__ import annotations
@@ -19,7 +21,7 @@ from bench.common import emit, summary_us
 DT = 0.1
 
 
-def _filled_store(rng: np.random.Generator, holes: frozenset[tuple[int, int]] = frozenset()):
+def _filled_store(rng: np.random.Generator, holes: frozenset[tuple[int, int]] = frozenset(), adapt: bool = False):
     """Five noisy visits of every cell of the paper's cubic learner (but ``holes``, left unvisited): a full 11 x 11
     set of refined pairs; returns the store, the learner model and the per-pair ingest times."""
     from sim_learner.dynamics import mpc_learner
@@ -30,7 +32,7 @@ def _filled_store(rng: np.random.Generator, holes: frozenset[tuple[int, int]] = 
 
     model = mpc_learner()  # the paper's nonlinear learner, so regions are genuinely curved
     LB = Bounds(model.v_range, model.w_range)
-    store = PairStore(LB, Bounds(MPC_TEACHER_V, MPC_TEACHER_W), k_min=5)
+    store = PairStore(LB, Bounds(MPC_TEACHER_V, MPC_TEACHER_W), k_min=5, adapt=adapt)
     x0 = np.zeros(3)
     ingest = []
     g = (np.arange(11) + 0.5) / 11
@@ -98,13 +100,13 @@ def _time_stream(policy, store, model, command, rng, n: int) -> list[float]:
     return out
 
 
-def _time_holes(rng: np.random.Generator, n: int) -> list[float]:
+def _time_holes(rng: np.random.Generator, n: int, adapt: bool) -> list[float]:
     """A learned store with holes the teacher's commands do not lead to (the slowest speeds' hardest turns): the
     guided policy's fill budget is saved up and its hole search finds nothing, a station's steady state. Every
     command timed, searches included (their cost is amortised: the mean says it)."""
     from transfer.policy import make_policy
 
-    store, _, _ = _filled_store(rng, frozenset((i, j) for i in range(3) for j in (0, 10)))
+    store, _, _ = _filled_store(rng, frozenset((i, j) for i in range(3) for j in (0, 10)), adapt)
     policy = make_policy(store, "scm", rng=rng)
     _, _, T, _ = store.refined_arrays()
     lo, hi = np.quantile(T, 0.3, axis=0), T.max(axis=0)  # the faster commands, away from the holes
@@ -120,6 +122,8 @@ def _time_holes(rng: np.random.Generator, n: int) -> list[float]:
 def arguments(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--n", type=int, default=2000, help="commands per measurement")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--adapt", action="store_true",
+                    help="the store with change detection ([transfer] adapt; docs/PAPER.md, 'a learner that changes')")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -129,7 +133,7 @@ def run(args: argparse.Namespace) -> int:
 
     warmup()
     rng = np.random.default_rng(args.seed)
-    store, model, ingest = _filled_store(rng)
+    store, model, ingest = _filled_store(rng, adapt=args.adapt)
     policy = make_policy(store, "scm", rng=rng)
     ids, _, T, _ = store.refined_arrays()
     lo, hi = T.min(axis=0), T.max(axis=0)
@@ -140,7 +144,7 @@ def run(args: argparse.Namespace) -> int:
     hits, methods = _time_hits(policy, command, args.n)
     rebuilds = _time_rebuilds(policy, store, command, args.n)
     mixed = _time_stream(policy, store, model, command, rng, args.n)
-    holed = _time_holes(rng, args.n)
+    holed = _time_holes(rng, args.n, args.adapt)
     emit(
         {
             "map_hit_us": summary_us(hits, pcts=(99,)),
@@ -149,6 +153,7 @@ def run(args: argparse.Namespace) -> int:
             "map_stream_us": summary_us(mixed, pcts=(99,)),
             "map_holes_us": {**summary_us(holed, pcts=(99,)), "mean": float(np.mean(holed) * 1e6)},
             "refined_pairs": int(ids.size),
+            "adapt": bool(args.adapt),
             "methods": methods,
             "targets": {"map_hit_median_us": 200, "map_p99_incl_rebuild_us": 5000},
         }
