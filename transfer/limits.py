@@ -364,6 +364,12 @@ class LearnerLimits:
         ``needs_speed`` says (for a learner that turns in place they bound nothing: ``pairs show`` prints them)."""
         return self._kappa(0), self._kappa(1)
 
+    def known_curvature(self) -> tuple[float | None, float | None]:
+        """:meth:`learned_curvature` with None for a side not learned yet (its +-inf), as reports and messages
+        carry it (JSON has no infinity)."""
+        k_lo, k_hi = self.learned_curvature()
+        return (None if math.isinf(k_lo) else k_lo), (None if math.isinf(k_hi) else k_hi)
+
     @property
     def hull(self) -> NDArray[np.float64]:
         """Convex hull (counter-clockwise (K, 2) vertices, teacher units) of the boundary pairs' teacher parts and

@@ -19,7 +19,6 @@ reason; this module turns that into what people and programs read:
 from __future__ import annotations
 
 import dataclasses
-import math
 from collections.abc import Iterable
 from dataclasses import dataclass, field
 
@@ -276,9 +275,11 @@ class LimitsReport:
         """The limits to send at ``now`` (None: nothing moved enough). (Every pair on a boundary nudges the box's
         mean a little: the hull is built for a message, not each tick.) A learner that cannot turn in place sends
         them when a learned curvature moved too (its box's yaw-rate edge may sit at the teacher's range)."""
-        box = self.store.limits.box.as_list()
-        k = self.store.limits.curvature
-        curvature = None if k is None else [None if math.isinf(x) else round(x, 6) for x in k]
+        limits = self.store.limits
+        box = limits.box.as_list()
+        curvature = None
+        if limits.needs_speed:
+            curvature = [None if x is None else round(x, 6) for x in limits.known_curvature()]
         sent = self.sent
         if sent is not None and not force:
             sv, sw = self.store.teacher_bounds.span.tolist()

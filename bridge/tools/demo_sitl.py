@@ -59,9 +59,9 @@ def learned_limits(store_path: Path) -> dict[str, list[float]] | None:
     box = store.limits.box
     out: dict[str, list[float] | list[float | None]] = {"v": [round(float(x), 4) for x in box.v],
                                                         "w": [round(float(x), 4) for x in box.w]}
-    k = store.limits.learned_curvature()  # at the full lock (a bound with [transfer] turn = "needs-speed")
-    if not all(math.isinf(x) for x in k):
-        out["curvature"] = [None if math.isinf(x) else round(x, 4) for x in k]
+    k = store.limits.known_curvature()  # at the full lock (a bound with [transfer] turn = "needs-speed")
+    if any(x is not None for x in k):
+        out["curvature"] = [None if x is None else round(x, 4) for x in k]
     return out
 
 

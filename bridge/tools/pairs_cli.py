@@ -30,7 +30,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import sys
 import threading
 import time
@@ -186,7 +185,7 @@ def from_store(store: PairStore, source: str) -> Learned:
         hull=np.asarray(store.limits.hull, dtype=float).reshape(-1, 2), bounds_from="the store",
         raw_pairs=store.raw_count, k_min=store.k_min,
         changed=[(c.id, c.count, c.at) for c in store.changed_cells()],
-        curvature=tuple(None if math.isinf(k) else k for k in store.limits.learned_curvature()))  # type: ignore[arg-type]
+        curvature=store.limits.known_curvature())
 
 
 def from_message(msg: M.Pairs, teacher_bounds: Bounds, learner_bounds: Bounds, grid: tuple[int, int],

@@ -196,6 +196,7 @@ def test_a_learner_that_cannot_turn_in_place_learns_its_curvature_per_side() -> 
         _full_lock(lim, v, 0.5 * v)
     k_lo, k_hi = lim.curvature
     assert k_lo == -math.inf and k_hi == pytest.approx(0.5)
+    assert lim.known_curvature() == (None, pytest.approx(0.5))  # not learned is None, as reports carry it
     assert lim.box.w[1] == pytest.approx(0.5 * lim.box.v[1])  # the box's top speed is the teacher's (2.0): 1.0
     assert lim.box.w[0] == TB.w[0]
     # the upper edge at a speed is that speed's share of the turn; the lower one, unknown, is the box's
@@ -215,6 +216,7 @@ def test_a_learner_that_cannot_turn_in_place_learns_its_curvature_per_side() -> 
     for v in (0.2, 0.5, 1.0, 1.6):
         _full_lock(skid, v, 0.5 * v)
     assert skid.curvature is None and skid.learned_curvature()[1] == pytest.approx(0.5)
+    assert skid.known_curvature() == (None, pytest.approx(0.5))  # learned whatever the learner turns like
     assert skid.box.w[1] == pytest.approx(np.mean([0.1, 0.25, 0.5, 0.8]))  # the mean of its boundary pairs
     skid.set_needs_speed(True)
     assert skid.box.w[1] == pytest.approx(0.5 * skid.box.v[1])
