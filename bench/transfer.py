@@ -5,8 +5,9 @@ right after the region's pairs moved (the QuadTransfer is rebuilt); ``ingest_us`
 ``map_stream_us``: the station's stream, one pair ingested and one command mapped; ``map_holes_us``: a store with holes
 off the teacher's way, where the guided policy's hole search runs and finds nothing (the targets and the figures:
 docs/BENCHMARKS.md, "The transfer step"). ``--adapt``: the same with the store's change detection and its refined
-pairs following their recent pairs (``PairStore(adapt=True)``, the station's ``[transfer] adapt``), whose cost is
-all in the ingest.
+pairs following their recent pairs (``PairStore(adapt=True)``, the station's ``[transfer] adapt``). The stream comes
+after the rebuilds, which moved the pairs of the cells they timed by 1 % of the range: a store with change detection
+finds those cells changed and re-learns them from the stream's pairs, so its stream is the cost after a change.
 """
 
 from __future__ import annotations

@@ -175,15 +175,16 @@ def scm_start(world: World, seed: int, jitter: tuple[float, float] = START_JITTE
 
 
 def run_scm(seed: int, quick: bool, exploration: str = "guided",
-            progress: Progress | None = None, solver: str = "ipopt") -> tuple[Run, PairStore]:
+            progress: Progress | None = None, solver: str = "ipopt", adapt: bool = False) -> tuple[Run, PairStore]:
     """The SCM learner from no pairs at all: the MPC bounded by the learned limits, each command mapped by the
     transfer step the station uses (:class:`transfer.step.TransferStep`: the policy explores by its own rule, never
     near an obstacle; the guided policy is steered by the teacher's plan), each control interval paired and added to
     the store. The seed drives the policy's random generator and the start's sub-millimetre jitter
-    (:func:`scm_start`)."""
+    (:func:`scm_start`). ``adapt``: the store with change detection (the station's ``[transfer] adapt``), on a
+    learner that does not change."""
     case = mpc_case(quick)
     world, learner = case.world, case.learner
-    store = PairStore(case.learner_bounds, case.teacher_bounds, k_min=5)
+    store = PairStore(case.learner_bounds, case.teacher_bounds, k_min=5, adapt=adapt)
     step = TransferStep(make_policy(store, "scm", np.random.default_rng(seed), exploration=exploration), dt=DT)
 
     regions: list[tuple[int, ...]] = []
@@ -285,15 +286,16 @@ class MpcOutcome:
 
 
 def mpc_experiment(seed: int = 0, quick: bool = False, out: Path | None = None, progress: bool = True,
-            exploration: str = "guided") -> MpcOutcome:
+            exploration: str = "guided", adapt: bool = False) -> MpcOutcome:
     """Paper Section 5.2: ideal teacher vs SCM learner vs the two baselines, no command pairs at the start."""
     case = mpc_case(quick)
     bar = Progress("mpc") if progress else None
     refs = reference_figures(quick, progress)
-    scm_run, store = run_scm(seed, quick, exploration, bar)
+    scm_run, store = run_scm(seed, quick, exploration, bar, adapt=adapt)
     if bar:
         bar.done()
     summary = mpc_summary(seed, quick, exploration, scm_figures(scm_run, store, quick), refs)
+    summary["adapt"] = adapt
     if out is not None:
         out.mkdir(parents=True, exist_ok=True)
         r = mpc_references(quick)
@@ -358,8 +360,8 @@ def _sweep_task(task: tuple) -> tuple[dict, bytes | None]:
     """One unit of a sweep, in a worker: the references' figures, or one seed's SCM figures and learned store."""
     if task[0] == "refs":
         return reference_figures(task[1], solver=task[2]), None
-    _, seed, quick, exploration, solver = task
-    run, store = run_scm(seed, quick, exploration, solver=solver)
+    _, seed, quick, exploration, solver, adapt = task
+    run, store = run_scm(seed, quick, exploration, solver=solver, adapt=adapt)
     return scm_figures(run, store, quick), store.to_bytes()
 
 
@@ -379,7 +381,7 @@ class SweepOutcome:
 
 
 def sweep_mpc(seeds: Sequence[int], quick: bool = True, explorations: Sequence[str] = EXPLORATIONS,
-              workers: int = 2, progress: bool = True, solver: str = "ipopt") -> SweepOutcome:
+              workers: int = 2, progress: bool = True, solver: str = "ipopt", adapt: bool = False) -> SweepOutcome:
     """The MPC case for every seed and exploration policy: per-seed figures, their median, spread and worst seed,
     and the seed-independent references (ideal teacher, both baselines). ``workers`` > 1 uses a process pool
     (spawned, at most 2 workers; a script calling this needs the ``if __name__ == "__main__"`` guard); 1 runs
@@ -387,7 +389,7 @@ def sweep_mpc(seeds: Sequence[int], quick: bool = True, explorations: Sequence[s
     for e in explorations:
         if e not in EXPLORATIONS:
             raise ValueError(f"unknown exploration {e!r}; known: {', '.join(EXPLORATIONS)}")
-    tasks: list[tuple] = [("refs", quick, solver)] + [("scm", s, quick, e, solver) for e in explorations
+    tasks: list[tuple] = [("refs", quick, solver)] + [("scm", s, quick, e, solver, adapt) for e in explorations
                                                      for s in seeds]
     workers = max(1, min(int(workers), 2))
     bar = Progress("sweep") if progress else None
@@ -415,6 +417,7 @@ def sweep_mpc(seeds: Sequence[int], quick: bool = True, explorations: Sequence[s
         "experiment": "mpc-sweep",
         "quick": quick,
         "mpc_solver": solver,
+        "adapt": adapt,
         "seeds": list(seeds),
         "references": {**refs, "note": "deterministic and seed-independent: the same for every seed"},
         "policies": policies,
@@ -536,6 +539,8 @@ def arguments_mpc(ap: argparse.ArgumentParser) -> None:
     _common(ap)
     ap.add_argument("--seeds", default=None, help="a seed sweep, e.g. 0-9 or 0,3,5 (JSON of statistics)")
     ap.add_argument("--workers", type=int, default=2, help="sweep worker processes (at most 2)")
+    ap.add_argument("--adapt", action="store_true",
+                    help="the store with change detection ([transfer] adapt) on this learner, which does not change")
 
 
 def arguments_grid(ap: argparse.ArgumentParser) -> None:
@@ -565,13 +570,14 @@ def run_mpc(args: argparse.Namespace) -> int:
     policy. Prints one JSON summary; figures and trajectories go to --out."""
     t0 = time.perf_counter()
     if args.seeds is None:
-        return _emit(mpc_experiment(args.seed, args.quick, args.out, exploration=args.policy or "guided").summary, t0)
+        return _emit(mpc_experiment(args.seed, args.quick, args.out, exploration=args.policy or "guided",
+                                    adapt=args.adapt).summary, t0)
     explorations = [args.policy] if args.policy else list(EXPLORATIONS)
     try:
         seeds = parse_seeds(args.seeds)
     except ValueError as exc:
         raise UsageError(f"--seeds: {exc}") from None
-    outcome = sweep_mpc(seeds, args.quick, explorations, args.workers)
+    outcome = sweep_mpc(seeds, args.quick, explorations, args.workers, adapt=args.adapt)
     summary = outcome.summary
     args.out.mkdir(parents=True, exist_ok=True)
     for (e, seed), store in outcome.stores.items():

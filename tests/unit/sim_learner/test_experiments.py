@@ -154,3 +154,16 @@ def test_the_quick_case_is_the_papers_mpc_case_scaled() -> None:
     case = mpc_case(True)
     assert case.true_box.as_list() == pytest.approx([0.05, 0.3, -np.pi / 16, np.pi / 12])
     assert case.teacher_bounds.as_list() == pytest.approx([0.05, 0.6, -np.pi / 4, np.pi / 4])
+
+
+def test_the_mpc_case_runs_with_the_stations_change_detection_and_says_so(tmp_path, capsys) -> None:
+    """``sim mpc --adapt``: the same case with the store a station runs under ``[transfer] adapt``, on this learner
+    that does not change (what it costs there: docs/PAPER.md, 'a learner that changes'); the saved store is one
+    with change detection, and nothing in this unchanged run is re-learned."""
+    assert main(["sim", "mpc", "--quick", "--seeds", "0", "--policy", "guided", "--workers", "1", "--adapt",
+                 "--out", str(tmp_path)]) == 0
+    summary = json.loads(capsys.readouterr().out)
+    assert summary["adapt"] is True and summary["policies"]["guided"]["stats"]["no_goal_seeds"] == []
+    assert summary["policies"]["guided"]["stats"]["collided_seeds"] == []
+    store = PairStore.from_bytes((tmp_path / "pairs-guided-0.bin").read_bytes())
+    assert store.adapt and store.relearned == 0
