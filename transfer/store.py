@@ -11,23 +11,24 @@ moves (and its version only changes) when the running mean has drifted by more t
 a cell merely collects more of the same, and are rebuilt when the pair really moves. ``revision`` counts changes of
 the refined set as a whole.
 
-*A learner that changes* (``adapt=True``; off by default while its claims are being measured: ``scmbridge sim
-drift``). The paper's store never forgets: after a thousand pairs in a cell, a change of the learner needs about a
-thousand more to move its mean halfway. With ``adapt``, each configured cell tests every new raw pair against what
-its pairs so far say for that learner command (their mean moved along the cell's own least-squares slope, each axis
+*A learner that changes* (``adapt=True``; off by default: on the paper's case with no change it drives the last half
+about 14 % farther off the path, docs/PAPER.md, "a learner that changes"; ``scmbridge sim drift`` and ``sim mpc
+--adapt`` measure it). The paper's store never forgets: after a thousand pairs in a cell, a change of the learner needs
+about a thousand more to move its mean halfway. With ``adapt``, each configured cell tests every new raw pair against
+what its pairs so far say for that learner command (their mean moved along the cell's own least-squares slope, each axis
 alone, pulled towards its neighbours' slope): the recency-weighted mean of these residuals (weight 1/k_min) beyond
 ``change_tol`` (normalised teacher units) or ``change_sigmas`` standard deviations of its noise (estimated from the
-differences of consecutive residuals, which a change does not move: the store's over all cells, and each cell's own,
-the larger of the two once the cell has k_min of its own) means the learner changed there. The cell then forgets its
-pairs from before the change (its cluster becomes its remembered recent pairs that agree with the change), its refined
-pair moves by the change's mean residual at once (so the map is right before the cell holds k_min again), the learned
-limits forget the cell's boundary pairs (a limit shrinks as well as grows; with ``adapt`` a limit is also the
-recency-weighted mean of about ``LIMIT_MEMORY_K`` k_min boundary pairs, so it follows a learner that lost reach by
-its boundary pairs alone, before any cell is re-learned), the revision changes (the SC maps of that
-region are rebuilt), and ``relearned``, ``changes`` (per cell) and ``changed_at`` (the stamp given to
-:meth:`PairStore.add`) say so. A cell is tested only once it has its own noise estimate (k_min residual differences;
-for a re-learned cell, since its change), or, never re-learned, holds ``YOUNG_K`` k_min pairs: the residuals of a cell
-with few pairs carry its slope's error, a bias their differences do not show.
+differences of consecutive residuals, which a change does not move: the store's over all cells, and each cell's own, the
+larger of the two once the cell has k_min of its own) means the learner changed there. The cell then forgets its pairs
+from before the change (its cluster becomes its remembered recent pairs that agree with the change), its refined pair
+moves by the change's mean residual at once (so the map is right before the cell holds k_min again), the learned limits
+forget the cell's boundary pairs (a limit shrinks as well as grows; with ``adapt`` a limit is also the recency-weighted
+mean of about ``LIMIT_MEMORY_K`` k_min boundary pairs, so it follows a learner that lost reach by its boundary pairs
+alone, before any cell is re-learned), the revision changes (the SC maps of that region are rebuilt), and ``relearned``,
+``changes`` (per cell) and ``changed_at`` (the stamp given to :meth:`PairStore.add`) say so. A cell is tested only once
+it has its own noise estimate (k_min residual differences; for a re-learned cell, since its change), or, never
+re-learned, holds ``YOUNG_K`` k_min pairs: the residuals of a cell with few pairs carry its slope's error, a bias their
+differences do not show.
 
 *A shared change.* A cell is re-learned only once the robot drives in it again, so a change that moves every cell
 alike (a dragging wheel: a yaw-rate bias whatever the command) would be met cell by cell, each bend of the path
