@@ -11,24 +11,23 @@ moves (and its version only changes) when the running mean has drifted by more t
 a cell merely collects more of the same, and are rebuilt when the pair really moves. ``revision`` counts changes of
 the refined set as a whole.
 
-*A learner that changes* (``adapt=True``; off by default: on the paper's case with no change it drives the last half
-about 14 % farther off the path, docs/PAPER.md, "a learner that changes"; ``scmbridge sim drift`` and ``sim mpc
---adapt`` measure it). The paper's store never forgets: after a thousand pairs in a cell, a change of the learner needs
-about a thousand more to move its mean halfway. With ``adapt``, each configured cell tests every new raw pair against
-what its pairs so far say for that learner command (their mean moved along the cell's own least-squares slope, each axis
-alone, pulled towards its neighbours' slope): the recency-weighted mean of these residuals (weight 1/k_min) beyond
-``change_tol`` (normalised teacher units) or ``change_sigmas`` standard deviations of its noise (estimated from the
-differences of consecutive residuals, which a change does not move: the store's over all cells, and each cell's own, the
-larger of the two once the cell has k_min of its own) means the learner changed there. The cell then forgets its pairs
-from before the change (its cluster becomes its remembered recent pairs that agree with the change), its refined pair
-moves by the change's mean residual at once (so the map is right before the cell holds k_min again), the learned limits
-forget the cell's boundary pairs (a limit shrinks as well as grows; with ``adapt`` a limit is also the recency-weighted
-mean of about ``LIMIT_MEMORY_K`` k_min boundary pairs, so it follows a learner that lost reach by its boundary pairs
-alone, before any cell is re-learned), the revision changes (the SC maps of that region are rebuilt), and ``relearned``,
-``changes`` (per cell) and ``changed_at`` (the stamp given to :meth:`PairStore.add`) say so. A cell is tested only once
-it has its own noise estimate (k_min residual differences; for a re-learned cell, since its change), or, never
-re-learned, holds ``YOUNG_K`` k_min pairs: the residuals of a cell with few pairs carry its slope's error, a bias their
-differences do not show.
+*A learner that changes* (``adapt=True``; off by default, as in the paper; what it costs where nothing changes and gains
+where something does: docs/PAPER.md, "a learner that changes"). The paper's store never forgets: after a thousand pairs
+in a cell, a change of the learner needs about a thousand more to move its mean halfway. With ``adapt``, each configured
+cell tests every new raw pair against what its pairs so far say for that learner command (their mean moved along the
+cell's own least-squares slope, each axis alone, pulled towards its neighbours' slope): the recency-weighted mean of
+these residuals (weight 1/k_min) beyond ``change_tol`` (normalised teacher units) or ``change_sigmas`` standard
+deviations of its noise (estimated from the differences of consecutive residuals, which a change does not move: the
+store's over all cells, and each cell's own, the larger of the two once the cell has k_min of its own) means the learner
+changed there. The cell then forgets its pairs from before the change (its cluster becomes its remembered recent pairs
+that agree with the change), its refined pair moves by the change's mean residual at once (so the map is right before
+the cell holds k_min again), the learned limits forget the cell's boundary pairs (a limit shrinks as well as grows; with
+``adapt`` a limit is also the recency-weighted mean of about ``LIMIT_MEMORY_K`` k_min boundary pairs, so it follows a
+learner that lost reach by its boundary pairs alone, before any cell is re-learned), the revision changes (the SC maps
+of that region are rebuilt), and ``relearned``, ``changes`` (per cell) and ``changed_at`` (the stamp given to
+:meth:`PairStore.add`) say so. A cell is tested only once it has its own noise estimate (k_min residual differences; for
+a re-learned cell, since its change), or, never re-learned, holds ``YOUNG_K`` k_min pairs: the residuals of a cell with
+few pairs carry its slope's error, a bias their differences do not show.
 
 *A shared change.* A cell is re-learned only once the robot drives in it again, so a change that moves every cell
 alike (a dragging wheel: a yaw-rate bias whatever the command) would be met cell by cell, each bend of the path
@@ -50,11 +49,12 @@ A change smaller than ``change_tol`` is never found by the test; the refined pai
 ("Beyond the paper") has the measured figures.
 
 *A small change* (a new floor: 0.3-1.3 % of the teacher's range on the cells a mission drives, below ``change_tol``,
-which cannot go lower without re-learning the cells' own shape). With ``adapt`` each cell keeps a recency-weighted
-mean of its raw pairs (weight 1 / m; m is k_min, or as many pairs as keep its noise within ``move_tol`` /
-``TRACK_SIGMAS``), and once it holds k_min pairs (no provisional shift pending) the refined pair follows it: moved to
-it whenever the relation the refined pair and the cell's slope give there is more than ``move_tol`` off. With no
-change the refined pairs stay as near the learner as the paper's. The change test, its sums and the limits ignore it.
+which cannot go lower without re-learning the cells' own shape). With ``adapt`` each cell keeps a recency-weighted mean
+of its raw pairs (weight 1 / m; m is k_min, or as many pairs as keep its noise within ``move_tol`` / ``TRACK_SIGMAS``),
+and once it holds k_min pairs (no provisional shift pending) the refined pair follows it: moved to it whenever the
+relation the refined pair and the cell's slope give there is more than ``move_tol`` off. With no change they stay as
+near the learner as the paper's at one command; from no pairs a cell keeps its first k_min pairs' mean while they agree,
+where the paper's moves to the mean of all. The change test, its sums and the limits ignore it.
 """
 
 from __future__ import annotations
@@ -169,12 +169,11 @@ class PairStore:
         self.pub_L = np.zeros((gv, gw, 2))
         self.pub_version = np.zeros((gv, gw), dtype=np.int64)  # 0: no refined pair yet
         self.revision = 0
-        self.limits = LearnerLimits(teacher_bounds, learner_bounds, self.grid, boundary_tol,
-                                    memory=LIMIT_MEMORY_K * int(k_min) if adapt else 0)
+        self.limits = LearnerLimits(teacher_bounds, learner_bounds, self.grid, boundary_tol)
         self.limits.refined_points = lambda: self.refined_arrays()[2]
         self._arrays: tuple | None = None
         # change detection (module docstring, "A learner that changes")
-        self.adapt = bool(adapt)
+        self.set_adapt(adapt)
         self.change_tol = float(change_tol)
         self.change_sigmas = float(change_sigmas)
         self.relearned = 0  # cells re-learned after a change was detected in them
@@ -505,6 +504,10 @@ class PairStore:
         """Raw pairs the store has taken (a re-learned cell forgets its pairs, not this count)."""
         return self.added
 
+    def set_adapt(self, on: bool) -> None:
+        """Change detection on or off from now on (a station's configuration); the limits' memory goes with it."""
+        self.adapt, self.limits.memory = bool(on), (LIMIT_MEMORY_K * self.k_min if on else 0)
+
     # ----------------------------------------------------------------------------------------- persistence
     def to_bytes(self) -> bytes:
         """Versioned MessagePack blob with a CRC, so corruption is detected on load."""
@@ -533,9 +536,7 @@ class PairStore:
             ),
             sum_LL=self.sum_LL.ravel().tolist(),
             sum_TL=self.sum_TL.ravel().tolist(),
-            adapt=self.adapt,
-            relearned=self.relearned,
-            added=self.added,
+            adapt=self.adapt, relearned=self.relearned, added=self.added,
             changed_at=[None if np.isnan(v) else float(v) for v in self.changed_at.ravel()],
             resid=self.resid.ravel().tolist(),
             noise2=self.noise2.tolist(),

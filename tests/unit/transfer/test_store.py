@@ -270,3 +270,14 @@ def test_the_learned_curvatures_survive_a_save_and_a_version_3_store_loads_witho
     payload = msgspec.msgpack.encode(raw)
     with pytest.raises(ValueError, match="non-finite or negative"):
         PairStore.from_bytes(b"SCMPAIRS" + zlib.crc32(payload).to_bytes(4, "little") + payload)
+
+
+def test_change_detection_is_switched_with_the_limits_memory_whatever_the_store_was_saved_with() -> None:
+    """A station's configuration decides, not the file (``set_adapt``): a store saved without change detection
+    reloaded with it keeps a learned limit as a recency-weighted mean, and the other way round the paper's mean."""
+    saved = PairStore.from_bytes(PairStore(LB, TB).to_bytes())
+    assert not saved.adapt and saved.limits.memory == 0
+    saved.set_adapt(True)
+    assert saved.adapt and saved.limits.memory == PairStore(LB, TB, adapt=True).limits.memory == 4 * saved.k_min
+    saved.set_adapt(False)
+    assert not saved.adapt and saved.limits.memory == 0
