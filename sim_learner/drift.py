@@ -29,6 +29,14 @@ The teacher's MPC slows down for a bend the learned yaw-rate limit cannot turn a
 the learner's right turn away: under the paper's MPC (``--curve-margin 0``), whose references keep the top speed, the
 S's right bends were driven wide whatever the map and the store (its yaw rate at the new limit there, measured), 16x
 the deviation before the change with change detection and 18x without.
+
+``--reloaded``: the other case a station meets, a store learned on another day. A first run learns a store from no
+pairs on the unchanged learner (the paper's store); the next day's learner has changed meanwhile (the scenario's
+change, whole from the start of the run: the battery at its end, the wheel dragging, the new floor, the payload's
+halved acceleration; ``none``: unchanged) and drives the same world from that store twice, re-learning its changed
+cells (a station's default for a store it reloads, ``[transfer] adapt = "reloaded"``) and not (the paper's store).
+Its summary gives each run's ``dev_m`` and ``dev_last_half_m`` (mean distance to the path over the run and over its
+second half), ``time_s``, ``reached_goal``, ``collisions`` and ``relearned``.
 """
 
 from __future__ import annotations
@@ -112,6 +120,7 @@ class ChangingLearner:
     for the acceleration limit of the ``payload`` scenario."""
 
     scenario: str
+    changed: bool = False  # changed before the run began (a store reloaded the next day): the change is whole at once
     model: LearnerModel = field(default_factory=mpc_learner)
     vel: NDArray[np.float64] = field(default_factory=lambda: np.zeros(2))
     floor_t: float | None = None  # when the floor changed (the floor scenario's change time)
@@ -120,9 +129,13 @@ class ChangingLearner:
         if self.scenario not in (*SCENARIOS, CONTROL):
             raise ValueError(f"unknown scenario {self.scenario!r}; known: {', '.join(SCENARIOS)}")
         self.floor = LearnerModel(self.model.v_range, self.model.w_range, h_v_floor, h_w_floor, name="floor")
+        if self.changed and self.scenario == "floor":
+            self.floor_t = 0.0
 
     def change(self) -> tuple[float | None, float | None]:
         """(start, end) of the change in s of the run; None for the floor's before the robot got there."""
+        if self.changed:
+            return None, None
         if self.scenario == "battery":
             return T_CHANGE, T_CHANGE + BATTERY_S
         if self.scenario == "floor":
@@ -133,6 +146,8 @@ class ChangingLearner:
 
     def response(self, u: NDArray[np.float64], t: float, progress: float) -> NDArray[np.float64]:
         m = self.model
+        if self.changed:
+            t += T_CHANGE + BATTERY_S  # every time-driven change has ended
         if self.scenario == "floor":
             if self.floor_t is None and progress >= FLOOR_AT:
                 self.floor_t = t
@@ -165,17 +180,25 @@ class DriftRun:
     collided: bool = False
     relearned: int = 0
     time_s: float | None = None
+    store: PairStore | None = None  # what the run's store learned
 
 
 def drive(scenario: str, seed: int, adapt: bool, tiles: int = TILES, solver: str = "ipopt",
-          change_tol: float = CHANGE_TOL, curve_margin: float = CURVE_MARGIN) -> tuple[DriftRun, ChangingLearner]:
+          change_tol: float = CHANGE_TOL, curve_margin: float = CURVE_MARGIN,
+          reloaded: PairStore | None = None) -> tuple[DriftRun, ChangingLearner]:
     """The SCM learner from no pairs on the tiled world under ``scenario``, the store adapting (with ``change_tol``)
-    or not, the teacher's MPC slowing for bends at ``curve_margin`` (0: the paper's MPC)."""
+    or not, the teacher's MPC slowing for bends at ``curve_margin`` (0: the paper's MPC). ``reloaded``: from a copy
+    of that store instead, the learner changed before the run began (``--reloaded``)."""
     world = tiled(mpc_world(), tiles)
-    learner = ChangingLearner(scenario)
+    learner = ChangingLearner(scenario, changed=reloaded is not None)
     m = learner.model
-    store = PairStore(Bounds(m.v_range, m.w_range), Bounds(MPC_TEACHER_V, MPC_TEACHER_W), k_min=5, adapt=adapt,
-                      change_tol=change_tol)
+    if reloaded is None:
+        store = PairStore(Bounds(m.v_range, m.w_range), Bounds(MPC_TEACHER_V, MPC_TEACHER_W), k_min=5, adapt=adapt,
+                          change_tol=change_tol)
+    else:  # as a station reloads it: its configuration decides whether it adapts
+        store = PairStore.from_bytes(reloaded.to_bytes())
+        store.set_adapt(adapt)
+        store.change_tol = change_tol
     step = TransferStep(make_policy(store, "scm", np.random.default_rng(seed)), dt=DT)
     mpc = _mpc_teacher(solver, curve_margin)
     mpc.reset()
@@ -202,7 +225,7 @@ def drive(scenario: str, seed: int, adapt: bool, tiles: int = TILES, solver: str
         if world.reached(x):
             run.reached, run.time_s = True, (k + 1) * DT
             break
-    run.relearned = store.relearned
+    run.relearned, run.store = store.relearned, store
     return run, learner
 
 
@@ -251,8 +274,54 @@ def drift_summary(scenario: str, seed: int, tiles: int = TILES, solver: str = "i
     return out
 
 
+def reloaded_figures(run: DriftRun) -> dict:
+    """A reloaded run's figures: the mean deviation over the run and over its second half (by time)."""
+    t, dev = np.asarray(run.t), np.asarray(run.dev)
+    half = t >= t[-1] / 2.0
+    return {"reached_goal": run.reached, "collisions": run.collided, "relearned": run.relearned,
+            "time_s": run.time_s, "dev_m": float(dev.mean()), "dev_last_half_m": float(dev[half].mean())}
+
+
+def reloaded_summary(scenario: str, seed: int, tiles: int = TILES, solver: str = "ipopt",
+                     change_tol: float = CHANGE_TOL, curve_margin: float = CURVE_MARGIN) -> dict:
+    """``--reloaded`` (module docstring) on one seed: the first run's store, then the changed learner driven from it
+    re-learning its changed cells (``adaptive``) and not (``baseline``)."""
+    first, _ = drive(CONTROL, seed, adapt=False, tiles=tiles, solver=solver, curve_margin=curve_margin)
+    assert first.store is not None
+    out = {"experiment": "drift-reloaded", "scenario": scenario, "seed": seed, "tiles": tiles, "change_tol": change_tol,
+           "curve_margin": curve_margin, "learned": {"refined_pairs": first.store.n_configured(),
+                                                     **reloaded_figures(first)}}
+    for name, adapt in (("adaptive", True), ("baseline", False)):
+        run, _ = drive(scenario, seed, adapt=adapt, tiles=tiles, solver=solver, change_tol=change_tol,
+                       curve_margin=curve_margin, reloaded=first.store)
+        out[name] = reloaded_figures(run)
+    return out
+
+
+def reloaded_stats(rows: list[dict]) -> dict:
+    """Per scenario: the median last-half deviation of each store, the median of their ratio seed by seed and on how
+    many seeds re-learning was worse, goals, collisions and the cells re-learned."""
+    out: dict = {}
+    for sc in sorted({r["scenario"] for r in rows}):
+        rs = [r for r in rows if r["scenario"] == sc]
+        ratio = [r["adaptive"]["dev_last_half_m"] / r["baseline"]["dev_last_half_m"] for r in rs
+                 if r["baseline"]["dev_last_half_m"] > 0]
+        out[sc] = {**{f"{k}_dev_last_half_m": _median([r[k]["dev_last_half_m"] for r in rs])
+                      for k in ("adaptive", "baseline")},
+                   "adaptive_to_baseline": _median(ratio), "adaptive_to_baseline_q": _quartiles(ratio),
+                   "adaptive_worse": sum(x > 1.0 for x in ratio),
+                   "reached_goal": [sum(bool(r[k]["reached_goal"]) for r in rs) for k in ("adaptive", "baseline")],
+                   "collisions": [sum(bool(r[k]["collisions"]) for r in rs) for k in ("adaptive", "baseline")],
+                   "relearned": _median([r["adaptive"]["relearned"] for r in rs]), "seeds": len(rs)}
+    return out
+
+
 def _task(args: tuple[str, int, int, str, float, bool, float]) -> dict:
     return drift_summary(*args)
+
+
+def _reloaded_task(args: tuple[str, int, int, str, float, float]) -> dict:
+    return reloaded_summary(*args)
 
 
 def sweep(scenarios: Sequence[str], seeds: Sequence[int], tiles: int = TILES, workers: int = 2,
@@ -265,6 +334,16 @@ def sweep(scenarios: Sequence[str], seeds: Sequence[int], tiles: int = TILES, wo
         return [_task(a) for a in tasks]
     with ProcessPoolExecutor(max_workers=workers) as ex:
         return list(ex.map(_task, tasks))
+
+
+def sweep_reloaded(scenarios: Sequence[str], seeds: Sequence[int], tiles: int = TILES, workers: int = 2,
+                   change_tol: float = CHANGE_TOL, curve_margin: float = CURVE_MARGIN) -> list[dict]:
+    """``--reloaded`` for every scenario and seed (at most ``workers`` processes)."""
+    tasks = [(sc, s, tiles, "ipopt", change_tol, curve_margin) for sc in scenarios for s in seeds]
+    if workers <= 1 or len(tasks) == 1:
+        return [_reloaded_task(a) for a in tasks]
+    with ProcessPoolExecutor(max_workers=workers) as ex:
+        return list(ex.map(_reloaded_task, tasks))
 
 
 def _median(values: list[float | None]) -> float | None:
@@ -330,6 +409,9 @@ def arguments(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--change-tol", type=float, default=CHANGE_TOL,
                     help="the store's change tolerance (share of the teacher's range; [transfer] change_tol)")
     ap.add_argument("--workers", type=int, default=2, help="processes of a sweep (default 2)")
+    ap.add_argument("--reloaded", action="store_true",
+                    help="a store learned on the unchanged learner the day before, the learner changed since: "
+                         "driven from it re-learning its changed cells and not (module docstring)")
     ap.add_argument("--curve-margin", type=float, default=CURVE_MARGIN,
                     help="the teacher MPC slows for a bend the learned yaw-rate limit cannot turn at its top speed, "
                          f"using this share of the limit (default {CURVE_MARGIN}; 0: the paper's MPC; "
@@ -342,12 +424,18 @@ def run(args: argparse.Namespace) -> int:
     seeds = args.seeds if args.seeds is not None else [args.seed]
     if not 0.0 <= args.curve_margin <= 1.0:
         raise SystemExit(f"--curve-margin must be in [0, 1], got {args.curve_margin}")
-    rows = sweep(scenarios, seeds, args.tiles, workers=args.workers, change_tol=args.change_tol,
-                 curve_margin=args.curve_margin)
+    if args.reloaded:
+        rows = sweep_reloaded(scenarios, seeds, args.tiles, workers=args.workers, change_tol=args.change_tol,
+                              curve_margin=args.curve_margin)
+        stats, kind = (reloaded_stats(rows) if len(rows) > 1 else None), "drift-reloaded-sweep"
+    else:
+        rows = sweep(scenarios, seeds, args.tiles, workers=args.workers, change_tol=args.change_tol,
+                     curve_margin=args.curve_margin)
+        stats, kind = (sweep_stats(rows) if len(rows) > 1 else None), "drift-sweep"
     for r in rows:
         print(json.dumps(r), flush=True)
-    if len(rows) > 1:
-        print(json.dumps({"experiment": "drift-sweep", "seeds": list(seeds), "stats": sweep_stats(rows),
+    if stats is not None:
+        print(json.dumps({"experiment": kind, "seeds": list(seeds), "stats": stats,
                           "wall_s": round(time.perf_counter() - t0, 1)}))
     if args.out:
         out = Path(args.out)
@@ -356,4 +444,4 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-__all__ = ["SCENARIOS", "ChangingLearner", "drift_summary", "drive", "figures", "tiled"]
+__all__ = ["SCENARIOS", "ChangingLearner", "drift_summary", "drive", "figures", "reloaded_summary", "tiled"]
