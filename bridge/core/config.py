@@ -150,14 +150,21 @@ class TransferSection(Cfg):
         "curvature (omega <= kappa v, shown in the limits and pairs show), the MPC plans within it, and the yaw-rate "
         "limits are probed at the learner's top speed (whatever turn_probe says); the teacher's speed must then be "
         "forward only (teacher_bounds v >= 0)")] = "in-place"
-    adapt: Annotated[bool, meta(
+    adapt: Annotated[bool | Literal["reloaded"], meta(
         "re-learn a cell whose learner changed (a sagging battery, a dragging wheel, a new floor; docs/PAPER.md, "
-        "'a learner that changes'), also the cells of a store learned on another day; off by default: on the "
-        "paper's case with no change its last-half deviation is about 14 % higher (scmbridge sim mpc --adapt)")] = False
+        "'a learner that changes'): true, always; \"reloaded\", when the station starts on a saved store that "
+        "holds refined pairs (a store learned on another day, or before a restart, is checked cell by cell against "
+        "today's pairs); false, never (the paper's store). Learning from no pairs it costs the paper's case about 14 % "
+        "of last-half deviation, which is why \"reloaded\" leaves it off then")] = "reloaded"
     # = transfer.store.CHANGE_TOL, repeated for the same reason as fill_budget
     change_tol: Annotated[float, meta(
         "adapt: a cell's recent pairs this far from its refined pair (share of the teacher's range) mean its learner "
         "changed (or five standard deviations of their noise, if more)", ge=0.001, le=0.5)] = 0.02
+
+    def adapts(self, reloaded: bool) -> bool:
+        """Whether the store re-learns changed cells (``adapt``'s values): ``reloaded`` says the station started on a
+        saved store that holds refined pairs (the one place this rule lives)."""
+        return reloaded if self.adapt == "reloaded" else bool(self.adapt)
 
     def probe_turns(self) -> str:
         """Where the station probes the yaw-rate limits (``turn_probe``'s values): at the top speed for a learner that

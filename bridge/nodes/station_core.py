@@ -179,9 +179,11 @@ class StationCore:
         learner, teacher = cfg.learner_bounds.bounds(), cfg.teacher_bounds.bounds()
         self.store, how = load_store(Path(store_path), learner, teacher, tcfg.grid, tcfg.k_min)
         # this configuration decides whether cells are re-learned after a change, whatever the file was saved with:
-        # a store learned on another day is then checked against the first pairs of the run, cell by cell
-        self.store.adapt, self.store.change_tol = tcfg.adapt, tcfg.change_tol
-        log.info("%s%s", how, "; cells whose learner changed are re-learned" if tcfg.adapt else "")
+        # a store learned on another day (or before a restart) is then checked against the run's pairs, cell by cell
+        adapt = tcfg.adapts(reloaded=self.store.n_configured() > 0)
+        self.store.set_adapt(adapt)
+        self.store.change_tol = tcfg.change_tol
+        log.info("%s%s", how, "; cells whose learner changed are re-learned" if adapt else "")
         # this robot's own phase of the periodic work (the hole searches' budget, the store's saves): the robots of
         # a fleet that start together each do it at their own tick, not all in one period of the process's loop
         phase = robot_phase(robot)

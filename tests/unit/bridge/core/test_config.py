@@ -170,11 +170,23 @@ def test_the_stations_fill_budget_default_is_the_guided_policys() -> None:
 
 
 def test_the_stations_change_detection_defaults_are_the_stores() -> None:
-    # repeated for the same reason: the store's own default change tolerance and its off-by-default adaptation
+    # repeated for the same reason: the store's own default change tolerance; the store adapts only when told to
     from transfer.store import CHANGE_TOL, PairStore
 
     assert C.TransferSection().change_tol == CHANGE_TOL
-    assert C.TransferSection().adapt is PairStore.__init__.__kwdefaults__["adapt"] is False
+    assert PairStore.__init__.__kwdefaults__["adapt"] is False
+
+
+@pytest.mark.parametrize(("adapt", "fresh", "reloaded"), [("reloaded", False, True), (True, True, True),
+                                                          (False, False, False)])
+def test_a_station_adapts_a_store_it_reloads_by_default(adapt, fresh: bool, reloaded: bool) -> None:
+    """``[transfer] adapt``: "reloaded" (the default) re-learns changed cells of a saved store the station starts on,
+    not while it learns from no pairs; true and false say always and never. A typo is refused with the choices."""
+    t = msgspec.convert({"adapt": adapt}, C.TransferSection)
+    assert (t.adapts(reloaded=False), t.adapts(reloaded=True)) == (fresh, reloaded)
+    assert C.TransferSection().adapt == "reloaded"
+    with pytest.raises(msgspec.ValidationError, match="adapt"):
+        msgspec.convert({"adapt": "yes"}, C.TransferSection)
 
 
 def test_the_stations_turn_probe_choices_and_default_are_the_policys() -> None:

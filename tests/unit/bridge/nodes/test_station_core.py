@@ -182,15 +182,17 @@ def test_a_driver_host_restart_pauses_a_running_mission(tmp_path, restart_seq: i
     assert core.control.phase == "paused"
 
 
-def test_a_store_learned_on_another_day_is_checked_against_todays_pairs_when_adapt_is_on(tmp_path) -> None:
-    """``[transfer] adapt``: the station loads yesterday's store, and the cells whose learner answers otherwise today
-    (a dragging wheel: 15 % of the yaw-rate range) are re-learned from today's pairs and counted on the status."""
+def test_a_store_learned_on_another_day_is_checked_against_todays_pairs_by_default(tmp_path) -> None:
+    """``[transfer] adapt = "reloaded"`` (the default): the station loads yesterday's store, saved without change
+    detection, and the cells whose learner answers otherwise today (a dragging wheel: 15 % of the yaw-rate range) are
+    re-learned from today's pairs and counted on the status; ``adapt = false`` keeps the paper's store, and a station
+    learning from no pairs keeps it too unless ``adapt = true``."""
     import msgspec
 
     from transfer.store import PairStore
 
     learner = mpc_learner()
-    cfg = msgspec.convert({"transfer": {"adapt": True}}, StationConfig)
+    cfg = StationConfig()
     lb, tb = cfg.learner_bounds.bounds(), cfg.teacher_bounds.bounds()
     yesterday = PairStore(lb, tb)
     rng = np.random.default_rng(4)
@@ -202,6 +204,7 @@ def test_a_store_learned_on_another_day_is_checked_against_todays_pairs_when_ada
     (tmp_path / "p.bin").write_bytes(yesterday.to_bytes())
     core = StationCore(cfg, "r1", 10.0, tmp_path / "p.bin", load_mission())
     assert core.store.adapt and core.store.change_tol == cfg.transfer.change_tol
+    assert core.store.limits.memory == PairStore(lb, tb, adapt=True).limits.memory > 0  # its limits follow too
     assert core.store.n_configured() == 121 and core.store.relearned == 0  # loaded as it was
     bias = np.array([0.0, 0.15 * (lb.w[1] - lb.w[0])])
     for _ in range(8):  # today: the top-speed row driven, as the mission does
@@ -216,8 +219,13 @@ def test_a_store_learned_on_another_day_is_checked_against_todays_pairs_when_ada
     assert core.store.shared > 0 and out.status.counters["shared_changes"] == core.store.shared
     assert out.status.changed_cells == list(range(110, 121))  # named on the status (scmbridge status prints them)
     assert [c.id for c in core.pairs(6.0).changed] == list(range(110, 121))  # and in the pairs reply, with when
-    off = StationCore(StationConfig(), "r2", 10.0, tmp_path / "p.bin", load_mission())
-    assert not off.store.adapt  # the default: the paper's never-forgetting store
+    never = msgspec.convert({"transfer": {"adapt": False}}, StationConfig)
+    off = StationCore(never, "r2", 10.0, tmp_path / "p.bin", load_mission())
+    assert not off.store.adapt and off.store.limits.memory == 0  # the paper's never-forgetting store
+    fresh = StationCore(cfg, "r3", 10.0, tmp_path / "new.bin", load_mission())
+    assert not fresh.store.adapt  # from no pairs: the paper's store (what adapt costs there: docs/PAPER.md)
+    always = msgspec.convert({"transfer": {"adapt": True}}, StationConfig)
+    assert StationCore(always, "r4", 10.0, tmp_path / "new2.bin", load_mission()).store.adapt
 
 
 def _drive(core: StationCore, ticks: int) -> list[tuple[np.ndarray, np.ndarray, str, np.ndarray]]:
