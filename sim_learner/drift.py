@@ -30,13 +30,14 @@ the learner's right turn away: under the paper's MPC (``--curve-margin 0``), who
 S's right bends were driven wide whatever the map and the store (its yaw rate at the new limit there, measured), 16x
 the deviation before the change with change detection and 18x without.
 
-``--reloaded``: the other case a station meets, a store learned on another day. A first run learns a store from no
-pairs on the unchanged learner (the paper's store); the next day's learner has changed meanwhile (the scenario's
-change, whole from the start of the run: the battery at its end, the wheel dragging, the new floor, the payload's
-halved acceleration; ``none``: unchanged) and drives the same world from that store twice, re-learning its changed
-cells (a station's default for a store it reloads, ``[transfer] adapt = "reloaded"``) and not (the paper's store).
-Its summary gives each run's ``dev_m`` and ``dev_last_half_m`` (mean distance to the path over the run and over its
-second half), ``time_s``, ``reached_goal``, ``collisions`` and ``relearned``.
+``--reloaded``: the other case a station meets, a store learned on another day. A first run learns a store from no pairs
+on the unchanged learner (the paper's store); the next day's learner has changed meanwhile (the scenario's change, whole
+from the start of the run: the battery at its end, the wheel dragging, the new floor, the payload scenario's learner
+after its change, whose acceleration is limited where yesterday's was not; ``none``: unchanged) and drives the same
+world from that store twice, re-learning its changed cells (a station's default for a store it reloads, ``[transfer]
+adapt = "reloaded"``) and not (the paper's store). Its summary gives each run's ``dev_m`` and ``dev_last_half_m`` (mean
+distance to the path over the run and over its second half), ``time_s``, ``reached_goal``, ``collisions`` and
+``relearned``.
 """
 
 from __future__ import annotations
