@@ -45,10 +45,11 @@ from __future__ import annotations
 import argparse
 import json
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -329,22 +330,23 @@ def sweep(scenarios: Sequence[str], seeds: Sequence[int], tiles: int = TILES, wo
           change_tol: float = CHANGE_TOL, baseline: bool = True, curve_margin: float = CURVE_MARGIN) -> list[dict]:
     """Every scenario on every seed (at most ``workers`` processes); the baseline runs only where a change is (the
     never-forgetting store has nothing to compare with on ``none``)."""
-    tasks = [(sc, s, tiles, "ipopt", change_tol, baseline and sc != CONTROL, curve_margin)
-             for sc in scenarios for s in seeds]
-    if workers <= 1 or len(tasks) == 1:
-        return [_task(a) for a in tasks]
-    with ProcessPoolExecutor(max_workers=workers) as ex:
-        return list(ex.map(_task, tasks))
+    return _run(_task, [(sc, s, tiles, "ipopt", change_tol, baseline and sc != CONTROL, curve_margin)
+                        for sc in scenarios for s in seeds], workers)
 
 
 def sweep_reloaded(scenarios: Sequence[str], seeds: Sequence[int], tiles: int = TILES, workers: int = 2,
                    change_tol: float = CHANGE_TOL, curve_margin: float = CURVE_MARGIN) -> list[dict]:
     """``--reloaded`` for every scenario and seed (at most ``workers`` processes)."""
-    tasks = [(sc, s, tiles, "ipopt", change_tol, curve_margin) for sc in scenarios for s in seeds]
+    return _run(_reloaded_task, [(sc, s, tiles, "ipopt", change_tol, curve_margin) for sc in scenarios for s in seeds],
+                workers)
+
+
+def _run(task: Callable[[Any], dict], tasks: list[tuple], workers: int) -> list[dict]:
+    """``task`` of each of ``tasks``, in order: in this process, or in at most ``workers`` processes."""
     if workers <= 1 or len(tasks) == 1:
-        return [_reloaded_task(a) for a in tasks]
+        return [task(a) for a in tasks]
     with ProcessPoolExecutor(max_workers=workers) as ex:
-        return list(ex.map(_reloaded_task, tasks))
+        return list(ex.map(task, tasks))
 
 
 def _median(values: list[float | None]) -> float | None:
