@@ -22,12 +22,12 @@ store's over all cells, and each cell's own, the larger of the two once the cell
 changed there. The cell then forgets its pairs from before the change (its cluster becomes its remembered recent pairs
 that agree with the change), its refined pair moves by the change's mean residual at once (so the map is right before
 the cell holds k_min again), the learned limits forget the cell's boundary pairs (a limit shrinks as well as grows; with
-``adapt`` a limit is also the recency-weighted mean of about ``LIMIT_MEMORY_K`` k_min boundary pairs, so it follows a
-learner that lost reach by its boundary pairs alone, before any cell is re-learned), the revision changes (the SC maps
-of that region are rebuilt), and ``relearned``, ``changes`` (per cell) and ``changed_at`` (the stamp given to
-:meth:`PairStore.add`) say so. A cell is tested only once it has its own noise estimate (k_min residual differences; for
-a re-learned cell, since its change), or, never re-learned, holds ``YOUNG_K`` k_min pairs: the residuals of a cell with
-few pairs carry its slope's error, a bias their differences do not show.
+``adapt`` a limit is the recency-weighted mean of about ``LIMIT_MEMORY_K`` k_min boundary pairs and tests them for a
+change itself, ``transfer/limits.py``: it follows a learner that lost reach by its boundary pairs alone, before any cell
+is re-learned), the revision changes (the SC maps of that region are rebuilt), and ``relearned``, ``changes`` (per cell)
+and ``changed_at`` (the stamp given to :meth:`PairStore.add`) say so. A cell is tested only once it has its own noise
+estimate (k_min residual differences; for a re-learned cell, since its change), or, never re-learned, holds ``YOUNG_K``
+k_min pairs: the residuals of a cell with few pairs carry its slope's error, a bias their differences hide.
 
 *A shared change.* A cell is re-learned only once the robot drives in it again, so a change that moves every cell
 alike (a dragging wheel: a yaw-rate bias whatever the command) would be met cell by cell, each bend of the path
@@ -173,9 +173,9 @@ class PairStore:
         self.limits.refined_points = lambda: self.refined_arrays()[2]
         self._arrays: tuple | None = None
         # change detection (module docstring, "A learner that changes")
-        self.set_adapt(adapt)
         self.change_tol = float(change_tol)
         self.change_sigmas = float(change_sigmas)
+        self.set_adapt(adapt)
         self.relearned = 0  # cells re-learned after a change was detected in them
         self.added = 0  # raw pairs taken
         self.changed_at = np.full((gv, gw), np.nan)  # the stamp of each cell's last re-learning (NaN: never)
@@ -505,8 +505,9 @@ class PairStore:
         return self.added
 
     def set_adapt(self, on: bool) -> None:
-        """Change detection on or off from now on (a station's configuration); the limits' memory goes with it."""
+        """Change detection on or off from now on (a station's configuration), the limits' memory and test with it."""
         self.adapt, self.limits.memory = bool(on), (LIMIT_MEMORY_K * self.k_min if on else 0)
+        self.limits.set_change_test(max(self.k_min, 2) if on else 0, self.change_tol, self.change_sigmas)
 
     # ----------------------------------------------------------------------------------------- persistence
     def to_bytes(self) -> bytes:

@@ -274,3 +274,61 @@ def test_the_first_pair_of_a_run_extrapolates_the_curvature_of_the_side_it_turns
         # the same turn again is no new outlier: the side keeps what it has
         lim.update(TB.normalise(np.array([1.0, sign * 0.29])), LB.normalise(np.array([0.5, sign * 0.3])), (5, 5))
         assert lim.curvature[side] == pytest.approx(sign * 0.5)
+
+
+def _edge_pair(lim: LearnerLimits, w: float, v: float = 1.0, side: int = 1) -> None:
+    """One pair at the learner's yaw-rate edge whose motion was (v, w), teacher units, in its cell (5, 10) or (5, 0)."""
+    lim.update(TB.normalise(np.array([v, w])), np.array([0.5, 1.0 if side else 0.0]), (5, 10 if side else 0))
+
+
+def test_an_edge_that_moved_is_learned_again_from_its_recent_boundary_pairs_and_noise_alone_never_moves_it() -> None:
+    """The edges' change test (``set_change_test``, the store's with change detection): a steering that lost 40 % of
+    its reach (a turn-rate cap lowered mid-run) after 12 boundary pairs. The residuals' mean is beyond 2 % of the
+    teacher's range from the first pair after the change, but one pair beyond is an outlier (one outlier of that size
+    before the change moves nothing); the second alarms, and the edge keeps the recent pairs that agree with the
+    change (the outlier among them): the new reach. With the memory alone the edge is the mean of its 15 pairs, 4 of
+    them at the new reach (the paper's mean of every pair the same: fewer pairs than the memory). Noise alone (1.5 % of the range, 4000 pairs) never
+    alarms; the hull's point of the side's cell follows the edge."""
+    rng = np.random.default_rng(3)
+    old, new = 0.6, 0.36
+    for test in (True, False):
+        lim = LearnerLimits(TB, LB, (11, 11), 1e-6, memory=20)
+        if test:
+            lim.set_change_test(5, 0.02)
+        for k in range(12):
+            _edge_pair(lim, (new if k == 8 else old) + 0.01 * (-1) ** k)  # the ninth an outlier
+        assert lim.relearned == 0 and lim.box.w[1] == pytest.approx(old - 0.02, abs=0.002)
+        _edge_pair(lim, new)
+        assert lim.relearned == 0  # one pair beyond: not yet
+        _edge_pair(lim, new)
+        _edge_pair(lim, new)
+        if test:
+            # the recent pairs that agree with the change: the outlier too, the three after the change
+            assert lim.relearned == 1 and lim.bcnt_hi[1] == 4
+            assert lim.box.w[1] == pytest.approx(new + 0.0025, abs=1e-9)
+            hull_w = (lim.hull_sum[5, 10] / lim.hull_cnt[5, 10])[1]
+            assert TB.denormalise(np.array([0.5, hull_w]))[1] == pytest.approx(new + 0.0025)
+        else:
+            assert lim.relearned == 0 and (old - lim.box.w[1]) / (old - new) == pytest.approx(4 / 15, abs=0.01)
+    quiet = LearnerLimits(TB, LB, (11, 11), 1e-6, memory=20)
+    quiet.set_change_test(5, 0.02)
+    for _ in range(2000):
+        _edge_pair(quiet, old + 0.03 * rng.standard_normal())
+        _edge_pair(quiet, -old + 0.03 * rng.standard_normal(), side=0)
+    assert quiet.relearned == 0 and quiet.box.w[1] == pytest.approx(old, abs=0.02)
+
+
+def test_a_curvature_that_moved_is_learned_again_at_whatever_speed_its_pairs_come() -> None:
+    """``needs_speed``: a yaw-rate side's residual is against its curvature at the pair's own speed, so full-lock pairs
+    at several speeds are no change, and a rover whose steering lost reach is found by a few of them: its curvature
+    is then its recent pairs'."""
+    lim = LearnerLimits(TB, LB, (11, 11), 1e-6, memory=20, needs_speed=True)
+    lim.set_change_test(5, 0.02)
+    speeds = [0.4, 0.8, 1.2, 1.6]
+    for k in range(16):
+        _edge_pair(lim, 0.5 * speeds[k % 4], v=speeds[k % 4])
+    assert lim.relearned == 0 and lim.curvature[1] == pytest.approx(0.5)
+    for k in range(4):
+        _edge_pair(lim, 0.3 * speeds[k % 4], v=speeds[k % 4])
+    assert lim.relearned == 1 and lim.curvature[1] == pytest.approx(0.3)
+    assert lim.box.w[1] == pytest.approx(0.3 * lim.box.v[1])
