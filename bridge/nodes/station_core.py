@@ -348,10 +348,7 @@ class StationCore:
             else:
                 pair = self.pairer.state(e.stamp, (e.x, e.y, e.theta), received)
             if pair is not None:
-                relearned = self.store.relearned
-                res = self.store.add(*pair, stamp=time.time() - (now - received))  # when a cell changed: wall clock
-                if self.store.relearned > relearned:
-                    log.warning("cell %s re-learned: its learner no longer answers as its pairs said", res.cell)
+                self.add_pair(pair, time.time() - (now - received))  # when a cell changed: wall clock
         if inputs.teacher is not None:
             self.teacher, self.teacher_at = inputs.teacher
             self.teacher_new = True
@@ -367,6 +364,17 @@ class StationCore:
             self.counters.missions += 1
             log.info("new mission %r: %d waypoints, %.1f m, %d obstacles", mission.name, len(mission.path.points),
                      mission.path.length, len(mission.obstacles))
+
+    def add_pair(self, pair: tuple[np.ndarray, np.ndarray], stamp: float) -> None:
+        """One (teacher equivalent, learner command) pair into the store, ``stamp`` the wall-clock time it is given (a
+        re-learned cell's); a warning for a cell or a learned limit it re-learned (``[transfer] adapt``)."""
+        relearned, edges = self.store.relearned, self.store.limits.relearned
+        res = self.store.add(*pair, stamp=stamp)
+        if self.store.relearned > relearned:
+            log.warning("cell %s re-learned: its learner no longer answers as its pairs said", res.cell)
+        if self.store.limits.relearned > edges:
+            log.warning("a learned limit re-learned from its recent boundary pairs: the learner's reach changed; "
+                        "limits now %s", self.store.limits.box.as_list())
 
     def note_driver(self, st: M.Status, at: float) -> None:
         """The driver host's latest status (at a tick, or before a mission request is answered between two ticks);

@@ -147,11 +147,15 @@ class StationCounters:
     # shared changes applied: cells the robot had not driven since, moved provisionally by the change two cells
     # re-learned together (transfer.store, ``adapt``); shown once there is one
     shared_changes: int = 0
+    # learned limits' edges whose boundary pairs showed a change, learned again from the recent ones (transfer.limits,
+    # ``adapt``); shown once there is one
+    limits_relearned: int = 0
     calibration_index: int | None = None
     calibration_total: int | None = None
     ticks: int = 0
 
-    _SHOWN_IF_NONZERO = ("method_calibrate", "foreign_commands", "pairs_unsettled", "shared_changes")
+    _SHOWN_IF_NONZERO = ("method_calibrate", "foreign_commands", "pairs_unsettled", "shared_changes",
+                         "limits_relearned")
 
     def count_method(self, method: str) -> None:
         """One more command sent by ``method`` (a wire ``Command`` method)."""
@@ -162,7 +166,7 @@ class StationCounters:
         """Take the counts the pairer, the store and the mission keep themselves (before a status)."""
         self.refined_pairs, self.raw_pairs, self.cells_relearned = (len(store.refined()), store.raw_count,
                                                                     store.relearned)
-        self.shared_changes = store.shared
+        self.shared_changes, self.limits_relearned = store.shared, store.limits.relearned
         for name, attr in _PAIRER_COUNTS:
             setattr(self, name, getattr(pairer, attr))
         self.goal_reached = int(control.phase == "finished")

@@ -488,6 +488,7 @@ def sitl_hil(args: argparse.Namespace, robot: str = "sitl") -> int:
     with mon.lock:
         st = mon.status.get("station")
     relearned = st.counters.get("cells_relearned") if st is not None else None
+    edges = st.counters.get("limits_relearned", 0) if st is not None else None
     changed = []
     for at, name, value, err in changer.done:  # the learner changed mid-run: the deviation before and after
         before = [d for t, d in devs_at if at - 20.0 <= t < at]
@@ -525,7 +526,7 @@ def sitl_hil(args: argparse.Namespace, robot: str = "sitl") -> int:
         "learned_limits": learned_limits(store), "adapt": bool(args.adapt),
         "curve_margin": args.curve_margin, "turn": turn, "start": start,
         "turn_probe": load_station(out / "station.toml").transfer.probe_turns(),  # what the station does
-        "cells_relearned": relearned, "param_changes": changed,
+        "cells_relearned": relearned, "limits_relearned": edges, "param_changes": changed,
         "max_dev_m": run["max_dev_m"], "goal_dist_m": run["goal_dist_m"], "driving_s": run["driving_s"],
         "learner_bounds": [list(v_range), list(w_range)], "vehicle_params": params,
         "missed_deadlines": run["missed_deadlines"], "boot_s": round(sitl.boot_s, 1),

@@ -3,6 +3,8 @@ teacher, several cores in one process."""
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 
@@ -226,6 +228,35 @@ def test_a_store_learned_on_another_day_is_checked_against_todays_pairs_by_defau
     assert not fresh.store.adapt  # from no pairs: the paper's store (what adapt costs there: docs/PAPER.md)
     always = msgspec.convert({"transfer": {"adapt": True}}, StationConfig)
     assert StationCore(always, "r4", 10.0, tmp_path / "new2.bin", load_mission()).store.adapt
+
+
+def test_a_learned_limit_whose_boundary_pairs_changed_is_logged_and_counted_on_the_status(tmp_path, caplog) -> None:
+    """With change detection a learned edge tests its boundary pairs (``transfer/limits.py``, "An edge that moved"): a
+    turn-rate cap lowered mid-run shows in a few pairs at the learner's full lock, and the station says so (a warning
+    with the limits it now holds, ``limits_relearned`` on the status, shown once there is one)."""
+    import msgspec
+
+    cfg = msgspec.convert({"transfer": {"adapt": True}}, StationConfig)
+    core = StationCore(cfg, "r1", 10.0, tmp_path / "p.bin", load_mission())
+    lb, tb = core.store.learner_bounds, core.store.teacher_bounds
+    assert "limits_relearned" not in core.tick(TickInputs(), 0.5).status.counters  # none yet: not shown
+
+    def lock(share: float) -> np.ndarray:  # the full left lock at a share of the top speed
+        return np.array([lb.v[0] + share * (lb.v[1] - lb.v[0]), lb.w[1]])
+
+    # the pairs at the lock came seldom and at several speeds (each cell too few to test: the edge's own test finds it)
+    for k in range(12):
+        core.store.add(np.array([0.3, 0.6 * tb.w[1] + 0.005 * (-1) ** k]), lock(0.15 + 0.2 * (k % 4)), stamp=1.0)
+    with caplog.at_level("WARNING", logger="scmbridge.station"):
+        for _ in range(3):
+            core.add_pair((np.array([0.3, 0.35 * tb.w[1]]), lock(0.95)), 2.0)
+    said = [r.message for r in caplog.records if r.message.startswith("a learned limit re-learned")]
+    assert len(said) == 1
+    assert json.loads(said[0].split("limits now ")[1]) == pytest.approx(core.store.limits.box.as_list())
+    assert core.store.limits.relearned == 1
+    assert core.store.limits.box.w[1] == pytest.approx(0.35 * tb.w[1])
+    out = core.tick(TickInputs(), 3.0)
+    assert out.status is not None and out.status.counters["limits_relearned"] == 1
 
 
 def _drive(core: StationCore, ticks: int) -> list[tuple[np.ndarray, np.ndarray, str, np.ndarray]]:
