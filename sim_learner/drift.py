@@ -17,8 +17,9 @@ Every run is made twice on the same seed: with the store's change detection (:cl
 ``adapt=True``, the default) and with the paper's never-forgetting store (``adapt=False``: the ``baseline``). The JSON
 summary says, for each: ``dev_before_m`` (mean distance to the path over the 20 s before the change starts),
 ``dev_after_m`` (from 15 s after the change ends to the end of the run), ``recover_s`` (from the change's end until
-the mean deviation over the next 5 s is within 1.2x ``dev_before_m``; null if never), ``reached_goal``, ``collisions``
-and ``relearned`` (cells the store re-learned). Deviation is measured from the poses of the run, every 0.1 s.
+the mean deviation over the next 5 s is within 1.2x ``dev_before_m``; null if never), ``reached_goal``, ``collisions``,
+``relearned`` (cells the store re-learned) and ``edges_relearned`` (learned limits' edges it learned again, their own
+change test: ``transfer/limits.py``). Deviation is measured from the poses of the run, every 0.1 s.
 ``cmd_err_before`` / ``cmd_err_after`` (same windows) are the transfer's own error: the mean distance between what the
 learner did and what the teacher asked, normalised by the teacher's range. The path deviation also holds what the
 learner can no longer do at all, and the MPC's feedback hides part of a wrong map on the straights; the command error
@@ -37,7 +38,7 @@ after its change, whose acceleration is limited where yesterday's was not; ``non
 world from that store twice, re-learning its changed cells (a station's default for a store it reloads, ``[transfer]
 adapt = "reloaded"``) and not (the paper's store). Its summary gives each run's ``dev_m`` and ``dev_last_half_m`` (mean
 distance to the path over the run and over its second half), ``time_s``, ``reached_goal``, ``collisions`` and
-``relearned``.
+``relearned`` (and ``edges_relearned``).
 """
 
 from __future__ import annotations
@@ -181,6 +182,7 @@ class DriftRun:
     reached: bool = False
     collided: bool = False
     relearned: int = 0
+    edges_relearned: int = 0  # learned limits' edges the store learned again (transfer/limits.py)
     time_s: float | None = None
     store: PairStore | None = None  # what the run's store learned
 
@@ -227,7 +229,7 @@ def drive(scenario: str, seed: int, adapt: bool, tiles: int = TILES, solver: str
         if world.reached(x):
             run.reached, run.time_s = True, (k + 1) * DT
             break
-    run.relearned, run.store = store.relearned, store
+    run.relearned, run.edges_relearned, run.store = store.relearned, store.limits.relearned, store
     return run, learner
 
 
@@ -236,8 +238,8 @@ def figures(run: DriftRun, change: tuple[float | None, float | None]) -> dict:
     t, dev = np.asarray(run.t), np.asarray(run.dev)
     t0, t1 = change
     out: dict = {"reached_goal": run.reached, "collisions": run.collided, "relearned": run.relearned,
-                 "time_s": run.time_s, "driving_s": round(len(run.t) * DT, 1), "dev_before_m": None,
-                 "dev_after_m": None, "recover_s": None,
+                 "edges_relearned": run.edges_relearned, "time_s": run.time_s,
+                 "driving_s": round(len(run.t) * DT, 1), "dev_before_m": None, "dev_after_m": None, "recover_s": None,
                  "cmd_err_before": None, "cmd_err_after": None, "change_s": [t0, t1]}
     if t0 is None or t1 is None:
         return out
@@ -281,7 +283,8 @@ def reloaded_figures(run: DriftRun) -> dict:
     t, dev = np.asarray(run.t), np.asarray(run.dev)
     half = t >= t[-1] / 2.0
     return {"reached_goal": run.reached, "collisions": run.collided, "relearned": run.relearned,
-            "time_s": run.time_s, "dev_m": float(dev.mean()), "dev_last_half_m": float(dev[half].mean())}
+            "edges_relearned": run.edges_relearned, "time_s": run.time_s, "dev_m": float(dev.mean()),
+            "dev_last_half_m": float(dev[half].mean())}
 
 
 def reloaded_summary(scenario: str, seed: int, tiles: int = TILES, solver: str = "ipopt",
@@ -376,6 +379,7 @@ def sweep_stats(rows: list[dict]) -> dict:
             hours = sum(r["driving_s"] for r in rs) / 3600.0
             n = sum(r["relearned"] for r in rs)
             out[sc] = {"relearned": n, "driving_h": round(hours, 3), "relearned_per_h": round(n / hours, 3),
+                       "edges_relearned": sum(r["edges_relearned"] for r in rs),
                        "upper_95_per_h": round(3.0 / hours, 3) if n == 0 else None,
                        "reached_goal": sum(bool(r["reached_goal"]) for r in rs),
                        "collisions": sum(bool(r["collisions"]) for r in rs), "seeds": len(rs)}
@@ -392,6 +396,7 @@ def sweep_stats(rows: list[dict]) -> dict:
                     "reached_goal": sum(bool(s["reached_goal"]) for s in sel),
                     "collisions": sum(bool(s["collisions"]) for s in sel),
                     "relearned": _median([s["relearned"] for s in sel]),
+                    "edges_relearned": _median([s["edges_relearned"] for s in sel]),
                     "time_s": _median([s["time_s"] for s in sel]), "seeds": len(sel)}
 
         out[sc] = {"adaptive": stats(lambda r: r)}
