@@ -533,3 +533,75 @@ def test_the_rover_weakened_mid_run_by_its_own_parameter_is_followed_down_by_the
     lost = TOP_SPEED - TOP_SPEED_CUT
     assert TOP_SPEED_CUT - 0.03 < after["v"][1] < before["v"][1] - 0.5 * lost, run  # followed the vehicle down
     assert after["w"][1] == pytest.approx(before["w"][1], rel=0.15), run  # the turn rate did not change
+
+
+#: the weak profile's top turn rate (its full command, 0.52 rad/s) after ATC_STR_RAT_MAX 30 -> 18 deg/s, rad/s
+#: (``python -m sim_learner.sitl_response --params deploy/examples/sitl-weak.parm`` with a second .parm of
+#: ``ATC_STR_RAT_MAX 18``, ``--v 0.3,0.6 --w 0.52,-0.52 --hold 4``: 0.178-0.188 either way; 0.29-0.31 before, the table
+#: in that file)
+TOP_TURN, TOP_TURN_CUT = 0.30, 0.185
+
+
+def _two_s_paths(path: Path) -> Path:
+    """The paper's S-path and its obstacles laid end to end twice (``sim drift``'s tiles): after a change 20 s in,
+    the rover drives four more bends at least, two each way (one S-path: on some runs it met no bend at its lock)."""
+    from bridge.core.config import load_mission_spec
+
+    s = load_mission_spec()
+    dx = s.path[-1][0] - s.path[0][0]
+    pts = [*s.path, *([x + dx, y] for x, y in s.path[1:])]
+    obs = [*s.obstacles, *([x + dx, y, r] for x, y, r in s.obstacles)]
+
+    def rows(a: list) -> str:
+        return "[\n" + ",\n".join("  [" + ", ".join(repr(float(x)) for x in row) + "]" for row in a) + "\n]"
+
+    start = "" if s.start is None else f"start = [{', '.join(repr(float(x)) for x in s.start)}]\n"
+    path.write_text(f'name = "paper-s-path-x2"\nframe = "{s.frame}"\ngoal_tolerance = {s.goal_tolerance}\n{start}'
+                    f"obstacles = {rows(obs)}\npath = {rows(pts)}\n")
+    return path
+
+
+@pytest.mark.sitl
+@pytest.mark.timeout(260)
+def test_the_rover_whose_turn_rate_cap_is_lowered_mid_run_is_followed_by_the_learned_turn_limits(tmp_path) -> None:
+    """``scmbridge demo --sitl`` with the weak profile, transfer, change detection (``--adapt``) and the MPC slowing for
+    bends (``--curve-margin 0.9``), from no pairs, on two S-paths end to end; 20 s after the vehicle first drove, the
+    pilot lowers ATC_STR_RAT_MAX from 30 to 18 deg/s by PARAM_SET: the rover's top turn rate falls from 0.30 to 0.185
+    rad/s, either way, its speed stays. Its pairs at the full lock come seldom (a few per bend, from cells the robot
+    does not drive again), so neither a cell's change test nor the limits' memory finds it; the edges' own change test
+    does (``transfer/limits.py``, "An edge that moved"). Asserted: the change read back at its time; the goal reached
+    without a collision; both turn limits learned before the change were the vehicle's; each side ends either at the
+    vehicle's new top rate (within 0.03 rad/s) or, never driven at its lock after the change, where it was, and at
+    least one side is at the new rate, learned again by the edges' test; the top speed stays. About 90 s of wall time
+    (70 s of driving)."""
+    binary = _sitl_binary()
+    out = tmp_path / "out"
+    mission = _two_s_paths(tmp_path / "two-s-paths.toml")
+    with Children() as kids:
+        demo = kids.spawn(["demo", "--link", "mavlink", "--sitl", str(binary), "--sitl-params", str(WEAK_PARM),
+                           "--transfer", "on", "--adapt", "--curve-margin", "0.9", "--mission", str(mission),
+                           "--param-at", "20:ATC_STR_RAT_MAX=18", "--duration", "150", "--out", str(out)],
+                          subprocess.PIPE)
+        try:
+            stdout, _ = demo.communicate(timeout=230)
+        except subprocess.TimeoutExpired:
+            pytest.fail("the demo did not end within 230 s")
+    text = stdout.decode()
+    lines = [ln for ln in text.splitlines() if ln.startswith("summary: ")]
+    assert lines, text[-3000:]
+    run = json.loads(lines[-1][len("summary: "):])
+    (change,) = run["param_changes"]
+    assert (change["name"], change["value"], change["error"], change["read_back"]) == (
+        "ATC_STR_RAT_MAX", 18.0, None, 18.0), change
+    assert 19.5 <= change["at_s"] <= 22.0, change
+    assert run["reached_goal"] and run["collisions"]["scm"] is False, run
+    assert demo.returncode == 0, text[-3000:]
+    before, after = change["limits_before"], run["learned_limits"]
+    assert before is not None and after is not None, run
+    sides_before, sides_after = (-before["w"][0], before["w"][1]), (-after["w"][0], after["w"][1])
+    assert all(abs(w - TOP_TURN) < 0.03 for w in sides_before), run  # both learned: the vehicle's, before
+    followed = [abs(w - TOP_TURN_CUT) < 0.03 for w in sides_after]
+    kept = [abs(w - w0) < 0.005 for w, w0 in zip(sides_after, sides_before)]
+    assert all(f or k for f, k in zip(followed, kept)) and any(followed), run
+    assert run["limits_relearned"] >= 1, run
+    assert after["v"][1] == pytest.approx(before["v"][1], abs=0.03), run  # the speed did not change
