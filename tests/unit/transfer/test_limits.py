@@ -287,8 +287,8 @@ def test_an_edge_that_moved_is_learned_again_from_its_recent_boundary_pairs_and_
     teacher's range from the first pair after the change, but one pair beyond is an outlier (one outlier of that size
     before the change moves nothing); the second alarms, and the edge keeps the recent pairs that agree with the
     change (the outlier among them): the new reach. With the memory alone the edge is the mean of its 15 pairs, 4 of
-    them at the new reach (the paper's mean of every pair the same: fewer pairs than the memory). Noise alone (1.5 % of the range, 4000 pairs) never
-    alarms; the hull's point of the side's cell follows the edge."""
+    them at the new reach (the paper's mean of every pair the same: fewer pairs than the memory). Noise alone (1.5 %
+    of the range, 4000 pairs) never alarms; the hull's point of the side's cell follows the edge."""
     rng = np.random.default_rng(3)
     old, new = 0.6, 0.36
     for test in (True, False):
