@@ -89,6 +89,13 @@ def _recency(n: int, memory: int) -> tuple[float, int]:
     return ((memory - 1) / n, memory - 1) if memory and n >= memory else (1.0, n)
 
 
+def grid_cell(l_n: ArrayLike, grid: tuple[int, int]) -> tuple[int, int]:
+    """The cell of the ``grid`` (n_v, n_omega) a normalised learner part in [0, 1]^2 falls in (paper Section 5.2's
+    clustering; the last cell holds the upper edge)."""
+    gv, gw = grid
+    return (min(int(l_n[0] * gv), gv - 1), min(int(l_n[1] * gw), gw - 1))
+
+
 def _keep_apart(lo: list[float], hi: list[float], a: int) -> None:
     """Axis ``a``'s normalised edges (in place) a millionth apart at least: a collapsed box stays a box."""
     if hi[a] - lo[a] < 1e-6:
@@ -307,21 +314,22 @@ class LearnerLimits:
             rows = test.recent(a, side)
             res = rows[:, a] - np.array([self._edge_at(a, side, edge, v) for v in rows[:, 0].tolist()])
             keep = np.abs(res - e) < np.abs(res)
-            out = (float(rows[keep, a].sum()), int(keep.sum()))
+            kept = rows[keep]
+            out = (float(kept[:, a].sum()), len(kept))
             if a == 1:
                 self.turn_vw[side] = self.turn_vv[side] = 0.0
                 self.turn_n[side] = 0
                 self.turn_prop[side] = np.nan
-                for tv, tw in rows[keep, :2].tolist():
+                for tv, tw in kept[:, :2].tolist():
                     self._turn_sample(side, tv, tw)
-            row = self.grid[a] - 1 if side else 0
-            for i in np.flatnonzero(self.hull_cnt.ravel() > 0):
-                c = (int(i) // self.grid[1], int(i) % self.grid[1])
-                if c[a] != row:
-                    continue
-                mine = [k for k, x in enumerate(rows[:, 2:]) if keep[k] and self._cell(x) == c]
-                self.hull_sum[c] = rows[mine, :2].sum(axis=0) if mine else 0.0
-                self.hull_cnt[c] = len(mine)
+            row = self.grid[a] - 1 if side else 0  # the side's cells: their hull points are the kept pairs in them
+            cells = [grid_cell(x, self.grid) for x in kept[:, 2:].tolist()]
+            for c in zip(*np.nonzero(self.hull_cnt > 0)):
+                c = (int(c[0]), int(c[1]))
+                if c[a] == row:
+                    mine = [k for k, ck in enumerate(cells) if ck == c]
+                    self.hull_sum[c] = kept[mine, :2].sum(axis=0) if mine else 0.0
+                    self.hull_cnt[c] = len(mine)
             self._hull_cache = None
             test.restart(a, side)
             self.relearned += 1
@@ -335,11 +343,6 @@ class LearnerLimits:
             got = self._turn_edge(side, max(self._teacher(0, v_n), 0.0))
             return math.nan if got is None or self.turn_n[side] == 0 else got
         return edge
-
-    def _cell(self, l_n: NDArray[np.float64]) -> tuple[int, int]:
-        """The grid cell of a normalised learner part (the store's :meth:`~transfer.store.PairStore.cell_of`)."""
-        gv, gw = self.grid
-        return (min(int(l_n[0] * gv), gv - 1), min(int(l_n[1] * gw), gw - 1))
 
     def set_needs_speed(self, on: bool) -> None:
         """Read the limits as those of a learner that cannot turn in place (``on``), or one that can: the box's

@@ -67,7 +67,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from transfer.domain import Bounds
-from transfer.limits import LearnerLimits
+from transfer.limits import LearnerLimits, grid_cell
 from transfer.store_blob import LimitsBlob, StoreBlob
 
 SCHEMA = "scmbridge.pairstore"
@@ -208,8 +208,7 @@ class PairStore:
         return self._cell_n(n)
 
     def _cell_n(self, n: NDArray[np.float64]) -> tuple[int, int]:
-        gv, gw = self.grid
-        return (min(int(n[0] * gv), gv - 1), min(int(n[1] * gw), gw - 1))
+        return grid_cell(n, self.grid)
 
     def add(self, u_T_bar: ArrayLike, u_L: ArrayLike, stamp: float | None = None) -> AddResult:
         """Add one raw pair (teacher equivalent, learner command actually applied)."""
