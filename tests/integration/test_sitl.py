@@ -495,6 +495,32 @@ WEAK_PARM = Path(__file__).resolve().parents[2] / "deploy" / "examples" / "sitl-
 TOP_SPEED, TOP_SPEED_CUT = 0.344, 0.230
 
 
+def _demo_with_a_change(out: Path, args: list[str], name: str, value: float, at: tuple[float, float],
+                        timeout: float) -> tuple[dict, dict]:
+    """``scmbridge demo`` on SITL with the weak profile, transfer and change detection on, the pilot setting ``name``
+    to ``value`` mid-run (``--param-at`` in ``args``): its summary and its one parameter change, once asserted that
+    the demo ended within ``timeout`` s with exit 0, the vehicle read the value back (PARAM_VALUE) at a time within
+    ``at`` s of its first drive, the goal was reached without a collision, and the limits before and after are known."""
+    with Children() as kids:
+        demo = kids.spawn(["demo", "--link", "mavlink", "--sitl", str(_sitl_binary()), "--sitl-params", str(WEAK_PARM),
+                           "--transfer", "on", "--adapt", *args, "--out", str(out)], subprocess.PIPE)
+        try:
+            stdout, _ = demo.communicate(timeout=timeout)
+        except subprocess.TimeoutExpired:
+            pytest.fail(f"the demo did not end within {timeout:.0f} s")
+    text = stdout.decode()
+    lines = [ln for ln in text.splitlines() if ln.startswith("summary: ")]
+    assert lines, text[-3000:]
+    run = json.loads(lines[-1][len("summary: "):])
+    (change,) = run["param_changes"]
+    assert (change["name"], change["value"], change["error"], change["read_back"]) == (name, value, None, value), change
+    assert at[0] <= change["at_s"] <= at[1], change
+    assert run["reached_goal"] and run["collisions"]["scm"] is False, run
+    assert demo.returncode == 0, text[-3000:]
+    assert change["limits_before"] is not None and run["learned_limits"] is not None, run
+    return run, change
+
+
 @pytest.mark.sitl
 @pytest.mark.timeout(200)
 def test_the_rover_weakened_mid_run_by_its_own_parameter_is_followed_down_by_the_learned_top_speed(tmp_path) -> None:
@@ -507,28 +533,10 @@ def test_the_rover_weakened_mid_run_by_its_own_parameter_is_followed_down_by_the
     (a learned limit is the mean of its boundary pairs: the pairs from before the change still weigh in, so it comes
     down part of the way in one run: by 0.078-0.099 m/s of 0.114 in 3 runs); the turn limit, which the parameter
     does not move, stays. 60-70 s of wall time (SITL in real time: 48-52 s of driving)."""
-    binary = _sitl_binary()
-    out = tmp_path / "out"
-    with Children() as kids:
-        demo = kids.spawn(["demo", "--link", "mavlink", "--sitl", str(binary), "--sitl-params", str(WEAK_PARM),
-                           "--transfer", "on", "--adapt", "--param-at", "12:CRUISE_THROTTLE=45", "--duration", "100",
-                           "--out", str(out)], subprocess.PIPE)
-        try:
-            stdout, _ = demo.communicate(timeout=170)
-        except subprocess.TimeoutExpired:
-            pytest.fail("the demo did not end within 170 s")
-    text = stdout.decode()
-    lines = [ln for ln in text.splitlines() if ln.startswith("summary: ")]
-    assert lines, text[-3000:]
-    run = json.loads(lines[-1][len("summary: "):])
-    (change,) = run["param_changes"]
-    assert (change["name"], change["value"], change["error"], change["read_back"]) == (
-        "CRUISE_THROTTLE", 45.0, None, 45.0), change
-    assert 11.5 <= change["at_s"] <= 14.0, change  # 12 s after the vehicle first drove (the pilot's link: < 2 s)
-    assert run["reached_goal"] and run["collisions"]["scm"] is False, run
-    assert demo.returncode == 0, text[-3000:]
+    # 12 s after the vehicle first drove (the pilot's link: < 2 s)
+    run, change = _demo_with_a_change(tmp_path / "out", ["--param-at", "12:CRUISE_THROTTLE=45", "--duration", "100"],
+                                      "CRUISE_THROTTLE", 45.0, (11.5, 14.0), 170)
     before, after = change["limits_before"], run["learned_limits"]
-    assert before is not None and after is not None, run
     assert abs(before["v"][1] - TOP_SPEED) < 0.05, run  # learned before the change: the vehicle's top speed
     lost = TOP_SPEED - TOP_SPEED_CUT
     assert TOP_SPEED_CUT - 0.03 < after["v"][1] < before["v"][1] - 0.5 * lost, run  # followed the vehicle down
@@ -574,30 +582,11 @@ def test_the_rover_whose_turn_rate_cap_is_lowered_mid_run_is_followed_by_the_lea
     vehicle's new top rate (within 0.03 rad/s) or, never driven at its lock after the change, where it was, and at
     least one side is at the new rate, learned again by the edges' test; the top speed stays. About 90 s of wall time
     (70 s of driving)."""
-    binary = _sitl_binary()
-    out = tmp_path / "out"
     mission = _two_s_paths(tmp_path / "two-s-paths.toml")
-    with Children() as kids:
-        demo = kids.spawn(["demo", "--link", "mavlink", "--sitl", str(binary), "--sitl-params", str(WEAK_PARM),
-                           "--transfer", "on", "--adapt", "--curve-margin", "0.9", "--mission", str(mission),
-                           "--param-at", "20:ATC_STR_RAT_MAX=18", "--duration", "150", "--out", str(out)],
-                          subprocess.PIPE)
-        try:
-            stdout, _ = demo.communicate(timeout=230)
-        except subprocess.TimeoutExpired:
-            pytest.fail("the demo did not end within 230 s")
-    text = stdout.decode()
-    lines = [ln for ln in text.splitlines() if ln.startswith("summary: ")]
-    assert lines, text[-3000:]
-    run = json.loads(lines[-1][len("summary: "):])
-    (change,) = run["param_changes"]
-    assert (change["name"], change["value"], change["error"], change["read_back"]) == (
-        "ATC_STR_RAT_MAX", 18.0, None, 18.0), change
-    assert 19.5 <= change["at_s"] <= 22.0, change
-    assert run["reached_goal"] and run["collisions"]["scm"] is False, run
-    assert demo.returncode == 0, text[-3000:]
+    run, change = _demo_with_a_change(
+        tmp_path / "out", ["--curve-margin", "0.9", "--mission", str(mission), "--param-at", "20:ATC_STR_RAT_MAX=18",
+                           "--duration", "150"], "ATC_STR_RAT_MAX", 18.0, (19.5, 22.0), 230)
     before, after = change["limits_before"], run["learned_limits"]
-    assert before is not None and after is not None, run
     sides_before, sides_after = (-before["w"][0], before["w"][1]), (-after["w"][0], after["w"][1])
     assert all(abs(w - TOP_TURN) < 0.03 for w in sides_before), run  # both learned: the vehicle's, before
     followed = [abs(w - TOP_TURN_CUT) < 0.03 for w in sides_after]
