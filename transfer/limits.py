@@ -34,23 +34,23 @@ Finding (issue 33, docs/BENCHMARKS.md): on SITL's Ackermann rover the mean of it
 speed each came, allowed its top turn rate at its slowest speed, where it turns a tenth of it, and a turn probe sent
 at the slowest speed learned that it could not turn left at all (+0.001 rad/s).
 
-**An edge that moved** (:meth:`LearnerLimits.set_change_test`: the store's change detection switches it on with its
-own ``change_tol``; off, the paper's). A learned edge's boundary pairs may come sparsely, from cells the robot seldom
-drives again (on the SITL rover, a turn-rate cap lowered mid-run: a side's seven boundary pairs in a whole run, three of
-them from before the change), so neither the memory above nor a cell's own change test finds the change: the edge
-stays the mean of old and new. Each side of each axis therefore tests its boundary pairs as a cell tests its pairs
+**An edge that moved** (:meth:`LearnerLimits.set_change_test`: the store's change detection switches it on with its own
+``change_tol``; off, the paper's). A learned edge's boundary pairs may come sparsely, from cells the robot seldom drives
+again (on the SITL rover, a turn-rate cap lowered mid-run: a side's seven boundary pairs in a whole run, three of them
+from before the change), so neither the memory above nor a cell's own change test finds the change: the edge stays the
+mean of old and new. Each side of each axis therefore tests its boundary pairs as a cell tests its pairs
 (``transfer/store.py``, "A learner that changes"): a pair's residual is its teacher part less the edge it was taken at
 (with ``needs_speed``, a yaw-rate side's curvature at the pair's speed); the recency-weighted mean of the residuals
 (weight 1/k) beyond the tolerance and beyond ``sigmas`` standard deviations of its noise and of the edge's own error
-(the mean of its n pairs: 1/n of their variance), at two pairs in a row (one outlier is not a change), means the edge
-moved. The noise is estimated from the median size of the differences of a side's consecutive residuals (both sides of
-an axis pooled; a change moves one difference per side, which would raise a mean square above the change), and the
-test waits for k of them. On an alarm the side keeps only its last 2 k boundary pairs that agree with the change (their
-residual nearer the mean than zero), and so do its curvature and the hull points of its cells; ``relearned`` counts
-it. Not persisted: after a load the test learns its noise again. Measured (docs/PAPER.md, "An edge that moved"): no
-alarm in 90 unchanged ``sim drift`` runs, nor in 200 000 boundary pairs of Gaussian noise of 1.5 % of the teacher's
-range (one in 60 000 at 3 %); a noise with heavy tails (Student's t, 3 degrees of freedom, 1.5 %) alarms about once
-in a thousand pairs.
+(the mean of its n pairs: 1/n of their variance), with the last two pairs each beyond the tolerance on the change's side
+(one outlier is not a change), means the edge moved. The noise is estimated from the median size of the differences of a
+side's consecutive residuals (both sides of an axis pooled; a change moves one difference per side, which would raise a
+mean square above the change), and the test waits for k of them. On an alarm the side keeps only its last 2 k boundary
+pairs that agree with the change (their residual nearer the mean than zero), and so do its curvature and the hull points
+of its cells; ``relearned`` counts it. Not persisted: after a load the test learns its noise again. Measured
+(docs/PAPER.md, "An edge that moved"): no alarm in 90 unchanged ``sim drift`` runs, nor in 200 000 boundary pairs of
+Gaussian noise of 1.5 % of the teacher's range (4 in 60 000 at 3 %); a noise with heavy tails (Student's t, 3 degrees of
+freedom, 1.5 %) alarms about once in two thousand pairs.
 
 All arithmetic is on normalised coordinates: the teacher side by the teacher's bounds, the learner side by the
 learner's. Exposed as the axis-aligned ``box`` (what bounds the MPC inputs and filters primitives) and the convex
@@ -115,7 +115,6 @@ class _EdgeTest:
         self.k, self.tol, self.sigmas = int(k), float(tol), float(sigmas)
         self.resid = [[0.0, 0.0], [0.0, 0.0]]
         self.last = [[math.nan, math.nan], [math.nan, math.nan]]
-        self.beyond = [[False, False], [False, False]]  # the side's mean was beyond its threshold at its last pair
         self.diffs: list[list[float]] = [[], []]  # per axis: the last 4 k residual differences' sizes, oldest first
         self.noise_n = [0, 0]  # differences ever taken, per axis
         self.ring: list[list[list[tuple[float, ...]]]] = [[[], []], [[], []]]  # per side: its last 2 k pairs
@@ -135,17 +134,16 @@ class _EdgeTest:
     def alarm(self, a: int, side: int, r: float, count: int) -> bool:
         """One boundary pair's residual ``r`` on side ``side`` of axis ``a``, whose edge is the mean of ``count``
         boundary pairs: whether the edge moved (the residuals' mean beyond ``tol`` and ``sigmas`` standard deviations
-        of its noise and of the edge's own, two pairs in a row, once the axis has ``k`` differences). A pair that does
-        not alarm teaches the noise."""
+        of its noise and of the edge's own, this pair's residual and the last one each beyond ``tol`` on its side, once
+        the axis has ``k`` differences). A pair that does not alarm teaches the noise."""
         res = self.resid[a]
         e = res[side] = res[side] + (r - res[side]) / self.k
         w = 1.0 / self.k
-        beyond = (self.noise_n[a] >= self.k and abs(e) > self.tol
-                  and abs(e) > self.sigmas * math.sqrt(self.noise2(a) * (w / (2 - w) + 1.0 / count)))
-        if beyond and self.beyond[a][side]:
-            return True
-        self.beyond[a][side] = beyond
         last = self.last[a][side]
+        if (self.noise_n[a] >= self.k and abs(e) > self.tol
+                and not math.isnan(last) and r * e > 0.0 and last * e > 0.0 and min(abs(r), abs(last)) > self.tol
+                and abs(e) > self.sigmas * math.sqrt(self.noise2(a) * (w / (2 - w) + 1.0 / count))):
+            return True
         if not math.isnan(last):
             d = self.diffs[a]
             d.append(abs(r - last))
@@ -170,7 +168,6 @@ class _EdgeTest:
         """The side's edge was learned again: its residuals start again (its noise stays: the learner's)."""
         self.resid[a][side] = 0.0
         self.last[a][side] = math.nan
-        self.beyond[a][side] = False
 
 
 class LearnerLimits:
