@@ -588,9 +588,10 @@ def test_the_rover_whose_turn_rate_cap_is_lowered_mid_run_is_followed_by_the_lea
                            "--duration", "150"], "ATC_STR_RAT_MAX", 18.0, (19.5, 22.0), 230)
     before, after = change["limits_before"], run["learned_limits"]
     sides_before, sides_after = (-before["w"][0], before["w"][1]), (-after["w"][0], after["w"][1])
-    assert all(abs(w - TOP_TURN) < 0.03 for w in sides_before), run  # both learned: the vehicle's, before
+    # both learned before the change: the vehicle's
+    assert all(abs(w - TOP_TURN) < 0.03 for w in sides_before), (sides_before, run)
     followed = [abs(w - TOP_TURN_CUT) < 0.03 for w in sides_after]
     kept = [abs(w - w0) < 0.005 for w, w0 in zip(sides_after, sides_before)]
-    assert all(f or k for f, k in zip(followed, kept)) and any(followed), run
+    assert all(f or k for f, k in zip(followed, kept)) and any(followed), (sides_before, sides_after, run)
     assert run["limits_relearned"] >= 1, run
     assert after["v"][1] == pytest.approx(before["v"][1], abs=0.03), run  # the speed did not change
