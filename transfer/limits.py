@@ -44,13 +44,13 @@ mean of old and new. Each side of each axis therefore tests its boundary pairs a
 (weight 1/k) beyond the tolerance and beyond ``sigmas`` standard deviations of its noise and of the edge's own error
 (the mean of its n pairs: 1/n of their variance), with the last two pairs each beyond the tolerance on the change's side
 (one outlier is not a change), means the edge moved. The noise is estimated from the median size of the differences of a
-side's consecutive residuals (both sides of an axis pooled; a change moves one difference per side, which would raise a
-mean square above the change), and the test waits for k of them. On an alarm the side keeps only its last 2 k boundary
-pairs that agree with the change (their residual nearer the mean than zero), and so do its curvature and the hull points
-of its cells; ``relearned`` counts it. Not persisted: after a load the test learns its noise again. Measured
-(docs/PAPER.md, "An edge that moved"): no alarm in 90 unchanged ``sim drift`` runs, nor in 200 000 boundary pairs of
-Gaussian noise of 1.5 % of the teacher's range (4 in 60 000 at 3 %); a noise with heavy tails (Student's t, 3 degrees of
-freedom, 1.5 %) alarms about once in two thousand pairs.
+side's consecutive residuals, both taken against the edge the later pair is tested at (both sides of an axis pooled; a
+change moves one difference per side, which would raise a mean square above the change), and the test waits for k of
+them. On an alarm the side keeps only its last 2 k boundary pairs that agree with the change (their residual nearer the
+mean than zero), and so do its curvature and the hull points of its cells; ``relearned`` counts it. Not persisted:
+after a load the test learns its noise again. Measured (docs/PAPER.md, "An edge that moved"): no alarm in 90 unchanged
+``sim drift`` runs, nor in 200 000 boundary pairs of Gaussian noise of 1.5 % of the teacher's range (5 in 60 000 at
+3 %); a noise with heavy tails (Student's t, 3 degrees of freedom, 1.5 %) alarms about once in two thousand pairs.
 
 All arithmetic is on normalised coordinates: the teacher side by the teacher's bounds, the learner side by the
 learner's. Exposed as the axis-aligned ``box`` (what bounds the MPC inputs and filters primitives) and the convex
@@ -106,10 +106,10 @@ def _keep_apart(lo: list[float], hi: list[float], a: int) -> None:
 class _EdgeTest:
     """The change test of the learned edges (module docstring, "An edge that moved"): per axis side (index ``[axis]
     [side]``, side 0 the lower) the recency-weighted mean (weight 1/k) of its boundary pairs' residuals against the
-    edge they were taken at, the axis's noise (from the differences of a side's consecutive residuals, which a lasting
-    change does not move; both sides pooled) and the side's last ``2 k`` boundary pairs (normalised teacher and
-    learner parts: what the edge re-learns from). Python lists: a pair at an edge is one tick's few scalars, and
-    numpy's per-element overhead was most of their cost."""
+    edge they were taken at, the axis's noise (from the differences of a side's consecutive residuals against one
+    edge, which a lasting change moves once; both sides pooled) and the side's last ``2 k`` boundary pairs (normalised
+    teacher and learner parts: what the edge re-learns from). Python lists: a pair at an edge is one tick's few
+    scalars, and numpy's per-element overhead was most of their cost."""
 
     def __init__(self, k: int, tol: float, sigmas: float) -> None:
         self.k, self.tol, self.sigmas = int(k), float(tol), float(sigmas)
@@ -131,11 +131,16 @@ class _EdgeTest:
         med = d[n // 2] if n % 2 else (d[n // 2 - 1] + d[n // 2]) / 2.0
         return (med / (0.6745 * math.sqrt(2.0))) ** 2
 
-    def alarm(self, a: int, side: int, r: float, count: int) -> bool:
+    def alarm(self, a: int, side: int, r: float, count: int, prev: float) -> bool:
         """One boundary pair's residual ``r`` on side ``side`` of axis ``a``, whose edge is the mean of ``count``
         boundary pairs: whether the edge moved (the residuals' mean beyond ``tol`` and ``sigmas`` standard deviations
         of its noise and of the edge's own, this pair's residual and the last one each beyond ``tol`` on its side, once
-        the axis has ``k`` differences). A pair that does not alarm teaches the noise."""
+        the axis has ``k`` differences). A pair that does not alarm teaches the noise: its difference from ``prev``,
+        the side's previous boundary pair's residual against the same edge as ``r`` (NaN: none), from a side's second
+        pair on and after an alarm too (the kept pairs are the new edge's). Against the edge each was taken at, the
+        differences after a change shrank with the edge as it took the new pairs in, each one a part of the change,
+        and raised the noise's median above the next side's change; and a side's first two pairs gave none, so a run
+        with few pairs at its locks waited past its change (both traced on SITL)."""
         res = self.resid[a]
         e = res[side] = res[side] + (r - res[side]) / self.k
         w = 1.0 / self.k
@@ -144,9 +149,9 @@ class _EdgeTest:
                 and not math.isnan(last) and r * e > 0.0 and last * e > 0.0 and min(abs(r), abs(last)) > self.tol
                 and abs(e) > self.sigmas * math.sqrt(self.noise2(a) * (w / (2 - w) + 1.0 / count))):
             return True
-        if not math.isnan(last):
+        if not math.isnan(prev):
             d = self.diffs[a]
-            d.append(abs(r - last))
+            d.append(abs(r - prev))
             if len(d) > 4 * self.k:
                 del d[0]
             self.noise_n[a] += 1
@@ -303,8 +308,11 @@ class LearnerLimits:
         boundary pairs but its recent ones that agree with the change (their residual nearer the test's mean than
         zero), and so do its curvature and its cells' hull points; returns the side's new (sum, count), else None. An
         edge with no boundary pair yet (extrapolated) is not tested."""
-        r = tn[a] - self._edge_at(a, side, edge, tn[0])
-        alarm = count > 0 and not math.isnan(r) and test.alarm(a, side, r, count)
+        at_speed = a == 1 and self.needs_speed
+        r = tn[a] - (self._edge_at(a, side, edge, tn[0]) if at_speed else edge)
+        ring = test.ring[a][side]  # its last pair: the previous residual, against the same edge
+        prev = math.nan if not ring else ring[-1][a] - (self._edge_at(a, side, edge, ring[-1][0]) if at_speed else edge)
+        alarm = count > 0 and not math.isnan(r) and test.alarm(a, side, r, count, prev)
         out = None
         if alarm:
             e = test.resid[a][side]

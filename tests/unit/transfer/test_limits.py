@@ -318,6 +318,50 @@ def test_an_edge_that_moved_is_learned_again_from_its_recent_boundary_pairs_and_
     assert quiet.relearned == 0 and quiet.box.w[1] == pytest.approx(old, abs=0.02)
 
 
+def test_each_sides_change_is_found_on_its_second_pair_with_few_pairs_at_the_locks_before() -> None:
+    """The SITL rover's turn-rate cut, as its pairs came (traced): each side at its lock three times before (the start's
+    turn on the spot, the first bend), then both sides' reach cut, the lower side's met first. Each side's change is
+    found on its second pair after it: the noise takes a difference from each side's second pair on. From its third,
+    the six pairs gave two differences, and the test, which waits for k = 5, let the lower side's second pair pass
+    (a run on CI, 2026-11-28, ended with a side between its old and new reach)."""
+    lim = LearnerLimits(TB, LB, (11, 11), 1e-6, memory=20)
+    lim.set_change_test(5, 0.02)
+    old, new = 0.38, 0.235  # the rover's 0.30 and 0.185 rad/s on a teacher range of +-0.785: 7 % of the range
+    for k in range(3):
+        _edge_pair(lim, old + 0.0005 * (-1) ** k)
+    for k in range(3):
+        _edge_pair(lim, -old + 0.0005 * (-1) ** k, side=0)
+    for side in (0, 1):
+        w = new if side else -new
+        _edge_pair(lim, w, side=side)
+        assert lim.relearned == side  # one pair beyond: not yet
+        _edge_pair(lim, w, side=side)
+        assert lim.relearned == side + 1 and lim.box.w[side] == pytest.approx(w)
+        _edge_pair(lim, w, side=side)
+    assert lim.relearned == 2
+
+
+def test_the_noise_is_not_raised_by_a_change_its_edge_takes_in() -> None:
+    """The upper side at its lock three times, the lower side once; then the lower side's reach is cut and its edge,
+    the mean of its pairs, takes four new pairs in (their residuals against it shrink: 7.2, 3.6, 1.2, 0.6 % of the
+    range); then the upper side's reach is cut: found on its second pair. Against the edge each pair was taken at,
+    the lower side's shrinking residuals' differences would be parts of its change, half of the noise's sample, and
+    hide the upper side's change; against one edge a change is one difference."""
+    lim = LearnerLimits(TB, LB, (11, 11), 1e-6, memory=20)
+    lim.set_change_test(5, 0.02)
+    old, new = 0.38, 0.235
+    for k in range(3):
+        _edge_pair(lim, old + 0.0005 * (-1) ** k)
+    _edge_pair(lim, -old, side=0)
+    for _ in range(4):
+        _edge_pair(lim, -new, side=0)
+    assert lim.relearned == 0 and lim.box.w[0] == pytest.approx(-(old + 4 * new) / 5)
+    _edge_pair(lim, new)
+    assert lim.relearned == 0
+    _edge_pair(lim, new)
+    assert lim.relearned == 1 and lim.box.w[1] == pytest.approx(new)
+
+
 def test_a_curvature_that_moved_is_learned_again_at_whatever_speed_its_pairs_come() -> None:
     """``needs_speed``: a yaw-rate side's residual is against its curvature at the pair's own speed, so full-lock pairs
     at several speeds are no change, and a rover whose steering lost reach is found by a few of them: its curvature
