@@ -579,9 +579,11 @@ def test_the_rover_whose_turn_rate_cap_is_lowered_mid_run_is_followed_by_the_lea
     does not drive again), so neither a cell's change test nor the limits' memory finds it; the edges' own change test
     does (``transfer/limits.py``, "An edge that moved"). Asserted: the change read back at its time; the goal reached
     without a collision; both turn limits learned before the change were the vehicle's; each side ends either at the
-    vehicle's new top rate (within 0.03 rad/s) or, never driven at its lock after the change, where it was, and at
-    least one side is at the new rate, learned again by the edges' test; the top speed stays. About 90 s of wall time
-    (70 s of driving)."""
+    vehicle's new top rate (within 0.03 rad/s) or where it was, give or take one pair at its lock after the change
+    (one pair is not a change: the edge, the mean of its three or more pairs, moves by its share, at most a quarter of
+    the cut; two pairs unfound move it by a third or more), and at least one side is at the new rate, learned again by
+    the edges' test; the top speed stays. About 90 s of wall time (70 s of driving); its pairs, traced in 17 runs,
+    give a side one pair at its lock after the change and no more once."""
     mission = _two_s_paths(tmp_path / "two-s-paths.toml")
     run, change = _demo_with_a_change(
         tmp_path / "out", ["--curve-margin", "0.9", "--mission", str(mission), "--param-at", "20:ATC_STR_RAT_MAX=18",
@@ -591,7 +593,7 @@ def test_the_rover_whose_turn_rate_cap_is_lowered_mid_run_is_followed_by_the_lea
     # both learned before the change: the vehicle's
     assert all(abs(w - TOP_TURN) < 0.03 for w in sides_before), (sides_before, run)
     followed = [abs(w - TOP_TURN_CUT) < 0.03 for w in sides_after]
-    kept = [abs(w - w0) < 0.005 for w, w0 in zip(sides_after, sides_before)]
+    kept = [-0.005 < w0 - w < 0.25 * (TOP_TURN - TOP_TURN_CUT) + 0.005 for w, w0 in zip(sides_after, sides_before)]
     assert all(f or k for f, k in zip(followed, kept)) and any(followed), (sides_before, sides_after, run)
     assert run["limits_relearned"] >= 1, run
     assert after["v"][1] == pytest.approx(before["v"][1], abs=0.03), run  # the speed did not change
