@@ -343,7 +343,7 @@ def test_each_sides_change_is_found_on_its_second_pair_with_few_pairs_at_the_loc
 
 def test_the_noise_is_not_raised_by_a_change_its_edge_takes_in() -> None:
     """The upper side at its lock three times, the lower side once; then the lower side's reach is cut and its edge,
-    the mean of its pairs, takes four new pairs in (their residuals against it shrink: 7.2, 3.6, 1.2, 0.6 % of the
+    the mean of its pairs, takes four new pairs in (their residuals against it shrink: 7.2, 3.6, 2.4, 1.8 % of the
     range); then the upper side's reach is cut: found on its second pair. Against the edge each pair was taken at,
     the lower side's shrinking residuals' differences would be parts of its change, half of the noise's sample, and
     hide the upper side's change; against one edge a change is one difference."""
