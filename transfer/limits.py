@@ -62,6 +62,7 @@ learner's top speed had a sliver of a hull that left out 118 of its 121 refined 
 from __future__ import annotations
 
 import math
+import statistics
 from collections.abc import Callable
 
 import numpy as np
@@ -115,8 +116,8 @@ class _EdgeTest:
         self.k, self.tol, self.sigmas = int(k), float(tol), float(sigmas)
         self.resid = [[0.0, 0.0], [0.0, 0.0]]
         self.last = [[math.nan, math.nan], [math.nan, math.nan]]
-        self.diffs: list[list[float]] = [[], []]  # per axis: the last 4 k residual differences' sizes, oldest first
-        self.noise_n = [0, 0]  # differences ever taken, per axis
+        #: per axis: the last 4 k residual differences' sizes, oldest first (the test waits for k of them)
+        self.diffs: list[list[float]] = [[], []]
         self.ring: list[list[list[tuple[float, ...]]]] = [[[], []], [[], []]]  # per side: its last 2 k pairs
 
     def noise2(self, a: int) -> float:
@@ -124,12 +125,8 @@ class _EdgeTest:
         differences (a difference of two residuals of spread s spreads s sqrt(2), and half of its sizes lie within
         0.674 of that): the differences across a change (one per side that changed) would raise a mean square above
         the change it is to find, and do not move the median."""
-        d = sorted(self.diffs[a])
-        n = len(d)
-        if not n:
-            return 0.0
-        med = d[n // 2] if n % 2 else (d[n // 2 - 1] + d[n // 2]) / 2.0
-        return (med / (0.6745 * math.sqrt(2.0))) ** 2
+        d = self.diffs[a]
+        return (statistics.median(d) / (0.6745 * math.sqrt(2.0))) ** 2 if d else 0.0
 
     def alarm(self, a: int, side: int, r: float, count: int, prev: float) -> bool:
         """One boundary pair's residual ``r`` on side ``side`` of axis ``a``, whose edge is the mean of ``count``
@@ -145,7 +142,7 @@ class _EdgeTest:
         e = res[side] = res[side] + (r - res[side]) / self.k
         w = 1.0 / self.k
         last = self.last[a][side]
-        if (self.noise_n[a] >= self.k and abs(e) > self.tol
+        if (len(self.diffs[a]) >= self.k and abs(e) > self.tol
                 and not math.isnan(last) and r * e > 0.0 and last * e > 0.0 and min(abs(r), abs(last)) > self.tol
                 and abs(e) > self.sigmas * math.sqrt(self.noise2(a) * (w / (2 - w) + 1.0 / count))):
             return True
@@ -154,7 +151,6 @@ class _EdgeTest:
             d.append(abs(r - prev))
             if len(d) > 4 * self.k:
                 del d[0]
-            self.noise_n[a] += 1
         self.last[a][side] = r
         return False
 
