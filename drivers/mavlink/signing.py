@@ -18,11 +18,10 @@ from __future__ import annotations
 import hashlib
 import time
 from dataclasses import dataclass, field
-from typing import Any
 
 from drivers.mavlink.client import verify_before_recording
 from drivers.mavlink.config import MavlinkLinkConfig
-from drivers.mavlink.dialect import load_pymavlink
+from drivers.mavlink.probe import Probe
 
 #: MAVLink signing timestamps count 10 us units from 2015-01-01 00:00:00 UTC
 SIGNING_EPOCH = 1420070400
@@ -66,77 +65,6 @@ class InstallResult:
         return self.heard and self.signed_accepted and self.vehicle_signs and self.unsigned_refused
 
 
-class _Link:
-    """A bare pymavlink connection to the vehicle with the driver's ids, reading what answers us."""
-
-    def __init__(self, config: MavlinkLinkConfig) -> None:
-        self.d = load_pymavlink()
-        self.config = config
-        self.target = (config.target_system, config.target_component)
-        self.conn = self.d.mavutil.mavlink_connection(
-            config.url, baud=config.baud, source_system=config.source_system,
-            source_component=config.source_component, dialect="ardupilotmega", autoreconnect=False, retries=0)
-        self.acks: list[tuple[float, int, int]] = []
-        self.signed_from_vehicle = 0
-        self.heartbeats = 0
-        self._hb_due = 0.0
-
-    def pump(self, until: float) -> None:
-        """Read until ``until`` (our 1 Hz HEARTBEAT sent meanwhile, as the driver does)."""
-        mav = self.d.mav
-        while True:
-            now = time.monotonic()
-            if now >= self._hb_due:
-                kind = mav.MAV_TYPE_ONBOARD_CONTROLLER if self.config.companion else mav.MAV_TYPE_GCS
-                self.conn.mav.heartbeat_send(kind, mav.MAV_AUTOPILOT_INVALID, 0, 0, mav.MAV_STATE_ACTIVE)
-                self._hb_due = now + 1.0
-            if now >= until:
-                return
-            msg = self.conn.recv_match(blocking=True, timeout=min(0.1, until - now))
-            if msg is None or msg.get_type() == "BAD_DATA":
-                continue
-            if (msg.get_srcSystem(), msg.get_srcComponent()) != self.target:
-                continue
-            if msg.get_type() == "HEARTBEAT":
-                self.heartbeats += 1
-                self.signed_from_vehicle += bool(getattr(msg, "_signed", False))
-            elif msg.get_type() == "COMMAND_ACK":
-                ours = (getattr(msg, "target_system", 0) in (0, self.config.source_system)
-                        and getattr(msg, "target_component", 0) in (0, self.config.source_component))
-                if ours:
-                    self.acks.append((time.monotonic(), int(msg.command), int(msg.result)))
-
-    def wait(self, pred: Any, timeout: float) -> bool:
-        t_end = time.monotonic() + timeout
-        while not pred():
-            if time.monotonic() >= t_end:
-                return False
-            self.pump(min(t_end, time.monotonic() + 0.1))
-        return True
-
-    def request(self, timeout: float) -> int | None:
-        """MAV_CMD_REQUEST_MESSAGE AUTOPILOT_VERSION, sent three times a second until its COMMAND_ACK: its result,
-        or None without one within ``timeout``."""
-        mav = self.d.mav
-        cmd = mav.MAV_CMD_REQUEST_MESSAGE
-        t0 = time.monotonic()
-        t_end, tries = t0 + timeout, 0
-        while time.monotonic() < t_end:
-            self.conn.mav.command_long_send(*self.target, cmd, tries, mav.MAVLINK_MSG_ID_AUTOPILOT_VERSION,
-                                            0, 0, 0, 0, 0, 0)
-            tries += 1
-            if self.wait(lambda: any(t >= t0 and c == cmd for t, c, _ in self.acks),
-                         min(1.0 / 3.0, max(0.0, t_end - time.monotonic()))):
-                return [r for t, c, r in self.acks if t >= t0 and c == cmd][-1]
-        return None
-
-    def close(self) -> None:
-        try:
-            self.conn.close()
-        except OSError:
-            pass
-
-
 def install(config: MavlinkLinkConfig, key: bytes, *, old_key: bytes | None = None,
             timeout: float | None = None) -> InstallResult:
     """Send SETUP_SIGNING with ``key`` to the vehicle ``config`` names, over its link, and confirm it: a signed
@@ -147,7 +75,7 @@ def install(config: MavlinkLinkConfig, key: bytes, *, old_key: bytes | None = No
         raise ValueError("a MAVLink 2 signing key is 32 bytes")
     res = InstallResult()
     wait = config.open_timeout if timeout is None else timeout
-    link = _Link(config)
+    link = Probe(config)
     try:
         mav = link.d.mav
         if old_key is not None:
@@ -162,7 +90,8 @@ def install(config: MavlinkLinkConfig, key: bytes, *, old_key: bytes | None = No
                          f"{config.target_component} on {config.url}")
         link.conn.setup_signing(key, sign_outgoing=True, allow_unsigned_callback=None)
         verify_before_recording(link.conn.mav)
-        result = link.request(min(wait, 5.0))
+        version = mav.MAVLINK_MSG_ID_AUTOPILOT_VERSION
+        result = link.request(version, min(wait, 5.0))
         res.signed_accepted = result == mav.MAV_RESULT_ACCEPTED
         res.lines.append(("ok   " if res.signed_accepted else "FAIL ") + "a request signed with the key: " + (
             "no answer" if result is None else mav.enums["MAV_RESULT"][result].name))
@@ -171,7 +100,7 @@ def install(config: MavlinkLinkConfig, key: bytes, *, old_key: bytes | None = No
         res.lines.append("ok   the vehicle's HEARTBEATs come signed with the key" if res.vehicle_signs else
                           "FAIL no HEARTBEAT signed with the key within 3 s (the vehicle did not take it?)")
         link.conn.mav.signing.sign_outgoing = False
-        result = link.request(UNSIGNED_WAIT_S)
+        result = link.request(version, UNSIGNED_WAIT_S)
         link.conn.mav.signing.sign_outgoing = True
         res.unsigned_refused = result is None
         res.lines.append("ok   an unsigned request: refused (no answer)" if res.unsigned_refused else

@@ -216,3 +216,59 @@ def test_one_radio_shared_with_mavproxy_signing_set_by_it_and_its_mode_switch_ho
             rig.close()
     finally:
         gcs.close()
+
+
+def _lines(out: str) -> dict[str, list[str]]:
+    """``scmbridge doctor``'s lines by check name."""
+    found: dict[str, list[str]] = {}
+    for ln in out.splitlines():
+        parts = ln.split(None, 2)
+        if len(parts) == 3 and parts[0] in ("ok", "warn", "FAIL"):
+            found.setdefault(parts[1], []).append(f"{parts[0]} {parts[2]}")
+    return found
+
+
+@pytest.fixture
+def slow_sitl() -> Iterator[Sitl]:
+    """A rover whose GUIDED speed cap is 0.6 m/s and turn-rate cap 30 deg/s (a lab's small rover)."""
+    with Sitl(_sitl_binary(), model="rover-skid", params={"WP_SPEED": 0.6, "ATC_STR_RAT_MAX": 30}) as s:
+        yield s
+
+
+@pytest.mark.timeout(240)
+def test_doctor_link_mavlink_names_what_the_rover_lacks_with_the_fix_and_changes_nothing(tmp_path, slow_sitl) -> None:
+    """``scmbridge doctor --driver FILE --link mavlink`` on SITL as it boots (GCS failsafe off, no HOLD position on the
+    RC mode switch, no signing, hard limits wider than WP_SPEED / ATC_STR_RAT_MAX): each named with its fix, nothing
+    on the vehicle changed; then the person applies the fixes (parameters from the ground station, the key installed,
+    the driver's limits narrowed) and the same checks pass."""
+    sitl = slow_sitl
+    cfg = tmp_path / "driver.toml"
+    cfg.write_text('robot = "rover1"\n[driver.hard_limits]\nv = [-1.0, 1.0]\nw = [-1.0, 1.0]\n\n'
+                   f'[link.mavlink]\nurl = "{sitl.driver_url}"\n')
+    doctor = ["doctor", "--driver", str(cfg), "--link", "mavlink", "--duration", "0.3"]
+    r = _scm(doctor, timeout=90)
+    found = _lines(r.stdout)
+    assert found["guided"] == ["ok ArduPilot Rover, mode MANUAL: GUIDED is its mode for a companion's set-points "
+                               "(engage: the GCS or scmbridge engage)"], r.stdout
+    assert "FS_GCS_ENABLE 1, FS_ACTION 2 (Hold)" in found["gcs-fs"][0] and found["gcs-fs"][0].startswith("warn")
+    assert found["rc-hold"][0].startswith("warn") and "MODE1..MODE6 = 4" in found["rc-hold"][0]
+    assert found["signing"][0].startswith("warn") and "--passphrase WORD --install" in found["signing"][0]
+    assert found["arming"] == ["ok every arming check on (ARMING_CHECK 1)"], r.stdout
+    assert "v = [0.05, 0.6], w = [-0.5236, 0.5236]" in found["range"][0], r.stdout
+    assert found["range"][1].startswith("warn [driver.hard_limits]") and "v = [-0.6, 0.6]" in found["range"][1]
+    assert sitl.pilot.param("FS_GCS_ENABLE") == 0 and sitl.pilot.mode == "MANUAL" and not sitl.pilot.armed
+    # the person's fixes
+    sitl.pilot.set_param("FS_GCS_ENABLE", 1)
+    sitl.pilot.set_param("MODE6", 4)
+    key = tmp_path / "rover.key"
+    r = _scm(["keys", "mavlink", "--robot", "rover1", "--out", str(key), "--passphrase", PASSPHRASE, "--install",
+              "--driver", str(cfg)])
+    assert r.returncode == 0, r.stdout + r.stderr
+    cfg.write_text('robot = "rover1"\n[driver.hard_limits]\nv = [-0.6, 0.6]\nw = [-0.5, 0.5]\n\n'
+                   f'[link.mavlink]\nurl = "{sitl.driver_url}"\nsigning_key_file = "{key}"\n')
+    r = _scm(doctor, timeout=90)
+    found = _lines(r.stdout)
+    for name in ("guided", "rc-hold", "gcs-fs", "guided-to", "signing", "arming", "range"):
+        assert all(x.startswith("ok") for x in found[name]), (name, r.stdout)
+    assert found["signing"] == [f"ok on: the vehicle's messages verify with {key}"]
+    assert len(found["range"]) == 1
