@@ -272,3 +272,40 @@ def test_doctor_link_mavlink_names_what_the_rover_lacks_with_the_fix_and_changes
         assert all(x.startswith("ok") for x in found[name]), (name, r.stdout)
     assert found["signing"] == [f"ok on: the vehicle's messages verify with {key}"]
     assert len(found["range"]) == 1
+
+
+def test_mission_place_puts_the_mission_where_the_rover_stands_in_the_ekf_origins_frame(tmp_path, sitl,
+                                                                                       router) -> None:
+    """``scmbridge mission place FILE --robot R`` with the driver host on SITL: the rover driven away from where it
+    booted and turned, then held by the person (HOLD) and standing still; the placed mission's start is the pose the
+    vehicle itself reports (LOCAL_POSITION_NED east/north of the EKF origin, ATTITUDE's yaw as an ENU heading) within
+    5 cm and 3 degrees, its frame ``ekf-origin``; a moving rover is refused."""
+    rig = _rig(tmp_path, router, sitl)
+    try:
+        rig.host()
+        rig.stream(0.6, 0.4)
+        _engage_by_the_pilot(rig)
+        assert _reach(sitl.pilot, 0.6, 10), sitl.pilot.speed
+        place = ["mission", "place", "paper-s-path", "--robot", rig.robot, "--connect", tcp(rig.port), "--out",
+                 str(tmp_path / "placed.toml")]
+        moving = _scm(place)
+        assert moving.returncode == 2 and "the robot is moving" in moving.stderr, moving.stdout + moving.stderr
+        sitl.pilot.set_mode("HOLD")
+        # at rest SITL's reported speed wanders up to about 0.02 m/s (test_sitl.py)
+        assert sitl.pilot.wait(lambda s: s.position is not None and math.hypot(s.position.vx, s.position.vy) < 0.04
+                               and s.attitude is not None and abs(s.attitude.yawspeed) < 0.02, 15), sitl.pilot.speed
+        r = _scm(place)
+        assert r.returncode == 0, r.stdout + r.stderr
+        north, east = sitl.pilot.position
+        with sitl.pilot.cond:
+            yaw = float(sitl.pilot.s.attitude.yaw)
+        assert math.hypot(north, east) > 1.0  # it did drive away from the origin
+        from bridge.core.config import load_mission_spec
+
+        placed = load_mission_spec(str(tmp_path / "placed.toml"))
+        assert placed.frame == "ekf-origin"
+        x, y, th = placed.start
+        assert math.hypot(x - east, y - north) < 0.05, (placed.start, east, north)
+        assert abs(math.remainder(th - (math.pi / 2 - yaw), 2 * math.pi)) < math.radians(3), (th, yaw)
+    finally:
+        rig.close()
