@@ -2,7 +2,7 @@
 
 The mission (a file, or a shipped mission's name) is moved rigidly, path, obstacles and start together, so that its
 start pose (or its first point, facing along the path, without one) lands on the robot's pose: the last poses its
-driver host publishes on ``scm/<robot>/state`` (any link, or motion capture), heard for ``--still-s`` seconds with
+driver host publishes on ``scm/<robot>/state`` (any link, or motion capture), heard for ``--duration`` seconds with
 the robot standing still (one that moves is refused: place it where it stands). ``--at X,Y,HEADING`` places it at
 that pose instead (metres, degrees counter-clockwise from east), with no robot asked.
 
@@ -86,7 +86,7 @@ def still_pose(states: list[M.LearnerState]) -> tuple[float, float, float]:
 
 
 def hear_poses(args: argparse.Namespace) -> list[M.LearnerState]:
-    """The poses the robot's driver host publishes, from the first one heard (``--timeout``) for ``--still-s`` s."""
+    """The poses the robot's driver host publishes, from the first one heard (``--timeout``) for ``--duration`` s."""
     got: list[M.LearnerState] = []
     first = threading.Event()
     lock = threading.Lock()
@@ -108,7 +108,7 @@ def hear_poses(args: argparse.Namespace) -> list[M.LearnerState]:
             if not first.wait(args.timeout):
                 raise UsageError(f"no pose from {args.robot} on {key} within {args.timeout:g} s (tried "
                                  f"{endpoints_tried(args)}): is its driver host running? Or give --at X,Y,HEADING")
-            time.sleep(args.still_s)  # the poses of a while, to see the robot stands still
+            time.sleep(args.duration)  # the poses of a while, to see the robot stands still
         finally:
             sub.undeclare()
     with lock:
@@ -131,7 +131,7 @@ def arguments(ap: argparse.ArgumentParser) -> None:
                     help="place it at this pose (m, m, degrees CCW from east) instead of where the robot stands")
     ap.add_argument("--frame", default=None,
                     help="the placed mission's frame (default: the one the robot's poses come in; 'world' for --at)")
-    ap.add_argument("--still-s", type=positive_float, default=1.0,
+    ap.add_argument("--duration", type=positive_float, default=1.0,
                     help="seconds of poses to see the robot stands still")
     ap.add_argument("--out", default=None, help="write the placed mission here (default: print it)")
     ap.add_argument("--send", action="store_true", help="load it into the robot's station (idle until started)")
