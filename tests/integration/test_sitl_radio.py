@@ -134,9 +134,10 @@ class MavProxy:
     """A real MAVProxy (the dev lock's), headless: ``--master`` the vehicle's port, ``--out udp:127.0.0.1:PORT`` for
     the driver host, commands typed on its standard input as a person types them; its output read by a thread."""
 
-    def __init__(self, master: str, out_port: int, workdir: Path) -> None:
-        argv = [sys.executable, "-m", "MAVProxy.mavproxy", "--master", master, "--out", f"udp:127.0.0.1:{out_port}",
-                "--no-state", "--state-basedir", str(workdir), "--streamrate", "10"]
+    def __init__(self, master: str, out_port: int, workdir: Path, argv: list[str] | None = None) -> None:
+        argv = argv or [sys.executable, "-m", "MAVProxy.mavproxy", "--master", master, "--out",
+                        f"udp:127.0.0.1:{out_port}", "--no-state", "--state-basedir", str(workdir),
+                        "--streamrate", "10"]
         self.proc = subprocess.Popen(argv, cwd=workdir, stdin=subprocess.PIPE, stdout=subprocess.PIPE,
                                      stderr=subprocess.STDOUT, text=True, start_new_session=True, bufsize=1)
         self.lines: queue.Queue[str] = queue.Queue()
