@@ -138,6 +138,8 @@ def test_the_documented_offline_commands_run(tmp_path: Path) -> None:
             cfg.parent.mkdir(parents=True, exist_ok=True)
             subprocess.run([sys.executable, "-m", "bridge", "config", "show", "--kind", "driver"], check=True,
                            stdout=cfg.open("w"), timeout=60)
+            # OPERATING's "First day with your rover" copies the MAVLink example first (its cp line)
+            (tmp_path / "driver-rover1.toml").write_text((ROOT / "deploy" / "driver.mavlink.example.toml").read_text())
         res = subprocess.run([sys.executable, "-m", "bridge", *name.split(), *moved], capture_output=True, text=True,
                              timeout=120, env={**os.environ, "SCMBRIDGE_STATE_DIR": str(tmp_path / "var")},
                              cwd=tmp_path)
