@@ -95,12 +95,20 @@ def key_path(robot: str, link: str) -> Path:
     return state_dir() / "keys" / f"{robot}-{link}.key"
 
 
-def make_key(path: Path, *, force: bool = False) -> bytes:
-    """Write a new random key to ``path`` (mode 0600, atomically); refuses to replace one unless ``force``."""
+def make_key(path: Path, *, force: bool = False, key: bytes | None = None) -> bytes:
+    """Write a new random key (or ``key``, one derived elsewhere: a MAVLink signing passphrase's) to ``path`` (mode
+    0600, atomically); refuses to replace a different one unless ``force`` (the same key is written again)."""
     path = Path(path)
+    if key is not None and len(key) != KEY_BYTES:
+        raise ValueError(f"a key is {KEY_BYTES} bytes")
     if path.exists() and not force:
-        raise KeyFileError(f"{path} exists (both ends use it); give --force to replace it")
-    key = secrets.token_bytes(KEY_BYTES)
+        try:
+            same = key is not None and read_key_file(path) == key
+        except (OSError, KeyProblem):
+            same = False
+        if not same:
+            raise KeyFileError(f"{path} exists (both ends use it); give --force to replace it")
+    key = secrets.token_bytes(KEY_BYTES) if key is None else key
     old = os.umask(0o077)
     try:
         save_atomic(path, key.hex().encode() + b"\n")

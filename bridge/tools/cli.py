@@ -99,6 +99,7 @@ COMMANDS: list[Command] = [
     _C("mission abort", "bridge.tools.mission", "abort the mission (stopped until a new start)"),
     _C("mission status", "bridge.tools.mission", "where the mission is and why"),
     _C("mission send", "bridge.tools.mission", "load a new mission into a station (idle until started)"),
+    _C("mission place", "bridge.tools.mission_place", "a mission put where the robot stands now, in its poses' frame"),
     _C("view", "bridge.tools.live", "a live view of robots in Foxglove (a WebSocket server)"),
     _C("record", "bridge.tools.record", "record scm/** (or some robots) into an MCAP file"),
     _C("replay", "bridge.tools.replay", "republish a recording on its Zenoh keys"),

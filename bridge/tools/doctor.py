@@ -18,6 +18,9 @@ Each check prints one line, ``ok``, ``warn`` or ``FAIL``, its name and what it f
 - ``can``: for a SocketCAN link, the interface exists and is up (with the command that brings it up);
 - ``auth``: (``--link``) whether the link authenticates what it obeys: a warning for the UDP link with
   ``insecure = true`` and for MAVLink without signing (anyone on the network can drive the robot);
+- ``guided``, ``rc-hold``, ``gcs-fs``, ``rc-fs``, ``guided-to``, ``signing``, ``arming``, ``prearm``, ``range``:
+  (``--link mavlink``) what the project relies on in an ArduPilot Rover, read over the link and never changed, each
+  with its fix (bridge/tools/doctor_mavlink.py);
 - ``vehicle``: the link opens and the vehicle answers (``--link`` with ``--driver``; it is never engaged: no
   mode change, arming or closed loop), and its own failsafe: how long it would drive on if the driver host died,
   a warning beyond the driver's ``max_drive_on_s``.
@@ -343,6 +346,8 @@ def run(args: argparse.Namespace) -> int:
         if args.link == "can":
             step(lambda: check_can(link_cfg.channel, link_cfg.interface))
         step(lambda: check_auth(args.link, link_cfg))
+        if args.link == "mavlink":  # what the project relies on in an ArduPilot Rover (bridge/tools/doctor_mavlink.py)
+            step(lambda: __import__("bridge.tools.doctor_mavlink", fromlist=["_"]).check_mavlink(driver_cfg))
         step(lambda: check_vehicle(args.link, link_cfg, driver_cfg.driver.max_drive_on_s))
     failed = [c for c in checks if c.level == "FAIL"]
     print(f"{len(checks)} checks: {len(failed)} failed, {sum(c.level == 'warn' for c in checks)} warnings")

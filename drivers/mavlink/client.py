@@ -90,7 +90,7 @@ class MavlinkClient:
         self.dialect = dialect
         self.url, self.baud = config.url, config.baud
         self.target = (config.target_system, config.target_component)
-        self.source_system = config.source_system
+        self.source_system, self.source_component = config.source_system, config.source_component
         self.health, self.counts, self.on_message = health, counts, on_message
         self.signing_key: bytes | None = None  # read at open (the driver host checks the file at start)
         self.conn: Any = None
@@ -109,7 +109,7 @@ class MavlinkClient:
         """Open the pymavlink connection once (no retries inside pymavlink: the caller backs off)."""
         conn = self.dialect.mavutil.mavlink_connection(
             self.url, baud=self.baud, source_system=self.source_system,
-            source_component=self.dialect.source_component, dialect="ardupilotmega", autoreconnect=False, retries=0)
+            source_component=self.source_component, dialect="ardupilotmega", autoreconnect=False, retries=0)
         if self.signing_key is not None:  # MAVLink 2 signing: ours signed, unsigned or forged ones refused
             conn.setup_signing(self.signing_key, sign_outgoing=True, allow_unsigned_callback=None)
             verify_before_recording(conn.mav)
@@ -160,12 +160,14 @@ class MavlinkClient:
         self.heartbeat(now, force=True)
 
     def heartbeat(self, now: float, force: bool = False) -> None:
-        """Our GCS HEARTBEAT, 1 Hz (ArduPilot's GCS failsafe and a udp peer's address depend on it)."""
+        """Our HEARTBEAT, 1 Hz (ArduPilot's GCS failsafe and a udp peer's address depend on it): a ground station's,
+        or a companion computer's when we speak with the vehicle's own system id (``config.companion``)."""
         if self.conn is None or not (force or now >= self._hb_due):
             return
         mav = self.dialect.mav
+        kind = mav.MAV_TYPE_ONBOARD_CONTROLLER if self.config.companion else mav.MAV_TYPE_GCS
         try:
-            self.conn.mav.heartbeat_send(mav.MAV_TYPE_GCS, mav.MAV_AUTOPILOT_INVALID, 0, 0, mav.MAV_STATE_ACTIVE)
+            self.conn.mav.heartbeat_send(kind, mav.MAV_AUTOPILOT_INVALID, 0, 0, mav.MAV_STATE_ACTIVE)
             self.health.frames_sent += 1
         except OSError as exc:
             self.failed = str(exc)
@@ -220,7 +222,7 @@ class MavlinkClient:
     def ack(self, msg: Any) -> None:
         """A COMMAND_ACK: the result of the command in flight if it names it and addresses us, else a stray."""
         ours = (getattr(msg, "target_system", 0) in (0, self.source_system)
-                and getattr(msg, "target_component", 0) in (0, self.dialect.source_component))
+                and getattr(msg, "target_component", 0) in (0, self.source_component))
         head = self._queue[0] if self._queue else None
         if ours and head is not None and head.tries > 0 and head.result is None and msg.command == head.command:
             head.result = int(msg.result)

@@ -16,7 +16,13 @@ class MavlinkLinkConfig(Cfg):
     baud: Annotated[int, meta("serial baud rate", ge=1200, le=4_000_000)] = 57600
     target_system: Annotated[int, meta("the vehicle's MAVLink system id", ge=1, le=255)] = 1
     target_component: Annotated[int, meta("the autopilot's component id", ge=0, le=255)] = 1
-    source_system: Annotated[int, meta("our system id (a ground control station)", ge=1, le=255)] = 255
+    source_system: Annotated[int, meta(
+        "our system id: 255 a ground control station (QGroundControl's and MAVProxy's own: give another beside one); "
+        "a companion computer takes the vehicle's own system id", ge=1, le=255)] = 255
+    source_component: Annotated[int, meta(
+        "our component id: 190 a ground control station (MAV_COMP_ID_MISSIONPLANNER), 191 a companion computer "
+        "(MAV_COMP_ID_ONBOARD_COMPUTER), the ids that share a radio with a ground station without colliding",
+        ge=1, le=255)] = 190
     rate_hz: Annotated[float, meta("LOCAL_POSITION_NED and ATTITUDE rate requested, Hz", gt=0.0, le=100.0)] = 20.0
     clock_window_s: Annotated[float, meta("window of the vehicle-clock offset estimate that stamps poses at their "
                                           "time_boot_ms, s", gt=0.0, le=600.0)] = 5.0
@@ -49,7 +55,19 @@ class MavlinkLinkConfig(Cfg):
         and ``scmbridge doctor`` say it (drivers.base.link_unauthenticated)."""
         return "" if self.signing_key_file else "MAVLink signing is off (no signing_key_file)"
 
+    @property
+    def companion(self) -> bool:
+        """We speak as a component of the vehicle itself (its own system id): a companion computer's HEARTBEAT
+        (MAV_TYPE_ONBOARD_CONTROLLER), not a ground station's; ArduPilot's GCS failsafe then watches the ground
+        station's heartbeat (MAV_GCS_SYSID / SYSID_MYGCS), not ours (docs/OPERATING.md, "First day with your
+        rover")."""
+        return self.source_system == self.target_system
+
     def __post_init__(self) -> None:
+        if (self.source_system, self.source_component) == (self.target_system, self.target_component):
+            raise Rule(f"source_system/source_component {self.source_system}/{self.source_component} are the "
+                       "autopilot's own ids: the vehicle drops what seems to come from itself; a companion computer "
+                       "is component 191")
         if self.position_timeout < 2.0 / self.rate_hz:
             raise Rule(f"position_timeout = {self.position_timeout} s is shorter than two LOCAL_POSITION_NED "
                              f"periods at rate_hz = {self.rate_hz}")
