@@ -1,0 +1,85 @@
+"""No process outlives its parent: the children the demo and the benches start (``bridge.tools.procs``) go away when
+their parent is killed with SIGKILL, which lets it clean nothing up (finding: ``kill -9`` of ``scmbridge demo``
+left its station and driver host running under PID 1 until their ``--duration``, 120-150 s)."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+import threading
+
+import pytest
+
+from bridge.core import wire as M
+from bridge.core.lifeline import PARENT_ENV, child_env, hold
+from bridge.nodes.zsession import free_port, make_config, open_session, tcp
+from tests.collect import Collector
+from tests.wait import until
+
+PARENT = textwrap.dedent("""
+    import sys, time
+    from bridge.tools.procs import Children
+    port = int(sys.argv[1])
+    with Children() as kids:
+        router = kids.spawn(["router", "--listen", f"tcp/127.0.0.1:{port}", "--duration", "300"])
+        host = kids.spawn(["driver", "--link", "can", "--emulate", "--x0", "0,0,0", "--robot", "orphan",
+                           "--mode", "client", "--connect", f"tcp/127.0.0.1:{port}", "--duration", "300"])
+        print(router.pid, host.pid, flush=True)
+        time.sleep(300)
+""")
+
+
+def _alive(pid: int) -> bool:
+    """``pid`` exists and is not a zombie (a reaped-later child of PID 1 is gone for every purpose)."""
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            return f.read().rsplit(")", 1)[1].split()[0] != "Z"
+    except OSError:
+        return False
+
+
+@pytest.mark.timeout(120)
+def test_the_children_die_with_their_parent_on_sigkill() -> None:
+    port = free_port()
+    parent = subprocess.Popen([sys.executable, "-c", PARENT, str(port)], stdout=subprocess.PIPE, text=True,
+                              start_new_session=True)
+    pids: list[int] = []
+    try:
+        pids = [int(p) for p in parent.stdout.readline().split()]
+        assert len(pids) == 2 and all(_alive(p) for p in pids), pids
+        # the driver host is up (its session open, its loop publishing its status), not merely forked
+        give_up = threading.Timer(60, (stop := threading.Event()).set)  # the router may still be starting
+        give_up.start()
+        with open_session(make_config(mode="client", connect=[tcp(port)]), wait=stop) as session:
+            give_up.cancel()
+            col = Collector(session)
+            drv = col.listen(M.status_key("orphan", "driver"), M.Status)
+            assert col.wait(lambda: drv and drv[-1].state != "starting", 90), [s.text for s in drv[-2:]]
+        os.kill(parent.pid, signal.SIGKILL)
+        parent.wait(timeout=10)
+        gone = until(lambda: not any(_alive(p) for p in pids), 30, 0.1)
+        assert gone, [p for p in pids if _alive(p)]
+    finally:
+        for p in pids:  # a failure must not leave them behind either
+            if _alive(p):
+                os.killpg(p, signal.SIGKILL)
+        if parent.poll() is None:
+            parent.kill()
+            parent.wait()
+
+
+def test_a_child_whose_parent_died_before_it_looked_exits_at_once() -> None:
+    """The parent died between the fork and the child's ``prctl``: nobody would signal the child, so it exits."""
+    code = ("import os, sys\nfrom bridge.core.lifeline import hold\n"
+            "os.environ['SCMBRIDGE_PARENT_PID'] = str(os.getppid() + 1000000)\nhold()\nprint('ran on')\n")
+    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    assert res.returncode == 128 + signal.SIGTERM and "ran on" not in res.stdout, res
+
+
+def test_the_variable_is_read_once_and_not_handed_on() -> None:
+    env = child_env({"A": "1"}, parent=os.getppid())
+    assert env[PARENT_ENV] == str(os.getppid()) and env["A"] == "1"
+    assert hold(env) in (True, False) and PARENT_ENV not in env  # armed where the kernel can; removed either way
