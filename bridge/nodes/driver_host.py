@@ -66,6 +66,7 @@ from bridge.nodes.node import (
     FixedRate,
     Inputs,
     StallWatch,
+    StatusOut,
     Usage,
     add_zenoh_args,
     stop_on_signals,
@@ -442,7 +443,7 @@ class DriverHost:
         if self.poses.mocap_source:
             self.inputs.subscribe(session, k.mocap, M.LearnerState, "mocap", self.on_mocap)
         self.pubs = {"applied": session.declare_publisher(k.applied), "state": session.declare_publisher(k.state),
-                     "status": session.declare_publisher(M.status_key(self.robot, "driver"))}
+                     "status": StatusOut(session, M.status_key(self.robot, "driver"))}
         self._put("status", self.reporter.starting(time.monotonic(), "starting",
                                                    f"link {self.link}: opening (vehicle not yet ready)"))
         if not self._open_link(stop):

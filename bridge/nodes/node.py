@@ -119,6 +119,34 @@ class Queued(Generic[S]):
         return out
 
 
+class StatusOut:
+    """A node's status key (``scm/<robot>/status/<node>``): a publisher, and a queryable that answers with the last
+    status put, so that ``scmbridge status`` asks and has every node's answer in one round trip instead of waiting
+    up to a second for the next periodic one. :meth:`put` takes the encoded status, as a publisher's does."""
+
+    def __init__(self, session: zenoh.Session, key: str) -> None:
+        self.key = key
+        self.last: bytes | None = None
+        self.lock = threading.Lock()
+        self.publisher = session.declare_publisher(key)
+        self.queryable = session.declare_queryable(key, self._on_query)
+
+    def put(self, payload: bytes) -> None:
+        with self.lock:
+            self.last = payload
+        self.publisher.put(payload)
+
+    def _on_query(self, query: zenoh.Query) -> None:  # Zenoh's thread: the last status as it was sent
+        with self.lock:
+            last = self.last
+        if last is not None:
+            query.reply(self.key, last)
+
+    def undeclare(self) -> None:
+        self.queryable.undeclare()
+        self.publisher.undeclare()
+
+
 @dataclass(frozen=True)
 class Usage:
     """What the process had used by a moment: CPU seconds, context switches it gave up (voluntary: it waited for
@@ -447,6 +475,6 @@ def endpoints_tried(args: argparse.Namespace) -> str:
     return ", ".join(eps)
 
 
-__all__ = ["FixedRate", "Inputs", "MemoryReport", "SendBudget", "add_zenoh_args", "endpoints_tried", "rss_mb",
-           "rss_parts", "stop_on_signals", "zenoh_config"]
+__all__ = ["FixedRate", "Inputs", "MemoryReport", "SendBudget", "StatusOut", "add_zenoh_args", "endpoints_tried",
+           "rss_mb", "rss_parts", "stop_on_signals", "zenoh_config"]
 

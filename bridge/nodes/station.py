@@ -53,6 +53,7 @@ from bridge.nodes.node import (
     FixedRate,
     Inputs,
     Queued,
+    StatusOut,
     add_zenoh_args,
     freeze_startup_heap,
     stop_on_signals,
@@ -408,7 +409,7 @@ class Station:
             pub = self.pubs["teacher"] = session.declare_publisher(k.teacher)
             self.teacher_listener = pub.declare_matching_listener(self._on_teacher_matching)
             self.core.teacher_heard = bool(pub.matching_status.matching)
-        self.pubs["status"] = session.declare_publisher(M.status_key(self.robot, "station"))
+        self.pubs["status"] = StatusOut(session, M.status_key(self.robot, "station"))  # asked by status
         if self.build is None:
             self.build = KernelBuild(self.teacher)
         what = self.core.what()

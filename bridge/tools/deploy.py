@@ -103,6 +103,14 @@ def _check_names(robots: Sequence[str], station_cn: str, operator_cn: str, *othe
 ALL_ESTOPS = f"{M.PREFIX}/*/estop"
 EVERYTHING = f"{M.PREFIX}/**"
 ALL_ALIVE = f"{M.PREFIX}/*/alive/**"
+#: every node's status: ``scmbridge status`` asks the nodes for their last one (each node's status key is a
+#: queryable too) instead of waiting for the next periodic one
+ALL_STATUS = f"{M.PREFIX}/*/status/*"
+
+
+def _status_queries(robot: str) -> list[str]:
+    """The key expressions a status query reaching ``robot``'s nodes may carry: the fleet's and the robot's."""
+    return [ALL_STATUS, f"{M.PREFIX}/{robot}/status/*"]
 
 
 def _reader(role: str) -> list[dict[str, Any]]:
@@ -111,7 +119,9 @@ def _reader(role: str) -> list[dict[str, Any]]:
             _rule(f"{role}/receives-all", "egress", ["put"], [EVERYTHING]),
             _rule(f"{role}/liveliness", "ingress", ["liveliness_query", "declare_liveliness_subscriber"],
                   [ALL_ALIVE]),
-            _rule(f"{role}/liveliness-replies", "egress", ["liveliness_token"], [ALL_ALIVE])]
+            _rule(f"{role}/liveliness-replies", "egress", ["liveliness_token"], [ALL_ALIVE]),
+            _rule(f"{role}/status-queries", "ingress", ["query"], [ALL_STATUS]),
+            _rule(f"{role}/status-replies", "egress", ["reply"], [ALL_STATUS])]
 
 
 def access_control(robots: Sequence[str], *, station_cn: str = "station", operator_cn: str = "operator",
@@ -139,6 +149,8 @@ def access_control(robots: Sequence[str], *, station_cn: str = "station", operat
             _rule(f"{rid}/answers-estop", "ingress", ["declare_queryable", "reply"], [k.estop, k.engage]),
             _rule(f"{rid}/estop-queries", "egress", ["query"], [k.estop, k.engage, ALL_ESTOPS]),
             _rule(f"{rid}/alive", "ingress", ["liveliness_token"], [M.alive_key(r, "driver")]),
+            _rule(f"{rid}/answers-status", "ingress", ["declare_queryable", "reply"], [M.status_key(r, "driver")]),
+            _rule(f"{rid}/status-queries", "egress", ["query"], [M.status_key(r, "driver"), *_status_queries(r)]),
         ]
         rules += mine
         subjects.append({"id": rid, "cert_common_names": [r]})
@@ -166,6 +178,11 @@ def access_control(robots: Sequence[str], *, station_cn: str = "station", operat
         _rule("station/control-queries", "egress", ["query"], controls),
         _rule("station/hears-cmd", "ingress", ["declare_subscriber"], cmds),  # another sender on its robot's key
         _rule("station/receives-cmd", "egress", ["put"], cmds),
+        _rule("station/answers-status", "ingress", ["declare_queryable", "reply"],
+              [M.status_key(r, "station") for r in robots]),
+        _rule("station/status-queries", "egress", ["query"],
+              [*(M.status_key(r, "station") for r in robots), ALL_STATUS,
+               *(q for r in robots for q in _status_queries(r)[1:])]),
     ]
     # the operator: estop (engage and release), engage, missions (requests, and a new mission for a running station:
     # the station's certificate may not publish one), pairs, and everything an observer may read

@@ -3,13 +3,15 @@ each second (``scm/<robot>/status/<node>``): driving, or the one reason it is no
 took control, waiting for engage, no pose, link down, mission paused or finished), the link, the pose's age, the
 pairs learned and the mission's progress. ``--watch`` prints it again every second until Ctrl-C.
 
-Nodes publish their status each second and at once when it changes, so what it prints is how things stand when
-it is asked. A paused mission says what stands in the way now, or, once the robot is fit again, ``scmbridge mission
+Nodes publish their status each second and at once when it changes, and answer a query with their last one, so
+what it prints is how things stand when it is asked, as soon as every node asked about has answered.
+A paused mission says what stands in the way now, or, once the robot is fit again, ``scmbridge mission
 resume``; a robot parked at its goal is ``parked``.
 
 Exit status: 0 when every robot asked about is driving (or parked at its goal) with no estop latched, 1 when one is
 not (a robot whose station or driver host is missing is one: its ``missing`` line says so; an estop latched on a
-robot whose mission is finished is one), 2 when no node answered (with the endpoints tried).
+robot whose mission is finished is one), 2 when no node answered (with the endpoints tried), 3 when the lab's access
+control denies this identity the statuses (a robot's certificate; said at once).
 """
 
 from __future__ import annotations
@@ -21,12 +23,15 @@ import time
 from dataclasses import dataclass, field
 
 import msgspec
+import zenoh
 
 from bridge.core import wire as M
 from bridge.core.args import positive_float, robot_arg, robots_arg
-from bridge.core.errors import UsageError
-from bridge.nodes.node import add_zenoh_args, zenoh_config
+from bridge.core.errors import Denied, UsageError
+from bridge.nodes.node import add_zenoh_args, endpoints_tried, zenoh_config
+from bridge.nodes.tlsid import identity
 from bridge.nodes.zsession import open_session
+from bridge.tools.identity import DEFAULT_ROLES, DENIED_WAIT_S, denial
 
 #: a node's status older than this is reported as silent (they publish each second)
 STALE_S = 3.0
@@ -140,21 +145,55 @@ def arguments(ap: argparse.ArgumentParser) -> None:
     add_zenoh_args(ap)
 
 
+def complete(seen: Seen, robots: list[str] | None) -> bool:
+    """Whether every robot asked about (every robot heard, for ``--all``) has both its station and its driver host
+    heard: then there is nothing more to wait for."""
+    with seen.lock:
+        nodes = set(seen.latest)
+    names = robots if robots is not None else sorted({r for r, _ in nodes})
+    return bool(names) and all((r, "station") in nodes and (r, "driver") in nodes for r in names)
+
+
+def ask(session, seen: Seen, selectors: list[str], timeout: float) -> None:
+    """Ask every node for its last status (each node's status key is also a queryable,
+    :class:`bridge.nodes.node.StatusOut`): one round trip, instead of up to a second's wait for the next periodic
+    one. A node too old to answer is heard by the subscription instead."""
+    for sel in selectors:
+        for reply in session.get(sel, timeout=max(0.05, timeout), consolidation=zenoh.ConsolidationMode.NONE):
+            if reply.ok is not None:
+                seen.on_sample(reply.ok)
+
+
+def _denial(conf, robots: list[str] | None, selector: str) -> str | None:
+    """The denial this identity expects for reading the statuses (:func:`bridge.tools.identity.denial`)."""
+    me = identity(conf)
+    robot = robots[0] if robots else (me.cn if me is not None and me.cn not in DEFAULT_ROLES else "robot")
+    try:
+        return denial(conf, robot, "declare_subscriber", selector, "read the robots' status")
+    except ValueError:
+        return None
+
+
 def run(args: argparse.Namespace) -> int:
     robots = None if args.all else (args.robots or [args.robot])
     selectors = ["scm/*/status/*"] if robots is None else [f"scm/{r}/status/*" for r in robots]
     seen = Seen()
     ok = False
-    with open_session(zenoh_config(args)) as session:
+    conf = zenoh_config(args)
+    denied = _denial(conf, robots, selectors[0])
+    timeout = min(args.timeout, DENIED_WAIT_S) if denied else args.timeout
+    with open_session(conf) as session:
         subs = [session.declare_subscriber(s, seen.on_sample) for s in selectors]
         try:
-            deadline = time.monotonic() + args.timeout
-            while time.monotonic() < deadline:
-                time.sleep(0.05)
+            deadline = time.monotonic() + timeout
+            ask(session, seen, selectors, deadline - time.monotonic())
+            while not complete(seen, robots) and time.monotonic() < deadline:
+                time.sleep(0.02)  # a node that did not answer the query (an older one): its next periodic status
             if not seen.latest:
-                tried = ", ".join(args.connect or args.listen) or "the Zenoh defaults"
+                if denied:
+                    raise Denied(denied)
                 raise UsageError(f"no node's status arrived within {args.timeout:g} s on {', '.join(selectors)} "
-                                 f"(endpoints: {tried}); is the router up, and may this identity read "
+                                 f"(tried {endpoints_tried(args)}); is the router up, and may this identity read "
                                  "scm/*/status?")
             lines, ok = report(seen, robots)
             print("\n".join(lines), flush=True)
