@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import logging
+import os
 import re
 import socket
 import threading
@@ -124,6 +125,28 @@ def secured(conf: zenoh.Config) -> bool:
     return protocols == ["tls"] and bool(tls.get("root_ca_certificate"))
 
 
+def tls_file_problem(conf: zenoh.Config) -> str:
+    """What is wrong with the TLS files a configuration names, in one line with the fix ("" when each is a readable
+    file): Zenoh says only "Invalid TLS private key file: No such file or directory", without the file."""
+    try:
+        tls = json.loads(conf.get_json("transport/link/tls")) or {}
+    except Exception:  # no TLS section
+        return ""
+    for key in ("root_ca_certificate", "listen_private_key", "listen_certificate", "connect_private_key",
+                "connect_certificate"):
+        path = tls.get(key)
+        if not isinstance(path, str) or not path:
+            continue
+        p = Path(path)
+        why = "no such file" if not p.exists() else "not a file" if not p.is_file() else (
+            "not readable by this user" if not os.access(p, os.R_OK) else "")
+        if why:
+            return (f"TLS file {path} ({key}): {why}: install the lab's certificates there (deploy/README.md, step 2), "
+                    "or make a lab that runs on this machine with its certificates where it is written: scmbridge "
+                    "deploy lab --local --robots R --out DIR")
+    return ""
+
+
 def open_session(conf: zenoh.Config, wait: threading.Event | None = None, what: str = "") -> zenoh.Session:
     """Open a session (use it as ``with open_session(conf) as s:``).
 
@@ -134,6 +157,9 @@ def open_session(conf: zenoh.Config, wait: threading.Event | None = None, what: 
     certificate): ``scmbridge doctor`` tells them apart; a certificate of another CA than the lab's is named as such
     (:func:`bridge.nodes.tlsid.refused_because`)."""
     backoff, said = Backoff(0.1, 5.0), ""
+    problem = tls_file_problem(conf)
+    if problem:  # no retry mends a missing file
+        raise UsageError(f"{what}: {problem}" if what else problem)
     if what and not secured(conf):
         log.warning("%s: %s", what, NO_TLS_WARNING)
     while True:
