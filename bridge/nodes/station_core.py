@@ -397,11 +397,15 @@ class StationCore:
         unfit, self.fitness = self._fitness(now)
         self.unfit_reason = unfit.reason if unfit is not None else None
         c = self.control
-        if self.source.follows_mission and unfit is None and c.phase == "running":
+        running = unfit is None and c.phase == "running"
+        # a paused mission (a restarted station's) says where the robot stands now, from a fresh pose, not only the
+        # progress last saved
+        standing = c.phase == "paused" and state is not None and now - self.state_at <= self.max_pose_age
+        if self.source.follows_mission and (running or standing):
             path = self.mission.path  # the closest point in one compiled loop: a mission path has thousands of segments
             s, _ = closest(path.points, path.s, path.seg_len, state.x, state.y)
             c.progress = max(c.progress, s / path.length)
-            if self.mission.reached_at(s, [state.x, state.y]):
+            if running and self.mission.reached_at(s, [state.x, state.y]):
                 c.reached()
         command = teacher = None
         stop = None if c.may_drive(self.fitness, now) else not_driving(c, self.robot, unfit)
