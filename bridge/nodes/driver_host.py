@@ -70,6 +70,7 @@ from bridge.nodes.node import (
     Usage,
     add_zenoh_args,
     stop_on_signals,
+    stopped_because,
     zenoh_config,
 )
 from bridge.nodes.pose_feed import PoseFeed
@@ -356,7 +357,7 @@ class DriverHost:
                 self.inputs.count("telemetry_out_of_range")
                 log.warning("telemetry out of range, not published: %s", st)
                 continue
-            self.poses.published(now)
+            self.poses.published(now, st)
         d = self.decide(now)
         if self.dry_run:
             pass  # what would be sent is published on applied; the vehicle gets nothing
@@ -396,6 +397,7 @@ class DriverHost:
             unsaved = self.latch_unsaved
             conflict = self.gate.conflict(now)
         facts = HostFacts(health=self.health, engaged=self.engaged, last_pose=self.poses.last_pose,
+                          measured=self.poses.measured,
                           estopped=estopped, estop_source=source, unsaved=unsaved, conflict=conflict,
                           dry_run=self.dry_run)
         return self.reporter.assess(facts, now)
@@ -612,4 +614,6 @@ def run(args: argparse.Namespace) -> int:
         host.close()
         if ecus is not None:
             ecus.stop()
+        log.info("driver host for %s stopped %s: the vehicle was given a stop%s", robot, stopped_because(stop),
+                 "" if host.dry_run else " and released (what this host engaged)")
     return 0

@@ -1,5 +1,7 @@
 """``scmbridge status``: why is it (not) moving? One line per robot and node, from the status every node publishes
-each second (``scm/<robot>/status/<node>``): driving, or the one reason it is not (estop latched by whom, operator
+each second (``scm/<robot>/status/<node>``): the driver host's line says whether the vehicle is *moving* or
+*stopped* (its measured speed), whether a person engaged it and what it is given; the station's, driving, or the one
+reason it is not (estop latched by whom, operator
 took control, waiting for engage, no pose, link down, mission paused or finished), the link, the pose's age, the
 pairs learned and the mission's progress. ``--watch`` prints it again every second until Ctrl-C.
 
@@ -40,6 +42,9 @@ STALE_S = 3.0
 GOOD = ("driving", "running", "finished", "parked")
 #: the station's typed reasons (``Status.reason``) under which its robot is doing what it should (driving, at its goal)
 GOOD_REASONS = ("ok", "goal_reached")
+#: a vehicle whose measured speed (m/s) or yaw rate (rad/s) reaches either is *moving*; below both, *stopped*
+MOVING_V = 0.02
+MOVING_OMEGA = 0.05
 
 
 @dataclass
@@ -72,11 +77,26 @@ def driver_estop(st: M.Status) -> bool:
     return st.reason == "estop" if st.reason is not None else st.state == "estop"
 
 
+def motion(st: M.Status) -> str | None:
+    """*moving* or *stopped*, from the vehicle's measured speeds on a driver host's status (None: not measured)."""
+    if st.measured is None:
+        return None
+    v, omega = st.measured
+    return "moving" if abs(v) >= MOVING_V or abs(omega) >= MOVING_OMEGA else "stopped"
+
+
 def node_line(robot: str, node: str, st: M.Status, age: float) -> str:
-    """``rover1  driver   estop     estop latched by operator | pose 0.02 s``: what a person needs at a glance."""
+    """``rover1  driver   stopped   0.00 m/s, 0.00 rad/s | not engaged | link can: estop latched by operator | pose
+    0.02 s old``: what a person needs at a glance. A driver host's line says what the vehicle does (*moving* or
+    *stopped*, measured), beside whether a person engaged it and the host's reason; never "driving" for a robot
+    that stands still."""
     if age > STALE_S:
         return f"{robot:<12} {node:<8} {'silent':<9} no status for {age:.0f} s (the node is down or unreachable)"
     parts = [st.text or st.reason or ("ok" if st.ok else "not ok")]
+    moves = motion(st)
+    if moves is not None and st.measured is not None:
+        engaged = [] if st.engaged is None else ["engaged" if st.engaged else "not engaged"]
+        parts = [f"{st.measured[0]:.2f} m/s, {st.measured[1]:.2f} rad/s", *engaged, *parts]
     if st.progress is not None:
         parts.append(f"mission {100 * st.progress:.0f}%")
     pairs = st.counters.get("refined_pairs")
@@ -87,7 +107,7 @@ def node_line(robot: str, node: str, st: M.Status, age: float) -> str:
     pose_ms = st.latencies_ms.get("telemetry_age")
     if pose_ms is not None:
         parts.append("pose never" if pose_ms >= 1e8 else f"pose {pose_ms / 1e3:.2f} s old")
-    return f"{robot:<12} {node:<8} {_state(st):<9} " + " | ".join(parts)
+    return f"{robot:<12} {node:<8} {moves or _state(st):<9} " + " | ".join(parts)
 
 
 def robot_ok(statuses: dict[str, tuple[M.Status, float]], now: float) -> bool:

@@ -39,6 +39,11 @@ def documented_lab() -> list[tuple[dict[str, str], list[str]]]:
     return out
 
 
+def _row(res: subprocess.CompletedProcess, node: str) -> list[str]:
+    """The words of ``status``'s line for rover1's ``node`` (empty if none)."""
+    return next((ln.split() for ln in res.stdout.splitlines() if ln.split()[:2] == ["rover1", node]), [])
+
+
 def _scm(args: list[str], cwd: Path, timeout: float = 60) -> subprocess.CompletedProcess:
     return subprocess.run([sys.executable, "-m", "bridge", *args], capture_output=True, text=True, cwd=cwd,
                           timeout=timeout)
@@ -72,8 +77,9 @@ def test_the_documented_local_lab_runs_as_written(tmp_path: Path) -> None:
 
                 res = until(both, 120, 0.5)
                 assert res, f"{what}: {[said(p) for p in services.values()]}"
-            elif args[0] == "status":  # the observer reads what the operator started
-                res = until(lambda args=args: (r := _scm(args, tmp_path)).returncode == 0 and r, 60, 0.5)
+            elif args[0] == "status":  # the observer reads what the operator started: the robot moves, measured
+                res = until(lambda args=args: (r := _scm(args, tmp_path)).returncode == 0 and _row(r, "driver")[2:3]
+                            == ["moving"] and r, 60, 0.5)
                 assert res, f"{what}: {_scm(args, tmp_path).stdout}"
             elif "--release" in args and "lab/observer.json5" in args:
                 # denied, and said at once: well inside engage's own wait for a driver host (40 s)
@@ -84,6 +90,10 @@ def test_the_documented_local_lab_runs_as_written(tmp_path: Path) -> None:
                 assert res.returncode == 0, (what, res.stdout + res.stderr)
                 if args[0] == "estop":
                     assert "rover1/driver-can: LATCHED by operator" in res.stdout, res.stdout
+                    # and it stands: "stopped", measured, never "driving"
+                    look = ["status", "--robot", "rover1", "--zenoh-config", "lab/observer.json5"]
+                    still = until(lambda look=look: _row(_scm(look, tmp_path), "driver")[2:3] == ["stopped"], 30, 0.5)
+                    assert still, _scm(look, tmp_path).stdout
         # each host kept its own state: the driver host's estop latch in its directory, none in the station's
         assert list((tmp_path / "lab" / "state" / "rover1").glob("estop-rover1*"))
         assert not list((tmp_path / "lab" / "state" / "station").glob("estop-*"))

@@ -124,3 +124,27 @@ def test_a_status_that_hears_nothing_names_the_endpoints_of_its_zenoh_config(tmp
                               "--timeout", "0.5"], capture_output=True, text=True, timeout=60)
     assert res.returncode == 2 and "Zenoh defaults" not in res.stderr, res.stderr
     assert str(conf) in res.stderr, res.stderr
+
+
+def test_the_driver_line_says_moving_or_stopped_from_the_measured_speed_never_driving_for_a_stopped_robot() -> None:
+    """Finding: `driving   link can: driving (deadman)` for a robot standing still after its station died. The
+    driver host's line says what the vehicle does, measured, beside engaged or not and the host's reason."""
+    from bridge.tools.status import Seen
+    from bridge.tools.status import report as status_report
+
+    def driver(measured, engaged: bool, text: str, state: str = "driving") -> M.Status:
+        return M.Status(stamp=0, seq=0, node="driver", ok=True, state=state, reason="ok", text=text,
+                        measured=measured, engaged=engaged)
+
+    station = M.Status(stamp=0, seq=0, node="station", ok=True, state="driving", reason="ok", text="driving")
+    cases = [(driver([0.0, 0.0], True, "link can: holding a stop: no fresh command (deadman)"), "stopped"),
+             (driver([0.21, -0.1], True, "link can: applying the station's commands (cmd)"), "moving"),
+             (driver([0.0, 0.3], True, "link can: applying the station's commands (cmd)"), "moving"),  # turning
+             (driver([0.0, 0.0], False, "link can: estop latched by operator", "estop"), "stopped")]
+    for st, word in cases:
+        seen = Seen()
+        seen.latest = {("r1", "station"): (station, time.monotonic()), ("r1", "driver"): (st, time.monotonic())}
+        lines, _ = status_report(seen, ["r1"])
+        row = lines[1].split()
+        assert row[:3] == ["r1", "driver", word] and "driving" not in lines[1], lines[1]
+        assert ("| not engaged |" in lines[1]) == (not st.engaged) and "m/s" in lines[1], lines[1]
