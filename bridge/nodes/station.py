@@ -57,6 +57,7 @@ from bridge.nodes.node import (
     add_zenoh_args,
     freeze_startup_heap,
     stop_on_signals,
+    stopped_because,
     zenoh_config,
 )
 from bridge.nodes.sources import MpcSource
@@ -727,6 +728,8 @@ def run(args: argparse.Namespace) -> int:
             station.serve(session, stop, args.duration, args.exit_at_goal)
     finally:
         saved = _save(station)
+        station.core.said.flush(time.monotonic())
+        log.info("station for %s stopped %s (mission %s)", robot, stopped_because(stop), station.core.control.phase)
     return 0 if saved else 1
 
 
@@ -777,4 +780,7 @@ def run_fleet(cfg: StationConfig, robots: list[str], rate: float, args: argparse
             failed += fleet.failed
     finally:
         saved = [_save(st) for st in stations.values()]
+        for st in stations.values():
+            st.core.said.flush(time.monotonic())
+        log.info("station for %s stopped %s", ", ".join(stations), stopped_because(stop))
     return 0 if all(saved) and not failed and len(stations) == len(robots) else 1

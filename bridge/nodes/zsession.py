@@ -164,7 +164,10 @@ def open_session(conf: zenoh.Config, wait: threading.Event | None = None, what: 
         log.warning("%s: %s", what, NO_TLS_WARNING)
     while True:
         try:
-            return zenoh.open(conf)
+            session = zenoh.open(conf)
+            if wait is not None and _connects(conf):  # a service: say when it loses the router, and when it is back
+                RouterWatch(session, _endpoints(conf), wait, what).start()
+            return session
         except zenoh.ZError as exc:
             reason = str(exc).split(" at ", 1)[0].strip()
             refused = tlsid.refused_because(conf) if secured(conf) else ""
@@ -183,3 +186,62 @@ def open_session(conf: zenoh.Config, wait: threading.Event | None = None, what: 
             if wait.wait(backoff.delay):
                 raise UsageError(f"stopped while waiting for the Zenoh router at {_endpoints(conf)}") from None
             backoff.grow()
+
+
+def _connects(conf: zenoh.Config) -> bool:
+    """Whether the configuration connects to an endpoint (a client of the lab's router, a peer given one)."""
+    try:
+        return bool(json.loads(conf.get_json("connect/endpoints")))
+    except Exception:  # no connect section
+        return False
+
+
+class RouterWatch:
+    """A service's link to its router in its log: "lost the router at ..." when the session has neither a router
+    nor a peer any more, "reconnected to the router at ... after N s" when it has one again (Zenoh reconnects by
+    itself; what was declared is declared again). Looked at every :data:`WATCH_EVERY_S` by a daemon thread until
+    ``stop`` is set or the session is closed."""
+
+    WATCH_EVERY_S = 0.25
+
+    def __init__(self, session: zenoh.Session, endpoints: str, stop: threading.Event, what: str = "",
+                 clock=None) -> None:
+        import time
+
+        self.session, self.endpoints, self.stop = session, endpoints, stop
+        self.who = f"{what}: " if what else ""
+        self.clock = clock or time.monotonic
+        self.lost_at: float | None = None
+
+    def connected(self) -> bool | None:
+        """Whether the session has a router or a peer now (None: the session is closed)."""
+        try:
+            info = self.session.info
+            return bool(info.routers_zid()) or bool(info.peers_zid())
+        except Exception:  # closed (the service is ending)
+            return None
+
+    def look(self) -> bool | None:
+        """One look: logs a loss or a reconnection; returns :meth:`connected`."""
+        up = self.connected()
+        now = self.clock()
+        if up is False and self.lost_at is None:
+            self.lost_at = now
+            log.warning("%slost the router at %s: retrying (a driver host stops its robot on its deadman meanwhile)",
+                        self.who, self.endpoints)
+            systemd.status(f"lost the Zenoh router at {self.endpoints}")
+        elif up and self.lost_at is not None:
+            log.warning("%sreconnected to the router at %s after %.1f s", self.who, self.endpoints,
+                        now - self.lost_at)
+            systemd.status(f"reconnected to the Zenoh router at {self.endpoints}")
+            self.lost_at = None
+        return up
+
+    def start(self) -> RouterWatch:
+        threading.Thread(target=self._run, name="router-watch", daemon=True).start()
+        return self
+
+    def _run(self) -> None:
+        while not self.stop.wait(self.WATCH_EVERY_S):
+            if self.look() is None:
+                return

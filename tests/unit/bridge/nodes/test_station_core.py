@@ -343,3 +343,28 @@ def _fitness_ok():
     from bridge.nodes.mission_control import Fitness
 
     return Fitness("")
+
+
+def test_a_repeated_reason_is_logged_once_and_how_long_it_held_when_it_changes(tmp_path, caplog) -> None:
+    """Finding: `not driving: waiting for the robot: no pose for 0.6 s`, `0.7 s`, ... every 100 ms (48 lines for two
+    short outages). Logged once per typed reason, then, on the next change, how long it held and how often."""
+    import logging
+
+    mission = load_mission()
+    core = StationCore(StationConfig(), "r1", 10.0, tmp_path / "p.bin", mission)
+    _start(core)
+    x, y, th = (float(a) for a in mission.start)
+    caplog.set_level(logging.INFO, logger="scmbridge")
+    now = 1.0
+    for i in range(40):  # poses for 1 s, none for 3 s: the words change each tick ("no pose for 0.6 s", ...)
+        now += 0.1
+        tel = ((M.LearnerState(stamp=now, seq=i, x=x, y=y, theta=th), now),) if i < 10 else ()
+        core.tick(TickInputs(telemetry=tel, driver=(_driver(i + 1), now)), now)
+    lines = [r.getMessage() for r in caplog.records if r.getMessage().startswith("not driving")]
+    assert 1 <= len(lines) <= 3, lines
+    before = len(lines)
+    now += 0.1  # the poses are back: the mission stays paused, the robot is ready: a new reason
+    core.tick(TickInputs(telemetry=((M.LearnerState(stamp=now, seq=41, x=x, y=y, theta=th), now),),
+                         driver=(_driver(41), now)), now)
+    lines = [r.getMessage() for r in caplog.records if r.getMessage().startswith("not driving")]
+    assert len(lines) == before + 1 and "held" in lines[-1] and "decided" in lines[-1], lines
