@@ -12,10 +12,7 @@ import sys
 
 import pytest
 
-from bridge.core import wire as M
-from bridge.core.clock import HOST
 from bridge.nodes.zsession import free_port, tcp
-from bridge.tools.doctor_fleet import robot_checks, where
 from bridge.tools.procs import Children, said
 from tests.lab import start_router
 from tests.wait import until
@@ -49,13 +46,3 @@ def test_doctor_asks_each_robot_for_its_latch_and_reads_only_a_local_hosts_state
     latch = [ln for ln in doc.stdout.splitlines() if ln.split()[1:2] == ["latch"]]
     # the host runs here but keeps its latch elsewhere: this directory has none of it, and says so
     assert latch and all(robot in ln and "this machine's driver host" in ln for ln in latch), doc.stdout
-
-
-def test_a_robot_on_another_machine_is_named_by_its_host() -> None:
-    away = M.Status(stamp=0.0, seq=0, node="driver", state="waiting", text="link can: waiting for engage",
-                    host="rover-pi/0123abcd")
-    here = M.Status(stamp=0.0, seq=0, node="driver", state="estop", text="link can: estop latched", host=HOST)
-    assert where(away) == "host rover-pi" and where(here) == "this machine" and "did not say" in where(None)
-    lines = robot_checks({"r1": [M.EstopState(stamp=0.0, node="driver-can", latched=False)]}, {"r1": away})
-    assert lines == [("ok", "r1 (driver host on host rover-pi): estop released, as its driver host holds it; "
-                            "state waiting: link can: waiting for engage")]

@@ -14,7 +14,6 @@ import threading
 import pytest
 
 from bridge.core import wire as M
-from bridge.core.lifeline import PARENT_ENV, child_env, hold
 from bridge.nodes.zsession import free_port, make_config, open_session, tcp
 from tests.collect import Collector
 from tests.wait import until
@@ -69,17 +68,3 @@ def test_the_children_die_with_their_parent_on_sigkill() -> None:
         if parent.poll() is None:
             parent.kill()
             parent.wait()
-
-
-def test_a_child_whose_parent_died_before_it_looked_exits_at_once() -> None:
-    """The parent died between the fork and the child's ``prctl``: nobody would signal the child, so it exits."""
-    code = ("import os, sys\nfrom bridge.core.lifeline import hold\n"
-            "os.environ['SCMBRIDGE_PARENT_PID'] = str(os.getppid() + 1000000)\nhold()\nprint('ran on')\n")
-    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
-    assert res.returncode == 128 + signal.SIGTERM and "ran on" not in res.stdout, res
-
-
-def test_the_variable_is_read_once_and_not_handed_on() -> None:
-    env = child_env({"A": "1"}, parent=os.getppid())
-    assert env[PARENT_ENV] == str(os.getppid()) and env["A"] == "1"
-    assert hold(env) in (True, False) and PARENT_ENV not in env  # armed where the kernel can; removed either way
