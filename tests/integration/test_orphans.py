@@ -68,3 +68,45 @@ def test_the_children_die_with_their_parent_on_sigkill() -> None:
         if parent.poll() is None:
             parent.kill()
             parent.wait()
+
+
+def _children(pid: int) -> dict[int, str]:
+    """The live children of ``pid``: their pid and command line."""
+    out = {}
+    for d in os.listdir("/proc"):
+        if not d.isdigit():
+            continue
+        try:
+            with open(f"/proc/{d}/stat") as f:
+                fields = f.read().rsplit(")", 1)[1].split()
+            if int(fields[1]) == pid and fields[0] != "Z":
+                with open(f"/proc/{d}/cmdline", "rb") as f:
+                    out[int(d)] = f.read().replace(b"\0", b" ").decode(errors="replace")
+        except (OSError, IndexError, ValueError):
+            continue
+    return out
+
+
+@pytest.mark.timeout(240)
+def test_kill_9_of_the_demo_takes_its_station_and_driver_host_with_it(tmp_path) -> None:
+    """The finding as it was met: ``kill -9`` of ``scmbridge demo`` left its station and driver host running."""
+    demo = subprocess.Popen([sys.executable, "-m", "bridge", "demo", "--duration", "150", "--out", str(tmp_path)],
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
+    kids: dict[int, str] = {}
+    try:
+        def both() -> bool:
+            kids.update(_children(demo.pid))
+            return any(" driver " in c for c in kids.values()) and any(" station " in c for c in kids.values())
+
+        assert until(both, 120, 0.2), kids
+        os.kill(demo.pid, signal.SIGKILL)
+        demo.wait(timeout=10)
+        gone = until(lambda: not any(_alive(p) for p in kids), 60, 0.2)
+        assert gone, {p: c for p, c in kids.items() if _alive(p)}
+    finally:
+        for p in kids:
+            if _alive(p):
+                os.killpg(p, signal.SIGKILL)
+        if demo.poll() is None:
+            demo.kill()
+            demo.wait()
