@@ -412,7 +412,7 @@ class DriverHost:
                                  stalls=self.stall_watch.stalls, ticks=len(self.ticks))
         a = assessed if assessed is not None else self._assess(now)
         if a.state != self.last_state:
-            log.info("%s: %s", a.state, "; ".join(a.problems) or "driving")
+            log.info("%s: %s", a.state, "; ".join(a.problems) or "engaged and fit")
             self.last_state = a.state
         return self.reporter.build(now, a, counters=counters, late=self.late, failsafe=self.failsafe_report,
                                    driving_reason=self.last_decision.reason)
