@@ -303,6 +303,10 @@ Reason = Literal["ok", "no_telemetry", "estop", "dry_run", "starting", "link_dow
 STATUS_CHANGED_CELLS = 16
 
 
+#: measured body speeds ``[v, omega]`` (m/s, rad/s), finite and bounded
+BodySpeeds = Annotated[list[Annotated[float, Meta(ge=-100.0, le=100.0)]], Meta(min_length=2, max_length=2)]
+
+
 class Status(_Msg, kw_only=True):
     """``scm/<robot>/status/<node>``: health of one node; counters only grow. ``state`` says in one word what the
     node is doing (``driving``, ``paused``, ``estop``, ...), ``reason`` why (typed: :data:`Reason`; None from a node
@@ -325,6 +329,12 @@ class Status(_Msg, kw_only=True):
     #: the station's: the ids of the cells it re-learned because their learner changed (``[transfer] adapt``), the
     #: most recent last, at most :data:`STATUS_CHANGED_CELLS` of them (empty, so not sent, when none was)
     changed_cells: Annotated[list[Annotated[int, Meta(ge=0, le=1_000_000)]], Meta(max_length=64)] = []
+    #: the driver host's: the vehicle's measured body speeds ``[v, omega]`` (m/s, rad/s) from its link's poses or
+    #: speeds while they are fresh (None: not measured now, or a node older than the field): ``scmbridge status``
+    #: says *moving* or *stopped* from it, never from what was commanded
+    measured: BodySpeeds | None = None
+    #: the driver host's: a person engaged the vehicle (None: a node older than the field, or not a driver host)
+    engaged: bool | None = None
 
 
 class Estop(_Msg, kw_only=True):

@@ -66,9 +66,11 @@ from bridge.nodes.node import (
     FixedRate,
     Inputs,
     StallWatch,
+    StatusOut,
     Usage,
     add_zenoh_args,
     stop_on_signals,
+    stopped_because,
     zenoh_config,
 )
 from bridge.nodes.pose_feed import PoseFeed
@@ -355,7 +357,7 @@ class DriverHost:
                 self.inputs.count("telemetry_out_of_range")
                 log.warning("telemetry out of range, not published: %s", st)
                 continue
-            self.poses.published(now)
+            self.poses.published(now, st)
         d = self.decide(now)
         if self.dry_run:
             pass  # what would be sent is published on applied; the vehicle gets nothing
@@ -395,6 +397,7 @@ class DriverHost:
             unsaved = self.latch_unsaved
             conflict = self.gate.conflict(now)
         facts = HostFacts(health=self.health, engaged=self.engaged, last_pose=self.poses.last_pose,
+                          measured=self.poses.measured,
                           estopped=estopped, estop_source=source, unsaved=unsaved, conflict=conflict,
                           dry_run=self.dry_run)
         return self.reporter.assess(facts, now)
@@ -409,7 +412,7 @@ class DriverHost:
                                  stalls=self.stall_watch.stalls, ticks=len(self.ticks))
         a = assessed if assessed is not None else self._assess(now)
         if a.state != self.last_state:
-            log.info("%s: %s", a.state, "; ".join(a.problems) or "driving")
+            log.info("%s: %s", a.state, "; ".join(a.problems) or "engaged and fit")
             self.last_state = a.state
         return self.reporter.build(now, a, counters=counters, late=self.late, failsafe=self.failsafe_report,
                                    driving_reason=self.last_decision.reason)
@@ -442,7 +445,7 @@ class DriverHost:
         if self.poses.mocap_source:
             self.inputs.subscribe(session, k.mocap, M.LearnerState, "mocap", self.on_mocap)
         self.pubs = {"applied": session.declare_publisher(k.applied), "state": session.declare_publisher(k.state),
-                     "status": session.declare_publisher(M.status_key(self.robot, "driver"))}
+                     "status": StatusOut(session, M.status_key(self.robot, "driver"))}
         self._put("status", self.reporter.starting(time.monotonic(), "starting",
                                                    f"link {self.link}: opening (vehicle not yet ready)"))
         if not self._open_link(stop):
@@ -611,4 +614,6 @@ def run(args: argparse.Namespace) -> int:
         host.close()
         if ecus is not None:
             ecus.stop()
+        log.info("driver host for %s stopped %s: the vehicle was given a stop%s", robot, stopped_because(stop),
+                 "" if host.dry_run else " and released (what this host engaged)")
     return 0

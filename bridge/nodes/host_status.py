@@ -35,7 +35,8 @@ class HostFacts:
     """What the host knows at one instant: the link's ``health`` (as read this tick), whether a person engaged the
     vehicle, when a pose was last published (``last_pose``, the host's clock), the estop latch (``estopped``, by
     ``estop_source``; ``unsaved``: why the latch on disk is not the gate's, "" when it is), two senders on one epoch
-    (``conflict``: the gate's words, None when there are not) and whether this is a dry run."""
+    (``conflict``: the gate's words, None when there are not), whether this is a dry run and the vehicle's measured
+    body speeds (``measured``: v, omega from its poses, :class:`bridge.nodes.pose_feed.PoseFeed`; None before any)."""
 
     health: LinkHealth
     engaged: bool
@@ -45,6 +46,7 @@ class HostFacts:
     unsaved: str = ""
     conflict: str | None = None
     dry_run: bool = False
+    measured: tuple[float, float] | None = None
 
 
 @dataclass(frozen=True, slots=True)
@@ -57,6 +59,8 @@ class Assessment:
     reason: M.Reason
     pose_age: float
     dry_run: bool = False
+    engaged: bool = False
+    measured: tuple[float, float] | None = None  # None too when the poses are not fresh: not measured now
 
     @property
     def ok(self) -> bool:
@@ -66,6 +70,29 @@ class Assessment:
     def key(self) -> tuple[bool, str, str]:
         """What a change of sends a status at once."""
         return self.ok, self.state, self.reason
+
+
+#: what the vehicle is given, in words, by the last decision's reason (``Applied.reason``) of an engaged, fit host: it
+#: says what is applied, never "driving" (a robot held at a stop is engaged and fit, and stands still)
+APPLYING = {
+    "cmd": "applying the station's commands",
+    "clamped": "applying the station's commands, clamped to the hard limits",
+    "stop": "holding the station's stop",
+    "deadman": "holding a stop: no fresh command",
+    "stale": "holding a stop: the last command is stale",
+    "start": "holding a stop: no command yet",
+    "refused": "holding a stop: the command is outside what the vehicle can do",
+}
+
+
+def applying(reason: str) -> str:
+    """An engaged, fit host's words for what its vehicle is given (:data:`APPLYING`), ending in the reason."""
+    return f"{APPLYING.get(reason, 'applying')} ({reason})" if reason else "engaged"
+
+
+def _bounded(x: float) -> float:
+    """A measured speed within what the wire carries (a glitching link's jump says "moving", not a dropped status)."""
+    return max(-100.0, min(100.0, float(x)))
 
 
 def node_state(estop: bool, h: LinkHealth, pose_age: float, problems: Sequence[str], unsaved: bool = False, *,
@@ -146,7 +173,8 @@ class HostStatus:
                 problems.insert(0, f"waiting for engage (scmbridge engage --robot {self.robot})")
         state, reason = node_state(f.estopped or bool(f.unsaved), h, pose_age, problems, bool(f.unsaved),
                                    engaged=f.engaged, dry_run=f.dry_run, max_telemetry_age=self.max_telemetry_age)
-        return Assessment(tuple(problems), state, reason, pose_age, f.dry_run)
+        fresh = f.measured if pose_age <= self.max_telemetry_age else None
+        return Assessment(tuple(problems), state, reason, pose_age, f.dry_run, f.engaged, fresh)
 
     def due(self, a: Assessment, now: float) -> bool:
         """Whether a status should go out at ``now``: each ``STATUS_EVERY_S``, and at once (at most
@@ -170,14 +198,15 @@ class HostStatus:
                         "jitter_max": float(dev.max())})
         if failsafe is not None and (failsafe.drive_on_s is None or failsafe.drive_on_s > self.max_drive_on):
             lat["failsafe_drive_on"] = min(1e9, 1e3 * (failsafe.drive_on_s or 1e6))
-        text = f"link {self.link}: " + ("; ".join(a.problems) if a.problems else f"driving ({driving_reason})")
+        text = f"link {self.link}: " + ("; ".join(a.problems) if a.problems else applying(driving_reason))
         if a.dry_run:
             text = "DRY RUN (nothing is sent to the vehicle): " + text
         if self.unauthenticated:  # said whatever else is cut (the text's limit is 1024)
             text = text[:1024 - len(UNAUTHENTICATED)] + UNAUTHENTICATED
         msg = M.Status(stamp=now, seq=self.seq, node="driver", ok=a.ok, state=a.state, reason=a.reason,
                        rates_hz={"loop": 1.0 / self.period}, latencies_ms=lat, counters=counters, text=text[:1024],
-                       host=HOST)
+                       host=HOST, engaged=a.engaged,
+                       measured=None if a.measured is None else [_bounded(x) for x in a.measured])
         self.seq += 1
         self.sent, self.sent_at = a.key, now
         return msg

@@ -119,6 +119,34 @@ class Queued(Generic[S]):
         return out
 
 
+class StatusOut:
+    """A node's status key (``scm/<robot>/status/<node>``): a publisher, and a queryable that answers with the last
+    status put, so that ``scmbridge status`` asks and has every node's answer in one round trip instead of waiting
+    up to a second for the next periodic one. :meth:`put` takes the encoded status, as a publisher's does."""
+
+    def __init__(self, session: zenoh.Session, key: str) -> None:
+        self.key = key
+        self.last: bytes | None = None
+        self.lock = threading.Lock()
+        self.publisher = session.declare_publisher(key)
+        self.queryable = session.declare_queryable(key, self._on_query)
+
+    def put(self, payload: bytes) -> None:
+        with self.lock:
+            self.last = payload
+        self.publisher.put(payload)
+
+    def _on_query(self, query: zenoh.Query) -> None:  # Zenoh's thread: the last status as it was sent
+        with self.lock:
+            last = self.last
+        if last is not None:
+            query.reply(self.key, last)
+
+    def undeclare(self) -> None:
+        self.queryable.undeclare()
+        self.publisher.undeclare()
+
+
 @dataclass(frozen=True)
 class Usage:
     """What the process had used by a moment: CPU seconds, context switches it gave up (voluntary: it waited for
@@ -346,15 +374,34 @@ class FixedRate:
         return periodic
 
 
-def stop_on_signals() -> threading.Event:
-    """An Event set by SIGINT, SIGTERM or SIGHUP (the loop polls it; Zenoh's ``recv`` would ignore SIGINT). SIGUSR1
-    writes a memory report (:class:`MemoryReport`)."""
-    stop = threading.Event()
+class StopEvent(threading.Event):
+    """The stop of a service: set by a signal (:attr:`why` names it) or by the service itself."""
+
+    why = ""
+
+
+def stop_on_signals() -> StopEvent:
+    """An Event set by SIGINT, SIGTERM or SIGHUP (the loop polls it; Zenoh's ``recv`` would ignore SIGINT), the
+    signal's name in its ``why`` (the service's last line says it, :func:`stopped_because`). SIGUSR1 writes a memory
+    report (:class:`MemoryReport`)."""
+    stop = StopEvent()
+
+    def on_signal(sig: int, _frame: object) -> None:  # no logging in a handler: the loop's thread says it
+        stop.why = signal.Signals(sig).name
+        stop.set()
+
     for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
-        signal.signal(sig, lambda *_: stop.set())
+        signal.signal(sig, on_signal)
     report = MemoryReport(os.environ.get(MEMORY_REPORT_ENV))
     signal.signal(signal.SIGUSR1, lambda *_: report.write())
     return stop
+
+
+def stopped_because(stop: threading.Event) -> str:
+    """Why a service stopped, for its last log line: the signal, or its own end (``--duration``, its work done, a
+    failure logged before)."""
+    why = getattr(stop, "why", "")
+    return f"on {why}" if why else "at its own end (--duration, work done, or the failure logged above)"
 
 
 MEMORY_REPORT_ENV = "SCMBRIDGE_MEMORY_REPORT"
@@ -447,6 +494,5 @@ def endpoints_tried(args: argparse.Namespace) -> str:
     return ", ".join(eps)
 
 
-__all__ = ["FixedRate", "Inputs", "MemoryReport", "SendBudget", "add_zenoh_args", "endpoints_tried", "rss_mb",
-           "rss_parts", "stop_on_signals", "zenoh_config"]
-
+__all__ = ["FixedRate", "Inputs", "MemoryReport", "SendBudget", "StatusOut", "StopEvent", "add_zenoh_args",
+           "endpoints_tried", "rss_mb", "rss_parts", "stop_on_signals", "stopped_because", "zenoh_config"]

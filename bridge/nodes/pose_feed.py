@@ -19,6 +19,9 @@ from bridge.core import wire as M
 from bridge.core.clock import ClockOffset
 from drivers.base import Pose
 
+#: poses this far apart (s) give the measured speeds of a link that reports none (one pose to the next is noise)
+MEASURE_WINDOW_S = 0.1
+
 
 class PoseFeed:
     """One host's pose stream. ``source``: the link's name, or ``"mocap"`` (the poses come from motion capture and
@@ -31,6 +34,9 @@ class PoseFeed:
         self.last_pose = -math.inf  # when a pose was last published (the host's clock)
         self.mocap_clock = ClockOffset(mocap_window_s)
         self.mocap: list[M.LearnerState] = []  # restamped samples waiting for the loop
+        #: the vehicle's latest measured body speeds (v m/s, omega rad/s), None before any; :meth:`published`
+        self.measured: tuple[float, float] | None = None
+        self.anchor: M.LearnerState | None = None  # the pose the next finite difference is taken from
 
     @property
     def mocap_source(self) -> bool:
@@ -60,10 +66,34 @@ class PoseFeed:
         return [M.LearnerState(stamp=p.stamp, seq=self.seq + i, x=p.x, y=p.y, theta=p.theta, v=p.v, omega=p.omega,
                                source=self.source, epoch=self.epoch) for i, p in enumerate(link)]
 
-    def published(self, now: float) -> None:
-        """A pose went out at ``now``: the next one is numbered after it, and the telemetry is fresh."""
+    def published(self, now: float, st: M.LearnerState | None = None) -> None:
+        """A pose went out at ``now``: the next one is numbered after it, and the telemetry is fresh; ``st`` (the pose)
+        is measured (:attr:`measured`)."""
         self.seq += 1
         self.last_pose = max(self.last_pose, now)
+        if st is not None:
+            self._measure(st)
+
+    def _measure(self, st: M.LearnerState) -> None:
+        """The vehicle's body speeds from its poses: the speeds the link reports where it does, else the motion
+        between this pose and one at least :data:`MEASURE_WINDOW_S` older (signed along the heading)."""
+        a = self.anchor
+        v, omega = st.v, st.omega
+        if a is None:
+            self.anchor = st
+        elif st.stamp - a.stamp >= MEASURE_WINDOW_S:
+            dt = st.stamp - a.stamp
+            dx, dy = st.x - a.x, st.y - a.y
+            along = dx * math.cos(a.theta) + dy * math.sin(a.theta)
+            fd_v = math.copysign(math.hypot(dx, dy), along if along != 0 else 1.0) / dt
+            fd_omega = math.remainder(st.theta - a.theta, math.tau) / dt
+            v = fd_v if v is None else v
+            omega = fd_omega if omega is None else omega
+            self.anchor = st
+        elif st.stamp < a.stamp:  # a restamped stream went back: start again
+            self.anchor = st
+        if v is not None and omega is not None and math.isfinite(v) and math.isfinite(omega):
+            self.measured = (float(v), float(omega))
 
     def age(self, now: float) -> float:
         """s since a pose was last published (inf before the first)."""

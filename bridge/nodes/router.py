@@ -25,7 +25,7 @@ import zenoh
 from bridge.core.errors import UsageError
 from bridge.nodes import systemd
 from bridge.nodes.node import stop_on_signals
-from bridge.nodes.zsession import make_config, secured
+from bridge.nodes.zsession import make_config, secured, tls_file_problem
 
 log = logging.getLogger("scmbridge.router")
 
@@ -92,6 +92,9 @@ def run(args: argparse.Namespace) -> int:
     only and the lab's access control, read once at start (Zenoh cannot reload it: a robot added to the fleet costs a
     restart, deploy/README.md). Tells systemd READY once it listens; runs until SIGINT, SIGTERM or SIGHUP."""
     conf = router_config(args)
+    problem = tls_file_problem(conf)
+    if problem:
+        raise UsageError(f"the router cannot listen: {problem}")
     stop = stop_on_signals()
     eps = listening_on(conf)
     try:

@@ -53,9 +53,11 @@ from bridge.nodes.node import (
     FixedRate,
     Inputs,
     Queued,
+    StatusOut,
     add_zenoh_args,
     freeze_startup_heap,
     stop_on_signals,
+    stopped_because,
     zenoh_config,
 )
 from bridge.nodes.sources import MpcSource
@@ -408,7 +410,7 @@ class Station:
             pub = self.pubs["teacher"] = session.declare_publisher(k.teacher)
             self.teacher_listener = pub.declare_matching_listener(self._on_teacher_matching)
             self.core.teacher_heard = bool(pub.matching_status.matching)
-        self.pubs["status"] = session.declare_publisher(M.status_key(self.robot, "station"))
+        self.pubs["status"] = StatusOut(session, M.status_key(self.robot, "station"))  # asked by status
         if self.build is None:
             self.build = KernelBuild(self.teacher)
         what = self.core.what()
@@ -726,6 +728,8 @@ def run(args: argparse.Namespace) -> int:
             station.serve(session, stop, args.duration, args.exit_at_goal)
     finally:
         saved = _save(station)
+        station.core.said.flush(time.monotonic())
+        log.info("station for %s stopped %s (mission %s)", robot, stopped_because(stop), station.core.control.phase)
     return 0 if saved else 1
 
 
@@ -776,4 +780,7 @@ def run_fleet(cfg: StationConfig, robots: list[str], rate: float, args: argparse
             failed += fleet.failed
     finally:
         saved = [_save(st) for st in stations.values()]
+        for st in stations.values():
+            st.core.said.flush(time.monotonic())
+        log.info("station for %s stopped %s", ", ".join(stations), stopped_because(stop))
     return 0 if all(saved) and not failed and len(stations) == len(robots) else 1

@@ -48,6 +48,7 @@ import numpy as np
 
 from bridge.core import wire as M
 from bridge.core.config import StationConfig
+from bridge.core.logs import ReasonLog
 from bridge.core.paths import quarantine
 from bridge.nodes.mission_control import Fitness, MissionControl, spec_of
 from bridge.nodes.pairing import IntervalPairer, Reorder
@@ -219,6 +220,7 @@ class StationCore:
         self.epoch = M.new_epoch()
         self.seq = {"cmd": 0}
         # the latest of each input, kept across ticks
+        self.said = ReasonLog(log)  # the reason it (does not) drive in the log: once, then how long it held
         self.state: M.LearnerState | None = None
         self.state_at = -np.inf
         self.driver: M.Status | None = None
@@ -397,23 +399,27 @@ class StationCore:
         unfit, self.fitness = self._fitness(now)
         self.unfit_reason = unfit.reason if unfit is not None else None
         c = self.control
-        if self.source.follows_mission and unfit is None and c.phase == "running":
+        running = unfit is None and c.phase == "running"
+        # a paused mission (a restarted station's) says where the robot stands now, from a fresh pose, not only the
+        # progress last saved
+        standing = c.phase == "paused" and state is not None and now - self.state_at <= self.max_pose_age
+        if self.source.follows_mission and (running or standing):
             path = self.mission.path  # the closest point in one compiled loop: a mission path has thousands of segments
             s, _ = closest(path.points, path.s, path.seg_len, state.x, state.y)
             c.progress = max(c.progress, s / path.length)
-            if self.mission.reached_at(s, [state.x, state.y]):
+            if running and self.mission.reached_at(s, [state.x, state.y]):
                 c.reached()
         command = teacher = None
         stop = None if c.may_drive(self.fitness, now) else not_driving(c, self.robot, unfit)
         if stop is None:
             stop, command, teacher = self.drive(now, state)
-        if stop is not None:
-            if stop.text != self.why:
-                log.info("not driving: %s", stop.text)
+        if stop is not None:  # logged once a reason (its type, not its words), then how long it held
+            self.said.say((stop.reason, self.unfit_reason, c.phase, c.paused_by_robot), f"not driving: {stop.text}",
+                          now)
             command = self._command(now, 0.0, 0.0, "stop")
             self.counters.method_stop += 1
-        elif self.reason != "ok":
-            log.info("driving (mission %r)", self.mission.name)
+        else:
+            self.said.say("ok", f"driving (mission {self.mission.name!r})", now)
         self.why, self.reason = (stop.text, stop.reason) if stop is not None else ("driving", "ok")
         self.counters.goal_reached = int(c.phase == "finished")
         if c.unsaved:

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import logging
+import os
 import re
 import socket
 import threading
@@ -124,6 +125,28 @@ def secured(conf: zenoh.Config) -> bool:
     return protocols == ["tls"] and bool(tls.get("root_ca_certificate"))
 
 
+def tls_file_problem(conf: zenoh.Config) -> str:
+    """What is wrong with the TLS files a configuration names, in one line with the fix ("" when each is a readable
+    file): Zenoh says only "Invalid TLS private key file: No such file or directory", without the file."""
+    try:
+        tls = json.loads(conf.get_json("transport/link/tls")) or {}
+    except Exception:  # no TLS section
+        return ""
+    for key in ("root_ca_certificate", "listen_private_key", "listen_certificate", "connect_private_key",
+                "connect_certificate"):
+        path = tls.get(key)
+        if not isinstance(path, str) or not path:
+            continue
+        p = Path(path)
+        why = "no such file" if not p.exists() else "not a file" if not p.is_file() else (
+            "not readable by this user" if not os.access(p, os.R_OK) else "")
+        if why:
+            return (f"TLS file {path} ({key}): {why}: install the lab's certificates there (deploy/README.md, step 2), "
+                    "or make a lab that runs on this machine with its certificates where it is written: scmbridge "
+                    "deploy lab --local --robots R --out DIR")
+    return ""
+
+
 def open_session(conf: zenoh.Config, wait: threading.Event | None = None, what: str = "") -> zenoh.Session:
     """Open a session (use it as ``with open_session(conf) as s:``).
 
@@ -134,11 +157,17 @@ def open_session(conf: zenoh.Config, wait: threading.Event | None = None, what: 
     certificate): ``scmbridge doctor`` tells them apart; a certificate of another CA than the lab's is named as such
     (:func:`bridge.nodes.tlsid.refused_because`)."""
     backoff, said = Backoff(0.1, 5.0), ""
+    problem = tls_file_problem(conf)
+    if problem:  # no retry mends a missing file
+        raise UsageError(f"{what}: {problem}" if what else problem)
     if what and not secured(conf):
         log.warning("%s: %s", what, NO_TLS_WARNING)
     while True:
         try:
-            return zenoh.open(conf)
+            session = zenoh.open(conf)
+            if wait is not None and _connects(conf):  # a service: say when it loses the router, and when it is back
+                RouterWatch(session, _endpoints(conf), wait, what).start()
+            return session
         except zenoh.ZError as exc:
             reason = str(exc).split(" at ", 1)[0].strip()
             refused = tlsid.refused_because(conf) if secured(conf) else ""
@@ -157,3 +186,62 @@ def open_session(conf: zenoh.Config, wait: threading.Event | None = None, what: 
             if wait.wait(backoff.delay):
                 raise UsageError(f"stopped while waiting for the Zenoh router at {_endpoints(conf)}") from None
             backoff.grow()
+
+
+def _connects(conf: zenoh.Config) -> bool:
+    """Whether the configuration connects to an endpoint (a client of the lab's router, a peer given one)."""
+    try:
+        return bool(json.loads(conf.get_json("connect/endpoints")))
+    except Exception:  # no connect section
+        return False
+
+
+class RouterWatch:
+    """A service's link to its router in its log: "lost the router at ..." when the session has neither a router
+    nor a peer any more, "reconnected to the router at ... after N s" when it has one again (Zenoh reconnects by
+    itself; what was declared is declared again). Looked at every :data:`WATCH_EVERY_S` by a daemon thread until
+    ``stop`` is set or the session is closed."""
+
+    WATCH_EVERY_S = 0.25
+
+    def __init__(self, session: zenoh.Session, endpoints: str, stop: threading.Event, what: str = "",
+                 clock=None) -> None:
+        import time
+
+        self.session, self.endpoints, self.stop = session, endpoints, stop
+        self.who = f"{what}: " if what else ""
+        self.clock = clock or time.monotonic
+        self.lost_at: float | None = None
+
+    def connected(self) -> bool | None:
+        """Whether the session has a router or a peer now (None: the session is closed)."""
+        try:
+            info = self.session.info
+            return bool(info.routers_zid()) or bool(info.peers_zid())
+        except Exception:  # closed (the service is ending)
+            return None
+
+    def look(self) -> bool | None:
+        """One look: logs a loss or a reconnection; returns :meth:`connected`."""
+        up = self.connected()
+        now = self.clock()
+        if up is False and self.lost_at is None:
+            self.lost_at = now
+            log.warning("%slost the router at %s: retrying (a driver host stops its robot on its deadman meanwhile)",
+                        self.who, self.endpoints)
+            systemd.status(f"lost the Zenoh router at {self.endpoints}")
+        elif up and self.lost_at is not None:
+            log.warning("%sreconnected to the router at %s after %.1f s", self.who, self.endpoints,
+                        now - self.lost_at)
+            systemd.status(f"reconnected to the Zenoh router at {self.endpoints}")
+            self.lost_at = None
+        return up
+
+    def start(self) -> RouterWatch:
+        threading.Thread(target=self._run, name="router-watch", daemon=True).start()
+        return self
+
+    def _run(self) -> None:
+        while not self.stop.wait(self.WATCH_EVERY_S):
+            if self.look() is None:
+                return

@@ -113,10 +113,12 @@ def _build(cc: str, source: str, lib: Path) -> None:
 
 @contextlib.contextmanager
 def native_stdout_to_stderr() -> Iterator[None]:
-    """Send what native code writes on file descriptor 1 to descriptor 2 meanwhile: qpOASES prints its licence
-    banner on stdout each time a solver's memory is made, which would corrupt a command's JSON output (``bench``)
-    and repeat in a service's log once per robot. The banner goes through once per process (it came twice per robot:
-    the solver and its buffer each make a memory); everything else native code wrote is passed on as it is."""
+    """Send what native code writes on file descriptor 1 to descriptor 2 meanwhile, without qpOASES's licence
+    banner. qpOASES prints it from its solver's constructor (``QProblemB``: "if options.printLevel != PL_NONE", on the
+    default options, before CasADi's plugin sets ``printLevel`` to ``none``), on stdout, each time a solver's memory
+    is made (twice per robot: the solver and its buffer): it would corrupt a command's JSON output (``bench``) and is
+    no news in a service's log. No option reaches that constructor, so the banner is taken out here (said once at
+    debug level); everything else native code wrote is passed on as it is."""
     sys.stdout.flush()
     saved = os.dup(1)
     with tempfile.TemporaryFile() as caught:
@@ -136,18 +138,20 @@ def native_stdout_to_stderr() -> Iterator[None]:
 #: the first and the last line of qpOASES's licence banner
 _BANNER = ("qpOASES -- An Implementation of the Online Active Set Strategy.",
            "See the GNU Lesser General Public License for more details.")
-_banner_shown = False
+_banner_said = False
 
 
 def _without_repeated_banners(text: str) -> str:
-    """``text`` with every qpOASES banner removed but the first of this process."""
-    global _banner_shown
+    """``text`` without qpOASES's licence banners (the first one of the process said at debug level)."""
+    global _banner_said
     out: list[str] = []
     skipping = False
     for line in text.splitlines(keepends=True):
         if line.strip() == _BANNER[0]:
-            skipping = _banner_shown
-            _banner_shown = True
+            skipping = True
+            if not _banner_said:
+                _banner_said = True
+                logging.getLogger("scmbridge.mpc").debug("qpOASES's licence banner left out of the log")
         if not skipping:
             out.append(line)
         if line.strip() == _BANNER[1]:

@@ -534,7 +534,11 @@ def sitl_hil(args: argparse.Namespace, robot: str = "sitl") -> int:
     print("summary:", json.dumps(summary))
     (out / "summary.json").write_text(json.dumps(summary, indent=1) + "\n")  # what --teacher-ref reads
     _figure(out, world, traj, "mavlink (ArduPilot SITL)")
-    print(f"figure: {out / 'demo_trajectory.png'}; pair store: {store}; logs: {out}/*.log")
+    from bridge.tools.pairs_cli import pairs_figure
+
+    pairs_figure(store, out / "demo_pairs.png")  # what was learned on ArduPilot's own firmware, as the demo's
+    print(f"figures: {out / 'demo_trajectory.png'}, {out / 'demo_pairs.png'}; pair store: {store}; logs: "
+          f"{out}/*.log")
     return 0 if run["reached_goal"] else 1
 
 

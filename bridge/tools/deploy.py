@@ -103,6 +103,14 @@ def _check_names(robots: Sequence[str], station_cn: str, operator_cn: str, *othe
 ALL_ESTOPS = f"{M.PREFIX}/*/estop"
 EVERYTHING = f"{M.PREFIX}/**"
 ALL_ALIVE = f"{M.PREFIX}/*/alive/**"
+#: every node's status: ``scmbridge status`` asks the nodes for their last one (each node's status key is a
+#: queryable too) instead of waiting for the next periodic one
+ALL_STATUS = f"{M.PREFIX}/*/status/*"
+
+
+def _status_queries(robot: str) -> list[str]:
+    """The key expressions a status query reaching ``robot``'s nodes may carry: the fleet's and the robot's."""
+    return [ALL_STATUS, f"{M.PREFIX}/{robot}/status/*"]
 
 
 def _reader(role: str) -> list[dict[str, Any]]:
@@ -111,7 +119,9 @@ def _reader(role: str) -> list[dict[str, Any]]:
             _rule(f"{role}/receives-all", "egress", ["put"], [EVERYTHING]),
             _rule(f"{role}/liveliness", "ingress", ["liveliness_query", "declare_liveliness_subscriber"],
                   [ALL_ALIVE]),
-            _rule(f"{role}/liveliness-replies", "egress", ["liveliness_token"], [ALL_ALIVE])]
+            _rule(f"{role}/liveliness-replies", "egress", ["liveliness_token"], [ALL_ALIVE]),
+            _rule(f"{role}/status-queries", "ingress", ["query"], [ALL_STATUS]),
+            _rule(f"{role}/status-replies", "egress", ["reply"], [ALL_STATUS])]
 
 
 def access_control(robots: Sequence[str], *, station_cn: str = "station", operator_cn: str = "operator",
@@ -139,6 +149,8 @@ def access_control(robots: Sequence[str], *, station_cn: str = "station", operat
             _rule(f"{rid}/answers-estop", "ingress", ["declare_queryable", "reply"], [k.estop, k.engage]),
             _rule(f"{rid}/estop-queries", "egress", ["query"], [k.estop, k.engage, ALL_ESTOPS]),
             _rule(f"{rid}/alive", "ingress", ["liveliness_token"], [M.alive_key(r, "driver")]),
+            _rule(f"{rid}/answers-status", "ingress", ["declare_queryable", "reply"], [M.status_key(r, "driver")]),
+            _rule(f"{rid}/status-queries", "egress", ["query"], [M.status_key(r, "driver"), *_status_queries(r)]),
         ]
         rules += mine
         subjects.append({"id": rid, "cert_common_names": [r]})
@@ -166,6 +178,11 @@ def access_control(robots: Sequence[str], *, station_cn: str = "station", operat
         _rule("station/control-queries", "egress", ["query"], controls),
         _rule("station/hears-cmd", "ingress", ["declare_subscriber"], cmds),  # another sender on its robot's key
         _rule("station/receives-cmd", "egress", ["put"], cmds),
+        _rule("station/answers-status", "ingress", ["declare_queryable", "reply"],
+              [M.status_key(r, "station") for r in robots]),
+        _rule("station/status-queries", "egress", ["query"],
+              [*(M.status_key(r, "station") for r in robots), ALL_STATUS,
+               *(q for r in robots for q in _status_queries(r)[1:])]),
     ]
     # the operator: estop (engage and release), engage, missions (requests, and a new mission for a running station:
     # the station's certificate may not publish one), pairs, and everything an observer may read
@@ -481,14 +498,32 @@ def _or_usage(fn: Any) -> Any:
 
 def arguments_lab(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--robots", type=robots_arg, required=True, help="comma-separated robot names")
-    ap.add_argument("--station-address", action="append", required=True,
+    ap.add_argument("--local", action="store_true",
+                    help="a lab that runs on this machine as written: the router on 127.0.0.1 at a free port, the "
+                         "configs pointing at the certificates where they are made (OUT/tls), a state directory "
+                         "per host under OUT/state (deploy/README.md, \"The whole lab on one machine\")")
+    ap.add_argument("--station-address", action="append", default=None,
                     help="the address robots and tools reach the router at (repeatable; the first is where it "
-                         "listens)")
-    ap.add_argument("--port", type=int, default=7447, help="the router's TLS port (default 7447)")
-    ap.add_argument("--certs", default=LAB_CERTS,
-                    help=f"where the certificates will be installed on each host (default {LAB_CERTS})")
+                         "listens; needed unless --local)")
+    ap.add_argument("--port", type=int, default=None, help="the router's TLS port (default 7447; with --local a "
+                                                           "free one)")
+    ap.add_argument("--certs", default=None,
+                    help=f"where the certificates will be installed on each host (default {LAB_CERTS}; with --local "
+                         "OUT/tls, where they are made)")
     ap.add_argument("--days", type=int, default=365, help="validity of each certificate, days (default 365)")
     ap.add_argument("--out", required=True, help="output directory (an existing CA in OUT/tls is kept)")
+
+
+def local_commands(out: Path, robots: Sequence[str]) -> list[str]:
+    """The commands that run the lab ``deploy lab --local`` wrote in ``out``, one per process, each host with its
+    own state directory (two driver hosts, or a host and the station, must never share an estop latch file)."""
+    o = str(out).rstrip("/")
+    cmds = [f"scmbridge router --zenoh-config {o}/router.json5",
+            f"SCMBRIDGE_STATE_DIR={o}/state/station scmbridge station --robots {','.join(robots)} "
+            f"--zenoh-config {o}/station-client.json5"]
+    cmds += [f"SCMBRIDGE_STATE_DIR={o}/state/{r} scmbridge driver --robot {r} --link can --emulate "
+             f"--zenoh-config {o}/{r}.json5" for r in robots]
+    return cmds
 
 
 def run_lab(args: argparse.Namespace) -> int:
@@ -498,19 +533,38 @@ def run_lab(args: argparse.Namespace) -> int:
     Re-running it for a grown fleet keeps the CA and the certificates already made."""
     out, tls = Path(args.out), Path(args.out) / "tls"
     _or_usage(lambda: _check_names(args.robots, "station", "operator", "observer"))
-    listen = f"tls/{args.station_address[0]}:{args.port}"
+    if args.local:
+        from bridge.nodes.zsession import free_port
+
+        addresses = args.station_address or ["127.0.0.1"]
+        port = args.port or free_port(addresses[0])
+        certs = args.certs or str(tls.resolve())
+        for sub in ("state", *(f"state/{n}" for n in ("station", *args.robots))):
+            (out / sub).mkdir(mode=0o700, parents=True, exist_ok=True)
+    elif not args.station_address:
+        raise UsageError("name the address robots and tools reach the router at (--station-address ADDR), or "
+                         "--local for a lab on this machine")
+    else:
+        addresses, port, certs = args.station_address, args.port or 7447, args.certs or LAB_CERTS
+    listen = f"tls/{addresses[0]}:{port}"
     for line in _or_usage(lambda: make_certs(tls, ["station", "operator", "observer", *args.robots],
-                                             station_sans=_sans(args.station_address), days=args.days)):
+                                             station_sans=_sans(addresses), days=args.days)):
         print(line)
-    router = _or_usage(lambda: router_config(args.robots, listen=listen, certs=args.certs))
+    router = _or_usage(lambda: router_config(args.robots, listen=listen, certs=certs))
     (out / "router.json5").write_text(render(router, args.command_line))
     for name in (*args.robots, "operator", "observer", "station"):
-        conf = client_config(name, connect=listen, certs=args.certs)
+        conf = client_config(name, connect=listen, certs=certs)
         target = {"station": "station-client.json5"}.get(name, f"{name}.json5")
         (out / target).write_text(render(conf, args.command_line, CLIENT_HEADER))
     print(f"wrote {out}/router.json5 (the router: /etc/scmbridge/router.json5, scmbridge-router.service), "
           f"station-client.json5 (the station: /etc/scmbridge/station-client.json5), "
           f"{', '.join(f'{r}.json5' for r in args.robots)} (each robot: /etc/scmbridge/robot-client.json5), "
           f"operator.json5, observer.json5; certificates in {tls} (install ca.crt and each host's own key and "
-          f"certificate in {args.certs}; keep ca.key off the base station)")
+          f"certificate in {certs}; keep ca.key off the base station)")
+    if args.local:
+        print(f"a lab on this machine, the router at {listen}; each in its own terminal:")
+        for cmd in local_commands(out, args.robots):
+            print(f"  {cmd}")
+        print(f"then the operator's tools with --zenoh-config {out}/operator.json5 (engage, mission start, status, "
+              f"estop) and the observer's with --zenoh-config {out}/observer.json5 (deploy/README.md)")
     return 0

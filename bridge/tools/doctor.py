@@ -10,11 +10,14 @@ Each check prints one line, ``ok``, ``warn`` or ``FAIL``, its name and what it f
   CA it names (one CA), and none expires within ``--expiry-days`` (a warning) or has expired (a failure);
 - ``access``: a router configuration with access control on is named as such (rules and subjects counted); one
   without says that anyone on its network may publish commands;
+- ``robot``: each robot's driver host asked over Zenoh (:mod:`bridge.tools.doctor_fleet`): its estop latch as it holds
+  it, its state, and where it runs (this machine or its host's name);
 - ``state``: the state directory (``SCMBRIDGE_STATE_DIR``, ...: which one is named) exists or can be created, takes a
-  file (written, fsynced and removed) and is 0700; ``latch``: for the driver's robot (``--driver``) or every robot
-  with a latch there, what a driver host starting now would take: released (signed by that host), latched (by whom),
-  latched because the file is missing, unreadable or not the host's own, or "first start in this state directory: no
-  estop history" (a host that ran with another state directory left its latch there);
+  file (written, fsynced and removed) and is 0700; ``latch``: only for a driver host on this machine (the
+  ``--driver`` file's robot, or one that answered from here), what a driver host starting now would take: released
+  (signed by that host), latched (by whom), latched because the file is missing, unreadable or not the host's own,
+  or "first start in this state directory: no estop history" (a host that ran with another state directory left its
+  latch there);
 - ``can``: for a SocketCAN link, the interface exists and is up (with the command that brings it up);
 - ``auth``: (``--link``) whether the link authenticates what it obeys: a warning for the UDP link with
   ``insecure = true`` and for MAVLink without signing (anyone on the network can drive the robot);
@@ -55,6 +58,7 @@ from bridge.nodes.latch_store import inspect_latch, latch_marker
 from bridge.nodes.node import add_zenoh_args, endpoints_tried, zenoh_config
 from bridge.nodes.tlsid import cert_names
 from bridge.nodes.zsession import open_session
+from bridge.tools.doctor_fleet import fleet_report
 from drivers import link_names
 from drivers.base import link_unauthenticated
 
@@ -242,6 +246,23 @@ def check_state(robot: str | None) -> list[Check]:
     return out
 
 
+def local_state(driver_robot: str | None, here: list[str]) -> list[Check]:
+    """This machine's state directory (:func:`check_state`), and the latches in it only of the robots whose driver
+    host runs here (``driver_robot``: the ``--driver`` file's; ``here``: those that answered from this machine): an
+    operator's console holds no robot's latch, and a file left there is no robot's."""
+    robots = sorted({*here, *([driver_robot] if driver_robot else [])})
+    if not robots:
+        found = [c for c in check_state(None) if c.name != "latch"]
+        return [*found, Check("ok", "latch", "no driver host on this machine (none answered from here, no --driver): "
+                                             "its state directory holds no robot's latch; each robot's own is "
+                                             "asked over Zenoh (the robot lines)")]
+    out: list[Check] = []
+    for k, r in enumerate(robots):
+        out += [Check(c.level, c.name, f"{c.text} (this machine's driver host)" if c.name == "latch" else c.text)
+                for c in check_state(r) if k == 0 or c.name == "latch"]
+    return out
+
+
 def check_auth(link: str, link_cfg: object) -> list[Check]:
     """Whether the link authenticates what it obeys (drivers.base.link_unauthenticated)."""
     why = link_unauthenticated(link_cfg)
@@ -334,9 +355,11 @@ def run(args: argparse.Namespace) -> int:
         step(lambda kind=kind, path=path: Check("ok", "config", f"{kind} {path}"))
         if kind == "driver":
             driver_cfg = cfg
-    step(lambda: check_state(driver_cfg.robot if driver_cfg is not None else None))
     conf = zenoh_config(args)
     step(lambda: check_router(args, conf, args.duration))
+    robots, here = fleet_report(conf, args.duration)  # the robots asked over Zenoh (bridge/tools/doctor_fleet.py)
+    step(lambda: [Check(level, "robot", text) for level, text in robots])
+    step(lambda: local_state(driver_cfg.robot if driver_cfg is not None else None, here or []))
     step(lambda: check_tls(conf, args.expiry_days))
     step(lambda: check_access(conf))
     if args.link is not None:

@@ -9,7 +9,8 @@ while an estop is latched. Engaging an engaged host says so and succeeds. The st
 driver host refuses it if it is more than 10 s off its own clock or was seen before (a recorded request replayed;
 synchronise the machines' clocks), and refuses one without them (an older tool, a recorded old-format payload).
 ``--release`` (a stop) is always honoured. Exit status: 0 done, 1 refused, 2 no driver host answered, 3 denied by the
-lab's access control (this certificate's role may not engage: the observer, a robot; deploy/README.md).
+lab's access control (this certificate's role may not engage: the observer, a robot; deploy/README.md), said at
+once: a tool that knows its role from its certificate waits only a moment for an answer that cannot come.
 """
 
 from __future__ import annotations
@@ -26,7 +27,7 @@ from bridge.core.args import positive_float, robot_arg
 from bridge.core.errors import Denied, UsageError
 from bridge.nodes.node import add_zenoh_args, endpoints_tried, zenoh_config
 from bridge.nodes.zsession import open_session
-from bridge.tools.identity import denial, unnamed_hint
+from bridge.tools.identity import expected_denial, unnamed_hint
 
 RETRY_S = 0.25
 
@@ -69,10 +70,11 @@ def run(args: argparse.Namespace) -> int:
                           clear_faults=args.clear_faults)
     conf = zenoh_config(args)
     key = M.key(args.robot, "engage")
+    denied, timeout = expected_denial(conf, args.robot, "query", key,
+                                      "release a robot" if args.release else "engage a robot", args.timeout)
     with open_session(conf) as session:
-        answers = ask(session, args.robot, req, args.timeout)
+        answers = ask(session, args.robot, req, timeout)
     if not answers:
-        denied = denial(conf, args.robot, "query", key, "release a robot" if args.release else "engage a robot")
         if denied:
             raise Denied(denied)
         raise UsageError(f"no driver host answered on {key} within {args.timeout:g} s "

@@ -6,7 +6,8 @@ own identity (the CN of the certificate its Zenoh configuration presents, :mod:`
 ``scmbridge deploy`` generates (:func:`bridge.tools.deploy.access_control`, with its default names: ``station``,
 ``operator``, ``observer`` and the robots) can tell them apart: when nothing answered and the role of that CN has
 no rule letting it send the message, it says "denied" and which role has the right, and exits with
-:data:`DENIED_EXIT`. It never claims a denial it cannot see: without TLS, with a CN the default rules do not name
+:data:`DENIED_EXIT`; knowing it before it asks, it waits only :data:`DENIED_WAIT_S` for an answer
+(:func:`expected_denial`). It never claims a denial it cannot see: without TLS, with a CN the default rules do not name
 (a lab's own ``--operator-cn``), or when the role has the right, the tool says "nobody answered" as before.
 """
 
@@ -20,6 +21,9 @@ from bridge.tools import deploy
 
 #: a tool's exit status when the lab's access control denies what it asked (docs/CLI.md: each tool's exit status)
 DENIED_EXIT = 3
+#: s a tool waits for an answer when its own identity says the router denies what it asks: an answer that comes
+#: anyway (a lab whose router runs other rules than the generated ones) is taken; none, and the denial is named
+DENIED_WAIT_S = 1.5
 #: the roles of the default common names (``scmbridge deploy lab``/``acl`` without ``--*-cn``)
 DEFAULT_ROLES = {"station": "station", "operator": "operator", "observer": "observer"}
 
@@ -63,6 +67,15 @@ def denial(conf: zenoh.Config, robot: str, message: str, key: str, what: str) ->
     return (f"denied: identity {me.cn!r} (role {subject}) may not {what}: no rule of its role lets it {message} "
             f"{key} (the lab's rules, scmbridge deploy acl; allowed to "
             f"{', '.join(who) if who else 'no role'}): the router drops it without an answer")
+
+
+def expected_denial(conf: zenoh.Config, robot: str, message: str, key: str, what: str,
+                    timeout: float) -> tuple[str | None, float]:
+    """Before asking: the denial this identity expects (:func:`denial`) and how long to wait for an answer:
+    ``timeout``, or at most :data:`DENIED_WAIT_S` when a denial is expected, so that it is named at once instead of
+    after the whole wait for a robot (an observer's engage waited 40 s for nothing)."""
+    denied = denial(conf, robot, message, key, what)
+    return denied, (min(timeout, DENIED_WAIT_S) if denied else timeout)
 
 
 def unnamed_hint(conf: zenoh.Config, robot: str) -> str:

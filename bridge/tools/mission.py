@@ -11,7 +11,7 @@ replayed; synchronise the machines' clocks), and one without them (an older tool
 ``status`` needs neither. A mission published on ``scm/<robot>/mission`` by a program (not a person's ``send``) is
 named in the answer, with when it came, so it is looked at before ``start``. Prints the answer in one line. Exit
 status: 0 accepted, 1 refused, 2 no station answered, 3 denied by the lab's access control (this certificate's role
-may not ask: the observer, a robot; deploy/README.md).
+may not ask: the observer, a robot; deploy/README.md), said at once.
 """
 
 from __future__ import annotations
@@ -31,7 +31,7 @@ from bridge.core.config import load_mission_spec
 from bridge.core.errors import Denied, UsageError
 from bridge.nodes.node import add_zenoh_args, endpoints_tried, zenoh_config
 from bridge.nodes.zsession import open_session
-from bridge.tools.identity import denial, unnamed_hint
+from bridge.tools.identity import expected_denial, unnamed_hint
 
 #: a fresh session needs a moment to reach the station: ask again this often until --timeout
 RETRY_S = 0.25
@@ -76,11 +76,11 @@ def _run(args: argparse.Namespace, action: str, spec: M.MissionSpec | None = Non
     req = M.MissionRequest(stamp=time.monotonic(), action=action, spec=spec, source=args.source)
     conf = zenoh_config(args)
     key = M.key(args.robot, "control")
+    what = "ask for a mission's status" if action == "status" else f"{action} a mission"
+    denied, timeout = expected_denial(conf, args.robot, "query", key, what, args.timeout)
     with open_session(conf) as session:
-        st = ask(session, args.robot, req, args.timeout)
+        st = ask(session, args.robot, req, timeout)
     if st is None:
-        what = "ask for a mission's status" if action == "status" else f"{action} a mission"
-        denied = denial(conf, args.robot, "query", key, what)
         if denied:
             raise Denied(denied)
         raise UsageError(f"no station answered on {key} within {args.timeout:g} s "

@@ -8,7 +8,8 @@ recorded demo run gives the figures the live demo printed (``tests/integration/t
 
 The mission is the last ``mission`` message recorded for the robot, else ``--mission FILE``, else the shipped
 S-path (the demo's default). Figures in ``DIR``: ``trajectory.png`` (the learner's poses over the mission),
-``deviation.png`` (distance to the path over progress) and ``timeline.png`` (commands by method, command-to-applied
+``deviation.png`` (distance to the path over progress) and ``timeline.png`` (shaded where the mission was paused and
+where an estop was latched; commands by method, command-to-applied
 latency, solve times and loop jitter, missed deadlines). ``report.json`` holds the summary and the rest.
 
 **Command-to-applied latency** pairs each ``cmd`` with the first ``applied`` echo that names its ``seq``
@@ -178,6 +179,28 @@ def status_series(entries: list[Entry], robot: str, node: str) -> list[tuple[int
     return [(e.log_time, e.message()) for e in entries if e.topic == key]
 
 
+def episodes(entries: list[Entry], robot: str) -> dict[str, list[tuple[int, int]]]:
+    """When the mission was paused (the station's status ``paused``) and when an estop was latched (the driver host's
+    typed reason ``estop``, its state for a host older than the field): each a list of ``(start, end)`` log times
+    (ns), an episode still on at the recording's end closed there. The timeline shades them."""
+    end = entries[-1].log_time if entries else 0
+    tests = {"paused": ("station", lambda st: st.state == "paused"),
+             "estop": ("driver", lambda st: (st.reason == "estop") if st.reason is not None else st.state == "estop")}
+    out: dict[str, list[tuple[int, int]]] = {}
+    for name, (node, on) in tests.items():
+        spans, since = [], None
+        for t, st in status_series(entries, robot, node):
+            if on(st) and since is None:
+                since = t
+            elif not on(st) and since is not None:
+                spans.append((since, t))
+                since = None
+        if since is not None:
+            spans.append((since, end))
+        out[name] = spans
+    return out
+
+
 def _figures(out: Path, entries: list[Entry], robot: str, mission: Any, traj: np.ndarray,
              latency_rows: list[tuple[float, float, float]], one_clock: bool) -> list[Path]:
     import matplotlib
@@ -198,7 +221,8 @@ def _figures(out: Path, entries: list[Entry], robot: str, mission: Any, traj: np
     if len(traj):
         ax.plot(traj[:, 0], traj[:, 1], color="tab:blue", label=f"{robot} (recorded state)")
         ax.plot(traj[0, 0], traj[0, 1], "o", color="tab:blue", ms=5)
-    ax.legend(loc="upper right", fontsize=8)
+    # beside the axes, never over an obstacle or the path
+    ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=8, borderaxespad=0.0)
     ax.set_title(f"recorded run: {robot} on {mission.name}")
     fig.tight_layout()
     files.append(out / "trajectory.png")
@@ -262,6 +286,14 @@ def _figures(out: Path, entries: list[Entry], robot: str, mission: Any, traj: np
     axs[3].set_xlabel("time since the first recorded message (s)")
     if axs[3].lines:
         axs[3].legend(fontsize=8)
+    marks = episodes(entries, robot)
+    for name, color, label in (("paused", "tab:orange", "mission paused"), ("estop", "tab:red", "estop latched")):
+        for k, (a, b) in enumerate(marks[name]):
+            for i, ax_ in enumerate(axs):
+                ax_.axvspan(secs(a), secs(b), color=color, alpha=0.15 if name == "paused" else 0.25, lw=0,
+                            label=label if i == 0 and k == 0 else None)
+    if marks["paused"] or marks["estop"]:
+        axs[0].legend(fontsize=8, ncol=4)
     fig.tight_layout()
     files.append(out / "timeline.png")
     fig.savefig(files[-1], dpi=110)

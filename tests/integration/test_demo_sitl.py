@@ -161,6 +161,8 @@ def test_a_transfer_run_on_sitl_reaches_the_goal_of_the_first_bend_without_colli
     # (with every pair it was 0.17-0.32: the probe read SITL's speed lag part-way up)
     assert run["pair_settle_s"] > 0 and 0.3 < run["learned_limits"]["v"][1] < 0.4, run
     assert done.returncode == 0, done.stderr[-1500:]
+    # what was learned, drawn as the other links' demo draws it (finding: a SITL run wrote no pairs figure)
+    assert (tmp_path / "out" / "demo_pairs.png").stat().st_size > 0
 
 
 def _demo(binary: Path, out: Path, *args: str) -> dict:

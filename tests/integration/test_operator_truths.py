@@ -320,14 +320,14 @@ def test_a_never_engaged_mavlink_host_does_not_say_the_operator_took_a_vehicle_f
         rover.stop()
 
 
-def test_the_qpoases_banner_is_printed_once_per_process_at_most() -> None:
-    """Finding: qpOASES printed its licence banner twice per robot (the solver, then its buffer, each make a memory),
-    whatever ``printLevel`` says."""
+def test_the_qpoases_banner_is_never_printed() -> None:
+    """Findings: qpOASES printed its licence banner twice per robot (the solver, then its buffer, each make a memory),
+    whatever ``printLevel`` says; then once at every station start. No third-party banner in a service's log."""
     code = ("from bridge.teacher.codegen import build_mpc\nfrom transfer.teacher.mpc import MpcConfig\n"
             "for _ in range(3):\n    build_mpc(MpcConfig(N=10, dt=0.1, solver='rti-qpoases'))\nprint('built')\n")
     res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert res.returncode == 0 and res.stdout == "built\n", res.stdout + res.stderr
-    assert res.stderr.count("qpOASES -- An Implementation") == 1, res.stderr
+    assert "qpOASES" not in res.stderr and "Lesser General Public License" not in res.stderr, res.stderr
 
 
 def test_the_learned_hull_encloses_every_refined_pair() -> None:

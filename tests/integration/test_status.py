@@ -88,3 +88,63 @@ def test_a_service_waits_for_the_router_and_a_tool_says_it_is_not_there_in_one_l
                           tcp(port)], capture_output=True, text=True, timeout=60)
     assert res.returncode == 2 and len(res.stderr.strip().splitlines()) == 1, res.stderr
     assert "cannot reach the Zenoh router" in res.stderr and "Traceback" not in res.stderr
+
+
+def test_status_asks_the_nodes_and_does_not_wait_for_their_next_status() -> None:
+    """Finding: `status` took 1.7-1.9 s a call, listening a fixed 1.5 s for the periodic statuses. Each node's status
+    key answers a query with its last status (:class:`bridge.nodes.node.StatusOut`, what the station and the driver
+    host publish through): nodes that publish only once here are still read at once, long before ``--timeout``."""
+    from bridge.nodes.node import StatusOut
+
+    port = free_port()
+    with open_session(make_config(mode="router", listen=[tcp(port)])) as session:
+        outs = {n: StatusOut(session, M.status_key("rover7", n)) for n in ("station", "driver")}
+        outs["station"].put(M.encode(M.Status(stamp=time.monotonic(), seq=0, node="station", ok=True,
+                                              state="driving", reason="ok", text="driving")))
+        outs["driver"].put(M.encode(M.Status(stamp=time.monotonic(), seq=0, node="driver", ok=True, state="driving",
+                                             reason="ok", text="link can: driving (cmd)")))
+        res = subprocess.run([sys.executable, "-m", "bridge", "status", "--robot", "rover7", "--mode", "client",
+                              "--connect", tcp(port), "--timeout", "600"], capture_output=True, text=True,
+                             timeout=120)
+        every = subprocess.run([sys.executable, "-m", "bridge", "status", "--all", "--mode", "client", "--connect",
+                                tcp(port), "--timeout", "600"], capture_output=True, text=True, timeout=120)
+    for r in (res, every):
+        rows = [ln.split()[:2] for ln in r.stdout.splitlines()]
+        assert r.returncode == 0 and rows == [["rover7", "station"], ["rover7", "driver"]], r.stdout + r.stderr
+
+
+def test_a_status_that_hears_nothing_names_the_endpoints_of_its_zenoh_config(tmp_path) -> None:
+    """Finding: `status --timeout 0.5 --zenoh-config FILE` said it tried "the Zenoh defaults"."""
+    port = free_port()
+    conf = tmp_path / "client.json5"
+    conf.write_text(f'{{ mode: "client", connect: {{ endpoints: ["{tcp(port)}"] }}, '
+                    'scouting: { multicast: { enabled: false } } }')
+    with open_session(make_config(mode="router", listen=[tcp(port)])):
+        res = subprocess.run([sys.executable, "-m", "bridge", "status", "--all", "--zenoh-config", str(conf),
+                              "--timeout", "0.5"], capture_output=True, text=True, timeout=60)
+    assert res.returncode == 2 and "Zenoh defaults" not in res.stderr, res.stderr
+    assert str(conf) in res.stderr, res.stderr
+
+
+def test_the_driver_line_says_moving_or_stopped_from_the_measured_speed_never_driving_for_a_stopped_robot() -> None:
+    """Finding: `driving   link can: driving (deadman)` for a robot standing still after its station died. The
+    driver host's line says what the vehicle does, measured, beside engaged or not and the host's reason."""
+    from bridge.tools.status import Seen
+    from bridge.tools.status import report as status_report
+
+    def driver(measured, engaged: bool, text: str, state: str = "driving") -> M.Status:
+        return M.Status(stamp=0, seq=0, node="driver", ok=True, state=state, reason="ok", text=text,
+                        measured=measured, engaged=engaged)
+
+    station = M.Status(stamp=0, seq=0, node="station", ok=True, state="driving", reason="ok", text="driving")
+    cases = [(driver([0.0, 0.0], True, "link can: holding a stop: no fresh command (deadman)"), "stopped"),
+             (driver([0.21, -0.1], True, "link can: applying the station's commands (cmd)"), "moving"),
+             (driver([0.0, 0.3], True, "link can: applying the station's commands (cmd)"), "moving"),  # turning
+             (driver([0.0, 0.0], False, "link can: estop latched by operator", "estop"), "stopped")]
+    for st, word in cases:
+        seen = Seen()
+        seen.latest = {("r1", "station"): (station, time.monotonic()), ("r1", "driver"): (st, time.monotonic())}
+        lines, _ = status_report(seen, ["r1"])
+        row = lines[1].split()
+        assert row[:3] == ["r1", "driver", word] and "driving" not in lines[1], lines[1]
+        assert ("| not engaged |" in lines[1]) == (not st.engaged) and "m/s" in lines[1], lines[1]

@@ -233,7 +233,8 @@ def test_the_generated_rules_give_each_identity_only_its_own_keys() -> None:
     # exact keys, but for what the operator's and observer's tools ask and listen on (estop --all, status --all,
     # view --all, record) and a robot's share of those wildcard queries; no rule lets anyone publish on a wildcard
     wild = {k for r in rules.values() for k in r["key_exprs"] if any(c in k for c in "*$?#")}
-    assert wild == {deploy.ALL_ESTOPS, deploy.EVERYTHING, deploy.ALL_ALIVE}
+    assert wild == {deploy.ALL_ESTOPS, deploy.EVERYTHING, deploy.ALL_ALIVE, deploy.ALL_STATUS, "scm/rover1/status/*",
+                    "scm/rover3/status/*"}  # (status asks every node for its last status)
     assert not [r for r in rules.values() if "put" in r["messages"] and r["flows"] == ["ingress"]
                 and set(r["key_exprs"]) & {deploy.EVERYTHING, deploy.ALL_ESTOPS}]
     subjects = {s["id"]: s["cert_common_names"] for s in acl["subjects"]}
@@ -248,7 +249,7 @@ def test_the_generated_rules_give_each_identity_only_its_own_keys() -> None:
     assert allowed("robot/rover1", "ingress", "put") == {K1.state, K1.applied, M.status_key("rover1", "driver")}
     assert allowed("robot/rover1", "egress", "put") == {K1.cmd, K1.estop}
     assert allowed("robot/rover1", "ingress", "declare_subscriber") == {K1.cmd, K1.estop}
-    assert allowed("robot/rover1", "ingress", "reply") == {K1.estop, K1.engage}
+    assert allowed("robot/rover1", "ingress", "reply") == {K1.estop, K1.engage, M.status_key("rover1", "driver")}
     # a new mission for a running station is a person's act: the operator's, never the station's certificate
     assert allowed("operator", "ingress", "put") == {K1.estop, K3.estop, K1.mission, K3.mission}
     station_puts = allowed("station", "ingress", "put")
@@ -256,9 +257,10 @@ def test_the_generated_rules_give_each_identity_only_its_own_keys() -> None:
     assert not station_puts & {K1.state, K1.applied, K1.estop, K1.mission, K3.mission,
                                M.status_key("rover1", "driver")}
     assert {K1.mission, K3.mission} <= allowed("station", "egress", "put")  # it receives them
-    assert allowed("station", "ingress", "reply") == {K1.pairs, K3.pairs, K1.control, K3.control}
+    assert allowed("station", "ingress", "reply") == {K1.pairs, K3.pairs, K1.control, K3.control,
+                                                     *(M.status_key(r, "station") for r in ("rover1", "rover3"))}
     assert allowed("observer", "ingress", "put") == set() and allowed("observer", "ingress", "query") == {
-        K1.pairs, K3.pairs, K1.estop, K3.estop, deploy.ALL_ESTOPS}  # never control or engage: they change things
+        K1.pairs, K3.pairs, K1.estop, K3.estop, deploy.ALL_ESTOPS, deploy.ALL_STATUS}  # never control or engage
     # only the station publishes cmd
     others = ("robot/rover1", "robot/rover3", "operator")
     assert [s for s in others if {K1.cmd, K3.cmd} & allowed(s, "ingress", "put")] == []

@@ -27,10 +27,11 @@ DOCS = [ROOT / "README.md", ROOT / "deploy" / "README.md", ROOT / "deploy" / "RO
 RUN_HERE = {"config show", "config check", "deploy certs", "deploy lab", "deploy acl", "deploy client", "keys udp",
             "keys mavlink", "driver"}
 #: need a running lab: tests/integration/test_lab_in_a_box.py runs them (``mission send`` and ``mission start`` as
-#: the docs show them: tests/integration/test_operator_truths.py); ``pairs show --store``, ``report`` and ``replay``
+#: the docs show them: tests/integration/test_operator_truths.py; deploy/README.md's lab on one machine, the router
+#: and the station too: tests/integration/test_lab_local.py); ``pairs show --store``, ``report`` and ``replay``
 #: of a file run here
 NEEDS_LAB = {"doctor", "engage", "mission start", "mission send", "status", "estop", "demo", "pairs show",
-             "pairs plot", "record", "replay", "report", "calibrate", "mission place"}
+             "pairs plot", "record", "replay", "report", "calibrate", "mission place", "router", "station"}
 #: need a robot, root or the network: not run here
 NEEDS_HARDWARE: set[str] = set()
 

@@ -22,7 +22,7 @@ PATH_ENDINGS = (".py", ".toml", ".md", ".parm", ".service", ".dbc", ".json5")
 #: backticked words that look like paths and are not the repository's: what the tools write or read on a user's
 #: machine (output directories, a lab's own files named in examples). A new one goes here, deliberately.
 NOT_IN_REPO = {
-    "demo_out/demo_trajectory.png", "demo_out/demo_pairs.png", "demo_out/pairs.bin", "lab/", "lab/tls/",
+    "demo_out/demo_trajectory.png", "demo_out/demo_pairs.png", "demo_out/pairs.bin", "lab/", "lab/tls/", "lab/state/",
     "station.toml", "driver.toml", "driver-rover1.toml", "demo_fleet.png", "run.mcap", "report/", "fleet.toml",
     "station-router.json5", "robot-client.json5", "station-client.json5", "operator.json5", "trajectory.png",
     "deviation.png", "timeline.png", "report.json", "pairs.png", "mpc_sweep.json", "DIR/mpc_sweep.json",

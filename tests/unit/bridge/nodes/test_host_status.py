@@ -126,7 +126,8 @@ def test_the_status_message_says_it_in_words_and_numbers_its_own_stream() -> Non
     st = M.validated(s.build(NOW, a, counters={"ticks": 1}, late=[0.001, 0.002, 0.003, 0.004],
                              failsafe=FailsafeReport(drive_on_s=3.0, text="3 s"), driving_reason="clamped"))
     assert (st.seq, st.ok, st.state, st.reason, st.node) == (1, True, "driving", "ok", "driver")
-    assert st.text == "link can: driving (clamped)" + UNAUTHENTICATED
+    assert st.text == ("link can: applying the station's commands, clamped to the hard limits (clamped)"
+                       + UNAUTHENTICATED)
     assert st.latencies_ms["telemetry_age"] == pytest.approx(100.0)
     assert st.latencies_ms["jitter_max"] == pytest.approx(4.0) and st.latencies_ms["failsafe_drive_on"] == 3000.0
     assert st.rates_hz == {"loop": 50.0} and st.counters == {"ticks": 1}
@@ -135,3 +136,20 @@ def test_the_status_message_says_it_in_words_and_numbers_its_own_stream() -> Non
     assert not st.ok and st.text.startswith("DRY RUN (nothing is sent to the vehicle): link can: x")
     assert st.text.endswith(UNAUTHENTICATED) and len(st.text) == 1024  # said whatever else is cut
     assert "jitter_p50" not in st.latencies_ms  # (fewer than three ticks measured)
+
+
+def test_an_engaged_fit_host_holding_a_stop_says_so_with_its_measured_speed_never_driving() -> None:
+    """Finding: after the station died the host's line read `driving (deadman)`, and `driving (stop)` while paused:
+    engaged and fit, but a lab reads it as moving. The words say what the vehicle is given; the status carries the
+    measured speeds (``scmbridge status`` says moving or stopped from them) and whether a person engaged it."""
+    s = _host()
+    for reason, words in (("deadman", "holding a stop: no fresh command (deadman)"),
+                          ("stop", "holding the station's stop (stop)")):
+        a = s.assess(_facts(last_pose=NOW - 0.1, measured=(0.0, 0.0)), NOW)
+        st = M.validated(s.build(NOW, a, counters={}, driving_reason=reason))
+        assert st.text == f"link can: {words}" and "driving" not in st.text, st.text
+        assert st.measured == [0.0, 0.0] and st.engaged is True
+    stale = s.assess(_facts(last_pose=NOW - 5.0, measured=(0.3, 0.0)), NOW)  # an old speed is no measurement now
+    assert s.build(NOW, stale, counters={}).measured is None
+    idle = s.assess(_facts(engaged=False, last_pose=NOW - 0.1, measured=(0.0, 0.0)), NOW)
+    assert s.build(NOW, idle, counters={}).engaged is False

@@ -50,3 +50,25 @@ def test_a_motion_capture_sample_stamped_ahead_of_any_delivery_is_dropped() -> N
     feed.take_mocap()
     assert feed.offer_mocap(_mocap(20.0), 60.06) == "dropped"  # forged: 10 s ahead of the bridge's clock
     assert feed.take_mocap() == []
+
+
+def test_the_vehicles_speed_is_measured_from_its_poses_or_taken_from_the_link() -> None:
+    """What ``scmbridge status`` says moving or stopped from: a link's reported speeds where it gives them, else the
+    poses' motion over at least MEASURE_WINDOW_S (a reversing vehicle has a negative speed)."""
+    from bridge.nodes.pose_feed import MEASURE_WINDOW_S
+
+    feed = PoseFeed("can", EPOCH)
+    assert feed.measured is None
+    t, x, th = 10.0, 0.0, 0.0
+    for _ in range(20):  # 0.2 m/s forward, turning at 0.1 rad/s, poses at 50 Hz without speeds
+        t, x, th = t + 0.02, x + 0.2 * 0.02, th + 0.1 * 0.02
+        feed.published(t, M.LearnerState(stamp=t, seq=0, x=x, y=0.0, theta=th))
+    v, omega = feed.measured
+    assert abs(v - 0.2) < 0.02 and abs(omega - 0.1) < 0.01, feed.measured
+    for _ in range(20):  # backwards
+        t, x = t + 0.02, x - 0.1 * 0.02
+        feed.published(t, M.LearnerState(stamp=t, seq=0, x=x, y=0.0, theta=th))
+    assert feed.measured[0] < -0.05
+    t += MEASURE_WINDOW_S
+    feed.published(t, M.LearnerState(stamp=t, seq=0, x=x, y=0.0, theta=th, v=0.0, omega=0.0))  # the link's own
+    assert feed.measured == (0.0, 0.0)

@@ -313,3 +313,58 @@ def test_a_robots_phase_is_its_own_the_same_on_every_run_and_spreads_a_fleet() -
     assert len(set(phases)) == 100
     counts, _ = np.histogram(phases, bins=4, range=(0.0, 1.0))
     assert counts.min() >= 15  # no quarter of the period left empty, none holding most of the fleet
+
+
+def test_a_restarted_stations_progress_is_where_the_robot_stands_now(tmp_path) -> None:
+    """Finding: a restarted station said `mission 2%` while its robot stood at about 14 % of the path (the progress
+    last saved). Paused, the station still reads the robot's fresh pose and says where it is on the path."""
+    from bridge.nodes.mission_control import MissionControl, spec_of
+
+    mission = load_mission()
+    running = MissionControl("r1", spec_of(mission))
+    running.request(M.MissionRequest(stamp=0.0, action="start"), _fitness_ok(), 0.0)
+    running.progress = 0.02
+    restarted = MissionControl.restored("r1", running.saved())
+    assert restarted.phase == "paused"
+    core = StationCore(StationConfig(), "r1", 10.0, tmp_path / "p.bin", mission, control=restarted)
+    path = mission.path
+    k = int(np.searchsorted(path.s, 0.14 * path.length))
+    x, y = path.points[k]
+    for i in range(3):
+        now = 1.0 + 0.1 * i
+        core.tick(TickInputs(telemetry=((M.LearnerState(stamp=now, seq=i, x=float(x), y=float(y), theta=0.0), now),),
+                             driver=(_driver(i + 1), now)), now)
+    st = core.status(now)
+    assert st.state == "paused" and abs(st.progress - 0.14) < 0.01, (st.progress, st.text)
+    assert core.control.phase == "paused"  # where it stands is said; nothing is started by it
+
+
+def _fitness_ok():
+    from bridge.nodes.mission_control import Fitness
+
+    return Fitness("")
+
+
+def test_a_repeated_reason_is_logged_once_and_how_long_it_held_when_it_changes(tmp_path, caplog) -> None:
+    """Finding: `not driving: waiting for the robot: no pose for 0.6 s`, `0.7 s`, ... every 100 ms (48 lines for two
+    short outages). Logged once per typed reason, then, on the next change, how long it held and how often."""
+    import logging
+
+    mission = load_mission()
+    core = StationCore(StationConfig(), "r1", 10.0, tmp_path / "p.bin", mission)
+    _start(core)
+    x, y, th = (float(a) for a in mission.start)
+    caplog.set_level(logging.INFO, logger="scmbridge")
+    now = 1.0
+    for i in range(40):  # poses for 1 s, none for 3 s: the words change each tick ("no pose for 0.6 s", ...)
+        now += 0.1
+        tel = ((M.LearnerState(stamp=now, seq=i, x=x, y=y, theta=th), now),) if i < 10 else ()
+        core.tick(TickInputs(telemetry=tel, driver=(_driver(i + 1), now)), now)
+    lines = [r.getMessage() for r in caplog.records if r.getMessage().startswith("not driving")]
+    assert 1 <= len(lines) <= 3, lines
+    before = len(lines)
+    now += 0.1  # the poses are back: the mission stays paused, the robot is ready: a new reason
+    core.tick(TickInputs(telemetry=((M.LearnerState(stamp=now, seq=41, x=x, y=y, theta=th), now),),
+                         driver=(_driver(41), now)), now)
+    lines = [r.getMessage() for r in caplog.records if r.getMessage().startswith("not driving")]
+    assert len(lines) == before + 1 and "held" in lines[-1] and "decided" in lines[-1], lines

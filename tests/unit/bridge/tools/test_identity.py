@@ -64,3 +64,22 @@ def test_the_hint_names_an_identity_the_default_rules_do_not(certs) -> None:
     assert unnamed_hint(certs.client("operator"), "rover1") == ""
     assert unnamed_hint(certs.client("rover1"), "rover1") == ""
     assert unnamed_hint(make_config(), "rover1") == ""
+
+
+def test_a_denial_is_expected_before_asking_and_the_wait_is_short(certs) -> None:
+    """Finding: the observer's engage was denied after 40.2 s of silence. Known before asking, the tool waits only
+    DENIED_WAIT_S for an answer that cannot come; one that may ask waits its whole timeout."""
+    from bridge.tools.identity import DENIED_WAIT_S, expected_denial
+
+    why, wait = expected_denial(certs.client("observer"), "rover1", "query", K.engage, "engage a robot", 40.0)
+    assert why and wait == DENIED_WAIT_S <= 2.0
+    assert expected_denial(certs.client("operator"), "rover1", "query", K.engage, "engage", 40.0) == (None, 40.0)
+
+
+def test_a_robots_certificate_may_not_read_the_statuses_and_the_observer_may(certs) -> None:
+    from bridge.tools.status import _denial
+
+    why = _denial(certs.client("rover1"), None, "scm/*/status/*")
+    assert why and why.startswith("denied: identity 'rover1' (role robot/rover1) may not read the robots' status")
+    assert _denial(certs.client("observer"), None, "scm/*/status/*") is None
+    assert _denial(certs.client("operator"), ["rover1"], "scm/rover1/status/*") is None

@@ -153,3 +153,28 @@ def test_run_refuses_a_missing_file_and_exits_1_for_a_recording_without_a_run(tm
     _record(empty, [])
     assert R.run(ap.parse_args([str(empty), "--out", str(tmp_path / "o"), "--no-figures"])) == 1
     assert "scmbridge report: error: the recording has no state message" in capsys.readouterr().err
+
+
+def test_the_timeline_marks_when_the_mission_was_paused_and_an_estop_latched(tmp_path) -> None:
+    """Finding: the report's timeline marked no pause or estop. The episodes come from the statuses (typed reasons),
+    one still on at the end is closed there, and the timeline shades them."""
+    from bridge.tools.report import _figures, episodes
+
+    def status(node: str, t_s: float, state: str, reason: str) -> Entry:
+        return _e(M.status_key("r1", node), int(t_s * 1e3) * MS,
+                  M.Status(stamp=t_s, seq=int(t_s * 10), node=node, state=state, reason=reason))
+
+    entries = sorted([status("station", 1.0, "driving", "ok"), status("driver", 1.0, "driving", "ok"),
+                      status("driver", 2.0, "estop", "estop"), status("station", 2.1, "paused", "paused"),
+                      status("driver", 4.0, "driving", "ok"), status("station", 5.0, "driving", "ok"),
+                      status("station", 7.0, "paused", "paused"), _state("r1", 8_000 * MS)],
+                     key=lambda e: e.log_time)
+    marks = episodes(entries, "r1")
+    assert marks == {"estop": [(2_000 * MS, 4_000 * MS)], "paused": [(2_100 * MS, 5_000 * MS),
+                                                                      (7_000 * MS, 8_000 * MS)]}, marks
+    import numpy as np
+
+    from bridge.core.config import load_mission
+
+    files = _figures(tmp_path, entries, "r1", load_mission(), np.zeros((0, 3)), [], True)
+    assert (tmp_path / "timeline.png") in files and (tmp_path / "timeline.png").stat().st_size > 0
