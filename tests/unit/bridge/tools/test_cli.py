@@ -78,7 +78,7 @@ def test_no_arguments_or_help_print_the_root_help(capsys) -> None:
 def test_a_group_lists_its_commands_and_an_unknown_one_is_exit_2(capsys) -> None:
     assert cli.main(["mission", "--help"]) == 0
     out = capsys.readouterr().out
-    assert out.startswith("usage: scmbridge mission {start|pause|resume|abort|status|send} [OPTIONS]")
+    assert out.startswith("usage: scmbridge mission {start|pause|resume|abort|status|send|place} [OPTIONS]")
     assert cli.main(["mission", "fly"]) == 2
     err = capsys.readouterr().err
     assert err.startswith("scmbridge: unknown command 'mission fly'") and "mission commands:" in err
