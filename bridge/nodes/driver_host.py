@@ -123,6 +123,9 @@ class DriverHost:
         self.max_send_hz = d.max_send_hz
         self.max_telemetry_age = d.max_telemetry_age_s
         self.gate = CommandGate(d.hard_limits.bounds(), d.cmd_timeout, tuple(d.estop_release_sources))
+        #: acceleration and jerk limits on what the vehicle gets (the loop thread's; bridge.core.limiter): a stalled
+        #: loop's step is bounded by two periods' worth
+        self.limiter = d.hard_limits.limiter(self.period)
         self.inputs = Inputs()
         self.lock = threading.Lock()  # see the class docstring: what Zenoh's callback threads and the loop share
         self.wake = threading.Event()
@@ -338,8 +341,18 @@ class DriverHost:
         if clear:
             log.warning("operator released the estop: clearing the link's latched faults")
             self.driver.clear_faults(now)
-        return overrule(d, now, engaged=self.engaged, unsaved=bool(unsaved), health=h, dry_run=self.dry_run,
-                        last_pose=self.poses.last_pose, max_telemetry_age=self.max_telemetry_age)
+        d = overrule(d, now, engaged=self.engaged, unsaved=bool(unsaved), health=h, dry_run=self.dry_run,
+                     last_pose=self.poses.last_pose, max_telemetry_age=self.max_telemetry_age)
+        return self.limited(d, now)
+
+    def limited(self, d: Decision, now: float) -> Decision:
+        """The last word: a driving decision within the acceleration and jerk limits (a command the limiter
+        changed is ``clamped``), any other exactly zero, at once (:class:`bridge.core.limiter.SpeedLimiter`)."""
+        if not d.driving:
+            self.limiter.stop(now)
+            return d
+        v, w = self.limiter.limit(d.v, d.omega, now)
+        return d if (v, w) == (d.v, d.omega) else Decision(v, w, "clamped", d.cmd_seq)
 
     def tick(self, now: float) -> None:
         """Read the link, then decide and send. The link is read before its health and the telemetry's age are
@@ -407,6 +420,8 @@ class DriverHost:
                                  unauthenticated=bool(self.unauthenticated),
                                  missed=self.ticker.missed if self.ticker is not None else 0,
                                  stalls=self.stall_watch.stalls, ticks=len(self.ticks))
+        if not self.limiter.unlimited:
+            counters["rate_limited"] = self.limiter.limited
         a = assessed if assessed is not None else self._assess(now)
         if a.state != self.last_state:
             log.info("%s: %s", a.state, "; ".join(a.problems) or "driving")
