@@ -485,6 +485,17 @@ def load_mission_spec(path: str | Path | None = None) -> MissionSpec:
     return load(name, MissionSpec)
 
 
+def load_fence(path: str | Path) -> list[tuple[float, float]]:
+    """The fence of a mission file (its ``fence``) or a station configuration (``[station] fence``): a polygon in the
+    lab's frame; :class:`ConfigError` when the file has none."""
+    kind = guess_kind(read_table(path))
+    fence = load_mission_spec(path).fence if kind == "mission" else load_station(path).station.fence
+    if not fence:
+        where = "fence" if kind == "mission" else "[station] fence"
+        raise ConfigError(str(path), where, "no fence in this file (a polygon [[x, y], ...] of >= 3 vertices)")
+    return [(float(x), float(y)) for x, y in fence]
+
+
 def load_mission(path: str | Path | None = None) -> Mission:
     """See :func:`load_mission_spec`; geometry problems (a degenerate path) are ConfigErrors too."""
     spec = load_mission_spec(path)
@@ -509,6 +520,7 @@ __all__ = [
     "TransferSection",
     "decode_toml",
     "load",
+    "load_fence",
     "load_mission",
     "load_mission_spec",
     "load_station",
