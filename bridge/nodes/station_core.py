@@ -214,6 +214,7 @@ class StationCore:
         #: the corridor, the fence and the pose jump (bridge.nodes.station_guards)
         self.guards = Guards(scfg.corridor_m, [(float(a), float(b)) for a, b in scfg.fence])
         self.guards.configure(self.control.spec)
+        self.guards.begin(self.control.progress * self.mission.path.length)  # a restored mission: where it was
         self.off_path: float | None = None  # the latest pose's distance from the path, m
         self.fitness = Fitness()
         self.counters = StationCounters()
@@ -279,8 +280,8 @@ class StationCore:
             ans = self.control.answer(now, False, out)
         else:
             ans = self.control.request(req, self.fitness, now)
-            if self.control.phase == "running":  # progress counts from here, along the track from now on
-                self.guards.hold(self.control.progress * self.mission.path.length)
+            if req.action == "start" and ans.accepted and self.source.follows_mission:
+                self._begin_track()  # progress counts from where the robot starts, along its track
         if req.action != "status":
             log.info("mission %s%s: %s", req.action, f" by {req.source}" if req.source else "", ans.text)
         if self.control.phase in ("paused", "finished"):
@@ -308,6 +309,11 @@ class StationCore:
         path = self.mission.path
         _, off = closest(path.points, path.s, path.seg_len, state.x, state.y)
         return self.guards.refusal(state.x, state.y, off, req.override, self.robot)
+
+    def _begin_track(self) -> None:
+        """A start: the mission's track begins at the latest pose's closest point (the next pose's, without one)."""
+        state, path = self.state, self.mission.path
+        self.guards.begin(None if state is None else closest(path.points, path.s, path.seg_len, state.x, state.y)[0])
 
     def _at_goal(self) -> bool:
         """The latest pose is at the mission's goal by the mission's own rule (a station that follows a mission)."""
@@ -387,7 +393,7 @@ class StationCore:
             self.mission_version = self.control.version
             mission = self.mission
             self.guards.configure(self.control.spec)
-            self.guards.hold(0.0)  # (a path replaced while running: its progress counts from its start)
+            self.guards.begin(None)  # (a path replaced while running: from where the robot is on it)
             self.source.reset()
             self.counters.missions += 1
             log.info("new mission %r: %d waypoints, %.1f m, %d obstacles", mission.name, len(mission.path.points),
@@ -453,9 +459,9 @@ class StationCore:
         if self.source.follows_mission and state is not None:
             path = self.mission.path  # the closest point in one compiled loop: a mission path has thousands of segments
             s, self.off_path = closest(path.points, path.s, path.seg_len, state.x, state.y)
-            if c.phase != "running":
-                self.guards.hold(c.progress * path.length)
-            elif unfit is None:
+            if c.phase == "running" and self.guards.anchor_pending:
+                self.guards.begin(s)
+            if c.phase == "running" and unfit is None:
                 trip = self.guards.check(state.x, state.y, self.off_path, c.progress, time.time())
                 if trip is not None:
                     self._tripped(trip)

@@ -13,8 +13,9 @@ reason so that only a person drives on (``scmbridge mission resume``):
 - **the pose jump** (``pose_jump``): a pose farther from the last one than the robot could have moved in the interval
   between them: its learned top speed (the configured one before anything is learned) times :data:`JUMP_MARGIN`,
   plus :data:`JUMP_SLACK_M` of pose noise. A jump is never progress: the mission's progress may grow only by what
-  the robot's continuous track covered since a person last started or resumed it (:meth:`Guards.progress_cap`),
-  so a pose that lands on the goal does not finish the mission.
+  the robot's continuous track covered since the mission was started, from where the robot was then
+  (:meth:`Guards.progress_cap`; a jump is not track, a pause does not end it), so a pose that lands on the goal does
+  not finish the mission.
 
 A resume (or a start) with the robot outside the corridor or the fence is refused, saying how far it is; a person
 drives it back first, or resumes with ``--override`` (:attr:`bridge.core.wire.MissionRequest.override`): the guard
@@ -94,7 +95,8 @@ class Guards:
     # the track: the last pose (x, y, stamp, epoch, receipt), and its length since this station started
     last: tuple[float, float, float, int, float] | None = None
     odometer: float = 0.0
-    anchor: tuple[float, float] = (0.0, 0.0)  # (arc length, odometer) when a person last started or resumed
+    anchor: tuple[float, float] = (0.0, 0.0)  # (arc length, odometer) where the mission's track began
+    anchor_pending: bool = False  # the track begins at the next pose seen while running (started without a pose)
     # overridden by a person: the distance out it was then (None: armed)
     corridor_override: float | None = None
     fence_override: float | None = None
@@ -128,14 +130,16 @@ class Guards:
         self.odometer += step
         return None
 
-    def hold(self, s: float) -> None:
-        """Not running: progress counts from arc length ``s`` and the track's length now (re-anchored each tick
-        until a person starts or resumes)."""
-        self.anchor = (s, self.odometer)
+    def begin(self, s: float | None) -> None:
+        """The mission's track begins here: at arc length ``s`` (a start: the pose's closest point; a restored
+        mission: its saved progress), or at the next pose seen while running (None: no pose yet, or a new path)."""
+        self.anchor_pending = s is None
+        if s is not None:
+            self.anchor = (s, self.odometer)
 
     def progress_cap(self) -> float:
-        """The farthest arc length the mission's progress may have reached: what the continuous track covered since
-        the last start or resume, with a margin (:data:`PROGRESS_MARGIN`, :data:`PROGRESS_SLACK_M`)."""
+        """The farthest arc length the mission's progress may have reached: where its track began plus what the
+        continuous track covered since, with a margin (:data:`PROGRESS_MARGIN`, :data:`PROGRESS_SLACK_M`)."""
         s0, odo0 = self.anchor
         return s0 + PROGRESS_MARGIN * (self.odometer - odo0) + PROGRESS_SLACK_M
 

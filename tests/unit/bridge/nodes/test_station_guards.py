@@ -200,3 +200,17 @@ def test_the_jump_bound_is_the_learned_top_speed_with_a_margin() -> None:
     assert g.pose(M.LearnerState(stamp=3.0, seq=3, x=3.4, y=0.0, theta=0.0), 2.0, top_speed=1.0) is None
     assert g.pose(M.LearnerState(stamp=3.1, seq=4, x=4.0, y=0.0, theta=0.0), 2.1, top_speed=1.0) == pytest.approx(0.6)
     assert g.odometer == pytest.approx(3.4)  # the jump is not track
+
+
+def test_a_robot_started_part_way_along_the_path_finishes_at_the_goal(tmp_path) -> None:
+    """The track begins where the robot is when a person starts the mission: progress from there, not from 0."""
+    spec = load_mission_spec()
+    k = int(0.8 * len(spec.path))
+    run = Run(tmp_path, spec)
+    run.poses([spec.path[k]])
+    assert run.ask("start").accepted
+    for a, b in zip(spec.path[k:], spec.path[k + 1:]):
+        run.poses(_line(a, b, 0.005))
+        if run.core.control.phase != "running":
+            break
+    assert run.core.control.phase == "finished", run.core.control.reason
