@@ -534,6 +534,7 @@ def sitl_hil(args: argparse.Namespace, robot: str = "sitl") -> int:
         "turn_probe": load_station(out / "station.toml").transfer.probe_turns(),  # what the station does
         "cells_relearned": relearned, "limits_relearned": edges, "param_changes": changed,
         "max_dev_m": run["max_dev_m"], "goal_dist_m": run["goal_dist_m"], "driving_s": run["driving_s"],
+        "guard_stops": run["guard_stops"],  # when and where a guard of the station's stopped it
         "learner_bounds": [list(v_range), list(w_range)], "vehicle_params": params,
         "missed_deadlines": run["missed_deadlines"], "boot_s": round(sitl.boot_s, 1),
         "wall_s": round(time.monotonic() - t_wall, 1)}
