@@ -461,8 +461,10 @@ class StationCore:
             s, self.off_path = closest(path.points, path.s, path.seg_len, state.x, state.y)
             if c.phase == "running" and self.guards.anchor_pending:
                 self.guards.begin(s)
+            if c.phase != "running" or unfit is not None:
+                self.guards.pause()
             if c.phase == "running" and unfit is None:
-                trip = self.guards.check(state.x, state.y, self.off_path, c.progress, time.time())
+                trip = self.guards.check(state.x, state.y, self.off_path, c.progress, time.time(), now)
                 if trip is not None:
                     self._tripped(trip)
                 else:  # progress only along the continuous track: a pose that lands on the goal is not there

@@ -7,7 +7,9 @@ whose emulated pose starts again at the origin). These guards do, each pausing a
 reason so that only a person drives on (``scmbridge mission resume``):
 
 - **the corridor** (``left_corridor``): a pose farther than ``corridor_m`` from the path (the mission file's, else the
-  station's ``[station] corridor_m``). The station publishes stops at once and its status says the distance
+  station's ``[station] corridor_m``), or one that will be within :data:`STOP_LOOKAHEAD_S` at the speed it moves away
+  from the path (measured over the last :data:`OUTWARD_WINDOW_S`): a vehicle running away fast needs its stop
+  before the line to stop near it. The station publishes stops at once and its status says the distance
   (``off_path_m``) and where the robot left;
 - **the fence** (``fence``): a pose outside a polygon in the lab's frame (the mission's ``fence``, else the station's);
 - **the pose jump** (``pose_jump``): a pose farther from the last one than the robot could have moved in the interval
@@ -40,6 +42,11 @@ JUMP_SLACK_M = 0.3
 PROGRESS_MARGIN = 1.5
 #: ... plus this, once (a path's corner, where the closest point moves faster than the robot), m
 PROGRESS_SLACK_M = 0.5
+#: s ahead the corridor looks at the speed the robot moves away from the path: a stop given that early leaves a
+#: vehicle the station's tick, the link and its braking (up to about 1.5 m/s at 1 m/s^2) to stop near the line
+STOP_LOOKAHEAD_S = 1.0
+#: s over which that outward speed is measured (the station's ticks' distances from the path)
+OUTWARD_WINDOW_S = 0.3
 #: the trips kept for the summary and the report
 TRIPS_KEPT = 64
 
@@ -102,6 +109,7 @@ class Guards:
     fence_override: float | None = None
     trips: list[Trip] = field(default_factory=list)
     jumps: int = 0  # pose jumps seen (running or not)
+    recent: list[tuple[float, float]] = field(default_factory=list)  # (time, distance from the path) while checked
 
     def __post_init__(self) -> None:
         self.station_corridor_m, self.station_fence = self.corridor_m, list(self.fence)
@@ -130,6 +138,10 @@ class Guards:
         self.odometer += step
         return None
 
+    def pause(self) -> None:
+        """Not checked for a while (the mission is not running): the outward speed is measured afresh."""
+        self.recent.clear()
+
     def begin(self, s: float | None) -> None:
         """The mission's track begins here: at arc length ``s`` (a start: the pose's closest point; a restored
         mission: its saved progress), or at the next pose seen while running (None: no pose yet, or a new path)."""
@@ -144,9 +156,21 @@ class Guards:
         return s0 + PROGRESS_MARGIN * (self.odometer - odo0) + PROGRESS_SLACK_M
 
     # ------------------------------------------------------------------------------------ corridor, fence
-    def check(self, x: float, y: float, off_path: float, progress: float, wall: float) -> Trip | None:
-        """While running: the trip if the pose at ``(x, y)``, ``off_path`` m from the path, leaves the corridor or
-        the fence (an override re-arms once the robot is back inside); ``wall``: the wall clock now."""
+    def outward(self, now: float, off_path: float) -> float:
+        """The speed the robot moves away from the path, m/s (0 when it does not), over the last
+        :data:`OUTWARD_WINDOW_S` of checks (``now``: the station's clock)."""
+        self.recent.append((now, off_path))
+        while len(self.recent) > 2 and now - self.recent[1][0] >= OUTWARD_WINDOW_S:
+            del self.recent[0]
+        t0, d0 = self.recent[0]
+        return max(0.0, (off_path - d0) / (now - t0)) if now - t0 > 0.05 else 0.0
+
+    def check(self, x: float, y: float, off_path: float, progress: float, wall: float,
+              now: float | None = None) -> Trip | None:
+        """While running: the trip if the pose at ``(x, y)``, ``off_path`` m from the path, leaves the corridor (or
+        will within :data:`STOP_LOOKAHEAD_S`, at ``now`` on the station's clock) or the fence (an override re-arms
+        once the robot is back inside); ``wall``: the wall clock now."""
+        ahead = off_path + (STOP_LOOKAHEAD_S * self.outward(now, off_path) if now is not None else 0.0)
         if self.corridor_override is not None:
             if off_path <= self.corridor_m:
                 self.corridor_override = None
@@ -158,6 +182,11 @@ class Guards:
             return self._trip(wall, "left_corridor", x, y, off_path, progress,
                               f"left the corridor: {off_path:.2f} m from the path (corridor_m = {self.corridor_m:g}) "
                               f"at ({x:.2f}, {y:.2f})")
+        elif ahead > self.corridor_m:
+            return self._trip(wall, "left_corridor", x, y, off_path, progress,
+                              f"leaving the corridor: {off_path:.2f} m from the path and moving away at "
+                              f"{(ahead - off_path) / STOP_LOOKAHEAD_S:.2f} m/s (corridor_m = {self.corridor_m:g}) at "
+                              f"({x:.2f}, {y:.2f})")
         if self.fence:
             out = outside_by(x, y, self.fence)
             if self.fence_override is not None:
