@@ -124,7 +124,12 @@ class BesideStation:
                 "cpu_ms_per_tick": round((cpu1 - cpu0) / max(ticks, 1) * 1e3, 3)}
 
 
-def run_link(link: str, seconds: float, workdir: str, random_phase: bool = False, beside: int = 0) -> dict:
+#: ``--speed-limiter``: the acceleration and jerk limits the driver host applies to every command (a vehicle's)
+LIMITER_KEYS = "v_accel = 1.0\nomega_accel = 2.0\nv_jerk = 10.0\nomega_jerk = 20.0\n"
+
+
+def run_link(link: str, seconds: float, workdir: str, random_phase: bool = False, beside: int = 0,
+             limiter: bool = False) -> dict:
     """Commands at 50 Hz for ``seconds`` through the driver host on ``link``; latency, loop timing, memory.
 
     The host's loop ticks at 50 Hz too, and it sends at most ``max_send_hz`` (100 Hz): a command that arrives less
@@ -133,7 +138,8 @@ def run_link(link: str, seconds: float, workdir: str, random_phase: bool = False
     the next. ``random_phase`` sends each command at a random point of its 20 ms slot instead (50 Hz on average),
     so every phase is sampled in every run: what ``bench perf`` judges, where a figure must not be a lottery.
     ``beside``: that many robots ticked by a real station process on the same router for the whole run
-    (:class:`BesideStation`), which is up and driving before the first command is measured."""
+    (:class:`BesideStation`), which is up and driving before the first command is measured. ``limiter``: the
+    driver host limits acceleration and jerk (:data:`LIMITER_KEYS`, CAN only: its ``[driver.hard_limits]``)."""
     rng = np.random.default_rng(0)
 
     from bridge.core import wire as M
@@ -169,6 +175,12 @@ def run_link(link: str, seconds: float, workdir: str, random_phase: bool = False
             if not station.up(60.0 + 10.0 * beside):
                 raise RuntimeError(f"the station beside the link did not drive its {beside} robot(s) in time")
         driver_args = emulated_link(kids, link, Path(workdir), "0,0,0", seconds + 40, rate_hz=50)
+        if limiter:
+            if link != "can":
+                raise ValueError("--speed-limiter is measured on the CAN link (its host takes a --config of its own)")
+            cfg = Path(workdir) / "driver-limiter.toml"
+            cfg.write_text(f"[driver.hard_limits]\nv = [-0.5, 0.5]\nw = [-1.0, 1.0]\n{LIMITER_KEYS}")
+            driver_args += ["--config", str(cfg)]
         driver = kids.spawn(["driver", "--engage", *driver_args, "--robot", robot, "--mode", "client", "--connect",
                              tcp(port), "--rate", "50", "--duration", str(seconds + 30)], subprocess.DEVNULL)
         t_end = time.monotonic() + 30
@@ -220,6 +232,9 @@ def arguments(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--beside-station", type=int, default=0, metavar="N",
                     help="a real station process ticks N robots (the fleet bench's simulated ones) on the same "
                          "router for the whole run: the figures beside a station's ticks (default 0: none)")
+    ap.add_argument("--speed-limiter", action="store_true",
+                    help="the driver host limits acceleration and jerk ([driver.hard_limits] v_accel, omega_accel, "
+                         "v_jerk, omega_jerk; CAN link only): what the limiter costs the loop")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -229,8 +244,9 @@ def run(args: argparse.Namespace) -> int:
     with tempfile.TemporaryDirectory() as tmp:
         for link in args.links.split(","):
             out["links"][link] = run_link(link, args.duration if link == "can" else args.link_duration, tmp,
-                                          beside=args.beside_station)
+                                          beside=args.beside_station, limiter=args.speed_limiter)
     out["beside_station_robots"] = args.beside_station
+    out["speed_limiter"] = args.speed_limiter
     out["load"] = [round(a, 2) for a in os.getloadavg()]
     out["targets"] = {"median_ms": 1.0, "p99_ms": 5.0, "jitter_p99_ms": 2.0, "missed_deadlines_fraction": 0.01,
                       "memory": "no growth"}

@@ -96,7 +96,11 @@ FS_GCS_ENABLE 0 and a stopped rover after HOLD agree. What differs, and stays so
   rover disarmed at 0.6 m/s is still in 0.67 s, faster than it brakes; here it coasts at ``coast_decel`` 0.3 m/s^2
   (1.9 s), as a real rover rolls on: a driver that disarms before the rover stops is caught here, not in SITL.
 * Parameters: SITL answers every parameter of the firmware; here only FS_*, WP_SPEED, ATC_STR_RAT_MAX,
-  ATC_DECEL_MAX and SYSID_MYGCS, which Rover 4.7 no longer has (SITL gives no PARAM_VALUE for it).
+  ATC_DECEL_MAX, FENCE_ENABLE/TYPE/ACTION and SYSID_MYGCS, which Rover 4.7 no longer has (SITL gives no PARAM_VALUE
+  for it).
+* The fence (:mod:`sim_learner.mavlink_fence`: the EKF origin, the fence upload, DO_FENCE_ENABLE, a breach -> HOLD):
+  SITL's avoidance (on by default with a fence) stops the rover its margin (about 2 m) inside the fence before any
+  breach; here it reaches the line and holds there.
 * The pilot: SITL has a ground station port (SERIAL0) beside the driver's; here there is one link, and the person's
   switches are :meth:`rc_mode_switch` / :meth:`rc_arm`.
 
@@ -126,6 +130,7 @@ from pymavlink import mavutil  # noqa: E402
 
 from bridge.core.paths import save_atomic  # noqa: E402
 from sim_learner.device import ThreadedDevice  # noqa: E402
+from sim_learner.mavlink_fence import EmulatedFence  # noqa: E402
 from sim_learner.vehicle import SimVehicle  # noqa: E402
 
 mavutil.set_dialect("ardupilotmega")
@@ -307,6 +312,7 @@ class MavlinkRover(ThreadedDevice):
                 sig.timestamp = stored + SIGNING_BOOT_AHEAD
             self._parser.check_signature = _c_order_check(self._parser)
         self.t0 = time.monotonic()
+        self.fence = EmulatedFence(self, HOLD)  # the geofence (sim_learner/mavlink_fence.py)
 
     # --------------------------------------------------------------------------------------------- signing
     def _load_signing_timestamp(self) -> int | None:
@@ -565,6 +571,8 @@ class MavlinkRover(ThreadedDevice):
         elif t == "PARAM_REQUEST_LIST" and self._for_us(msg):
             for name in self.params:
                 self._param_value(name)
+        elif t in ("MISSION_COUNT", "MISSION_ITEM_INT", "MISSION_ITEM", "PARAM_SET") and self._for_us(msg):
+            self.fence.handle(msg, now)
 
     def _command(self, command: int, p: tuple[float, ...], now: float) -> int:
         used = {MAV.MAV_CMD_DO_SET_MODE: 2, MAV.MAV_CMD_COMPONENT_ARM_DISARM: 1, MAV.MAV_CMD_SET_MESSAGE_INTERVAL: 2}
@@ -582,7 +590,8 @@ class MavlinkRover(ThreadedDevice):
             return MAV.MAV_RESULT_UNSUPPORTED
         if command == MAV.MAV_CMD_SET_MESSAGE_INTERVAL:
             return self._set_interval(int(p[0]), float(p[1]))
-        return MAV.MAV_RESULT_UNSUPPORTED
+        fenced = self.fence.command(command, p, now)
+        return MAV.MAV_RESULT_UNSUPPORTED if fenced is None else fenced
 
     def _param_value(self, name: str) -> None:
         names = list(self.params)
@@ -728,7 +737,7 @@ class MavlinkRover(ThreadedDevice):
 
     def _next_event(self) -> float:
         """When :meth:`_update` has something to do next: the end of boot, a GUIDED target's timeout."""
-        events = [math.inf]
+        events = [math.inf, self.fence.next_check()]
         if not self._initialised:
             events.append(self.t0 + self.init_s)
         if self.target is not None:
@@ -742,6 +751,7 @@ class MavlinkRover(ThreadedDevice):
 
     def _update(self, now: float) -> None:
         self._gcs_failsafe(now)
+        self.fence.check(now)
         if not self._gps_time and self.has_origin(now) and self.mav.signing.secret_key is not None:
             self._gps_time = True  # the GPS gives the time: update_signing_timestamp, then a forced save
             self.mav.signing.timestamp = max(self.mav.signing.timestamp, signing_wall_clock())

@@ -108,6 +108,17 @@ class StationSection(Cfg):
     mission: Annotated[str, meta("mission file (TOML); empty: the paper's S-path shipped with scmbridge")] = ""
     max_pose_age_s: Annotated[float, meta("a pose older than this stops planning (the station publishes stops), s",
                                           gt=0.0, le=60.0)] = 0.5
+    corridor_m: Annotated[float, meta(
+        "the corridor: a pose farther than this from the mission's path stops the robot and pauses the mission "
+        "(reason left_corridor; only a person resumes); a mission file's corridor_m wins, m", gt=0.0, le=1e3)] = 1.0
+    fence: Annotated[list[tuple[Finite, Finite]], meta(
+        "the lab's fence: a polygon [[x, y], ...] in the missions' frame (>= 3 vertices); a pose outside it stops "
+        "the robot and pauses the mission (reason fence); a mission file's fence wins; empty: none",
+        max_length=1000)] = []
+
+    def __post_init__(self) -> None:
+        if self.fence and len(self.fence) < 3:
+            raise Rule(f"fence has {len(self.fence)} vertices: a polygon needs at least 3")
 
 
 class TransferSection(Cfg):
@@ -474,6 +485,17 @@ def load_mission_spec(path: str | Path | None = None) -> MissionSpec:
     return load(name, MissionSpec)
 
 
+def load_fence(path: str | Path) -> list[tuple[float, float]]:
+    """The fence of a mission file (its ``fence``) or a station configuration (``[station] fence``): a polygon in the
+    lab's frame; :class:`ConfigError` when the file has none."""
+    kind = guess_kind(read_table(path))
+    fence = load_mission_spec(path).fence if kind == "mission" else load_station(path).station.fence
+    if not fence:
+        where = "fence" if kind == "mission" else "[station] fence"
+        raise ConfigError(str(path), where, "no fence in this file (a polygon [[x, y], ...] of >= 3 vertices)")
+    return [(float(x), float(y)) for x, y in fence]
+
+
 def load_mission(path: str | Path | None = None) -> Mission:
     """See :func:`load_mission_spec`; geometry problems (a degenerate path) are ConfigErrors too."""
     spec = load_mission_spec(path)
@@ -498,6 +520,7 @@ __all__ = [
     "TransferSection",
     "decode_toml",
     "load",
+    "load_fence",
     "load_mission",
     "load_mission_spec",
     "load_station",

@@ -266,8 +266,15 @@ class MissionSpec(_Msg, kw_only=True):
     obstacles: Annotated[list[Annotated[list[Coord], Meta(min_length=3, max_length=3)]], Meta(max_length=10_000)] = []
     start: Annotated[list[Coord], Meta(min_length=3, max_length=3)] | None = None
     stamp: Stamp = 0.0
+    #: the mission's corridor: the station stops the robot and pauses the mission when its pose is farther than this
+    #: from the path (None: the station's ``[station] corridor_m``)
+    corridor_m: Annotated[float, Meta(gt=0.0, le=1e3)] | None = None
+    #: a polygon (>= 3 vertices, in ``frame``) the robot must stay inside (empty: the station's ``[station] fence``)
+    fence: Annotated[list[XY], Meta(max_length=1000)] = []
 
     def __post_init__(self) -> None:
+        if self.fence and len(self.fence) < 3:
+            raise ValueError(f"the fence has {len(self.fence)} vertices; a polygon needs at least 3")
         for i, (_, _, r) in enumerate(self.obstacles):
             if not r > 0.0:
                 raise ValueError(f"obstacle {i} has radius {r}; a radius must be > 0")
@@ -293,10 +300,12 @@ NodeState = Literal["", "driving", "idle", "running", "paused", "finished", "abo
 #: ``robot_not_ready`` (the driver host's status is missing, late or not ok), ``teacher`` (the command source gives
 #: nothing to drive: an external teacher silent or saying stop, no primitive within the learned limits),
 #: ``persist_failed`` (the pair store or the mission state not saved), ``integrity`` (another command sender, or
-#: implausible telemetry)
+#: implausible telemetry), and its guards (a paused mission, only a person resumes): ``left_corridor`` (the pose
+#: farther than the corridor from the path), ``pose_jump`` (the pose moved farther than the robot could in one
+#: interval), ``fence`` (the pose outside the lab's fence)
 Reason = Literal["ok", "no_telemetry", "estop", "dry_run", "starting", "link_down", "not_engaged", "operator", "fault",
                  "conflict", "idle", "paused", "aborted", "goal_reached", "calibration_done", "robot_not_ready",
-                 "teacher", "persist_failed", "integrity", "latch_unsaved"]
+                 "teacher", "persist_failed", "integrity", "latch_unsaved", "left_corridor", "pose_jump", "fence"]
 
 
 #: how many changed cells a station's status names (the most recent; ``scmbridge pairs show`` names them all)
@@ -335,6 +344,8 @@ class Status(_Msg, kw_only=True):
     measured: BodySpeeds | None = None
     #: the driver host's: a person engaged the vehicle (None: a node older than the field, or not a driver host)
     engaged: bool | None = None
+    #: the station's: the latest pose's distance from its mission's path, m (None: no pose or no mission)
+    off_path_m: Annotated[float, Meta(ge=0.0, le=1e7)] | None = None
 
 
 class Estop(_Msg, kw_only=True):
@@ -382,6 +393,9 @@ class MissionRequest(_Msg, kw_only=True):
     source: Name = ""
     wall_time: WallTime = 0.0
     nonce: Nonce = ""
+    #: a person's explicit override of a guard's pause (``mission resume --override``): resume with the robot still
+    #: outside the corridor or the fence, to drive it back (the guard re-arms once it is back inside)
+    override: bool = False
 
 
 class MissionState(_Msg, kw_only=True):

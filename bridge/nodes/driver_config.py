@@ -18,12 +18,37 @@ from msgspec import Meta, field
 
 import drivers
 from bridge.core.config import BoundsConfig, Cfg, RobotName, Rule, load, meta
+from bridge.core.limiter import AxisLimiter, SpeedLimiter
 
 SourceName = Annotated[str, Meta(pattern=r"^[A-Za-z0-9_.\-]{1,64}$", description="a non-blank source name")]
 #: hard limits beyond these are a mistake, not a vehicle (m/s, rad/s)
 HARD_V_MAX, HARD_W_MAX = 20.0, 20.0
 
-DEFAULT_HARD_LIMITS = BoundsConfig(v=(-0.5, 0.5), w=(-1.0, 1.0))
+#: the largest acceleration (m/s², rad/s²) and jerk (m/s³, rad/s³) limit taken as a vehicle's, not a typo
+HARD_ACCEL_MAX, HARD_JERK_MAX = 1000.0, 100000.0
+
+
+def _rate_limit(what: str, top: float) -> Meta:
+    return meta(f"{what}; unset: unlimited (the speed limiter, bridge.core.limiter)", gt=0.0, le=top)
+
+
+class HardLimits(BoundsConfig):
+    """``[driver.hard_limits]``: the command box, and how fast each axis may change (the robot-side speed limiter)."""
+
+    v_accel: Annotated[float, _rate_limit("largest change of v the vehicle gets, m/s²", HARD_ACCEL_MAX)] | None = None
+    omega_accel: Annotated[float, _rate_limit("largest change of omega, rad/s²", HARD_ACCEL_MAX)] | None = None
+    v_jerk: Annotated[float, _rate_limit("largest change of v's acceleration, m/s³", HARD_JERK_MAX)] | None = None
+    omega_jerk: Annotated[float, _rate_limit("largest change of omega's acceleration, rad/s³",
+                                             HARD_JERK_MAX)] | None = None
+
+    def limiter(self, period: float) -> SpeedLimiter:
+        """The speed limiter these limits make (an unset one: that axis unlimited) for a host ticking each ``period``
+        s (a stalled loop's step is bounded by two periods' worth)."""
+        return SpeedLimiter(AxisLimiter(self.v_accel, self.v_jerk), AxisLimiter(self.omega_accel, self.omega_jerk),
+                            period=period)
+
+
+DEFAULT_HARD_LIMITS = HardLimits(v=(-0.5, 0.5), w=(-1.0, 1.0))
 
 
 class DriverSection(Cfg):
@@ -32,8 +57,8 @@ class DriverSection(Cfg):
     rate_hz: Annotated[float, meta("control loop rate, Hz", ge=1.0, le=1000.0)] = 50.0
     cmd_timeout: Annotated[float, meta("deadman: no valid command for this long stops the vehicle, s", ge=0.02,
                                        le=10.0)] = 0.3
-    hard_limits: Annotated[BoundsConfig, meta("every command is clamped into this box before a vehicle sees it")] = (
-        DEFAULT_HARD_LIMITS)
+    hard_limits: Annotated[HardLimits, meta("every command is clamped into this box, and its changes are limited, "
+                                            "before a vehicle sees it")] = DEFAULT_HARD_LIMITS
     max_send_hz: Annotated[float, meta("the most commands per second handed to the link (a command is sent as it "
                                        "arrives; two may follow each other at once, then 1/max_send_hz apart: over "
                                        "T seconds at most 2 + max_send_hz * T)", ge=1.0, le=1000.0)] = 100.0
@@ -118,5 +143,5 @@ def load_driver(path: str | Path | None) -> DriverConfig:
     return load(path, driver_config_type())
 
 
-__all__ = ["DEFAULT_HARD_LIMITS", "DriverConfig", "DriverSection", "LinkSection", "driver_config_type", "link_section",
-           "load_driver"]
+__all__ = ["DEFAULT_HARD_LIMITS", "DriverConfig", "DriverSection", "HardLimits", "LinkSection", "driver_config_type",
+           "link_section", "load_driver"]

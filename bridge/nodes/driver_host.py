@@ -53,6 +53,7 @@ from bridge.core.acts import ActGuard, Refusal
 from bridge.core.args import pose_arg, positive_float, robot_arg
 from bridge.core.auth import load_key
 from bridge.core.backoff import Backoff
+from bridge.core.config import load_fence
 from bridge.core.errors import UsageError
 from bridge.core.gate import CommandGate, Decision
 from bridge.core.paths import save_atomic
@@ -125,6 +126,9 @@ class DriverHost:
         self.max_send_hz = d.max_send_hz
         self.max_telemetry_age = d.max_telemetry_age_s
         self.gate = CommandGate(d.hard_limits.bounds(), d.cmd_timeout, tuple(d.estop_release_sources))
+        #: acceleration and jerk limits on what the vehicle gets (the loop thread's; bridge.core.limiter): a stalled
+        #: loop's step is bounded by two periods' worth
+        self.limiter = d.hard_limits.limiter(self.period)
         self.inputs = Inputs()
         self.lock = threading.Lock()  # see the class docstring: what Zenoh's callback threads and the loop share
         self.wake = threading.Event()
@@ -145,6 +149,8 @@ class DriverHost:
         self.operator_engages = bool(getattr(driver, "operator_engages", False))
         self.engagement = Engagement(follows_operator=self.operator_engages and not dry_run)
         self.engage_on_start = d.engage_on_start
+        #: a polygon (ENU, the link's frame) to upload as the vehicle's own fence after the link opens (``--fence``)
+        self.fence: list[tuple[float, float]] = []
         #: emulated devices hosted in this process (``--emulate``): each ``emit_due()`` runs before the link is read
         self.co_located: list[Any] = []
         self.engage_queries: list[tuple[zenoh.Query, M.EngageRequest]] = []  # answered by the loop thread
@@ -340,8 +346,18 @@ class DriverHost:
         if clear:
             log.warning("operator released the estop: clearing the link's latched faults")
             self.driver.clear_faults(now)
-        return overrule(d, now, engaged=self.engaged, unsaved=bool(unsaved), health=h, dry_run=self.dry_run,
-                        last_pose=self.poses.last_pose, max_telemetry_age=self.max_telemetry_age)
+        d = overrule(d, now, engaged=self.engaged, unsaved=bool(unsaved), health=h, dry_run=self.dry_run,
+                     last_pose=self.poses.last_pose, max_telemetry_age=self.max_telemetry_age)
+        return self.limited(d, now)
+
+    def limited(self, d: Decision, now: float) -> Decision:
+        """The last word: a driving decision within the acceleration and jerk limits (a command the limiter
+        changed is ``clamped``), any other exactly zero, at once (:class:`bridge.core.limiter.SpeedLimiter`)."""
+        if not d.driving:
+            self.limiter.stop(now)
+            return d
+        v, w = self.limiter.limit(d.v, d.omega, now)
+        return d if (v, w) == (d.v, d.omega) else Decision(v, w, "clamped", d.cmd_seq)
 
     def tick(self, now: float) -> None:
         """Read the link, then decide and send. The link is read before its health and the telemetry's age are
@@ -410,6 +426,8 @@ class DriverHost:
                                  unauthenticated=bool(self.unauthenticated),
                                  missed=self.ticker.missed if self.ticker is not None else 0,
                                  stalls=self.stall_watch.stalls, ticks=len(self.ticks))
+        if not self.limiter.unlimited:
+            counters["rate_limited"] = self.limiter.limited
         a = assessed if assessed is not None else self._assess(now)
         if a.state != self.last_state:
             log.info("%s: %s", a.state, "; ".join(a.problems) or "engaged and fit")
@@ -460,6 +478,11 @@ class DriverHost:
         if self.unauthenticated:
             log.warning("link %s unauthenticated: %s: anyone on the network can drive it (status counter "
                         "unauthenticated_link = 1)", self.link, self.unauthenticated)
+        if self.fence:  # a person's request: the vehicle holds this fence itself (drivers.mavlink.fence)
+            try:
+                log.warning("%s", self.driver.upload_fence(self.fence))  # type: ignore[attr-defined]
+            except DriverError as exc:
+                raise UsageError(f"--fence: the vehicle did not take the fence: {exc}") from None
         if self.engage_on_start:
             ans = self.handle_engage(M.EngageRequest(stamp=0.0, source="engage_on_start"), time.monotonic())
             if not ans.engaged:
@@ -554,6 +577,11 @@ def arguments(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--engage", action="store_true",
                     help="engage the vehicle at start, as engage_on_start (a person at the keyboard; never in a unit "
                          "that restarts)")
+    ap.add_argument("--fence", default=None, metavar="FILE",
+                    help="(mavlink) upload the fence of FILE (a mission file's fence, or a station configuration's "
+                         "[station] fence) to the vehicle as its own, enabled, Hold at a breach, after the link opens "
+                         "and before anything is driven: the autopilot holds it even if the station and this host "
+                         "die (every step confirmed by the vehicle; refused: the host exits)")
     ap.add_argument("--dry-run", action="store_true",
                     help="run the whole loop and publish applied, but send nothing to the vehicle (bring-up)")
     ap.add_argument("--insecure", action="store_true",
@@ -588,6 +616,12 @@ def run(args: argparse.Namespace) -> int:
         except ValueError as exc:
             raise UsageError(str(exc)) from None
     cfg = load_driver(args.config)  # a mistake ends here, before any link or session opens
+    fence = []
+    if args.fence is not None:
+        if args.link != "mavlink":
+            raise UsageError(f"--fence uploads ArduPilot's own fence: --link mavlink (the {args.link} link has none; "
+                             "the station enforces a fence on every link)")
+        fence = load_fence(args.fence)
     robot = M.check_robot(args.robot or cfg.robot)
     link_cfg = getattr(cfg.link, args.link)
     if args.emulate:
@@ -603,6 +637,7 @@ def run(args: argparse.Namespace) -> int:
     host = DriverHost(cfg, args.link, open_driver(args.link, link_cfg), robot, args.rate or cfg.driver.rate_hz,
                       dry_run=args.dry_run, latch_path=latch_file(robot))
     host.engage_on_start = host.engage_on_start or args.engage
+    host.fence = fence
     stop = stop_on_signals()
     ecus = _emulated_ecus(link_cfg, args.model, args.x0, args.drift) if args.emulate else None
     if ecus is not None:

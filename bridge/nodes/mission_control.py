@@ -47,6 +47,7 @@ class Saved(msgspec.Struct, kw_only=True):
     reason: str = ""
     spec: M.MissionSpec
     progress: float = 0.0  # the share of the path done (a file older than this field: 0, or 1 when finished)
+    guard: M.Reason | None = None  # paused by this guard of the station's (a restart still says which)
 
 
 @dataclass
@@ -82,6 +83,8 @@ class MissionControl:
         #: paused because the robot stopped being fit (its reason now is the station's to say), not by a person or a
         #: restart (that reason stays true)
         self.paused_by_robot = False
+        #: paused by one of the station's guards (bridge.nodes.station_guards): its typed reason (None: not)
+        self.guard: M.Reason | None = None
 
     # ------------------------------------------------------------------------------------------- restarts
     @classmethod
@@ -91,6 +94,7 @@ class MissionControl:
             c = cls(robot, saved.spec, "paused", "paused: the station restarted")
         else:
             c = cls(robot, saved.spec, saved.phase, saved.reason)
+            c.guard = saved.guard if saved.phase == "paused" else None
         c.progress = 1.0 if saved.phase == "finished" else min(1.0, max(0.0, saved.progress))
         return c
 
@@ -98,7 +102,7 @@ class MissionControl:
         self.changed = False
         self.saved_progress = self.progress
         return Saved(phase=self.phase, reason=self.reason, spec=self.spec,
-                     progress=min(1.0, max(0.0, float(self.progress))))
+                     progress=min(1.0, max(0.0, float(self.progress))), guard=self.guard)
 
     # ------------------------------------------------------------------------------------------- requests
     def request(self, req: M.MissionRequest, fit: Fitness, now: float) -> M.MissionState:
@@ -189,6 +193,13 @@ class MissionControl:
         self.progress = 1.0
         self._go("finished", "goal reached")
 
+    def guard_pause(self, reason: M.Reason, text: str) -> None:
+        """One of the station's guards (the corridor, the fence, a pose jump) stops a running mission: paused with
+        its typed ``reason`` until a person resumes it."""
+        if self.phase == "running":
+            self._go("paused", f"paused: {text}")
+            self.guard = reason
+
     def driver_restarted(self) -> None:
         if self.phase == "running":
             self._go("paused", "paused: the driver host restarted")
@@ -199,6 +210,7 @@ class MissionControl:
             log.info("mission %r: %s -> %s (%s)", self.spec.name, self.phase, phase, reason)
         self.phase, self.reason, self.changed = phase, reason, True
         self.paused_by_robot = False
+        self.guard = None
         if phase == "running":
             self.drove = False
 

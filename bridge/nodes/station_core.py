@@ -54,6 +54,7 @@ from bridge.nodes.mission_control import Fitness, MissionControl, spec_of
 from bridge.nodes.pairing import IntervalPairer, Reorder
 from bridge.nodes.sources import CalibrationSource, CommandSource, Proposal, SourceContext, Why, make_source
 from bridge.nodes.station_fitness import assess_fitness
+from bridge.nodes.station_guards import Guards, Trip
 from bridge.nodes.station_saves import StationSaves
 from bridge.nodes.station_status import (
     STATUS_EVERY_S,
@@ -210,6 +211,13 @@ class StationCore:
                                      settle_edge_s=scfg.pair_settle_edge_s if scfg.pair_settle_s > 0 else 0.0)
         self.reorder = Reorder()
         self.control = control or MissionControl(robot, spec_of(mission))
+        self.top_v = top_v  # the configured top speed: the pose-jump guard's bound until the limits are learned
+        #: the corridor, the fence and the pose jump (bridge.nodes.station_guards)
+        self.guards = Guards(scfg.corridor_m, [(float(a), float(b)) for a, b in scfg.fence])
+        self.guards.configure(self.control.spec)
+        self.guards.begin(self.control.progress * self.mission.path.length)  # a restored mission: where it was
+        self.off_path: float | None = None  # the latest pose's distance from the path, m
+        self.standing: float | None = None  # paused: where a fresh pose stands on the path (0..1), for the status
         self.fitness = Fitness()
         self.counters = StationCounters()
         self.saves = StationSaves(self.store, Path(store_path), self.control, control_path, self.counters,
@@ -266,12 +274,17 @@ class StationCore:
         last tick's verdict. A start with the robot already at the goal is refused (it would finish at once), saying
         how to drive back. The answer's reason is the mission's as the status says it now."""
         unfit, self.fitness = self._fitness(now)
+        out = self._guard_refusal(req)
         if req.action == "start" and self.control.phase != "running" and self._at_goal():
             ans = self.control.answer(now, False, f"refused: the robot is at the goal of {self.mission.name!r} "
                                       "already (a start would end at once); to drive back, send the mission reversed: "
                                       f"scmbridge mission send FILE --reverse --robot {self.robot}, then start it")
+        elif out:
+            ans = self.control.answer(now, False, out)
         else:
             ans = self.control.request(req, self.fitness, now)
+            if req.action == "start" and ans.accepted and self.source.follows_mission:
+                self._begin_track()  # progress counts from where the robot starts, along its track
         if req.action != "status":
             log.info("mission %s%s: %s", req.action, f" by {req.source}" if req.source else "", ans.text)
         if self.control.phase in ("paused", "finished"):
@@ -288,6 +301,22 @@ class StationCore:
             return False
         _, fitness = self._fitness(now)
         return fitness.estop or (req.action == "resume" and bool(fitness.why))
+
+    def _guard_refusal(self, req: M.MissionRequest) -> str:
+        """Why a start or resume is refused with the robot outside the corridor or the fence ("" when it is not; a
+        person's ``override`` lets the station drive it back: :meth:`Guards.refusal`)."""
+        state = self.state
+        if (req.action not in ("start", "resume") or self.control.phase == "running" or state is None
+                or not self.source.follows_mission or (req.action == "resume" and self.control.phase != "paused")):
+            return ""
+        path = self.mission.path
+        _, off = closest(path.points, path.s, path.seg_len, state.x, state.y)
+        return self.guards.refusal(state.x, state.y, off, req.override, self.robot)
+
+    def _begin_track(self) -> None:
+        """A start: the mission's track begins at the latest pose's closest point (the next pose's, without one)."""
+        state, path = self.state, self.mission.path
+        self.guards.begin(None if state is None else closest(path.points, path.s, path.seg_len, state.x, state.y)[0])
 
     def _at_goal(self) -> bool:
         """The latest pose is at the mission's goal by the mission's own rule (a station that follows a mission)."""
@@ -338,12 +367,16 @@ class StationCore:
         the pairer ``REORDER_WINDOW`` after receipt), the latest pose and driver status, a new mission if one
         came."""
         push = self.reorder.push
-        for m, at in inputs.telemetry:  # one walk: into the reorder window, and the latest pose
+        top = self._top_speed()
+        for m, at in inputs.telemetry:  # one walk: into the reorder window, the latest pose, the pose-jump guard
             if isinstance(m, M.Applied):
                 push(m.stamp, 0, at, (m, at))
             else:
                 push(m.stamp, 1, at, (m, at))
                 self.state, self.state_at = m, at
+                jump = self.guards.pose(m, at, top)
+                if jump is not None:
+                    self._jumped(m, jump, top)
         for e, received in self.reorder.ready(now):
             if isinstance(e, M.Applied):
                 pair = self.pairer.applied(e.stamp, e.v, e.omega, e.reason, received)
@@ -362,6 +395,8 @@ class StationCore:
         if self.control.version != self.mission_version:  # from the mission topic or a person's send
             self.mission_version = self.control.version
             mission = self.mission
+            self.guards.configure(self.control.spec)
+            self.guards.begin(None)  # (a path replaced while running: from where the robot is on it)
             self.source.reset()
             self.counters.missions += 1
             log.info("new mission %r: %d waypoints, %.1f m, %d obstacles", mission.name, len(mission.path.points),
@@ -377,6 +412,31 @@ class StationCore:
         if self.store.limits.relearned > edges:
             log.warning("a learned limit re-learned from its recent boundary pairs: the learner's reach changed; "
                         "limits now %s", self.store.limits.box.as_list())
+
+    def _top_speed(self) -> float:
+        """The most the robot can move, m/s: its learned top speed (the learned limits' speed edge), the configured
+        one (:func:`command_extent`) before any cell is learned."""
+        if self.store.n_configured() == 0:
+            return self.top_v
+        return float(max(abs(x) for x in self.store.limits.box.v))
+
+    def _jumped(self, st: M.LearnerState, jump: float, top: float) -> None:
+        """A pose jumped ``jump`` m: never progress; a running mission pauses (``pose_jump``)."""
+        self.counters.pose_jumps += 1
+        c = self.control
+        log.warning("pose jump: %.2f m to (%.2f, %.2f) (top speed %.2f m/s)%s", jump, st.x, st.y, top,
+                    ": mission paused" if c.phase == "running" else "")
+        if c.phase == "running":
+            self._tripped(self.guards.jump_trip(st.x, st.y, jump, c.progress, time.time()))
+
+    def _tripped(self, trip: Trip) -> None:
+        """A guard paused the running mission (its typed reason, until a person resumes)."""
+        if trip.reason == "left_corridor":
+            self.counters.corridor_trips += 1
+        elif trip.reason == "fence":
+            self.counters.fence_trips += 1
+        log.warning("mission %r paused: %s", self.mission.name, trip.text)
+        self.control.guard_pause(trip.reason, trip.text)
 
     def note_driver(self, st: M.Status, at: float) -> None:
         """The driver host's latest status (at a tick, or before a mission request is answered between two ticks);
@@ -399,16 +459,26 @@ class StationCore:
         unfit, self.fitness = self._fitness(now)
         self.unfit_reason = unfit.reason if unfit is not None else None
         c = self.control
-        running = unfit is None and c.phase == "running"
-        # a paused mission (a restarted station's) says where the robot stands now, from a fresh pose, not only the
-        # progress last saved
-        standing = c.phase == "paused" and state is not None and now - self.state_at <= self.max_pose_age
-        if self.source.follows_mission and (running or standing):
+        if self.source.follows_mission and state is not None:
             path = self.mission.path  # the closest point in one compiled loop: a mission path has thousands of segments
-            s, _ = closest(path.points, path.s, path.seg_len, state.x, state.y)
-            c.progress = max(c.progress, s / path.length)
-            if running and self.mission.reached_at(s, [state.x, state.y]):
-                c.reached()
+            s, self.off_path = closest(path.points, path.s, path.seg_len, state.x, state.y)
+            if c.phase == "running" and self.guards.anchor_pending:
+                self.guards.begin(s)
+            if c.phase != "running" or unfit is not None:
+                self.guards.pause()
+            # a paused mission (a restarted station's) says where the robot stands now, from a fresh pose; that is
+            # what the status shows, never the mission's progress (a pose that jumped while paused is no progress)
+            fresh = now - self.state_at <= self.max_pose_age
+            self.standing = s / path.length if c.phase == "paused" and fresh else None
+            if c.phase == "running" and unfit is None:
+                trip = self.guards.check(state.x, state.y, self.off_path, c.progress, time.time(), now)
+                if trip is not None:
+                    self._tripped(trip)
+                else:  # progress only along the continuous track: a pose that lands on the goal is not there
+                    s = min(s, self.guards.progress_cap())
+                    c.progress = max(c.progress, s / path.length)
+                    if self.mission.reached_at(s, [state.x, state.y]):
+                        c.reached()
         command = teacher = None
         stop = None if c.may_drive(self.fitness, now) else not_driving(c, self.robot, unfit)
         if stop is None:
@@ -480,12 +550,18 @@ class StationCore:
         c = self.counters
         c.observe(self.pairer, self.store, self.control)
         facts = StatusFacts(reason=self.reason, why=self.why, phase=self.control.phase,
-                            progress=self.control.progress, persist_error=self.saves.error,
+                            progress=self._shown_progress(), persist_error=self.saves.error,
                             problems=self.integrity.problems(now, self.pairer), counters=c.as_dict(),
                             tick_ms=self.tick_ms, solve_ms=self.solve_ms, rate_hz=1 / self.period,
                             key=self._status_key(),
-                            changed_cells=[k.id for k in self.store.changed_cells()[-M.STATUS_CHANGED_CELLS:]])
+                            changed_cells=[k.id for k in self.store.changed_cells()[-M.STATUS_CHANGED_CELLS:]],
+                            off_path_m=self.off_path)
         return self.report.message(now, facts)
+
+    def _shown_progress(self) -> float:
+        """The progress the status shows: a paused mission's is where the robot stands now (a restarted station's
+        saved progress can be far behind it), any other the mission's own."""
+        return self.standing if self.standing is not None else self.control.progress
 
     def _status_key(self) -> tuple:
         """What a person reads the status for (:func:`bridge.nodes.station_status.status_key`)."""

@@ -60,8 +60,8 @@ def not_driving(control: MissionControl, robot: str, unfit: Why | None) -> Why:
         if unfit is None:  # (may_drive refuses a running mission only for an unfit robot)
             unfit = Why("not fit", "robot_not_ready")
         return Why(f"waiting for the robot: {unfit.text}", unfit.reason)
-    if c.phase == "paused":
-        return Why(paused_text(control, robot, unfit), "paused")
+    if c.phase == "paused":  # a guard's pause says which guard (left_corridor, fence, pose_jump)
+        return Why(paused_text(control, robot, unfit), c.guard or "paused")
     return Why(c.reason or c.phase, "aborted")  # by whom
 
 
@@ -153,9 +153,13 @@ class StationCounters:
     calibration_index: int | None = None
     calibration_total: int | None = None
     ticks: int = 0
+    # the station's guards (bridge.nodes.station_guards): pauses for leaving the corridor or the fence, pose jumps
+    corridor_trips: int = 0
+    fence_trips: int = 0
+    pose_jumps: int = 0
 
     _SHOWN_IF_NONZERO = ("method_calibrate", "foreign_commands", "pairs_unsettled", "shared_changes",
-                         "limits_relearned")
+                         "limits_relearned", "corridor_trips", "fence_trips", "pose_jumps")
 
     def count_method(self, method: str) -> None:
         """One more command sent by ``method`` (a wire ``Command`` method)."""
@@ -228,6 +232,7 @@ class StatusFacts:
     rate_hz: float
     key: tuple
     changed_cells: list[str] = field(default_factory=list)
+    off_path_m: float | None = None
 
 
 class StatusReport:
@@ -258,7 +263,8 @@ class StatusReport:
                        progress=min(1.0, max(0.0, facts.progress)), rates_hz={"loop": facts.rate_hz},
                        latencies_ms={"solve_median": float(np.median(sm)), "solve_max": float(sm.max()),
                                      "tick_p50": p50, "tick_p99": p99, "tick_max": float(tk.max())},
-                       counters=facts.counters, text=text[:1024], host=HOST, changed_cells=facts.changed_cells)
+                       counters=facts.counters, text=text[:1024], host=HOST, changed_cells=facts.changed_cells,
+                       off_path_m=None if facts.off_path_m is None else min(1e7, facts.off_path_m))
         self.seq += 1
         self.sent_key, self.sent_at = facts.key, now
         return msg

@@ -27,6 +27,7 @@ import numpy as np
 from bridge.core.args import positive_float, robots_arg
 from bridge.core.errors import UsageError
 from bridge.nodes.node import Inputs
+from bridge.tools.guard_log import GuardLog
 from drivers import link_names
 
 #: ``--transfer``'s station settings (``[transfer]`` mapper, exploration and, by default, limits): on, the SC transfer;
@@ -155,6 +156,7 @@ class Monitor:
         # changed: what the station knew of the learner before and after a change of it (``--param-at``)
         self.limits: list[tuple[float, list[float]]] = []
         self.driving = threading.Event()  # the vehicle has driven a command (applied reason cmd or clamped)
+        self.guards = GuardLog()  # when and where the station's guards stopped the run
         self.lock = threading.Lock()
         self.inputs = Inputs()
         keys = M.Keys(robot)
@@ -172,6 +174,8 @@ class Monitor:
     def _status(self, st, now: float) -> None:
         with self.lock:
             self.status[st.node] = st
+            if st.node == "station":
+                self.guards.note(st, self.states[-1] if self.states else None)
 
     def _applied(self, a, now: float) -> None:
         with self.lock:
@@ -247,6 +251,7 @@ class Monitor:
                 "refined_pairs": c.get("refined_pairs"), "raw_pairs": c.get("raw_pairs"),
                 "missed_deadlines": c.get("missed_deadlines"), "solve_ms_median": st.latencies_ms.get("solve_median"),
                 "cells_relearned": c.get("cells_relearned"), "changed_cells": list(st.changed_cells),
+                "guard_stops": self.guards.summary(t0),
                 "_traj": np.array([s[1:] for s in states])}
 
 
@@ -269,11 +274,12 @@ def _figure(out, world, traj, link: str) -> None:
 
 
 def _watch(mon: Monitor, kids, world, timeout: float) -> None:
-    """Print progress until the station exits (at the goal), a child dies, or the timeout."""
+    """Print progress until the station exits (at the goal), a child dies, a guard of the station's pauses the
+    mission (no person is there to resume it), or the timeout."""
     t0 = time.monotonic()
     tty = sys.stdout.isatty()
     last_print = 0.0
-    while time.monotonic() - t0 < timeout + 20 and not kids.any_exited():
+    while time.monotonic() - t0 < timeout + 20 and not kids.any_exited() and not mon.guards.stopped:
         time.sleep(0.1)
         now = time.monotonic()
         if now - last_print >= (0.5 if tty else 5.0):
@@ -528,6 +534,7 @@ def sitl_hil(args: argparse.Namespace, robot: str = "sitl") -> int:
         "turn_probe": load_station(out / "station.toml").transfer.probe_turns(),  # what the station does
         "cells_relearned": relearned, "limits_relearned": edges, "param_changes": changed,
         "max_dev_m": run["max_dev_m"], "goal_dist_m": run["goal_dist_m"], "driving_s": run["driving_s"],
+        "guard_stops": run["guard_stops"],  # when and where a guard of the station's stopped it
         "learner_bounds": [list(v_range), list(w_range)], "vehicle_params": params,
         "missed_deadlines": run["missed_deadlines"], "boot_s": round(sitl.boot_s, 1),
         "wall_s": round(time.monotonic() - t_wall, 1)}

@@ -73,7 +73,8 @@ def _arguments(ap: argparse.ArgumentParser) -> None:
 
 
 def _run(args: argparse.Namespace, action: str, spec: M.MissionSpec | None = None) -> int:
-    req = M.MissionRequest(stamp=time.monotonic(), action=action, spec=spec, source=args.source)
+    req = M.MissionRequest(stamp=time.monotonic(), action=action, spec=spec, source=args.source,
+                           override=bool(getattr(args, "override", False)))
     conf = zenoh_config(args)
     key = M.key(args.robot, "control")
     what = "ask for a mission's status" if action == "status" else f"{action} a mission"
@@ -89,8 +90,15 @@ def _run(args: argparse.Namespace, action: str, spec: M.MissionSpec | None = Non
     return 0 if st.accepted else 1
 
 
+def _override(ap: argparse.ArgumentParser) -> None:
+    ap.add_argument("--override", action="store_true",
+                    help="the robot is outside the mission's corridor or the fence: drive on anyway, to have the "
+                         "station drive it back (the guard re-arms once it is inside; docs/OPERATING.md)")
+
+
 def arguments_start(ap: argparse.ArgumentParser) -> None:
     _arguments(ap)
+    _override(ap)
 
 
 def run_start(args: argparse.Namespace) -> int:
@@ -109,10 +117,12 @@ def run_pause(args: argparse.Namespace) -> int:
 
 def arguments_resume(ap: argparse.ArgumentParser) -> None:
     _arguments(ap)
+    _override(ap)
 
 
 def run_resume(args: argparse.Namespace) -> int:
-    """Resume a paused mission; refused, with the reason, while an estop is latched or the robot is not fit."""
+    """Resume a paused mission; refused, with the reason, while an estop is latched, the robot is not fit, or it is
+    outside the corridor or the fence (``--override``: resume to drive it back)."""
     return _run(args, "resume")
 
 

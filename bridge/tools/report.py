@@ -358,6 +358,10 @@ def run(args: argparse.Namespace) -> int:
     for t in result["truncated"]:
         print(f"note: {t} (read up to its last complete chunk)", file=sys.stderr)
     print("summary:", json.dumps(result["summary"]))
+    for g in (result["summary"] or {}).get("guard_stops", []):  # when and where a guard of the station's stopped it
+        where = f" at ({g['x']}, {g['y']})" if g["x"] is not None else ""
+        print(f"stopped by the station's guard {g['reason']}" + (f" {g['t_s']} s into the run" if g["t_s"] is not None
+                                                                 else "") + where + f": {g['text']}")
     lat = result["cmd_to_applied"]
     parts = [f"{label} median {lat[k]['median']} ms, p99 {lat[k]['p99']} ms" for k, label in
              (("by_stamps_ms", "by stamps (from the station's tick, solve included)"),

@@ -19,6 +19,8 @@ from drivers.base import Clock, DriverError, FailsafeReport, LinkHealth, Pose, S
 from drivers.mavlink.client import NO_ACK, Command, MavlinkClient, result_name
 from drivers.mavlink.config import MavlinkLinkConfig
 from drivers.mavlink.dialect import load_pymavlink
+from drivers.mavlink.fence import FENCE_MESSAGES
+from drivers.mavlink.fence import upload as upload_fence
 from drivers.mavlink.pose import Attitude, PoseBuilder, Position, ground_speed, telemetry_valid
 from drivers.mavlink.state import (
     FAILSAFE_PARAMS,
@@ -117,6 +119,7 @@ class MavlinkDriver:
         self.disarm_on_close = config.disarm_on_close
         self.vehicle = Vehicle(texts=deque(maxlen=config.statustext_keep))
         self.poses = PoseBuilder()
+        self.fence_sink: Any = None  # while a fence is uploaded: where its messages go (drivers.mavlink.fence)
         self._health = LinkHealth()
         self._counts = {"foreign": 0, "setpoints_sent": 0, "setpoints_withheld": 0, "stray_acks": 0,
                         "reconnects": 0, "link_losses": 0, "invalid_values": 0, "clock_restarts": 0}
@@ -181,6 +184,8 @@ class MavlinkDriver:
         now = self.clock()
         v = self.vehicle
         mav = self.dialect.mav
+        if self.fence_sink is not None and t in FENCE_MESSAGES:
+            self.fence_sink(msg)
         if t == "HEARTBEAT":
             v.heard(msg.custom_mode, bool(msg.base_mode & mav.MAV_MODE_FLAG_SAFETY_ARMED), now, self.modes.guided)
         elif t == "LOCAL_POSITION_NED":
@@ -318,6 +323,14 @@ class MavlinkDriver:
             raise DriverError(f"operator took control while engaging: mode {self.modes.name(self.vehicle.custom_mode)}")
         self._update_state(self.clock())
         log.info("vehicle engaged: GUIDED, armed")
+
+    def upload_fence(self, polygon: list[tuple[float, float]]) -> str:
+        """A person's request: ``polygon`` (ENU metres, the frame of this driver's poses) as the vehicle's own fence,
+        enabled, with Hold at a breach (:func:`drivers.mavlink.fence.upload`: every step confirmed by the vehicle);
+        bounded by ``open_timeout``; what was done, or :class:`DriverError`."""
+        if self._closed or not self._opened:
+            raise DriverError("MAVLink link not open")
+        return upload_fence(self, polygon, self.clock() + self.open_timeout)
 
     def _read_params(self, names: tuple[str, ...], t_end: float) -> None:
         """Ask for each parameter (PARAM_REQUEST_READ) and wait for the PARAM_VALUEs; a missing one stays unknown."""

@@ -160,8 +160,8 @@ def test_a_new_teacher_is_one_class_and_cores_share_nothing(tmp_path) -> None:
     b = StationCore(StationConfig(), "b", 10.0, tmp_path / "b.bin", mission, source=Constant())
     assert a.epoch != b.epoch and a.store is not b.store and a.counters is not b.counters
     _start(a)
-    near = M.LearnerState(stamp=1.0, seq=1, x=0.0, y=-1.0, theta=0.0)
-    far = M.LearnerState(stamp=1.1, seq=2, x=2.0, y=-1.0, theta=0.0)
+    near = M.LearnerState(stamp=1.0, seq=1, x=0.9, y=-1.0, theta=0.0)
+    far = M.LearnerState(stamp=1.1, seq=2, x=1.05, y=-1.0, theta=0.0)
     out_a = a.tick(TickInputs(telemetry=((near, 1.0),), driver=(_driver(), 1.0)), 1.0)
     out_b = b.tick(TickInputs(telemetry=((near, 1.0),), driver=(_driver(), 1.0)), 1.0)
     assert out_a.command.method != "stop" and out_a.teacher is None  # not the station's own solver: no teacher
