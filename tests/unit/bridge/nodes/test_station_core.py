@@ -16,7 +16,7 @@ from bridge.nodes.station_status import StationCounters
 from sim_learner.dynamics import mpc_learner
 
 #: the status counter keys of a station that has driven with the MPC (the keys tools and tests read)
-MPC_KEYS = {"method_scm", "method_direct", "method_perturb", "method_affine", "method_barycentric", "method_stop",
+MPC_KEYS = {"method_scm", "method_direct", "method_perturb", "method_barycentric", "method_stop",
             "obstacles_dropped", "persist_failures", "missions", "explore_vetoed", "missed_deadlines",
             "refined_pairs", "raw_pairs", "pairs_rejected", "pairs_formed", "pairs_out_of_order",
             "implausible_stamps", "implausible_poses", "implausible_pairs", "pairer_resyncs", "goal_reached",
