@@ -179,8 +179,7 @@ class _PolicyBase:
         # a triangle of refined pairs where the mapper has no usable region is interpolated linearly
         self._fallback = (BarycentricMapper(store)
                           if not identity and not isinstance(self.mapper, BarycentricMapper) else None)
-        self._choice = (MapChoice(self.mapper, self._fallback) if choice and isinstance(self.mapper, ScmMapper)
-                        and self._fallback is not None else None)
+        self._choice = MapChoice(self.mapper) if choice and isinstance(self.mapper, ScmMapper) else None
         self.rng = rng if rng is not None else np.random.default_rng(seed)
         self._rows_of: tuple | None = None  # the refined arrays the cached rows of _limit_row belong to
         self._rows: dict[tuple[int, int], tuple[NDArray[np.int64], NDArray[np.float64]]] = {}
