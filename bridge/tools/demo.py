@@ -313,7 +313,6 @@ def hil(args: argparse.Namespace, robot: str) -> int:
             kids.spawn(["driver", "--engage", *driver_args, *drift, *client, "--duration", str(up)], logs["driver"])
             if args.calibrate:  # the paper's calibrated start: the mission's figures count from after it
                 cal = calibrate_first(args.calibrate, client, out / "station.toml", store, logs["calibrate"])
-                print(f"calibration ({cal['wall_s']} s): {cal['line'] or 'no summary; see calibrate.log'}")
             mon = Monitor(session, robot)
             kids.spawn(["station", *client, *station_cfg, "--start", "--store", str(store), "--exit-at-goal",
                         "--duration",
@@ -326,9 +325,7 @@ def hil(args: argparse.Namespace, robot: str) -> int:
         print("the demo produced no telemetry; see the logs in", out, file=sys.stderr)
         return 1
     traj = summary.pop("_traj")
-    summary["method_shares"] = method_shares(summary["methods"])
-    if cal is not None:
-        summary["calibration"] = cal
+    summary.update(method_shares=method_shares(summary["methods"]), **({"calibration": cal} if cal else {}))
     print("summary:", json.dumps(summary))
     _figure(out, world, traj, args.link, mon)
     from bridge.tools.pairs_cli import pairs_figure

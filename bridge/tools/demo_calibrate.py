@@ -60,7 +60,9 @@ def calibrate_first(grid: tuple[int, int], client: list[str], config: Path, stor
     if path.is_file():
         lines = [x for x in path.read_text(errors="replace").splitlines() if x.startswith("calibration:")]
         line = lines[-1] if lines else ""
-    return {"ok": code == 0, "line": line, "wall_s": round(time.monotonic() - t0, 1)}
+    wall = round(time.monotonic() - t0, 1)
+    print(f"calibration ({wall} s): {line or 'no summary line; see calibrate.log'}", flush=True)
+    return {"ok": code == 0, "line": line, "wall_s": wall}
 
 
 def method_shares(methods: dict[str, int]) -> dict[str, float]:
