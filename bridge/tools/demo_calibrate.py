@@ -18,6 +18,9 @@ from typing import Any
 from bridge.core.errors import UsageError
 from bridge.tools.procs import spawn, stop_group
 
+#: how far from its start the calibration may take the robot, m (it drives back beyond 0.4 of it): the mission
+#: then starts near the path's start, as the uncalibrated demo's does
+MAX_DISTANCE_M = 0.8
 #: seconds the calibration stage may take, per command of its grid (held, then driving back toward the start)
 CAL_S_PER_COMMAND = 4.0
 
@@ -47,8 +50,8 @@ def calibrate_first(grid: tuple[int, int], client: list[str], config: Path, stor
     be running and engaged; no station may drive the robot meanwhile."""
     budget = calibration_budget(grid)
     t0 = time.monotonic()
-    proc = spawn(["calibrate", *client, "--config", str(config), "--store", str(store),
-                  "--grid", f"{grid[0]}x{grid[1]}", "--duration", f"{budget:g}"], log)
+    proc = spawn(["calibrate", *client, "--config", str(config), "--store", str(store), "--grid",
+                  f"{grid[0]}x{grid[1]}", "--duration", f"{budget:g}", "--max-distance", f"{MAX_DISTANCE_M:g}"], log)
     try:
         code = proc.wait(timeout=budget + 60.0)
     except subprocess.TimeoutExpired:
