@@ -1,17 +1,13 @@
-"""bridge/tools/demo_view.py and demo_calibrate.py: the method of the command driving at each pose, the method
-shares of a summary, and the trajectory figure coloured by method."""
+"""bridge/tools/demo_view.py: the method of the command driving at each pose, and the trajectory figure coloured
+by method."""
 
 from __future__ import annotations
 
-import argparse
 from pathlib import Path
 
 import numpy as np
-import pytest
 
 from bridge.core.config import load_mission
-from bridge.core.errors import UsageError
-from bridge.tools.demo_calibrate import calibration_budget, method_shares
 from bridge.tools.demo_view import METHOD_COLORS, methods_along, trajectory_figure
 
 
@@ -22,13 +18,6 @@ def test_each_pose_takes_the_method_of_the_command_driving_when_it_was_measured(
               (5.5, 0, 0, 0)]
     # before any command, after a stop echo, and for a command this process never saw: stop
     assert methods_along(states, applied, cmds) == ["stop", "scm", "scm", "barycentric", "stop", "perturb", "stop"]
-
-
-def test_method_shares_leave_stop_out_and_sum_to_one() -> None:
-    shares = method_shares({"scm": 30, "barycentric": 10, "stop": 50})
-    assert shares == {"scm": 0.75, "barycentric": 0.25} and list(shares) == ["scm", "barycentric"]
-    assert method_shares({"stop": 3}) == {}
-    assert calibration_budget(None) == 0.0 < calibration_budget((3, 3)) < calibration_budget((5, 5))
 
 
 def test_the_trajectory_is_drawn_in_each_methods_colour(tmp_path: Path) -> None:
@@ -42,24 +31,3 @@ def test_the_trajectory_is_drawn_in_each_methods_colour(tmp_path: Path) -> None:
     path = trajectory_figure(tmp_path, world, traj, methods, "CAN")
     assert path.stat().st_size > 10_000
     assert {"scm", "barycentric", "direct", "perturb", "stop"} <= set(METHOD_COLORS)
-
-
-@pytest.mark.parametrize("argv", [["--calibrate", "5x5", "--count", "2"], ["--calibrate", "5x5", "--inprocess"],
-                                  ["--calibrate", "3x3", "--sitl", "/nonexistent"]])
-def test_calibrate_is_for_one_emulated_robot(argv: list[str]) -> None:
-    from bridge.tools.demo import arguments, run
-
-    ap = argparse.ArgumentParser()
-    arguments(ap)
-    with pytest.raises(UsageError, match="one emulated robot"):
-        run(ap.parse_args(argv))
-
-
-def test_calibrate_takes_the_calibration_grids_form() -> None:
-    from bridge.tools.demo import arguments
-
-    ap = argparse.ArgumentParser()
-    arguments(ap)
-    assert ap.parse_args(["--calibrate", "5x5"]).calibrate == (5, 5)
-    with pytest.raises(SystemExit):
-        ap.parse_args(["--calibrate", "1x5"])
