@@ -18,9 +18,10 @@ from typing import Any
 from bridge.core.errors import UsageError
 from bridge.tools.procs import spawn, stop_group
 
-#: how far from its start the calibration may take the robot, m (it drives back beyond 0.4 of it): the mission
-#: then starts near the path's start, as the uncalibrated demo's does
-MAX_DISTANCE_M = 0.8
+#: the demo's ``[calibration]``: the robot drives back toward its start whenever it is more than a hand's width
+#: away (``return_radius_m``), so that the mission starts near the path's start as the uncalibrated demo's does; the
+#: distance bound is the default's
+CALIBRATION_TABLE = "\n[calibration]\nmax_distance_m = 2.0\nreturn_radius_m = 0.15\n"
 #: seconds the calibration stage may take, per command of its grid (held, then driving back toward the start)
 CAL_S_PER_COMMAND = 4.0
 
@@ -50,8 +51,9 @@ def calibrate_first(grid: tuple[int, int], client: list[str], config: Path, stor
     be running and engaged; no station may drive the robot meanwhile."""
     budget = calibration_budget(grid)
     t0 = time.monotonic()
+    config.write_text(config.read_text() + CALIBRATION_TABLE)  # the station's [calibration], read by calibrate
     proc = spawn(["calibrate", *client, "--config", str(config), "--store", str(store), "--grid",
-                  f"{grid[0]}x{grid[1]}", "--duration", f"{budget:g}", "--max-distance", f"{MAX_DISTANCE_M:g}"], log)
+                  f"{grid[0]}x{grid[1]}", "--duration", f"{budget:g}"], log)
     try:
         code = proc.wait(timeout=budget + 60.0)
     except subprocess.TimeoutExpired:
