@@ -18,10 +18,6 @@ from typing import Any
 from bridge.core.errors import UsageError
 from bridge.tools.procs import spawn, stop_group
 
-#: the demo's ``[calibration]``: the robot drives back toward its start whenever it is more than a hand's width
-#: away (``return_radius_m``), so that the mission starts near the path's start as the uncalibrated demo's does; the
-#: distance bound is the default's
-CALIBRATION_TABLE = "\n[calibration]\nmax_distance_m = 2.0\nreturn_radius_m = 0.15\n"
 #: seconds the calibration stage may take, per command of its grid (held, then driving back toward the start)
 CAL_S_PER_COMMAND = 4.0
 
@@ -47,11 +43,10 @@ def calibration_budget(grid: tuple[int, int] | None) -> float:
 
 def calibrate_first(grid: tuple[int, int], client: list[str], config: Path, store: Path, log: Any) -> dict:
     """Run ``scmbridge calibrate`` to its end (bounded by :func:`calibration_budget`, then stopped) and return what
-    it reports: ``ok`` (it finished its plan), ``line`` (its summary line), ``wall_s``. The caller's driver host must
-    be running and engaged; no station may drive the robot meanwhile."""
+    it reports: ``ok`` (it drove every command of its grid), ``line`` (its summary line), ``wall_s``. The caller's
+    driver host must be running and engaged; no station may drive the robot meanwhile."""
     budget = calibration_budget(grid)
     t0 = time.monotonic()
-    config.write_text(config.read_text() + CALIBRATION_TABLE)  # the station's [calibration], read by calibrate
     proc = spawn(["calibrate", *client, "--config", str(config), "--store", str(store), "--grid",
                   f"{grid[0]}x{grid[1]}", "--duration", f"{budget:g}"], log)
     try:
@@ -67,7 +62,8 @@ def calibrate_first(grid: tuple[int, int], client: list[str], config: Path, stor
         line = lines[-1] if lines else ""
     wall = round(time.monotonic() - t0, 1)
     print(f"calibration ({wall} s): {line or 'no summary line; see calibrate.log'}", flush=True)
-    return {"ok": code == 0, "line": line, "wall_s": wall}
+    return {"ok": code == 0 and " commands driven" in line and line.startswith("calibration: all "), "line": line,
+            "wall_s": wall}
 
 
 def method_shares(methods: dict[str, int]) -> dict[str, float]:
