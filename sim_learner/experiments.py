@@ -33,6 +33,7 @@ import math
 import multiprocessing
 import sys
 import time
+from collections import Counter
 from collections.abc import Callable, Sequence
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
@@ -430,8 +431,10 @@ def sweep_mpc(seeds: Sequence[int], quick: bool = True, explorations: Sequence[s
 def grid_experiment(seed: int = 0, quick: bool = False, out: Path | None = None, progress: bool = True,
              store: PairStore | None = None, exploration: str = "guided") -> dict:
     """The paper's exhaustive test: a dense grid of teacher commands inside the learned limits, 0.1 s each, on
-    the pairs an MPC run (``seed``, ``exploration``) learned, or on ``store``. The SCM region is where the scm
-    policy's method is ``scm``; every mapper is compared on that region."""
+    the pairs an MPC run (``seed``, ``exploration``) learned, or on ``store``. The SCM region is where the paper's SC
+    map (the ``scm`` mapper without the transfer's choice of map) has a region; every mapper is compared on that
+    region, and ``transfer`` is what the station runs: the SC map or linear interpolation per command
+    (:class:`transfer.choice.MapChoice`), with its own method counts."""
     if store is None:
         store = mpc_experiment(seed, quick, None, progress, exploration).store
     learner = mpc_learner()
@@ -443,18 +446,24 @@ def grid_experiment(seed: int = 0, quick: bool = False, out: Path | None = None,
     cmds = np.stack([V.ravel(), W.ravel()], axis=-1)
     x0 = np.array([0.0, 0.0, 0.0])
     target = teacher_step(x0, cmds, DT)
-    names = ["scm", "identity", "affine", "barycentric"]
+    names = ["scm", "identity", "affine", "barycentric", "transfer"]
     pos_err = {k: np.zeros(len(cmds)) for k in names}
     ang_err = {k: np.zeros(len(cmds)) for k in names}
     method = np.empty(len(cmds), dtype=object)
+    transfer_method = np.empty(len(cmds), dtype=object)
     for name in names:
         # the grid maps every command once from one pose and learns nothing: no filling of holes
-        fill = {"fill_budget": 0.0} if exploration == "guided" else {}
-        pol = make_policy(store, name, np.random.default_rng(seed), exploration=exploration, **fill)
+        opts: dict = {"fill_budget": 0.0} if exploration == "guided" else {}
+        if name in ("scm", "transfer"):  # the paper's SC map alone, and the transfer's choice per command
+            opts["choice"] = name == "transfer"
+        pol = make_policy(store, "scm" if name == "transfer" else name, np.random.default_rng(seed),
+                          exploration=exploration, **opts)
         for i, u in enumerate(cmds):
             m = pol.map(u)
             if name == "scm":
                 method[i] = m.method
+            elif name == "transfer":
+                transfer_method[i] = m.method
             x1 = learner.step(x0, m.u_L, DT)
             pos_err[name][i] = np.hypot(*(x1[:2] - target[i, :2]))
             ang_err[name][i] = abs(math.remainder(x1[2] - target[i, 2], 2 * math.pi))
@@ -487,11 +496,14 @@ def grid_experiment(seed: int = 0, quick: bool = False, out: Path | None = None,
             for k in names
         },
         "per_method_region": per_method,
+        # the transfer's methods on the SCM region: how many of its commands the SC map serves there
+        "transfer_methods_region": dict(Counter(transfer_method[region].tolist())) if region.any() else {},
         "baseline_region_median_pos_err_m_all": float(np.median(pos_err["identity"])),
     }
     if out is not None:
         out.mkdir(parents=True, exist_ok=True)
         np.savez_compressed(out / "grid.npz", commands=cmds, method=method.astype(str),
+                            method_transfer=transfer_method.astype(str),
                             **{f"pos_err_{k}": v for k, v in pos_err.items()},
                             **{f"ang_err_{k}": v for k, v in ang_err.items()})
         from sim_learner.figures import grid_figures
@@ -502,7 +514,14 @@ def grid_experiment(seed: int = 0, quick: bool = False, out: Path | None = None,
 
 #: the grid figures a seed sweep summarises: SCM / baseline median position error on the SCM region (the paper's
 #: reading) and against the baseline over the whole grid, and the region's share of the grid
-GRID_FIGURES = ("scm_to_baseline", "scm_to_baseline_all", "scm_region_fraction")
+GRID_FIGURES = ("scm_to_baseline", "scm_to_baseline_all", "scm_region_fraction", "transfer_to_barycentric_median",
+                "transfer_to_scm_p95")
+
+
+def _ratio(g: dict, a: str, b: str, figure: str) -> float | None:
+    """Mapper ``a``'s grid ``figure`` over mapper ``b``'s (None without an SCM region)."""
+    x, y = g["mappers"][a][figure], g["mappers"][b][figure]
+    return None if x is None or not y else x / y
 
 
 def sweep_grid(seeds: Sequence[int], quick: bool = False, exploration: str = "guided", workers: int = 2,
@@ -520,6 +539,9 @@ def sweep_grid(seeds: Sequence[int], quick: bool = False, exploration: str = "gu
             "scm_to_baseline_all": None if scm is None else scm / g["baseline_region_median_pos_err_m_all"],
             "scm_region_fraction": g["scm_region_fraction"],
             "scm_region_median_pos_err_m": scm,
+            # the transfer against the better of the two maps in each reading: barycentric's median, SCM's p95
+            "transfer_to_barycentric_median": _ratio(g, "transfer", "barycentric", "region_median_pos_err_m"),
+            "transfer_to_scm_p95": _ratio(g, "transfer", "scm", "region_p95_pos_err_m"),
             "refined_pairs": len(outcome.stores[(exploration, seed)].refined()),
         })
     return {"experiment": "grid-sweep", "quick": quick, "exploration": exploration, "seeds": list(seeds),

@@ -108,6 +108,14 @@ def _learner_grid(ax: Axes, ids: NDArray[np.int64], learner_bounds: Bounds, grid
                                zorder=0, label="configured cell" if n == 0 else None))
 
 
+#: what the command-domain figure shows, in its own words (README.md, "Glossary")
+CAPTION = ("A refined pair (one colour on both sides) is the mean of the raw pairs of one cell of the learner's grid "
+           "(a cell is configured once it holds k_min). A mapping region is a quadrilateral of four refined pairs, "
+           "two neighbouring Delaunay triangles, simple on both sides: a teacher command inside it is mapped by the "
+           "SC map between the two quadrilaterals (scm) or by linear interpolation on its triangle (barycentric). "
+           "The learned limits bound what the teacher may ask.")
+
+
 def command_domains_figure(
     *,
     ids: Sequence[int],
@@ -176,7 +184,8 @@ def command_domains_figure(
     ax_l.legend(loc="upper center", bbox_to_anchor=(0.5, -0.13), ncol=2, fontsize=7, frameon=False)
     if title:
         fig.suptitle(title, fontsize=11)
-    fig.tight_layout()
+    fig.tight_layout(rect=(0, 0.06, 1, 1))
+    fig.text(0.5, 0.008, CAPTION, ha="center", va="bottom", fontsize=7.5, wrap=True)
     return fig
 
 

@@ -48,3 +48,12 @@ def _one_pair(a: list[float], b: list[float], dt: float) -> NDArray[np.float64]:
     v = ((b[0] - a[0]) * math.cos(th) + (b[1] - a[1]) * math.sin(th)) / dt
     w = wrap_angle(b[2] - th) / dt
     return np.array([v, w])
+
+
+def planned_commands(predicted: ArrayLike, dt: float, k: int = 10) -> NDArray[np.float64]:
+    """The teacher's next ``k`` planned commands after the one it sends, from its predicted states ``(N + 1, 3)``
+    (an MPC's plan of the teacher's own Euler model: f_T^-1 of consecutive predicted states is exactly its input)."""
+    pred = np.asarray(predicted, dtype=float)
+    if pred.ndim != 2 or pred.shape[0] < 3 or pred.shape[1] != 3 or not np.all(np.isfinite(pred)):
+        return np.zeros((0, 2))
+    return teacher_equivalent(pred[:-1], pred[1:], dt)[1:1 + k]

@@ -28,7 +28,8 @@ with ValueError. With the ``identity`` mapper (the paper's baseline) every comma
 is the policy's best estimate of the learner command for u_T, or, when it explores, the point of the chosen
 unconfigured cell nearest to that estimate. ``method`` is
 
-- ``"scm"`` (or the alternative mapper's name): a mapping region holds u_T (no saturation: see ``"direct"``);
+- ``"scm"`` (or the alternative mapper's name): a mapping region holds u_T (no saturation: see ``"direct"``) and,
+  with the ``scm`` mapper, :class:`transfer.choice.MapChoice` chose the SC map for it (else ``"barycentric"``);
 - ``"barycentric"``: with the ``scm`` (or ``affine``) mapper, u_T lies in a Delaunay triangle of the refined pairs
   but the mapper has no usable region there (no neighbour forms a simple counter-clockwise quadrilateral on both
   sides: the slivers along a row of boundary-cell means): linear interpolation on that triangle, instead of
@@ -99,8 +100,9 @@ from typing import Protocol
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from transfer.mappers import AffineMapper, BarycentricMapper, IdentityMapper, Mapper, Region, make_mapper
-from transfer.pairs import teacher_equivalent
+from transfer.choice import MapChoice
+from transfer.mappers import AffineMapper, BarycentricMapper, IdentityMapper, Mapper, Region, ScmMapper, make_mapper
+from transfer.pairs import planned_commands  # noqa: F401 (the policy's helper for its callers)
 from transfer.store import PairStore
 
 EXPLORATIONS = ("paper", "guided")
@@ -120,15 +122,6 @@ FILL_CHECKS = 3
 #: at its top speed it shows the turn rate it has when it drives (and the box then allows that rate at every speed:
 #: a box cannot say that turning needs speed either way)
 TURN_PROBES = ("at-command", "at-top-speed")
-
-
-def planned_commands(predicted: ArrayLike, dt: float, k: int = 10) -> NDArray[np.float64]:
-    """The teacher's next ``k`` planned commands after the one it sends, from its predicted states ``(N + 1, 3)``
-    (an MPC's plan of the teacher's own Euler model: f_T^-1 of consecutive predicted states is exactly its input)."""
-    pred = np.asarray(predicted, dtype=float)
-    if pred.ndim != 2 or pred.shape[0] < 3 or pred.shape[1] != 3 or not np.all(np.isfinite(pred)):
-        return np.zeros((0, 2))
-    return teacher_equivalent(pred[:-1], pred[1:], dt)[1:1 + k]
 
 
 @dataclass(frozen=True)
@@ -165,13 +158,15 @@ class _PolicyBase:
 
     def __init__(self, store: PairStore, mapper: str | Mapper = "scm", rng: np.random.Generator | None = None,
                  *, seed: int | None = None, saturate: float = 0.1, probe_tol: float = 1e-6,
-                 inset: float = 0.1, turn_probe: str = "at-command") -> None:
+                 inset: float = 0.1, turn_probe: str = "at-command", choice: bool = True) -> None:
         """``mapper``: a mapper name (``scm``, ``barycentric``, ``affine``, ``identity``) or object; ``rng`` (or
         ``seed``): the random generator of the exploration; ``saturate``: normalised teacher distance to the
         learned region below which commands are served from the region instead of explored; ``probe_tol``: how
         close to a never-driven learned limit a command must be to probe it; ``inset``: how far (fraction of a
         cell) inside the chosen cell a guided perturbation lands; ``turn_probe``: at which learner speed the probe
-        of a never-driven yaw-rate limit is sent (:data:`TURN_PROBES`)."""
+        of a never-driven yaw-rate limit is sent (:data:`TURN_PROBES`); ``choice``: with the ``scm`` mapper, each
+        command inside the learned region is mapped by the SC map or linear interpolation as
+        :class:`transfer.choice.MapChoice` decides (False: the paper's SC map wherever it has a region)."""
         if not 0.0 <= inset < 0.5:
             raise ValueError(f"inset must be in [0, 0.5), got {inset}")
         if turn_probe not in TURN_PROBES:
@@ -184,6 +179,7 @@ class _PolicyBase:
         # a triangle of refined pairs where the mapper has no usable region is interpolated linearly
         self._fallback = (BarycentricMapper(store)
                           if not identity and not isinstance(self.mapper, BarycentricMapper) else None)
+        self._choice = MapChoice(self.mapper) if choice and isinstance(self.mapper, ScmMapper) else None
         self.rng = rng if rng is not None else np.random.default_rng(seed)
         self._rows_of: tuple | None = None  # the refined arrays the cached rows of _limit_row belong to
         self._rows: dict[tuple[int, int], tuple[NDArray[np.int64], NDArray[np.float64]]] = {}
@@ -288,14 +284,14 @@ class _PolicyBase:
                 out[i], methods[i] = along[0], along[1]
             else:
                 rest.append(i)
-        chain = (self._fallback or self.mapper,) if linear else (self.mapper, self._fallback)
+        chain = (self._fallback or self.mapper,) if linear else (self._choice or self.mapper, self._fallback)
         for mapper in chain:
             if not rest or mapper is None:
                 continue
             unmapped = []
             for i, got in zip(rest, mapper.map_many(ts_n[rest])):
-                if got is not None and np.all(np.isfinite(got[0])):
-                    out[i], methods[i] = got[0], mapper.name
+                if got is not None and np.all(np.isfinite(got[0])):  # a MapChoice names its method
+                    out[i], methods[i] = got[0], got[1] if len(got) == 3 else mapper.name  # type: ignore[union-attr]
                 else:
                     unmapped.append(i)
             rest = unmapped
@@ -325,9 +321,13 @@ class _PolicyBase:
         return u if any(probed) else None
 
     def _map_chain(self, t_n: NDArray[np.float64]) -> tuple[NDArray[np.float64], str, Region] | None:
-        """The mapper's region for t_n, else the barycentric interpolation of its triangle."""
-        res = self.mapper.map_normalised(t_n)
-        if res is not None and np.all(np.isfinite(res[0])):
+        """The mapper's region for t_n (with ``choice``: the SC map or linear, as chosen), else the barycentric
+        interpolation of its triangle."""
+        if self._choice is not None:
+            got = self._choice.map_normalised(t_n)
+            if got is not None:
+                return got
+        elif (res := self.mapper.map_normalised(t_n)) is not None and np.all(np.isfinite(res[0])):
             return res[0], self.mapper.name, res[1]
         if self._fallback is not None:
             res = self._fallback.map_normalised(t_n)
@@ -519,9 +519,7 @@ class GuidedPolicy(_PolicyBase):
         where that speed's row of cells has a hole: no SC map is built for a guess); the best ``FILL_CHECKS`` of
         them are then mapped with the mapper itself, and the best of those in an unconfigured cell on it is taken
         (ranked again with that cell). One that found nothing makes the next wait as many commands as it tried
-        speeds and yaw rates (``_search_after``). (Spreading a search over several commands, each speed tried at its
-        own tick's teacher command, was tried: the grid's SCM error grew from 0.106x to 0.15x the baseline's, seeds
-        10-19.)"""
+        speeds and yaw rates (``_search_after``)."""
         store = self.store
         tb, lb = store.teacher_bounds, store.learner_bounds
         gv = store.grid[0]

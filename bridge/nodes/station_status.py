@@ -110,7 +110,7 @@ class Integrity:
 @dataclass
 class StationCounters:
     """Every counter on the station's status. :meth:`as_dict` gives the status's ``counters``, derived from the
-    fields (a new counter is one field): the optional ones (None, or a zero ``method_calibrate`` /
+    fields (a new counter is one field): the optional ones (None, or a zero ``method_calibrate`` / ``method_affine`` /
     ``foreign_commands`` / ``pairs_unsettled``) only once they mean something; ``inputs`` are the transport's own counts
     (``malformed_<input>``), merged as they are."""
 
@@ -158,7 +158,8 @@ class StationCounters:
     fence_trips: int = 0
     pose_jumps: int = 0
 
-    _SHOWN_IF_NONZERO = ("method_calibrate", "foreign_commands", "pairs_unsettled", "shared_changes",
+    # method_affine: only a station configured with the comparison mapper ``affine`` sends such commands
+    _SHOWN_IF_NONZERO = ("method_calibrate", "method_affine", "foreign_commands", "pairs_unsettled", "shared_changes",
                          "limits_relearned", "corridor_trips", "fence_trips", "pose_jumps")
 
     def count_method(self, method: str) -> None:

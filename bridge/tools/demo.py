@@ -27,6 +27,7 @@ import numpy as np
 from bridge.core.args import positive_float, robots_arg
 from bridge.core.errors import UsageError
 from bridge.nodes.node import Inputs
+from bridge.tools.demo_calibrate import calibrate_first, calibration_budget, check_calibrate, grid, method_shares
 from bridge.tools.guard_log import GuardLog
 from drivers import link_names
 
@@ -255,22 +256,13 @@ class Monitor:
                 "_traj": np.array([s[1:] for s in states])}
 
 
-def _figure(out, world, traj, link: str) -> None:
-    import matplotlib
+def _figure(out, world, traj, link: str, mon: Monitor) -> None:
+    """The trajectory figure, coloured by each command's method (bridge/tools/demo_view.py)."""
+    from bridge.tools.demo_view import methods_along, trajectory_figure
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    from sim_learner.figures import draw_mission
-
-    fig, ax = plt.subplots(figsize=(9, 4))
-    draw_mission(ax, world)
-    ax.plot(traj[:, 0], traj[:, 1], color="tab:blue", label=f"learner over Zenoh + {link.upper()}")
-    ax.legend(loc="upper right", fontsize=8)
-    ax.set_title("HIL demo: SCM transfer of the teacher MPC")
-    fig.tight_layout()
-    fig.savefig(out / "demo_trajectory.png", dpi=120)
-    plt.close(fig)
+    with mon.lock:
+        methods = methods_along(list(mon.states), list(mon.applied), dict(mon.cmds))
+    trajectory_figure(out, world, traj, methods, link.upper() if link.islower() else link)
 
 
 def _watch(mon: Monitor, kids, world, timeout: float) -> None:
@@ -308,24 +300,26 @@ def hil(args: argparse.Namespace, robot: str) -> int:
     port = free_port()
     x0 = ",".join(f"{a:.6f}" for a in world.start)
     client = ["--robot", robot, "--mode", "client", "--connect", tcp(port)]
-    # --transfer off: the paper's baseline; --drift: the learner changes, the station re-learns the cells that no
-    # longer hold
+    # --transfer off: the paper's baseline; --drift: the learner changes, the station re-learns what no longer holds
     (out / "station.toml").write_text(transfer_table(args.transfer, args.limits)
                                       + ("adapt = true\n" if args.drift else "") + teacher_table(args))
     station_cfg = ["--config", str(out / "station.toml")]
-    mon = None
+    mon, cal = None, None
+    up = args.duration + 15 + calibration_budget(args.calibrate)  # the driver host and its link outlive the mission
     with ExitStack() as stack:
-        logs = {name: stack.enter_context(open(out / f"{name}.log", "w")) for name in ("driver", "station")}
+        logs = {name: stack.enter_context(open(out / f"{name}.log", "w"))
+                for name in ("driver", "station", *(["calibrate"] if args.calibrate else []))}
         # this monitor is the hub: a Zenoh router the driver host and the station connect to as clients
         # (peers do not forward between other peers)
         session = stack.enter_context(open_session(make_config(mode="router", listen=[tcp(port)])))
         kids = stack.enter_context(Children())
-        mon = Monitor(session, robot)
         try:
-            driver_args = emulated_link(kids, args.link, out, x0, args.duration + 15, logs["driver"])
+            driver_args = emulated_link(kids, args.link, out, x0, up, logs["driver"])
             drift = ["--drift", args.drift] if args.drift else []
-            kids.spawn(["driver", "--engage", *driver_args, *drift, *client, "--duration", str(args.duration + 15)],
-                       logs["driver"])
+            kids.spawn(["driver", "--engage", *driver_args, *drift, *client, "--duration", str(up)], logs["driver"])
+            if args.calibrate:  # the paper's calibrated start: the mission's figures count from after it
+                cal = calibrate_first(args.calibrate, client, out / "station.toml", store, logs["calibrate"])
+            mon = Monitor(session, robot)
             kids.spawn(["station", *client, *station_cfg, "--start", "--store", str(store), "--exit-at-goal",
                         "--duration",
                         str(args.duration), *(["--mission", args.mission] if args.mission else [])], logs["station"])
@@ -337,8 +331,9 @@ def hil(args: argparse.Namespace, robot: str) -> int:
         print("the demo produced no telemetry; see the logs in", out, file=sys.stderr)
         return 1
     traj = summary.pop("_traj")
+    summary.update(method_shares=method_shares(summary["methods"]), **({"calibration": cal} if cal else {}))
     print("summary:", json.dumps(summary))
-    _figure(out, world, traj, args.link)
+    _figure(out, world, traj, args.link, mon)
     from bridge.tools.pairs_cli import pairs_figure
 
     pairs_figure(store, out / "demo_pairs.png")  # what was learned: command domains, limits, refined pairs
@@ -540,7 +535,7 @@ def sitl_hil(args: argparse.Namespace, robot: str = "sitl") -> int:
         "wall_s": round(time.monotonic() - t_wall, 1)}
     print("summary:", json.dumps(summary))
     (out / "summary.json").write_text(json.dumps(summary, indent=1) + "\n")  # what --teacher-ref reads
-    _figure(out, world, traj, "mavlink (ArduPilot SITL)")
+    _figure(out, world, traj, "MAVLink (ArduPilot SITL)", mon)
     from bridge.tools.pairs_cli import pairs_figure
 
     pairs_figure(store, out / "demo_pairs.png")  # what was learned on ArduPilot's own firmware, as the demo's
@@ -760,6 +755,9 @@ def arguments(ap: argparse.ArgumentParser) -> None:
                     help="(one robot) the station's [teacher] curve_margin: the MPC slows for a bend the learned "
                          "yaw-rate limit cannot turn at its top speed, using this share of the limit (e.g. 0.9 with "
                          "--drift wheel; default 0: the paper's MPC)")
+    ap.add_argument("--calibrate", type=grid, default=None, metavar="NVxNW",
+                    help="(one robot) the paper's calibrated start: scmbridge calibrate's grid of learner commands "
+                         "(e.g. 5x5) on the learner first, then the mission from that pair store")
     ap.add_argument("--inprocess", action="store_true", help="the in-process SC transfer example instead")
     ap.add_argument("--seed", type=int, default=0, help="(--inprocess) random generator seed")
     ap.add_argument("--commands", type=int, default=8, help="(--inprocess) teacher commands to show")
@@ -788,6 +786,7 @@ def run(args: argparse.Namespace) -> int:
         raise UsageError("--transfer and --limits set one robot's station: not with --robots, --count or --inprocess")
     if args.sitl is None and (args.turn is not None or args.start is not None):
         raise UsageError("--turn and --start set the SITL demo's station and mission: they take --sitl")
+    check_calibrate(args, robots)
     if args.inprocess:
         return inprocess(args)
     if args.sitl is not None:

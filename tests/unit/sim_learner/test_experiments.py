@@ -119,7 +119,15 @@ def test_cli_grid_on_a_saved_store_writes_json_figures_and_trajectories(sweep, t
     out = json.loads(capsys.readouterr().out)
     assert out["experiment"] == "grid" and "scm_region_median_pos_err_m" in out
     assert (tmp_path / "grid_errors.png").stat().st_size > 10_000
-    assert (tmp_path / "grid.npz").exists()
+    # the transfer's own errors beside each mapper's: what the station runs (the SC map or the line, per command)
+    mine = out["mappers"]["transfer"]
+    assert mine["region_median_pos_err_m"] > 0 and mine["region_p95_pos_err_m"] >= mine["region_median_pos_err_m"]
+    region = np.asarray(np.load(tmp_path / "grid.npz")["method"]) == "scm"
+    with np.load(tmp_path / "grid.npz") as z:
+        assert z["pos_err_transfer"].shape == z["ang_err_transfer"].shape == z["pos_err_scm"].shape
+        assert float(np.median(z["pos_err_transfer"][region])) == mine["region_median_pos_err_m"]
+        assert set(z["method_transfer"][region]) <= {"scm", "barycentric"}
+    assert sum(out["transfer_methods_region"].values()) == int(region.sum())
 
 
 def test_cli_grid_over_seeds_runs_each_seeds_mpc_and_summarises(capsys) -> None:
@@ -129,6 +137,7 @@ def test_cli_grid_over_seeds_runs_each_seeds_mpc_and_summarises(capsys) -> None:
     (one,) = out["per_seed"]
     assert out["stats"]["scm_to_baseline"]["median"] == one["scm_to_baseline"] < 1.0
     assert one["scm_to_baseline_all"] > 0 and one["refined_pairs"] >= 3
+    assert one["transfer_to_barycentric_median"] > 0 and one["transfer_to_scm_p95"] > 0
     assert main(["sim", "grid", "--quick", "--seeds", "0", "--store", "x.bin"]) == 2
     assert "exclude each other" in capsys.readouterr().err
 

@@ -128,7 +128,8 @@ def test_a_plan_given_as_a_function_is_read_only_when_a_cell_is_chosen() -> None
         calls.append(1)
         return np.array([[6.5 / 11, 5.5 / 11]])
 
-    p = make_policy(s, seed=0, saturate=0.01, fill_budget=0.0)
+    # the paper's SC map alone (choice=False): the choice of map is tests/unit/transfer/test_choice.py's
+    p = make_policy(s, seed=0, saturate=0.01, fill_budget=0.0, choice=False)
     assert p.map([5.0 / 11, 5.0 / 11], plan=plan).method == "scm"  # served from the region: no choice made
     assert p.map([5.0 / 11, 5.0 / 11], plan=plan, explore=False).method == "scm"
     assert calls == []
@@ -152,7 +153,7 @@ def test_unperturbed_many_is_each_rows_own_unperturbed_mapping_and_its_linear_gu
                 continue  # a hole at the slow hard right turns: rows outside the region
             u = lb.denormalise(np.array([(i + 0.5) / 11, (j + 0.5) / 11]))
             store.add(case.learner.response(u), u)
-    p = GuidedPolicy(store, "scm", seed=0)
+    p = GuidedPolicy(store, "scm", seed=0, choice=False)  # the SC map in the rows (the choice: test_choice.py)
     rng = np.random.default_rng(3)
     ts = tb.denormalise(np.vstack([rng.uniform(-0.05, 1.05, (80, 2)),
                                    [[store.limits.hi[0], 0.5], [store.limits.lo[0], 0.3]]]))

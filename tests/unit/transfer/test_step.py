@@ -151,7 +151,7 @@ def _affine_store(k_min: int = 1) -> tuple[PairStore, np.ndarray, np.ndarray]:
 @pytest.mark.parametrize("mapper", ["scm", "barycentric", "affine"])
 def test_mappers_reproduce_a_per_axis_affine_learner_inside_the_hull(mapper: str) -> None:
     s, a, b = _affine_store()
-    p = make_policy(s, mapper, seed=0)
+    p = make_policy(s, mapper, seed=0, choice=False)  # each mapper alone
     rng = np.random.default_rng(5)
     for _ in range(60):
         uL = LB.denormalise(0.02 + 0.96 * rng.random(2))
@@ -163,7 +163,7 @@ def test_mappers_reproduce_a_per_axis_affine_learner_inside_the_hull(mapper: str
 
 def test_scm_regions_are_cached_and_rebuilt_when_a_pair_moves() -> None:
     s, a, b = _affine_store(k_min=1)
-    p = make_policy(s, "scm", seed=0)
+    p = make_policy(s, "scm", seed=0, choice=False)  # the SC map alone
     uT = a * LB.denormalise([0.5, 0.5]) + b
     m1 = p.map(uT)
     builds = p.mapper.builds
@@ -268,7 +268,7 @@ def test_guided_policy_without_pairs_and_without_a_region_applies_the_estimate()
 
 def test_guided_policy_applies_the_offset_from_the_region_directly_and_continuously() -> None:
     s = _square_store()
-    p = make_policy(s, "scm", seed=0)
+    p = make_policy(s, "scm", seed=0, choice=False)
     # 0.02 (normalised teacher units) right of the square's edge: within ``saturate``, no exploring; the map of
     # the nearest edge point plus the offset read one-to-one in physical units
     t_n = _n((5.5, 4.8)) + np.array([0.02, 0.0])

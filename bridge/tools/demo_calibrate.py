@@ -1,0 +1,73 @@
+"""``scmbridge demo --calibrate NVxNW``: the paper's calibrated start (its Jackal MPC run: command pairs constructed
+at the learner's limits before the mission), on the demo's link.
+
+Before the station starts, ``scmbridge calibrate`` runs against the same driver host, over the same hub, with the
+station's configuration and store (docs/OPERATING.md, calibration): the grid of learner commands, extremes included,
+each held ``[calibration] hold_s``, driving back toward the start between them and stopping at the distance or time
+bound. The station then starts its mission from that store: calibrated pairs and measured limits. The summary gives
+each method's share of the mission's driving commands (:func:`method_shares`) and what the calibration left.
+"""
+
+from __future__ import annotations
+
+import subprocess
+import time
+from pathlib import Path
+from typing import Any
+
+from bridge.core.errors import UsageError
+from bridge.tools.procs import spawn, stop_group
+
+#: seconds the calibration stage may take, per command of its grid (held, then driving back toward the start)
+CAL_S_PER_COMMAND = 4.0
+
+
+def grid(text: str) -> tuple[int, int]:
+    """``--calibrate``'s argument, as ``scmbridge calibrate --grid`` reads it (imported only when given)."""
+    from bridge.tools.calibrate import grid_arg
+
+    return grid_arg(text)
+
+
+def check_calibrate(args: Any, robots: list[str]) -> None:
+    """``--calibrate`` calibrates one emulated robot on its link before its mission (not a fleet, not in-process)."""
+    if args.calibrate is not None and (len(robots) != 1 or args.count or args.inprocess or args.sitl is not None):
+        raise UsageError("--calibrate calibrates one emulated robot on its link: not with --robots, --count, "
+                         "--inprocess or --sitl")
+
+
+def calibration_budget(grid: tuple[int, int] | None) -> float:
+    """The calibration stage's bound on time for ``grid`` (0 without one)."""
+    return 0.0 if grid is None else 20.0 + CAL_S_PER_COMMAND * grid[0] * grid[1]
+
+
+def calibrate_first(grid: tuple[int, int], client: list[str], config: Path, store: Path, log: Any) -> dict:
+    """Run ``scmbridge calibrate`` to its end (bounded by :func:`calibration_budget`, then stopped) and return what
+    it reports: ``ok`` (it drove every command of its grid), ``line`` (its summary line), ``wall_s``. The caller's
+    driver host must be running and engaged; no station may drive the robot meanwhile."""
+    budget = calibration_budget(grid)
+    t0 = time.monotonic()
+    proc = spawn(["calibrate", *client, "--config", str(config), "--store", str(store), "--grid",
+                  f"{grid[0]}x{grid[1]}", "--duration", f"{budget:g}"], log)
+    try:
+        code = proc.wait(timeout=budget + 60.0)
+    except subprocess.TimeoutExpired:
+        code = None
+    finally:
+        stop_group(proc)  # ended already, or past its bound: nothing of it may outlive the stage
+    line = ""
+    path = Path(getattr(log, "name", ""))
+    if path.is_file():
+        lines = [x for x in path.read_text(errors="replace").splitlines() if x.startswith("calibration:")]
+        line = lines[-1] if lines else ""
+    wall = round(time.monotonic() - t0, 1)
+    print(f"calibration ({wall} s): {line or 'no summary line; see calibrate.log'}", flush=True)
+    return {"ok": code == 0 and " commands driven" in line and line.startswith("calibration: all "), "line": line,
+            "wall_s": wall}
+
+
+def method_shares(methods: dict[str, int]) -> dict[str, float]:
+    """Each method's share of the driving commands (``stop`` left out: it drives nothing), rounded to 0.001."""
+    driving = {m: n for m, n in methods.items() if m != "stop"}
+    total = sum(driving.values())
+    return {m: round(n / total, 3) for m, n in sorted(driving.items(), key=lambda e: -e[1])} if total else {}

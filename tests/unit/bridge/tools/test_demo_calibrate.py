@@ -1,0 +1,39 @@
+"""bridge/tools/demo_calibrate.py: ``scmbridge demo --calibrate``'s argument and checks, its bound on time and the
+method shares of a summary (the calibrated start end to end: tests/integration/test_demo_calibrate.py)."""
+
+from __future__ import annotations
+
+import argparse
+
+import pytest
+
+from bridge.core.errors import UsageError
+from bridge.tools.demo_calibrate import calibration_budget, method_shares
+
+
+def test_method_shares_leave_stop_out_and_sum_to_one() -> None:
+    shares = method_shares({"scm": 30, "barycentric": 10, "stop": 50})
+    assert shares == {"scm": 0.75, "barycentric": 0.25} and list(shares) == ["scm", "barycentric"]
+    assert method_shares({"stop": 3}) == {}
+    assert calibration_budget(None) == 0.0 < calibration_budget((3, 3)) < calibration_budget((5, 5))
+
+
+@pytest.mark.parametrize("argv", [["--calibrate", "5x5", "--count", "2"], ["--calibrate", "5x5", "--inprocess"],
+                                  ["--calibrate", "3x3", "--sitl", "/nonexistent"]])
+def test_calibrate_is_for_one_emulated_robot(argv: list[str]) -> None:
+    from bridge.tools.demo import arguments, run
+
+    ap = argparse.ArgumentParser()
+    arguments(ap)
+    with pytest.raises(UsageError, match="one emulated robot"):
+        run(ap.parse_args(argv))
+
+
+def test_calibrate_takes_the_calibration_grids_form() -> None:
+    from bridge.tools.demo import arguments
+
+    ap = argparse.ArgumentParser()
+    arguments(ap)
+    assert ap.parse_args(["--calibrate", "5x5"]).calibrate == (5, 5)
+    with pytest.raises(SystemExit):
+        ap.parse_args(["--calibrate", "1x5"])
