@@ -29,7 +29,8 @@ is the policy's best estimate of the learner command for u_T, or, when it explor
 unconfigured cell nearest to that estimate. ``method`` is
 
 - ``"scm"`` (or the alternative mapper's name): a mapping region holds u_T (no saturation: see ``"direct"``) and,
-  with the ``scm`` mapper, :class:`transfer.choice.MapChoice` chose the SC map for it (else ``"barycentric"``);
+  with ``choice`` (``[transfer] map_choice``), :class:`transfer.choice.MapChoice` chose the SC map for it (else
+  ``"barycentric"``);
 - ``"barycentric"``: with the ``scm`` (or ``affine``) mapper, u_T lies in a Delaunay triangle of the refined pairs
   but the mapper has no usable region there (no neighbour forms a simple counter-clockwise quadrilateral on both
   sides: the slivers along a row of boundary-cell means): linear interpolation on that triangle, instead of
@@ -158,7 +159,7 @@ class _PolicyBase:
 
     def __init__(self, store: PairStore, mapper: str | Mapper = "scm", rng: np.random.Generator | None = None,
                  *, seed: int | None = None, saturate: float = 0.1, probe_tol: float = 1e-6,
-                 inset: float = 0.1, turn_probe: str = "at-command", choice: bool = True) -> None:
+                 inset: float = 0.1, turn_probe: str = "at-command", choice: bool = False) -> None:
         """``mapper``: a mapper name (``scm``, ``barycentric``, ``affine``, ``identity``) or object; ``rng`` (or
         ``seed``): the random generator of the exploration; ``saturate``: normalised teacher distance to the
         learned region below which commands are served from the region instead of explored; ``probe_tol``: how

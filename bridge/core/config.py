@@ -161,6 +161,11 @@ class TransferSection(Cfg):
         "curvature (omega <= kappa v, shown in the limits and pairs show), the MPC plans within it, and the yaw-rate "
         "limits are probed at the learner's top speed (whatever turn_probe says); the teacher's speed must then be "
         "forward only (teacher_bounds v >= 0)")] = "in-place"
+    map_choice: Annotated[bool, meta(
+        "with mapper = \"scm\": choose per command between the SC map and the triangle's linear interpolation, "
+        "from how far the region's SC maps agree with each other and with the line (docs/PAPER.md, 'The transfer's "
+        "choice of map'); false, the paper's SC map wherever it has a region. Off by default: it costs each command "
+        "inside the region more and did not beat interpolation's median on every store (docs/BENCHMARKS.md)")] = False
     adapt: Annotated[bool | Literal["reloaded"], meta(
         "re-learn a cell whose learner changed (a sagging battery, a dragging wheel, a new floor; docs/PAPER.md, "
         "'a learner that changes'): true, always; \"reloaded\", when the station starts on a saved store that "
