@@ -33,30 +33,41 @@ COLUMNS = ("learner_reached_goal", "learner_time_ratio", "learner_dev_ratio", "l
            "baseline_reached_goal", "baseline_collided")
 
 
+def demo_command(profile: Any, binary: str, parm: Path, out: Path, duration: float, mission: str | None) -> list[str]:
+    """The demo as a person runs it on this profile: the transfer, then the baseline, then the reference."""
+    return [sys.executable, "-m", "bridge", "demo", "--link", "mavlink", "--sitl", binary, "--sitl-model",
+            profile.model, "--sitl-params", str(parm), "--baseline", "--duration", str(duration), "--out", str(out),
+            *(["--mission", mission] if mission else [])]
+
+
 def run_profile(profile: Any, binary: str, out: Path, duration: float, mission: str | None) -> dict[str, Any]:
     """One profile: its parameter file written, the demo run to its end (bounded), its summary read back."""
     out.mkdir(parents=True, exist_ok=True)
     parm = out / f"{profile.name}.parm"
     parm.write_text(profile.parm())
-    cmd = [sys.executable, "-m", "bridge", "demo", "--link", "mavlink", "--sitl", binary, "--sitl-model",
-           profile.model, "--sitl-params", str(parm), "--baseline", "--duration", str(duration), "--out",
-           str(out / "run"), *(["--mission", mission] if mission else [])]
+    cmd = demo_command(profile, binary, parm, out / "run", duration, mission)
     t0 = time.monotonic()
     with open(out / "demo.log", "w") as log:
         try:
             rc = subprocess.run(cmd, stdout=log, stderr=subprocess.STDOUT, timeout=4 * (duration + 90)).returncode
         except subprocess.TimeoutExpired:
             rc = None
-    lines = [ln for ln in (out / "demo.log").read_text().splitlines() if ln.startswith("summary: ")]
-    row: dict[str, Any] = {"profile": profile.name, "split": profile.split, "params": profile.params, "rc": rc,
-                           "wall_s": round(time.monotonic() - t0, 1), "log": str(out / "demo.log")}
+    row = {"profile": profile.name, "split": profile.split, "params": profile.params, "rc": rc,
+           "wall_s": round(time.monotonic() - t0, 1), "log": str(out / "demo.log")}
+    return {**row, **judge((out / "demo.log").read_text())}
+
+
+def judge(log: str) -> dict[str, Any]:
+    """A profile's figures and whether it met the goal, from the demo's output ``log`` (its last ``summary:``
+    line): met only if every claim was judged and held."""
+    lines = [ln for ln in log.splitlines() if ln.startswith("summary: ")]
     if not lines:
-        return {**row, "worked": False, "why": "no summary (see the log)"}
+        return {"worked": False, "why": "no summary (see the log)"}
     s = json.loads(lines[-1][len("summary: "):])
     failed = [k for k, ok in s.get("verdicts", {}).items() if ok is False]
     unjudged = [k for k, ok in s.get("verdicts", {}).items() if ok is None]
     worked = bool(s.get("worked")) and not unjudged
-    return {**row, **{k: s.get(k) for k in COLUMNS}, "learned_limits": s.get("learned_limits"),
+    return {**{k: s.get(k) for k in COLUMNS}, "learned_limits": s.get("learned_limits"),
             "verdicts": s.get("verdicts"), "worked": worked,
             "why": ", ".join([*(f"{k} failed" for k in failed), *(f"{k} not judged" for k in unjudged)]) or None}
 
