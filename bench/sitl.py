@@ -33,19 +33,21 @@ COLUMNS = ("learner_reached_goal", "learner_time_ratio", "learner_dev_ratio", "l
            "baseline_reached_goal", "baseline_collided")
 
 
-def demo_command(profile: Any, binary: str, parm: Path, out: Path, duration: float, mission: str | None) -> list[str]:
+def demo_command(profile: Any, binary: str, parm: Path, out: Path, duration: float, mission: str | None,
+                 identify: bool = False) -> list[str]:
     """The demo as a person runs it on this profile: the transfer, then the baseline, then the reference."""
     return [sys.executable, "-m", "bridge", "demo", "--link", "mavlink", "--sitl", binary, "--sitl-model",
             profile.model, "--sitl-params", str(parm), "--baseline", "--duration", str(duration), "--out", str(out),
-            *(["--mission", mission] if mission else [])]
+            *(["--mission", mission] if mission else []), *(["--identify"] if identify else [])]
 
 
-def run_profile(profile: Any, binary: str, out: Path, duration: float, mission: str | None) -> dict[str, Any]:
+def run_profile(profile: Any, binary: str, out: Path, duration: float, mission: str | None,
+                identify: bool = False) -> dict[str, Any]:
     """One profile: its parameter file written, the demo run to its end (bounded), its summary read back."""
     out.mkdir(parents=True, exist_ok=True)
     parm = out / f"{profile.name}.parm"
     parm.write_text(profile.parm())
-    cmd = demo_command(profile, binary, parm, out / "run", duration, mission)
+    cmd = demo_command(profile, binary, parm, out / "run", duration, mission, identify)
     t0 = time.monotonic()
     with open(out / "demo.log", "w") as log:
         try:
@@ -95,6 +97,8 @@ def arguments(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--jobs", type=int, choices=(1, 2), default=1, help="profiles at once (SITL runs in real time)")
     ap.add_argument("--duration", type=float, default=120.0, help="seconds each run may take (the demo's)")
     ap.add_argument("--mission", default=None, help="mission file (default: the paper's S-path)")
+    ap.add_argument("--identify", action="store_true", help="the demo's --identify: the learner's range measured "
+                    "before each transfer run, not read from the profile's parameters")
     ap.add_argument("--out", default=None, help="directory for each profile's runs (default: a temporary one)")
 
 
@@ -114,11 +118,13 @@ def run(args: argparse.Namespace) -> int:
     out = Path(args.out) if args.out else Path(tempfile.mkdtemp(prefix="bench-sitl-"))
     t0 = time.monotonic()
     with ThreadPoolExecutor(args.jobs) as pool:
-        rows = list(pool.map(lambda p: run_profile(p, binary, out / p.name, args.duration, args.mission), profiles))
+        rows = list(pool.map(lambda p: run_profile(p, binary, out / p.name, args.duration, args.mission,
+                                                   args.identify), profiles))
     met = sum(1 for r in rows if r["worked"])
     print(table(rows), file=sys.stderr)
     print(f"{args.frame} {args.profiles}: {met}/{len(rows)} profiles met the goal", file=sys.stderr)
     emit({"bench": "sitl", "frame": args.frame, "model": FRAMES[args.frame], "profiles": args.profiles,
+          "identify": args.identify,
           "seed": SEED, "met": met, "count": len(rows), "rate": round(met / len(rows), 3) if rows else None,
           "goal_rate": 0.9, "wall_s": round(time.monotonic() - t0, 1), "out": str(out),
           "load_avg": [round(x, 2) for x in os.getloadavg()], "rows": rows})

@@ -73,7 +73,8 @@ def sitl_hil(args: argparse.Namespace, demo: ModuleType) -> int:
         return 1
     runs[role] = first
     if args.baseline and role == "learner":
-        b_args = argparse.Namespace(**{**vars(args), "transfer": "off", "limits": None})
+        # the paper's baseline: the teacher's commands within what the vehicle accepts, nothing measured first
+        b_args = argparse.Namespace(**{**vars(args), "transfer": "off", "limits": None, "identify": False})
         b = sitl_once(demo, b_args, binary, out / "baseline", "baseline")
         if b is not None:
             runs["baseline"] = b
@@ -84,9 +85,10 @@ def sitl_hil(args: argparse.Namespace, demo: ModuleType) -> int:
         parm.write_text(reference_parm(args.sitl_model, learned_limits(out / "pairs.bin"), first["vehicle_params"]))
         ackermann = args.sitl_model == "rover"
         r_args = argparse.Namespace(**{**vars(args), "transfer": "off", "limits": "learned", "sitl_params": str(parm),
-                                       "param_at": [], "adapt": False,
+                                       "param_at": [], "adapt": False, "identify": False,
                                        "turn": "in-place" if ackermann else args.turn,
-                                       "start": first["start"]})
+                                       "start": first["start"], "pair_settle": first["summary"]["pair_settle_s"]
+                                       if getattr(args, "identify", False) else args.pair_settle})
         r = sitl_once(demo, r_args, binary, ref_out, "reference")
         if r is not None:
             runs["reference"] = r
@@ -171,7 +173,8 @@ def sitl_once(demo: ModuleType, args: argparse.Namespace, binary: Path, out: Pat
     changes = [param_change(x) for x in args.param_at]
     # an Ackermann rover cannot turn in place: its yaw-rate limits are curvatures (docs/BENCHMARKS.md)
     turn = args.turn or ("needs-speed" if ackermann else "in-place")
-    start = args.start or ("on-path" if turn == "needs-speed" or ackermann else "mission")
+    start = args.start or ("on-path" if turn == "needs-speed" else "mission")
+    base_spec = spec
     if start == "on-path":
         spec = start_on_path(spec)
     t_wall = time.monotonic()
@@ -182,6 +185,8 @@ def sitl_once(demo: ModuleType, args: argparse.Namespace, binary: Path, out: Pat
     except SitlError as exc:
         raise UsageError(str(exc)) from None
     mon = None
+    ident = None
+    accepted = None
     with ExitStack() as stack:
         try:
             stack.enter_context(sitl)
@@ -198,19 +203,25 @@ def sitl_once(demo: ModuleType, args: argparse.Namespace, binary: Path, out: Pat
         pose = (float(p.y), float(p.x), math.pi / 2 - float(att.yaw))  # NED -> ENU, as the MAVLink driver does
         placed = place_mission(spec, pose)
         world = mission_from_spec(placed)
-        (out / "mission.toml").write_text(mission_toml(placed))
-        (out / "station.toml").write_text(
-            f'robot = "{robot}"\n\n[learner_bounds]\nv = [{v_range[0]!r}, {v_range[1]!r}]\n'
-            f"w = [{w_range[0]!r}, {w_range[1]!r}]\n\n[station]\npair_settle_s = {settle!r}\n"
-            + (f"pair_settle_edge_s = {settle_edge!r}\n" if settle_edge > settle else "") + "\n"
-            + transfer_lines(args.transfer, args.limits)
-            + ("adapt = true\n" if args.adapt else "")
-            + (f'turn_probe = "{args.turn_probe}"\n' if args.turn_probe != "at-command" else "")
-            + (f'turn = "{turn}"\n' if turn != "in-place" else "")
-            + teacher_table(args))
+        accepted = (v_range, w_range)  # what the vehicle accepts: the driver host's hard limits
+
+        def write_station() -> None:
+            (out / "mission.toml").write_text(mission_toml(placed))
+            (out / "station.toml").write_text(
+                f'robot = "{robot}"\n\n[learner_bounds]\nv = [{v_range[0]!r}, {v_range[1]!r}]\n'
+                f"w = [{w_range[0]!r}, {w_range[1]!r}]\n\n[station]\npair_settle_s = {settle!r}\n"
+                + (f"pair_settle_edge_s = {settle_edge!r}\n" if settle_edge > settle else "") + "\n"
+                + transfer_lines(args.transfer, args.limits)
+                + ("adapt = true\n" if args.adapt else "")
+                + (f'turn_probe = "{args.turn_probe}"\n' if args.turn_probe != "at-command" else "")
+                + (f'turn = "{turn}"\n' if turn != "in-place" else "")
+                + teacher_table(args))
+
+        write_station()
         (out / "driver.toml").write_text(
-            f'robot = "{robot}"\n\n[driver.hard_limits]\nv = [{-v_range[1]!r}, {v_range[1]!r}]\n'
-            f"w = [{w_range[0]!r}, {w_range[1]!r}]\n\n[link.mavlink]\nurl = \"{sitl.driver_url}\"\nrate_hz = 20\n")
+            f'robot = "{robot}"\n\n[driver.hard_limits]\nv = [{-accepted[0][1]!r}, {accepted[0][1]!r}]\n'
+            f"w = [{accepted[1][0]!r}, {accepted[1][1]!r}]\n\n[link.mavlink]\nurl = \"{sitl.driver_url}\"\n"
+            "rate_hz = 20\n")
         print(f"SITL {args.sitl_model} instance {sitl.instance} booted in {sitl.boot_s:.1f} s; vehicle {params}; "
               f"learner v {v_range} m/s, omega ({w_range[0]:.3f}, {w_range[1]:.3f}) rad/s; mission placed at "
               f"({pose[0]:.2f}, {pose[1]:.2f}, {pose[2]:.2f})", flush=True)
@@ -231,6 +242,31 @@ def sitl_once(demo: ModuleType, args: argparse.Namespace, binary: Path, out: Pat
             if not _wait_state(mon, "driving", 10):
                 print("scmbridge demo: the driver host did not take the pilot's engage", file=sys.stderr)
                 return None
+            if getattr(args, "identify", False):
+                from bridge.tools.demo_identify import identify, settings
+
+                ident = identify(out / "station.toml", robot, port, world)
+                if ident is None:
+                    print("scmbridge demo: the identification did not finish", file=sys.stderr)
+                    return None
+                got = settings(ident, args, v_range[0])
+                turn, start, settle, settle_edge = got["turn"], got["start"], got["settle"], got["settle_edge"]
+                v_range, w_range = got["v_range"], got["w_range"]
+                with pilot.cond:  # the mission is placed where the vehicle stands now
+                    p, att = pilot.s.position, pilot.s.attitude
+                pose = (float(p.y), float(p.x), math.pi / 2 - float(att.yaw))
+                placed = place_mission(start_on_path(base_spec) if start == "on-path" else base_spec, pose)
+                world = mission_from_spec(placed)
+                write_station()
+                print(f"identified: {ident.as_dict()}; learner v ({v_range[0]:.3f}, {v_range[1]:.3f}) m/s, omega "
+                      f"({w_range[0]:.3f}, {w_range[1]:.3f}) rad/s, turn {turn}, start {start}, pairs settle "
+                      f"{settle} s (edges {max(settle, settle_edge)} s)", flush=True)
+                with mon.lock:  # the run starts after the identification: its figures are the mission's
+                    mon.states.clear()
+                    mon.applied.clear()
+                    mon.cmds.clear()
+                    mon.status.pop("station", None)
+                mon.driving.clear()
             kids.spawn(["station", *client, "--config", str(out / "station.toml"), "--start", "--store", str(store),
                         "--exit-at-goal", "--duration", str(args.duration), "--mission", str(out / "mission.toml")],
                        logs["station"])
@@ -299,7 +335,9 @@ def sitl_once(demo: ModuleType, args: argparse.Namespace, binary: Path, out: Pat
         "turn_probe": load_station(out / "station.toml").transfer.probe_turns(),  # what the station does
         "cells_relearned": relearned, "limits_relearned": edges, "param_changes": changed,
         "goal_dist_m": run["goal_dist_m"], "driving_s": run["driving_s"],
-        "learner_bounds": [list(v_range), list(w_range)], "vehicle_params": params,
+        "learner_bounds": [list(v_range), list(w_range)], "accepted_bounds": [list(accepted[0]), list(accepted[1])],
+        "range": "measured" if ident is not None else "parameters",
+        "identified": ident.as_dict() if ident is not None else None, "vehicle_params": params,
         "missed_deadlines": run["missed_deadlines"], "boot_s": round(sitl.boot_s, 1),
         "wall_s": round(time.monotonic() - t_wall, 1)}
     print(f"run {role}:", json.dumps(summary), flush=True)
