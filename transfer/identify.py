@@ -7,17 +7,19 @@ drives at most 0.6 m/s then has one or two cells to map into. So before the miss
 few bounded probes, each held ``hold_s`` (the vehicle stopped between them), and the range the transfer works in is
 what they measured; the accepted range only bounds it:
 
-1. ``creep+`` / ``creep-``: the lowest forward speed with the top turn command each way: a vehicle that turns as
+1. ``straight``: the teacher's top speed (never more than the vehicle accepts) from rest: the speed reached and
+   how long it took to settle (what the station's pairing waits for, ``pair_settle_s``);
+2. ``creep+`` / ``creep-``: the lowest forward speed with the top turn command each way: a vehicle that turns as
    much at a crawl as at ``v_low`` turns in place; one whose turn falls with its speed needs speed (``turn``);
-2. ``turn+`` / ``turn-``: ``v_low`` with the top turn command each way: the turn rate reached on each side;
-3. ``straight``: the teacher's top speed (never more than the vehicle accepts), held until the speed settles: the
-   speed reached and how long it took to settle (what the station's pairing waits for, ``pair_settle_s``).
+3. ``turn+`` / ``turn-``: ``v_low`` with the top turn command each way: the turn rate reached on each side.
 
 The range: the command that reaches the teacher's top (the probe's command scaled by what it reached, assuming a
-response proportional near there), never more than the vehicle accepts nor less than the probe's command; the same
-for the turn rate on each side of a vehicle that turns in place (one that needs speed keeps its accepted turn
-command: the station learns its curvature). The probes stay within ``max_distance`` of where they started (a probe
-ends early at the bound and is measured over what it drove).
+response proportional near there): more than the probe's command for a vehicle weaker than the teacher, less for
+one that overshoots it (a learner beyond the teacher's range is outside the method's assumption, paper §3), never
+more than the vehicle accepts; the same for the turn rate on each side of a vehicle that turns in place (one that
+needs speed keeps its accepted turn command: the station learns its curvature). Each probe stays within
+``max_distance`` of where it started (it ends early at the bound and is measured over what it drove), and the
+whole plan within twice that of where it started (it stops there).
 
 Pure: time and pose are arguments (the station's tick gives them, :class:`bridge.nodes.sources.CalibrationSource`
 runs this plan as it runs the calibration plan); :meth:`IdentifyPlan.result` is the measurement.
@@ -33,6 +35,10 @@ from numpy.typing import ArrayLike, NDArray
 
 from transfer.calibration import CalibrationStep
 from transfer.domain import Bounds
+
+#: the measured range never ends below these (m/s, rad/s): a vehicle that overshoots its commands many times over
+#: keeps a range the station can still probe
+V_FLOOR, W_FLOOR = 0.1, 0.1
 
 
 @dataclass(frozen=True)
@@ -59,7 +65,7 @@ class IdentifyPlan:
     CalibrationPlan`; ``result()`` once :attr:`finished`."""
 
     def __init__(self, accepted: Bounds, teacher_top: tuple[float, float], *, v_low: float = 0.15,
-                 hold_s: float = 3.0, straight_s: float = 5.0, pause_s: float = 1.0, max_distance: float = 2.0,
+                 hold_s: float = 3.0, straight_s: float = 4.5, pause_s: float = 1.0, max_distance: float = 2.5,
                  window_s: float = 1.0) -> None:
         if hold_s <= window_s or max_distance <= 0 or pause_s < 0:
             raise ValueError("hold_s must exceed window_s; max_distance must be positive")
@@ -71,11 +77,13 @@ class IdentifyPlan:
         self.v_low = float(min(max(v_low, v0), self.v_probe))
         wl, wr = float(min(w1, wt)), float(max(w0, -wt))
         self.probes: list[tuple[str, NDArray[np.float64], float]] = [
+            ("straight", np.array([self.v_probe, 0.0]), straight_s),
             ("creep+", np.array([v0, wl]), hold_s), ("creep-", np.array([v0, wr]), hold_s),
-            ("turn+", np.array([self.v_low, wl]), hold_s), ("turn-", np.array([self.v_low, wr]), hold_s),
-            ("straight", np.array([self.v_probe, 0.0]), straight_s)]
+            ("turn+", np.array([self.v_low, wl]), hold_s), ("turn-", np.array([self.v_low, wr]), hold_s)]
+        self.w_probe = (wr, wl)
         self.pause_s, self.max_distance, self.window_s = float(pause_s), float(max_distance), float(window_s)
         self.start: NDArray[np.float64] | None = None
+        self.probe_start = np.zeros(3)
         self.index = 0
         self.phase = "pause"
         self.t_phase = 0.0
@@ -101,9 +109,11 @@ class IdentifyPlan:
         if self.phase == "pause":
             if now - self.t_phase < self.pause_s:
                 return CalibrationStep(np.array([0.0, 0.0]), "pause", self.index, self.total)
-            self.phase, self.t_phase = "probe", now
+            self.phase, self.t_phase, self.probe_start = "probe", now, x.copy()
+        if float(np.hypot(*(x[:2] - self.start[:2]))) > 2 * self.max_distance:
+            return self._finish(f"stopped at the distance bound ({2 * self.max_distance:g} m from the start)")
         self.samples.setdefault(name, []).append((now, float(x[0]), float(x[1]), float(x[2])))
-        out = float(np.hypot(*(x[:2] - self.start[:2]))) > self.max_distance
+        out = float(np.hypot(*(x[:2] - self.probe_start[:2]))) > self.max_distance
         if now - self.t_phase >= hold or out:
             self.index += 1
             self.phase, self.t_phase = "pause", now
@@ -158,7 +168,7 @@ class IdentifyPlan:
         v_st = reached.get("straight", (0.0, 0.0))[0]
         why = []
         if v_st > 0.02:
-            v_max = float(np.clip(self.v_probe * self.v_top_teacher / v_st, self.v_probe, v1))
+            v_max = float(np.clip(self.v_probe * self.v_top_teacher / v_st, min(self.v_probe, V_FLOOR), v1))
         else:
             v_max, _ = float(v1), why.append("the straight probe did not move: the accepted top speed kept")
         creep = [abs(reached.get(k, (0.0, 0.0))[1]) for k in ("creep+", "creep-")]
@@ -167,11 +177,11 @@ class IdentifyPlan:
         w_lo, w_hi = float(w0), float(w1)
         if turns_in_place:  # the command that reaches the teacher's top rate on each side, within what is accepted
             up, down = reached.get("turn+", (0.0, 0.0))[1], reached.get("turn-", (0.0, 0.0))[1]
-            cmd_up, cmd_down = float(self.probes[2][1][1]), float(self.probes[3][1][1])
+            cmd_down, cmd_up = self.w_probe
             if up > 0.02:
-                w_hi = float(np.clip(cmd_up * self.w_top_teacher / up, cmd_up, w1))
+                w_hi = float(np.clip(cmd_up * self.w_top_teacher / up, min(cmd_up, W_FLOOR), w1))
             if down < -0.02:
-                w_lo = float(np.clip(cmd_down * self.w_top_teacher / -down, w0, cmd_down))
+                w_lo = float(np.clip(cmd_down * self.w_top_teacher / -down, w0, max(cmd_down, -W_FLOOR)))
         t63, t90 = self._settling()
         return Identified(v_max=v_max, w_range=(w_lo, w_hi), turns_in_place=turns_in_place, settle_s=t63,
                           settle_top_s=t90, reached=reached, why="; ".join(why))

@@ -72,12 +72,17 @@ def sitl_hil(args: argparse.Namespace, demo: ModuleType) -> int:
     if first is None:
         return 1
     runs[role] = first
+    if first["interrupted"]:  # Ctrl-C (or SIGTERM) ends the demo, not only its first run
+        args = argparse.Namespace(**{**vars(args), "baseline": False})
+        reference = "none"
     if args.baseline and role == "learner":
         # the paper's baseline: the teacher's commands within what the vehicle accepts, nothing measured first
         b_args = argparse.Namespace(**{**vars(args), "transfer": "off", "limits": None, "identify": False})
         b = sitl_once(demo, b_args, binary, out / "baseline", "baseline")
         if b is not None:
             runs["baseline"] = b
+            if b["interrupted"]:
+                reference = "none"
     if reference == "auto" and role != "reference":
         ref_out = out / "reference"
         ref_out.mkdir(parents=True, exist_ok=True)
@@ -185,6 +190,7 @@ def sitl_once(demo: ModuleType, args: argparse.Namespace, binary: Path, out: Pat
     except SitlError as exc:
         raise UsageError(str(exc)) from None
     mon = None
+    interrupted = False
     ident = None
     accepted = None
     with ExitStack() as stack:
@@ -274,6 +280,7 @@ def sitl_once(demo: ModuleType, args: argparse.Namespace, binary: Path, out: Pat
             _watch(mon, kids, world, args.duration)
         except KeyboardInterrupt:
             print("\ninterrupted: stopping the demo's processes", file=sys.stderr)
+            interrupted = True
         except SitlError as exc:
             print(f"scmbridge demo: the pilot could not engage: {exc}", file=sys.stderr)
             return None
@@ -345,4 +352,4 @@ def sitl_once(demo: ModuleType, args: argparse.Namespace, binary: Path, out: Pat
     figure = out / "demo_trajectory.png"
     V.run_figure(figure, world, traj, role, args.sitl_model)
     return {"summary": summary, "figures": figures, "traj": traj, "pose": pose, "world": world, "out": out,
-            "figure": figure, "vehicle_params": params, "start": start}
+            "figure": figure, "vehicle_params": params, "start": start, "interrupted": interrupted}
