@@ -22,6 +22,8 @@ import numpy as np
 from bridge.core.errors import UsageError
 from bridge.tools import sitl_verdict as V
 
+#: the longest the identification may take before the mission (``--identify``), s
+IDENTIFY_S = 90.0
 #: the teacher's own range (paper Table 2): what an automatic reference is never given more of, m/s and deg/s
 TEACHER_V_MAX = 0.6
 TEACHER_W_MAX_DEG = 45.0
@@ -238,8 +240,10 @@ def sitl_once(demo: ModuleType, args: argparse.Namespace, binary: Path, out: Pat
         kids = stack.enter_context(Children())
         mon = Monitor(session, robot)
         try:
+            # the driver host outlives the identification (up to IDENTIFY_S) and the station's start-up too
+            extra = IDENTIFY_S if getattr(args, "identify", False) else 0.0
             kids.spawn(["driver", "--link", "mavlink", "--config", str(out / "driver.toml"), *client, "--duration",
-                        str(args.duration + 30)], logs["driver"])
+                        str(args.duration + 30 + extra)], logs["driver"])
             if not _wait_state(mon, "waiting", 60):
                 print(f"scmbridge demo: the driver host did not come up; see {out}/driver.log", file=sys.stderr)
                 return None
@@ -251,7 +255,7 @@ def sitl_once(demo: ModuleType, args: argparse.Namespace, binary: Path, out: Pat
             if getattr(args, "identify", False):
                 from bridge.tools.demo_identify import identify, settings
 
-                ident = identify(out / "station.toml", robot, port, world)
+                ident = identify(out / "station.toml", robot, port, world, timeout_s=IDENTIFY_S)
                 if ident is None:
                     print("scmbridge demo: the identification did not finish", file=sys.stderr)
                     return None
