@@ -1,8 +1,8 @@
 """A vehicle nobody tuned for, end to end on ArduPilot's Rover SITL (marked ``sitl``, ``make test-sitl``): one
 profile per frame drawn as the held-out half of ``scmbridge bench sitl`` is (sim_learner/sitl_profiles.py, from
 the next seed: a vehicle of the same family that no benchmark figure was made on), run as a person runs the demo
-(``--baseline``, the automatic reference): the transfer, the paper's baseline and the teacher on SITL itself, each
-on a freshly booted SITL, and the run's verdict (docs/BENCHMARKS.md "The transfer on SITL", "A family of
+(``--baseline``, the automatic reference, ``--identify``): the learner's range measured before the transfer, the
+paper's baseline and the teacher on SITL itself, each on a freshly booted SITL, and the run's verdict (docs/BENCHMARKS.md "The transfer on SITL", "A family of
 vehicles")."""
 
 from __future__ import annotations
@@ -37,7 +37,7 @@ def test_an_unseen_rover_drives_its_mission_with_the_transfer_and_the_run_says_w
         frame: str, tmp_path) -> None:
     profile = family(frame, seed=SEED + 1)[PROFILES[frame]]
     assert "WP_SPEED" in profile.params, profile
-    row = run_profile(profile, _binary(), tmp_path, 120.0, None)
+    row = run_profile(profile, _binary(), tmp_path, 120.0, None, identify=True)
     log = (tmp_path / "demo.log").read_text()
     assert "summary: " in log, log[-3000:]
     summary = json.loads([ln for ln in log.splitlines() if ln.startswith("summary: ")][-1][len("summary: "):])
@@ -51,6 +51,11 @@ def test_an_unseen_rover_drives_its_mission_with_the_transfer_and_the_run_says_w
     assert [ln.split()[1] for ln in verdicts] == ["goal:", "time:", "deviation:", "baseline:"], verdicts
     assert set(summary["verdicts"]) == {"goal", "time", "deviation", "baseline"}, summary
     assert (tmp_path / "run" / "demo_compare.png").stat().st_size > 0
+    # the range was measured, within what the vehicle accepts; a skid rover turns in place, a car does not
+    ident = summary["identified"]
+    assert summary["range"] == "measured" and ident["turns_in_place"] is (frame == "skid"), summary
+    assert 0.1 <= summary["learner_bounds"][0][1] <= summary["accepted_bounds"][0][1] + 1e-6, summary
+    assert summary["turn"] == ("in-place" if frame == "skid" else "needs-speed"), summary
     # the transfer: the goal, without collision, inside its corridor, and every claim judged
     assert summary["learner_reached_goal"] and not summary["learner_collided"], summary
     assert not summary["learner_left_corridor"] and summary["learner_max_dev_m"] < summary["corridor_m"], summary
