@@ -2,8 +2,8 @@
 profile per frame drawn as the held-out half of ``scmbridge bench sitl`` is (sim_learner/sitl_profiles.py, from
 the next seed: a vehicle of the same family that no benchmark figure was made on), run as a person runs the demo
 (``--baseline``, the automatic reference, ``--identify``): the learner's range measured before the transfer, the
-paper's baseline and the teacher on SITL itself, each on a freshly booted SITL, and the run's verdict (docs/BENCHMARKS.md "The transfer on SITL", "A family of
-vehicles")."""
+paper's baseline and the teacher on SITL itself, each on a freshly booted SITL, and the run's verdict
+(docs/BENCHMARKS.md "A family of vehicles")."""
 
 from __future__ import annotations
 
