@@ -11,7 +11,8 @@ what they measured; the accepted range only bounds it:
    how long it took to settle (what the station's pairing waits for, ``pair_settle_s``);
 2. ``creep+`` / ``creep-``: the lowest forward speed with the top turn command each way: a vehicle that turns as
    much at a crawl as at ``v_low`` turns in place; one whose turn falls with its speed needs speed (``turn``);
-3. ``turn+`` / ``turn-``: ``v_low`` with the top turn command each way: the turn rate reached on each side.
+3. ``turn+`` / ``turn-``: ``v_low`` with the top turn command each way from rest: the turn rate reached on each
+   side, and how long it took to settle (a car's turn waits for its speed and its steering).
 
 The range: the command that reaches the teacher's top (the probe's command scaled by what it reached, assuming a
 response proportional near there): more than the probe's command for a vehicle weaker than the teacher, less for
@@ -48,7 +49,7 @@ class Identified:
     v_max: float  # the learner's top forward command the transfer works with
     w_range: tuple[float, float]  # its turn command's range
     turns_in_place: bool
-    settle_s: float  # time for the speed to settle after a step (63 % of the way: the vehicle's lag)
+    settle_s: float  # time for the speed or the turn rate to settle after a step (63 % of the way: the lag)
     settle_top_s: float  # ... and to 90 % of the way from rest to the top (a step to an edge of the range)
     reached: dict[str, tuple[float, float]] = field(default_factory=dict)  # probe -> (speed, turn rate) measured
     why: str = ""
@@ -142,21 +143,25 @@ class IdentifyPlan:
         v = ((x1 - x0) * math.cos(mid) + (y1 - y0) * math.sin(mid)) / dt
         return float(v), float((heading[-1] - heading[0]) / dt)
 
-    def _settling(self) -> tuple[float, float]:
-        """From the straight probe's poses: seconds to 63 % and to 90 % of the speed it settled at."""
-        s = self.samples.get("straight", [])
+    def _settling(self, name: str = "straight") -> tuple[float, float]:
+        """From a probe's poses (from rest): seconds to 63 % and to 90 % of what it settled at, its forward speed
+        (``straight``) or its turn rate (a turn probe)."""
+        s = self.samples.get(name, [])
         if len(s) < 4:
             return 0.5, 0.5
         t = np.array([p[0] for p in s])
-        xy = np.array([[p[1], p[2]] for p in s])
-        speed = np.hypot(*np.diff(xy, axis=0).T) / np.maximum(np.diff(t), 1e-6)
+        if name == "straight":
+            xy = np.array([[p[1], p[2]] for p in s])
+            rate = np.hypot(*np.diff(xy, axis=0).T) / np.maximum(np.diff(t), 1e-6)
+        else:
+            rate = np.abs(np.diff(np.unwrap([p[3] for p in s]))) / np.maximum(np.diff(t), 1e-6)
         ts = 0.5 * (t[1:] + t[:-1]) - t[0]
-        top = float(np.median(speed[ts >= ts[-1] - self.window_s])) if len(speed) else 0.0
+        top = float(np.median(rate[ts >= ts[-1] - self.window_s])) if len(rate) else 0.0
         if top <= 0:
             return 0.5, 0.5
 
         def first(share: float) -> float:
-            above = np.nonzero(speed >= share * top)[0]
+            above = np.nonzero(rate >= share * top)[0]
             return float(ts[above[0]]) if above.size else float(ts[-1])
 
         return first(0.63), first(0.9)
@@ -182,7 +187,8 @@ class IdentifyPlan:
                 w_hi = float(np.clip(cmd_up * self.w_top_teacher / up, min(cmd_up, W_FLOOR), w1))
             if down < -0.02:
                 w_lo = float(np.clip(cmd_down * self.w_top_teacher / -down, w0, max(cmd_down, -W_FLOOR)))
-        t63, t90 = self._settling()
+        # the slower of the speed and the turn rate: a car's turn follows its speed and its steering both
+        t63, t90 = (max(x) for x in zip(*(self._settling(n) for n in ("straight", "turn+", "turn-"))))
         return Identified(v_max=v_max, w_range=(w_lo, w_hi), turns_in_place=turns_in_place, settle_s=t63,
                           settle_top_s=t90, reached=reached, why="; ".join(why))
 

@@ -72,7 +72,7 @@ def test_a_car_like_vehicle_needs_speed_to_turn_and_keeps_its_accepted_turn_comm
     got = plan.result()
     assert not got.turns_in_place and got.w_range == (-0.52, 0.52)
     assert got.v_max == pytest.approx(1.0, rel=0.1)
-    assert 0.5 < got.settle_s < 1.2 and got.settle_top_s > 1.5  # the slow body: its top after about 2 s
+    assert 0.5 < got.settle_s < 1.6 and got.settle_top_s > 1.5  # the slow body (its turn follows its speed)
     assert max(dists) <= 2 * plan.max_distance + 0.1
 
 
