@@ -131,6 +131,7 @@ COMMANDS: list[Command] = [
     _C("bench pairing", "bench.pairing", "a link's command pairs against the learner's true response (JSON)"),
     _C("bench estop", "bench.estop", "estop publish to the first applied stop, with the host's fsyncs slowed (JSON)"),
     _C("bench console", "bench.console", "how long the operator's status takes when every node answers (JSON)"),
+    _C("bench sitl", "bench.sitl", "the transfer on a family of ArduPilot Rover profiles, per profile (JSON, table)"),
     _C("bench perf", "bench.perf", "the quick benchmarks judged against their targets: CI's regression guard (JSON)"),
 ]
 BY_NAME = {c.name: c for c in COMMANDS}

@@ -20,7 +20,6 @@ import threading
 import time
 from collections import Counter
 from contextlib import ExitStack
-from pathlib import Path
 
 import numpy as np
 
@@ -213,11 +212,15 @@ class Monitor:
                 f"pairs={c.get('refined_pairs', 0)} dev={100 * dev:5.1f}cm "
                 f"progress={100 * s_arc / world.path.length:5.1f}% [{st.text}]")
 
-    def summary(self, world) -> dict | None:
+    def summary(self, world, corridor_m: float | None = None) -> dict | None:
         """The run's figures over its driving time, or None if it produced no telemetry: from the first command the
         vehicle executed to the goal (the mission's own rule on the poses), or to the last executed command; the
         time parked before and after it is reported apart, and neither its poses nor its stop commands count.
-        All times are the driver host's stamps (poses and applied echoes: one clock, whatever the machines)."""
+        All times are the driver host's stamps (poses and applied echoes: one clock, whatever the machines).
+        ``reached_goal`` is false for a run that left its corridor (any pose of it more than ``corridor_m``, default
+        :data:`bridge.tools.sitl_verdict.CORRIDOR_M`, from the path), whatever the goal rule said."""
+        from bridge.tools.sitl_verdict import CORRIDOR_M, corridor
+
         with self.lock:
             states = list(self.states)
             st = self.status.get("station")
@@ -232,6 +235,7 @@ class Monitor:
         traj = np.array([s[1:] for s in run])
         devs = np.array([world.path.project(p[:2])[1] for p in traj])
         collided = touched_an_obstacle(world, traj[:, :2])
+        lane = corridor(world.path.points, traj[:, :2], CORRIDOR_M if corridor_m is None else corridor_m)
         c = st.counters
         seqs = [a[2] for a in applied if a[2] is not None and t0 <= a[0] <= t1]
         if seqs and cmds:  # the commands of the driving time (not the stops parked at the goal)
@@ -240,7 +244,9 @@ class Monitor:
         else:
             methods = {k[7:]: v for k, v in c.items() if k.startswith("method_")}
         driving_s = driving_time(applied, t0, t1)
-        return {"reached_goal": bool(c.get("goal_reached", 0)) or goal is not None, "time_s": round(t1 - t0, 1),
+        goal_rule = bool(c.get("goal_reached", 0)) or goal is not None
+        return {"reached_goal": goal_rule and not lane["left_corridor"], "goal_rule_met": goal_rule, **lane,
+                "time_s": round(t1 - t0, 1),
                 "driving_s": round(driving_s, 1), "paused_s": round(max(0.0, t1 - t0 - driving_s), 1),
                 "parked_before_s": round(max(0.0, t0 - states[0][0]), 1),
                 "parked_after_s": round(max(0.0, states[-1][0] - t1), 1),
@@ -256,13 +262,15 @@ class Monitor:
                 "_traj": np.array([s[1:] for s in states])}
 
 
-def _figure(out, world, traj, link: str, mon: Monitor) -> None:
-    """The trajectory figure, coloured by each command's method (bridge/tools/demo_view.py)."""
+def _figure(out, world, traj, link: str, mon: Monitor, transfer: str = "on") -> None:
+    """The trajectory figure, coloured by each command's method (bridge/tools/demo_view.py), titled by what ran."""
     from bridge.tools.demo_view import methods_along, trajectory_figure
 
     with mon.lock:
         methods = methods_along(list(mon.states), list(mon.applied), dict(mon.cmds))
-    trajectory_figure(out, world, traj, methods, link.upper() if link.islower() else link)
+    title = "HIL demo: " + ("SC transfer of the teacher MPC" if transfer == "on"
+                            else "the paper's baseline (the teacher's commands unmapped)")
+    trajectory_figure(out, world, traj, methods, link.upper() if link.islower() else link, title)
 
 
 def _watch(mon: Monitor, kids, world, timeout: float) -> None:
@@ -326,14 +334,14 @@ def hil(args: argparse.Namespace, robot: str) -> int:
             _watch(mon, kids, world, args.duration)
         except KeyboardInterrupt:
             print("\ninterrupted: stopping the demo's processes", file=sys.stderr)
-    summary = mon.summary(world) if mon is not None else None
+    summary = mon.summary(world, corridor_m=args.corridor) if mon is not None else None
     if summary is None:
         print("the demo produced no telemetry; see the logs in", out, file=sys.stderr)
         return 1
     traj = summary.pop("_traj")
     summary.update(method_shares=method_shares(summary["methods"]), **({"calibration": cal} if cal else {}))
     print("summary:", json.dumps(summary))
-    _figure(out, world, traj, args.link, mon)
+    _figure(out, world, traj, args.link, mon, args.transfer)
     from bridge.tools.pairs_cli import pairs_figure
 
     pairs_figure(store, out / "demo_pairs.png")  # what was learned: command domains, limits, refined pairs
@@ -351,197 +359,6 @@ def _wait_state(mon, state: str, timeout: float) -> bool:
             return True
         time.sleep(0.05)
     return False
-
-
-def sitl_hil(args: argparse.Namespace, robot: str = "sitl") -> int:
-    """``--sitl``: ArduPilot's Rover SITL as the learner (:mod:`bridge.tools.demo_sitl` says how). Boot SITL, engage
-    as the pilot, run the station and the driver host on MAVLink, print one JSON summary."""
-    from bridge.core.config import load_mission_spec, load_station, mission_from_spec
-    from bridge.nodes.zsession import free_port, make_config, open_session, tcp
-    from bridge.tools.demo_sitl import (
-        PAIR_SETTLE_ACKERMANN_S,
-        PAIR_SETTLE_EDGE_ACKERMANN_S,
-        PAIR_SETTLE_S,
-        REPORTED_PARAMS,
-        ParamChanges,
-        learned_limits,
-        learner_range,
-        mission_toml,
-        param_change,
-        place_mission,
-        start_on_path,
-        teacher_reference,
-    )
-    from bridge.tools.procs import Children
-    from sim_learner.sitl import Sitl, SitlError
-
-    if args.link not in (None, "mavlink"):
-        raise UsageError("--sitl is ArduPilot's Rover: it takes --link mavlink")
-    binary = Path(args.sitl)
-    binary = binary / "ardurover" if binary.is_dir() else binary
-    if not binary.is_file():
-        raise UsageError(f"--sitl {args.sitl}: no ArduPilot SITL binary there")
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    store = out / "pairs.bin"
-    store.unlink(missing_ok=True)  # from no pairs at all, as the paper's case
-    spec = load_mission_spec(args.mission)
-    ackermann = args.sitl_model == "rover"
-    settle = ((PAIR_SETTLE_ACKERMANN_S if ackermann else PAIR_SETTLE_S) if args.pair_settle is None
-              else float(args.pair_settle))
-    settle_edge = PAIR_SETTLE_EDGE_ACKERMANN_S if ackermann and args.pair_settle is None and settle > 0 else 0.0
-    if not 0.0 <= settle <= 5.0:
-        raise UsageError(f"--pair-settle {settle}: between 0 and 5 s")
-    ref = teacher_reference(args.teacher_ref) if args.teacher_ref else None
-    changes = [param_change(x) for x in args.param_at]
-    # an Ackermann rover cannot turn in place: its yaw-rate limits are curvatures (docs/BENCHMARKS.md)
-    turn = args.turn or ("needs-speed" if ackermann else "in-place")
-    start = args.start or ("on-path" if turn == "needs-speed" else "mission")
-    if start == "on-path":
-        spec = start_on_path(spec)
-    t_wall = time.monotonic()
-    try:
-        sitl = Sitl(binary, model=args.sitl_model, parm_files=[args.sitl_params] if args.sitl_params else ())
-    except SitlError as exc:
-        raise UsageError(str(exc)) from None
-    mon = None
-    with ExitStack() as stack:
-        try:
-            stack.enter_context(sitl)
-        except SitlError as exc:
-            print(f"scmbridge demo: SITL did not boot: {exc}", file=sys.stderr)
-            return 1
-        pilot = sitl.pilot
-        assert pilot is not None
-        changer = ParamChanges(pilot, changes)
-        params = {n: pilot.param(n) for n in REPORTED_PARAMS}
-        v_range, w_range = learner_range(params)
-        with pilot.cond:
-            p, att = pilot.s.position, pilot.s.attitude
-        pose = (float(p.y), float(p.x), math.pi / 2 - float(att.yaw))  # NED -> ENU, as the MAVLink driver does
-        placed = place_mission(spec, pose)
-        world = mission_from_spec(placed)
-        (out / "mission.toml").write_text(mission_toml(placed))
-        (out / "station.toml").write_text(
-            f'robot = "{robot}"\n\n[learner_bounds]\nv = [{v_range[0]!r}, {v_range[1]!r}]\n'
-            f"w = [{w_range[0]!r}, {w_range[1]!r}]\n\n[station]\npair_settle_s = {settle!r}\n"
-            + (f"pair_settle_edge_s = {settle_edge!r}\n" if settle_edge > settle else "") + "\n"
-            + transfer_table(args.transfer, args.limits)
-            + ("adapt = true\n" if args.adapt else "")
-            + (f'turn_probe = "{args.turn_probe}"\n' if args.turn_probe != "at-command" else "")
-            + (f'turn = "{turn}"\n' if turn != "in-place" else "")
-            + teacher_table(args))
-        (out / "driver.toml").write_text(
-            f'robot = "{robot}"\n\n[driver.hard_limits]\nv = [{-v_range[1]!r}, {v_range[1]!r}]\n'
-            f"w = [{w_range[0]!r}, {w_range[1]!r}]\n\n[link.mavlink]\nurl = \"{sitl.driver_url}\"\nrate_hz = 20\n")
-        print(f"SITL {args.sitl_model} instance {sitl.instance} booted in {sitl.boot_s:.1f} s; vehicle {params}; "
-              f"learner v {v_range} m/s, omega ({w_range[0]:.3f}, {w_range[1]:.3f}) rad/s; mission placed at "
-              f"({pose[0]:.2f}, {pose[1]:.2f}, {pose[2]:.2f})", flush=True)
-        port = free_port()
-        client = ["--robot", robot, "--mode", "client", "--connect", tcp(port)]
-        logs = {name: stack.enter_context(open(out / f"{name}.log", "w")) for name in ("driver", "station")}
-        session = stack.enter_context(open_session(make_config(mode="router", listen=[tcp(port)])))
-        kids = stack.enter_context(Children())
-        mon = Monitor(session, robot)
-        try:
-            kids.spawn(["driver", "--link", "mavlink", "--config", str(out / "driver.toml"), *client, "--duration",
-                        str(args.duration + 30)], logs["driver"])
-            if not _wait_state(mon, "waiting", 60):
-                print(f"scmbridge demo: the driver host did not come up; see {out}/driver.log", file=sys.stderr)
-                return 1
-            pilot.set_mode("GUIDED")  # the person engages: GUIDED and armed from the ground station
-            pilot.arm(True)
-            if not _wait_state(mon, "driving", 10):
-                print("scmbridge demo: the driver host did not take the pilot's engage", file=sys.stderr)
-                return 1
-            kids.spawn(["station", *client, "--config", str(out / "station.toml"), "--start", "--store", str(store),
-                        "--exit-at-goal", "--duration", str(args.duration), "--mission", str(out / "mission.toml")],
-                       logs["station"])
-            changer.start(None, after=mon.driving)  # --param-at counts from the first command driven
-            _watch(mon, kids, world, args.duration)
-        except KeyboardInterrupt:
-            print("\ninterrupted: stopping the demo's processes", file=sys.stderr)
-        except SitlError as exc:
-            print(f"scmbridge demo: the pilot could not engage: {exc}", file=sys.stderr)
-            return 1
-        finally:
-            changer.stop()
-    # the processes are gone (the driver host stopped and disarmed the vehicle), and so is SITL
-    run = mon.summary(world) if mon is not None else None
-    if run is None:
-        print("the demo produced no telemetry; see the logs in", out, file=sys.stderr)
-        return 1
-    traj = run.pop("_traj")
-    with mon.lock:
-        states = list(mon.states)
-        applied = list(mon.applied)
-    driving = [a[0] for a in applied if a[1] in ("cmd", "clamped")]
-    t0 = driving[0] if driving else states[0][0]
-    poses = np.array([s[1:3] for s in states if s[0] >= t0 and s[0] <= t0 + run["time_s"] + 1e-6]) if states else None
-    dev_last_half = collided = None
-    devs_at: list[tuple[float, float]] = []  # (stamp, deviation) of the driving time
-    if poses is not None and len(poses):
-        prog = np.array([world.path.project(q)[0] / world.path.length for q in poses])
-        dev = np.array([world.path.project(q)[1] for q in poses])
-        devs_at = list(zip([s[0] for s in states if t0 <= s[0] <= t0 + run["time_s"] + 1e-6], dev.tolist()))
-        dev_last_half = float(dev[prog >= 0.5].mean()) if (prog >= 0.5).any() else None
-        collided = touched_an_obstacle(world, poses)
-    with mon.lock:
-        st = mon.status.get("station")
-    relearned = st.counters.get("cells_relearned") if st is not None else None
-    edges = st.counters.get("limits_relearned", 0) if st is not None else None
-    changed = []
-    for at, name, value, err in changer.done:  # the learner changed mid-run: the deviation before and after
-        before = [d for t, d in devs_at if at - 20.0 <= t < at]
-        after = [d for t, d in devs_at if t >= at + 15.0]
-        box = mon.limits_at(at)  # what the station had learned of the vehicle before it changed
-        changed.append({"at_s": round(at - t0, 1), "name": name, "value": value, "error": err or None,
-                        "read_back": changer.read_back.get(name),
-                        "dev_before_m": round(float(np.mean(before)), 4) if before else None,
-                        "dev_after_m": round(float(np.mean(after)), 4) if after else None,
-                        "limits_before": None if box is None else
-                        {"v": [round(x, 4) for x in box[:2]], "w": [round(x, 4) for x in box[2:]]}})
-    from sim_learner.experiments import reference_figures
-
-    sim = reference_figures(False)["teacher"]  # the ideal teacher on the same path, simulated (sim mpc's)
-    teacher = ref if ref is not None else {**sim, "source": "simulated ideal teacher (scmbridge sim mpc)"}
-    scm_time = run["time_s"] if run["reached_goal"] else None
-
-    def ratio(a: float | None, b: float | None) -> float | None:
-        return a / b if a is not None and b else None
-
-    summary = {
-        "experiment": "mpc-sitl", "model": args.sitl_model, "transfer": args.transfer,
-        "limits": args.limits or TRANSFER[args.transfer][2],
-        "reached_goal": run["reached_goal"], "scm_reached_goal": run["reached_goal"],
-        "teacher_time_s": teacher["time_s"], "teacher_dev_last_half_m": teacher["dev_last_half_m"],
-        "teacher_reference": teacher["source"],
-        "scm_time_s": scm_time, "scm_dev_last_half_m": dev_last_half,
-        "scm_time_ratio": ratio(scm_time, teacher["time_s"]),
-        "scm_dev_ratio": ratio(dev_last_half, teacher["dev_last_half_m"]),
-        "sim_teacher_time_s": sim["time_s"], "sim_teacher_dev_last_half_m": sim["dev_last_half_m"],
-        "scm_time_ratio_sim": ratio(scm_time, sim["time_s"]),
-        "collisions": {"teacher": teacher["collided"], "scm": collided},
-        "method_counts": run["methods"], "refined_pairs": run["refined_pairs"], "raw_pairs": run["raw_pairs"],
-        "pair_settle_s": settle, "pair_settle_edge_s": max(settle_edge, settle),
-        "learned_limits": learned_limits(store), "adapt": bool(args.adapt),
-        "curve_margin": args.curve_margin, "turn": turn, "start": start,
-        "turn_probe": load_station(out / "station.toml").transfer.probe_turns(),  # what the station does
-        "cells_relearned": relearned, "limits_relearned": edges, "param_changes": changed,
-        "max_dev_m": run["max_dev_m"], "goal_dist_m": run["goal_dist_m"], "driving_s": run["driving_s"],
-        "guard_stops": run["guard_stops"],  # when and where a guard of the station's stopped it
-        "learner_bounds": [list(v_range), list(w_range)], "vehicle_params": params,
-        "missed_deadlines": run["missed_deadlines"], "boot_s": round(sitl.boot_s, 1),
-        "wall_s": round(time.monotonic() - t_wall, 1)}
-    print("summary:", json.dumps(summary))
-    (out / "summary.json").write_text(json.dumps(summary, indent=1) + "\n")  # what --teacher-ref reads
-    _figure(out, world, traj, "MAVLink (ArduPilot SITL)", mon)
-    from bridge.tools.pairs_cli import pairs_figure
-
-    pairs_figure(store, out / "demo_pairs.png")  # what was learned on ArduPilot's own firmware, as the demo's
-    print(f"figures: {out / 'demo_trajectory.png'}, {out / 'demo_pairs.png'}; pair store: {store}; logs: "
-          f"{out}/*.log")
-    return 0 if run["reached_goal"] else 1
 
 
 def _fleet_line(mons: dict[str, Monitor], world, t: float) -> str:
@@ -572,10 +389,10 @@ def _fleet_line(mons: dict[str, Monitor], world, t: float) -> str:
                    f"max {max(progress):.0f}% ({len(progress)}/{len(mons)} reporting)")
 
 
-def _robot_summary(mon: Monitor, world) -> dict | None:
+def _robot_summary(mon: Monitor, world, corridor_m: float | None = None) -> dict | None:
     """:meth:`Monitor.summary` of one robot of the fleet: its figures already stop at its goal (its driver host
     keeps publishing poses there while the other robots drive on)."""
-    return mon.summary(world)
+    return mon.summary(world, corridor_m=corridor_m)
 
 
 def _fleet_figure(out, world, trajs: dict[str, np.ndarray], link: str) -> None:
@@ -660,7 +477,7 @@ def fleet(args: argparse.Namespace, robots: list[str]) -> int:
         except KeyboardInterrupt:
             interrupted = True
             print("\ninterrupted: stopping the demo's processes", file=sys.stderr)
-    summaries: dict[str, dict | None] = {r: _robot_summary(mons[r], world) if r in mons else None
+    summaries: dict[str, dict | None] = {r: _robot_summary(mons[r], world, args.corridor) if r in mons else None
                                         for r in robots}
     trajs = {}
     for robot in robots:
@@ -724,11 +541,23 @@ def arguments(ap: argparse.ArgumentParser) -> None:
                     help="(--sitl) the station's [station] pair_settle_s: pairs only where the command had been "
                          "steady S seconds (default 0.5 for SITL's lagging skid body; 1 for its Ackermann body, and "
                          "2.5 for its commands on an edge of its range; 0: every pair, as the paper)")
-    ap.add_argument("--teacher-ref", default=None, metavar="SUMMARY.json",
-                    help="(--sitl) the summary of the teacher driving SITL itself (a stock rover given the learner's "
-                         "range, --transfer off --limits learned): "
-                         "its time and deviation become teacher_time_s and teacher_dev_last_half_m (default: the "
-                         "simulated teacher's)")
+    ap.add_argument("--reference", default=None, metavar="auto|none|SUMMARY.json",
+                    help="(--sitl) what the run is judged against: auto (the default) runs the teacher on SITL "
+                         "itself after it, the stock rover of the same frame given the range the run learned "
+                         "(--transfer off --limits learned); SUMMARY.json, the summary of such a run made before; "
+                         "none, no reference (the time and deviation verdicts say n/a)")
+    ap.add_argument("--teacher-ref", default=None, metavar="SUMMARY.json", help=argparse.SUPPRESS)
+    ap.add_argument("--baseline", action="store_true",
+                    help="(--sitl, --transfer on) also run the paper's baseline (--transfer off) on a fresh SITL and "
+                         "judge the transfer against it; one figure then shows reference, transfer and baseline")
+    ap.add_argument("--identify", action="store_true",
+                    help="(--sitl) measure the learner's range before the mission (bounded probes each way and "
+                         "straight, by the station's own loop): its top speed and turn rates, whether it turns in "
+                         "place, how long it settles; the vehicle's parameters only bound it, and --turn, --start and "
+                         "--pair-settle follow from it unless given")
+    ap.add_argument("--corridor", type=positive_float, default=1.0, metavar="M",
+                    help="a run that took any pose more than M metres from the path did not reach its goal, "
+                         "whatever the goal rule said (default 1.0)")
     ap.add_argument("--param-at", action="append", default=[], metavar="S:NAME=VALUE",
                     help="(--sitl) set the vehicle's parameter NAME to VALUE S seconds after the vehicle first "
                          "drove a command of the station (PARAM_SET from the ground station, confirmed by its "
@@ -787,10 +616,14 @@ def run(args: argparse.Namespace) -> int:
     if args.sitl is None and (args.turn is not None or args.start is not None):
         raise UsageError("--turn and --start set the SITL demo's station and mission: they take --sitl")
     check_calibrate(args, robots)
+    if args.sitl is None and (args.baseline or args.reference is not None or args.teacher_ref is not None):
+        raise UsageError("--baseline and --reference add runs on SITL: they take --sitl")
     if args.inprocess:
         return inprocess(args)
     if args.sitl is not None:
-        return sitl_hil(args)
+        from bridge.tools.demo_sitl_run import sitl_hil
+
+        return sitl_hil(args, sys.modules[__name__])
     if args.link is None:
         args.link = "can"
     return hil(args, robots[0]) if len(robots) == 1 and not args.count else fleet(args, robots)

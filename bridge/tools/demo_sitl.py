@@ -1,5 +1,5 @@
-"""The parts of ``scmbridge demo --sitl PATH`` (:func:`bridge.tools.demo.sitl_hil`) that are its own: the paper's
-MPC case (Section 5.2) with ArduPilot's real Rover firmware in SITL as the learner, over the MAVLink link
+"""The parts of ``scmbridge demo --sitl PATH`` (:func:`bridge.tools.demo_sitl_run.sitl_hil`) that are its own: the
+paper's MPC case (Section 5.2) with ArduPilot's real Rover firmware in SITL as the learner, over the MAVLink link
 (docs/ARCHITECTURE.md §7).
 
 What a lab would do with a real rover, in order: the autopilot boots (:class:`sim_learner.sitl.Sitl`: own
@@ -8,9 +8,10 @@ parameters (the speed GUIDED is capped at, ``WP_SPEED``, and the turn-rate limit
 paper's Jackal's; the mission is placed where the vehicle stands (a robot starts where
 it is: the mission's start pose is moved onto the vehicle's pose, path and obstacles with it); the driver host
 starts not engaged and the pilot engages it by selecting GUIDED and arming from the ground station; the station
-starts from an empty pair store and drives the S-path to the goal. One JSON line sums the run up with the field
-names of ``scmbridge sim mpc`` (the ideal teacher's figures are that simulation's, on the same path, unless
-``--teacher-ref`` names the summary of the teacher driving SITL itself).
+starts from an empty pair store and drives the S-path to the goal. Then, by default, the teacher drives SITL itself
+(``--reference auto``) and, with ``--baseline``, the paper's baseline does; one JSON line sums the runs up, its
+fields named by role (``learner_*``, ``baseline_*``, ``reference_*``), with one verdict line per claim
+(:mod:`bridge.tools.sitl_verdict`).
 
 SITL's body lags its command (the skid rover about 0.3 s to its speed), unlike the paper's learners, which answer
 within a tick: a pair formed over the 0.1 s after a command changed says the vehicle reaches less than it does, and
@@ -79,11 +80,14 @@ def teacher_reference(path: str | Path) -> dict[str, Any]:
         ref = json.loads(lines[-1] if lines else text)
     except json.JSONDecodeError as exc:
         raise UsageError(f"--teacher-ref {path}: not a demo summary ({exc})") from None
-    if not ref.get("reached_goal") or ref.get("scm_time_s") is None or ref.get("scm_dev_last_half_m") is None:
-        raise UsageError(f"--teacher-ref {path}: that run did not reach the goal, it is no teacher's reference")
+    role = ref.get("role", "learner" if ref.get("transfer") == "on" else "reference")
+    pre = role if f"{role}_time_s" in ref else "scm"  # a summary from before the fields were named by role
+    t, d = ref.get(f"{pre}_time_s"), ref.get(f"{pre}_dev_last_half_m")
+    if not ref.get("reached_goal") or t is None or d is None:
+        raise UsageError(f"--reference {path}: that run did not reach the goal, it is no teacher's reference")
+    collided = ref.get(f"{pre}_collided", ref.get("collisions", {}).get("scm"))
     params = ref.get("vehicle_params", {})
-    return {"time_s": ref["scm_time_s"], "dev_last_half_m": ref["scm_dev_last_half_m"],
-            "collided": bool(ref.get("collisions", {}).get("scm")),
+    return {"time_s": t, "dev_last_half_m": d, "collided": bool(collided),
             "source": f"SITL {ref.get('model')} (WP_SPEED {params.get('WP_SPEED')}, ATC_STR_RAT_MAX "
                       f"{params.get('ATC_STR_RAT_MAX')}), transfer {ref.get('transfer')}, limits "
                       f"{ref.get('limits', 'learned')}: {Path(path).name}"}

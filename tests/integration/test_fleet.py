@@ -163,6 +163,9 @@ def test_the_fleet_summary_says_how_far_from_the_goal_point_a_robot_stopped() ->
     mon.lock = threading.Lock()
     mon.status = {"station": M.Status(stamp=1.0, seq=0, node="station", counters={"goal_reached": 1})}
     mon.applied, mon.cmds = [], {}
+    from bridge.tools.guard_log import GuardLog
+
+    mon.guards = GuardLog()
     mon.states = [(t, 0.3 + 5.8 * t, 2.3 * t, 0.0) for t in np.linspace(0.0, 1.0, 50)]
     wide = _robot_summary(mon, world)
     assert not world.reached([6.1, 2.3])  # passing the path's end 3 m away is not reaching the goal

@@ -32,8 +32,9 @@ RUN_HERE = {"config show", "config check", "deploy certs", "deploy lab", "deploy
 #: of a file run here
 NEEDS_LAB = {"doctor", "engage", "mission start", "mission send", "status", "estop", "demo", "pairs show",
              "pairs plot", "record", "replay", "report", "calibrate", "mission place", "router", "station"}
-#: need a robot, root or the network: not run here
-NEEDS_HARDWARE: set[str] = set()
+#: need a robot, root, the network or ArduPilot's SITL for an hour: not run here (``bench sitl``'s runs are
+#: tests/integration/test_sitl_profiles.py's, marked ``sitl``)
+NEEDS_HARDWARE: set[str] = {"bench sitl"}
 
 
 def _blocks(path: Path) -> list[str]:

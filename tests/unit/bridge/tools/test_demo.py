@@ -198,3 +198,21 @@ def test_a_run_touched_an_obstacle_when_the_vehicles_disc_at_any_pose_reaches_on
     assert not touched_an_obstacle(world, clear)
     assert touched_an_obstacle(world, [*clear, [2.0, 1.0 - 0.3 - VEHICLE_RADIUS + 0.01]])
     assert not touched_an_obstacle(world, [])
+
+
+def test_a_run_that_left_its_corridor_did_not_reach_its_goal_whatever_the_goal_rule_said() -> None:
+    """A runaway that came back to the goal (a loop far past it, as an untuned Ackermann rover drove): the goal rule
+    is met and the station counted the goal, yet the run left its corridor, so it did not reach its goal."""
+    run = Run()
+    t = 0.0
+    loop = [(0.5, 0.0), (0.9, 0.5), (0.9, 2.0), (0.5, 3.0), (0.2, 1.5), (0.6, 0.2), (1.0, 0.0)]  # 3 m off the line
+    for k, (x, y) in enumerate(loop):
+        run.applied(t, "cmd", k + 1)
+        run.state(t + 0.04, x, y)
+        t += 1.0
+    run.station(goal_reached=1)
+    s = run.mon.summary(LINE)
+    assert s["goal_rule_met"] is True and s["left_corridor"] is True and s["reached_goal"] is False
+    assert s["corridor_m"] == 1.0 and s["max_path_dist_m"] == pytest.approx(3.0)
+    wide = run.mon.summary(LINE, corridor_m=3.5)  # a corridor that holds the loop: the goal counts
+    assert wide["reached_goal"] is True and wide["left_corridor"] is False
