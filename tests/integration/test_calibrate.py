@@ -90,7 +90,9 @@ def test_the_motion_primitive_teacher_drives_from_calibrated_pairs(tmp_path) -> 
     port, robot = free_port(), f"prim{os.getpid()}"
     client = ["--robot", robot, "--mode", "client", "--connect", tcp(port)]
     store, cfg = tmp_path / "pairs.bin", tmp_path / "station.toml"
-    cfg.write_text('[teacher]\nkind = "primitives"\n')
+    # the calibration may leave the robot up to --max-distance from where it started, so off the path: the corridor
+    # (docs/OPERATING.md) is as wide as that, or the teacher's first steps back would leave it
+    cfg.write_text('[station]\ncorridor_m = 3.0\n\n[teacher]\nkind = "primitives"\n')
     x0 = ",".join(f"{a:.6f}" for a in mission.start)
     with open_session(make_config(mode="router", listen=[tcp(port)])) as session, Children() as kids:
         col = Collector(session)
