@@ -743,8 +743,8 @@ class _LatchRig:
         from bridge.core import wire as M
         from bridge.core.acts import stamped
 
-        host.on_estop(stamped(M.Estop(stamp=time.monotonic(), engaged=engaged, source="operator", reason="attack")),
-                      time.monotonic())
+        host.on_estop(stamped(M.Estop(stamp=time.monotonic(), engaged=engaged, source="operator", reason="attack"),
+                              host.acts.address(time.monotonic())), time.monotonic())
         done = threading.Event()
         if host.latch.defer(done.set):
             done.wait(5.0)
@@ -1033,10 +1033,13 @@ def replayed_engage_and_release(short: bool) -> Result:
 
     out: dict = {}
     with _ZenohHost() as rig, _Station(rig, 0.3):
-        engage = M.encode(stamped(M.EngageRequest(stamp=1.0, source="operator")))  # recorded
+        def to():  # the host's address, as its answers give it to the person's tool
+            return rig.host.acts.address(time.monotonic())
+
+        engage = M.encode(stamped(M.EngageRequest(stamp=1.0, source="operator"), to()))  # recorded
         ans = rig.engage(engage)
         first = {"engage_engaged": bool(ans and ans.engaged)}  # the recording is potent
-        release = M.encode(stamped(M.Estop(stamp=1.0, engaged=False, source="operator")))
+        release = M.encode(stamped(M.Estop(stamp=1.0, engaged=False, source="operator"), to()))
         rig.attacker.put(rig.keys.estop, M.encode(M.Estop(stamp=1.0, source="operator", reason="attack")))
         until(lambda: rig.host.gate.estopped, 2.0)
         rig.attacker.put(rig.keys.estop, release)  # the person's release, recorded off the network
@@ -1046,7 +1049,7 @@ def replayed_engage_and_release(short: bool) -> Result:
         rig.attacker.put(rig.keys.estop, M.encode(M.Estop(stamp=1.0, source="operator", reason="parked")))
         until(lambda: rig.host.gate.estopped, 2.0)
         start, t0 = position(rig.vehicle), time.monotonic()
-        stale = dict(stamp=1.0, wall_time=time.time() - 60.0)
+        stale = dict(stamp=1.0, target=rig.host.acts.epoch, echo=max(1e-3, time.monotonic() - 60.0))
         for kind, rel, eng in (
                 ("replayed", release, engage),
                 ("stale", M.encode(M.Estop(engaged=False, source="operator", nonce=M.new_nonce(), **stale)),
@@ -1062,9 +1065,10 @@ def replayed_engage_and_release(short: bool) -> Result:
         driven = sum(a.v != 0.0 for a in rig.since(t0))
         refused = {k: v for k, v in rig.host.inputs.snapshot().items() if "refused" in k and v}
         # the control: the person's own tool (fresh, a new nonce) releases and engages, and the station drives
-        rig.attacker.put(rig.keys.estop, M.encode(stamped(M.Estop(stamp=1.0, engaged=False, source="operator"))))
+        rig.attacker.put(rig.keys.estop, M.encode(stamped(M.Estop(stamp=1.0, engaged=False, source="operator"),
+                                                          to())))
         until(lambda: not rig.host.gate.estopped, 2.0)
-        ans = rig.engage(M.encode(stamped(M.EngageRequest(stamp=1.0, source="operator"))))
+        ans = rig.engage(M.encode(stamped(M.EngageRequest(stamp=1.0, source="operator"), to())))
         t1 = time.monotonic()
         control = bool(ans and ans.engaged) and until(lambda: any(a.v != 0.0 for a in rig.since(t1)), 2.0)
     took = any(r["released"] or r["engaged"] for r in out.values())
@@ -1085,7 +1089,8 @@ def forger_at_seq_plus_one(short: bool) -> Result:
     from bridge.core.acts import stamped
 
     with _ZenohHost() as rig, _Station(rig, 0.2):
-        rig.engage(M.encode(stamped(M.EngageRequest(stamp=1.0, source="operator"))))
+        rig.engage(M.encode(stamped(M.EngageRequest(stamp=1.0, source="operator"),
+                                    rig.host.acts.address(time.monotonic()))))
         drove = until(lambda: any(a.v == 0.2 for a in rig.since(0.0)), 3.0)  # the station drives it
         sent = [0]
         stop = threading.Event()

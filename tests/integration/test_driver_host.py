@@ -466,8 +466,8 @@ def _estop(host, engaged: bool = True, source: str = "operator") -> None:
     """An estop as the person's tool sends it (a release fresh and with its nonce: bridge/core/acts.py)."""
     from bridge.core.acts import stamped
 
-    host.on_estop(stamped(M.Estop(stamp=time.monotonic(), engaged=engaged, source=source, reason="test")),
-                  time.monotonic())
+    host.on_estop(stamped(M.Estop(stamp=time.monotonic(), engaged=engaged, source=source, reason="test"),
+                          host.acts.address(time.monotonic())), time.monotonic())
     wait_saved(host.latch)
 
 
