@@ -50,6 +50,8 @@ TRY_TIMEOUT_S = 0.5
 DISCOVER_S = 1.2
 #: names printed in one line at most (the rest counted)
 SHOWN = 12
+#: names that never answered sent a stop of their own at each try of ``--all`` at most (the wildcard reaches all)
+SILENT_SENT = 64
 ALL = f"{M.PREFIX}/*/estop"
 
 
@@ -119,18 +121,20 @@ def send(session: zenoh.Session, robots: list[str], msg: M.Estop, wildcard: bool
 
 
 def confirm(session: zenoh.Session, robots: list[str], msg_for, engaged: bool, deadline: float,
-            wildcard: bool = False) -> dict[str, dict[str, M.EstopState]]:
+            wildcard: bool = False, named: frozenset[str] = frozenset()) -> dict[str, dict[str, M.EstopState]]:
     """Ask every robot at once and send the estop again to each robot not yet confirmed (a release addressed to
-    each of its driver hosts: ``msg_for(address)``), until all confirm or the deadline passes. Returns
-    ``{robot: {robot/node: state}}`` of the last answers (empty for a robot that never answered)."""
+    each of its driver hosts: ``msg_for(address)``), until all confirm or the deadline passes. With ``wildcard``
+    (``--all``) a stop goes on ``scm/*/estop`` and to each robot that answered or is ``named`` (the fleet), and to
+    at most :data:`SILENT_SENT` names that never answered (thousands of puts to fake names queue ahead of the real
+    answers). Returns ``{robot: {robot/node: state}}`` of the last answers (empty for a robot that never
+    answered)."""
     answers: dict[str, dict[str, M.EstopState]] = {r: {} for r in robots}
 
     def unconfirmed() -> list[str]:
         return [r for r in robots if not answers[r] or any(st.latched != engaged for st in answers[r].values())]
 
-    def ask(pending: list[str]) -> None:
-        left = deadline - time.monotonic()
-        got = ask_all(session, pending, max(0.05, min(TRY_TIMEOUT_S, left)), wildcard)
+    def ask(pending: list[str]) -> None:  # each try waits a whole try's time: the last one too
+        got = ask_all(session, pending, TRY_TIMEOUT_S, wildcard)
         for robot in pending:
             if got.get(robot):
                 answers[robot] = got[robot]
@@ -139,7 +143,11 @@ def confirm(session: zenoh.Session, robots: list[str], msg_for, engaged: bool, d
     if not engaged:
         ask(pending)  # a release names the start of each host it is for: learn them first
     while pending:
-        for robot in pending:
+        if engaged and wildcard:  # one stop every host hears, then each robot that answered or is named
+            silent = [r for r in pending if not answers[r] and r not in named]
+            send(session, [r for r in pending if answers[r] or r in named] + silent[:SILENT_SENT], msg_for(None),
+                 wildcard=True)
+        for robot in pending if not wildcard or not engaged else ():
             if engaged:
                 session.put(M.key(robot, "estop"), M.encode(msg_for(None)))
             for st in answers[robot].values() if not engaged else ():
@@ -208,15 +216,13 @@ def run(args: argparse.Namespace) -> int:
         robots, strangers = named, []
         if args.all:
             found = sorted(known_robots(session, DISCOVER_S) - set(named))
-            if engaged:
-                send(session, found, msg_for(None))
             robots = sorted(set(named) | set(found))
             if not robots:
                 print(f"scmbridge estop: no robot found (no answer on {ALL}, no liveliness token, no status)",
                       file=sys.stderr)
                 return 1
         answers = confirm(session, robots, msg_for, engaged, max(deadline, time.monotonic() + TRY_TIMEOUT_S),
-                          wildcard=args.all)
+                          wildcard=args.all, named=frozenset(named))
         if fleet:  # names the fleet does not list, which never answered: not the lab's robots
             strangers = [r for r in robots if r not in fleet and not answers[r]]
             robots = [r for r in robots if r not in strangers]
@@ -243,9 +249,14 @@ def report(args: argparse.Namespace, conf, robots: list[str], strangers: list[st
             if len(denied) < SHOWN:
                 print(f"{robot}: {why}", file=sys.stderr)
             denied.append(robot)
-        elif not states:
+            continue
+        if not states:
             silent.append(robot)
-        elif args.release and any(st.release_refused for st in states.values()):  # the host says why
+            continue
+        for name, st in sorted(states.items()):  # not denied: the host's own answer, said as not this estop's
+            state = f"LATCHED by {st.source or 'unknown'}" if st.latched else "released"
+            print(f"{name}: still {state} (not confirmed)", file=sys.stderr)
+        if args.release and any(st.release_refused for st in states.values()):  # the host says why
             for name, st in sorted(states.items()):
                 if st.release_refused:
                     print(f"{name}: release {st.release_refused}", file=sys.stderr)
@@ -254,8 +265,6 @@ def report(args: argparse.Namespace, conf, robots: list[str], strangers: list[st
                   f"estop_release_sources (driver configuration), and --source {args.source!r} is not one of them "
                   "(or a new estop latched it again, or the host could not save the release: its reason above)",
                   file=sys.stderr)
-        else:
-            print(f"{robot}: a driver host answered but did not confirm the estop", file=sys.stderr)
     if silent:
         print(f"no driver host confirmed within {args.timeout:g} s: {shown(silent)}", file=sys.stderr)
     if strangers:
