@@ -48,6 +48,7 @@ from bridge.core.config import load_station
 from bridge.core.errors import UsageError
 from bridge.core.paths import state_dir
 from bridge.nodes.driver_config import load_driver
+from bridge.nodes.latch_record import record_dir, record_file
 from bridge.nodes.latch_store import inspect_latch, latch_marker
 from bridge.nodes.node import add_zenoh_args, endpoints_tried, zenoh_config
 from bridge.nodes.tlsid import cert_names
@@ -216,12 +217,14 @@ def check_state(robot: str | None) -> list[Check]:
     out = [Check("warn", "state", f"state directory {d} is mode {mode:o}: others may read the latch key or replace "
                                   f"the estop latch; chmod 700 {d}") if mode & 0o077
            else Check("ok", "state", f"state directory {d} (0700, writable)")]
-    robots = [robot] if robot else sorted({p.name[len("estop-"):].rsplit(".", 1)[0]
-                                           for p in d.glob("estop-*") if p.suffix in (".bin", ".installed")})
+    here = record_file(d / "estop-x.bin").name.rsplit("-", 1)[1]  # this state directory's records' suffix
+    robots = [robot] if robot else sorted(
+        {p.name[len("estop-"):].rsplit(".", 1)[0] for p in d.glob("estop-*") if p.suffix in (".bin", ".installed")}
+        | {p.name[len("estop-"):-len(here) - 1] for p in record_dir().glob(f"estop-*-{here}")})
     for r in robots:
         path = d / f"estop-{r}.bin"
         marker = latch_marker(path)
-        if not os.path.lexists(path) and not os.path.lexists(marker):
+        if not os.path.lexists(path) and not os.path.lexists(marker) and not os.path.lexists(record_file(path)):
             out.append(Check("warn", "latch", f"{r}: first start in this state directory: no estop history (a driver "
                                               f"host for {r} that ran with another state directory left its latch "
                                               "there: SCMBRIDGE_STATE_DIR must stay the same)"))
