@@ -96,6 +96,8 @@ def quarantine(path: Path) -> Path:
 SMALL_FILE = 4096
 #: the largest configuration or mission file read
 TEXT_FILE = 1 << 20
+#: the largest pair store read
+STORE_FILE = 1 << 28
 
 
 class NotAFile(OSError):

@@ -48,7 +48,7 @@ from bridge.core.acts import ActGuard
 from bridge.core.args import positive_float, robot_arg, robots_arg
 from bridge.core.config import RATE_HZ_RANGE, StationConfig, load_mission_spec, load_station, mission_from_spec
 from bridge.core.errors import UsageError
-from bridge.core.paths import quarantine, save_atomic, state_dir
+from bridge.core.paths import TEXT_FILE, quarantine, read_bounded, save_atomic, state_dir
 from bridge.nodes import systemd
 from bridge.nodes.mission_control import Fitness, MissionControl, Saved
 from bridge.nodes.node import (
@@ -672,7 +672,7 @@ def restore_control(robot: str, mission_arg: str | None, default_mission: str | 
         return MissionControl(robot, load_mission_spec(mission_arg))
     if path.exists():
         try:
-            return MissionControl.restored(robot, M.decode(path.read_bytes(), Saved))
+            return MissionControl.restored(robot, M.decode(read_bounded(path, TEXT_FILE), Saved))
         except (OSError, M.MessageError, ValueError) as exc:
             aside = quarantine(path)
             log.error("mission state %s unusable (%s); moved to %s, starting idle", path, exc, aside)

@@ -48,7 +48,7 @@ import numpy as np
 
 from bridge.core import wire as M
 from bridge.core.config import StationConfig
-from bridge.core.paths import quarantine
+from bridge.core.paths import STORE_FILE, quarantine, read_bounded
 from bridge.nodes.mission_control import Fitness, MissionControl, spec_of
 from bridge.nodes.pairing import IntervalPairer, Reorder
 from bridge.nodes.sources import CalibrationSource, CommandSource, Proposal, SourceContext, Why, make_source
@@ -92,7 +92,7 @@ def load_store(path: Path, learner: Bounds, teacher: Bounds, grid, k_min: int) -
     path = Path(path)
     if path.exists():
         try:
-            store = PairStore.from_bytes(path.read_bytes())
+            store = PairStore.from_bytes(read_bounded(path, STORE_FILE))
             if store.learner_bounds != learner or store.teacher_bounds != teacher:
                 raise ValueError("its command bounds differ from this configuration")
             top_v, top_w = (PLAUSIBLE * x for x in command_extent(learner, teacher))
