@@ -62,6 +62,7 @@ from bridge.nodes.node import (
 )
 from bridge.nodes.sources import MpcSource
 from bridge.nodes.station_core import StationCore, TickInputs, TickOutputs
+from bridge.nodes.station_tags import FileTags
 from bridge.nodes.writer import Save, SaveWriter
 from bridge.nodes.zsession import open_session
 from transfer.calibration import CalibrationPlan
@@ -670,13 +671,21 @@ def restore_control(robot: str, mission_arg: str | None, default_mission: str | 
     path = control_file(robot)
     if mission_arg:
         return MissionControl(robot, load_mission_spec(mission_arg))
+    refused = ""
     if path.exists():
         try:
-            return MissionControl.restored(robot, M.decode(read_bounded(path, TEXT_FILE), Saved))
+            data, why = FileTags().open("control", path, read_bounded(path, TEXT_FILE))
+            if data is None:
+                raise ValueError(why)
+            return MissionControl.restored(robot, M.decode(data, Saved))
         except (OSError, M.MessageError, ValueError) as exc:
             aside = quarantine(path)
             log.error("mission state %s unusable (%s); moved to %s, starting idle", path, exc, aside)
-    return MissionControl(robot, load_mission_spec(default_mission))
+            refused = f"the saved mission {path.name} was refused ({exc}; kept as {aside.name}): look at it"
+    control = MissionControl(robot, load_mission_spec(default_mission))
+    if refused:  # said to the person on every answer and status until a person starts or sends one
+        control.reason = f"{refused}; this is the configured mission, idle"[:1024]
+    return control
 
 
 def _station(cfg: StationConfig, robot: str, rate: float, args: argparse.Namespace) -> Station:

@@ -107,7 +107,7 @@ def _states(text: str, name: str) -> bool:
 def safe_defaults(conf: zenoh.Config, text: str, mode: str) -> None:
     """What a lab's ``--zenoh-config`` file does not say gets the built-in configuration's safe values, not Zenoh's
     (a peer listening on every interface with multicast scouting on): client mode (a router's own file: router),
-    no multicast scouting, no shared memory, and a peer or router listening on loopback only."""
+    no multicast scouting, no shared memory, and a peer listening on loopback only."""
     if not _states(text, "mode"):
         conf.insert_json5("mode", json.dumps("router" if mode == "router" else "client"))
     if not _states(text, "multicast"):
@@ -116,8 +116,8 @@ def safe_defaults(conf: zenoh.Config, text: str, mode: str) -> None:
         conf.insert_json5("transport/shared_memory/enabled", "false")
     if not _states(text, "listen"):
         chosen = json.loads(conf.get_json("mode"))
-        loopback = {"router": ["tcp/127.0.0.1:7447"], "peer": ["tcp/127.0.0.1:0"]}.get(chosen, [])
-        conf.insert_json5("listen/endpoints", json.dumps(loopback))
+        if chosen == "peer":  # (a router's file must name its endpoints: bridge/nodes/router.py refuses it)
+            conf.insert_json5("listen/endpoints", json.dumps(["tcp/127.0.0.1:0"]))
 
 
 def _endpoints(conf: zenoh.Config) -> str:
