@@ -220,6 +220,9 @@ class FleetSection(Cfg):
 
     shards: Annotated[dict[RobotName, list[RobotName]], meta(
         "station host name -> the robots it serves, e.g. base1 = [\"r1\", \"r2\"]")] = field(default_factory=dict)
+    robots: Annotated[list[RobotName], meta(
+        "the lab's robots besides the shards' (scmbridge estop --all --fleet names each that does not confirm)")] = \
+        field(default_factory=list)
 
     def __post_init__(self) -> None:
         seen: dict[str, str] = {}
