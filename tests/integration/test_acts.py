@@ -352,3 +352,59 @@ def test_a_persons_release_and_engage_recorded_before_a_crash_restart_do_nothing
         assert res.returncode == 0 and "released" in res.stdout, res.stdout + res.stderr
         res = subprocess.run([*cli, "engage", *client], capture_output=True, text=True, timeout=60)
         assert res.returncode == 0 and "engaged" in res.stdout, res.stdout + res.stderr
+
+
+@pytest.mark.timeout(180)
+def test_a_persons_resume_recorded_before_a_station_restart_does_nothing_after_it(tmp_path) -> None:
+    """Finding: a person's ``mission resume`` captured off the network, the station SIGKILLed and restarted (its
+    mission comes back paused): the capture replayed 8.9 s later resumed the new station. It names the old run.
+    (No driver host here, so the act that drives on from paused is ``start``: ``resume`` also needs the robot fit;
+    both go through the same guard.)"""
+    import signal
+
+    from bridge.nodes.mission_control import Saved
+    from bridge.nodes.station import control_file
+    from bridge.nodes.station_tags import untagged
+
+    port, robot = free_port(), f"acts{os.getpid()}r"
+    client = ["--robot", robot, "--mode", "client", "--connect", tcp(port)]
+    key = M.key(robot, "control")
+    station = ["station", *client, "--store", str(tmp_path / "p.bin"), "--duration", "150"]
+    with open_session(make_config(mode="router", listen=[tcp(port)])) as session, Children() as kids:
+        col = Collector(session)
+        status = col.listen(M.status_key(robot, "station"), M.Status)
+        first = kids.spawn(station)
+        assert col.wait(lambda: status and status[-1].state == "idle", 90), kids.said()
+
+        def ask(req) -> M.MissionState:
+            ans = _get(session, key, req if isinstance(req, bytes) else M.encode(req), M.MissionState)
+            assert ans is not None, "the station did not answer"
+            return ans
+
+        def addressed(action: str) -> bytes:
+            to = address_of(ask(M.MissionRequest(stamp=1.0, action="status")))
+            return M.encode(stamped(M.MissionRequest(stamp=1.0, action=action, source="operator"), to))
+
+        assert ask(addressed("start")).phase == "running"
+        assert ask(addressed("pause")).phase == "paused"
+        resume = addressed("start")  # the person's act that drives on, recorded
+        assert ask(resume).phase == "running"
+        assert ask(addressed("pause")).phase == "paused"
+        old = ask(M.MissionRequest(stamp=1.0, action="status")).epoch
+        saved = control_file(robot)
+
+        def saved_phase() -> str:
+            try:
+                return M.decode(untagged(saved.read_bytes()), Saved).phase
+            except (OSError, M.MessageError):
+                return ""
+
+        assert until(lambda: saved_phase() == "paused", 10)  # kept on disk (the writer saves it after the tick)
+        os.killpg(first.pid, signal.SIGKILL)
+        first.wait(10)
+        kids.spawn(station)  # restarted: the saved mission comes back paused
+        assert until(lambda: (a := _get(session, key, M.encode(M.MissionRequest(stamp=1.0, action="status")),
+                                        M.MissionState, 1.0)) is not None and a.epoch not in (0, old), 90), kids.said()
+        ans = ask(resume)  # replayed after the restart
+        assert not ans.accepted and ans.phase == "paused" and "another start" in ans.text, ans
+        assert ask(addressed("start")).phase == "running"  # the person's own, against the new run: taken
