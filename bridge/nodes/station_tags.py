@@ -72,6 +72,25 @@ class FileTags:
         return data, ""
 
 
+def file_problem(kind: str, path: Path) -> str:
+    """What a station starting now would say against its ``kind`` file at ``path`` ("" when it is its own), without
+    making a key (``scmbridge doctor``)."""
+    from bridge.core.paths import STORE_FILE, read_bounded
+
+    kf = key_file(path)
+    try:
+        blob = read_bounded(Path(path), STORE_FILE)
+        key = load_key(kf, "station") if os.path.lexists(kf) else None
+    except (OSError, KeyFileError) as exc:
+        return f"cannot be checked: {exc}"
+    if key is None:
+        return f"no station key ({kf} missing): the next station start refuses it"
+    tags = FileTags()
+    tags.keys[kf] = key
+    tags.fresh = set()
+    return tags.open(kind, Path(path), blob)[1]
+
+
 def untagged(blob: bytes) -> bytes:
     """The payload of a station file, its tag not checked (for tools that only look at a file: ``scmbridge pairs
     show``, a demo's report); an untagged file as it is."""
@@ -86,4 +105,4 @@ def read_store(path: Path):
     return PairStore.from_bytes(untagged(read_bounded(Path(path), STORE_FILE)))
 
 
-__all__ = ["FILE_MAGIC", "FileTags", "key_file", "read_store", "untagged"]
+__all__ = ["FILE_MAGIC", "FileTags", "file_problem", "key_file", "read_store", "untagged"]

@@ -13,8 +13,10 @@ Each check prints one line, ``ok``, ``warn`` or ``FAIL``, its name and what it f
 - ``state``: the state directory (``SCMBRIDGE_STATE_DIR``, ...: which one is named) exists or can be created, takes a
   file (written, fsynced and removed) and is 0700; ``latch``: for the driver's robot (``--driver``) or every robot
   with a latch there, what a driver host starting now would take: released (signed by that host), latched (by whom),
-  latched because the file is missing, unreadable or not the host's own, or "first start in this state directory: no
-  estop history" (a host that ran with another state directory left its latch there);
+  latched because the file is missing, unreadable or not the host's own, copied back (older than its record), beside
+  a marker of another key, or deleted with its marker (its record outside the state directory remembers), or "first
+  start in this state directory: no estop history" (a host that ran with another state directory left its latch
+  there); ``station``: each mission and pair store file there is the station's own (its tag verifies), or why not;
 - ``can``: for a SocketCAN link, the interface exists and is up (with the command that brings it up);
 - ``auth``: (``--link``) whether the link authenticates what it obeys: a warning for the UDP link with
   ``insecure = true`` and for MAVLink without signing (anyone on the network can drive the robot);
@@ -51,6 +53,7 @@ from bridge.nodes.driver_config import load_driver
 from bridge.nodes.latch_record import record_dir, record_file
 from bridge.nodes.latch_store import inspect_latch, latch_marker
 from bridge.nodes.node import add_zenoh_args, endpoints_tried, zenoh_config
+from bridge.nodes.station_tags import file_problem
 from bridge.nodes.tlsid import cert_names
 from bridge.nodes.zsession import open_session
 from drivers import link_names
@@ -239,6 +242,11 @@ def check_state(robot: str | None) -> list[Check]:
         else:
             out.append(Check("ok", "latch", f"{r}: released (saved by its driver host; estop history since "
                                             f"{dt.datetime.fromtimestamp(marker.stat().st_mtime):%Y-%m-%d %H:%M})"))
+    for kind, pattern in (("control", "mission-*.bin"), ("store", "pairs-*.bin")):
+        for f in sorted(d.glob(pattern)):  # the station's files: its own (its tag), or changed while it was down
+            problem = file_problem(kind, f)
+            out.append(Check("warn", "station", f"{f.name}: {problem}") if problem
+                       else Check("ok", "station", f"{f.name}: the station's own (its tag verifies)"))
     return out
 
 

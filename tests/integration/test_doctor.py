@@ -218,3 +218,24 @@ def test_doctor_flags_latch_files_deleted_copied_back_or_foreign(tmp_path, monke
     found = {c.name: c for c in check_state(None)}
     assert found["latch"].level == "warn" and "deleted" in found["latch"].text, found
     assert "no estop history" not in found["latch"].text
+
+
+def test_doctor_says_whether_the_stations_files_are_its_own(tmp_path, monkeypatch) -> None:
+    """Finding: a mission file rewritten while the station was down, and doctor said nothing. The station's files
+    carry its tag (bridge/nodes/station_tags.py); doctor checks it without making a key."""
+    from bridge.core.paths import save_atomic
+    from bridge.nodes.station_tags import FileTags
+    from bridge.tools.doctor import check_state
+
+    state = tmp_path / "state"
+    monkeypatch.setenv("SCMBRIDGE_STATE_DIR", str(state))
+    f = state / "mission-r1.bin"
+    save_atomic(f, b"untagged")
+    found = [c for c in check_state("r1") if c.name == "station"]
+    assert found and found[0].level == "warn" and "no station key" in found[0].text, found
+    save_atomic(f, FileTags().seal("control", f, b"payload"))
+    found = [c for c in check_state("r1") if c.name == "station"]
+    assert found[0].level == "ok", found
+    save_atomic(f, f.read_bytes()[:-1] + b"X")  # changed while the station was down
+    found = [c for c in check_state("r1") if c.name == "station"]
+    assert found[0].level == "warn" and "does not verify" in found[0].text, found
