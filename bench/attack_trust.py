@@ -249,7 +249,50 @@ def _address(rig: _ZenohHost):
     return address_of(next(iter(states.values()))) if states else None
 
 
+
+
+def udp_stops_dropped(short: bool) -> Result:
+    """A man in the middle without the key drives nothing but can drop: the robot is driven at 0.3 m/s through the
+    tap, then the tap drops everything the driver sends (the stops that follow an estop). The robot's watchdog is
+    1 s here (a firmware's own choice); each command is valid for its ``valid_ms`` (300 ms, drivers/udp.py) from its
+    receipt, and the reference robot now stops by itself when it is over (sim_learner/udp_robot.py). before (the
+    validity ignored, main d7cde9b; the issue's hostile test with the shipped 0.5 s watchdog): 0.20 m in 0.66 s after
+    the estop."""
+    from bench.attack import Tap, drive_udp, tapped_driver
+    from bridge.core.auth import make_key
+    from bridge.tools.procs import free_udp_port
+    from sim_learner.dynamics import mpc_learner
+    from sim_learner.udp_robot import UdpRobot
+    from sim_learner.vehicle import SimVehicle
+
+    with tempfile.TemporaryDirectory() as d:
+        key_file = Path(d) / "udp.key"
+        key = make_key(key_file)
+        with Tap(free_udp_port()) as tap:
+            vehicle = SimVehicle(mpc_learner(), (0.0, 0.0, 0.0), now=time.monotonic())
+            robot = UdpRobot(vehicle, peer=tap.addr, key=key, watchdog=1.0).start()
+            tap.robot = ("127.0.0.1", robot.port)
+            try:
+                with tapped_driver(key_file, tap) as driver:
+                    drive_udp(driver, 0.6 if short else 1.5, 0.3)
+                    tap.hold = True  # from now on nothing the driver sends reaches the robot
+                    start, t0 = position(vehicle), time.monotonic()
+                    driving = robot.moving
+                    drive_udp(driver, 0.2, 0.0)  # the stops, dropped
+                    until(lambda: not robot.moving, 3.0)
+                    stopped_after = round(time.monotonic() - t0, 3)
+                    time.sleep(0.3)
+                    moved = distance_from(vehicle, start)
+                    counters = {k: robot.counters[k] for k in ("expired_stops", "watchdog_stops")}
+            finally:
+                robot.stop()
+    return {"reached_vehicle": {"distance_m": moved, "stopped_after_s": stopped_after}, "learned": None,
+            "driving_when_dropped": driving, "robot": counters,
+            "ok": driving and counters["expired_stops"] >= 1 and counters["watchdog_stops"] == 0 and moved < 0.15}
+
+
 TRUST_ATTACKS: dict[str, Callable[[bool], Result]] = {
-    f.__name__: f for f in (acts_replayed_after_restart, latch_files_turned_against_host, estop_all_fake_peers)}
+    f.__name__: f for f in (acts_replayed_after_restart, latch_files_turned_against_host, estop_all_fake_peers,
+                            udp_stops_dropped)}
 
 __all__ = ["TRUST_ATTACKS"]
