@@ -19,7 +19,7 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
-from bench.attack import (
+from bench.attack_rigs import (
     Result,
     _LatchRig,
     _Station,
@@ -82,8 +82,8 @@ def acts_replayed_after_restart(short: bool) -> Result:
     the person hands the robot back and estops; the driver host dies and is started again on the same state
     directory; the recordings are replayed 1 s later, with a station publishing commands. bridge/core/acts.py: an
     act names the epoch of the start it is for. before (acts fresh by wall clock and once by an in-memory nonce
-    table, main d7cde9b; measured by the issue's hostile test with SIGKILLed processes): the release replayed 8.0 s
-    after capture released the latch, the engage engaged the new host and the robot drove."""
+    table; measured by the hostile test with SIGKILLed processes, CHANGELOG.md 2026-12-06): the release replayed
+    8.0 s after capture released the latch, the engage engaged the new host and the robot drove."""
     from bridge.core import wire as M
     from bridge.core.acts import stamped
 
@@ -141,8 +141,8 @@ def latch_files_turned_against_host(short: bool) -> Result:
     released latch copied back; the install marker read for the key that signs a release; the marker replaced by
     one's own key with a release signed by it; marker and latch deleted together. After each, the host restarts
     and someone engages. bridge/nodes/latch_record.py: the key and the last count live in a record outside the
-    state directory. before (the key in the marker, no count, no record; the issue's hostile test): the robot
-    drove after each."""
+    state directory. before (the key in the marker, no count, no record; the hostile test, CHANGELOG.md
+    2026-12-06): the robot drove after each."""
     import secrets
 
     from bridge.core import wire as M
@@ -190,8 +190,8 @@ def estop_all_fake_peers(short: bool) -> Result:
     while a station drives the real robot. Measured: the first stop the real robot applied, from the CLI's start,
     against the same run without the fake tokens (the baseline: what starting the CLI costs); its exit status,
     whether it names the missing fleet robot, and how many lines it printed. bridge/tools/estop.py puts one stop on
-    ``scm/*/estop`` before it looks for anyone. before (one robot after another, main d7cde9b; the issue's hostile
-    test): first stop 1.61 s after the start with 2000 tokens (0.33 s with none), about 2000 lines, 7.5-16 s,
+    ``scm/*/estop`` before it looks for anyone. before (one robot after another; the hostile test, CHANGELOG.md
+    2026-12-06): first stop 1.61 s after the start with 2000 tokens (0.33 s with none), about 2000 lines, 7.5-16 s,
     exit 1; a robot of the fleet on another router never named."""
     from bridge.core import wire as M
 
@@ -256,9 +256,9 @@ def udp_stops_dropped(short: bool) -> Result:
     tap, then the tap drops everything the driver sends (the stops that follow an estop). The robot's watchdog is
     1 s here (a firmware's own choice); each command is valid for its ``valid_ms`` (300 ms, drivers/udp.py) from its
     receipt, and the reference robot now stops by itself when it is over (sim_learner/udp_robot.py). before (the
-    validity ignored, main d7cde9b; the issue's hostile test with the shipped 0.5 s watchdog): 0.20 m in 0.66 s after
-    the estop."""
-    from bench.attack import Tap, drive_udp, tapped_driver
+    validity ignored; the hostile test with the shipped 0.5 s watchdog, CHANGELOG.md 2026-12-06): 0.20 m in 0.66 s
+    after the estop."""
+    from bench.attack_rigs import Tap, drive_udp, tapped_driver
     from bridge.core.auth import make_key
     from bridge.tools.procs import free_udp_port
     from sim_learner.dynamics import mpc_learner

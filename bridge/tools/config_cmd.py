@@ -120,9 +120,10 @@ def check(path: str, kind: str | None = None) -> str:
 
 
 def own_checks(kind: str, cfg: Any, table: dict[str, Any]) -> str:
-    """What the commands themselves check when they start, beyond the file's types: a driver's keys for each link
-    the file names (the key file exists, is a key of random bytes and is its owner's alone; UDP without one and
-    without ``insecure`` is refused), a station's mission. Raises their own errors; returns what was checked."""
+    """What the commands themselves check when they start, beyond the file's types: each key file a driver's link
+    names (it exists, is a key of random bytes and is its owner's alone: what the driver reads when that link
+    opens; the file does not say which link the robot uses, so a link without a key is not refused here), a
+    station's mission. Raises their own errors; returns what was checked."""
     done = []
     if kind == "driver":
         from bridge.core.auth import load_key
@@ -130,8 +131,9 @@ def own_checks(kind: str, cfg: Any, table: dict[str, Any]) -> str:
 
         for name in (table.get("link") or {}):
             section = getattr(cfg.link, name, None)
-            if name == "udp" and section is not None:
-                done.append("udp key" if link_key(section) is not None else "udp insecure")
+            if name == "udp" and section is not None and section.key_file:
+                link_key(section)
+                done.append("udp key")
             elif name == "mavlink" and section is not None and section.signing_key_file:
                 load_key(section.signing_key_file, "mavlink")
                 done.append("mavlink signing key")

@@ -146,10 +146,9 @@ def test_check_runs_the_commands_own_checks_of_keys_and_missions(tmp_path) -> No
     key.write_text("ab" * 8 + "\n")
     with pytest.raises(KeyFileError, match="random bytes"):
         check(str(drv), "driver")
-    no_key = tmp_path / "nokey.toml"
+    no_key = tmp_path / "nokey.toml"  # (which link a robot uses is not in the file: a link without a key passes)
     no_key.write_text('robot = "r1"\n[link.udp]\nrobot_port = 47800\n')
-    with pytest.raises(KeyFileError, match="no key_file"):
-        check(str(no_key), "driver")
+    assert "checked" not in check(str(no_key), "driver")
     st = tmp_path / "station.toml"
     st.write_text(f'robot = "r1"\n[station]\nmission = "{tmp_path / "absent.toml"}"\n')
     with pytest.raises((ConfigError, UsageError), match="no such file"):
