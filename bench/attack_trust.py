@@ -202,16 +202,20 @@ def estop_all_fake_peers(short: bool) -> Result:
         base = _estop_all(rig, fleet)
         tokens = [faker.liveliness().declare_token(M.alive_key(f"fake{i}", "driver")) for i in range(n_fake)]
         try:
+            seen = until(lambda: sum(1 for r in rig.attacker.liveliness().get(f"{M.PREFIX}/*/alive/**", timeout=2.0)
+                                     if r.ok is not None and "/fake" in str(r.ok.key_expr)) >= n_fake, 30.0)
             fake = _estop_all(rig, fleet)
         finally:
             for tok in tokens:
                 tok.undeclare()
+    # within 0.5 s of the same CLI's start without them; a loaded machine stretches the start itself (seen: 2.9 s at
+    # load 15), and the fakes' share with it, so a quarter of the baseline is allowed on top
     ok = (fake["driving_before"] and base["first_stop_s"] is not None and fake["first_stop_s"] is not None
-          and fake["first_stop_s"] < base["first_stop_s"] + 0.5 and fake["exit"] == 1 and fake["names_absent"]
-          and fake["lines"] <= 12)
+          and fake["first_stop_s"] < 1.25 * base["first_stop_s"] + 0.5 and fake["exit"] == 1
+          and fake["names_absent"] and fake["lines"] <= 12 and seen)
     return {"reached_vehicle": {"first_stop_s": fake["first_stop_s"], "first_stop_without_fakes_s":
                                 base["first_stop_s"]}, "learned": None, "fake_tokens": n_fake, "with_fakes": fake,
-            "without_fakes": base, "ok": ok}
+            "without_fakes": base, "tokens_seen_by_the_router": seen, "ok": ok}
 
 
 def _estop_all(rig: _ZenohHost, fleet: Path) -> dict:

@@ -25,6 +25,18 @@ def _estop(port: int, *args: str) -> subprocess.Popen:
                              tcp(port)], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
 
 
+def _tokens_seen(session, n: int, timeout: float = 30.0) -> bool:
+    """Whether the router knows at least ``n`` fake robots' liveliness tokens (declared by another client) in time."""
+    t_end = time.monotonic() + timeout
+    while time.monotonic() < t_end:
+        got = sum(1 for r in session.liveliness().get(f"{M.PREFIX}/*/alive/**", timeout=2.0)
+                  if r.ok is not None and str(r.ok.key_expr).split("/")[1].startswith("fake"))
+        if got >= n:
+            return True
+        time.sleep(0.2)
+    return False
+
+
 def _wait_hosts(session, robots: list[str], timeout: float) -> None:
     t_end = time.monotonic() + timeout
     while time.monotonic() < t_end:
@@ -86,6 +98,7 @@ def test_estop_all_among_fake_liveliness_tokens_names_the_fleets_silent_robot_in
     with open_session(make_config(mode="client", connect=[tcp(port)])) as faker:
         tokens = [faker.liveliness().declare_token(M.alive_key(f"fake{i}", "driver")) for i in range(2000)]
         try:
+            assert _tokens_seen(session, 2000), "the router did not learn the fake tokens"
             res = _estop(port, "--all", "--fleet", str(fleet), "--timeout", "2")
             out, err = res.communicate(timeout=60)
         finally:
@@ -100,6 +113,7 @@ def test_estop_all_among_fake_liveliness_tokens_names_the_fleets_silent_robot_in
     with open_session(make_config(mode="client", connect=[tcp(port)])) as faker:
         tokens = [faker.liveliness().declare_token(M.alive_key(f"fake{i}", "driver")) for i in range(50)]
         try:
+            assert _tokens_seen(session, 50), "the router did not learn the fake tokens"
             res = _estop(port, "--all", "--timeout", "1")
             out, err = res.communicate(timeout=60)
         finally:
