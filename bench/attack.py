@@ -18,14 +18,25 @@ import math
 import tempfile
 import time
 import uuid
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
 
+from bench.attack_rigs import (
+    Result,
+    Tap,
+    _LatchRig,
+    _Station,
+    _ZenohHost,
+    distance_from,
+    drive_udp,
+    position,
+    tapped_driver,
+    udp_robot,
+    until,
+)
 from bench.common import emit
-
-Result = dict
 
 
 def forged_command_in_epoch(short: bool) -> Result:
@@ -289,106 +300,6 @@ def second_station(short: bool) -> Result:
 # measured beside other load (2 shared cores); docs/SECURITY.md's attack table lists them.
 
 
-class Tap:
-    """A man in the middle on 127.0.0.1: one UDP socket the driver takes for the robot and the robot for its peer;
-    forwards both ways, records what the driver sends (unless ``hold``: then it records and keeps it back). A replay
-    leaves from that socket, the very address the robot obeys (tests/integration/test_udp_replay.py uses it too)."""
-
-    def __init__(self, driver_port: int) -> None:
-        import socket
-        import threading
-
-        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        self.sock.bind(("127.0.0.1", 0))
-        self.sock.settimeout(0.02)
-        self.addr = self.sock.getsockname()
-        self.driver = ("127.0.0.1", driver_port)
-        self.robot: tuple[str, int] | None = None
-        self.recorded: list[tuple[float, bytes]] = []
-        self.hold = False
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, name="attack-tap", daemon=True)
-
-    def _run(self) -> None:
-        while not self._stop.is_set():
-            try:
-                data, src = self.sock.recvfrom(65536)
-            except OSError:  # (a timeout is one)
-                continue
-            if src == self.driver:
-                self.recorded.append((time.monotonic(), data))
-                if not self.hold and self.robot is not None:
-                    self.sock.sendto(data, self.robot)
-            elif src == self.robot:
-                self.sock.sendto(data, self.driver)
-
-    def replay(self, datagrams: list[tuple[float, bytes]], paced: bool = True) -> None:
-        """``datagrams`` to the robot from the tap (the address it obeys), at their recorded pace."""
-        assert self.robot is not None
-        t0, r0 = time.monotonic(), datagrams[0][0] if datagrams else 0.0
-        for t, data in datagrams:
-            if paced:
-                time.sleep(max(0.0, (t - r0) - (time.monotonic() - t0)))
-            self.sock.sendto(data, self.robot)
-
-    def __enter__(self) -> Tap:
-        self._thread.start()
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self._stop.set()
-        self._thread.join(timeout=2.0)
-        self.sock.close()
-
-
-def udp_robot(key: bytes | None, peer: tuple[str, int], port: int = 0):
-    """The emulated UDP robot (keyed with ``key``, obeying ``peer``) started on ``port`` (0: a free one), and the
-    simulated vehicle it drives."""
-    from sim_learner.dynamics import mpc_learner
-    from sim_learner.udp_robot import UdpRobot
-    from sim_learner.vehicle import SimVehicle
-
-    vehicle = SimVehicle(mpc_learner(), (0.0, 0.0, 0.0), now=time.monotonic())
-    return UdpRobot(vehicle, port=port, peer=peer, key=key, watchdog=0.3).start(), vehicle
-
-
-def distance_from(vehicle, start: tuple[float, float]) -> float:
-    """How far ``vehicle`` is now from ``start``, m (rounded to the millimetre)."""
-    body = vehicle.advance(time.monotonic())
-    return round(math.hypot(body.x - start[0], body.y - start[1]), 3)
-
-
-def position(vehicle) -> tuple[float, float]:
-    """Where ``vehicle`` is now (x, y)."""
-    body = vehicle.advance(time.monotonic())
-    return body.x, body.y
-
-
-def drive_udp(driver, seconds: float, v: float) -> None:
-    """The real UDP driver sends (v, 0) every 20 ms for ``seconds`` and reads what the robot says."""
-    t_end = time.monotonic() + seconds
-    while time.monotonic() < t_end:
-        driver.send(v, 0.0, time.monotonic())
-        driver.poll(time.monotonic())
-        time.sleep(0.02)
-
-
-@contextlib.contextmanager
-def tapped_driver(key_file: Path, tap: Tap) -> Iterator:
-    """The real UDP driver keyed with ``key_file``, talking to the robot through ``tap`` (from the port the tap takes
-    for the driver), open; closed on exit."""
-    from drivers import open_driver
-    from drivers.udp import UdpLinkConfig
-
-    driver = open_driver("udp", UdpLinkConfig(robot_port=tap.addr[1], bind_port=tap.driver[1],
-                                              key_file=str(key_file), open_timeout=5.0))
-    try:
-        driver.open(time.monotonic())
-        yield driver
-    finally:
-        driver.close()
-
-
 def udp_record(key_file: Path, tap: Tap, seconds: float) -> list[tuple[float, bytes]]:
     """The real UDP driver drives the robot at 0.3 m/s through the tap for ``seconds``: what it sent (the recording a
     replay is made of)."""
@@ -558,18 +469,6 @@ def rover_ready(rover) -> bool:
     return rover.has_origin(time.monotonic()) and rover.mode_name == "MANUAL"
 
 
-def until(pred: Callable[[], bool], timeout: float, step: Callable[[], object] | None = None) -> bool:
-    """Whether ``pred()`` holds within ``timeout`` s, calling ``step()`` (a poll) before each look."""
-    t_end = time.monotonic() + timeout
-    while time.monotonic() < t_end:
-        if step is not None:
-            step()
-        if pred():
-            return True
-        time.sleep(0.01)
-    return pred()
-
-
 def mavlink_forged_timestamp_at_driver(short: bool) -> Result:
     """One packet signed with a wrong key and a timestamp ten years ahead, sent to the driver's MAVLink client on a
     signed link to the emulated rover: the driver must keep hearing the rover (pymavlink records a stream's
@@ -696,91 +595,6 @@ def mavlink_replay_after_reboot(short: bool) -> Result:
 
 
 # ------------------------------------------------------------------------------------- the estop latch on disk
-class _NullPub:
-    """Where the in-process host's applied, state and status go (these rows judge the vehicle, not the messages)."""
-
-    def put(self, data: bytes) -> None:
-        pass
-
-
-class _LatchRig:
-    """The emulated UDP robot on loopback and real DriverHosts for it, each a start of the host on a real state
-    directory (a restart is a new DriverHost on the same directory), driven in this process."""
-
-    def __init__(self) -> None:
-        from bridge.tools.procs import free_udp_port
-        from drivers.udp import UdpLinkConfig
-
-        bind = free_udp_port()
-        self.device, self.vehicle = udp_robot(None, ("127.0.0.1", bind))
-        self.link_cfg = UdpLinkConfig(insecure=True, robot_port=self.device.port, bind_port=bind)
-        self.hosts: list = []
-
-    def host(self, latch: Path, saver: Callable[[Path, bytes], None] | None = None):
-        from bridge.core.paths import save_atomic
-        from bridge.nodes.driver_config import load_driver
-        from bridge.nodes.driver_host import DriverHost
-        from drivers import open_driver
-
-        cfg = load_driver(None)
-        host = DriverHost(cfg, "udp", open_driver("udp", self.link_cfg), "r1", cfg.driver.rate_hz, latch_path=latch,
-                          latch_saver=saver or save_atomic)
-        host.pubs = {k: _NullPub() for k in ("applied", "state", "status")}
-        host.driver.open(time.monotonic())
-        self.hosts.append(host)
-        return host
-
-    def stop(self, host) -> None:
-        host.driver.close(disarm=False, stop_timeout=0.0)
-        host.latch.close(5.0)
-        self.hosts.remove(host)
-
-    def estop(self, host, engaged: bool = True) -> None:
-        """An operator's estop (or release, as the person's tool sends it: fresh, with its nonce), waited until
-        saved or failed."""
-        import threading
-
-        from bridge.core import wire as M
-        from bridge.core.acts import stamped
-
-        host.on_estop(stamped(M.Estop(stamp=time.monotonic(), engaged=engaged, source="operator", reason="attack")),
-                      time.monotonic())
-        done = threading.Event()
-        if host.latch.defer(done.set):
-            done.wait(5.0)
-
-    def engage_and_drive(self, host, seconds: float) -> dict:
-        """Someone engages (a fresh request: the attack is on the disk, not on the request) and a station drives at
-        0.3 m/s for ``seconds``: what the robot did."""
-        from bridge.core import wire as M
-        from bridge.core.acts import stamped
-
-        ans = host.handle_engage(stamped(M.EngageRequest(stamp=time.monotonic(), source="operator")), time.monotonic())
-        start, epoch, seq = position(self.vehicle), M.new_epoch(), 0
-        t_end = time.monotonic() + seconds
-        while time.monotonic() < t_end:
-            seq += 1
-            now = time.monotonic()
-            host.on_cmd(M.Command(stamp=now, seq=seq, v=0.3, omega=0.0, method="scm", epoch=epoch), now)
-            host.tick(now)
-            time.sleep(0.02)
-        host.tick(time.monotonic())
-        return {"engaged": ans.engaged, "distance_m": distance_from(self.vehicle, start), "latched": host.gate.estopped,
-                "latched_by": host.gate.estop_source}
-
-    def control(self, host, seconds: float) -> float:
-        """The control: the person releases the estop (saved, signed) and the host engages and drives, so a row's
-        "0.0 m" is the latch's doing, not a rig that cannot drive; the metres driven."""
-        self.estop(host, engaged=False)
-        return self.engage_and_drive(host, seconds)["distance_m"]
-
-    def __enter__(self) -> _LatchRig:
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        for host in list(self.hosts):
-            self.stop(host)
-        self.device.stop()
 
 
 def latch_disk_full_at_estop(short: bool) -> Result:
@@ -915,111 +729,6 @@ def latch_other_state_dir(short: bool) -> Result:
 
 
 # ------------------------------------------------------------------------------------ who may act, over Zenoh
-class _ZenohHost:
-    """A router session on a free loopback port; a real DriverHost for the emulated UDP robot serving on a client
-    session of it (its own thread, as ``scmbridge driver`` runs); a state directory of its own; the attacker's
-    client session; a subscriber counting what the host applied."""
-
-    def __enter__(self) -> _ZenohHost:
-        import threading
-
-        from bridge.core import wire as M
-        from bridge.nodes.driver_config import load_driver
-        from bridge.nodes.driver_host import DriverHost
-        from bridge.nodes.zsession import free_port, make_config, open_session, tcp
-        from bridge.tools.procs import free_udp_port
-        from drivers import open_driver
-        from drivers.udp import UdpLinkConfig
-
-        self.robot = f"atk{uuid.uuid4().hex[:8]}"
-        self.keys = M.Keys(self.robot)
-        self.lock = threading.Lock()
-        self.applied: list = []
-        self.stop = threading.Event()
-        self.stack = contextlib.ExitStack()  # everything started, closed in reverse (also when a start fails)
-        try:
-            state = Path(self.stack.enter_context(tempfile.TemporaryDirectory()))
-            port = free_port()
-            self.router = self.stack.enter_context(open_session(make_config(mode="router", listen=[tcp(port)])))
-            self.client = lambda: open_session(make_config(mode="client", connect=[tcp(port)]))
-            bind = free_udp_port()
-            self.device, self.vehicle = udp_robot(None, ("127.0.0.1", bind))
-            self.stack.callback(self.device.stop)
-            self.sub = self.router.declare_subscriber(self.keys.applied, self._on_applied)
-            self.stack.callback(self.sub.undeclare)
-            cfg = load_driver(None)
-            link = open_driver("udp", UdpLinkConfig(insecure=True, robot_port=self.device.port, bind_port=bind))
-            self.host = DriverHost(cfg, "udp", link, self.robot, cfg.driver.rate_hz, latch_path=state / "estop.bin")
-            host_session = self.stack.enter_context(self.client())
-            self.thread = threading.Thread(target=self.host.serve, args=(host_session, self.stop, None),
-                                           name="attack-driver-host", daemon=True)
-            self.thread.start()
-            self.stack.callback(self._stop_host)
-            until(lambda: self.host.ticker is not None, 10.0)
-            self.attacker = self.stack.enter_context(self.client())
-        except BaseException:
-            self.stack.close()
-            raise
-        return self
-
-    def _stop_host(self) -> None:
-        self.stop.set()
-        self.thread.join(timeout=10.0)
-        self.host.close()
-
-    def _on_applied(self, sample) -> None:
-        from bridge.core import wire as M
-
-        a = M.decode(sample.payload.to_bytes(), M.Applied)
-        with self.lock:
-            self.applied.append((time.monotonic(), a))
-
-    def since(self, t0: float) -> list:
-        with self.lock:
-            return [a for t, a in self.applied if t > t0]
-
-    def engage(self, payload: bytes):
-        """One query on the engage key (sent once: a retry would not be a replay): the host's answer."""
-        from bridge.core import wire as M
-
-        for reply in self.attacker.get(self.keys.engage, payload=payload, timeout=5.0):
-            if reply.ok is not None:
-                return M.decode(reply.ok.payload.to_bytes(), M.EngageState)
-        return None
-
-    def __exit__(self, *exc: object) -> None:
-        self.stack.close()
-
-
-class _Station:
-    """A station-like sender on its own client session: one epoch, commands (v, 0) at 20 Hz; optionally a forger
-    beside it that copies each command at seq + 1 with other velocities (the epoch is readable off the network)."""
-
-    def __init__(self, rig: _ZenohHost, v: float) -> None:
-        import threading
-
-        self.rig, self.v = rig, v
-        self.stop = threading.Event()
-        self.thread = threading.Thread(target=self._run, name="attack-station", daemon=True)
-
-    def _run(self) -> None:
-        from bridge.core import wire as M
-
-        with self.rig.client() as s:
-            pub = s.declare_publisher(self.rig.keys.cmd)
-            epoch, seq = M.new_epoch(), 0
-            while not self.stop.wait(0.05):
-                seq += 1
-                pub.put(M.encode(M.Command(stamp=time.monotonic(), seq=seq, v=self.v, omega=0.0, method="scm",
-                                           sender="station", epoch=epoch)))
-
-    def __enter__(self) -> _Station:
-        self.thread.start()
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.stop.set()
-        self.thread.join(timeout=5.0)
 
 
 def replayed_engage_and_release(short: bool) -> Result:
@@ -1033,10 +742,13 @@ def replayed_engage_and_release(short: bool) -> Result:
 
     out: dict = {}
     with _ZenohHost() as rig, _Station(rig, 0.3):
-        engage = M.encode(stamped(M.EngageRequest(stamp=1.0, source="operator")))  # recorded
+        def to():  # the host's address, as its answers give it to the person's tool
+            return rig.host.acts.address(time.monotonic())
+
+        engage = M.encode(stamped(M.EngageRequest(stamp=1.0, source="operator"), to()))  # recorded
         ans = rig.engage(engage)
         first = {"engage_engaged": bool(ans and ans.engaged)}  # the recording is potent
-        release = M.encode(stamped(M.Estop(stamp=1.0, engaged=False, source="operator")))
+        release = M.encode(stamped(M.Estop(stamp=1.0, engaged=False, source="operator"), to()))
         rig.attacker.put(rig.keys.estop, M.encode(M.Estop(stamp=1.0, source="operator", reason="attack")))
         until(lambda: rig.host.gate.estopped, 2.0)
         rig.attacker.put(rig.keys.estop, release)  # the person's release, recorded off the network
@@ -1046,7 +758,7 @@ def replayed_engage_and_release(short: bool) -> Result:
         rig.attacker.put(rig.keys.estop, M.encode(M.Estop(stamp=1.0, source="operator", reason="parked")))
         until(lambda: rig.host.gate.estopped, 2.0)
         start, t0 = position(rig.vehicle), time.monotonic()
-        stale = dict(stamp=1.0, wall_time=time.time() - 60.0)
+        stale = dict(stamp=1.0, target=rig.host.acts.epoch, echo=max(1e-3, time.monotonic() - 60.0))
         for kind, rel, eng in (
                 ("replayed", release, engage),
                 ("stale", M.encode(M.Estop(engaged=False, source="operator", nonce=M.new_nonce(), **stale)),
@@ -1062,9 +774,10 @@ def replayed_engage_and_release(short: bool) -> Result:
         driven = sum(a.v != 0.0 for a in rig.since(t0))
         refused = {k: v for k, v in rig.host.inputs.snapshot().items() if "refused" in k and v}
         # the control: the person's own tool (fresh, a new nonce) releases and engages, and the station drives
-        rig.attacker.put(rig.keys.estop, M.encode(stamped(M.Estop(stamp=1.0, engaged=False, source="operator"))))
+        rig.attacker.put(rig.keys.estop, M.encode(stamped(M.Estop(stamp=1.0, engaged=False, source="operator"),
+                                                          to())))
         until(lambda: not rig.host.gate.estopped, 2.0)
-        ans = rig.engage(M.encode(stamped(M.EngageRequest(stamp=1.0, source="operator"))))
+        ans = rig.engage(M.encode(stamped(M.EngageRequest(stamp=1.0, source="operator"), to())))
         t1 = time.monotonic()
         control = bool(ans and ans.engaged) and until(lambda: any(a.v != 0.0 for a in rig.since(t1)), 2.0)
     took = any(r["released"] or r["engaged"] for r in out.values())
@@ -1085,7 +798,8 @@ def forger_at_seq_plus_one(short: bool) -> Result:
     from bridge.core.acts import stamped
 
     with _ZenohHost() as rig, _Station(rig, 0.2):
-        rig.engage(M.encode(stamped(M.EngageRequest(stamp=1.0, source="operator"))))
+        rig.engage(M.encode(stamped(M.EngageRequest(stamp=1.0, source="operator"),
+                                    rig.host.acts.address(time.monotonic()))))
         drove = until(lambda: any(a.v == 0.2 for a in rig.since(0.0)), 3.0)  # the station drives it
         sent = [0]
         stop = threading.Event()
@@ -1181,12 +895,26 @@ ATTACKS: dict[str, Callable[[bool], Result]] = {
 
 
 def run_all(short: bool = False, names: list[str] | None = None) -> dict:
-    """Every attack (or ``names``), each isolated: one that raises is reported as not ok with its error."""
+    """Every attack (or ``names``), each isolated: one that raises is reported as not ok with its error. The
+    driver hosts' latch records go to a temporary directory (bridge/nodes/latch_record.py), not this user's."""
+    import os
+
+    from bench.attack_trust import TRUST_ATTACKS
+
+    attacks = {**ATTACKS, **TRUST_ATTACKS}
+    with tempfile.TemporaryDirectory() as records, contextlib.ExitStack() as stack:
+        if "SCMBRIDGE_RECORD_DIR" not in os.environ:
+            os.environ["SCMBRIDGE_RECORD_DIR"] = records
+            stack.callback(os.environ.pop, "SCMBRIDGE_RECORD_DIR", None)
+        return _run(attacks, short, names)
+
+
+def _run(attacks: dict, short: bool, names: list[str] | None) -> dict:
     out = []
-    for name in names or list(ATTACKS):
+    for name in names or list(attacks):
         t0 = time.monotonic()
         try:
-            res = ATTACKS[name](short)
+            res = attacks[name](short)
         except Exception as exc:  # an attack that crashes a component is a finding, reported as such
             res = {"reached_vehicle": None, "learned": None, "ok": False, "error": f"{type(exc).__name__}: {exc}"}
         out.append({"attack": name, **res, "seconds": round(time.monotonic() - t0, 2)})
@@ -1194,8 +922,11 @@ def run_all(short: bool = False, names: list[str] | None = None) -> dict:
 
 
 def arguments(ap: argparse.ArgumentParser) -> None:
+    from bench.attack_trust import TRUST_ATTACKS
+
     ap.add_argument("--short", action="store_true", help="each attack briefly (as the suite runs it)")
-    ap.add_argument("--only", default=None, help=f"comma-separated attacks of: {', '.join(ATTACKS)}")
+    ap.add_argument("--only", default=None,
+                    help=f"comma-separated attacks of: {', '.join([*ATTACKS, *TRUST_ATTACKS])}")
 
 
 def run(args: argparse.Namespace) -> int:

@@ -133,6 +133,7 @@ class _Host:
         self.subs = [session.declare_subscriber(self.keys.applied, self._on_applied)]
         self.cmd = session.declare_publisher(self.keys.cmd)
         self.estop = session.declare_publisher(self.keys.estop)
+        self.session = session
 
     def _on_applied(self, sample) -> None:
         t = time.monotonic()
@@ -164,8 +165,15 @@ class _Host:
 
     def publish_estop(self, engaged: bool, source: str, reason: str) -> float:
         t = time.monotonic()
-        self.estop.put(self.M.encode(self.M.Estop(stamp=t, engaged=engaged, source=source, reason=reason,
-                                                  wall_time=time.time(), nonce=self.M.new_nonce())))
+        msg = self.M.Estop(stamp=t, engaged=engaged, source=source, reason=reason)
+        if not engaged:  # a release is addressed to the host's start (bridge.core.acts)
+            from bridge.core.acts import address_of, stamped
+            from bridge.tools.estop import latch_states
+
+            for st in latch_states(self.session, self.keys.estop, 2.0).values():
+                self.estop.put(self.M.encode(stamped(msg, address_of(st))))
+            return t
+        self.estop.put(self.M.encode(msg))
         return t
 
 

@@ -159,6 +159,16 @@ class UdpHealthDetail:
         return whole_numbers(self)
 
 
+def link_key(config: UdpLinkConfig) -> bytes | None:
+    """The link's datagram key (None: ``insecure``), checked as the driver opens it and as ``scmbridge config
+    check`` does: without a key and without ``insecure`` refused, a key file missing, short, all zeros or readable
+    by others refused (:class:`bridge.core.auth.KeyFileError`: one line)."""
+    if not config.key_file and not config.insecure:
+        raise KeyFileError("the UDP link has no key_file: make one (scmbridge keys udp --robot NAME) and name it "
+                           "in [link.udp] key_file, or set insecure = true there (loopback tests only)")
+    return load_key(config.key_file, "udp") if config.key_file else None
+
+
 def resolve_ipv4(host: str, port: int) -> tuple[str, int]:
     """``(ip, port)`` of ``host`` as the source address ``recvfrom`` reports it (numeric IPv4)."""
     try:
@@ -205,10 +215,7 @@ class UdpDriver:
     def open(self, now: float) -> None:
         """Resolve the robot's address, bind, and greet the robot with stops until its first state arrives. Without
         a key and without ``insecure`` it refuses (:class:`bridge.core.auth.KeyFileError`: one line, no retry)."""
-        if not self.config.key_file and not self.config.insecure:
-            raise KeyFileError("the UDP link has no key_file: make one (scmbridge keys udp --robot NAME) and name it "
-                               "in [link.udp] key_file, or set insecure = true there (loopback tests only)")
-        self.key = load_key(self.config.key_file, "udp") if self.config.key_file else None
+        self.key = link_key(self.config)
         if self.key is None:
             log.warning("the UDP link to %s runs insecure (no key_file): no authentication, no replay protection; "
                         "anyone on the segment can drive the robot", self.robot_text)

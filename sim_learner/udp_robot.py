@@ -29,7 +29,10 @@ It behaves like the firmware it stands in for, which trusts nothing on the netwo
   not clamped: a sender that asks for more than the robot can do is wrong about something, so the robot holds
   its wheels (``over_limits``) rather than drive at full speed on a guess. A ``stop`` method or an exact zero is a
   stop (wheels held).
-- **Its watchdog.** No applied command for ``watchdog`` s holds the wheels (``watchdog_stops``).
+- **Its watchdog and each command's validity.** No applied command for ``watchdog`` s holds the wheels
+  (``watchdog_stops``); so does a command applied for its own ``valid_ms`` from its receipt (``expired_stops``):
+  when the stops that should follow are dropped or held back on the way, the robot stops by itself within the
+  command's validity, as drivers/udp.py's protocol says.
 
 It streams its pose at ``rate`` Hz with its own epoch (picked at boot) and seq. Test hooks:
 :meth:`UdpRobot.pause_telemetry` (a radio dropout: the seq keeps counting, nothing is sent) and
@@ -100,11 +103,12 @@ class UdpRobot(ThreadedDevice):
         self.fresh_us = int(float(fresh) * 1e6)
         self.counters: dict[str, int] = dict.fromkeys(
             ("received", "applied", "malformed", "foreign", "unauthenticated", "stale_session", "stale",
-             "out_of_order", "seq_jump", "old_epoch", "foreign_epoch", "over_limits", "watchdog_stops", "states_sent",
-             "states_paused", "reboots"), 0)
+             "out_of_order", "seq_jump", "old_epoch", "foreign_epoch", "over_limits", "watchdog_stops", "expired_stops",
+             "states_sent", "states_paused", "reboots"), 0)
         self.gate = SeqGate(silence_s=self.silence)
         self.last_cmd: M.Command | None = None  # the last command applied (or the last stop)
         self.last_cmd_time = -math.inf
+        self.cmd_until = -math.inf  # the applied command's validity ends (its receipt + valid_ms)
         self.moving = False
         self.port = 0
         self._seq = 0
@@ -164,6 +168,10 @@ class UdpRobot(ThreadedDevice):
                     self.vehicle.stop(now)  # the firmware's own watchdog
                     self.moving = False
                     self.counters["watchdog_stops"] += 1
+                elif self.moving and now > self.cmd_until:
+                    self.vehicle.stop(now)  # the command's own validity is over
+                    self.moving = False
+                    self.counters["expired_stops"] += 1
                 if now >= t_next:
                     self._send_state(now)
                     t_next = now + self.period
@@ -216,6 +224,7 @@ class UdpRobot(ThreadedDevice):
             self.moving = True
         c["applied"] += 1
         self.last_cmd, self.last_cmd_time = cmd, now
+        self.cmd_until = now + cmd.valid_ms / 1000.0
 
     def _send_state(self, now: float) -> None:
         if self.peer is None or self.sock is None:

@@ -21,6 +21,7 @@ def _own_state_and_cache(tmp_path_factory, monkeypatch) -> None:
     stations the suite starts run the MPC's functions interpreted (same results; the compiled path has its own tests
     in test_codegen.py): a build per worker would cost each a core for tens of seconds beside timed tests."""
     monkeypatch.setenv("SCMBRIDGE_STATE_DIR", str(tmp_path_factory.mktemp("state")))
+    monkeypatch.setenv("SCMBRIDGE_RECORD_DIR", str(tmp_path_factory.mktemp("record")))  # the latch's record
     monkeypatch.setenv("SCMBRIDGE_NO_COMPILE", "1")
     if "SCMBRIDGE_CACHE_DIR" not in os.environ:
         monkeypatch.setenv("SCMBRIDGE_CACHE_DIR", str(tmp_path_factory.getbasetemp() / "cache"))

@@ -231,6 +231,10 @@ def _estop_dict(rng: random.Random) -> dict:
     return msg
 
 
+#: the model's epoch: no 62-bit epoch a host picks (bridge.core.wire.new_epoch) is this
+NOT_THE_HOST = 2**63 - 1
+
+
 class LatchModel:
     """The documented estop rule (docs/ARCHITECTURE.md section 6), counted as the driver host counts it: anyone
     engages; only a configured source releases, and only fresh and once (``bridge.core.acts``); ``estops`` counts
@@ -241,14 +245,14 @@ class LatchModel:
         self.sources = release_sources
         self.latched = False
         self.counts = Counter()
-        self.guard = ActGuard()
+        self.guard = ActGuard(NOT_THE_HOST)  # a fuzzed release never names the host's start: refused as it is
 
     def offer(self, e: M.Estop) -> None:
         if e.engaged:
             self.counts["estops"] += not self.latched
             self.latched = True
         elif self.latched:
-            why = self.guard.check(e.wall_time, e.nonce, time.time())
+            why = self.guard.check(e.target, e.echo, e.nonce, e.source, time.monotonic())
             if why is not None:
                 self.counts[f"estop_release_refused_{why.kind}"] += 1
             elif e.source in self.sources:
@@ -297,7 +301,7 @@ def _estop_on(rig: HostRig, n: int, rng: random.Random) -> dict:
         if rng.random() < 0.05:
             cpub.put(msgspec.msgpack.encode(stream()))
     latch_keys = ("estops", "estop_releases", "estop_release_refused",
-                  *(f"estop_release_refused_{k}" for k in ActGuard().refused))
+                  *(f"estop_release_refused_{k}" for k in ActGuard(NOT_THE_HOST).refused))
     want = sum(model.counts.values())
     after = _settle(rig, lambda c: _delta(c, before, ("malformed_estop", *latch_keys)), bad + want,
                     30.0 + n / 2000)
@@ -305,8 +309,12 @@ def _estop_on(rig: HostRig, n: int, rng: random.Random) -> dict:
     latch = {k: _delta(after, before, (k,)) for k in latch_keys}
     rss1 = rig.rss()
     # the operator releases (a configured source), and a new station run drives
-    epub.put(M.encode(M.Estop(stamp=time.monotonic(), engaged=False, source="operator", reason="bench",
-                              wall_time=time.time(), nonce=M.new_nonce())))
+    from bridge.core.acts import address_of, stamped
+    from bridge.tools.estop import latch_states
+
+    for st in latch_states(rig.session, rig.keys.estop, 5.0).values():  # addressed to the host's start
+        epub.put(M.encode(stamped(M.Estop(stamp=time.monotonic(), engaged=False, source="operator",
+                                          reason="bench"), address_of(st))))
     epub.undeclare()
     cpub.undeclare()
     drive = rig.drives()

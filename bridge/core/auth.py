@@ -25,7 +25,7 @@ import struct
 from pathlib import Path
 
 from bridge.core.errors import UsageError
-from bridge.core.paths import save_atomic, state_dir
+from bridge.core.paths import SMALL_FILE, NotAFile, read_bounded, save_atomic, state_dir
 
 MAGIC = b"\xa5\x01"  # format and version of an authenticated datagram
 TAG_BYTES = 16
@@ -132,9 +132,13 @@ def read_key_file(path: Path) -> bytes:
     estop latch's install marker alike): readable by its owner only, exactly :data:`KEY_BYTES` bytes. Raises
     FileNotFoundError when there is none, OSError when it cannot be read, :class:`KeyProblem` otherwise; the callers
     word the error for their user."""
+    try:  # a regular file of a key's size: a FIFO would hang the reader, /dev/zero fill its memory
+        data = read_bounded(path, SMALL_FILE)
+    except NotAFile as exc:
+        raise KeyProblem("format", f"{path}: not a key ({exc})") from None
     st = path.stat()
     try:
-        text = path.read_text(encoding="ascii").strip()
+        text = data.decode("ascii").strip()
     except UnicodeDecodeError as exc:
         raise KeyProblem("format", f"{path}: not a key ({exc})") from None
     if st.st_mode & (stat.S_IRWXG | stat.S_IRWXO):
@@ -145,6 +149,8 @@ def read_key_file(path: Path) -> bytes:
         key = b""
     if len(key) != KEY_BYTES:
         raise KeyProblem("format", f"{path}: not a key ({KEY_BYTES} bytes as hex)")
+    if not any(key):  # what a placeholder or a zeroed file holds: anyone can guess it
+        raise KeyProblem("format", f"{path}: an all-zero key (not random: anyone can sign with it)")
     return key
 
 
@@ -159,7 +165,8 @@ def load_key(path: str | Path, link: str = "udp") -> bytes:
         if exc.kind == "mode":
             mode = stat.S_IMODE(path.stat().st_mode)
             raise KeyFileError(f"key file {path} is readable by others (mode {mode:o}); chmod 600 it") from None
-        raise KeyFileError(f"key file {path}: expected {KEY_BYTES} bytes as hex (scmbridge keys makes one)") from None
+        raise KeyFileError(f"key file {path}: expected {KEY_BYTES} random bytes as hex (scmbridge keys makes one): "
+                           f"{exc}") from None
     except OSError as exc:
         raise KeyFileError(f"key file {path}: cannot read it ({exc})") from None
 

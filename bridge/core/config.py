@@ -31,7 +31,7 @@ import msgspec
 from msgspec import Meta, Struct, field
 
 from bridge.core.errors import UsageError
-from bridge.core.paths import state_dir
+from bridge.core.paths import TEXT_FILE, NotAFile, read_bounded, state_dir
 from bridge.core.wire import MissionSpec
 from transfer import paper
 from transfer.domain import Bounds
@@ -236,6 +236,9 @@ class FleetSection(Cfg):
 
     shards: Annotated[dict[RobotName, list[RobotName]], meta(
         "station host name -> the robots it serves, e.g. base1 = [\"r1\", \"r2\"]")] = field(default_factory=dict)
+    robots: Annotated[list[RobotName], meta(
+        "the lab's robots besides the shards' (scmbridge estop --all --fleet names each that does not confirm)")] = \
+        field(default_factory=list)
 
     def __post_init__(self) -> None:
         seen: dict[str, str] = {}
@@ -422,12 +425,14 @@ def parse_toml(data: bytes, source: str) -> dict[str, Any]:
 def read_table(path: str | Path) -> dict[str, Any]:
     """The TOML table of the file at ``path``; :class:`ConfigError` (one line) for every way reading can fail."""
     p = Path(path)
-    try:
-        data = p.read_bytes()
+    try:  # a regular file of bounded size: a FIFO would hang the command, /dev/zero fill its memory
+        data = read_bounded(p, TEXT_FILE)
     except FileNotFoundError:
         raise ConfigError(str(p), "", "no such file") from None
-    except IsADirectoryError:
-        raise ConfigError(str(p), "", "is a directory, not a configuration file") from None
+    except (IsADirectoryError, NotAFile) as exc:
+        if p.is_dir():
+            raise ConfigError(str(p), "", "is a directory, not a configuration file") from None
+        raise ConfigError(str(p), "", str(exc)) from None
     except OSError as exc:
         raise ConfigError(str(p), "", f"cannot read: {exc.strerror or exc}") from None
     return parse_toml(data, str(p))

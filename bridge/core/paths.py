@@ -10,6 +10,7 @@ working directory: two services started in one directory must not share a file b
 from __future__ import annotations
 
 import os
+import stat
 import time
 from pathlib import Path
 
@@ -89,3 +90,41 @@ def quarantine(path: Path) -> Path:
     aside = path.with_name(path.name + f".corrupt-{int(time.time())}")
     os.replace(path, aside)
     return aside
+
+
+#: the largest key, marker or latch file read (a key is 65 bytes)
+SMALL_FILE = 4096
+#: the largest configuration or mission file read
+TEXT_FILE = 1 << 20
+#: the largest pair store read
+STORE_FILE = 1 << 28
+
+
+class NotAFile(OSError):
+    """What was to be read is not a regular file, or is larger than it may be (a FIFO, a device such as /dev/zero,
+    a directory, a file grown without bound)."""
+
+
+def read_bounded(path: Path, limit: int) -> bytes:
+    """The bytes of the regular file ``path``, at most ``limit`` of them, else :class:`NotAFile` (never blocks on
+    a FIFO: it is opened non-blocking and checked on its descriptor before a byte is read; never reads a device or
+    a file larger than ``limit`` without bound). FileNotFoundError when there is none, as :func:`open`."""
+    fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | getattr(os, "O_CLOEXEC", 0))
+    try:
+        st = os.fstat(fd)
+        if not stat.S_ISREG(st.st_mode):
+            raise NotAFile(f"{path} is not a regular file")
+        if st.st_size > limit:
+            raise NotAFile(f"{path} is larger than {limit} bytes ({st.st_size})")
+        chunks, size = [], 0
+        while True:
+            chunk = os.read(fd, limit + 1 - size)
+            if not chunk:
+                break
+            chunks.append(chunk)
+            size += len(chunk)
+            if size > limit:
+                raise NotAFile(f"{path} is larger than {limit} bytes (it grew while read)")
+        return b"".join(chunks)
+    finally:
+        os.close(fd)

@@ -362,6 +362,10 @@ class Estop(_Msg, kw_only=True):
     reason: Text = ""
     wall_time: WallTime = 0.0
     nonce: Nonce = ""
+    #: the process the act is for: its ``epoch`` and an ``echo`` of its monotonic clock, read off one of its answers
+    #: (``bridge.core.acts``); 0: names none (an older tool: refused where it matters)
+    target: Epoch = 0
+    echo: Stamp = 0.0
 
 
 class EstopState(_Msg, kw_only=True):
@@ -374,6 +378,8 @@ class EstopState(_Msg, kw_only=True):
     reason: Text = ""
     #: why the last release was refused (a source not configured, a stale or replayed request), for a few seconds
     release_refused: Text = ""
+    #: this process's epoch (a new one at each start): a person's act names it (``bridge.core.acts``; 0: older node)
+    epoch: Epoch = 0
 
 
 MissionAction = Literal["start", "pause", "resume", "abort", "send", "status"]
@@ -396,6 +402,10 @@ class MissionRequest(_Msg, kw_only=True):
     #: a person's explicit override of a guard's pause (``mission resume --override``): resume with the robot still
     #: outside the corridor or the fence, to drive it back (the guard re-arms once it is back inside)
     override: bool = False
+    #: the process the act is for: its ``epoch`` and an ``echo`` of its monotonic clock, read off one of its answers
+    #: (``bridge.core.acts``); 0: names none (an older tool: refused where it matters)
+    target: Epoch = 0
+    echo: Stamp = 0.0
 
 
 class MissionState(_Msg, kw_only=True):
@@ -415,6 +425,8 @@ class MissionState(_Msg, kw_only=True):
     #: when (wall clock), so the operator looks at it before ``start`` (empty once a person started or sent one)
     replaced_by: Text = ""
     replaced_at: WallTime = 0.0
+    #: this process's epoch (a new one at each start): a person's act names it (``bridge.core.acts``; 0: older node)
+    epoch: Epoch = 0
 
 
 class EngageRequest(_Msg, kw_only=True):
@@ -430,6 +442,10 @@ class EngageRequest(_Msg, kw_only=True):
     clear_faults: bool = False
     wall_time: WallTime = 0.0
     nonce: Nonce = ""
+    #: the process the act is for: its ``epoch`` and an ``echo`` of its monotonic clock, read off one of its answers
+    #: (``bridge.core.acts``); 0: names none (an older tool: refused where it matters)
+    target: Epoch = 0
+    echo: Stamp = 0.0
 
 
 class EngageState(_Msg, kw_only=True):
@@ -441,6 +457,8 @@ class EngageState(_Msg, kw_only=True):
     engaged: bool
     accepted: bool = True
     text: Text = ""
+    #: this process's epoch (a new one at each start): a person's act names it (``bridge.core.acts``; 0: older node)
+    epoch: Epoch = 0
 
 
 class MessageError(ValueError):

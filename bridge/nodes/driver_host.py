@@ -155,7 +155,7 @@ class DriverHost:
         self.co_located: list[Any] = []
         self.engage_queries: list[tuple[zenoh.Query, M.EngageRequest]] = []  # answered by the loop thread
         #: engage requests and estop releases are taken fresh and once (bridge.core.acts); under the lock
-        self.acts = ActGuard()
+        self.acts = ActGuard(self.poses.epoch, persons=tuple(d.estop_release_sources) or ("operator",))
         self.release_refused: tuple[str, float] = ("", -math.inf)  # why the last release was refused, and when
         self.stop_speed, self.stop_timeout, self.max_drive_on = d.stop_speed, d.stop_timeout, d.max_drive_on_s
         self.failsafe_report: FailsafeReport | None = None
@@ -206,7 +206,8 @@ class DriverHost:
         is saved after, by the writer's thread: no file I/O under a lock the loop or a callback takes. A stop is
         always taken; a release only when fresh and new (:mod:`bridge.core.acts`) and from a configured source."""
         with self.lock:
-            why = self.acts.check(e.wall_time, e.nonce, time.time()) if not e.engaged and self.gate.estopped else None
+            why = (self.acts.check(e.target, e.echo, e.nonce, e.source, time.monotonic())
+                   if not e.engaged and self.gate.estopped else None)
             if why is not None:
                 self.inputs.count(f"estop_release_refused_{why.kind}")
             refused = self.gate.counters["estop_release_refused"]
@@ -254,18 +255,19 @@ class DriverHost:
             self.inputs.count("malformed_engage")
             query.reply(self.keys.engage, M.encode(M.EngageState(
                 stamp=time.monotonic(), node=f"driver-{self.link}", engaged=self.engaged, accepted=False,
-                text=f"malformed request: {exc}"[:1024])))
+                text=f"malformed request: {exc}"[:1024], epoch=self.acts.epoch)))
             return
         with self.lock:  # engaging is taken fresh and once (bridge.core.acts); handing the vehicle back always
-            why = self.acts.check(req.wall_time, req.nonce, time.time()) if req.engaged else None
+            why = (self.acts.check(req.target, req.echo, req.nonce, req.source, time.monotonic())
+                   if req.engaged else None)
             if why is None:
                 self.engage_queries.append((query, req))
         if why is not None:
             self.inputs.count(f"engage_refused_{why.kind}")
-            log.warning("engage by %r %s", req.source, why.text)
+            (log.debug if why.kind == "unaddressed" else log.warning)("engage by %r %s", req.source, why.text)
             query.reply(self.keys.engage, M.encode(M.EngageState(
                 stamp=time.monotonic(), node=f"driver-{self.link}", engaged=self.engaged, accepted=False,
-                text=why.text[:1024])))
+                text=why.text[:1024], epoch=self.acts.epoch)))
             return
         self.wake.set()
 
@@ -273,6 +275,10 @@ class DriverHost:
         """Engage (or hand back) the vehicle, in the loop thread; the answer says what was done or why not (the
         engagement rules, :meth:`Engagement.request`; the link's own refusal)."""
         node = f"driver-{self.link}"
+
+        def answer(**kw: Any) -> M.EngageState:  # stamped on this host's clock, with its epoch: the next act's address
+            return M.EngageState(stamp=time.monotonic(), node=node, epoch=self.acts.epoch, **kw)
+
         who = f" by {req.source}" if req.source else ""
         with self.lock:
             latched, source, unsaved = self.gate.estopped, self.gate.estop_source, self.latch_unsaved
@@ -280,21 +286,20 @@ class DriverHost:
         outcome = ruling.outcome
         if outcome in (Outcome.DISENGAGED, Outcome.NOT_ENGAGED):
             log.warning("disengaged%s: the vehicle gets stops only", who)
-            return M.EngageState(stamp=now, node=node, engaged=False, text=outcome.value)
+            return answer(engaged=False, text=outcome.value)
         if outcome is Outcome.ALREADY_ENGAGED:
-            return M.EngageState(stamp=now, node=node, engaged=True, text=outcome.value)
+            return answer(engaged=True, text=outcome.value)
         if not outcome.accepted:
-            return M.EngageState(stamp=now, node=node, engaged=False, accepted=False, text=ruling.text[:1024])
+            return answer(engaged=False, accepted=False, text=ruling.text[:1024])
         if not self.dry_run:
             try:
                 self.driver.engage(now, clear_faults=clear)
             except DriverError as exc:
                 log.warning("engage%s refused: %s", who, exc)
-                return M.EngageState(stamp=now, node=node, engaged=False, accepted=False, text=str(exc)[:1024])
+                return answer(engaged=False, accepted=False, text=str(exc)[:1024])
         self.engagement.confirm(now)
         log.warning("engaged%s: the vehicle follows the station's commands", who)
-        return M.EngageState(stamp=now, node=node, engaged=True, text="engaged" + (" (dry run)" if self.dry_run
-                                                                                  else ""))
+        return answer(engaged=True, text="engaged" + (" (dry run)" if self.dry_run else ""))
 
     def _answer_engage_queries(self) -> None:
         with self.lock:
@@ -320,7 +325,8 @@ class DriverHost:
             st = M.EstopState(stamp=now, node=f"driver-{self.link}",
                               latched=self.gate.estopped or bool(self.latch_unsaved), source=self.gate.estop_source,
                               reason=(self.latch_unsaved or self.gate.estop_reason)[:1024],
-                              release_refused=why[:1024] if now - at < RELEASE_REFUSED_SHOWN_S else "")
+                              release_refused=why[:1024] if now - at < RELEASE_REFUSED_SHOWN_S else "",
+                              epoch=self.acts.epoch)
         try:
             query.reply(self.keys.estop, M.encode(st))
         finally:

@@ -1,12 +1,14 @@
 """The robot's estop latch on its disk (docs/ARCHITECTURE.md, section 6: "The estop latch fails safe").
 
 The driver host latches its gate in memory at once (:mod:`bridge.nodes.driver_host`); this module keeps that latch
-on disk so it survives a restart or a reboot, and fails safe: the first start in a state directory writes an install
-marker holding a per-robot key and a released latch; every latch saved carries a keyed tag under that key
-(:func:`bridge.core.auth.record_tag`); at start only a latch whose tag verifies says released (:func:`inspect_latch`).
-A latched save that fails removes the old file, so a restart finds it missing beside the marker and starts latched.
+on disk so it survives a restart or a reboot, and fails safe: the first start in a state directory writes a record
+outside it holding a per-robot key and a count (:mod:`bridge.nodes.latch_record`), an install marker beside the
+latch holding the key's fingerprint, and a released latch; every latch saved carries its count and a keyed tag
+under that key (:func:`bridge.core.auth.record_tag`); at start only a latch whose tag verifies, whose count is the
+record's and whose marker is the record's says released (:func:`inspect_latch`). A latched save that fails removes
+the old file, so a restart finds it missing beside the marker and starts latched.
 
-Pieces: :class:`Latch` (the record), the file helpers (:func:`latch_file`, :func:`latch_marker`, :func:`read_marker`,
+Pieces: :class:`Latch` (the record), the file helpers (:func:`latch_file`, :func:`latch_marker`,
 :func:`inspect_latch`, :func:`read_latch`, :func:`sign_latch`), :class:`LatchWriter` (one thread that saves off the
 control path) and :class:`LatchStore` (one robot's latch: opened at start, saved through the writer, forgotten after
 a latched save failed; what a save came to is handed to the host as a :class:`SaveResult`). No Zenoh; the host's
@@ -26,21 +28,32 @@ from pathlib import Path
 import msgspec
 
 from bridge.core import wire as M
-from bridge.core.auth import KEY_BYTES, read_key_file, record_tag, record_tag_ok
-from bridge.core.paths import save_atomic, state_dir
+from bridge.core.auth import KEY_BYTES, record_tag, record_tag_ok
+from bridge.core.paths import SMALL_FILE, read_bounded, save_atomic, state_dir
+from bridge.nodes.latch_record import (
+    Record,
+    fingerprint,
+    marker_text,
+    read_marker_text,
+    read_record,
+    record_file,
+)
 
 log = logging.getLogger("scmbridge.driver")  # the driver host's log: the latch is its own
 
 
 class Latch(msgspec.Struct, kw_only=True):
     """The estop latch as kept on the robot's disk. ``tag``: :func:`bridge.core.auth.record_tag` over the other
-    three fields under the robot's latch key (:func:`latch_marker`), so a file this host did not write reads as
-    latched (:func:`inspect_latch`); empty in memory and in a file older than the tag."""
+    fields under the robot's latch key (kept in its record, :mod:`bridge.nodes.latch_record`), so a file this host
+    did not write reads as latched (:func:`inspect_latch`); empty in memory and in a file older than the tag.
+    ``count``: how many latches this host had saved with it (the record keeps the last), so an older file copied
+    back reads latched."""
 
     latched: bool
     source: str = ""
     reason: str = ""
     tag: bytes = b""
+    count: int = 0
 
 
 def latch_file(robot: str) -> Path:
@@ -50,84 +63,91 @@ def latch_file(robot: str) -> Path:
 
 def latch_marker(path: Path) -> Path:
     """The install marker beside the latch file ``path`` (``estop-<robot>.installed``): written atomically at the
-    first start in a state directory, and never again. It holds the robot's latch key (32 random bytes as hex, mode
-    0600), which signs every latch the host saves; its presence says this directory has an estop history, so a
-    latch file missing beside it counts as latched."""
+    first start in a state directory. It holds the fingerprint of the robot's latch key (the key itself is in the
+    record, outside the state directory: :func:`bridge.nodes.latch_record.record_file`); its presence says this
+    directory has an estop history, so a latch file missing beside it counts as latched."""
     return path.with_name(path.stem + ".installed")
 
 
 def _unsigned(latch: Latch) -> bytes:
-    return M.encode(Latch(latched=latch.latched, source=latch.source, reason=latch.reason))
+    return M.encode(Latch(latched=latch.latched, source=latch.source, reason=latch.reason, count=latch.count))
 
 
 def sign_latch(key: bytes, latch: Latch) -> Latch:
     """``latch`` with its tag under ``key`` (what :class:`LatchWriter` saves)."""
-    return Latch(latched=latch.latched, source=latch.source, reason=latch.reason,
+    return Latch(latched=latch.latched, source=latch.source, reason=latch.reason, count=latch.count,
                  tag=record_tag(key, _unsigned(latch)))
 
 
-def read_marker(path: Path) -> bytes | None:
-    """The latch key in the install marker ``path``; None if there is none. Raises ValueError (a
-    :class:`bridge.core.auth.KeyProblem`) for a marker that is not a key or that others may read (a key others know
-    signs releases for them), OSError for one unreadable: the checks of every key file (:func:`read_key_file`)."""
-    try:
-        return read_key_file(path)
-    except FileNotFoundError:
-        return None
+def _latched(source: str, problem: str) -> tuple[Latch, str]:
+    return Latch(latched=True, source=source, reason=problem[:200]), problem
 
 
-def inspect_latch(path: Path, key: bytes | None = None) -> tuple[Latch, str]:
+def inspect_latch(path: Path) -> tuple[Latch, str]:
     """The latch a host starting now would take from ``path``, and the problem that made it latched ("" when the
-    file says it as this host saved it). ``key``: the latch key (None: read from :func:`latch_marker`).
+    file says it as this host saved it).
 
-    Fail safe: only a latch file whose tag verifies under the robot's key says released; missing beside the
-    install marker, unreadable, unsigned or forged, it is latched (the source says which). No marker and no latch
-    file: this state directory has never seen an estop (a first start: released; the caller writes the marker).
+    Fail safe: only a latch file whose tag verifies under the key of this state directory's record, whose count is
+    the record's and whose install marker is the record's key's says released; anything else is latched (the
+    source says which): missing beside the marker or the record, unreadable, unsigned or forged, copied back (an
+    older count), a marker of another key. No record, no marker and no latch file: this state directory has never
+    seen an estop (a first start: released; the caller writes them). A marker of an older version (holding the key
+    itself) is taken as the record once (:class:`LatchStore` moves the key out).
 
-    Why a keyed tag (and not only "a release must name the latch it releases"): the threat found was a
-    ``released`` file written by someone else (or left by another state directory, or by an older version without
-    tags); without the key nobody makes a tag that verifies. What it cannot stop: whoever can read the marker (this
-    robot's user, root) can sign, and an older released file of this same host, copied back, verifies. The state
-    directory is the host's alone (0700, ``scmbridge doctor`` checks it) and must stay the same across restarts
-    (``SCMBRIDGE_STATE_DIR``): a host given an empty one cannot know an estop was latched elsewhere, so its start
-    log and ``doctor`` say "first start in this state directory: no estop history"."""
-    marker = latch_marker(path)
-    marker_problem = ""
-    if key is None:
-        try:
-            key = read_marker(marker)
-        except (OSError, ValueError) as exc:
-            marker_problem = f"latch key {marker} unusable: {getattr(exc, 'strerror', None) or exc}"
+    What it cannot stop: whoever may write the record directory and the state directory (this robot's user, root)
+    can delete both, and the next start is a first start: the host's start log and ``doctor`` say "first start in
+    this state directory: no estop history" (docs/SECURITY.md)."""
+    marker, recfile = latch_marker(path), record_file(path)
+    problems = []
     try:
-        data = path.read_bytes()
+        rec = read_record(recfile)
+    except (OSError, ValueError) as exc:
+        rec, problems = None, [f"estop record {recfile} unusable: {getattr(exc, 'strerror', None) or exc}"]
+    try:
+        mark = read_marker_text(marker)
+    except (OSError, ValueError) as exc:
+        mark = None
+        problems.append(f"install marker {marker} unusable: {getattr(exc, 'strerror', None) or exc}")
+    if rec is None and mark is not None and mark[1] is not None:
+        rec = Record(mark[1], 0)  # an older version's marker: the key is in it (moved out at this start)
+    elif mark is not None and rec is not None and mark[0] != fingerprint(rec.key):
+        problems.append(f"install marker {marker} is of another key (replaced, or from another host)")
+    elif mark is None and rec is not None and not problems:
+        problems.append(f"install marker {marker} missing although this host has run in this state directory "
+                        f"(its record {recfile}): deleted")
+    try:
+        data = read_bounded(path, SMALL_FILE)
     except FileNotFoundError:
-        if key is None and not marker_problem and not os.path.lexists(marker):
+        if rec is None and not problems and mark is None and not os.path.lexists(marker):
             return Latch(latched=False), ""  # never latched in this state directory
-        return (Latch(latched=True, source="missing latch file", reason=f"{path} is missing"),
-                f"latch file {path} missing (this state directory has an estop history: {marker.name})")
+        why = "; ".join(problems) or f"this state directory has an estop history: {marker.name}"
+        return _latched("missing latch file", f"latch file {path} missing ({why})")
     except OSError as exc:
-        problem = f"latch file {path} unreadable: {exc.strerror or exc}"
-        return Latch(latched=True, source="unreadable latch file", reason=problem[:200]), problem
+        return _latched("unreadable latch file", f"latch file {path} unreadable: {exc.strerror or exc}")
     try:
         saved = M.decode(data, Latch)
     except M.MessageError as exc:
-        problem = f"latch file {path} unreadable: {exc}"
-        return Latch(latched=True, source="unreadable latch file", reason=problem[:200]), problem
+        return _latched("unreadable latch file", f"latch file {path} unreadable: {exc}")
     plain = Latch(latched=saved.latched, source=saved.source, reason=saved.reason)
-    if key is not None and saved.tag and record_tag_ok(key, _unsigned(saved), saved.tag):
-        return plain, ""
     if saved.latched:  # latched whoever wrote it
         return plain, ""
-    why = (marker_problem or f"no latch key ({marker.name} missing)" if key is None
-           else "not signed by this host" if not saved.tag else "its tag does not verify (written by someone else)")
-    problem = f"latch file {path} says released but {why}"
-    return Latch(latched=True, source="unverified latch file", reason=problem[:200]), problem
+    signed = rec is not None and saved.tag and record_tag_ok(rec.key, _unsigned(saved), saved.tag)
+    if signed and rec.count and saved.count < rec.count:
+        problems.append(f"it is older than the last latch this host saved (count {saved.count} < {rec.count}): "
+                        "copied back, or a save that did not finish")
+    if signed and not problems:
+        return plain, ""
+    if not problems:
+        problems.append(f"no latch key (its record {recfile} missing)" if rec is None
+                        else "not signed by this host" if not saved.tag
+                        else "its tag does not verify (written by someone else)")
+    return _latched("unverified latch file", f"latch file {path} says released but {'; '.join(problems)}")
 
 
-def read_latch(path: Path, key: bytes | None = None) -> Latch:
+def read_latch(path: Path) -> Latch:
     """The latch a host starting now would take (:func:`inspect_latch`), without its tag; a problem is said in the
     log (the host starts latched: release it with scmbridge estop --release)."""
-    latch, problem = inspect_latch(path, key)
+    latch, problem = inspect_latch(path)
     if problem:
         log.error("estop %s: starting latched; release it with scmbridge estop --release", problem)
     return latch
@@ -238,50 +258,68 @@ class LatchStore:
     def __init__(self, path: Path | None, done: Callable[[SaveResult], None],
                  saver: Callable[[Path, bytes], None] = save_atomic) -> None:
         self.path, self.done, self.saver = path, done, saver
-        self.key = b""  # signs every latch saved (the install marker holds it)
+        self.key = b""  # signs every latch saved (its record holds it, outside the state directory)
+        self.count = 0  # the count of the last latch submitted (its record holds the last saved)
+        self.record_saved = False  # the record is on disk
         self.marker_saved = False  # the install marker is on disk (else the next latch save writes it first)
         self.fresh_state = False  # first start in this state directory: no estop history
         self.writer = LatchWriter(path, self._saved, self._save_file) if path is not None else None
 
     def open(self) -> Latch:
-        """The saved latch (:func:`inspect_latch`: anything but a release this host signed is latched), after making
-        sure the install marker is on disk; at the first start in a state directory write it and a released latch
-        (marker first: a crash between the two leaves a marker without a latch file, which reads latched). These
-        writes are the start's, with :func:`save_atomic` (a failure is logged; the first latch save tries the
-        marker again). Released when kept in memory only."""
+        """The saved latch (:func:`inspect_latch`: anything but a release this host signed, as its record counts
+        it, is latched), after making sure the record and the install marker are on disk and agree; at the first
+        start in a state directory write them and a released latch (record, then marker, then latch: a crash
+        between them reads latched). These writes are the start's, with :func:`save_atomic` (a failure is logged;
+        the first latch save tries again). A marker of an older version, holding the key itself, has its key moved
+        into the record and is rewritten as a fingerprint. Released when kept in memory only."""
         path = self.path
         if path is None:
             return Latch(latched=False)
-        marker = latch_marker(path)
-        self.fresh_state = not os.path.lexists(marker) and not os.path.lexists(path)
+        marker, recfile = latch_marker(path), record_file(path)
         try:
-            key = read_marker(marker)
+            rec = read_record(recfile)
+            bad_record = False
         except (OSError, ValueError):
-            key = None  # inspect_latch says why, and the latch reads latched
-        saved = read_latch(path, key)
-        self.marker_saved = key is not None
-        self.key = key if key is not None else secrets.token_bytes(KEY_BYTES)
-        log.info("estop latch %s (state directory %s)", path, path.parent)
-        if self.fresh_state:
-            log.warning("first start in this state directory: no estop history (%s); the state directory must stay "
-                        "the same across restarts (SCMBRIDGE_STATE_DIR): a host started with another one cannot know "
-                        "an estop latched in this one", path.parent)
+            rec, bad_record = None, True  # inspect_latch says why, and the latch reads latched
         try:
-            if not self.marker_saved:
-                save_atomic(marker, self.key.hex().encode() + b"\n")
-                self.marker_saved = True
+            mark = read_marker_text(marker)
+        except (OSError, ValueError):
+            mark = None
+        self.fresh_state = (rec is None and not bad_record and not os.path.lexists(marker)
+                            and not os.path.lexists(path))
+        saved = read_latch(path)
+        if rec is None and mark is not None and mark[1] is not None:
+            rec = Record(mark[1], 0)  # an older version's marker: its key moves to the record
+            self.record_saved = False
+        else:
+            self.record_saved = rec is not None
+        self.key = rec.key if rec is not None else secrets.token_bytes(KEY_BYTES)
+        self.count = rec.count if rec is not None else 0
+        self.marker_saved = self.record_saved and mark is not None and mark == (fingerprint(self.key), None)
+        log.info("estop latch %s (state directory %s, record %s)", path, path.parent, recfile)
+        if self.fresh_state:
+            log.warning("first start in this state directory: no estop history (%s, no record %s); the state "
+                        "directory must stay the same across restarts (SCMBRIDGE_STATE_DIR): a host started with "
+                        "another one cannot know an estop latched in this one", path.parent, recfile)
+        try:
             if self.fresh_state:
-                save_atomic(path, M.encode(sign_latch(self.key, Latch(latched=False, reason="first start"))))
+                self.count = 1
+            self._save_keys(save_atomic, self.count)
+            if self.fresh_state:
+                save_atomic(path, M.encode(sign_latch(self.key, Latch(latched=False, reason="first start",
+                                                                      count=self.count))))
         except OSError as exc:
-            log.error("estop latch: cannot write %s (%s): an estop is kept in memory only until a save succeeds",
-                      marker if not self.marker_saved else path, exc.strerror or exc)
+            log.error("estop latch: cannot write its record, marker or file (%s): an estop is kept in memory only "
+                      "until a save succeeds", exc.strerror or exc)
         return saved
 
     def submit(self, latched: bool, source: str, reason: str) -> None:
-        """Have this latch kept on disk, signed (returns at once: the caller may hold its lock, to keep the order of
-        the changes; the latest submitted wins)."""
+        """Have this latch kept on disk, signed and counted (returns at once: the caller may hold its lock, to keep
+        the order of the changes; the latest submitted wins)."""
         if self.writer is not None:
-            self.writer.submit(sign_latch(self.key, Latch(latched=latched, source=source, reason=reason)))
+            self.count += 1
+            self.writer.submit(sign_latch(self.key, Latch(latched=latched, source=source, reason=reason,
+                                                          count=self.count)))
 
     def defer(self, fn: Callable[[], None]) -> bool:
         """:meth:`LatchWriter.defer`: True when ``fn`` will run once every latch submitted so far is saved (or its
@@ -312,11 +350,20 @@ class LatchStore:
             return f"the old latch file could not be removed either ({exc.strerror or exc}): a restart may read it"
         return ""
 
-    def _save_file(self, path: Path, data: bytes) -> None:
-        """The writer's save: the install marker first if it is not on disk yet, then the latch."""
+    def _save_keys(self, saver: Callable[[Path, bytes], None], count: int) -> None:
+        """The record (the key and ``count``) and, if it is not on disk yet, the install marker (the key's
+        fingerprint): the record first, so a latch never names a count its record has not reached."""
+        path = self.path
+        assert path is not None
+        saver(record_file(path), Record(self.key, count).encode())
+        self.record_saved = True
         if not self.marker_saved:
-            self.saver(latch_marker(path), self.key.hex().encode() + b"\n")
+            saver(latch_marker(path), marker_text(self.key))
             self.marker_saved = True
+
+    def _save_file(self, path: Path, data: bytes) -> None:
+        """The writer's save: the record (and the install marker if it is not on disk yet), then the latch."""
+        self._save_keys(self.saver, M.decode(data, Latch).count)
         self.saver(path, data)
 
     def _saved(self, latch: Latch, error: Exception | None) -> None:

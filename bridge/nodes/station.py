@@ -18,8 +18,9 @@ name and epoch) and ``teacher`` the teacher's own command and plan. ``limits`` i
 limits change and each second; ``pairs`` answers queries; ``mission`` takes a program's new mission (the goal state
 resets): in place while running, else loaded idle until a person's ``mission start`` (never a start by itself), and
 the status and the answers say where it came from and when. Mission requests other than ``status`` are taken only
-fresh and once (``bridge.core.acts``: a wall-clock time within 10 s and a nonce not seen; one without them is
-refused). Without TLS it says at start that anyone who can reach its Zenoh session may command the robot.
+addressed to this run, fresh and once (``bridge.core.acts``: its epoch, an echo of its clock within 10 s and a nonce
+not seen; one without them is refused). Without TLS it says at start that anyone who can reach its Zenoh session
+may command the robot.
 The pair store is persisted atomically every ``persist_every_s`` and at exit, and reloaded at start; a failed save
 (a full disk) is logged, reported on status and retried, and never stops the loop; the saves are written by a writer
 thread from the bytes the tick encoded, so a slow disk never delays a tick. Callbacks only decode and store, under a
@@ -39,6 +40,7 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
+import msgspec
 import zenoh
 
 from bridge.core import wire as M
@@ -46,7 +48,7 @@ from bridge.core.acts import ActGuard
 from bridge.core.args import positive_float, robot_arg, robots_arg
 from bridge.core.config import RATE_HZ_RANGE, StationConfig, load_mission_spec, load_station, mission_from_spec
 from bridge.core.errors import UsageError
-from bridge.core.paths import quarantine, save_atomic, state_dir
+from bridge.core.paths import TEXT_FILE, quarantine, read_bounded, save_atomic, state_dir
 from bridge.nodes import systemd
 from bridge.nodes.mission_control import Fitness, MissionControl, Saved
 from bridge.nodes.node import (
@@ -62,6 +64,7 @@ from bridge.nodes.node import (
 )
 from bridge.nodes.sources import MpcSource
 from bridge.nodes.station_core import StationCore, TickInputs, TickOutputs
+from bridge.nodes.station_tags import FileTags
 from bridge.nodes.writer import Save, SaveWriter
 from bridge.nodes.zsession import open_session
 from transfer.calibration import CalibrationPlan
@@ -179,7 +182,8 @@ class Station:
         self.lock = threading.Lock()  # the inbox (and the core while no loop runs): held briefly, never for a tick
         self.inbox = Inbox()
         self.looping = False  # the loop runs: only its thread calls the core
-        self.acts = ActGuard()  # mission requests are taken fresh and once (bridge.core.acts); under the lock
+        #: mission requests are addressed to this run, taken fresh and once (bridge.core.acts); under the lock
+        self.acts = ActGuard(self.core.epoch)
         self.writer = SaveWriter(save, name=f"station-save-{robot}")
         self.core.saves.writer = self.writer
         self.telemetry: list[Queued] = []  # the echoes' and the poses' queues, read at each tick (serve declares them)
@@ -231,10 +235,11 @@ class Station:
             req = f"malformed request: {exc}"
         if isinstance(req, M.MissionRequest) and req.action != "status":
             with self.lock:
-                why = self.acts.check(req.wall_time, req.nonce, time.time())
+                why = self.acts.check(req.target, req.echo, req.nonce, req.source, time.monotonic())
             if why is not None:
                 self.inputs.count(f"control_refused_{why.kind}")
-                log.warning("mission %s by %r %s", req.action, req.source, why.text)
+                say = log.debug if why.kind == "unaddressed" else log.warning
+                say("mission %s by %r %s", req.action, req.source, why.text)
                 req = why.text
         self._ask(Asked("control", query, req, now))
 
@@ -291,6 +296,8 @@ class Station:
                 else:
                     ans = (self.core.request(q.request, now) if isinstance(q.request, M.MissionRequest)
                            else self.core.control.answer(now, False, str(q.request)))
+                    # stamped on this station's clock, with its epoch: the address of the person's next act
+                    ans = msgspec.structs.replace(ans, stamp=time.monotonic(), epoch=self.acts.epoch)
                     q.query.reply(self.keys.control, M.encode(ans))
             except Exception:  # a query must never stop the loop (it did not when it failed in its callback)
                 log.exception("%s query not answered", q.kind)
@@ -666,13 +673,21 @@ def restore_control(robot: str, mission_arg: str | None, default_mission: str | 
     path = control_file(robot)
     if mission_arg:
         return MissionControl(robot, load_mission_spec(mission_arg))
+    refused = ""
     if path.exists():
         try:
-            return MissionControl.restored(robot, M.decode(path.read_bytes(), Saved))
+            data, why = FileTags().open("control", path, read_bounded(path, TEXT_FILE))
+            if data is None:
+                raise ValueError(why)
+            return MissionControl.restored(robot, M.decode(data, Saved))
         except (OSError, M.MessageError, ValueError) as exc:
             aside = quarantine(path)
             log.error("mission state %s unusable (%s); moved to %s, starting idle", path, exc, aside)
-    return MissionControl(robot, load_mission_spec(default_mission))
+            refused = f"the saved mission {path.name} was refused ({exc}; kept as {aside.name}): look at it"
+    control = MissionControl(robot, load_mission_spec(default_mission))
+    if refused:  # said to the person on every answer and status until a person starts or sends one
+        control.reason = f"{refused}; this is the configured mission, idle"[:1024]
+    return control
 
 
 def _station(cfg: StationConfig, robot: str, rate: float, args: argparse.Namespace) -> Station:

@@ -49,7 +49,7 @@ import numpy as np
 from bridge.core import wire as M
 from bridge.core.config import StationConfig
 from bridge.core.logs import ReasonLog
-from bridge.core.paths import quarantine
+from bridge.core.paths import STORE_FILE, quarantine, read_bounded
 from bridge.nodes.mission_control import Fitness, MissionControl, spec_of
 from bridge.nodes.pairing import IntervalPairer, Reorder
 from bridge.nodes.sources import CalibrationSource, CommandSource, Proposal, SourceContext, Why, make_source
@@ -66,6 +66,7 @@ from bridge.nodes.station_status import (
     not_driving,
     status_key,
 )
+from bridge.nodes.station_tags import FileTags
 from transfer.calibration import CalibrationPlan
 from transfer.domain import Bounds
 from transfer.mission import Mission
@@ -87,16 +88,26 @@ def command_extent(learner: Bounds, teacher: Bounds) -> tuple[float, float]:
             float(max(abs(x) for x in (*learner.w, *teacher.w))))
 
 
-def load_store(path: Path, learner: Bounds, teacher: Bounds, grid, k_min: int) -> tuple[PairStore, str]:
+def load_store(path: Path, learner: Bounds, teacher: Bounds, grid, k_min: int,
+               tags: FileTags | None = None) -> tuple[PairStore, str]:
     """The persisted store if there is a valid one, else a new one. A file that is corrupt, made for other bounds,
     holds a pair no vehicle could have produced, or would break the wire contract when served (``pairs``) is
     quarantined: kept aside, not lost, and not served."""
     path = Path(path)
     if path.exists():
         try:
-            store = PairStore.from_bytes(path.read_bytes())
+            data, why = (read_bounded(path, STORE_FILE), "")
+            if tags is not None:
+                data, why = tags.open("store", path, data)
+            if data is None:
+                raise ValueError(why)
+            store = PairStore.from_bytes(data)
             if store.learner_bounds != learner or store.teacher_bounds != teacher:
-                raise ValueError("its command bounds differ from this configuration")
+                raise ValueError(f"its command bounds (learner {store.learner_bounds}, teacher {store.teacher_bounds})"
+                                 f" differ from this configuration's (learner {learner}, teacher {teacher})")
+            if tuple(store.grid) != tuple(int(g) for g in grid):
+                raise ValueError(f"its grid {store.grid[0]} x {store.grid[1]} is not this configuration's "
+                                 f"{grid[0]} x {grid[1]}")
             top_v, top_w = (PLAUSIBLE * x for x in command_extent(learner, teacher))
             for p in store.refined():
                 if not all(abs(float(u[0])) <= top_v and abs(float(u[1])) <= top_w for u in (p.u_T, p.u_L)):
@@ -104,7 +115,7 @@ def load_store(path: Path, learner: Bounds, teacher: Bounds, grid, k_min: int) -
                                      f"{p.u_L[0]:.3g}, {p.u_L[1]:.3g}) is beyond what the vehicle can do")
             M.validated(pairs_message(store, "learner", 0.0))  # what the pairs queryable would serve
             return store, f"reloaded {len(store.refined())} refined pairs from {path}"
-        except ValueError as exc:
+        except (ValueError, OSError) as exc:
             aside = quarantine(path)
             log.error("pair store %s unusable (%s); quarantined as %s, starting empty", path, exc, aside)
     return PairStore(learner, teacher, tuple(grid), k_min), "new pair store"
@@ -179,7 +190,8 @@ class StationCore:
         self.period = 1.0 / rate_hz
         self.max_pose_age = scfg.max_pose_age_s
         learner, teacher = cfg.learner_bounds.bounds(), cfg.teacher_bounds.bounds()
-        self.store, how = load_store(Path(store_path), learner, teacher, tcfg.grid, tcfg.k_min)
+        self.tags = FileTags()  # the station's files are tagged as its own (bridge/nodes/station_tags.py)
+        self.store, how = load_store(Path(store_path), learner, teacher, tcfg.grid, tcfg.k_min, self.tags)
         # this configuration decides whether cells are re-learned after a change, whatever the file was saved with:
         # a store learned on another day (or before a restart) is then checked against the run's pairs, cell by cell
         adapt = tcfg.adapts(reloaded=self.store.n_configured() > 0)
@@ -223,6 +235,7 @@ class StationCore:
         self.counters = StationCounters()
         self.saves = StationSaves(self.store, Path(store_path), self.control, control_path, self.counters,
                                   scfg.persist_every_s, phase)
+        self.saves.tags = self.tags
         self.report = StatusReport()
         self.limits_report = LimitsReport(self.store, robot)
         self.integrity = Integrity()

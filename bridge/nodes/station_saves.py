@@ -20,6 +20,7 @@ from bridge.core import wire as M
 from bridge.core.paths import save_atomic
 from bridge.nodes.mission_control import MissionControl
 from bridge.nodes.station_status import StationCounters
+from bridge.nodes.station_tags import FileTags
 from transfer.store import PairStore
 
 log = logging.getLogger("scmbridge.station")
@@ -47,6 +48,8 @@ class StationSaves:
         #: each outcome back through :meth:`saved`; None: saved at once
         self.writer: Writer | None = None
         self.error = ""  # the last save's failure in words ("" when the last one of each file succeeded)
+        #: tags each file as this station's (bridge/nodes/station_tags.py); None: saved as they are
+        self.tags: FileTags | None = None
         self.next_at: float | None = None  # the store's next save is due then (None: at the first periodic tick)
 
     def periodic(self, now: float) -> None:
@@ -62,9 +65,13 @@ class StationSaves:
         if self.writer is None:
             self.persist() if what == "store" else self.save_control()
         elif what == "store":
-            self.writer("store", self.store_path, self.store.to_bytes())
+            self.writer("store", self.store_path, self._sealed("store", self.store_path, self.store.to_bytes()))
         elif self.control_path is not None:
-            self.writer("control", self.control_path, M.encode(self.control.saved()))
+            self.writer("control", self.control_path,
+                        self._sealed("control", self.control_path, M.encode(self.control.saved())))
+
+    def _sealed(self, kind: str, path: Path, data: bytes) -> bytes:
+        return self.tags.seal(kind, path, data) if self.tags is not None else data
 
     def saved(self, what: str, error: OSError | None) -> bool:
         """A save that ended (at once, or on the adapter's writer thread), ``error`` None when it succeeded: a failure
@@ -82,7 +89,7 @@ class StationSaves:
         """Save the store now (and at exit); a failure (disk full, permissions) is reported and retried at the next
         period. True: saved."""
         try:
-            save_atomic(self.store_path, self.store.to_bytes())
+            save_atomic(self.store_path, self._sealed("store", self.store_path, self.store.to_bytes()))
         except OSError as exc:
             return self._store_saved(exc)
         return self._store_saved(None)
@@ -92,7 +99,7 @@ class StationSaves:
         if self.control_path is None:
             return
         try:
-            save_atomic(self.control_path, M.encode(self.control.saved()))
+            save_atomic(self.control_path, self._sealed("control", self.control_path, M.encode(self.control.saved())))
         except OSError as exc:
             self.saved("control", exc)
 

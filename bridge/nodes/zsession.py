@@ -20,6 +20,7 @@ import zenoh
 
 from bridge.core.backoff import Backoff
 from bridge.core.errors import UsageError
+from bridge.core.paths import TEXT_FILE, read_bounded
 from bridge.nodes import systemd, tlsid
 
 log = logging.getLogger("scmbridge.zenoh")
@@ -74,13 +75,12 @@ def make_config(
     if mode not in ("peer", "client", "router"):
         raise ValueError(f"zenoh mode must be peer, client or router, not {mode!r}")
     if config_file is not None:
-        try:
-            conf = zenoh.Config.from_file(str(config_file))
-            text = Path(config_file).read_text()
+        try:  # a regular file of bounded size (a FIFO or /dev/zero would hang or fill the process)
+            text = read_bounded(Path(config_file), TEXT_FILE).decode()
+            conf = zenoh.Config.from_json5(text)
         except (zenoh.ZError, OSError, UnicodeDecodeError) as exc:
             raise UsageError(f"--zenoh-config {config_file}: {config_error(str(exc))}") from None
-        if "shared_memory" not in text:  # off unless the lab's file says otherwise
-            conf.insert_json5("transport/shared_memory/enabled", "false")
+        safe_defaults(conf, text, mode)
     else:
         conf = zenoh.Config()
         conf.insert_json5("mode", json.dumps(mode))
@@ -98,6 +98,27 @@ def make_config(
     if connect:
         conf.insert_json5("connect/endpoints", json.dumps(list(connect)))
     return conf
+
+
+def _states(text: str, name: str) -> bool:
+    """Whether the lab's file names ``name`` (as a key, quoted or not, anywhere in it)."""
+    return re.search(rf"(^|[^A-Za-z0-9_]){re.escape(name)}\s*[\"']?\s*:", text, re.MULTILINE) is not None
+
+
+def safe_defaults(conf: zenoh.Config, text: str, mode: str) -> None:
+    """What a lab's ``--zenoh-config`` file does not say gets the built-in configuration's safe values, not Zenoh's
+    (a peer listening on every interface with multicast scouting on): client mode (a router's own file: router),
+    no multicast scouting, no shared memory, and a peer listening on loopback only."""
+    if not _states(text, "mode"):
+        conf.insert_json5("mode", json.dumps("router" if mode == "router" else "client"))
+    if not _states(text, "multicast"):
+        conf.insert_json5("scouting/multicast/enabled", "false")
+    if not _states(text, "shared_memory"):  # off unless the lab's file says otherwise
+        conf.insert_json5("transport/shared_memory/enabled", "false")
+    if not _states(text, "listen"):
+        chosen = json.loads(conf.get_json("mode"))
+        if chosen == "peer":  # (a router's file must name its endpoints: bridge/nodes/router.py refuses it)
+            conf.insert_json5("listen/endpoints", json.dumps(["tcp/127.0.0.1:0"]))
 
 
 def _endpoints(conf: zenoh.Config) -> str:

@@ -14,7 +14,15 @@ from typing import Annotated, Any, Literal, get_args, get_origin, get_type_hints
 import msgspec
 from msgspec import Meta, Struct
 
-from bridge.core.config import SHIPPED_MISSIONS, StationConfig, guess_kind, load, load_mission, read_table
+from bridge.core.config import (
+    SHIPPED_MISSIONS,
+    StationConfig,
+    guess_kind,
+    load,
+    load_mission,
+    load_mission_spec,
+    read_table,
+)
 from bridge.core.wire import MissionSpec
 from bridge.nodes.driver_config import driver_config_type
 
@@ -107,7 +115,32 @@ def check(path: str, kind: str | None = None) -> str:
         return f"{p}: a valid mission '{m.name}': {len(m.path.points)} waypoints, {m.path.length:.2f} m, " \
                f"{len(m.obstacles)} obstacles"
     cfg = load(p, kind_type(kind))
-    return f"{p}: a valid {kind} configuration for robot '{cfg.robot}'"
+    also = own_checks(kind, cfg, read_table(p))
+    return f"{p}: a valid {kind} configuration for robot '{cfg.robot}'" + (f" ({also})" if also else "")
+
+
+def own_checks(kind: str, cfg: Any, table: dict[str, Any]) -> str:
+    """What the commands themselves check when they start, beyond the file's types: each key file a driver's link
+    names (it exists, is a key of random bytes and is its owner's alone: what the driver reads when that link
+    opens; the file does not say which link the robot uses, so a link without a key is not refused here), a
+    station's mission. Raises their own errors; returns what was checked."""
+    done = []
+    if kind == "driver":
+        from bridge.core.auth import load_key
+        from drivers.udp import link_key
+
+        for name in (table.get("link") or {}):
+            section = getattr(cfg.link, name, None)
+            if name == "udp" and section is not None and section.key_file:
+                link_key(section)
+                done.append("udp key")
+            elif name == "mavlink" and section is not None and section.signing_key_file:
+                load_key(section.signing_key_file, "mavlink")
+                done.append("mavlink signing key")
+    elif kind == "station" and cfg.station.mission:
+        load_mission_spec(cfg.station.mission)
+        done.append(f"mission {cfg.station.mission!r}")
+    return ", ".join(f"{d} checked" for d in done)
 
 
 def arguments_check(ap: argparse.ArgumentParser) -> None:

@@ -51,10 +51,10 @@ PAIR_SETTLE_EDGE_ACKERMANN_S = 2.5
 def learned_limits(store_path: Path) -> dict[str, list[float]] | None:
     """What the run learned of the learner, on the teacher's domain: the limits' box (``v``, ``w``: [lo, hi]) from
     the saved pair store; None without a store."""
-    from transfer.store import PairStore
+    from bridge.nodes.station_tags import read_store
 
     try:
-        store = PairStore.from_bytes(Path(store_path).read_bytes())
+        store = read_store(Path(store_path))
     except (OSError, ValueError):
         return None
     box = store.limits.box

@@ -16,8 +16,10 @@ Each check prints one line, ``ok``, ``warn`` or ``FAIL``, its name and what it f
   file (written, fsynced and removed) and is 0700; ``latch``: only for a driver host on this machine (the
   ``--driver`` file's robot, or one that answered from here), what a driver host starting now would take: released
   (signed by that host), latched (by whom), latched because the file is missing, unreadable or not the host's own,
-  or "first start in this state directory: no estop history" (a host that ran with another state directory left its
-  latch there);
+  copied back (older than its record), beside a marker of another key, or deleted with its marker (its record outside
+  the state directory remembers), or "first start in this state directory: no estop history" (a host that ran with
+  another state directory left its latch there); ``station``: each mission and pair store file there is the
+  station's own (its tag verifies), or why not;
 - ``can``: for a SocketCAN link, the interface exists and is up (with the command that brings it up);
 - ``auth``: (``--link``) whether the link authenticates what it obeys: a warning for the UDP link with
   ``insecure = true`` and for MAVLink without signing (anyone on the network can drive the robot);
@@ -54,8 +56,10 @@ from bridge.core.config import load_station
 from bridge.core.errors import UsageError
 from bridge.core.paths import state_dir
 from bridge.nodes.driver_config import load_driver
+from bridge.nodes.latch_record import record_dir, record_file
 from bridge.nodes.latch_store import inspect_latch, latch_marker
 from bridge.nodes.node import add_zenoh_args, endpoints_tried, zenoh_config
+from bridge.nodes.station_tags import file_problem
 from bridge.nodes.tlsid import cert_names
 from bridge.nodes.zsession import open_session
 from bridge.tools.doctor_fleet import fleet_report
@@ -223,12 +227,14 @@ def check_state(robot: str | None) -> list[Check]:
     out = [Check("warn", "state", f"state directory {d} is mode {mode:o}: others may read the latch key or replace "
                                   f"the estop latch; chmod 700 {d}") if mode & 0o077
            else Check("ok", "state", f"state directory {d} (0700, writable)")]
-    robots = [robot] if robot else sorted({p.name[len("estop-"):].rsplit(".", 1)[0]
-                                           for p in d.glob("estop-*") if p.suffix in (".bin", ".installed")})
+    here = record_file(d / "estop-x.bin").name.rsplit("-", 1)[1]  # this state directory's records' suffix
+    robots = [robot] if robot else sorted(
+        {p.name[len("estop-"):].rsplit(".", 1)[0] for p in d.glob("estop-*") if p.suffix in (".bin", ".installed")}
+        | {p.name[len("estop-"):-len(here) - 1] for p in record_dir().glob(f"estop-*-{here}")})
     for r in robots:
         path = d / f"estop-{r}.bin"
         marker = latch_marker(path)
-        if not os.path.lexists(path) and not os.path.lexists(marker):
+        if not os.path.lexists(path) and not os.path.lexists(marker) and not os.path.lexists(record_file(path)):
             out.append(Check("warn", "latch", f"{r}: first start in this state directory: no estop history (a driver "
                                               f"host for {r} that ran with another state directory left its latch "
                                               "there: SCMBRIDGE_STATE_DIR must stay the same)"))
@@ -243,6 +249,11 @@ def check_state(robot: str | None) -> list[Check]:
         else:
             out.append(Check("ok", "latch", f"{r}: released (saved by its driver host; estop history since "
                                             f"{dt.datetime.fromtimestamp(marker.stat().st_mtime):%Y-%m-%d %H:%M})"))
+    for kind, pattern in (("control", "mission-*.bin"), ("store", "pairs-*.bin")):
+        for f in sorted(d.glob(pattern)):  # the station's files: its own (its tag), or changed while it was down
+            problem = file_problem(kind, f)
+            out.append(Check("warn", "station", f"{f.name}: {problem}") if problem
+                       else Check("ok", "station", f"{f.name}: the station's own (its tag verifies)"))
     return out
 
 

@@ -5,10 +5,11 @@ station with what it did or why it refused, and where the mission is (``running`
 operator``, ...). A station starts idle and drives only after ``start``; after an estop, an operator takeover, a
 lost link or a driver-host restart it pauses, and only ``resume`` drives on. ``send FILE`` loads a new mission
 (idle until started); ``send FILE --reverse`` the same mission from its goal back to its start (a ``start`` with the
-robot already at the goal is refused: it would end at once). Each request carries this machine's wall-clock time and
-a random nonce: the station refuses one more than 10 s off its own clock or seen before (a recorded request
-replayed; synchronise the machines' clocks), and one without them (an older tool, a recorded old-format payload);
-``status`` needs neither. A mission published on ``scm/<robot>/mission`` by a program (not a person's ``send``) is
+robot already at the goal is refused: it would end at once). Each request is addressed to the station's current run
+(its epoch and a reading of its clock, from a ``status`` asked first) and carries a random nonce: the station refuses
+one made for another run (recorded before a restart), one older than 10 s by its own clock or seen before (a
+recorded request replayed), and one without them (an older tool, a recorded old-format payload); ``status`` needs
+none; no clock sync is needed. A mission published on ``scm/<robot>/mission`` by a program (not a person's ``send``) is
 named in the answer, with when it came, so it is looked at before ``start``. Prints the answer in one line. Exit
 status: 0 accepted, 1 refused, 2 no station answered, 3 denied by the lab's access control (this certificate's role
 may not ask: the observer, a robot; deploy/README.md), said at once.
@@ -25,7 +26,7 @@ import msgspec
 import zenoh
 
 from bridge.core import wire as M
-from bridge.core.acts import stamped
+from bridge.core.acts import address_of, stamped
 from bridge.core.args import positive_float, robot_arg
 from bridge.core.config import load_mission_spec
 from bridge.core.errors import Denied, UsageError
@@ -38,21 +39,40 @@ RETRY_S = 0.25
 
 
 def ask(session: zenoh.Session, robot: str, req: M.MissionRequest, timeout: float) -> M.MissionState | None:
-    """The station's answer to ``req``, asking again until ``timeout``; None if no station answered."""
+    """The station's answer to ``req``, asking again until ``timeout``; None if no station answered. An act is
+    addressed to the station's current run: each try first asks its status (its epoch and clock), then sends the
+    act stamped with a new nonce and that address (:func:`bridge.core.acts.stamped`)."""
     t_end = time.monotonic() + timeout
     while True:
-        left = t_end - time.monotonic()
-        payload = M.encode(stamped(req))  # each try stamped now, with a new nonce: taken fresh and once
-        for reply in session.get(M.key(robot, "control"), payload=payload, timeout=max(0.05, min(1.0, left))):
-            if reply.ok is None:
-                continue
-            try:
-                return M.decode(reply.ok.payload.to_bytes(), M.MissionState)
-            except M.MessageError:
-                continue
+        to = None
+        if req.action != "status":
+            status = _get(session, robot, M.MissionRequest(stamp=req.stamp, action="status", source=req.source),
+                          t_end)
+            to = address_of(status) if status is not None else None
+        if to is not None or req.action == "status":
+            st = _get(session, robot, stamped(req, to), t_end)
+            if st is not None:
+                return st
+        elif status is not None:  # an older station (no epoch): the act as it takes it
+            st = _get(session, robot, stamped(req), t_end)
+            if st is not None:
+                return st
         if time.monotonic() + RETRY_S >= t_end:
             return None
         time.sleep(RETRY_S)
+
+
+def _get(session: zenoh.Session, robot: str, req: M.MissionRequest, t_end: float) -> M.MissionState | None:
+    """The station's answer to one query carrying ``req`` (None: none within a second or ``t_end``)."""
+    left = t_end - time.monotonic()
+    for reply in session.get(M.key(robot, "control"), payload=M.encode(req), timeout=max(0.05, min(1.0, left))):
+        if reply.ok is None:
+            continue
+        try:
+            return M.decode(reply.ok.payload.to_bytes(), M.MissionState)
+        except M.MessageError:
+            continue
+    return None
 
 
 def line(st: M.MissionState) -> str:

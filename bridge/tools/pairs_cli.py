@@ -43,7 +43,9 @@ from numpy.typing import NDArray
 from bridge.core import wire as M
 from bridge.core.args import positive_float, robot_arg
 from bridge.core.errors import UsageError
+from bridge.core.paths import STORE_FILE, read_bounded
 from bridge.nodes.node import add_zenoh_args, endpoints_tried, zenoh_config
+from bridge.nodes.station_tags import untagged
 from transfer.domain import Bounds
 from transfer.store import PairStore
 
@@ -163,13 +165,13 @@ def load_store_file(path: str | Path) -> PairStore:
     """The pair store in ``path``, or :class:`PairsError` saying why it cannot be read."""
     p = Path(path)
     try:
-        data = p.read_bytes()
+        data = read_bounded(p, STORE_FILE)
     except FileNotFoundError:
         raise PairsError(f"{p}: no such pair store file") from None
     except OSError as exc:
         raise PairsError(f"{p}: cannot read: {exc.strerror or exc}") from None
     try:
-        return PairStore.from_bytes(data)
+        return PairStore.from_bytes(untagged(data))  # (looked at, not driven with: the tag is the station's)
     except ValueError as exc:
         raise PairsError(f"{p}: {exc}") from None
 

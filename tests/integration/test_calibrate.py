@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 
 from bridge.core import wire as M
+from bridge.nodes.station_tags import read_store
 from bridge.nodes.zsession import free_port, make_config, open_session, tcp
 from bridge.tools.procs import Children
 from sim_learner.dynamics import mpc_learner
@@ -70,7 +71,7 @@ def test_scmbridge_calibrate_drives_the_robot_through_its_driver_host_into_the_s
     assert res.returncode == 0, res.stdout[-2000:] + res.stderr[-3000:]
     assert "all 9 commands driven" in res.stdout
     assert "calibration 9/9" in res.stderr  # progress, command by command
-    learned = PairStore.from_bytes(store.read_bytes())
+    learned = read_store(store)
     assert learned.raw_count > 20 and len(learned.refined()) >= 3
     with lock:
         far = max(np.hypot(s.x - states[0].x, s.y - states[0].y) for s in states)

@@ -19,6 +19,7 @@ import can
 import numpy as np
 import pytest
 
+from bridge.nodes.station_tags import read_store
 from bridge.tools.procs import Children
 from drivers.can.config import CanLinkConfig
 from sim_learner.can_ecu import DRIFT_AMOUNT, DiffDriveEcus, Drift
@@ -113,7 +114,7 @@ def _demo(tmp_path: Path, drift: str, duration: float, timeout: float) -> tuple[
     summary = json.loads(lines[0][len("summary: "):])
     assert summary["reached_goal"], summary
     assert summary["cells_relearned"] > 0 and summary["changed_cells"], summary
-    store = PairStore.from_bytes((out / "pairs.bin").read_bytes())
+    store = read_store(out / "pairs.bin")
     assert store.adapt and store.relearned >= summary["cells_relearned"]
     changed = {c.id for c in store.changed_cells()}
     assert set(summary["changed_cells"]) <= changed

@@ -184,3 +184,58 @@ def test_doctor_warns_a_link_anyone_on_the_network_can_drive(tmp_path) -> None:
     assert found["auth"][0].startswith("warn") and "insecure = true" in found["auth"][0], res.stdout
     assert found["vehicle"][0].startswith("ok"), res.stdout
     assert "state" in found and "Traceback" not in res.stderr, res.stdout + res.stderr
+
+
+def test_doctor_flags_latch_files_deleted_copied_back_or_foreign(tmp_path, monkeypatch) -> None:
+    """Finding: a copied-back older release, a replaced marker, or marker and latch deleted together each let the
+    robot drive after a restart, and ``doctor`` said "ok" or nothing. It now names each."""
+    import shutil
+
+    from bridge.nodes.latch_store import latch_marker
+    from bridge.tools.doctor import check_state
+
+    state = tmp_path / "state"
+    monkeypatch.setenv("SCMBRIDGE_STATE_DIR", str(state))
+    latch = state / "estop-r1.bin"
+    with _host(latch):
+        pass
+    first = tmp_path / "released-copy.bin"
+    shutil.copy(latch, first)
+    with _host(latch) as host:  # a later start latches and releases: the record's count moves on
+        from tests.integration.test_driver_host import _estop
+
+        _estop(host)
+        _estop(host, engaged=False)
+    assert {c.name: c for c in check_state("r1")}["latch"].level == "ok"
+    shutil.copy(first, latch)  # the older release copied back
+    found = {c.name: c for c in check_state("r1")}
+    assert found["latch"].level == "warn" and "copied back" in found["latch"].text, found
+    latch_marker(latch).write_text("11" * 32 + "\n")  # a marker of another key
+    found = {c.name: c for c in check_state("r1")}
+    assert found["latch"].level == "warn" and "another key" in found["latch"].text, found
+    latch.unlink()
+    latch_marker(latch).unlink()  # both deleted: not a first start
+    found = {c.name: c for c in check_state(None)}
+    assert found["latch"].level == "warn" and "deleted" in found["latch"].text, found
+    assert "no estop history" not in found["latch"].text
+
+
+def test_doctor_says_whether_the_stations_files_are_its_own(tmp_path, monkeypatch) -> None:
+    """Finding: a mission file rewritten while the station was down, and doctor said nothing. The station's files
+    carry its tag (bridge/nodes/station_tags.py); doctor checks it without making a key."""
+    from bridge.core.paths import save_atomic
+    from bridge.nodes.station_tags import FileTags
+    from bridge.tools.doctor import check_state
+
+    state = tmp_path / "state"
+    monkeypatch.setenv("SCMBRIDGE_STATE_DIR", str(state))
+    f = state / "mission-r1.bin"
+    save_atomic(f, b"untagged")
+    found = [c for c in check_state("r1") if c.name == "station"]
+    assert found and found[0].level == "warn" and "no station key" in found[0].text, found
+    save_atomic(f, FileTags().seal("control", f, b"payload"))
+    found = [c for c in check_state("r1") if c.name == "station"]
+    assert found[0].level == "ok", found
+    save_atomic(f, f.read_bytes()[:-1] + b"X")  # changed while the station was down
+    found = [c for c in check_state("r1") if c.name == "station"]
+    assert found[0].level == "warn" and "does not verify" in found[0].text, found

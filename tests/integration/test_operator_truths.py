@@ -211,8 +211,8 @@ def _ask_mission(session, robot: str, action: str) -> M.MissionState:
 
 
 def _estop(session, robot: str, engaged: bool) -> None:
-    def msg() -> M.Estop:  # as the person's tool sends it: fresh, with its nonce (bridge/core/acts.py)
-        return stamped(M.Estop(stamp=time.monotonic(), engaged=engaged, source="operator", reason="test"))
+    def msg(to) -> M.Estop:  # as the person's tool sends it: addressed, fresh, with its nonce (bridge/core/acts.py)
+        return stamped(M.Estop(stamp=time.monotonic(), engaged=engaged, source="operator", reason="test"), to)
 
     answers = confirm(session, [robot], msg, engaged, time.monotonic() + 10.0)
     assert answers[robot] and all(st.latched == engaged for st in answers[robot].values()), answers

@@ -18,6 +18,7 @@ from bridge.core.paths import save_atomic
 from bridge.core.wire import Keys
 from bridge.nodes.pairing import IntervalPairer
 from bridge.nodes.station_core import load_store
+from bridge.nodes.station_tags import read_store
 from bridge.nodes.zsession import free_port, make_config, open_session, tcp
 from bridge.tools.procs import spawn, stop_group
 from sim_learner.dynamics import MPC_LEARNER_V, MPC_LEARNER_W, MPC_TEACHER_V, MPC_TEACHER_W
@@ -106,7 +107,7 @@ def test_station_restarts_and_reloads_its_pairs(tmp_path) -> None:
             assert reply is not None, "the station did not answer the pairs query"
             assert sorted(p.id for p in reply.pairs) == sorted(p.id for p in seeded.refined())
             assert reply.limits_box is not None and len(reply.limits_box) == 4
-        assert PairStore.from_bytes(store.read_bytes()).raw_count == 3
+        assert read_store(store).raw_count == 3
 
 
 @pytest.mark.slow

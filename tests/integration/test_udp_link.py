@@ -587,3 +587,28 @@ def test_fuzzing_the_robot_with_2000_datagrams() -> None:
     assert c["foreign"] > 200 and c["malformed"] > 500 and c["over_limits"] > 50 and c["applied"] > 100
     assert calls and all(math.isfinite(v) and math.isfinite(w) and abs(v) <= 1.0 and abs(w) <= 2.0
                          for v, w in calls)
+
+
+def test_the_robot_stops_by_itself_when_a_commands_valid_ms_is_over() -> None:
+    """Finding: the reference UDP robot ignored a command's ``valid_ms``: a man in the middle dropping the stops
+    moved it 0.20 m (0.66 s) after an estop, until its watchdog. Here its watchdog is long (5 s) and one command
+    valid 150 ms comes, with nothing after it: the robot holds its wheels on its own (``expired_stops``), long
+    before the watchdog would."""
+    import socket
+
+    from tests.wait import until
+
+    sender = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    sender.bind((LOCAL, 0))
+    vehicle = SimVehicle(mpc_learner(), (0.0, 0.0, 0.0), now=time.monotonic())
+    robot = UdpRobot(vehicle, peer=sender.getsockname(), watchdog=5.0).start()
+    try:
+        cmd = M.Command(stamp=1.0, seq=1, v=0.3, omega=0.0, method="scm", epoch=M.new_epoch(), valid_ms=150)
+        sender.sendto(M.encode(cmd), (LOCAL, robot.port))
+        assert until(lambda: robot.counters["applied"] == 1, 5.0)
+        assert until(lambda: robot.counters["expired_stops"] == 1, 4.0), robot.counters
+        assert robot.counters["watchdog_stops"] == 0 and not robot.moving
+        assert vehicle.advance(time.monotonic()).v == 0.0 or vehicle.state.v < 0.3
+    finally:
+        robot.stop()
+        sender.close()

@@ -19,9 +19,9 @@ import json
 import numpy as np
 import pytest
 
+from bridge.nodes.station_tags import read_store
 from bridge.tools.cli import main
 from sim_learner.experiments import grid_experiment, mpc_case, run_scm, scm_figures
-from transfer.store import PairStore
 
 SEEDS = (0, 1, 2, 3, 4)
 
@@ -37,7 +37,7 @@ def sweep(tmp_path_factory) -> dict:
                      "--out", str(out)]) == 0
     summary = json.loads(buf.getvalue())
     assert json.loads((out / "mpc_sweep.json").read_text())["policies"] == summary["policies"]
-    stores = {s: PairStore.from_bytes((out / f"pairs-guided-{s}.bin").read_bytes()) for s in SEEDS}
+    stores = {s: read_store(out / f"pairs-guided-{s}.bin") for s in SEEDS}
     return {"summary": summary, "stats": summary["policies"]["guided"]["stats"],
             "per_seed": summary["policies"]["guided"]["per_seed"], "stores": stores, "out": out}
 
@@ -174,5 +174,5 @@ def test_the_mpc_case_runs_with_the_stations_change_detection_and_says_so(tmp_pa
     summary = json.loads(capsys.readouterr().out)
     assert summary["adapt"] is True and summary["policies"]["guided"]["stats"]["no_goal_seeds"] == []
     assert summary["policies"]["guided"]["stats"]["collided_seeds"] == []
-    store = PairStore.from_bytes((tmp_path / "pairs-guided-0.bin").read_bytes())
+    store = read_store(tmp_path / "pairs-guided-0.bin")
     assert store.adapt and store.relearned == 0

@@ -11,6 +11,7 @@ from pathlib import Path
 
 from bridge.core import wire as M
 from bridge.core.paths import save_atomic
+from bridge.nodes.latch_record import record_file
 from bridge.nodes.latch_store import Latch, LatchStore, SaveResult, inspect_latch, latch_marker, read_latch
 from tests.latch import FullDisk, wait_saved
 
@@ -92,7 +93,7 @@ def test_the_marker_missing_at_start_is_written_by_the_first_save(tmp_path) -> N
     store.marker_saved = False  # (as when the start could not write it)
     store.submit(True, "operator", "test")
     wait_saved(store)
-    assert disk.saves == [latch_marker(path), path] and read_latch(path).latched
+    assert disk.saves == [record_file(path), latch_marker(path), path] and read_latch(path).latched
     assert store.close(5.0)
 
 
@@ -113,3 +114,82 @@ def test_a_store_in_memory_only_does_nothing_on_disk() -> None:
     assert store.open() == Latch(latched=False) and not store.fresh_state
     store.submit(True, "operator", "test")
     assert not store.defer(lambda: None) and store.forget() == "" and store.close(0.1) and results == []
+
+
+# ------------------------------------------------------------------ the host's own files turned against it
+def _latched_then_released_then_latched(path: Path) -> bytes:
+    """A host that latched, was released (the released file is copied off) and latched again; the released copy."""
+    store, _ = _store(path)
+    store.open()
+    store.submit(True, "operator", "one")
+    wait_saved(store)
+    store.submit(False, "operator", "released")
+    wait_saved(store)
+    released = path.read_bytes()
+    store.submit(True, "operator", "parked")
+    wait_saved(store)
+    assert store.close(5.0)
+    return released
+
+
+def test_latch_and_marker_deleted_together_after_the_host_has_run_start_latched_and_say_so(tmp_path) -> None:
+    """Finding: marker and latch deleted together, the host believed it was a first start and drove. Its record,
+    outside the state directory, says it has run here."""
+    path = tmp_path / "state" / "estop-r1.bin"
+    _latched_then_released_then_latched(path)
+    path.unlink()
+    latch_marker(path).unlink()
+    latch, problem = inspect_latch(path)
+    assert latch.latched and "missing" in problem and "deleted" in problem, problem
+    again, _ = _store(path)
+    assert again.open().latched and not again.fresh_state
+    assert again.close(5.0)
+
+
+def test_an_older_released_latch_copied_back_reads_latched(tmp_path) -> None:
+    """Finding: an older released latch of this same host, copied back, verified. It names its count; the record
+    names the last one saved."""
+    path = tmp_path / "estop-r1.bin"
+    released = _latched_then_released_then_latched(path)
+    path.write_bytes(released)
+    latch, problem = inspect_latch(path)
+    assert latch.latched and "copied back" in problem, problem
+
+
+def test_the_key_is_not_beside_the_latch_and_a_replaced_marker_reads_latched(tmp_path) -> None:
+    """Finding: a release signed with the key read from the install marker, and a marker replaced by one's own
+    key, each drove the robot. The marker holds only a fingerprint; a key put in it is not the record's."""
+    import secrets
+
+    from bridge.nodes.latch_store import sign_latch
+
+    path = tmp_path / "estop-r1.bin"
+    _latched_then_released_then_latched(path)
+    store_key = _store(path)[0]
+    marker = latch_marker(path).read_text()
+    assert marker.startswith("fingerprint ") and store_key.path is not None
+    mine = secrets.token_bytes(32)
+    latch_marker(path).write_text(mine.hex() + "\n")  # the marker replaced by one's own key
+    path.write_bytes(M.encode(sign_latch(mine, Latch(latched=False, source="operator", count=99))))
+    latch, problem = inspect_latch(path)
+    assert latch.latched and "another key" in problem, problem
+
+
+def test_an_older_versions_marker_has_its_key_moved_into_the_record(tmp_path) -> None:
+    import secrets
+
+    from bridge.nodes.latch_record import fingerprint, read_record
+    from bridge.nodes.latch_store import sign_latch
+
+    path = tmp_path / "estop-r1.bin"
+    key = secrets.token_bytes(32)
+    save_atomic(latch_marker(path), key.hex().encode() + b"\n")
+    save_atomic(path, M.encode(sign_latch(key, Latch(latched=True, source="operator"))))
+    store, _ = _store(path)
+    assert store.open().latched and store.key == key
+    assert read_record(record_file(path)).key == key
+    assert latch_marker(path).read_text() == f"fingerprint {fingerprint(key)}\n"
+    store.submit(False, "operator", "released")
+    wait_saved(store)
+    assert store.close(5.0)
+    assert inspect_latch(path) == (Latch(latched=False, source="operator", reason="released"), "")

@@ -9,6 +9,7 @@ from bridge.core import wire as M
 from bridge.nodes.mission_control import Fitness, MissionControl, Saved
 from bridge.nodes.station_saves import StationSaves
 from bridge.nodes.station_status import StationCounters
+from bridge.nodes.station_tags import read_store
 from bridge.nodes.writer import SaveWriter
 from sim_learner.dynamics import MPC_LEARNER_V, MPC_LEARNER_W, MPC_TEACHER_V, MPC_TEACHER_W
 from transfer.domain import Bounds
@@ -94,4 +95,4 @@ def test_the_writer_writes_the_ticks_snapshots_and_its_outcomes_come_back(tmp_pa
     assert sorted(w for w, _ in outcomes) == ["control", "store"] and all(e is None for _, e in outcomes)
     assert all(s.saved(w, e) for w, e in outcomes)
     assert M.decode((tmp_path / "mission.bin").read_bytes(), Saved).phase == "aborted"
-    assert PairStore.from_bytes((tmp_path / "pairs.bin").read_bytes()).raw_count == 0
+    assert read_store(tmp_path / "pairs.bin").raw_count == 0

@@ -166,3 +166,31 @@ def test_two_sessions_on_loopback_reach_each_other_and_close() -> None:
             if not replies:
                 time.sleep(0.05)
         assert replies == [b"pong"]
+
+
+def test_a_lab_zenoh_file_gets_the_safe_defaults_it_does_not_state(tmp_path) -> None:
+    """Finding: a ``--zenoh-config`` without mode, listen or scouting ran the driver host and the station as a Zenoh
+    peer listening on every interface with multicast scouting on. What the file does not state gets the built-in
+    safe values; what it states is kept; a FIFO given as the file is refused without blocking."""
+    import json
+    import os
+
+    from bridge.core.errors import UsageError
+    from bridge.nodes.zsession import make_config
+
+    bare = tmp_path / "bare.json5"
+    bare.write_text('{ connect: { endpoints: ["tcp/127.0.0.1:7447"] } }\n')
+    conf = make_config(config_file=bare)
+    assert json.loads(conf.get_json("mode")) == "client"
+    assert json.loads(conf.get_json("scouting/multicast/enabled")) is False
+    assert json.loads(conf.get_json("transport/shared_memory/enabled")) is False
+    peer = tmp_path / "peer.json5"
+    peer.write_text('{ mode: "peer", scouting: { multicast: { enabled: true } } }\n')
+    conf = make_config(config_file=peer)
+    assert json.loads(conf.get_json("mode")) == "peer"  # stated: kept
+    assert json.loads(conf.get_json("scouting/multicast/enabled")) is True
+    assert json.loads(conf.get_json("listen/endpoints")) == ["tcp/127.0.0.1:0"]  # not stated: loopback only
+    fifo = tmp_path / "fifo.json5"
+    os.mkfifo(fifo)
+    with pytest.raises(UsageError, match="not a regular file"):
+        make_config(config_file=fifo)

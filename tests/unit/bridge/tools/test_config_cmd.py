@@ -117,3 +117,66 @@ def test_run_check_and_run_show_print_one_answer(tmp_path, capsys) -> None:
     assert capsys.readouterr().out == show("station")
     with pytest.raises(SystemExit):
         ap.parse_args([])  # --kind is required
+
+
+def test_check_runs_the_commands_own_checks_of_keys_and_missions(tmp_path) -> None:
+    """Finding: ``config check`` passed files the commands refuse: a missing, short or world-readable key file, a
+    missing mission; and an all-zero UDP key was accepted. It now runs the checks the driver and the station run
+    when they start (drivers.udp.link_key, bridge.core.auth.load_key, load_mission_spec)."""
+    import os
+
+    from bridge.core.auth import KeyFileError, make_key
+    from bridge.core.errors import UsageError
+    from bridge.tools.config_cmd import check
+
+    key = tmp_path / "udp.key"
+    drv = tmp_path / "driver.toml"
+    drv.write_text(f'robot = "r1"\n[link.udp]\nkey_file = "{key}"\n')
+    with pytest.raises(KeyFileError, match="not found"):
+        check(str(drv), "driver")
+    make_key(key)
+    assert "udp key checked" in check(str(drv), "driver")
+    os.chmod(key, 0o644)
+    with pytest.raises(KeyFileError, match="readable by others"):
+        check(str(drv), "driver")
+    key.write_text("00" * 32 + "\n")
+    os.chmod(key, 0o600)
+    with pytest.raises(KeyFileError, match="all-zero"):
+        check(str(drv), "driver")
+    key.write_text("ab" * 8 + "\n")
+    with pytest.raises(KeyFileError, match="random bytes"):
+        check(str(drv), "driver")
+    no_key = tmp_path / "nokey.toml"  # (which link a robot uses is not in the file: a link without a key passes)
+    no_key.write_text('robot = "r1"\n[link.udp]\nrobot_port = 47800\n')
+    assert "checked" not in check(str(no_key), "driver")
+    st = tmp_path / "station.toml"
+    st.write_text(f'robot = "r1"\n[station]\nmission = "{tmp_path / "absent.toml"}"\n')
+    with pytest.raises((ConfigError, UsageError), match="no such file"):
+        check(str(st), "station")
+
+
+def test_a_key_or_config_that_is_a_fifo_or_a_device_is_refused_without_blocking(tmp_path) -> None:
+    """Finding: a FIFO where a key, a config or the store is read hung the reader; /dev/zero was read without
+    bound. Each read checks a regular file of bounded size first (bridge.core.paths.read_bounded)."""
+    import os
+
+    from bridge.core.auth import KeyFileError, load_key
+    from bridge.core.config import read_table
+    from bridge.core.paths import NotAFile, read_bounded
+
+    fifo = tmp_path / "fifo"
+    os.mkfifo(fifo)
+    with pytest.raises(NotAFile):
+        read_bounded(fifo, 100)  # would block forever in open() or read() without the check
+    with pytest.raises(KeyFileError):
+        load_key(fifo)
+    with pytest.raises(ConfigError, match="not a regular file"):
+        read_table(fifo)
+    zero = tmp_path / "zero.key"
+    zero.symlink_to("/dev/zero")
+    with pytest.raises(KeyFileError):
+        load_key(zero)
+    big = tmp_path / "big"
+    big.write_bytes(b"x" * 200)
+    with pytest.raises(NotAFile, match="larger than 100"):
+        read_bounded(big, 100)

@@ -77,7 +77,8 @@ def test_latch_states_are_keyed_by_robot_and_node() -> None:
 def test_confirm_sends_again_at_each_try_until_the_asked_state_is_confirmed() -> None:
     nonces = iter(range(1000))
 
-    def msg() -> M.Estop:
+    def msg(to) -> M.Estop:  # a stop needs no address (None)
+        assert to is None
         return M.Estop(stamp=time.monotonic(), engaged=True, source="operator", nonce=f"n{next(nonces)}")
 
     with zenoh.open(make_config()) as s:

@@ -83,9 +83,9 @@ def test_send_checks_its_file_before_anything_is_sent(tmp_path) -> None:
 def test_ask_stamps_each_try_and_returns_the_stations_answer() -> None:
     asked: list[M.MissionRequest] = []
 
-    def station(q: zenoh.Query) -> None:
+    def station(q: zenoh.Query) -> None:  # a station of epoch 7 whose clock reads 4.5
         asked.append(M.decode(q.payload.to_bytes(), M.MissionRequest))
-        q.reply("scm/r1/control", M.encode(_state(text="started", phase="running")))
+        q.reply("scm/r1/control", M.encode(_state(text="started", phase="running", epoch=7, stamp=4.5)))
 
     req = M.MissionRequest(stamp=0.0, action="start", source="alice")
     with zenoh.open(make_config()) as s:
@@ -97,6 +97,9 @@ def test_ask_stamps_each_try_and_returns_the_stations_answer() -> None:
         t0 = time.monotonic()
         assert T.ask(s, "nobody", req, timeout=0.5) is None  # no station: None once the timeout passes
         assert time.monotonic() - t0 < 5.0
-    assert got == got2 == _state(text="started", phase="running")
-    assert [a.action for a in asked] == ["start", "start"] and asked[0].nonce != asked[1].nonce
-    assert all(a.wall_time > 0 and a.source == "alice" for a in asked)
+    assert got == got2 == _state(text="started", phase="running", epoch=7, stamp=4.5)
+    # each act is addressed: its status asked first, then the act with that station's epoch and clock
+    assert [a.action for a in asked] == ["status", "start", "status", "start"]
+    acts = asked[1::2]
+    assert acts[0].nonce != acts[1].nonce and all((a.target, a.echo) == (7, 4.5) for a in acts)
+    assert all(a.wall_time > 0 and a.source == "alice" for a in acts)
