@@ -10,9 +10,11 @@ import os
 import signal
 import subprocess
 import sys
+import threading
 import time
 
 import pytest
+import zenoh
 
 from bridge.core import wire as M
 from bridge.nodes.zsession import free_port, make_config, open_session, tcp
@@ -25,16 +27,33 @@ def _estop(port: int, *args: str) -> subprocess.Popen:
                              tcp(port)], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
 
 
-def _tokens_seen(session, n: int, timeout: float = 30.0) -> bool:
-    """Whether the router knows at least ``n`` fake robots' liveliness tokens (declared by another client) in time."""
-    t_end = time.monotonic() + timeout
-    while time.monotonic() < t_end:
-        got = sum(1 for r in session.liveliness().get(f"{M.PREFIX}/*/alive/**", timeout=2.0)
-                  if r.ok is not None and str(r.ok.key_expr).split("/")[1].startswith("fake"))
-        if got >= n:
-            return True
-        time.sleep(0.2)
-    return False
+class _TokensSeen:
+    """The fake robots' liveliness tokens the router has told ``session`` of (a liveliness subscriber declared
+    before them: a callback, never a blocking query, which could hang the test with thousands of tokens)."""
+
+    def __init__(self, session) -> None:
+        self.names: set[str] = set()
+        self.lock = threading.Lock()
+        self.sub = session.liveliness().declare_subscriber(f"{M.PREFIX}/*/alive/**", self._on)
+
+    def _on(self, sample) -> None:
+        name = str(sample.key_expr).split("/")[1]
+        if name.startswith("fake"):
+            with self.lock:
+                if sample.kind == zenoh.SampleKind.DELETE:  # a token undeclared
+                    self.names.discard(name)
+                else:
+                    self.names.add(name)
+
+    def wait(self, n: int, timeout: float = 30.0) -> bool:
+        """Whether at least ``n`` fake tokens were seen within ``timeout``."""
+        t_end = time.monotonic() + timeout
+        while time.monotonic() < t_end:
+            with self.lock:
+                if len(self.names) >= n:
+                    return True
+            time.sleep(0.1)
+        return False
 
 
 def _wait_hosts(session, robots: list[str], timeout: float) -> None:
@@ -95,28 +114,32 @@ def test_estop_all_among_fake_liveliness_tokens_names_the_fleets_silent_robot_in
     port, session, (a, b), procs = two_hosts
     fleet = tmp_path / "fleet.toml"
     fleet.write_text(f'[fleet]\nrobots = ["{a}", "{b}", "gone1"]\n')
+    seen = _TokensSeen(session)
     with open_session(make_config(mode="client", connect=[tcp(port)])) as faker:
         tokens = [faker.liveliness().declare_token(M.alive_key(f"fake{i}", "driver")) for i in range(2000)]
         try:
-            assert _tokens_seen(session, 2000), "the router did not learn the fake tokens"
+            assert seen.wait(2000), f"the router learned {len(seen.names)} of the 2000 fake tokens"
             res = _estop(port, "--all", "--fleet", str(fleet), "--timeout", "2")
             out, err = res.communicate(timeout=60)
         finally:
             for t in tokens:
                 t.undeclare()
+            seen.sub.undeclare()
     assert res.returncode == 1, (out, err)
     assert f"{a}/driver-can: LATCHED by operator" in out and f"{b}/driver-can: LATCHED by operator" in out, err
     assert "not confirmed by gone1" in err and "fake" not in err.split("not confirmed by")[1], err
     assert "2000 name(s) seen on the network, not in the fleet list" in err, err
     assert len((out + err).splitlines()) < 12, out + err
     # without the fleet file every name must answer: the fake ones fail it, in bounded output too
+    seen = _TokensSeen(session)
     with open_session(make_config(mode="client", connect=[tcp(port)])) as faker:
         tokens = [faker.liveliness().declare_token(M.alive_key(f"fake{i}", "driver")) for i in range(50)]
         try:
-            assert _tokens_seen(session, 50), "the router did not learn the fake tokens"
+            assert seen.wait(50), f"the router learned {len(seen.names)} of the 50 fake tokens"
             res = _estop(port, "--all", "--timeout", "1")
             out, err = res.communicate(timeout=60)
         finally:
             for t in tokens:
                 t.undeclare()
+            seen.sub.undeclare()
     assert res.returncode == 1 and "and 38 more" in err and len((out + err).splitlines()) < 12, out + err
