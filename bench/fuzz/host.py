@@ -222,12 +222,18 @@ def fuzz_cmd_payloads(rig: HostRig, n: int, rng: random.Random) -> dict:
             "kinds_sent_refused": tally.report()}
 
 
-def _estop_dict(rng: random.Random) -> dict:
+def _estop_dict(rng: random.Random, epoch: int = 0) -> dict:
+    """A valid estop payload before mutation; half are acts addressed to the host's start ``epoch`` (most of them
+    fresh on its clock, some 30 s old or ahead, some for another start: bridge.core.acts). A fresh echo is 1 s old,
+    never "now": the rule and the host read the clock a few ms apart, and an echo between the two would be "not made
+    yet" for one and fresh for the other."""
     msg = {"stamp": time.monotonic(), "seq": rng.randrange(1000), "engaged": rng.random() < 0.5,
            "source": rng.choice(["operator", "operator", "fuzzer", "", "station", "Operator", "operator "]),
            "reason": rng.choice(["", "test", "x" * 100])}
-    if rng.random() < 0.5:  # a release is taken only fresh and once (bridge.core.acts): half are stamped
-        msg.update(wall_time=time.time() - rng.choice([0.0, 0.0, 30.0, -30.0]), nonce=M.new_nonce())
+    if rng.random() < 0.5:  # a release is taken only addressed, fresh and once: half are
+        msg.update(wall_time=time.time(), nonce=M.new_nonce(),
+                   target=rng.choice([epoch, epoch, epoch, NOT_THE_HOST]),
+                   echo=max(0.0, time.monotonic() - rng.choice([1.0, 1.0, 30.0, -30.0])))
     return msg
 
 
@@ -241,11 +247,11 @@ class LatchModel:
     engagements of an unlatched host, ``estop_releases`` and ``estop_release_refused`` (a source not configured) or
     ``estop_release_refused_<kind>`` (stale, replayed, not stamped) the releases of a latched one."""
 
-    def __init__(self, release_sources: tuple[str, ...] = ("operator",)) -> None:
+    def __init__(self, release_sources: tuple[str, ...] = ("operator",), epoch: int = NOT_THE_HOST) -> None:
         self.sources = release_sources
         self.latched = False
         self.counts = Counter()
-        self.guard = ActGuard(NOT_THE_HOST)  # a fuzzed release never names the host's start: refused as it is
+        self.guard = ActGuard(epoch)  # the host's start (its answers name it), so the rule's releases are taken
 
     def offer(self, e: M.Estop) -> None:
         if e.engaged:
@@ -283,8 +289,12 @@ def _estop_on(rig: HostRig, n: int, rng: random.Random) -> dict:
     rss0 = rig.rss()
     before = rig.counters()
     tally = Tally()
-    mut = MsgMutator(rng, ESTOP, lambda: _estop_dict(rng))
-    model = LatchModel()
+    from bridge.tools.estop import latch_states
+
+    answers = latch_states(rig.session, rig.keys.estop, 5.0)
+    epoch = next(iter(answers.values())).epoch if answers else NOT_THE_HOST  # the host's start, from its answer
+    mut = MsgMutator(rng, ESTOP, lambda: _estop_dict(rng, epoch))
+    model = LatchModel(epoch=epoch)
     epub, cpub = rig.publisher(rig.keys.estop), rig.publisher(rig.keys.cmd)
     stream = CommandStream(rng)
     bad = 0
@@ -310,7 +320,6 @@ def _estop_on(rig: HostRig, n: int, rng: random.Random) -> dict:
     rss1 = rig.rss()
     # the operator releases (a configured source), and a new station run drives
     from bridge.core.acts import address_of, stamped
-    from bridge.tools.estop import latch_states
 
     for st in latch_states(rig.session, rig.keys.estop, 5.0).values():  # addressed to the host's start
         epub.put(M.encode(stamped(M.Estop(stamp=time.monotonic(), engaged=False, source="operator",

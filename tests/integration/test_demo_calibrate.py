@@ -10,8 +10,8 @@ from pathlib import Path
 
 import pytest
 
+from bridge.nodes.station_tags import read_store
 from bridge.tools.procs import Children
-from transfer.store import PairStore
 
 
 @pytest.mark.slow
@@ -35,6 +35,6 @@ def test_the_demo_calibrates_then_drives_its_mission_from_the_calibrated_store(t
     # the mission's figures count from after the calibration: no calibrate command among its methods
     assert "calibrate" not in summary["methods"] and summary["method_shares"], summary
     assert abs(sum(summary["method_shares"].values()) - 1.0) < 0.01
-    store = PairStore.from_bytes((out / "pairs.bin").read_bytes())
+    store = read_store(out / "pairs.bin")  # the station's file, tagged as its own (bridge.nodes.station_tags)
     assert store.limits.bcnt_hi[0] > 0 and store.limits.bcnt_lo[1] > 0  # the calibration measured the limits
     assert (out / "demo_trajectory.png").stat().st_size > 10_000 and (out / "calibrate.log").exists()

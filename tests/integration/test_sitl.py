@@ -266,7 +266,7 @@ def test_the_estop_latch_holds_across_a_host_killed_and_restarted(rig: Rig) -> N
     _engage_by_the_pilot(rig)
     assert _reach(pilot, 0.5, 10), pilot.speed
 
-    def estop() -> M.Estop:
+    def estop(_address: object = None) -> M.Estop:  # a stop names no process (confirm's msg_for)
         return M.Estop(stamp=time.monotonic(), engaged=True, source="operator", reason="person in the way")
 
     assert confirm(rig.session, [rig.robot], estop, True, time.monotonic() + 5)[rig.robot]

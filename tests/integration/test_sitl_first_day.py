@@ -51,8 +51,8 @@ def section_commands() -> list[str]:
 
 def test_the_section_shows_the_first_day_in_order() -> None:
     words = [" ".join(shlex.split(c)[:3]) for c in section_commands()]
-    assert words == ["cp deploy/driver.mavlink.example.toml driver-rover1.toml", "scmbridge config check",
-                     "scmbridge keys mavlink", "scmbridge doctor --driver", "mavproxy.py --master /dev/ttyUSB0",
+    assert words == ["cp deploy/driver.mavlink.example.toml driver-rover1.toml", "scmbridge keys mavlink",
+                     "scmbridge config check", "scmbridge doctor --driver", "mavproxy.py --master /dev/ttyUSB0",
                      "scmbridge driver --link",
                      "scmbridge mission place", "scmbridge mission send", "scmbridge engage --robot",
                      "scmbridge mission start", "scmbridge estop --robot"], words

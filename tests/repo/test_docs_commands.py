@@ -140,8 +140,15 @@ def test_the_documented_offline_commands_run(tmp_path: Path) -> None:
             cfg.parent.mkdir(parents=True, exist_ok=True)
             subprocess.run([sys.executable, "-m", "bridge", "config", "show", "--kind", "driver"], check=True,
                            stdout=cfg.open("w"), timeout=60)
-            # OPERATING's "First day with your rover" copies the MAVLink example first (its cp line)
-            (tmp_path / "driver-rover1.toml").write_text((ROOT / "deploy" / "driver.mavlink.example.toml").read_text())
+            # OPERATING's "First day with your rover" copies the MAVLink example first (its cp line) and writes the
+            # key its signing_key_file names before the check (its keys line, run here without --install)
+            key = tmp_path / "rover1-mavlink.key"
+            if not key.exists():
+                subprocess.run([sys.executable, "-m", "bridge", "keys", "mavlink", "--robot", "rover1", "--out",
+                                str(key), "--passphrase", "first-day"], check=True, capture_output=True, timeout=60)
+            example = (ROOT / "deploy" / "driver.mavlink.example.toml").read_text()
+            (tmp_path / "driver-rover1.toml").write_text(
+                example.replace("/var/lib/scmbridge/keys/rover1-mavlink.key", str(key)))
         res = subprocess.run([sys.executable, "-m", "bridge", *name.split(), *moved], capture_output=True, text=True,
                              timeout=120, env={**os.environ, "SCMBRIDGE_STATE_DIR": str(tmp_path / "var")},
                              cwd=tmp_path)
