@@ -181,8 +181,11 @@ def run_link(link: str, seconds: float, workdir: str, random_phase: bool = False
             cfg = Path(workdir) / "driver-limiter.toml"
             cfg.write_text(f"[driver.hard_limits]\nv = [-0.5, 0.5]\nw = [-1.0, 1.0]\n{LIMITER_KEYS}")
             driver_args += ["--config", str(cfg)]
+        # its own state and record directories: a bench never reads (nor leaves) a latch of another run
+        env = dict(os.environ, SCMBRIDGE_STATE_DIR=str(Path(workdir) / "state"),
+                   SCMBRIDGE_RECORD_DIR=str(Path(workdir) / "records"))
         driver = kids.spawn(["driver", "--engage", *driver_args, "--robot", robot, "--mode", "client", "--connect",
-                             tcp(port), "--rate", "50", "--duration", str(seconds + 30)], subprocess.DEVNULL)
+                             tcp(port), "--rate", "50", "--duration", str(seconds + 30)], subprocess.DEVNULL, env=env)
         t_end = time.monotonic() + 30
         while time.monotonic() < t_end:
             with lock:

@@ -134,6 +134,7 @@ class _Host:
         self.cmd = session.declare_publisher(self.keys.cmd)
         self.estop = session.declare_publisher(self.keys.estop)
         self.session = session
+        self.epoch: int | None = None  # the host's start, from its first latch answer (one host process)
 
     def _on_applied(self, sample) -> None:
         t = time.monotonic()
@@ -167,11 +168,14 @@ class _Host:
         t = time.monotonic()
         msg = self.M.Estop(stamp=t, engaged=engaged, source=source, reason=reason)
         if not engaged:  # a release is addressed to the host's start (bridge.core.acts)
-            from bridge.core.acts import address_of, stamped
+            from bridge.core.acts import Address, address_of, stamped
             from bridge.tools.estop import latch_states
 
-            for st in latch_states(self.session, self.keys.estop, 2.0).values():
-                self.estop.put(self.M.encode(stamped(msg, address_of(st))))
+            if self.epoch is None:  # learned once per host start: its answers are slow while its fsyncs are
+                for st in latch_states(self.session, self.keys.estop, 10.0).values():
+                    self.epoch = address_of(st).epoch
+            if self.epoch is not None:  # the host shares this machine's monotonic clock: echo it as read now
+                self.estop.put(self.M.encode(stamped(msg, Address(self.epoch, time.monotonic()))))
             return t
         self.estop.put(self.M.encode(msg))
         return t
@@ -212,7 +216,8 @@ def measure(fsync_delays: Sequence[float], repeat: int) -> dict:
     with tempfile.TemporaryDirectory(prefix="bench-estop-") as tmp, \
             open_session(make_config(mode="router", listen=[tcp(port)])) as session, Children() as kids:
         host = _Host(session, robot)
-        env = {**os.environ, "SCMBRIDGE_STATE_DIR": str(Path(tmp) / "state")}
+        env = {**os.environ, "SCMBRIDGE_STATE_DIR": str(Path(tmp) / "state"),
+               "SCMBRIDGE_RECORD_DIR": str(Path(tmp) / "records")}
         proc = kids.spawn(["driver", "--link", "can", "--emulate", "--x0", "0,0,0", "--engage", "--robot", robot,
                            "--mode", "client", "--connect", tcp(port), "--duration", f"{bound:.0f}"], env=env)
 
