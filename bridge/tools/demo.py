@@ -20,6 +20,7 @@ import threading
 import time
 from collections import Counter
 from contextlib import ExitStack
+from pathlib import Path
 
 import numpy as np
 
@@ -595,6 +596,11 @@ def arguments(ap: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     if args.count is not None and args.count < 1:
         raise UsageError("--count must be at least 1")
+    # the demo's robots keep their estop latches (and the latches' records) under --out, with the demo's other files,
+    # never in the lab's state directory: a demo neither reads a lab robot's latch nor leaves one (an explicit
+    # SCMBRIDGE_STATE_DIR / SCMBRIDGE_RECORD_DIR is obeyed)
+    os.environ.setdefault("SCMBRIDGE_STATE_DIR", str(Path(args.out).resolve() / "state"))
+    os.environ.setdefault("SCMBRIDGE_RECORD_DIR", str(Path(args.out).resolve() / "records"))
     robots = args.robots or ([f"demo{k + 1}" for k in range(args.count)] if args.count else ["demo"])
     if args.duration is None:
         args.duration = 120.0 + 30.0 * (len(robots) - 1)
