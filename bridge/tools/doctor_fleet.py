@@ -21,6 +21,7 @@ from bridge.core import wire as M
 from bridge.core.clock import HOST
 from bridge.core.errors import UsageError
 from bridge.nodes.zsession import open_session
+from bridge.tools.estop import ALL, latch_states
 
 
 def ask_robots(conf: zenoh.Config, listen_s: float) -> tuple[dict[str, list[M.EstopState]], dict[str, M.Status]]:
@@ -40,15 +41,8 @@ def ask_robots(conf: zenoh.Config, listen_s: float) -> tuple[dict[str, list[M.Es
 
         sub = session.declare_subscriber(f"{M.PREFIX}/*/status/driver", take)  # a host too old to answer queries
         try:
-            for reply in session.get(f"{M.PREFIX}/*/estop", timeout=max(0.1, min(1.0, listen_s)),
-                                     consolidation=zenoh.ConsolidationMode.NONE):
-                if reply.ok is None:
-                    continue
-                try:
-                    st = M.decode(reply.ok.payload.to_bytes(), M.EstopState)
-                except M.MessageError:
-                    continue
-                latches.setdefault(str(reply.ok.key_expr).split("/")[1], []).append(st)
+            for name, st in latch_states(session, ALL, max(0.1, min(1.0, listen_s))).items():  # robot/node
+                latches.setdefault(name.split("/")[0], []).append(st)
             for reply in session.get(f"{M.PREFIX}/*/status/driver", timeout=max(0.1, t_end - time.monotonic()),
                                      consolidation=zenoh.ConsolidationMode.NONE):
                 if reply.ok is not None:
