@@ -8,27 +8,16 @@ paper's baseline and the teacher on SITL itself, each on a freshly booted SITL, 
 from __future__ import annotations
 
 import json
-import os
 
 import pytest
 
 from bench.sitl import judge, run_profile
-from sim_learner.sitl import find_sitl, where_sitl_is_looked_for
 from sim_learner.sitl_profiles import SEED, family
+from tests.integration.test_sitl import _sitl_binary
 
 #: one profile per frame, from the family's next seed, with WP_SPEED set, and for the car a turn-rate loop with a cap
 #: and a feed-forward like those of the held-out cars that reached their goal
 PROFILES = {"skid": 1, "ackermann": 4}
-
-
-def _binary() -> str:
-    binary = find_sitl()
-    if binary is None:
-        why = f"ArduPilot SITL not found at {where_sitl_is_looked_for()}: set SCMBRIDGE_SITL"
-        if os.environ.get("SCMBRIDGE_SITL_REQUIRED"):
-            pytest.fail(why)
-        pytest.skip(why)
-    return str(binary)
 
 
 @pytest.mark.sitl
@@ -38,7 +27,7 @@ def test_an_unseen_rover_drives_its_mission_with_the_transfer_and_the_run_says_w
         frame: str, tmp_path) -> None:
     profile = family(frame, seed=SEED + 1)[PROFILES[frame]]
     assert "WP_SPEED" in profile.params, profile
-    row = run_profile(profile, _binary(), tmp_path, 120.0, None, identify=True)
+    row = run_profile(profile, str(_sitl_binary()), tmp_path, 120.0, None, identify=True)
     log = (tmp_path / "demo.log").read_text()
     assert "summary: " in log, log[-3000:]
     summary = json.loads([ln for ln in log.splitlines() if ln.startswith("summary: ")][-1][len("summary: "):])
