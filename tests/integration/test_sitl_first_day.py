@@ -135,7 +135,9 @@ def test_first_day_with_your_rover_runs_as_written(tmp_path: Path) -> None:
                                       15)
                 elif w[1] == "engage":
                     scm(cmd, 60)
-                    assert pilot.mode == "GUIDED" and pilot.armed
+                    # the host answers once the autopilot ACKed the arming; the pilot's own view of it comes with the
+                    # vehicle's next HEARTBEAT on SERIAL0 (1 Hz), so it is waited for, not read at once
+                    assert pilot.wait(lambda s: s.mode == "GUIDED" and s.armed, 5), (pilot.mode, pilot.armed)
                 elif w[1] == "estop":
                     r = scm(cmd, 60)
                     driver_state(lambda s: s.state == "estop", 10)
