@@ -16,7 +16,8 @@ pairer's calls), ``store`` (pairs added to the store, the learned limits with th
 proposal: references, obstacles, the solve), ``transfer`` (the transfer step's mapping), ``publications`` (status,
 limits and the store's periodic save), ``encode`` (the outputs to bytes), ``core_rest`` (the rest of the core's
 tick: reordering, fitness, mission control, building the messages). ``process_ms_per_tick``: the whole process's
-CPU per tick, less the simulated robots' share.
+CPU per tick, less the simulated robots' share (with the writer threads' saves, which the station writes off the tick
+as here).
 
 What a tick costs depends on how warm the caches are, so the figures of one run are only comparable with another
 run of the same options: back to back (the default) every cache is warm; ``--paced`` sleeps to each tick's
@@ -123,8 +124,13 @@ class _Rig:
         core.store.add = clock.wrap("store", core.store.add)
         core.source.propose = clock.wrap("mpc", core.source.propose)
         core.transfer.map = clock.wrap("transfer", core.transfer.map)
-        for owner, what in ((core, "status"), (core.limits_report, "message"), (core.saves, "persist")):
+        for owner, what in ((core, "status"), (core.limits_report, "message"), (core.saves, "save")):
             setattr(owner, what, clock.wrap("publications", getattr(owner, what)))
+        # the saves are encoded in the tick and written by a writer thread, as the station's
+        # (bridge.nodes.station.Station): the writing is in the process's CPU, not in the tick's
+        from bridge.nodes.writer import SaveWriter
+
+        self.writer = core.saves.writer = SaveWriter(name=f"bench-save-{name}")
         self.wire: list[tuple[bytes, type]] = []  # this period's telemetry as bytes (without --zenoh)
         self.session = session
         self.driver = None
@@ -189,6 +195,8 @@ class _Rig:
             tel = [(decode(data, kind), now) for data, kind in self.wire]
             self.wire.clear()
         c1 = time.thread_time_ns()
+        for what, error in self.writer.results():  # the writer's outcomes, as the station takes them
+            self.core.saves.saved(what, error)
         out = self.core.tick(self.inputs(tel), now)
         c2 = time.thread_time_ns()
         self.driver = None
@@ -287,6 +295,8 @@ def _run(args: argparse.Namespace, tmp: Path) -> dict:
                 methods[out.command.method] += 1
             rig.take(out.command, now)
             sim_cpu += time.thread_time_ns() - s0
+    for rig in rigs:  # what the writers still hold is written before the process's CPU is read
+        rig.writer.close()
     if prof is not None:
         prof.disable()
     proc_ms = (time.process_time_ns() - proc0 - sim_cpu) / 1e6 / max(1, (args.ticks - args.skip) * len(rigs))
@@ -357,6 +367,8 @@ def _threaded(args, rigs, period: float, t0: float, decode, encode, clock: _Cloc
     n = sum(c[0] for c in counts)
     for t in threads:
         t.join()
+    for rig in rigs:
+        rig.writer.close()
     if session is not None:
         session.close()
     return {"bench": "tick", "robots": len(rigs), "threads": True, "switch_interval_s": sys.getswitchinterval(),

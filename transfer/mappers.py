@@ -255,6 +255,19 @@ class ScmMapper(_Triangulated):
                 return out, tuple(int(self.ids[v]) for v in quad)
         return None
 
+    def prepare(self, t: NDArray[np.float64]) -> bool:
+        """Build the SC map :meth:`map_normalised` would try first for ``t`` if it is not cached yet, without mapping:
+        True when one was built. A caller that cuts its work into short steps builds in one and maps in the next
+        (:mod:`transfer.holes`); the map is the same either way."""
+        self._sync()
+        s = self._simplex(t)
+        for quad, key in self._candidates_of(s) if s >= 0 else ():
+            if key in self._quads:
+                return False
+            self._transfer(quad, key)
+            return True
+        return False
+
     def map_many(self, P: NDArray[np.float64]) -> list[tuple[NDArray[np.float64], Region] | None]:
         """``map_normalised`` of every row of ``P`` (:class:`Mapper`): the triangles located in one pass, and the
         rows that try the same quadrilateral mapped by one call of its SC map (it maps each point on its own, so

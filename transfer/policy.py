@@ -80,7 +80,10 @@ per command served from the region, at most one cell's k_min saved, and a burst 
 (``fill_phase`` of it saved from the start: a station's robots each start at their own, so that a fleet started
 together does not search in one tick); a search for a hole that found none makes the next wait as many commands as
 it cost maps (a learned store with no hole on the teacher's way is a station's steady state: its commands must not
-pay a search each), and a store with no unconfigured cell is never searched. They cost time, not path: the robot
+pay a search each), and a store with no unconfigured cell is never searched. A search runs a short step per
+command (:mod:`transfer.holes`: the ranking, then each map of each check), the commands meanwhile served as
+without it, and its burst begins at the command after its last step, if its cell is still a hole: no command
+pays a whole search. They cost time, not path: the robot
 slows down along the curve the teacher asked for. Like every perturbation they never happen where ``explore`` is
 False (near obstacles).
 
@@ -102,6 +105,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from transfer.choice import MapChoice
+from transfer.holes import Search, hole_search, run_search
 from transfer.mappers import AffineMapper, BarycentricMapper, IdentityMapper, Mapper, Region, ScmMapper, make_mapper
 from transfer.pairs import planned_commands  # noqa: F401 (the policy's helper for its callers)
 from transfer.store import PairStore
@@ -463,6 +467,8 @@ class GuidedPolicy(_PolicyBase):
         #: no new hole search before this many served commands: a search that found no hole waits as many commands
         #: as it cost maps, so searching costs at most about one map per command however long no hole is found
         self._search_after = 0
+        self._search: Search | None = None  # the hole search under way, a step per command (transfer/holes.py)
+        self.searches = 0  # hole searches begun
 
     def _fill(self, t: NDArray[np.float64]) -> NDArray[np.float64] | None:
         """The fill of a hole of the map (module docstring), or None: no budget, no hole, or a paused burst."""
@@ -489,10 +495,17 @@ class GuidedPolicy(_PolicyBase):
             return u
         if self._fill_tokens < store.k_min:  # a new burst starts with one whole cell's budget
             return None
-        if self._served < self._search_after or store.n_configured() == store.count.size:
-            return None  # a search found no hole lately, or the store has none left
-        hole = self._fill_target(t)
-        if hole is None:
+        if self._search is None:
+            if self._served < self._search_after or store.n_configured() == store.count.size:
+                return None  # a search found no hole lately, or the store has none left
+            self._search = hole_search(self, t)
+            self.searches += 1
+        try:  # one step of the search per command (transfer/holes.py); its result used when it ends
+            next(self._search)
+            return None
+        except StopIteration as done:
+            self._search, hole = None, done.value
+        if hole is None or store.is_configured(hole[0]):
             return None
         self._fill_cell, u = hole
         self._fill_tokens -= 1.0
@@ -510,58 +523,9 @@ class GuidedPolicy(_PolicyBase):
         return None if store.is_configured(store.cell_of(u)) else u
 
     def _fill_target(self, t: NDArray[np.float64]) -> tuple[tuple[int, int], NDArray[np.float64]] | None:
-        """Where a new burst goes: along the teacher's command slowed by s (1 down to ``fill_depth``, no slower
-        than the learned speed limit), the learner command for speed ``s * v_T`` at curvature ``omega_T / v_T``;
-        among those in unconfigured cells, a cell an earlier burst began first, else the one whose teacher command
-        ``s * u_T`` is farthest from every refined pair (normalised teacher units: the map's biggest hole on the
-        teacher's way). (cell, learner command), or None.
-
-        The candidates are ranked on the linear map of the same triangles (every slowed speed, and the yaw rate
-        where that speed's row of cells has a hole: no SC map is built for a guess); the best ``FILL_CHECKS`` of
-        them are then mapped with the mapper itself, and the best of those in an unconfigured cell on it is taken
-        (ranked again with that cell). One that found nothing makes the next wait as many commands as it tried
-        speeds and yaw rates (``_search_after``)."""
-        store = self.store
-        tb, lb = store.teacher_bounds, store.learner_bounds
-        gv = store.grid[0]
-        _, _, T, _ = store.refined_arrays()
-        slowed = t * self._speeds[:, None]
-        below = np.flatnonzero(tb.normalise(slowed)[:, 0] < store.limits.lo[0])  # no slower than the speed limit
-        n = int(below[0]) if below.size else len(slowed)
-        # ranked on the linear map (every slowed command at once, no SC map built), then the yaw rate at the
-        # teacher's speed where that speed's row of cells has a hole
-        v_n = lb.normalise(self._unperturbed_many(slowed[:n], linear=True)[0])[:, 0]
-        rows = np.minimum((v_n * gv).astype(int), gv - 1)
-        open_ = [i for i in range(n) if not store.pub_version[rows[i]].all()]
-        cost = n + len(open_)
-        ranked: list[tuple[tuple[bool, float], int]] = []
-        if open_:
-            s = self._speeds[open_]
-            u_w, methods = self._unperturbed_many(np.stack([np.full(len(open_), t[0]), t[1] * s], axis=1),
-                                                  linear=True)
-            for j, i in enumerate(open_):
-                if methods[j] == "direct":  # no learned region for that yaw rate (as _at_speed)
-                    continue
-                cell = store.cell_of(self._at_learner_speed(u_w[j], v_n[i]))
-                if store.is_configured(cell):
-                    continue
-                ts_n = tb.normalise(slowed[i])
-                ranked.append(((bool(store.count[cell] > 0),
-                                float(np.min(np.hypot(*(T - ts_n).T))) if len(T) else 0.0), i))
-        ranked.sort(key=lambda e: e[0], reverse=True)  # stable: of equal keys the fastest first
-        best: tuple[tuple[bool, float], tuple[int, int], NDArray[np.float64]] | None = None
-        for key, i in sorted(ranked[:FILL_CHECKS], key=lambda e: e[1]):  # the best few, on the map itself
-            v = float(lb.normalise(self._unperturbed(slowed[i], tb.normalise(slowed[i]))[0])[0])
-            u = self._at_speed(t, v, float(self._speeds[i]))
-            if u is None or store.is_configured(cell := store.cell_of(u)):
-                continue
-            key = (bool(store.count[cell] > 0), key[1])
-            if best is None or key > best[0]:
-                best = (key, cell, u)
-        if best is None:
-            self._search_after = self._served + cost
-            return None
-        return best[1], best[2]
+        """A whole hole search at once (:func:`transfer.holes.hole_search` run to its end): (cell, learner command)
+        or None. :meth:`_fill` runs it a step per command instead."""
+        return run_search(hole_search(self, t))
 
     def _at_speed(self, t: NDArray[np.float64], v_n: float, s: float) -> NDArray[np.float64] | None:
         """The learner command at normalised learner speed ``v_n`` whose yaw rate is the map's for ``s * omega_T``

@@ -573,20 +573,13 @@ def test_the_hole_search_costs_at_most_about_one_map_per_command_when_no_hole_is
             calls += len(ts)
             return _inner(ts, **kw)
 
-        searches = 0
-        inner_search = p._fill_target
-
-        def counted_search(t, _inner=inner_search):
-            nonlocal searches
-            searches += 1
-            return _inner(t)
-
-        p._unperturbed, p._unperturbed_many, p._fill_target = counted, counted_many, counted_search
+        p._unperturbed, p._unperturbed_many = counted, counted_many
         t = case.learner.response(lb.denormalise(np.array([0.9, 0.5])))  # straight ahead, fast: nothing to fill
         n = 600
         p.map(t)
         builds = p.mapper.builds  # the command's own region
         methods = {p.map(t).method for _ in range(n - 1)}
+        searches = p.searches
         assert "perturb" not in methods
         # one map for the command itself, at most about one more for the searches, amortised
         assert calls <= 2.1 * n, (holes, calls / n)
