@@ -323,11 +323,11 @@ def _run(args: argparse.Namespace, tmp: Path) -> dict:
 
 def _threaded(args, rigs, period: float, t0: float, decode, encode, clock: _Clock, session) -> dict:
     """--threads: every robot's loop in its own thread, ticking at the period from a phase spread over it, as
-    ``station --robots`` ran them before one thread ticked them all (:class:`bridge.nodes.station.FleetLoop`); the
+    ``station --robots`` ran them before one thread ticked them all (:class:`bridge.nodes.fleet_loop.FleetLoop`); the
     CPU of the process per tick less the simulated robots'."""
     import threading
 
-    from bridge.nodes.station import FLEET_SWITCH_INTERVAL_S
+    from bridge.nodes.fleet_loop import FLEET_SWITCH_INTERVAL_S
 
     sys.setswitchinterval(FLEET_SWITCH_INTERVAL_S if args.switch_interval is None else args.switch_interval)
     counts = [[0, 0, 0] for _ in rigs]  # per robot: ticks measured, tick CPU ns, simulated robot CPU ns

@@ -18,13 +18,16 @@ store (a candidate whose cell was learned meanwhile is skipped).
 from __future__ import annotations
 
 from collections.abc import Generator
-from typing import TYPE_CHECKING
+from typing import Any, Protocol
 
 import numpy as np
 from numpy.typing import NDArray
 
-if TYPE_CHECKING:
-    from transfer.policy import GuidedPolicy
+from transfer.store import PairStore
+
+#: how many of a hole search's best candidates (ranked on the linear map) are mapped with the mapper itself, the
+#: best of them on it taken (each costs up to two maps)
+FILL_CHECKS = 3
 
 #: slowed commands a step of the ranking maps on the linear map (each outside the learned region costs an estimate)
 RANK_ROWS = 8
@@ -34,7 +37,25 @@ Hole = tuple[tuple[int, int], NDArray[np.float64]] | None
 Search = Generator[None, None, Hole]
 
 
-def hole_search(policy: GuidedPolicy, t: NDArray[np.float64]) -> Search:
+class Searcher(Protocol):
+    """What a search reads and sets of its policy (:class:`transfer.policy.GuidedPolicy`)."""
+
+    store: PairStore
+    mapper: Any
+    _speeds: NDArray[np.float64]
+    _served: int
+    _search_after: int
+
+    def _unperturbed(self, t: NDArray[np.float64], t_n: NDArray[np.float64]) -> tuple: ...
+
+    def _unperturbed_many(self, ts: NDArray[np.float64], *, linear: bool = False) -> tuple: ...
+
+    def _at_speed(self, t: NDArray[np.float64], v_n: float, s: float) -> NDArray[np.float64] | None: ...
+
+    def _at_learner_speed(self, u: NDArray[np.float64], v_n: float) -> NDArray[np.float64]: ...
+
+
+def hole_search(policy: Searcher, t: NDArray[np.float64]) -> Search:
     """Where a new burst goes (:class:`transfer.policy.GuidedPolicy`, "Filling the map's holes"): along the teacher's
     command ``t`` slowed by s (1 down to ``fill_depth``, no slower than the learned speed limit), the learner command
     for speed ``s * v_T`` at curvature ``omega_T / v_T``; among those in unconfigured cells, a cell an earlier burst
@@ -46,8 +67,6 @@ def hole_search(policy: GuidedPolicy, t: NDArray[np.float64]) -> Search:
     mapped with the mapper itself, and the best of those in an unconfigured cell on it is taken (ranked again with
     that cell). One that found nothing makes the next wait as many commands as it tried speeds and yaw rates
     (the policy's ``_search_after``). Yields after each stage and each SC map (module docstring)."""
-    from transfer.policy import FILL_CHECKS
-
     t = np.array(t, dtype=float)
     store = policy.store
     tb, lb = store.teacher_bounds, store.learner_bounds
@@ -106,7 +125,7 @@ def hole_search(policy: GuidedPolicy, t: NDArray[np.float64]) -> Search:
     return best[1], best[2]
 
 
-def _prepared(policy: GuidedPolicy, t_n: NDArray[np.float64]) -> Generator[None, None, None]:
+def _prepared(policy: Searcher, t_n: NDArray[np.float64]) -> Generator[None, None, None]:
     """A step of its own for building the SC map the next map of ``t_n`` (normalised teacher units) needs, when it
     is not built yet (:meth:`transfer.mappers.ScmMapper.prepare`): the build and the map are then two steps."""
     prepare = getattr(policy.mapper, "prepare", None)
@@ -123,4 +142,4 @@ def run_search(search: Search) -> Hole:
             return done.value
 
 
-__all__ = ["RANK_ROWS", "Hole", "Search", "hole_search", "run_search"]
+__all__ = ["FILL_CHECKS", "RANK_ROWS", "Searcher", "Hole", "Search", "hole_search", "run_search"]

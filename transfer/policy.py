@@ -105,7 +105,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from transfer.choice import MapChoice
-from transfer.holes import Search, hole_search, run_search
+from transfer.holes import FILL_CHECKS, Search, hole_search, run_search  # noqa: F401 (FILL_CHECKS: the policy's)
 from transfer.mappers import AffineMapper, BarycentricMapper, IdentityMapper, Mapper, Region, ScmMapper, make_mapper
 from transfer.pairs import planned_commands  # noqa: F401 (the policy's helper for its callers)
 from transfer.store import PairStore
@@ -116,9 +116,6 @@ EXPLORATIONS = ("paper", "guided")
 ALONG_LIMIT_TOL = 1e-3
 #: the guided policy's default share of region-served commands that may fill holes of the map (module docstring)
 FILL_BUDGET = 0.08
-#: how many of a hole search's best candidates (ranked on the linear map) are mapped with the mapper itself, the
-#: best of them on it taken (each costs up to two maps)
-FILL_CHECKS = 3
 #: at which learner speed the probe of a never-driven yaw-rate limit is sent: ``at-command`` (the default, the
 #: paper's: at the speed the command maps to, the learner's slowest while nothing is learned) or ``at-top-speed``
 #: (opt-in: the learner's top speed). A learner that cannot turn in place (an Ackermann rover, docs/BENCHMARKS.md
