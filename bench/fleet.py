@@ -17,7 +17,10 @@ over the window's ticks (every periodic tick publishes one ``cmd``, counted at t
 p99 (its last 600 ticks: the window when ``--duration`` >= 60), and, at the hub, the command latency from the
 tick's start (the command's stamp) to its arrival. N is held when **every** station missed fewer than 1 % of its
 deadlines and its tick p99 is under the period. CPU seconds of the stations, the simulator and this process over
-the window give the ticks per core-second; the machine's load and busy cores show what else was running. The
+the window give the ticks per core-second; the machine's load and busy cores show what else was running. After each
+fleet size, ``bench tick`` runs as many robots as one station process serves, in one process without Zenoh
+(``tick_alone``, ``--tick-ticks``), and ``fleet_over_tick`` is the stations' CPU per robot-tick over that process's:
+what the fleet costs around its ticks (Zenoh, the loop, the callbacks). The
 sweep stops at the first N not held (``--keep-going`` runs them all). ``robots_held``: the largest N held with
 every smaller N of the sweep held too.
 """
@@ -416,6 +419,29 @@ def run_level(n: int, seconds: float, warmup: float, mission: Path, workdir: Pat
     return res
 
 
+def tick_alone(count: int, ticks: int, level: dict, env: dict[str, str] | None, options: tuple[str, ...] = ()) -> dict:
+    """What the fleet's ticks cost alone: ``scmbridge bench tick --count`` (the station's whole tick in one process
+    for ``count`` robots, one after the other each period, no Zenoh) run right after the level on the same machine,
+    and the fleet's station CPU per robot-tick over it (``fleet_over_tick``: what serving them over Zenoh, the loop
+    and the status cost on top of the ticks). ``options``: more of ``bench tick``'s options."""
+    import json
+    import subprocess
+
+    cmd = [sys.executable, "-m", "bridge", "bench", "tick", "--count", str(count), "--ticks", str(ticks + 50),
+           "--skip", "50", *options]
+    try:
+        out = subprocess.run(cmd, capture_output=True, text=True, timeout=120 + 0.05 * count * ticks, env=env,
+                             check=True)
+        res = json.loads(out.stdout[out.stdout.index("{\n"):])  # past qpOASES's banner (printed on stdout)
+    except (subprocess.SubprocessError, ValueError) as exc:
+        return {"tick_alone": {"failed": str(exc)[:300]}}
+    alone = {"robots": count, "ticks": res["ticks"], "process_ms_per_tick": res["process_ms_per_tick"],
+             **{f"tick_{k}_ms": v for k, v in res["cpu_ms_per_tick"].items()}}
+    fleet = level.get("station_cpu_ms_per_tick")
+    ratio = _r(fleet / res["process_ms_per_tick"]) if fleet and res["process_ms_per_tick"] > 0 else None
+    return {"tick_alone": alone, "fleet_over_tick": ratio}
+
+
 def _r(x, nd: int = 2):
     return None if x is None or not math.isfinite(float(x)) else round(float(x), nd)
 
@@ -448,6 +474,9 @@ def arguments(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--blas-threads", choices=["1", "inherit"], default="1",
                     help="1: the stations run as the shipped units run them (OPENBLAS_NUM_THREADS=1, "
                          "OMP_NUM_THREADS=1); inherit: OpenBLAS's default, one thread per core")
+    ap.add_argument("--tick-ticks", type=int, default=200, metavar="N",
+                    help="after each fleet size, `bench tick` of as many robots as one station process serves, for N "
+                         "ticks: the tick alone, and the fleet's cost over it (0: not measured)")
     ap.add_argument("--simulate", default=None, help=argparse.SUPPRESS)  # the robots' process: fleet1,fleet2,...
     ap.add_argument("--connect", action="append", default=[], help=argparse.SUPPRESS)
     ap.add_argument("--mission", default=None, help=argparse.SUPPRESS)
@@ -481,9 +510,13 @@ def run(args: argparse.Namespace) -> int:
                 level = run_level(n, args.duration, args.warmup, mission, wd, log, env, args.layout, args.shards,
                                   args.loop_threads)
                 level["wall_s"] = round(time.monotonic() - t0, 1)
+                if args.tick_ticks > 0 and "failed" not in level:
+                    per_process = {"one": n, "shards": math.ceil(n / max(1, min(args.shards, n)))}.get(args.layout, 1)
+                    level.update(tick_alone(per_process, args.tick_ticks, level, env))
                 out["levels"].append(level)
                 brief = {k: level.get(k) for k in ("robots", "held", "missed_fraction_worst", "tick_p99_ms_worst",
-                                                   "ticks_per_core_s", "cpu_cores", "failed")}
+                                                   "ticks_per_core_s", "station_cpu_ms_per_tick", "tick_alone",
+                                                   "fleet_over_tick", "cpu_cores", "failed")}
                 print(f"fleet of {n}: {brief}", file=sys.stderr, flush=True)
                 if level["held"] and held == sizes.index(n):
                     held = sizes.index(n) + 1
