@@ -38,16 +38,16 @@ def stop_group(proc: subprocess.Popen, term_timeout: float = 10.0) -> None:
 LOG = "log"
 
 
-def spawn(args: list[str], out: Any = LOG, **kwargs: Any) -> subprocess.Popen:
+def spawn(args: list[str], out: Any = LOG, prefix: tuple[str, ...] = (), **kwargs: Any) -> subprocess.Popen:
     """``scmbridge ARGS...`` as a child in its own process group (so :func:`stop_group` takes all of it), with
     stdout and stderr together into ``out``: :data:`LOG` (the default), a temporary file that never fills, read
     with :func:`said`; a file; ``subprocess.DEVNULL``; or ``subprocess.PIPE`` for a caller that reads as the child
     writes (a pipe nobody reads blocks a chatty child once it holds 64 KB). The child goes away with this process,
     also when this one is killed with SIGKILL (:mod:`bridge.core.lifeline`; ``env`` is kept, with this process named
-    as its parent)."""
+    as its parent). ``prefix``: a command that runs it (``ip netns exec NS``: in a network namespace of its own)."""
     kwargs["env"] = child_env(kwargs.get("env"))
     log = tempfile.TemporaryFile() if isinstance(out, str) and out == LOG else None  # noqa: SIM115 (closed by Children)
-    proc = subprocess.Popen([sys.executable, "-m", "bridge", *args], stdout=log if log is not None else out,
+    proc = subprocess.Popen([*prefix, sys.executable, "-m", "bridge", *args], stdout=log if log is not None else out,
                             stderr=subprocess.STDOUT, start_new_session=True, **kwargs)
     proc.log = log  # type: ignore[attr-defined]
     return proc
@@ -69,8 +69,8 @@ class Children:
     def __init__(self) -> None:
         self.procs: list[subprocess.Popen] = []
 
-    def spawn(self, args: list[str], out: Any = LOG, **kwargs: Any) -> subprocess.Popen:
-        proc = spawn(args, out, **kwargs)
+    def spawn(self, args: list[str], out: Any = LOG, prefix: tuple[str, ...] = (), **kwargs: Any) -> subprocess.Popen:
+        proc = spawn(args, out, prefix, **kwargs)
         self.procs.append(proc)
         return proc
 
