@@ -23,11 +23,18 @@ fleet size, ``bench tick`` runs as many robots as one station process serves, in
 what the fleet costs around its ticks (Zenoh, the loop, the callbacks). The
 sweep stops at the first N not held (``--keep-going`` runs them all). ``robots_held``: the largest N held with
 every smaller N of the sweep held too.
+
+``--layout two-hosts`` (root only): docs/FLEET.md's several base stations on one machine, two ``station --shard``
+hosts of N/2 robots each in network namespaces of their own (:mod:`bench.netns`), clients of this process's router
+over their own links; after the window ``status --all`` at the router says how many stations answered
+(``status_all``). ``estop --all`` needs driver hosts to confirm, which the simulated robots are not:
+``tests/integration/test_shards_netns.py`` runs it across both hosts with real driver hosts.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import logging
 import math
 import os
@@ -39,6 +46,7 @@ from pathlib import Path
 
 import numpy as np
 
+from bench import netns
 from bench.common import emit
 from bridge.core.config import StationSection
 from bridge.core.errors import UsageError
@@ -278,7 +286,9 @@ def run_level(n: int, seconds: float, warmup: float, mission: Path, workdir: Pat
               loop_threads: int | None = None) -> dict:
     """N stations and the simulated robots behind one router; the window's figures (see the module docstring).
     ``layout``: ``processes``, a station process per robot; ``one``, every robot in one ``station --robots``;
-    ``shards``, the robots split over ``shards`` such processes (as station hosts of a sharded lab would be)."""
+    ``shards``, the robots split over ``shards`` such processes (as station hosts of a sharded lab would be);
+    ``two-hosts``, over two ``station --shard`` hosts each in a network namespace of its own (:mod:`bench.netns`),
+    reaching the router over their own links, and ``status --all`` asked at the router after the window."""
     from bridge.core import wire as M
     from bridge.nodes.zsession import free_port, make_config, open_session, tcp
     from bridge.tools.procs import Children
@@ -318,12 +328,26 @@ def run_level(n: int, seconds: float, warmup: float, mission: Path, workdir: Pat
             return status[robot][-1][1] if status[robot] else None
 
     t_start = time.monotonic()
-    with open_session(make_config(mode="router", listen=[tcp(port)])) as session, Children() as kids:
+    with contextlib.ExitStack() as stack:
+        hosts = stack.enter_context(netns.hosts(2)) if layout == "two-hosts" else []
+        listen = [tcp(port), *(tcp(port, h.router_addr) for h in hosts)]
+        session = stack.enter_context(open_session(make_config(mode="router", listen=listen)))
+        kids = stack.enter_context(Children())
         session.declare_subscriber(f"{M.PREFIX}/*/status/station", on_status)
         session.declare_subscriber(f"{M.PREFIX}/*/cmd", on_cmd)
         sim = kids.spawn(["bench", "fleet", "--simulate", ",".join(robots), "--connect", tcp(port), "--mission",
                           str(mission), "--sim-duration", str(life)], log)
-        if layout in ("one", "shards"):  # the pair stores and missions in the state directory (workdir)
+        if layout == "two-hosts":  # two station hosts, each in a network namespace of its own (bench/netns.py)
+            shards = {f"host{k}": robots[k::2] for k in range(min(2, n))}
+            cfg = workdir / "fleet.toml"
+            cfg.write_text("[fleet.shards]\n" + "".join(f"{h} = {list(rs)}\n".replace("'", '"')
+                                                        for h, rs in shards.items()))
+            stations = {h: kids.spawn(["station", "--config", str(cfg), "--shard", h, "--start", "--mode", "client",
+                                       "--connect", tcp(port, host.router_addr), "--mission", str(mission),
+                                       "--duration", str(life)], log, prefix=host.prefix,
+                                      env=dict(env or os.environ, SCMBRIDGE_STATE_DIR=str(workdir / h)))
+                        for (h, _), host in zip(shards.items(), hosts)}
+        elif layout in ("one", "shards"):  # the pair stores and missions in the state directory (workdir)
             groups = [robots] if layout == "one" else [robots[k::shards] for k in range(min(shards, n))]
             threads = ["--loop-threads", str(loop_threads)] if loop_threads is not None else []
             stations = {f"shard{k}": kids.spawn(["station", "--start", "--robots", ",".join(g), "--mode", "client",
@@ -363,6 +387,8 @@ def run_level(n: int, seconds: float, warmup: float, mission: Path, workdir: Pat
         cpu1 = {k: sum(_cpu_s(p) for p in v) for k, v in pids.items()}
         busy1, total1 = _machine_busy()
         rss = [_rss_mb(p) for p in pids["stations"]]
+        if layout == "two-hosts":  # an operator at the router: every robot of both hosts answers status --all
+            res["status_all"] = _status_all(port, robots)
         exited = [r for r, p in stations.items() if p.poll() is not None] + (["sim"] if sim.poll() is not None else [])
     with lock:
         status_c = {r: list(v) for r, v in status.items()}
@@ -419,6 +445,24 @@ def run_level(n: int, seconds: float, warmup: float, mission: Path, workdir: Pat
     return res
 
 
+def _status_all(port: int, robots: list[str]) -> dict:
+    """``scmbridge status --all`` at the router: how many of ``robots`` have their station's row, and how long it
+    took."""
+    import subprocess
+
+    from bridge.nodes.zsession import tcp
+
+    t0 = time.monotonic()
+    try:
+        out = subprocess.run([sys.executable, "-m", "bridge", "status", "--all", "--mode", "client", "--connect",
+                              tcp(port)], capture_output=True, text=True, timeout=120)
+    except subprocess.SubprocessError as exc:
+        return {"failed": str(exc)[:300]}
+    rows = {tuple(line.split()[:2]) for line in out.stdout.splitlines()}
+    return {"exit": out.returncode, "robots": len(robots), "stations_seen": sum((r, "station") in rows for r in robots),
+            "seconds": round(time.monotonic() - t0, 1)}
+
+
 def tick_alone(count: int, ticks: int, level: dict, env: dict[str, str] | None, options: tuple[str, ...] = ()) -> dict:
     """What the fleet's ticks cost alone: ``scmbridge bench tick --count`` (the station's whole tick in one process
     for ``count`` robots, one after the other each period, no Zenoh) run right after the level on the same machine,
@@ -464,9 +508,10 @@ def arguments(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--warmup", type=float, default=10.0, help="seconds of driving before the window")
     ap.add_argument("--sizes", default=None, help="fleet sizes to run, comma-separated (default: the sweep)")
     ap.add_argument("--keep-going", action="store_true", help="run every size even after one is not held")
-    ap.add_argument("--layout", choices=["processes", "one", "shards"], default="processes",
+    ap.add_argument("--layout", choices=["processes", "one", "shards", "two-hosts"], default="processes",
                     help="processes: a station process per robot; one: every robot in one `station --robots` process; "
-                         "shards: the robots split over --shards such processes")
+                         "shards: the robots split over --shards such processes; two-hosts: over two `station --shard` "
+                         "hosts, each in a network namespace of its own behind the router (needs root)")
     ap.add_argument("--shards", type=int, default=os.cpu_count() or 1, help="station processes of --layout shards "
                     "(default: one per core)")
     ap.add_argument("--loop-threads", type=int, default=None, metavar="N",
@@ -488,6 +533,8 @@ def run(args: argparse.Namespace) -> int:
         return simulate(args)
     if args.max_robots < 1:
         raise UsageError("--max-robots must be at least 1")
+    if args.layout == "two-hosts" and (why := netns.unavailable()):
+        raise UsageError(f"--layout two-hosts: network namespaces cannot be made here: {why}")
     sizes = [int(a) for a in args.sizes.split(",")] if args.sizes else sweep(args.max_robots)
     # `scmbridge` sets one BLAS thread for every command it runs (bridge/cli.py) unless the environment says
     # otherwise; "inherit" asks for OpenBLAS's own default, a thread per core, explicitly
@@ -511,7 +558,8 @@ def run(args: argparse.Namespace) -> int:
                                   args.loop_threads)
                 level["wall_s"] = round(time.monotonic() - t0, 1)
                 if args.tick_ticks > 0 and "failed" not in level:
-                    per_process = {"one": n, "shards": math.ceil(n / max(1, min(args.shards, n)))}.get(args.layout, 1)
+                    per_process = {"one": n, "shards": math.ceil(n / max(1, min(args.shards, n))),
+                                   "two-hosts": math.ceil(n / 2)}.get(args.layout, 1)
                     level.update(tick_alone(per_process, args.tick_ticks, level, env))
                 out["levels"].append(level)
                 brief = {k: level.get(k) for k in ("robots", "held", "missed_fraction_worst", "tick_p99_ms_worst",
