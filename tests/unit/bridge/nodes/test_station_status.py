@@ -178,3 +178,13 @@ def test_the_limits_of_a_learner_that_cannot_turn_in_place_carry_its_curvatures_
     bad.write_text('[transfer]\nturn = "needs-speed"\n[teacher_bounds]\nv = [-0.5, 0.5]\nw = [-1.0, 1.0]\n')
     with pytest.raises(ConfigError, match="forward-only teacher"):
         load_station(bad)
+
+
+def test_the_status_quantiles_are_numpys_default_percentiles() -> None:
+    from bridge.nodes.station_status import quantiles
+
+    rng = np.random.default_rng(3)
+    for n in (1, 2, 7, 600):
+        x = rng.exponential(1.0, n)
+        got = quantiles(sorted(x.tolist()), (0.0, 0.5, 0.99, 1.0))
+        np.testing.assert_allclose(got, np.percentile(x, (0, 50, 99, 100)), rtol=1e-12, atol=1e-12)
