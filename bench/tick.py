@@ -17,7 +17,7 @@ proposal: references, obstacles, the solve), ``transfer`` (the transfer step's m
 limits and the store's periodic save), ``encode`` (the outputs to bytes), ``core_rest`` (the rest of the core's
 tick: reordering, fitness, mission control, building the messages). ``process_ms_per_tick``: the whole process's
 CPU per tick, less the simulated robots' share (with the writer threads' saves, which the station writes off the tick
-as here).
+as here; ``saves_written``: how many they wrote).
 
 What a tick costs depends on how warm the caches are, so the figures of one run are only comparable with another
 run of the same options: back to back (the default) every cache is warm; ``--paced`` sleeps to each tick's
@@ -131,6 +131,7 @@ class _Rig:
         from bridge.nodes.writer import SaveWriter
 
         self.writer = core.saves.writer = SaveWriter(name=f"bench-save-{name}")
+        self.saved = 0  # saves the writer wrote, as its outcomes came back
         self.wire: list[tuple[bytes, type]] = []  # this period's telemetry as bytes (without --zenoh)
         self.session = session
         self.driver = None
@@ -195,8 +196,7 @@ class _Rig:
             tel = [(decode(data, kind), now) for data, kind in self.wire]
             self.wire.clear()
         c1 = time.thread_time_ns()
-        for what, error in self.writer.results():  # the writer's outcomes, as the station takes them
-            self.core.saves.saved(what, error)
+        self.drain_saves()
         out = self.core.tick(self.inputs(tel), now)
         c2 = time.thread_time_ns()
         self.driver = None
@@ -213,6 +213,11 @@ class _Rig:
         inner = sum(clock.now[p] for p in ("pairing", "store", "mpc", "transfer", "publications"))
         clock.now["core_rest"] += (c2 - c1) - inner
         return out
+
+    def drain_saves(self) -> None:
+        """The writer's outcomes, taken as the station takes them."""
+        for what, error in self.writer.results():
+            self.saved += self.core.saves.saved(what, error)
 
     def inputs(self, tel):
         from bridge.nodes.station_core import TickInputs
@@ -297,6 +302,7 @@ def _run(args: argparse.Namespace, tmp: Path) -> dict:
             sim_cpu += time.thread_time_ns() - s0
     for rig in rigs:  # what the writers still hold is written before the process's CPU is read
         rig.writer.close()
+        rig.drain_saves()
     if prof is not None:
         prof.disable()
     proc_ms = (time.process_time_ns() - proc0 - sim_cpu) / 1e6 / max(1, (args.ticks - args.skip) * len(rigs))
@@ -312,7 +318,8 @@ def _run(args: argparse.Namespace, tmp: Path) -> dict:
                                if any(p in t for t in ticks)},
                  "process_ms_per_tick": round(proc_ms, 4),
                  "methods": dict(methods), "refined_pairs": len(core.store.refined()),
-                 "raw_pairs": core.store.raw_count, "why": core.why}
+                 "raw_pairs": core.store.raw_count, "why": core.why,
+                 "saves_written": sum(rig.saved for rig in rigs)}
     if prof is not None:
         for key in ("tottime", "cumulative"):
             s = io.StringIO()

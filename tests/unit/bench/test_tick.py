@@ -24,6 +24,8 @@ def test_the_harness_drives_a_robot_and_splits_its_ticks_by_phase(capsys) -> Non
     assert {"decode", "pairing", "mpc", "transfer", "encode", "core_rest"} <= set(out["phases_ms"])
     assert out["cpu_ms_per_tick"]["median"] > 0 and out["methods"].get("stop", 0) <= 2
     assert sum(out["methods"].values()) == 2 * 26 and out["raw_pairs"] > 0
+    # the saves are written by each robot's writer thread, off the tick, as the station's are
+    assert out["saves_written"] >= 2
 
 
 def test_the_command_goes_out_as_the_bytes_the_core_checked(tmp_path) -> None:
