@@ -37,16 +37,19 @@ def test_a_command_pays_at_most_one_step_of_a_hole_search_and_the_burst_follows_
         return inner(*a)
 
     p._unperturbed = counted
-    per_command, methods = [], []
+    per_command, methods, builds = [], [], []
     for _ in range(400):
-        maps = 0
+        maps, b0 = 0, p.mapper.builds
         m = p.map(t)
         per_command.append(maps)
+        builds.append(p.mapper.builds - b0)
         methods.append(m.method)
         store.add(case.learner.response(m.u_L), m.u_L)
     assert p.searches >= 3 and methods.count("perturb") >= 3 * store.k_min  # the fills came all the same
     # the command's own map and at most one SC map of a search: a whole search maps up to 2 * FILL_CHECKS more
     assert max(per_command) <= 2, max(per_command)
+    # and at most one SC map built per command: its own region's, or else one for the search
+    assert max(builds) <= 1 and sum(builds) >= 3, (max(builds), sum(builds))
     # a burst begins on the command after the search's last step: the command before a burst's first fill served
     # the teacher's command unperturbed
     first = [k for k in range(1, len(methods)) if methods[k] == "perturb" and methods[k - 1] != "perturb"]
