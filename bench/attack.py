@@ -899,9 +899,10 @@ def run_all(short: bool = False, names: list[str] | None = None) -> dict:
     driver hosts' latch records go to a temporary directory (bridge/nodes/latch_record.py), not this user's."""
     import os
 
+    from bench.attack_files import FILE_ATTACKS
     from bench.attack_trust import TRUST_ATTACKS
 
-    attacks = {**ATTACKS, **TRUST_ATTACKS}
+    attacks = {**ATTACKS, **TRUST_ATTACKS, **FILE_ATTACKS}
     with tempfile.TemporaryDirectory() as records, contextlib.ExitStack() as stack:
         if "SCMBRIDGE_RECORD_DIR" not in os.environ:
             os.environ["SCMBRIDGE_RECORD_DIR"] = records
@@ -922,11 +923,12 @@ def _run(attacks: dict, short: bool, names: list[str] | None) -> dict:
 
 
 def arguments(ap: argparse.ArgumentParser) -> None:
+    from bench.attack_files import FILE_ATTACKS
     from bench.attack_trust import TRUST_ATTACKS
 
     ap.add_argument("--short", action="store_true", help="each attack briefly (as the suite runs it)")
     ap.add_argument("--only", default=None,
-                    help=f"comma-separated attacks of: {', '.join([*ATTACKS, *TRUST_ATTACKS])}")
+                    help=f"comma-separated attacks of: {', '.join([*ATTACKS, *TRUST_ATTACKS, *FILE_ATTACKS])}")
 
 
 def run(args: argparse.Namespace) -> int:
