@@ -393,7 +393,7 @@ ATTACKS: dict[str, Callable[[bool], Result]] = {
                             forger_at_seq_plus_one, mission_after_goal)}
 
 
-def run_all(short: bool = False, names: list[str] | None = None) -> dict:
+def run_all(short: bool = False, names: list[str] | None = None, sitl: bool = False) -> dict:
     """Every attack (or ``names``), each isolated: one that raises is reported as not ok with its error. The
     driver hosts' latch records go to a temporary directory (bridge/nodes/latch_record.py), not this user's."""
     import os
@@ -402,6 +402,10 @@ def run_all(short: bool = False, names: list[str] | None = None) -> dict:
     from bench.attack_trust import TRUST_ATTACKS
 
     attacks = {**ATTACKS, **TRUST_ATTACKS, **FILE_ATTACKS}
+    if sitl or (names and any(n.startswith("sitl_") for n in names)):
+        from bench.attack_sitl import SITL_ATTACKS
+
+        attacks.update(SITL_ATTACKS)
     with tempfile.TemporaryDirectory() as records, contextlib.ExitStack() as stack:
         if "SCMBRIDGE_RECORD_DIR" not in os.environ:
             os.environ["SCMBRIDGE_RECORD_DIR"] = records
@@ -426,11 +430,14 @@ def arguments(ap: argparse.ArgumentParser) -> None:
     from bench.attack_trust import TRUST_ATTACKS
 
     ap.add_argument("--short", action="store_true", help="each attack briefly (as the suite runs it)")
+    ap.add_argument("--sitl", action="store_true",
+                    help="also the rows against ArduPilot's Rover SITL (sitl_host_killed, sitl_replay_after_reboot: "
+                         "minutes; the binary as sim_learner/sitl.py finds it)")
     ap.add_argument("--only", default=None,
                     help=f"comma-separated attacks of: {', '.join([*ATTACKS, *TRUST_ATTACKS, *FILE_ATTACKS])}")
 
 
 def run(args: argparse.Namespace) -> int:
-    res = run_all(args.short, args.only.split(",") if args.only else None)
+    res = run_all(args.short, args.only.split(",") if args.only else None, args.sitl)
     emit(res)
     return 0 if res["all_ok"] else 1

@@ -1,6 +1,8 @@
 """``scmbridge bench attack --sitl``: the MAVLink rows against ArduPilot's own Rover firmware in SITL
 (:mod:`sim_learner.sitl`), where the emulated rover (bench/attack.py's rows) stands in for it otherwise.
 
+* ``sitl_host_killed``: a host driving the rover dies without a word; when the rover stops, with Rover's defaults
+  and with the GCS failsafe watching the host.
 * ``sitl_replay_after_reboot``: a keyed host's signed traffic (GUIDED, arm, set-points, its HEARTBEATs) recorded off
   its link, the person parks the rover, the autopilot reboots on the same storage (its signing key and saved
   timestamp) and the recording is sent again on the same port, soon after the recording and again more than a
@@ -122,9 +124,7 @@ def sitl_replay_after_reboot(short: bool) -> Result:
             "ok": old["recording_took_the_rover"] and old["ok"]}
 
 
-SITL_ATTACKS: dict[str, Callable[[bool], Result]] = {f.__name__: f for f in (sitl_replay_after_reboot,)}
 
-__all__ = ["SITL_ATTACKS", "replay_after_reboot"]
 
 
 def replay_into_fresh(binary: str, speedup: float = 1.0) -> dict:
@@ -160,3 +160,67 @@ def replay_into_fresh(binary: str, speedup: float = 1.0) -> dict:
         armed = second.pilot.wait(lambda s: s.armed, 3.0)
         return {"replayed_after_s": age, "armed": armed, "mode": second.pilot.mode,
                 "vehicle_said": second.pilot.texts()[-4:]}
+
+
+#: the driver host's system id in the host-killed runs: the one the GCS failsafe watches (MAV_GCS_SYSID), not the
+#: person's ground station's (255)
+HOST_SYSID = 245
+
+
+def host_killed(binary: str, params: dict[str, float], speedup: float = 10.0) -> dict:
+    """A host on the driver's port (system :data:`HOST_SYSID`, HEARTBEATs at 10 Hz) takes the rover (GUIDED, armed,
+    0.5 m/s set-points at 10 Hz) and dies without a word (its connection closed, as a SIGKILL closes it). From its
+    last message: when the pilot sees the rover stopped (below 0.05 m/s), in which mode, armed or not, and what it
+    said. ``params``: SITL's defaults for this run (e.g. the GCS failsafe's)."""
+    from sim_learner.sitl import MAV, Pilot, Sitl
+
+    with Sitl(binary, boot_speedup=speedup, params=params) as sitl:
+        pilot = sitl.pilot
+        assert pilot is not None
+        got = {k: pilot.param(k) for k in params}
+        host = Pilot(sitl.driver_url, source_system=HOST_SYSID, source_component=HOST_COMPONENT)
+        try:
+            host.set_mode("GUIDED")
+            host.arm(True)
+            t_end = time.monotonic() + 3.0
+            while time.monotonic() < t_end:
+                host.send("heartbeat", MAV.MAV_TYPE_ONBOARD_CONTROLLER, MAV.MAV_AUTOPILOT_INVALID, 0, 0, 0)
+                host.velocity(0.5, 0.0)
+                time.sleep(0.1)
+            driving = pilot.speed
+        finally:
+            t_dead = time.monotonic()
+            host.close()
+        stopped = pilot.wait(lambda s: bool(s.samples) and s.samples[-1].t > t_dead and s.samples[-1].speed < 0.05,
+                             8.0)
+        after = [s for s in pilot.samples(t_dead) if s.speed < 0.05]
+        t_stop = round(after[0].t - t_dead, 2) if stopped and after else None
+        time.sleep(0.3)
+        return {"params": got, "speed_before": round(driving, 3), "stopped_after_s": t_stop, "mode": pilot.mode,
+                "armed": pilot.armed, "vehicle_said": [t for t in pilot.texts()[-6:] if "PreArm" not in t]}
+
+
+def sitl_host_killed(short: bool) -> Result:
+    """A keyed host drives the rover in GUIDED at 0.5 m/s and dies without a word (as a SIGKILLed driver host),
+    with Rover's defaults (only GUIDED's 3 s target timeout stops it) and with the GCS failsafe watching the host
+    (FS_GCS_ENABLE 1, FS_ACTION 2 Hold, FS_GCS_TIMEOUT 0.5, MAV_GCS_SYSID the host's, HEARTBEATs at 10 Hz; FS_TIMEOUT
+    left at 1.5 s: SITL's failsafe fired while the host was alive with 0.3 s). ``ok``: the failsafe stops it sooner,
+    in HOLD. Neither ends within the host's deadman: docs/SECURITY.md says what remains."""
+    from sim_learner.sitl import find_sitl
+
+    binary = find_sitl()
+    if binary is None:
+        return {"reached_vehicle": None, "learned": None, "ok": False, "error": "no SITL binary"}
+    default = host_killed(str(binary), {"FS_GCS_ENABLE": 0})
+    watched = host_killed(str(binary), {"FS_GCS_ENABLE": 1, "FS_GCS_TIMEOUT": 0.5, "FS_ACTION": 2,
+                                        "MAV_GCS_SYSID": HOST_SYSID})
+    a, b = default["stopped_after_s"], watched["stopped_after_s"]
+    return {"reached_vehicle": {"stopped_after_s": {"guided_timeout": a, "gcs_failsafe": b}}, "learned": None,
+            "guided_timeout": default, "gcs_failsafe": watched,
+            "ok": a is not None and b is not None and b < a and watched["mode"] == "HOLD"}
+
+
+SITL_ATTACKS: dict[str, Callable[[bool], Result]] = {
+    f.__name__: f for f in (sitl_replay_after_reboot, sitl_host_killed)}
+
+__all__ = ["SITL_ATTACKS", "host_killed", "replay_after_reboot", "replay_into_fresh"]
