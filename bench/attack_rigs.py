@@ -1,4 +1,4 @@
-"""The rigs ``scmbridge bench attack``'s rows share (bench/attack.py, bench/attack_trust.py): a man in the middle on
+"""The rigs ``scmbridge bench attack``'s rows share (bench/attack*.py): a man in the middle on
 loopback UDP (:class:`Tap`), the emulated UDP robot and the real UDP driver through it, real DriverHosts on real state
 directories driven in this process (:class:`_LatchRig`) or serving over real Zenoh sessions (:class:`_ZenohHost`),
 a station-like command sender (:class:`_Station`), and bounded waits."""

@@ -31,7 +31,7 @@ from bench.attack_rigs import (
 
 
 class _Restartable(_ZenohHost):
-    """:class:`bench.attack._ZenohHost` whose driver host can be killed and started again on the same state
+    """:class:`bench.attack_rigs._ZenohHost` whose driver host can be killed and started again on the same state
     directory and robot (as systemd restarts a crashed unit): :meth:`restart`."""
 
     def __enter__(self) -> _Restartable:

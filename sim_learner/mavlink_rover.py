@@ -44,23 +44,8 @@ driver that is wrong about the vehicle. Paths are in github.com/ArduPilot/ardupi
   models its dynamics).
 * GUID_TIMEOUT (Rover/mode_guided.cpp): no new target for ``guid_timeout`` s (3 by default) -> STATUSTEXT "target not
   received last 3secs, stopping" (the firmware's words, as SITL sends them) and a stop.
-* Signing (libraries/GCS_MAVLink/GCS_Signing.cpp, as SETUP_SIGNING leaves it): with ``signing_key``, every message
-  it sends is signed, and a message that is unsigned (other than RADIO_STATUS / RADIO), badly signed or whose
-  signature timestamp goes back on its stream is refused before it is handled (counted in ``bad_signatures``). The
-  check runs in the C library's order (generated mavlink_helpers.h ``mavlink_signature_check``): the signature
-  first, then the stream's timestamp (a new stream is taken if at most one minute behind ours), and only a verified
-  message records its stream's timestamp and raises ours; pymavlink's own check records it first, so one forged
-  packet could lock the ground station out (docs/SECURITY.md). One signing state serves sending and receiving, as
-  ``mavlink_signing_t`` does on every channel. The timestamp survives a reboot as ArduPilot keeps it:
-  ``signing_store`` stands for the autopilot's storage (StorageKeys); the timestamp is saved when a HEARTBEAT is
-  queued if ``signing_save_s`` (30 s, ``save_signing_timestamp(false)``) have passed since the last save, and at once
-  when the GPS gives the time (``update_signing_timestamp``: the timestamp rises to the GPS's UTC, here the wall
-  clock when the EKF gets its origin, and ``save_signing_timestamp(true)``), and only if it grew. At boot
-  (``load_signing_key``) the timestamp is the stored one plus one minute. ArduPilot saves nothing at power-off, so a
-  message signed after the last save is still taken after a reboot (as a new stream: at most one minute behind);
-  everything signed before the last save is refused. Without a store (or none saved yet, or one saved for another
-  key: the store keeps a digest of the key beside the timestamp) the key counts as just set by SETUP_SIGNING from a
-  ground station, whose ``initial_timestamp`` is its wall clock; it is saved then.
+* Signing (libraries/GCS_MAVLink/GCS_Signing.cpp): :mod:`sim_learner.mavlink_signing` (the C library's check
+  order, the timestamp kept across a reboot, the GPS's time).
 * Parameters (Rover/Parameters.cpp defaults: FS_ACTION 2 = Hold, FS_TIMEOUT 1.5 s, FS_GCS_ENABLE 0, FS_GCS_TIMEOUT 5 s;
   SYSID_MYGCS 255; and what it models under Rover's names: WP_SPEED = ``wp_speed``, ATC_STR_RAT_MAX = ``str_rat_max``
   in deg/s, ATC_DECEL_MAX = ``decel_max``, as a ground station reads the learner's range): PARAM_REQUEST_READ by
@@ -73,12 +58,7 @@ driver that is wrong about the vehicle. Paths are in github.com/ArduPilot/ardupi
 * HEARTBEAT at 1 Hz: GROUND_ROVER, ARDUPILOTMEGA, base_mode and system_status as Rover/GCS_Mavlink.cpp ``base_mode``
   / ``vehicle_system_status`` (CUSTOM_MODE_ENABLED, GUIDED_ENABLED in autopilot modes, SAFETY_ARMED; CALIBRATING while
   initialising, STANDBY in HOLD, else ACTIVE).
-* Transport. ``udp``: answers the last peer it heard from, like a telemetry bridge (pymavlink udpin). ``tcp``: like
-  SITL's TCP serial port (libraries/AP_HAL_SITL/UARTDriver.cpp): one client at a time, the next accepted when it
-  leaves; bytes move from the socket into a read buffer whenever they arrive, but the GCS code parses that buffer only
-  at its scheduler tick (``GCS::update_receive``, 400 Hz in Rover/Rover.cpp) and only while the port is connected, and
-  EOF marks the port disconnected at once. So a command that arrives just before its sender closes the socket is
-  never handled (a disarm sent by a driver that closes without waiting for the ACK).
+* Transport: :mod:`sim_learner.mavlink_rover_link` (udp like a telemetry bridge, tcp like SITL's serial port).
 
 Measured against the firmware itself (ArduPilot Rover 4.7.0-dev SITL, rover-skid, stock parameters, 2026-11-27; the
 same scenarios run on both in tests/integration/test_sitl.py, and the figures below with a ground station on each
@@ -111,71 +91,27 @@ NED (x north, y east, yaw clockwise from north) on the wire, ENU in :class:`sim_
 
 from __future__ import annotations
 
-import hashlib
-import json
 import math
 import os
 import queue
 import select
 import socket
-import struct
 import threading
 import time
 from collections.abc import Callable
-from pathlib import Path
 from typing import Any
 
 os.environ.setdefault("MAVLINK20", "1")
 from pymavlink import mavutil  # noqa: E402
 
-from bridge.core.paths import save_atomic  # noqa: E402
 from sim_learner.device import ThreadedDevice  # noqa: E402
 from sim_learner.mavlink_fence import EmulatedFence  # noqa: E402
+from sim_learner.mavlink_rover_link import LinkMixin, Tx  # noqa: E402
+from sim_learner.mavlink_signing import SIGNING_SAVE_S, SigningMixin  # noqa: E402
 from sim_learner.vehicle import SimVehicle  # noqa: E402
 
 mavutil.set_dialect("ardupilotmega")
 MAV = mavutil.mavlink
-
-#: GCS_Signing.cpp: the timestamp is saved every 30 s (when a HEARTBEAT is queued), and at boot it starts one
-#: minute past the saved one; both in 10 us units since 2015-01-01 where a timestamp is meant
-SIGNING_SAVE_S = 30.0
-SIGNING_BOOT_AHEAD = 60 * 100 * 1000
-#: a new signing stream is taken if its timestamp is at most this far behind ours (mavlink_signature_check)
-SIGNING_NEW_STREAM = 6000 * 1000
-_EPOCH_2015 = 1420070400
-
-
-def signing_wall_clock() -> int:
-    """Now in MAVLink signing units (10 us since 2015-01-01 UTC), as a GPS or a ground station gives it."""
-    return int(max(0.0, time.time() - _EPOCH_2015) * 100_000)
-
-
-def _c_order_check(mav: Any) -> Callable[[bytearray, int, int], bool]:
-    """``mavlink_signature_check`` of the C library for ``mav``: the signature first, then the timestamp against the
-    stream's last one (or, for a new stream, against ours less one minute); only then are both recorded."""
-    unpack = struct.Struct("<IH").unpack
-
-    def check(msgbuf: bytearray, src_system: int, src_component: int) -> bool:
-        sig = mav.signing
-        if hashlib.sha256(bytes(sig.secret_key) + bytes(msgbuf[:-6])).digest()[:6] != bytes(msgbuf[-6:]):
-            return False
-        low, high = unpack(bytes(msgbuf[-12:-6]))
-        stamp = low + (high << 32)
-        stream = (msgbuf[-13], src_system, src_component)
-        last = sig.stream_timestamps.get(stream)
-        if (last is None and stamp + SIGNING_NEW_STREAM < sig.timestamp) or (last is not None and stamp <= last):
-            return False
-        sig.stream_timestamps[stream] = stamp
-        sig.timestamp = max(sig.timestamp, stamp)
-        return True
-
-    return check
-
-
-def _accept_unsigned(mav: Any, msg_id: int) -> bool:
-    """GCS_Signing.cpp ``accept_unsigned_callback``: a radio's own status messages pass unsigned, nothing else."""
-    return msg_id in (MAV.MAVLINK_MSG_ID_RADIO_STATUS, MAV.MAVLINK_MSG_ID_RADIO)
-
 
 #: the parameters this vehicle answers for, with Rover's defaults (Rover/Parameters.cpp, GCS_MAVLink)
 PARAM_DEFAULTS: dict[str, float] = {"FS_ACTION": 2.0, "FS_TIMEOUT": 1.5, "FS_GCS_ENABLE": 0.0, "FS_GCS_TIMEOUT": 5.0,
@@ -220,17 +156,7 @@ def _constrain(v: float, low: float, high: float, nan: float) -> float:
     return nan if math.isnan(v) else max(low, min(high, v))
 
 
-class _Tx:
-    """The file pymavlink's encoder writes to: the rover's transport."""
-
-    def __init__(self, rover: MavlinkRover) -> None:
-        self.rover = rover
-
-    def write(self, data: bytes) -> None:
-        self.rover._transmit(bytes(data))
-
-
-class MavlinkRover(ThreadedDevice):
+class MavlinkRover(SigningMixin, LinkMixin, ThreadedDevice):
     """See the module docstring. Listens on ``host:port`` (0: a free port, read ``.port`` after ``start()``)."""
 
     thread_name = "mavlink-rover"
@@ -286,150 +212,13 @@ class MavlinkRover(ThreadedDevice):
         self._peer: tuple[str, int] | None = None  # udp peer
         self._initialised = False
         self._due: dict[Any, float] = {"hb": 0.0, **{mid: 0.0 for mid in _STREAMED}}
-        self.mav = MAV.MAVLink(_Tx(self), srcSystem=self.sysid, srcComponent=self.compid)
+        self.mav = MAV.MAVLink(Tx(self), srcSystem=self.sysid, srcComponent=self.compid)
         self.mav.robust_parsing = True
         self._parser = MAV.MAVLink(None, srcSystem=self.sysid, srcComponent=self.compid)
         self._parser.robust_parsing = True
-        self.signing_store = Path(signing_store) if signing_store is not None else None
-        self.signing_save_s = float(signing_save_s)
-        self.signing_saves = 0  # timestamps written to the store
-        self._signing_saved = 0  # the timestamp in the store
-        self._signing_save_time = -math.inf
-        self._gps_time = False  # the GPS has given the time (update_signing_timestamp done)
-        if signing_key is not None:  # GCS_Signing.cpp: once a key is set, unsigned messages are refused
-            sig = self.mav.signing
-            self._parser.signing = sig  # one mavlink_signing_t for both directions
-            sig.secret_key = signing_key
-            sig.sign_outgoing = True
-            sig.link_id = 0
-            sig.allow_unsigned_callback = _accept_unsigned
-            stored = self._load_signing_timestamp()
-            if stored is None:  # SETUP_SIGNING from a ground station: its clock, saved (handle_setup_signing)
-                sig.timestamp = signing_wall_clock()
-                self._save_signing_timestamp(time.monotonic(), force=True)
-            else:  # load_signing_key: one minute past the last recorded
-                self._signing_saved = stored
-                sig.timestamp = stored + SIGNING_BOOT_AHEAD
-            self._parser.check_signature = _c_order_check(self._parser)
+        self._init_signing(signing_key, signing_store, signing_save_s)
         self.t0 = time.monotonic()
         self.fence = EmulatedFence(self, HOLD)  # the geofence (sim_learner/mavlink_fence.py)
-
-    # --------------------------------------------------------------------------------------------- signing
-    def _load_signing_timestamp(self) -> int | None:
-        """The timestamp in the store (None: no store, nothing saved yet, or unreadable)."""
-        if self.signing_store is None:
-            return None
-        try:
-            saved = json.loads(self.signing_store.read_text(encoding="utf-8"))
-            value, key = saved["timestamp"], saved["key"]
-        except (OSError, ValueError, KeyError, TypeError):
-            return None
-        if key != self._key_id():  # another key: SETUP_SIGNING replaced the stored key and its timestamp
-            return None
-        return int(value) if isinstance(value, int) and value > 0 else None
-
-    def _key_id(self) -> str:
-        """What the store keeps of the key (ArduPilot keeps the key itself; a file here keeps a digest)."""
-        return hashlib.blake2b(bytes(self.mav.signing.secret_key or b""), digest_size=8).hexdigest()
-
-    def _save_signing_timestamp(self, now: float, force: bool = False) -> None:
-        """``save_signing_timestamp``: every ``signing_save_s`` unless forced, and only a timestamp that grew."""
-        if self.mav.signing.secret_key is None or (not force and now - self._signing_save_time < self.signing_save_s):
-            return
-        self._signing_save_time = now
-        stamp = int(self.mav.signing.timestamp)
-        if stamp <= self._signing_saved:
-            return
-        self._signing_saved = stamp
-        if self.signing_store is not None:
-            save_atomic(self.signing_store, json.dumps({"key": self._key_id(), "timestamp": stamp}).encode())
-        self.signing_saves += 1
-
-    @property
-    def signing_timestamp(self) -> int:
-        """The vehicle's signing timestamp now (10 us units since 2015)."""
-        return int(self.mav.signing.timestamp)
-
-    # ------------------------------------------------------------------------------------------- transport
-    def _open(self) -> None:
-        if self.transport == "udp":
-            s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        else:
-            s = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
-            s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # as SITL: a restarted vehicle rebinds at once
-        s.bind((self.host, self.port))
-        if self.transport == "tcp":
-            s.listen(5)
-        s.setblocking(False)
-        self._sock = s
-        self.port = s.getsockname()[1]
-        self.t0 = time.monotonic()
-
-    def _close(self) -> None:
-        for s in (self._client, self._sock):
-            if s is not None:
-                s.close()
-        self._client = self._sock = None
-
-    @property
-    def connected(self) -> bool:
-        """tcp: a client is connected; udp: a peer has been heard."""
-        return self._client is not None if self.transport == "tcp" else self._peer is not None
-
-    def _transmit(self, data: bytes) -> None:
-        if self.blackout:
-            return
-        with self._tx_lock:
-            try:
-                if self.transport == "tcp":
-                    if self._client is not None:
-                        self._client.sendall(data)
-                elif self._peer is not None and self._sock is not None:
-                    self._sock.sendto(data, self._peer)
-            except OSError:
-                pass  # the peer went away; the receive side notices
-
-    def _drain(self) -> None:
-        """The serial driver's timer: move what arrived into the read buffer; accept/notice tcp clients."""
-        if self._sock is None:
-            return
-        if self.transport == "udp":
-            while True:
-                try:
-                    data, addr = self._sock.recvfrom(65536)
-                except (BlockingIOError, InterruptedError):
-                    return
-                except OSError:  # ICMP port unreachable from a peer that left
-                    continue
-                if not self.blackout:
-                    self._peer = addr
-                    self._rx += data
-        if self._client is None:
-            try:
-                self._client, _ = self._sock.accept()
-                self._client.setblocking(False)
-                self._client.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
-            except (BlockingIOError, InterruptedError):
-                return
-        while self._client is not None:
-            try:
-                data = self._client.recv(65536)
-            except (BlockingIOError, InterruptedError):
-                return
-            except OSError:
-                data = b""
-            if not data:  # EOF: the port is disconnected now; what is still in the buffer is not parsed
-                self.dropped_on_disconnect += len(self._rx)
-                self._rx.clear()  # (SITL keeps it for the next client; it is never parsed for this one)
-                with self._tx_lock:
-                    self._client.close()
-                    self._client = None
-                return
-            if not self.blackout:
-                self._rx += data
-
-    def _fds(self) -> list[socket.socket]:
-        return [s for s in (self._sock, self._client) if s is not None]
 
     # ---------------------------------------------------------------------------------------- operator side
     def _call(self, fn: Callable[[], Any], timeout: float = 2.0) -> Any:
@@ -456,7 +245,7 @@ class MavlinkRover(ThreadedDevice):
 
     def foreign(self, sysid: int, compid: int = 1) -> Any:
         """A pymavlink encoder sending as another system on this link (a second vehicle, another ground station)."""
-        m = MAV.MAVLink(_Tx(self), srcSystem=int(sysid), srcComponent=int(compid))
+        m = MAV.MAVLink(Tx(self), srcSystem=int(sysid), srcComponent=int(compid))
         return m
 
     def text(self, text: str, severity: int = MAV.MAV_SEVERITY_WARNING) -> None:
@@ -737,7 +526,7 @@ class MavlinkRover(ThreadedDevice):
 
     def _next_event(self) -> float:
         """When :meth:`_update` has something to do next: the end of boot, a GUIDED target's timeout."""
-        events = [math.inf, self.fence.next_check()]
+        events = [math.inf, self.fence.next_check(), self._gps_due()]
         if not self._initialised:
             events.append(self.t0 + self.init_s)
         if self.target is not None:
@@ -752,10 +541,7 @@ class MavlinkRover(ThreadedDevice):
     def _update(self, now: float) -> None:
         self._gcs_failsafe(now)
         self.fence.check(now)
-        if not self._gps_time and self.has_origin(now) and self.mav.signing.secret_key is not None:
-            self._gps_time = True  # the GPS gives the time: update_signing_timestamp, then a forced save
-            self.mav.signing.timestamp = max(self.mav.signing.timestamp, signing_wall_clock())
-            self._save_signing_timestamp(now, force=True)
+        self._gps_update(now)
         if not self._initialised and now - self.t0 >= self.init_s:
             self._initialised = True
             self.custom_mode = INITIALISING

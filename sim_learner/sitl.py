@@ -434,6 +434,7 @@ class Sitl:
         self.proc: subprocess.Popen | None = None
         self.pilot: Pilot | None = None
         self.boot_s = math.nan  # wall time from start to real time with a position
+        self.wipe = True  # -w: the first start wipes the stored parameters; a reboot keeps the storage
 
     # ------------------------------------------------------------------------------------------ endpoints
     def url(self, serial: int) -> str:
@@ -498,7 +499,7 @@ class Sitl:
         meanwhile by someone else)."""
         defaults = ",".join(str(p) for p in self.defaults())
         argv = [str(self.binary), "--model", self.model, "--speedup", f"{self.boot_speedup:g}", "-I",
-                str(self.instance), "-w", "--defaults", defaults]
+                str(self.instance), *(["-w"] if self.wipe else []), "--defaults", defaults]
         assert self.dir is not None
         with open(self.dir / "sitl.log", "ab") as log:
             self.proc = subprocess.Popen(argv, cwd=self.dir, stdout=log, stderr=subprocess.STDOUT,
@@ -545,6 +546,32 @@ class Sitl:
             raise SitlError(f"SITL boot: the EKF has no absolute position (GPS) within {self.boot_timeout} s; "
                             f"vehicle said {pilot.texts()[-4:]}")
         pilot.set_param("SIM_SPEEDUP", 1.0, timeout=min(5.0, left()))
+
+    def reboot(self, kill: signal.Signals = signal.SIGKILL) -> None:
+        """The autopilot loses power and boots again on the same storage (``eeprom.bin``: its parameters, the
+        signing key and timestamp) and instance: the process killed with ``kill``, started again without ``-w``,
+        and booted as :meth:`start` does (a new pilot on SERIAL0)."""
+        if self.pilot is not None:
+            self.pilot.close()
+            self.pilot = None
+        if self.proc is not None:
+            with contextlib.suppress(ProcessLookupError):
+                os.killpg(self.proc.pid, kill)
+            with contextlib.suppress(subprocess.TimeoutExpired):
+                self.proc.wait(timeout=5.0)
+            self.proc = None
+        self.wipe = False
+        t0 = time.monotonic()
+        deadline = t0 + self.boot_timeout
+        try:
+            if not self._launch(deadline) or self.pilot is None:
+                raise SitlError(f"SITL instance {self.instance} did not come back on {self.url(0)}: "
+                                f"{self.log_tail(600)}")
+            self._boot(deadline)
+            self.boot_s = time.monotonic() - t0
+        except BaseException:
+            self.stop()
+            raise
 
     def stop(self) -> None:
         """Close the pilot, kill the process group (SIGTERM, then SIGKILL after 3 s), remove the directory."""

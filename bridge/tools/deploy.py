@@ -12,7 +12,8 @@ through only what a rule allows:
   the robots' ``state``, ``applied``, ``status/driver`` and ``mission``, and answers ``pairs`` queries;
 * **the operator** publishes ``estop`` (engage and release: one key) and ``mission`` (a new mission for a running
   station: only a person's identity may replace what a robot drives to; the station's certificate may not) for
-  every robot and may query ``estop`` and ``pairs``;
+  every robot, and the estop on ``scm/*/estop`` too (``estop --all``'s first stop, which every robot receives), and
+  may query ``estop`` and ``pairs``;
 * optionally **a motion-capture bridge** (``--mocap-cn``) publishes ``mocap`` for every robot (which each robot's
   driver host receives), and **an external teacher** (``--teacher-cn``) publishes ``teacher`` for every robot and
   receives ``state`` and ``limits`` (``[teacher] kind = "external"``);
@@ -145,7 +146,8 @@ def access_control(robots: Sequence[str], *, station_cn: str = "station", operat
             # observer's wildcard one (status --all, view, record): learning of a subscriber carries no data
             _rule(f"{rid}/publishes-matching", "egress", ["declare_subscriber"], [*pubs, EVERYTHING]),
             _rule(f"{rid}/subscribes", "ingress", ["declare_subscriber"], recv),
-            _rule(f"{rid}/receives", "egress", ["put"], recv),
+            # (the operator's ``estop --all`` stops every robot with one put on the wildcard key first)
+            _rule(f"{rid}/receives", "egress", ["put"], [*recv, ALL_ESTOPS]),
             _rule(f"{rid}/answers-estop", "ingress", ["declare_queryable", "reply"], [k.estop, k.engage]),
             _rule(f"{rid}/estop-queries", "egress", ["query"], [k.estop, k.engage, ALL_ESTOPS]),
             _rule(f"{rid}/alive", "ingress", ["liveliness_token"], [M.alive_key(r, "driver")]),
@@ -187,7 +189,8 @@ def access_control(robots: Sequence[str], *, station_cn: str = "station", operat
     # the operator: estop (engage and release), engage, missions (requests, and a new mission for a running station:
     # the station's certificate may not publish one), pairs, and everything an observer may read
     operator = [
-        _rule("operator/estop", "ingress", ["put"], estops),
+        # each robot's key, and the wildcard ``estop --all`` puts first (only the operator may put it)
+        _rule("operator/estop", "ingress", ["put"], [*estops, ALL_ESTOPS]),
         _rule("operator/missions", "ingress", ["put"], missions),
         _rule("operator/missions-matching", "egress", ["declare_subscriber"], missions),
         _rule("operator/estop-latches", "ingress", ["query"], [*estops, ALL_ESTOPS]),

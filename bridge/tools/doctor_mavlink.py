@@ -78,6 +78,11 @@ def check_gcs_failsafe(config, p: dict[str, float]) -> list[Check]:
                                            f"FS_GCS_TIMEOUT 5 (it watches {watched})"))
     elif not action:
         out.append(Check("warn", "gcs-fs", "FS_GCS_ENABLE is on but FS_ACTION 0 does nothing: fix: FS_ACTION 2 (Hold)"))
+    elif gcs_id == config.source_system and p.get("FS_GCS_TIMEOUT", math.inf) <= 2.0 / config.heartbeat_hz:
+        out.append(Check("warn", "gcs-fs", f"the GCS failsafe watches this host with FS_GCS_TIMEOUT "
+                                           f"{p['FS_GCS_TIMEOUT']:g} s, within two of its HEARTBEATs ([link.mavlink] "
+                                           f"heartbeat_hz {config.heartbeat_hz:g}): it holds the rover while this host "
+                                           f"drives it; fix: heartbeat_hz = {min(20.0, 4.0 / p['FS_GCS_TIMEOUT']):g}"))
     else:
         out.append(Check("ok", "gcs-fs", f"GCS failsafe on: FS_ACTION {action:g} after FS_GCS_TIMEOUT "
                                          f"{p.get('FS_GCS_TIMEOUT', math.nan):g} s without {watched}"))

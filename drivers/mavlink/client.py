@@ -160,8 +160,9 @@ class MavlinkClient:
         self.heartbeat(now, force=True)
 
     def heartbeat(self, now: float, force: bool = False) -> None:
-        """Our HEARTBEAT, 1 Hz (ArduPilot's GCS failsafe and a udp peer's address depend on it): a ground station's,
-        or a companion computer's when we speak with the vehicle's own system id (``config.companion``)."""
+        """Our HEARTBEAT, ``heartbeat_hz`` (1 Hz by default; ArduPilot's GCS failsafe and a udp peer's address
+        depend on it): a ground station's, or a companion computer's when we speak with the vehicle's own system id
+        (``config.companion``)."""
         if self.conn is None or not (force or now >= self._hb_due):
             return
         mav = self.dialect.mav
@@ -171,7 +172,7 @@ class MavlinkClient:
             self.health.frames_sent += 1
         except OSError as exc:
             self.failed = str(exc)
-        self._hb_due = now + 1.0
+        self._hb_due = now + 1.0 / self.config.heartbeat_hz
 
     def service(self, now: float) -> None:
         """Housekeeping every call does: reconnect, our heartbeat, commands in flight."""

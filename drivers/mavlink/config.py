@@ -49,6 +49,10 @@ class MavlinkLinkConfig(Cfg):
     signing_key_file: Annotated[str, meta(
         "MAVLink 2 signing key (scmbridge keys mavlink; the autopilot gets the same key with SETUP_SIGNING): every "
         "message we send is signed and unsigned or badly signed ones are refused; empty: no signing")] = ""
+    heartbeat_hz: Annotated[float, meta(
+        "our HEARTBEATs per second: what ArduPilot's GCS failsafe watches (FS_GCS_ENABLE with MAV_GCS_SYSID our "
+        "source_system); faster lets a shorter FS_GCS_TIMEOUT hold a rover whose host died (docs/SECURITY.md)",
+        ge=1.0, le=20.0)] = 1.0
 
     def unauthenticated(self) -> str:
         """Why anyone on the link can command the vehicle ("" when MAVLink 2 signing is on): the driver host's status

@@ -175,3 +175,27 @@ def test_a_root_install_fills_the_cache_the_units_compile_into() -> None:
     assert plan.returncode == 0, plan.stderr
     assert f"NUMBA_CACHE_DIR={numba_dir} " in plan.stdout and 'if [ "$(id -u)" = 0 ]' in plan.stdout, plan.stdout
     assert "warmup()" in plan.stdout.split(f"NUMBA_CACHE_DIR={numba_dir}", 1)[1]
+
+
+def test_the_units_keep_the_latch_record_and_station_keys_outside_the_state_directory(monkeypatch) -> None:
+    """The estop latch's record and the station's file keys live outside the state directory
+    (bridge/nodes/latch_record.py, docs/SECURITY.md): a packaged install must give them a directory of their own,
+    or the record falls back to the service user's home. Each unit that runs a driver host or a station asks systemd
+    for a second state directory, and the paths the services compute from what systemd passes are the two."""
+    from bridge.core.paths import state_dir
+    from bridge.nodes.latch_record import record_dir
+
+    units = [u for u in DEPLOY.glob("systemd/*.service")
+             if re.search(r"scmbridge (driver|station)\b", u.read_text())]
+    assert len(units) >= 4, units  # the driver hosts, the station and its instances and shards
+    for unit in units:
+        text = unit.read_text()
+        dirs = re.findall(r"^StateDirectory=(.+)$", text, re.MULTILINE)
+        assert len(dirs) == 1 and dirs[0].split() == ["scmbridge", "scmbridge-record"], (unit.name, dirs)
+        assert "SCMBRIDGE_RECORD_DIR" not in text and "SCMBRIDGE_STATE_DIR" not in text, unit.name
+        assert re.search(r"^StateDirectoryMode=0700$", text, re.MULTILINE), unit.name
+        # what systemd passes: every StateDirectory= entry under /var/lib, colon-separated, in order
+        monkeypatch.delenv("SCMBRIDGE_RECORD_DIR", raising=False)
+        monkeypatch.delenv("SCMBRIDGE_STATE_DIR", raising=False)
+        monkeypatch.setenv("STATE_DIRECTORY", ":".join(f"/var/lib/{d}" for d in dirs[0].split()))
+        assert (state_dir(), record_dir()) == (Path("/var/lib/scmbridge"), Path("/var/lib/scmbridge-record"))

@@ -581,7 +581,7 @@ def test_a_released_latch_file_written_by_someone_else_counts_as_latched(tmp_pat
     signed by another robot's host, or one beside a marker others may read, all start latched."""
     import shutil
 
-    from bench.attack import forged_releases
+    from bench.attack_latch import forged_releases
     from bridge.nodes.latch_store import latch_marker
 
     latch = tmp_path / "a" / "estop-r1.bin"

@@ -28,6 +28,7 @@ from drivers.mavlink import TYPE_MASK_VEL_YAWRATE, MavlinkLinkConfig
 from sim_learner.dynamics import LearnerModel, mpc_learner
 from sim_learner.mavlink_rover import GUIDED, MODES, MavlinkRover
 from sim_learner.vehicle import SimVehicle
+from tests.wait import until
 
 
 def health(driver: Driver) -> LinkHealth:
@@ -524,3 +525,21 @@ def _until_stop(rover: MavlinkRover) -> bool:
             return True
         time.sleep(0.005)
     return False
+
+
+@pytest.mark.parametrize("hz", [1.0, 5.0])
+def test_the_hosts_heartbeat_rate_lets_a_short_gcs_failsafe_watch_it(hz: float) -> None:
+    """With the GCS failsafe watching the host (FS_GCS_ENABLE, SYSID_MYGCS its source_system) a FS_GCS_TIMEOUT
+    shorter than the gap between two of its HEARTBEATs holds a rover the host still drives; ``heartbeat_hz`` 5 keeps
+    it driving, and once the host is gone the failsafe holds it (docs/SECURITY.md, "A killed MAVLink driver host")."""
+    params = {"FS_GCS_ENABLE": 1.0, "FS_GCS_TIMEOUT": 0.5, "FS_TIMEOUT": 0.3, "FS_ACTION": 2.0}
+    with rig(heartbeat_hz=hz, rover_kw={"params": params, "guid_timeout": 3.0}) as (driver, rover, vehicle):
+        drive(driver, 2.0, 0.3, 0.0)
+        held_while_driving = "Failsafe: GCS" in rover.statustexts
+        assert held_while_driving == (hz == 1.0), rover.statustexts
+        if hz == 1.0:
+            return
+        assert rover.mode_name == "GUIDED" and vehicle.moving
+        t_dead = time.monotonic()  # the host dies: nothing more from it
+        assert until(lambda: rover.mode_name == "HOLD", 3.0)
+        assert time.monotonic() - t_dead < 3.0  # before GUIDED's own 3 s timeout

@@ -11,19 +11,22 @@ same).
 
 from __future__ import annotations
 
+import json
 import socket
 import time
 
 import pytest
 from pymavlink import mavutil
 
-from bench.attack import boot_signing_rover, forged_heartbeat, rover_ready, send_frames, signer, takeover_frames, until
+from bench.attack_mavlink import boot_signing_rover, forged_heartbeat, rover_ready, send_frames, signer, takeover_frames
+from bench.attack_rigs import until
 from bridge.core.auth import make_key
 from drivers import open_driver
 from drivers.mavlink import MavlinkLinkConfig
 from drivers.mavlink.client import verify_before_recording
 from sim_learner.dynamics import mpc_learner
-from sim_learner.mavlink_rover import GUIDED, MavlinkRover, signing_wall_clock
+from sim_learner.mavlink_rover import GUIDED, MavlinkRover
+from sim_learner.mavlink_signing import signing_wall_clock
 from sim_learner.vehicle import SimVehicle
 
 MAV = mavutil.mavlink
@@ -129,7 +132,8 @@ def test_signed_traffic_replayed_after_the_rovers_reboot_is_refused(keys, tmp_pa
         send_frames(frames, port)  # the genuine traffic, as the wire carried it: it takes the rover
         assert until(lambda: rover.armed and vehicle.distance > 0.0, 2.0)
         saves = rover.signing_saves
-        assert until(lambda: rover.signing_saves > saves, 3.0)  # the periodic save (at a HEARTBEAT) after it
+        assert rover.rc_arm(False)  # the person parks it: disarmed, the GPS's next time is saved at once
+        assert until(lambda: rover.signing_saves > saves, 3.0)
     finally:
         rover.stop()
     rover, vehicle = _boot(key, port, store)  # rebooted: the same storage
@@ -170,3 +174,25 @@ def test_the_stored_timestamp_is_the_keys_and_starts_a_minute_ahead(keys, tmp_pa
     assert again.signing_timestamp == saved + 60 * 100_000
     rekeyed = MavlinkRover(vehicle, signing_key=other, signing_store=store)  # SETUP_SIGNING with a new key
     assert abs(rekeyed.signing_timestamp - signing_wall_clock()) < 100_000
+
+
+def test_the_gps_time_is_saved_at_once_while_disarmed_and_not_while_armed(keys, tmp_path) -> None:
+    """AP_RTC takes the GPS's time while the vehicle is disarmed (and its first time whenever), and each time
+    raises the signing timestamp and saves it at once; while armed it does not, and only the 30 s save remains."""
+    key, _, _ = keys
+    store = tmp_path / "rover-signing.json"
+    rover, _ = _boot(key, 0, store)
+    try:
+        saves = rover.signing_saves
+        assert until(lambda: rover.signing_saves > saves + 2, 2.0)  # disarmed: at the GPS's rate
+        assert rover.rc_arm(True)
+        armed_saves = rover.signing_saves
+        time.sleep(1.0)  # five GPS times, none taken while armed (a wait for nothing to happen)
+        assert rover.signing_saves <= armed_saves + 1  # (one GPS time may have been under way as it armed)
+        armed_saves = rover.signing_saves
+        assert rover.rc_arm(False)
+        assert until(lambda: rover.signing_saves > armed_saves, 2.0)
+        stored = json.loads(store.read_text())["timestamp"]
+        assert abs(stored - signing_wall_clock()) < 2 * 100_000  # the GPS's time, as saved
+    finally:
+        rover.stop()

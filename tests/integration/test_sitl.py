@@ -450,7 +450,7 @@ def test_one_forged_packet_on_the_real_autopilots_signed_link_does_not_take_the_
     put into the vehicle -> driver stream on the vehicle's own signing stream (its system, component and link id),
     must not make the driver refuse the autopilot's genuine messages as too old: the link stays up, the poses keep
     coming, the bad signature is counted. (pymavlink alone recorded the forged timestamp first: the link went down.)"""
-    from bench.attack import forged_heartbeat
+    from bench.attack_mavlink import forged_heartbeat
     from bridge.core.auth import load_key
     from drivers import open_driver
     from drivers.mavlink import MavlinkLinkConfig

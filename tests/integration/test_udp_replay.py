@@ -4,7 +4,7 @@ Finding this answers (a hostile test, emulated links): keyed command datagrams r
 into a UDP robot right after it rebooted drove it 1.74-1.80 m at 0.3 m/s in 4 of 5 reboots, while its driver host
 said "estop latched": the robot forgot every sender at boot and never asked how old a command was.
 
-The wire tap is a real man in the middle (``bench.attack.Tap``, which the attack bench's replay rows use too, as
+The wire tap is a real man in the middle (``bench.attack_rigs.Tap``, which the attack bench's replay rows use too, as
 they use its emulated robot, its recording of a drive and its distance): one
 UDP socket on 127.0.0.1 that the driver takes for the robot and the robot takes for its peer; it forwards both ways
 and records (or holds back) what the driver sends. A replay leaves from that socket, i.e. from the very address the
@@ -20,7 +20,8 @@ import time
 
 import pytest
 
-from bench.attack import Tap, distance_from, drive_udp, position, tapped_driver, udp_record, udp_robot, until
+from bench.attack import udp_record
+from bench.attack_rigs import Tap, distance_from, drive_udp, position, tapped_driver, udp_robot, until
 from bridge.core import wire as M
 from bridge.core.auth import KeyFileError, load_key, make_key, open_session, seal
 from bridge.tools.procs import free_udp_port

@@ -231,12 +231,13 @@ def test_the_generated_rules_give_each_identity_only_its_own_keys() -> None:
     rules = {r["id"]: r for r in acl["rules"]}
     assert all(r["permission"] == "allow" and len(r["flows"]) == 1 for r in rules.values())
     # exact keys, but for what the operator's and observer's tools ask and listen on (estop --all, status --all,
-    # view --all, record) and a robot's share of those wildcard queries; no rule lets anyone publish on a wildcard
+    # view --all, record) and a robot's share of those wildcard queries; only the operator publishes on a wildcard,
+    # and only the estop (``estop --all`` stops every robot with one put first)
     wild = {k for r in rules.values() for k in r["key_exprs"] if any(c in k for c in "*$?#")}
     assert wild == {deploy.ALL_ESTOPS, deploy.EVERYTHING, deploy.ALL_ALIVE, deploy.ALL_STATUS, "scm/rover1/status/*",
                     "scm/rover3/status/*"}  # (status asks every node for its last status)
-    assert not [r for r in rules.values() if "put" in r["messages"] and r["flows"] == ["ingress"]
-                and set(r["key_exprs"]) & {deploy.EVERYTHING, deploy.ALL_ESTOPS}]
+    assert [r["id"] for r in rules.values() if "put" in r["messages"] and r["flows"] == ["ingress"]
+            and set(r["key_exprs"]) & {deploy.EVERYTHING, deploy.ALL_ESTOPS}] == ["operator/estop"]
     subjects = {s["id"]: s["cert_common_names"] for s in acl["subjects"]}
     assert subjects == {"robot/rover1": ["rover1"], "robot/rover3": ["rover3"], "station": ["station"],
                         "operator": ["operator"], "observer": ["observer"]}
@@ -247,11 +248,11 @@ def test_the_generated_rules_give_each_identity_only_its_own_keys() -> None:
                 if flow in rules[rid]["flows"] and message in rules[rid]["messages"]}
 
     assert allowed("robot/rover1", "ingress", "put") == {K1.state, K1.applied, M.status_key("rover1", "driver")}
-    assert allowed("robot/rover1", "egress", "put") == {K1.cmd, K1.estop}
+    assert allowed("robot/rover1", "egress", "put") == {K1.cmd, K1.estop, deploy.ALL_ESTOPS}  # (estop --all's)
     assert allowed("robot/rover1", "ingress", "declare_subscriber") == {K1.cmd, K1.estop}
     assert allowed("robot/rover1", "ingress", "reply") == {K1.estop, K1.engage, M.status_key("rover1", "driver")}
     # a new mission for a running station is a person's act: the operator's, never the station's certificate
-    assert allowed("operator", "ingress", "put") == {K1.estop, K3.estop, K1.mission, K3.mission}
+    assert allowed("operator", "ingress", "put") == {K1.estop, K3.estop, deploy.ALL_ESTOPS, K1.mission, K3.mission}
     station_puts = allowed("station", "ingress", "put")
     assert {K1.cmd, K3.cmd, K1.teacher, K1.limits} <= station_puts
     assert not station_puts & {K1.state, K1.applied, K1.estop, K1.mission, K3.mission,
@@ -394,6 +395,22 @@ def test_the_operator_estop_reaches_rover1_and_rover1_answers_estop_queries(lab:
         finally:
             q.undeclare()
     assert M.decode(driver_sees.got[-1][1], M.Estop).source == "operator"
+
+
+def test_the_operators_wildcard_estop_reaches_every_robot_and_no_one_else_may_put_it(lab: Lab) -> None:
+    """Found: under the lab's rules ``estop --all``'s first stop, one put on ``scm/*/estop``, was dropped by the
+    router (only the per-robot puts after it arrived). The operator's wildcard estop reaches each robot's driver
+    host on its own key; a robot, the station and the observer putting the same are dropped."""
+    stop = M.encode(M.Estop(stamp=5.0, seq=1, engaged=True, source="operator", reason="all"))
+    with subscribed(lab.rover1, K1.estop) as rover1_sees, subscribed(lab.rover3, K3.estop) as rover3_sees, \
+            publishers(lab.operator, deploy.ALL_ESTOPS) as (estop,):
+        assert send_until(lambda: estop.put(stop), lambda: rover1_sees.has(stop) and rover3_sees.has(stop)), \
+            "the operator's wildcard estop was dropped"
+    for who in (lab.rover3, lab.station, lab.observer):
+        forged = M.encode(M.Estop(stamp=6.0, seq=1, engaged=False, source="operator", reason=str(id(who))))
+        with subscribed(lab.rover1, K1.estop) as rover1_sees:
+            keep_sending([lambda who=who, forged=forged: who.put(deploy.ALL_ESTOPS, forged)])
+            assert not rover1_sees.has(forged)
 
 
 def test_pairs_are_answered_by_the_station_only(lab: Lab) -> None:

@@ -6,6 +6,7 @@ from __future__ import annotations
 import pytest
 
 from bench.attack import ATTACKS, run_all
+from bench.attack_files import FILE_ATTACKS
 from bench.attack_trust import TRUST_ATTACKS
 
 
@@ -14,4 +15,4 @@ def test_no_attack_gets_through() -> None:
     res = run_all(short=True)
     failed = [a for a in res["attacks"] if not a["ok"]]
     assert not failed, failed
-    assert [a["attack"] for a in res["attacks"]] == [*ATTACKS, *TRUST_ATTACKS] and res["all_ok"]
+    assert [a["attack"] for a in res["attacks"]] == [*ATTACKS, *TRUST_ATTACKS, *FILE_ATTACKS] and res["all_ok"]

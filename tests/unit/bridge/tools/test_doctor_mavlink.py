@@ -64,3 +64,15 @@ def test_the_range_comes_from_wp_speed_and_the_turn_rate_cap_and_wider_hard_limi
 def test_the_deadman_must_act_before_guideds_own_timeout(tmp_path) -> None:
     assert check_guided_timeout(_driver(tmp_path)).level == "ok"
     assert check_guided_timeout(_driver(tmp_path, "[driver]\ncmd_timeout = 3.0\n")).level == "warn"
+
+
+def test_a_gcs_failsafe_watching_this_host_faster_than_its_heartbeats_is_named() -> None:
+    """A GCS failsafe watching this host with an FS_GCS_TIMEOUT within two of its HEARTBEAT periods holds a rover
+    the host still drives (the emulated rover: tests/integration/test_mavlink_link.py); faster HEARTBEATs fix it."""
+    on = {**STOCK, "FS_GCS_ENABLE": 1.0, "FS_GCS_TIMEOUT": 0.5}
+    (c, _) = check_gcs_failsafe(MavlinkLinkConfig(), on)
+    assert c.level == "warn" and "heartbeat_hz" in c.text and "holds the rover while this host drives" in c.text
+    (c, _) = check_gcs_failsafe(MavlinkLinkConfig(heartbeat_hz=5.0), on)
+    assert c.level == "ok"
+    (c, _) = check_gcs_failsafe(MavlinkLinkConfig(source_system=1, source_component=191), on)
+    assert c.level == "ok"  # it watches the ground station, not this host
