@@ -1,8 +1,8 @@
 """``scmbridge bench attack``: every attack a hostile probe found, run against the real components (JSON).
 
 Each attack sets up what it needs (the emulated devices on loopback or a python-can ``virtual`` channel, the real
-drivers, the driver host's gate and latch, the station's pairer and pair store, the clock estimate; for issue 31's
-findings real UDP sockets and a man in the middle, pymavlink framing, a real DriverHost on a real state directory,
+drivers, the driver host's gate and latch, the station's pairer and pair store, the clock estimate; for the trust
+attacks real UDP sockets and a man in the middle, pymavlink framing, a real DriverHost on a real state directory,
 real Zenoh sessions) and reports what reached the vehicle and what was learned:
 
 ``{"attack": name, "reached_vehicle": ..., "learned": ..., "ok": bool, ...}``; ``ok`` means nothing unsafe moved a

@@ -27,7 +27,7 @@ with ``state`` without any clock synchronisation.
 this process: the wire between driver and controllers is python-can, not a shortcut. The host lets them send what
 is due before each read of the bus, as controllers on their own hardware would have.
 
-The host is the wiring (issue 34: one job per class): Zenoh callbacks -> the pure pieces -> the link, in its loop.
+The host is the wiring (one job per class): Zenoh callbacks -> the pure pieces -> the link, in its loop.
 The pieces are :mod:`bridge.core.gate` (the command gate), :mod:`bridge.nodes.engagement` (a person's consent and the
 last word on each decision), :mod:`bridge.nodes.pose_feed` (the poses published, motion capture restamped),
 :mod:`bridge.nodes.host_status` (the status) and :mod:`bridge.nodes.latch_store` (the estop latch on disk).
@@ -534,12 +534,11 @@ class DriverHost:
         """Periodic ticks, plus an immediate tick for each accepted command, estop or engage query (the wake); the
         scheduler is the station's (:class:`FixedRate`). A woken tick re-phases the period (the link got a command:
         the periodic re-send is due a period later) and the link's send budget (``max_send_hz``, a burst of
-        ``SEND_BURST``) bounds the send rate whatever arrives. Finding (``scmbridge bench bridge``): with ticks never
-        closer than 1 / max_send_hz on a fixed schedule, a command published within that gap after a periodic tick
-        waited out the rest of it (9.0 ms median for those published 0-2 ms after a tick, 0.25 ms for those 10-15 ms
-        after), and a periodic tick after a command tick was pushed back the same way (loop jitter p99 9.9 ms); a
-        token bucket alone on the fixed schedule sent 100 ticks a second against a budget of 100 and queued (2.4 ms
-        median)."""
+        ``SEND_BURST``) bounds the send rate whatever arrives. Why both: with ticks never closer than
+        1 / max_send_hz on a fixed schedule, a command published within that gap after a periodic tick waits out the
+        rest of it, and a periodic tick after a command tick is pushed back the same way; a token bucket alone on the
+        fixed schedule sends as many ticks as its budget and queues (``scmbridge bench bridge`` measures the latency
+        and jitter: docs/BENCHMARKS.md, "The bridge")."""
         t_start = time.monotonic()
         self.ticker = ticker = FixedRate(1.0 / self.period, stop, wake=self.wake, max_hz=self.max_send_hz,
                                          burst=SEND_BURST, rephase=True)

@@ -180,7 +180,7 @@ class HostStatus:
         """Whether a status should go out at ``now``: each ``STATUS_EVERY_S``, and at once (at most
         ``STATUS_MAX_HZ`` a second) when ``ok``, the state or the typed reason changed since the last one sent. The
         station judges the robot's fitness on this status: an engage, a release or a restart reaches it in the tick
-        that made it, not up to a second later (issue 32: a `mission resume` right after `engage` was refused)."""
+        that made it, not up to a second later (else a `mission resume` right after `engage` is refused)."""
         if now >= self.next_at:  # the periodic ones keep their own grid, whatever went out between them
             self.next_at = now + STATUS_EVERY_S
             return True

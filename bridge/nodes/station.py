@@ -278,7 +278,7 @@ class Station:
         that waited more than :data:`CONTROL_MAX_WAIT_S` (a stalled loop) is dropped unanswered: its asker has
         given up and asks again. With ``settle`` (the loop's thread, the lock not held), a start or resume that only
         the robot's fitness refuses goes back to the inbox until a driver host status arrives after it, at most
-        :data:`SETTLE_S` (finding, issue 32: `engage` then `mission resume` at once was refused "waiting for
+        :data:`SETTLE_S` (else `engage` then `mission resume` at once is refused "waiting for
         engage": the host's answer to the engage can reach the person before its status reaches the station)."""
         later = [q for q in queries if settle and self._settling(q, now)]
         if later:

@@ -68,8 +68,8 @@ def not_driving(control: MissionControl, robot: str, unfit: Why | None) -> Why:
 def paused_text(control: MissionControl, robot: str, unfit: Why | None) -> str:
     """Why a paused mission is paused, as it is now, and the next step: a pause the robot caused (an estop, a lost
     pose, ...) says the robot's reason now, or that it is fit again, and a person's (or a restart's) stays, and
-    either way says how to drive on once the robot is fit (issue 32: after the release the status still said
-    "estop latched", and after a driver host's crash "no pose for 2.5 s" with the poses back)."""
+    either way says how to drive on once the robot is fit (not a stale reason: "estop latched" after the release,
+    or "no pose" after a driver host's crash with the poses back)."""
     c = control
     cause = "paused" if c.paused_by_robot else (c.reason or "paused")
     if unfit is not None:
