@@ -76,7 +76,7 @@ from bridge.nodes.node import (
 )
 from bridge.nodes.pose_feed import PoseFeed
 from bridge.nodes.zsession import open_session
-from drivers import link_names, open_driver
+from drivers import REFUSED, link_names, open_driver
 from drivers.base import Driver, DriverError, FailsafeReport, LinkHealth, link_unauthenticated
 
 log = logging.getLogger("scmbridge.driver")
@@ -621,6 +621,8 @@ def run(args: argparse.Namespace) -> int:
         except ValueError as exc:
             raise UsageError(str(exc)) from None
     cfg = load_driver(args.config)  # a mistake ends here, before any link or session opens
+    for name, why in REFUSED:  # a lab's link package that registered wrongly: said, not silently missing
+        log.warning("link %r of the scmbridge.links entry points not registered: %s", name, why)
     fence = []
     if args.fence is not None:
         if args.link != "mavlink":
