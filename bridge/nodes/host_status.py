@@ -19,7 +19,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from bridge.core import wire as M
-from bridge.core.clock import HOST
+from bridge.core.clock import machine
 from drivers.base import FailsafeReport, LinkHealth
 
 #: the end of the status text of a host whose link does not authenticate (drivers.base.link_unauthenticated)
@@ -205,7 +205,7 @@ class HostStatus:
             text = text[:1024 - len(UNAUTHENTICATED)] + UNAUTHENTICATED
         msg = M.Status(stamp=now, seq=self.seq, node="driver", ok=a.ok, state=a.state, reason=a.reason,
                        rates_hz={"loop": 1.0 / self.period}, latencies_ms=lat, counters=counters, text=text[:1024],
-                       host=HOST, engaged=a.engaged,
+                       host=machine(), engaged=a.engaged,
                        measured=None if a.measured is None else [_bounded(x) for x in a.measured])
         self.seq += 1
         self.sent, self.sent_at = a.key, now

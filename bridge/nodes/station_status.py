@@ -25,7 +25,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from bridge.core import wire as M
-from bridge.core.clock import HOST
+from bridge.core.clock import machine
 from bridge.nodes.mission_control import MissionControl
 from bridge.nodes.pairing import IntervalPairer
 from bridge.nodes.sources import Why
@@ -264,7 +264,7 @@ class StatusReport:
                        progress=min(1.0, max(0.0, facts.progress)), rates_hz={"loop": facts.rate_hz},
                        latencies_ms={"solve_median": float(np.median(sm)), "solve_max": float(sm.max()),
                                      "tick_p50": p50, "tick_p99": p99, "tick_max": float(tk.max())},
-                       counters=facts.counters, text=text[:1024], host=HOST, changed_cells=facts.changed_cells,
+                       counters=facts.counters, text=text[:1024], host=machine(), changed_cells=facts.changed_cells,
                        off_path_m=None if facts.off_path_m is None else min(1e7, facts.off_path_m))
         self.seq += 1
         self.sent_key, self.sent_at = facts.key, now

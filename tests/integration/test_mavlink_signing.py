@@ -15,7 +15,6 @@ import socket
 import time
 
 import pytest
-from pymavlink import mavutil
 
 from bench.attack import boot_signing_rover, forged_heartbeat, rover_ready, send_frames, signer, takeover_frames, until
 from bridge.core.auth import make_key
@@ -23,10 +22,9 @@ from drivers import open_driver
 from drivers.mavlink import MavlinkLinkConfig
 from drivers.mavlink.client import verify_before_recording
 from sim_learner.dynamics import mpc_learner
+from sim_learner.mavlink_dialect import MAV
 from sim_learner.mavlink_rover import GUIDED, MavlinkRover, signing_wall_clock
 from sim_learner.vehicle import SimVehicle
-
-MAV = mavutil.mavlink
 
 
 @pytest.fixture
