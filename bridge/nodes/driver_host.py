@@ -460,16 +460,23 @@ class DriverHost:
 
     def serve(self, session: zenoh.Session, stop: threading.Event, duration: float | None) -> None:
         """Declare the host's keys, open the link and run the loop until ``stop`` or ``duration``."""
-        k = self.keys
+        try:
+            self._serve(session, stop, duration)
+        finally:  # what it declared goes when it stops serving, not when the session closes (it may be shared)
+            self.inputs.declared.undeclare()
+
+    def _serve(self, session: zenoh.Session, stop: threading.Event, duration: float | None) -> None:
+        k, keep = self.keys, self.inputs.declared.keep
         self.inputs.subscribe(session, k.cmd, M.Command, "cmd", self.on_cmd)
         self.inputs.subscribe(session, k.estop, M.Estop, "estop", self.on_estop)
-        session.declare_queryable(k.estop, self.on_estop_query)
-        session.declare_queryable(k.engage, self.on_engage_query)
-        self.alive = session.liveliness().declare_token(M.alive_key(self.robot, "driver"))
+        keep(session.declare_queryable(k.estop, self.on_estop_query))
+        keep(session.declare_queryable(k.engage, self.on_engage_query))
+        self.alive = keep(session.liveliness().declare_token(M.alive_key(self.robot, "driver")))
         if self.poses.mocap_source:
             self.inputs.subscribe(session, k.mocap, M.LearnerState, "mocap", self.on_mocap)
-        self.pubs = {"applied": session.declare_publisher(k.applied), "state": session.declare_publisher(k.state),
-                     "status": StatusOut(session, M.status_key(self.robot, "driver"))}
+        self.pubs = {"applied": keep(session.declare_publisher(k.applied)),
+                     "state": keep(session.declare_publisher(k.state)),
+                     "status": keep(StatusOut(session, M.status_key(self.robot, "driver")))}
         self._put("status", self.reporter.starting(time.monotonic(), "starting",
                                                    f"link {self.link}: opening (vehicle not yet ready)"))
         if not self._open_link(stop):

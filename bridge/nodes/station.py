@@ -408,16 +408,17 @@ class Station:
         self.inputs.subscribe(session, k.cmd, M.Command, "own_cmd", self.on_own_cmd, remote_only=True)
         if external:
             self.inputs.subscribe(session, k.teacher, M.TeacherCommand, "teacher", self.on_teacher)
-        session.declare_queryable(k.pairs, self.on_pairs_query)
-        session.declare_queryable(k.control, self.on_control_query)
-        self.pubs = {t: session.declare_publisher(getattr(k, t)) for t in ("cmd", "limits")}
+        keep = self.inputs.declared.keep  # all undeclared by undeclare(): a fleet's failed robot lets go of its keys
+        keep(session.declare_queryable(k.pairs, self.on_pairs_query))
+        keep(session.declare_queryable(k.control, self.on_control_query))
+        self.pubs = {t: keep(session.declare_publisher(getattr(k, t))) for t in ("cmd", "limits")}
         if not external:
             # the teacher message (the MPC's command and plan, for a person's viewer or a recorder) is built and
             # sent only while someone subscribes to it: a fleet's robots mostly have no viewer
-            pub = self.pubs["teacher"] = session.declare_publisher(k.teacher)
-            self.teacher_listener = pub.declare_matching_listener(self._on_teacher_matching)
+            pub = self.pubs["teacher"] = keep(session.declare_publisher(k.teacher))
+            self.teacher_listener = keep(pub.declare_matching_listener(self._on_teacher_matching))
             self.core.teacher_heard = bool(pub.matching_status.matching)
-        self.pubs["status"] = StatusOut(session, M.status_key(self.robot, "station"))  # asked by status
+        self.pubs["status"] = keep(StatusOut(session, M.status_key(self.robot, "station")))  # asked by status
         if self.build is None:
             self.build = KernelBuild(self.teacher)
         what = self.core.what()
@@ -425,6 +426,10 @@ class Station:
                  self.core.control.phase, self.core.epoch)
         if announce:
             systemd.ready(f"{self.robot}: {what}, mission {self.core.control.phase}")
+
+    def undeclare(self) -> int:
+        """Undeclare every key :meth:`declare` declared (the session stays open for the process's other robots)."""
+        return self.inputs.declared.undeclare()
 
     def begin(self) -> None:
         """From here on only the loop's thread calls the core (queries wait in the inbox for it)."""
@@ -632,6 +637,7 @@ class FleetLoop:
         if not ok:
             self.failed.append(st.robot)
             st.end()
+            st.undeclare()
         return ok
 
     def _finish(self, st: Station, active: list[Station], failed: bool = False) -> None:
@@ -639,6 +645,8 @@ class FleetLoop:
         if failed:
             self.failed.append(st.robot)
         st.end()
+        if failed:  # its keys go with it: no samples taken, no query answered, no status for a robot not served
+            st.undeclare()
 
 
 def arguments(ap: argparse.ArgumentParser) -> None:
