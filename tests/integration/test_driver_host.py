@@ -244,8 +244,9 @@ def test_an_estop_stops_at_once_while_the_latch_save_stalls_and_is_saved_after(t
     stalls half a second, as a slow disk does) over real Zenoh, with the emulated controllers on a python-can virtual
     channel as ``--emulate`` hosts them; the confirmation of the latch still waits for its save."""
     from bridge.core.paths import save_atomic
+    from bridge.nodes.driver_cmd import _emulated_ecus
     from bridge.nodes.driver_config import load_driver
-    from bridge.nodes.driver_host import DriverHost, _emulated_ecus
+    from bridge.nodes.driver_host import DriverHost
     from bridge.nodes.latch_store import Latch, read_latch
     from bridge.tools.estop import latch_states
     from drivers import open_driver
