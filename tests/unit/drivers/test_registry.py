@@ -1,4 +1,5 @@
-"""A link is a plugin: one module (its config struct, its driver, ``EMULATED``) plus one line in ``drivers.LINKS``.
+"""A link is a plugin: one module (its config struct, its driver, ``EMULATED``) plus its name in ``drivers.LINKS``
+(an entry point of the ``scmbridge.links`` group does that for an installed package: test_link_plugins.py).
 
 A loopback link written here, outside the repository, and registered by that one line only, gets its ``[link.<name>]``
 section in the driver host's configuration (with the usual one-line errors), is built by ``open_driver``, and is
