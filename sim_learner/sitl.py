@@ -43,11 +43,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-os.environ.setdefault("MAVLINK20", "1")
-from pymavlink import mavutil  # noqa: E402  (MAVLink 2 must be chosen before the import)
+from pymavlink import mavutil
 
-mavutil.set_dialect("ardupilotmega")
-MAV: Any = mavutil.mavlink
+from sim_learner.mavlink_dialect import MAV, mavutil_v2
 
 #: the environment variable naming the SITL binary (or its directory)
 ENV = "SCMBRIDGE_SITL"
@@ -228,8 +226,8 @@ class Pilot(VehicleView):
 
     def __init__(self, url: str, source_system: int = 255, source_component: int = PILOT_COMPONENT) -> None:
         self.url = url
-        self.conn = mavutil.mavlink_connection(url, source_system=source_system, source_component=source_component,
-                                               dialect="ardupilotmega", autoreconnect=False, retries=0)
+        self.conn = mavutil_v2().mavlink_connection(url, source_system=source_system, source_component=source_component,
+                                                    dialect="ardupilotmega", autoreconnect=False, retries=0)
         self.lost = threading.Event()  # the vehicle closed the connection (SITL exited)
         self.conn.handle_eof = self.lost.set  # pymavlink would print and spin on a closed socket
         self.conn.handle_disconnect = self.lost.set

@@ -30,9 +30,9 @@ boundary pairs, in teacher units: ``kappa = sum(v omega) / sum(v^2)`` over the p
 learner's yaw-rate edge (the full lock), weighted by ``v^2`` so the fast pairs, whose speed is measured best, count
 most (with the same ``memory`` as the box). The box's yaw-rate edge is then ``kappa`` times the box's top speed,
 and :attr:`LearnerLimits.curvature` gives the MPC the two slopes as linear constraints (``transfer.teacher.mpc``).
-Finding (issue 33, docs/BENCHMARKS.md): on SITL's Ackermann rover the mean of its boundary pairs, taken at whatever
-speed each came, allowed its top turn rate at its slowest speed, where it turns a tenth of it, and a turn probe sent
-at the slowest speed learned that it could not turn left at all (+0.001 rad/s).
+Why: on a car-like rover the mean of its boundary pairs, taken at whatever speed each came, allows its top turn rate
+at its slowest speed, where it turns a fraction of it, and a turn probe sent at the slowest speed learns that it
+cannot turn at all (docs/BENCHMARKS.md, "The transfer on SITL").
 
 **An edge that moved** (:meth:`LearnerLimits.set_change_test`: the store's change detection switches it on with its own
 ``change_tol``; off, the paper's). A learned edge's boundary pairs may come sparsely, from cells the robot seldom drives
@@ -48,15 +48,14 @@ side's consecutive residuals, both taken against the edge the later pair is test
 change moves one difference per side, which would raise a mean square above the change), and the test waits for k of
 them. On an alarm the side keeps only its last 2 k boundary pairs that agree with the change (their residual nearer the
 mean than zero), and so do its curvature and the hull points of its cells; ``relearned`` counts it. Not persisted:
-after a load the test learns its noise again. Measured (docs/PAPER.md, "An edge that moved"): no alarm in 90 unchanged
-``sim drift`` runs, nor in 200 000 boundary pairs of Gaussian noise of 1.5 % of the teacher's range (5 in 60 000 at
-3 %); a noise with heavy tails (Student's t, 3 degrees of freedom, 1.5 %) alarms about once in two thousand pairs.
+after a load the test learns its noise again. Its false alarms on unchanged runs and on noisy pairs are in
+docs/PAPER.md, "An edge that moved".
 
 All arithmetic is on normalised coordinates: the teacher side by the teacher's bounds, the learner side by the
 learner's. Exposed as the axis-aligned ``box`` (what bounds the MPC inputs and filters primitives) and the convex
 ``hull`` of the boundary pairs' teacher parts and the refined pairs' (the paper's dashed envelope: every command the
-learner has been seen to follow is inside it; finding, issue 32: of the boundary pairs alone, a run that met only the
-learner's top speed had a sliver of a hull that left out 118 of its 121 refined pairs).
+learner has been seen to follow is inside it; of the boundary pairs alone, a run that met only the learner's top
+speed would have a sliver of a hull that left out most of its refined pairs).
 """
 
 from __future__ import annotations

@@ -21,6 +21,7 @@ read in one batch, a busy radio), restart the estimate from them, within a few s
 
 from __future__ import annotations
 
+import functools
 from collections import deque
 from pathlib import Path
 
@@ -93,10 +94,12 @@ class ClockOffset:
         return self._d[0][1] if self._d else None
 
 
+@functools.cache
 def machine() -> str:
     """This machine and its boot, as a node's status says it (``Status.host``: ``lab-pc/3f2a9c1e``): two nodes
     with the same one share ``time.monotonic()`` (Linux's CLOCK_MONOTONIC counts from the boot), so ``scmbridge
-    report`` can tell one machine from two without guessing from the stamps."""
+    report`` can tell one machine from two without guessing from the stamps. Read once, when first asked (not when
+    this module is imported: importing reads no file)."""
     import socket
 
     try:
@@ -105,6 +108,3 @@ def machine() -> str:
         boot = "noboot"
     return f"{socket.gethostname()[:55]}/{boot}"
 
-
-#: this process's machine and boot (:func:`machine`)
-HOST = machine()

@@ -1,33 +1,7 @@
-"""``scmbridge driver``: the driver host, between Zenoh and one vehicle link (docs/ARCHITECTURE.md).
+"""The driver host (:class:`DriverHost`): between Zenoh and one vehicle link; what it does for a person and the
+vehicle is the ``scmbridge driver`` command's to say (:mod:`bridge.nodes.driver_cmd`, docs/ARCHITECTURE.md).
 
-It subscribes to ``scm/<robot>/cmd`` and ``scm/<robot>/estop`` and answers queries on the estop key with its latch
-state. A person is in charge: the host starts *not engaged* (a restart never takes a vehicle back) and sends nothing
-but stops until a person engages it (``scmbridge engage``: a query on ``scm/<robot>/engage``; MAVLink: also the
-operator selecting GUIDED and arming while the host runs; ``engage_on_start`` in the config). The estop latch is
-kept in the state directory and re-read at start, so it survives a restart or a reboot; it fails safe: a latch that
-could not be saved stops the host and refuses engage until a release is saved (status reason ``latch_unsaved``), and
-a latch file missing beside the install marker, unreadable or not signed by this host starts latched
-(:mod:`bridge.nodes.latch_store`). The state directory must stay the same across restarts (``SCMBRIDGE_STATE_DIR``):
-a host given a fresh one says "first start in this state directory: no estop history". A link anyone on the network
-can drive (UDP ``insecure``, ``--insecure``; MAVLink without signing) is said in the log and on status
-(``unauthenticated_link``). Closing stops the vehicle, waits until it reports it has stopped, and only then disarms
-(a vehicle engaged by this host). Every command is decoded (so validated: finite, in wire range) and goes through
-the pure :class:`bridge.core.gate.CommandGate`: the next of its sender's ``(epoch, seq)`` stream, fresh (received
-less than min(valid_ms, cmd_timeout) ago), a stop applied as exactly zero, anything else clamped to the configured
-hard limits. The host hands the result to the link driver only while the link says the vehicle is fit to drive
-(``health().ok``) and its telemetry is fresh; otherwise it stops the vehicle and says why. Each tick it echoes what
-the vehicle really got on ``applied``, publishes the link's poses as ``state`` (its own epoch and sequence) and a
-truthful ``status``, each second and at once when it changes. Commands are applied as they arrive (latency is not a
-multiple of the period), but the link never gets more than ``max_send_hz`` of them. An estop latches a stop; only a
-source named in ``estop_release_sources`` releases it, and a release is the operator action that lets the link clear
-its controllers' latched faults. All stamps are this host's ``time.monotonic()``, so the station pairs ``applied``
-with ``state`` without any clock synchronisation.
-
-``--emulate`` (CAN only) hosts the emulated motor controllers on the same python-can ``virtual`` channel inside
-this process: the wire between driver and controllers is python-can, not a shortcut. The host lets them send what
-is due before each read of the bus, as controllers on their own hardware would have.
-
-The host is the wiring (issue 34: one job per class): Zenoh callbacks -> the pure pieces -> the link, in its loop.
+The host is the wiring (one job per class): Zenoh callbacks -> the pure pieces -> the link, in its loop.
 The pieces are :mod:`bridge.core.gate` (the command gate), :mod:`bridge.nodes.engagement` (a person's consent and the
 last word on each decision), :mod:`bridge.nodes.pose_feed` (the poses published, motion capture restamped),
 :mod:`bridge.nodes.host_status` (the status) and :mod:`bridge.nodes.latch_store` (the estop latch on disk).
@@ -35,7 +9,6 @@ last word on each decision), :mod:`bridge.nodes.pose_feed` (the poses published,
 
 from __future__ import annotations
 
-import argparse
 import logging
 import math
 import threading
@@ -50,18 +23,15 @@ import zenoh
 
 from bridge.core import wire as M
 from bridge.core.acts import ActGuard, Refusal
-from bridge.core.args import pose_arg, positive_float, robot_arg
-from bridge.core.auth import load_key
 from bridge.core.backoff import Backoff
-from bridge.core.config import load_fence
 from bridge.core.errors import UsageError
 from bridge.core.gate import CommandGate, Decision
 from bridge.core.paths import save_atomic
 from bridge.nodes import systemd
-from bridge.nodes.driver_config import DriverConfig, load_driver
+from bridge.nodes.driver_config import DriverConfig
 from bridge.nodes.engagement import Engagement, OperatorEvent, Outcome, overrule
 from bridge.nodes.host_status import Assessment, HostFacts, HostStatus, host_counters, node_state
-from bridge.nodes.latch_store import LatchStore, SaveResult, latch_file
+from bridge.nodes.latch_store import LatchStore, SaveResult
 from bridge.nodes.node import (
     BlockedLoop,
     FixedRate,
@@ -69,14 +39,8 @@ from bridge.nodes.node import (
     StallWatch,
     StatusOut,
     Usage,
-    add_zenoh_args,
-    stop_on_signals,
-    stopped_because,
-    zenoh_config,
 )
 from bridge.nodes.pose_feed import PoseFeed
-from bridge.nodes.zsession import open_session
-from drivers import link_names, open_driver
 from drivers.base import Driver, DriverError, FailsafeReport, LinkHealth, link_unauthenticated
 
 log = logging.getLogger("scmbridge.driver")
@@ -460,16 +424,23 @@ class DriverHost:
 
     def serve(self, session: zenoh.Session, stop: threading.Event, duration: float | None) -> None:
         """Declare the host's keys, open the link and run the loop until ``stop`` or ``duration``."""
-        k = self.keys
+        try:
+            self._serve(session, stop, duration)
+        finally:  # what it declared goes when it stops serving, not when the session closes (it may be shared)
+            self.inputs.declared.undeclare()
+
+    def _serve(self, session: zenoh.Session, stop: threading.Event, duration: float | None) -> None:
+        k, keep = self.keys, self.inputs.declared.keep
         self.inputs.subscribe(session, k.cmd, M.Command, "cmd", self.on_cmd)
         self.inputs.subscribe(session, k.estop, M.Estop, "estop", self.on_estop)
-        session.declare_queryable(k.estop, self.on_estop_query)
-        session.declare_queryable(k.engage, self.on_engage_query)
-        self.alive = session.liveliness().declare_token(M.alive_key(self.robot, "driver"))
+        keep(session.declare_queryable(k.estop, self.on_estop_query))
+        keep(session.declare_queryable(k.engage, self.on_engage_query))
+        self.alive = keep(session.liveliness().declare_token(M.alive_key(self.robot, "driver")))
         if self.poses.mocap_source:
             self.inputs.subscribe(session, k.mocap, M.LearnerState, "mocap", self.on_mocap)
-        self.pubs = {"applied": session.declare_publisher(k.applied), "state": session.declare_publisher(k.state),
-                     "status": StatusOut(session, M.status_key(self.robot, "driver"))}
+        self.pubs = {"applied": keep(session.declare_publisher(k.applied)),
+                     "state": keep(session.declare_publisher(k.state)),
+                     "status": keep(StatusOut(session, M.status_key(self.robot, "driver")))}
         self._put("status", self.reporter.starting(time.monotonic(), "starting",
                                                    f"link {self.link}: opening (vehicle not yet ready)"))
         if not self._open_link(stop):
@@ -534,12 +505,11 @@ class DriverHost:
         """Periodic ticks, plus an immediate tick for each accepted command, estop or engage query (the wake); the
         scheduler is the station's (:class:`FixedRate`). A woken tick re-phases the period (the link got a command:
         the periodic re-send is due a period later) and the link's send budget (``max_send_hz``, a burst of
-        ``SEND_BURST``) bounds the send rate whatever arrives. Finding (``scmbridge bench bridge``): with ticks never
-        closer than 1 / max_send_hz on a fixed schedule, a command published within that gap after a periodic tick
-        waited out the rest of it (9.0 ms median for those published 0-2 ms after a tick, 0.25 ms for those 10-15 ms
-        after), and a periodic tick after a command tick was pushed back the same way (loop jitter p99 9.9 ms); a
-        token bucket alone on the fixed schedule sent 100 ticks a second against a budget of 100 and queued (2.4 ms
-        median)."""
+        ``SEND_BURST``) bounds the send rate whatever arrives. Why both: with ticks never closer than
+        1 / max_send_hz on a fixed schedule, a command published within that gap after a periodic tick waits out the
+        rest of it, and a periodic tick after a command tick is pushed back the same way; a token bucket alone on the
+        fixed schedule sends as many ticks as its budget and queues (``scmbridge bench bridge`` measures the latency
+        and jitter: docs/BENCHMARKS.md, "The bridge")."""
         t_start = time.monotonic()
         self.ticker = ticker = FixedRate(1.0 / self.period, stop, wake=self.wake, max_hz=self.max_send_hz,
                                          burst=SEND_BURST, rephase=True)
@@ -565,96 +535,3 @@ class DriverHost:
                     self.late.append(ticker.late)
         finally:
             blocked.done()
-
-
-def arguments(ap: argparse.ArgumentParser) -> None:
-    ap.add_argument("--link", choices=link_names(), required=True)
-    ap.add_argument("--config", help="driver TOML (scmbridge config show --kind driver; deploy/driver*.example.toml)")
-    ap.add_argument("--robot", type=robot_arg, default=None, help="robot name (overrides the config)")
-    add_zenoh_args(ap)
-    ap.add_argument("--rate", type=positive_float, default=None, help="control loop rate, Hz (overrides the config)")
-    ap.add_argument("--duration", type=positive_float, default=None, help="stop after this many seconds")
-    ap.add_argument("--emulate", action="store_true", help="host emulated CAN motor controllers in-process")
-    ap.add_argument("--model", default="mpc", help="learner model for --emulate (mpc, experiment, scaled)")
-    ap.add_argument("--x0", type=pose_arg, default=(0.0, 0.0, 0.0), help="start pose x,y,theta for --emulate")
-    ap.add_argument("--drift", default=None, metavar="KIND[:AT[:OVER[:AMOUNT]]]",
-                    help="for --emulate: the learner changes at run time, battery (the motors' top speed falls) or "
-                         "wheel (the left wheel drags), AT s after the wheels first turn, over OVER s (default 20:10)")
-    ap.add_argument("--engage", action="store_true",
-                    help="engage the vehicle at start, as engage_on_start (a person at the keyboard; never in a unit "
-                         "that restarts)")
-    ap.add_argument("--fence", default=None, metavar="FILE",
-                    help="(mavlink) upload the fence of FILE (a mission file's fence, or a station configuration's "
-                         "[station] fence) to the vehicle as its own, enabled, Hold at a breach, after the link opens "
-                         "and before anything is driven: the autopilot holds it even if the station and this host "
-                         "die (every step confirmed by the vehicle; refused: the host exits)")
-    ap.add_argument("--dry-run", action="store_true",
-                    help="run the whole loop and publish applied, but send nothing to the vehicle (bring-up)")
-    ap.add_argument("--insecure", action="store_true",
-                    help="UDP link without a key_file ([link.udp] insecure = true): no authentication, anyone on the "
-                         "network can drive the robot (loopback tests; said in the log and on status)")
-
-
-def _emulated_ecus(cfg, model: str, x0: tuple[float, float, float], drift: str | None = None):
-    """The learner's two emulated motor controllers on the driver's virtual CAN channel (``--emulate``), changing
-    at run time as ``drift`` says (``--drift``)."""
-    from sim_learner.can_ecu import DiffDriveEcus, Drift
-    from sim_learner.dynamics import model_by_name
-    from sim_learner.vehicle import SimVehicle
-
-    vehicle = SimVehicle(model_by_name(model), x0, now=time.monotonic())
-    return DiffDriveEcus({"interface": "virtual", "channel": cfg.channel}, vehicle, left_node=cfg.left_node,
-                         right_node=cfg.right_node, left_sign=cfg.left_sign, right_sign=cfg.right_sign,
-                         wheel_radius=cfg.wheel_radius, track_width=cfg.track_width,
-                         drift=Drift.parse(drift) if drift else None).start()
-
-
-def run(args: argparse.Namespace) -> int:
-    if args.emulate and args.link != "can":
-        raise UsageError("--emulate hosts CAN motor controllers; run `scmbridge learner` for the other links")
-    if args.drift is not None:
-        if not args.emulate:
-            raise UsageError("--drift changes the emulated controllers: give --emulate")
-        from sim_learner.can_ecu import Drift
-
-        try:
-            Drift.parse(args.drift)
-        except ValueError as exc:
-            raise UsageError(str(exc)) from None
-    cfg = load_driver(args.config)  # a mistake ends here, before any link or session opens
-    fence = []
-    if args.fence is not None:
-        if args.link != "mavlink":
-            raise UsageError(f"--fence uploads ArduPilot's own fence: --link mavlink (the {args.link} link has none; "
-                             "the station enforces a fence on every link)")
-        fence = load_fence(args.fence)
-    robot = M.check_robot(args.robot or cfg.robot)
-    link_cfg = getattr(cfg.link, args.link)
-    if args.emulate:
-        link_cfg = msgspec.structs.replace(link_cfg, interface="virtual", channel=f"scm-{robot}",
-                                           initial_pose=args.x0)
-    if args.insecure:  # a person's opt-in, on the command line where it is seen (and on status, and in the log)
-        if not hasattr(link_cfg, "insecure"):
-            raise UsageError(f"--insecure is for --link udp (the {args.link} link has no such setting)")
-        link_cfg = msgspec.structs.replace(link_cfg, insecure=True)
-    for name in ("key_file", "signing_key_file"):  # a missing or unsafe key is one line now, not a retry loop later
-        if getattr(link_cfg, name, ""):
-            load_key(getattr(link_cfg, name), args.link)
-    host = DriverHost(cfg, args.link, open_driver(args.link, link_cfg), robot, args.rate or cfg.driver.rate_hz,
-                      dry_run=args.dry_run, latch_path=latch_file(robot))
-    host.engage_on_start = host.engage_on_start or args.engage
-    host.fence = fence
-    stop = stop_on_signals()
-    ecus = _emulated_ecus(link_cfg, args.model, args.x0, args.drift) if args.emulate else None
-    if ecus is not None:
-        host.co_located.append(ecus)
-    try:
-        with open_session(zenoh_config(args), wait=stop, what="driver host") as session:
-            host.serve(session, stop, args.duration)
-    finally:
-        host.close()
-        if ecus is not None:
-            ecus.stop()
-        log.info("driver host for %s stopped %s: the vehicle was given a stop%s", robot, stopped_because(stop),
-                 "" if host.dry_run else " and released (what this host engaged)")
-    return 0

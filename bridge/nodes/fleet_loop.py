@@ -37,6 +37,9 @@ class Ticked(Protocol):
 
     def end(self) -> None: ...
 
+    def undeclare(self) -> int: ...
+
+
 log = logging.getLogger("scmbridge.station")
 
 #: how often a many-robot station hands the GIL over, s (Python's default is 5 ms; see run_fleet)
@@ -220,6 +223,7 @@ class FleetLoop:
         if not ok:
             self.failed.append(st.robot)
             st.end()
+            st.undeclare()
         return ok
 
     def _finish(self, st: Ticked, active: list[Ticked], failed: bool = False) -> None:
@@ -227,6 +231,8 @@ class FleetLoop:
         if failed:
             self.failed.append(st.robot)
         st.end()
+        if failed:  # its keys go with it: no samples taken, no query answered, no status for a robot not served
+            st.undeclare()
 
 
 __all__ = ["DEFAULT_LOOP_THREADS", "FLEET_SWITCH_INTERVAL_S", "Deadlines", "FleetLoop", "FleetWake", "Ticked"]

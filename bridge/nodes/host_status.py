@@ -19,7 +19,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from bridge.core import wire as M
-from bridge.core.clock import HOST
+from bridge.core.clock import machine
 from drivers.base import FailsafeReport, LinkHealth
 
 #: the end of the status text of a host whose link does not authenticate (drivers.base.link_unauthenticated)
@@ -180,7 +180,7 @@ class HostStatus:
         """Whether a status should go out at ``now``: each ``STATUS_EVERY_S``, and at once (at most
         ``STATUS_MAX_HZ`` a second) when ``ok``, the state or the typed reason changed since the last one sent. The
         station judges the robot's fitness on this status: an engage, a release or a restart reaches it in the tick
-        that made it, not up to a second later (issue 32: a `mission resume` right after `engage` was refused)."""
+        that made it, not up to a second later (else a `mission resume` right after `engage` is refused)."""
         if now >= self.next_at:  # the periodic ones keep their own grid, whatever went out between them
             self.next_at = now + STATUS_EVERY_S
             return True
@@ -205,7 +205,7 @@ class HostStatus:
             text = text[:1024 - len(UNAUTHENTICATED)] + UNAUTHENTICATED
         msg = M.Status(stamp=now, seq=self.seq, node="driver", ok=a.ok, state=a.state, reason=a.reason,
                        rates_hz={"loop": 1.0 / self.period}, latencies_ms=lat, counters=counters, text=text[:1024],
-                       host=HOST, engaged=a.engaged,
+                       host=machine(), engaged=a.engaged,
                        measured=None if a.measured is None else [_bounded(x) for x in a.measured])
         self.seq += 1
         self.sent, self.sent_at = a.key, now

@@ -158,8 +158,8 @@ class LatchWriter:
     one thread saves it (``save``: write, fsync, rename, fsync the directory; milliseconds on a fast disk, seconds on
     a slow or failing one). The latest latch wins: what is submitted while a save runs is saved once, after it.
     ``done(latch, error)`` is called in that thread after each save with None or what went wrong: the one place where
-    a save's result is known. A stop never waits for the disk (measured: with each fsync delayed 0.5 s the first
-    stop came 1.02 s after the estop while the save ran under the lock the loop needs); a confirmation of the latch
+    a save's result is known. A stop never waits for the disk (with the save under the lock the loop needs, a slow fsync
+    delays the stop by as long: docs/BENCHMARKS.md, "An estop on a slow disk"); a confirmation of the latch
     does (:meth:`defer`)."""
 
     def __init__(self, path: Path, done: Callable[[Latch, Exception | None], None],

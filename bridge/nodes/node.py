@@ -29,7 +29,7 @@ import zenoh
 from msgspec import Struct
 
 from bridge.core import wire as M
-from bridge.nodes.zsession import make_config
+from bridge.nodes.zsession import Declared, make_config
 
 log = logging.getLogger("scmbridge.node")
 S = TypeVar("S", bound=Struct)
@@ -40,18 +40,21 @@ QUEUE_CAPACITY = 1024
 def freeze_startup_heap() -> None:
     """Collect once, then move every object alive after a node's start-up (its stores, solvers, sessions, modules)
     out of the garbage collector's reach (``gc.freeze``), so that a full collection scans only what the running
-    loop made since. A station of 50 robots paused 50-76 ms in each full collection (docs/BENCHMARKS.md, "Many
-    robots"), in whichever thread allocated: the robots queued behind the pause missed their deadlines."""
+    loop made since. A station of many robots paused in each full collection (docs/BENCHMARKS.md, "Many robots"),
+    in whichever thread allocated: the robots queued behind the pause missed their deadlines."""
     gc.collect()
     gc.freeze()
 
 
 class Inputs:
-    """Thread-safe counters of a node's inputs (``malformed_<name>``, ...), shared by its callbacks and its loop."""
+    """Thread-safe counters of a node's inputs (``malformed_<name>``, ...), shared by its callbacks and its loop, and
+    what the node declared (:attr:`declared`: its subscribers, and whatever else it keeps there), which the node
+    undeclares when it ends."""
 
     def __init__(self) -> None:
         self.lock = threading.Lock()
         self.counts: Counter[str] = Counter()
+        self.declared = Declared()
 
     def count(self, name: str, n: int = 1) -> None:
         with self.lock:
@@ -76,8 +79,8 @@ class Inputs:
                 handler(msg, now)
 
         if remote_only:
-            return session.declare_subscriber(key, on_sample, allowed_origin=zenoh.Locality.REMOTE)
-        return session.declare_subscriber(key, on_sample)
+            return self.declared.keep(session.declare_subscriber(key, on_sample, allowed_origin=zenoh.Locality.REMOTE))
+        return self.declared.keep(session.declare_subscriber(key, on_sample))
 
     def decode(self, sample: zenoh.Sample, kind: type[S], name: str, key: str) -> S | None:
         """``sample`` decoded (and so validated) as ``kind``; None, counted as ``malformed_<name>``, if it is not."""
@@ -95,7 +98,8 @@ class Inputs:
         A Python callback per sample costs its thread the GIL each time, several times what draining costs
         (CHANGELOG.md, "many robots"); a ring never blocks Zenoh's receiving thread (a stalled loop loses the
         oldest samples, not the session). Decoded and counted by :meth:`decode`, as :meth:`subscribe`'s."""
-        return Queued(self, session.declare_subscriber(key, zenoh.handlers.RingChannel(capacity)), kind, name, key)
+        sub = self.declared.keep(session.declare_subscriber(key, zenoh.handlers.RingChannel(capacity)))
+        return Queued(self, sub, kind, name, key)
 
 
 class Queued(Generic[S]):

@@ -273,7 +273,7 @@ class Station:
         that waited more than :data:`CONTROL_MAX_WAIT_S` (a stalled loop) is dropped unanswered: its asker has
         given up and asks again. With ``settle`` (the loop's thread, the lock not held), a start or resume that only
         the robot's fitness refuses goes back to the inbox until a driver host status arrives after it, at most
-        :data:`SETTLE_S` (finding, issue 32: `engage` then `mission resume` at once was refused "waiting for
+        :data:`SETTLE_S` (else `engage` then `mission resume` at once is refused "waiting for
         engage": the host's answer to the engage can reach the person before its status reaches the station)."""
         later = [q for q in queries if settle and self._settling(q, now)]
         if later:
@@ -403,16 +403,17 @@ class Station:
         self.inputs.subscribe(session, k.cmd, M.Command, "own_cmd", self.on_own_cmd, remote_only=True)
         if external:
             self.inputs.subscribe(session, k.teacher, M.TeacherCommand, "teacher", self.on_teacher)
-        session.declare_queryable(k.pairs, self.on_pairs_query)
-        session.declare_queryable(k.control, self.on_control_query)
-        self.pubs = {t: session.declare_publisher(getattr(k, t)) for t in ("cmd", "limits")}
+        keep = self.inputs.declared.keep  # all undeclared by undeclare(): a fleet's failed robot lets go of its keys
+        keep(session.declare_queryable(k.pairs, self.on_pairs_query))
+        keep(session.declare_queryable(k.control, self.on_control_query))
+        self.pubs = {t: keep(session.declare_publisher(getattr(k, t))) for t in ("cmd", "limits")}
         if not external:
             # the teacher message (the MPC's command and plan, for a person's viewer or a recorder) is built and
             # sent only while someone subscribes to it: a fleet's robots mostly have no viewer
-            pub = self.pubs["teacher"] = session.declare_publisher(k.teacher)
-            self.teacher_listener = pub.declare_matching_listener(self._on_teacher_matching)
+            pub = self.pubs["teacher"] = keep(session.declare_publisher(k.teacher))
+            self.teacher_listener = keep(pub.declare_matching_listener(self._on_teacher_matching))
             self.core.teacher_heard = bool(pub.matching_status.matching)
-        self.pubs["status"] = StatusOut(session, M.status_key(self.robot, "station"))  # asked by status
+        self.pubs["status"] = keep(StatusOut(session, M.status_key(self.robot, "station")))  # asked by status
         if self.build is None:
             self.build = KernelBuild(self.teacher)
         what = self.core.what()
@@ -420,6 +421,10 @@ class Station:
                  self.core.control.phase, self.core.epoch)
         if announce:
             systemd.ready(f"{self.robot}: {what}, mission {self.core.control.phase}")
+
+    def undeclare(self) -> int:
+        """Undeclare every key :meth:`declare` declared (the session stays open for the process's other robots)."""
+        return self.inputs.declared.undeclare()
 
     def begin(self) -> None:
         """From here on only the loop's thread calls the core (queries wait in the inbox for it)."""

@@ -25,7 +25,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from bridge.core import wire as M
-from bridge.core.clock import HOST
+from bridge.core.clock import machine
 from bridge.nodes.mission_control import MissionControl
 from bridge.nodes.pairing import IntervalPairer
 from bridge.nodes.sources import Why
@@ -68,8 +68,8 @@ def not_driving(control: MissionControl, robot: str, unfit: Why | None) -> Why:
 def paused_text(control: MissionControl, robot: str, unfit: Why | None) -> str:
     """Why a paused mission is paused, as it is now, and the next step: a pause the robot caused (an estop, a lost
     pose, ...) says the robot's reason now, or that it is fit again, and a person's (or a restart's) stays, and
-    either way says how to drive on once the robot is fit (issue 32: after the release the status still said
-    "estop latched", and after a driver host's crash "no pose for 2.5 s" with the poses back)."""
+    either way says how to drive on once the robot is fit (not a stale reason: "estop latched" after the release,
+    or "no pose" after a driver host's crash with the poses back)."""
     c = control
     cause = "paused" if c.paused_by_robot else (c.reason or "paused")
     if unfit is not None:
@@ -261,7 +261,7 @@ class StatusReport:
                        progress=min(1.0, max(0.0, facts.progress)), rates_hz={"loop": facts.rate_hz},
                        latencies_ms={"solve_median": solve_median, "solve_max": float(sm[-1]),
                                      "tick_p50": p50, "tick_p99": p99, "tick_max": float(tk[-1])},
-                       counters=facts.counters, text=text[:1024], host=HOST, changed_cells=facts.changed_cells,
+                       counters=facts.counters, text=text[:1024], host=machine(), changed_cells=facts.changed_cells,
                        off_path_m=None if facts.off_path_m is None else min(1e7, facts.off_path_m))
         self.seq += 1
         self.sent_key, self.sent_at = facts.key, now

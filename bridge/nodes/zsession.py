@@ -15,6 +15,7 @@ import socket
 import threading
 from collections.abc import Sequence
 from pathlib import Path
+from typing import Any, TypeVar
 
 import zenoh
 
@@ -24,6 +25,7 @@ from bridge.core.paths import TEXT_FILE, read_bounded
 from bridge.nodes import systemd, tlsid
 
 log = logging.getLogger("scmbridge.zenoh")
+H = TypeVar("H")
 
 
 def free_port(host: str = "127.0.0.1") -> int:
@@ -207,6 +209,48 @@ def open_session(conf: zenoh.Config, wait: threading.Event | None = None, what: 
             if wait.wait(backoff.delay):
                 raise UsageError(f"stopped while waiting for the Zenoh router at {_endpoints(conf)}") from None
             backoff.grow()
+
+
+class Declared:
+    """What a node declared on a Zenoh session (subscribers, queryables, publishers, liveliness tokens, matching
+    listeners, :class:`bridge.nodes.node.StatusOut`), kept so that the node undeclares them itself. A handle that is
+    dropped stays declared until the session closes (Zenoh runs a callback's subscriber or queryable in the
+    background): a robot of a fleet whose loop stopped would go on taking samples, answering queries and holding its
+    liveliness token on the process's one session. :meth:`undeclare` undeclares every one, the last declared first;
+    later ones are undeclared as they are kept (the node has ended)."""
+
+    def __init__(self) -> None:
+        self.lock = threading.Lock()
+        self.handles: list[Any] = []
+        self.ended = False
+
+    def keep(self, handle: H) -> H:
+        """``handle`` kept until :meth:`undeclare` (undeclared at once if that already ran); returned as it is."""
+        with self.lock:
+            if not self.ended:
+                self.handles.append(handle)
+                return handle
+        _undeclare(handle)
+        return handle
+
+    def __len__(self) -> int:
+        with self.lock:
+            return len(self.handles)
+
+    def undeclare(self) -> int:
+        """Undeclare everything kept (once; a failure is logged, the rest still undeclared); how many were."""
+        with self.lock:
+            handles, self.handles, self.ended = self.handles, [], True
+        return sum(_undeclare(h) for h in reversed(handles))
+
+
+def _undeclare(handle: Any) -> bool:
+    try:
+        handle.undeclare()
+        return True
+    except Exception as exc:  # a session already closed: nothing of it is declared any more
+        log.debug("undeclare %r: %s", handle, exc)
+        return False
 
 
 def _connects(conf: zenoh.Config) -> bool:

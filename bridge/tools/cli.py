@@ -86,7 +86,7 @@ COMMANDS: list[Command] = [
     _C("demo", "bridge.tools.demo", "station + driver host + emulated learner over Zenoh on 127.0.0.1 (the S-path)"),
     _C("router", "bridge.nodes.router", "the lab's Zenoh router, a process of its own: every node is its client"),
     _C("station", "bridge.nodes.station", "the base-station service: teacher + transfer loop publishing commands"),
-    _C("driver", "bridge.nodes.driver_host", "the driver host: Zenoh commands -> vehicle link, telemetry -> state"),
+    _C("driver", "bridge.nodes.driver_cmd", "the driver host: Zenoh commands -> vehicle link, telemetry -> state"),
     _C("learner", "sim_learner.emulator", "a software learner behind a vehicle link, as its own process"),
     _C("calibrate", "bridge.tools.calibrate", "the calibration stage: a bounded grid of learner commands"),
     _C("doctor", "bridge.tools.doctor", "preflight: router, certificates, access rules, CAN, vehicle and failsafe"),

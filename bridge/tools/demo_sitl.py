@@ -97,9 +97,9 @@ def learner_range(params: dict[str, float]) -> tuple[tuple[float, float], tuple[
     """The learner's command box from the vehicle's parameters: v in [V_MIN, WP_SPEED] m/s (GUIDED caps a velocity
     target at WP_SPEED; 0 there means CRUISE_SPEED, as in Rover), omega in +-ATC_STR_RAT_MAX (deg/s on the vehicle,
     rad/s here). CRUISE_SPEED is not a limit: with CRUISE_THROTTLE it is the point the speed controller's throttle
-    feed-forward is tuned on (throttle = CRUISE_THROTTLE * v / CRUISE_SPEED). Found here: CRUISE_SPEED 0.3 on SITL's
-    rover-skid (tuned 3 m/s at 75 %) asked 75 % throttle for 0.3 m/s, and the rover drove the S-path far faster
-    than commanded."""
+    feed-forward is tuned on (throttle = CRUISE_THROTTLE * v / CRUISE_SPEED). So a CRUISE_SPEED far below the speed its
+    CRUISE_THROTTLE was tuned at asks a large throttle for a small speed, and the rover drives far faster than
+    commanded."""
     v_max = params["WP_SPEED"] if params["WP_SPEED"] > 0 else params["CRUISE_SPEED"]
     w_max = math.radians(params["ATC_STR_RAT_MAX"])
     if not (v_max > V_MIN and w_max > 0):

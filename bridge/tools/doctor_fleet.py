@@ -18,7 +18,7 @@ import time
 import zenoh
 
 from bridge.core import wire as M
-from bridge.core.clock import HOST
+from bridge.core.clock import machine
 from bridge.core.errors import UsageError
 from bridge.nodes.zsession import open_session
 from bridge.tools.estop import ALL, latch_states
@@ -58,12 +58,12 @@ def where(status: M.Status | None) -> str:
     """Where a driver host runs, in words: ``this machine``, its host's name, or unknown (an older host)."""
     if status is None or status.host is None:
         return "a host that did not say where"
-    return "this machine" if status.host == HOST else f"host {status.host.split('/', 1)[0]}"
+    return "this machine" if status.host == machine() else f"host {status.host.split('/', 1)[0]}"
 
 
 def local_robots(statuses: dict[str, M.Status]) -> list[str]:
     """The robots whose driver host runs on this machine (same machine and boot: ``Status.host``)."""
-    return sorted(r for r, st in statuses.items() if st.host == HOST)
+    return sorted(r for r, st in statuses.items() if st.host == machine())
 
 
 def robot_checks(latches: dict[str, list[M.EstopState]], statuses: dict[str, M.Status]) -> list[tuple[str, str]]:

@@ -202,7 +202,7 @@ def test_doctor_flags_latch_files_deleted_copied_back_or_foreign(tmp_path, monke
     first = tmp_path / "released-copy.bin"
     shutil.copy(latch, first)
     with _host(latch) as host:  # a later start latches and releases: the record's count moves on
-        from tests.integration.test_driver_host import _estop
+        from tests.integration.test_driver_host_latch import _estop
 
         _estop(host)
         _estop(host, engaged=False)

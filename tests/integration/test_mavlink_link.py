@@ -20,12 +20,12 @@ from typing import Any
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
-from pymavlink import mavutil
 
 from drivers import DriverError, open_driver
 from drivers.base import Driver, LinkHealth
 from drivers.mavlink import TYPE_MASK_VEL_YAWRATE, MavlinkLinkConfig
 from sim_learner.dynamics import LearnerModel, mpc_learner
+from sim_learner.mavlink_dialect import MAV, mavutil_v2
 from sim_learner.mavlink_rover import GUIDED, MODES, MavlinkRover
 from sim_learner.vehicle import SimVehicle
 from tests.wait import until
@@ -35,7 +35,6 @@ def health(driver: Driver) -> LinkHealth:
     """The driver's health now (as the driver host asks for it each tick)."""
     return driver.health(time.monotonic())
 
-MAV = mavutil.mavlink
 MODE_OR_ARM = (MAV.MAV_CMD_DO_SET_MODE, MAV.MAV_CMD_COMPONENT_ARM_DISARM)
 REVERSIBLE = LearnerModel((-0.5, 0.5), (-1.0, 1.0), name="reversible")
 
@@ -377,7 +376,7 @@ def test_the_emulated_rover_answers_like_ardupilot() -> None:
     set-points ignored silently outside GUIDED and without an EKF origin."""
     vehicle = SimVehicle(mpc_learner(), (0.0, 0.0, 0.0), now=time.monotonic())
     with MavlinkRover(vehicle, init_s=0.1, ekf_position_s=60.0) as rover:
-        c = mavutil.mavlink_connection(f"udpout:127.0.0.1:{rover.port}", source_system=250, source_component=190)
+        c = mavutil_v2().mavlink_connection(f"udpout:127.0.0.1:{rover.port}", source_system=250, source_component=190)
         try:
             c.mav.heartbeat_send(MAV.MAV_TYPE_GCS, MAV.MAV_AUTOPILOT_INVALID, 0, 0, 0)
 
@@ -431,8 +430,7 @@ def test_random_bytes_on_the_link_are_counted_and_dropped(data: bytes) -> None:
 
 def test_the_emulated_rover_denies_non_finite_command_parameters_and_lives() -> None:
     """Found by the fuzz bench: a COMMAND_LONG whose mode or message id was NaN/inf killed the rover's thread."""
-    from pymavlink import mavutil as mu
-
+    mu = mavutil_v2()
     rover = MavlinkRover(SimVehicle(mpc_learner(), (0.0, 0.0, 0.0), now=time.monotonic())).start()
     conn = mu.mavlink_connection(f"udpout:127.0.0.1:{rover.port}", source_system=255)
     try:
@@ -456,7 +454,7 @@ def test_non_finite_set_points_reach_the_motors_as_ardupilots_arithmetic_leaves_
     NaN turn rate is constrained to the last one; an infinite speed is WP_SPEED."""
     vehicle = SimVehicle(mpc_learner(), (0.0, 0.0, 0.0), now=time.monotonic())
     with MavlinkRover(vehicle, init_s=0.1, ekf_position_s=0.2, wp_speed=0.4) as rover:
-        c = mavutil.mavlink_connection(f"udpout:127.0.0.1:{rover.port}", source_system=250, source_component=190)
+        c = mavutil_v2().mavlink_connection(f"udpout:127.0.0.1:{rover.port}", source_system=250, source_component=190)
         try:
             c.mav.heartbeat_send(MAV.MAV_TYPE_GCS, MAV.MAV_AUTOPILOT_INVALID, 0, 0, 0)
             time.sleep(0.5)  # booted, with an EKF origin

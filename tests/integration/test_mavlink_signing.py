@@ -16,7 +16,6 @@ import socket
 import time
 
 import pytest
-from pymavlink import mavutil
 
 from bench.attack_mavlink import boot_signing_rover, forged_heartbeat, rover_ready, send_frames, signer, takeover_frames
 from bench.attack_rigs import until
@@ -25,11 +24,10 @@ from drivers import open_driver
 from drivers.mavlink import MavlinkLinkConfig
 from drivers.mavlink.client import verify_before_recording
 from sim_learner.dynamics import mpc_learner
+from sim_learner.mavlink_dialect import MAV
 from sim_learner.mavlink_rover import GUIDED, MavlinkRover
 from sim_learner.mavlink_signing import signing_wall_clock
 from sim_learner.vehicle import SimVehicle
-
-MAV = mavutil.mavlink
 
 
 @pytest.fixture

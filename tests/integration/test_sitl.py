@@ -392,12 +392,12 @@ class _InjectingProxy:
     def __init__(self, upstream_port: int) -> None:
         import socket
 
-        from pymavlink import mavutil
+        from sim_learner.mavlink_dialect import MAV as mav
 
         self.listener = socket.create_server(("127.0.0.1", 0))
         self.port = self.listener.getsockname()[1]
         self.up = socket.create_connection(("127.0.0.1", upstream_port), timeout=5)
-        self.parser = mavutil.mavlink.MAVLink(None)  # no key: it frames signed packets without judging them
+        self.parser = mav.MAVLink(None)  # no key: it frames signed packets without judging them
         self.parser.robust_parsing = True
         self.lock = threading.Lock()
         self.down = None

@@ -160,7 +160,8 @@ def test_no_class_on_the_control_path_has_more_than_15_public_methods() -> None:
     assert not big, big
 
 
-@pytest.mark.parametrize("mod", ["bridge.nodes.driver_host", "drivers.can", "drivers.mavlink", "drivers.udp"])
+@pytest.mark.parametrize("mod", ["bridge.nodes.driver_cmd", "bridge.nodes.driver_host", "drivers.can",
+                                 "drivers.mavlink", "drivers.udp"])
 def test_the_robot_side_needs_no_numerical_stack(mod: str) -> None:
     heavy = re.compile(r"^\s*(import|from)\s+(scipy|casadi|numba|matplotlib)\b", re.M)
     for m in {mod} | _reach(mod):

@@ -1,7 +1,8 @@
 """One on-disk cache key for all the SC map's kernel modules, so that editing one kernel file recompiles every kernel.
 
 numba keys a function's cache on its own source file only (the SHA-256 of the file; numba's docs, "Cache
-invalidation", and numba issue 1833): a kernel compiled with a callee from another file is loaded from the cache
+invalidation", and numba's issue tracker,
+https://github.com/numba/numba/issues/1833): a kernel compiled with a callee from another file is loaded from the cache
 unchanged after that callee's file changes, and would run the old callee. One kernel file had none of that risk; split
 by job (``_polygon``, ``_quadrature``, ``_parameters``, ``_ellipj``, ``_evaluate``) it would. :func:`share_source_stamp`
 gives all their caches one source stamp, the hash of all their files' stamps (which numba has already computed,

@@ -23,12 +23,11 @@ sharper than the yaw-rate bound on the bend's side can turn at that speed: a lea
 for the bend, as a driver does, instead of falling behind references it cannot follow and cutting the bend wide
 (``MpcConfig.curve_margin``: the share of the yaw-rate bound the slower speed uses, the rest is left for the
 correction; 0, the default, is the paper's MPC, references at the top speed everywhere; the station's
-``[teacher] curve_margin``). Finding (issue 35, ``sim drift --scenario wheel``): with a wheel dragging 15 % of the
-learner's yaw-rate range, the learned limits followed it, but the references at the top speed kept the right bends
-out of reach: 94-125 mm of deviation in each, 16x the deviation before the change (docs/PAPER.md, "Beyond the
-paper", has the figures with it). It is not the default because it changes the paper's experiment: on the paper's
-quick world the ideal teacher's last-half deviation falls from 11.3 to 1.6 mm and the SCM learner's from 8 to 3 mm,
-so the paper's ratio to the teacher rises from 0.7 to 2.1. The obstacles the problem's slots hold are the nearest
+``[teacher] curve_margin``). Why (``sim drift --scenario wheel``): with a wheel dragging part of the
+learner's yaw-rate range away, the learned limits follow it, but references at the top speed keep the bends on that
+side out of reach (docs/PAPER.md, "Beyond the paper", has the figures). It is not the default because it changes
+the paper's experiment: the ideal teacher tracks the path far closer with it, so the paper's ratio to the teacher
+is no longer the paper's (docs/PAPER.md). The obstacles the problem's slots hold are the nearest
 within the horizon's reach. A learner that cannot turn in place (``MpcConfig.turn_needs_speed``) adds the learned
 curvatures as two linear rows a stage, ``k_lo v <= omega <= k_hi v`` (docs/ARCHITECTURE.md, "The teacher's MPC").
 A failed solve never yields garbage: the shifted previous plan is used if there is one

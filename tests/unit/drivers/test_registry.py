@@ -1,4 +1,5 @@
-"""A link is a plugin: one module (its config struct, its driver, ``EMULATED``) plus one line in ``drivers.LINKS``.
+"""A link is a plugin: one module (its config struct, its driver, ``EMULATED``) plus its name in ``drivers.LINKS``
+(an entry point of the ``scmbridge.links`` group does that for an installed package: test_link_plugins.py).
 
 A loopback link written here, outside the repository, and registered by that one line only, gets its ``[link.<name>]``
 section in the driver host's configuration (with the usual one-line errors), is built by ``open_driver``, and is
@@ -17,7 +18,7 @@ import pytest
 
 import drivers
 from bridge.core.config import ConfigError
-from bridge.nodes import driver_host
+from bridge.nodes import driver_cmd
 from bridge.nodes.driver_config import DriverConfig, load_driver
 from bridge.tools import config_cmd
 from drivers.base import Driver
@@ -154,7 +155,7 @@ def test_open_driver_builds_the_new_link_and_it_drives(loopback: str) -> None:
 
 def test_the_driver_hosts_link_option_offers_the_new_link(loopback: str) -> None:
     ap = argparse.ArgumentParser()
-    driver_host.arguments(ap)
+    driver_cmd.arguments(ap)
     (link,) = [a for a in ap._actions if "--link" in a.option_strings]
     assert loopback in link.choices and set(link.choices) == set(drivers.LINKS)
     assert ap.parse_args(["--link", loopback]).link == loopback
