@@ -69,6 +69,8 @@ def sitl_hil(args: argparse.Namespace, demo: ModuleType) -> int:
     ref_file = None if reference in ("auto", "none") else teacher_reference(reference)
     out = Path(args.out)
     role = V.role_of(args.transfer, args.limits)
+    if getattr(args, "identify", None) is None:  # measured, not read, for the transfer (the baseline reads it)
+        args = argparse.Namespace(**{**vars(args), "identify": role == "learner"})
     runs: dict[str, dict[str, Any]] = {}
     first = sitl_once(demo, args, binary, out, role)
     if first is None:
@@ -195,6 +197,7 @@ def sitl_once(demo: ModuleType, args: argparse.Namespace, binary: Path, out: Pat
     interrupted = False
     ident = None
     accepted = None
+    reach = None  # a car's tightest turn, measured (the station checks the mission's path against it)
     with ExitStack() as stack:
         try:
             stack.enter_context(sitl)
@@ -223,6 +226,9 @@ def sitl_once(demo: ModuleType, args: argparse.Namespace, binary: Path, out: Pat
                 + ("adapt = true\n" if args.adapt else "")
                 + (f'turn_probe = "{args.turn_probe}"\n' if args.turn_probe != "at-command" else "")
                 + (f'turn = "{turn}"\n' if turn != "in-place" else "")
+                + (f"turn_reach = [{reach.right:.4f}, {reach.left:.4f}, {reach.speed:.4f}]\n"
+                   if reach is not None and reach.right is not None and reach.left is not None
+                   and turn == "needs-speed" else "")
                 + teacher_table(args))
 
         write_station()
@@ -262,6 +268,7 @@ def sitl_once(demo: ModuleType, args: argparse.Namespace, binary: Path, out: Pat
                 got = settings(ident, args, v_range[0])
                 turn, start, settle, settle_edge = got["turn"], got["start"], got["settle"], got["settle_edge"]
                 v_range, w_range = got["v_range"], got["w_range"]
+                reach = ident.reach()
                 with pilot.cond:  # the mission is placed where the vehicle stands now
                     p, att = pilot.s.position, pilot.s.attitude
                 pose = (float(p.y), float(p.x), math.pi / 2 - float(att.yaw))
@@ -348,6 +355,9 @@ def sitl_once(demo: ModuleType, args: argparse.Namespace, binary: Path, out: Pat
         "goal_dist_m": run["goal_dist_m"], "driving_s": run["driving_s"], "guard_stops": run["guard_stops"],
         "learner_bounds": [list(v_range), list(w_range)], "accepted_bounds": [list(accepted[0]), list(accepted[1])],
         "range": "measured" if ident is not None else "parameters",
+        "assumption_checked": load_station(out / "station.toml").transfer.turn_reach != [],
+        "outside_assumption": next((g["text"] for g in run["guard_stops"] if g["reason"] == "outside_assumption"),
+                                   None),
         "identified": ident.as_dict() if ident is not None else None, "vehicle_params": params,
         "missed_deadlines": run["missed_deadlines"], "boot_s": round(sitl.boot_s, 1),
         "wall_s": round(time.monotonic() - t_wall, 1)}
