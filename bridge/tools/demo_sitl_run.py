@@ -356,8 +356,8 @@ def sitl_once(demo: ModuleType, args: argparse.Namespace, binary: Path, out: Pat
         "learner_bounds": [list(v_range), list(w_range)], "accepted_bounds": [list(accepted[0]), list(accepted[1])],
         "range": "measured" if ident is not None else "parameters",
         "assumption_checked": load_station(out / "station.toml").transfer.turn_reach != [],
-        "outside_assumption": next((g["text"] for g in run["guard_stops"] if g["reason"] == "outside_assumption"),
-                                   None),
+        "outside_assumption": next((g["text"].removeprefix("paused: ").split("; the robot")[0]
+                                    for g in run["guard_stops"] if g["reason"] == "outside_assumption"), None),
         "identified": ident.as_dict() if ident is not None else None, "vehicle_params": params,
         "missed_deadlines": run["missed_deadlines"], "boot_s": round(sitl.boot_s, 1),
         "wall_s": round(time.monotonic() - t_wall, 1)}
