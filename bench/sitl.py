@@ -36,6 +36,11 @@ COLUMNS = ("learner_reached_goal", "learner_time_ratio", "learner_dev_ratio", "l
            "baseline_reached_goal", "baseline_collided")
 
 
+#: what each row keeps of a run's summary besides (the table in docs/BENCHMARKS.md is made from them)
+FIGURES = ("learner_dev_last_half_m", "baseline_dev_last_half_m", "reference_dev_last_half_m", "baseline_dev_ratio",
+           "learner_time_s", "reference_time_s", "learner_bounds", "vehicle_params")
+
+
 def demo_command(profile: Any, binary: str, parm: Path, out: Path, duration: float, mission: str | None,
                  identify: bool = True) -> list[str]:
     """The demo as a person runs it on this profile: the transfer, then the baseline, then the reference."""
@@ -76,6 +81,7 @@ def judge(log: str) -> dict[str, Any]:
     return {**{k: s.get(k) for k in COLUMNS}, "learned_limits": s.get("learned_limits"),
             "verdicts": s.get("verdicts"), "worked": worked, "outside": outside,
             "outside_assumption": s.get("outside_assumption"), "identified": s.get("identified"),
+            **{k: s.get(k) for k in FIGURES},
             "why": ", ".join([*(f"{k} failed" for k in failed), *(f"{k} not judged" for k in unjudged)]) or None}
 
 
