@@ -59,7 +59,7 @@ def run_profile(profile: Any, binary: str, out: Path, duration: float, mission: 
     t0 = time.monotonic()
     with open(out / "demo.log", "w") as log:
         try:
-            rc = subprocess.run(cmd, stdout=log, stderr=subprocess.STDOUT, timeout=4 * (duration + 90)).returncode
+            rc = subprocess.run(cmd, stdout=log, stderr=subprocess.STDOUT, timeout=3 * (duration + 240)).returncode
         except subprocess.TimeoutExpired:
             rc = None
     row = {"profile": profile.name, "split": profile.split, "params": profile.params, "rc": rc,

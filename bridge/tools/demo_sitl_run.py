@@ -24,6 +24,9 @@ from bridge.tools import sitl_verdict as V
 
 #: the longest the identification may take before the mission (``--identify``), s
 IDENTIFY_S = 90.0
+#: the longest the station's start-up may take (a first start compiles the MPC's kernels: over a minute on a
+#: loaded machine) before the run's ``--duration`` begins, s
+STARTUP_S = 90.0
 #: the teacher's own range (paper Table 2): what an automatic reference is never given more of, m/s and deg/s
 TEACHER_V_MAX = 0.6
 TEACHER_W_MAX_DEG = 45.0
@@ -138,6 +141,16 @@ def sitl_hil(args: argparse.Namespace, demo: ModuleType) -> int:
     return 0 if first["figures"]["reached_goal"] else 1
 
 
+def started(mon: Any, kids: Any, timeout: float) -> bool:
+    """Wait until the station's first command was driven, a guard of its stopped the mission before any, or one of
+    the demo's processes ended (bounded by ``timeout`` s): whether it drove."""
+    t_end = time.monotonic() + timeout
+    while time.monotonic() < t_end and not (mon.guards.stopped or kids.any_exited()):
+        if mon.driving.wait(0.2):
+            return True
+    return mon.driving.is_set()
+
+
 def _ratio(a: float | None, b: float | None) -> float | None:
     return round(a / b, 4) if a is not None and b else None
 
@@ -249,7 +262,7 @@ def sitl_once(demo: ModuleType, args: argparse.Namespace, binary: Path, out: Pat
             # the driver host outlives the identification (up to IDENTIFY_S) and the station's start-up too
             extra = IDENTIFY_S if getattr(args, "identify", False) else 0.0
             kids.spawn(["driver", "--link", "mavlink", "--config", str(out / "driver.toml"), *client, "--duration",
-                        str(args.duration + 30 + extra)], logs["driver"])
+                        str(args.duration + 30 + extra + STARTUP_S)], logs["driver"])
             if not _wait_state(mon, "waiting", 60):
                 print(f"scmbridge demo: the driver host did not come up; see {out}/driver.log", file=sys.stderr)
                 return None
@@ -285,9 +298,10 @@ def sitl_once(demo: ModuleType, args: argparse.Namespace, binary: Path, out: Pat
                     mon.status.pop("station", None)
                 mon.driving.clear()
             kids.spawn(["station", *client, "--config", str(out / "station.toml"), "--start", "--store", str(store),
-                        "--exit-at-goal", "--duration", str(args.duration), "--mission", str(out / "mission.toml")],
-                       logs["station"])
+                        "--exit-at-goal", "--duration", str(args.duration + STARTUP_S), "--mission",
+                        str(out / "mission.toml")], logs["station"])
             changer.start(None, after=mon.driving)  # --param-at counts from the first command driven
+            started(mon, kids, STARTUP_S)  # the run's --duration counts from its first command, not the start-up
             _watch(mon, kids, world, args.duration)
         except KeyboardInterrupt:
             print("\ninterrupted: stopping the demo's processes", file=sys.stderr)
