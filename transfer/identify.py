@@ -36,6 +36,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from transfer.calibration import CalibrationStep
 from transfer.domain import Bounds
+from transfer.feasibility import Reach
 
 #: the measured range never ends below these (m/s, rad/s): a vehicle that overshoots its commands many times over
 #: keeps a range the station can still probe
@@ -53,6 +54,19 @@ class Identified:
     settle_top_s: float  # ... and to 90 % of the way from rest to the top (a step to an edge of the range)
     reached: dict[str, tuple[float, float]] = field(default_factory=dict)  # probe -> (speed, turn rate) measured
     why: str = ""
+
+    def reach(self) -> Reach | None:
+        """A car's tightest turn measured (:class:`transfer.feasibility.Reach`: the turn probes' turn rate over their
+        speed, each side), None for a vehicle that turns in place (it turns any curvature) or when the turn probes
+        did not move it."""
+        if self.turns_in_place:
+            return None
+        got = {k: self.reached[k] for k in ("turn+", "turn-") if k in self.reached and self.reached[k][0] > 0.02}
+        if not got:
+            return None
+        left = abs(got["turn+"][1]) / got["turn+"][0] if "turn+" in got else None
+        right = abs(got["turn-"][1]) / got["turn-"][0] if "turn-" in got else None
+        return Reach(right=right, left=left, speed=max(v for v, _ in got.values()))
 
     def as_dict(self) -> dict:
         return {"v_max": round(self.v_max, 4), "w_range": [round(x, 4) for x in self.w_range],

@@ -176,6 +176,15 @@ class TransferSection(Cfg):
     change_tol: Annotated[float, meta(
         "adapt: a cell's recent pairs this far from its refined pair (share of the teacher's range) mean its learner "
         "changed (or five standard deviations of their noise, if more)", ge=0.001, le=0.5)] = 0.02
+    turn_reach: Annotated[list[Annotated[float, Meta(ge=0.0, le=1e3)]], meta(
+        "what was measured of a learner that cannot turn in place: [right, left, speed], its tightest curvature each "
+        "way (rad/m) and the speed it was measured at (m/s), as scmbridge demo --sitl's identification writes it; a "
+        "mission whose path bends more than it can follow within the corridor is paused before it leaves it (reason "
+        "outside_assumption, docs/ARCHITECTURE.md section 6). Empty: not measured, not checked")] = []
+
+    def __post_init__(self) -> None:
+        if len(self.turn_reach) not in (0, 3):
+            raise Rule(f"turn_reach = {self.turn_reach}: [right, left, speed] or empty")
 
     def adapts(self, reloaded: bool) -> bool:
         """Whether the store re-learns changed cells (``adapt``'s values): ``reloaded`` says the station started on a

@@ -302,10 +302,12 @@ NodeState = Literal["", "driving", "idle", "running", "paused", "finished", "abo
 #: ``persist_failed`` (the pair store or the mission state not saved), ``integrity`` (another command sender, or
 #: implausible telemetry), and its guards (a paused mission, only a person resumes): ``left_corridor`` (the pose
 #: farther than the corridor from the path), ``pose_jump`` (the pose moved farther than the robot could in one
-#: interval), ``fence`` (the pose outside the lab's fence)
+#: interval), ``fence`` (the pose outside the lab's fence), ``outside_assumption`` (the mission's path bends more
+#: than the measured vehicle can follow within the corridor: outside the method's assumption)
 Reason = Literal["ok", "no_telemetry", "estop", "dry_run", "starting", "link_down", "not_engaged", "operator", "fault",
                  "conflict", "idle", "paused", "aborted", "goal_reached", "calibration_done", "robot_not_ready",
-                 "teacher", "persist_failed", "integrity", "latch_unsaved", "left_corridor", "pose_jump", "fence"]
+                 "teacher", "persist_failed", "integrity", "latch_unsaved", "left_corridor", "pose_jump", "fence",
+                 "outside_assumption"]
 
 
 #: how many changed cells a station's status names (the most recent; ``scmbridge pairs show`` names them all)

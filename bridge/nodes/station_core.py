@@ -53,6 +53,7 @@ from bridge.core.paths import STORE_FILE, quarantine, read_bounded
 from bridge.nodes.mission_control import Fitness, MissionControl, spec_of
 from bridge.nodes.pairing import IntervalPairer, Reorder
 from bridge.nodes.sources import CalibrationSource, CommandSource, Proposal, SourceContext, Why, make_source
+from bridge.nodes.station_assumption import AssumptionCheck
 from bridge.nodes.station_fitness import assess_fitness
 from bridge.nodes.station_guards import Guards, Trip
 from bridge.nodes.station_saves import StationSaves
@@ -229,6 +230,9 @@ class StationCore:
         self.guards = Guards(scfg.corridor_m, [(float(a), float(b)) for a, b in scfg.fence])
         self.guards.configure(self.control.spec)
         self.guards.begin(self.control.progress * self.mission.path.length)  # a restored mission: where it was
+        #: a path the measured vehicle cannot follow pauses the mission (bridge.nodes.station_assumption)
+        self.assumption = AssumptionCheck.from_config(tcfg.turn_reach, tcfg.turn == "needs-speed")
+        self.assumption.armed = self.control.phase != "paused"  # a restored paused mission was checked before
         self.off_path: float | None = None  # the latest pose's distance from the path, m
         self.standing: float | None = None  # paused: where a fresh pose stands on the path (0..1), for the status
         self.fitness = Fitness()
@@ -331,6 +335,7 @@ class StationCore:
         """A start: the mission's track begins at the latest pose's closest point (the next pose's, without one)."""
         state, path = self.state, self.mission.path
         self.guards.begin(None if state is None else closest(path.points, path.s, path.seg_len, state.x, state.y)[0])
+        self.assumption.arm()
 
     def _at_goal(self) -> bool:
         """The latest pose is at the mission's goal by the mission's own rule (a station that follows a mission)."""
@@ -411,6 +416,7 @@ class StationCore:
             mission = self.mission
             self.guards.configure(self.control.spec)
             self.guards.begin(None)  # (a path replaced while running: from where the robot is on it)
+            self.assumption.arm()
             self.source.reset()
             self.counters.missions += 1
             log.info("new mission %r: %d waypoints, %.1f m, %d obstacles", mission.name, len(mission.path.points),
@@ -486,7 +492,11 @@ class StationCore:
             self.standing = s / path.length if c.phase == "paused" and fresh else None
             if c.phase == "running" and unfit is None:
                 trip = self.guards.check(state.x, state.y, self.off_path, c.progress, time.time(), now)
-                if trip is not None:
+                outside = self.assumption.check(path.points, self.guards.corridor_m, s) if trip is None else None
+                if outside is not None:
+                    log.warning("mission %r paused: %s", self.mission.name, outside.text())
+                    c.guard_pause("outside_assumption", outside.text())
+                elif trip is not None:
                     self._tripped(trip)
                 else:  # progress only along the continuous track: a pose that lands on the goal is not there
                     s = min(s, self.guards.progress_cap())

@@ -551,11 +551,13 @@ def arguments(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--baseline", action="store_true",
                     help="(--sitl, --transfer on) also run the paper's baseline (--transfer off) on a fresh SITL and "
                          "judge the transfer against it; one figure then shows reference, transfer and baseline")
-    ap.add_argument("--identify", action="store_true",
+    ap.add_argument("--identify", action=argparse.BooleanOptionalAction, default=None,
                     help="(--sitl) measure the learner's range before the mission (bounded probes each way and "
                          "straight, by the station's own loop): its top speed and turn rates, whether it turns in "
-                         "place, how long it settles; the vehicle's parameters only bound it, and --turn, --start and "
-                         "--pair-settle follow from it unless given")
+                         "place, how long it settles, a car's tightest turn (a mission it cannot follow is stopped "
+                         "as outside the method's assumption); the vehicle's parameters only bound it, and --turn, "
+                         "--start and --pair-settle follow from it unless given. On by default for the transfer "
+                         "(--transfer on); --no-identify reads the range from the vehicle's parameters")
     ap.add_argument("--corridor", type=positive_float, default=1.0, metavar="M",
                     help="a run that took any pose more than M metres from the path did not reach its goal, "
                          "whatever the goal rule said (default 1.0)")

@@ -24,6 +24,9 @@ from bridge.tools import sitl_verdict as V
 
 #: the longest the identification may take before the mission (``--identify``), s
 IDENTIFY_S = 90.0
+#: the longest the station's start-up may take (a first start compiles the MPC's kernels: over a minute on a
+#: loaded machine) before the run's ``--duration`` begins, s
+STARTUP_S = 90.0
 #: the teacher's own range (paper Table 2): what an automatic reference is never given more of, m/s and deg/s
 TEACHER_V_MAX = 0.6
 TEACHER_W_MAX_DEG = 45.0
@@ -69,6 +72,8 @@ def sitl_hil(args: argparse.Namespace, demo: ModuleType) -> int:
     ref_file = None if reference in ("auto", "none") else teacher_reference(reference)
     out = Path(args.out)
     role = V.role_of(args.transfer, args.limits)
+    if getattr(args, "identify", None) is None:  # measured, not read, for the transfer (the baseline reads it)
+        args = argparse.Namespace(**{**vars(args), "identify": role == "learner"})
     runs: dict[str, dict[str, Any]] = {}
     first = sitl_once(demo, args, binary, out, role)
     if first is None:
@@ -136,6 +141,16 @@ def sitl_hil(args: argparse.Namespace, demo: ModuleType) -> int:
     return 0 if first["figures"]["reached_goal"] else 1
 
 
+def started(mon: Any, kids: Any, timeout: float) -> bool:
+    """Wait until the station's first command was driven, a guard of its stopped the mission before any, or one of
+    the demo's processes ended (bounded by ``timeout`` s): whether it drove."""
+    t_end = time.monotonic() + timeout
+    while time.monotonic() < t_end and not (mon.guards.stopped or kids.any_exited()):
+        if mon.driving.wait(0.2):
+            return True
+    return mon.driving.is_set()
+
+
 def _ratio(a: float | None, b: float | None) -> float | None:
     return round(a / b, 4) if a is not None and b else None
 
@@ -195,6 +210,7 @@ def sitl_once(demo: ModuleType, args: argparse.Namespace, binary: Path, out: Pat
     interrupted = False
     ident = None
     accepted = None
+    reach = None  # a car's tightest turn, measured (the station checks the mission's path against it)
     with ExitStack() as stack:
         try:
             stack.enter_context(sitl)
@@ -223,6 +239,9 @@ def sitl_once(demo: ModuleType, args: argparse.Namespace, binary: Path, out: Pat
                 + ("adapt = true\n" if args.adapt else "")
                 + (f'turn_probe = "{args.turn_probe}"\n' if args.turn_probe != "at-command" else "")
                 + (f'turn = "{turn}"\n' if turn != "in-place" else "")
+                + (f"turn_reach = [{reach.right:.4f}, {reach.left:.4f}, {reach.speed:.4f}]\n"
+                   if reach is not None and reach.right is not None and reach.left is not None
+                   and turn == "needs-speed" else "")
                 + teacher_table(args))
 
         write_station()
@@ -243,7 +262,7 @@ def sitl_once(demo: ModuleType, args: argparse.Namespace, binary: Path, out: Pat
             # the driver host outlives the identification (up to IDENTIFY_S) and the station's start-up too
             extra = IDENTIFY_S if getattr(args, "identify", False) else 0.0
             kids.spawn(["driver", "--link", "mavlink", "--config", str(out / "driver.toml"), *client, "--duration",
-                        str(args.duration + 30 + extra)], logs["driver"])
+                        str(args.duration + 30 + extra + STARTUP_S)], logs["driver"])
             if not _wait_state(mon, "waiting", 60):
                 print(f"scmbridge demo: the driver host did not come up; see {out}/driver.log", file=sys.stderr)
                 return None
@@ -262,6 +281,7 @@ def sitl_once(demo: ModuleType, args: argparse.Namespace, binary: Path, out: Pat
                 got = settings(ident, args, v_range[0])
                 turn, start, settle, settle_edge = got["turn"], got["start"], got["settle"], got["settle_edge"]
                 v_range, w_range = got["v_range"], got["w_range"]
+                reach = ident.reach()
                 with pilot.cond:  # the mission is placed where the vehicle stands now
                     p, att = pilot.s.position, pilot.s.attitude
                 pose = (float(p.y), float(p.x), math.pi / 2 - float(att.yaw))
@@ -278,9 +298,10 @@ def sitl_once(demo: ModuleType, args: argparse.Namespace, binary: Path, out: Pat
                     mon.status.pop("station", None)
                 mon.driving.clear()
             kids.spawn(["station", *client, "--config", str(out / "station.toml"), "--start", "--store", str(store),
-                        "--exit-at-goal", "--duration", str(args.duration), "--mission", str(out / "mission.toml")],
-                       logs["station"])
+                        "--exit-at-goal", "--duration", str(args.duration + STARTUP_S), "--mission",
+                        str(out / "mission.toml")], logs["station"])
             changer.start(None, after=mon.driving)  # --param-at counts from the first command driven
+            started(mon, kids, STARTUP_S)  # the run's --duration counts from its first command, not the start-up
             _watch(mon, kids, world, args.duration)
         except KeyboardInterrupt:
             print("\ninterrupted: stopping the demo's processes", file=sys.stderr)
@@ -348,6 +369,9 @@ def sitl_once(demo: ModuleType, args: argparse.Namespace, binary: Path, out: Pat
         "goal_dist_m": run["goal_dist_m"], "driving_s": run["driving_s"], "guard_stops": run["guard_stops"],
         "learner_bounds": [list(v_range), list(w_range)], "accepted_bounds": [list(accepted[0]), list(accepted[1])],
         "range": "measured" if ident is not None else "parameters",
+        "assumption_checked": load_station(out / "station.toml").transfer.turn_reach != [],
+        "outside_assumption": next((g["text"].removeprefix("paused: ").split("; the robot")[0]
+                                    for g in run["guard_stops"] if g["reason"] == "outside_assumption"), None),
         "identified": ident.as_dict() if ident is not None else None, "vehicle_params": params,
         "missed_deadlines": run["missed_deadlines"], "boot_s": round(sitl.boot_s, 1),
         "wall_s": round(time.monotonic() - t_wall, 1)}

@@ -1,10 +1,11 @@
 """When and where the station's guards stopped a run, from its status (docs/ARCHITECTURE.md section 6): the demo's
 summary and ``scmbridge report`` (which replays a recording through the demo's monitor) both say it.
 
-A guard's pause shows on the station's status as its typed reason (``left_corridor``, ``fence``, ``pose_jump``), its
-words and the pose's distance from the path (``off_path_m``). :class:`GuardLog` keeps one entry per pause (a new
-entry when the reason appears again after the mission drove on), with the latest pose at that moment: the driver
-host's stamp, so the summary can say the time from the run's first command on the same clock.
+A guard's pause shows on the station's status as its typed reason (``left_corridor``, ``fence``, ``pose_jump``,
+``outside_assumption``), its words and the pose's distance from the path (``off_path_m``). :class:`GuardLog` keeps
+one entry per pause (a new entry when the reason appears again after the mission drove on), with the latest pose at
+that moment: the driver host's stamp, so the summary can say the time from the run's first command on the same
+clock.
 """
 
 from __future__ import annotations
@@ -13,7 +14,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 #: the station's reasons that are a guard's pause (bridge.nodes.station_guards)
-GUARD_REASONS = ("left_corridor", "fence", "pose_jump")
+GUARD_REASONS = ("left_corridor", "fence", "pose_jump", "outside_assumption")
 
 
 @dataclass

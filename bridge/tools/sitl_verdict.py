@@ -20,6 +20,10 @@ guard of the station). The claims (the issue of a vehicle never tuned for, docs/
 - ``deviation``: its mean deviation over the last half of the path at most :data:`DEV_CLAIM` x the reference's;
 - ``baseline``: its last-half deviation at most :data:`BASELINE_CLAIM` x the baseline's, or the baseline collided
   or did not reach its goal (only when both ran).
+- ``assumption``: the mission inside the method's assumption for the vehicle as measured (only when the station
+  checked it: a car whose turn was measured, :mod:`transfer.feasibility`): a run the station paused as
+  ``outside_assumption`` is *outside the method's assumption*, its other claims failed for that reason, and
+  ``scmbridge bench sitl`` counts it apart.
 
 This module only judges and draws: the runs themselves are :mod:`bridge.tools.demo_sitl_run`'s.
 """
@@ -119,6 +123,13 @@ def verdicts(fields: dict[str, Any]) -> list[dict[str, Any]]:
                     "line": (f"{1e3 * d:.1f} mm over the last half, {r:.2f}x the reference's "
                              f"{1e3 * ref_d:.1f} mm (claim <= {DEV_CLAIM:g}x)") if r is not None
                     else "not measured (the run did not reach the path's last half)"})
+    outside = fields.get("outside_assumption")
+    if outside:
+        out.insert(0, {"claim": "assumption", "ok": False, "line": f"{name}: stopped inside its corridor, {outside}"})
+    elif fields.get("assumption_checked"):
+        out.insert(0, {"claim": "assumption", "ok": True,
+                       "line": f"{name}: the mission's path is inside the method's assumption for the vehicle as "
+                               "measured"})
     if subject == "learner":
         if "baseline_reached_goal" not in fields:
             out.append({"claim": "baseline", "ok": None, "line": "not judged (no baseline run)"})
@@ -139,8 +150,11 @@ def verdicts(fields: dict[str, Any]) -> list[dict[str, Any]]:
 
 
 def verdict_text(v: dict[str, Any]) -> str:
-    """``verdict time: PASS 40.2 s, 1.10x ...`` (``n/a`` where it could not be judged)."""
+    """``verdict time: PASS 40.2 s, 1.10x ...`` (``n/a`` where it could not be judged; ``OUTSIDE`` for a mission
+    outside the method's assumption)."""
     word = {True: "PASS", False: "FAIL", None: "n/a"}[v["ok"]]
+    if v["claim"] == "assumption" and v["ok"] is False:
+        word = "OUTSIDE"
     return f"verdict {v['claim']}: {word} {v['line']}"
 
 

@@ -503,7 +503,8 @@ def _demo_with_a_change(out: Path, args: list[str], name: str, value: float, at:
     ``at`` s of its first drive, the goal was reached without a collision, and the limits before and after are known."""
     with Children() as kids:
         demo = kids.spawn(["demo", "--link", "mavlink", "--sitl", str(_sitl_binary()), "--sitl-params", str(WEAK_PARM),
-                           "--transfer", "on", "--adapt", "--reference", "none", *args, "--out", str(out)],
+                           "--transfer", "on", "--adapt", "--reference", "none", "--no-identify", *args, "--out",
+                           str(out)],  # the range read from the parameters, as these figures were measured
                           subprocess.PIPE)
         try:
             stdout, _ = demo.communicate(timeout=timeout)

@@ -22,3 +22,31 @@ def test_the_automatic_reference_is_the_stock_rover_bounded_by_what_the_run_lear
     assert float(got["WP_SPEED"]) == pytest.approx(0.6) and float(got["ATC_STR_RAT_MAX"]) == pytest.approx(45.0)
     ack = reference_parm("rover", {"v": [0.05, 0.36], "w": [-0.2, 0.2]}, {**params, "WP_SPEED": 0.6})
     assert "ATC_STR_RAT_FF 1.5" in ack and "ATC_STR_RAT_MAX 30.0" in ack  # its command range, the loop raised
+
+
+def test_the_runs_duration_waits_for_its_first_command_or_a_guards_stop_not_for_the_start_up() -> None:
+    """A first start compiles the MPC's kernels: the run's --duration begins at its first command driven (the
+    station and the driver host are given STARTUP_S more), and a mission a guard stopped before any command (outside
+    the method's assumption) is not waited for."""
+    import threading
+    import time
+    from types import SimpleNamespace
+
+    from bridge.core import wire as M
+    from bridge.tools.demo_sitl_run import STARTUP_S, started
+    from bridge.tools.guard_log import GuardLog
+    from bridge.tools.procs import Children
+
+    assert STARTUP_S >= 60
+    with Children() as kids:
+        mon = SimpleNamespace(driving=threading.Event(), guards=GuardLog())
+        threading.Timer(0.3, mon.driving.set).start()  # the first command, once the station is up
+        assert started(mon, kids, 10.0) is True
+        mon = SimpleNamespace(driving=threading.Event(), guards=GuardLog())
+        mon.guards.note(M.Status(stamp=0.0, seq=1, node="station", ok=False, state="paused",
+                                 reason="outside_assumption", text="paused: outside"), None)
+        t0 = time.monotonic()
+        assert started(mon, kids, 10.0) is False and time.monotonic() - t0 < 2.0
+        t0 = time.monotonic()
+        assert started(SimpleNamespace(driving=threading.Event(), guards=GuardLog()), kids, 0.5) is False
+        assert 0.4 < time.monotonic() - t0 < 5.0

@@ -82,3 +82,16 @@ def test_a_trajectory_moves_rigidly_into_another_runs_frame() -> None:
     np.testing.assert_allclose(V.into_frame(traj, (1.0, 2.0, 0.5), (1.0, 2.0, 0.5)), traj)
     moved = V.into_frame(traj, (1.0, 2.0, 0.0), (0.0, 0.0, math.pi / 2))
     np.testing.assert_allclose(moved[:, :2], [[0.0, 0.0], [0.0, 1.0]], atol=1e-12)
+
+
+def test_a_run_stopped_outside_the_methods_assumption_says_so_and_a_checked_one_passes() -> None:
+    text = "paused: outside the method's assumption: the path bends left at 0.73 rad/m (7.2 m along it); ..."
+    out = by_claim(fields(learner_reached_goal=False, learner_time_s=None, outside_assumption=text,
+                          assumption_checked=True))
+    assert out["assumption"]["ok"] is False and "stopped inside its corridor" in out["assumption"]["line"]
+    assert "0.73 rad/m" in out["assumption"]["line"]
+    assert V.verdict_text(out["assumption"]).startswith("verdict assumption: OUTSIDE ")
+    assert V.worked(list(out.values())) is False
+    inside = by_claim(fields(assumption_checked=True))
+    assert inside["assumption"]["ok"] is True and V.worked(list(inside.values())) is True
+    assert "assumption" not in by_claim(fields())  # nothing measured of the turn: nothing said
