@@ -214,7 +214,8 @@ def test_template_units_run_the_installed_command_for_the_instance_robot(kind: s
     assert unit["Restart"] == ["on-failure"] and unit["KillSignal"] == ["SIGTERM"]
     assert "%i" in unit["Description"][0]
     if kind == "station":  # one pair store per robot, whatever a copied configuration says
-        assert "--store /var/lib/scmbridge/pairs-%i.bin" in cmd and unit["StateDirectory"] == ["scmbridge"]
+        assert "--store /var/lib/scmbridge/pairs-%i.bin" in cmd
+        assert unit["StateDirectory"] == ["scmbridge scmbridge-record"]  # the latch record outside the state dir
     # every option is one the command takes
     helptext = subprocess.run([sys.executable, "-m", "bridge", kind, "--help"], capture_output=True, text=True,
                               timeout=60).stdout
@@ -227,7 +228,7 @@ def test_the_shard_unit_serves_the_hosts_robots_from_the_shared_fleet_file() -> 
     (cmd,) = unit["ExecStart"]
     assert cmd.startswith(f"{INSTALLED} station ") and "--shard %i" in cmd
     assert "--config /etc/scmbridge/fleet.toml" in cmd and "--start" not in cmd
-    assert unit["Type"] == ["notify"] and unit["StateDirectory"] == ["scmbridge"]
+    assert unit["Type"] == ["notify"] and unit["StateDirectory"] == ["scmbridge scmbridge-record"]
     helptext = subprocess.run([sys.executable, "-m", "bridge", "station", "--help"], capture_output=True, text=True,
                               timeout=60).stdout
     for opt in re.findall(r"(?<=\s)--[a-z][a-z0-9-]*", cmd):
