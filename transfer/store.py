@@ -233,11 +233,9 @@ class PairStore:
         self.sum_L[cell] += l_n
         self.sum_LL[cell] += l_n * l_n
         self.sum_TL[cell] += t_n * l_n
-        tracking = False
-        if self.adapt:  # the refined pair follows the cell's recent pairs (a small change: module docstring)
-            tracking, moved = self._track(cell, t_n, l_n)
-            refined_changed |= moved
-        if self.count[cell] >= self.k_min and not tracking:
+        if self.adapt:  # the cell's relation follows its recent pairs (a small change: module docstring)
+            self._track(cell, t_n, l_n)
+        if self.count[cell] >= self.k_min:
             mT, mL = self.cluster_mean(cell)
             mT = mT + self.prov[cell]  # a provisional shift (a shared change) stays until the cell's pairs decide
             moved = max(np.max(np.abs(mT - self.pub_T[cell])), np.max(np.abs(mL - self.pub_L[cell])))
@@ -329,9 +327,14 @@ class PairStore:
         self.recent_T[cell][k], self.recent_L[cell][k] = t_n, l_n
         self.recent_n[cell] += 1
 
-    def _track(self, cell: tuple[int, int], t_n: NDArray[np.float64], l_n: NDArray[np.float64]) -> tuple[bool, bool]:
-        """A small change (module docstring): the raw pair into the cell's recent mean, which the refined pair then
-        follows or not; returns (whether it follows, whether it moved). Scalar arithmetic in the arrays' order."""
+    def _track(self, cell: tuple[int, int], t_n: NDArray[np.float64], l_n: NDArray[np.float64]) -> None:
+        """A small change (module docstring): the raw pair into the cell's recent mean; where the relation the cell's
+        pairs give (their mean moved along the cell's slope) is more than ``move_tol`` off at that recent mean, the
+        cell's pairs move by that offset on the teacher axes (their sums: the slope and the learner parts stay), so
+        that its refined pair (their mean, as in the paper) holds the relation as it is now. The learner part of a
+        refined pair stays the mean of every pair of its cell: a refined pair that moved to where the robot drove
+        last bunched the triangles and cost the paper's case its deviation with nothing changed (docs/PAPER.md, "a
+        learner that changes"). Scalar arithmetic in the arrays' order."""
         n = self.track_n[cell] = self.track_n[cell] + 1
         q = TRACK_SIGMAS / self.move_tol  # its noise within move_tol / q: a mean of m pairs has 1 / (2 m - 1) of theirs
         w = 1.0 / min(n, max(self.k_min, 0.5 + 0.5 * max(self._noise2(cell).tolist()) * (q * q)))
@@ -342,16 +345,16 @@ class PairStore:
             eT[a] = eT[a] + w * (t[a] - eT[a])
             eL[a] = eL[a] + w * (l[a] - eL[a])
         tT[:], tL[:] = eT, eL
-        if not (n >= self.k_min and self.pub_version[cell] > 0 and not self.prov[cell].any()):
-            return False, False
-        pT, pL = self.pub_T[cell].tolist(), self.pub_L[cell].tolist()
+        c = int(self.count[cell])
+        if not (n >= self.k_min and c >= self.k_min and self.pub_version[cell] > 0 and not self.prov[cell].any()):
+            return
+        sT, sL = self.sum_T[cell].tolist(), self.sum_L[cell].tolist()
         sl = self._slope(cell).tolist()
-        if max(abs(eT[a] - pT[a] - (eL[a] - pL[a]) * sl[a]) for a in (0, 1)) <= self.move_tol:
-            return True, False
-        self.pub_T[cell], self.pub_L[cell] = eT, eL
-        self.pub_version[cell] += 1
-        self._refined_set_changed()
-        return True, True
+        d = [eT[a] - (sT[a] + (c * eL[a] - sL[a]) * sl[a]) / c for a in (0, 1)]
+        if max(abs(d[0]), abs(d[1])) <= self.move_tol:
+            return
+        self.sum_T[cell] += np.array(d) * c
+        self.sum_TL[cell] += np.array(d) * self.sum_L[cell]
 
     def _recent(self, cell: tuple[int, int]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         """The cell's last raw pairs, oldest first (teacher parts, learner parts)."""
