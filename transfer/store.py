@@ -51,10 +51,12 @@ A change smaller than ``change_tol`` is never found by the test; the refined pai
 *A small change* (a new floor: 0.3-1.3 % of the teacher's range on the cells a mission drives, below ``change_tol``,
 which cannot go lower without re-learning the cells' own shape). With ``adapt`` each cell keeps a recency-weighted mean
 of its raw pairs (weight 1 / m; m is k_min, or as many pairs as keep its noise within ``move_tol`` / ``TRACK_SIGMAS``),
-and once it holds k_min pairs (no provisional shift pending) the refined pair follows it: moved to it whenever the
-relation the refined pair and the cell's slope give there is more than ``move_tol`` off. With no change they stay as
-near the learner as the paper's at one command; from no pairs a cell keeps its first k_min pairs' mean while they agree,
-where the paper's moves to the mean of all. The change test, its sums and the limits ignore it.
+and once it holds k_min pairs (no provisional shift pending) the cell's relation follows it: where the relation its
+pairs give (their mean moved along the cell's slope) is more than ``move_tol`` off at that recent mean, the cell's pairs
+move by the offset on the teacher axes (their sums; the slope stays), so its refined pair, the mean of its pairs as in
+the paper, holds the relation as it is now. The learner part of a refined pair is never moved by it: one that moved to
+the recent pairs' mean sat where the robot drove last and bunched the map's triangles, which cost the paper's case its
+deviation with nothing changed (docs/PAPER.md). The change test then tests against the moved relation.
 """
 
 from __future__ import annotations
@@ -328,13 +330,8 @@ class PairStore:
         self.recent_n[cell] += 1
 
     def _track(self, cell: tuple[int, int], t_n: NDArray[np.float64], l_n: NDArray[np.float64]) -> None:
-        """A small change (module docstring): the raw pair into the cell's recent mean; where the relation the cell's
-        pairs give (their mean moved along the cell's slope) is more than ``move_tol`` off at that recent mean, the
-        cell's pairs move by that offset on the teacher axes (their sums: the slope and the learner parts stay), so
-        that its refined pair (their mean, as in the paper) holds the relation as it is now. The learner part of a
-        refined pair stays the mean of every pair of its cell: a refined pair that moved to where the robot drove
-        last bunched the triangles and cost the paper's case its deviation with nothing changed (docs/PAPER.md, "a
-        learner that changes"). Scalar arithmetic in the arrays' order."""
+        """A small change (module docstring): the raw pair into the cell's recent mean; the cell's pairs moved on the
+        teacher axes by the relation's offset there, beyond ``move_tol``. Scalar arithmetic in the arrays' order."""
         n = self.track_n[cell] = self.track_n[cell] + 1
         q = TRACK_SIGMAS / self.move_tol  # its noise within move_tol / q: a mean of m pairs has 1 / (2 m - 1) of theirs
         w = 1.0 / min(n, max(self.k_min, 0.5 + 0.5 * max(self._noise2(cell).tolist()) * (q * q)))
