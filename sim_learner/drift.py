@@ -34,10 +34,10 @@ S's right bends are driven wide whatever the map and the store (docs/PAPER.md, "
 on the unchanged learner (the paper's store); the next day's learner has changed meanwhile (the scenario's change, whole
 from the start of the run: the battery at its end, the wheel dragging, the new floor, the payload scenario's learner
 after its change, whose acceleration is limited where yesterday's was not; ``none``: unchanged) and drives the same
-world from that store twice, re-learning its changed cells (a station's default for a store it reloads, ``[transfer]
-adapt = "reloaded"``) and not (the paper's store). Its summary gives each run's ``dev_m`` and ``dev_last_half_m`` (mean
-distance to the path over the run and over its second half), ``time_s``, ``reached_goal``, ``collisions`` and
-``relearned`` (and ``edges_relearned``).
+world from that store twice, re-learning its changed cells (a station's default, ``[transfer] adapt``, for a store it
+reloads as for one it learns from no pairs) and not (the paper's store). Its summary gives each run's ``dev_m`` and
+``dev_last_half_m`` (mean distance to the path over the run and over its second half), ``time_s``, ``reached_goal``,
+``collisions`` and ``relearned`` (and ``edges_relearned``).
 """
 
 from __future__ import annotations

@@ -208,21 +208,21 @@ class _PolicyBase:
         """The best unperturbed learner command: (learner units, method, region, gap to the learned region)."""
         lb = self.store.learner_bounds
         region = self._along_limit(t_n) or self._map_chain(t_n)
-        if region is not None:
-            (l_n, method, ids), gap = region, 0.0
+        if region is not None:  # beyond a limit's row (``adapt``): the gap of the other axis' estimate, if any
+            (l_n, method, ids), gap = region[:3], (region[3] if len(region) > 3 else 0.0)
         else:
             l_n, method, ids, gap = self._estimate(t, t_n)
         return lb.clip(lb.denormalise(l_n)), method, ids, gap
 
-    def _along_limit(self, t_n: NDArray[np.float64]) -> tuple[NDArray[np.float64], str, Region] | None:
+    def _along_limit(self, t_n: NDArray[np.float64]) -> tuple | None:
         """A command saturated at a learned limit whose boundary has been driven (a bounded controller's commands
         sit exactly there): the learner's extreme on that axis, and on the other the linear interpolation between
         the two neighbouring refined pairs of the boundary row of cells on that side. Those pairs are (nearly)
         collinear in the teacher domain, so the 2-D regions along the limit are slivers whose maps are
         ill-conditioned; along the row the map is one-dimensional. None when ``t_n`` is not at such a limit, or lies
-        beyond the row's pairs (with ``adapt``: the extreme, the other axis mapped: the limit keeps its boundary
-        pairs coming). A learner that cannot turn in place has its curvature at ``t_n``'s speed as its yaw-rate
-        limit (``turn_edges_at``): commands there go to the full lock, which keeps it learned."""
+        beyond the row's pairs (with ``adapt``: the extreme, the other axis mapped, and that map's gap, explored as
+        without: the limit keeps its boundary pairs coming). A learner that cannot turn in place has its curvature at
+        ``t_n``'s speed as its yaw-rate limit (``turn_edges_at``): commands there go to the full lock."""
         arrays = self.store.refined_arrays()
         ids, _, T, L = arrays
         if ids.size < 2:
@@ -243,7 +243,7 @@ class _PolicyBase:
                     if not self.store.adapt:
                         continue
                     got = self._map_chain(t_n) or self._estimate(self.store.teacher_bounds.denormalise(t_n), t_n)
-                    return np.where(np.arange(2) == a, extreme, got[0]), got[1], got[2]
+                    return np.where(np.arange(2) == a, extreme, got[0]), got[1], got[2], *got[3:]  # explored as ever
                 k = min(max(int(np.searchsorted(xs, x, side="right")), 1), on_row.size - 1)
                 i0, i1 = on_row[k - 1], on_row[k]
                 span = T[i1, b] - T[i0, b]

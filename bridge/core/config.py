@@ -170,8 +170,8 @@ class TransferSection(Cfg):
         "re-learn a cell whose learner changed (a sagging battery, a dragging wheel, a new floor; docs/PAPER.md, "
         "'a learner that changes'): true, always; \"reloaded\", when the station starts on a saved store that "
         "holds refined pairs (a store learned on another day, or before a restart, is checked cell by cell against "
-        "today's pairs); false, never (the paper's store). Learning from no pairs it costs the paper's case about 14 % "
-        "of last-half deviation, which is why \"reloaded\" leaves it off then")] = "reloaded"
+        "today's pairs); false, never (the paper's store). On by default from the first run: where nothing changes "
+        "it costs the paper's case nothing measurable (docs/PAPER.md)")] = True
     # = transfer.store.CHANGE_TOL, repeated for the same reason as fill_budget
     change_tol: Annotated[float, meta(
         "adapt: a cell's recent pairs this far from its refined pair (share of the teacher's range) mean its learner "

@@ -179,12 +179,13 @@ def test_the_stations_change_detection_defaults_are_the_stores() -> None:
 
 @pytest.mark.parametrize(("adapt", "fresh", "reloaded"), [("reloaded", False, True), (True, True, True),
                                                           (False, False, False)])
-def test_a_station_adapts_a_store_it_reloads_by_default(adapt, fresh: bool, reloaded: bool) -> None:
-    """``[transfer] adapt``: "reloaded" (the default) re-learns changed cells of a saved store the station starts on,
-    not while it learns from no pairs; true and false say always and never. A typo is refused with the choices."""
+def test_a_station_adapts_from_its_first_run_by_default(adapt, fresh: bool, reloaded: bool) -> None:
+    """``[transfer] adapt``: true (the default) re-learns changed cells always, also while the station learns from
+    no pairs; "reloaded" only those of a saved store the station starts on; false never. A typo is refused with the
+    choices."""
     t = msgspec.convert({"adapt": adapt}, C.TransferSection)
     assert (t.adapts(reloaded=False), t.adapts(reloaded=True)) == (fresh, reloaded)
-    assert C.TransferSection().adapt == "reloaded"
+    assert C.TransferSection().adapt is True
     with pytest.raises(msgspec.ValidationError, match="adapt"):
         msgspec.convert({"adapt": "yes"}, C.TransferSection)
 

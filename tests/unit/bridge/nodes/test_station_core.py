@@ -185,10 +185,10 @@ def test_a_driver_host_restart_pauses_a_running_mission(tmp_path, restart_seq: i
 
 
 def test_a_store_learned_on_another_day_is_checked_against_todays_pairs_by_default(tmp_path) -> None:
-    """``[transfer] adapt = "reloaded"`` (the default): the station loads yesterday's store, saved without change
+    """``[transfer] adapt = true`` (the default): the station loads yesterday's store, saved without change
     detection, and the cells whose learner answers otherwise today (a dragging wheel: 15 % of the yaw-rate range) are
-    re-learned from today's pairs and counted on the status; ``adapt = false`` keeps the paper's store, and a station
-    learning from no pairs keeps it too unless ``adapt = true``."""
+    re-learned from today's pairs and counted on the status; ``adapt = false`` keeps the paper's store; a station
+    learning from no pairs adapts too, unless ``adapt = "reloaded"``."""
     import msgspec
 
     from transfer.store import PairStore
@@ -225,9 +225,10 @@ def test_a_store_learned_on_another_day_is_checked_against_todays_pairs_by_defau
     off = StationCore(never, "r2", 10.0, tmp_path / "p.bin", load_mission())
     assert not off.store.adapt and off.store.limits.memory == 0  # the paper's never-forgetting store
     fresh = StationCore(cfg, "r3", 10.0, tmp_path / "new.bin", load_mission())
-    assert not fresh.store.adapt  # from no pairs: the paper's store (what adapt costs there: docs/PAPER.md)
-    always = msgspec.convert({"transfer": {"adapt": True}}, StationConfig)
-    assert StationCore(always, "r4", 10.0, tmp_path / "new2.bin", load_mission()).store.adapt
+    assert fresh.store.adapt and fresh.store.limits.memory > 0  # from no pairs too: a first run's change is followed
+    reloaded = msgspec.convert({"transfer": {"adapt": "reloaded"}}, StationConfig)
+    assert not StationCore(reloaded, "r4", 10.0, tmp_path / "new2.bin", load_mission()).store.adapt
+    assert StationCore(reloaded, "r5", 10.0, tmp_path / "p.bin", load_mission()).store.adapt
 
 
 def test_a_learned_limit_whose_boundary_pairs_changed_is_logged_and_counted_on_the_status(tmp_path, caplog) -> None:
