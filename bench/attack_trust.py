@@ -294,8 +294,73 @@ def udp_stops_dropped(short: bool) -> Result:
             "ok": driving and counters["expired_stops"] >= 1 and counters["watchdog_stops"] == 0 and moved < 0.15}
 
 
+#: the bad queries a second of :func:`acts_flood_one_identity` (the rate of the hostile test's finding)
+BAD_QUERIES_HZ = 2000.0
+
+
+def acts_flood_one_identity(short: bool) -> Result:
+    """One identity floods the driver host with fresh, addressed acts (4096 engage queries as ``mallory``, each a
+    valid act for this start, none awaited) and bad queries (garbage on the engage key, :data:`BAD_QUERIES_HZ` a
+    second) while a station drives; then the person estops, releases and engages. bridge/core/acts.py keeps a budget
+    per source and always admits the configured persons, so the flood refuses only the flooder. before (one nonce
+    table for every source): the person's release and engage were refused as "flooded" (docs/SECURITY.md).
+    The estop's first stop under the bad queries is reported beside it (``first_stop_ms``)."""
+    from bridge.core import wire as M
+    from bridge.core.acts import stamped
+
+    n = 4096
+    with _Restartable() as rig, _Station(rig, 0.3):
+        addr = rig.address()
+        t_e = time.monotonic()
+        ans = rig.engage(M.encode(stamped(M.EngageRequest(stamp=1.0, source="operator"), addr)))
+        driving = bool(ans and ans.engaged) and until(lambda: any(a.v != 0.0 for a in rig.since(t_e)), 2.0)
+        pending = [rig.attacker.get(rig.keys.engage, timeout=2.0, payload=M.encode(stamped(
+            M.EngageRequest(stamp=1.0, source="mallory"), addr))) for _ in range(n)]
+        stop = threading.Event()
+        bad = [0]
+
+        def garbage() -> None:  # BAD_QUERIES_HZ, paced (the rate the hostile test measured at)
+            t_next = time.monotonic()
+            while not stop.is_set():
+                rig.attacker.get(rig.keys.engage, timeout=0.5, payload=os.urandom(40))
+                bad[0] += 1
+                t_next += 1.0 / BAD_QUERIES_HZ
+                if (wait := t_next - time.monotonic()) > 0:
+                    time.sleep(wait)
+
+        flooder = threading.Thread(target=garbage, name="attack-bad-queries", daemon=True)
+        flooder.start()
+        try:
+            time.sleep(0.3)  # the bad queries under way
+            t0 = time.monotonic()
+            rig.attacker.put(rig.keys.estop, M.encode(M.Estop(stamp=1.0, source="operator", reason="flood")))
+            stopped = until(lambda: any(a.v == 0.0 for a in rig.since(t0)), 2.0)
+            first = next((t for t, a in list(rig.applied) if t > t0 and a.v == 0.0), None)
+            first_stop_ms = round((first - t0) * 1000.0, 1) if first is not None else None
+            until(lambda: rig.host.gate.estopped, 2.0)
+            rate = bad[0] / max(time.monotonic() - t0 + 0.3, 1e-3)
+            rig.attacker.put(rig.keys.estop, M.encode(stamped(M.Estop(stamp=1.0, engaged=False, source="operator"),
+                                                              rig.address())))
+            released = until(lambda: not rig.host.gate.estopped, 2.0)
+            ans = rig.engage(M.encode(stamped(M.EngageRequest(stamp=1.0, source="operator"), rig.address())))
+        finally:
+            stop.set()
+            flooder.join(timeout=5.0)
+        for h in pending:  # drain the flood's answers (bounded: each query has its timeout)
+            with contextlib.suppress(Exception):
+                for _ in h:
+                    pass
+        refused = {k: v for k, v in rig.host.inputs.snapshot().items() if "refused" in k and v}
+        engaged = bool(ans and ans.engaged)
+    return {"reached_vehicle": None, "learned": None,
+            "person": {"released": released, "engaged": engaged, "said": (ans.text if ans is not None else "")[:100]},
+            "estop": {"stopped": stopped, "first_stop_ms": first_stop_ms, "bad_queries_per_s": round(rate)},
+            "flood": n, "refused": refused, "control_drove_before": driving,
+            "ok": driving and stopped and released and engaged and first_stop_ms is not None and first_stop_ms < 500.0}
+
+
 TRUST_ATTACKS: dict[str, Callable[[bool], Result]] = {
     f.__name__: f for f in (acts_replayed_after_restart, latch_files_turned_against_host, estop_all_fake_peers,
-                            udp_stops_dropped)}
+                            udp_stops_dropped, acts_flood_one_identity)}
 
 __all__ = ["TRUST_ATTACKS"]

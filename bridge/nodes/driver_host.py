@@ -227,8 +227,10 @@ class DriverHost:
             if why is None:
                 self.engage_queries.append((query, req))
         if why is not None:
-            self.inputs.count(f"engage_refused_{why.kind}")
-            (log.debug if why.kind == "unaddressed" else log.warning)("engage by %r %s", req.source, why.text)
+            n = self.inputs.count(f"engage_refused_{why.kind}")
+            if n & (n - 1) == 0:  # the 1st, 2nd, 4th, 8th... of a kind: a flood of acts logs a dozen lines, not 4000
+                (log.debug if why.kind == "unaddressed" else log.warning)(
+                    "engage by %r %s (%d refused so; counter engage_refused_%s)", req.source, why.text, n, why.kind)
             query.reply(self.keys.engage, M.encode(M.EngageState(
                 stamp=time.monotonic(), node=f"driver-{self.link}", engaged=self.engaged, accepted=False,
                 text=why.text[:1024], epoch=self.acts.epoch)))

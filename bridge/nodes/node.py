@@ -56,9 +56,11 @@ class Inputs:
         self.counts: Counter[str] = Counter()
         self.declared = Declared()
 
-    def count(self, name: str, n: int = 1) -> None:
+    def count(self, name: str, n: int = 1) -> int:
+        """Add ``n`` to counter ``name``; its new value."""
         with self.lock:
             self.counts[name] += n
+            return self.counts[name]
 
     def snapshot(self) -> dict[str, int]:
         with self.lock:
