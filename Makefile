@@ -59,9 +59,10 @@ demo: $(STAMP)
 # The suite mostly waits on real time (stations at 10 Hz, links, deadmen): four workers share two cores well (the
 # tests use about 0.9 of a core between them). worksteal: xdist first hands each worker a contiguous share of the tests,
 # and a worker whose share ends early takes over half of the busiest one's; tests/conftest.py spreads the slow tests.
-# 2081 tests in 3 min 52 s on a quiet machine (7 min 23 s with three workers and the default distribution).
+# The suite's time on a fresh clone: docs/BENCHMARKS.md, "The test suite".
 TEST_WORKERS ?= 4
-# The tests against ArduPilot's Rover SITL are `make test-sitl` (about a minute): each boots its own SITL.
+# The tests against ArduPilot's Rover SITL are `make test-sitl` (several minutes: each boots its own SITL and the
+# generated profiles drive whole missions).
 SITL_WORKERS ?= 3
 test: $(STAMP)
 	$(VENV)/bin/ruff check .
