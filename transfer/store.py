@@ -61,6 +61,7 @@ changed (docs/PAPER.md). The change test, its sums and the limits ignore the off
 
 from __future__ import annotations
 
+import math
 import zlib
 from dataclasses import dataclass
 
@@ -217,7 +218,7 @@ class PairStore:
         """Add one raw pair (teacher equivalent, learner command actually applied)."""
         t = np.asarray(u_T_bar, dtype=float).reshape(2)
         lcmd = np.asarray(u_L, dtype=float).reshape(2)
-        if not (np.all(np.isfinite(t)) and np.all(np.isfinite(lcmd))):
+        if not all(map(math.isfinite, (*t.tolist(), *lcmd.tolist()))):
             raise ValueError(f"command pair must be finite, got u_T={t}, u_L={lcmd}")
         t_n = self.teacher_bounds.normalise(t)
         l_n = np.clip(self.learner_bounds.normalise(lcmd), 0.0, 1.0)
@@ -241,7 +242,7 @@ class PairStore:
         if self.count[cell] >= self.k_min:
             mT, mL = self.cluster_mean(cell)
             mT = mT + self.prov[cell] + self.follow[cell]  # a shared change's provisional shift, a small change
-            moved = max(np.max(np.abs(mT - self.pub_T[cell])), np.max(np.abs(mL - self.pub_L[cell])))
+            moved = max(abs(d) for d in (*(mT - self.pub_T[cell]).tolist(), *(mL - self.pub_L[cell]).tolist()))
             if self.pub_version[cell] == 0 or moved > self.move_tol:
                 self.pub_T[cell], self.pub_L[cell] = mT, mL
                 self.pub_version[cell] += 1
@@ -256,6 +257,10 @@ class PairStore:
         raw pairs, each axis alone, pulled towards the slope between its refined neighbours on that axis (or the
         identity response's, where it has none) as if ``k_min`` more pairs had spread a quarter cell around its mean:
         a cell whose pairs all lie at one command knows no slope of its own."""
+        return np.array(self._slope_list(cell))
+
+    def _slope_list(self, cell: tuple[int, int]) -> list[float]:
+        """:meth:`_slope` as a list of two floats (what the per-pair tests read)."""
         n = int(self.count[cell])
         grid = self.grid
         prior = list(self._prior)  # a learner that does what it is told
@@ -264,20 +269,21 @@ class PairStore:
         # scalar arithmetic (two axes: numpy's per-call overhead was most of the cost), in the arrays' order
         for a, lo, hi in ((0, (i - 1, j), (i + 1, j)), (1, (i, j - 1), (i, j + 1))):
             if lo[a] >= 0 and hi[a] < grid[a] and pv[lo] > 0 and pv[hi] > 0:
-                dL = float(pL[hi][a] - pL[lo][a])
+                dL = float(pL[hi + (a,)] - pL[lo + (a,)])
                 if abs(dL) > 0.5 / grid[a]:
-                    prior[a] = float(pT[hi][a] - pT[lo][a]) / dL
+                    prior[a] = float(pT[hi + (a,)] - pT[lo + (a,)]) / dL
         if n == 0:
-            return np.array(prior)
+            return prior
+        sT, sL, sLL, sTL = (x[cell].tolist() for x in (self.sum_T, self.sum_L, self.sum_LL, self.sum_TL))
         out = [0.0, 0.0]
         for a in (0, 1):
-            mL = float(self.sum_L[cell][a]) / n
-            sxx = float(self.sum_LL[cell][a]) - n * mL * mL
-            sxy = float(self.sum_TL[cell][a]) - n * mL * (float(self.sum_T[cell][a]) / n)
+            mL = sL[a] / n
+            sxx = sLL[a] - n * mL * mL
+            sxy = sTL[a] - n * mL * (sT[a] / n)
             q = 0.25 / float(grid[a])
             lam = self.k_min * (q * q)
             out[a] = (sxy + lam * prior[a]) / (max(sxx, 0.0) + lam)
-        return np.array(out)
+        return out
 
     def _residual(self, cell: tuple[int, int], t_n: NDArray[np.float64], l_n: NDArray[np.float64]) -> NDArray:
         """How far a raw pair's teacher part is from what the cell's pairs so far say for its learner part (their
@@ -308,20 +314,41 @@ class PairStore:
         alarms were all in such cells), and a learner whose response depends on its history (an acceleration limit
         that binds) shows in a cell's own estimate how far its pairs scatter. A pair that does not alarm updates the
         noise estimates."""
-        r = self._residual(cell, t_n, l_n)
-        e = self.resid[cell] = self.resid[cell] + (r - self.resid[cell]) / self.k_min
-        tested = (self.cell_noise_n[cell] >= self.k_min
-                  or (self.changes[cell] == 0 and self.count[cell] >= YOUNG_K * self.k_min))
-        if tested and np.any(np.abs(e) > self._threshold(cell)):
-            return True
+        # scalar arithmetic on the two axes, in the order the array form has (numpy's per-call overhead on 2-vectors
+        # was most of the cost of every pair added); the results are the array form's, bit for bit
+        k = self.k_min
+        c = int(self.count[cell])
+        if c == 0:
+            r = self._residual(cell, t_n, l_n).tolist()
+        else:
+            t, l = t_n.tolist(), l_n.tolist()
+            sT, sL, sl = self.sum_T[cell].tolist(), self.sum_L[cell].tolist(), self._slope_list(cell)
+            r = [t[a] - (sT[a] + (c * l[a] - sL[a]) * sl[a]) / c for a in (0, 1)]
+        old = self.resid[cell].tolist()
+        e = [old[a] + (r[a] - old[a]) / k for a in (0, 1)]
+        self.resid[cell] = e
+        cn = int(self.cell_noise_n[cell])
+        tested = cn >= k or (self.changes[cell] == 0 and c >= YOUNG_K * k)
+        if tested:
+            n2 = self.noise2.tolist()
+            if cn >= k:
+                own = self.cell_noise2[cell].tolist()
+                n2 = [max(n2[a], own[a]) for a in (0, 1)]
+            w = 1.0 / k
+            if any(abs(e[a]) > max(self.change_sigmas * math.sqrt(n2[a] * w / (2.0 - w)), self.change_tol)
+                   for a in (0, 1)):
+                return True
         # the noise is learned from the difference of a cell's consecutive residuals (half its square): a change moves
         # both alike, so a learner that changed everywhere does not pass for a noisy one and hide its own change
-        last = self.last_resid[cell]
-        if not np.any(np.isnan(last)):
-            d2 = 0.5 * (r - last) ** 2
-            self.noise2 += NOISE_WEIGHT * (d2 - self.noise2)
-            n = self.cell_noise_n[cell] = self.cell_noise_n[cell] + 1
-            self.cell_noise2[cell] += (d2 - self.cell_noise2[cell]) / min(n, CELL_NOISE_PER_K * self.k_min)
+        last = self.last_resid[cell].tolist()
+        if not (math.isnan(last[0]) or math.isnan(last[1])):
+            d2 = [0.5 * ((r[a] - last[a]) * (r[a] - last[a])) for a in (0, 1)]
+            g = self.noise2
+            g[0], g[1] = (g[0] + NOISE_WEIGHT * (d2[0] - g[0]), g[1] + NOISE_WEIGHT * (d2[1] - g[1]))
+            cn = self.cell_noise_n[cell] = cn + 1
+            m = min(cn, CELL_NOISE_PER_K * k)
+            own = self.cell_noise2[cell].tolist()
+            self.cell_noise2[cell] = [own[a] + (d2[a] - own[a]) / m for a in (0, 1)]
         self.last_resid[cell] = r
         return False
 
@@ -347,7 +374,7 @@ class PairStore:
         if not (n >= self.k_min and c >= self.k_min and self.pub_version[cell] > 0 and not self.prov[cell].any()):
             return
         sT, sL, f = self.sum_T[cell].tolist(), self.sum_L[cell].tolist(), self.follow[cell].tolist()
-        sl = self._slope(cell).tolist()
+        sl = self._slope_list(cell)
         d = [eT[a] - f[a] - (sT[a] + (c * eL[a] - sL[a]) * sl[a]) / c for a in (0, 1)]
         if max(abs(d[0]), abs(d[1])) > self.move_tol:
             self.follow[cell] += d
