@@ -25,7 +25,7 @@ from pymavlink.dialects.v20 import ardupilotmega as MAV
 from bridge.core import wire as M
 from bridge.nodes.zsession import free_port, make_config, open_session, tcp
 from bridge.tools.estop import latch_states
-from bridge.tools.procs import Children, free_udp_port
+from bridge.tools.procs import Children, free_udp_port, said
 from drivers import open_driver
 from drivers.base import DriverError
 from drivers.can import CanLinkConfig
@@ -124,8 +124,7 @@ def test_sigint_while_driving_disarms_only_once_the_rover_has_stopped(tmp_path) 
             col = Collector(session)
             status = col.listen(M.status_key(robot, "driver"), M.Status)
             host = kids.spawn(["driver", "--engage", "--link", "mavlink", "--config", _mavlink_config(tmp_path, rover),
-                               "--robot", robot, "--mode", "client", "--connect", tcp(port), "--duration", "90"],
-                              out=subprocess.DEVNULL)
+                               "--robot", robot, "--mode", "client", "--connect", tcp(port), "--duration", "90"])
             assert col.wait(lambda: status and status[-1].ok, 60), [s.text for s in status[-2:]]
             pub = session.declare_publisher(M.key(robot, "cmd"))
             seq = 0
@@ -139,9 +138,10 @@ def test_sigint_while_driving_disarms_only_once_the_rover_has_stopped(tmp_path) 
             assert speed >= 0.3, speed
             os.killpg(host.pid, signal.SIGINT)  # while the commands still come: the closing host stops it first
             assert host.wait(timeout=20) == 0
-        assert rover.disarms, "the rover was not disarmed at the end"
+            log = said(host)  # the host's own account of its close (why it disarmed when it did), for a failure
+        assert rover.disarms, f"the rover was not disarmed at the end\n{log}"
         t_disarm, v_disarm = rover.disarms[-1]
-        assert v_disarm < 0.1, f"disarmed at {v_disarm:.2f} m/s (it would coast)"
+        assert v_disarm < 0.1, f"disarmed at {v_disarm:.2f} m/s (it would coast)\n{log}"
         assert not rover.armed
     finally:
         rover.stop()
