@@ -54,6 +54,29 @@ def _replay(url: str, frames: list[tuple[float, bytes]]) -> None:
         time.sleep(0.5)  # the vehicle reads what is buffered before the connection closes (SITL drops the rest)
 
 
+def _record_takeover(sitl: Any, key: bytes) -> tuple[_Recorder, bool]:
+    """A host on ``sitl``'s driver port, signing with ``key``, takes the rover (GUIDED, armed, 1.5 s of 0.5 m/s
+    set-points at 10 Hz) while its frames are recorded; then it closes. The recording, and whether the pilot saw the
+    rover taken (GUIDED, armed, moving) before the host closed."""
+    from sim_learner.sitl import Pilot
+
+    host = Pilot(sitl.driver_url, source_system=255, source_component=HOST_COMPONENT)
+    try:
+        host.sign_with(key)
+        rec = _Recorder(host.conn.mav.file)
+        host.conn.mav.file = rec
+        host.set_mode("GUIDED")
+        host.arm(True)
+        t_end = time.monotonic() + 1.5
+        while time.monotonic() < t_end:
+            host.velocity(0.5, 0.0)
+            time.sleep(0.1)
+        took = sitl.pilot.wait(lambda s: s.armed and s.mode == "GUIDED", 3.0) and sitl.pilot.speed > 0.1
+    finally:
+        host.close()
+    return rec, took
+
+
 def replay_after_reboot(binary: str, replay_after_s: float, park: bool = True, speedup: float = 1.0) -> dict:
     """One run: SITL booted with a signing key set by the pilot; a host on the driver's port, signing with it, takes
     the rover (GUIDED, armed, 0.5 m/s for 1.5 s) while its frames are recorded; the pilot parks it (HOLD, disarmed;
@@ -62,26 +85,13 @@ def replay_after_reboot(binary: str, replay_after_s: float, park: bool = True, s
     the pilot then sees."""
     import os
 
-    from sim_learner.sitl import Pilot, Sitl
+    from sim_learner.sitl import Sitl
 
     key = os.urandom(32)
     with Sitl(binary, boot_speedup=speedup, keep_dir=False) as sitl:
         assert sitl.pilot is not None
         sitl.pilot.setup_signing(key)
-        host = Pilot(sitl.driver_url, source_system=255, source_component=HOST_COMPONENT)
-        try:
-            host.sign_with(key)
-            rec = _Recorder(host.conn.mav.file)
-            host.conn.mav.file = rec
-            host.set_mode("GUIDED")
-            host.arm(True)
-            t_end = time.monotonic() + 1.5
-            while time.monotonic() < t_end:
-                host.velocity(0.5, 0.0)
-                time.sleep(0.1)
-            took = sitl.pilot.wait(lambda s: s.armed and s.mode == "GUIDED", 3.0) and sitl.pilot.speed > 0.1
-        finally:
-            host.close()
+        rec, took = _record_takeover(sitl, key)
         recorded_at = time.monotonic()
         if park:
             sitl.pilot.set_mode("HOLD")
@@ -124,33 +134,18 @@ def sitl_replay_after_reboot(short: bool) -> Result:
             "ok": old["recording_took_the_rover"] and old["ok"]}
 
 
-
-
-
 def replay_into_fresh(binary: str, speedup: float = 1.0) -> dict:
     """The control: the same recording sent to a second SITL (its own storage) given the key just after the
     recording was made, never rebooted: whether the replay path itself takes a rover."""
     import os
 
-    from sim_learner.sitl import Pilot, Sitl
+    from sim_learner.sitl import Sitl
 
     key = os.urandom(32)
     with Sitl(binary, boot_speedup=speedup) as first:
         assert first.pilot is not None
         first.pilot.setup_signing(key)
-        host = Pilot(first.driver_url, source_system=255, source_component=HOST_COMPONENT)
-        try:
-            host.sign_with(key)
-            rec = _Recorder(host.conn.mav.file)
-            host.conn.mav.file = rec
-            host.set_mode("GUIDED")
-            host.arm(True)
-            t_end = time.monotonic() + 1.5
-            while time.monotonic() < t_end:
-                host.velocity(0.5, 0.0)
-                time.sleep(0.1)
-        finally:
-            host.close()
+        rec, _ = _record_takeover(first, key)
     recorded_at = time.monotonic()
     with Sitl(binary, boot_speedup=speedup) as second:
         assert second.pilot is not None
