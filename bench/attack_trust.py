@@ -335,7 +335,8 @@ def acts_flood_one_identity(short: bool) -> Result:
             t0 = time.monotonic()
             rig.attacker.put(rig.keys.estop, M.encode(M.Estop(stamp=1.0, source="operator", reason="flood")))
             stopped = until(lambda: any(a.v == 0.0 for a in rig.since(t0)), 2.0)
-            first = next((t for t, a in list(rig.applied) if t > t0 and a.v == 0.0), None)
+            with rig.lock:
+                first = next((t for t, a in rig.applied if t > t0 and a.v == 0.0), None)
             first_stop_ms = round((first - t0) * 1000.0, 1) if first is not None else None
             until(lambda: rig.host.gate.estopped, 2.0)
             rate = bad[0] / max(time.monotonic() - t0 + 0.3, 1e-3)
