@@ -22,8 +22,11 @@ read in one batch, a busy radio), restart the estimate from them, within a few s
 from __future__ import annotations
 
 import functools
+import threading
+import time
 from collections import deque
 from pathlib import Path
+from typing import Protocol
 
 #: a sample whose offset differs from the estimate by more than this is odd (delivery jitter is a few ms), s
 STEP = 0.05
@@ -108,3 +111,35 @@ def machine() -> str:
         boot = "noboot"
     return f"{socket.gethostname()[:55]}/{boot}"
 
+
+
+class Clock(Protocol):
+    """What a loop of bridge/nodes/ is given to tell the time and to wait (docs/ARCHITECTURE.md, "Threads and
+    clocks"): call it for the monotonic time, s; :meth:`wall` the wall clock (a date, for people and files);
+    :meth:`perf` a high-resolution counter for a duration's measurement only; :meth:`wait` an event's wait up to
+    ``timeout`` s (True: it was set). :data:`SYSTEM` is the host's; tests/fakeclock.py moves only when a test moves
+    it, so a loop's timing is tested without sleeping."""
+
+    def __call__(self) -> float: ...
+
+    def wall(self) -> float: ...
+
+    def perf(self) -> float: ...
+
+    def wait(self, event: threading.Event, timeout: float | None) -> bool: ...
+
+
+class SystemClock:
+    """The host's clocks (:class:`Clock`): the one module of the nodes that reads ``time``."""
+
+    __call__ = staticmethod(time.monotonic)
+    wall = staticmethod(time.time)
+    perf = staticmethod(time.perf_counter)
+
+    @staticmethod
+    def wait(event: threading.Event, timeout: float | None) -> bool:
+        return event.wait(timeout)
+
+
+#: the host's clocks: every node's default
+SYSTEM = SystemClock()

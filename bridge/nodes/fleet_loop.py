@@ -13,10 +13,10 @@ import logging
 import math
 import operator
 import threading
-import time
 from typing import Any, Protocol
 
 from bridge.core import wire as M
+from bridge.core.clock import SYSTEM, Clock
 
 
 class Ticked(Protocol):
@@ -124,11 +124,11 @@ class FleetLoop:
     against each other (and Zenoh's threads), which cost CPU on every hand-over and let a late tick progress slowly
     through many frames (docs/FLEET.md). Zenoh's callbacks are unchanged: they fill each robot's inbox. A robot
     whose tick raises is logged and left stopped (its driver host's deadman stops the vehicle); the others drive
-    on."""
+    on. ``clock``: the time and the waits (every reading and wait of the loop is the clock's)."""
 
     def __init__(self, stations: list[Ticked], stop: threading.Event, duration: float | None,
-                 exit_at_goal: bool, threads: int = 1) -> None:
-        self.stations, self.stop = stations, stop
+                 exit_at_goal: bool, threads: int = 1, clock: Clock = SYSTEM) -> None:
+        self.stations, self.stop, self.clock = stations, stop, clock
         self.duration, self.exit_at_goal = duration, exit_at_goal
         k = max(1, min(int(threads), len(stations)))
         self.groups = [stations[i::k] for i in range(k)]
@@ -141,7 +141,7 @@ class FleetLoop:
     def run(self) -> None:
         """Tick every robot until ``stop`` (or ``duration``, or, with ``exit_at_goal``, each robot's goal)."""
         n = len(self.stations)
-        t0 = time.monotonic()
+        t0 = self.clock()
         for i, st in enumerate(self.stations):
             st.ticker = Deadlines(st.period, t0 + i * st.period / n)
             st.begin()
@@ -159,7 +159,8 @@ class FleetLoop:
         """One thread's loop over its robots (``group``, woken by ``wake``)."""
         active = list(group)
         start = {st.robot: st.ticker.t_next for st in active}
-        linger = time.monotonic()
+        clock = self.clock
+        linger = clock()
         try:
             while active and not self.stop.is_set():
                 if wake.is_set():  # inputs to handle now; then whatever is due (a stream of wakes never starves
@@ -170,10 +171,10 @@ class FleetLoop:
                     if not active:
                         break
                 st = min(active, key=_NEXT_DEADLINE)
-                now = time.monotonic()
+                now = clock()
                 delay = st.ticker.t_next - now
                 if delay > 0:
-                    wake.wait(delay)
+                    clock.wait(wake, delay)
                     continue
                 if self.duration is not None and now - start[st.robot] >= self.duration:
                     self._finish(st, active)
@@ -188,10 +189,11 @@ class FleetLoop:
                         st.pubs["status"].put(M.encode(st.core.status(now)))
                     except Exception:  # the robot is done: its last status is a courtesy
                         log.exception("%s: final status not published", st.robot)
-                    linger = time.monotonic() + 3 * st.period  # the status reaches its subscribers
+                    linger = clock() + 3 * st.period  # the status reaches its subscribers
                     self._finish(st, active)
-            if not self.stop.is_set() and linger > time.monotonic():
-                self.stop.wait(linger - time.monotonic())
+            left = linger - clock()
+            if not self.stop.is_set() and left > 0:
+                clock.wait(self.stop, left)
         finally:
             for st in active:
                 st.end()
@@ -204,7 +206,7 @@ class FleetLoop:
             log.exception("%s: station loop failed (%s); its robot stops by its deadman, the others drive on",
                           st.robot, exc)
             return False
-        st.ticker.ticked(time.monotonic(), periodic)
+        st.ticker.ticked(self.clock(), periodic)
         return True
 
     def _woken(self, st: Ticked) -> bool:
@@ -219,7 +221,7 @@ class FleetLoop:
         else:
             ok = True
         if ok and teacher:
-            ok = self._tick(st, time.monotonic(), False)
+            ok = self._tick(st, self.clock(), False)
         if not ok:
             self.failed.append(st.robot)
             st.end()

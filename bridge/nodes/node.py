@@ -16,7 +16,6 @@ import resource
 import signal
 import sys
 import threading
-import time
 import traceback
 import tracemalloc
 from collections import Counter
@@ -29,6 +28,7 @@ import zenoh
 from msgspec import Struct
 
 from bridge.core import wire as M
+from bridge.core.clock import SYSTEM, Clock
 from bridge.nodes.zsession import Declared, make_config
 
 log = logging.getLogger("scmbridge.node")
@@ -49,9 +49,10 @@ def freeze_startup_heap() -> None:
 class Inputs:
     """Thread-safe counters of a node's inputs (``malformed_<name>``, ...), shared by its callbacks and its loop, and
     what the node declared (:attr:`declared`: its subscribers, and whatever else it keeps there), which the node
-    undeclares when it ends."""
+    undeclares when it ends. ``clock``: what stamps a sample's receipt (the node's own clock)."""
 
-    def __init__(self) -> None:
+    def __init__(self, clock: Clock = SYSTEM) -> None:
+        self.clock = clock
         self.lock = threading.Lock()
         self.counts: Counter[str] = Counter()
         self.declared = Declared()
@@ -74,8 +75,10 @@ class Inputs:
         ``Locality.REMOTE``): a node that listens on a key it publishes on, for other senders only.
         """
 
+        clock = self.clock
+
         def on_sample(sample: zenoh.Sample) -> None:
-            now = time.monotonic()
+            now = clock()
             msg = self.decode(sample, kind, name, key)
             if msg is not None:
                 handler(msg, now)
@@ -243,10 +246,12 @@ class BlockedLoop:
     gives the figures). A loop blocked on a lock, a file or a native call shows where; a process the kernel or its
     hypervisor did not run shows nothing here, since the watcher did not run either."""
 
-    def __init__(self, threshold: float, stop: threading.Event, logger: logging.Logger, frames: int = 6) -> None:
+    def __init__(self, threshold: float, stop: threading.Event, logger: logging.Logger, frames: int = 6,
+                 clock: Clock = SYSTEM) -> None:
         self.threshold = float(threshold)
         self.stop, self.log, self.frames = stop, logger, int(frames)
-        self.last = time.monotonic()
+        self.clock = clock
+        self.last = clock()
         self.reported = False
         self.ident: int | None = None
         self._done = threading.Event()
@@ -254,12 +259,12 @@ class BlockedLoop:
     def start(self) -> BlockedLoop:
         """Watch the calling thread (the loop's) from a daemon thread until ``stop`` or :meth:`done`."""
         self.ident = threading.get_ident()
-        self.last = time.monotonic()
+        self.last = self.clock()
         threading.Thread(target=self._watch, name="blocked-loop", daemon=True).start()
         return self
 
     def beat(self) -> None:
-        self.last = time.monotonic()
+        self.last = self.clock()
         self.reported = False
 
     def done(self) -> None:
@@ -275,8 +280,8 @@ class BlockedLoop:
         return " <- ".join(f"{Path(f.filename).name}:{f.lineno} {f.name}" for f in reversed(stack))
 
     def _watch(self) -> None:
-        while not (self._done.wait(self.threshold / 4) or self.stop.is_set()):
-            late = time.monotonic() - self.last
+        while not (self.clock.wait(self._done, self.threshold / 4) or self.stop.is_set()):
+            late = self.clock() - self.last
             if late > self.threshold and not self.reported:
                 self.reported = True
                 self.log.warning("loop blocked for %.2f s so far, in: %s", late, self.where())
@@ -325,15 +330,17 @@ class FixedRate:
     sent makes the periodic re-send due a period later, not at once). A periodic tick that itself ends past the next
     deadline is counted in ``missed`` and the schedule restarts from now; one late because a woken tick ran over its
     deadline is given at once and keeps the schedule (counted only when a whole period late). With a budget no tick,
-    periodic or woken, passes while it is spent: :meth:`wait` returns when one may."""
+    periodic or woken, passes while it is spent: :meth:`wait` returns when one may. ``clock``: the time and the
+    waits (its ``wait``); every reading and every wait of the scheduler is the clock's."""
 
     def __init__(self, rate_hz: float, stop: threading.Event, *, wake: threading.Event | None = None,
-                 max_hz: float | None = None, burst: int = 2, rephase: bool = False) -> None:
+                 max_hz: float | None = None, burst: int = 2, rephase: bool = False, clock: Clock = SYSTEM) -> None:
         self.period = 1.0 / float(rate_hz)
         self.stop = stop
         self.wake = wake
         self.rephase = rephase
-        self.t_next = time.monotonic()
+        self.clock = clock
+        self.t_next = clock()
         self.missed = 0
         self.late = 0.0  # s the last periodic tick came after its deadline
         self.pending = False  # woken before the deadline: the next wait keeps the same deadline
@@ -349,23 +356,26 @@ class FixedRate:
         if not was_pending:
             self.t_next += self.period
         deadline = self.t_next
-        delay = deadline - time.monotonic()
+        clock = self.clock
+        now = clock()
+        delay = deadline - now
         if delay <= 0:
             if not was_pending or -delay >= self.period:
                 self.missed += 1
-                self.t_next = time.monotonic()
+                self.t_next = now
             periodic = True
         elif wake is not None:
-            periodic = not wake.wait(delay)
+            periodic = not clock.wait(wake, delay)
+            now = clock()
         else:
-            self.stop.wait(delay)
+            clock.wait(self.stop, delay)
             periodic = True
-        now = time.monotonic()
+            now = clock()
         if self.budget is not None:
             ready = self.budget.ready_at(now)
             while ready > now and not self.stop.is_set():
-                self.stop.wait(ready - now)
-                now = time.monotonic()
+                clock.wait(self.stop, ready - now)
+                now = clock()
                 ready = self.budget.ready_at(now)
             self.budget.take(now)
             periodic = periodic or now >= deadline  # the deadline came while the budget was spent: this is it

@@ -2,7 +2,7 @@
 lock: the host calls :meth:`PoseFeed.offer_mocap` and :meth:`PoseFeed.take_mocap` under its own lock, docs/
 ARCHITECTURE.md section 4, "Threads and clocks").
 
-All of the host's stamps are its own ``time.monotonic()``, so the station pairs ``applied`` with ``state`` on one
+All of the host's stamps are its own monotonic clock, so the station pairs ``applied`` with ``state`` on one
 clock. A link's poses already are (the drivers put the vehicle's stamps on it); a motion-capture bridge's samples
 (``pose_source = "mocap"``) carry the bridge's own clock and are put on this host's with the sliding-window minimum
 of ``receipt - stamp`` (:class:`bridge.core.clock.ClockOffset`). The feed numbers what it publishes in its own

@@ -18,10 +18,10 @@ import argparse
 import json
 import logging
 import threading
-import time
 
 import zenoh
 
+from bridge.core.clock import SYSTEM, Clock
 from bridge.core.errors import UsageError
 from bridge.nodes import systemd
 from bridge.nodes.node import stop_on_signals
@@ -110,17 +110,17 @@ def run(args: argparse.Namespace) -> int:
                         "releases (the demo and tests only; a lab runs the file `scmbridge deploy acl` writes)")
         log.info("router %s: %s", session.zid(), what)
         systemd.ready(what)
-        end = None if args.duration is None else time.monotonic() + args.duration
+        end = None if args.duration is None else SYSTEM() + args.duration
         _wait(stop, end)
         systemd.stopping()
         log.info("router stopping: every client loses its link (driver hosts stop their robots by their deadman)")
     return 0
 
 
-def _wait(stop: threading.Event, end: float | None) -> None:
-    """Until ``stop`` is set (a signal) or ``end`` (monotonic) has passed."""
+def _wait(stop: threading.Event, end: float | None, clock: Clock = SYSTEM) -> None:
+    """Until ``stop`` is set (a signal) or ``end`` (on ``clock``) has passed."""
     while not stop.is_set():
-        left = None if end is None else end - time.monotonic()
+        left = None if end is None else end - clock()
         if left is not None and left <= 0:
             return
-        stop.wait(1.0 if left is None else min(left, 1.0))
+        clock.wait(stop, 1.0 if left is None else min(left, 1.0))

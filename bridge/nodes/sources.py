@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import functools
 import logging
-import time
 from dataclasses import dataclass
 from typing import Any, Literal, Protocol
 
@@ -22,6 +21,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from bridge.core import wire as M
+from bridge.core.clock import SYSTEM, Clock
 from bridge.core.config import StationConfig
 from transfer.calibration import CalibrationPlan
 from transfer.domain import Bounds
@@ -149,14 +149,15 @@ class MpcSource:
     follows_mission = True
     external = False
 
-    def __init__(self, teacher) -> None:
+    def __init__(self, teacher, clock: Clock = SYSTEM) -> None:
         self.teacher = teacher  # transfer.teacher.mpc.MpcTeacher (imported lazily: casadi)
+        self.clock = clock  # its perf counter measures the solve
 
     def propose(self, now: float, pose: M.LearnerState, ctx: SourceContext) -> Proposal:
         x = _pose(pose)
-        t0 = time.perf_counter()
+        t0 = self.clock.perf()
         res = self.teacher.solve(x, ctx.mission.path, ctx.box(), ctx.mission.obstacles, curvature=ctx.curvature())
-        solve_ms = (time.perf_counter() - t0) * 1e3
+        solve_ms = (self.clock.perf() - t0) * 1e3
         ctx.counters.obstacles_dropped += res.obstacles_dropped
         return Proposal(np.asarray(res.u, dtype=float), x, res.predicted, solver=res.solver, ok=res.ok,
                         solve_ms=solve_ms)

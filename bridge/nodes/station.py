@@ -34,7 +34,6 @@ import argparse
 import logging
 import sys
 import threading
-import time
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -44,6 +43,7 @@ import zenoh
 from bridge.core import wire as M
 from bridge.core.acts import ActGuard
 from bridge.core.args import positive_float, robot_arg, robots_arg
+from bridge.core.clock import SYSTEM, Clock
 from bridge.core.config import RATE_HZ_RANGE, StationConfig, load_mission_spec, load_station, mission_from_spec
 from bridge.core.errors import UsageError
 from bridge.core.paths import TEXT_FILE, quarantine, read_bounded, save_atomic, state_dir
@@ -165,15 +165,18 @@ class Station:
 
     def __init__(self, cfg: StationConfig, robot: str, rate_hz: float, store_path: Path, mission: Mission,
                  control: MissionControl | None = None, control_path: Path | None = None,
-                 calibration: CalibrationPlan | None = None, save: Save = save_atomic) -> None:
+                 calibration: CalibrationPlan | None = None, save: Save = save_atomic, clock: Clock = SYSTEM) -> None:
         """``control``: the mission's phase machine (default: ``mission``, idle); ``control_path``: where it is
         kept across restarts (None: not kept); ``calibration``: run this plan instead of a teacher; ``save``: how
         the writer thread saves a file (a test slows it down; the final save at exit is always
-        :func:`~bridge.core.paths.save_atomic`)."""
-        self.core = StationCore(cfg, robot, rate_hz, store_path, mission, control, control_path, calibration)
+        :func:`~bridge.core.paths.save_atomic`); ``clock``: the time and the waits of the station, its loop and its
+        core (a test's fake clock)."""
+        self.clock = clock
+        self.core = StationCore(cfg, robot, rate_hz, store_path, mission, control, control_path, calibration,
+                                clock=clock)
         self.robot, self.keys = robot, M.Keys(robot)
         self.period = self.core.period
-        self.inputs = Inputs()
+        self.inputs = Inputs(clock)
         self.lock = threading.Lock()  # the inbox (and the core while no loop runs): held briefly, never for a tick
         self.inbox = Inbox()
         self.looping = False  # the loop runs: only its thread calls the core
@@ -220,7 +223,7 @@ class Station:
         """A person's request (``scmbridge mission ...``): decoded here, done or refused by the loop and answered
         at once (:meth:`_answer`). Every action but ``status`` must be fresh and new (:mod:`bridge.core.acts`): a
         recorded request replayed, or one without a time and nonce, is answered with the refusal and does nothing."""
-        now = time.monotonic()
+        now = self.clock()
         try:
             payload = query.payload
             req: M.MissionRequest | str = M.decode(payload.to_bytes() if payload is not None else b"",
@@ -230,7 +233,7 @@ class Station:
             req = f"malformed request: {exc}"
         if isinstance(req, M.MissionRequest) and req.action != "status":
             with self.lock:
-                why = self.acts.check(req.target, req.echo, req.nonce, req.source, time.monotonic())
+                why = self.acts.check(req.target, req.echo, req.nonce, req.source, now)
             if why is not None:
                 self.inputs.count(f"control_refused_{why.kind}")
                 say = log.debug if why.kind == "unaddressed" else log.warning
@@ -254,7 +257,7 @@ class Station:
         self.wake.set()
 
     def on_pairs_query(self, query: zenoh.Query) -> None:
-        self._ask(Asked("pairs", query, None, time.monotonic()))
+        self._ask(Asked("pairs", query, None, self.clock()))
 
     def _ask(self, asked: Asked) -> None:
         """Hand a query to the loop and wake it; answer it here when no loop runs (nothing else calls the core)."""
@@ -292,7 +295,7 @@ class Station:
                     ans = (self.core.request(q.request, now) if isinstance(q.request, M.MissionRequest)
                            else self.core.control.answer(now, False, str(q.request)))
                     # stamped on this station's clock, with its epoch: the address of the person's next act
-                    ans = msgspec.structs.replace(ans, stamp=time.monotonic(), epoch=self.acts.epoch)
+                    ans = msgspec.structs.replace(ans, stamp=self.clock(), epoch=self.acts.epoch)
                     q.query.reply(self.keys.control, M.encode(ans))
             except Exception:  # a query must never stop the loop (it did not when it failed in its callback)
                 log.exception("%s query not answered", q.kind)
@@ -339,7 +342,7 @@ class Station:
         if queries:
             if driver is not None:  # the driver host's status that came since the tick: an engage, a release
                 self.core.note_driver(*driver)
-            self._answer(queries, time.monotonic(), settle=True)
+            self._answer(queries, self.clock(), settle=True)
         return teacher and self.core.source.external
 
     def _publish(self, out: TickOutputs) -> None:
@@ -436,20 +439,21 @@ class Station:
         with self.lock:
             self.looping = False
             left, self.inbox.queries = self.inbox.queries, []
-            self._answer(left, time.monotonic())
+            self._answer(left, self.clock())
 
     def _loop(self, stop: threading.Event, duration: float | None, exit_at_goal: bool) -> None:
-        self.ticker = FixedRate(1 / self.period, stop)
-        t_start = time.monotonic()
+        clock = self.clock
+        self.ticker = FixedRate(1 / self.period, stop, clock=clock)
+        t_start = clock()
         periodic = True
         while not stop.is_set():
-            now = time.monotonic()
+            now = clock()
             if duration is not None and now - t_start >= duration:
                 break
             self.tick(now, periodic)
             if periodic and exit_at_goal and self.core.finished:
                 self.pubs["status"].put(M.encode(self.core.status(now)))
-                time.sleep(3 * self.period)
+                clock.wait(stop, 3 * self.period)  # the status reaches its subscribers
                 break
             # until the next deadline, or an external teacher's command to map at once; queries answered meanwhile
             while not (periodic := self.ticker.wait(self.wake)) and not stop.is_set():
@@ -559,7 +563,7 @@ def run(args: argparse.Namespace) -> int:
             station.serve(session, stop, args.duration, args.exit_at_goal)
     finally:
         saved = _save(station)
-        station.core.said.flush(time.monotonic())
+        station.core.said.flush(station.clock())
         log.info("station for %s stopped %s (mission %s)", robot, stopped_because(stop), station.core.control.phase)
     return 0 if saved else 1
 
@@ -612,6 +616,6 @@ def run_fleet(cfg: StationConfig, robots: list[str], rate: float, args: argparse
     finally:
         saved = [_save(st) for st in stations.values()]
         for st in stations.values():
-            st.core.said.flush(time.monotonic())
+            st.core.said.flush(st.clock())
         log.info("station for %s stopped %s", ", ".join(stations), stopped_because(stop))
     return 0 if all(saved) and not failed and len(stations) == len(robots) else 1

@@ -36,7 +36,6 @@ not drive; :mod:`bridge.nodes.station_status`) and its saves (:mod:`bridge.nodes
 from __future__ import annotations
 
 import logging
-import time
 import zlib
 from collections import deque
 from collections.abc import Mapping
@@ -47,6 +46,7 @@ import msgspec
 import numpy as np
 
 from bridge.core import wire as M
+from bridge.core.clock import SYSTEM, Clock
 from bridge.core.config import StationConfig
 from bridge.core.logs import ReasonLog
 from bridge.core.paths import STORE_FILE, quarantine, read_bounded
@@ -182,11 +182,17 @@ class StationCore:
 
     def __init__(self, cfg: StationConfig, robot: str, rate_hz: float, store_path: Path, mission: Mission,
                  control: MissionControl | None = None, control_path: Path | None = None,
-                 calibration: CalibrationPlan | None = None, source: CommandSource | None = None) -> None:
+                 calibration: CalibrationPlan | None = None, source: CommandSource | None = None,
+                 clock: Clock = SYSTEM) -> None:
         """``control``: the mission's phase machine (default: ``mission``, idle); ``control_path``: where it is
         kept across restarts (None: not kept); ``calibration``: run this calibration plan instead of a teacher;
-        ``source``: a command source to use instead of the configured one."""
+        ``source``: a command source to use instead of the configured one; ``clock``: read here once for the wall
+        clock's offset from the monotonic one (a tick's dates are its ``now`` plus it: one time per tick) and for
+        the ticks' durations (:meth:`Clock.perf`); a tick's time is the ``now`` it is given."""
         scfg, tcfg = cfg.station, cfg.transfer
+        self.clock = clock
+        #: wall clock minus monotonic clock at start: a tick's date is its ``now`` plus it (:meth:`wall`)
+        self.wall_offset = clock.wall() - clock()
         self.robot = robot
         self.period = 1.0 / rate_hz
         self.max_pose_age = scfg.max_pose_age_s
@@ -346,6 +352,10 @@ class StationCore:
         s, _ = closest(path.points, path.s, path.seg_len, state.x, state.y)
         return bool(self.mission.reached_at(s, [state.x, state.y]))
 
+    def wall(self, t: float) -> float:
+        """The date (wall clock, s since the epoch) of monotonic time ``t`` on this station's clock."""
+        return t + self.wall_offset
+
     def pairs(self, now: float) -> M.Pairs:
         """The ``pairs`` reply now: the refined pairs and the learned limits."""
         return pairs_message(self.store, self.robot, now)
@@ -359,12 +369,12 @@ class StationCore:
     # ----------------------------------------------------------------------------------------------- tick
     def tick(self, inputs: TickInputs, now: float) -> TickOutputs:
         """One tick at ``now`` (module docstring)."""
-        t0 = time.monotonic()
+        t0 = self.clock.perf()
         self.ingest(inputs, now)
         command, teacher = self.control_step(now)
         if not inputs.periodic:
             return TickOutputs(command, teacher, command_bytes=self._bytes_of(command))
-        self.tick_ms.append((time.monotonic() - t0) * 1e3)
+        self.tick_ms.append((self.clock.perf() - t0) * 1e3)
         self.counters.ticks += 1
         self.counters.inputs = dict(inputs.input_counts)
         self.counters.missed_deadlines = inputs.missed_deadlines
@@ -395,20 +405,20 @@ class StationCore:
                 self.state, self.state_at = m, at
                 jump = self.guards.pose(m, at, top)
                 if jump is not None:
-                    self._jumped(m, jump, top)
+                    self._jumped(m, jump, top, at)
         for e, received in self.reorder.ready(now):
             if isinstance(e, M.Applied):
                 pair = self.pairer.applied(e.stamp, e.v, e.omega, e.reason, received)
             else:
                 pair = self.pairer.state(e.stamp, (e.x, e.y, e.theta), received)
             if pair is not None:
-                self.add_pair(pair, time.time() - (now - received))  # when a cell changed: wall clock
+                self.add_pair(pair, self.wall(received))  # when a cell changed: wall clock
         if inputs.teacher is not None:
             self.teacher, self.teacher_at = inputs.teacher
             self.teacher_new = True
         if inputs.mission is not None:  # a program's, not a person's: named and timed for the operator
             self.control.replace(*inputs.mission, by=f"a publisher on {M.key(self.robot, 'mission')}",
-                                 at=time.time())
+                                 at=self.wall(now))
         if inputs.driver is not None:  # after a new mission: a finished mission that goes on is paused all the same
             self.note_driver(*inputs.driver)
         if self.control.version != self.mission_version:  # from the mission topic or a person's send
@@ -440,14 +450,14 @@ class StationCore:
             return self.top_v
         return float(max(abs(x) for x in self.store.limits.box.v))
 
-    def _jumped(self, st: M.LearnerState, jump: float, top: float) -> None:
-        """A pose jumped ``jump`` m: never progress; a running mission pauses (``pose_jump``)."""
+    def _jumped(self, st: M.LearnerState, jump: float, top: float, at: float) -> None:
+        """A pose jumped ``jump`` m (received at ``at``): never progress; a running mission pauses (``pose_jump``)."""
         self.counters.pose_jumps += 1
         c = self.control
         log.warning("pose jump: %.2f m to (%.2f, %.2f) (top speed %.2f m/s)%s", jump, st.x, st.y, top,
                     ": mission paused" if c.phase == "running" else "")
         if c.phase == "running":
-            self._tripped(self.guards.jump_trip(st.x, st.y, jump, c.progress, time.time()))
+            self._tripped(self.guards.jump_trip(st.x, st.y, jump, c.progress, self.wall(at)))
 
     def _tripped(self, trip: Trip) -> None:
         """A guard paused the running mission (its typed reason, until a person resumes)."""
@@ -491,7 +501,7 @@ class StationCore:
             fresh = now - self.state_at <= self.max_pose_age
             self.standing = s / path.length if c.phase == "paused" and fresh else None
             if c.phase == "running" and unfit is None:
-                trip = self.guards.check(state.x, state.y, self.off_path, c.progress, time.time(), now)
+                trip = self.guards.check(state.x, state.y, self.off_path, c.progress, self.wall(now), now)
                 outside = self.assumption.check(path.points, self.guards.corridor_m, s) if trip is None else None
                 if outside is not None:
                     log.warning("mission %r paused: %s", self.mission.name, outside.text())

@@ -20,6 +20,7 @@ from typing import Any, TypeVar
 import zenoh
 
 from bridge.core.backoff import Backoff
+from bridge.core.clock import SYSTEM, Clock
 from bridge.core.errors import UsageError
 from bridge.core.paths import TEXT_FILE, read_bounded
 from bridge.nodes import systemd, tlsid
@@ -270,12 +271,10 @@ class RouterWatch:
     WATCH_EVERY_S = 0.25
 
     def __init__(self, session: zenoh.Session, endpoints: str, stop: threading.Event, what: str = "",
-                 clock=None) -> None:
-        import time
-
+                 clock: Clock = SYSTEM) -> None:
         self.session, self.endpoints, self.stop = session, endpoints, stop
         self.who = f"{what}: " if what else ""
-        self.clock = clock or time.monotonic
+        self.clock = clock
         self.lost_at: float | None = None
 
     def connected(self) -> bool | None:
