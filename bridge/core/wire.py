@@ -30,7 +30,7 @@ from msgspec import Meta, Struct
 PREFIX = "scm"
 #: every topic of one robot's namespace ``scm/<robot>/<topic>``; who publishes each is in docs/ARCHITECTURE.md
 TOPICS = ("state", "cmd", "teacher", "applied", "pairs", "limits", "mission", "mocap", "status", "estop", "control",
-          "engage")
+          "engage", "journal")
 _ROBOT = re.compile(r"^[A-Za-z0-9_\-]{1,64}$")
 
 
@@ -512,6 +512,50 @@ def validated_bytes(msg: MsgT) -> tuple[MsgT, bytes]:
     return decode(data, type(msg)), data
 
 
+class JournalSample(Struct, kw_only=True, forbid_unknown_fields=True):
+    """One input a station tick took (:class:`StationJournal`): ``kind`` ``state`` or ``applied``, its receipt time
+    on the station's clock and its wire bytes as decoded (encoded again: the same values)."""
+
+    kind: Literal["state", "applied"]
+    at: Stamp
+    data: Annotated[bytes, Meta(max_length=4096)]
+
+
+class StationJournal(_Msg, kw_only=True):
+    """``scm/<robot>/journal``: what a station's core was given, one event each, in order, so that ``scmbridge replay
+    --through-station`` feeds a fresh core the same and compares its commands with the recorded ones
+    (docs/OPERATING.md, "Why did it do that"). ``event``: ``tick`` (``periodic``, the inputs it took: poses and
+    echoes with their receipt times, the driver host's status, a new mission, an external teacher's command, the
+    transport's counts, the missed deadlines; ``compiled``: the MPC ran its compiled code), ``driver`` (a status
+    noted between two ticks, before a request) or ``request`` (a person's mission request acted on). ``stamp``: the
+    event's time on the station's clock; ``seq`` counts events from 0 at the station's start; ``config`` and
+    ``store``: digests of its configuration and of the pair store it started from; ``control``: the mission state
+    it started with (the first event only). Published only while someone subscribes (a recorder), or always with
+    ``station --journal``."""
+
+    stamp: Stamp
+    seq: Seq
+    robot: Name
+    epoch: Epoch
+    event: Literal["tick", "driver", "request"]
+    periodic: bool = True
+    telemetry: Annotated[list[JournalSample], Meta(max_length=100000)] = []
+    driver: Annotated[bytes, Meta(max_length=65536)] = b""
+    driver_at: Stamp = 0.0
+    mission: Annotated[bytes, Meta(max_length=1 << 22)] = b""
+    teacher: Annotated[bytes, Meta(max_length=65536)] = b""
+    teacher_at: Stamp = 0.0
+    input_counts: dict[Name, Annotated[int, Meta(ge=0)]] = {}
+    missed: Annotated[int, Meta(ge=0)] = 0
+    request: Annotated[bytes, Meta(max_length=1 << 22)] = b""
+    compiled: bool = False
+    rate_hz: Annotated[float, Meta(gt=0.0, le=1000.0)] = 10.0
+    wall_offset: Annotated[float, Meta(ge=-1e12, le=1e12)] = 0.0
+    config: Name = ""
+    store: Name = ""
+    control: Annotated[bytes, Meta(max_length=1 << 22)] = b""
+
+
 def _every_message_type() -> list[type]:
     found, todo = [], list(_Msg.__subclasses__())
     while todo:
@@ -537,6 +581,7 @@ __all__ = [
     "EngageState",
     "Estop",
     "EstopState",
+    "JournalSample",
     "Keys",
     "LearnerState",
     "Limits",
@@ -548,6 +593,7 @@ __all__ = [
     "PairRecord",
     "Pairs",
     "Reason",
+    "StationJournal",
     "Status",
     "TeacherCommand",
     "check_robot",

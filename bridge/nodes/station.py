@@ -63,6 +63,7 @@ from bridge.nodes.node import (
 )
 from bridge.nodes.sources import MpcSource
 from bridge.nodes.station_core import StationCore, TickInputs, TickOutputs
+from bridge.nodes.station_journal import Journal
 from bridge.nodes.station_tags import FileTags
 from bridge.nodes.writer import Save, SaveWriter
 from bridge.nodes.zsession import open_session
@@ -191,6 +192,7 @@ class Station:
         self.ticker: FixedRate | Deadlines | None = None  # its deadlines (and missed ones)
         self.build: KernelBuild | None = None
         self.teacher = self.core.source.teacher if isinstance(self.core.source, MpcSource) else None
+        self.journal = Journal(self.core, cfg, Path(store_path))  # what the core is given, for a replay
 
     @property
     def store(self):
@@ -292,6 +294,8 @@ class Station:
                     log.warning("mission %s dropped unanswered: it waited %.1f s for the station's loop", what,
                                 now - q.at)
                 else:
+                    if isinstance(q.request, M.MissionRequest):
+                        self.journal.request(q.request, now)
                     ans = (self.core.request(q.request, now) if isinstance(q.request, M.MissionRequest)
                            else self.core.control.answer(now, False, str(q.request)))
                     # stamped on this station's clock, with its epoch: the address of the person's next act
@@ -316,6 +320,7 @@ class Station:
             inbox, self.inbox = self.inbox, Inbox()
         if inbox.queries:
             if inbox.driver is not None:  # a request is judged on the robot as it is now
+                self.journal.driver(*inbox.driver, now)
                 self.core.note_driver(*inbox.driver)
             self._answer(inbox.queries, now, settle=True)  # a pause that came before this tick stops the robot in it
         for cmd, at in inbox.foreign:
@@ -328,6 +333,7 @@ class Station:
         for q in self.telemetry:
             inbox.telemetry += q.drain(now)
         inputs = inbox.take(periodic, self.inputs.snapshot(), self.ticker.missed if self.ticker else 0)
+        self.journal.tick(inputs, now, self.teacher is not None and self.teacher.compiled)
         out = self.core.tick(inputs, now)
         self._publish(out)
         return out
@@ -340,9 +346,11 @@ class Station:
             teacher = self.inbox.teacher is not None
             driver = self.inbox.driver if queries else None
         if queries:
+            now = self.clock()
             if driver is not None:  # the driver host's status that came since the tick: an engage, a release
+                self.journal.driver(*driver, now)
                 self.core.note_driver(*driver)
-            self._answer(queries, self.clock(), settle=True)
+            self._answer(queries, now, settle=True)
         return teacher and self.core.source.external
 
     def _publish(self, out: TickOutputs) -> None:
@@ -417,6 +425,7 @@ class Station:
             self.teacher_listener = keep(pub.declare_matching_listener(self._on_teacher_matching))
             self.core.teacher_heard = bool(pub.matching_status.matching)
         self.pubs["status"] = keep(StatusOut(session, M.status_key(self.robot, "station")))  # asked by status
+        self.journal.declare(session, keep)
         if self.build is None:
             self.build = KernelBuild(self.teacher)
         what = self.core.what()
@@ -478,6 +487,9 @@ def arguments(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--store", default=None, help="pair store file (persisted atomically, reloaded at start)")
     ap.add_argument("--duration", type=positive_float, default=None, help="stop after this many seconds")
     ap.add_argument("--exit-at-goal", action="store_true", help="stop the service once the goal is reached")
+    ap.add_argument("--journal", action="store_true",
+                    help="publish what the core is given on scm/<robot>/journal from the first tick, whether or not "
+                         "anyone subscribes yet (scmbridge replay --through-station; docs/OPERATING.md)")
     ap.add_argument("--start", action="store_true",
                     help="start the mission at once (a person's act: never in a service unit that restarts)")
 
@@ -519,7 +531,9 @@ def _station(cfg: StationConfig, robot: str, rate: float, args: argparse.Namespa
     if args.start:
         control.request(M.MissionRequest(stamp=0.0, action="start", source="command line"),
                         Fitness("not checked yet"), 0.0)
-    return Station(cfg, robot, rate, store_path, control.mission, control, control_file(robot))
+    station = Station(cfg, robot, rate, store_path, control.mission, control, control_file(robot))
+    station.journal.always = bool(getattr(args, "journal", False))
+    return station
 
 
 def _save(station: Station) -> bool:

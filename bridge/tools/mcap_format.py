@@ -25,6 +25,7 @@ TOPIC_KINDS: dict[str, type[Struct]] = {
     "state": M.LearnerState, "cmd": M.Command, "teacher": M.TeacherCommand, "applied": M.Applied,
     "pairs": M.Pairs, "limits": M.Limits, "mission": M.MissionSpec, "mocap": M.LearnerState,
     "status": M.Status, "estop": M.Estop, "control": M.MissionState, "engage": M.EngageState,
+    "journal": M.StationJournal,
 }
 if set(TOPIC_KINDS) != set(M.TOPICS):  # a topic added to the wire contract must be added here
     raise ImportError(f"bridge.tools.mcap_format knows topics {sorted(TOPIC_KINDS)}, the wire contract "

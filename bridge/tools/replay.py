@@ -2,6 +2,12 @@
 faster, or ``--fast``). Commands move robots: ``cmd`` and ``estop`` are replayed only with ``--with-commands`` (a
 replayed ``cmd`` of a new epoch is accepted by a driver host that never saw it, and a replayed estop release would
 release a live estop).
+
+``--through-station``: no Zenoh; the recorded station's journal is fed, in this process, to a fresh station core
+built from ``--config`` and ``--store`` (the run's), on the recorded clock, and each command it makes is compared
+with the one the station published: identical bit for bit, or the first tick that differs and why
+(:mod:`bridge.tools.replay_station`; docs/OPERATING.md, "Why did it do that at t = 35 s"). Exit 0: every command
+identical; 1: one differs (or none could be compared).
 """
 
 from __future__ import annotations
@@ -16,7 +22,7 @@ from typing import Any
 import zenoh
 
 from bridge.core import wire as M
-from bridge.core.args import positive_float
+from bridge.core.args import positive_float, robot_arg
 from bridge.core.errors import UsageError
 from bridge.nodes.node import add_zenoh_args, stop_on_signals, zenoh_config
 from bridge.nodes.zsession import open_session
@@ -44,6 +50,14 @@ def arguments(ap: argparse.ArgumentParser) -> None:
                     help="also replay cmd and estop (they move or release a robot: never next to a live one)")
     ap.add_argument("--wait", type=float, default=5.0,
                     help="seconds to wait for a subscriber of the first key before publishing (0: do not wait)")
+    station = ap.add_argument_group("--through-station (in process, no Zenoh)")
+    station.add_argument("--through-station", action="store_true",
+                         help="feed the recorded station's journal to a fresh station core and compare its commands "
+                              "with the recorded ones, bit for bit")
+    station.add_argument("--config", help="the run's station TOML (default: the defaults)")
+    station.add_argument("--store", help="the pair store file the run started from (default: none, an empty one)")
+    station.add_argument("--robot", type=robot_arg, default=None,
+                         help="the robot whose station to replay (default: the only one recorded)")
     add_zenoh_args(ap)
 
 
@@ -51,6 +65,8 @@ def run(args: argparse.Namespace) -> int:
     for f in args.files:
         if not Path(f).is_file():
             raise UsageError(f"{f}: no such file")
+    if args.through_station:
+        return through_station(args)
     renames = dict(args.robot_rename)
 
 
@@ -104,3 +120,27 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
+
+
+def through_station(args: argparse.Namespace) -> int:
+    """``--through-station``: the recorded station replayed in process (:mod:`bridge.tools.replay_station`)."""
+    from bridge.core.config import load_station
+    from bridge.tools.replay_station import read_runs, replay, report
+
+    cfg = load_station(args.config)
+    if args.store is not None and not Path(args.store).is_file():
+        raise UsageError(f"--store {args.store}: no such file")
+    runs = {r: run for r, run in read_runs(args.files).items() if run.journal}
+    if args.robot is not None:
+        if args.robot not in runs:
+            raise UsageError(f"no journal of {args.robot} in the recording (journals of: {', '.join(runs) or 'none'})")
+        robot = args.robot
+    elif len(runs) == 1:
+        robot = next(iter(runs))
+    else:
+        raise UsageError("the recording holds no station journal (record with the recorder started before the "
+                         "station, or run it with --journal)" if not runs
+                         else f"journals of several robots ({', '.join(sorted(runs))}): name one with --robot")
+    text, code = report(replay(runs[robot], cfg, Path(args.store) if args.store else None), robot)
+    print(text, file=sys.stdout if code == 0 else sys.stderr, flush=True)
+    return code
