@@ -22,7 +22,6 @@ read in one batch, a busy radio), restart the estimate from them, within a few s
 from __future__ import annotations
 
 import functools
-import threading
 import time
 from collections import deque
 from pathlib import Path
@@ -113,6 +112,15 @@ def machine() -> str:
 
 
 
+class Event(Protocol):
+    """What a clock waits on: a ``threading.Event`` (named by its methods: the pure station core imports no
+    threading)."""
+
+    def wait(self, timeout: float | None = None) -> bool: ...
+
+    def is_set(self) -> bool: ...
+
+
 class Clock(Protocol):
     """What a loop of bridge/nodes/ is given to tell the time and to wait (docs/ARCHITECTURE.md, "Threads and
     clocks"): call it for the monotonic time, s; :meth:`wall` the wall clock (a date, for people and files);
@@ -126,7 +134,7 @@ class Clock(Protocol):
 
     def perf(self) -> float: ...
 
-    def wait(self, event: threading.Event, timeout: float | None) -> bool: ...
+    def wait(self, event: Event, timeout: float | None) -> bool: ...
 
 
 class SystemClock:
@@ -137,7 +145,7 @@ class SystemClock:
     perf = staticmethod(time.perf_counter)
 
     @staticmethod
-    def wait(event: threading.Event, timeout: float | None) -> bool:
+    def wait(event: Event, timeout: float | None) -> bool:
         return event.wait(timeout)
 
 

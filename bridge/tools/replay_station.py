@@ -186,8 +186,8 @@ def report(out: Outcome, robot: str) -> tuple[str, int]:
                 f"recorded ones, bit for bit, although {why}"), 0
     because = why or ("the configuration and the store are the run's: the station's code or its libraries differ "
                       "from the run's, or an input reached the core that the journal does not hold")
-    return (f"{robot}: replayed {out.ticks} ticks; {out.same} commands identical, then the first difference at "
-            f"{out.first}. Why: {because}"), 1
+    return (f"{robot}: replayed {out.ticks} ticks; the first command that differs is at {out.first} "
+            f"({out.same} of the commands identical in all). Why: {because}"), 1
 
 
 __all__ = ["Outcome", "RecordedClock", "Run", "read_runs", "replay", "report"]

@@ -80,15 +80,16 @@ def test_a_different_store_or_configuration_names_the_first_tick_that_differs(re
     save_atomic(store, seeded.to_bytes())
     res = _replay(str(recorded), "--store", str(store))
     assert res.returncode == 1, res.stdout + res.stderr
-    assert "first difference at tick " in res.stderr and "the run published" in res.stderr, res.stderr
+    assert "the first command that differs is at tick " in res.stderr, res.stderr
+    assert "the run published" in res.stderr, res.stderr
     assert "the pair store differs from the one the run started from" in res.stderr, res.stderr
 
     cfg = tmp_path / "station.toml"
     cfg.write_text("[station]\nhorizon = 12\n")  # the MPC plans over a shorter horizon
     res = _replay(str(recorded), "--config", str(cfg))
     assert res.returncode == 1, res.stdout + res.stderr
-    assert "first difference at tick " in res.stderr and "the configuration differs from the run's" in res.stderr, \
-        res.stderr
+    assert "the first command that differs is at tick " in res.stderr, res.stderr
+    assert "the configuration differs from the run's" in res.stderr, res.stderr
 
 
 def test_a_recording_without_the_stations_journal_says_how_to_make_one(tmp_path: Path) -> None:
