@@ -8,8 +8,8 @@ through only what a rule allows:
 
 * **a robot** ``R`` publishes its own ``state``, ``applied`` and ``status/driver``; it subscribes to and receives
   only its own ``cmd`` and ``estop``, and answers ``estop`` queries (its latch state) with replies on that key;
-* **the station** publishes ``cmd``, ``teacher``, ``limits`` and its ``status/station`` for every robot, receives
-  the robots' ``state``, ``applied``, ``status/driver`` and ``mission``, and answers ``pairs`` queries;
+* **the station** publishes ``cmd``, ``teacher``, ``limits``, ``journal`` and its ``status/station`` for every
+  robot, receives the robots' ``state``, ``applied``, ``status/driver`` and ``mission``, and answers ``pairs`` queries;
 * **the operator** publishes ``estop`` (engage and release: one key) and ``mission`` (a new mission for a running
   station: only a person's identity may replace what a robot drives to; the station's certificate may not) for
   every robot, and the estop on ``scm/*/estop`` too (``estop --all``'s first stop, which every robot receives), and
@@ -68,7 +68,7 @@ from bridge.core.errors import UsageError
 ROBOT_PUBLISHES = ("state", "applied")
 ROBOT_RECEIVES = ("cmd", "estop")
 #: what the station publishes for each robot, and what it listens to
-STATION_PUBLISHES = ("cmd", "teacher", "limits")
+STATION_PUBLISHES = ("cmd", "teacher", "limits", "journal")
 STATION_RECEIVES = ("state", "applied", "mission")
 
 #: the lab address placeholder of the shipped files (deploy/README.md: replace it with the lab interface's)
