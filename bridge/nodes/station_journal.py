@@ -8,7 +8,10 @@ requests it acted on (the MPC's compiled code gives the same results as its inte
 says at which tick it came in). The inputs a tick takes are those the Zenoh adapter drained at that moment, with
 its own receipt times: a recorder's copy of the poses and echoes, received at other moments, would not do. So the
 station publishes each event as its core sees it, numbered from 0 at its start, only while someone subscribes (a
-recorder; Zenoh's matching status), or always (``station --journal``): a station nobody records only counts.
+recorder; Zenoh's matching status), or always (``station --journal``): a station nobody records only counts. A
+recorder started before the station is heard only a moment after the station declared its journal (Zenoh tells the
+match on its own thread): the first :data:`BACKLOG_EVENTS` events are kept until then and sent first, so such a
+recording starts at event 0; a station still unheard after them keeps nothing more.
 """
 
 from __future__ import annotations
@@ -27,6 +30,8 @@ from bridge.nodes.station_core import StationCore, TickInputs
 
 #: the digest of no file: the station started from an empty pair store
 NO_STORE = "none"
+#: the events kept from the start until someone subscribes (a recorder heard a moment late), 10 s at 10 Hz
+BACKLOG_EVENTS = 100
 
 
 def config_digest(cfg: StationConfig) -> str:
@@ -87,6 +92,7 @@ class Journal:
                                      "wall_offset": core.wall_offset, "config": config_digest(cfg),
                                      "store": store_digest(store_path)}
         self.control = control_bytes(core.control)
+        self.backlog: list[bytes] | None = []  # the first events, encoded, until heard (None: no longer kept)
 
     def declare(self, session: zenoh.Session, keep) -> None:
         """Its publisher on ``session`` (``keep``: the station's declarations, undeclared with them), following
@@ -99,18 +105,32 @@ class Journal:
     def _on_matching(self, status: zenoh.MatchingStatus) -> None:  # Zenoh's thread
         self.heard = bool(status.matching)
 
+    @property
+    def wanted(self) -> bool:
+        """Whether the next event is to be built: someone hears it, or it is one of the first ones kept."""
+        return self.always or self.heard or self.backlog is not None
+
     def _put(self, now: float, event: str, **fields: Any) -> None:
         seq, self.seq = self.seq, self.seq + 1
-        if self.pub is None or not (self.always or self.heard):
+        if not self.wanted:
             return
         if seq == 0:
             fields["control"] = self.control
-        msg = M.StationJournal(stamp=now, seq=seq, epoch=self.core.epoch, event=event, **self.head, **fields)
-        self.pub.put(M.encode(msg))
+        data = M.encode(M.StationJournal(stamp=now, seq=seq, epoch=self.core.epoch, event=event, **self.head,
+                                         **fields))
+        if self.pub is not None and (self.always or self.heard):
+            for kept in self.backlog or ():
+                self.pub.put(kept)
+            self.backlog = None
+            self.pub.put(data)
+        elif self.backlog is not None:
+            self.backlog.append(data)
+            if len(self.backlog) >= BACKLOG_EVENTS:
+                self.backlog = None  # nobody came: a station nobody records keeps nothing
 
     def tick(self, inputs: TickInputs, now: float, compiled: bool) -> None:
         """A tick at ``now`` given ``inputs``; ``compiled``: the MPC runs its compiled code."""
-        if self.pub is None or not (self.always or self.heard):
+        if not self.wanted:
             self.seq += 1
             return
         enc = M.encode
@@ -135,4 +155,5 @@ class Journal:
         self._put(now, "request", request=M.encode(req))
 
 
-__all__ = ["NO_STORE", "Journal", "config_digest", "control_bytes", "control_from", "store_digest", "tick_inputs"]
+__all__ = ["BACKLOG_EVENTS", "NO_STORE", "Journal", "config_digest", "control_bytes", "control_from", "store_digest",
+           "tick_inputs"]

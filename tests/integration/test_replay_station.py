@@ -51,8 +51,8 @@ def _record(d: Path, out: Path, port: int) -> None:
         rec = kids.spawn(["record", "--robot", ROBOT, "--out", str(out), "--mode", "client", "--connect", tcp(port)])
         assert until(lambda: "recording scm/" in said(rec) or rec.poll() is not None, 60, 0.1), said(rec)
         kids.spawn(["driver", "--engage", "--link", "can", "--emulate", "--x0", x0, *client, "--duration", "90"])
-        station = kids.spawn(["station", *client, "--store", str(d / "pairs.bin"), "--start", "--journal",
-                              "--duration", "6"])
+        # the recorder came first: the station's journal from its first event (kept until the recorder is heard)
+        station = kids.spawn(["station", *client, "--store", str(d / "pairs.bin"), "--start", "--duration", "6"])
         assert until(lambda: station.poll() is not None, 90, 0.2), said(station)
         assert station.returncode == 0, said(station)
         stop_group(rec)  # a clean stop: the file's summary written

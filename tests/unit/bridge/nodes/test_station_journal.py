@@ -15,7 +15,15 @@ from bridge.core import wire as M
 from bridge.core.config import StationConfig, load_mission_spec, mission_from_spec
 from bridge.nodes.mission_control import Fitness, MissionControl
 from bridge.nodes.station_core import StationCore, TickInputs
-from bridge.nodes.station_journal import NO_STORE, Journal, config_digest, control_from, store_digest, tick_inputs
+from bridge.nodes.station_journal import (
+    BACKLOG_EVENTS,
+    NO_STORE,
+    Journal,
+    config_digest,
+    control_from,
+    store_digest,
+    tick_inputs,
+)
 from tests.fakeclock import FakeClock
 
 
@@ -50,7 +58,7 @@ def test_events_are_numbered_from_the_start_and_published_while_heard(tmp_path: 
     with zenoh.open(conf) as s:
         journal.declare(s, lambda h: h)
         assert not journal.heard
-        journal.tick(TickInputs(), 1.0, False)  # nobody listens: numbered, not sent
+        journal.tick(TickInputs(), 1.0, False)  # nobody listens yet: numbered and kept, not sent
 
         def on(sample: zenoh.Sample) -> None:
             with lock:
@@ -61,9 +69,10 @@ def test_events_are_numbered_from_the_start_and_published_while_heard(tmp_path: 
         journal.tick(inputs, 1.1, True)
         journal.driver(driver, 1.013, 1.15)
         journal.request(M.MissionRequest(stamp=0.0, action="pause", source="test"), 1.16)
-        assert _until(lambda: len(heard) == 3)
-    tick, noted, asked = heard
-    assert [j.seq for j in heard] == [1, 2, 3] and [j.event for j in heard] == ["tick", "driver", "request"]
+        assert _until(lambda: len(heard) == 4)
+    first, tick, noted, asked = heard  # the one kept from before the subscriber came, first
+    assert [j.seq for j in heard] == [0, 1, 2, 3] and [j.event for j in heard] == ["tick", "tick", "driver", "request"]
+    assert first.stamp == 1.0 and first.control == journal.control and not first.telemetry
     assert tick.stamp == 1.1 and tick.compiled and tick.epoch == core.epoch and tick.robot == "jr"
     back = tick_inputs(tick)  # the very inputs, with their receipt times
     assert dataclasses.replace(back, mission=None) == dataclasses.replace(inputs, mission=None)
@@ -85,3 +94,27 @@ def test_the_first_event_carries_the_mission_state_the_core_started_with(tmp_pat
     back = control_from("jr", Journal(core, StationConfig(), tmp_path / "p.bin").control)
     assert (back.phase, back.reason, back.progress, back.spec) == ("running", control.reason, 0.25, spec)
     assert control.changed  # reading it saved nothing
+
+
+def test_a_station_nobody_hears_keeps_only_its_first_events(tmp_path: Path, clock: FakeClock) -> None:
+    conf = zenoh.Config()
+    conf.insert_json5("scouting/multicast/enabled", "false")
+    conf.insert_json5("listen/endpoints", "[]")
+    core = StationCore(StationConfig(), "jn", 10.0, tmp_path / "p.bin", load_mission_spec_mission(), clock=clock)
+    journal = Journal(core, StationConfig(), tmp_path / "p.bin")
+    heard: list[int] = []
+    with zenoh.open(conf) as s:
+        journal.declare(s, lambda h: h)
+        for k in range(BACKLOG_EVENTS + 5):
+            journal.tick(TickInputs(), 1.0 + 0.1 * k, False)
+        assert journal.backlog is None and journal.seq == BACKLOG_EVENTS + 5  # numbered, no longer kept
+        s.declare_subscriber(M.key("jn", "journal"),
+                             lambda sample: heard.append(M.decode(sample.payload.to_bytes(), M.StationJournal).seq))
+        assert _until(lambda: journal.heard)
+        journal.tick(TickInputs(), 20.0, False)
+        assert _until(lambda: len(heard) == 1)
+    assert heard == [BACKLOG_EVENTS + 5]  # a replay of this recording is refused: its first events are not in it
+
+
+def load_mission_spec_mission():
+    return mission_from_spec(load_mission_spec(None))
