@@ -530,8 +530,8 @@ class StationJournal(_Msg, kw_only=True):
     noted between two ticks, before a request) or ``request`` (a person's mission request acted on). ``stamp``: the
     event's time on the station's clock; ``seq`` counts events from 0 at the station's start; ``config`` and
     ``store``: digests of its configuration and of the pair store it started from; ``control``: the mission state
-    it started with (the first event only). Published only while someone subscribes (a recorder), or always with
-    ``station --journal``."""
+    it started with (the first event only). Published while someone subscribes (a recorder; the first events are
+    kept until one is heard)."""
 
     stamp: Stamp
     seq: Seq

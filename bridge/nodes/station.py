@@ -487,9 +487,6 @@ def arguments(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--store", default=None, help="pair store file (persisted atomically, reloaded at start)")
     ap.add_argument("--duration", type=positive_float, default=None, help="stop after this many seconds")
     ap.add_argument("--exit-at-goal", action="store_true", help="stop the service once the goal is reached")
-    ap.add_argument("--journal", action="store_true",
-                    help="publish what the core is given on scm/<robot>/journal from the first tick, whether or not "
-                         "anyone subscribes yet (scmbridge replay --through-station; docs/OPERATING.md)")
     ap.add_argument("--start", action="store_true",
                     help="start the mission at once (a person's act: never in a service unit that restarts)")
 
@@ -531,9 +528,7 @@ def _station(cfg: StationConfig, robot: str, rate: float, args: argparse.Namespa
     if args.start:
         control.request(M.MissionRequest(stamp=0.0, action="start", source="command line"),
                         Fitness("not checked yet"), 0.0)
-    station = Station(cfg, robot, rate, store_path, control.mission, control, control_file(robot))
-    station.journal.always = bool(getattr(args, "journal", False))
-    return station
+    return Station(cfg, robot, rate, store_path, control.mission, control, control_file(robot))
 
 
 def _save(station: Station) -> bool:

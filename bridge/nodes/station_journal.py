@@ -8,7 +8,7 @@ requests it acted on (the MPC's compiled code gives the same results as its inte
 says at which tick it came in). The inputs a tick takes are those the Zenoh adapter drained at that moment, with
 its own receipt times: a recorder's copy of the poses and echoes, received at other moments, would not do. So the
 station publishes each event as its core sees it, numbered from 0 at its start, only while someone subscribes (a
-recorder; Zenoh's matching status), or always (``station --journal``): a station nobody records only counts. A
+recorder; Zenoh's matching status): a station nobody records only counts (and keeps its first events, below). A
 recorder started before the station is heard only a moment after the station declared its journal (Zenoh tells the
 match on its own thread): the first :data:`BACKLOG_EVENTS` events are kept until then and sent first, so such a
 recording starts at event 0; a station still unheard after them keeps nothing more.

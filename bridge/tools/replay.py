@@ -139,7 +139,7 @@ def through_station(args: argparse.Namespace) -> int:
         robot = next(iter(runs))
     else:
         raise UsageError("the recording holds no station journal (record with the recorder started before the "
-                         "station, or run it with --journal)" if not runs
+                         "station)" if not runs
                          else f"journals of several robots ({', '.join(sorted(runs))}): name one with --robot")
     text, code = report(replay(runs[robot], cfg, Path(args.store) if args.store else None), robot)
     print(text, file=sys.stdout if code == 0 else sys.stderr, flush=True)

@@ -3,7 +3,7 @@ on the recorded clock, its commands compared with the recorded ones bit for bit 
 that at t = 35 s").
 
 The recording must hold the station's journal (``scm/<robot>/journal``, :mod:`bridge.nodes.station_journal`) from
-its first event: a recorder started before the station, or ``station --journal``. The core is built from the
+its first event: a recorder started before the station. The core is built from the
 configuration and the pair store given here (they should be the run's: the journal carries their digests, and a
 difference is named), its mission state, epoch and wall-clock offset from the journal; then each event is handed to
 it in order at its recorded time. Every command it makes is compared with the one the station published (same
@@ -116,13 +116,13 @@ def replay(run: Run, cfg: StationConfig, store: Path | None, epoch: int | None =
     epochs = sorted({j.epoch for j in run.journal})
     if not epochs:
         raise UsageError(f"the recording holds no journal of {run.robot}: record with the recorder started before "
-                         "the station, or run the station with --journal")
+                         "the station")
     epoch = epochs[0] if epoch is None else epoch
     events = [j for j in run.journal if j.epoch == epoch]
     out = Outcome()
     if events[0].seq != 0:
         raise UsageError(f"the journal of {run.robot} starts at event {events[0].seq}: the station's first events "
-                         "were not recorded (start the recorder before the station, or run it with --journal)")
+                         "were not recorded (start the recorder before the station)")
     head = events[0]
     if (c := config_digest(cfg)) != head.config:
         out.notes.append(f"the configuration differs from the run's (digest {c}, the run's {head.config})")

@@ -99,4 +99,4 @@ def test_a_recording_without_the_stations_journal_says_how_to_make_one(tmp_path:
             sink.write(spec, data, log_time_ns=int((1.0 + 0.1 * seq) * 1e9))
     sink.close("done")
     res = _replay(str(out))
-    assert res.returncode != 0 and "--journal" in res.stderr, res.stdout + res.stderr
+    assert res.returncode != 0 and "the recorder started before the station" in res.stderr, res.stdout + res.stderr
