@@ -30,8 +30,8 @@ from bridge.nodes.station_core import StationCore, TickInputs
 
 #: the digest of no file: the station started from an empty pair store
 NO_STORE = "none"
-#: the events kept from the start until someone subscribes (a recorder heard a moment late), 10 s at 10 Hz
-BACKLOG_EVENTS = 100
+#: the events kept from the start until someone subscribes (a recorder heard a moment late), 3 s at 10 Hz
+BACKLOG_EVENTS = 30
 
 
 def config_digest(cfg: StationConfig) -> str:
