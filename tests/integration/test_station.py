@@ -196,6 +196,7 @@ def test_a_running_station_takes_a_new_mission_over_zenoh_and_its_goal_state_res
         keys, col = Keys(robot), Collector(session)
         states = col.listen(keys.state, M.LearnerState)
         status = col.listen(M.status_key(robot, "station"), M.Status)
+        commands = col.listen(keys.cmd, M.Command)
         kids.spawn(["driver", "--engage", "--link", "can", "--emulate", "--x0", x0, *client, "--duration", "100"])
         kids.spawn(["station", *client, "--start", "--store", str(tmp_path / "p.bin"), "--duration", "90"])
         assert col.wait(lambda: status and status[-1].text == "driving", 60)
@@ -212,8 +213,12 @@ def test_a_running_station_takes_a_new_mission_over_zenoh_and_its_goal_state_res
                     x_goal = (states[-1].x, states[-1].y)
                 assert col.wait(lambda: status[-1].state == "idle" and "not a person's request" in status[-1].text,
                                 5), status[-1].text
-                time.sleep(1.0)
                 with col.lock:
+                    n_cmd = len(commands)
+                # a second of the station's ticks (a command each): counted, not slept
+                assert col.wait(lambda n=n_cmd: len(commands) >= n + 10, 30)
+                with col.lock:
+                    assert all(c.method == "stop" for c in commands[n_cmd:]), [c.method for c in commands[n_cmd:]]
                     assert math.dist(x_goal, (states[-1].x, states[-1].y)) < 0.02, "it drove without a person"
                     assert status[-1].state == "idle"
                 started = subprocess.run([sys.executable, "-m", "bridge", "mission", "start", *client],
