@@ -244,3 +244,34 @@ def test_the_fleet_loop_ticks_each_robot_on_its_own_phase(tmp_path, session, clo
         assert len(got) == 10
         # robot i's first tick at i * period / 2: spread over the period, each then on its own deadlines
         assert [c.stamp - t0 for c in got] == pytest.approx([i * PERIOD / 2 + k * PERIOD for k in range(10)])
+
+
+def test_the_fleet_loop_answers_a_woken_robot_at_once_between_its_deadlines(tmp_path, session,
+                                                                            clock: FakeClock) -> None:
+    robots = [_station(tmp_path, f"w{i}", session, clock) for i in range(2)]
+    queryables = [session.declare_queryable(st.keys.pairs, st.on_pairs_query) for st in robots]
+    answers: list[M.Pairs] = []
+    got = threading.Event()
+    t0 = clock.t
+
+    def ask() -> None:  # robot w1's pairs asked 0.23 s in: between its deadlines (0.2 and 0.25 s after its phase)
+        def on_reply(reply: zenoh.Reply) -> None:
+            if reply.ok is not None:
+                answers.append(M.decode(reply.ok.payload.to_bytes(), M.Pairs))
+                got.set()
+
+        session.get(robots[1].keys.pairs, on_reply, timeout=10.0)
+        end = time.monotonic() + 10  # the query reaches the station on Zenoh's thread: wait for it to be there
+        while not robots[1].inbox.queries and time.monotonic() < end:
+            time.sleep(0.002)
+        assert robots[1].inbox.queries
+
+    clock.at(t0 + 0.23, ask)
+    heard = Heard(session, robots[1].keys.cmd, M.Command)
+    FleetLoop(robots, threading.Event(), duration=0.5, exit_at_goal=False, clock=clock).run()
+    assert got.wait(10.0)
+    assert answers[0].stamp == pytest.approx(t0 + 0.23)  # answered when it came, not at the next deadline
+    # and its ticks kept their deadlines (phase: half a period)
+    assert [c.stamp - t0 for c in heard.wait(5)] == pytest.approx([PERIOD / 2 + k * PERIOD for k in range(5)])
+    for q in queryables:
+        q.undeclare()
