@@ -113,7 +113,10 @@ def _fields(c: M.Command) -> str:
 def replay(run: Run, cfg: StationConfig, store: Path | None, epoch: int | None = None) -> Outcome:
     """Feed ``run``'s journal (of ``epoch``, default its first station run) to a fresh core built from ``cfg``
     and ``store`` (None: an empty one); compare each command it makes with the recorded one."""
-    epochs = sorted({j.epoch for j in run.journal})
+    firsts: dict[int, float] = {}
+    for j in run.journal:  # the runs in the order they began (a restarted station's stamps come later)
+        firsts[j.epoch] = min(j.stamp, firsts.get(j.epoch, j.stamp))
+    epochs = sorted(firsts, key=firsts.__getitem__)
     if not epochs:
         raise UsageError(f"the recording holds no journal of {run.robot}: record with the recorder started before "
                          "the station")
