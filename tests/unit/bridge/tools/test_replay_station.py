@@ -118,3 +118,9 @@ def test_a_journal_without_its_first_events_or_with_a_gap_is_said(recorded: Run)
         replay(Run(ROBOT, recorded.journal[3:], recorded.commands), StationConfig(), None)
     out = replay(Run(ROBOT, recorded.journal[:10] + recorded.journal[11:], recorded.commands), StationConfig(), None)
     assert out.ticks == 10 and any("before event 11" in n for n in out.notes)
+
+
+def test_of_two_runs_recorded_the_first_to_begin_is_replayed(recorded: Run) -> None:
+    later = [msgspec.structs.replace(j, epoch=1, stamp=j.stamp + 100.0) for j in recorded.journal]  # a restart
+    out = replay(Run(ROBOT, later + recorded.journal, recorded.commands), StationConfig(), None)
+    assert (out.same, out.first) == (40, None)
