@@ -69,6 +69,7 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.spatial import ConvexHull, QhullError
 
 from transfer.domain import Bounds
+from transfer.limits_watch import TURN_LOST, EdgeWatch, unsettled
 
 _MIN_PROPORTIONAL = 0.2  # below this normalised learner level a proportional extrapolation is too noisy to use
 
@@ -204,6 +205,8 @@ class LearnerLimits:
         self.version = 0
         self.relearned = 0  # edges learned again by their change test (``set_change_test``)
         self._test: _EdgeTest | None = None
+        #: after a change, the sides whose edge is unknown; the widest edges held (``transfer/limits_watch.py``)
+        self.watch = EdgeWatch()
         self._box_cache: Bounds | None = None
         self._hull_cache: NDArray[np.float64] | None = None
         #: the refined pairs' normalised teacher parts (the store gives them; it drops the hull's cache when they
@@ -220,8 +223,11 @@ class LearnerLimits:
         self._hull_cache = None
 
     # ------------------------------------------------------------------------------------------- updating
-    def update(self, t_n: NDArray[np.float64], l_n: NDArray[np.float64], cell: tuple[int, int]) -> bool:
+    def update(self, t_n: NDArray[np.float64], l_n: NDArray[np.float64], cell: tuple[int, int],
+               prev_l_n: NDArray[np.float64] | None = None) -> bool:
         """Take one pair (normalised teacher part, normalised learner part); return True if the limits moved.
+        ``prev_l_n``: the learner command before it (normalised; None: unknown), with the change test on a boundary
+        pair a learned side takes only after a command at the same extreme (``transfer/limits_watch.py``).
 
         Scalar arithmetic on Python floats (one pair a tick, two axes: numpy's per-element overhead was most of the
         cost); the same operations in the same order as on the arrays, so the same results."""
@@ -235,14 +241,19 @@ class LearnerLimits:
         bsum_lo, bsum_hi = self.bsum_lo.tolist(), self.bsum_hi.tolist()
         tn, ln = np.asarray(t_n, dtype=float).tolist(), np.asarray(l_n, dtype=float).tolist()
         mem, test = self.memory, self._test
+        prev = None if prev_l_n is None or test is None else np.asarray(prev_l_n, dtype=float).tolist()
         for a in range(2):
             t, l = tn[a], ln[a]
+            if prev is not None and unsettled(l, prev[a], tol, bcnt_lo[a], bcnt_hi[a]):
+                ext_hi[a], ext_lo[a] = max(ext_hi[a], l), min(ext_lo[a], l)
+                continue
             if l >= 1.0 - tol:
                 on_boundary = True
                 if test is not None:
                     moved = self._edge_pair(test, a, 1, bsum_hi[a] / max(bcnt_hi[a], 1), tn, ln, bcnt_hi[a])
                     if moved is not None:
                         bsum_hi[a], bcnt_hi[a] = moved
+                    self.watch.known(a, 1, 1)
                 keep, bcnt_hi[a] = _recency(bcnt_hi[a], mem)
                 bsum_hi[a] *= keep
                 bsum_hi[a] += t
@@ -256,6 +267,7 @@ class LearnerLimits:
                     moved = self._edge_pair(test, a, 0, bsum_lo[a] / max(bcnt_lo[a], 1), tn, ln, bcnt_lo[a])
                     if moved is not None:
                         bsum_lo[a], bcnt_lo[a] = moved
+                    self.watch.known(a, 0, 1)
                 keep, bcnt_lo[a] = _recency(bcnt_lo[a], mem)
                 bsum_lo[a] *= keep
                 bsum_lo[a] += t
@@ -269,7 +281,9 @@ class LearnerLimits:
             lo[a] = min(max(lo[a], 0.0), 1.0)
             hi[a] = min(max(hi[a], 0.0), 1.0)
             _keep_apart(lo, hi, a)
-        if ln[1] >= 1.0 - tol or ln[1] <= tol:  # on the learner's yaw-rate edge: a sample of that side's curvature
+        if prev is not None and unsettled(ln[1], prev[1], tol, bcnt_lo[1], bcnt_hi[1]):
+            pass  # an unsettled pair at a learned yaw-rate edge: no sample of its curvature either
+        elif ln[1] >= 1.0 - tol or ln[1] <= tol:  # on the learner's yaw-rate edge: a sample of that side's curvature
             self._turn_sample(1 if ln[1] >= 1.0 - tol else 0, tn[0], tn[1])
         else:  # a new outlier inside it: Eq. learn_capability's (the first pair is a new outlier on both sides;
             # _turn_extrapolate keeps it only for the side its turn is on)
@@ -287,6 +301,7 @@ class LearnerLimits:
         if on_boundary:
             self.bsum_lo[:], self.bsum_hi[:] = bsum_lo, bsum_hi
             self.bcnt_lo[:], self.bcnt_hi[:] = bcnt_lo, bcnt_hi
+            self.watch.widen(lo, hi, bcnt_lo, bcnt_hi)
             self.hull_sum[cell] += t_n
             self.hull_cnt[cell] += 1
             self._hull_cache = None
@@ -333,6 +348,11 @@ class LearnerLimits:
             self._hull_cache = None
             test.restart(a, side)
             self.relearned += 1
+            # the learner changed: every other learned side is unknown until it shows its edge again; this one was
+            # learned again from its pairs since the change
+            self.watch.changed([[int(self.bcnt_lo[b]) or (b == a and side == 0),
+                                 int(self.bcnt_hi[b]) or (b == a and side == 1)] for b in (0, 1)])
+            self.watch.known(a, side, len(kept))
         test.remember(a, side, tn, ln)
         return out
 
@@ -456,6 +476,12 @@ class LearnerLimits:
         grows; the cell's hull point likewise."""
         tol = self.boundary_tol
         edge = self.hull_cnt[cell] > 0  # the cell has given boundary pairs (its row or column is at an edge)
+        # the learner changed: every learned side is unknown until it shows its edge again (those the cell's pairs
+        # since the change hold, below, are known by them)
+        self.watch.changed([[int(self.bcnt_lo[b]), int(self.bcnt_hi[b])] for b in (0, 1)])
+        for b in (0, 1):
+            self.watch.known(b, 1, int(np.count_nonzero(new_L[:, b] >= 1.0 - tol)))
+            self.watch.known(b, 0, int(np.count_nonzero(new_L[:, b] <= tol)))
         for a in range(2):
             if np.any(old_L[:, a] >= 1.0 - tol) or (edge and cell[a] == self.grid[a] - 1):
                 if self._test is not None:
@@ -492,6 +518,20 @@ class LearnerLimits:
         self._hull_cache = None
 
     # -------------------------------------------------------------------------------------------- queries
+    def turn_lost(self, tol: float = TURN_LOST) -> bool:
+        """Whether a yaw-rate edge has come inside the widest it held by more than ``tol`` (normalised teacher units):
+        the learner lost reach, and the teacher's MPC slows for bends (``transfer/limits_watch.py``)."""
+        return self.watch.turn_lost(float(self.lo[1]), float(self.hi[1]), tol)
+
+    def reprobe(self, t_n: ArrayLike) -> list[tuple[int, int]]:
+        """The sides (axis, side; side 0 the lower) whose edge is unknown after a change and which teacher command
+        ``t_n`` (normalised) leans towards: probe them (``transfer/limits_watch.py``). Empty without the change
+        test (the paper's limits)."""
+        if self._test is None:
+            return []
+        tn = np.asarray(t_n, dtype=float).tolist()
+        return self.watch.reprobe(tn, self.lo.tolist(), self.hi.tolist())
+
     @property
     def box(self) -> Bounds:
         """The axis-aligned teacher-domain box the teacher's controller and planner are bounded by."""

@@ -1,0 +1,167 @@
+"""What the learned limits know of their edges after a change (``transfer/limits_watch.py``): a side whose edge is
+unknown is probed again, inside the corridor and away from obstacles, and the slowing MPC is on where the learned limits
+lost reach."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from tests.boxes import LB, TB
+from transfer.limits import calibration_commands
+from transfer.limits_watch import REPROBE_GAP, REPROBE_HOLD, REPROBE_PAIRS
+from transfer.mission import Mission
+from transfer.policy import make_policy
+from transfer.step import TransferStep
+from transfer.store import PairStore
+from transfer.teacher.path import Polyline
+
+#: a teacher command that leans towards the learner's right turn (the lower yaw-rate side), at a mid speed
+RIGHT = np.array([0.15, 0.8 * LB.w[0]])
+
+
+def _learned(adapt: bool = True) -> PairStore:
+    """A learner that does what it is told (teacher equivalent = learner command), its box driven four times over a
+    5 x 5 grid of commands, both locks of each axis among them."""
+    s = PairStore(LB, TB, k_min=2, adapt=adapt)
+    for _ in range(4):
+        for lcmd in calibration_commands(LB, 5):
+            s.add(lcmd, lcmd)
+    return s
+
+
+def _left_turn_cut(s: PairStore) -> None:
+    """The learner's left lock now turns 60 % of what it did, shown by pairs at that lock until its edge is learned
+    again (the edges' test finds it at its second such pair)."""
+    for _ in range(3):
+        s.add([0.2, 0.6 * LB.w[1]], [0.2, LB.w[1]])
+
+
+def test_after_a_change_the_other_learned_sides_are_unknown_until_two_pairs_at_their_edge() -> None:
+    s = _learned()
+    lim = s.limits
+    assert lim.relearned == 0 and not any(map(any, lim.watch.unknown)) and lim.reprobe(TB.normalise(RIGHT)) == []
+    _left_turn_cut(s)
+    assert lim.relearned == 1
+    # the left side was learned again from its pairs since the change; the others learned before it are unknown
+    assert lim.watch.unknown == [[REPROBE_PAIRS, REPROBE_PAIRS], [REPROBE_PAIRS, 0]]
+    # a command that leans to the right names that side for REPROBE_HOLD commands, once per REPROBE_GAP commands;
+    # one that goes straight, none
+    for _ in range(2):
+        assert [lim.reprobe(TB.normalise(RIGHT)) for _ in range(REPROBE_HOLD)] == [[(1, 0)]] * REPROBE_HOLD
+        assert all(lim.reprobe(TB.normalise(RIGHT)) == [] for _ in range(REPROBE_GAP - REPROBE_HOLD))
+    assert all(lim.reprobe(TB.normalise([0.15, 0.0])) == [] for _ in range(2 * REPROBE_GAP))
+    assert lim.watch.reprobes == 2
+    # two pairs at the right lock: known again (the same reach: nothing moves)
+    right = lim.box.w[0]
+    for _ in range(REPROBE_PAIRS):
+        s.add([0.15, LB.w[0]], [0.15, LB.w[0]], prev_u_L=[0.15, LB.w[0]])
+    assert lim.watch.unknown[1][0] == 0 and lim.box.w[0] == pytest.approx(right)
+    assert all(lim.reprobe(TB.normalise(RIGHT)) == [] for _ in range(2 * REPROBE_GAP))
+
+
+def test_without_change_detection_no_side_is_ever_unknown() -> None:
+    s = _learned(adapt=False)
+    _left_turn_cut(s)
+    assert s.limits.relearned == 0
+    assert all(s.limits.reprobe(TB.normalise(RIGHT)) == [] for _ in range(2 * REPROBE_GAP))
+
+
+def test_the_transfer_step_probes_an_unknown_side_at_the_learners_extreme_only_where_it_may_explore() -> None:
+    """The probe goes to the learner's right lock, the speed as mapped, tagged ``perturb``; not near an obstacle
+    (exploration's rule), not farther from the path than a quarter of the corridor, not with exploration off."""
+    mission = Mission("m", Polyline(np.array([[0.0, 0.0], [5.0, 0.0]])), np.array([[2.0, 1.0, 0.5]]), 0.2)
+    on_path, near, off_path = np.array([0.0, 0.0, 0.0]), np.array([2.0, 0.4, 0.0]), np.array([4.0, -0.3, 0.0])
+    for where, corridor, probes in ((on_path, 1.0, True), (near, 1.0, False), (off_path, 1.0, False),
+                                    (off_path, 2.0, True), (off_path, None, True)):
+        s = _learned()
+        _left_turn_cut(s)
+        step = TransferStep(make_policy(s, "scm", seed=0), dt=0.1, clearance=0.3)
+        m = step.map(RIGHT, where, mission, corridor_m=corridor)
+        assert (m.method == "perturb") == probes, (where, corridor)
+        if probes:
+            assert m.u_L[1] == LB.w[0] and m.u_L[0] == pytest.approx(RIGHT[0], abs=0.01)
+        else:
+            assert m.u_L[1] > LB.w[0]
+    s = _learned()
+    _left_turn_cut(s)
+    off = TransferStep(make_policy(s, "scm", seed=0), dt=0.1, explore=False)
+    assert off.map(RIGHT, on_path, mission).method != "perturb"
+    # the paper's store: the same command is mapped, never probed
+    paper = _learned(adapt=False)
+    _left_turn_cut(paper)
+    step = TransferStep(make_policy(paper, "scm", seed=0), dt=0.1)
+    assert all(step.map(RIGHT).method != "perturb" for _ in range(2 * REPROBE_GAP))
+
+
+def test_a_yaw_rate_probe_of_a_learner_that_cannot_turn_in_place_is_sent_at_its_top_speed() -> None:
+    s = _learned()
+    _left_turn_cut(s)
+    step = TransferStep(make_policy(s, "scm", seed=0, turn_probe="at-top-speed"), dt=0.1)
+    m = step.map(RIGHT)
+    assert m.method == "perturb" and m.u_L[1] == LB.w[0] and m.u_L[0] == LB.v[1]
+
+
+def test_with_change_detection_a_learned_edge_takes_only_pairs_after_a_command_at_the_same_extreme() -> None:
+    """A learner with an acceleration limit: the tick its top speed is first commanded it reaches 60 % of it. Given
+    the command before each pair, such a pair does not move the learned top speed (nor alarm its test, however often it
+    comes); the next one, after a command at the top, does; a side with no boundary pair yet takes its first as ever.
+    Without the previous command, or without change detection (the paper's), every boundary pair counts."""
+    top, mid = np.array([LB.v[1], 0.0]), np.array([0.1, 0.0])
+    for adapt, give_prev in ((True, True), (True, False), (False, True)):
+        s = _learned(adapt)
+        before = s.limits.box.v[1]
+        for _ in range(12):  # accelerating from a mid command onto the top one, again and again
+            s.add([0.6 * LB.v[1], 0.0], top, prev_u_L=mid if give_prev else None)
+            s.add(mid, mid, prev_u_L=top if give_prev else None)
+        if adapt and give_prev:
+            assert s.limits.box.v[1] == pytest.approx(before) and s.limits.relearned == 0
+            s.add(top, top, prev_u_L=top)
+            assert s.limits.bcnt_hi[0] > 0 and s.limits.box.v[1] == pytest.approx(before)
+        else:
+            assert s.limits.box.v[1] < before - 0.01
+    fresh = PairStore(LB, TB, k_min=2, adapt=True)
+    fresh.add([0.6 * LB.v[1], 0.0], top, prev_u_L=mid)
+    assert fresh.limits.bcnt_hi[0] == 1 and fresh.limits.box.v[1] == pytest.approx(0.6 * LB.v[1])
+
+
+def test_the_limits_lost_turn_reach_when_a_yaw_rate_edge_came_inside_the_widest_it_held() -> None:
+    """The slowing MPC's switch: off while the edges are what they were (the paper's case, with change detection or
+    without), on once the left edge was learned again at 60 % of its reach, and off again when it is back."""
+    for adapt in (True, False):
+        s = _learned(adapt)
+        assert not s.limits.turn_lost()
+        for _ in range(40):  # the same reach again and again: nothing lost
+            s.add([0.2, LB.w[1]], [0.2, LB.w[1]])
+        assert not s.limits.turn_lost()
+    s = _learned()
+    _left_turn_cut(s)
+    assert s.limits.turn_lost()
+    for _ in range(3):  # the reach is back
+        s.add([0.2, LB.w[1]], [0.2, LB.w[1]])
+    assert s.limits.relearned == 2 and not s.limits.turn_lost()
+    # the paper's store: its mean of every boundary pair, once 20 pairs at the lock turned 60 %, lost reach too
+    paper = _learned(adapt=False)
+    for _ in range(20):
+        paper.add([0.2, 0.6 * LB.w[1]], [0.2, LB.w[1]])
+    assert paper.limits.turn_lost()
+
+
+def test_the_mpc_slows_for_bends_only_when_told_the_limits_need_it() -> None:
+    """``slow_for_bends`` False gives the references of the paper's MPC (``curve_margin`` 0) whatever the margin;
+    True, slower ones before a bend the yaw-rate bound cannot turn at the top speed."""
+    from transfer.domain import Bounds
+    from transfer.teacher.mpc import MpcConfig, MpcTeacher
+
+    pts = np.array([[0.0, 0.0], [1.0, 0.0]] + [[1.0 + np.sin(a), 1.0 - np.cos(a)] for a in np.linspace(0.1, 3.0, 30)])
+    path = Polyline(pts)
+    limits = Bounds((0.05, 0.6), (-0.2, 0.2))  # a 1 m bend turns 0.6 rad/s at 0.6 m/s: out of reach
+    x = np.array([0.5, 0.0, 0.0])
+    paper = MpcTeacher(MpcConfig(solver="ipopt", curve_margin=0.0)).solve(x, path, limits)
+    slowing = MpcTeacher(MpcConfig(solver="ipopt", curve_margin=0.9))
+    same = slowing.solve(x, path, limits, slow_for_bends=False)
+    assert np.array_equal(same.refs, paper.refs)
+    slowing.reset()
+    slow = slowing.solve(x, path, limits, slow_for_bends=True)
+    step = lambda r: np.hypot(*np.diff(r[:, :2], axis=0).T).max()  # noqa: E731
+    assert step(slow.refs) < 0.9 * step(paper.refs)

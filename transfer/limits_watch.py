@@ -1,0 +1,132 @@
+"""What the learned limits know of their own edges after a change (docs/PAPER.md, "A learner that changes": "A side
+whose edge is unknown" and "The slowing MPC where the limits need it"): :class:`EdgeWatch`, held by
+:class:`transfer.limits.LearnerLimits`.
+
+**A side whose edge is unknown.** A learned edge moves only by boundary pairs (the learner's extreme command on its
+side), and those come when the teacher asks for that side's limit. After a change of the learner (a cell re-learned,
+or another edge found moved by its own test: ``transfer/limits.py``, "An edge that moved") a side whose boundary
+pairs all date from before it says what the learner could do, not what it can: on the SITL rover after a turn-rate
+cut, the side the rest of the path did not turn hard kept its old edge for good. With change detection each change
+marks every learned side *unknown* until it has taken :data:`REPROBE_PAIRS` boundary pairs since (the edges' test finds
+a moved edge at its second); :meth:`EdgeWatch.reprobe` names the unknown sides a teacher command leans towards (at
+least :data:`REPROBE_LEAN` of the way from the learned box's middle to that edge), at most one probe a side per
+:data:`REPROBE_GAP` commands, each held for :data:`REPROBE_HOLD` commands, and :class:`transfer.step.TransferStep`
+sends the learner's extreme there for those commands, only where it may explore (clear of obstacles) and inside a
+share of the corridor.
+
+**A settled edge.** A learner whose response depends on its history (an acceleration limit that binds: ``sim drift
+--scenario payload``) gives at its extreme command, the tick it is first sent, a pair short of its reach; such pairs
+drew the learned top speed down, and the edges' test then found a "change" each time the learner had accelerated again
+(5 to 11 times a run). With the change test, where the caller gives the command before a pair
+(:meth:`transfer.store.PairStore.add`'s ``prev_u_L``), a boundary pair counts for a side that already has boundary
+pairs only when the command before it was at the same extreme (:func:`unsettled`): the learner's response is then
+conditioned on the previous command being the same. A side with none yet takes its first pair as ever (the probe of a
+never-driven limit); a probe of an unknown side holds the extreme for :data:`REPROBE_HOLD` commands so that its second
+command's pair counts. Without ``prev_u_L`` (the station's pairs, each from a command held until it settled) nothing
+changes.
+
+**The slowing MPC where the limits need it.** The teacher's MPC can slow down for a bend its yaw-rate bound cannot
+turn at the top speed (``curve_margin``); that changes the paper's experiment, where the learned limits are what they
+were from the start. :meth:`EdgeWatch.turn_lost` says when they are not: a yaw-rate side's edge has come inside the
+widest it held (once a mean of :data:`REACH_PAIRS` boundary pairs) by more than :data:`TURN_LOST` (a learner that lost
+reach: a sagging battery, a dragging wheel), and the MPC slows for bends from then on, as long as it holds.
+
+Pure: no I/O, no clock; Python floats (one pair a tick).
+"""
+
+from __future__ import annotations
+
+import math
+
+#: boundary pairs a side takes after a change before its edge is known again (the edges' test alarms at the second)
+REPROBE_PAIRS = 2
+#: an unknown side is probed when the teacher's command leans this far towards it: a share of the way from the
+#: learned box's middle to the side's edge (normalised teacher units)
+REPROBE_LEAN = 0.5
+#: commands a probe of an unknown side holds the learner's extreme (the second one's pair is settled)
+REPROBE_HOLD = 2
+#: commands between two probes of one side (1 s at 10 Hz: the teacher corrects the probe's command before the next)
+REPROBE_GAP = 10
+#: a yaw-rate edge this far inside the widest it held (normalised teacher units, the store's ``change_tol``) has lost
+#: reach: the slowing MPC is on
+TURN_LOST = 0.02
+#: boundary pairs a side's mean must hold before its edge counts as reached
+REACH_PAIRS = 5
+
+
+def unsettled(l: float, prev: float, tol: float, count_lo: int, count_hi: int) -> bool:
+    """Whether a pair whose normalised learner part on one axis is ``l``, after a command at ``prev`` on it, is at a
+    learned edge of that axis (``count_lo`` / ``count_hi`` boundary pairs) without the command before it there too
+    (module docstring, "A settled edge")."""
+    if l >= 1.0 - tol:
+        return count_hi > 0 and prev < 1.0 - tol
+    if l <= tol:
+        return count_lo > 0 and prev > tol
+    return False
+
+
+class EdgeWatch:
+    """Per axis side (``[axis][side]``, side 0 the lower): the boundary pairs it still needs to be known after a
+    change, the commands since its last probe, and the widest edge it held (module docstring)."""
+
+    def __init__(self) -> None:
+        self.unknown = [[0, 0], [0, 0]]
+        self.since = [[REPROBE_GAP, REPROBE_GAP], [REPROBE_GAP, REPROBE_GAP]]
+        self.hold: list[tuple[int, int]] = []  # the sides the last probe began, held for the next command
+        self.widest = [[math.nan, math.nan], [math.nan, math.nan]]
+        self.reprobes = 0  # probes of unknown sides sent (``probed``)
+
+    def changed(self, counts: list[list[int]]) -> None:
+        """The learner changed: every side with a learned edge (``counts[a][side]`` boundary pairs; a side never
+        driven is probed by the policy as ever) is unknown until it takes :data:`REPROBE_PAIRS` boundary pairs."""
+        for a in (0, 1):
+            for side in (0, 1):
+                if counts[a][side] > 0:
+                    self.unknown[a][side] = REPROBE_PAIRS
+
+    def known(self, a: int, side: int, pairs: int = REPROBE_PAIRS) -> None:
+        """Side ``side`` of axis ``a`` took ``pairs`` boundary pairs since the change (or was learned again from that
+        many of its own)."""
+        self.unknown[a][side] = max(0, self.unknown[a][side] - pairs)
+
+    def widen(self, lo: list[float], hi: list[float], counts_lo: list[int], counts_hi: list[int]) -> None:
+        """The learned box's normalised edges after a boundary pair: a side whose mean holds :data:`REACH_PAIRS`
+        pairs or more has reached at least that far."""
+        for a in (0, 1):
+            if counts_hi[a] >= REACH_PAIRS and not hi[a] <= self.widest[a][1]:
+                self.widest[a][1] = hi[a]
+            if counts_lo[a] >= REACH_PAIRS and not lo[a] >= self.widest[a][0]:
+                self.widest[a][0] = lo[a]
+
+    def turn_lost(self, lo: float, hi: float, tol: float = TURN_LOST) -> bool:
+        """Whether a yaw-rate edge (normalised ``lo``, ``hi``) is more than ``tol`` inside the widest it held."""
+        w_lo, w_hi = self.widest[1]
+        return (not math.isnan(w_hi) and w_hi - hi > tol) or (not math.isnan(w_lo) and lo - w_lo > tol)
+
+    def reprobe(self, t_n: list[float], lo: list[float], hi: list[float]) -> list[tuple[int, int]]:
+        """The unknown sides (axis, side) teacher command ``t_n`` (normalised) leans towards, each at most once per
+        :data:`REPROBE_GAP` calls; counts the call for every side."""
+        out = []
+        held, self.hold = self.hold, []
+        for a in (0, 1):
+            mid = 0.5 * (lo[a] + hi[a])
+            for side, edge in ((0, lo[a]), (1, hi[a])):
+                self.since[a][side] += 1
+                if (a, side) in held and self.unknown[a][side] > 0 and self.since[a][side] < REPROBE_HOLD:
+                    out.append((a, side))  # the probe's next command: held at the extreme
+                    continue
+                if self.unknown[a][side] <= 0 or self.since[a][side] < REPROBE_GAP:
+                    continue
+                half = abs(edge - mid)
+                if half > 0.0 and (t_n[a] - mid) * (1 if side else -1) >= REPROBE_LEAN * half:
+                    out.append((a, side))
+        for a, side in out:
+            if (a, side) not in held:
+                self.since[a][side] = 0
+                self.reprobes += 1
+                self.hold.append((a, side))
+        return out
+
+
+__all__ = ["REACH_PAIRS", "REPROBE_GAP", "REPROBE_HOLD", "REPROBE_LEAN", "REPROBE_PAIRS", "TURN_LOST", "EdgeWatch",
+           "unsettled"]
