@@ -221,7 +221,7 @@ def drive(scenario: str, seed: int, adapt: bool, tiles: int = TILES, solver: str
         run.t.append(t)
         run.dev.append(float(d))
         run.progress.append(float(prog))
-        res = mpc.solve(x, world.path, store.limits.box, world.obstacles, slow_for_bends=store.limits.turn_lost())
+        res = mpc.solve(x, world.path, store.limits.box, world.obstacles, slow_for_bends=store.slows_for_bends())
         mapped = step.map(res.u, x, world, res.predicted, corridor_m=CORRIDOR_M)
         did = learner.response(mapped.u_L, t, prog)
         run.cmd_err.append(float(np.hypot(*((did - res.u) / store.teacher_bounds.span))))

@@ -207,6 +207,7 @@ class LearnerLimits:
         self._test: _EdgeTest | None = None
         #: after a change, the sides whose edge is unknown; the widest edges held (``transfer/limits_watch.py``)
         self.watch = EdgeWatch()
+        self._prev_t: list[float] | None = None  # the last pair's teacher part, when its caller gave the one before
         self._box_cache: Bounds | None = None
         self._hull_cache: NDArray[np.float64] | None = None
         #: the refined pairs' normalised teacher parts (the store gives them; it drops the hull's cache when they
@@ -242,9 +243,13 @@ class LearnerLimits:
         tn, ln = np.asarray(t_n, dtype=float).tolist(), np.asarray(l_n, dtype=float).tolist()
         mem, test = self.memory, self._test
         prev = None if prev_l_n is None or test is None else np.asarray(prev_l_n, dtype=float).tolist()
+        prev_t, self._prev_t = self._prev_t, (tn if prev is not None else None)
+        if prev_t is None:
+            prev_t = [math.nan, math.nan]
         for a in range(2):
             t, l = tn[a], ln[a]
-            if prev is not None and unsettled(l, prev[a], tol, bcnt_lo[a], bcnt_hi[a]):
+            if prev is not None and test is not None and unsettled(t, l, prev_t[a], prev[a], tol, test.tol,
+                                                                   bcnt_lo[a], bcnt_hi[a]):
                 ext_hi[a], ext_lo[a] = max(ext_hi[a], l), min(ext_lo[a], l)
                 continue
             if l >= 1.0 - tol:
@@ -281,7 +286,8 @@ class LearnerLimits:
             lo[a] = min(max(lo[a], 0.0), 1.0)
             hi[a] = min(max(hi[a], 0.0), 1.0)
             _keep_apart(lo, hi, a)
-        if prev is not None and unsettled(ln[1], prev[1], tol, bcnt_lo[1], bcnt_hi[1]):
+        if prev is not None and test is not None and unsettled(tn[1], ln[1], prev_t[1], prev[1], tol, test.tol,
+                                                               bcnt_lo[1], bcnt_hi[1]):
             pass  # an unsettled pair at a learned yaw-rate edge: no sample of its curvature either
         elif ln[1] >= 1.0 - tol or ln[1] <= tol:  # on the learner's yaw-rate edge: a sample of that side's curvature
             self._turn_sample(1 if ln[1] >= 1.0 - tol else 0, tn[0], tn[1])
@@ -348,8 +354,8 @@ class LearnerLimits:
             self._hull_cache = None
             test.restart(a, side)
             self.relearned += 1
-            # the learner changed: every other learned side is unknown until it shows its edge again; this one was
-            # learned again from its pairs since the change
+            # an edge moved: every other learned side is unknown until it shows its edge again (transfer/
+            # limits_watch.py); this one was learned again from its pairs since the change
             self.watch.changed([[int(self.bcnt_lo[b]) or (b == a and side == 0),
                                  int(self.bcnt_hi[b]) or (b == a and side == 1)] for b in (0, 1)])
             self.watch.known(a, side, len(kept))
@@ -476,12 +482,6 @@ class LearnerLimits:
         grows; the cell's hull point likewise."""
         tol = self.boundary_tol
         edge = self.hull_cnt[cell] > 0  # the cell has given boundary pairs (its row or column is at an edge)
-        # the learner changed: every learned side is unknown until it shows its edge again (those the cell's pairs
-        # since the change hold, below, are known by them)
-        self.watch.changed([[int(self.bcnt_lo[b]), int(self.bcnt_hi[b])] for b in (0, 1)])
-        for b in (0, 1):
-            self.watch.known(b, 1, int(np.count_nonzero(new_L[:, b] >= 1.0 - tol)))
-            self.watch.known(b, 0, int(np.count_nonzero(new_L[:, b] <= tol)))
         for a in range(2):
             if np.any(old_L[:, a] >= 1.0 - tol) or (edge and cell[a] == self.grid[a] - 1):
                 if self._test is not None:

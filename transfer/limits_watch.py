@@ -3,24 +3,27 @@ whose edge is unknown" and "The slowing MPC where the limits need it"): :class:`
 :class:`transfer.limits.LearnerLimits`.
 
 **A side whose edge is unknown.** A learned edge moves only by boundary pairs (the learner's extreme command on its
-side), and those come when the teacher asks for that side's limit. After a change of the learner (a cell re-learned,
-or another edge found moved by its own test: ``transfer/limits.py``, "An edge that moved") a side whose boundary
-pairs all date from before it says what the learner could do, not what it can: on the SITL rover after a turn-rate
-cut, the side the rest of the path did not turn hard kept its old edge for good. With change detection each change
-marks every learned side *unknown* until it has taken :data:`REPROBE_PAIRS` boundary pairs since (the edges' test finds
-a moved edge at its second); :meth:`EdgeWatch.reprobe` names the unknown sides a teacher command leans towards (at
-least :data:`REPROBE_LEAN` of the way from the learned box's middle to that edge), at most one probe a side per
-:data:`REPROBE_GAP` commands, each held for :data:`REPROBE_HOLD` commands, and :class:`transfer.step.TransferStep`
-sends the learner's extreme there for those commands, only where it may explore (clear of obstacles) and inside a
-share of the corridor.
+side), and those come when the teacher asks for that side's limit. After an edge was found moved by its own test
+(``transfer/limits.py``, "An edge that moved") a side whose boundary pairs all date from before it says what the
+learner could do, not what it can: on the SITL rover after a turn-rate cut, the side the rest of the path did not turn
+hard kept its old edge for good. With change detection each edge that moved marks every other learned side *unknown*
+until it has taken :data:`REPROBE_PAIRS` boundary pairs since (the edges' test finds a moved edge at its second), or
+was probed :data:`REPROBE_TRIES` times without them (a learner that does not settle at its extreme within a probe
+keeps the edge it had: no probe after that until the next change); a re-learned cell's own boundary pairs replace its
+side's already (``LearnerLimits.forget``), and a cell re-learned elsewhere says nothing of an edge.
+:meth:`EdgeWatch.reprobe` names the unknown sides a teacher command leans towards (at least :data:`REPROBE_LEAN` of
+the way from the learned box's middle to that edge), at most one probe a side per :data:`REPROBE_GAP` commands, each
+held for :data:`REPROBE_HOLD` commands, and :class:`transfer.step.TransferStep` sends the learner's extreme there for
+those commands, only where it may explore (clear of obstacles) and inside a share of the corridor.
 
 **A settled edge.** A learner whose response depends on its history (an acceleration limit that binds: ``sim drift
 --scenario payload``) gives at its extreme command, the tick it is first sent, a pair short of its reach; such pairs
 drew the learned top speed down, and the edges' test then found a "change" each time the learner had accelerated again
 (5 to 11 times a run). With the change test, where the caller gives the command before a pair
 (:meth:`transfer.store.PairStore.add`'s ``prev_u_L``), a boundary pair counts for a side that already has boundary
-pairs only when the command before it was at the same extreme (:func:`unsettled`): the learner's response is then
-conditioned on the previous command being the same. A side with none yet takes its first pair as ever (the probe of a
+pairs only when the command before it was at the same extreme and the two pairs' responses agree within the change
+test's tolerance (:func:`unsettled`): the learner's response is then conditioned on its previous command, and it has
+settled. A side with none yet takes its first pair as ever (the probe of a
 never-driven limit); a probe of an unknown side holds the extreme for :data:`REPROBE_HOLD` commands so that its second
 command's pair counts. Without ``prev_u_L`` (the station's pairs, each from a command held until it settled) nothing
 changes.
@@ -43,6 +46,8 @@ REPROBE_PAIRS = 2
 #: an unknown side is probed when the teacher's command leans this far towards it: a share of the way from the
 #: learned box's middle to the side's edge (normalised teacher units)
 REPROBE_LEAN = 0.5
+#: probes of an unknown side without a settled boundary pair before it is kept as it is
+REPROBE_TRIES = 3
 #: commands a probe of an unknown side holds the learner's extreme (the second one's pair is settled)
 REPROBE_HOLD = 2
 #: commands between two probes of one side (1 s at 10 Hz: the teacher corrects the probe's command before the next)
@@ -54,15 +59,19 @@ TURN_LOST = 0.02
 REACH_PAIRS = 5
 
 
-def unsettled(l: float, prev: float, tol: float, count_lo: int, count_hi: int) -> bool:
-    """Whether a pair whose normalised learner part on one axis is ``l``, after a command at ``prev`` on it, is at a
-    learned edge of that axis (``count_lo`` / ``count_hi`` boundary pairs) without the command before it there too
-    (module docstring, "A settled edge")."""
+def unsettled(t: float, l: float, prev_t: float, prev_l: float, tol: float, settle: float, count_lo: int,
+              count_hi: int) -> bool:
+    """Whether a pair whose normalised teacher and learner parts on one axis are ``t`` and ``l``, after a pair
+    ``(prev_t, prev_l)`` the tick before (NaN: none), is at a learned edge of that axis (``count_lo`` / ``count_hi``
+    boundary pairs) before the learner settled there: the command before it was not at the same extreme, or the two
+    pairs' responses differ by more than ``settle`` (module docstring, "A settled edge"). ``tol``: the boundary's."""
     if l >= 1.0 - tol:
-        return count_hi > 0 and prev < 1.0 - tol
-    if l <= tol:
-        return count_lo > 0 and prev > tol
-    return False
+        at, count = prev_l >= 1.0 - tol, count_hi
+    elif l <= tol:
+        at, count = prev_l <= tol, count_lo
+    else:
+        return False
+    return count > 0 and not (at and abs(t - prev_t) <= settle)
 
 
 class EdgeWatch:
@@ -71,6 +80,7 @@ class EdgeWatch:
 
     def __init__(self) -> None:
         self.unknown = [[0, 0], [0, 0]]
+        self.tries = [[0, 0], [0, 0]]  # probes of each unknown side since it was marked
         self.since = [[REPROBE_GAP, REPROBE_GAP], [REPROBE_GAP, REPROBE_GAP]]
         self.hold: list[tuple[int, int]] = []  # the sides the last probe began, held for the next command
         self.widest = [[math.nan, math.nan], [math.nan, math.nan]]
@@ -82,7 +92,7 @@ class EdgeWatch:
         for a in (0, 1):
             for side in (0, 1):
                 if counts[a][side] > 0:
-                    self.unknown[a][side] = REPROBE_PAIRS
+                    self.unknown[a][side], self.tries[a][side] = REPROBE_PAIRS, 0
 
     def known(self, a: int, side: int, pairs: int = REPROBE_PAIRS) -> None:
         """Side ``side`` of axis ``a`` took ``pairs`` boundary pairs since the change (or was learned again from that
@@ -112,7 +122,7 @@ class EdgeWatch:
             mid = 0.5 * (lo[a] + hi[a])
             for side, edge in ((0, lo[a]), (1, hi[a])):
                 self.since[a][side] += 1
-                if (a, side) in held and self.unknown[a][side] > 0 and self.since[a][side] < REPROBE_HOLD:
+                if (a, side) in held and self.since[a][side] < REPROBE_HOLD:
                     out.append((a, side))  # the probe's next command: held at the extreme
                     continue
                 if self.unknown[a][side] <= 0 or self.since[a][side] < REPROBE_GAP:
@@ -125,8 +135,12 @@ class EdgeWatch:
                 self.since[a][side] = 0
                 self.reprobes += 1
                 self.hold.append((a, side))
+                self.tries[a][side] += 1
+                if self.tries[a][side] >= REPROBE_TRIES:  # its last probe (held all the same)
+                    self.unknown[a][side] = 0
         return out
 
 
-__all__ = ["REACH_PAIRS", "REPROBE_GAP", "REPROBE_HOLD", "REPROBE_LEAN", "REPROBE_PAIRS", "TURN_LOST", "EdgeWatch",
+__all__ = ["REACH_PAIRS", "REPROBE_GAP", "REPROBE_HOLD", "REPROBE_LEAN", "REPROBE_PAIRS", "REPROBE_TRIES", "TURN_LOST",
+           "EdgeWatch",
            "unsettled"]

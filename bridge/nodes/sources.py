@@ -156,7 +156,7 @@ class MpcSource:
         x = _pose(pose)
         t0 = time.perf_counter()
         res = self.teacher.solve(x, ctx.mission.path, ctx.box(), ctx.mission.obstacles, curvature=ctx.curvature(),
-                                 slow_for_bends=ctx.store.limits.turn_lost())  # curve_margin where limits need it
+                                 slow_for_bends=ctx.store.slows_for_bends())  # curve_margin where needed
         solve_ms = (time.perf_counter() - t0) * 1e3
         ctx.counters.obstacles_dropped += res.obstacles_dropped
         return Proposal(np.asarray(res.u, dtype=float), x, res.predicted, solver=res.solver, ok=res.ok,

@@ -52,9 +52,11 @@ def test_after_a_change_the_other_learned_sides_are_unknown_until_two_pairs_at_t
         assert all(lim.reprobe(TB.normalise(RIGHT)) == [] for _ in range(REPROBE_GAP - REPROBE_HOLD))
     assert all(lim.reprobe(TB.normalise([0.15, 0.0])) == [] for _ in range(2 * REPROBE_GAP))
     assert lim.watch.reprobes == 2
-    # two pairs at the right lock: known again (the same reach: nothing moves)
+    # two settled pairs at the right lock (the first of three after another pair is not): known again (the same
+    # reach: nothing moves)
     right = lim.box.w[0]
-    for _ in range(REPROBE_PAIRS):
+    for k in range(REPROBE_PAIRS + 1):
+        assert lim.watch.unknown[1][0] == min(REPROBE_PAIRS, REPROBE_PAIRS + 1 - k)
         s.add([0.15, LB.w[0]], [0.15, LB.w[0]], prev_u_L=[0.15, LB.w[0]])
     assert lim.watch.unknown[1][0] == 0 and lim.box.w[0] == pytest.approx(right)
     assert all(lim.reprobe(TB.normalise(RIGHT)) == [] for _ in range(2 * REPROBE_GAP))
@@ -102,22 +104,28 @@ def test_a_yaw_rate_probe_of_a_learner_that_cannot_turn_in_place_is_sent_at_its_
     assert m.method == "perturb" and m.u_L[1] == LB.w[0] and m.u_L[0] == LB.v[1]
 
 
-def test_with_change_detection_a_learned_edge_takes_only_pairs_after_a_command_at_the_same_extreme() -> None:
-    """A learner with an acceleration limit: the tick its top speed is first commanded it reaches 60 % of it. Given
-    the command before each pair, such a pair does not move the learned top speed (nor alarm its test, however often it
-    comes); the next one, after a command at the top, does; a side with no boundary pair yet takes its first as ever.
-    Without the previous command, or without change detection (the paper's), every boundary pair counts."""
+def test_with_change_detection_a_learned_edge_takes_only_pairs_after_the_learner_settled_at_its_extreme() -> None:
+    """A learner with an acceleration limit: commanded its top speed it reaches 60 % of it, then 85 %, then all of it.
+    Given the command before each pair, the pairs before it settled (after another command, or a response that
+    still changed) do not move the learned top speed (nor alarm its test, however often they come); the next one, two
+    pairs at the top that agree, does; a side with no boundary pair yet takes its first as ever. Without the previous
+    command, or without change detection (the paper's), every boundary pair counts."""
     top, mid = np.array([LB.v[1], 0.0]), np.array([0.1, 0.0])
     for adapt, give_prev in ((True, True), (True, False), (False, True)):
         s = _learned(adapt)
         before = s.limits.box.v[1]
+        n = s.limits.version  # moves with every boundary pair taken
         for _ in range(12):  # accelerating from a mid command onto the top one, again and again
+            s.add(mid, mid, prev_u_L=mid if give_prev else None)
             s.add([0.6 * LB.v[1], 0.0], top, prev_u_L=mid if give_prev else None)
-            s.add(mid, mid, prev_u_L=top if give_prev else None)
+            s.add([0.85 * LB.v[1], 0.0], top, prev_u_L=top if give_prev else None)
         if adapt and give_prev:
             assert s.limits.box.v[1] == pytest.approx(before) and s.limits.relearned == 0
+            assert s.limits.version == n
             s.add(top, top, prev_u_L=top)
-            assert s.limits.bcnt_hi[0] > 0 and s.limits.box.v[1] == pytest.approx(before)
+            assert s.limits.version == n  # the response still changed
+            s.add(top, top, prev_u_L=top)
+            assert s.limits.version == n + 1 and s.limits.box.v[1] == pytest.approx(before)
         else:
             assert s.limits.box.v[1] < before - 0.01
     fresh = PairStore(LB, TB, k_min=2, adapt=True)
