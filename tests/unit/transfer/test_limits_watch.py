@@ -9,7 +9,7 @@ import pytest
 
 from tests.boxes import LB, TB
 from transfer.limits import calibration_commands
-from transfer.limits_watch import REPROBE_GAP, REPROBE_HOLD, REPROBE_PAIRS
+from transfer.limits_watch import REPROBE_GAP, REPROBE_HOLD, REPROBE_PAIRS, REPROBE_TRIES
 from transfer.mission import Mission
 from transfer.policy import make_policy
 from transfer.step import TransferStep
@@ -60,6 +60,20 @@ def test_after_a_change_the_other_learned_sides_are_unknown_until_two_pairs_at_t
         s.add([0.15, LB.w[0]], [0.15, LB.w[0]], prev_u_L=[0.15, LB.w[0]])
     assert lim.watch.unknown[1][0] == 0 and lim.box.w[0] == pytest.approx(right)
     assert all(lim.reprobe(TB.normalise(RIGHT)) == [] for _ in range(2 * REPROBE_GAP))
+
+
+def test_a_side_probed_without_a_settled_pair_is_kept_after_its_last_try() -> None:
+    """A learner that does not settle at its extreme within a probe (its pairs there are not taken): the side is probed
+    REPROBE_TRIES times, each held for REPROBE_HOLD commands, then kept as it is until the next change; a cell
+    re-learned elsewhere does not mark it again, an edge that moves does."""
+    s = _learned()
+    _left_turn_cut(s)
+    lim = s.limits
+    probes = [lim.reprobe(TB.normalise(RIGHT)) != [] for _ in range(REPROBE_GAP * (REPROBE_TRIES + 2))]
+    assert sum(probes) == REPROBE_TRIES * REPROBE_HOLD and lim.watch.unknown[1][0] == 0
+    for _ in range(3):  # the left edge moves again: the right side is unknown again
+        s.add([0.2, 0.3 * LB.w[1]], [0.2, LB.w[1]])
+    assert lim.relearned == 2 and lim.watch.unknown[1][0] == REPROBE_PAIRS
 
 
 def test_without_change_detection_no_side_is_ever_unknown() -> None:
@@ -173,3 +187,25 @@ def test_the_mpc_slows_for_bends_only_when_told_the_limits_need_it() -> None:
     slow = slowing.solve(x, path, limits, slow_for_bends=True)
     step = lambda r: np.hypot(*np.diff(r[:, :2], axis=0).T).max()  # noqa: E731
     assert step(slow.refs) < 0.9 * step(paper.refs)
+
+
+def test_the_store_slows_the_mpc_for_bends_once_its_learner_changed_and_never_where_nothing_did() -> None:
+    """``PairStore.slows_for_bends``: off on the paper's case (the same pairs again and again, either store), on once a
+    learned edge moved (or a cell was re-learned, or a yaw-rate edge lost reach)."""
+    for adapt in (True, False):
+        s = _learned(adapt)
+        for _ in range(3):
+            for lcmd in calibration_commands(LB, 5):
+                s.add(lcmd, lcmd)
+        assert not s.slows_for_bends() and s.relearned == 0
+    s = _learned()
+    _left_turn_cut(s)
+    assert s.limits.relearned == 1 and s.slows_for_bends()
+    cell = _learned()
+    centre = calibration_commands(LB, 5)[12]  # the box's centre, a configured cell away from its edges
+    for _ in range(20):
+        cell.add(centre, centre)
+    assert not cell.slows_for_bends()
+    for _ in range(12):  # that cell's learner changed by 6 % of the teacher's yaw-rate range (change_tol: 2 %)
+        cell.add(centre + [0.0, 0.1], centre)
+    assert cell.relearned >= 1 and cell.limits.relearned == 0 and cell.slows_for_bends()
