@@ -248,8 +248,7 @@ class LearnerLimits:
             prev_t = [math.nan, math.nan]
         for a in range(2):
             t, l = tn[a], ln[a]
-            if prev is not None and test is not None and unsettled(t, l, prev_t[a], prev[a], tol, test.tol,
-                                                                   bcnt_lo[a], bcnt_hi[a]):
+            if prev is not None and test is not None and unsettled(t, l, prev_t[a], prev[a], tol, test.tol):
                 ext_hi[a], ext_lo[a] = max(ext_hi[a], l), min(ext_lo[a], l)
                 continue
             if l >= 1.0 - tol:
@@ -286,8 +285,7 @@ class LearnerLimits:
             lo[a] = min(max(lo[a], 0.0), 1.0)
             hi[a] = min(max(hi[a], 0.0), 1.0)
             _keep_apart(lo, hi, a)
-        if prev is not None and test is not None and unsettled(tn[1], ln[1], prev_t[1], prev[1], tol, test.tol,
-                                                               bcnt_lo[1], bcnt_hi[1]):
+        if prev is not None and test is not None and unsettled(tn[1], ln[1], prev_t[1], prev[1], tol, test.tol):
             pass  # an unsettled pair at a learned yaw-rate edge: no sample of its curvature either
         elif ln[1] >= 1.0 - tol or ln[1] <= tol:  # on the learner's yaw-rate edge: a sample of that side's curvature
             self._turn_sample(1 if ln[1] >= 1.0 - tol else 0, tn[0], tn[1])

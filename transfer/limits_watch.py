@@ -20,13 +20,14 @@ those commands, only where it may explore (clear of obstacles) and inside a shar
 --scenario payload``) gives at its extreme command, the tick it is first sent, a pair short of its reach; such pairs
 drew the learned top speed down, and the edges' test then found a "change" each time the learner had accelerated again
 (5 to 11 times a run). With the change test, where the caller gives the command before a pair
-(:meth:`transfer.store.PairStore.add`'s ``prev_u_L``), a boundary pair counts for a side that already has boundary
-pairs only when the command before it was at the same extreme and the two pairs' responses agree within the change
-test's tolerance (:func:`unsettled`): the learner's response is then conditioned on its previous command, and it has
-settled. A side with none yet takes its first pair as ever (the probe of a
-never-driven limit); a probe of an unknown side holds the extreme for :data:`REPROBE_HOLD` commands so that its second
-command's pair counts. Without ``prev_u_L`` (the station's pairs, each from a command held until it settled) nothing
-changes.
+(:meth:`transfer.store.PairStore.add`'s ``prev_u_L``), a boundary pair counts only when the command before it was at
+the same extreme and the two pairs' responses agree within the change test's tolerance (:func:`unsettled`): the
+learner's response is then conditioned on its previous command, and it has settled. A side's first pair too: the probe
+of a never-driven limit is sent again each command until a boundary pair is taken (:mod:`transfer.policy`), so it holds
+the extreme until the learner settled there (a first pair taken while the learner accelerated set the payload's top
+speed low for good, and the teacher, bounded by it, never asked for more: a run of 200 s for 140). A probe of an
+unknown side holds the extreme for :data:`REPROBE_HOLD` commands so that its second command's pair can count. Without
+``prev_u_L`` (the station's pairs, each from a command held until it settled) nothing changes.
 
 **The slowing MPC where the limits need it.** The teacher's MPC can slow down for a bend its yaw-rate bound cannot
 turn at the top speed (``curve_margin``); that changes the paper's experiment, where the learned limits are what they
@@ -59,19 +60,18 @@ TURN_LOST = 0.02
 REACH_PAIRS = 5
 
 
-def unsettled(t: float, l: float, prev_t: float, prev_l: float, tol: float, settle: float, count_lo: int,
-              count_hi: int) -> bool:
+def unsettled(t: float, l: float, prev_t: float, prev_l: float, tol: float, settle: float) -> bool:
     """Whether a pair whose normalised teacher and learner parts on one axis are ``t`` and ``l``, after a pair
-    ``(prev_t, prev_l)`` the tick before (NaN: none), is at a learned edge of that axis (``count_lo`` / ``count_hi``
-    boundary pairs) before the learner settled there: the command before it was not at the same extreme, or the two
-    pairs' responses differ by more than ``settle`` (module docstring, "A settled edge"). ``tol``: the boundary's."""
+    ``(prev_t, prev_l)`` the tick before (NaN: none), is at an edge of that axis before the learner settled there:
+    the command before it was not at the same extreme, or the two pairs' responses differ by more than ``settle``
+    (module docstring, "A settled edge"). ``tol``: the boundary's."""
     if l >= 1.0 - tol:
-        at, count = prev_l >= 1.0 - tol, count_hi
+        at = prev_l >= 1.0 - tol
     elif l <= tol:
-        at, count = prev_l <= tol, count_lo
+        at = prev_l <= tol
     else:
         return False
-    return count > 0 and not (at and abs(t - prev_t) <= settle)
+    return not (at and abs(t - prev_t) <= settle)
 
 
 class EdgeWatch:

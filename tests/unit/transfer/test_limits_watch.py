@@ -122,8 +122,8 @@ def test_with_change_detection_a_learned_edge_takes_only_pairs_after_the_learner
     """A learner with an acceleration limit: commanded its top speed it reaches 60 % of it, then 85 %, then all of it.
     Given the command before each pair, the pairs before it settled (after another command, or a response that
     still changed) do not move the learned top speed (nor alarm its test, however often they come); the next one, two
-    pairs at the top that agree, does; a side with no boundary pair yet takes its first as ever. Without the previous
-    command, or without change detection (the paper's), every boundary pair counts."""
+    pairs at the top that agree, does; so for a side's first. Without the previous command, or without change detection
+    (the paper's), every boundary pair counts."""
     top, mid = np.array([LB.v[1], 0.0]), np.array([0.1, 0.0])
     for adapt, give_prev in ((True, True), (True, False), (False, True)):
         s = _learned(adapt)
@@ -142,9 +142,16 @@ def test_with_change_detection_a_learned_edge_takes_only_pairs_after_the_learner
             assert s.limits.version == n + 1 and s.limits.box.v[1] == pytest.approx(before)
         else:
             assert s.limits.box.v[1] < before - 0.01
-    fresh = PairStore(LB, TB, k_min=2, adapt=True)
-    fresh.add([0.6 * LB.v[1], 0.0], top, prev_u_L=mid)
-    assert fresh.limits.bcnt_hi[0] == 1 and fresh.limits.box.v[1] == pytest.approx(0.6 * LB.v[1])
+    # a side's first pair too (the probe of a never-driven limit is sent again until one is taken); not the paper's
+    for adapt in (True, False):
+        fresh = PairStore(LB, TB, k_min=2, adapt=adapt)
+        fresh.add([0.6 * LB.v[1], 0.0], top, prev_u_L=mid)
+        assert fresh.limits.bcnt_hi[0] == (0 if adapt else 1)
+        fresh.add([0.85 * LB.v[1], 0.0], top, prev_u_L=top)
+        fresh.add(top, top, prev_u_L=top)
+        fresh.add(top, top, prev_u_L=top)
+        assert fresh.limits.bcnt_hi[0] == (1 if adapt else 4)
+        assert fresh.limits.box.v[1] == pytest.approx(LB.v[1] if adapt else (3.45 / 4) * LB.v[1])
 
 
 def test_the_limits_lost_turn_reach_when_a_yaw_rate_edge_came_inside_the_widest_it_held() -> None:
