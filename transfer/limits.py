@@ -227,8 +227,8 @@ class LearnerLimits:
     def update(self, t_n: NDArray[np.float64], l_n: NDArray[np.float64], cell: tuple[int, int],
                prev_l_n: NDArray[np.float64] | None = None) -> bool:
         """Take one pair (normalised teacher part, normalised learner part); return True if the limits moved.
-        ``prev_l_n``: the learner command before it (normalised; None: unknown), with the change test on a boundary
-        pair a learned side takes only after a command at the same extreme (``transfer/limits_watch.py``).
+        ``prev_l_n``: the learner command before it (normalised; None: unknown); with the change test on, a boundary
+        pair counts only once the learner settled at that extreme (``transfer/limits_watch.py``, "A settled edge").
 
         Scalar arithmetic on Python floats (one pair a tick, two axes: numpy's per-element overhead was most of the
         cost); the same operations in the same order as on the arrays, so the same results."""

@@ -93,6 +93,7 @@ class EdgeWatch:
             for side in (0, 1):
                 if counts[a][side] > 0:
                     self.unknown[a][side], self.tries[a][side] = REPROBE_PAIRS, 0
+                    self.since[a][side] = max(self.since[a][side], REPROBE_GAP - 1)  # probed at the next lean
 
     def known(self, a: int, side: int, pairs: int = REPROBE_PAIRS) -> None:
         """Side ``side`` of axis ``a`` took ``pairs`` boundary pairs since the change (or was learned again from that
@@ -112,6 +113,10 @@ class EdgeWatch:
         """Whether a yaw-rate edge (normalised ``lo``, ``hi``) is more than ``tol`` inside the widest it held."""
         w_lo, w_hi = self.widest[1]
         return (not math.isnan(w_hi) and w_hi - hi > tol) or (not math.isnan(w_lo) and lo - w_lo > tol)
+
+    def pending(self) -> bool:
+        """Whether a side is unknown or a probe is being held: :meth:`reprobe` may name a side."""
+        return bool(self.hold) or any(self.unknown[0]) or any(self.unknown[1])
 
     def reprobe(self, t_n: list[float], lo: list[float], hi: list[float]) -> list[tuple[int, int]]:
         """The unknown sides (axis, side) teacher command ``t_n`` (normalised) leans towards, each at most once per

@@ -87,13 +87,15 @@ class TransferStep:
                  corridor_m: float | None) -> Mapped:
         """``m``, or the probe of a side whose edge is unknown after a change (module docstring)."""
         store = self.store
-        sides = store.limits.reprobe(store.teacher_bounds.normalise(np.asarray(u_T, dtype=float)))
-        if not sides:
+        if not store.limits.watch.pending():  # nothing unknown (nearly every command): no projection, no probe
             return m
         if corridor_m is not None and pose is not None and mission is not None:
             _, off = mission.path.project(np.asarray(pose, dtype=float)[:2])
             if off > CORRIDOR_SHARE * corridor_m:
                 return m
+        sides = store.limits.reprobe(store.teacher_bounds.normalise(np.asarray(u_T, dtype=float)))
+        if not sides:
+            return m
         lb = store.learner_bounds
         u = np.array(m.u_L, dtype=float)
         for a, side in sides:

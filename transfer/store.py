@@ -212,8 +212,8 @@ class PairStore(ChangeTest):
     def add(self, u_T_bar: ArrayLike, u_L: ArrayLike, stamp: float | None = None,
             prev_u_L: ArrayLike | None = None) -> AddResult:
         """Add one raw pair (teacher equivalent, learner command actually applied); ``prev_u_L``: the learner command
-        applied just before it, where the caller knows it (with ``adapt``, a boundary pair whose previous command was
-        not at that extreme does not move a learned edge: ``transfer/limits_watch.py``, "A settled edge")."""
+        applied just before it, where the caller knows it (with ``adapt``, a boundary pair taken before the learner
+        settled at that extreme does not move a learned edge: ``transfer/limits_watch.py``, "A settled edge")."""
         t = np.asarray(u_T_bar, dtype=float).reshape(2)
         lcmd = np.asarray(u_L, dtype=float).reshape(2)
         if not all(map(math.isfinite, (*t.tolist(), *lcmd.tolist()))):
