@@ -26,7 +26,9 @@ learner can no longer do at all, and the MPC's feedback hides part of a wrong ma
 shows the map itself.
 
 The teacher's MPC slows down for a bend the learned yaw-rate limit cannot turn at the top speed
-(:data:`CURVE_MARGIN`, ``--curve-margin``; the station's ``[teacher] curve_margin``). A dragging wheel takes part of
+(:data:`CURVE_MARGIN`, ``--curve-margin``; the station's ``[teacher] curve_margin``) where the learned limits need it:
+once a yaw-rate edge has come inside the widest it held (:meth:`transfer.limits.LearnerLimits.turn_lost`), under
+either store. A dragging wheel takes part of
 the learner's right turn away: under the paper's MPC (``--curve-margin 0``), whose references keep the top speed, the
 S's right bends are driven wide whatever the map and the store (docs/PAPER.md, "Beyond the paper", has the figures).
 
@@ -90,8 +92,11 @@ RECOVER_FACTOR = 1.2
 #: the teacher MPC's ``curve_margin`` in these runs (:class:`transfer.teacher.mpc.MpcConfig`): it slows down for a bend
 #: the learned yaw-rate limit cannot turn at the top speed. A learner that changed may turn less than it did; the
 #: paper's MPC (0) keeps asking for the bend at the top speed, which the changed learner cannot turn (the module
-#: docstring). Both stores of a run drive under the same teacher.
+#: docstring). Both stores of a run drive under the same teacher, which slows only once its learned limits lost reach.
 CURVE_MARGIN = 0.9
+#: the corridor of these runs, m (the station's default ``[station] corridor_m``): a side of the learned limits whose
+#: edge is unknown after a change is probed again only inside a share of it (:class:`transfer.step.TransferStep`)
+CORRIDOR_M = 1.0
 
 
 def h_v_floor(v: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -207,6 +212,7 @@ def drive(scenario: str, seed: int, adapt: bool, tiles: int = TILES, solver: str
     mpc.reset()
     run = DriftRun()
     x = scm_start(world, seed)
+    prev = None  # the learner command before this tick's (a settled edge: transfer/limits_watch.py)
     t_max = 120.0 * tiles
     for k in range(int(round(t_max / DT))):
         t = k * DT
@@ -215,12 +221,13 @@ def drive(scenario: str, seed: int, adapt: bool, tiles: int = TILES, solver: str
         run.t.append(t)
         run.dev.append(float(d))
         run.progress.append(float(prog))
-        res = mpc.solve(x, world.path, store.limits.box, world.obstacles)
-        mapped = step.map(res.u, x, world, res.predicted)
+        res = mpc.solve(x, world.path, store.limits.box, world.obstacles, slow_for_bends=store.slows_for_bends())
+        mapped = step.map(res.u, x, world, res.predicted, corridor_m=CORRIDOR_M)
         did = learner.response(mapped.u_L, t, prog)
         run.cmd_err.append(float(np.hypot(*((did - res.u) / store.teacher_bounds.span))))
         x1 = unicycle_step(x, did, DT)
-        store.add(teacher_equivalent(x, x1, DT), mapped.u_L, stamp=t + DT)
+        store.add(teacher_equivalent(x, x1, DT), mapped.u_L, stamp=t + DT, prev_u_L=prev)
+        prev = mapped.u_L
         run.methods.append(mapped.method)
         x = x1
         if world.collides(x[:2], VEHICLE_RADIUS):

@@ -69,6 +69,7 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.spatial import ConvexHull, QhullError
 
 from transfer.domain import Bounds
+from transfer.limits_watch import TURN_LOST, EdgeWatch, unsettled
 
 _MIN_PROPORTIONAL = 0.2  # below this normalised learner level a proportional extrapolation is too noisy to use
 
@@ -204,6 +205,9 @@ class LearnerLimits:
         self.version = 0
         self.relearned = 0  # edges learned again by their change test (``set_change_test``)
         self._test: _EdgeTest | None = None
+        #: after a change, the sides whose edge is unknown; the widest edges held (``transfer/limits_watch.py``)
+        self.watch = EdgeWatch()
+        self._prev_t: list[float] | None = None  # the last pair's teacher part, when its caller gave the one before
         self._box_cache: Bounds | None = None
         self._hull_cache: NDArray[np.float64] | None = None
         #: the refined pairs' normalised teacher parts (the store gives them; it drops the hull's cache when they
@@ -220,8 +224,11 @@ class LearnerLimits:
         self._hull_cache = None
 
     # ------------------------------------------------------------------------------------------- updating
-    def update(self, t_n: NDArray[np.float64], l_n: NDArray[np.float64], cell: tuple[int, int]) -> bool:
+    def update(self, t_n: NDArray[np.float64], l_n: NDArray[np.float64], cell: tuple[int, int],
+               prev_l_n: NDArray[np.float64] | None = None) -> bool:
         """Take one pair (normalised teacher part, normalised learner part); return True if the limits moved.
+        ``prev_l_n``: the learner command before it (normalised; None: unknown); with the change test on, a boundary
+        pair counts only once the learner settled at that extreme (``transfer/limits_watch.py``, "A settled edge").
 
         Scalar arithmetic on Python floats (one pair a tick, two axes: numpy's per-element overhead was most of the
         cost); the same operations in the same order as on the arrays, so the same results."""
@@ -235,14 +242,22 @@ class LearnerLimits:
         bsum_lo, bsum_hi = self.bsum_lo.tolist(), self.bsum_hi.tolist()
         tn, ln = np.asarray(t_n, dtype=float).tolist(), np.asarray(l_n, dtype=float).tolist()
         mem, test = self.memory, self._test
+        prev = None if prev_l_n is None or test is None else np.asarray(prev_l_n, dtype=float).tolist()
+        prev_t, self._prev_t = self._prev_t, (tn if prev is not None else None)
+        if prev_t is None:
+            prev_t = [math.nan, math.nan]
         for a in range(2):
             t, l = tn[a], ln[a]
+            if prev is not None and test is not None and unsettled(t, l, prev_t[a], prev[a], tol, test.tol):
+                ext_hi[a], ext_lo[a] = max(ext_hi[a], l), min(ext_lo[a], l)
+                continue
             if l >= 1.0 - tol:
                 on_boundary = True
                 if test is not None:
                     moved = self._edge_pair(test, a, 1, bsum_hi[a] / max(bcnt_hi[a], 1), tn, ln, bcnt_hi[a])
                     if moved is not None:
                         bsum_hi[a], bcnt_hi[a] = moved
+                    self.watch.known(a, 1, 1)
                 keep, bcnt_hi[a] = _recency(bcnt_hi[a], mem)
                 bsum_hi[a] *= keep
                 bsum_hi[a] += t
@@ -256,6 +271,7 @@ class LearnerLimits:
                     moved = self._edge_pair(test, a, 0, bsum_lo[a] / max(bcnt_lo[a], 1), tn, ln, bcnt_lo[a])
                     if moved is not None:
                         bsum_lo[a], bcnt_lo[a] = moved
+                    self.watch.known(a, 0, 1)
                 keep, bcnt_lo[a] = _recency(bcnt_lo[a], mem)
                 bsum_lo[a] *= keep
                 bsum_lo[a] += t
@@ -269,7 +285,9 @@ class LearnerLimits:
             lo[a] = min(max(lo[a], 0.0), 1.0)
             hi[a] = min(max(hi[a], 0.0), 1.0)
             _keep_apart(lo, hi, a)
-        if ln[1] >= 1.0 - tol or ln[1] <= tol:  # on the learner's yaw-rate edge: a sample of that side's curvature
+        if prev is not None and test is not None and unsettled(tn[1], ln[1], prev_t[1], prev[1], tol, test.tol):
+            pass  # an unsettled pair at a learned yaw-rate edge: no sample of its curvature either
+        elif ln[1] >= 1.0 - tol or ln[1] <= tol:  # on the learner's yaw-rate edge: a sample of that side's curvature
             self._turn_sample(1 if ln[1] >= 1.0 - tol else 0, tn[0], tn[1])
         else:  # a new outlier inside it: Eq. learn_capability's (the first pair is a new outlier on both sides;
             # _turn_extrapolate keeps it only for the side its turn is on)
@@ -287,6 +305,7 @@ class LearnerLimits:
         if on_boundary:
             self.bsum_lo[:], self.bsum_hi[:] = bsum_lo, bsum_hi
             self.bcnt_lo[:], self.bcnt_hi[:] = bcnt_lo, bcnt_hi
+            self.watch.widen(lo, hi, bcnt_lo, bcnt_hi)
             self.hull_sum[cell] += t_n
             self.hull_cnt[cell] += 1
             self._hull_cache = None
@@ -333,6 +352,11 @@ class LearnerLimits:
             self._hull_cache = None
             test.restart(a, side)
             self.relearned += 1
+            # an edge moved: every other learned side is unknown until it shows its edge again (transfer/
+            # limits_watch.py); this one was learned again from its pairs since the change
+            self.watch.changed([[int(self.bcnt_lo[b]) or (b == a and side == 0),
+                                 int(self.bcnt_hi[b]) or (b == a and side == 1)] for b in (0, 1)])
+            self.watch.known(a, side, len(kept))
         test.remember(a, side, tn, ln)
         return out
 
@@ -492,6 +516,20 @@ class LearnerLimits:
         self._hull_cache = None
 
     # -------------------------------------------------------------------------------------------- queries
+    def turn_lost(self, tol: float = TURN_LOST) -> bool:
+        """Whether a yaw-rate edge has come inside the widest it held by more than ``tol`` (normalised teacher units):
+        the learner lost reach, and the teacher's MPC slows for bends (``transfer/limits_watch.py``)."""
+        return self.watch.turn_lost(float(self.lo[1]), float(self.hi[1]), tol)
+
+    def reprobe(self, t_n: ArrayLike) -> list[tuple[int, int]]:
+        """The sides (axis, side; side 0 the lower) whose edge is unknown after a change and which teacher command
+        ``t_n`` (normalised) leans towards: probe them (``transfer/limits_watch.py``). Empty without the change
+        test (the paper's limits)."""
+        if self._test is None:
+            return []
+        tn = np.asarray(t_n, dtype=float).tolist()
+        return self.watch.reprobe(tn, self.lo.tolist(), self.hi.tolist())
+
     @property
     def box(self) -> Bounds:
         """The axis-aligned teacher-domain box the teacher's controller and planner are bounded by."""

@@ -12,7 +12,14 @@ follow one rule:
   region), and the result says so (``Mapped.vetoed``).
 
 The teacher's plan (an MPC's predicted states) becomes the policy's hint of the next ``plan_hint`` commands
-(:func:`~transfer.policy.planned_commands`). Pure: no I/O, no clock.
+(:func:`~transfer.policy.planned_commands`).
+
+After a change of the learner (the store's change detection), a side of the learned limits whose edge is unknown is
+probed again (``transfer/limits_watch.py``): where exploration is allowed and the pose is within
+:data:`~transfer.feasibility.CORRIDOR_SHARE` of the corridor (when the caller gives it), a command that leans towards
+such a side is sent at the learner's extreme on that axis, the other axis as mapped (a yaw-rate probe of a learner
+that cannot turn in place at its top speed, as the policy's own probe), for the probe's commands (``"perturb"``).
+Pure: no I/O, no clock.
 """
 
 from __future__ import annotations
@@ -22,6 +29,7 @@ import dataclasses
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from transfer.feasibility import CORRIDOR_SHARE
 from transfer.mission import EXPLORE_CLEARANCE, Mission
 from transfer.policy import Mapped, Policy, planned_commands
 
@@ -59,16 +67,42 @@ class TransferStep:
         return mission.may_explore(np.asarray(pose, dtype=float)[:2], self.clearance)
 
     def map(self, u_T: ArrayLike, pose: ArrayLike | None = None, mission: Mission | None = None,
-            predicted: ArrayLike | None = None) -> Mapped:
+            predicted: ArrayLike | None = None, corridor_m: float | None = None) -> Mapped:
         """The learner command for teacher command ``u_T`` sent at ``pose`` on ``mission``; ``predicted``: the
-        teacher's predicted states ``(N + 1, 3)``, if it has a plan."""
+        teacher's predicted states ``(N + 1, 3)``, if it has a plan; ``corridor_m``: the mission's corridor (a
+        re-probe only within its :data:`~transfer.feasibility.CORRIDOR_SHARE`; None: not checked)."""
         explore = self.may_explore(pose, mission)
         plan = None
         if predicted is not None:  # read only if the policy explores next to a configured cell (a few % of commands)
             def plan() -> NDArray[np.float64]:
                 return planned_commands(predicted, self.dt, self.plan_hint)
         m = self.policy.map(u_T, plan=plan, explore=explore)
-        return m if explore else dataclasses.replace(m, vetoed=True)
+        if not explore:
+            return dataclasses.replace(m, vetoed=True)
+        if m.method != "perturb" and self.store.adapt:
+            return self._reprobe(m, u_T, pose, mission, corridor_m)
+        return m
+
+    def _reprobe(self, m: Mapped, u_T: ArrayLike, pose: ArrayLike | None, mission: Mission | None,
+                 corridor_m: float | None) -> Mapped:
+        """``m``, or the probe of a side whose edge is unknown after a change (module docstring)."""
+        store = self.store
+        if not store.limits.watch.pending():  # nothing unknown (nearly every command): no projection, no probe
+            return m
+        if corridor_m is not None and pose is not None and mission is not None:
+            _, off = mission.path.project(np.asarray(pose, dtype=float)[:2])
+            if off > CORRIDOR_SHARE * corridor_m:
+                return m
+        sides = store.limits.reprobe(store.teacher_bounds.normalise(np.asarray(u_T, dtype=float)))
+        if not sides:
+            return m
+        lb = store.learner_bounds
+        u = np.array(m.u_L, dtype=float)
+        for a, side in sides:
+            u[a] = lb.hi[a] if side else lb.lo[a]
+            if a == 1 and getattr(self.policy, "turn_probe", "") == "at-top-speed":
+                u[0] = lb.hi[0]  # a learner that cannot turn in place shows its turn at its top speed
+        return dataclasses.replace(m, u_L=u, method="perturb")
 
 
 __all__ = ["PLAN_HINT", "TransferStep"]

@@ -209,8 +209,11 @@ class PairStore(ChangeTest):
     def _cell_n(self, n: NDArray[np.float64]) -> tuple[int, int]:
         return grid_cell(n, self.grid)
 
-    def add(self, u_T_bar: ArrayLike, u_L: ArrayLike, stamp: float | None = None) -> AddResult:
-        """Add one raw pair (teacher equivalent, learner command actually applied)."""
+    def add(self, u_T_bar: ArrayLike, u_L: ArrayLike, stamp: float | None = None,
+            prev_u_L: ArrayLike | None = None) -> AddResult:
+        """Add one raw pair (teacher equivalent, learner command actually applied); ``prev_u_L``: the learner command
+        applied just before it, where the caller knows it (with ``adapt``, a boundary pair taken before the learner
+        settled at that extreme does not move a learned edge: ``transfer/limits_watch.py``, "A settled edge")."""
         t = np.asarray(u_T_bar, dtype=float).reshape(2)
         lcmd = np.asarray(u_L, dtype=float).reshape(2)
         if not all(map(math.isfinite, (*t.tolist(), *lcmd.tolist()))):
@@ -243,7 +246,9 @@ class PairStore(ChangeTest):
                 self.pub_version[cell] += 1
                 self._refined_set_changed()
                 refined_changed = True
-        limits_changed = self.limits.update(t_n, l_n, cell)
+        prev = None if prev_u_L is None else np.clip(
+            self.learner_bounds.normalise(np.asarray(prev_u_L, dtype=float).reshape(2)), 0.0, 1.0)
+        limits_changed = self.limits.update(t_n, l_n, cell, prev)
         return AddResult(cell, refined_changed, limits_changed)
 
     def _remember(self, cell: tuple[int, int], t_n: NDArray[np.float64], l_n: NDArray[np.float64]) -> None:

@@ -50,6 +50,16 @@ class ChangeTest:
     changes: Any
     change_sigmas: float
     change_tol: float
+    relearned: int
+    limits: Any
+
+    def slows_for_bends(self) -> bool:
+        """Whether the teacher's MPC should slow for the bends its learned yaw-rate bound cannot turn at the top speed
+        (``curve_margin``; docs/PAPER.md, "a learner that changes"): once the learner has changed (a cell or a learned
+        edge re-learned: the map and the limits are being learned again, and a bend driven fast on them is driven
+        wide) or a yaw-rate edge lost reach (:meth:`transfer.limits.LearnerLimits.turn_lost`). Never where nothing
+        changed: the paper's MPC, as its experiment has it."""
+        return self.relearned > 0 or self.limits.relearned > 0 or self.limits.turn_lost()
 
     def _slope(self, cell: tuple[int, int]) -> NDArray[np.float64]:
         """dT/dL per axis (normalised) of the learner's response in a cell: the least-squares slope of the cell's own

@@ -215,9 +215,11 @@ class TeacherSection(Cfg):
     obstacle_slots: Annotated[int, meta("mpc: obstacles the MPC considers at once, the nearest within its reach",
                                         ge=1, le=64)] = 12
     curve_margin: Annotated[float, meta(
-        "mpc: slow down for a bend the learned yaw-rate limit cannot turn at the top speed, using this share of "
-        "the limit (0.9 leaves a tenth for the correction; a learner that turns less than it did, e.g. a dragging "
-        "wheel); 0 keeps the paper's MPC at its top speed everywhere", ge=0.0, le=1.0)] = 0.0
+        "mpc: once the learned limits lost yaw-rate reach (a side's edge came inside the widest it held: a learner "
+        "that turns less than it did, e.g. a dragging wheel or a sagging battery), slow down for a bend the learned "
+        "yaw-rate limit cannot turn at the top speed, using this share of the limit (0.9 leaves a tenth for the "
+        "correction); until then, and with 0 always, the paper's MPC at its top speed everywhere (docs/PAPER.md, "
+        "'a learner that changes')", ge=0.0, le=1.0)] = 0.9
 
 
 class CalibrationSection(Cfg):

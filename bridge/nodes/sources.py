@@ -156,7 +156,8 @@ class MpcSource:
     def propose(self, now: float, pose: M.LearnerState, ctx: SourceContext) -> Proposal:
         x = _pose(pose)
         t0 = self.clock.perf()
-        res = self.teacher.solve(x, ctx.mission.path, ctx.box(), ctx.mission.obstacles, curvature=ctx.curvature())
+        res = self.teacher.solve(x, ctx.mission.path, ctx.box(), ctx.mission.obstacles, curvature=ctx.curvature(),
+                                 slow_for_bends=ctx.store.slows_for_bends())  # curve_margin where needed
         solve_ms = (self.clock.perf() - t0) * 1e3
         ctx.counters.obstacles_dropped += res.obstacles_dropped
         return Proposal(np.asarray(res.u, dtype=float), x, res.predicted, solver=res.solver, ok=res.ok,

@@ -558,7 +558,7 @@ class StationCore:
         if prop.method is not None:
             self.counters.count_method(prop.method)
             return self._command(now, float(prop.u[0]), float(prop.u[1]), prop.method)
-        m = self.transfer.map(prop.u, prop.pose, self.mission, prop.predicted)
+        m = self.transfer.map(prop.u, prop.pose, self.mission, prop.predicted, corridor_m=self.guards.corridor_m)
         if m.vetoed:
             self.counters.explore_vetoed += 1
         self.counters.count_method(m.method)

@@ -50,8 +50,8 @@ def transfer_table(transfer: str, limits: str | None) -> str:
 
 
 def teacher_table(args: argparse.Namespace) -> str:
-    """The station's ``[teacher]`` lines for ``--curve-margin`` (none for 0: the paper's MPC, the default)."""
-    return f"\n[teacher]\ncurve_margin = {args.curve_margin!r}\n" if args.curve_margin else ""
+    """The station's ``[teacher]`` lines for ``--curve-margin`` (none without it: the station's default)."""
+    return f"\n[teacher]\ncurve_margin = {args.curve_margin!r}\n" if args.curve_margin is not None else ""
 
 
 def inprocess(args: argparse.Namespace) -> int:
@@ -309,9 +309,9 @@ def hil(args: argparse.Namespace, robot: str) -> int:
     port = free_port()
     x0 = ",".join(f"{a:.6f}" for a in world.start)
     client = ["--robot", robot, "--mode", "client", "--connect", tcp(port)]
-    # --transfer off: the paper's baseline; --drift: the learner changes, the station re-learns what no longer holds
-    (out / "station.toml").write_text(transfer_table(args.transfer, args.limits)
-                                      + ("adapt = true\n" if args.drift else "") + teacher_table(args))
+    # --transfer off: the paper's baseline; --drift: the learner changes, and the station re-learns what no longer holds
+    # by its defaults ([transfer] adapt = true, [teacher] curve_margin once the learner changed)
+    (out / "station.toml").write_text(transfer_table(args.transfer, args.limits) + teacher_table(args))
     station_cfg = ["--config", str(out / "station.toml")]
     mon, cal = None, None
     up = args.duration + 15 + calibration_budget(args.calibrate)  # the driver host and its link outlive the mission
@@ -583,10 +583,10 @@ def arguments(ap: argparse.ArgumentParser) -> None:
                          "paper's: 0.3 m beside the path facing 45 degrees away, a turn on the spot); on-path, on the "
                          "path's first point facing along it, as a car-like vehicle is placed (default with --turn "
                          "needs-speed)")
-    ap.add_argument("--curve-margin", type=float, default=0.0, metavar="SHARE",
-                    help="(one robot) the station's [teacher] curve_margin: the MPC slows for a bend the learned "
-                         "yaw-rate limit cannot turn at its top speed, using this share of the limit (e.g. 0.9 with "
-                         "--drift wheel; default 0: the paper's MPC)")
+    ap.add_argument("--curve-margin", type=float, default=None, metavar="SHARE",
+                    help="(one robot) the station's [teacher] curve_margin: once the learned limits lost yaw-rate "
+                         "reach, the MPC slows for a bend the learned yaw-rate limit cannot turn at its top speed, "
+                         "using this share of the limit (default: the station's; 0: the paper's MPC always)")
     ap.add_argument("--calibrate", type=grid, default=None, metavar="NVxNW",
                     help="(one robot) the paper's calibrated start: scmbridge calibrate's grid of learner commands "
                          "(e.g. 5x5) on the learner first, then the mission from that pair store")
@@ -615,9 +615,9 @@ def run(args: argparse.Namespace) -> int:
             Drift.parse(args.drift)
         except ValueError as exc:
             raise UsageError(str(exc)) from None
-    if not 0.0 <= args.curve_margin <= 1.0:
+    if args.curve_margin is not None and not 0.0 <= args.curve_margin <= 1.0:
         raise UsageError(f"--curve-margin must be in [0, 1], got {args.curve_margin}")
-    if args.curve_margin and (len(robots) != 1 or args.count or args.inprocess):
+    if args.curve_margin is not None and (len(robots) != 1 or args.count or args.inprocess):
         raise UsageError("--curve-margin sets one robot's station: not with --robots, --count or --inprocess")
     if (args.transfer != "on" or args.limits is not None) and (len(robots) != 1 or args.count or args.inprocess):
         raise UsageError("--transfer and --limits set one robot's station: not with --robots, --count or --inprocess")

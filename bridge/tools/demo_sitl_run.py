@@ -362,8 +362,9 @@ def sitl_once(demo: ModuleType, args: argparse.Namespace, binary: Path, out: Pat
         "sim_teacher_time_s": sim["time_s"], "sim_teacher_dev_last_half_m": sim["dev_last_half_m"],
         "method_counts": run["methods"], "refined_pairs": run["refined_pairs"], "raw_pairs": run["raw_pairs"],
         "pair_settle_s": settle, "pair_settle_edge_s": max(settle_edge, settle),
-        "learned_limits": learned_limits(store), "adapt": bool(args.adapt),
-        "curve_margin": args.curve_margin, "turn": turn, "start": start,
+        "learned_limits": learned_limits(store),
+        "adapt": load_station(out / "station.toml").transfer.adapt,  # what the station does (true by default)
+        "curve_margin": load_station(out / "station.toml").teacher.curve_margin, "turn": turn, "start": start,
         "turn_probe": load_station(out / "station.toml").transfer.probe_turns(),  # what the station does
         "cells_relearned": relearned, "limits_relearned": edges, "param_changes": changed,
         "goal_dist_m": run["goal_dist_m"], "driving_s": run["driving_s"], "guard_stops": run["guard_stops"],

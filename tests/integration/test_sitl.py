@@ -497,13 +497,14 @@ TOP_SPEED, TOP_SPEED_CUT = 0.344, 0.230
 
 def _demo_with_a_change(out: Path, args: list[str], name: str, value: float, at: tuple[float, float],
                         timeout: float) -> tuple[dict, dict]:
-    """``scmbridge demo`` on SITL with the weak profile, transfer and change detection on, the pilot setting ``name``
+    """``scmbridge demo`` on SITL with the weak profile and transfer, the station's defaults otherwise (change detection
+    on from the first run, the MPC slowing for bends once the learner changed), the pilot setting ``name``
     to ``value`` mid-run (``--param-at`` in ``args``): its summary and its one parameter change, once asserted that
     the demo ended within ``timeout`` s with exit 0, the vehicle read the value back (PARAM_VALUE) at a time within
     ``at`` s of its first drive, the goal was reached without a collision, and the limits before and after are known."""
     with Children() as kids:
         demo = kids.spawn(["demo", "--link", "mavlink", "--sitl", str(_sitl_binary()), "--sitl-params", str(WEAK_PARM),
-                           "--transfer", "on", "--adapt", "--reference", "none", "--no-identify", *args, "--out",
+                           "--transfer", "on", "--reference", "none", "--no-identify", *args, "--out",
                            str(out)],  # the range read from the parameters, as these figures were measured
                           subprocess.PIPE)
         try:
@@ -526,8 +527,8 @@ def _demo_with_a_change(out: Path, args: list[str], name: str, value: float, at:
 @pytest.mark.sitl
 @pytest.mark.timeout(200)
 def test_the_rover_weakened_mid_run_by_its_own_parameter_is_followed_down_by_the_learned_top_speed(tmp_path) -> None:
-    """``scmbridge demo --sitl`` as a person runs it with the weak profile, transfer and change detection on
-    (``--adapt``), from no pairs, on the paper's S-path; 12 s after the vehicle first drove, the pilot cuts
+    """``scmbridge demo --sitl`` as a person runs it with the weak profile and transfer, change detection on by the
+    station's default, from no pairs, on the paper's S-path; 12 s after the vehicle first drove, the pilot cuts
     CRUISE_THROTTLE from 65 to 45 % by PARAM_SET (a sagging battery: the top speed falls by a third, the turn rate
     stays). Asserted: the vehicle acknowledged the change (its PARAM_VALUE read back 45, at its time); the goal
     reached without a collision; the top speed the station had learned before the change was the vehicle's, and the
@@ -574,21 +575,21 @@ def _two_s_paths(path: Path) -> Path:
 @pytest.mark.sitl
 @pytest.mark.timeout(260)
 def test_the_rover_whose_turn_rate_cap_is_lowered_mid_run_is_followed_by_the_learned_turn_limits(tmp_path) -> None:
-    """``scmbridge demo --sitl`` with the weak profile, transfer, change detection (``--adapt``) and the MPC slowing for
-    bends (``--curve-margin 0.9``), from no pairs, on two S-paths end to end; 20 s after the vehicle first drove, the
-    pilot lowers ATC_STR_RAT_MAX from 30 to 18 deg/s by PARAM_SET: the rover's top turn rate falls from 0.30 to 0.185
-    rad/s, either way, its speed stays. Its pairs at the full lock come seldom (a few per bend, from cells the robot
-    does not drive again), so neither a cell's change test nor the limits' memory finds it; the edges' own change test
-    does (``transfer/limits.py``, "An edge that moved"). Asserted: the change read back at its time; the goal reached
-    without a collision; both turn limits learned before the change were the vehicle's; each side ends either at the
-    vehicle's new top rate (within 0.03 rad/s) or where it was, give or take one pair at its lock after the change
-    (one pair is not a change: the edge, the mean of its three or more pairs, moves by its share, at most a quarter of
-    the cut; two pairs unfound move it by a third or more), and at least one side is at the new rate, learned again by
-    the edges' test; the top speed stays. About 90 s of wall time (70 s of driving); its pairs, traced in 17 runs,
-    give a side one pair at its lock after the change and no more once."""
+    """``scmbridge demo --sitl`` with the weak profile and transfer, the station's defaults otherwise (change detection,
+    the MPC slowing for bends once the learner changed), from no pairs, on two S-paths end to end; 20 s after the
+    vehicle first drove, the pilot lowers ATC_STR_RAT_MAX from 30 to 18 deg/s by PARAM_SET: the rover's top turn rate
+    falls from 0.30 to 0.185 rad/s, either way, its speed stays. Its pairs at the full lock come seldom (a few per bend,
+    from cells the robot does not drive again), so neither a cell's change test nor the limits' memory finds it; the
+    edges' own change test does (``transfer/limits.py``, "An edge that moved"). Asserted: the change read back at its
+    time; the goal reached without a collision; both turn limits learned before the change were the vehicle's; each side
+    ends either at the vehicle's new top rate (within 0.03 rad/s) or where it was, give or take one pair at its lock
+    after the change (one pair is not a change: the edge, the mean of its three or more pairs, moves by its share, at
+    most a quarter of the cut; two pairs unfound move it by a third or more), and at least one side is at the new rate,
+    learned again by the edges' test; the top speed stays. About 90 s of wall time (70 s of driving); its pairs, traced
+    in 17 runs, give a side one pair at its lock after the change and no more once."""
     mission = _two_s_paths(tmp_path / "two-s-paths.toml")
     run, change = _demo_with_a_change(
-        tmp_path / "out", ["--curve-margin", "0.9", "--mission", str(mission), "--param-at", "20:ATC_STR_RAT_MAX=18",
+        tmp_path / "out", ["--mission", str(mission), "--param-at", "20:ATC_STR_RAT_MAX=18",
                            "--duration", "150"], "ATC_STR_RAT_MAX", 18.0, (19.5, 22.0), 230)
     before, after = change["limits_before"], run["learned_limits"]
     sides_before, sides_after = (-before["w"][0], before["w"][1]), (-after["w"][0], after["w"][1])

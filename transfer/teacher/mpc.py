@@ -527,10 +527,13 @@ class MpcTeacher:
         obstacles: NDArray[np.float64] | None = None,
         v_ref: float | None = None,
         curvature: tuple[float, float] | None = None,
+        slow_for_bends: bool = True,
     ) -> MpcResult:
         """One MPC solve from ``state``; inputs bounded by ``limits`` (the learned limits) and, with
         ``turn_needs_speed``, by ``curvature`` (``(k_lo, k_hi)``, rad/m: ``k_lo v <= omega <= k_hi v``; an infinite
-        side or None leaves that side to the box)."""
+        side or None leaves that side to the box). ``slow_for_bends`` False: the references at the top speed this
+        solve, whatever ``curve_margin`` (the caller's learned limits do not need the slowing:
+        :meth:`transfer.limits.LearnerLimits.turn_lost`)."""
         cfg = self.cfg
         N = cfg.N
         state = np.asarray(state, dtype=float)
@@ -539,7 +542,7 @@ class MpcTeacher:
             raise ValueError(f"MPC state must be three finite numbers, got {state}")
         if v_ref is not None:
             v = v_ref
-        elif cfg.curve_margin > 0.0:
+        elif cfg.curve_margin > 0.0 and slow_for_bends:
             v_top = limits.v[1]
             v = _refs.curve_speed(path.points, path.s, path.seg_len, path.curvature, xs[0], xs[1], v_top,
                                   limits.v[0] if limits.v[0] > 0.0 else 0.25 * v_top, limits.w[0], limits.w[1],
