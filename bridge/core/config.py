@@ -166,6 +166,12 @@ class TransferSection(Cfg):
         "from how far the region's SC maps agree with each other and with the line (docs/PAPER.md, 'The transfer's "
         "choice of map'); false, the paper's SC map wherever it has a region. Off by default: it costs each command "
         "inside the region more and did not beat interpolation's median on every store (docs/BENCHMARKS.md)")] = False
+    at_limit: Annotated[Literal["row", "region"], meta(
+        "how a command at a driven learned limit is mapped: row, interpolated along the limit's row of pairs (a "
+        "mission's own pairs there are nearly collinear, so its mapping regions are slivers); region, by the mapping "
+        "region just inside the limit, at the learner's extreme on that axis: for a store calibrated at the "
+        "learner's extremes (scmbridge calibrate; the paper's calibrated start), whose quadrilaterals there are "
+        "well shaped; the row where it has none (docs/PAPER.md, 'The calibrated start')")] = "row"
     adapt: Annotated[bool | Literal["reloaded"], meta(
         "re-learn a cell whose learner changed (a sagging battery, a dragging wheel, a new floor; docs/PAPER.md, "
         "'a learner that changes'): true, always; \"reloaded\", when the station starts on a saved store that "
