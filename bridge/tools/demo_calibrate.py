@@ -30,10 +30,10 @@ def grid(text: str) -> tuple[int, int]:
 
 
 def check_calibrate(args: Any, robots: list[str]) -> None:
-    """``--calibrate`` calibrates one emulated robot on its link before its mission (not a fleet, not in-process)."""
-    if args.calibrate is not None and (len(robots) != 1 or args.count or args.inprocess or args.sitl is not None):
-        raise UsageError("--calibrate calibrates one emulated robot on its link: not with --robots, --count, "
-                         "--inprocess or --sitl")
+    """``--calibrate`` calibrates one robot on its link before its mission (not a fleet, not in-process): an
+    emulated one, or with ``--sitl`` the SITL rover of the run it calibrates (not its baseline or reference)."""
+    if args.calibrate is not None and (len(robots) != 1 or args.count or args.inprocess):
+        raise UsageError("--calibrate calibrates one robot on its link: not with --robots, --count or --inprocess")
 
 
 def calibration_budget(grid: tuple[int, int] | None) -> float:
@@ -64,6 +64,17 @@ def calibrate_first(grid: tuple[int, int], client: list[str], config: Path, stor
     print(f"calibration ({wall} s): {line or 'no summary line; see calibrate.log'}", flush=True)
     return {"ok": code == 0 and " commands driven" in line and line.startswith("calibration: all "), "line": line,
             "wall_s": wall}
+
+
+def restart_monitor(mon: Any) -> None:
+    """Forget what the demo's monitor (:class:`bridge.tools.demo.Monitor`) saw before the mission (an identification
+    or a calibration on the same vehicle): the run's figures are the mission's."""
+    with mon.lock:
+        mon.states.clear()
+        mon.applied.clear()
+        mon.cmds.clear()
+        mon.status.pop("station", None)
+    mon.driving.clear()
 
 
 def method_shares(methods: dict[str, int]) -> dict[str, float]:

@@ -19,13 +19,13 @@ def test_method_shares_leave_stop_out_and_sum_to_one() -> None:
 
 
 @pytest.mark.parametrize("argv", [["--calibrate", "5x5", "--count", "2"], ["--calibrate", "5x5", "--inprocess"],
-                                  ["--calibrate", "3x3", "--sitl", "/nonexistent"]])
-def test_calibrate_is_for_one_emulated_robot(argv: list[str]) -> None:
+                                  ["--calibrate", "3x3", "--robots", "a,b"]])
+def test_calibrate_is_for_one_robot(argv: list[str]) -> None:
     from bridge.tools.demo import arguments, run
 
     ap = argparse.ArgumentParser()
     arguments(ap)
-    with pytest.raises(UsageError, match="one emulated robot"):
+    with pytest.raises(UsageError, match="calibrates one robot"):
         run(ap.parse_args(argv))
 
 
