@@ -167,7 +167,14 @@ def sitl_once(demo: ModuleType, args: argparse.Namespace, binary: Path, out: Pat
     TRANSFER, Monitor, teacher_table, touched_an_obstacle = (demo.TRANSFER, demo.Monitor, demo.teacher_table,
                                                             demo.touched_an_obstacle)
     _wait_state, _watch, transfer_lines = demo._wait_state, demo._watch, demo.transfer_table
-    from bridge.tools.demo_calibrate import calibrate_first, calibration_budget, method_shares, restart_monitor
+    from bridge.tools.demo_calibrate import (
+        SITL_HOLD_AFTER_SETTLE_S,
+        calibrate_first,
+        calibration_budget,
+        method_shares,
+        restart_monitor,
+        sitl_calibration_table,
+    )
     from bridge.tools.demo_sitl import (
         PAIR_SETTLE_ACKERMANN_S,
         PAIR_SETTLE_EDGE_ACKERMANN_S,
@@ -195,6 +202,7 @@ def sitl_once(demo: ModuleType, args: argparse.Namespace, binary: Path, out: Pat
     if not 0.0 <= settle <= 5.0:
         raise UsageError(f"--pair-settle {settle}: between 0 and 5 s")
     changes = [param_change(x) for x in args.param_at]
+    calibrate = getattr(args, "calibrate", None)  # the paper's calibrated start before the mission (--calibrate)
     # an Ackermann rover cannot turn in place: its yaw-rate limits are curvatures (docs/BENCHMARKS.md)
     turn = args.turn or ("needs-speed" if ackermann else "in-place")
     start = args.start or ("on-path" if turn == "needs-speed" else "mission")
@@ -246,7 +254,8 @@ def sitl_once(demo: ModuleType, args: argparse.Namespace, binary: Path, out: Pat
                 + (f"turn_reach = [{reach.right:.4f}, {reach.left:.4f}, {reach.speed:.4f}]\n"
                    if reach is not None and reach.right is not None and reach.left is not None
                    and turn == "needs-speed" else "")
-                + teacher_table(args))
+                + teacher_table(args)
+                + (sitl_calibration_table(max(settle, settle_edge)) if calibrate else ""))
 
         write_station()
         (out / "driver.toml").write_text(
@@ -258,7 +267,6 @@ def sitl_once(demo: ModuleType, args: argparse.Namespace, binary: Path, out: Pat
               f"({pose[0]:.2f}, {pose[1]:.2f}, {pose[2]:.2f})", flush=True)
         port = free_port()
         client = ["--robot", robot, "--mode", "client", "--connect", tcp(port)]
-        calibrate = getattr(args, "calibrate", None)
         logs = {name: stack.enter_context(open(out / f"{name}.log", "w"))
                 for name in ("driver", "station", *(["calibrate"] if calibrate else []))}
         session = stack.enter_context(open_session(make_config(mode="router", listen=[tcp(port)])))
@@ -266,7 +274,7 @@ def sitl_once(demo: ModuleType, args: argparse.Namespace, binary: Path, out: Pat
         mon = Monitor(session, robot)
         try:
             # the driver host outlives the identification (up to IDENTIFY_S) and the station's start-up too
-            extra = (IDENTIFY_S if getattr(args, "identify", False) else 0.0) + calibration_budget(calibrate)
+            extra = (IDENTIFY_S if getattr(args, "identify", False) else 0.0) + calibration_budget(calibrate, 3.0)
             kids.spawn(["driver", "--link", "mavlink", "--config", str(out / "driver.toml"), *client, "--duration",
                         str(args.duration + 30 + extra + STARTUP_S)], logs["driver"])
             if not _wait_state(mon, "waiting", 60):
@@ -299,7 +307,8 @@ def sitl_once(demo: ModuleType, args: argparse.Namespace, binary: Path, out: Pat
                       f"{settle} s (edges {max(settle, settle_edge)} s)", flush=True)
                 restart_monitor(mon)  # the run starts after the identification: its figures are the mission's
             if calibrate:  # the paper's calibrated start, on the firmware: then the mission from where it stopped
-                cal = calibrate_first(calibrate, client, out / "station.toml", store, logs["calibrate"])
+                cal = calibrate_first(calibrate, client, out / "station.toml", store, logs["calibrate"],
+                                      hold_s=max(settle, settle_edge) + SITL_HOLD_AFTER_SETTLE_S)
                 with pilot.cond:
                     p, att = pilot.s.position, pilot.s.attitude
                 pose = (float(p.y), float(p.x), math.pi / 2 - float(att.yaw))
