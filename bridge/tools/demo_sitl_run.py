@@ -250,7 +250,7 @@ def sitl_once(demo: ModuleType, args: argparse.Namespace, binary: Path, out: Pat
                 + ("adapt = true\n" if args.adapt else "")
                 + (f'turn_probe = "{args.turn_probe}"\n' if args.turn_probe != "at-command" else "")
                 + (f'turn = "{turn}"\n' if turn != "in-place" else "")
-                + ('at_limit = "region"\n' if getattr(args, "calibrate", None) else "")
+                + ('at_limit = "region"\n' if calibrate else "")
                 + (f"turn_reach = [{reach.right:.4f}, {reach.left:.4f}, {reach.speed:.4f}]\n"
                    if reach is not None and reach.right is not None and reach.left is not None
                    and turn == "needs-speed" else "")
