@@ -8,6 +8,8 @@ docs/BENCHMARKS.md, "The transfer step"). ``--adapt``: the same with the store's
 pairs following their recent pairs (``PairStore(adapt=True)``, the station's ``[transfer] adapt``). The stream comes
 after the rebuilds, which moved the pairs of the cells they timed by 1 % of the range: a store with change detection
 finds those cells changed and re-learns them from the stream's pairs, so its stream is the cost after a change.
+``--choice``: the policy with the transfer's choice of map (the station's ``[transfer] map_choice``; docs/PAPER.md,
+"The transfer's choice of map").
 """
 
 from __future__ import annotations
@@ -101,14 +103,14 @@ def _time_stream(policy, store, model, command, rng, n: int) -> list[float]:
     return out
 
 
-def _time_holes(rng: np.random.Generator, n: int, adapt: bool) -> list[float]:
+def _time_holes(rng: np.random.Generator, n: int, adapt: bool, choice: bool = False) -> list[float]:
     """A learned store with holes the teacher's commands do not lead to (the slowest speeds' hardest turns): the
     guided policy's fill budget is saved up and its hole search finds nothing, a station's steady state. Every
     command timed, searches included (their cost is amortised: the mean says it)."""
     from transfer.policy import make_policy
 
     store, _, _ = _filled_store(rng, frozenset((i, j) for i in range(3) for j in (0, 10)), adapt)
-    policy = make_policy(store, "scm", rng=rng)
+    policy = make_policy(store, "scm", rng=rng, choice=choice)
     _, _, T, _ = store.refined_arrays()
     lo, hi = np.quantile(T, 0.3, axis=0), T.max(axis=0)  # the faster commands, away from the holes
     out = []
@@ -125,6 +127,9 @@ def arguments(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--adapt", action="store_true",
                     help="the store with change detection ([transfer] adapt; docs/PAPER.md, 'a learner that changes')")
+    ap.add_argument("--choice", action="store_true",
+                    help="the transfer's choice of map ([transfer] map_choice; docs/PAPER.md, 'The transfer's choice "
+                         "of map')")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -135,7 +140,7 @@ def run(args: argparse.Namespace) -> int:
     warmup()
     rng = np.random.default_rng(args.seed)
     store, model, ingest = _filled_store(rng, adapt=args.adapt)
-    policy = make_policy(store, "scm", rng=rng)
+    policy = make_policy(store, "scm", rng=rng, choice=args.choice)
     ids, _, T, _ = store.refined_arrays()
     lo, hi = T.min(axis=0), T.max(axis=0)
 
@@ -145,7 +150,7 @@ def run(args: argparse.Namespace) -> int:
     hits, methods = _time_hits(policy, command, args.n)
     rebuilds = _time_rebuilds(policy, store, command, args.n)
     mixed = _time_stream(policy, store, model, command, rng, args.n)
-    holed = _time_holes(rng, args.n, args.adapt)
+    holed = _time_holes(rng, args.n, args.adapt, args.choice)
     emit(
         {
             "map_hit_us": summary_us(hits, pcts=(99,)),
@@ -155,6 +160,7 @@ def run(args: argparse.Namespace) -> int:
             "map_holes_us": {**summary_us(holed, pcts=(99,)), "mean": float(np.mean(holed) * 1e6)},
             "refined_pairs": int(ids.size),
             "adapt": bool(args.adapt),
+            "choice": bool(args.choice),
             "methods": methods,
             "targets": {"map_hit_median_us": 200, "map_p99_incl_rebuild_us": 5000},
         }

@@ -176,17 +176,25 @@ def scm_start(world: World, seed: int, jitter: tuple[float, float] = START_JITTE
 
 
 def run_scm(seed: int, quick: bool, exploration: str = "guided",
-            progress: Progress | None = None, solver: str = "ipopt", adapt: bool = False) -> tuple[Run, PairStore]:
+            progress: Progress | None = None, solver: str = "ipopt", adapt: bool = False,
+            calibrated: bool = False) -> tuple[Run, PairStore]:
     """The SCM learner from no pairs at all: the MPC bounded by the learned limits, each command mapped by the
     transfer step the station uses (:class:`transfer.step.TransferStep`: the policy explores by its own rule, never
     near an obstacle; the guided policy is steered by the teacher's plan), each control interval paired and added to
     the store. The seed drives the policy's random generator and the start's sub-millimetre jitter
     (:func:`scm_start`). ``adapt``: the store with change detection (the station's ``[transfer] adapt``), on a
-    learner that does not change."""
+    learner that does not change. ``calibrated``: the paper's calibrated start instead (its Jackal run): the 5 x 5
+    grid of ``scmbridge calibrate`` driven first, each command for ``k_min`` control intervals, and commands at a
+    driven limit mapped by the region just inside it (``[transfer] at_limit = "region"``)."""
     case = mpc_case(quick)
     world, learner = case.world, case.learner
     store = PairStore(case.learner_bounds, case.teacher_bounds, k_min=5, adapt=adapt)
-    step = TransferStep(make_policy(store, "scm", np.random.default_rng(seed), exploration=exploration), dt=DT)
+    if calibrated:
+        from sim_learner.primitives_sim import calibrate
+
+        calibrate(learner, store, store.k_min * DT)
+    step = TransferStep(make_policy(store, "scm", np.random.default_rng(seed), exploration=exploration,
+                                    at_limit="region" if calibrated else "row"), dt=DT)
 
     regions: list[tuple[int, ...]] = []
 

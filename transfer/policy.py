@@ -114,6 +114,11 @@ EXPLORATIONS = ("paper", "guided")
 #: normalised teacher distance to a learned limit within which a command is mapped along it (a hundredth of a cell
 #: of the 11 x 11 grid: an interior-point MPC stops about 1e-4 short of its bounds)
 ALONG_LIMIT_TOL = 1e-3
+#: how a command at a driven limit is mapped: ``row``, interpolated along the limit's row of pairs (a mission's own
+#: pairs there are nearly collinear: slivers); ``region``, the mapper's region just inside the limit (a quarter of a
+#: cell), the learner's extreme on the limit's axis: the paper's calibrated start, whose pairs at the learner's
+#: extremes form well-shaped quadrilaterals (docs/PAPER.md, "The calibrated start"); the row where it has none
+AT_LIMIT = ("row", "region")
 #: the guided policy's default share of region-served commands that may fill holes of the map (module docstring)
 FILL_BUDGET = 0.08
 #: at which learner speed the probe of a never-driven yaw-rate limit is sent: ``at-command`` (the default, the
@@ -160,7 +165,8 @@ class _PolicyBase:
 
     def __init__(self, store: PairStore, mapper: str | Mapper = "scm", rng: np.random.Generator | None = None,
                  *, seed: int | None = None, saturate: float = 0.1, probe_tol: float = 1e-6,
-                 inset: float = 0.1, turn_probe: str = "at-command", choice: bool = False) -> None:
+                 inset: float = 0.1, turn_probe: str = "at-command", choice: bool = False,
+                 at_limit: str = "row") -> None:
         """``mapper``: a mapper name (``scm``, ``barycentric``, ``affine``, ``identity``) or object; ``rng`` (or
         ``seed``): the random generator of the exploration; ``saturate``: normalised teacher distance to the
         learned region below which commands are served from the region instead of explored; ``probe_tol``: how
@@ -168,7 +174,11 @@ class _PolicyBase:
         cell) inside the chosen cell a guided perturbation lands; ``turn_probe``: at which learner speed the probe
         of a never-driven yaw-rate limit is sent (:data:`TURN_PROBES`); ``choice``: with the ``scm`` mapper, each
         command inside the learned region is mapped by the SC map or linear interpolation as
-        :class:`transfer.choice.MapChoice` decides (False: the paper's SC map wherever it has a region)."""
+        :class:`transfer.choice.MapChoice` decides (False: the paper's SC map wherever it has a region); ``at_limit``:
+        how a command at a driven limit is mapped (:data:`AT_LIMIT`)."""
+        if at_limit not in AT_LIMIT:
+            raise ValueError(f"unknown at_limit {at_limit!r}; known: {', '.join(AT_LIMIT)}")
+        self.at_limit = at_limit
         if not 0.0 <= inset < 0.5:
             raise ValueError(f"inset must be in [0, 0.5), got {inset}")
         if turn_probe not in TURN_PROBES:
@@ -214,12 +224,13 @@ class _PolicyBase:
             l_n, method, ids, gap = self._estimate(t, t_n)
         return lb.clip(lb.denormalise(l_n)), method, ids, gap
 
-    def _along_limit(self, t_n: NDArray[np.float64]) -> tuple | None:
+    def _along_limit(self, t_n: NDArray[np.float64], linear: bool = False) -> tuple | None:
         """A command saturated at a learned limit whose boundary has been driven (a bounded controller's commands
         sit exactly there): the learner's extreme on that axis, and on the other the linear interpolation between
         the two neighbouring refined pairs of the boundary row of cells on that side. Those pairs are (nearly)
         collinear in the teacher domain, so the 2-D regions along the limit are slivers whose maps are
-        ill-conditioned; along the row the map is one-dimensional. None when ``t_n`` is not at such a limit, or lies
+        ill-conditioned; along the row the map is one-dimensional (with ``at_limit = "region"``, the mapper's region
+        just inside the limit first: :meth:`_inside_limit`). None when ``t_n`` is not at such a limit, or lies
         beyond the row's pairs (with ``adapt``: the extreme, the other axis mapped, and that map's gap, explored as
         without: the limit keeps its boundary pairs coming). A learner that cannot turn in place has its curvature at
         ``t_n``'s speed as its yaw-rate limit (``turn_edges_at``): commands there go to the full lock."""
@@ -235,6 +246,10 @@ class _PolicyBase:
                     (lim.bcnt_lo[a] > 0 and t_n[a] <= lo + ALONG_LIMIT_TOL, 0, 0.0)):
                 if not at_limit:
                     continue
+                inside = self._inside_limit(t_n, a, extreme, hi if extreme else lo) if self.at_limit == "region" \
+                    and not linear else None
+                if inside is not None:
+                    return inside
                 on_row, xs = self._limit_row(arrays, a, row)
                 if on_row.size < 2:
                     continue
@@ -252,6 +267,25 @@ class _PolicyBase:
                 l_n[a], l_n[b] = extreme, L[i0, b] + w * (L[i1, b] - L[i0, b])
                 return l_n, "barycentric", (int(ids[i0]), int(ids[i1]))
         return None
+
+    def _inside_limit(self, t_n: NDArray[np.float64], a: int, extreme: float, limit: float) -> tuple | None:
+        """``at_limit = "region"``: the mapper's answer (with ``choice``, the chosen map's) a quarter of a cell inside
+        the limit on axis ``a``, with the learner's ``extreme`` on that axis (as along the row), or None where the
+        mapper has no region there (the row decides)."""
+        t_in = np.array(t_n, dtype=float)
+        inset = 0.25 / self.store.grid[a]
+        t_in[a] = min(t_in[a], limit) - inset if extreme else max(t_in[a], limit) + inset
+        if self._choice is not None:
+            got = self._choice.map_normalised(t_in)
+        elif (res := self.mapper.map_normalised(t_in)) is not None:
+            got = (res[0], self.mapper.name, res[1])
+        else:
+            got = None
+        if got is None or not np.all(np.isfinite(got[0])):  # no mapping region there (the fallback's slivers)
+            return None
+        l_n = np.array(got[0], dtype=float)
+        l_n[a] = extreme
+        return l_n, got[1], got[2]
 
     def _limit_row(self, arrays: tuple, a: int, row: int) -> tuple[NDArray[np.int64], NDArray[np.float64]]:
         """The refined pairs of the cells on ``row`` of axis ``a`` (indices into ``arrays``, the store's
@@ -281,7 +315,7 @@ class _PolicyBase:
         methods = [""] * len(ts_n)
         rest: list[int] = []
         for i in range(len(ts_n)):
-            along = self._along_limit(ts_n[i])
+            along = self._along_limit(ts_n[i], linear)
             if along is not None:
                 out[i], methods[i] = along[0], along[1]
             else:

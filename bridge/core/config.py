@@ -162,10 +162,17 @@ class TransferSection(Cfg):
         "limits are probed at the learner's top speed (whatever turn_probe says); the teacher's speed must then be "
         "forward only (teacher_bounds v >= 0)")] = "in-place"
     map_choice: Annotated[bool, meta(
-        "with mapper = \"scm\": choose per command between the SC map and the triangle's linear interpolation, "
-        "from how far the region's SC maps agree with each other and with the line (docs/PAPER.md, 'The transfer's "
-        "choice of map'); false, the paper's SC map wherever it has a region. Off by default: it costs each command "
-        "inside the region more and did not beat interpolation's median on every store (docs/BENCHMARKS.md)")] = False
+        "with mapper = \"scm\": choose per command between the SC map and the triangle's linear interpolation: "
+        "the SC map in a triangle that spans a hole of the pairs, the line in a smaller one (docs/PAPER.md, 'The "
+        "transfer's choice of map'); false, the paper's SC map wherever it has a region. Off by default: it does "
+        "not beat interpolation's median on every store, changes little in the closed loop, and on a calibrated "
+        "store takes the line everywhere")] = False
+    at_limit: Annotated[Literal["row", "region"], meta(
+        "how a command at a driven learned limit is mapped: row, interpolated along the limit's row of pairs (a "
+        "mission's own pairs there are nearly collinear, so its mapping regions are slivers); region, by the mapping "
+        "region just inside the limit, at the learner's extreme on that axis: for a store calibrated at the "
+        "learner's extremes (scmbridge calibrate; the paper's calibrated start), whose quadrilaterals there are "
+        "well shaped; the row where it has none (docs/PAPER.md, 'The calibrated start')")] = "row"
     adapt: Annotated[bool | Literal["reloaded"], meta(
         "re-learn a cell whose learner changed (a sagging battery, a dragging wheel, a new floor; docs/PAPER.md, "
         "'a learner that changes'): true, always; \"reloaded\", when the station starts on a saved store that "

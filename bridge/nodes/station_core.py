@@ -211,7 +211,7 @@ class StationCore:
         # a learner that cannot turn in place: its yaw-rate limits are curvatures, probed where it turns most
         self.store.limits.set_needs_speed(tcfg.turn == "needs-speed")
         policy = make_policy(self.store, tcfg.mapper, np.random.default_rng(tcfg.seed), turn_probe=tcfg.probe_turns(),
-                             choice=tcfg.map_choice,
+                             choice=tcfg.map_choice, at_limit=tcfg.at_limit,
                              **({"exploration": "paper"} if tcfg.exploration == "paper"
                                 else {"exploration": "guided", "fill_budget": tcfg.fill_budget, "fill_phase": phase}))
         self.transfer = TransferStep(policy, dt=self.period, explore=tcfg.exploration != "off",

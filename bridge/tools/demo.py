@@ -311,7 +311,8 @@ def hil(args: argparse.Namespace, robot: str) -> int:
     client = ["--robot", robot, "--mode", "client", "--connect", tcp(port)]
     # --transfer off: the paper's baseline; --drift: the learner changes, and the station re-learns what no longer holds
     # by its defaults ([transfer] adapt = true, [teacher] curve_margin once the learner changed)
-    (out / "station.toml").write_text(transfer_table(args.transfer, args.limits) + teacher_table(args))
+    (out / "station.toml").write_text(transfer_table(args.transfer, args.limits)
+                                      + ('at_limit = "region"\n' if args.calibrate else "") + teacher_table(args))
     station_cfg = ["--config", str(out / "station.toml")]
     mon, cal = None, None
     up = args.duration + 15 + calibration_budget(args.calibrate)  # the driver host and its link outlive the mission

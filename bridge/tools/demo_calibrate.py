@@ -30,22 +30,40 @@ def grid(text: str) -> tuple[int, int]:
 
 
 def check_calibrate(args: Any, robots: list[str]) -> None:
-    """``--calibrate`` calibrates one emulated robot on its link before its mission (not a fleet, not in-process)."""
-    if args.calibrate is not None and (len(robots) != 1 or args.count or args.inprocess or args.sitl is not None):
-        raise UsageError("--calibrate calibrates one emulated robot on its link: not with --robots, --count, "
-                         "--inprocess or --sitl")
+    """``--calibrate`` calibrates one robot on its link before its mission (not a fleet, not in-process): an
+    emulated one, or with ``--sitl`` the SITL rover of the run it calibrates (not its baseline or reference)."""
+    if args.calibrate is not None and (len(robots) != 1 or args.count or args.inprocess):
+        raise UsageError("--calibrate calibrates one robot on its link: not with --robots, --count or --inprocess")
 
 
-def calibration_budget(grid: tuple[int, int] | None) -> float:
-    """The calibration stage's bound on time for ``grid`` (0 without one)."""
-    return 0.0 if grid is None else 20.0 + CAL_S_PER_COMMAND * grid[0] * grid[1]
+#: (--sitl) seconds each calibration command is held beyond the station's pair settling time: a few control
+#: intervals' pairs of every command count (a cell needs k_min of them), not only the first after it settled
+SITL_HOLD_AFTER_SETTLE_S = 1.0
+#: (--sitl) the calibration's distance bounds on SITL's open field: it drives at the vehicle's full range, and the
+#: mission is placed where it stopped
+SITL_MAX_DISTANCE_M, SITL_RETURN_RADIUS_M = 10.0, 3.0
 
 
-def calibrate_first(grid: tuple[int, int], client: list[str], config: Path, store: Path, log: Any) -> dict:
+def calibration_budget(grid: tuple[int, int] | None, hold_s: float = 1.0) -> float:
+    """The calibration stage's bound on time for ``grid`` with each command held ``hold_s`` (0 without a grid)."""
+    return 0.0 if grid is None else 20.0 + (CAL_S_PER_COMMAND + max(0.0, hold_s - 1.0)) * grid[0] * grid[1]
+
+
+def sitl_calibration_table(settle_s: float) -> str:
+    """(--sitl) the station's ``[calibration]`` lines: each command held the pair settling time and
+    :data:`SITL_HOLD_AFTER_SETTLE_S` more (the default hold of one second leaves a command on a real firmware one
+    settled pair or none), within SITL's open field's bounds."""
+    return (f"\n[calibration]\nhold_s = {settle_s + SITL_HOLD_AFTER_SETTLE_S:.3f}\n"
+            f"max_distance_m = {SITL_MAX_DISTANCE_M}\nreturn_radius_m = {SITL_RETURN_RADIUS_M}\n")
+
+
+def calibrate_first(grid: tuple[int, int], client: list[str], config: Path, store: Path, log: Any,
+                    hold_s: float = 1.0) -> dict:
     """Run ``scmbridge calibrate`` to its end (bounded by :func:`calibration_budget`, then stopped) and return what
     it reports: ``ok`` (it drove every command of its grid), ``line`` (its summary line), ``wall_s``. The caller's
-    driver host must be running and engaged; no station may drive the robot meanwhile."""
-    budget = calibration_budget(grid)
+    driver host must be running and engaged; no station may drive the robot meanwhile. ``hold_s``: the hold the
+    station's ``[calibration]`` gives each command (the default's unless the caller wrote another)."""
+    budget = calibration_budget(grid, hold_s)
     t0 = time.monotonic()
     proc = spawn(["calibrate", *client, "--config", str(config), "--store", str(store), "--grid",
                   f"{grid[0]}x{grid[1]}", "--duration", f"{budget:g}"], log)
@@ -64,6 +82,17 @@ def calibrate_first(grid: tuple[int, int], client: list[str], config: Path, stor
     print(f"calibration ({wall} s): {line or 'no summary line; see calibrate.log'}", flush=True)
     return {"ok": code == 0 and " commands driven" in line and line.startswith("calibration: all "), "line": line,
             "wall_s": wall}
+
+
+def restart_monitor(mon: Any) -> None:
+    """Forget what the demo's monitor (:class:`bridge.tools.demo.Monitor`) saw before the mission (an identification
+    or a calibration on the same vehicle): the run's figures are the mission's."""
+    with mon.lock:
+        mon.states.clear()
+        mon.applied.clear()
+        mon.cmds.clear()
+        mon.status.pop("station", None)
+    mon.driving.clear()
 
 
 def method_shares(methods: dict[str, int]) -> dict[str, float]:

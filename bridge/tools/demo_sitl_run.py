@@ -84,7 +84,8 @@ def sitl_hil(args: argparse.Namespace, demo: ModuleType) -> int:
         reference = "none"
     if args.baseline and role == "learner":
         # the paper's baseline: the teacher's commands within what the vehicle accepts, nothing measured first
-        b_args = argparse.Namespace(**{**vars(args), "transfer": "off", "limits": None, "identify": False})
+        b_args = argparse.Namespace(**{**vars(args), "transfer": "off", "limits": None, "identify": False,
+                                       "calibrate": None})
         b = sitl_once(demo, b_args, binary, out / "baseline", "baseline")
         if b is not None:
             runs["baseline"] = b
@@ -97,7 +98,7 @@ def sitl_hil(args: argparse.Namespace, demo: ModuleType) -> int:
         parm.write_text(reference_parm(args.sitl_model, learned_limits(out / "pairs.bin"), first["vehicle_params"]))
         ackermann = args.sitl_model == "rover"
         r_args = argparse.Namespace(**{**vars(args), "transfer": "off", "limits": "learned", "sitl_params": str(parm),
-                                       "param_at": [], "adapt": False, "identify": False,
+                                       "param_at": [], "adapt": False, "identify": False, "calibrate": None,
                                        "turn": "in-place" if ackermann else args.turn,
                                        "start": first["start"], "pair_settle": first["summary"]["pair_settle_s"]
                                        if getattr(args, "identify", False) else args.pair_settle})
@@ -166,6 +167,14 @@ def sitl_once(demo: ModuleType, args: argparse.Namespace, binary: Path, out: Pat
     TRANSFER, Monitor, teacher_table, touched_an_obstacle = (demo.TRANSFER, demo.Monitor, demo.teacher_table,
                                                             demo.touched_an_obstacle)
     _wait_state, _watch, transfer_lines = demo._wait_state, demo._watch, demo.transfer_table
+    from bridge.tools.demo_calibrate import (
+        SITL_HOLD_AFTER_SETTLE_S,
+        calibrate_first,
+        calibration_budget,
+        method_shares,
+        restart_monitor,
+        sitl_calibration_table,
+    )
     from bridge.tools.demo_sitl import (
         PAIR_SETTLE_ACKERMANN_S,
         PAIR_SETTLE_EDGE_ACKERMANN_S,
@@ -193,6 +202,7 @@ def sitl_once(demo: ModuleType, args: argparse.Namespace, binary: Path, out: Pat
     if not 0.0 <= settle <= 5.0:
         raise UsageError(f"--pair-settle {settle}: between 0 and 5 s")
     changes = [param_change(x) for x in args.param_at]
+    calibrate = getattr(args, "calibrate", None)  # the paper's calibrated start before the mission (--calibrate)
     # an Ackermann rover cannot turn in place: its yaw-rate limits are curvatures (docs/BENCHMARKS.md)
     turn = args.turn or ("needs-speed" if ackermann else "in-place")
     start = args.start or ("on-path" if turn == "needs-speed" else "mission")
@@ -209,6 +219,7 @@ def sitl_once(demo: ModuleType, args: argparse.Namespace, binary: Path, out: Pat
     mon = None
     interrupted = False
     ident = None
+    cal: dict[str, Any] | None = None
     accepted = None
     reach = None  # a car's tightest turn, measured (the station checks the mission's path against it)
     with ExitStack() as stack:
@@ -239,10 +250,12 @@ def sitl_once(demo: ModuleType, args: argparse.Namespace, binary: Path, out: Pat
                 + ("adapt = true\n" if args.adapt else "")
                 + (f'turn_probe = "{args.turn_probe}"\n' if args.turn_probe != "at-command" else "")
                 + (f'turn = "{turn}"\n' if turn != "in-place" else "")
+                + ('at_limit = "region"\n' if calibrate else "")
                 + (f"turn_reach = [{reach.right:.4f}, {reach.left:.4f}, {reach.speed:.4f}]\n"
                    if reach is not None and reach.right is not None and reach.left is not None
                    and turn == "needs-speed" else "")
-                + teacher_table(args))
+                + teacher_table(args)
+                + (sitl_calibration_table(max(settle, settle_edge)) if calibrate else ""))
 
         write_station()
         (out / "driver.toml").write_text(
@@ -254,13 +267,14 @@ def sitl_once(demo: ModuleType, args: argparse.Namespace, binary: Path, out: Pat
               f"({pose[0]:.2f}, {pose[1]:.2f}, {pose[2]:.2f})", flush=True)
         port = free_port()
         client = ["--robot", robot, "--mode", "client", "--connect", tcp(port)]
-        logs = {name: stack.enter_context(open(out / f"{name}.log", "w")) for name in ("driver", "station")}
+        logs = {name: stack.enter_context(open(out / f"{name}.log", "w"))
+                for name in ("driver", "station", *(["calibrate"] if calibrate else []))}
         session = stack.enter_context(open_session(make_config(mode="router", listen=[tcp(port)])))
         kids = stack.enter_context(Children())
         mon = Monitor(session, robot)
         try:
             # the driver host outlives the identification (up to IDENTIFY_S) and the station's start-up too
-            extra = IDENTIFY_S if getattr(args, "identify", False) else 0.0
+            extra = (IDENTIFY_S if getattr(args, "identify", False) else 0.0) + calibration_budget(calibrate, 3.0)
             kids.spawn(["driver", "--link", "mavlink", "--config", str(out / "driver.toml"), *client, "--duration",
                         str(args.duration + 30 + extra + STARTUP_S)], logs["driver"])
             if not _wait_state(mon, "waiting", 60):
@@ -291,12 +305,17 @@ def sitl_once(demo: ModuleType, args: argparse.Namespace, binary: Path, out: Pat
                 print(f"identified: {ident.as_dict()}; learner v ({v_range[0]:.3f}, {v_range[1]:.3f}) m/s, omega "
                       f"({w_range[0]:.3f}, {w_range[1]:.3f}) rad/s, turn {turn}, start {start}, pairs settle "
                       f"{settle} s (edges {max(settle, settle_edge)} s)", flush=True)
-                with mon.lock:  # the run starts after the identification: its figures are the mission's
-                    mon.states.clear()
-                    mon.applied.clear()
-                    mon.cmds.clear()
-                    mon.status.pop("station", None)
-                mon.driving.clear()
+                restart_monitor(mon)  # the run starts after the identification: its figures are the mission's
+            if calibrate:  # the paper's calibrated start, on the firmware: then the mission from where it stopped
+                cal = calibrate_first(calibrate, client, out / "station.toml", store, logs["calibrate"],
+                                      hold_s=max(settle, settle_edge) + SITL_HOLD_AFTER_SETTLE_S)
+                with pilot.cond:
+                    p, att = pilot.s.position, pilot.s.attitude
+                pose = (float(p.y), float(p.x), math.pi / 2 - float(att.yaw))
+                placed = place_mission(start_on_path(base_spec) if start == "on-path" else base_spec, pose)
+                world = mission_from_spec(placed)
+                write_station()
+                restart_monitor(mon)
             kids.spawn(["station", *client, "--config", str(out / "station.toml"), "--start", "--store", str(store),
                         "--exit-at-goal", "--duration", str(args.duration + STARTUP_S), "--mission",
                         str(out / "mission.toml")], logs["station"])
@@ -360,7 +379,8 @@ def sitl_once(demo: ModuleType, args: argparse.Namespace, binary: Path, out: Pat
         "corridor_m": run["corridor_m"], "max_path_dist_m": run["max_path_dist_m"],
         **V.role_fields(role, figures),
         "sim_teacher_time_s": sim["time_s"], "sim_teacher_dev_last_half_m": sim["dev_last_half_m"],
-        "method_counts": run["methods"], "refined_pairs": run["refined_pairs"], "raw_pairs": run["raw_pairs"],
+        "method_counts": run["methods"], "method_shares": method_shares(run["methods"]), "calibration": cal,
+        "refined_pairs": run["refined_pairs"], "raw_pairs": run["raw_pairs"],
         "pair_settle_s": settle, "pair_settle_edge_s": max(settle_edge, settle),
         "learned_limits": learned_limits(store),
         "adapt": load_station(out / "station.toml").transfer.adapt,  # what the station does (true by default)

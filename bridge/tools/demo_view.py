@@ -54,7 +54,7 @@ def trajectory_figure(out: Path, world, traj: np.ndarray, methods: list[str], la
 
     from sim_learner.figures import draw_mission
 
-    fig, ax = plt.subplots(figsize=(9, 4.3))
+    fig, ax = plt.subplots(figsize=(9, 5.2))
     draw_mission(ax, world)
     xy = np.asarray(traj, dtype=float)[:, :2]
     if len(xy) >= 2 and len(methods) == len(xy):
@@ -68,7 +68,7 @@ def trajectory_figure(out: Path, world, traj: np.ndarray, methods: list[str], la
     elif len(xy):
         ax.plot(xy[:, 0], xy[:, 1], color="tab:blue", lw=1.5)
     ax.plot([], [], " ", label=f"learner over Zenoh + {label}; colour: how its command was mapped")
-    ax.legend(loc="upper right", fontsize=7)
+    ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.13), ncol=2, fontsize=7)  # below: no obstacle hidden
     ax.set_title(title)
     fig.tight_layout()
     path = out / "demo_trajectory.png"

@@ -35,6 +35,9 @@ def test_the_demo_calibrates_then_drives_its_mission_from_the_calibrated_store(t
     # the mission's figures count from after the calibration: no calibrate command among its methods
     assert "calibrate" not in summary["methods"] and summary["method_shares"], summary
     assert abs(sum(summary["method_shares"].values()) - 1.0) < 0.01
+    # the paper's calibrated start: most driving commands SC-mapped (at_limit = "region": the calibrated
+    # quadrilaterals map the commands at the learned limits, where the MPC drives)
+    assert summary["method_shares"].get("scm", 0.0) >= 0.5, summary["method_shares"]
     store = read_store(out / "pairs.bin")  # the station's file, tagged as its own (bridge.nodes.station_tags)
     assert store.limits.bcnt_hi[0] > 0 and store.limits.bcnt_lo[1] > 0  # the calibration measured the limits
     assert (out / "demo_trajectory.png").stat().st_size > 10_000 and (out / "calibrate.log").exists()

@@ -1,16 +1,15 @@
 """transfer/choice.py: the transfer's choice, per command, between the SC map and linear interpolation.
 
 What the grid experiment measures of it is docs/PAPER.md's; here its promises: every command it serves is exactly the
-SC mapper's or the barycentric mapper's answer for it, named by that map's method; where the two agree within
-``AGREE`` it is the linear one (exact for an affine learner); a command whose SC maps disagree with the line by more
-than their own spread (a triangle across a hole of a curved response) is the SC map's; and the policy without the
-choice is the paper's SC map wherever it has a region."""
+SC mapper's or the barycentric mapper's answer for it, named by that map's method; a command in a triangle with a
+teacher side longer than ``HOLE`` (across a hole of the pairs) is the SC map's, in any smaller one the line's (exact
+for an affine learner); and the policy without the choice is the paper's SC map wherever it has a region."""
 
 from __future__ import annotations
 
 import numpy as np
 
-from transfer.choice import AGREE, TRUST, MapChoice
+from transfer.choice import HOLE, MapChoice
 from transfer.domain import Bounds
 from transfer.mappers import BarycentricMapper, ScmMapper
 from transfer.policy import make_policy
@@ -31,6 +30,18 @@ def _cubic(l):
     return np.array([0.1 + 0.8 * l[0] ** 3, 0.1 + 0.8 * l[1] ** 3])
 
 
+def _wavy(l):
+    """The cubic response with a ripple across the axes: curvature a small triangle's line misses."""
+    return _cubic(l) + 0.08 * np.sin(9.0 * l[::-1])
+
+
+def _gridded(rng) -> list:
+    """A noisy 9 x 9 grid of pairs with a hole in the middle: small triangles and a few spanning the hole."""
+    g = np.linspace(0.05, 0.95, 9)
+    pts = np.array([[a, b] for a in g for b in g if not (0.4 < a < 0.75 and 0.4 < b < 0.75)])
+    return list(pts + 0.02 * rng.standard_normal(pts.shape))
+
+
 def _holey(rng) -> list:
     """Pairs dense in one corner and sparse elsewhere: triangles of every size, some across holes."""
     dense = 0.05 + 0.4 * rng.random((25, 2))
@@ -40,51 +51,62 @@ def _holey(rng) -> list:
 
 def test_every_answer_is_one_of_the_two_maps_and_named_by_it() -> None:
     rng = np.random.default_rng(1)
-    store = _store(_cubic, _holey(rng))
+    store = _store(_wavy, _gridded(rng))
     choice = MapChoice(ScmMapper(store))
     scm, lin = ScmMapper(store), BarycentricMapper(store)
     seen = set()
-    for t in 0.1 + 0.8 * rng.random((300, 2)):
+    for t in 0.1 + 0.8 * rng.random((600, 2)):
         got = choice.map_normalised(t)
-        s = scm.map_normalised(t)
-        if s is None:
-            assert got is None
+        s, b = scm.map_normalised(t), lin.map_normalised(t)
+        if got is None:  # no triangle, or a hole without an SC region: the policy's fallback
+            assert b is None or s is None
             continue
-        b = lin.map_normalised(t)
-        assert got is not None
         l, method, region = got
         seen.add(method)
         ref = s if method == "scm" else b
-        assert method in ("scm", "barycentric") and np.array_equal(l, ref[0]) and region == ref[1]
+        assert method in ("scm", "barycentric") and ref is not None
+        assert np.array_equal(l, ref[0]) and region == ref[1]
     assert seen == {"scm", "barycentric"}  # on these pairs neither map is right everywhere
 
 
 def test_the_rule_as_documented() -> None:
-    # recomputed from the mappers' own answers: linear where the maps agree within AGREE; else the SC map when the
-    # spread of its quadrilaterals' maps is below TRUST times its distance to the line (one quadrilateral: one cell)
-    rng = np.random.default_rng(2)
-    store = _store(_cubic, _holey(rng))
+    # recomputed from the pairs: the SC mapper's answer in a triangle with a teacher side longer than HOLE, the
+    # triangle's line in every other
+    rng = np.random.default_rng(0)
+    store = _store(_wavy, _gridded(rng))
     scm, lin = ScmMapper(store), BarycentricMapper(store)
     choice = MapChoice(scm)
-    counted = {"agree": 0, "scm": 0, "barycentric": 0}
-    for t in 0.1 + 0.8 * rng.random((300, 2)):
+    counted = {"scm": 0, "barycentric": 0}
+    for t in 0.1 + 0.8 * rng.random((600, 2)):
         got = choice.map_normalised(t)
-        if got is None:
+        k = scm._simplex(t)
+        if k < 0:
+            assert got is None
             continue
-        s, b = scm.map_normalised(t), lin.map_normalised(t)
-        d = float(np.max(np.abs(s[0] - b[0])))
-        outs = choice._all_quads(t, scm._simplex(t))
-        if d <= AGREE:
-            want, key = "barycentric", "agree"
-        elif len(outs) < 2:
-            want = "scm" if d > 1.0 / min(store.grid) else "barycentric"
-            key = want
-        else:
-            want = "scm" if float(np.max(np.ptp(np.array(outs), axis=0))) < TRUST * d else "barycentric"
-            key = want
-        assert got[1] == want
-        counted[key] += 1
-    assert all(n > 0 for n in counted.values()), counted
+        P = scm.T[scm.tri.simplices[k]]
+        longest = max(float(np.hypot(*(P[i] - P[i - 1]))) for i in range(3))
+        want = "scm" if longest > HOLE else "barycentric"
+        ref = (scm if want == "scm" else lin).map_normalised(t)
+        if ref is None:  # a hole the SC mapper has no region for: the policy's fallback, not the choice
+            assert want == "scm" and got is None
+            continue
+        assert got is not None and got[1] == want and np.array_equal(got[0], ref[0]) and got[2] == ref[1]
+        counted[want] += 1
+    assert all(n > 50 for n in counted.values()), counted
+
+
+def test_many_commands_at_once_are_each_commands_own_answer() -> None:
+    rng = np.random.default_rng(5)
+    store = _store(_wavy, _gridded(rng))
+    choice = MapChoice(ScmMapper(store))
+    P = rng.random((400, 2))
+    many = choice.map_many(P)
+    one = [MapChoice(ScmMapper(store)).map_normalised(p) for p in P]
+    assert {g[1] for g in many if g is not None} == {"scm", "barycentric"}
+    for a, b in zip(many, one):
+        assert (a is None) == (b is None)
+        if a is not None:
+            assert a[1] == b[1] and a[2] == b[2] and np.allclose(a[0], b[0], rtol=0, atol=1e-12)
 
 
 def test_an_affine_learner_is_served_exactly_where_the_maps_agree() -> None:
