@@ -4,6 +4,9 @@ machine's load."""
 
 from __future__ import annotations
 
+import heapq
+import itertools
+import threading
 from collections.abc import Callable
 
 
@@ -19,6 +22,8 @@ class FakeClock:
         self.on_read: list[Callable[[], None]] = []
         self.on_sleep: list[Callable[[], None]] = []
         self.slept = 0.0
+        self._timers: list[tuple[float, int, Callable[[], None]]] = []
+        self._order = itertools.count()
 
     def __call__(self) -> float:
         for hook in self.on_read:
@@ -40,3 +45,23 @@ class FakeClock:
         self.advance(dt)
         for hook in self.on_sleep:
             hook()
+
+    def call_at(self, t: float, fn: Callable[[], None]) -> None:
+        """Run ``fn`` when the clock reaches ``t`` inside a :meth:`wait` (an input that arrives then: a command
+        received, a link that goes silent), with ``clock.t`` at exactly ``t``."""
+        heapq.heappush(self._timers, (t, next(self._order), fn))
+
+    def wait(self, event: threading.Event, timeout: float) -> bool:
+        """``event.wait(timeout)``'s stand-in (:data:`bridge.core.timebase.Wait`): the clock moves to the first
+        :meth:`call_at` due within the timeout, runs it, and so on; the wait ends at once when the event is set
+        (True), or after ``timeout`` (False)."""
+        end = self.t + max(0.0, timeout)
+        while not event.is_set() and self._timers and self._timers[0][0] <= end:
+            t, _, fn = heapq.heappop(self._timers)
+            self.t = max(self.t, t)
+            fn()
+        if event.is_set():
+            return True
+        self.slept += end - self.t
+        self.t = end
+        return False

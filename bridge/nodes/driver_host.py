@@ -12,7 +12,6 @@ from __future__ import annotations
 import logging
 import math
 import threading
-import time
 from collections import deque
 from collections.abc import Callable
 from pathlib import Path
@@ -21,6 +20,7 @@ from typing import Any
 import msgspec
 import zenoh
 
+from bridge.core import timebase
 from bridge.core import wire as M
 from bridge.core.acts import ActGuard, Refusal
 from bridge.core.backoff import Backoff
@@ -77,13 +77,18 @@ class DriverHost:
 
     def __init__(self, cfg: DriverConfig, link: str, driver: Driver, robot: str, rate_hz: float, *,
                  dry_run: bool = False, latch_path: Path | None = None,
-                 latch_saver: Callable[[Path, bytes], None] = save_atomic) -> None:
+                 latch_saver: Callable[[Path, bytes], None] = save_atomic, clock: timebase.Clock = timebase.monotonic,
+                 wait: timebase.Wait = timebase.wait) -> None:
         """``dry_run``: run the whole loop and publish what would be applied, sending nothing to the vehicle;
         ``latch_path``: where the estop latch is kept (None: in memory only; its install marker beside it,
         :func:`bridge.nodes.latch_store.latch_marker`); ``latch_saver``: how the writer saves it (atomically; a test
         slows it down or has it fail as a full disk does). The first start's marker and released latch are written
-        with :func:`save_atomic` (:meth:`LatchStore.open`)."""
+        with :func:`save_atomic` (:meth:`LatchStore.open`). ``clock`` and ``wait``: the host's time
+        (:mod:`bridge.core.timebase`): the loop reads ``clock`` once a tick and hands that ``now`` to the link and the
+        pieces; every wait (the loop's, the link's open retries) is ``wait``, so a test drives the loop on a fake
+        clock."""
         d = cfg.driver
+        self.clock, self.wait = clock, wait
         self.link, self.driver, self.robot = link, driver, robot
         self.keys = M.Keys(robot)
         self.period = 1.0 / rate_hz
@@ -170,7 +175,7 @@ class DriverHost:
         is saved after, by the writer's thread: no file I/O under a lock the loop or a callback takes. A stop is
         always taken; a release only when fresh and new (:mod:`bridge.core.acts`) and from a configured source."""
         with self.lock:
-            why = (self.acts.check(e.target, e.echo, e.nonce, e.source, time.monotonic())
+            why = (self.acts.check(e.target, e.echo, e.nonce, e.source, now)
                    if not e.engaged and self.gate.estopped else None)
             if why is not None:
                 self.inputs.count(f"estop_release_refused_{why.kind}")
@@ -212,17 +217,18 @@ class DriverHost:
 
     def on_engage_query(self, query: zenoh.Query) -> None:
         """A person's ``scmbridge engage``: handed to the loop (which owns the link) and answered from there."""
+        now = self.clock()
         try:
             payload = query.payload
             req = M.decode(payload.to_bytes() if payload is not None else b"", M.EngageRequest)
         except M.MessageError as exc:
             self.inputs.count("malformed_engage")
             query.reply(self.keys.engage, M.encode(M.EngageState(
-                stamp=time.monotonic(), node=f"driver-{self.link}", engaged=self.engaged, accepted=False,
+                stamp=now, node=f"driver-{self.link}", engaged=self.engaged, accepted=False,
                 text=f"malformed request: {exc}"[:1024], epoch=self.acts.epoch)))
             return
         with self.lock:  # engaging is taken fresh and once (bridge.core.acts); handing the vehicle back always
-            why = (self.acts.check(req.target, req.echo, req.nonce, req.source, time.monotonic())
+            why = (self.acts.check(req.target, req.echo, req.nonce, req.source, now)
                    if req.engaged else None)
             if why is None:
                 self.engage_queries.append((query, req))
@@ -232,7 +238,7 @@ class DriverHost:
                 (log.debug if why.kind == "unaddressed" else log.warning)(
                     "engage by %r %s (%d refused so; counter engage_refused_%s)", req.source, why.text, n, why.kind)
             query.reply(self.keys.engage, M.encode(M.EngageState(
-                stamp=time.monotonic(), node=f"driver-{self.link}", engaged=self.engaged, accepted=False,
+                stamp=now, node=f"driver-{self.link}", engaged=self.engaged, accepted=False,
                 text=why.text[:1024], epoch=self.acts.epoch)))
             return
         self.wake.set()
@@ -243,7 +249,8 @@ class DriverHost:
         node = f"driver-{self.link}"
 
         def answer(**kw: Any) -> M.EngageState:  # stamped on this host's clock, with its epoch: the next act's address
-            return M.EngageState(stamp=time.monotonic(), node=node, epoch=self.acts.epoch, **kw)
+            # (read when answered: the link's engage may have taken seconds, and the next act echoes this stamp)
+            return M.EngageState(stamp=self.clock(), node=node, epoch=self.acts.epoch, **kw)
 
         who = f" by {req.source}" if req.source else ""
         with self.lock:
@@ -267,11 +274,11 @@ class DriverHost:
         log.warning("engaged%s: the vehicle follows the station's commands", who)
         return answer(engaged=True, text="engaged" + (" (dry run)" if self.dry_run else ""))
 
-    def _answer_engage_queries(self) -> None:
+    def _answer_engage_queries(self, now: float) -> None:
         with self.lock:
             pending, self.engage_queries = self.engage_queries, []
         for query, req in pending:
-            ans = self.handle_engage(req, time.monotonic(), req.clear_faults)
+            ans = self.handle_engage(req, now, req.clear_faults)
             try:
                 query.reply(self.keys.engage, M.encode(ans))
             finally:
@@ -286,7 +293,7 @@ class DriverHost:
 
     def _answer_estop_query(self, query: zenoh.Query, deferred: bool = False) -> None:
         with self.lock:  # an unsaved latch is latched, and says so (estop prints it beside LATCHED)
-            now = time.monotonic()
+            now = self.clock()
             why, at = self.release_refused
             st = M.EstopState(stamp=now, node=f"driver-{self.link}",
                               latched=self.gate.estopped or bool(self.latch_unsaved), source=self.gate.estop_source,
@@ -337,7 +344,7 @@ class DriverHost:
         as lost (a link that really went silent still fails). Each pose is checked and encoded once: the bytes the
         check decoded are the bytes published."""
         if self.engage_queries:
-            self._answer_engage_queries()
+            self._answer_engage_queries(now)
         for st in self._read_link(now):
             try:
                 self.pubs["state"].put(M.validated_bytes(st)[1])
@@ -443,7 +450,7 @@ class DriverHost:
         self.pubs = {"applied": keep(session.declare_publisher(k.applied)),
                      "state": keep(session.declare_publisher(k.state)),
                      "status": keep(StatusOut(session, M.status_key(self.robot, "driver")))}
-        self._put("status", self.reporter.starting(time.monotonic(), "starting",
+        self._put("status", self.reporter.starting(self.clock(), "starting",
                                                    f"link {self.link}: opening (vehicle not yet ready)"))
         if not self._open_link(stop):
             return
@@ -463,7 +470,7 @@ class DriverHost:
             except DriverError as exc:
                 raise UsageError(f"--fence: the vehicle did not take the fence: {exc}") from None
         if self.engage_on_start:
-            ans = self.handle_engage(M.EngageRequest(stamp=0.0, source="engage_on_start"), time.monotonic())
+            ans = self.handle_engage(M.EngageRequest(stamp=0.0, source="engage_on_start"), self.clock())
             if not ans.engaged:
                 log.error("engage_on_start: %s", ans.text)
         systemd.ready(f"{self.robot}: link {self.link} open, " + ("engaged" if self.engaged else "waiting for engage"))
@@ -475,7 +482,7 @@ class DriverHost:
         backoff, said = Backoff(*OPEN_BACKOFF), ""
         while not stop.is_set():
             try:
-                self.driver.open(time.monotonic())  # bounded by the link's open_timeout
+                self.driver.open(self.clock())  # bounded by the link's open_timeout
                 return True
             except DriverError as exc:
                 text = f"link {self.link}: waiting for the vehicle: {exc}"
@@ -483,9 +490,9 @@ class DriverHost:
                     log.warning("%s; trying again (every %.0f s at most)", text, backoff.maximum)
                     said = text
                 systemd.status(text[:200])
-                self._put("status", self.reporter.starting(time.monotonic(), "link_down", text))
+                self._put("status", self.reporter.starting(self.clock(), "link_down", text))
                 self.driver.close(disarm=False, stop_timeout=0.0)  # a half-open link is let go before the retry
-                stop.wait(backoff.delay)
+                self.wait(stop, backoff.delay)
                 backoff.grow()
         return False
 
@@ -512,15 +519,16 @@ class DriverHost:
         rest of it, and a periodic tick after a command tick is pushed back the same way; a token bucket alone on the
         fixed schedule sends as many ticks as its budget and queues (``scmbridge bench bridge`` measures the latency
         and jitter: docs/BENCHMARKS.md, "The bridge")."""
-        t_start = time.monotonic()
+        t_start = self.clock()
         self.ticker = ticker = FixedRate(1.0 / self.period, stop, wake=self.wake, max_hz=self.max_send_hz,
-                                         burst=SEND_BURST, rephase=True)
+                                         burst=SEND_BURST, rephase=True, clock=self.clock,
+                                         wait=self.wait)
         periodic = True
         blocked = BlockedLoop(self.stall_report_s, stop, log).start()
         try:
             while not stop.is_set():
                 blocked.beat()
-                now = time.monotonic()
+                now = self.clock()
                 if duration is not None and now - t_start >= duration:
                     return
                 stalled = self.stall_watch.check(now, Usage.now())

@@ -28,6 +28,7 @@ from typing import Any, Generic, TypeVar
 import zenoh
 from msgspec import Struct
 
+from bridge.core import timebase
 from bridge.core import wire as M
 from bridge.nodes.zsession import Declared, make_config
 
@@ -328,12 +329,15 @@ class FixedRate:
     periodic or woken, passes while it is spent: :meth:`wait` returns when one may."""
 
     def __init__(self, rate_hz: float, stop: threading.Event, *, wake: threading.Event | None = None,
-                 max_hz: float | None = None, burst: int = 2, rephase: bool = False) -> None:
+                 max_hz: float | None = None, burst: int = 2, rephase: bool = False,
+                 clock: timebase.Clock = timebase.monotonic, wait: timebase.Wait = timebase.wait) -> None:
+        """``clock`` and ``wait``: the loop's own (:mod:`bridge.core.timebase`; a test's fake clock)."""
         self.period = 1.0 / float(rate_hz)
         self.stop = stop
         self.wake = wake
         self.rephase = rephase
-        self.t_next = time.monotonic()
+        self.clock, self._wait = clock, wait
+        self.t_next = clock()
         self.missed = 0
         self.late = 0.0  # s the last periodic tick came after its deadline
         self.pending = False  # woken before the deadline: the next wait keeps the same deadline
@@ -349,23 +353,23 @@ class FixedRate:
         if not was_pending:
             self.t_next += self.period
         deadline = self.t_next
-        delay = deadline - time.monotonic()
+        delay = deadline - self.clock()
         if delay <= 0:
             if not was_pending or -delay >= self.period:
                 self.missed += 1
-                self.t_next = time.monotonic()
+                self.t_next = self.clock()
             periodic = True
         elif wake is not None:
-            periodic = not wake.wait(delay)
+            periodic = not self._wait(wake, delay)
         else:
-            self.stop.wait(delay)
+            self._wait(self.stop, delay)
             periodic = True
-        now = time.monotonic()
+        now = self.clock()
         if self.budget is not None:
             ready = self.budget.ready_at(now)
             while ready > now and not self.stop.is_set():
-                self.stop.wait(ready - now)
-                now = time.monotonic()
+                self._wait(self.stop, ready - now)
+                now = self.clock()
                 ready = self.budget.ready_at(now)
             self.budget.take(now)
             periodic = periodic or now >= deadline  # the deadline came while the budget was spent: this is it
