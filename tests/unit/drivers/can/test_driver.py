@@ -28,7 +28,7 @@ class Rig:
         self.opened_at: list[float] = []  # fake times the driver built its bus
         self.driver = CanDriver(CanLinkConfig(interface="virtual", channel=self.channel, heartbeat_timeout=0.3,
                                               reopen_backoff=0.05, reopen_backoff_max=0.2, open_timeout=1.0),
-                                clock=clock, wall_clock=clock.wall, open_bus=self.open_bus)
+                                clock=clock, wall_clock=clock.wall, open_bus=self.open_bus, sleep=clock.sleep)
         clock.on_read.append(self.controllers.step)
 
     def open_bus(self) -> can.BusABC:
