@@ -6,8 +6,8 @@ into the link's own frames and turns the vehicle's telemetry back into poses.
 
 All times are the driver host's monotonic seconds, so that the pose stamps and the applied-command echo the station
 pairs with each other come from one clock: passed in (``now``) where the protocol has them, and otherwise read from
-the clock the driver was built with (a :data:`Clock`, ``time.monotonic`` by default; a driver's only direct use of
-the time module is that default). A driver that waits (its ``open``, ``engage``, ``close``) sets its deadlines on that
+the clock the driver was built with (a :data:`Clock`, :data:`bridge.core.timebase.monotonic` by default: no driver
+uses the time module itself). A driver that waits (its ``open``, ``engage``, ``close``) sets its deadlines on that
 clock and sleeps with the :data:`Sleep` it was given, so a test on a fake clock drives it without real time.
 
 :class:`LinkBase` is the frame every built-in link shares: the health it reports, its counters (one dataclass names

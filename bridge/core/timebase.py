@@ -22,12 +22,21 @@ Wait = Callable[[threading.Event, float], bool]
 #: a wait of so many seconds on that clock, with nothing to wake it (``time.sleep``'s contract)
 Sleep = Callable[[float], None]
 
-#: the machine's monotonic clock: every stamp of a driver host and of its link
-monotonic: Clock = time.monotonic
-#: the machine's wall clock (only python-can's frame stamps and MAVLink signing's timestamps are on it)
-wall: Clock = time.time
-#: a real sleep
-sleep: Sleep = time.sleep
+
+def monotonic() -> float:
+    """The machine's monotonic clock: every stamp of a driver host and of its link. (Looked up at each call, so a
+    test that replaces ``time.monotonic`` to catch a read catches this one too.)"""
+    return time.monotonic()
+
+
+def wall() -> float:
+    """The machine's wall clock (only python-can's frame stamps and MAVLink signing's timestamps are on it)."""
+    return time.time()
+
+
+def sleep(dt: float) -> None:
+    """A real sleep of ``dt`` s."""
+    time.sleep(dt)
 
 
 def wait(event: threading.Event, timeout: float) -> bool:
