@@ -59,7 +59,8 @@ with the sliding-window minimum of ``receipt - stamp`` (:class:`bridge.core.cloc
 robot epoch, or a confirmed step of its clock (``bridge.core.clock``), starts it again: ``clock_restarts``;
 a stamp that does not advance, not being a clock, gives the receipt: ``stamp_fallbacks``), not at the poll that read
 them: the driver host polls at its tick, and receipt stamps on that 20 ms grid would add error to the pairs
-(``scmbridge bench pairing --link udp`` measures it; docs/RELIABILITY.md).
+(``scmbridge bench pairing --link udp`` measures it; docs/RELIABILITY.md). A datagram's receipt is the poll's
+``now`` less how much earlier than the poll's newest one the kernel received it (Linux ``SO_TIMESTAMPNS``).
 
 Health is truthful: ``ok`` only while the socket is open and the robot's last accepted state is younger than
 ``state_timeout_s`` (so False until the first state); ``text`` says how long the robot has been silent.
@@ -97,7 +98,9 @@ _REFUSALS = ("out_of_order", "seq_jump", "old_epoch", "foreign_epoch")
 GREET_PERIOD_S = 0.02
 #: Linux: each datagram carries the socket's count of datagrams dropped for want of buffer space (socket(7))
 SO_RXQ_OVFL = getattr(socket, "SO_RXQ_OVFL", 40)
-_ANC_SPACE = socket.CMSG_SPACE(4)
+#: Linux: each datagram carries the kernel's wall-clock time of its arrival (struct timespec, socket(7))
+SO_TIMESTAMPNS = getattr(socket, "SO_TIMESTAMPNS", 35)
+_ANC_SPACE = socket.CMSG_SPACE(4) + socket.CMSG_SPACE(16)
 
 
 class UdpLinkConfig(Cfg):
@@ -230,6 +233,10 @@ class UdpDriver(LinkBase):
             sock.setsockopt(socket.SOL_SOCKET, SO_RXQ_OVFL, 1)
         except OSError:  # not Linux: kernel drops are not counted
             pass
+        try:
+            sock.setsockopt(socket.SOL_SOCKET, SO_TIMESTAMPNS, 1)
+        except OSError:  # not Linux: a datagram's receipt is the poll's now
+            pass
         self.sock = sock
         self._health.connected = True
         t_end = now + self.open_timeout
@@ -262,9 +269,13 @@ class UdpDriver(LinkBase):
         self._send_cmd(0.0, 0.0, "stop", now)
 
     def poll(self, now: float) -> list[Pose]:
+        """The robot's states that arrived by ``now``. Each one's receipt is ``now`` less how much earlier than the
+        newest of this poll the kernel received it (Linux ``SO_TIMESTAMPNS``): states that waited in the socket
+        keep their spacing, and no clock is read."""
         out: list[Pose] = []
         if self.sock is None:
             return out
+        read: list[tuple[bytes, tuple, float | None]] = []
         for _ in range(MAX_DATAGRAMS_PER_POLL):
             try:
                 data, anc, _, src = self.sock.recvmsg(65536, _ANC_SPACE)
@@ -273,10 +284,17 @@ class UdpDriver(LinkBase):
             except OSError:  # e.g. an ICMP error reported on the socket
                 self._health.errors += 1
                 break
+            arrived = None
             for level, kind, value in anc:
                 if level == socket.SOL_SOCKET and kind == SO_RXQ_OVFL and len(value) >= 4:
                     self.counts["dropped_by_kernel"] = int.from_bytes(value[:4], "little")
-            receipt = now  # a poll does not wait: every datagram it reads was received by its ``now``
+                elif level == socket.SOL_SOCKET and kind == SO_TIMESTAMPNS and len(value) >= 16:
+                    arrived = int.from_bytes(value[:8], "little", signed=True) + int.from_bytes(
+                        value[8:16], "little", signed=True) * 1e-9
+            read.append((data, src, arrived))
+        newest = max((a for _, _, a in read if a is not None), default=None)
+        for data, src, arrived in read:
+            receipt = now if arrived is None or newest is None else now - max(0.0, newest - arrived)
             self._health.frames_received += 1
             if src[:2] != self.robot_addr:
                 self.counts["foreign"] += 1

@@ -133,12 +133,12 @@ def run(args: argparse.Namespace) -> int:
     clock, wait = timebase.monotonic, timebase.wait
     host = DriverHost(cfg, args.link, open_driver(args.link, link_cfg), robot, args.rate or cfg.driver.rate_hz,
                       dry_run=args.dry_run, latch_path=latch_file(robot), clock=clock, wait=wait)
-    host.engage_on_start = host.engage_on_start or args.engage
-    host.fence = fence
+    host.options.engage_on_start = host.options.engage_on_start or args.engage
+    host.options.fence = fence
     stop = stop_on_signals()
     ecus = _emulated_ecus(link_cfg, args.model, args.x0, args.drift, clock) if args.emulate else None
     if ecus is not None:
-        host.co_located.append(ecus)
+        host.options.co_located.append(ecus)
     try:
         with open_session(zenoh_config(args), wait=stop, what="driver host") as session:
             host.serve(session, stop, args.duration)
@@ -147,5 +147,5 @@ def run(args: argparse.Namespace) -> int:
         if ecus is not None:
             ecus.stop()
         log.info("driver host for %s stopped %s: the vehicle was given a stop%s", robot, stopped_because(stop),
-                 "" if host.dry_run else " and released (what this host engaged)")
+                 "" if host.options.dry_run else " and released (what this host engaged)")
     return 0

@@ -402,20 +402,20 @@ def test_a_real_encoder_jump_resyncs_the_reference_without_moving_the_pose() -> 
     t = 0.0
     for step in range(5):  # driving straight: left +0.01 rev, right -0.01 rev per 10 ms
         t = step * 0.01
-        d._encoder(d.left, 0.01 * step, 1.0, t)
-        d._encoder(d.right, -0.01 * step, -1.0, t)
+        d._encoder(d.left, 0.01 * step, 1.0, t, t)
+        d._encoder(d.right, -0.01 * step, -1.0, t, t)
     x_before = d.pose[0]
     assert x_before > 0.0
     for k in range(1, 4):  # the left controller rebooted: its position starts again near 500 rev
         t += 0.01
-        d._encoder(d.left, 500.0 + 0.01 * k, 1.0, t)
-        d._encoder(d.right, -0.04 - 0.01 * k, -1.0, t)
+        d._encoder(d.left, 500.0 + 0.01 * k, 1.0, t, t)
+        d._encoder(d.right, -0.04 - 0.01 * k, -1.0, t, t)
     assert d.counters["resyncs"] == 1 and d.counters["rejected_estimates"] == 3
     assert d.pose[0] == pytest.approx(x_before, abs=1e-9)  # the jump was not integrated
     for k in range(4, 8):
         t += 0.01
-        d._encoder(d.left, 500.0 + 0.01 * k, 1.0, t)
-        d._encoder(d.right, -0.04 - 0.01 * k, -1.0, t)
+        d._encoder(d.left, 500.0 + 0.01 * k, 1.0, t, t)
+        d._encoder(d.right, -0.04 - 0.01 * k, -1.0, t, t)
     assert d.pose[0] > x_before + 3 * 0.01 * 2 * math.pi * 0.1 * 0.99  # it integrates again from the new anchor
 
 
@@ -490,12 +490,12 @@ def test_many_small_crafted_encoder_steps_cannot_add_up_to_more_than_the_wheel_c
     d = CanDriver(CanLinkConfig(max_wheel_speed=10.0), clock=clock, wall_clock=clock.wall)
     d.axes.phase = "running"
     t = 0.0
-    d._encoder(d.left, 0.0, 0.0, t)
-    d._encoder(d.right, 0.0, 0.0, t)
+    d._encoder(d.left, 0.0, 0.0, t, clock.t)  # (stamped t, read by the poll at the driver's clock.t)
+    d._encoder(d.right, 0.0, 0.0, t, clock.t)
     for k in range(1, 4001):  # 2 s of frames at 2 kHz, each 0.02 rev ahead (40 rev/s if believed): standing still
         t = k * 0.0005
-        d._encoder(d.left, 0.02 * k, 0.0, t)
-        d._encoder(d.right, -0.02 * k, 0.0, t)
+        d._encoder(d.left, 0.02 * k, 0.0, t, clock.t)
+        d._encoder(d.right, -0.02 * k, 0.0, t, clock.t)
     assert abs(d.pose[0]) < 0.7, d.pose  # at most what a wheel told to stand still may roll (not 100 m)
     assert d.counters["rejected_estimates"] > 1000
     h = d.health(clock.t)
