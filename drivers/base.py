@@ -12,8 +12,8 @@ clock and sleeps with the :data:`Sleep` it was given, so a test on a fake clock 
 
 :class:`LinkBase` is the frame every built-in link shares: the health it reports, its counters (one dataclass names
 them: the counts kept and the detail reported cannot disagree), its waits (``open``, ``engage``, ``close`` step the
-time only through :meth:`LinkBase.pause`), the "zero until slower than ``stop_speed``, then close" loop
-(:meth:`LinkBase.stop_until_still`) and one health verdict per tick (:meth:`LinkBase.verdict`: ``poll``, ``health``
+time only through :meth:`LinkBase._pause`), the "zero until slower than ``stop_speed``, then close" loop
+(:meth:`LinkBase._stop_until_still`) and one health verdict per tick (:meth:`LinkBase._verdict`: ``poll``, ``health``
 and ``send`` at one ``now`` judge the link once).
 """
 
@@ -187,13 +187,14 @@ Verdict = tuple[bool, LinkReason, str]
 
 class LinkBase:
     """What every built-in link keeps the same way (see the module docstring). A link sets :attr:`COUNTERS` (the
-    dataclass its detail reports its counts in) and :meth:`judge` (why it is, or is not, fit at ``now``: pure);
+    dataclass its detail reports its counts in) and :meth:`_judge_link` (why it is, or is not, fit at ``now``: pure);
     everything else here is shared.
 
     ``counts`` holds each count of :attr:`COUNTERS` by name (less :attr:`COUNTED_ELSEWHERE`), created from the
     dataclass, so a count added there is kept and reported without writing its name twice. The verdict is judged
-    at most once per ``now`` while nothing changed the link (:meth:`verdict`); whatever changes what :meth:`judge`
-    reads calls :meth:`changed` (a frame, a send failure, a bus reopened) so the next verdict judges again."""
+    at most once per ``now`` while nothing changed the link (:meth:`_verdict`); whatever changes what
+    :meth:`_judge_link` reads calls :meth:`_changed` (a frame, a send failure, a bus reopened) so the next verdict
+    judges again. Its helpers are protected (a leading underscore): they are the links' frame, not their API."""
 
     #: the link's counters dataclass: the names of its counts
     COUNTERS: type
@@ -204,34 +205,34 @@ class LinkBase:
         self.clock, self.sleep = clock, sleep
         self._health = LinkHealth()
         self.counts: dict[str, int] = dict.fromkeys(counter_names(self.COUNTERS, besides=self.COUNTED_ELSEWHERE), 0)
-        self._verdict: tuple[float, Verdict] | None = None
+        self._judged_at: tuple[float, Verdict] | None = None
         self.judged = 0  # verdicts judged (not answered from the one already judged at that moment)
 
     # ------------------------------------------------------------------------------------------- time
-    def pause(self, dt: float) -> float:
+    def _pause(self, dt: float) -> float:
         """Wait ``dt`` s on the link's clock (a bounded wait of ``open``, ``engage`` or ``close``) and return the time
         after it: the only way such a wait learns the time moved."""
         self.sleep(dt)
         return self.clock()
 
     # ------------------------------------------------------------------------------------------- health
-    def judge(self, now: float) -> Verdict:
+    def _judge_link(self, now: float) -> Verdict:
         """Why the link is (not) fit to drive at ``now`` from what it last heard: ``(ok, reason, text)``. Pure."""
         raise NotImplementedError
 
-    def changed(self) -> None:
-        """What :meth:`judge` reads changed: the next :meth:`verdict` judges again, even at the same ``now``."""
-        self._verdict = None
+    def _changed(self) -> None:
+        """What :meth:`_judge_link` reads changed: the next :meth:`_verdict` judges again, even at the same ``now``."""
+        self._judged_at = None
 
-    def verdict(self, now: float) -> Verdict:
+    def _verdict(self, now: float) -> Verdict:
         """The verdict at ``now``: judged once per moment and change (a tick's ``poll``, ``health`` and ``send``
         share it)."""
-        cached = self._verdict
+        cached = self._judged_at
         if cached is not None and cached[0] == now:
             return cached[1]
-        v = self.judge(now)
+        v = self._judge_link(now)
         self.judged += 1
-        self._verdict = (now, v)
+        self._judged_at = (now, v)
         return v
 
     @property
@@ -239,7 +240,7 @@ class LinkBase:
         """Every count of :attr:`COUNTERS` by name (a copy); a link whose pieces keep some merges theirs in."""
         return dict(self.counts)
 
-    def counter_snapshot(self, **extra: Any) -> Any:
+    def _counter_snapshot(self, **extra: Any) -> Any:
         """The counts as a :attr:`COUNTERS` instance (``extra``: the detail's fields that are not counts)."""
         return self.COUNTERS(**self.counters, **extra)
 
@@ -247,10 +248,10 @@ class LinkBase:
         h = self._health
         h.connected = h.ok = False
         h.text, h.reason = "closed", "closed"
-        self.changed()
+        self._changed()
 
     # ------------------------------------------------------------------------------------------- close
-    def stop_until_still(self, now: float, stop_speed: float, stop_timeout: float, period: float,
+    def _stop_until_still(self, now: float, stop_speed: float, stop_timeout: float, period: float,
                          speed: Callable[[float], float | None]) -> bool:
         """Closing: a stop at ``now`` and every ``period`` after it until ``speed(now)`` (the vehicle's reported
         speed, m/s; None: not known yet) is below ``stop_speed``, at most ``stop_timeout``; then one stop more.
@@ -259,7 +260,7 @@ class LinkBase:
         still = False
         while now < t_end:
             self.stop(now)
-            now = self.pause(min(period, max(0.0, t_end - now)))
+            now = self._pause(min(period, max(0.0, t_end - now)))
             reported = speed(now)
             if reported is not None and abs(reported) < stop_speed:
                 still = True

@@ -242,7 +242,7 @@ class UdpDriver(LinkBase):
         t_end = now + self.open_timeout
         while now < t_end:
             self.stop(now)  # a stop is also the hello (a robot in first-sender mode pins us)
-            now = self.pause(GREET_PERIOD_S)
+            now = self._pause(GREET_PERIOD_S)
             if self.poll(now):
                 return
         raise DriverError(f"no state from the UDP robot at {self.robot_text} within {self.open_timeout} s")
@@ -328,7 +328,7 @@ class UdpDriver(LinkBase):
         elif prev_epoch is not None and st.seq > prev_seq + 1:
             self.counts["state_gaps"] += st.seq - prev_seq - 1
         self.last_state_time = now
-        self.changed()
+        self._changed()
         self.session = (st.epoch, round(st.stamp * 1e6))  # what the next commands echo (see "Session")
         if st.stamp <= self._robot_stamp:  # not a running clock (a firmware that sends 0): the receipt it is
             self.counts["stamp_fallbacks"] += 1
@@ -338,7 +338,7 @@ class UdpDriver(LinkBase):
         self.counts["clock_restarts"] += not steady
         return Pose(stamp, st.x, st.y, st.theta, st.v, st.omega)
 
-    def judge(self, now: float) -> Verdict:
+    def _judge_link(self, now: float) -> Verdict:
         age = now - self.last_state_time
         if age <= self.state_timeout:
             return True, "ok", "ready"
@@ -347,10 +347,10 @@ class UdpDriver(LinkBase):
         return False, "no_telemetry", f"no state from the robot for {age:.1f} s"
 
     def health(self, now: float) -> LinkHealth:
-        detail = self.counter_snapshot()
+        detail = self._counter_snapshot()
         if self.sock is None:
             return replace(self._health, ok=False, detail=detail)
-        ok, reason, text = self.verdict(now)
+        ok, reason, text = self._verdict(now)
         return replace(self._health, ok=ok, reason=reason, text=text, detail=detail)
 
     def clear_faults(self, now: float) -> None:
@@ -370,7 +370,7 @@ class UdpDriver(LinkBase):
         if self.sock is None:
             return
         try:  # stops until the robot says it has stopped (close is given no time: read once, then moved by the waits)
-            self.stop_until_still(self.clock(), stop_speed, stop_timeout, GREET_PERIOD_S, self._reported_speed)
+            self._stop_until_still(self.clock(), stop_speed, stop_timeout, GREET_PERIOD_S, self._reported_speed)
         finally:
             self.sock.close()
             self.sock = None

@@ -115,7 +115,7 @@ class CanDriver(LinkBase):
     and counted (``stamp_fallbacks``). Frames read by a ``poll`` were received by its ``now``.
 
     **Time.** ``poll``, ``send``, ``stop``, ``health``, ``open`` and ``engage`` work at the ``now`` they are given;
-    ``open``, ``engage`` and ``close`` wait between two reads of the bus with ``sleep`` (:meth:`LinkBase.pause`). The
+    ``open``, ``engage`` and ``close`` wait between two reads of the bus with ``sleep`` (:meth:`LinkBase._pause`). The
     clock is read for two measurements a tick's ``now`` cannot give: the moment frames left (a host preempted after
     ``now`` wrote them later: the odometry counts the old command in force until then) and, with ``wall_clock`` at
     once, the offset that maps python-can's wall-clock stamps onto it.
@@ -179,14 +179,14 @@ class CanDriver(LinkBase):
             raise DriverError(f"cannot open CAN bus {self.interface}:{self.channel}: {exc}") from exc
         self._health.connected = True
         self.axes.phase = "idle"
-        self.changed()
+        self._changed()
         self._listen(now, now + min(self.open_timeout, 1.0))  # the controllers' Heartbeats say how they are
 
     def _listen(self, now: float, t_end: float) -> float:
         """Read the bus until both controllers were heard or ``t_end``; the time then."""
         self.poll(now)
         while now < t_end and not self.axes.heard():
-            now = self.pause(WAIT_READ_S)
+            now = self._pause(WAIT_READ_S)
             self.poll(now)
         return now
 
@@ -209,7 +209,7 @@ class CanDriver(LinkBase):
                 if self._health.ok:
                     return
                 raise DriverError(f"motor controllers not ready after {self.open_timeout} s: {self._health.text}")
-            t = self.pause(WAIT_READ_S)
+            t = self._pause(WAIT_READ_S)
 
     def failsafe(self) -> FailsafeReport:
         return FailsafeReport(drive_on_s=None, text=(
@@ -265,7 +265,7 @@ class CanDriver(LinkBase):
                     break
                 if frame is None:
                     break
-                self.changed()
+                self._changed()
                 pose = self._frame(frame, now, offset, now)
                 if pose is not None:
                     out.append(pose)
@@ -360,7 +360,7 @@ class CanDriver(LinkBase):
         self._down_reason = reason
         self._send_failures = 0
         self._reopen_at = now + self._backoff.delay
-        self.changed()
+        self._changed()
 
     def _reopen(self, now: float) -> None:
         import can
@@ -375,7 +375,7 @@ class CanDriver(LinkBase):
         self.counts["reopens"] += 1
         self._health.connected = True
         self._down_reason = None
-        self.changed()
+        self._changed()
         # until a controller's frame arrives on the new bus, the next failure waits longer
         self._backoff.grow()
 
@@ -391,12 +391,12 @@ class CanDriver(LinkBase):
                         "far): a faulty encoder or forged frames")
         return self.axes.reasons(now, down, odometry)
 
-    def judge(self, now: float) -> Verdict:
+    def _judge_link(self, now: float) -> Verdict:
         return verdict(self._reasons(now))
 
     def _evaluate(self, now: float) -> None:
         """Advance the state to ``now`` and set ``ok``, ``reason`` and ``text`` from it (judged once per moment and
-        change: :meth:`LinkBase.verdict`)."""
+        change: :meth:`LinkBase._verdict`)."""
         h = self._health
         if self.axes.phase == "closed":
             h.ok = False
@@ -404,15 +404,15 @@ class CanDriver(LinkBase):
         before = (self.axes.phase, tuple(self.axes.lost.values()))
         self.axes.advance(now)
         if (self.axes.phase, tuple(self.axes.lost.values())) != before:
-            self.changed()
-        h.ok, h.reason, h.text = self.verdict(now)
+            self._changed()
+        h.ok, h.reason, h.text = self._verdict(now)
 
     def health(self, now: float) -> LinkHealth:
         h = self._health
         if self.axes.phase == "closed":
             ok, reason, text = False, h.reason, h.text
         else:
-            ok, reason, text = self.verdict(now)
+            ok, reason, text = self._verdict(now)
         return replace(h, ok=ok, reason=reason, text=text, detail=CanHealthDetail(
             CanCounters(**self.counters), self.left.health(now), self.right.health(now)))
 
@@ -426,7 +426,7 @@ class CanDriver(LinkBase):
             self._put(self.axes.clear(), now)
             return
         self._put(self.axes.arm(now, every_axis=False), now)
-        self.changed()
+        self._changed()
         self._evaluate(now)
 
     def close(self, disarm: bool = True, stop_speed: float = 0.05, stop_timeout: float = 3.0) -> None:
@@ -436,7 +436,7 @@ class CanDriver(LinkBase):
             # stopped, and only with ``disarm`` puts them in IDLE
             if self.bus is not None and self.axes.phase == "running":
                 now = self.clock()  # close is given no time: read once, then moved by the waits
-                self.stop_until_still(now, stop_speed, stop_timeout, WAIT_READ_S, self._wheel_speed)
+                self._stop_until_still(now, stop_speed, stop_timeout, WAIT_READ_S, self._wheel_speed)
                 if disarm:
                     self._put(self.axes.idle(), now)
         finally:

@@ -98,7 +98,7 @@ class MavlinkDriver(LinkBase):
     the ``now`` they are given; the bounded waits of ``open``, ``engage`` and ``close`` go through the client
     (:meth:`drivers.mavlink.client.MavlinkClient.wait`: reads block on the connection in real time, its ``clock``
     says when they returned) and, without a connection, ``sleep``. The vehicle is judged once per moment and change
-    (:meth:`LinkBase.verdict`).
+    (:meth:`LinkBase._verdict`).
 
     Supervision: no HEARTBEAT for ``heartbeat_timeout`` -> ``connected`` and ``ok`` False, ``"no heartbeat for 3.2
     s"``; a connection that failed (TCP EOF, a serial error) is re-opened with backoff, UDP just keeps listening.
@@ -132,7 +132,7 @@ class MavlinkDriver(LinkBase):
         self._t0 = clock()
         self._opened = False  # open() succeeded: from now on the mode and arming are the operator's
         self._closed = False
-        self.changed()
+        self._changed()
         self._pacer = SetpointPacer(1.0 / config.setpoint_rate_hz, 1.0 / config.max_setpoint_hz)
         self._link_up = False
         self._state: Verdict = NOT_OPENED
@@ -171,7 +171,7 @@ class MavlinkDriver(LinkBase):
 
     def _handle(self, msg: Any, out: list[Pose], now: float) -> None:
         """One message, received by ``now`` (a tick's, or the time a wait read it at)."""
-        self.changed()
+        self._changed()
         t = msg.get_type()
         if t == "BAD_DATA":
             self._health.malformed += 1
@@ -281,7 +281,7 @@ class MavlinkDriver(LinkBase):
         client.now = now
         t_end = now + self.open_timeout
         self._closed = False
-        self.changed()
+        self._changed()
         if self.config.signing_key_file:
             client.signing_key = load_key(self.config.signing_key_file, "mavlink")
         while client.conn is None:
@@ -290,7 +290,7 @@ class MavlinkDriver(LinkBase):
             except Exception as exc:  # pymavlink raises plain OSError/SerialException/...
                 if now + client.backoff.delay > t_end:
                     raise DriverError(f"cannot open MAVLink connection {self.url}: {exc}") from exc
-                now = client.now = self.pause(client.backoff.delay)
+                now = client.now = self._pause(client.backoff.delay)
                 client.backoff.grow()
         client.heartbeat(now, force=True)
         v = self.vehicle
@@ -308,7 +308,7 @@ class MavlinkDriver(LinkBase):
                               f"(ArduPilot sends it only once its EKF has an origin){self.vehicle.note()}")
         self._read_params(FAILSAFE_PARAMS, min(t_end, client.now + PARAMS_WAIT_S))
         self._opened = True
-        self.changed()
+        self._changed()
         self._link_up = True
         self._update_state(client.now)
         log.info("vehicle on %s: mode %s, %s, position streaming; %s", self.url, self.modes.name(v.custom_mode),
@@ -391,10 +391,11 @@ class MavlinkDriver(LinkBase):
 
     # --------------------------------------------------------------------------------------------- state
     def _judge(self, now: float) -> Verdict:
-        """The vehicle at ``now`` (:meth:`judge`), judged once per moment and change (:meth:`LinkBase.verdict`)."""
-        return self.verdict(now)  # type: ignore[return-value]
+        """The vehicle at ``now`` (:meth:`_judge_link`), judged once per moment and change
+        (:meth:`LinkBase._verdict`)."""
+        return self._verdict(now)  # type: ignore[return-value]
 
-    def judge(self, now: float) -> Verdict:  # type: ignore[override]
+    def _judge_link(self, now: float) -> Verdict:  # type: ignore[override]
         """The vehicle at ``now`` from what it last said (:func:`drivers.mavlink.state.judge`). Pure."""
         c = self.client
         link = LinkView(opened=self._opened, closed=self._closed, connection=c.conn is not None,
@@ -447,7 +448,7 @@ class MavlinkDriver(LinkBase):
         before = (c.conn is None, c.conn_time, c.lost_reason)
         c.service(now)
         if (c.conn is None, c.conn_time, c.lost_reason) != before:
-            self.changed()
+            self._changed()
 
     def send(self, v: float, omega: float, now: float) -> None:
         """A set-point, only while :meth:`health` is ok (never a mode change or an arming: the operator's)."""
@@ -511,7 +512,7 @@ class MavlinkDriver(LinkBase):
             return
         if self.client.conn is None:
             self._closed = True
-            self.changed()
+            self._changed()
             self._update_state(self.clock())
             return
         mav, guided = self.dialect.mav, self.modes.guided
@@ -547,5 +548,5 @@ class MavlinkDriver(LinkBase):
         finally:
             self.client.close()
             self._closed = True
-            self.changed()
+            self._changed()
             self._update_state(self.client.now)

@@ -147,3 +147,15 @@ def test_status_goes_out_each_second_and_at_once_on_a_change(rig: HostRig) -> No
     gaps = [b - a for a, b in zip(periodic, periodic[1:])]
     assert gaps and all(g == pytest.approx(1.0, abs=1.0 / RATE + 1e-9) or g < 1.0 for g in gaps)
     assert len(times) <= 4.0 + 4  # each second, plus the changes: not one per tick
+
+
+def test_the_link_is_judged_once_per_tick(rig: HostRig) -> None:
+    rig.engage()
+    t0 = rig.clock.t
+    for k in range(10):
+        rig.command_at(t0 + 0.05 + 0.1 * k)
+    judged = rig.link.judged
+    rig.run(1.0)
+    ticks = len(rig.applied.got)
+    assert ticks >= 50
+    assert rig.link.judged - judged <= ticks  # poll, the host's health and send share one verdict
