@@ -133,8 +133,6 @@ class CanDriver(LinkBase):
         super().__init__(clock, sleep)
         self.config = config
         self.wall_clock = wall_clock
-        self.interface, self.channel, self.bitrate = config.interface, config.channel, config.bitrate
-        self.radius, self.track = config.wheel_radius, config.track_width
         self.left = Axis("left", config.left_node, Wheel(config.left_sign))
         self.right = Axis("right", config.right_node, Wheel(config.right_sign))
         self.axes = Axes(self.left, self.right, config.open_timeout, config.heartbeat_timeout)
@@ -161,13 +159,14 @@ class CanDriver(LinkBase):
             return self._bus_factory()
         import can
 
-        kwargs: dict[str, Any] = {"interface": self.interface, "channel": self.channel}
-        if self.interface == "socketcan":
+        c = self.config
+        kwargs: dict[str, Any] = {"interface": c.interface, "channel": c.channel}
+        if c.interface == "socketcan":
             pass  # the bitrate of a SocketCAN device is set with `ip link`, not here
-        elif self.interface == "udp_multicast":
+        elif c.interface == "udp_multicast":
             kwargs["fd"] = self.config.fd
         else:
-            kwargs["bitrate"] = self.bitrate
+            kwargs["bitrate"] = c.bitrate
         return can.Bus(**kwargs)
 
     def open(self, now: float) -> None:
@@ -176,7 +175,7 @@ class CanDriver(LinkBase):
         try:
             self.bus = self._open_bus()
         except (can.CanError, OSError, ValueError) as exc:
-            raise DriverError(f"cannot open CAN bus {self.interface}:{self.channel}: {exc}") from exc
+            raise DriverError(f"cannot open CAN bus {self.config.interface}:{self.config.channel}: {exc}") from exc
         self._health.connected = True
         self.axes.phase = "idle"
         self._changed()
@@ -193,7 +192,7 @@ class CanDriver(LinkBase):
     def engage(self, now: float, clear_faults: bool = False) -> None:
         """A person's act: both axes into velocity control and closed loop (see the class docstring)."""
         if self.bus is None or self.axes.phase == "closed":
-            raise DriverError(f"CAN bus {self.interface}:{self.channel} not open")
+            raise DriverError(f"CAN bus {self.config.interface}:{self.config.channel} not open")
         t = self._listen(now, now + self.open_timeout)
         refusal = self.axes.engage_refusal(clear_faults)
         if refusal is not None:
@@ -450,4 +449,4 @@ class CanDriver(LinkBase):
     def _wheel_speed(self, now: float) -> float:
         """Read the bus at ``now``; the faster wheel's rim speed it reports, m/s (closing waits for it)."""
         self.poll(now)
-        return max(abs(ax.wheel.vel) for ax in self.axes) * 2.0 * math.pi * self.radius
+        return max(abs(ax.wheel.vel) for ax in self.axes) * 2.0 * math.pi * self.config.wheel_radius

@@ -117,12 +117,8 @@ class MavlinkDriver(LinkBase):
                  sleep: Sleep = timebase.sleep) -> None:
         super().__init__(clock, sleep)
         self.dialect = load_pymavlink()
-        self.modes = self.dialect.modes
         self.config = config
-        self.url = config.url
         self.target = (config.target_system, config.target_component)
-        self.open_timeout = config.open_timeout
-        self.disarm_on_close = config.disarm_on_close
         self.vehicle = Vehicle(texts=deque(maxlen=config.statustext_keep))
         self.poses = PoseBuilder()
         self.fence_sink: Any = None  # while a fence is uploaded: where its messages go (drivers.mavlink.fence)
@@ -145,6 +141,11 @@ class MavlinkDriver(LinkBase):
 
     # ------------------------------------------------------------------------------------------ properties
     @property
+    def _modes(self) -> Any:
+        """pymavlink's Rover mode table (the dialect's)."""
+        return self.dialect.modes
+
+    @property
     def custom_mode(self) -> int | None:
         return self.vehicle.custom_mode
 
@@ -156,11 +157,6 @@ class MavlinkDriver(LinkBase):
     def statustexts(self) -> list[str]:
         """The vehicle's last STATUSTEXTs (at most ``statustext_keep``), oldest first."""
         return [t for _, t in self.vehicle.texts]
-
-    @property
-    def conn(self) -> Any:
-        """The pymavlink connection (None while there is none)."""
-        return self.client.conn
 
     # -------------------------------------------------------------------------------------------- receive
     def _pump(self, now: float) -> list[Pose]:
@@ -193,7 +189,7 @@ class MavlinkDriver(LinkBase):
         if self.fence_sink is not None and t in FENCE_MESSAGES:
             self.fence_sink(msg)
         if t == "HEARTBEAT":
-            v.heard(msg.custom_mode, bool(msg.base_mode & mav.MAV_MODE_FLAG_SAFETY_ARMED), now, self.modes.guided)
+            v.heard(msg.custom_mode, bool(msg.base_mode & mav.MAV_MODE_FLAG_SAFETY_ARMED), now, self._modes.guided)
         elif t == "LOCAL_POSITION_NED":
             self._boot_ms(msg.time_boot_ms)
             v.pos_time = now
@@ -279,7 +275,7 @@ class MavlinkDriver(LinkBase):
         then the failsafe parameters (PARAM_REQUEST_READ / PARAM_VALUE), reported by :meth:`failsafe`."""
         client = self.client
         client.now = now
-        t_end = now + self.open_timeout
+        t_end = now + self.config.open_timeout
         self._closed = False
         self._changed()
         if self.config.signing_key_file:
@@ -289,29 +285,29 @@ class MavlinkDriver(LinkBase):
                 client.connect(now)
             except Exception as exc:  # pymavlink raises plain OSError/SerialException/...
                 if now + client.backoff.delay > t_end:
-                    raise DriverError(f"cannot open MAVLink connection {self.url}: {exc}") from exc
+                    raise DriverError(f"cannot open MAVLink connection {self.config.url}: {exc}") from exc
                 now = client.now = self._pause(client.backoff.delay)
                 client.backoff.grow()
         client.heartbeat(now, force=True)
         v = self.vehicle
-        if not client.wait(lambda: v.hb_time is not None and v.custom_mode != self.modes.initialising, t_end):
+        if not client.wait(lambda: v.hb_time is not None and v.custom_mode != self._modes.initialising, t_end):
             if v.hb_time is None:
                 others = f" (heard other systems: {sorted(set(self._foreign_ids))})" if self._foreign_ids else ""
                 raise DriverError(f"no HEARTBEAT from system {self.target[0]} component {self.target[1]} on "
-                                  f"{self.url} within {self.open_timeout} s{others}")
-            raise DriverError(f"the vehicle is still initialising after {self.open_timeout} s")
+                                  f"{self.config.url} within {self.config.open_timeout} s{others}")
+            raise DriverError(f"the vehicle is still initialising after {self.config.open_timeout} s")
         client.backoff.reset()
         self._request_streams()
         fresh = self.config.position_timeout
         if not client.wait(lambda: position_fresh(v, client.now, fresh) and self.poses.att is not None, t_end):
-            raise DriverError(f"vehicle position not ready within {self.open_timeout} s: no LOCAL_POSITION_NED "
+            raise DriverError(f"vehicle position not ready within {self.config.open_timeout} s: no LOCAL_POSITION_NED "
                               f"(ArduPilot sends it only once its EKF has an origin){self.vehicle.note()}")
         self._read_params(FAILSAFE_PARAMS, min(t_end, client.now + PARAMS_WAIT_S))
         self._opened = True
         self._changed()
         self._link_up = True
         self._update_state(client.now)
-        log.info("vehicle on %s: mode %s, %s, position streaming; %s", self.url, self.modes.name(v.custom_mode),
+        log.info("vehicle on %s: mode %s, %s, position streaming; %s", self.config.url, self._modes.name(v.custom_mode),
                  "armed" if v.armed else "disarmed", self.failsafe().text)
 
     def engage(self, now: float, clear_faults: bool = False) -> None:
@@ -326,11 +322,12 @@ class MavlinkDriver(LinkBase):
         if self._closed or not self._opened:
             raise DriverError("MAVLink link not open")
         self.client.now = max(self.client.now, now)
-        t_end = now + self.open_timeout
+        t_end = now + self.config.open_timeout
         self._enter_guided(t_end)
         self._arm(t_end)
-        if self.vehicle.custom_mode != self.modes.guided:
-            raise DriverError(f"operator took control while engaging: mode {self.modes.name(self.vehicle.custom_mode)}")
+        mode = self.vehicle.custom_mode
+        if mode != self._modes.guided:
+            raise DriverError(f"operator took control while engaging: mode {self._modes.name(mode)}")
         self._update_state(self.client.now)
         log.info("vehicle engaged: GUIDED, armed")
 
@@ -340,7 +337,7 @@ class MavlinkDriver(LinkBase):
         bounded by ``open_timeout``; what was done, or :class:`DriverError`."""
         if self._closed or not self._opened:
             raise DriverError("MAVLink link not open")
-        return upload_fence(self, polygon, self.client.now + self.open_timeout)
+        return upload_fence(self, polygon, self.client.now + self.config.open_timeout)
 
     def _read_params(self, names: tuple[str, ...], t_end: float) -> None:
         """Ask for each parameter (PARAM_REQUEST_READ) and wait for the PARAM_VALUEs; a missing one stays unknown."""
@@ -355,7 +352,7 @@ class MavlinkDriver(LinkBase):
         return failsafe_report(self.params)
 
     def _enter_guided(self, t_end: float) -> None:
-        v, mav, guided = self.vehicle, self.dialect.mav, self.modes.guided
+        v, mav, guided = self.vehicle, self.dialect.mav, self._modes.guided
         while v.custom_mode != guided:
             sent = self.client.now
             r = self.client.run(mav.MAV_CMD_DO_SET_MODE, (mav.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, guided),
@@ -364,21 +361,21 @@ class MavlinkDriver(LinkBase):
                 self.client.wait(lambda: v.custom_mode == guided, min(t_end, self.client.now + MODE_CONFIRM_S))
                 if v.custom_mode != guided:
                     log.warning("GUIDED accepted but the vehicle reports mode %s; asking again",
-                                self.modes.name(v.custom_mode))
+                                self._modes.name(v.custom_mode))
             else:
                 text = self._refusal("mode change to GUIDED", r, sent)
                 if self.client.now + RETRY_AFTER_S >= t_end:
                     raise DriverError(text + self.vehicle.note())
                 self.client.wait(lambda: False, self.client.now + RETRY_AFTER_S)
             if self.client.now >= t_end and v.custom_mode != guided:
-                raise DriverError(f"vehicle not in GUIDED within {self.open_timeout} s (mode "
-                                  f"{self.modes.name(v.custom_mode)}){self.vehicle.note()}")
+                raise DriverError(f"vehicle not in GUIDED within {self.config.open_timeout} s (mode "
+                                  f"{self._modes.name(v.custom_mode)}){self.vehicle.note()}")
 
     def _arm(self, t_end: float) -> None:
         v, mav = self.vehicle, self.dialect.mav
         while not v.armed:
-            if v.custom_mode != self.modes.guided:
-                raise DriverError(f"operator took control while engaging: mode {self.modes.name(v.custom_mode)}")
+            if v.custom_mode != self._modes.guided:
+                raise DriverError(f"operator took control while engaging: mode {self._modes.name(v.custom_mode)}")
             sent = self.client.now
             r = self.client.run(mav.MAV_CMD_COMPONENT_ARM_DISARM, (1, 0), "arming", t_end)
             if r == mav.MAV_RESULT_ACCEPTED:  # ArduPilot acks arming only once armed; HEARTBEATs say so from now on
@@ -399,8 +396,8 @@ class MavlinkDriver(LinkBase):
         """The vehicle at ``now`` from what it last said (:func:`drivers.mavlink.state.judge`). Pure."""
         c = self.client
         link = LinkView(opened=self._opened, closed=self._closed, connection=c.conn is not None,
-                        connected_at=c.conn_time, lost_reason=c.lost_reason, url=self.url)
-        return judge(self.vehicle, link, now, self.modes, self.config.heartbeat_timeout, self.config.position_timeout)
+                        connected_at=c.conn_time, lost_reason=c.lost_reason, url=self.config.url)
+        return judge(self.vehicle, link, now, self._modes, self.config.heartbeat_timeout, self.config.position_timeout)
 
     def _update_state(self, now: float) -> None:
         """Judge the vehicle at ``now`` and act on a change: log it, count a lost link, ask a vehicle whose heartbeat
@@ -422,7 +419,7 @@ class MavlinkDriver(LinkBase):
             elif what.back:
                 self._link_up = True
                 self.client.backoff.reset()
-                log.info("heartbeat back from the vehicle (mode %s, %s)", self.modes.name(v.custom_mode),
+                log.info("heartbeat back from the vehicle (mode %s, %s)", self._modes.name(v.custom_mode),
                          "armed" if v.armed else "disarmed")
                 self._request_streams()  # a rebooted autopilot forgot them; never the mode or arming
         self._state = state
@@ -469,7 +466,7 @@ class MavlinkDriver(LinkBase):
         if self._closed or self.client.conn is None:
             return
         self._service(now)
-        if self.client.conn is None or self.vehicle.custom_mode != self.modes.guided:
+        if self.client.conn is None or self.vehicle.custom_mode != self._modes.guided:
             return
         if self._pacer.due((0.0, 0.0), now):
             self._setpoint(0.0, 0.0, now)
@@ -489,7 +486,7 @@ class MavlinkDriver(LinkBase):
         state = self._judge(now)
         v = self.vehicle
         detail = MavlinkHealthDetail(
-            mode=self.modes.name(v.custom_mode), custom_mode=v.custom_mode, armed=v.armed,
+            mode=self._modes.name(v.custom_mode), custom_mode=v.custom_mode, armed=v.armed,
             heartbeat_age=None if v.hb_time is None else round(now - v.hb_time, 3),
             position_age=None if v.pos_time is None else round(now - v.pos_time, 3),
             statustexts=tuple(self.statustexts), last_refusal=self._last_refusal,
@@ -515,7 +512,7 @@ class MavlinkDriver(LinkBase):
             self._changed()
             self._update_state(self.clock())
             return
-        mav, guided = self.dialect.mav, self.modes.guided
+        mav, guided = self.dialect.mav, self._modes.guided
         try:
             now = self.client.now = max(self.client.now, self.clock())  # close is given no time: read once
             self._pump(now)
@@ -534,7 +531,7 @@ class MavlinkDriver(LinkBase):
                         log.warning("the vehicle still reports %.2f m/s after %.1f s of zero set-points",
                                     ground_speed(self.poses.pending or self._last_position) or math.nan, stop_timeout)
                 now = self.client.now
-                if disarm and self.disarm_on_close and v.armed and v.custom_mode == guided:
+                if disarm and self.config.disarm_on_close and v.armed and v.custom_mode == guided:
                     t_end = now + self.config.close_timeout
                     r = self.client.run(mav.MAV_CMD_COMPONENT_ARM_DISARM, (0, 0), "disarm", t_end,
                                         done=lambda: v.hb_time is not None and v.hb_time >= now and not v.armed)
@@ -544,7 +541,7 @@ class MavlinkDriver(LinkBase):
                         self._health.errors += 1
                         log.error("%s; the vehicle may still be armed", self._refusal("disarm", r, now))
             elif v.custom_mode is not None and self._opened:
-                log.warning("vehicle in mode %s (the operator's): left as it is", self.modes.name(v.custom_mode))
+                log.warning("vehicle in mode %s (the operator's): left as it is", self._modes.name(v.custom_mode))
         finally:
             self.client.close()
             self._closed = True
