@@ -133,6 +133,7 @@ class CanDriver(LinkBase):
         super().__init__(clock, sleep)
         self.config = config
         self.wall_clock = wall_clock
+        self.interface, self.channel = config.interface, config.channel  # the bus it opens, for people to read
         self.left = Axis("left", config.left_node, Wheel(config.left_sign))
         self.right = Axis("right", config.right_node, Wheel(config.right_sign))
         self.axes = Axes(self.left, self.right, config.open_timeout, config.heartbeat_timeout)
