@@ -257,6 +257,7 @@ class CanDriver(LinkBase):
         if self.bus is not None:
             # a measurement: the two clocks read together map python-can's wall stamps onto the host's clock
             offset = self.clock() - self.wall_clock()
+            read = False
             for _ in range(MAX_FRAMES_PER_POLL):
                 try:
                     frame = self.bus.recv(timeout=0.0)
@@ -265,12 +266,14 @@ class CanDriver(LinkBase):
                     break
                 if frame is None:
                     break
-                self._changed()
+                read = True
                 pose = self._frame(frame, now, offset, now)
                 if pose is not None:
                     out.append(pose)
                 if self.bus is None:  # a bus-off error frame
                     break
+            if read:  # what the frames said is judged afresh
+                self._changed()
         self._evaluate(now)
         return out
 
@@ -401,9 +404,7 @@ class CanDriver(LinkBase):
         if self.axes.phase == "closed":
             h.ok = False
             return
-        before = (self.axes.phase, tuple(self.axes.lost.values()))
-        self.axes.advance(now)
-        if (self.axes.phase, tuple(self.axes.lost.values())) != before:
+        if self.axes.advance(now):
             self._changed()
         h.ok, h.reason, h.text = self._verdict(now)
 
