@@ -252,14 +252,15 @@ def can_odometry(short: bool) -> Result:
 
     d = CanDriver(CanLinkConfig(max_wheel_speed=10.0))
     d.axes.phase = "running"
-    d._encoder(d.left, 0.0, 0.0, 0.0)
-    d._encoder(d.right, 0.0, 0.0, 0.0)
+    now = time.monotonic()  # the poll that reads them (their own stamps are the frames')
+    d._encoder(d.left, 0.0, 0.0, 0.0, now)
+    d._encoder(d.right, 0.0, 0.0, 0.0, now)
     n = 1000 if short else 4000  # frames per wheel at 2 kHz
     for k in range(1, n + 1):
-        d._encoder(d.left, 0.02 * k, 0.0, k * 0.0005)
-        d._encoder(d.right, -0.02 * k, 0.0, k * 0.0005)
+        d._encoder(d.left, 0.02 * k, 0.0, k * 0.0005, now)
+        d._encoder(d.right, -0.02 * k, 0.0, k * 0.0005, now)
     err = math.hypot(d.pose[0], d.pose[1])
-    h = d.health(time.monotonic())
+    h = d.health(now)
     allowed = 2 * math.pi * 0.1 * 0.5 * (n * 0.0005 + 0.1)  # what a wheel told to stand still may roll
     return {"reached_vehicle": None, "learned": {"odometry_error_m": round(err, 3), "allowed_m": round(allowed, 3)},
             "health_ok": h.ok, "ok": err <= allowed and not h.ok}

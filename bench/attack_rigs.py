@@ -255,7 +255,7 @@ class _ZenohHost:
                                            name="attack-driver-host", daemon=True)
             self.thread.start()
             self.stack.callback(self._stop_host)
-            until(lambda: self.host.ticker is not None, 10.0)
+            until(lambda: self.host.timing.ticker is not None, 10.0)
             self.attacker = self.stack.enter_context(self.client())
         except BaseException:
             self.stack.close()

@@ -36,7 +36,7 @@ class _Restartable(_ZenohHost):
 
     def __enter__(self) -> _Restartable:
         super().__enter__()
-        self.latch_path = self.host.latch_path
+        self.latch_path = self.host.options.latch_path
         return self
 
     def restart(self) -> None:
@@ -61,7 +61,7 @@ class _Restartable(_ZenohHost):
         self.thread = threading.Thread(target=self.host.serve, args=(self.host_session, self.stop, None),
                                        name="attack-driver-host", daemon=True)
         self.thread.start()
-        until(lambda: self.host.ticker is not None, 10.0)
+        until(lambda: self.host.timing.ticker is not None, 10.0)
 
     def _stop_host(self) -> None:
         super()._stop_host()

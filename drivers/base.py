@@ -6,21 +6,29 @@ into the link's own frames and turns the vehicle's telemetry back into poses.
 
 All times are the driver host's monotonic seconds, so that the pose stamps and the applied-command echo the station
 pairs with each other come from one clock: passed in (``now``) where the protocol has them, and otherwise read from
-the clock the driver was built with (a :data:`Clock`, ``time.monotonic`` by default; a driver's only direct use of
-the time module is that default). A driver that waits (its ``open``, ``engage``, ``close``) sets its deadlines on that
+the clock the driver was built with (a :data:`Clock`, :data:`bridge.core.timebase.monotonic` by default: no driver
+uses the time module itself). A driver that waits (its ``open``, ``engage``, ``close``) sets its deadlines on that
 clock and sleeps with the :data:`Sleep` it was given, so a test on a fake clock drives it without real time.
+
+:class:`LinkBase` is the frame every built-in link shares: the health it reports, its counters (one dataclass names
+them: the counts kept and the detail reported cannot disagree), its waits (``open``, ``engage``, ``close`` step the
+time only through :meth:`LinkBase._pause`), the "zero until slower than ``stop_speed``, then close" loop
+(:meth:`LinkBase._stop_until_still`) and one health verdict per tick (:meth:`LinkBase._verdict`: ``poll``, ``health``
+and ``send`` at one ``now`` judge the link once).
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass, field, fields
-from typing import Literal, Protocol, runtime_checkable
+from dataclasses import MISSING, dataclass, field, fields
+from typing import Any, Literal, Protocol, runtime_checkable
 
-#: a monotonic clock in seconds (``time.monotonic``, or a test's fake)
-Clock = Callable[[], float]
-#: a wait of so many seconds on that clock (``time.sleep``, or a test's fake that advances its clock)
-Sleep = Callable[[float], None]
+from bridge.core import timebase
+
+#: a monotonic clock in seconds (:data:`bridge.core.timebase.monotonic`, or a test's fake)
+Clock = timebase.Clock
+#: a wait of so many seconds on that clock (:data:`bridge.core.timebase.sleep`, or a test's fake that advances it)
+Sleep = timebase.Sleep
 
 
 class DriverError(RuntimeError):
@@ -161,3 +169,104 @@ def link_unauthenticated(config: object) -> str:
     repeat it, so a person sees it where they look, not only in a log line at open."""
     method = getattr(config, "unauthenticated", None)
     return method() if callable(method) else ""
+
+
+def counter_names(counters: type, *, besides: tuple[str, ...] = ()) -> tuple[str, ...]:
+    """The names of a counters dataclass's counts, in order: its fields whose default is the whole number 0, less
+    ``besides`` (counts another piece keeps: the CAN axes' faults). The one source of a link's counter names."""
+    out = []
+    for f in fields(counters):
+        if f.default is not MISSING and type(f.default) is int and f.default == 0 and f.name not in besides:
+            out.append(f.name)
+    return tuple(out)
+
+
+#: a link's verdict at one moment: (ok, reason, text)
+Verdict = tuple[bool, LinkReason, str]
+
+
+class LinkBase:
+    """What every built-in link keeps the same way (see the module docstring). A link sets :attr:`COUNTERS` (the
+    dataclass its detail reports its counts in) and :meth:`_judge_link` (why it is, or is not, fit at ``now``: pure);
+    everything else here is shared.
+
+    ``counts`` holds each count of :attr:`COUNTERS` by name (less :attr:`COUNTED_ELSEWHERE`), created from the
+    dataclass, so a count added there is kept and reported without writing its name twice. The verdict is judged
+    at most once per ``now`` while nothing changed the link (:meth:`_verdict`); whatever changes what
+    :meth:`_judge_link` reads calls :meth:`_changed` (a frame, a send failure, a bus reopened) so the next verdict
+    judges again. Its helpers are protected (a leading underscore): they are the links' frame, not their API."""
+
+    #: the link's counters dataclass: the names of its counts
+    COUNTERS: type
+    #: counts of COUNTERS kept by another piece (and merged in :meth:`counters`)
+    COUNTED_ELSEWHERE: tuple[str, ...] = ()
+
+    def __init__(self, clock: Clock = timebase.monotonic, sleep: Sleep = timebase.sleep) -> None:
+        self.clock, self.sleep = clock, sleep
+        self._health = LinkHealth()
+        self.counts: dict[str, int] = dict.fromkeys(counter_names(self.COUNTERS, besides=self.COUNTED_ELSEWHERE), 0)
+        self._judged_at: tuple[float, Verdict] | None = None
+        self.judged = 0  # verdicts judged (not answered from the one already judged at that moment)
+
+    # ------------------------------------------------------------------------------------------- time
+    def _pause(self, dt: float) -> float:
+        """Wait ``dt`` s on the link's clock (a bounded wait of ``open``, ``engage`` or ``close``) and return the time
+        after it: the only way such a wait learns the time moved."""
+        self.sleep(dt)
+        return self.clock()
+
+    # ------------------------------------------------------------------------------------------- health
+    def _judge_link(self, now: float) -> Verdict:
+        """Why the link is (not) fit to drive at ``now`` from what it last heard: ``(ok, reason, text)``. Pure."""
+        raise NotImplementedError
+
+    def _changed(self) -> None:
+        """What :meth:`_judge_link` reads changed: the next :meth:`_verdict` judges again, even at the same ``now``."""
+        self._judged_at = None
+
+    def _verdict(self, now: float) -> Verdict:
+        """The verdict at ``now``: judged once per moment and change (a tick's ``poll``, ``health`` and ``send``
+        share it)."""
+        cached = self._judged_at
+        if cached is not None and cached[0] == now:
+            return cached[1]
+        v = self._judge_link(now)
+        self.judged += 1
+        self._judged_at = (now, v)
+        return v
+
+    @property
+    def counters(self) -> dict[str, int]:
+        """Every count of :attr:`COUNTERS` by name (a copy); a link whose pieces keep some merges theirs in."""
+        return dict(self.counts)
+
+    def _counter_snapshot(self, **extra: Any) -> Any:
+        """The counts as a :attr:`COUNTERS` instance (``extra``: the detail's fields that are not counts)."""
+        return self.COUNTERS(**self.counters, **extra)
+
+    def _closed_health(self) -> None:
+        h = self._health
+        h.connected = h.ok = False
+        h.text, h.reason = "closed", "closed"
+        self._changed()
+
+    # ------------------------------------------------------------------------------------------- close
+    def _stop_until_still(self, now: float, stop_speed: float, stop_timeout: float, period: float,
+                         speed: Callable[[float], float | None]) -> bool:
+        """Closing: a stop at ``now`` and every ``period`` after it until ``speed(now)`` (the vehicle's reported
+        speed, m/s; None: not known yet) is below ``stop_speed``, at most ``stop_timeout``; then one stop more.
+        True if it reported stopped. The link's ``stop`` and ``speed`` do the I/O; the time moves by :meth:`pause`."""
+        t_end = now + stop_timeout
+        still = False
+        while now < t_end:
+            self.stop(now)
+            now = self._pause(min(period, max(0.0, t_end - now)))
+            reported = speed(now)
+            if reported is not None and abs(reported) < stop_speed:
+                still = True
+                break
+        self.stop(now)
+        return still
+
+    def stop(self, now: float) -> None:  # (every link has one: the Driver protocol's)
+        raise NotImplementedError

@@ -59,7 +59,8 @@ with the sliding-window minimum of ``receipt - stamp`` (:class:`bridge.core.cloc
 robot epoch, or a confirmed step of its clock (``bridge.core.clock``), starts it again: ``clock_restarts``;
 a stamp that does not advance, not being a clock, gives the receipt: ``stamp_fallbacks``), not at the poll that read
 them: the driver host polls at its tick, and receipt stamps on that 20 ms grid would add error to the pairs
-(``scmbridge bench pairing --link udp`` measures it; docs/RELIABILITY.md).
+(``scmbridge bench pairing --link udp`` measures it; docs/RELIABILITY.md). A datagram's receipt is the poll's
+``now`` less how much earlier than the poll's newest one the kernel received it (Linux ``SO_TIMESTAMPNS``).
 
 Health is truthful: ``ok`` only while the socket is open and the robot's last accepted state is younger than
 ``state_timeout_s`` (so False until the first state); ``text`` says how long the robot has been silent.
@@ -72,16 +73,16 @@ from __future__ import annotations
 import logging
 import math
 import socket
-import time
 from dataclasses import dataclass, replace
 from typing import Annotated
 
+from bridge.core import timebase
 from bridge.core import wire as M
 from bridge.core.auth import KeyFileError, load_key, open_sealed, seal_session
 from bridge.core.clock import ClockOffset
 from bridge.core.config import Cfg, Port, Rule, meta
 from bridge.core.gate import SeqGate
-from drivers.base import Clock, DriverError, FailsafeReport, LinkHealth, Pose, Sleep, whole_numbers
+from drivers.base import Clock, DriverError, FailsafeReport, LinkBase, LinkHealth, Pose, Sleep, Verdict, whole_numbers
 
 log = logging.getLogger("scmbridge.driver.udp")
 
@@ -97,7 +98,9 @@ _REFUSALS = ("out_of_order", "seq_jump", "old_epoch", "foreign_epoch")
 GREET_PERIOD_S = 0.02
 #: Linux: each datagram carries the socket's count of datagrams dropped for want of buffer space (socket(7))
 SO_RXQ_OVFL = getattr(socket, "SO_RXQ_OVFL", 40)
-_ANC_SPACE = socket.CMSG_SPACE(4)
+#: Linux: each datagram carries the kernel's wall-clock time of its arrival (struct timespec, socket(7))
+SO_TIMESTAMPNS = getattr(socket, "SO_TIMESTAMPNS", 35)
+_ANC_SPACE = socket.CMSG_SPACE(4) + socket.CMSG_SPACE(16)
 
 
 class UdpLinkConfig(Cfg):
@@ -179,16 +182,18 @@ def resolve_ipv4(host: str, port: int) -> tuple[str, int]:
     return str(ip), int(p)
 
 
-class UdpDriver:
-    """The UDP shim behind the :class:`drivers.base.Driver` protocol (see the module docstring). ``clock`` stamps
-    each datagram's receipt and sets the deadlines of ``open`` and ``close``, which wait between their stops with
-    ``sleep`` (:mod:`drivers.base`: a test on a fake clock runs them without real time)."""
+class UdpDriver(LinkBase):
+    """The UDP shim behind the :class:`drivers.base.Driver` protocol (see the module docstring), on
+    :class:`drivers.base.LinkBase`: a datagram read by a ``poll`` was received by its ``now``; ``open`` and ``close``
+    wait between their stops with ``sleep`` (a test on a fake clock runs them without real time)."""
 
     name = "udp"
+    COUNTERS = UdpHealthDetail
 
-    def __init__(self, config: UdpLinkConfig, *, clock: Clock = time.monotonic, sleep: Sleep = time.sleep) -> None:
+    def __init__(self, config: UdpLinkConfig, *, clock: Clock = timebase.monotonic,
+                 sleep: Sleep = timebase.sleep) -> None:
+        super().__init__(clock, sleep)
         self.config = config
-        self.clock, self.sleep = clock, sleep
         self.bind = (config.bind_host, config.bind_port)
         self.open_timeout = config.open_timeout
         self.state_timeout = config.state_timeout_s
@@ -200,12 +205,8 @@ class UdpDriver:
                             slack=STATE_SEQ_SLACK)
         self.last_state_time = -math.inf  # driver-host monotonic time of the last accepted state
         self.key: bytes | None = None  # the datagram key, read at open (the driver host checks it at start)
-        self.counters = {"foreign": 0, "unauthenticated": 0, "state_gaps": 0, "robot_restarts": 0,
-                         "dropped_by_kernel": 0, "clock_restarts": 0, "stamp_fallbacks": 0,
-                         **{f"state_{r}": 0 for r in _REFUSALS}}
         self._clock = ClockOffset(config.clock_window_s)  # the robot's stamps -> our monotonic clock
         self._robot_stamp = -math.inf  # the last robot stamp taken in this epoch
-        self._health = LinkHealth()
         self.session = (0, 0)  # (the robot's boot nonce, its newest clock reading in us) from its accepted states
 
     @property
@@ -232,13 +233,17 @@ class UdpDriver:
             sock.setsockopt(socket.SOL_SOCKET, SO_RXQ_OVFL, 1)
         except OSError:  # not Linux: kernel drops are not counted
             pass
+        try:
+            sock.setsockopt(socket.SOL_SOCKET, SO_TIMESTAMPNS, 1)
+        except OSError:  # not Linux: a datagram's receipt is the poll's now
+            pass
         self.sock = sock
         self._health.connected = True
-        t_end = self.clock() + self.open_timeout
-        while self.clock() < t_end:
-            self.stop(self.clock())  # a stop is also the hello (a robot in first-sender mode pins us)
-            self.sleep(GREET_PERIOD_S)
-            if self.poll(self.clock()):
+        t_end = now + self.open_timeout
+        while now < t_end:
+            self.stop(now)  # a stop is also the hello (a robot in first-sender mode pins us)
+            now = self._pause(GREET_PERIOD_S)
+            if self.poll(now):
                 return
         raise DriverError(f"no state from the UDP robot at {self.robot_text} within {self.open_timeout} s")
 
@@ -264,9 +269,13 @@ class UdpDriver:
         self._send_cmd(0.0, 0.0, "stop", now)
 
     def poll(self, now: float) -> list[Pose]:
+        """The robot's states that arrived by ``now``. Each one's receipt is ``now`` less how much earlier than the
+        newest of this poll the kernel received it (Linux ``SO_TIMESTAMPNS``): states that waited in the socket
+        keep their spacing, and no clock is read."""
         out: list[Pose] = []
         if self.sock is None:
             return out
+        read: list[tuple[bytes, tuple, float | None]] = []
         for _ in range(MAX_DATAGRAMS_PER_POLL):
             try:
                 data, anc, _, src = self.sock.recvmsg(65536, _ANC_SPACE)
@@ -275,18 +284,25 @@ class UdpDriver:
             except OSError:  # e.g. an ICMP error reported on the socket
                 self._health.errors += 1
                 break
+            arrived = None
             for level, kind, value in anc:
                 if level == socket.SOL_SOCKET and kind == SO_RXQ_OVFL and len(value) >= 4:
-                    self.counters["dropped_by_kernel"] = int.from_bytes(value[:4], "little")
-            receipt = self.clock()
+                    self.counts["dropped_by_kernel"] = int.from_bytes(value[:4], "little")
+                elif level == socket.SOL_SOCKET and kind == SO_TIMESTAMPNS and len(value) >= 16:
+                    arrived = int.from_bytes(value[:8], "little", signed=True) + int.from_bytes(
+                        value[8:16], "little", signed=True) * 1e-9
+            read.append((data, src, arrived))
+        newest = max((a for _, _, a in read if a is not None), default=None)
+        for data, src, arrived in read:
+            receipt = now if arrived is None or newest is None else now - max(0.0, newest - arrived)
             self._health.frames_received += 1
             if src[:2] != self.robot_addr:
-                self.counters["foreign"] += 1
+                self.counts["foreign"] += 1
                 continue
             if self.key is not None:
                 data = open_sealed(self.key, data)
                 if data is None:
-                    self.counters["unauthenticated"] += 1
+                    self.counts["unauthenticated"] += 1
                     continue
             try:
                 st = M.decode(data, M.LearnerState)
@@ -303,37 +319,39 @@ class UdpDriver:
         prev_epoch, prev_seq = self.gate.epoch, self.gate.last_seq
         why = self.gate.accept(st.epoch, st.seq, now)
         if why is not None:
-            self.counters[f"state_{why}"] += 1
+            self.counts[f"state_{why}"] += 1
             return None
         if prev_epoch is not None and st.epoch != prev_epoch:
-            self.counters["robot_restarts"] += 1
+            self.counts["robot_restarts"] += 1
             self._clock.reset()  # a rebooted robot: a new clock
             self._robot_stamp = -math.inf
         elif prev_epoch is not None and st.seq > prev_seq + 1:
-            self.counters["state_gaps"] += st.seq - prev_seq - 1
+            self.counts["state_gaps"] += st.seq - prev_seq - 1
         self.last_state_time = now
+        self._changed()
         self.session = (st.epoch, round(st.stamp * 1e6))  # what the next commands echo (see "Session")
         if st.stamp <= self._robot_stamp:  # not a running clock (a firmware that sends 0): the receipt it is
-            self.counters["stamp_fallbacks"] += 1
+            self.counts["stamp_fallbacks"] += 1
             return Pose(receipt, st.x, st.y, st.theta, st.v, st.omega)
         self._robot_stamp = st.stamp
         stamp, steady = self._clock.restamp_checked(st.stamp, receipt)
-        self.counters["clock_restarts"] += not steady
+        self.counts["clock_restarts"] += not steady
         return Pose(stamp, st.x, st.y, st.theta, st.v, st.omega)
 
+    def _judge_link(self, now: float) -> Verdict:
+        age = now - self.last_state_time
+        if age <= self.state_timeout:
+            return True, "ok", "ready"
+        if math.isinf(age):
+            return False, "no_telemetry", f"no state from the robot yet ({self.robot_text})"
+        return False, "no_telemetry", f"no state from the robot for {age:.1f} s"
+
     def health(self, now: float) -> LinkHealth:
-        detail = UdpHealthDetail(**self.counters)
+        detail = self._counter_snapshot()
         if self.sock is None:
             return replace(self._health, ok=False, detail=detail)
-        age = now - self.last_state_time
-        ok = age <= self.state_timeout
-        if ok:
-            text = "ready"
-        elif math.isinf(age):
-            text = f"no state from the robot yet ({self.robot_text})"
-        else:
-            text = f"no state from the robot for {age:.1f} s"
-        return replace(self._health, ok=ok, reason="ok" if ok else "no_telemetry", text=text, detail=detail)
+        ok, reason, text = self._verdict(now)
+        return replace(self._health, ok=ok, reason=reason, text=text, detail=detail)
 
     def clear_faults(self, now: float) -> None:
         """Nothing to clear on this link (see :meth:`drivers.base.Driver.clear_faults`)."""
@@ -351,20 +369,17 @@ class UdpDriver:
     def close(self, disarm: bool = True, stop_speed: float = 0.05, stop_timeout: float = 3.0) -> None:
         if self.sock is None:
             return
-        try:
-            t_end = self.clock() + stop_timeout
-            while self.clock() < t_end:  # stops until the robot says it has stopped
-                self.stop(self.clock())
-                self.sleep(GREET_PERIOD_S)
-                poses = self.poll(self.clock())
-                if poses and poses[-1].v is not None and abs(poses[-1].v) < stop_speed:
-                    break
-            self.stop(self.clock())
+        try:  # stops until the robot says it has stopped (close is given no time: read once, then moved by the waits)
+            self._stop_until_still(self.clock(), stop_speed, stop_timeout, GREET_PERIOD_S, self._reported_speed)
         finally:
             self.sock.close()
             self.sock = None
-            self._health.connected = self._health.ok = False
-            self._health.text, self._health.reason = "closed", "closed"
+            self._closed_health()
+
+    def _reported_speed(self, now: float) -> float | None:
+        """Read the robot's states at ``now``; the speed the newest reports (None: none came, or none says it)."""
+        poses = self.poll(now)
+        return poses[-1].v if poses else None
 
 
 #: the link's plugin entry (``drivers.LINKS``): its ``[link.udp]`` section, its driver, and whether ``scmbridge

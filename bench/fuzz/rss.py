@@ -89,7 +89,7 @@ def probe_host(args: argparse.Namespace) -> int:
     cfg = load_driver(None)
     link = msgspec.structs.replace(cfg.link.can, interface="virtual", channel=f"scm-{args.robot}")
     host = DriverHost(cfg, "can", open_driver("can", link), args.robot, cfg.driver.rate_hz)
-    host.engage_on_start = True  # as `scmbridge driver --engage`
+    host.options.engage_on_start = True  # as `scmbridge driver --engage`
     ecus = DiffDriveEcus({"interface": "virtual", "channel": link.channel}, new_vehicle(),
                          left_node=link.left_node, right_node=link.right_node, left_sign=link.left_sign,
                          right_sign=link.right_sign, wheel_radius=link.wheel_radius,

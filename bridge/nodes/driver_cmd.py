@@ -20,7 +20,7 @@ the vehicle really got on ``applied``, publishes the link's poses as ``state`` (
 truthful ``status``, each second and at once when it changes. Commands are applied as they arrive (latency is not a
 multiple of the period), but the link never gets more than ``max_send_hz`` of them. An estop latches a stop; only a
 source named in ``estop_release_sources`` releases it, and a release is the operator action that lets the link clear
-its controllers' latched faults. All stamps are this host's ``time.monotonic()``, so the station pairs ``applied``
+its controllers' latched faults. All stamps are on this host's monotonic clock, so the station pairs ``applied``
 with ``state`` without any clock synchronisation.
 
 ``--emulate`` (CAN only) hosts the emulated motor controllers on the same python-can ``virtual`` channel inside
@@ -34,10 +34,10 @@ from __future__ import annotations
 
 import argparse
 import logging
-import time
 
 import msgspec
 
+from bridge.core import timebase
 from bridge.core import wire as M
 from bridge.core.args import pose_arg, positive_float, robot_arg
 from bridge.core.auth import load_key
@@ -81,18 +81,19 @@ def arguments(ap: argparse.ArgumentParser) -> None:
                          "network can drive the robot (loopback tests; said in the log and on status)")
 
 
-def _emulated_ecus(cfg, model: str, x0: tuple[float, float, float], drift: str | None = None):
+def _emulated_ecus(cfg, model: str, x0: tuple[float, float, float], drift: str | None = None,
+                   clock: timebase.Clock = timebase.monotonic):
     """The learner's two emulated motor controllers on the driver's virtual CAN channel (``--emulate``), changing
     at run time as ``drift`` says (``--drift``)."""
     from sim_learner.can_ecu import DiffDriveEcus, Drift
     from sim_learner.dynamics import model_by_name
     from sim_learner.vehicle import SimVehicle
 
-    vehicle = SimVehicle(model_by_name(model), x0, now=time.monotonic())
+    vehicle = SimVehicle(model_by_name(model), x0, now=clock())
     return DiffDriveEcus({"interface": "virtual", "channel": cfg.channel}, vehicle, left_node=cfg.left_node,
                          right_node=cfg.right_node, left_sign=cfg.left_sign, right_sign=cfg.right_sign,
                          wheel_radius=cfg.wheel_radius, track_width=cfg.track_width,
-                         drift=Drift.parse(drift) if drift else None).start()
+                         drift=Drift.parse(drift) if drift else None, clock=clock).start()
 
 
 def run(args: argparse.Namespace) -> int:
@@ -128,14 +129,16 @@ def run(args: argparse.Namespace) -> int:
     for name in ("key_file", "signing_key_file"):  # a missing or unsafe key is one line now, not a retry loop later
         if getattr(link_cfg, name, ""):
             load_key(getattr(link_cfg, name), args.link)
+    # the host's one clock and its waits (the link's driver stamps on the same monotonic clock by default)
+    clock, wait = timebase.monotonic, timebase.wait
     host = DriverHost(cfg, args.link, open_driver(args.link, link_cfg), robot, args.rate or cfg.driver.rate_hz,
-                      dry_run=args.dry_run, latch_path=latch_file(robot))
-    host.engage_on_start = host.engage_on_start or args.engage
-    host.fence = fence
+                      dry_run=args.dry_run, latch_path=latch_file(robot), clock=clock, wait=wait)
+    host.options.engage_on_start = host.options.engage_on_start or args.engage
+    host.options.fence = fence
     stop = stop_on_signals()
-    ecus = _emulated_ecus(link_cfg, args.model, args.x0, args.drift) if args.emulate else None
+    ecus = _emulated_ecus(link_cfg, args.model, args.x0, args.drift, clock) if args.emulate else None
     if ecus is not None:
-        host.co_located.append(ecus)
+        host.options.co_located.append(ecus)
     try:
         with open_session(zenoh_config(args), wait=stop, what="driver host") as session:
             host.serve(session, stop, args.duration)
@@ -144,5 +147,5 @@ def run(args: argparse.Namespace) -> int:
         if ecus is not None:
             ecus.stop()
         log.info("driver host for %s stopped %s: the vehicle was given a stop%s", robot, stopped_because(stop),
-                 "" if host.dry_run else " and released (what this host engaged)")
+                 "" if host.options.dry_run else " and released (what this host engaged)")
     return 0

@@ -12,8 +12,6 @@ from __future__ import annotations
 import logging
 import math
 import threading
-import time
-from collections import deque
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -21,6 +19,7 @@ from typing import Any
 import msgspec
 import zenoh
 
+from bridge.core import timebase
 from bridge.core import wire as M
 from bridge.core.acts import ActGuard, Refusal
 from bridge.core.backoff import Backoff
@@ -30,26 +29,24 @@ from bridge.core.paths import save_atomic
 from bridge.nodes import systemd
 from bridge.nodes.driver_config import DriverConfig
 from bridge.nodes.engagement import Engagement, OperatorEvent, Outcome, overrule
+from bridge.nodes.host_loop import Echo, HostOptions, HostTiming
 from bridge.nodes.host_status import Assessment, HostFacts, HostStatus, host_counters, node_state
 from bridge.nodes.latch_store import LatchStore, SaveResult
 from bridge.nodes.node import (
     BlockedLoop,
     FixedRate,
     Inputs,
-    StallWatch,
     StatusOut,
     Usage,
 )
 from bridge.nodes.pose_feed import PoseFeed
-from drivers.base import Driver, DriverError, FailsafeReport, LinkHealth, link_unauthenticated
+from drivers.base import Driver, DriverError, LinkHealth, link_unauthenticated
 
 log = logging.getLogger("scmbridge.driver")
 
 
 #: the first and the longest wait between attempts to open a link that is not there yet, s
 OPEN_BACKOFF = (0.5, 10.0)
-#: s between two loop iterations beyond which the log says why the loop was late (bridge.nodes.node.StallWatch)
-STALL_REPORT_S = 0.25
 #: ticks the link may get back to back (the send budget, a token bucket of ``max_send_hz``): a command that arrives
 #: just after a periodic tick is sent at once; over any T seconds the link gets at most SEND_BURST + max_send_hz * T
 SEND_BURST = 2
@@ -77,59 +74,46 @@ class DriverHost:
 
     def __init__(self, cfg: DriverConfig, link: str, driver: Driver, robot: str, rate_hz: float, *,
                  dry_run: bool = False, latch_path: Path | None = None,
-                 latch_saver: Callable[[Path, bytes], None] = save_atomic) -> None:
+                 latch_saver: Callable[[Path, bytes], None] = save_atomic, clock: timebase.Clock = timebase.monotonic,
+                 wait: timebase.Wait = timebase.wait) -> None:
         """``dry_run``: run the whole loop and publish what would be applied, sending nothing to the vehicle;
         ``latch_path``: where the estop latch is kept (None: in memory only; its install marker beside it,
-        :func:`bridge.nodes.latch_store.latch_marker`); ``latch_saver``: how the writer saves it (atomically; a test
-        slows it down or has it fail as a full disk does). The first start's marker and released latch are written
-        with :func:`save_atomic` (:meth:`LatchStore.open`)."""
+        :func:`bridge.nodes.latch_store.latch_marker`; both kept in :attr:`options`); ``latch_saver``: how the writer
+        saves it (atomically; a test slows it down or has it fail as a full disk does). The first start's marker and
+        released latch are written with :func:`save_atomic` (:meth:`LatchStore.open`). ``clock`` and ``wait``: the
+        host's time (:mod:`bridge.core.timebase`, kept in :attr:`timing`): the loop reads ``clock`` once a tick and
+        hands that ``now`` to the link and the pieces; every wait (the loop's, the link's open retries) is ``wait``,
+        so a test drives the loop on a fake clock."""
         d = cfg.driver
         self.link, self.driver, self.robot = link, driver, robot
         self.keys = M.Keys(robot)
-        self.period = 1.0 / rate_hz
-        self.max_send_hz = d.max_send_hz
-        self.max_telemetry_age = d.max_telemetry_age_s
+        self.settings = d  # the [driver] section: telemetry age, stop speed and timeout, max_drive_on_s
+        self.timing = HostTiming(rate_hz, d.max_send_hz, clock, wait)
+        self.options = HostOptions(dry_run=dry_run, engage_on_start=d.engage_on_start, latch_path=latch_path)
         self.gate = CommandGate(d.hard_limits.bounds(), d.cmd_timeout, tuple(d.estop_release_sources))
         #: acceleration and jerk limits on what the vehicle gets (the loop thread's; bridge.core.limiter): a stalled
         #: loop's step is bounded by two periods' worth
-        self.limiter = d.hard_limits.limiter(self.period)
+        self.limiter = d.hard_limits.limiter(self.timing.period)
         self.inputs = Inputs()
         self.lock = threading.Lock()  # see the class docstring: what Zenoh's callback threads and the loop share
         self.wake = threading.Event()
         self.clear_requested = False
-        self.seq_applied = 0
-        self.last_decision = Decision(0.0, 0.0, "start")
+        self.echo = Echo()
         self.health = LinkHealth()
-        self.ticker: FixedRate | None = None  # the loop's scheduler (deadlines, wake-ups, the send budget)
-        #: a loop iteration later than this says why in the log (the controllers' watchdog is 0.5 s on ODrive's
-        #: example; the deadman a few periods), and where it is blocked while it is (two periods at a slow rate)
-        self.stall_report_s = max(STALL_REPORT_S, 2.0 * self.period)
-        self.stall_watch = StallWatch(self.stall_report_s)
-        self.ticks: deque[float] = deque(maxlen=500)  # start times of the periodic ticks
-        self.late: deque[float] = deque(maxlen=500)  # s each periodic tick came after its deadline (jitter)
         self.pubs: dict[str, zenoh.Publisher] = {}
         self.poses = PoseFeed("mocap" if d.pose_source == "mocap" else link, M.new_epoch(), d.mocap_window_s)
-        self.dry_run = dry_run
-        self.operator_engages = bool(getattr(driver, "operator_engages", False))
-        self.engagement = Engagement(follows_operator=self.operator_engages and not dry_run)
-        self.engage_on_start = d.engage_on_start
-        #: a polygon (ENU, the link's frame) to upload as the vehicle's own fence after the link opens (``--fence``)
-        self.fence: list[tuple[float, float]] = []
-        #: emulated devices hosted in this process (``--emulate``): each ``emit_due()`` runs before the link is read
-        self.co_located: list[Any] = []
+        operator_engages = bool(getattr(driver, "operator_engages", False))
+        self.engagement = Engagement(follows_operator=operator_engages and not dry_run)
         self.engage_queries: list[tuple[zenoh.Query, M.EngageRequest]] = []  # answered by the loop thread
         #: engage requests and estop releases are taken fresh and once (bridge.core.acts); under the lock
         self.acts = ActGuard(self.poses.epoch, persons=tuple(d.estop_release_sources) or ("operator",))
         self.release_refused: tuple[str, float] = ("", -math.inf)  # why the last release was refused, and when
-        self.stop_speed, self.stop_timeout, self.max_drive_on = d.stop_speed, d.stop_timeout, d.max_drive_on_s
-        self.failsafe_report: FailsafeReport | None = None
-        self.last_state = ""
-        #: why anyone on the network can drive this robot through its link ("" when the link authenticates)
-        self.unauthenticated = link_unauthenticated(getattr(driver, "config", None))
-        self.reporter = HostStatus(robot, link, period=self.period, max_telemetry_age=self.max_telemetry_age,
-                                   operator_engages=self.operator_engages, unauthenticated=self.unauthenticated,
-                                   max_drive_on=self.max_drive_on)
-        self.latch_path = latch_path
+        #: the status; it also keeps why anyone on the network can drive this robot through its link ("" when the
+        #: link authenticates) and the link's failsafe report once read
+        self.reporter = HostStatus(robot, link, period=self.timing.period, max_telemetry_age=d.max_telemetry_age_s,
+                                   operator_engages=operator_engages,
+                                   unauthenticated=link_unauthenticated(getattr(driver, "config", None)),
+                                   max_drive_on=d.max_drive_on_s)
         #: why the latch on disk is not the gate's (its save failed): while set the host stops and refuses to engage;
         #: cleared by the next save that succeeds (a person's release, on a disk that takes it)
         self.latch_unsaved = ""
@@ -170,7 +154,7 @@ class DriverHost:
         is saved after, by the writer's thread: no file I/O under a lock the loop or a callback takes. A stop is
         always taken; a release only when fresh and new (:mod:`bridge.core.acts`) and from a configured source."""
         with self.lock:
-            why = (self.acts.check(e.target, e.echo, e.nonce, e.source, time.monotonic())
+            why = (self.acts.check(e.target, e.echo, e.nonce, e.source, now)
                    if not e.engaged and self.gate.estopped else None)
             if why is not None:
                 self.inputs.count(f"estop_release_refused_{why.kind}")
@@ -201,7 +185,7 @@ class DriverHost:
             with self.lock:
                 was, self.latch_unsaved = self.latch_unsaved, ""
             if was:
-                log.warning("estop latch saved to %s (%s)", self.latch_path,
+                log.warning("estop latch saved to %s (%s)", self.options.latch_path,
                             "latched" if result.latch.latched else "released: the host may be engaged again")
             return
         self.inputs.count("latch_save_failures")
@@ -212,17 +196,18 @@ class DriverHost:
 
     def on_engage_query(self, query: zenoh.Query) -> None:
         """A person's ``scmbridge engage``: handed to the loop (which owns the link) and answered from there."""
+        now = self.timing.clock()
         try:
             payload = query.payload
             req = M.decode(payload.to_bytes() if payload is not None else b"", M.EngageRequest)
         except M.MessageError as exc:
             self.inputs.count("malformed_engage")
             query.reply(self.keys.engage, M.encode(M.EngageState(
-                stamp=time.monotonic(), node=f"driver-{self.link}", engaged=self.engaged, accepted=False,
+                stamp=now, node=f"driver-{self.link}", engaged=self.engaged, accepted=False,
                 text=f"malformed request: {exc}"[:1024], epoch=self.acts.epoch)))
             return
         with self.lock:  # engaging is taken fresh and once (bridge.core.acts); handing the vehicle back always
-            why = (self.acts.check(req.target, req.echo, req.nonce, req.source, time.monotonic())
+            why = (self.acts.check(req.target, req.echo, req.nonce, req.source, now)
                    if req.engaged else None)
             if why is None:
                 self.engage_queries.append((query, req))
@@ -232,7 +217,7 @@ class DriverHost:
                 (log.debug if why.kind == "unaddressed" else log.warning)(
                     "engage by %r %s (%d refused so; counter engage_refused_%s)", req.source, why.text, n, why.kind)
             query.reply(self.keys.engage, M.encode(M.EngageState(
-                stamp=time.monotonic(), node=f"driver-{self.link}", engaged=self.engaged, accepted=False,
+                stamp=now, node=f"driver-{self.link}", engaged=self.engaged, accepted=False,
                 text=why.text[:1024], epoch=self.acts.epoch)))
             return
         self.wake.set()
@@ -243,7 +228,8 @@ class DriverHost:
         node = f"driver-{self.link}"
 
         def answer(**kw: Any) -> M.EngageState:  # stamped on this host's clock, with its epoch: the next act's address
-            return M.EngageState(stamp=time.monotonic(), node=node, epoch=self.acts.epoch, **kw)
+            # (read when answered: the link's engage may have taken seconds, and the next act echoes this stamp)
+            return M.EngageState(stamp=self.timing.clock(), node=node, epoch=self.acts.epoch, **kw)
 
         who = f" by {req.source}" if req.source else ""
         with self.lock:
@@ -257,7 +243,7 @@ class DriverHost:
             return answer(engaged=True, text=outcome.value)
         if not outcome.accepted:
             return answer(engaged=False, accepted=False, text=ruling.text[:1024])
-        if not self.dry_run:
+        if not self.options.dry_run:
             try:
                 self.driver.engage(now, clear_faults=clear)
             except DriverError as exc:
@@ -265,13 +251,13 @@ class DriverHost:
                 return answer(engaged=False, accepted=False, text=str(exc)[:1024])
         self.engagement.confirm(now)
         log.warning("engaged%s: the vehicle follows the station's commands", who)
-        return answer(engaged=True, text="engaged" + (" (dry run)" if self.dry_run else ""))
+        return answer(engaged=True, text="engaged" + (" (dry run)" if self.options.dry_run else ""))
 
-    def _answer_engage_queries(self) -> None:
+    def _answer_engage_queries(self, now: float) -> None:
         with self.lock:
             pending, self.engage_queries = self.engage_queries, []
         for query, req in pending:
-            ans = self.handle_engage(req, time.monotonic(), req.clear_faults)
+            ans = self.handle_engage(req, now, req.clear_faults)
             try:
                 query.reply(self.keys.engage, M.encode(ans))
             finally:
@@ -286,7 +272,7 @@ class DriverHost:
 
     def _answer_estop_query(self, query: zenoh.Query, deferred: bool = False) -> None:
         with self.lock:  # an unsaved latch is latched, and says so (estop prints it beside LATCHED)
-            now = time.monotonic()
+            now = self.timing.clock()
             why, at = self.release_refused
             st = M.EstopState(stamp=now, node=f"driver-{self.link}",
                               latched=self.gate.estopped or bool(self.latch_unsaved), source=self.gate.estop_source,
@@ -318,8 +304,8 @@ class DriverHost:
         if clear:
             log.warning("operator released the estop: clearing the link's latched faults")
             self.driver.clear_faults(now)
-        d = overrule(d, now, engaged=self.engaged, unsaved=bool(unsaved), health=h, dry_run=self.dry_run,
-                     last_pose=self.poses.last_pose, max_telemetry_age=self.max_telemetry_age)
+        d = overrule(d, now, engaged=self.engaged, unsaved=bool(unsaved), health=h, dry_run=self.options.dry_run,
+                     last_pose=self.poses.last_pose, max_telemetry_age=self.settings.max_telemetry_age_s)
         return self.limited(d, now)
 
     def limited(self, d: Decision, now: float) -> Decision:
@@ -337,7 +323,7 @@ class DriverHost:
         as lost (a link that really went silent still fails). Each pose is checked and encoded once: the bytes the
         check decoded are the bytes published."""
         if self.engage_queries:
-            self._answer_engage_queries()
+            self._answer_engage_queries(now)
         for st in self._read_link(now):
             try:
                 self.pubs["state"].put(M.validated_bytes(st)[1])
@@ -347,27 +333,27 @@ class DriverHost:
                 continue
             self.poses.published(now, st)
         d = self.decide(now)
-        if self.dry_run:
+        if self.options.dry_run:
             pass  # what would be sent is published on applied; the vehicle gets nothing
         elif d.driving:
             self.driver.send(d.v, d.omega, now)
         else:
             self.driver.stop(now)
-        if d.reason != self.last_decision.reason:
+        if d.reason != self.echo.last.reason:
             if not d.driving:
                 log.info("vehicle stopped: %s", d.reason)
-            elif not self.last_decision.driving:
+            elif not self.echo.last.driving:
                 log.info("vehicle driving (%s)", d.reason)
-        self.last_decision = d
-        self._put("applied", M.Applied(stamp=now, seq=self.seq_applied, v=d.v, omega=d.omega, reason=d.reason,
+        self.echo.last = d
+        self._put("applied", M.Applied(stamp=now, seq=self.echo.seq, v=d.v, omega=d.omega, reason=d.reason,
                                        cmd_seq=d.cmd_seq))
-        self.seq_applied += 1
+        self.echo.seq += 1
 
     def _read_link(self, now: float) -> list[M.LearnerState]:
         """Let the co-located emulated devices send what is due, read the link, and return this tick's poses: the
         link's telemetry, or the motion-capture samples (the link is read either way: its frames carry the vehicle's
         health)."""
-        for device in self.co_located:
+        for device in self.options.co_located:
             device.emit_due()
         link = self.driver.poll(now)
         samples: list[M.LearnerState] = []
@@ -387,7 +373,7 @@ class DriverHost:
         facts = HostFacts(health=self.health, engaged=self.engaged, last_pose=self.poses.last_pose,
                           measured=self.poses.measured,
                           estopped=estopped, estop_source=source, unsaved=unsaved, conflict=conflict,
-                          dry_run=self.dry_run)
+                          dry_run=self.options.dry_run)
         return self.reporter.assess(facts, now)
 
     def status(self, now: float, assessed: Assessment | None = None) -> M.Status:
@@ -395,24 +381,25 @@ class DriverHost:
         with self.lock:
             gate_counters = dict(self.gate.counters)
         counters = host_counters(gate_counters, self.inputs.snapshot(), self.health,
-                                 unauthenticated=bool(self.unauthenticated),
-                                 missed=self.ticker.missed if self.ticker is not None else 0,
-                                 stalls=self.stall_watch.stalls, ticks=len(self.ticks))
+                                 unauthenticated=bool(self.reporter.unauthenticated),
+                                 missed=self.timing.missed,
+                                 stalls=self.timing.stall_watch.stalls, ticks=len(self.timing.ticks))
         if not self.limiter.unlimited:
             counters["rate_limited"] = self.limiter.limited
         a = assessed if assessed is not None else self._assess(now)
-        if a.state != self.last_state:
+        if a.state != self.reporter.logged_state:
             log.info("%s: %s", a.state, "; ".join(a.problems) or "engaged and fit")
-            self.last_state = a.state
-        return self.reporter.build(now, a, counters=counters, late=self.late, failsafe=self.failsafe_report,
-                                   driving_reason=self.last_decision.reason)
+            self.reporter.logged_state = a.state
+        return self.reporter.build(now, a, counters=counters, late=self.timing.late,
+                                   failsafe=self.reporter.failsafe,
+                                   driving_reason=self.echo.last.reason)
 
     def node_state(self, estop: bool, h: LinkHealth, pose_age: float, problems: list[str],
                    unsaved: bool = False) -> tuple[M.NodeState, M.Reason]:
         """The one word ``scmbridge status`` shows for this host, and its typed reason
         (:func:`bridge.nodes.host_status.node_state` with this host's engagement and dry run)."""
-        return node_state(estop, h, pose_age, problems, unsaved, engaged=self.engaged, dry_run=self.dry_run,
-                          max_telemetry_age=self.max_telemetry_age)
+        return node_state(estop, h, pose_age, problems, unsaved, engaged=self.engaged, dry_run=self.options.dry_run,
+                          max_telemetry_age=self.settings.max_telemetry_age_s)
 
     def _status_due(self, now: float) -> Assessment | None:
         """This tick's assessment when a status should go out now (:meth:`HostStatus.due`: each second, and at
@@ -437,33 +424,33 @@ class DriverHost:
         self.inputs.subscribe(session, k.estop, M.Estop, "estop", self.on_estop)
         keep(session.declare_queryable(k.estop, self.on_estop_query))
         keep(session.declare_queryable(k.engage, self.on_engage_query))
-        self.alive = keep(session.liveliness().declare_token(M.alive_key(self.robot, "driver")))
+        keep(session.liveliness().declare_token(M.alive_key(self.robot, "driver")))
         if self.poses.mocap_source:
             self.inputs.subscribe(session, k.mocap, M.LearnerState, "mocap", self.on_mocap)
         self.pubs = {"applied": keep(session.declare_publisher(k.applied)),
                      "state": keep(session.declare_publisher(k.state)),
                      "status": keep(StatusOut(session, M.status_key(self.robot, "driver")))}
-        self._put("status", self.reporter.starting(time.monotonic(), "starting",
+        self._put("status", self.reporter.starting(self.timing.clock(), "starting",
                                                    f"link {self.link}: opening (vehicle not yet ready)"))
         if not self._open_link(stop):
             return
-        self.failsafe_report = self.driver.failsafe()
-        too_long = self.failsafe_report.drive_on_s is None or self.failsafe_report.drive_on_s > self.max_drive_on
-        (log.warning if too_long else log.info)("vehicle failsafe: %s%s", self.failsafe_report.text,
-                                                f" (more than max_drive_on_s = {self.max_drive_on:g} s)"
+        self.reporter.failsafe = failsafe = self.driver.failsafe()
+        too_long = failsafe.drive_on_s is None or failsafe.drive_on_s > self.settings.max_drive_on_s
+        (log.warning if too_long else log.info)("vehicle failsafe: %s%s", failsafe.text,
+                                                f" (more than max_drive_on_s = {self.settings.max_drive_on_s:g} s)"
                                                 if too_long else "")
-        log.info("driver host for %s on link %s at %.0f Hz (epoch %x)%s", self.robot, self.link, 1 / self.period,
-                 self.poses.epoch, ": DRY RUN, nothing is sent to the vehicle" if self.dry_run else "")
-        if self.unauthenticated:
+        log.info("driver host for %s on link %s at %.0f Hz (epoch %x)%s", self.robot, self.link, 1 / self.timing.period,
+                 self.poses.epoch, ": DRY RUN, nothing is sent to the vehicle" if self.options.dry_run else "")
+        if self.reporter.unauthenticated:
             log.warning("link %s unauthenticated: %s: anyone on the network can drive it (status counter "
-                        "unauthenticated_link = 1)", self.link, self.unauthenticated)
-        if self.fence:  # a person's request: the vehicle holds this fence itself (drivers.mavlink.fence)
+                        "unauthenticated_link = 1)", self.link, self.reporter.unauthenticated)
+        if self.options.fence:  # a person's request: the vehicle holds this fence itself (drivers.mavlink.fence)
             try:
-                log.warning("%s", self.driver.upload_fence(self.fence))  # type: ignore[attr-defined]
+                log.warning("%s", self.driver.upload_fence(self.options.fence))  # type: ignore[attr-defined]
             except DriverError as exc:
                 raise UsageError(f"--fence: the vehicle did not take the fence: {exc}") from None
-        if self.engage_on_start:
-            ans = self.handle_engage(M.EngageRequest(stamp=0.0, source="engage_on_start"), time.monotonic())
+        if self.options.engage_on_start:
+            ans = self.handle_engage(M.EngageRequest(stamp=0.0, source="engage_on_start"), self.timing.clock())
             if not ans.engaged:
                 log.error("engage_on_start: %s", ans.text)
         systemd.ready(f"{self.robot}: link {self.link} open, " + ("engaged" if self.engaged else "waiting for engage"))
@@ -475,7 +462,7 @@ class DriverHost:
         backoff, said = Backoff(*OPEN_BACKOFF), ""
         while not stop.is_set():
             try:
-                self.driver.open(time.monotonic())  # bounded by the link's open_timeout
+                self.driver.open(self.timing.clock())  # bounded by the link's open_timeout
                 return True
             except DriverError as exc:
                 text = f"link {self.link}: waiting for the vehicle: {exc}"
@@ -483,9 +470,9 @@ class DriverHost:
                     log.warning("%s; trying again (every %.0f s at most)", text, backoff.maximum)
                     said = text
                 systemd.status(text[:200])
-                self._put("status", self.reporter.starting(time.monotonic(), "link_down", text))
+                self._put("status", self.reporter.starting(self.timing.clock(), "link_down", text))
                 self.driver.close(disarm=False, stop_timeout=0.0)  # a half-open link is let go before the retry
-                stop.wait(backoff.delay)
+                self.timing.wait(stop, backoff.delay)
                 backoff.grow()
         return False
 
@@ -494,14 +481,15 @@ class DriverHost:
         latch save still under way finish (bounded: ``LATCH_FLUSH_S``)."""
         systemd.stopping()
         try:
-            if self.dry_run:
-                self.driver.close(disarm=False, stop_speed=self.stop_speed, stop_timeout=0.0)
+            if self.options.dry_run:
+                self.driver.close(disarm=False, stop_speed=self.settings.stop_speed, stop_timeout=0.0)
                 return
-            self.driver.close(disarm=self.engaged, stop_speed=self.stop_speed, stop_timeout=self.stop_timeout)
+            cfg = self.settings
+            self.driver.close(disarm=self.engaged, stop_speed=cfg.stop_speed, stop_timeout=cfg.stop_timeout)
         finally:
             if not self.latch.close(LATCH_FLUSH_S):
-                log.error("estop latch: the save to %s did not finish within %.0f s of closing", self.latch_path,
-                          LATCH_FLUSH_S)
+                log.error("estop latch: the save to %s did not finish within %.0f s of closing",
+                          self.options.latch_path, LATCH_FLUSH_S)
 
     def loop(self, stop: threading.Event, duration: float | None) -> None:
         """Periodic ticks, plus an immediate tick for each accepted command, estop or engage query (the wake); the
@@ -512,28 +500,29 @@ class DriverHost:
         rest of it, and a periodic tick after a command tick is pushed back the same way; a token bucket alone on the
         fixed schedule sends as many ticks as its budget and queues (``scmbridge bench bridge`` measures the latency
         and jitter: docs/BENCHMARKS.md, "The bridge")."""
-        t_start = time.monotonic()
-        self.ticker = ticker = FixedRate(1.0 / self.period, stop, wake=self.wake, max_hz=self.max_send_hz,
-                                         burst=SEND_BURST, rephase=True)
+        t_start = self.timing.clock()
+        timing = self.timing
+        timing.ticker = ticker = FixedRate(1.0 / timing.period, stop, wake=self.wake, max_hz=timing.max_send_hz,
+                                           burst=SEND_BURST, rephase=True, clock=timing.clock, wait=timing.wait)
         periodic = True
-        blocked = BlockedLoop(self.stall_report_s, stop, log).start()
+        blocked = BlockedLoop(self.timing.stall_report_s, stop, log).start()
         try:
             while not stop.is_set():
                 blocked.beat()
-                now = time.monotonic()
+                now = self.timing.clock()
                 if duration is not None and now - t_start >= duration:
                     return
-                stalled = self.stall_watch.check(now, Usage.now())
+                stalled = self.timing.stall_watch.check(now, Usage.now())
                 if stalled:
                     log.warning("%s", stalled)
                 if periodic:
-                    self.ticks.append(now)
+                    self.timing.ticks.append(now)
                 self.tick(now)
                 assessed = self._status_due(now)
                 if assessed is not None:
                     self._put("status", self.status(now, assessed))
                 periodic = ticker.wait()
                 if periodic:
-                    self.late.append(ticker.late)
+                    self.timing.late.append(ticker.late)
         finally:
             blocked.done()

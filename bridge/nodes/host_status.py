@@ -144,6 +144,8 @@ class HostStatus:
         self.robot, self.link, self.period = robot, link, period
         self.max_telemetry_age, self.max_drive_on = max_telemetry_age, max_drive_on
         self.operator_engages, self.unauthenticated = operator_engages, unauthenticated
+        self.failsafe: FailsafeReport | None = None  # what the vehicle does if the host dies, read once the link opens
+        self.logged_state = ""  # the state the host's log last named
         self.seq = 0  # the next status gets it (the starting ones too)
         #: the last status sent: (ok, state, reason), when, and when the next periodic one is due (:meth:`due`)
         self.sent: tuple[bool, str, str] | None = None

@@ -27,6 +27,7 @@ from typing import Any, Generic, TypeVar
 import zenoh
 from msgspec import Struct
 
+from bridge.core import timebase
 from bridge.core import wire as M
 from bridge.core.clock import SYSTEM, Clock
 from bridge.nodes.zsession import Declared, make_config
@@ -334,12 +335,16 @@ class FixedRate:
     waits (its ``wait``); every reading and every wait of the scheduler is the clock's."""
 
     def __init__(self, rate_hz: float, stop: threading.Event, *, wake: threading.Event | None = None,
-                 max_hz: float | None = None, burst: int = 2, rephase: bool = False, clock: Clock = SYSTEM) -> None:
+                 max_hz: float | None = None, burst: int = 2, rephase: bool = False, clock: Clock = SYSTEM,
+                 wait: timebase.Wait | None = None) -> None:
+        """``clock``: the loop's own (a test's fake clock); ``wait``: its waits, the clock's own when not given (a
+        driver host's plain clock function comes with :mod:`bridge.core.timebase`'s wait)."""
         self.period = 1.0 / float(rate_hz)
         self.stop = stop
         self.wake = wake
         self.rephase = rephase
         self.clock = clock
+        self._wait: timebase.Wait = wait if wait is not None else clock.wait
         self.t_next = clock()
         self.missed = 0
         self.late = 0.0  # s the last periodic tick came after its deadline
@@ -356,7 +361,7 @@ class FixedRate:
         if not was_pending:
             self.t_next += self.period
         deadline = self.t_next
-        clock = self.clock
+        clock, wait = self.clock, self._wait
         now = clock()
         delay = deadline - now
         if delay <= 0:
@@ -365,16 +370,16 @@ class FixedRate:
                 self.t_next = now
             periodic = True
         elif wake is not None:
-            periodic = not clock.wait(wake, delay)
+            periodic = not wait(wake, delay)
             now = clock()
         else:
-            clock.wait(self.stop, delay)
+            wait(self.stop, delay)
             periodic = True
             now = clock()
         if self.budget is not None:
             ready = self.budget.ready_at(now)
             while ready > now and not self.stop.is_set():
-                clock.wait(self.stop, ready - now)
+                wait(self.stop, ready - now)
                 now = clock()
                 ready = self.budget.ready_at(now)
             self.budget.take(now)

@@ -121,8 +121,110 @@ def _inside(box: tuple[float, float, float, float] | None, u) -> bool:
     return box is None or (box[0] <= u[0] <= box[1] and box[2] <= u[1] <= box[3])
 
 
+class Settling:
+    """Whether a pair's command had been steady long enough before its interval (module docstring, "Settled pairs
+    only"): the changes of the command kept as far back as a pair's settling window reaches, and the pairs dropped
+    for it (``unsettled``). Pure: times are arguments."""
+
+    def __init__(self, settle_s: float, settle_tol: float, settle_edge_s: float, command_bounds: Bounds | None) -> None:
+        self.settle_s = float(settle_s)
+        self.settle_edge_s = max(float(settle_edge_s), self.settle_s)
+        #: the command bounds' edges (v_lo, v_hi, w_lo, w_hi), within a millionth of their span
+        self.edges = None if command_bounds is None else (
+            *(float(x) for x in command_bounds.v), *(float(x) for x in command_bounds.w))
+        self.edge_eps = (1.0, 1.0) if command_bounds is None else tuple(1e-6 * float(x) for x in command_bounds.span)
+        span = (1.0, 1.0) if command_bounds is None else tuple(float(x) for x in command_bounds.span)
+        self.tol = (float(settle_tol) * span[0], float(settle_tol) * span[1])  # command units, per axis
+        #: (stamp, command or None for a stop) of each change of the command, the last one in force now
+        self.changes: deque[tuple[float, tuple[float, float] | None]] = deque()
+        self.unsettled = 0  # pairs dropped because their command had not been steady for settle_s
+
+    def note(self, stamp: float, key: tuple[float, float] | None) -> None:
+        """The command in force changed to ``key`` (None: stopped) at ``stamp``."""
+        if self.settle_s <= 0:
+            return
+        changes = self.changes
+        changes.append((stamp, key))
+        while len(changes) >= 2 and changes[1][0] < stamp - self.settle_edge_s:
+            changes.popleft()  # no longer in force within any later pair's window (each starts after `stamp`)
+
+    def keeps(self, segment: tuple[float, float], t1: float) -> bool:
+        """Whether a pair of command ``segment`` whose interval begins at ``t1`` is settled (else counted)."""
+        if self.settle_s > 0 and t1 - self._steady_since() < self._settle_for(segment):
+            self.unsettled += 1
+            return False
+        return True
+
+    def _steady_since(self) -> float:
+        """Since when the commands in force have been within the settling tolerance of the current segment's
+        (the stamp of the earliest change in that run; +inf when not driving)."""
+        changes = self.changes
+        if not changes or changes[-1][1] is None:
+            return math.inf
+        ref = changes[-1][1]
+        tv, tw = self.tol
+        since = changes[-1][0]
+        for t, u in reversed(changes):
+            if u is None or abs(u[0] - ref[0]) > tv or abs(u[1] - ref[1]) > tw:
+                break
+            since = t
+        return since
+
+    def _settle_for(self, u: tuple[float, float]) -> float:
+        """How long command ``u`` must have been steady: ``settle_edge_s`` on an edge of the command bounds (the
+        largest step a body answers, from rest to its top: the probe that fixes a limit), else ``settle_s``."""
+        e = self.edges
+        if e is None or self.settle_edge_s == self.settle_s:
+            return self.settle_s
+        ev, ew = self.edge_eps
+        v, w = u
+        if v <= e[0] + ev or v >= e[1] - ev or w <= e[2] + ew or w >= e[3] - ew:
+            return self.settle_edge_s
+        return self.settle_s
+
+
+class Motion:
+    """Whether a pose is one the vehicle could have reached from the last accepted one, no faster than
+    ``max_speed`` and turning no faster than ``max_turn`` (module docstring); after ``RESYNC_AFTER`` poses in a row
+    that agree with each other, the vehicle's new place. Counts the poses it drops (``implausible_pose``). Pure."""
+
+    def __init__(self, dt: float, max_speed: float, max_turn: float) -> None:
+        self.dt = dt
+        self.max_speed, self.max_turn = float(max_speed), float(max_turn)
+        self.pose: tuple[float, Pose] | None = None  # the last accepted pose
+        self.odd_poses: list[tuple[float, Pose]] = []  # implausible poses in a row
+        self.implausible_pose = 0
+
+    def judge(self, stamp: float, p: Pose) -> str:
+        """``ok`` (accepted), ``dropped``, or ``moved`` (dropped, but the run of poses that agree says the vehicle
+        was relocated: it is its new place, no pair may span the jump)."""
+        if not (math.isfinite(p[0]) and math.isfinite(p[1]) and math.isfinite(p[2])):
+            self.implausible_pose += 1
+            return "dropped"
+        if self.pose is None or self._reachable(self.pose, (stamp, p)):
+            self.pose, self.odd_poses = (stamp, p), []
+            return "ok"
+        self.implausible_pose += 1
+        run = self.odd_poses
+        if run and not self._reachable(run[-1], (stamp, p)):
+            run.clear()
+        run.append((stamp, p))
+        if len(run) >= RESYNC_AFTER:
+            self.pose, self.odd_poses = (stamp, p), []
+            return "moved"
+        return "dropped"
+
+    def _reachable(self, a: tuple[float, Pose], b: tuple[float, Pose]) -> bool:
+        dt = max(b[0] - a[0], self.dt / 10)  # two poses in one instant: judge them over a tenth of a pair
+        (xa, ya, tha), (xb, yb, thb) = a[1], b[1]  # scalar maths: once per pose, a hot path
+        step = math.hypot(xb - xa, yb - ya)
+        turn = abs(math.remainder(thb - tha, math.tau))
+        return step <= self.max_speed * dt and turn <= self.max_turn * dt
+
+
 class IntervalPairer:
-    """Turns time-ordered applied echoes and poses into command pairs (see the module docstring)."""
+    """Turns time-ordered applied echoes and poses into command pairs (see the module docstring). Its pieces: the
+    settling rule (:class:`Settling`) and the motion check (:class:`Motion`); their counts read as its own."""
 
     def __init__(self, dt: float, min_span: float | None = None, max_gap: float | None = None, *,
                  max_speed: float = math.inf, max_turn: float = math.inf, command_bounds: Bounds | None = None,
@@ -141,29 +243,15 @@ class IntervalPairer:
         self.dt = float(dt)
         self.min_span = 0.4 * self.dt if min_span is None else float(min_span)
         self.max_gap = 2.0 * self.dt if max_gap is None else float(max_gap)
-        self.max_speed, self.max_turn = float(max_speed), float(max_turn)
+        self.motion = Motion(self.dt, max_speed, max_turn)
         self.command_bounds = None if command_bounds is None else _grown(command_bounds, margin)
         self.teacher_bounds = None if teacher_bounds is None else _grown(teacher_bounds, margin)
         self._command_box = _box(self.command_bounds)
         self._teacher_box = _box(self.teacher_bounds)
-        self.settle_s = float(settle_s)
-        self.settle_edge_s = max(float(settle_edge_s), self.settle_s)
-        #: the command bounds' edges (v_lo, v_hi, w_lo, w_hi), within a millionth of their span
-        self._edges = None if command_bounds is None else (
-            *(float(x) for x in command_bounds.v), *(float(x) for x in command_bounds.w))
-        self._edge_eps = (1.0, 1.0) if command_bounds is None else tuple(1e-6 * float(x) for x in command_bounds.span)
-        span = (1.0, 1.0) if command_bounds is None else tuple(float(x) for x in command_bounds.span)
-        self._settle_tol = (float(settle_tol) * span[0], float(settle_tol) * span[1])  # command units, per axis
-        #: (stamp, command or None for a stop) of each change of the command, the last one in force now; kept as far
-        #: back as a pair's settling window can reach
-        self._changes: deque[tuple[float, tuple[float, float] | None]] = deque()
-        self.unsettled = 0  # pairs dropped because their command had not been steady for settle_s
+        self.settling = Settling(settle_s, settle_tol, settle_edge_s, command_bounds)
         self.anchor: tuple[float, float] | None = None  # (stamp, receipt) of the last accepted event
         self.behind: list[tuple[float, float]] = []  # (stamp, receipt) of events in a row behind the anchor
-        self.pose: tuple[float, Pose] | None = None  # the last accepted pose
-        self.odd_poses: list[tuple[float, Pose]] = []  # implausible poses in a row
         self.implausible_stamp = 0
-        self.implausible_pose = 0
         self.implausible_pair = 0
         self.resyncs = 0
         self.segment: tuple[float, float] | None = None  # the command in force, None when not driving
@@ -173,6 +261,27 @@ class IntervalPairer:
         self.rejected = 0
         self.formed = 0
         self.out_of_order = 0  # events older than one already fed: ignored
+
+    # the pieces' counts and settings, read as the pairer's (the station's status observes them by name)
+    @property
+    def implausible_pose(self) -> int:
+        return self.motion.implausible_pose
+
+    @property
+    def unsettled(self) -> int:
+        return self.settling.unsettled
+
+    @property
+    def settle_s(self) -> float:
+        return self.settling.settle_s
+
+    @property
+    def settle_edge_s(self) -> float:
+        return self.settling.settle_edge_s
+
+    @property
+    def _settle_tol(self) -> tuple[float, float]:
+        return self.settling.tol
 
     def _admit(self, stamp: float, received: float | None) -> bool:
         """Whether an event stamped ``stamp`` (received at ``received``, when known) may be used (see the module
@@ -197,7 +306,7 @@ class IntervalPairer:
             if len(run) < RESYNC_AFTER:
                 return False
             self.resyncs += 1  # the stamp followed so far was forged: follow the sender's stream again
-            self.segment, self.first, self.last, self.pose = None, None, None, None
+            self.segment, self.first, self.last, self.motion.pose = None, None, None, None
         self.behind.clear()
         self.last_event = stamp
         if received is not None:
@@ -213,66 +322,16 @@ class IntervalPairer:
             return None
         out = self._close()
         self.segment, self.first, self.last = key, None, None
-        if self.settle_s > 0:
-            changes = self._changes
-            changes.append((stamp, key))
-            while len(changes) >= 2 and changes[1][0] < stamp - self.settle_edge_s:
-                changes.popleft()  # no longer in force within any later pair's window (each starts after `stamp`)
+        self.settling.note(stamp, key)
         return out
 
-    def _steady_since(self) -> float:
-        """Since when the commands in force have been within the settling tolerance of the current segment's
-        (the stamp of the earliest change in that run; +inf when not driving)."""
-        changes = self._changes
-        if not changes or changes[-1][1] is None:
-            return math.inf
-        ref = changes[-1][1]
-        tv, tw = self._settle_tol
-        since = changes[-1][0]
-        for t, u in reversed(changes):
-            if u is None or abs(u[0] - ref[0]) > tv or abs(u[1] - ref[1]) > tw:
-                break
-            since = t
-        return since
-
-    def _settle_for(self, u: tuple[float, float]) -> float:
-        """How long command ``u`` must have been steady: ``settle_edge_s`` on an edge of the command bounds (the
-        largest step a body answers, from rest to its top: the probe that fixes a limit), else ``settle_s``."""
-        e = self._edges
-        if e is None or self.settle_edge_s == self.settle_s:
-            return self.settle_s
-        ev, ew = self._edge_eps
-        v, w = u
-        if v <= e[0] + ev or v >= e[1] - ev or w <= e[2] + ew or w >= e[3] - ew:
-            return self.settle_edge_s
-        return self.settle_s
-
     def _plausible_pose(self, stamp: float, p: Pose) -> bool:
-        """A pose the vehicle could have reached from the last accepted one (or, after a run of poses that agree
-        with each other, the vehicle's new place: the interval restarts there)."""
-        if not (math.isfinite(p[0]) and math.isfinite(p[1]) and math.isfinite(p[2])):
-            self.implausible_pose += 1
-            return False
-        if self.pose is None or self._reachable(self.pose, (stamp, p)):
-            self.pose, self.odd_poses = (stamp, p), []
-            return True
-        self.implausible_pose += 1
-        run = self.odd_poses
-        if run and not self._reachable(run[-1], (stamp, p)):
-            run.clear()
-        run.append((stamp, p))
-        if len(run) >= RESYNC_AFTER:
+        """A pose the vehicle could have reached (:class:`Motion`); a relocation restarts the interval there."""
+        verdict = self.motion.judge(stamp, p)
+        if verdict == "moved":
             self.resyncs += 1
-            self.pose, self.odd_poses = (stamp, p), []
             self.first, self.last = None, None  # no pair spans the jump
-        return False
-
-    def _reachable(self, a: tuple[float, Pose], b: tuple[float, Pose]) -> bool:
-        dt = max(b[0] - a[0], self.dt / 10)  # two poses in one instant: judge them over a tenth of a pair
-        (xa, ya, tha), (xb, yb, thb) = a[1], b[1]  # scalar maths: once per pose, a hot path
-        step = math.hypot(xb - xa, yb - ya)
-        turn = abs(math.remainder(thb - tha, math.tau))
-        return step <= self.max_speed * dt and turn <= self.max_turn * dt
+        return verdict == "ok"
 
     def state(self, stamp: float, pose: Pose | NDArray[np.float64], received: float | None = None) -> Pair | None:
         """A pose (x, y, theta; three floats, or an array of them) stamped ``stamp``; the pair it closes, if any."""
@@ -303,8 +362,7 @@ class IntervalPairer:
         if t2 - t1 < self.min_span:
             self.rejected += 1
             return None
-        if self.settle_s > 0 and t1 - self._steady_since() < self._settle_for(self.segment):
-            self.unsettled += 1
+        if not self.settling.keeps(self.segment, t1):
             return None
         teacher, learner = teacher_equivalent(np.array(x1), np.array(x2), t2 - t1), np.array(self.segment)
         if not (_inside(self._command_box, self.segment) and _inside(self._teacher_box, teacher.tolist())):

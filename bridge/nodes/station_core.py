@@ -352,7 +352,7 @@ class StationCore:
         s, _ = closest(path.points, path.s, path.seg_len, state.x, state.y)
         return bool(self.mission.reached_at(s, [state.x, state.y]))
 
-    def wall(self, t: float) -> float:
+    def _wall(self, t: float) -> float:
         """The date (wall clock, s since the epoch) of monotonic time ``t`` on this station's clock."""
         return t + self.wall_offset
 
@@ -412,13 +412,13 @@ class StationCore:
             else:
                 pair = self.pairer.state(e.stamp, (e.x, e.y, e.theta), received)
             if pair is not None:
-                self.add_pair(pair, self.wall(received))  # when a cell changed: wall clock
+                self.add_pair(pair, self._wall(received))  # when a cell changed: wall clock
         if inputs.teacher is not None:
             self.teacher, self.teacher_at = inputs.teacher
             self.teacher_new = True
         if inputs.mission is not None:  # a program's, not a person's: named and timed for the operator
             self.control.replace(*inputs.mission, by=f"a publisher on {M.key(self.robot, 'mission')}",
-                                 at=self.wall(now))
+                                 at=self._wall(now))
         if inputs.driver is not None:  # after a new mission: a finished mission that goes on is paused all the same
             self.note_driver(*inputs.driver)
         if self.control.version != self.mission_version:  # from the mission topic or a person's send
@@ -457,7 +457,7 @@ class StationCore:
         log.warning("pose jump: %.2f m to (%.2f, %.2f) (top speed %.2f m/s)%s", jump, st.x, st.y, top,
                     ": mission paused" if c.phase == "running" else "")
         if c.phase == "running":
-            self._tripped(self.guards.jump_trip(st.x, st.y, jump, c.progress, self.wall(at)))
+            self._tripped(self.guards.jump_trip(st.x, st.y, jump, c.progress, self._wall(at)))
 
     def _tripped(self, trip: Trip) -> None:
         """A guard paused the running mission (its typed reason, until a person resumes)."""
@@ -501,7 +501,7 @@ class StationCore:
             fresh = now - self.state_at <= self.max_pose_age
             self.standing = s / path.length if c.phase == "paused" and fresh else None
             if c.phase == "running" and unfit is None:
-                trip = self.guards.check(state.x, state.y, self.off_path, c.progress, self.wall(now), now)
+                trip = self.guards.check(state.x, state.y, self.off_path, c.progress, self._wall(now), now)
                 outside = self.assumption.check(path.points, self.guards.corridor_m, s) if trip is None else None
                 if outside is not None:
                     log.warning("mission %r paused: %s", self.mission.name, outside.text())

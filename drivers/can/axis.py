@@ -127,24 +127,28 @@ class Axes:
             ax.fault_error |= ax.error
         return latched
 
-    def advance(self, now: float) -> None:
+    def advance(self, now: float) -> bool:
         """What time changes: arming ends once both axes confirm closed loop, or when ``open_timeout`` has passed (an
         axis that did not come up is then a latched fault); a controller whose Heartbeats stop while running is
-        counted once per loss."""
+        counted once per loss. True if anything changed."""
+        changed = False
         if self.phase == "arming":
             if all(ax.ready(now, self.heartbeat_timeout) for ax in self):
-                self.phase = "running"
+                self.phase, changed = "running", True
             elif now > self.arm_deadline:
-                self.phase = "running"
+                self.phase, changed = "running", True
                 for ax in self:  # (an axis that is silent is reported as a lost heartbeat)
                     if ax.heartbeat_at is not None and (ax.error or ax.state != AxisState.CLOSED_LOOP_CONTROL):
                         ax.fault, ax.fault_error, ax.fault_state = True, ax.error, ax.state
                         self.faults += 1
         for ax in self:
             lost = self.phase == "running" and ax.silent(now, self.heartbeat_timeout)
-            if lost and not self.lost[ax.side]:
-                self.heartbeat_losses += 1
+            if lost != self.lost[ax.side]:
+                changed = True
+                if lost:
+                    self.heartbeat_losses += 1
             self.lost[ax.side] = lost
+        return changed
 
     # ----------------------------------------------------------------------------------------------- a person's acts
     def engage_refusal(self, clear_faults: bool) -> str | None:

@@ -1,20 +1,21 @@
 """The CAN bus supervisor: a differential-drive base with one ODrive 0.6 controller per wheel behind the
 :class:`drivers.base.Driver` protocol. It owns the python-can bus (opened, failed, reopened with a backoff), turns
 frames into the axis state machine's inputs (:mod:`.axis`, pure) and the odometry's (:mod:`.odometry`, pure), and puts
-on the bus the frames they ask for, encoded by :mod:`.codec`. Times come from the clock it is given (``clock``,
-``time.monotonic`` by default; ``wall_clock`` for python-can's frame stamps), so its tests run on a fake clock."""
+on the bus the frames they ask for, encoded by :mod:`.codec`. Its frame is :class:`drivers.base.LinkBase`: the tick's
+methods work at the ``now`` they are given, its bounded waits move the time by the ``sleep`` it is given, and two
+measurements read its clock (see :class:`CanDriver`), so its tests run on a fake clock."""
 
 from __future__ import annotations
 
 import contextlib
 import math
-import time
 from collections.abc import Callable
 from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING, Any
 
+from bridge.core import timebase
 from bridge.core.backoff import Backoff
-from drivers.base import Clock, DriverError, FailsafeReport, LinkHealth, Pose, whole_numbers
+from drivers.base import Clock, DriverError, FailsafeReport, LinkBase, LinkHealth, Pose, Sleep, Verdict, whole_numbers
 from drivers.can.axis import Axes, Axis, AxisHealth, Frame, Reason, verdict
 from drivers.can.codec import decode, encode
 from drivers.can.config import CanLinkConfig
@@ -38,7 +39,7 @@ SEND_FAILURES_DOWN = 3
 MAX_FRAMES_PER_POLL = 2000
 #: s between zero set-points fed to the controllers' watchdogs while the axes come up (engage)
 ARM_FEED_S = 0.05
-#: s a blocking wait (open, engage, close) waits on the bus for one frame
+#: s a bounded wait (open, engage, close) lets pass between two reads of the bus
 WAIT_READ_S = 0.02
 
 
@@ -69,7 +70,7 @@ class CanHealthDetail:
         return whole_numbers(self.counters)
 
 
-class CanDriver:
+class CanDriver(LinkBase):
     """The CAN link (python-can).
 
     **Start-up** (``open``) only opens the bus and listens: no axis enters closed loop until a person engages
@@ -107,24 +108,32 @@ class CanDriver:
     ``send`` while not ``ok`` sends nothing but zero set-points.
 
     **Time stamps.** A pose carries the time its encoder frames were received on the bus (``msg.timestamp``, which
-    python-can fills on receive with the wall clock: ``time.time()`` for ``virtual`` and ``udp_multicast``, the
-    kernel's receive time for ``socketcan``), mapped by each ``poll`` onto the driver host's clock (``clock``) with
-    the offset ``clock() - wall_clock()``. A stamp that is missing, in the future of its receipt (beyond
+    python-can fills on receive with the wall clock (Python's ``time`` function) for ``virtual`` and
+    ``udp_multicast``, the kernel's receive time for ``socketcan``), mapped by each ``poll`` onto the driver host's
+    clock (``clock``) with the offset ``clock() - wall_clock()``. A stamp that is missing, in the future of its receipt (beyond
     :data:`STAMP_SLACK`) or older than :data:`STAMP_MAX_AGE` (a wall-clock step, NTP) is replaced by the receive time
-    and counted (``stamp_fallbacks``).
+    and counted (``stamp_fallbacks``). Frames read by a ``poll`` were received by its ``now``.
+
+    **Time.** ``poll``, ``send``, ``stop``, ``health``, ``open`` and ``engage`` work at the ``now`` they are given;
+    ``open``, ``engage`` and ``close`` wait between two reads of the bus with ``sleep`` (:meth:`LinkBase._pause`). The
+    clock is read for two measurements a tick's ``now`` cannot give: the moment frames left (a host preempted after
+    ``now`` wrote them later: the odometry counts the old command in force until then) and, with ``wall_clock`` at
+    once, the offset that maps python-can's wall-clock stamps onto it.
 
     ``open_bus`` (default: ``can.Bus`` from the configuration) builds the bus at open and at each reopen: a test hands
     in its own python-can bus, as python-can's ``BusABC`` lets any interface stand in.
     """
 
     name = "can"
+    COUNTERS = CanCounters
+    COUNTED_ELSEWHERE = ("faults", "heartbeat_losses")  # the axes' (drivers.can.axis.Axes)
 
-    def __init__(self, config: CanLinkConfig, *, clock: Clock = time.monotonic, wall_clock: Clock = time.time,
-                 open_bus: Callable[[], can.BusABC] | None = None) -> None:
+    def __init__(self, config: CanLinkConfig, *, clock: Clock = timebase.monotonic, wall_clock: Clock = timebase.wall,
+                 open_bus: Callable[[], can.BusABC] | None = None, sleep: Sleep = timebase.sleep) -> None:
+        super().__init__(clock, sleep)
         self.config = config
-        self.clock, self.wall_clock = clock, wall_clock
-        self.interface, self.channel, self.bitrate = config.interface, config.channel, config.bitrate
-        self.radius, self.track = config.wheel_radius, config.track_width
+        self.wall_clock = wall_clock
+        self.interface, self.channel = config.interface, config.channel  # the bus it opens, for people to read
         self.left = Axis("left", config.left_node, Wheel(config.left_sign))
         self.right = Axis("right", config.right_node, Wheel(config.right_sign))
         self.axes = Axes(self.left, self.right, config.open_timeout, config.heartbeat_timeout)
@@ -133,22 +142,17 @@ class CanDriver:
         self.open_timeout = config.open_timeout
         self.bus: can.BusABC | None = None
         self._bus_factory = open_bus
-        self._health = LinkHealth()
         self._down_reason: str | None = None
         self._reopen_at = 0.0
         self._backoff = Backoff(config.reopen_backoff, config.reopen_backoff_max)
         self._send_failures = 0
-        self._counts: dict[str, int] = {
-            "error_frames": 0, "bus_failures": 0, "reopens": 0, "send_failures": 0, "rejected_estimates": 0,
-            "resyncs": 0, "stamp_fallbacks": 0,
-        }
         self.rejected_at = -math.inf  # when the last implausible estimate was rejected
         self.overrun_at = -math.inf  # when estimates last claimed more travel than the wheel can do
 
     @property
     def counters(self) -> dict[str, int]:
         """Every count of :class:`CanCounters` by name (a copy): the bus's and odometry's, and the axes'."""
-        return {**self._counts, "faults": self.axes.faults, "heartbeat_losses": self.axes.heartbeat_losses}
+        return {**self.counts, "faults": self.axes.faults, "heartbeat_losses": self.axes.heartbeat_losses}
 
     # ----------------------------------------------------------------------------------------------- link
     def _open_bus(self) -> can.BusABC:
@@ -156,13 +160,14 @@ class CanDriver:
             return self._bus_factory()
         import can
 
-        kwargs: dict[str, Any] = {"interface": self.interface, "channel": self.channel}
-        if self.interface == "socketcan":
+        c = self.config
+        kwargs: dict[str, Any] = {"interface": c.interface, "channel": c.channel}
+        if c.interface == "socketcan":
             pass  # the bitrate of a SocketCAN device is set with `ip link`, not here
-        elif self.interface == "udp_multicast":
+        elif c.interface == "udp_multicast":
             kwargs["fd"] = self.config.fd
         else:
-            kwargs["bitrate"] = self.bitrate
+            kwargs["bitrate"] = c.bitrate
         return can.Bus(**kwargs)
 
     def open(self, now: float) -> None:
@@ -171,35 +176,40 @@ class CanDriver:
         try:
             self.bus = self._open_bus()
         except (can.CanError, OSError, ValueError) as exc:
-            raise DriverError(f"cannot open CAN bus {self.interface}:{self.channel}: {exc}") from exc
+            raise DriverError(f"cannot open CAN bus {self.config.interface}:{self.config.channel}: {exc}") from exc
         self._health.connected = True
         self.axes.phase = "idle"
-        t_end = self.clock() + min(self.open_timeout, 1.0)
-        while self.clock() < t_end and not self.axes.heard():
-            self.poll(self.clock(), block=WAIT_READ_S)  # the controllers' Heartbeats say how they are
+        self._changed()
+        self._listen(now, now + min(self.open_timeout, 1.0))  # the controllers' Heartbeats say how they are
+
+    def _listen(self, now: float, t_end: float) -> float:
+        """Read the bus until both controllers were heard or ``t_end``; the time then."""
+        self.poll(now)
+        while now < t_end and not self.axes.heard():
+            now = self._pause(WAIT_READ_S)
+            self.poll(now)
+        return now
 
     def engage(self, now: float, clear_faults: bool = False) -> None:
         """A person's act: both axes into velocity control and closed loop (see the class docstring)."""
         if self.bus is None or self.axes.phase == "closed":
-            raise DriverError(f"CAN bus {self.interface}:{self.channel} not open")
-        t_hb = self.clock() + self.open_timeout
-        while self.clock() < t_hb and not self.axes.heard():
-            self.poll(self.clock(), block=WAIT_READ_S)
+            raise DriverError(f"CAN bus {self.config.interface}:{self.config.channel} not open")
+        t = self._listen(now, now + self.open_timeout)
         refusal = self.axes.engage_refusal(clear_faults)
         if refusal is not None:
             raise DriverError(refusal)
-        self._put(self.axes.arm(self.clock(), every_axis=True))
+        self._put(self.axes.arm(t, every_axis=True), t)
         t_feed = -math.inf
         while True:
-            t = self.clock()
             if t >= t_feed:  # the watchdogs count from arming: feed them while the axes come up
                 self._zero(t)
                 t_feed = t + ARM_FEED_S
-            self.poll(t, block=WAIT_READ_S)
+            self.poll(t)
             if self.axes.phase == "running":
                 if self._health.ok:
                     return
                 raise DriverError(f"motor controllers not ready after {self.open_timeout} s: {self._health.text}")
+            t = self._pause(WAIT_READ_S)
 
     def failsafe(self) -> FailsafeReport:
         return FailsafeReport(drive_on_s=None, text=(
@@ -221,9 +231,9 @@ class CanDriver:
             self._zero(now)  # a fault, a lost controller, arming: nothing but zero set-points
             return
         ql, qr = self.wheel_turn_rates(v, omega)
-        self._send(encode(self.left.node, "Set_Input_Vel", {"Input_Vel": ql, "Input_Torque_FF": 0.0}))
-        self._send(encode(self.right.node, "Set_Input_Vel", {"Input_Vel": qr, "Input_Torque_FF": 0.0}))
-        sent = self.clock()  # a host preempted since ``now`` wrote the frames only now
+        self._send(encode(self.left.node, "Set_Input_Vel", {"Input_Vel": ql, "Input_Torque_FF": 0.0}), now)
+        self._send(encode(self.right.node, "Set_Input_Vel", {"Input_Vel": qr, "Input_Torque_FF": 0.0}), now)
+        sent = self.clock()  # a measurement: a host preempted since ``now`` wrote the frames only now
         self.odometry.command(self.left.wheel, ql, now, sent)
         self.odometry.command(self.right.wheel, qr, now, sent)
 
@@ -232,35 +242,38 @@ class CanDriver:
 
     def _zero(self, now: float) -> None:
         """Zero set-points to both axes at ``now`` (holds a healthy wheel in closed loop; harmless to an idle one)."""
-        self._put(self.axes.zero())
-        sent = self.clock()
+        self._put(self.axes.zero(), now)
+        sent = self.clock()  # a measurement, as in send
         for ax in self.axes:
             self.odometry.command(ax.wheel, 0.0, now, sent)
 
     # ----------------------------------------------------------------------------------------------- receive
-    def poll(self, now: float, block: float = 0.0) -> list[Pose]:
+    def poll(self, now: float) -> list[Pose]:
         import can
 
         out: list[Pose] = []
         if self.bus is None and self.axes.phase != "closed" and now >= self._reopen_at:
             self._reopen(now)
         if self.bus is not None:
-            offset = self.clock() - self.wall_clock()  # wall clock (python-can stamps) -> the driver host's clock
-            timeout = block
+            # a measurement: the two clocks read together map python-can's wall stamps onto the host's clock
+            offset = self.clock() - self.wall_clock()
+            read = False
             for _ in range(MAX_FRAMES_PER_POLL):
                 try:
-                    frame = self.bus.recv(timeout=timeout)
+                    frame = self.bus.recv(timeout=0.0)
                 except (can.CanError, OSError) as exc:
                     self._bus_failed(f"receive failed: {exc}", now)
                     break
-                timeout = 0.0
                 if frame is None:
                     break
-                pose = self._frame(frame, self.clock(), offset, now)
+                read = True
+                pose = self._frame(frame, now, offset, now)
                 if pose is not None:
                     out.append(pose)
                 if self.bus is None:  # a bus-off error frame
                     break
+            if read:  # what the frames said is judged afresh
+                self._changed()
         self._evaluate(now)
         return out
 
@@ -268,7 +281,7 @@ class CanDriver:
         self._health.frames_received += 1
         if frame.is_error_frame:
             self._health.errors += 1
-            self._counts["error_frames"] += 1
+            self.counts["error_frames"] += 1
             if frame.arbitration_id & CAN_ERR_BUSOFF:
                 self._bus_failed("bus-off (error frame)", now)
             return None
@@ -286,7 +299,7 @@ class CanDriver:
             if self.axes.heartbeat(ax, sig["Axis_State"], sig["Axis_Error"], sig["Procedure_Result"], stamp):
                 self._zero(stamp)  # both wheels, now: not at the driver host's next tick
         elif name == "Get_Encoder_Estimates":
-            return self._encoder(ax, float(sig["Pos_Estimate"]), float(sig["Vel_Estimate"]), stamp)
+            return self._encoder(ax, float(sig["Pos_Estimate"]), float(sig["Vel_Estimate"]), stamp, now)
         return None
 
     def _stamp(self, frame: can.Message, received: float, offset: float) -> float:
@@ -296,32 +309,31 @@ class CanDriver:
             mono = ts + offset
             if received - STAMP_MAX_AGE <= mono <= received + STAMP_SLACK:
                 return min(mono, received)
-        self._counts["stamp_fallbacks"] += 1
+        self.counts["stamp_fallbacks"] += 1
         return received
 
-    def _encoder(self, ax: Axis, pos: float, vel: float, stamp: float) -> Pose | None:
+    def _encoder(self, ax: Axis, pos: float, vel: float, stamp: float, now: float) -> Pose | None:
         """One encoder estimate into the odometry (:class:`drivers.can.odometry.Odometry`); a rejected one is counted
-        and keeps ``health()`` not ok for :data:`ODOMETRY_ALARM_S` (from its processing, on ``clock``) with the
-        reason."""
+        and keeps ``health()`` not ok for :data:`ODOMETRY_ALARM_S` (from the ``poll`` that read it) with the reason."""
         step = self.odometry.estimate(ax.wheel, pos, vel, stamp)
         if step.overrun:
-            self.overrun_at = self.clock()  # more travel than the wheel can do: not cleared by a resync
+            self.overrun_at = now  # more travel than the wheel can do: not cleared by a resync
         if step.rejected:
             self._health.malformed += 1
-            self._counts["rejected_estimates"] += 1
-            self.rejected_at = self.clock()
+            self.counts["rejected_estimates"] += 1
+            self.rejected_at = now
         if step.resynced:
-            self._counts["resyncs"] += 1
+            self.counts["resyncs"] += 1
             self.rejected_at = -math.inf  # a real move of the encoder, not an implausible one
         return step.pose
 
     # ----------------------------------------------------------------------------------------------- bus
-    def _put(self, frames: list[Frame]) -> None:
+    def _put(self, frames: list[Frame], now: float) -> None:
         """Encode and send what the axis state machine asks for."""
         for node, name, signals in frames:
-            self._send(encode(node, name, signals))
+            self._send(encode(node, name, signals), now)
 
-    def _send(self, frame: can.Message) -> bool:
+    def _send(self, frame: can.Message, now: float) -> bool:
         import can
 
         if self.bus is None:
@@ -330,10 +342,10 @@ class CanDriver:
             self.bus.send(frame, timeout=0.05)
         except (can.CanError, OSError) as exc:
             self._health.errors += 1
-            self._counts["send_failures"] += 1
+            self.counts["send_failures"] += 1
             self._send_failures += 1
             if self._send_failures >= SEND_FAILURES_DOWN:
-                self._bus_failed(f"send failed: {exc}", self.clock())
+                self._bus_failed(f"send failed: {exc}", now)
             return False
         self._health.frames_sent += 1
         self._send_failures = 0
@@ -341,7 +353,7 @@ class CanDriver:
 
     def _bus_failed(self, reason: str, now: float) -> None:
         """Release the bus and schedule a reopen (backoff doubles per failed attempt, up to its bound)."""
-        self._counts["bus_failures"] += 1
+        self.counts["bus_failures"] += 1
         self._health.errors += 1
         bus, self.bus = self.bus, None
         if bus is not None:
@@ -351,6 +363,7 @@ class CanDriver:
         self._down_reason = reason
         self._send_failures = 0
         self._reopen_at = now + self._backoff.delay
+        self._changed()
 
     def _reopen(self, now: float) -> None:
         import can
@@ -362,9 +375,10 @@ class CanDriver:
             self._backoff.grow()
             self._reopen_at = now + self._backoff.delay
             return
-        self._counts["reopens"] += 1
+        self.counts["reopens"] += 1
         self._health.connected = True
         self._down_reason = None
+        self._changed()
         # until a controller's frame arrives on the new bus, the next failure waits longer
         self._backoff.grow()
 
@@ -376,25 +390,30 @@ class CanDriver:
             down = f"CAN bus down ({self._down_reason}); reopening in {max(0.0, self._reopen_at - now):.2f} s"
         odometry = None
         if now - max(self.rejected_at, self.overrun_at) < ODOMETRY_ALARM_S:
-            odometry = (f"odometry: implausible encoder estimates rejected ({self._counts['rejected_estimates']} so "
+            odometry = (f"odometry: implausible encoder estimates rejected ({self.counts['rejected_estimates']} so "
                         "far): a faulty encoder or forged frames")
         return self.axes.reasons(now, down, odometry)
 
+    def _judge_link(self, now: float) -> Verdict:
+        return verdict(self._reasons(now))
+
     def _evaluate(self, now: float) -> None:
-        """Advance the state to ``now`` and set ``ok``, ``reason`` and ``text`` from it."""
+        """Advance the state to ``now`` and set ``ok``, ``reason`` and ``text`` from it (judged once per moment and
+        change: :meth:`LinkBase._verdict`)."""
         h = self._health
         if self.axes.phase == "closed":
             h.ok = False
             return
-        self.axes.advance(now)
-        h.ok, h.reason, h.text = verdict(self._reasons(now))
+        if self.axes.advance(now):
+            self._changed()
+        h.ok, h.reason, h.text = self._verdict(now)
 
     def health(self, now: float) -> LinkHealth:
         h = self._health
         if self.axes.phase == "closed":
             ok, reason, text = False, h.reason, h.text
         else:
-            ok, reason, text = verdict(self._reasons(now))
+            ok, reason, text = self._verdict(now)
         return replace(h, ok=ok, reason=reason, text=text, detail=CanHealthDetail(
             CanCounters(**self.counters), self.left.health(now), self.right.health(now)))
 
@@ -405,9 +424,10 @@ class CanDriver:
         if self.axes.phase == "closed" or self.bus is None:
             return  # nothing reachable: the text still says why
         if self.axes.phase == "idle":  # not engaged: clear the errors, never arm (engage does that)
-            self._put(self.axes.clear())
+            self._put(self.axes.clear(), now)
             return
-        self._put(self.axes.arm(now, every_axis=False))
+        self._put(self.axes.arm(now, every_axis=False), now)
+        self._changed()
         self._evaluate(now)
 
     def close(self, disarm: bool = True, stop_speed: float = 0.05, stop_timeout: float = 3.0) -> None:
@@ -416,21 +436,19 @@ class CanDriver:
             # controllers are someone else's to command; one that did stops them, waits until the wheels have
             # stopped, and only with ``disarm`` puts them in IDLE
             if self.bus is not None and self.axes.phase == "running":
-                t_end = self.clock() + stop_timeout
-                turns = stop_speed / (2.0 * math.pi * self.radius)  # rev/s of a wheel at stop_speed
-                while self.clock() < t_end:  # zero until both wheels have stopped
-                    self.stop(self.clock())
-                    self.poll(self.clock(), block=WAIT_READ_S)
-                    if all(abs(ax.wheel.vel) < turns for ax in self.axes):
-                        break
-                self.stop(self.clock())
+                now = self.clock()  # close is given no time: read once, then moved by the waits
+                self._stop_until_still(now, stop_speed, stop_timeout, WAIT_READ_S, self._wheel_speed)
                 if disarm:
-                    self._put(self.axes.idle())
+                    self._put(self.axes.idle(), now)
         finally:
             if self.bus is not None:
                 with contextlib.suppress(Exception):
                     self.bus.shutdown()
             self.bus = None
             self.axes.phase = "closed"
-            self._health.connected = self._health.ok = False
-            self._health.text, self._health.reason = "closed", "closed"
+            self._closed_health()
+
+    def _wheel_speed(self, now: float) -> float:
+        """Read the bus at ``now``; the faster wheel's rim speed it reports, m/s (closing waits for it)."""
+        self.poll(now)
+        return max(abs(ax.wheel.vel) for ax in self.axes) * 2.0 * math.pi * self.config.wheel_radius

@@ -12,12 +12,12 @@ from __future__ import annotations
 
 import logging
 import math
-import time
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
+from bridge.core import timebase
 from bridge.core.backoff import Backoff
 from drivers.base import Clock, LinkHealth, Sleep
 from drivers.mavlink.config import MavlinkLinkConfig
@@ -79,12 +79,14 @@ class Command:
 class MavlinkClient:
     """The connection and the command protocol. Messages read while it waits for an ACK go to ``on_message`` (the
     driver's dispatch); the counts it keeps land in the driver's ``health`` and ``counts``. Deadlines (re-sends, our
-    HEARTBEAT, reconnects, :meth:`wait`) are on ``clock``; reads block on the connection in real time, and with no
-    connection :meth:`receive` waits with ``sleep`` (:mod:`drivers.base`)."""
+    HEARTBEAT, reconnects) are at the ``now`` it is given; only its waits (:meth:`wait`, :meth:`run`, a blocking
+    :meth:`receive`) read ``clock``, and :attr:`now` is the time the last of them returned at (what the message
+    just read arrived at). Reads block on the connection in real time, and with no connection :meth:`receive` waits
+    with ``sleep`` (:mod:`drivers.base`)."""
 
     def __init__(self, config: MavlinkLinkConfig, dialect: Dialect, health: LinkHealth, counts: dict[str, int],
-                 on_message: Callable[[Any], None], *, clock: Clock = time.monotonic,
-                 sleep: Sleep = time.sleep) -> None:
+                 on_message: Callable[[Any], None], *, clock: Clock = timebase.monotonic,
+                 sleep: Sleep = timebase.sleep) -> None:
         self.config = config
         self.clock, self.sleep = clock, sleep
         self.dialect = dialect
@@ -97,6 +99,7 @@ class MavlinkClient:
         self.failed: str | None = None  # why the connection failed since the last service (None: it did not)
         self.lost_reason = ""
         self.conn_time = math.inf  # when the connection was opened
+        self.now = clock()  # the time the last wait returned at (see the class docstring)
         self.backoff = Backoff(_BACKOFF0, config.reconnect_max_s)
         self._bad_sig_before = 0  # refused signatures on connections closed since
         self._warned_unsigned = False
@@ -105,7 +108,7 @@ class MavlinkClient:
         self._queue: deque[Command] = deque()  # commands, one at a time (an ACK names only the command)
 
     # ---------------------------------------------------------------------------------------- connection
-    def connect(self) -> None:
+    def connect(self, now: float) -> None:
         """Open the pymavlink connection once (no retries inside pymavlink: the caller backs off)."""
         conn = self.dialect.mavutil.mavlink_connection(
             self.url, baud=self.baud, source_system=self.source_system,
@@ -124,7 +127,7 @@ class MavlinkClient:
             conn.handle_disconnect = failed
         self.conn = conn
         self.failed = None
-        self.conn_time = self.clock()  # the vehicle counts as heard only once it speaks on this connection
+        self.conn_time = now  # the vehicle counts as heard only once it speaks on this connection
 
     def close(self) -> None:
         """Close the pymavlink connection if there is one (a failing close is not an error worth more)."""
@@ -149,7 +152,7 @@ class MavlinkClient:
         if self.conn is not None or now < self._reconnect_due:
             return
         try:
-            self.connect()
+            self.connect(now)
         except Exception as exc:  # pymavlink raises OSError, SerialException, ConnectionRefusedError...
             log.debug("re-opening %s failed: %s", self.url, exc)
             self._reconnect_due = now + self.backoff.delay
@@ -175,7 +178,8 @@ class MavlinkClient:
         self._hb_due = now + 1.0 / self.config.heartbeat_hz
 
     def service(self, now: float) -> None:
-        """Housekeeping every call does: reconnect, our heartbeat, commands in flight."""
+        """Housekeeping every call does: reconnect, our heartbeat, commands in flight (at ``now``: the latest time)."""
+        self.now = max(self.now, now)
         if self.failed is not None and self.conn is not None:
             self._drop(self.failed, now)
         self._try_reconnect(now)
@@ -207,6 +211,7 @@ class MavlinkClient:
         if self.conn is None:
             if block > 0:
                 self.sleep(block)
+                self.now = self.clock()
             return
         timeout = block
         while self.conn is not None and self.failed is None:
@@ -217,6 +222,8 @@ class MavlinkClient:
                 break
             if msg is None:
                 break
+            if timeout > 0:
+                self.now = self.clock()  # a blocking read: the message arrived now, not when the wait began
             timeout = 0.0
             handle(msg)
 
@@ -240,7 +247,7 @@ class MavlinkClient:
         """Queue a COMMAND_LONG (sent when those before it are done); ``on_done`` gets it with its result."""
         c = Command(command, tuple(float(p) for p in params) + (0.0,) * (7 - len(params)), what, on_done=on_done)
         self._queue.append(c)
-        self._service_commands(self.clock())
+        self._service_commands(self.now)
         return c
 
     def _service_commands(self, now: float) -> None:
@@ -270,7 +277,7 @@ class MavlinkClient:
     def wait(self, done: Callable[[], bool], t_end: float) -> bool:
         """Receive and service until ``done()`` or ``t_end``."""
         while True:
-            now = self.clock()
+            now = self.now = self.clock()
             self.service(now)
             if done():
                 return True
@@ -286,5 +293,5 @@ class MavlinkClient:
         by_state = c.result is None and done is not None and done()
         if c.result is None:  # out of time (or confirmed by the vehicle's state) before an ACK
             c.result = NO_ACK
-            self._service_commands(self.clock())
+            self._service_commands(self.now)
         return self.dialect.mav.MAV_RESULT_ACCEPTED if by_state else c.result

@@ -1,21 +1,21 @@
 """The MAVLink driver: an ArduPilot Rover in GUIDED mode behind the :class:`drivers.base.Driver` protocol, wiring
 the connection and its command protocol (:mod:`.client`), the vehicle's state and the pure decisions on it
 (:mod:`.state`: the judgement, its changes, set-point pacing, the failsafe report) and the pose builder (:mod:`.pose`).
-The operator always wins: only :meth:`MavlinkDriver.engage`, a person's act, selects GUIDED and arms. Times come from
-the clock it is given (``clock``, ``time.monotonic`` by default), so its tests run on a fake clock."""
+The operator always wins: only :meth:`MavlinkDriver.engage`, a person's act, selects GUIDED and arms. It works at the
+``now`` it is given and its waits' clock (:class:`drivers.base.LinkBase`), so its tests run on a fake clock."""
 
 from __future__ import annotations
 
 import logging
 import math
-import time
 from collections import deque
 from dataclasses import dataclass, replace
 from typing import Any
 
+from bridge.core import timebase
 from bridge.core.auth import load_key
 from bridge.core.clock import ClockOffset
-from drivers.base import Clock, DriverError, FailsafeReport, LinkHealth, Pose, Sleep, whole_numbers
+from drivers.base import Clock, DriverError, FailsafeReport, LinkBase, LinkHealth, Pose, Sleep, whole_numbers
 from drivers.mavlink.client import NO_ACK, Command, MavlinkClient, result_name
 from drivers.mavlink.config import MavlinkLinkConfig
 from drivers.mavlink.dialect import load_pymavlink
@@ -79,7 +79,7 @@ class MavlinkHealthDetail:
         return whole_numbers(self)
 
 
-class MavlinkDriver:
+class MavlinkDriver(LinkBase):
     """The MAVLink link (pymavlink, MAVLink 2, ardupilotmega).
 
     ``open()`` never changes the vehicle's mode nor arms it (a restarted driver host must not take a vehicle back
@@ -94,8 +94,11 @@ class MavlinkDriver:
     every message this driver sends is signed, and an unsigned or badly signed message, or one whose signature
     timestamp goes back, is refused (``health(now).detail.bad_signatures``).
 
-    ``clock`` stamps what arrives and sets every deadline (:mod:`drivers.base`); reads block on the connection in real
-    time, and the waits without a connection sleep with ``sleep``.
+    Time (:class:`drivers.base.LinkBase`): ``poll``, ``send``, ``stop``, ``health``, ``open`` and ``engage`` work at
+    the ``now`` they are given; the bounded waits of ``open``, ``engage`` and ``close`` go through the client
+    (:meth:`drivers.mavlink.client.MavlinkClient.wait`: reads block on the connection in real time, its ``clock``
+    says when they returned) and, without a connection, ``sleep``. The vehicle is judged once per moment and change
+    (:meth:`LinkBase._verdict`).
 
     Supervision: no HEARTBEAT for ``heartbeat_timeout`` -> ``connected`` and ``ok`` False, ``"no heartbeat for 3.2
     s"``; a connection that failed (TCP EOF, a serial error) is re-opened with backoff, UDP just keeps listening.
@@ -105,29 +108,27 @@ class MavlinkDriver:
     """
 
     name = "mavlink"
+    COUNTERS = MavlinkHealthDetail
+    COUNTED_ELSEWHERE = ("setpoints_deferred",)  # the pacer's
     #: the operator putting the vehicle in GUIDED and arming it, seen while the host runs, is a person's engage
     operator_engages = True
 
-    def __init__(self, config: MavlinkLinkConfig, *, clock: Clock = time.monotonic, sleep: Sleep = time.sleep) -> None:
-        self.clock, self.sleep = clock, sleep
+    def __init__(self, config: MavlinkLinkConfig, *, clock: Clock = timebase.monotonic,
+                 sleep: Sleep = timebase.sleep) -> None:
+        super().__init__(clock, sleep)
         self.dialect = load_pymavlink()
-        self.modes = self.dialect.modes
         self.config = config
-        self.url = config.url
         self.target = (config.target_system, config.target_component)
-        self.open_timeout = config.open_timeout
-        self.disarm_on_close = config.disarm_on_close
         self.vehicle = Vehicle(texts=deque(maxlen=config.statustext_keep))
         self.poses = PoseBuilder()
         self.fence_sink: Any = None  # while a fence is uploaded: where its messages go (drivers.mavlink.fence)
-        self._health = LinkHealth()
-        self._counts = {"foreign": 0, "setpoints_sent": 0, "setpoints_withheld": 0, "stray_acks": 0,
-                        "reconnects": 0, "link_losses": 0, "invalid_values": 0, "clock_restarts": 0}
-        self.client = MavlinkClient(config, self.dialect, self._health, self._counts,
-                                    on_message=lambda msg: self._handle(msg, []), clock=clock, sleep=sleep)
+        self.client = MavlinkClient(config, self.dialect, self._health, self.counts,
+                                    on_message=lambda msg: self._handle(msg, [], self.client.now),
+                                    clock=clock, sleep=sleep)
         self._t0 = clock()
         self._opened = False  # open() succeeded: from now on the mode and arming are the operator's
         self._closed = False
+        self._changed()
         self._pacer = SetpointPacer(1.0 / config.setpoint_rate_hz, 1.0 / config.max_setpoint_hz)
         self._link_up = False
         self._state: Verdict = NOT_OPENED
@@ -139,6 +140,11 @@ class MavlinkDriver:
         self._last_position_time = -math.inf
 
     # ------------------------------------------------------------------------------------------ properties
+    @property
+    def _modes(self) -> Any:
+        """pymavlink's Rover mode table (the dialect's)."""
+        return self.dialect.modes
+
     @property
     def custom_mode(self) -> int | None:
         return self.vehicle.custom_mode
@@ -152,19 +158,16 @@ class MavlinkDriver:
         """The vehicle's last STATUSTEXTs (at most ``statustext_keep``), oldest first."""
         return [t for _, t in self.vehicle.texts]
 
-    @property
-    def conn(self) -> Any:
-        """The pymavlink connection (None while there is none)."""
-        return self.client.conn
-
     # -------------------------------------------------------------------------------------------- receive
-    def _pump(self, block: float) -> list[Pose]:
-        """Read what arrived (waiting up to ``block`` s for the first message); update the vehicle's state."""
+    def _pump(self, now: float) -> list[Pose]:
+        """Read what arrived by ``now`` (without waiting); update the vehicle's state."""
         out: list[Pose] = []
-        self.client.receive(block, lambda msg: self._handle(msg, out))
+        self.client.receive(0.0, lambda msg: self._handle(msg, out, now))
         return out
 
-    def _handle(self, msg: Any, out: list[Pose]) -> None:
+    def _handle(self, msg: Any, out: list[Pose], now: float) -> None:
+        """One message, received by ``now`` (a tick's, or the time a wait read it at)."""
+        self._changed()
         t = msg.get_type()
         if t == "BAD_DATA":
             self._health.malformed += 1
@@ -172,28 +175,27 @@ class MavlinkDriver:
         src = (msg.get_srcSystem(), msg.get_srcComponent())
         if src != self.target:  # another vehicle, another ground station, a camera: not ours
             self._health.frames_received += 1
-            self._counts["foreign"] += 1
+            self.counts["foreign"] += 1
             if src not in self._foreign_ids:
                 self._foreign_ids.append(src)
             return
         if not telemetry_valid(msg):  # a NaN yaw would end in math.cos(): the receive loop, and the link, would die
             self._health.malformed += 1
-            self._counts["invalid_values"] += 1
+            self.counts["invalid_values"] += 1
             return
         self._health.frames_received += 1
-        now = self.clock()
         v = self.vehicle
         mav = self.dialect.mav
         if self.fence_sink is not None and t in FENCE_MESSAGES:
             self.fence_sink(msg)
         if t == "HEARTBEAT":
-            v.heard(msg.custom_mode, bool(msg.base_mode & mav.MAV_MODE_FLAG_SAFETY_ARMED), now, self.modes.guided)
+            v.heard(msg.custom_mode, bool(msg.base_mode & mav.MAV_MODE_FLAG_SAFETY_ARMED), now, self._modes.guided)
         elif t == "LOCAL_POSITION_NED":
             self._boot_ms(msg.time_boot_ms)
             v.pos_time = now
             # stamped at the vehicle's own time of the sample, on our clock (docs/ARCHITECTURE.md, section 4)
             stamp, steady = self._clock.restamp_checked(msg.time_boot_ms / 1000.0, now)
-            self._counts["clock_restarts"] += not steady
+            self.counts["clock_restarts"] += not steady
             p = Position(int(msg.time_boot_ms), stamp, float(msg.x), float(msg.y), float(msg.vx), float(msg.vy))
             self._last_position, self._last_position_time = p, now
             out += self.poses.position(p)
@@ -233,7 +235,7 @@ class MavlinkDriver:
         if wait_text and not texts and result != NO_ACK:
             n = self.vehicle.text_count
             self.client.wait(lambda: self.vehicle.text_count != n,
-                             self.clock() + min(REFUSAL_TEXT_WAIT_S, self.config.ack_timeout))
+                             self.client.now + min(REFUSAL_TEXT_WAIT_S, self.config.ack_timeout))
             texts = self.vehicle.said_since(since)
         text = f"{what} refused: {result_name(result)}" + (f" ({'; '.join(texts)})" if texts else "")
         self._last_refusal = text
@@ -272,37 +274,40 @@ class MavlinkDriver:
 
         then the failsafe parameters (PARAM_REQUEST_READ / PARAM_VALUE), reported by :meth:`failsafe`."""
         client = self.client
-        t_end = self.clock() + self.open_timeout
+        client.now = now
+        t_end = now + self.config.open_timeout
         self._closed = False
+        self._changed()
         if self.config.signing_key_file:
             client.signing_key = load_key(self.config.signing_key_file, "mavlink")
         while client.conn is None:
             try:
-                client.connect()
+                client.connect(now)
             except Exception as exc:  # pymavlink raises plain OSError/SerialException/...
-                if self.clock() + client.backoff.delay > t_end:
-                    raise DriverError(f"cannot open MAVLink connection {self.url}: {exc}") from exc
-                self.sleep(client.backoff.delay)
+                if now + client.backoff.delay > t_end:
+                    raise DriverError(f"cannot open MAVLink connection {self.config.url}: {exc}") from exc
+                now = client.now = self._pause(client.backoff.delay)
                 client.backoff.grow()
-        client.heartbeat(self.clock(), force=True)
+        client.heartbeat(now, force=True)
         v = self.vehicle
-        if not client.wait(lambda: v.hb_time is not None and v.custom_mode != self.modes.initialising, t_end):
+        if not client.wait(lambda: v.hb_time is not None and v.custom_mode != self._modes.initialising, t_end):
             if v.hb_time is None:
                 others = f" (heard other systems: {sorted(set(self._foreign_ids))})" if self._foreign_ids else ""
                 raise DriverError(f"no HEARTBEAT from system {self.target[0]} component {self.target[1]} on "
-                                  f"{self.url} within {self.open_timeout} s{others}")
-            raise DriverError(f"the vehicle is still initialising after {self.open_timeout} s")
+                                  f"{self.config.url} within {self.config.open_timeout} s{others}")
+            raise DriverError(f"the vehicle is still initialising after {self.config.open_timeout} s")
         client.backoff.reset()
         self._request_streams()
         fresh = self.config.position_timeout
-        if not client.wait(lambda: position_fresh(v, self.clock(), fresh) and self.poses.att is not None, t_end):
-            raise DriverError(f"vehicle position not ready within {self.open_timeout} s: no LOCAL_POSITION_NED "
+        if not client.wait(lambda: position_fresh(v, client.now, fresh) and self.poses.att is not None, t_end):
+            raise DriverError(f"vehicle position not ready within {self.config.open_timeout} s: no LOCAL_POSITION_NED "
                               f"(ArduPilot sends it only once its EKF has an origin){self.vehicle.note()}")
-        self._read_params(FAILSAFE_PARAMS, min(t_end, self.clock() + PARAMS_WAIT_S))
+        self._read_params(FAILSAFE_PARAMS, min(t_end, client.now + PARAMS_WAIT_S))
         self._opened = True
+        self._changed()
         self._link_up = True
-        self._update_state(self.clock())
-        log.info("vehicle on %s: mode %s, %s, position streaming; %s", self.url, self.modes.name(v.custom_mode),
+        self._update_state(client.now)
+        log.info("vehicle on %s: mode %s, %s, position streaming; %s", self.config.url, self._modes.name(v.custom_mode),
                  "armed" if v.armed else "disarmed", self.failsafe().text)
 
     def engage(self, now: float, clear_faults: bool = False) -> None:
@@ -316,12 +321,14 @@ class MavlinkDriver:
            MAV_RESULT_FAILED (PreArm: Hardware safety switch)"``."""
         if self._closed or not self._opened:
             raise DriverError("MAVLink link not open")
-        t_end = self.clock() + self.open_timeout
+        self.client.now = max(self.client.now, now)
+        t_end = now + self.config.open_timeout
         self._enter_guided(t_end)
         self._arm(t_end)
-        if self.vehicle.custom_mode != self.modes.guided:
-            raise DriverError(f"operator took control while engaging: mode {self.modes.name(self.vehicle.custom_mode)}")
-        self._update_state(self.clock())
+        mode = self.vehicle.custom_mode
+        if mode != self._modes.guided:
+            raise DriverError(f"operator took control while engaging: mode {self._modes.name(mode)}")
+        self._update_state(self.client.now)
         log.info("vehicle engaged: GUIDED, armed")
 
     def upload_fence(self, polygon: list[tuple[float, float]]) -> str:
@@ -330,7 +337,7 @@ class MavlinkDriver:
         bounded by ``open_timeout``; what was done, or :class:`DriverError`."""
         if self._closed or not self._opened:
             raise DriverError("MAVLink link not open")
-        return upload_fence(self, polygon, self.clock() + self.open_timeout)
+        return upload_fence(self, polygon, self.client.now + self.config.open_timeout)
 
     def _read_params(self, names: tuple[str, ...], t_end: float) -> None:
         """Ask for each parameter (PARAM_REQUEST_READ) and wait for the PARAM_VALUEs; a missing one stays unknown."""
@@ -345,47 +352,52 @@ class MavlinkDriver:
         return failsafe_report(self.params)
 
     def _enter_guided(self, t_end: float) -> None:
-        v, mav, guided = self.vehicle, self.dialect.mav, self.modes.guided
+        v, mav, guided = self.vehicle, self.dialect.mav, self._modes.guided
         while v.custom_mode != guided:
-            sent = self.clock()
+            sent = self.client.now
             r = self.client.run(mav.MAV_CMD_DO_SET_MODE, (mav.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, guided),
                                 "mode change to GUIDED", t_end)
             if r == mav.MAV_RESULT_ACCEPTED:  # the HEARTBEAT says whether it held
-                self.client.wait(lambda: v.custom_mode == guided, min(t_end, self.clock() + MODE_CONFIRM_S))
+                self.client.wait(lambda: v.custom_mode == guided, min(t_end, self.client.now + MODE_CONFIRM_S))
                 if v.custom_mode != guided:
                     log.warning("GUIDED accepted but the vehicle reports mode %s; asking again",
-                                self.modes.name(v.custom_mode))
+                                self._modes.name(v.custom_mode))
             else:
                 text = self._refusal("mode change to GUIDED", r, sent)
-                if self.clock() + RETRY_AFTER_S >= t_end:
+                if self.client.now + RETRY_AFTER_S >= t_end:
                     raise DriverError(text + self.vehicle.note())
-                self.client.wait(lambda: False, self.clock() + RETRY_AFTER_S)
-            if self.clock() >= t_end and v.custom_mode != guided:
-                raise DriverError(f"vehicle not in GUIDED within {self.open_timeout} s (mode "
-                                  f"{self.modes.name(v.custom_mode)}){self.vehicle.note()}")
+                self.client.wait(lambda: False, self.client.now + RETRY_AFTER_S)
+            if self.client.now >= t_end and v.custom_mode != guided:
+                raise DriverError(f"vehicle not in GUIDED within {self.config.open_timeout} s (mode "
+                                  f"{self._modes.name(v.custom_mode)}){self.vehicle.note()}")
 
     def _arm(self, t_end: float) -> None:
         v, mav = self.vehicle, self.dialect.mav
         while not v.armed:
-            if v.custom_mode != self.modes.guided:
-                raise DriverError(f"operator took control while engaging: mode {self.modes.name(v.custom_mode)}")
-            sent = self.clock()
+            if v.custom_mode != self._modes.guided:
+                raise DriverError(f"operator took control while engaging: mode {self._modes.name(v.custom_mode)}")
+            sent = self.client.now
             r = self.client.run(mav.MAV_CMD_COMPONENT_ARM_DISARM, (1, 0), "arming", t_end)
             if r == mav.MAV_RESULT_ACCEPTED:  # ArduPilot acks arming only once armed; HEARTBEATs say so from now on
                 v.armed = True
                 return
             text = self._refusal("arming", r, sent)
-            if self.clock() + RETRY_AFTER_S >= t_end:
+            if self.client.now + RETRY_AFTER_S >= t_end:
                 raise DriverError(text)
-            self.client.wait(lambda: False, self.clock() + RETRY_AFTER_S)  # pre-arm checks can clear (the EKF settling)
+            self.client.wait(lambda: False, self.client.now + RETRY_AFTER_S)  # pre-arm checks can clear (EKF settling)
 
     # --------------------------------------------------------------------------------------------- state
     def _judge(self, now: float) -> Verdict:
+        """The vehicle at ``now`` (:meth:`_judge_link`), judged once per moment and change
+        (:meth:`LinkBase._verdict`)."""
+        return self._verdict(now)  # type: ignore[return-value]
+
+    def _judge_link(self, now: float) -> Verdict:  # type: ignore[override]
         """The vehicle at ``now`` from what it last said (:func:`drivers.mavlink.state.judge`). Pure."""
         c = self.client
         link = LinkView(opened=self._opened, closed=self._closed, connection=c.conn is not None,
-                        connected_at=c.conn_time, lost_reason=c.lost_reason, url=self.url)
-        return judge(self.vehicle, link, now, self.modes, self.config.heartbeat_timeout, self.config.position_timeout)
+                        connected_at=c.conn_time, lost_reason=c.lost_reason, url=self.config.url)
+        return judge(self.vehicle, link, now, self._modes, self.config.heartbeat_timeout, self.config.position_timeout)
 
     def _update_state(self, now: float) -> None:
         """Judge the vehicle at ``now`` and act on a change: log it, count a lost link, ask a vehicle whose heartbeat
@@ -403,11 +415,11 @@ class MavlinkDriver:
                     log.warning("vehicle does not accept commands: %s", state.text)
             if what.lost:
                 self._link_up = False
-                self._counts["link_losses"] += 1
+                self.counts["link_losses"] += 1
             elif what.back:
                 self._link_up = True
                 self.client.backoff.reset()
-                log.info("heartbeat back from the vehicle (mode %s, %s)", self.modes.name(v.custom_mode),
+                log.info("heartbeat back from the vehicle (mode %s, %s)", self._modes.name(v.custom_mode),
                          "armed" if v.armed else "disarmed")
                 self._request_streams()  # a rebooted autopilot forgot them; never the mode or arming
         self._state = state
@@ -424,17 +436,25 @@ class MavlinkDriver:
                 boot_ms, self.target[0], self.target[1], mav.MAV_FRAME_BODY_NED, TYPE_MASK_VEL_YAWRATE,
                 0, 0, 0, float(v), 0, 0, 0, 0, 0, 0, float(-omega))):
             return
-        self._counts["setpoints_sent"] += 1
+        self.counts["setpoints_sent"] += 1
         self._pacer.sent((float(v), float(omega)), now)
+
+    def _service(self, now: float) -> None:
+        """The client's housekeeping at ``now``; a connection it dropped or opened is a change to judge again."""
+        c = self.client
+        before = (c.conn is None, c.conn_time, c.lost_reason)
+        c.service(now)
+        if (c.conn is None, c.conn_time, c.lost_reason) != before:
+            self._changed()
 
     def send(self, v: float, omega: float, now: float) -> None:
         """A set-point, only while :meth:`health` is ok (never a mode change or an arming: the operator's)."""
         if self._closed or not self._opened:
             raise DriverError("MAVLink link not open")
-        self.client.service(now)
+        self._service(now)
         self._update_state(now)
         if not self._state.ok:
-            self._counts["setpoints_withheld"] += 1
+            self.counts["setpoints_withheld"] += 1
             return
         cmd = (float(v), float(omega))
         if self._pacer.due(cmd, now):
@@ -445,8 +465,8 @@ class MavlinkDriver:
         when the operator has it."""
         if self._closed or self.client.conn is None:
             return
-        self.client.service(now)
-        if self.client.conn is None or self.vehicle.custom_mode != self.modes.guided:
+        self._service(now)
+        if self.client.conn is None or self.vehicle.custom_mode != self._modes.guided:
             return
         if self._pacer.due((0.0, 0.0), now):
             self._setpoint(0.0, 0.0, now)
@@ -457,8 +477,8 @@ class MavlinkDriver:
         clock), with the heading the ATTITUDEs give at that time (:mod:`drivers.mavlink.pose`)."""
         if self._closed or not self._opened:
             return []
-        self.client.service(now)
-        poses = self._pump(0.0)
+        self._service(now)
+        poses = self._pump(now)
         self._update_state(now)
         return poses
 
@@ -466,12 +486,12 @@ class MavlinkDriver:
         state = self._judge(now)
         v = self.vehicle
         detail = MavlinkHealthDetail(
-            mode=self.modes.name(v.custom_mode), custom_mode=v.custom_mode, armed=v.armed,
+            mode=self._modes.name(v.custom_mode), custom_mode=v.custom_mode, armed=v.armed,
             heartbeat_age=None if v.hb_time is None else round(now - v.hb_time, 3),
             position_age=None if v.pos_time is None else round(now - v.pos_time, 3),
             statustexts=tuple(self.statustexts), last_refusal=self._last_refusal,
             bad_signatures=self.client.bad_signatures(), foreign_ids=tuple(self._foreign_ids),
-            setpoints_deferred=self._pacer.deferred, **self._counts)
+            setpoints_deferred=self._pacer.deferred, **self.counts)
         return replace(self._health, connected=state.connected, ok=state.ok, text=state.text, reason=state.reason,
                        detail=detail)
 
@@ -489,28 +509,29 @@ class MavlinkDriver:
             return
         if self.client.conn is None:
             self._closed = True
+            self._changed()
             self._update_state(self.clock())
             return
-        mav, guided = self.dialect.mav, self.modes.guided
+        mav, guided = self.dialect.mav, self._modes.guided
         try:
-            now = self.clock()
-            self._pump(0.0)
+            now = self.client.now = max(self.client.now, self.clock())  # close is given no time: read once
+            self._pump(now)
             v = self.vehicle
             if v.custom_mode == guided:
                 self._setpoint(0.0, 0.0, now)
                 t_stop = now + stop_timeout
-                while v.armed and v.custom_mode == guided and self.clock() < t_stop:
+                while v.armed and v.custom_mode == guided and self.client.now < t_stop:
                     speed = ground_speed(self.poses.pending or self._last_position)
                     if speed is not None and speed < stop_speed and self._last_position_time > now:
                         break
-                    self._setpoint(0.0, 0.0, self.clock())
-                    self.client.wait(lambda: False, self.clock() + CLOSE_PERIOD_S)
+                    self._setpoint(0.0, 0.0, self.client.now)
+                    self.client.wait(lambda: False, self.client.now + CLOSE_PERIOD_S)
                 else:
                     if v.armed and v.custom_mode == guided:
                         log.warning("the vehicle still reports %.2f m/s after %.1f s of zero set-points",
                                     ground_speed(self.poses.pending or self._last_position) or math.nan, stop_timeout)
-                now = self.clock()
-                if disarm and self.disarm_on_close and v.armed and v.custom_mode == guided:
+                now = self.client.now
+                if disarm and self.config.disarm_on_close and v.armed and v.custom_mode == guided:
                     t_end = now + self.config.close_timeout
                     r = self.client.run(mav.MAV_CMD_COMPONENT_ARM_DISARM, (0, 0), "disarm", t_end,
                                         done=lambda: v.hb_time is not None and v.hb_time >= now and not v.armed)
@@ -520,8 +541,9 @@ class MavlinkDriver:
                         self._health.errors += 1
                         log.error("%s; the vehicle may still be armed", self._refusal("disarm", r, now))
             elif v.custom_mode is not None and self._opened:
-                log.warning("vehicle in mode %s (the operator's): left as it is", self.modes.name(v.custom_mode))
+                log.warning("vehicle in mode %s (the operator's): left as it is", self._modes.name(v.custom_mode))
         finally:
             self.client.close()
             self._closed = True
-            self._update_state(self.clock())
+            self._changed()
+            self._update_state(self.client.now)

@@ -101,7 +101,7 @@ def upload(driver: Any, polygon: Sequence[Sequence[float]], t_end: float) -> str
         r = client.run(mav.MAV_CMD_REQUEST_MESSAGE, (mav.MAVLINK_MSG_ID_GPS_GLOBAL_ORIGIN,),
                        "GPS_GLOBAL_ORIGIN request", t_end)
         if r != mav.MAV_RESULT_ACCEPTED:
-            raise DriverError(driver._refusal("the EKF origin's request", r, driver.clock()))
+            raise DriverError(driver._refusal("the EKF origin's request", r, driver.client.now))
         if not client.wait(lambda: up.origin is not None, t_end):
             raise DriverError("no GPS_GLOBAL_ORIGIN from the vehicle: it has no EKF origin to place a fence from")
         items = [to_global(up.origin, e, n) for e, n in pts]  # type: ignore[arg-type]
@@ -110,13 +110,13 @@ def upload(driver: Any, polygon: Sequence[Sequence[float]], t_end: float) -> str
                             ("FENCE_ENABLE", 1)):
             _set_param(driver, up, name, float(value), t_end)
         while True:  # refused (FAILED) until the vehicle has loaded the new polygon from its storage: tried again
-            sent = driver.clock()
+            sent = driver.client.now
             r = client.run(mav.MAV_CMD_DO_FENCE_ENABLE, (1,), "fence enable", t_end)
             if r == mav.MAV_RESULT_ACCEPTED:
                 break
-            if r != mav.MAV_RESULT_FAILED or driver.clock() + ENABLE_RETRY_S >= t_end:
+            if r != mav.MAV_RESULT_FAILED or driver.client.now + ENABLE_RETRY_S >= t_end:
                 raise DriverError(driver._refusal("fence enable", r, sent))
-            client.wait(lambda: False, driver.clock() + ENABLE_RETRY_S)
+            client.wait(lambda: False, driver.client.now + ENABLE_RETRY_S)
     finally:
         driver.fence_sink = None
     lat, lon = up.origin
@@ -131,7 +131,7 @@ def _send_polygon(driver: Any, up: FenceUpload, items: list[tuple[int, int]], t_
     tgt, n = driver.target, len(items)
     sent_count = -math.inf
     while up.ack is None:
-        now = driver.clock()
+        now = driver.client.now
         if now >= t_end:
             raise DriverError(f"fence upload: no MISSION_ACK from the vehicle ({len(up.requested)} items pending)")
         if not up.requested and now - sent_count >= driver.config.ack_timeout:
@@ -146,7 +146,7 @@ def _send_polygon(driver: Any, up: FenceUpload, items: list[tuple[int, int]], t_
                 tgt[0], tgt[1], s, mav.MAV_FRAME_GLOBAL, mav.MAV_CMD_NAV_FENCE_POLYGON_VERTEX_INCLUSION, 0, 0,
                 float(n), 0.0, 0.0, 0.0, la, lo, 0.0, MISSION_TYPE_FENCE))
             sent_count = now
-        client.wait(lambda: up.ack is not None or bool(up.requested), min(t_end, driver.clock() + 0.2))
+        client.wait(lambda: up.ack is not None or bool(up.requested), min(t_end, driver.client.now + 0.2))
     if up.ack != mav.MAV_MISSION_ACCEPTED:
         entry = mav.enums["MAV_MISSION_RESULT"].get(up.ack)
         raise DriverError(f"fence upload refused by the vehicle: {entry.name if entry else up.ack}")
@@ -155,10 +155,10 @@ def _send_polygon(driver: Any, up: FenceUpload, items: list[tuple[int, int]], t_
 def _set_param(driver: Any, up: FenceUpload, name: str, value: float, t_end: float) -> None:
     """PARAM_SET, sent again each ack_timeout until the vehicle's PARAM_VALUE says ``value``."""
     client, mav, tgt = driver.client, driver.dialect.mav, driver.target
-    while driver.clock() < t_end:
+    while driver.client.now < t_end:
         up.params.pop(name, None)
         client.send(lambda m: m.param_set_send(tgt[0], tgt[1], name.encode(), value, mav.MAV_PARAM_TYPE_REAL32))
-        client.wait(lambda: name in up.params, min(t_end, driver.clock() + driver.config.ack_timeout))
+        client.wait(lambda: name in up.params, min(t_end, driver.client.now + driver.config.ack_timeout))
         if name in up.params:
             if math.isclose(up.params[name], value, abs_tol=1e-6):
                 return

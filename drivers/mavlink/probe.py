@@ -6,18 +6,22 @@ MAV_CMD_REQUEST_MESSAGE) and our own HEARTBEAT. It never changes the vehicle's m
 from __future__ import annotations
 
 import math
-import time
 from collections.abc import Callable, Iterable
 from typing import Any
 
+from bridge.core import timebase
+from drivers.base import Clock
 from drivers.mavlink.config import MavlinkLinkConfig
 from drivers.mavlink.dialect import load_pymavlink
 
 
 class Probe:
-    """The connection and what the vehicle (``target_system``/``target_component``) said on it."""
+    """The connection and what the vehicle (``target_system``/``target_component``) said on it. Its deadlines and
+    the stamps of the ACKs are on ``clock`` (:mod:`bridge.core.timebase`); its reads block on the connection, at
+    most 0.1 s each."""
 
-    def __init__(self, config: MavlinkLinkConfig) -> None:
+    def __init__(self, config: MavlinkLinkConfig, *, clock: Clock = timebase.monotonic) -> None:
+        self.clock = clock
         self.d = load_pymavlink()
         self.config = config
         self.target = (config.target_system, config.target_component)
@@ -35,10 +39,10 @@ class Probe:
         self._hb_due = 0.0
 
     def pump(self, until: float) -> None:
-        """Read until ``until`` (monotonic), sending our 1 Hz HEARTBEAT meanwhile as the driver does."""
+        """Read until ``until`` (on ``clock``), sending our 1 Hz HEARTBEAT meanwhile as the driver does."""
         mav = self.d.mav
         while True:
-            now = time.monotonic()
+            now = self.clock()
             if now >= self._hb_due:
                 kind = mav.MAV_TYPE_ONBOARD_CONTROLLER if self.config.companion else mav.MAV_TYPE_GCS
                 self.conn.mav.heartbeat_send(kind, mav.MAV_AUTOPILOT_INVALID, 0, 0, mav.MAV_STATE_ACTIVE)
@@ -69,42 +73,42 @@ class Probe:
             ours = (getattr(msg, "target_system", 0) in (0, self.config.source_system)
                     and getattr(msg, "target_component", 0) in (0, self.config.source_component))
             if ours:
-                self.acks.append((time.monotonic(), int(msg.command), int(msg.result)))
+                self.acks.append((self.clock(), int(msg.command), int(msg.result)))
 
     def wait(self, pred: Callable[[], bool], timeout: float) -> bool:
         """Read until ``pred()`` or ``timeout`` s."""
-        t_end = time.monotonic() + timeout
+        t_end = self.clock() + timeout
         while not pred():
-            if time.monotonic() >= t_end:
+            if self.clock() >= t_end:
                 return False
-            self.pump(min(t_end, time.monotonic() + 0.1))
+            self.pump(min(t_end, self.clock() + 0.1))
         return True
 
     def read_params(self, names: Iterable[str], timeout: float) -> dict[str, float]:
         """The parameters among ``names`` the vehicle answers within ``timeout`` s (each asked again every second;
         a name this firmware does not have stays out)."""
         names = list(names)
-        t_end = time.monotonic() + timeout
-        while time.monotonic() < t_end:
+        t_end = self.clock() + timeout
+        while self.clock() < t_end:
             missing = [n for n in names if n not in self.params]
             if not missing:
                 break
             for n in missing:
                 self.conn.mav.param_request_read_send(*self.target, n.encode(), -1)
-            self.wait(lambda: all(n in self.params for n in names), min(1.0, max(0.0, t_end - time.monotonic())))
+            self.wait(lambda: all(n in self.params for n in names), min(1.0, max(0.0, t_end - self.clock())))
         return {n: self.params[n] for n in names if n in self.params}
 
     def request(self, msg_id: int, timeout: float) -> int | None:
         """MAV_CMD_REQUEST_MESSAGE ``msg_id`` (a read), sent three times a second until its COMMAND_ACK: its result,
         or None without one within ``timeout``."""
         cmd = self.d.mav.MAV_CMD_REQUEST_MESSAGE
-        t0 = time.monotonic()
+        t0 = self.clock()
         t_end, tries = t0 + timeout, 0
-        while time.monotonic() < t_end:
+        while self.clock() < t_end:
             self.conn.mav.command_long_send(*self.target, cmd, tries, msg_id, 0, 0, 0, 0, 0, 0)
             tries += 1
             if self.wait(lambda: any(t >= t0 and c == cmd for t, c, _ in self.acks),
-                         min(1.0 / 3.0, max(0.0, t_end - time.monotonic()))):
+                         min(1.0 / 3.0, max(0.0, t_end - self.clock()))):
                 return [r for t, c, r in self.acks if t >= t0 and c == cmd][-1]
         return None
 

@@ -16,9 +16,9 @@ day with your rover") say where it fits.
 from __future__ import annotations
 
 import hashlib
-import time
 from dataclasses import dataclass, field
 
+from bridge.core import timebase
 from drivers.mavlink.client import verify_before_recording
 from drivers.mavlink.config import MavlinkLinkConfig
 from drivers.mavlink.probe import Probe
@@ -46,7 +46,7 @@ def passphrase_key(passphrase: str) -> bytes:
 
 def signing_timestamp(now: float | None = None) -> int:
     """Now as a MAVLink 2 signing timestamp (10 us units since 2015-01-01 UTC)."""
-    return int((max(time.time() if now is None else now, SIGNING_EPOCH) - SIGNING_EPOCH) * 100_000)
+    return int((max(timebase.wall() if now is None else now, SIGNING_EPOCH) - SIGNING_EPOCH) * 100_000)
 
 
 @dataclass

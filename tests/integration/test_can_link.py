@@ -56,7 +56,7 @@ class Rig:
                 self.driver.stop(now)
             else:
                 self.driver.send(v, w, now)
-            poses += self.driver.poll(now, block=0.02)
+            poses += self.driver.poll(now)
             time.sleep(max(0.0, now + 0.02 - time.monotonic()))  # a 50 Hz tick, as the driver host's
         return poses
 
@@ -244,7 +244,8 @@ def test_controllers_emulated_in_the_hosts_process_speak_on_time_though_their_th
         now = time.monotonic()
         rig.ecus.emit_due()  # what the driver host does before it polls
         rig.driver.send(0.3, 0.0, now)
-        rig.driver.poll(now, block=0.02)
+        rig.driver.poll(now)
+        time.sleep(0.02)  # a 50 Hz tick, as the driver host's
     h = health(rig.driver)
     assert h.ok and h.detail.counters.heartbeat_losses == 0, h.text
     rig.run(0.6, 0.3, 0.0)  # without it, as before: the link is lost
@@ -372,7 +373,7 @@ def test_driver_counts_malformed_frames_on_its_bus(rig: Rig) -> None:
     before = health(rig.driver).malformed
     rig.spy.send(can.Message(arbitration_id=(0 << 5) | 0x09, data=b"\x01\x02", is_extended_id=False))
     rig.spy.send(can.Message(arbitration_id=(1 << 5) | 0x1F, data=b"", is_extended_id=False))
-    rig.driver.poll(time.monotonic(), block=0.1)
+    rig.driver.poll(time.monotonic())  # (a virtual bus delivers at once)
     assert health(rig.driver).malformed >= before + 2
 
 
@@ -401,20 +402,20 @@ def test_a_real_encoder_jump_resyncs_the_reference_without_moving_the_pose() -> 
     t = 0.0
     for step in range(5):  # driving straight: left +0.01 rev, right -0.01 rev per 10 ms
         t = step * 0.01
-        d._encoder(d.left, 0.01 * step, 1.0, t)
-        d._encoder(d.right, -0.01 * step, -1.0, t)
+        d._encoder(d.left, 0.01 * step, 1.0, t, t)
+        d._encoder(d.right, -0.01 * step, -1.0, t, t)
     x_before = d.pose[0]
     assert x_before > 0.0
     for k in range(1, 4):  # the left controller rebooted: its position starts again near 500 rev
         t += 0.01
-        d._encoder(d.left, 500.0 + 0.01 * k, 1.0, t)
-        d._encoder(d.right, -0.04 - 0.01 * k, -1.0, t)
+        d._encoder(d.left, 500.0 + 0.01 * k, 1.0, t, t)
+        d._encoder(d.right, -0.04 - 0.01 * k, -1.0, t, t)
     assert d.counters["resyncs"] == 1 and d.counters["rejected_estimates"] == 3
     assert d.pose[0] == pytest.approx(x_before, abs=1e-9)  # the jump was not integrated
     for k in range(4, 8):
         t += 0.01
-        d._encoder(d.left, 500.0 + 0.01 * k, 1.0, t)
-        d._encoder(d.right, -0.04 - 0.01 * k, -1.0, t)
+        d._encoder(d.left, 500.0 + 0.01 * k, 1.0, t, t)
+        d._encoder(d.right, -0.04 - 0.01 * k, -1.0, t, t)
     assert d.pose[0] > x_before + 3 * 0.01 * 2 * math.pi * 0.1 * 0.99  # it integrates again from the new anchor
 
 
@@ -489,12 +490,12 @@ def test_many_small_crafted_encoder_steps_cannot_add_up_to_more_than_the_wheel_c
     d = CanDriver(CanLinkConfig(max_wheel_speed=10.0), clock=clock, wall_clock=clock.wall)
     d.axes.phase = "running"
     t = 0.0
-    d._encoder(d.left, 0.0, 0.0, t)
-    d._encoder(d.right, 0.0, 0.0, t)
+    d._encoder(d.left, 0.0, 0.0, t, clock.t)  # (stamped t, read by the poll at the driver's clock.t)
+    d._encoder(d.right, 0.0, 0.0, t, clock.t)
     for k in range(1, 4001):  # 2 s of frames at 2 kHz, each 0.02 rev ahead (40 rev/s if believed): standing still
         t = k * 0.0005
-        d._encoder(d.left, 0.02 * k, 0.0, t)
-        d._encoder(d.right, -0.02 * k, 0.0, t)
+        d._encoder(d.left, 0.02 * k, 0.0, t, clock.t)
+        d._encoder(d.right, -0.02 * k, 0.0, t, clock.t)
     assert abs(d.pose[0]) < 0.7, d.pose  # at most what a wheel told to stand still may roll (not 100 m)
     assert d.counters["rejected_estimates"] > 1000
     h = d.health(clock.t)

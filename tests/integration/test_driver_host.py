@@ -268,9 +268,9 @@ def test_an_estop_stops_at_once_while_the_latch_save_stalls_and_is_saved_after(t
     latch = tmp_path / "estop.bin"
     host = DriverHost(cfg, "can", open_driver("can", link_cfg), robot, cfg.driver.rate_hz, latch_path=latch,
                       latch_saver=slow_save)
-    host.engage_on_start = True
+    host.options.engage_on_start = True
     ecus = _emulated_ecus(link_cfg, "mpc", (0.0, 0.0, 0.0))
-    host.co_located.append(ecus)
+    host.options.co_located.append(ecus)
     stop = threading.Event()
     try:
         with open_session(make_config(listen=[tcp(port)])) as host_session, \

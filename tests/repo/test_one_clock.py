@@ -2,7 +2,7 @@
 (:class:`bridge.core.clock.Clock`; docs/ARCHITECTURE.md, "Threads and clocks"), so their timing is tested on a fake
 clock (tests/fakeclock.py) and a recorded run replays on the recorded one. No module of bridge/nodes/ or drivers/
 calls ``time.monotonic``, ``time.time``, ``time.sleep`` or ``time.perf_counter`` itself (nor imports them by name),
-except those listed in :data:`NOT_YET`, which shrinks to nothing."""
+except those listed in :data:`NOT_YET`, which is empty and stays so."""
 
 from __future__ import annotations
 
@@ -14,15 +14,8 @@ SCANNED = ("bridge/nodes", "drivers")
 #: a direct read of the host's clocks, or one of their functions imported by name
 DIRECT = re.compile(r"\btime\.(monotonic|time|sleep|perf_counter)(_ns)?\b"
                     r"|\bfrom\s+time\s+import\s+[^\n]*\b(monotonic|time|sleep|perf_counter)\b")
-#: the driver side's modules, moving onto their injected clock in a change of their own: this list only shrinks,
-#: to nothing (host_status.py and pairing.py read no clock now; they stay listed until that change lands)
-NOT_YET = {
-    "bridge/nodes/driver_host.py",
-    "bridge/nodes/driver_cmd.py",
-    "bridge/nodes/host_status.py",
-    "bridge/nodes/pairing.py",
-    "drivers/*",
-}
+#: modules still allowed a direct read: none (the driver side went onto its injected clock, bridge/core/timebase.py)
+NOT_YET: set[str] = set()
 
 
 def _allowed(rel: str) -> bool:

@@ -11,7 +11,17 @@ from dataclasses import dataclass
 
 import pytest
 
-from drivers.base import Driver, DriverError, FailsafeReport, LinkHealth, Pose, link_unauthenticated, whole_numbers
+from drivers.base import (
+    Driver,
+    DriverError,
+    FailsafeReport,
+    LinkBase,
+    LinkHealth,
+    Pose,
+    counter_names,
+    link_unauthenticated,
+    whole_numbers,
+)
 
 
 @dataclass(frozen=True)
@@ -123,3 +133,77 @@ def test_the_shipped_drivers_satisfy_the_protocol() -> None:
 
     assert isinstance(CanDriver(CanLinkConfig()), Driver)  # construction does no I/O
     assert isinstance(MavlinkDriver(MavlinkLinkConfig()), Driver)
+
+
+# ------------------------------------------------------------------------------------------------ LinkBase
+@dataclass(frozen=True)
+class _Counts:
+    """A link's counters dataclass: the one place its counts are named."""
+
+    sent: int = 0
+    lost: int = 0
+    faults: int = 0  # kept by another piece of the link
+    mode: str = ""  # not a count
+    ratio: float = 0.0  # not a count
+
+
+class _Link(LinkBase):
+    """A link on the base: a vehicle whose reported speed falls by ``slows`` each stop, fit while ``fit``."""
+
+    COUNTERS = _Counts
+    COUNTED_ELSEWHERE = ("faults",)
+
+    def __init__(self, clock, speed: float = 1.0, slows: float = 0.25) -> None:
+        super().__init__(clock, clock.sleep)
+        self.speed, self.slows = speed, slows
+        self.stops: list[float] = []
+        self.fit = True
+
+    def _judge_link(self, now: float):
+        return (self.fit, "ok" if self.fit else "link_down", "ready" if self.fit else "down")
+
+    def stop(self, now: float) -> None:
+        self.stops.append(now)
+        self.speed = max(0.0, self.speed - self.slows)
+
+
+def test_counter_names_come_from_the_counters_dataclass_alone() -> None:
+    assert counter_names(_Counts) == ("sent", "lost", "faults")
+    assert counter_names(_Counts, besides=("faults",)) == ("sent", "lost")
+
+
+def test_a_links_counts_are_made_from_its_counters_dataclass_and_report_as_it(clock) -> None:
+    link = _Link(clock)
+    assert link.counts == {"sent": 0, "lost": 0}
+    link.counts["sent"] += 2
+    assert link.counters == {"sent": 2, "lost": 0} and link.counters is not link.counts
+    assert link._counter_snapshot(faults=1, mode="GUIDED") == _Counts(sent=2, lost=0, faults=1, mode="GUIDED")
+
+
+def test_the_verdict_is_judged_once_per_moment_until_something_changes(clock) -> None:
+    link = _Link(clock)
+    assert link._verdict(5.0) == (True, "ok", "ready")
+    link.fit = False  # changed without saying so: the moment's verdict stands
+    assert link._verdict(5.0) == (True, "ok", "ready") and link.judged == 1
+    link._changed()
+    assert link._verdict(5.0) == (False, "link_down", "down") and link.judged == 2
+    assert link._verdict(5.02) == (False, "link_down", "down") and link.judged == 3  # a new moment: judged again
+
+
+def test_closing_stops_until_the_vehicle_reports_slower_than_stop_speed_then_once_more(clock) -> None:
+    link = _Link(clock, speed=1.0, slows=0.25)
+    t0 = clock.t
+    assert link._stop_until_still(t0, 0.05, 3.0, 0.02, lambda now: link.speed)
+    assert len(link.stops) == 5 and link.speed == 0.0  # four to slow from 1.0 to 0, one after
+    assert link.stops[:4] == pytest.approx([t0 + 0.02 * k for k in range(4)])
+    assert clock.slept == pytest.approx(0.08)  # the waits moved the fake clock: nothing slept for real
+
+
+def test_closing_gives_up_after_stop_timeout_and_still_stops(clock) -> None:
+    link = _Link(clock, speed=1.0, slows=0.0)  # a vehicle that never reports slowing down
+    t0 = clock.t
+    assert not link._stop_until_still(t0, 0.05, 0.5, 0.02, lambda now: link.speed)
+    assert clock.t == pytest.approx(t0 + 0.5) and link.stops[-1] == pytest.approx(t0 + 0.5)
+    unknown = _Link(clock)
+    assert not unknown._stop_until_still(clock.t, 0.05, 0.0, 0.02, lambda now: None)  # no time: one stop only
+    assert len(unknown.stops) == 1

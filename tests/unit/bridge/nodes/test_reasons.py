@@ -82,7 +82,7 @@ def test_a_latched_estop_is_the_driver_hosts_reason_also_in_a_dry_run() -> None:
     host.gate.estop(M.Estop(stamp=0.0, source="operator", reason="test"))
     st = host.status(now)
     assert (st.state, st.reason) == ("estop", "estop")
-    host.dry_run = True
+    host.options.dry_run = True
     st = host.status(now)
     assert (st.state, st.reason) == ("dry_run", "estop")
     assert driver_estop(st)

@@ -1,5 +1,5 @@
 """drivers.can.driver.CanDriver, the bus supervisor, on a real python-can bus (``virtual``, in this process) and a fake
-clock: two ODrive 0.6 controllers are played by the test in its own thread (:class:`Controllers`), answering what the
+clock: two ODrive 0.6 controllers are played by the test (:class:`tests.odrive_play.Controllers`), answering what the
 driver sent each time the driver reads its clock, so every step happens at a time the test chose and nothing sleeps.
 The full emulated controllers on real time are tests/integration/test_can_link.py's."""
 
@@ -11,69 +11,12 @@ from collections.abc import Iterator
 import can
 import pytest
 
-from drivers.can import CanDriver, CanLinkConfig, decode, encode
+from drivers.can import CanDriver, CanLinkConfig, encode
 from drivers.odrive import AxisState, ControlMode, InputMode, ODriveError
 from tests.fakeclock import FakeClock
+from tests.odrive_play import HEARTBEAT_PERIOD, Controllers
 
 CLOSED, IDLE = AxisState.CLOSED_LOOP_CONTROL, AxisState.IDLE
-HEARTBEAT_PERIOD = 0.1  # ODrive's default
-
-
-class Controllers:
-    """Two ODrive 0.6 controllers (nodes 0 and 1) on a virtual bus. :meth:`step` (run at each reading of the fake
-    clock) takes the frames the driver sent, answers as a 0.6 device does (closed loop on request unless an error is
-    set, Clear_Errors clears it) and sends its Heartbeats when one is due on the fake clock or its state changed,
-    stamped with the fake wall clock as a receiving interface would stamp them."""
-
-    def __init__(self, channel: str, clock: FakeClock) -> None:
-        self.bus = can.Bus(interface="virtual", channel=channel, preserve_timestamps=True)
-        self.clock = clock
-        self.state = {0: int(IDLE), 1: int(IDLE)}
-        self.error = {0: 0, 1: 0}
-        self.input_vel = {0: 0.0, 1: 0.0}
-        self.mode = {0: (0, 0), 1: (0, 0)}
-        self.muted: set[int] = set()
-        self.received: list[tuple[int, str, dict]] = []
-        self._due = -float("inf")
-
-    def step(self) -> None:
-        changed = False
-        while (f := self.bus.recv(timeout=0)) is not None:
-            node, name, sig = decode(f)
-            if node not in self.state or node in self.muted:
-                continue
-            self.received.append((node, name, sig))
-            if name == "Set_Axis_State":
-                want = int(sig["Axis_Requested_State"])
-                self.state[node] = want if want == IDLE or not self.error[node] else self.state[node]
-                changed = True
-            elif name == "Clear_Errors":
-                self.error[node], changed = 0, True
-            elif name == "Set_Controller_Mode":
-                self.mode[node] = (int(sig["Control_Mode"]), int(sig["Input_Mode"]))
-            elif name == "Set_Input_Vel":
-                self.input_vel[node] = float(sig["Input_Vel"])
-        if changed or self.clock.t >= self._due:
-            self.heartbeats()
-
-    def heartbeats(self) -> None:
-        self._due = self.clock.t + HEARTBEAT_PERIOD
-        for node in self.state:
-            if node not in self.muted:
-                f = encode(node, "Heartbeat", {"Axis_Error": self.error[node], "Axis_State": self.state[node],
-                                               "Procedure_Result": 0, "Trajectory_Done_Flag": 0})
-                f.timestamp = self.clock.wall()
-                self.bus.send(f)
-
-    def fault(self, node: int, error: int) -> None:
-        """The controller stops on its own (an error disarms it), and says so in its next Heartbeat."""
-        self.error[node], self.state[node] = error, int(IDLE)
-
-    def sent(self, name: str) -> list[tuple[int, dict]]:
-        """What the driver sent of message ``name`` so far, and forget it."""
-        out = [(n, s) for n, nm, s in self.received if nm == name]
-        self.received = [r for r in self.received if r[1] != name]
-        return out
 
 
 class Rig:
@@ -85,7 +28,7 @@ class Rig:
         self.opened_at: list[float] = []  # fake times the driver built its bus
         self.driver = CanDriver(CanLinkConfig(interface="virtual", channel=self.channel, heartbeat_timeout=0.3,
                                               reopen_backoff=0.05, reopen_backoff_max=0.2, open_timeout=1.0),
-                                clock=clock, wall_clock=clock.wall, open_bus=self.open_bus)
+                                clock=clock, wall_clock=clock.wall, open_bus=self.open_bus, sleep=clock.sleep)
         clock.on_read.append(self.controllers.step)
 
     def open_bus(self) -> can.BusABC:

@@ -83,7 +83,7 @@ class Sender:
 
     def __call__(self, drv: MavlinkDriver, msg: Any) -> list:
         out: list = []
-        drv._handle(self.dec.parse_char(msg.pack(self.enc)), out)
+        drv._handle(self.dec.parse_char(msg.pack(self.enc)), out, drv.clock())  # received now, on the driver's clock
         return out
 
 
@@ -130,7 +130,7 @@ def link(clock: FakeClock) -> Iterator[tuple[MavlinkClient, Any]]:
     client = MavlinkClient(cfg, load_pymavlink(), LinkHealth(), counts, on_message=lambda m: None, clock=clock,
                            sleep=clock.sleep)
     client.on_message = lambda m: client.ack(m) if m.get_type() == "COMMAND_ACK" else None
-    client.connect()
+    client.connect(clock.t)
     try:
         yield client, vehicle
     finally:

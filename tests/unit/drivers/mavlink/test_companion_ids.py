@@ -41,7 +41,7 @@ def test_a_companion_speaks_with_its_ids_says_it_is_one_and_takes_acks_addressed
     client = MavlinkClient(cfg, load_pymavlink(), LinkHealth(), {"stray_acks": 0}, on_message=lambda m: None,
                            clock=clock, sleep=clock.sleep)
     client.on_message = lambda m: client.ack(m) if m.get_type() == "COMMAND_ACK" else None
-    client.connect()
+    client.connect(clock.t)
     try:
         client.heartbeat(clock.t, force=True)
         hb = vehicle.recv_match(type="HEARTBEAT", blocking=True, timeout=2.0)

@@ -26,7 +26,7 @@ def _framed(enc, msg):
 
 def feed(drv: MavlinkDriver, msg, enc=ENC) -> list:
     out: list = []
-    drv._handle(_framed(enc, msg), out)
+    drv._handle(_framed(enc, msg), out, drv.clock())  # received now, on the driver's clock
     return out
 
 
@@ -51,7 +51,7 @@ def test_a_poses_heading_is_the_attitude_at_its_own_vehicle_time_in_either_order
         m = (enc.attitude_encode(ms, 0.0, 0.0, yaw(ms), 0.0, 0.0, 1.0) if kind == "att"
              else enc.local_position_ned_encode(ms, 1.0, 2.0, 0.0, 0.0, 0.0, 0.0))
         out: list = []
-        drv._handle(dec.parse_char(m.pack(enc)), out)
+        drv._handle(dec.parse_char(m.pack(enc)), out, drv.clock())  # received now, on the driver's clock
         return out
 
     for order in (("att", "pos"), ("pos", "att")):  # the same vehicle time, either order
