@@ -111,8 +111,8 @@ class CanDriver(LinkBase):
     python-can fills on receive with the wall clock (Python's ``time`` function) for ``virtual`` and
     ``udp_multicast``, the kernel's receive time for ``socketcan``), mapped by each ``poll`` onto the driver host's
     clock (``clock``) with the offset ``clock() - wall_clock()``. A stamp that is missing, in the future of its
-    receipt (beyond :data:`STAMP_SLACK`) or older than :data:`STAMP_MAX_AGE` (a wall-clock step, NTP) is replaced by the receive time
-    and counted (``stamp_fallbacks``). Frames read by a ``poll`` were received by its ``now``.
+    receipt (beyond :data:`STAMP_SLACK`) or older than :data:`STAMP_MAX_AGE` (a wall-clock step, NTP) is replaced
+    by the receive time and counted (``stamp_fallbacks``). Frames read by a ``poll`` were received by its ``now``.
 
     **Time.** ``poll``, ``send``, ``stop``, ``health``, ``open`` and ``engage`` work at the ``now`` they are given;
     ``open``, ``engage`` and ``close`` wait between two reads of the bus with ``sleep`` (:meth:`LinkBase._pause`). The
