@@ -92,6 +92,9 @@ class MpcConfig:
 #: a curvature this large (rad/m) bounds nothing a teacher's range allows: an unknown side (infinite) is given as it
 CURVATURE_FREE = 1e3
 
+#: an obstacle list with none in it (rows x, y, radius)
+_NO_OBSTACLES = np.zeros((0, 3))
+
 #: the ways to solve the MPC (module docstring); "ipopt" is the reference
 SOLVERS = ("ipopt", "rti-qpoases", "rti-daqp")
 
@@ -336,6 +339,12 @@ class _Buffered:
         """The solver's statistics of the last evaluation (``success``, ``return_status``, ...)."""
         return self._buf.stats()
 
+    def ret(self) -> int:
+        """The last evaluation's return flag: 0 when it succeeded. For qpOASES it is non-zero exactly when its
+        statistics say ``success`` false (a QP not solved, the working-set changes used up); reading it costs far
+        less than :meth:`stats`, which builds a dictionary of the solver's statistics each call."""
+        return self._buf.ret()
+
 
 class _Rti:
     """Real-time iteration (module docstring): one QP per tick on the problem linearised at the shifted plan. The
@@ -359,6 +368,9 @@ class _Rti:
         self.qp_fn = ca.conic("mpc_rti", plugin, {"h": ca.Sparsity.dense(nz, nz), "a": ca.Sparsity.dense(m, nz)},
                               opts)
         self.qp = _Buffered(self.qp_fn)
+        #: success read from the return flag (qpOASES sets it; DAQP's plugin returns 0 on a failure too, so its
+        #: statistics are read instead)
+        self._flag_says = plugin == "qpoases"
         self._bind_qp()
         self.slack_weight = cfg.slack_weight
         self.bounds_of: tuple | None = None
@@ -436,13 +448,14 @@ class _Rti:
                 self.qp()
             except RuntimeError as exc:  # CasADi refuses an ill-posed QP (bounds crossed by a bad linearisation)
                 return False, f"QP: {str(exc).splitlines()[-1][:120]}", iters, U0, np.zeros((N + 1, 3))
-            stats = self.qp.stats()
             iters += 1
-            if stats.get("success", False):
+            solved = self.qp.ret() == 0 if self._flag_says else bool(self.qp.stats().get("success", False))
+            if solved:
                 d = np.subtract(x, z, out=self._step)
                 moved = float(np.abs(d, out=d).max())  # not finite exactly when x is not (z is finite)
-            if not stats.get("success", False) or not math.isfinite(moved):
-                return False, f"QP: {stats.get('return_status', 'failed')}", iters, U0, np.zeros((N + 1, 3))
+            if not solved or not math.isfinite(moved):
+                why = self.qp.stats().get("return_status", "failed") if not solved else "not finite"
+                return False, f"QP: {why}", iters, U0, np.zeros((N + 1, 3))
             z[:] = x
             if moved < 1e-5:
                 break
@@ -461,6 +474,7 @@ class MpcTeacher:
         # the references' compiled loop loaded (or compiled, once per machine) now, not in the first tick
         _refs.references(np.array([[0.0, 0.0], [1.0, 0.0]]), np.array([0.0, 1.0]), np.array([1.0]), np.zeros(1),
                          0.0, 0.0, 0.0, 0.1, 2)
+        _refs.nearest_obstacles(np.zeros((1, 3)), 0.0, 0.0, 1.0, np.empty((1, 3)))  # likewise the obstacles' loop
         if cfg.curve_margin > 0.0:  # likewise the slowing for bends, where it is used
             _refs.curve_speed(np.array([[0.0, 0.0], [1.0, 0.0]]), np.array([0.0, 1.0]), np.array([1.0]), np.zeros(2),
                               0.0, 0.0, 1.0, 0.1, -1.0, 1.0, 0.9, 1.0)
@@ -509,15 +523,17 @@ class MpcTeacher:
         """The obstacles the NLP's ``max_obstacles`` slots hold: the nearest (by clearance) of those within reach
         of this horizon (the distance the top speed covers in N steps, plus the margin), and how many obstacles
         within reach did not fit (the caller reports them; none is ever dropped silently)."""
-        if obstacles is None or len(obstacles) == 0:
-            return np.zeros((0, 3)), 0
-        o = np.asarray(obstacles, dtype=float).reshape(-1, 3)
-        clearance = np.hypot(o[:, 0] - state[0], o[:, 1] - state[1]) - o[:, 2]
+        slots = np.empty((self.cfg.max_obstacles, 3))
+        kept, dropped = self._nearest(state, obstacles, limits, slots)
+        return slots[:kept], dropped
+
+    def _nearest(self, state: NDArray[np.float64], obstacles: NDArray[np.float64] | None, limits: Bounds,
+                 slots: NDArray[np.float64]) -> tuple[int, int]:
+        """:meth:`obstacles_that_matter` written into ``slots`` (the parameter vector's rows; the unused ones
+        marked), in one compiled loop: (how many were kept, how many were dropped)."""
         reach = self.cfg.N * self.cfg.dt * max(abs(limits.v[0]), abs(limits.v[1])) + self.cfg.obstacle_margin
-        near = np.flatnonzero(clearance <= reach)
-        near = near[np.argsort(clearance[near], kind="stable")]
-        keep = near[: self.cfg.max_obstacles]
-        return o[keep], int(near.size - keep.size)
+        o = _NO_OBSTACLES if obstacles is None else np.asarray(obstacles, dtype=float).reshape(-1, 3)
+        return _refs.nearest_obstacles(np.ascontiguousarray(o), float(state[0]), float(state[1]), reach, slots)
 
     def solve(
         self,
@@ -548,16 +564,12 @@ class MpcTeacher:
             v = limits.v[1]
         refs = _refs.references(path.points, path.s, path.seg_len, path.heading, xs[0], xs[1], xs[2],
                                 float(v * cfg.dt), N + 1)  # = self.references(state, path, v)
-        o, dropped = self.obstacles_that_matter(state, obstacles, limits)
         # p = [x0, refs, u_prev, obstacles], column-major as _build_nlp lays it out: refs and obstacles by rows
         p = self._p
         p[:3] = state
         self._p_refs[:] = refs
         np.minimum(np.maximum(self.u_last, limits.lo), limits.hi, out=self._p_uprev)
-        obs = self._p_obs
-        obs[:] = 0.0
-        obs[:, 2] = -1.0  # an unused slot
-        obs[: o.shape[0]] = o
+        _, dropped = self._nearest(state, obstacles, limits, self._p_obs)  # the slots: the nearest within reach
         if cfg.turn_needs_speed:
             k_lo, k_hi = curvature if curvature is not None else (-math.inf, math.inf)
             if not (k_lo <= 0.0 <= k_hi):  # straight ahead stays feasible (NaN fails too)
