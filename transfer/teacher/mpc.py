@@ -213,7 +213,9 @@ class _Ipopt:
         self.lam_g = None
 
     def solve(self, p: NDArray[np.float64], state: NDArray[np.float64], U0: NDArray[np.float64], limits: Bounds,
-              cold: bool) -> tuple[bool, str, int, NDArray[np.float64], NDArray[np.float64]]:
+              cold: bool, slots: int | None = None) -> tuple[bool, str, int, NDArray[np.float64], NDArray[np.float64]]:
+        """The NLP from ``U0`` (``slots``, the obstacle slots in use, is the real-time iteration's concern: every
+        slot's rows are in the NLP)."""
         cfg = self.cfg
         X0 = np.zeros((cfg.N + 1, 3))
         X0[0] = state
@@ -348,14 +350,14 @@ class MpcTeacher:
         p[:3] = state
         self._p_refs[:] = refs
         np.minimum(np.maximum(self.u_last, limits.lo), limits.hi, out=self._p_uprev)
-        _, dropped = self._nearest(state, obstacles, limits, self._p_obs)  # the slots: the nearest within reach
+        kept, dropped = self._nearest(state, obstacles, limits, self._p_obs)  # the slots: the nearest within reach
         if cfg.turn_needs_speed:
             k_lo, k_hi = curvature if curvature is not None else (-math.inf, math.inf)
             if not (k_lo <= 0.0 <= k_hi):  # straight ahead stays feasible (NaN fails too)
                 raise ValueError(f"MPC curvature must be (k_lo <= 0, k_hi >= 0), got {curvature}")
             self._p_kappa[0], self._p_kappa[1] = max(k_lo, -CURVATURE_FREE), min(k_hi, CURVATURE_FREE)
         cold = self._prev_u is None
-        ok, status, iters, U, Xp = self._backend.solve(p, state, self._warm(limits), limits, cold)
+        ok, status, iters, U, Xp = self._backend.solve(p, state, self._warm(limits), limits, cold, kept)
         if ok:
             u = np.minimum(np.maximum(U[0], limits.lo), limits.hi)
             self._prev_u, self._prev_pred = U, Xp

@@ -62,8 +62,9 @@ def _build_rti(cfg: MpcConfig) -> tuple[ca.Function, ca.Function]:
     fewer QP variables make the QP about twice as fast.
 
     - ``mpc_rti_lin(z, p) -> (r, Jr, c, Jc, lo, hi)``: the cost's residuals r (cost = |r|^2 + the slack penalty; the
-      heading term 1 - cos e is 2 sin^2(e/2)), the rows c (input rates, obstacles, state box) with their bounds
-      lo <= c <= hi (an unused obstacle slot, radius <= 0, gets lo = -inf), and both Jacobians, dense.
+      heading term 1 - cos e is 2 sin^2(e/2)), the rows c (input rates, state box, curvatures if any, then the
+      obstacles slot by slot) with their bounds lo <= c <= hi (an unused obstacle slot, radius <= 0, gets
+      lo = -inf), and both Jacobians, dense.
     - ``mpc_rti_roll(z, p) -> X``: the (N + 1) x 3 states the inputs of z give from the start.
 
     :class:`_Rti` forms the QP from them: Gauss-Newton Hessian 2 Jr'Jr, the slack penalty exactly, the rows
@@ -90,22 +91,24 @@ def _build_rti(cfg: MpcConfig) -> tuple[ca.Function, ca.Function]:
                 math.sqrt(cfg.r_du) * du[0], math.sqrt(cfg.r_du) * du[1]]
         rate += [du[0], du[1]]
     r = ca.vertcat(*res)
+    # the obstacle rows last and slot by slot (slot j's N stages together): the rows of the first k slots are the
+    # first rows of c, and a QP over the slots in use takes only those (_Rti)
     obstacle, obstacle_lo = [], []
-    for k in range(1, N + 1):
-        for j in range(K):
+    for j in range(K):
+        rr = obs[2, j] + cfg.obstacle_margin
+        for k in range(1, N + 1):
             obstacle.append((X[k][0] - obs[0, j]) ** 2 + (X[k][1] - obs[1, j]) ** 2 + S)
-            rr = obs[2, j] + cfg.obstacle_margin
             obstacle_lo.append(ca.if_else(obs[2, j] > 0, rr**2, -ca.inf))
     box = [c for k in range(1, N + 1) for c in (X[k][0], X[k][1])]
     # a learner that cannot turn in place: omega - k_hi v <= 0 <= omega - k_lo v at every stage
     turn = [c for k in range(N) for c in _turn_rows(U[:, k], kappa)] if cfg.turn_needs_speed else []
-    c = ca.vertcat(*rate, *obstacle, *box, *turn)
+    c = ca.vertcat(*rate, *box, *turn, *obstacle)
     dmax = np.tile(np.asarray(cfg.du_max, dtype=float), N)
     xb = cfg.state_box
-    lo = ca.vertcat(ca.DM(-dmax), *obstacle_lo, ca.DM(np.tile([xb[0], xb[2]], N)),
-                    ca.DM(np.tile([-np.inf, 0.0], N if turn else 0)))
-    hi = ca.vertcat(ca.DM(dmax), ca.inf * ca.DM.ones(K * N), ca.DM(np.tile([xb[1], xb[3]], N)),
-                    ca.DM(np.tile([0.0, np.inf], N if turn else 0)))
+    lo = ca.vertcat(ca.DM(-dmax), ca.DM(np.tile([xb[0], xb[2]], N)), ca.DM(np.tile([-np.inf, 0.0], N if turn else 0)),
+                    *obstacle_lo)
+    hi = ca.vertcat(ca.DM(dmax), ca.DM(np.tile([xb[1], xb[3]], N)), ca.DM(np.tile([0.0, np.inf], N if turn else 0)),
+                    ca.inf * ca.DM.ones(K * N))
     lin = ca.Function("mpc_rti_lin", [z, p], [r, ca.densify(ca.jacobian(r, z)), c, ca.densify(ca.jacobian(c, z)),
                                               lo, hi], ["z", "p"], ["r", "jr", "c", "jc", "lo", "hi"])
     roll = ca.Function("mpc_rti_roll", [z, p], [ca.horzcat(*X).T], ["z", "p"], ["x"])
@@ -147,17 +150,48 @@ class _Buffered:
         return self._buf.ret()
 
 
+#: the obstacle slots a QP may hold: the QP of a tick holds the fewest of these that fit the slots in use (up to
+#: the configuration's ``max_obstacles``, always one of them)
+SLOT_SIZES = (0, 1, 2, 4, 8, 16, 32)
+
+
+class _Qp:
+    """One dense QP solver over the first ``rows`` rows of the linearisation (the fixed rows and the first slots'
+    obstacle rows), its data written in place into its input arrays (CasADi's dense matrices are column-major:
+    the numpy views are transposes of the flat buffers). Each keeps its own working set from solve to solve."""
+
+    def __init__(self, plugin: str, opts: dict, nz: int, rows: int, full: bool) -> None:
+        self.rows, self.full = rows, full
+        self.fn = ca.conic(f"mpc_rti_{rows}", plugin,
+                           {"h": ca.Sparsity.dense(nz, nz), "a": ca.Sparsity.dense(rows, nz)}, opts)
+        self.buf = _Buffered(self.fn)
+        arg = {name: self.buf.args[self.fn.index_in(name)] for name in ("h", "g", "lba", "uba", "lbx", "ubx", "a")}
+        self.H = arg["h"].reshape(nz, nz)  # symmetric: its layout does not matter
+        self.g, self.lba, self.uba, self.lbx, self.ubx = arg["g"], arg["lba"], arg["uba"], arg["lbx"], arg["ubx"]
+        self.AT = arg["a"].reshape(nz, rows)  # A transposed: the first rows of the linearisation's (when not full)
+        self.x = self.buf.res[0]
+        self.shift = np.empty(rows)
+        self.bounds_of: tuple | None = None
+
+    def bind(self, lin: _Buffered, z: NDArray[np.float64]) -> None:
+        """Read the start ``z``, and (holding every row) A straight from the linearisation's Jacobian."""
+        self.buf.rebind(self.fn.index_in("x0"), z)
+        if self.full:
+            self.buf.rebind(self.fn.index_in("a"), lin.res[3])
+            self.AT = lin.res[3].reshape(self.AT.shape)
+
+
 class _Rti:
     """Real-time iteration (module docstring): one QP per tick on the problem linearised at the shifted plan. The
-    QP's data are written in place into the solver's input arrays (CasADi's dense matrices are column-major: the
-    numpy views below are transposes of the flat buffers)."""
+    QP holds the fixed rows and the obstacle rows of the slots in use only (the fewest :data:`SLOT_SIZES` that fit
+    them): an unused slot's rows are never active (-inf <= row), so the solution is the same, and a QP without
+    them costs the active-set solver far less (most ticks have no obstacle or one within the horizon's reach)."""
 
     def __init__(self, cfg: MpcConfig, compiler: Compiler | None) -> None:
-        N = cfg.N
+        N, K = cfg.N, cfg.max_obstacles
         self.cfg, self.nz = cfg, 2 * N + 1
         self.functions = list(_build_rti(cfg))
         compiled = compiler(self.functions) if compiler is not None else None
-        self._bind(compiled or self.functions)
         self.compiled = compiled is not None
         plugin = cfg.solver.split("-", 1)[1]
         opts: dict = {"error_on_fail": False}
@@ -165,21 +199,18 @@ class _Rti:
             opts.update({"printLevel": "none", "sparse": False, "nWSR": 10 * cfg.max_iter})
         elif plugin == "daqp":
             opts.update({"daqp": {"iter_limit": 10 * cfg.max_iter}})
-        m, nz = self.lin.fn.nnz_out(2), self.nz
-        self.qp_fn = ca.conic("mpc_rti", plugin, {"h": ca.Sparsity.dense(nz, nz), "a": ca.Sparsity.dense(m, nz)},
-                              opts)
-        self.qp = _Buffered(self.qp_fn)
+        m = self.functions[0].nnz_out(2)
+        fixed = m - K * N  # input rates, state box, curvatures
+        self.sizes = tuple(sorted({k for k in SLOT_SIZES if k < K} | {K}))
+        self.qps = {k: _Qp(plugin, opts, self.nz, fixed + k * N, k == K) for k in self.sizes}
         #: success read from the return flag (qpOASES sets it; DAQP's plugin returns 0 on a failure too, so its
         #: statistics are read instead)
         self._flag_says = plugin == "qpoases"
-        self._bind_qp()
+        self._bind(compiled or self.functions)
         self.slack_weight = cfg.slack_weight
-        self.bounds_of: tuple | None = None
         # scratch arrays of each iteration (the same arithmetic as fresh temporaries, without allocating them)
-        nr = self.lin.fn.nnz_out(0)
-        self._zJ = np.empty(nr)
-        self._shift = np.empty(m)
-        self._step = np.empty(nz)
+        self._zJ = np.empty(self.functions[0].nnz_out(0))
+        self._step = np.empty(self.nz)
 
     def _bind(self, functions: Sequence[ca.Function]) -> None:
         """Evaluate the linearisation and the rollout with ``functions`` (interpreted or compiled: same results)."""
@@ -187,79 +218,79 @@ class _Rti:
         self.lin, self.roll = _Buffered(lin), _Buffered(roll)
         nz, nr, m = self.nz, lin.nnz_out(0), lin.nnz_out(2)
         self.z = self.lin.args[0]
-        # the linearisation's outputs; Jc is the QP's A itself, the start of each QP the linearisation point
+        # the linearisation's outputs; Jc is the full QP's A itself, the start of each QP the linearisation point
         self.r, self.c, self.lo, self.hi = (self.lin.res[i] for i in (0, 2, 4, 5))
         self.JrT = self.lin.res[1].reshape(nz, nr)  # Jr transposed, contiguous: BLAS reads it as it is
         self.AT = self.lin.res[3].reshape(nz, m)
+        for qp in self.qps.values():
+            qp.bind(self.lin, self.z)
+        self.roll.rebind(0, self.z)  # the plan: z holds the last QP's solution when the rollout runs
+        self.roll.rebind(1, self.lin.args[1])
 
     def use(self, functions: Sequence[ca.Function]) -> None:
         """Switch to compiled equivalents of :attr:`functions` (between two solves)."""
-        self._bind(functions)
-        self._bind_qp()  # the QP reads the new linearisation's buffers
+        self._bind(functions)  # the QPs read the new linearisation's buffers
         self.compiled = True
 
-    def _bind_qp(self) -> None:
-        nz = self.nz
-        arg = {name: self.qp.args[self.qp_fn.index_in(name)] for name in ("h", "g", "lba", "uba", "lbx", "ubx")}
-        self.H = arg["h"].reshape(nz, nz)  # symmetric: its layout does not matter
-        self.g, self.lba, self.uba, self.lbx, self.ubx = arg["g"], arg["lba"], arg["uba"], arg["lbx"], arg["ubx"]
-        self.qp.rebind(self.qp_fn.index_in("a"), self.lin.res[3])
-        self.qp.rebind(self.qp_fn.index_in("x0"), self.z)
-        self.roll.rebind(0, self.qp.res[0])
-        self.roll.rebind(1, self.lin.args[1])
-
     def reset(self) -> None:
-        """Nothing to forget: the solver's working set is only a starting guess."""
+        """Nothing to forget: the solvers' working sets are only starting guesses."""
 
-    def _bounds(self, limits: Bounds) -> None:
+    def _bounds(self, qp: _Qp, limits: Bounds) -> None:
         key = (limits.v, limits.w)
-        if key != self.bounds_of:  # the learned limits moved (often while the store fills)
+        if key != qp.bounds_of:  # the learned limits moved (often while the store fills)
             N = self.cfg.N
-            self.lbx[: 2 * N].reshape(N, 2)[:] = limits.lo  # = np.tile(limits.lo, N), in place
-            self.ubx[: 2 * N].reshape(N, 2)[:] = limits.hi
-            self.lbx[2 * N:], self.ubx[2 * N:] = 0.0, np.inf
-            self.bounds_of = key
+            qp.lbx[: 2 * N].reshape(N, 2)[:] = limits.lo  # = np.tile(limits.lo, N), in place
+            qp.ubx[: 2 * N].reshape(N, 2)[:] = limits.hi
+            qp.lbx[2 * N:], qp.ubx[2 * N:] = 0.0, np.inf
+            qp.bounds_of = key
 
     def solve(self, p: NDArray[np.float64], state: NDArray[np.float64], U0: NDArray[np.float64], limits: Bounds,
-              cold: bool) -> tuple[bool, str, int, NDArray[np.float64], NDArray[np.float64]]:
-        N, z, x = self.cfg.N, self.z, self.qp.res[0]
-        self._bounds(limits)
+              cold: bool, slots: int | None = None) -> tuple[bool, str, int, NDArray[np.float64], NDArray[np.float64]]:
+        """One real-time iteration (``rti_cold_iters`` QPs on a cold start) from the inputs ``U0``; ``slots``: how
+        many obstacle slots of ``p`` are in use (the first ones; None: all of them)."""
+        N, z = self.cfg.N, self.z
+        need = self.cfg.max_obstacles if slots is None else slots
+        qp = self.qps[next(k for k in self.sizes if k >= need)]
+        x, rows, H, g = qp.x, qp.rows, qp.H, qp.g
+        self._bounds(qp, limits)
         self.lin.args[1][:] = p
         z[: 2 * N] = U0.ravel()
         z[2 * N] = 0.0
-        np.minimum(np.maximum(z, self.lbx, out=z), self.ubx, out=z)  # = np.clip, without its wrapper
+        np.minimum(np.maximum(z, qp.lbx, out=z), qp.ubx, out=z)  # = np.clip, without its wrapper
         status, iters = "", 0
         for _ in range(self.cfg.rti_cold_iters if cold else 1):
             self.lin()
             # cost |r|^2 + w s + w s^2 ~ 1/2 z'Hz + g'z with H = 2 Jr'Jr (Gauss-Newton), g = 2 Jr'(r - Jr z)
-            np.dot(self.JrT, self.JrT.T, out=self.H)
-            self.H *= 2.0
-            self.H[-1, -1] += 2.0 * self.slack_weight
+            np.dot(self.JrT, self.JrT.T, out=H)
+            H *= 2.0
+            H[-1, -1] += 2.0 * self.slack_weight
             zJ = np.matmul(z, self.JrT, out=self._zJ)
             np.subtract(self.r, zJ, out=zJ)
             zJ *= 2.0
-            np.dot(self.JrT, zJ, out=self.g)
-            self.g[-1] += self.slack_weight
+            np.dot(self.JrT, zJ, out=g)
+            g[-1] += self.slack_weight
+            if not qp.full:  # the QP's A: the linearisation's first rows
+                np.copyto(qp.AT, self.AT[:, :rows])
             # c(z') ~ c(z) + A (z' - z): bounds on c become bounds on A z'
-            shift = np.matmul(z, self.AT, out=self._shift)
-            shift -= self.c
-            np.add(self.lo, shift, out=self.lba)
-            np.add(self.hi, shift, out=self.uba)
+            shift = np.matmul(z, qp.AT, out=qp.shift)
+            shift -= self.c[:rows]
+            np.add(self.lo[:rows], shift, out=qp.lba)
+            np.add(self.hi[:rows], shift, out=qp.uba)
             try:
-                self.qp()
+                qp.buf()
             except RuntimeError as exc:  # CasADi refuses an ill-posed QP (bounds crossed by a bad linearisation)
                 return False, f"QP: {str(exc).splitlines()[-1][:120]}", iters, U0, np.zeros((N + 1, 3))
             iters += 1
-            solved = self.qp.ret() == 0 if self._flag_says else bool(self.qp.stats().get("success", False))
+            solved = qp.buf.ret() == 0 if self._flag_says else bool(qp.buf.stats().get("success", False))
             if solved:
                 d = np.subtract(x, z, out=self._step)
                 moved = float(np.abs(d, out=d).max())  # not finite exactly when x is not (z is finite)
             if not solved or not math.isfinite(moved):
-                why = self.qp.stats().get("return_status", "failed") if not solved else "not finite"
+                why = qp.buf.stats().get("return_status", "failed") if not solved else "not finite"
                 return False, f"QP: {why}", iters, U0, np.zeros((N + 1, 3))
             z[:] = x
             if moved < 1e-5:
                 break
         status = f"rti cold ({iters} QPs)" if cold else "rti"
         self.roll()
-        return True, status, iters, x[: 2 * N].reshape(N, 2).copy(), self.roll.res[0].reshape(3, N + 1).T.copy()
+        return True, status, iters, z[: 2 * N].reshape(N, 2).copy(), self.roll.res[0].reshape(3, N + 1).T.copy()

@@ -3,6 +3,7 @@ reference is in test_mpc.py)."""
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 
 from sim_learner.worlds import mpc_world
@@ -38,7 +39,8 @@ def test_a_qp_is_judged_solved_as_its_statistics_say(solver: str) -> None:
                 self.qp()
                 verdicts.append((self.qp.ret() == 0, bool(self.qp.stats()["success"])))
 
-        backend.qp = Judged(backend.qp)
+        for qp in backend.qps.values():
+            qp.buf = Judged(qp.buf)
         x = world.start.copy()
         for _ in range(15):
             qp0 = len(verdicts)
@@ -50,3 +52,34 @@ def test_a_qp_is_judged_solved_as_its_statistics_say(solver: str) -> None:
     assert any(ok for _, ok in verdicts) and any(not ok for _, ok in verdicts)
     if solver == "rti-qpoases":
         assert all(flag == ok for flag, ok in verdicts), verdicts
+
+
+def test_the_qp_holds_the_obstacle_slots_in_use_and_solves_as_the_full_one() -> None:
+    """The QP of a tick holds the fixed rows and the rows of the fewest slot sizes that fit the obstacles in use
+    (an unused slot's rows are never active): along the full-size world's closed loop, with none, one and two
+    obstacles within reach, each tick's plan equals the plan of the QP with every slot's rows, from the same
+    start, to the solver's tolerance."""
+    world = mpc_world()
+    limits = Bounds((0.05, 0.6), (-0.7854, 0.7854))
+    cfg = MpcConfig(N=20, solver="rti-qpoases", max_obstacles=12)
+    small, full = MpcTeacher(cfg), MpcTeacher(cfg)
+    assert isinstance(small._backend, _Rti) and small._backend.sizes == (0, 1, 2, 4, 8, 12)
+    rows = {k: qp.rows for k, qp in small._backend.qps.items()}
+    assert rows[12] - rows[0] == 12 * 20 and rows[1] - rows[0] == 20
+    used: dict[int, int] = {}
+    full_solve = full._backend.solve
+    full._backend.solve = lambda p, s, U0, lim, cold, slots=None: full_solve(p, s, U0, lim, cold, None)  # every row
+    x, worst = world.start.copy(), 0.0
+    for _ in range(400):
+        kept, _ = small.obstacles_that_matter(x, world.obstacles, limits)
+        used[len(kept)] = used.get(len(kept), 0) + 1
+        a = small.solve(x, world.path, limits, world.obstacles)
+        b = full.solve(x, world.path, limits, world.obstacles)
+        assert a.ok and b.ok
+        worst = max(worst, float(np.max(np.abs(a.predicted - b.predicted))), float(np.max(np.abs(a.u - b.u))))
+        full._prev_u, full._prev_pred, full.u_last = small._prev_u, small._prev_pred, small.u_last  # same start
+        x = step(x, a.u, 0.1)
+        if world.reached(x):
+            break
+    assert {0, 1, 2} <= set(used), used
+    assert worst < 1e-6, worst
