@@ -151,8 +151,9 @@ class _Buffered:
 
 
 #: the obstacle slots a QP may hold: the QP of a tick holds the fewest of these that fit the slots in use (up to
-#: the configuration's ``max_obstacles``, always one of them)
-SLOT_SIZES = (0, 1, 2, 4, 8, 16, 32)
+#: the configuration's ``max_obstacles``, always one of them). Each is a solver of its own, made with the MPC (about
+#: 0.15-0.3 MB each): few sizes, for the common cases (no obstacle within the horizon's reach, or one or two)
+SLOT_SIZES = (0, 2)
 
 
 class _Qp:

@@ -63,9 +63,9 @@ def test_the_qp_holds_the_obstacle_slots_in_use_and_solves_as_the_full_one() -> 
     limits = Bounds((0.05, 0.6), (-0.7854, 0.7854))
     cfg = MpcConfig(N=20, solver="rti-qpoases", max_obstacles=12)
     small, full = MpcTeacher(cfg), MpcTeacher(cfg)
-    assert isinstance(small._backend, _Rti) and small._backend.sizes == (0, 1, 2, 4, 8, 12)
+    assert isinstance(small._backend, _Rti) and small._backend.sizes == (0, 2, 12)
     rows = {k: qp.rows for k, qp in small._backend.qps.items()}
-    assert rows[12] - rows[0] == 12 * 20 and rows[1] - rows[0] == 20
+    assert rows[12] - rows[0] == 12 * 20 and rows[2] - rows[0] == 2 * 20
     used: dict[int, int] = {}
     full_solve = full._backend.solve
     full._backend.solve = lambda p, s, U0, lim, cold, slots=None: full_solve(p, s, U0, lim, cold, None)  # every row
