@@ -61,14 +61,15 @@ def _build_rti(cfg: MpcConfig) -> tuple[ca.Function, ca.Function]:
     the same exact penalty both problems have the same solution wherever the obstacles can be avoided, and a third
     fewer QP variables make the QP about twice as fast.
 
-    - ``mpc_rti_lin(z, p) -> (r, Jr, c, Jc, lo, hi)``: the cost's residuals r (cost = |r|^2 + the slack penalty; the
-      heading term 1 - cos e is 2 sin^2(e/2)), the rows c (input rates, state box, curvatures if any, then the
-      obstacles slot by slot) with their bounds lo <= c <= hi (an unused obstacle slot, radius <= 0, gets
-      lo = -inf), and both Jacobians, dense.
+    - ``mpc_rti_lin(z, p) -> (sqrt(2) Jr, g, Jc, lba, uba)``: the QP's data at z but its Hessian: the Jacobian of the
+      cost's residuals r (cost = |r|^2 + the slack penalty; the heading term 1 - cos e is 2 sin^2(e/2)) scaled so
+      that the Gauss-Newton Hessian is its square, the QP's gradient g, the Jacobian Jc of the rows c (input
+      rates, state box, curvatures if any, then the obstacles slot by slot) and the bounds of the linearised rows,
+      lo - c + Jc z <= Jc z' <= hi - c + Jc z (an unused obstacle slot, radius <= 0, gets lo = -inf); dense.
     - ``mpc_rti_roll(z, p) -> X``: the (N + 1) x 3 states the inputs of z give from the start.
 
-    :class:`_Rti` forms the QP from them: Gauss-Newton Hessian 2 Jr'Jr, the slack penalty exactly, the rows
-    linearised at z.
+    :class:`_Rti` forms the QP from them: the Gauss-Newton Hessian 2 Jr'Jr plus the slack penalty's (one BLAS
+    product), the rest as the function gives it, in place.
     """
     N, K = cfg.N, cfg.max_obstacles
     U, S = ca.SX.sym("U", 2, N), ca.SX.sym("S")
@@ -109,8 +110,17 @@ def _build_rti(cfg: MpcConfig) -> tuple[ca.Function, ca.Function]:
                     *obstacle_lo)
     hi = ca.vertcat(ca.DM(dmax), ca.DM(np.tile([xb[1], xb[3]], N)), ca.DM(np.tile([0.0, np.inf], N if turn else 0)),
                     ca.inf * ca.DM.ones(K * N))
-    lin = ca.Function("mpc_rti_lin", [z, p], [r, ca.densify(ca.jacobian(r, z)), c, ca.densify(ca.jacobian(c, z)),
-                                              lo, hi], ["z", "p"], ["r", "jr", "c", "jc", "lo", "hi"])
+    # the QP's data at z, all but the Hessian (one BLAS product of the scaled Jacobian, in numpy):
+    # cost |r|^2 + w s + w s^2 ~ 1/2 z'Hz + g'z with H = 2 Jr'Jr (Gauss-Newton) + 2w e e', g = 2 Jr'(r - Jr z) + w e
+    # (e: the slack's unit vector); rows c(z') ~ c(z) + Jc (z' - z), so lo <= c <= hi bound Jc z' by lo - c + Jc z
+    jr, jc = ca.jacobian(r, z), ca.jacobian(c, z)
+    e = ca.DM.zeros(2 * N + 1)
+    e[2 * N] = cfg.slack_weight
+    # by forward and reverse sweeps (jtimes), not as products of the Jacobians: far less generated code
+    g = 2.0 * ca.jtimes(r, z, r - ca.jtimes(r, z, z), True) + e
+    jcz = ca.jtimes(c, z, z) - c
+    lin = ca.Function("mpc_rti_lin", [z, p], [math.sqrt(2.0) * ca.densify(jr), g, ca.densify(jc), lo + jcz, hi + jcz],
+                      ["z", "p"], ["jr2", "g", "jc", "lba", "uba"])
     roll = ca.Function("mpc_rti_roll", [z, p], [ca.horzcat(*X).T], ["z", "p"], ["x"])
     return lin, roll
 
@@ -166,20 +176,23 @@ class _Qp:
         self.fn = ca.conic(f"mpc_rti_{rows}", plugin,
                            {"h": ca.Sparsity.dense(nz, nz), "a": ca.Sparsity.dense(rows, nz)}, opts)
         self.buf = _Buffered(self.fn)
-        arg = {name: self.buf.args[self.fn.index_in(name)] for name in ("h", "g", "lba", "uba", "lbx", "ubx", "a")}
+        arg = {name: self.buf.args[self.fn.index_in(name)] for name in ("h", "lbx", "ubx", "a")}
         self.H = arg["h"].reshape(nz, nz)  # symmetric: its layout does not matter
-        self.g, self.lba, self.uba, self.lbx, self.ubx = arg["g"], arg["lba"], arg["uba"], arg["lbx"], arg["ubx"]
+        self.lbx, self.ubx = arg["lbx"], arg["ubx"]
         self.AT = arg["a"].reshape(nz, rows)  # A transposed: the first rows of the linearisation's (when not full)
         self.x = self.buf.res[0]
-        self.shift = np.empty(rows)
         self.bounds_of: tuple | None = None
 
     def bind(self, lin: _Buffered, z: NDArray[np.float64]) -> None:
-        """Read the start ``z``, and (holding every row) A straight from the linearisation's Jacobian."""
+        """Read the start ``z``, the gradient and the rows' bounds (the first ``rows`` of them) straight from the
+        linearisation's outputs, and (holding every row) A from its Jacobian."""
         self.buf.rebind(self.fn.index_in("x0"), z)
+        self.buf.rebind(self.fn.index_in("g"), lin.res[1])
+        self.buf.rebind(self.fn.index_in("lba"), lin.res[3][: self.rows])  # a prefix: contiguous, no copy
+        self.buf.rebind(self.fn.index_in("uba"), lin.res[4][: self.rows])
         if self.full:
-            self.buf.rebind(self.fn.index_in("a"), lin.res[3])
-            self.AT = lin.res[3].reshape(self.AT.shape)
+            self.buf.rebind(self.fn.index_in("a"), lin.res[2])
+            self.AT = lin.res[2].reshape(self.AT.shape)
 
 
 class _Rti:
@@ -200,7 +213,7 @@ class _Rti:
             opts.update({"printLevel": "none", "sparse": False, "nWSR": 10 * cfg.max_iter})
         elif plugin == "daqp":
             opts.update({"daqp": {"iter_limit": 10 * cfg.max_iter}})
-        m = self.functions[0].nnz_out(2)
+        m = self.functions[0].size1_out(2)  # the rows (Jc is rows x nz)
         fixed = m - K * N  # input rates, state box, curvatures
         self.sizes = tuple(sorted({k for k in SLOT_SIZES if k < K} | {K}))
         self.qps = {k: _Qp(plugin, opts, self.nz, fixed + k * N, k == K) for k in self.sizes}
@@ -209,20 +222,18 @@ class _Rti:
         self._flag_says = plugin == "qpoases"
         self._bind(compiled or self.functions)
         self.slack_weight = cfg.slack_weight
-        # scratch arrays of each iteration (the same arithmetic as fresh temporaries, without allocating them)
-        self._zJ = np.empty(self.functions[0].nnz_out(0))
-        self._step = np.empty(self.nz)
+        self._step = np.empty(self.nz)  # scratch: the step of each QP
 
     def _bind(self, functions: Sequence[ca.Function]) -> None:
         """Evaluate the linearisation and the rollout with ``functions`` (interpreted or compiled: same results)."""
         lin, roll = functions
         self.lin, self.roll = _Buffered(lin), _Buffered(roll)
-        nz, nr, m = self.nz, lin.nnz_out(0), lin.nnz_out(2)
+        nz, nr, m = self.nz, lin.size1_out(0), lin.size1_out(2)
         self.z = self.lin.args[0]
-        # the linearisation's outputs; Jc is the full QP's A itself, the start of each QP the linearisation point
-        self.r, self.c, self.lo, self.hi = (self.lin.res[i] for i in (0, 2, 4, 5))
-        self.JrT = self.lin.res[1].reshape(nz, nr)  # Jr transposed, contiguous: BLAS reads it as it is
-        self.AT = self.lin.res[3].reshape(nz, m)
+        # the linearisation's outputs are the QPs' inputs (Jc the full QP's A itself), the start of each QP the
+        # linearisation point
+        self.JrT = self.lin.res[0].reshape(nz, nr)  # sqrt(2) Jr transposed, contiguous: BLAS reads it as it is
+        self.AT = self.lin.res[2].reshape(nz, m)
         for qp in self.qps.values():
             qp.bind(self.lin, self.z)
         self.roll.rebind(0, self.z)  # the plan: z holds the last QP's solution when the rollout runs
@@ -252,7 +263,7 @@ class _Rti:
         N, z = self.cfg.N, self.z
         need = self.cfg.max_obstacles if slots is None else slots
         qp = self.qps[next(k for k in self.sizes if k >= need)]
-        x, rows, H, g = qp.x, qp.rows, qp.H, qp.g
+        x, rows, H = qp.x, qp.rows, qp.H
         self._bounds(qp, limits)
         self.lin.args[1][:] = p
         z[: 2 * N] = U0.ravel()
@@ -261,22 +272,11 @@ class _Rti:
         status, iters = "", 0
         for _ in range(self.cfg.rti_cold_iters if cold else 1):
             self.lin()
-            # cost |r|^2 + w s + w s^2 ~ 1/2 z'Hz + g'z with H = 2 Jr'Jr (Gauss-Newton), g = 2 Jr'(r - Jr z)
+            # the QP's Hessian: 2 Jr'Jr (Gauss-Newton) + the slack penalty's; the rest is the function's output
             np.dot(self.JrT, self.JrT.T, out=H)
-            H *= 2.0
             H[-1, -1] += 2.0 * self.slack_weight
-            zJ = np.matmul(z, self.JrT, out=self._zJ)
-            np.subtract(self.r, zJ, out=zJ)
-            zJ *= 2.0
-            np.dot(self.JrT, zJ, out=g)
-            g[-1] += self.slack_weight
             if not qp.full:  # the QP's A: the linearisation's first rows
                 np.copyto(qp.AT, self.AT[:, :rows])
-            # c(z') ~ c(z) + A (z' - z): bounds on c become bounds on A z'
-            shift = np.matmul(z, qp.AT, out=qp.shift)
-            shift -= self.c[:rows]
-            np.add(self.lo[:rows], shift, out=qp.lba)
-            np.add(self.hi[:rows], shift, out=qp.uba)
             try:
                 qp.buf()
             except RuntimeError as exc:  # CasADi refuses an ill-posed QP (bounds crossed by a bad linearisation)
