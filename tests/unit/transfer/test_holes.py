@@ -94,3 +94,61 @@ def test_prepare_builds_the_sc_map_a_map_needs_and_the_map_then_builds_nothing()
             assert got[1] == alone[1]
             mapped += 1
     assert mapped >= 3
+
+
+def test_a_search_builds_an_sc_map_a_part_per_command() -> None:
+    """An SC map a hole search needs is built in three parts on three commands (QuadTransfer.in_steps): a command
+    whose own map built nothing pays at most one polygon's map (a RectangleMap) for the search, and the fills come."""
+    import transfer.scm.rectmap as rectmap
+
+    case, store = _top_speed_store()
+    t = np.array([case.true_box.v[1], 0.12])
+    p = make_policy(store, "scm", seed=0)
+    counts = {"polygon": 0, "whole": 0}
+    polygon_init, whole_init = rectmap.RectangleMap.__init__, rectmap.QuadTransfer.__init__
+
+    def polygon(self, *a, **kw) -> None:
+        counts["polygon"] += 1
+        polygon_init(self, *a, **kw)
+
+    def whole(self, *a, **kw) -> None:
+        counts["whole"] += 1
+        whole_init(self, *a, **kw)
+
+    rectmap.RectangleMap.__init__, rectmap.QuadTransfer.__init__ = polygon, whole  # type: ignore[method-assign]
+    try:
+        methods, search_parts = [], []
+        for _ in range(400):
+            counts.update(polygon=0, whole=0)
+            m = p.map(t)
+            methods.append(m.method)
+            if counts["whole"] == 0:  # the command's own map built nothing: what was built was the search's
+                search_parts.append(counts["polygon"])
+            store.add(case.learner.response(m.u_L), m.u_L)
+    finally:
+        rectmap.RectangleMap.__init__, rectmap.QuadTransfer.__init__ = polygon_init, whole_init  # type: ignore
+    assert p.searches >= 3 and methods.count("perturb") >= 3 * store.k_min
+    assert max(search_parts) == 1 and sum(search_parts) >= 6, (max(search_parts), sum(search_parts))
+
+
+def test_prepare_in_steps_builds_what_prepare_builds() -> None:
+    """ScmMapper.prepare_steps: the same map under the same key as prepare, counted once, and a map then builds
+    nothing more; a region without a map to build takes no step."""
+    from transfer.holes import run_search as run
+    from transfer.mappers import ScmMapper
+
+    _, store = _top_speed_store()
+    built_any = False
+    for t_n in np.stack(np.meshgrid(np.linspace(0.05, 0.95, 7), np.linspace(0.05, 0.95, 7)), -1).reshape(-1, 2):
+        whole, parts = ScmMapper(store), ScmMapper(store)
+        built = whole.prepare(t_n)
+        assert run(parts.prepare_steps(t_n)) == built  # run_search runs any such generator to its end
+        assert list(parts._quads) == list(whole._quads) and parts.builds == whole.builds
+        before = parts.builds
+        got, want = parts.map_normalised(t_n), whole.map_normalised(t_n)
+        assert parts.builds == before and (got is None) == (want is None)
+        if got is not None and want is not None:
+            np.testing.assert_array_equal(got[0], want[0])
+        built_any |= built
+        assert list(parts.prepare_steps(t_n)) == []  # built already: no step
+    assert built_any
