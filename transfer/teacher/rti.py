@@ -53,8 +53,14 @@ def _turn_rows(u, kappa) -> tuple:
     return tuple((u[1] - kappa[i] * u[0]) / ca.sqrt(1.0 + kappa[i] ** 2) for i in (1, 0))
 
 
-@functools.lru_cache(maxsize=8)
 def _build_rti(cfg: MpcConfig) -> tuple[ca.Function, ca.Function]:
+    """The real-time iteration's two functions (:func:`_rti_problem`)."""
+    lin, roll, _ = _rti_problem(cfg)
+    return lin, roll
+
+
+@functools.lru_cache(maxsize=8)
+def _rti_problem(cfg: MpcConfig) -> tuple[ca.Function, ca.Function, NDArray[np.float64]]:
     """The real-time iteration's two functions over z = [u_0 .. u_{N-1}, s] (single shooting) and the parameters p
     of :func:`transfer.teacher.mpc._build_nlp` (built once per configuration and shared by every MPC of a process).
     One slack s softens every obstacle row (it is the largest violation; IPOPT's problem has one per stage): with
@@ -62,14 +68,16 @@ def _build_rti(cfg: MpcConfig) -> tuple[ca.Function, ca.Function]:
     fewer QP variables make the QP about twice as fast.
 
     - ``mpc_rti_lin(z, p) -> (sqrt(2) Jr, g, Jc, lba, uba)``: the QP's data at z but its Hessian: the Jacobian of the
-      cost's residuals r (cost = |r|^2 + the slack penalty; the heading term 1 - cos e is 2 sin^2(e/2)) scaled so
-      that the Gauss-Newton Hessian is its square, the QP's gradient g, the Jacobian Jc of the rows c (input
+      cost's tracking residuals r (cost = |r|^2 + the slack penalty; the heading term 1 - cos e is 2 sin^2(e/2))
+      scaled so that their Gauss-Newton Hessian is its square, the QP's gradient g, the Jacobian Jc of the rows c (input
       rates, state box, curvatures if any, then the obstacles slot by slot) and the bounds of the linearised rows,
       lo - c + Jc z <= Jc z' <= hi - c + Jc z (an unused obstacle slot, radius <= 0, gets lo = -inf); dense.
     - ``mpc_rti_roll(z, p) -> X``: the (N + 1) x 3 states the inputs of z give from the start.
 
-    :class:`_Rti` forms the QP from them: the Gauss-Newton Hessian 2 Jr'Jr plus the slack penalty's (one BLAS
-    product), the rest as the function gives it, in place.
+    And the Hessian's fixed part: the input and input-rate residuals are linear in z, so their part of the
+    Gauss-Newton Hessian (and the slack penalty's) is the same at every z; ``sqrt(2) Jr`` holds only the tracking
+    residuals' rows, whose part changes. :class:`_Rti` forms the QP from them: the Hessian as one BLAS product of
+    those rows plus the fixed part, the rest as the function gives it, in place.
     """
     N, K = cfg.N, cfg.max_obstacles
     U, S = ca.SX.sym("U", 2, N), ca.SX.sym("S")
@@ -119,10 +127,15 @@ def _build_rti(cfg: MpcConfig) -> tuple[ca.Function, ca.Function]:
     # by forward and reverse sweeps (jtimes), not as products of the Jacobians: far less generated code
     g = 2.0 * ca.jtimes(r, z, r - ca.jtimes(r, z, z), True) + e
     jcz = ca.jtimes(c, z, z) - c
-    lin = ca.Function("mpc_rti_lin", [z, p], [math.sqrt(2.0) * ca.densify(jr), g, ca.densify(jc), lo + jcz, hi + jcz],
-                      ["z", "p"], ["jr2", "g", "jc", "lba", "uba"])
+    track = 3 * N  # the tracking residuals come first; the input and input-rate ones, linear in z, after them
+    lin = ca.Function("mpc_rti_lin", [z, p], [math.sqrt(2.0) * ca.densify(jr[:track, :]), g, ca.densify(jc),
+                                              lo + jcz, hi + jcz], ["z", "p"], ["jr2", "g", "jc", "lba", "uba"])
     roll = ca.Function("mpc_rti_roll", [z, p], [ca.horzcat(*X).T], ["z", "p"], ["x"])
-    return lin, roll
+    fixed = ca.Function("mpc_rti_fixed", [z, p], [ca.densify(jr[track:, :])])
+    j_in = np.asarray(fixed(np.zeros(z.numel()), np.zeros(p.numel())))  # constant: the same at any z and p
+    h_fixed = 2.0 * j_in.T @ j_in
+    h_fixed[-1, -1] += 2.0 * cfg.slack_weight
+    return lin, roll, h_fixed
 
 
 class _Buffered:
@@ -204,7 +217,8 @@ class _Rti:
     def __init__(self, cfg: MpcConfig, compiler: Compiler | None) -> None:
         N, K = cfg.N, cfg.max_obstacles
         self.cfg, self.nz = cfg, 2 * N + 1
-        self.functions = list(_build_rti(cfg))
+        lin, roll, self.h_fixed = _rti_problem(cfg)
+        self.functions = [lin, roll]
         compiled = compiler(self.functions) if compiler is not None else None
         self.compiled = compiled is not None
         plugin = cfg.solver.split("-", 1)[1]
@@ -221,7 +235,6 @@ class _Rti:
         #: statistics are read instead)
         self._flag_says = plugin == "qpoases"
         self._bind(compiled or self.functions)
-        self.slack_weight = cfg.slack_weight
         self._step = np.empty(self.nz)  # scratch: the step of each QP
 
     def _bind(self, functions: Sequence[ca.Function]) -> None:
@@ -272,9 +285,10 @@ class _Rti:
         status, iters = "", 0
         for _ in range(self.cfg.rti_cold_iters if cold else 1):
             self.lin()
-            # the QP's Hessian: 2 Jr'Jr (Gauss-Newton) + the slack penalty's; the rest is the function's output
+            # the QP's Hessian: 2 Jr'Jr of the tracking rows (Gauss-Newton) + the fixed part (the inputs' rows, the
+            # slack's penalty); the rest is the function's output
             np.dot(self.JrT, self.JrT.T, out=H)
-            H[-1, -1] += 2.0 * self.slack_weight
+            H += self.h_fixed
             if not qp.full:  # the QP's A: the linearisation's first rows
                 np.copyto(qp.AT, self.AT[:, :rows])
             try:
