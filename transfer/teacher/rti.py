@@ -53,21 +53,21 @@ def _turn_rows(u, kappa) -> tuple:
     return tuple((u[1] - kappa[i] * u[0]) / ca.sqrt(1.0 + kappa[i] ** 2) for i in (1, 0))
 
 
-def _build_rti(cfg: MpcConfig) -> tuple[ca.Function, ca.Function]:
-    """The real-time iteration's two functions (:func:`_rti_problem`)."""
-    lin, roll, _ = _rti_problem(cfg)
-    return lin, roll
+def _build_rti(cfg: MpcConfig) -> tuple[ca.Function, ...]:
+    """The real-time iteration's functions (:func:`_rti_problem`): a linearisation per QP size, then the rollout."""
+    return _rti_problem(cfg)[0]
 
 
 @functools.lru_cache(maxsize=8)
-def _rti_problem(cfg: MpcConfig) -> tuple[ca.Function, ca.Function, NDArray[np.float64]]:
+def _rti_problem(cfg: MpcConfig) -> tuple[tuple[ca.Function, ...], NDArray[np.float64]]:
     """The real-time iteration's two functions over z = [u_0 .. u_{N-1}, s] (single shooting) and the parameters p
     of :func:`transfer.teacher.mpc._build_nlp` (built once per configuration and shared by every MPC of a process).
     One slack s softens every obstacle row (it is the largest violation; IPOPT's problem has one per stage): with
     the same exact penalty both problems have the same solution wherever the obstacles can be avoided, and a third
     fewer QP variables make the QP about twice as fast.
 
-    - ``mpc_rti_lin(z, p) -> (sqrt(2) Jr, g, Jc, lba, uba)``: the QP's data at z but its Hessian: the Jacobian of the
+    - ``mpc_rti_lin<k>(z, p) -> (sqrt(2) Jr, g, Jc, lba, uba)``, one for each QP's number k of obstacle slots
+      (:func:`slot_sizes`), over its rows only: the QP's data at z but its Hessian: the Jacobian of the
       cost's tracking residuals r (cost = |r|^2 + the slack penalty; the heading term 1 - cos e is 2 sin^2(e/2))
       scaled so that their Gauss-Newton Hessian is its square, the QP's gradient g, the Jacobian Jc of the rows c (input
       rates, state box, curvatures if any, then the obstacles slot by slot) and the bounds of the linearised rows,
@@ -121,21 +121,27 @@ def _rti_problem(cfg: MpcConfig) -> tuple[ca.Function, ca.Function, NDArray[np.f
     # the QP's data at z, all but the Hessian (one BLAS product of the scaled Jacobian, in numpy):
     # cost |r|^2 + w s + w s^2 ~ 1/2 z'Hz + g'z with H = 2 Jr'Jr (Gauss-Newton) + 2w e e', g = 2 Jr'(r - Jr z) + w e
     # (e: the slack's unit vector); rows c(z') ~ c(z) + Jc (z' - z), so lo <= c <= hi bound Jc z' by lo - c + Jc z
-    jr, jc = ca.jacobian(r, z), ca.jacobian(c, z)
+    jr = ca.jacobian(r, z)
     e = ca.DM.zeros(2 * N + 1)
     e[2 * N] = cfg.slack_weight
     # by forward and reverse sweeps (jtimes), not as products of the Jacobians: far less generated code
     g = 2.0 * ca.jtimes(r, z, r - ca.jtimes(r, z, z), True) + e
-    jcz = ca.jtimes(c, z, z) - c
     track = 3 * N  # the tracking residuals come first; the input and input-rate ones, linear in z, after them
-    lin = ca.Function("mpc_rti_lin", [z, p], [math.sqrt(2.0) * ca.densify(jr[:track, :]), g, ca.densify(jc),
-                                              lo + jcz, hi + jcz], ["z", "p"], ["jr2", "g", "jc", "lba", "uba"])
+    jr2 = math.sqrt(2.0) * ca.densify(jr[:track, :])
+    fixed_rows = c.numel() - K * N
+    lins = []
+    for k in slot_sizes(K):  # a linearisation per QP, of its rows only: the generated code of fewer slots is smaller
+        n = fixed_rows + k * N
+        ck = c[:n]
+        jcz = ca.jtimes(ck, z, z) - ck
+        out = [jr2, g, ca.densify(ca.jacobian(ck, z)), lo[:n] + jcz, hi[:n] + jcz]
+        lins.append(ca.Function(f"mpc_rti_lin{k}", [z, p], out, ["z", "p"], ["jr2", "g", "jc", "lba", "uba"]))
     roll = ca.Function("mpc_rti_roll", [z, p], [ca.horzcat(*X).T], ["z", "p"], ["x"])
     fixed = ca.Function("mpc_rti_fixed", [z, p], [ca.densify(jr[track:, :])])
     j_in = np.asarray(fixed(np.zeros(z.numel()), np.zeros(p.numel())))  # constant: the same at any z and p
     h_fixed = 2.0 * j_in.T @ j_in
     h_fixed[-1, -1] += 2.0 * cfg.slack_weight
-    return lin, roll, h_fixed
+    return (*lins, roll), h_fixed
 
 
 class _Buffered:
@@ -175,8 +181,14 @@ class _Buffered:
 
 #: the obstacle slots a QP may hold: the QP of a tick holds the fewest of these that fit the slots in use (up to
 #: the configuration's ``max_obstacles``, always one of them). Each is a solver of its own, made with the MPC (about
-#: 0.15-0.3 MB each): few sizes, for the common cases (no obstacle within the horizon's reach, or one or two)
+#: 0.15-0.3 MB each), and a linearisation of its own: few sizes, for the common cases (no obstacle within the
+#: horizon's reach, or one or two)
 SLOT_SIZES = (0, 2)
+
+
+def slot_sizes(max_obstacles: int) -> tuple[int, ...]:
+    """The obstacle slots of each QP of an MPC with ``max_obstacles`` slots (:data:`SLOT_SIZES`), fewest first."""
+    return tuple(sorted({k for k in SLOT_SIZES if k < max_obstacles} | {max_obstacles}))
 
 
 class _Qp:
@@ -184,28 +196,29 @@ class _Qp:
     obstacle rows), its data written in place into its input arrays (CasADi's dense matrices are column-major:
     the numpy views are transposes of the flat buffers). Each keeps its own working set from solve to solve."""
 
-    def __init__(self, plugin: str, opts: dict, nz: int, rows: int, full: bool) -> None:
-        self.rows, self.full = rows, full
+    def __init__(self, plugin: str, opts: dict, nz: int, rows: int) -> None:
+        self.rows = rows
         self.fn = ca.conic(f"mpc_rti_{rows}", plugin,
                            {"h": ca.Sparsity.dense(nz, nz), "a": ca.Sparsity.dense(rows, nz)}, opts)
         self.buf = _Buffered(self.fn)
-        arg = {name: self.buf.args[self.fn.index_in(name)] for name in ("h", "lbx", "ubx", "a")}
+        arg = {name: self.buf.args[self.fn.index_in(name)] for name in ("h", "lbx", "ubx")}
         self.H = arg["h"].reshape(nz, nz)  # symmetric: its layout does not matter
         self.lbx, self.ubx = arg["lbx"], arg["ubx"]
-        self.AT = arg["a"].reshape(nz, rows)  # A transposed: the first rows of the linearisation's (when not full)
         self.x = self.buf.res[0]
+        self.lin: _Buffered | None = None  # the linearisation of these rows (bind)
+        self.JrT = np.zeros((nz, 0))
         self.bounds_of: tuple | None = None
 
-    def bind(self, lin: _Buffered, z: NDArray[np.float64]) -> None:
-        """Read the start ``z``, the gradient and the rows' bounds (the first ``rows`` of them) straight from the
-        linearisation's outputs, and (holding every row) A from its Jacobian."""
+    def bind(self, lin: ca.Function, z: NDArray[np.float64], p: NDArray[np.float64]) -> None:
+        """Linearise with ``lin`` (this QP's rows) at the start ``z`` for the parameters ``p``, and read A, the
+        gradient and the rows' bounds straight from its outputs (no copy)."""
+        self.lin = _Buffered(lin)
+        self.lin.rebind(0, z)
+        self.lin.rebind(1, p)
+        self.JrT = self.lin.res[0].reshape(z.size, lin.size1_out(0))  # sqrt(2) Jr transposed: BLAS reads it as it is
         self.buf.rebind(self.fn.index_in("x0"), z)
-        self.buf.rebind(self.fn.index_in("g"), lin.res[1])
-        self.buf.rebind(self.fn.index_in("lba"), lin.res[3][: self.rows])  # a prefix: contiguous, no copy
-        self.buf.rebind(self.fn.index_in("uba"), lin.res[4][: self.rows])
-        if self.full:
-            self.buf.rebind(self.fn.index_in("a"), lin.res[2])
-            self.AT = lin.res[2].reshape(self.AT.shape)
+        for name, i in (("g", 1), ("a", 2), ("lba", 3), ("uba", 4)):
+            self.buf.rebind(self.fn.index_in(name), self.lin.res[i])
 
 
 class _Rti:
@@ -217,8 +230,8 @@ class _Rti:
     def __init__(self, cfg: MpcConfig, compiler: Compiler | None) -> None:
         N, K = cfg.N, cfg.max_obstacles
         self.cfg, self.nz = cfg, 2 * N + 1
-        lin, roll, self.h_fixed = _rti_problem(cfg)
-        self.functions = [lin, roll]
+        functions, self.h_fixed = _rti_problem(cfg)
+        self.functions = list(functions)
         compiled = compiler(self.functions) if compiler is not None else None
         self.compiled = compiled is not None
         plugin = cfg.solver.split("-", 1)[1]
@@ -227,10 +240,9 @@ class _Rti:
             opts.update({"printLevel": "none", "sparse": False, "nWSR": 10 * cfg.max_iter})
         elif plugin == "daqp":
             opts.update({"daqp": {"iter_limit": 10 * cfg.max_iter}})
-        m = self.functions[0].size1_out(2)  # the rows (Jc is rows x nz)
-        fixed = m - K * N  # input rates, state box, curvatures
-        self.sizes = tuple(sorted({k for k in SLOT_SIZES if k < K} | {K}))
-        self.qps = {k: _Qp(plugin, opts, self.nz, fixed + k * N, k == K) for k in self.sizes}
+        self.sizes = slot_sizes(K)
+        self.qps = {k: _Qp(plugin, opts, self.nz, lin.size1_out(2)) for k, lin in zip(self.sizes, self.functions)}
+        self.z, self.p = np.zeros(self.nz), np.zeros(self.functions[0].nnz_in(1))  # every linearisation's inputs
         #: success read from the return flag (qpOASES sets it; DAQP's plugin returns 0 on a failure too, so its
         #: statistics are read instead)
         self._flag_says = plugin == "qpoases"
@@ -238,19 +250,14 @@ class _Rti:
         self._step = np.empty(self.nz)  # scratch: the step of each QP
 
     def _bind(self, functions: Sequence[ca.Function]) -> None:
-        """Evaluate the linearisation and the rollout with ``functions`` (interpreted or compiled: same results)."""
-        lin, roll = functions
-        self.lin, self.roll = _Buffered(lin), _Buffered(roll)
-        nz, nr, m = self.nz, lin.size1_out(0), lin.size1_out(2)
-        self.z = self.lin.args[0]
-        # the linearisation's outputs are the QPs' inputs (Jc the full QP's A itself), the start of each QP the
-        # linearisation point
-        self.JrT = self.lin.res[0].reshape(nz, nr)  # sqrt(2) Jr transposed, contiguous: BLAS reads it as it is
-        self.AT = self.lin.res[2].reshape(nz, m)
-        for qp in self.qps.values():
-            qp.bind(self.lin, self.z)
+        """Evaluate the linearisations and the rollout with ``functions`` (interpreted or compiled: same results);
+        each QP reads its linearisation's outputs, the start of each QP is the linearisation point."""
+        *lins, roll = functions
+        for qp, lin in zip(self.qps.values(), lins):
+            qp.bind(lin, self.z, self.p)
+        self.roll = _Buffered(roll)
         self.roll.rebind(0, self.z)  # the plan: z holds the last QP's solution when the rollout runs
-        self.roll.rebind(1, self.lin.args[1])
+        self.roll.rebind(1, self.p)
 
     def use(self, functions: Sequence[ca.Function]) -> None:
         """Switch to compiled equivalents of :attr:`functions` (between two solves)."""
@@ -276,21 +283,20 @@ class _Rti:
         N, z = self.cfg.N, self.z
         need = self.cfg.max_obstacles if slots is None else slots
         qp = self.qps[next(k for k in self.sizes if k >= need)]
-        x, rows, H = qp.x, qp.rows, qp.H
+        x, H, lin = qp.x, qp.H, qp.lin
+        assert lin is not None
         self._bounds(qp, limits)
-        self.lin.args[1][:] = p
+        self.p[:] = p
         z[: 2 * N] = U0.ravel()
         z[2 * N] = 0.0
         np.minimum(np.maximum(z, qp.lbx, out=z), qp.ubx, out=z)  # = np.clip, without its wrapper
         status, iters = "", 0
         for _ in range(self.cfg.rti_cold_iters if cold else 1):
-            self.lin()
+            lin()
             # the QP's Hessian: 2 Jr'Jr of the tracking rows (Gauss-Newton) + the fixed part (the inputs' rows, the
             # slack's penalty); the rest is the function's output
-            np.dot(self.JrT, self.JrT.T, out=H)
+            np.dot(qp.JrT, qp.JrT.T, out=H)
             H += self.h_fixed
-            if not qp.full:  # the QP's A: the linearisation's first rows
-                np.copyto(qp.AT, self.AT[:, :rows])
             try:
                 qp.buf()
             except RuntimeError as exc:  # CasADi refuses an ill-posed QP (bounds crossed by a bad linearisation)
