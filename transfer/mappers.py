@@ -22,7 +22,6 @@ normalised learner command, or ``None`` when the mapper has no region for ``t`` 
 from __future__ import annotations
 
 from collections import OrderedDict
-from collections.abc import Generator
 from typing import Protocol
 
 import numpy as np
@@ -237,9 +236,6 @@ class ScmMapper(_Triangulated):
             self.builds += 1
         except ValueError:
             qt = None
-        return self._keep(key, qt)
-
-    def _keep(self, key: tuple, qt: QuadTransfer | None) -> QuadTransfer | None:
         self._quads[key] = qt
         if len(self._quads) > self.cache_size:
             self._quads.popitem(last=False)
@@ -269,25 +265,6 @@ class ScmMapper(_Triangulated):
             if key in self._quads:
                 return False
             self._transfer(quad, key)
-            return True
-        return False
-
-    def prepare_steps(self, t: NDArray[np.float64]) -> Generator[None, None, bool]:
-        """:meth:`prepare` in steps: a generator that yields between the build's steps
-        (:meth:`transfer.scm.rectmap.QuadTransfer.in_steps`) and returns whether it built one. The map it builds is
-        kept under the key of the pairs it was built from (their ids and versions), so one whose pairs moved
-        meanwhile is never used for the new ones."""
-        self._sync()
-        s = self._simplex(t)
-        for quad, key in self._candidates_of(s) if s >= 0 else ():
-            if key in self._quads:
-                return False
-            try:
-                qt: QuadTransfer | None = yield from QuadTransfer.in_steps(self.T[list(quad)], self.L[list(quad)])
-                self.builds += 1
-            except ValueError:
-                qt = None
-            self._keep(key, qt)
             return True
         return False
 

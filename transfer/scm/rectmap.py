@@ -27,7 +27,7 @@ Numerical choices (each re-derived and tested, see tests/unit/transfer/scm/test_
 from __future__ import annotations
 
 import math
-from collections.abc import Generator, Sequence
+from collections.abc import Sequence
 
 import numpy as np
 import scipy.optimize
@@ -415,32 +415,12 @@ class QuadTransfer:
     def __init__(
         self, teacher_vertices: ArrayLike, learner_vertices: ArrayLike, corners: Sequence[int] = (0, 1, 2, 3)
     ) -> None:
-        for _ in self._build(teacher_vertices, learner_vertices, corners, tables=False):
-            pass
-
-    def _build(self, teacher_vertices: ArrayLike, learner_vertices: ArrayLike, corners: Sequence[int],
-               tables: bool) -> Generator[None, None, None]:
         self.teacher = RectangleMap(teacher_vertices, corners)  # each validates its polygon
-        yield
         self.learner = RectangleMap(learner_vertices, corners)
         nt, nl = self.teacher.vertices.size, self.learner.vertices.size
         if nt != nl:
             raise ValueError(f"teacher and learner polygons need the same number of vertices ({nt} != {nl})")
         self._kt: tuple | None = None
-        if tables:  # else made by the first call
-            yield
-            self._kt = (self.teacher._ktuple(), self.learner._ktuple(inverse=False))
-
-    @classmethod
-    def in_steps(cls, teacher_vertices: ArrayLike, learner_vertices: ArrayLike,
-                 corners: Sequence[int] = (0, 1, 2, 3)) -> Generator[None, None, QuadTransfer]:
-        """The same transfer built in three steps, a generator that yields between them and returns it: the
-        teacher's map, the learner's, and the tables the first call would make (the inverse's start table). A caller
-        that cuts its work into short steps (:mod:`transfer.holes`) builds one step per command; raises as the
-        constructor does."""
-        qt = cls.__new__(cls)
-        yield from qt._build(teacher_vertices, learner_vertices, corners, tables=True)
-        return qt
 
     def __call__(self, u_T: ArrayLike, *, outside: str = "raise") -> NDArray:
         if outside not in ("raise", "nan"):

@@ -406,28 +406,3 @@ def test_an_edit_to_one_kernel_file_recompiles_a_caller_in_another(tmp_path: Pat
     assert list((tmp_path / "cache").rglob("scm_caller_k.f-*.nbc"))  # the caller really was cached
     (tmp_path / "scm_callee_k.py").write_text("from numba import njit\n\n@njit(cache=True)\ndef g():\n    return 2\n")
     assert run() == "2"
-
-
-def test_a_transfer_built_in_steps_is_the_constructors_bit_for_bit() -> None:
-    """QuadTransfer.in_steps (a hole search builds one part per command): three parts, two yields between them, and
-    the transfer it returns maps every point as the constructor's does, bit for bit; a bad polygon raises as the
-    constructor does."""
-    rng = np.random.default_rng(5)
-    pts = np.stack(np.meshgrid(np.linspace(-0.1, 1.1, 13), np.linspace(-0.1, 1.1, 13)), -1).reshape(-1, 2)
-    for _ in range(5):
-        T = np.array([[0, 0], [1, 0], [1, 1], [0, 1]], float) + rng.uniform(-0.15, 0.15, (4, 2))
-        L = T * [1.3, 0.8] + rng.uniform(-0.1, 0.1, (4, 2))
-        steps, parts = QuadTransfer.in_steps(T, L), 0
-        while True:
-            try:
-                next(steps)
-                parts += 1
-            except StopIteration as done:
-                stepped = done.value
-                break
-        assert parts == 2 and isinstance(stepped, QuadTransfer)
-        np.testing.assert_array_equal(stepped(pts, outside="nan"), QuadTransfer(T, L)(pts, outside="nan"))
-    bowtie = np.array([[0, 0], [1, 1], [1, 0], [0, 1]], float)
-    with pytest.raises(ValueError):
-        for _ in QuadTransfer.in_steps(bowtie, bowtie):
-            pass
