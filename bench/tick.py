@@ -17,7 +17,9 @@ proposal: references, obstacles, the solve), ``transfer`` (the transfer step's m
 limits and the store's periodic save), ``encode`` (the outputs to bytes), ``core_rest`` (the rest of the core's
 tick: reordering, fitness, mission control, building the messages). ``process_ms_per_tick``: the whole process's
 CPU per tick, less the simulated robots' share (with the writer threads' saves, which the station writes off the tick
-as here; ``saves_written``: how many they wrote).
+as here; ``saves_written``: how many they wrote). ``reference_ratio``: how long ``bench perf``'s reference workload
+took right before and right after the run, as a multiple of its time on the machine its targets were set on (a
+reader scales the figures by it to compare machines or loads).
 
 What a tick costs depends on how warm the caches are, so the figures of one run are only comparable with another
 run of the same options: back to back (the default) every cache is warm; ``--paced`` sleeps to each tick's
@@ -233,11 +235,14 @@ class _Rig:
 
 def run(args: argparse.Namespace) -> int:
     """The bench (module docstring); the pair stores and the mission in a temporary directory, removed after."""
+    from bench.perf import REFERENCE_S, reference_seconds
     from bridge.teacher.codegen import native_stdout_to_stderr
 
+    before = reference_seconds() / REFERENCE_S
     # qpOASES prints its banner on file descriptor 1 when a solver's memory is made: kept off the JSON
     with tempfile.TemporaryDirectory(prefix="scmbridge-bench-tick-") as tmp, native_stdout_to_stderr():
         res = _run(args, Path(tmp))
+    res["reference_ratio"] = [round(before, 2), round(reference_seconds() / REFERENCE_S, 2)]
     emit(res)
     return 0
 

@@ -79,3 +79,30 @@ def curve_speed(points: np.ndarray, s_cum: np.ndarray, seg_len: np.ndarray, curv
             v = min(v, margin * min(w_lo, 0.0) / k)
         i += 1
     return max(v, v_min)
+
+
+@njit(cache=True, error_model="numpy")
+def nearest_obstacles(obstacles: np.ndarray, x: float, y: float, reach: float, slots: np.ndarray) -> tuple[int, int]:
+    """The obstacles (rows x, y, radius) whose clearance from (x, y) (centre distance less radius) is at most
+    ``reach``, nearest first (a stable sort: of equal clearances the first listed first), written into the rows of
+    ``slots`` (an unused slot: 0, 0, -1); returns (how many were written, how many within reach did not fit)."""
+    n = obstacles.shape[0]
+    near = np.empty(n, dtype=np.int64)
+    clear = np.empty(n)
+    m = 0
+    for i in range(n):
+        c = math.hypot(obstacles[i, 0] - x, obstacles[i, 1] - y) - obstacles[i, 2]
+        if c <= reach:
+            j = m  # insertion: after every kept one of no larger clearance
+            while j > 0 and clear[j - 1] > c:
+                clear[j], near[j] = clear[j - 1], near[j - 1]
+                j -= 1
+            clear[j], near[j] = c, i
+            m += 1
+    k = min(m, slots.shape[0])
+    for j in range(slots.shape[0]):
+        if j < k:
+            slots[j, 0], slots[j, 1], slots[j, 2] = obstacles[near[j], 0], obstacles[near[j], 1], obstacles[near[j], 2]
+        else:
+            slots[j, 0], slots[j, 1], slots[j, 2] = 0.0, 0.0, -1.0
+    return k, m - k

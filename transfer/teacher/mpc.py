@@ -38,9 +38,8 @@ Pure: no clocks, no files; the caller times ``solve``.
 
 from __future__ import annotations
 
-import functools
 import math
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import casadi as ca
@@ -50,6 +49,7 @@ from numpy.typing import NDArray
 from transfer.domain import Bounds
 from transfer.teacher import _refs
 from transfer.teacher.path import Polyline
+from transfer.teacher.rti import Compiler, _Rti, _turn_rows
 from transfer.teacher.unicycle import euler, step
 
 
@@ -92,11 +92,12 @@ class MpcConfig:
 #: a curvature this large (rad/m) bounds nothing a teacher's range allows: an unknown side (infinite) is given as it
 CURVATURE_FREE = 1e3
 
+#: an obstacle list with none in it (rows x, y, radius)
+_NO_OBSTACLES = np.zeros((0, 3))
+
 #: the ways to solve the MPC (module docstring); "ipopt" is the reference
 SOLVERS = ("ipopt", "rti-qpoases", "rti-daqp")
 
-#: turns CasADi functions into faster equivalents (generated, compiled code) or returns None to keep them as they are
-Compiler = Callable[[Sequence[ca.Function]], "Sequence[ca.Function] | None"]
 
 
 @dataclass
@@ -165,13 +166,6 @@ def _build_nlp(cfg: MpcConfig) -> tuple[dict, _Rows]:
     return {"x": ca.vertcat(*w), "f": cost, "g": ca.vertcat(*rows.g), "p": p}, rows
 
 
-def _turn_rows(u, kappa) -> tuple:
-    """A learner that cannot turn in place: the rows ``omega - k_hi v`` (<= 0) and ``omega - k_lo v`` (>= 0) of one
-    stage's input ``u``, each scaled to a unit normal (a side not learned yet has a slope of
-    :data:`CURVATURE_FREE`: its row stays well conditioned, and inactive)."""
-    return tuple((u[1] - kappa[i] * u[0]) / ca.sqrt(1.0 + kappa[i] ** 2) for i in (1, 0))
-
-
 def _obstacle_rows(rows: _Rows, cfg: MpcConfig, xk, sk, obs) -> None:
     """Obstacle constraints of one stage, softened by the stage's slack (an exact L1 penalty): a vehicle that
     cannot stop (v_min > 0) must still get the least-bad plan, not an infeasible problem. An unused slot has
@@ -219,7 +213,9 @@ class _Ipopt:
         self.lam_g = None
 
     def solve(self, p: NDArray[np.float64], state: NDArray[np.float64], U0: NDArray[np.float64], limits: Bounds,
-              cold: bool) -> tuple[bool, str, int, NDArray[np.float64], NDArray[np.float64]]:
+              cold: bool, slots: int | None = None) -> tuple[bool, str, int, NDArray[np.float64], NDArray[np.float64]]:
+        """The NLP from ``U0`` (``slots``, the obstacle slots in use, is the real-time iteration's concern: every
+        slot's rows are in the NLP)."""
         cfg = self.cfg
         X0 = np.zeros((cfg.N + 1, 3))
         X0[0] = state
@@ -249,208 +245,6 @@ class _Ipopt:
         return ok, str(stats.get("return_status", "")), int(stats.get("iter_count", 0)), xopt[self.iu], xopt[self.ix]
 
 
-@functools.lru_cache(maxsize=8)
-def _build_rti(cfg: MpcConfig) -> tuple[ca.Function, ca.Function]:
-    """The real-time iteration's two functions over z = [u_0 .. u_{N-1}, s] (single shooting) and the parameters p
-    of :func:`_build_nlp` (built once per configuration and shared by every MPC of a process). One slack s softens
-    every obstacle row (it is the largest violation; IPOPT's problem has one per stage): with the same exact penalty
-    both problems have the same solution wherever the obstacles can be avoided, and a third fewer QP variables make
-    the QP about twice as fast.
-
-    - ``mpc_rti_lin(z, p) -> (r, Jr, c, Jc, lo, hi)``: the cost's residuals r (cost = |r|^2 + the slack penalty; the
-      heading term 1 - cos e is 2 sin^2(e/2)), the rows c (input rates, obstacles, state box) with their bounds
-      lo <= c <= hi (an unused obstacle slot, radius <= 0, gets lo = -inf), and both Jacobians, dense.
-    - ``mpc_rti_roll(z, p) -> X``: the (N + 1) x 3 states the inputs of z give from the start.
-
-    :class:`_Rti` forms the QP from them: Gauss-Newton Hessian 2 Jr'Jr, the slack penalty exactly, the rows
-    linearised at z.
-    """
-    N, K = cfg.N, cfg.max_obstacles
-    U, S = ca.SX.sym("U", 2, N), ca.SX.sym("S")
-    x0, refs, u_prev = ca.SX.sym("x0", 3), ca.SX.sym("refs", 3, N + 1), ca.SX.sym("u_prev", 2)
-    obs = ca.SX.sym("obs", 3, K)
-    kappa = ca.SX.sym("kappa", 2 if cfg.turn_needs_speed else 0)
-    z = ca.vertcat(ca.vec(U), S)
-    p = ca.vertcat(x0, ca.vec(refs), u_prev, ca.vec(obs), kappa)
-    X = [x0]
-    for k in range(N):
-        X.append(ca.vertcat(*euler(X[-1][0], X[-1][1], X[-1][2], U[0, k], U[1, k], cfg.dt, ca.cos, ca.sin)))
-    res, rate = [], []
-    for k in range(1, N + 1):
-        q = math.sqrt(cfg.q_terminal if k == N else cfg.q_pos)
-        res += [q * (X[k][0] - refs[0, k]), q * (X[k][1] - refs[1, k]),
-                math.sqrt(2 * cfg.q_heading) * ca.sin((X[k][2] - refs[2, k]) / 2)]
-    for k in range(N):
-        du = U[:, k] - (u_prev if k == 0 else U[:, k - 1])
-        res += [math.sqrt(cfg.r_u) * U[0, k], math.sqrt(cfg.r_u) * U[1, k],
-                math.sqrt(cfg.r_du) * du[0], math.sqrt(cfg.r_du) * du[1]]
-        rate += [du[0], du[1]]
-    r = ca.vertcat(*res)
-    obstacle, obstacle_lo = [], []
-    for k in range(1, N + 1):
-        for j in range(K):
-            obstacle.append((X[k][0] - obs[0, j]) ** 2 + (X[k][1] - obs[1, j]) ** 2 + S)
-            rr = obs[2, j] + cfg.obstacle_margin
-            obstacle_lo.append(ca.if_else(obs[2, j] > 0, rr**2, -ca.inf))
-    box = [c for k in range(1, N + 1) for c in (X[k][0], X[k][1])]
-    # a learner that cannot turn in place: omega - k_hi v <= 0 <= omega - k_lo v at every stage
-    turn = [c for k in range(N) for c in _turn_rows(U[:, k], kappa)] if cfg.turn_needs_speed else []
-    c = ca.vertcat(*rate, *obstacle, *box, *turn)
-    dmax = np.tile(np.asarray(cfg.du_max, dtype=float), N)
-    xb = cfg.state_box
-    lo = ca.vertcat(ca.DM(-dmax), *obstacle_lo, ca.DM(np.tile([xb[0], xb[2]], N)),
-                    ca.DM(np.tile([-np.inf, 0.0], N if turn else 0)))
-    hi = ca.vertcat(ca.DM(dmax), ca.inf * ca.DM.ones(K * N), ca.DM(np.tile([xb[1], xb[3]], N)),
-                    ca.DM(np.tile([0.0, np.inf], N if turn else 0)))
-    lin = ca.Function("mpc_rti_lin", [z, p], [r, ca.densify(ca.jacobian(r, z)), c, ca.densify(ca.jacobian(c, z)),
-                                              lo, hi], ["z", "p"], ["r", "jr", "c", "jc", "lo", "hi"])
-    roll = ca.Function("mpc_rti_roll", [z, p], [ca.horzcat(*X).T], ["z", "p"], ["x"])
-    return lin, roll
-
-
-class _Buffered:
-    """A CasADi function evaluated in place on numpy arrays (``Function.buffer``): no conversion per call, which
-    costs more than the evaluation itself for matrices of this size."""
-
-    def __init__(self, fn: ca.Function) -> None:
-        self.fn = fn
-        self.args = [np.zeros(fn.nnz_in(i)) for i in range(fn.n_in())]
-        self.res = [np.zeros(fn.nnz_out(i)) for i in range(fn.n_out())]
-        self._buf, self._eval = fn.buffer()
-        for i, a in enumerate(self.args):
-            self._buf.set_arg(i, memoryview(a))
-        for i, a in enumerate(self.res):
-            self._buf.set_res(i, memoryview(a))
-
-    def rebind(self, i: int, array: NDArray[np.float64]) -> None:
-        """Make input ``i`` read ``array`` (another buffer's array: no copy between the two)."""
-        if array.size != self.args[i].size:
-            raise ValueError(f"input {i} of {self.fn.name()} holds {self.args[i].size} numbers, not {array.size}")
-        self.args[i] = array
-        self._buf.set_arg(i, memoryview(array))
-
-    def __call__(self) -> None:
-        self._eval()
-
-    def stats(self) -> dict:
-        """The solver's statistics of the last evaluation (``success``, ``return_status``, ...)."""
-        return self._buf.stats()
-
-
-class _Rti:
-    """Real-time iteration (module docstring): one QP per tick on the problem linearised at the shifted plan. The
-    QP's data are written in place into the solver's input arrays (CasADi's dense matrices are column-major: the
-    numpy views below are transposes of the flat buffers)."""
-
-    def __init__(self, cfg: MpcConfig, compiler: Compiler | None) -> None:
-        N = cfg.N
-        self.cfg, self.nz = cfg, 2 * N + 1
-        self.functions = list(_build_rti(cfg))
-        compiled = compiler(self.functions) if compiler is not None else None
-        self._bind(compiled or self.functions)
-        self.compiled = compiled is not None
-        plugin = cfg.solver.split("-", 1)[1]
-        opts: dict = {"error_on_fail": False}
-        if plugin == "qpoases":
-            opts.update({"printLevel": "none", "sparse": False, "nWSR": 10 * cfg.max_iter})
-        elif plugin == "daqp":
-            opts.update({"daqp": {"iter_limit": 10 * cfg.max_iter}})
-        m, nz = self.lin.fn.nnz_out(2), self.nz
-        self.qp_fn = ca.conic("mpc_rti", plugin, {"h": ca.Sparsity.dense(nz, nz), "a": ca.Sparsity.dense(m, nz)},
-                              opts)
-        self.qp = _Buffered(self.qp_fn)
-        self._bind_qp()
-        self.slack_weight = cfg.slack_weight
-        self.bounds_of: tuple | None = None
-        # scratch arrays of each iteration (the same arithmetic as fresh temporaries, without allocating them)
-        nr = self.lin.fn.nnz_out(0)
-        self._zJ = np.empty(nr)
-        self._shift = np.empty(m)
-        self._step = np.empty(nz)
-
-    def _bind(self, functions: Sequence[ca.Function]) -> None:
-        """Evaluate the linearisation and the rollout with ``functions`` (interpreted or compiled: same results)."""
-        lin, roll = functions
-        self.lin, self.roll = _Buffered(lin), _Buffered(roll)
-        nz, nr, m = self.nz, lin.nnz_out(0), lin.nnz_out(2)
-        self.z = self.lin.args[0]
-        # the linearisation's outputs; Jc is the QP's A itself, the start of each QP the linearisation point
-        self.r, self.c, self.lo, self.hi = (self.lin.res[i] for i in (0, 2, 4, 5))
-        self.JrT = self.lin.res[1].reshape(nz, nr)  # Jr transposed, contiguous: BLAS reads it as it is
-        self.AT = self.lin.res[3].reshape(nz, m)
-
-    def use(self, functions: Sequence[ca.Function]) -> None:
-        """Switch to compiled equivalents of :attr:`functions` (between two solves)."""
-        self._bind(functions)
-        self._bind_qp()  # the QP reads the new linearisation's buffers
-        self.compiled = True
-
-    def _bind_qp(self) -> None:
-        nz = self.nz
-        arg = {name: self.qp.args[self.qp_fn.index_in(name)] for name in ("h", "g", "lba", "uba", "lbx", "ubx")}
-        self.H = arg["h"].reshape(nz, nz)  # symmetric: its layout does not matter
-        self.g, self.lba, self.uba, self.lbx, self.ubx = arg["g"], arg["lba"], arg["uba"], arg["lbx"], arg["ubx"]
-        self.qp.rebind(self.qp_fn.index_in("a"), self.lin.res[3])
-        self.qp.rebind(self.qp_fn.index_in("x0"), self.z)
-        self.roll.rebind(0, self.qp.res[0])
-        self.roll.rebind(1, self.lin.args[1])
-
-    def reset(self) -> None:
-        """Nothing to forget: the solver's working set is only a starting guess."""
-
-    def _bounds(self, limits: Bounds) -> None:
-        key = (limits.v, limits.w)
-        if key != self.bounds_of:  # the learned limits moved (often while the store fills)
-            N = self.cfg.N
-            self.lbx[: 2 * N].reshape(N, 2)[:] = limits.lo  # = np.tile(limits.lo, N), in place
-            self.ubx[: 2 * N].reshape(N, 2)[:] = limits.hi
-            self.lbx[2 * N:], self.ubx[2 * N:] = 0.0, np.inf
-            self.bounds_of = key
-
-    def solve(self, p: NDArray[np.float64], state: NDArray[np.float64], U0: NDArray[np.float64], limits: Bounds,
-              cold: bool) -> tuple[bool, str, int, NDArray[np.float64], NDArray[np.float64]]:
-        N, z, x = self.cfg.N, self.z, self.qp.res[0]
-        self._bounds(limits)
-        self.lin.args[1][:] = p
-        z[: 2 * N] = U0.ravel()
-        z[2 * N] = 0.0
-        np.minimum(np.maximum(z, self.lbx, out=z), self.ubx, out=z)  # = np.clip, without its wrapper
-        status, iters = "", 0
-        for _ in range(self.cfg.rti_cold_iters if cold else 1):
-            self.lin()
-            # cost |r|^2 + w s + w s^2 ~ 1/2 z'Hz + g'z with H = 2 Jr'Jr (Gauss-Newton), g = 2 Jr'(r - Jr z)
-            np.dot(self.JrT, self.JrT.T, out=self.H)
-            self.H *= 2.0
-            self.H[-1, -1] += 2.0 * self.slack_weight
-            zJ = np.matmul(z, self.JrT, out=self._zJ)
-            np.subtract(self.r, zJ, out=zJ)
-            zJ *= 2.0
-            np.dot(self.JrT, zJ, out=self.g)
-            self.g[-1] += self.slack_weight
-            # c(z') ~ c(z) + A (z' - z): bounds on c become bounds on A z'
-            shift = np.matmul(z, self.AT, out=self._shift)
-            shift -= self.c
-            np.add(self.lo, shift, out=self.lba)
-            np.add(self.hi, shift, out=self.uba)
-            try:
-                self.qp()
-            except RuntimeError as exc:  # CasADi refuses an ill-posed QP (bounds crossed by a bad linearisation)
-                return False, f"QP: {str(exc).splitlines()[-1][:120]}", iters, U0, np.zeros((N + 1, 3))
-            stats = self.qp.stats()
-            iters += 1
-            if stats.get("success", False):
-                d = np.subtract(x, z, out=self._step)
-                moved = float(np.abs(d, out=d).max())  # not finite exactly when x is not (z is finite)
-            if not stats.get("success", False) or not math.isfinite(moved):
-                return False, f"QP: {stats.get('return_status', 'failed')}", iters, U0, np.zeros((N + 1, 3))
-            z[:] = x
-            if moved < 1e-5:
-                break
-        status = f"rti cold ({iters} QPs)" if cold else "rti"
-        self.roll()
-        return True, status, iters, x[: 2 * N].reshape(N, 2).copy(), self.roll.res[0].reshape(3, N + 1).T.copy()
-
-
 class MpcTeacher:
     """Step-wise MPC: ``solve(state, path, limits)`` each control tick (see the module docstring). ``compiler``
     (real-time iteration only) builds the QP's data function into generated code once."""
@@ -461,6 +255,7 @@ class MpcTeacher:
         # the references' compiled loop loaded (or compiled, once per machine) now, not in the first tick
         _refs.references(np.array([[0.0, 0.0], [1.0, 0.0]]), np.array([0.0, 1.0]), np.array([1.0]), np.zeros(1),
                          0.0, 0.0, 0.0, 0.1, 2)
+        _refs.nearest_obstacles(np.zeros((1, 3)), 0.0, 0.0, 1.0, np.empty((1, 3)))  # likewise the obstacles' loop
         if cfg.curve_margin > 0.0:  # likewise the slowing for bends, where it is used
             _refs.curve_speed(np.array([[0.0, 0.0], [1.0, 0.0]]), np.array([0.0, 1.0]), np.array([1.0]), np.zeros(2),
                               0.0, 0.0, 1.0, 0.1, -1.0, 1.0, 0.9, 1.0)
@@ -509,15 +304,17 @@ class MpcTeacher:
         """The obstacles the NLP's ``max_obstacles`` slots hold: the nearest (by clearance) of those within reach
         of this horizon (the distance the top speed covers in N steps, plus the margin), and how many obstacles
         within reach did not fit (the caller reports them; none is ever dropped silently)."""
-        if obstacles is None or len(obstacles) == 0:
-            return np.zeros((0, 3)), 0
-        o = np.asarray(obstacles, dtype=float).reshape(-1, 3)
-        clearance = np.hypot(o[:, 0] - state[0], o[:, 1] - state[1]) - o[:, 2]
+        slots = np.empty((self.cfg.max_obstacles, 3))
+        kept, dropped = self._nearest(state, obstacles, limits, slots)
+        return slots[:kept], dropped
+
+    def _nearest(self, state: NDArray[np.float64], obstacles: NDArray[np.float64] | None, limits: Bounds,
+                 slots: NDArray[np.float64]) -> tuple[int, int]:
+        """:meth:`obstacles_that_matter` written into ``slots`` (the parameter vector's rows; the unused ones
+        marked), in one compiled loop: (how many were kept, how many were dropped)."""
         reach = self.cfg.N * self.cfg.dt * max(abs(limits.v[0]), abs(limits.v[1])) + self.cfg.obstacle_margin
-        near = np.flatnonzero(clearance <= reach)
-        near = near[np.argsort(clearance[near], kind="stable")]
-        keep = near[: self.cfg.max_obstacles]
-        return o[keep], int(near.size - keep.size)
+        o = _NO_OBSTACLES if obstacles is None else np.asarray(obstacles, dtype=float).reshape(-1, 3)
+        return _refs.nearest_obstacles(np.ascontiguousarray(o), float(state[0]), float(state[1]), reach, slots)
 
     def solve(
         self,
@@ -551,23 +348,19 @@ class MpcTeacher:
             v = limits.v[1]
         refs = _refs.references(path.points, path.s, path.seg_len, path.heading, xs[0], xs[1], xs[2],
                                 float(v * cfg.dt), N + 1)  # = self.references(state, path, v)
-        o, dropped = self.obstacles_that_matter(state, obstacles, limits)
         # p = [x0, refs, u_prev, obstacles], column-major as _build_nlp lays it out: refs and obstacles by rows
         p = self._p
         p[:3] = state
         self._p_refs[:] = refs
         np.minimum(np.maximum(self.u_last, limits.lo), limits.hi, out=self._p_uprev)
-        obs = self._p_obs
-        obs[:] = 0.0
-        obs[:, 2] = -1.0  # an unused slot
-        obs[: o.shape[0]] = o
+        kept, dropped = self._nearest(state, obstacles, limits, self._p_obs)  # the slots: the nearest within reach
         if cfg.turn_needs_speed:
             k_lo, k_hi = curvature if curvature is not None else (-math.inf, math.inf)
             if not (k_lo <= 0.0 <= k_hi):  # straight ahead stays feasible (NaN fails too)
                 raise ValueError(f"MPC curvature must be (k_lo <= 0, k_hi >= 0), got {curvature}")
             self._p_kappa[0], self._p_kappa[1] = max(k_lo, -CURVATURE_FREE), min(k_hi, CURVATURE_FREE)
         cold = self._prev_u is None
-        ok, status, iters, U, Xp = self._backend.solve(p, state, self._warm(limits), limits, cold)
+        ok, status, iters, U, Xp = self._backend.solve(p, state, self._warm(limits), limits, cold, kept)
         if ok:
             u = np.minimum(np.maximum(U[0], limits.lo), limits.hi)
             self._prev_u, self._prev_pred = U, Xp
