@@ -327,12 +327,19 @@ def hil(args: argparse.Namespace, robot: str) -> int:
             driver_args = emulated_link(kids, args.link, out, x0, up, logs["driver"])
             drift = ["--drift", args.drift] if args.drift else []
             kids.spawn(["driver", "--engage", *driver_args, *drift, *client, "--duration", str(up)], logs["driver"])
-            if args.calibrate:  # the paper's calibrated start: the mission's figures count from after it
-                cal = calibrate_first(args.calibrate, client, out / "station.toml", store, logs["calibrate"])
+            mission = ["--mission", args.mission] if args.mission else []
             mon = Monitor(session, robot)
+            if args.calibrate:  # the paper's calibrated start: the mission's figures count from after it, and the
+                # mission starts where the calibration left the robot (as the uncalibrated run on its start pose)
+                from bridge.tools.demo_calibrate import place_after_calibration, restart_monitor
+                cal = calibrate_first(args.calibrate, client, out / "station.toml", store, logs["calibrate"])
+                placed = place_after_calibration(mon, args.mission, out, "odometry")
+                if placed is not None:
+                    world, path = placed
+                    mission = ["--mission", path]
+                restart_monitor(mon)
             kids.spawn(["station", *client, *station_cfg, "--start", "--store", str(store), "--exit-at-goal",
-                        "--duration",
-                        str(args.duration), *(["--mission", args.mission] if args.mission else [])], logs["station"])
+                        "--duration", str(args.duration), *mission], logs["station"])
             _watch(mon, kids, world, args.duration)
         except KeyboardInterrupt:
             print("\ninterrupted: stopping the demo's processes", file=sys.stderr)

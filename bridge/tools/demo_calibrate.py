@@ -15,6 +15,8 @@ import time
 from pathlib import Path
 from typing import Any
 
+import msgspec
+
 from bridge.core.errors import UsageError
 from bridge.tools.procs import spawn, stop_group
 
@@ -93,6 +95,26 @@ def restart_monitor(mon: Any) -> None:
         mon.cmds.clear()
         mon.status.pop("station", None)
     mon.driving.clear()
+
+
+def place_after_calibration(mon: Any, mission: str | None, out: Path, frame: str) -> tuple[Any, str] | None:
+    """The mission moved rigidly onto the pose the robot stands at after its calibration (the demo's monitor's last
+    state), written to ``out/mission.toml``: the mission starts where the calibration left the robot, as a lab's
+    ``scmbridge mission place`` would put it (docs/OPERATING.md), and as the uncalibrated run starts on its start
+    pose. Returns the placed mission (:class:`transfer.mission.Mission`) and the file, or None without a pose."""
+    from bridge.core.config import load_mission_spec, mission_from_spec
+    from bridge.tools.demo_sitl import mission_toml, place_mission
+
+    with mon.lock:
+        last = mon.states[-1] if mon.states else None
+    if last is None:
+        return None
+    spec = load_mission_spec(mission)
+    placed = msgspec.structs.replace(place_mission(spec, (last[1], last[2], last[3])), name=f"{spec.name}@calibrated",
+                                     frame=frame)
+    path = out / "mission.toml"
+    path.write_text(mission_toml(placed))
+    return mission_from_spec(placed), str(path)
 
 
 def method_shares(methods: dict[str, int]) -> dict[str, float]:

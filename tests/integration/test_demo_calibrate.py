@@ -41,3 +41,6 @@ def test_the_demo_calibrates_then_drives_its_mission_from_the_calibrated_store(t
     store = read_store(out / "pairs.bin")  # the station's file, tagged as its own (bridge.nodes.station_tags)
     assert store.limits.bcnt_hi[0] > 0 and store.limits.bcnt_lo[1] > 0  # the calibration measured the limits
     assert (out / "demo_trajectory.png").stat().st_size > 10_000 and (out / "calibrate.log").exists()
+    # the mission starts where the calibration left the robot (placed there, as `scmbridge mission place` does), so
+    # its deviation is measured from the same start pose as an uncalibrated run's
+    assert "@calibrated" in (out / "mission.toml").read_text() and summary["max_dev_m"] < 0.6, summary
