@@ -176,13 +176,13 @@ class Station:
         self.core = StationCore(cfg, robot, rate_hz, store_path, mission, control, control_path, calibration,
                                 clock=clock)
         self.robot, self.keys = robot, M.Keys(robot)
-        self.period = self.core.period
+        self.period = self.core.time.period
         self.inputs = Inputs(clock)
         self.lock = threading.Lock()  # the inbox (and the core while no loop runs): held briefly, never for a tick
         self.inbox = Inbox()
         self.looping = False  # the loop runs: only its thread calls the core
         #: mission requests are addressed to this run, taken fresh and once (bridge.core.acts); under the lock
-        self.acts = ActGuard(self.core.epoch)
+        self.acts = ActGuard(self.core.outbox.epoch)
         self.writer = SaveWriter(save, name=f"station-save-{robot}")
         self.core.saves.writer = self.writer
         self.telemetry: list[Queued] = []  # the echoes' and the poses' queues, read at each tick (serve declares them)
@@ -210,7 +210,7 @@ class Station:
     def on_own_cmd(self, cmd: M.Command, now: float) -> None:
         """Commands on this robot's key from other sessions (this one's own are not delivered): one this station did
         not send is another station's (or a forger's)."""
-        if cmd.epoch != self.core.epoch:  # fixed at start: read without the lock
+        if cmd.epoch != self.core.outbox.epoch:  # fixed at start: read without the lock
             with self.lock:
                 self.inbox.foreign.append((cmd, now))
 
@@ -310,7 +310,7 @@ class Station:
         """A start or resume the robot's fitness alone would refuse, younger than :data:`SETTLE_S`, with no driver
         host status heard since it arrived."""
         return (q.kind == "control" and isinstance(q.request, M.MissionRequest) and now - q.at < SETTLE_S
-                and self.core.driver_at <= q.at and self.core.refused_for_the_robot(q.request, now))
+                and self.core.latest.driver_at <= q.at and self.core.refused_for_the_robot(q.request, now))
 
     # ------------------------------------------------------------------------------------------------ tick
     def tick(self, now: float, periodic: bool = True) -> TickOutputs:
@@ -397,7 +397,7 @@ class Station:
 
     def _on_teacher_matching(self, status: zenoh.MatchingStatus) -> None:
         """A subscriber of the teacher topic came or the last one went (Zenoh's callback thread)."""
-        self.core.teacher_heard = bool(status.matching)
+        self.core.latest.teacher_heard = bool(status.matching)
 
     def declare(self, session: zenoh.Session, announce: bool = False) -> None:
         """Declare this robot's inputs, queryables and publishers on ``session`` (nothing is ticked yet)."""
@@ -423,14 +423,14 @@ class Station:
             # sent only while someone subscribes to it: a fleet's robots mostly have no viewer
             pub = self.pubs["teacher"] = keep(session.declare_publisher(k.teacher))
             self.teacher_listener = keep(pub.declare_matching_listener(self._on_teacher_matching))
-            self.core.teacher_heard = bool(pub.matching_status.matching)
+            self.core.latest.teacher_heard = bool(pub.matching_status.matching)
         self.pubs["status"] = keep(StatusOut(session, M.status_key(self.robot, "station")))  # asked by status
         self.journal.declare(session, keep)
         if self.build is None:
             self.build = KernelBuild(self.teacher)
         what = self.core.what()
         log.info("station for %s at %.0f Hz, %s, %s (epoch %x)", self.robot, 1 / self.period, what,
-                 self.core.control.phase, self.core.epoch)
+                 self.core.control.phase, self.core.outbox.epoch)
         if announce:
             systemd.ready(f"{self.robot}: {what}, mission {self.core.control.phase}")
 
@@ -572,7 +572,7 @@ def run(args: argparse.Namespace) -> int:
             station.serve(session, stop, args.duration, args.exit_at_goal)
     finally:
         saved = _save(station)
-        station.core.said.flush(station.clock())
+        station.core.verdict.said.flush(station.clock())
         log.info("station for %s stopped %s (mission %s)", robot, stopped_because(stop), station.core.control.phase)
     return 0 if saved else 1
 
@@ -625,6 +625,6 @@ def run_fleet(cfg: StationConfig, robots: list[str], rate: float, args: argparse
     finally:
         saved = [_save(st) for st in stations.values()]
         for st in stations.values():
-            st.core.said.flush(st.clock())
+            st.core.verdict.said.flush(st.clock())
         log.info("station for %s stopped %s", ", ".join(stations), stopped_because(stop))
     return 0 if all(saved) and not failed and len(stations) == len(robots) else 1

@@ -99,7 +99,7 @@ def _station(tmp_path, robot: str, session: zenoh.Session, clock: FakeClock, **c
     keys = st.keys
     st.pubs = {t: session.declare_publisher(getattr(keys, t)) for t in ("cmd", "limits", "teacher")}
     st.pubs["status"] = session.declare_publisher(M.status_key(robot, "station"))
-    st.core.teacher_heard = False
+    st.core.latest.teacher_heard = False
     return st
 
 
@@ -169,7 +169,7 @@ def test_a_resume_waits_for_the_driver_hosts_next_status_at_most_settle_s(tmp_pa
     _feed(st, clock, t0, t0 + 3.0, ok_from=t0 + 0.93)
 
     def ask(action: str) -> None:
-        req = stamped(M.MissionRequest(stamp=0.0, action=action, source="test"), Address(st.core.epoch, clock.t))
+        req = stamped(M.MissionRequest(stamp=0.0, action=action, source="test"), Address(st.core.outbox.epoch, clock.t))
 
         def on_reply(reply: zenoh.Reply) -> None:
             if reply.ok is not None:
