@@ -247,13 +247,13 @@ def test_a_station_hears_another_senders_commands_and_is_not_handed_its_own_back
     st = Station(StationConfig(), robot, 10.0, tmp_path / "p.bin", load_mission())
     st.build = KernelBuild(None)  # no MPC code generation: this station never drives (its mission is idle)
     heard: list[int] = []
-    real = st.on_own_cmd
+    real = st.rx.on_own_cmd
 
     def spy(cmd: M.Command, now: float) -> None:
         heard.append(cmd.epoch)
         real(cmd, now)
 
-    st.on_own_cmd = spy  # what serve() subscribes
+    st.rx.on_own_cmd = spy  # what serve() subscribes
     with open_session(make_config(mode="router", listen=[tcp(port)])) as server:
         loop = threading.Thread(target=st.serve, args=(server, stop, 30.0, False), kwargs={"announce": False},
                                 name="test-station", daemon=True)
