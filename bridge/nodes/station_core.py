@@ -277,7 +277,7 @@ class StationCore:
         and pose (the adapter hands over a status that came since the last tick first, :meth:`note_driver`), not the
         last tick's verdict. A start with the robot already at the goal is refused (it would finish at once), saying
         how to drive back. The answer's reason is the mission's as the status says it now."""
-        unfit = self.verdict.judged(*self.latest.fitness(now))
+        unfit, self.verdict.fitness = self.latest.fitness(now)  # (the tick's unfit_reason stays the tick's)
         out = self._guard_refusal(req)
         if req.action == "start" and self.control.phase != "running" and self._at_goal():
             ans = self.control.answer(now, False, f"refused: the robot is at the goal of {self.mission.name!r} "
