@@ -294,8 +294,8 @@ def second_station(short: bool) -> Result:
 
     with tempfile.TemporaryDirectory() as d:
         st = StationCore(StationConfig(), f"a{uuid.uuid4().hex[:6]}", 10.0, Path(d) / "p.bin", load_mission())
-        st.why, st.reason = "driving", "ok"  # as after a tick that drove
-        st.heard_command(M.Command(stamp=1.0, seq=1, v=0.1, omega=0.0, method="scm", epoch=st.epoch ^ 0xF), 1.0)
+        st.verdict.why, st.verdict.reason = "driving", "ok"  # as after a tick that drove
+        st.heard_command(M.Command(stamp=1.0, seq=1, v=0.1, omega=0.0, method="scm", epoch=st.outbox.epoch ^ 0xF), 1.0)
         s = st.status(1.5)
     return {"reached_vehicle": None, "learned": None, "station_ok": s.ok, "text": s.text, "ok": not s.ok}
 

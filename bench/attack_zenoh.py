@@ -148,7 +148,7 @@ def mission_after_goal(short: bool) -> Result:
         loop.start()
         stack.callback(loop.join, 10.0)
         stack.callback(stop.set)
-        until(lambda: station.looping, 10.0)
+        until(lambda: station.rx.looping, 10.0)
         attacker = stack.enter_context(open_session(make_config(mode="client", connect=[tcp(port)])))
 
         def ask() -> M.MissionState | None:

@@ -272,7 +272,7 @@ def _run(args: argparse.Namespace, tmp: Path) -> dict:
     t0 = 1000.0  # a monotonic clock's value
     clock = _Clock()
     rigs = [_Rig(f"tick{i + 1}", cfg, mission, tmp, clock, fns, session, t0) for i in range(args.count)]
-    period = rigs[0].core.period
+    period = rigs[0].core.time.period
     if args.gc_freeze:
         import gc
 
@@ -323,7 +323,7 @@ def _run(args: argparse.Namespace, tmp: Path) -> dict:
                                if any(p in t for t in ticks)},
                  "process_ms_per_tick": round(proc_ms, 4),
                  "methods": dict(methods), "refined_pairs": len(core.store.refined()),
-                 "raw_pairs": core.store.raw_count, "why": core.why,
+                 "raw_pairs": core.store.raw_count, "why": core.verdict.why,
                  "saves_written": sum(rig.saved for rig in rigs)}
     if prof is not None:
         for key in ("tottime", "cumulative"):

@@ -34,17 +34,15 @@ import argparse
 import logging
 import sys
 import threading
-from dataclasses import dataclass
 from pathlib import Path
 
 import msgspec
 import zenoh
 
 from bridge.core import wire as M
-from bridge.core.acts import ActGuard
 from bridge.core.args import positive_float, robot_arg, robots_arg
 from bridge.core.clock import SYSTEM, Clock
-from bridge.core.config import RATE_HZ_RANGE, StationConfig, load_mission_spec, load_station, mission_from_spec
+from bridge.core.config import RATE_HZ_RANGE, StationConfig, load_mission_spec, load_station
 from bridge.core.errors import UsageError
 from bridge.core.paths import TEXT_FILE, quarantine, read_bounded, save_atomic, state_dir
 from bridge.nodes import systemd
@@ -62,7 +60,8 @@ from bridge.nodes.node import (
     zenoh_config,
 )
 from bridge.nodes.sources import MpcSource
-from bridge.nodes.station_core import StationCore, TickInputs, TickOutputs
+from bridge.nodes.station_core import StationCore, TickOutputs
+from bridge.nodes.station_inbox import Asked, Receiver
 from bridge.nodes.station_journal import Journal
 from bridge.nodes.station_tags import FileTags
 from bridge.nodes.writer import Save, SaveWriter
@@ -80,40 +79,6 @@ CONTROL_MAX_WAIT_S = 0.9
 #: arrives after it, s: one sent on an engage or an estop release confirmed just before the request may still be on
 #: its way (the host publishes it within a tick or two of the change; its answer to the person can come first)
 SETTLE_S = 0.3
-
-
-@dataclass
-class Asked:
-    """A query waiting for the loop: ``kind`` "control" or "pairs"; ``request`` the decoded mission request, or
-    why it is malformed (str); ``at`` its receipt time."""
-
-    kind: str
-    query: zenoh.Query
-    request: M.MissionRequest | str | None
-    at: float
-
-
-class Inbox:
-    """What arrived since the last tick (taken, and so emptied, by :meth:`take`): from the callbacks, and the
-    telemetry queues read at the tick. ``foreign``: commands of another sender on this robot's key; ``queries``:
-    the ``control`` and ``pairs`` queries waiting for the loop (kind, the query, the decoded request or why it is
-    malformed, receipt time)."""
-
-    def __init__(self) -> None:
-        self.telemetry: list[tuple[M.LearnerState | M.Applied, float]] = []
-        self.driver: tuple[M.Status, float] | None = None
-        self.mission: tuple[M.MissionSpec, Mission] | None = None
-        self.teacher: tuple[M.TeacherCommand, float] | None = None
-        self.foreign: list[tuple[M.Command, float]] = []
-        self.queries: list[Asked] = []
-
-    def take(self, periodic: bool, input_counts: dict[str, int], missed: int) -> TickInputs:
-        out = TickInputs(tuple(self.telemetry), self.driver, self.mission, self.teacher, periodic, input_counts,
-                         missed)
-        self.telemetry, self.driver, self.mission, self.teacher = [], None, None, None
-        return out
-
-
 
 
 class KernelBuild:
@@ -152,8 +117,9 @@ class Station:
     """One robot's station on Zenoh: the Zenoh adapter of a :class:`~bridge.nodes.station_core.StationCore`.
 
     The core does the work of each tick (pairing, the command source, the transfer step, mission control, the status
-    and persistence). Here subscribers decode, count and put what arrives into a typed :class:`Inbox` under
-    :attr:`lock`, which the loop holds only to swap the inbox out: the tick itself runs without it, so no callback
+    and persistence). Here subscribers decode, count and put what arrives into a typed inbox under the lock of
+    :attr:`rx` (:class:`~bridge.nodes.station_inbox.Receiver`, the callbacks), which the loop holds only to swap
+    the inbox out: the tick itself runs without it, so no callback
     ever waits for a tick (an MPC solve) or a save. The fixed-rate loop hands the inbox to ``core.tick`` and publishes
     what it returns; the core is only ever called from the loop's thread. The queryables (``control``, ``pairs``)
     put their query in the inbox and wake the loop, which answers it at once between two ticks (or, when it
@@ -176,17 +142,14 @@ class Station:
         self.core = StationCore(cfg, robot, rate_hz, store_path, mission, control, control_path, calibration,
                                 clock=clock)
         self.robot, self.keys = robot, M.Keys(robot)
-        self.period = self.core.period
+        self.period = self.core.time.period
         self.inputs = Inputs(clock)
-        self.lock = threading.Lock()  # the inbox (and the core while no loop runs): held briefly, never for a tick
-        self.inbox = Inbox()
-        self.looping = False  # the loop runs: only its thread calls the core
-        #: mission requests are addressed to this run, taken fresh and once (bridge.core.acts); under the lock
-        self.acts = ActGuard(self.core.epoch)
+        self.wake = threading.Event()  # a query, or an external teacher's command: the loop handles it now
+        #: the callbacks: what arrives waits in its inbox, under its lock, for the loop (bridge.nodes.station_inbox)
+        self.rx = Receiver(self.core.outbox.epoch, self.inputs, clock, lambda: self.wake.set(), self._answer)
         self.writer = SaveWriter(save, name=f"station-save-{robot}")
         self.core.saves.writer = self.writer
         self.telemetry: list[Queued] = []  # the echoes' and the poses' queues, read at each tick (serve declares them)
-        self.wake = threading.Event()  # a query, or an external teacher's command: the loop handles it now
         self.pubs: dict[str, zenoh.Publisher] = {}
         self.teacher_listener: zenoh.MatchingListener | None = None  # whether anyone subscribes to the teacher
         self.ticker: FixedRate | Deadlines | None = None  # its deadlines (and missed ones)
@@ -206,71 +169,6 @@ class Station:
     def calibration(self) -> CalibrationPlan | None:
         return self.core.calibration
 
-    # ---------------------------------------------------------------------------------------------- inputs
-    def on_own_cmd(self, cmd: M.Command, now: float) -> None:
-        """Commands on this robot's key from other sessions (this one's own are not delivered): one this station did
-        not send is another station's (or a forger's)."""
-        if cmd.epoch != self.core.epoch:  # fixed at start: read without the lock
-            with self.lock:
-                self.inbox.foreign.append((cmd, now))
-
-    def on_driver_status(self, st: M.Status, now: float) -> None:
-        with self.lock:
-            self.inbox.driver = (st, now)
-            waiting = bool(self.inbox.queries)
-        if waiting:  # a request may be waiting for it (SETTLE_S)
-            self.wake.set()
-
-    def on_control_query(self, query: zenoh.Query) -> None:
-        """A person's request (``scmbridge mission ...``): decoded here, done or refused by the loop and answered
-        at once (:meth:`_answer`). Every action but ``status`` must be fresh and new (:mod:`bridge.core.acts`): a
-        recorded request replayed, or one without a time and nonce, is answered with the refusal and does nothing."""
-        now = self.clock()
-        try:
-            payload = query.payload
-            req: M.MissionRequest | str = M.decode(payload.to_bytes() if payload is not None else b"",
-                                                   M.MissionRequest)
-        except M.MessageError as exc:
-            self.inputs.count("malformed_control")
-            req = f"malformed request: {exc}"
-        if isinstance(req, M.MissionRequest) and req.action != "status":
-            with self.lock:
-                why = self.acts.check(req.target, req.echo, req.nonce, req.source, now)
-            if why is not None:
-                self.inputs.count(f"control_refused_{why.kind}")
-                say = log.debug if why.kind == "unaddressed" else log.warning
-                say("mission %s by %r %s", req.action, req.source, why.text)
-                req = why.text
-        self._ask(Asked("control", query, req, now))
-
-    def on_mission(self, spec: M.MissionSpec, now: float) -> None:
-        try:
-            mission = mission_from_spec(spec)
-        except ValueError as exc:
-            self.inputs.count("malformed_mission")
-            log.warning("mission %r refused: %s", spec.name, exc)
-            return
-        with self.lock:
-            self.inbox.mission = (spec, mission)
-
-    def on_teacher(self, t: M.TeacherCommand, now: float) -> None:
-        with self.lock:
-            self.inbox.teacher = (t, now)
-        self.wake.set()
-
-    def on_pairs_query(self, query: zenoh.Query) -> None:
-        self._ask(Asked("pairs", query, None, self.clock()))
-
-    def _ask(self, asked: Asked) -> None:
-        """Hand a query to the loop and wake it; answer it here when no loop runs (nothing else calls the core)."""
-        with self.lock:
-            if self.looping:
-                self.inbox.queries.append(asked)
-            else:
-                self._answer([asked], asked.at)
-                return
-        self.wake.set()
-
     # ------------------------------------------------------------------------------------------------ queries
     def _answer(self, queries: list[Asked], now: float, settle: bool = False) -> None:
         """Do and answer the queries taken from the inbox (on the loop's thread, between two ticks): a mission
@@ -282,8 +180,7 @@ class Station:
         engage": the host's answer to the engage can reach the person before its status reaches the station)."""
         later = [q for q in queries if settle and self._settling(q, now)]
         if later:
-            with self.lock:
-                self.inbox.queries[:0] = later
+            self.rx.requeue(later)
             queries = [q for q in queries if q not in later]
         for q in queries:
             try:
@@ -299,7 +196,7 @@ class Station:
                     ans = (self.core.request(q.request, now) if isinstance(q.request, M.MissionRequest)
                            else self.core.control.answer(now, False, str(q.request)))
                     # stamped on this station's clock, with its epoch: the address of the person's next act
-                    ans = msgspec.structs.replace(ans, stamp=self.clock(), epoch=self.acts.epoch)
+                    ans = msgspec.structs.replace(ans, stamp=self.clock(), epoch=self.rx.acts.epoch)
                     q.query.reply(self.keys.control, M.encode(ans))
             except Exception:  # a query must never stop the loop (it did not when it failed in its callback)
                 log.exception("%s query not answered", q.kind)
@@ -310,14 +207,13 @@ class Station:
         """A start or resume the robot's fitness alone would refuse, younger than :data:`SETTLE_S`, with no driver
         host status heard since it arrived."""
         return (q.kind == "control" and isinstance(q.request, M.MissionRequest) and now - q.at < SETTLE_S
-                and self.core.driver_at <= q.at and self.core.refused_for_the_robot(q.request, now))
+                and self.core.latest.driver_at <= q.at and self.core.refused_for_the_robot(q.request, now))
 
     # ------------------------------------------------------------------------------------------------ tick
     def tick(self, now: float, periodic: bool = True) -> TickOutputs:
         """Take the inbox (the lock held only for that), answer the queries that waited, hand the rest to the core
         and publish what it returns."""
-        with self.lock:
-            inbox, self.inbox = self.inbox, Inbox()
+        inbox = self.rx.take()
         if inbox.queries:
             if inbox.driver is not None:  # a request is judged on the robot as it is now
                 self.journal.driver(*inbox.driver, now)
@@ -341,10 +237,7 @@ class Station:
     def between_ticks(self) -> bool:
         """Woken before the next deadline: answer the queries that came; True when an external teacher's command
         waits to be mapped now."""
-        with self.lock:
-            queries, self.inbox.queries = self.inbox.queries, []
-            teacher = self.inbox.teacher is not None
-            driver = self.inbox.driver if queries else None
+        queries, teacher, driver = self.rx.take_queries()
         if queries:
             now = self.clock()
             if driver is not None:  # the driver host's status that came since the tick: an engage, a release
@@ -363,18 +256,18 @@ class Station:
         """The final save of the pair store (at exit, once the loop has ended): the writer's last saves first, then
         this one at once; False (reported on the status and logged by the caller) when it failed."""
         self._close_writer()
-        with self.lock:
+        with self.rx.lock:
             return self.core.saves.persist()
 
     def save_control(self) -> None:
         """The final save of the mission state (at exit), at once."""
         self._close_writer()
-        with self.lock:
+        with self.rx.lock:
             self.core.saves.save_control()
 
     def _close_writer(self) -> None:
         self.writer.close()
-        with self.lock:
+        with self.rx.lock:
             self.core.saves.writer = None
             for what, error in self.writer.results():
                 self.core.saves.saved(what, error)
@@ -397,7 +290,7 @@ class Station:
 
     def _on_teacher_matching(self, status: zenoh.MatchingStatus) -> None:
         """A subscriber of the teacher topic came or the last one went (Zenoh's callback thread)."""
-        self.core.teacher_heard = bool(status.matching)
+        self.core.latest.teacher_heard = bool(status.matching)
 
     def declare(self, session: zenoh.Session, announce: bool = False) -> None:
         """Declare this robot's inputs, queryables and publishers on ``session`` (nothing is ticked yet)."""
@@ -407,30 +300,30 @@ class Station:
         self.telemetry = [self.inputs.queue(session, k.applied, M.Applied, "applied"),
                           self.inputs.queue(session, k.state, M.LearnerState, "state")]
         self.inputs.subscribe(session, M.status_key(self.robot, "driver"), M.Status, "driver_status",
-                              self.on_driver_status)
-        self.inputs.subscribe(session, k.mission, M.MissionSpec, "mission", self.on_mission)
+                              self.rx.on_driver_status)
+        self.inputs.subscribe(session, k.mission, M.MissionSpec, "mission", self.rx.on_mission)
         # another sender's commands on this robot's key; this session's own (every command it publishes) never
         # reach the callback: Zenoh drops them at the source (a decode and a GIL handover per command saved)
-        self.inputs.subscribe(session, k.cmd, M.Command, "own_cmd", self.on_own_cmd, remote_only=True)
+        self.inputs.subscribe(session, k.cmd, M.Command, "own_cmd", self.rx.on_own_cmd, remote_only=True)
         if external:
-            self.inputs.subscribe(session, k.teacher, M.TeacherCommand, "teacher", self.on_teacher)
+            self.inputs.subscribe(session, k.teacher, M.TeacherCommand, "teacher", self.rx.on_teacher)
         keep = self.inputs.declared.keep  # all undeclared by undeclare(): a fleet's failed robot lets go of its keys
-        keep(session.declare_queryable(k.pairs, self.on_pairs_query))
-        keep(session.declare_queryable(k.control, self.on_control_query))
+        keep(session.declare_queryable(k.pairs, self.rx.on_pairs_query))
+        keep(session.declare_queryable(k.control, self.rx.on_control_query))
         self.pubs = {t: keep(session.declare_publisher(getattr(k, t))) for t in ("cmd", "limits")}
         if not external:
             # the teacher message (the MPC's command and plan, for a person's viewer or a recorder) is built and
             # sent only while someone subscribes to it: a fleet's robots mostly have no viewer
             pub = self.pubs["teacher"] = keep(session.declare_publisher(k.teacher))
             self.teacher_listener = keep(pub.declare_matching_listener(self._on_teacher_matching))
-            self.core.teacher_heard = bool(pub.matching_status.matching)
+            self.core.latest.teacher_heard = bool(pub.matching_status.matching)
         self.pubs["status"] = keep(StatusOut(session, M.status_key(self.robot, "station")))  # asked by status
         self.journal.declare(session, keep)
         if self.build is None:
             self.build = KernelBuild(self.teacher)
         what = self.core.what()
         log.info("station for %s at %.0f Hz, %s, %s (epoch %x)", self.robot, 1 / self.period, what,
-                 self.core.control.phase, self.core.epoch)
+                 self.core.control.phase, self.core.outbox.epoch)
         if announce:
             systemd.ready(f"{self.robot}: {what}, mission {self.core.control.phase}")
 
@@ -440,15 +333,11 @@ class Station:
 
     def begin(self) -> None:
         """From here on only the loop's thread calls the core (queries wait in the inbox for it)."""
-        with self.lock:
-            self.looping = True
+        self.rx.begin()
 
     def end(self) -> None:
         """The loop has ended: queries left waiting are answered now; later ones in their callbacks."""
-        with self.lock:
-            self.looping = False
-            left, self.inbox.queries = self.inbox.queries, []
-            self._answer(left, self.clock())
+        self.rx.end(self.clock())
 
     def _loop(self, stop: threading.Event, duration: float | None, exit_at_goal: bool) -> None:
         clock = self.clock
@@ -572,7 +461,7 @@ def run(args: argparse.Namespace) -> int:
             station.serve(session, stop, args.duration, args.exit_at_goal)
     finally:
         saved = _save(station)
-        station.core.said.flush(station.clock())
+        station.core.verdict.said.flush(station.clock())
         log.info("station for %s stopped %s (mission %s)", robot, stopped_because(stop), station.core.control.phase)
     return 0 if saved else 1
 
@@ -625,6 +514,6 @@ def run_fleet(cfg: StationConfig, robots: list[str], rate: float, args: argparse
     finally:
         saved = [_save(st) for st in stations.values()]
         for st in stations.values():
-            st.core.said.flush(st.clock())
+            st.core.verdict.said.flush(st.clock())
         log.info("station for %s stopped %s", ", ".join(stations), stopped_because(stop))
     return 0 if all(saved) and not failed and len(stations) == len(robots) else 1

@@ -30,14 +30,14 @@ through its ``saved``), else at once.
 
 The core's jobs off the tick's path live beside it, one each: whether the robot is fit to drive
 (:mod:`bridge.nodes.station_fitness`, pure), what the station says about itself (its status, its limits, why it does
-not drive; :mod:`bridge.nodes.station_status`) and its saves (:mod:`bridge.nodes.station_saves`).
+not drive; :mod:`bridge.nodes.station_status`) and its saves (:mod:`bridge.nodes.station_saves`); what it keeps
+between ticks is in pieces of one job each (:mod:`bridge.nodes.station_parts`).
 """
 
 from __future__ import annotations
 
 import logging
 import zlib
-from collections import deque
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -48,17 +48,15 @@ import numpy as np
 from bridge.core import wire as M
 from bridge.core.clock import SYSTEM, Clock
 from bridge.core.config import StationConfig
-from bridge.core.logs import ReasonLog
 from bridge.core.paths import STORE_FILE, quarantine, read_bounded
-from bridge.nodes.mission_control import Fitness, MissionControl, spec_of
+from bridge.nodes.mission_control import MissionControl, spec_of
 from bridge.nodes.pairing import IntervalPairer, Reorder
 from bridge.nodes.sources import CalibrationSource, CommandSource, Proposal, SourceContext, Why, make_source
 from bridge.nodes.station_assumption import AssumptionCheck
-from bridge.nodes.station_fitness import assess_fitness
 from bridge.nodes.station_guards import Guards, Trip
+from bridge.nodes.station_parts import Latest, Outbox, TickTime, Verdict
 from bridge.nodes.station_saves import StationSaves
 from bridge.nodes.station_status import (
-    STATUS_EVERY_S,
     Integrity,
     LimitsReport,
     StationCounters,
@@ -178,7 +176,10 @@ class StationCore:
     mission requests between ticks (module docstring). Beside it, each with one job: whether the robot is fit
     (:mod:`bridge.nodes.station_fitness`), what the station says about itself (:mod:`bridge.nodes.station_status`:
     :attr:`report`, :attr:`limits_report`, :attr:`integrity`) and its saves (:attr:`saves`,
-    :mod:`bridge.nodes.station_saves`)."""
+    :mod:`bridge.nodes.station_saves`). What it keeps between ticks is in pieces by what it is for
+    (:mod:`bridge.nodes.station_parts`): the latest inputs (:attr:`latest`), the tick's timing and dates
+    (:attr:`time`), the commands it sends (:attr:`outbox`: the run's epoch) and what it says and why
+    (:attr:`verdict`)."""
 
     def __init__(self, cfg: StationConfig, robot: str, rate_hz: float, store_path: Path, mission: Mission,
                  control: MissionControl | None = None, control_path: Path | None = None,
@@ -190,15 +191,15 @@ class StationCore:
         clock's offset from the monotonic one (a tick's dates are its ``now`` plus it: one time per tick) and for
         the ticks' durations (:meth:`Clock.perf`); a tick's time is the ``now`` it is given."""
         scfg, tcfg = cfg.station, cfg.transfer
-        self.clock = clock
-        #: wall clock minus monotonic clock at start: a tick's date is its ``now`` plus it (:meth:`wall`)
-        self.wall_offset = clock.wall() - clock()
+        #: the tick's timing and dates: the clock, the period, the wall clock's offset, the status's due time
+        self.time = TickTime(clock, 1.0 / rate_hz)
+        period = self.time.period
         self.robot = robot
-        self.period = 1.0 / rate_hz
-        self.max_pose_age = scfg.max_pose_age_s
+        #: the latest pose, driver host status and teacher command, with their receipt times
+        self.latest = Latest(scfg.max_pose_age_s)
         learner, teacher = cfg.learner_bounds.bounds(), cfg.teacher_bounds.bounds()
-        self.tags = FileTags()  # the station's files are tagged as its own (bridge/nodes/station_tags.py)
-        self.store, how = load_store(Path(store_path), learner, teacher, tcfg.grid, tcfg.k_min, self.tags)
+        tags = FileTags()  # the station's files are tagged as its own (bridge/nodes/station_tags.py)
+        self.store, how = load_store(Path(store_path), learner, teacher, tcfg.grid, tcfg.k_min, tags)
         # this configuration decides whether cells are re-learned after a change, whatever the file was saved with:
         # a store learned on another day (or before a restart) is then checked against the run's pairs, cell by cell
         adapt = tcfg.adapts(reloaded=self.store.n_configured() > 0)
@@ -214,9 +215,9 @@ class StationCore:
                              choice=tcfg.map_choice, at_limit=tcfg.at_limit,
                              **({"exploration": "paper"} if tcfg.exploration == "paper"
                                 else {"exploration": "guided", "fill_budget": tcfg.fill_budget, "fill_phase": phase}))
-        self.transfer = TransferStep(policy, dt=self.period, explore=tcfg.exploration != "off",
+        self.transfer = TransferStep(policy, dt=period, explore=tcfg.exploration != "off",
                                      clearance=tcfg.explore_clearance_m)
-        self.source: CommandSource = source or make_source(cfg, self.period, calibration)
+        self.source: CommandSource = source or make_source(cfg, period, calibration)
         # what bounds the teacher: the learned limits, or the teacher's own range (the paper's baseline)
         self.teacher_limits = tcfg.limits
         self.direct_within = learner if tcfg.mapper == "identity" else None  # (SourceContext.box)
@@ -239,39 +240,18 @@ class StationCore:
         #: a path the measured vehicle cannot follow pauses the mission (bridge.nodes.station_assumption)
         self.assumption = AssumptionCheck.from_config(tcfg.turn_reach, tcfg.turn == "needs-speed")
         self.assumption.armed = self.control.phase != "paused"  # a restored paused mission was checked before
-        self.off_path: float | None = None  # the latest pose's distance from the path, m
-        self.standing: float | None = None  # paused: where a fresh pose stands on the path (0..1), for the status
-        self.fitness = Fitness()
         self.counters = StationCounters()
         self.saves = StationSaves(self.store, Path(store_path), self.control, control_path, self.counters,
                                   scfg.persist_every_s, phase)
-        self.saves.tags = self.tags
+        self.saves.tags = tags
         self.report = StatusReport()
         self.limits_report = LimitsReport(self.store, robot)
         self.integrity = Integrity()
-        self.epoch = M.new_epoch()
-        self.seq = {"cmd": 0}
-        # the latest of each input, kept across ticks
-        self.said = ReasonLog(log)  # the reason it (does not) drive in the log: once, then how long it held
-        self.state: M.LearnerState | None = None
-        self.state_at = -np.inf
-        self.driver: M.Status | None = None
-        self.driver_at = -np.inf
-        self.driver_seq = -1  # the driver host's last status seq: a lower one means it restarted
-        self.teacher: M.TeacherCommand | None = None
-        self.teacher_at = -np.inf
-        self.teacher_new = False  # an external teacher's command not yet given to the source
-        #: whether anyone subscribes to the teacher topic (the station follows Zenoh's matching status): the teacher
-        #: message is built only then
-        self.teacher_heard = True
+        #: the commands it sends: this run's epoch, their seq, their checked bytes
+        self.outbox = Outbox(M.new_epoch(), period)
         self.mission_version = self.control.version
-        self.why = "starting"  # the one reason this station does (not) drive, in words (status text, log) ...
-        self.reason: M.Reason = "starting"  # ... and typed: what its status's ok and reason are decided on
-        self.solve_ms: deque[float] = deque(maxlen=100)
-        self.tick_ms: deque[float] = deque(maxlen=600)  # the last minute of periodic ticks' durations
-        self.t_status: float | None = None  # the next status is due then (None: at the first periodic tick)
-        self.unfit_reason: M.Reason | None = None  # why the robot was not fit at the last tick (None: fit)
-        self.command_bytes: tuple[M.Command, bytes] | None = None  # the last command and its checked bytes
+        #: what it says and why: the one reason it does (not) drive, the robot's fitness, where it stands
+        self.verdict = Verdict(log)
 
     # -------------------------------------------------------------------------------------------- queries
     @property
@@ -297,7 +277,7 @@ class StationCore:
         and pose (the adapter hands over a status that came since the last tick first, :meth:`note_driver`), not the
         last tick's verdict. A start with the robot already at the goal is refused (it would finish at once), saying
         how to drive back. The answer's reason is the mission's as the status says it now."""
-        unfit, self.fitness = self._fitness(now)
+        unfit, self.verdict.fitness = self.latest.fitness(now)  # (the tick's unfit_reason stays the tick's)
         out = self._guard_refusal(req)
         if req.action == "start" and self.control.phase != "running" and self._at_goal():
             ans = self.control.answer(now, False, f"refused: the robot is at the goal of {self.mission.name!r} "
@@ -306,7 +286,7 @@ class StationCore:
         elif out:
             ans = self.control.answer(now, False, out)
         else:
-            ans = self.control.request(req, self.fitness, now)
+            ans = self.control.request(req, self.verdict.fitness, now)
             if req.action == "start" and ans.accepted and self.source.follows_mission:
                 self._begin_track()  # progress counts from where the robot starts, along its track
         if req.action != "status":
@@ -323,13 +303,13 @@ class StationCore:
             return False
         if req.action == "resume" and c.phase != "paused":
             return False
-        _, fitness = self._fitness(now)
+        _, fitness = self.latest.fitness(now)
         return fitness.estop or (req.action == "resume" and bool(fitness.why))
 
     def _guard_refusal(self, req: M.MissionRequest) -> str:
         """Why a start or resume is refused with the robot outside the corridor or the fence ("" when it is not; a
         person's ``override`` lets the station drive it back: :meth:`Guards.refusal`)."""
-        state = self.state
+        state = self.latest.state
         if (req.action not in ("start", "resume") or self.control.phase == "running" or state is None
                 or not self.source.follows_mission or (req.action == "resume" and self.control.phase != "paused")):
             return ""
@@ -339,22 +319,18 @@ class StationCore:
 
     def _begin_track(self) -> None:
         """A start: the mission's track begins at the latest pose's closest point (the next pose's, without one)."""
-        state, path = self.state, self.mission.path
+        state, path = self.latest.state, self.mission.path
         self.guards.begin(None if state is None else closest(path.points, path.s, path.seg_len, state.x, state.y)[0])
         self.assumption.arm()
 
     def _at_goal(self) -> bool:
         """The latest pose is at the mission's goal by the mission's own rule (a station that follows a mission)."""
-        state = self.state
+        state = self.latest.state
         if state is None or not self.source.follows_mission:
             return False
         path = self.mission.path
         s, _ = closest(path.points, path.s, path.seg_len, state.x, state.y)
         return bool(self.mission.reached_at(s, [state.x, state.y]))
-
-    def _wall(self, t: float) -> float:
-        """The date (wall clock, s since the epoch) of monotonic time ``t`` on this station's clock."""
-        return t + self.wall_offset
 
     def pairs(self, now: float) -> M.Pairs:
         """The ``pairs`` reply now: the refined pairs and the learned limits."""
@@ -362,36 +338,36 @@ class StationCore:
 
     def heard_command(self, cmd: M.Command, now: float) -> None:
         """A command on this robot's key: one this station did not send is another station's (or a forger's)."""
-        if cmd.epoch != self.epoch:
+        if cmd.epoch != self.outbox.epoch:
             self.integrity.foreign_command(cmd.epoch, now)
             self.counters.foreign_commands += 1
 
     # ----------------------------------------------------------------------------------------------- tick
     def tick(self, inputs: TickInputs, now: float) -> TickOutputs:
         """One tick at ``now`` (module docstring)."""
-        t0 = self.clock.perf()
-        self.ingest(inputs, now)
-        command, teacher = self.control_step(now)
+        time = self.time
+        t0 = time.clock.perf()
+        self._ingest(inputs, now)
+        command, teacher = self._control_step(now)
         if not inputs.periodic:
-            return TickOutputs(command, teacher, command_bytes=self._bytes_of(command))
-        self.tick_ms.append((self.clock.perf() - t0) * 1e3)
+            return TickOutputs(command, teacher, command_bytes=self.outbox.bytes_of(command))
+        time.tick_ms.append((time.clock.perf() - t0) * 1e3)
         self.counters.ticks += 1
         self.counters.inputs = dict(inputs.input_counts)
         self.counters.missed_deadlines = inputs.missed_deadlines
         status = limits = None
-        if self.t_status is None or now >= self.t_status:
+        if time.status_due(now):
             status = self.status(now)
             limits = self.limits_report.message(now, force=True)
-            self.t_status = now + STATUS_EVERY_S
         elif self.report.changed(now, self._status_key()):  # at once, between the periodic ones (their grid stays)
             status = self.status(now)
             limits = self.limits_report.message(now, force=False)
         else:
             limits = self.limits_report.message(now, force=False)
         self.saves.periodic(now)  # the pair store each persist_every_s
-        return TickOutputs(command, teacher, limits, status, self._bytes_of(command))
+        return TickOutputs(command, teacher, limits, status, self.outbox.bytes_of(command))
 
-    def ingest(self, inputs: TickInputs, now: float) -> None:
+    def _ingest(self, inputs: TickInputs, now: float) -> None:
         """Pairs from the echoes and poses that arrived (put back in stamp order by :class:`Reorder`, so they reach
         the pairer ``REORDER_WINDOW`` after receipt), the latest pose and driver status, a new mission if one
         came."""
@@ -402,7 +378,7 @@ class StationCore:
                 push(m.stamp, 0, at, (m, at))
             else:
                 push(m.stamp, 1, at, (m, at))
-                self.state, self.state_at = m, at
+                self.latest.state, self.latest.state_at = m, at
                 jump = self.guards.pose(m, at, top)
                 if jump is not None:
                     self._jumped(m, jump, top, at)
@@ -412,13 +388,12 @@ class StationCore:
             else:
                 pair = self.pairer.state(e.stamp, (e.x, e.y, e.theta), received)
             if pair is not None:
-                self.add_pair(pair, self._wall(received))  # when a cell changed: wall clock
+                self.add_pair(pair, self.time.wall(received))  # when a cell changed: wall clock
         if inputs.teacher is not None:
-            self.teacher, self.teacher_at = inputs.teacher
-            self.teacher_new = True
+            self.latest.teacher_command(*inputs.teacher)
         if inputs.mission is not None:  # a program's, not a person's: named and timed for the operator
             self.control.replace(*inputs.mission, by=f"a publisher on {M.key(self.robot, 'mission')}",
-                                 at=self._wall(now))
+                                 at=self.time.wall(now))
         if inputs.driver is not None:  # after a new mission: a finished mission that goes on is paused all the same
             self.note_driver(*inputs.driver)
         if self.control.version != self.mission_version:  # from the mission topic or a person's send
@@ -457,7 +432,7 @@ class StationCore:
         log.warning("pose jump: %.2f m to (%.2f, %.2f) (top speed %.2f m/s)%s", jump, st.x, st.y, top,
                     ": mission paused" if c.phase == "running" else "")
         if c.phase == "running":
-            self._tripped(self.guards.jump_trip(st.x, st.y, jump, c.progress, self._wall(at)))
+            self._tripped(self.guards.jump_trip(st.x, st.y, jump, c.progress, self.time.wall(at)))
 
     def _tripped(self, trip: Trip) -> None:
         """A guard paused the running mission (its typed reason, until a person resumes)."""
@@ -472,36 +447,29 @@ class StationCore:
         """The driver host's latest status (at a tick, or before a mission request is answered between two ticks);
         the same status twice is harmless. A lower seq than the last one: a new driver host process (it counts
         from 0 again), which pauses a running mission."""
-        if st.seq < self.driver_seq:
+        if self.latest.driver_status(st, at):
             log.warning("the driver host restarted")
             self.control.driver_restarted()
-        self.driver_seq = st.seq
-        self.driver, self.driver_at = st, at
 
-    def _fitness(self, now: float) -> tuple[Why | None, Fitness]:
-        """Why the robot may not be driven now (None: it may), and the :class:`Fitness` mission control decides on,
-        from the latest driver host status and pose (:func:`bridge.nodes.station_fitness.assess_fitness`)."""
-        return assess_fitness(now, self.state, self.state_at, self.driver, self.driver_at, self.max_pose_age)
-
-    def control_step(self, now: float) -> tuple[M.Command | None, M.TeacherCommand | None]:
+    def _control_step(self, now: float) -> tuple[M.Command | None, M.TeacherCommand | None]:
         """Drive, or publish a stop and say why: the command and teacher message of this tick."""
-        state = self.state
-        unfit, self.fitness = self._fitness(now)
-        self.unfit_reason = unfit.reason if unfit is not None else None
+        state = self.latest.state
+        verdict = self.verdict
+        unfit = verdict.judged(*self.latest.fitness(now))
         c = self.control
         if self.source.follows_mission and state is not None:
             path = self.mission.path  # the closest point in one compiled loop: a mission path has thousands of segments
-            s, self.off_path = closest(path.points, path.s, path.seg_len, state.x, state.y)
+            s, verdict.off_path = closest(path.points, path.s, path.seg_len, state.x, state.y)
             if c.phase == "running" and self.guards.anchor_pending:
                 self.guards.begin(s)
             if c.phase != "running" or unfit is not None:
                 self.guards.pause()
             # a paused mission (a restarted station's) says where the robot stands now, from a fresh pose; that is
             # what the status shows, never the mission's progress (a pose that jumped while paused is no progress)
-            fresh = now - self.state_at <= self.max_pose_age
-            self.standing = s / path.length if c.phase == "paused" and fresh else None
+            fresh = self.latest.fresh_pose(now)
+            verdict.standing = s / path.length if c.phase == "paused" and fresh else None
             if c.phase == "running" and unfit is None:
-                trip = self.guards.check(state.x, state.y, self.off_path, c.progress, self._wall(now), now)
+                trip = self.guards.check(state.x, state.y, verdict.off_path, c.progress, self.time.wall(now), now)
                 outside = self.assumption.check(path.points, self.guards.corridor_m, s) if trip is None else None
                 if outside is not None:
                     log.warning("mission %r paused: %s", self.mission.name, outside.text())
@@ -514,42 +482,42 @@ class StationCore:
                     if self.mission.reached_at(s, [state.x, state.y]):
                         c.reached()
         command = teacher = None
-        stop = None if c.may_drive(self.fitness, now) else not_driving(c, self.robot, unfit)
+        stop = None if c.may_drive(verdict.fitness, now) else not_driving(c, self.robot, unfit)
         if stop is None:
-            stop, command, teacher = self.drive(now, state)
+            stop, command, teacher = self._drive(now, state)
         if stop is not None:  # logged once a reason (its type, not its words), then how long it held
-            self.said.say((stop.reason, self.unfit_reason, c.phase, c.paused_by_robot), f"not driving: {stop.text}",
-                          now)
-            command = self._command(now, 0.0, 0.0, "stop")
+            verdict.said.say((stop.reason, verdict.unfit_reason, c.phase, c.paused_by_robot),
+                             f"not driving: {stop.text}", now)
+            command = self.outbox.command(now, 0.0, 0.0, "stop")
             self.counters.method_stop += 1
         else:
-            self.said.say("ok", f"driving (mission {self.mission.name!r})", now)
-        self.why, self.reason = (stop.text, stop.reason) if stop is not None else ("driving", "ok")
+            verdict.said.say("ok", f"driving (mission {self.mission.name!r})", now)
+        verdict.decided(stop)
         self.counters.goal_reached = int(c.phase == "finished")
         if c.unsaved:
             self.saves.save("control")
         return command, teacher
 
-    def drive(self, now: float, state: M.LearnerState) -> tuple[Why | None, M.Command | None, M.TeacherCommand | None]:
+    def _drive(self, now: float, state: M.LearnerState) -> tuple[Why | None, M.Command | None, M.TeacherCommand | None]:
         """The source's proposal, mapped and made a command; or why not."""
-        ctx = SourceContext(self.mission, self.store, self.counters, self.why, self.teacher, self.teacher_at,
-                            self.teacher_new, self.teacher_limits, self.direct_within)
-        self.teacher_new = False
+        latest = self.latest
+        ctx = SourceContext(self.mission, self.store, self.counters, self.verdict.why, latest.teacher,
+                            latest.teacher_at, latest.take_teacher(), self.teacher_limits, self.direct_within)
         prop = self.source.propose(now, state, ctx)
         if isinstance(prop, Why):
             return prop, None, None
         if prop is None:
             return None, None, None
         if prop.solve_ms is not None:
-            self.solve_ms.append(prop.solve_ms)
+            self.time.solve_ms.append(prop.solve_ms)
         command = self.send(now, prop)
         teacher = None
-        if prop.solver is not None and self.teacher_heard:
+        if prop.solver is not None and latest.teacher_heard:
             pred = np.asarray(prop.predicted, dtype=float) if prop.predicted is not None else np.zeros((0, 3))
             teacher = M.TeacherCommand(
                 stamp=now, seq=command.seq, v=float(prop.u[0]), omega=float(prop.u[1]), solver=prop.solver,
                 ok=prop.ok, predicted_x=pred[:, 0].tolist(), predicted_y=pred[:, 1].tolist(),
-                sender="station", epoch=self.epoch)
+                sender="station", epoch=self.outbox.epoch)
         return None, command, teacher
 
     def send(self, now: float, prop: Proposal) -> M.Command:
@@ -557,25 +525,12 @@ class StationCore:
         or a learner command as it is."""
         if prop.method is not None:
             self.counters.count_method(prop.method)
-            return self._command(now, float(prop.u[0]), float(prop.u[1]), prop.method)
+            return self.outbox.command(now, float(prop.u[0]), float(prop.u[1]), prop.method)
         m = self.transfer.map(prop.u, prop.pose, self.mission, prop.predicted, corridor_m=self.guards.corridor_m)
         if m.vetoed:
             self.counters.explore_vetoed += 1
         self.counters.count_method(m.method)
-        return self._command(now, float(m.u_L[0]), float(m.u_L[1]), m.method, list(m.region)[:8])
-
-    def _command(self, now: float, v: float, omega: float, method: str, region: list[int] | None = None) -> M.Command:
-        cmd = M.Command(stamp=now, seq=self.seq["cmd"], v=v, omega=omega, method=method,
-                        valid_ms=int(3000 * self.period), region=region or [], sender="station", epoch=self.epoch)
-        self.seq["cmd"] += 1
-        cmd, data = M.validated_bytes(cmd)
-        self.command_bytes = (cmd, data)
-        return cmd
-
-    def _bytes_of(self, command: M.Command | None) -> bytes | None:
-        """The bytes :meth:`_command` checked for ``command`` (None for any other)."""
-        last = self.command_bytes
-        return last[1] if command is not None and last is not None and last[0] is command else None
+        return self.outbox.command(now, float(m.u_L[0]), float(m.u_L[1]), m.method, list(m.region)[:8])
 
     # ---------------------------------------------------------------------------------------- publications
     def status(self, now: float) -> M.Status:
@@ -583,24 +538,27 @@ class StationCore:
         progress, latencies and every counter."""
         c = self.counters
         c.observe(self.pairer, self.store, self.control)
-        facts = StatusFacts(reason=self.reason, why=self.why, phase=self.control.phase,
+        verdict, time = self.verdict, self.time
+        facts = StatusFacts(reason=verdict.reason, why=verdict.why, phase=self.control.phase,
                             progress=self._shown_progress(), persist_error=self.saves.error,
                             problems=self.integrity.problems(now, self.pairer), counters=c.as_dict(),
-                            tick_ms=self.tick_ms, solve_ms=self.solve_ms, rate_hz=1 / self.period,
+                            tick_ms=time.tick_ms, solve_ms=time.solve_ms, rate_hz=1 / time.period,
                             key=self._status_key(),
                             changed_cells=[k.id for k in self.store.changed_cells()[-M.STATUS_CHANGED_CELLS:]],
-                            off_path_m=self.off_path)
+                            off_path_m=verdict.off_path)
         return self.report.message(now, facts)
 
     def _shown_progress(self) -> float:
         """The progress the status shows: a paused mission's is where the robot stands now (a restarted station's
         saved progress can be far behind it), any other the mission's own."""
-        return self.standing if self.standing is not None else self.control.progress
+        standing = self.verdict.standing
+        return standing if standing is not None else self.control.progress
 
     def _status_key(self) -> tuple:
         """What a person reads the status for (:func:`bridge.nodes.station_status.status_key`)."""
-        driver = self.driver.reason if self.driver is not None else None
-        return status_key(self.reason, self.control.phase, self.unfit_reason, driver, bool(self.saves.error))
+        driver = self.latest.driver.reason if self.latest.driver is not None else None
+        verdict = self.verdict
+        return status_key(verdict.reason, self.control.phase, verdict.unfit_reason, driver, bool(self.saves.error))
 
 
 __all__ = ["PLAUSIBLE", "StationCore", "TickInputs", "TickOutputs", "load_store", "pairs_message", "robot_phase"]

@@ -88,8 +88,8 @@ class Journal:
         self.seq = 0
         self.pub: Any = None
         self.heard = False
-        self.head: dict[str, Any] = {"robot": core.robot, "rate_hz": 1.0 / core.period,
-                                     "wall_offset": core.wall_offset, "config": config_digest(cfg),
+        self.head: dict[str, Any] = {"robot": core.robot, "rate_hz": 1.0 / core.time.period,
+                                     "wall_offset": core.time.wall_offset, "config": config_digest(cfg),
                                      "store": store_digest(store_path)}
         self.control = control_bytes(core.control)
         self.backlog: list[bytes] | None = []  # the first events, encoded, until heard (None: no longer kept)
@@ -116,7 +116,7 @@ class Journal:
             return
         if seq == 0:
             fields["control"] = self.control
-        data = M.encode(M.StationJournal(stamp=now, seq=seq, epoch=self.core.epoch, event=event, **self.head,
+        data = M.encode(M.StationJournal(stamp=now, seq=seq, epoch=self.core.outbox.epoch, event=event, **self.head,
                                          **fields))
         if self.pub is not None and (self.always or self.heard):
             for kept in self.backlog or ():

@@ -143,7 +143,7 @@ def replay(run: Run, cfg: StationConfig, store: Path | None, epoch: int | None =
             shutil.copyfile(store, path)  # the core saves its store as it learns: never over the given file
         control = control_from(run.robot, head.control)
         core = StationCore(cfg, run.robot, head.rate_hz, path, control.mission, control, None, clock=clock)
-        core.epoch, core.wall_offset, core.teacher_heard = epoch, head.wall_offset, False
+        core.outbox.epoch, core.time.wall_offset, core.latest.teacher_heard = epoch, head.wall_offset, False
         t0 = next((j.stamp for j in events if j.event == "tick"), head.stamp)
         for j in events:
             clock.now = j.stamp

@@ -49,13 +49,13 @@ def test_one_thread_ticks_every_robot_at_its_phase_and_a_failing_robot_stops_alo
 
     bad.core.tick = failing
     first = stations[0]
-    real_on_own = first.on_own_cmd
+    real_on_own = first.rx.on_own_cmd
 
     def counting(cmd, now):  # what reaches the callback on robot 0's cmd key (its own commands must not)
         calls["own_cmd"] += 1
         real_on_own(cmd, now)
 
-    first.on_own_cmd = counting
+    first.rx.on_own_cmd = counting
     port, stop = free_port(), threading.Event()
     fleet = FleetLoop(stations, stop, 30.0, False, threads=threads)
     with open_session(make_config(mode="router", listen=[tcp(port)])) as server:
@@ -97,5 +97,5 @@ def test_one_thread_ticks_every_robot_at_its_phase_and_a_failing_robot_stops_alo
     gap = (phase[robots[2]] - phase[robots[0]]) % PERIOD
     assert abs(gap - 2 * PERIOD / 3) < 0.02, gap
     for st in stations:
-        assert not st.looping
+        assert not st.rx.looping
         st.persist()

@@ -247,13 +247,13 @@ def test_a_station_hears_another_senders_commands_and_is_not_handed_its_own_back
     st = Station(StationConfig(), robot, 10.0, tmp_path / "p.bin", load_mission())
     st.build = KernelBuild(None)  # no MPC code generation: this station never drives (its mission is idle)
     heard: list[int] = []
-    real = st.on_own_cmd
+    real = st.rx.on_own_cmd
 
     def spy(cmd: M.Command, now: float) -> None:
         heard.append(cmd.epoch)
         real(cmd, now)
 
-    st.on_own_cmd = spy  # what serve() subscribes
+    st.rx.on_own_cmd = spy  # what serve() subscribes
     with open_session(make_config(mode="router", listen=[tcp(port)])) as server:
         loop = threading.Thread(target=st.serve, args=(server, stop, 30.0, False), kwargs={"announce": False},
                                 name="test-station", daemon=True)
@@ -265,7 +265,7 @@ def test_a_station_hears_another_senders_commands_and_is_not_handed_its_own_back
                 status = col.listen(M.status_key(robot, "station"), M.Status)
                 assert col.wait(lambda: len(cmds) >= 5 and len(status) >= 1, 20), "the station never published"
                 assert heard == []  # five of its own stops went out: none came back to it
-                forged = M.Command(stamp=1.0, seq=1, v=0.0, omega=0.0, method="stop", epoch=st.core.epoch ^ 1)
+                forged = M.Command(stamp=1.0, seq=1, v=0.0, omega=0.0, method="stop", epoch=st.core.outbox.epoch ^ 1)
                 client.put(Keys(robot).cmd, M.encode(forged))
                 assert col.wait(lambda: any("another sender publishes commands" in s.text and not s.ok
                                             for s in status), 10)
@@ -273,5 +273,5 @@ def test_a_station_hears_another_senders_commands_and_is_not_handed_its_own_back
             stop.set()
             loop.join(timeout=10)
             assert not loop.is_alive()
-    assert heard == [st.core.epoch ^ 1]
+    assert heard == [st.core.outbox.epoch ^ 1]
     assert st.core.counters.foreign_commands == 1

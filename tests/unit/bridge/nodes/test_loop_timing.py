@@ -99,7 +99,7 @@ def _station(tmp_path, robot: str, session: zenoh.Session, clock: FakeClock, **c
     keys = st.keys
     st.pubs = {t: session.declare_publisher(getattr(keys, t)) for t in ("cmd", "limits", "teacher")}
     st.pubs["status"] = session.declare_publisher(M.status_key(robot, "station"))
-    st.core.teacher_heard = False
+    st.core.latest.teacher_heard = False
     return st
 
 
@@ -121,8 +121,8 @@ def _feed(st: Station, clock: FakeClock, start: float, end: float, *, poses_unti
         return (ok_from is None or t >= ok_from - 1e-9) and (ok_until is None or t < ok_until - 1e-9)
 
     def pose(t: float) -> None:
-        with st.lock:
-            st.inbox.telemetry.append((M.LearnerState(stamp=t, seq=next(seq), x=x, y=y, theta=theta), t))
+        with st.rx.lock:
+            st.rx.inbox.telemetry.append((M.LearnerState(stamp=t, seq=next(seq), x=x, y=y, theta=theta), t))
 
     for k in range(round((end - start) / 0.05) + 1):
         t = start + 0.05 * k
@@ -131,7 +131,7 @@ def _feed(st: Station, clock: FakeClock, start: float, end: float, *, poses_unti
     changes = sorted({start + k for k in range(int(end - start) + 1)} | {t for t in (ok_from, ok_until)
                                                                           if t is not None and start <= t <= end})
     for n, t in enumerate(changes, 1):
-        clock.at(t + 1e-4, lambda t=t + 1e-4, n=n: st.on_driver_status(_driver(n, ok_at(t)), t))
+        clock.at(t + 1e-4, lambda t=t + 1e-4, n=n: st.rx.on_driver_status(_driver(n, ok_at(t)), t))
 
 
 def test_the_loop_ticks_on_its_deadlines_and_says_its_status_on_a_change_and_each_second(tmp_path, session,
@@ -160,7 +160,7 @@ def test_a_resume_waits_for_the_driver_hosts_next_status_at_most_settle_s(tmp_pa
     st = _station(tmp_path, "t2", session, clock)
     answers: list[M.MissionState] = []
     got = threading.Event()
-    q = session.declare_queryable(st.keys.control, st.on_control_query)
+    q = session.declare_queryable(st.keys.control, st.rx.on_control_query)
     t0 = clock.t
     st.core.control.request(M.MissionRequest(stamp=0.0, action="start", source="test"), Fitness(""), 0.0)
     st.core.control.drove = True
@@ -169,19 +169,19 @@ def test_a_resume_waits_for_the_driver_hosts_next_status_at_most_settle_s(tmp_pa
     _feed(st, clock, t0, t0 + 3.0, ok_from=t0 + 0.93)
 
     def ask(action: str) -> None:
-        req = stamped(M.MissionRequest(stamp=0.0, action=action, source="test"), Address(st.core.epoch, clock.t))
+        req = stamped(M.MissionRequest(stamp=0.0, action=action, source="test"), Address(st.core.outbox.epoch, clock.t))
 
         def on_reply(reply: zenoh.Reply) -> None:
             if reply.ok is not None:
                 answers.append(M.decode(reply.ok.payload.to_bytes(), M.MissionState))
                 got.set()
 
-        n = len(st.inbox.queries)
+        n = len(st.rx.inbox.queries)
         session.get(st.keys.control, on_reply, payload=M.encode(req), timeout=10.0)
         end = time.monotonic() + 10  # the query reaches the station on Zenoh's thread: wait for it to be there
-        while len(st.inbox.queries) == n and time.monotonic() < end:
+        while len(st.rx.inbox.queries) == n and time.monotonic() < end:
             time.sleep(0.002)
-        assert len(st.inbox.queries) > n
+        assert len(st.rx.inbox.queries) > n
 
     clock.at(t0 + 0.71, lambda: ask("resume"))
     st.begin()
@@ -195,7 +195,7 @@ def test_a_resume_waits_for_the_driver_hosts_next_status_at_most_settle_s(tmp_pa
     st2 = _station(tmp_path, "t3", session, clock)
     answers.clear()
     got.clear()
-    q = session.declare_queryable(st2.keys.control, st2.on_control_query)
+    q = session.declare_queryable(st2.keys.control, st2.rx.on_control_query)
     t0 = clock.t
     st2.core.control.request(M.MissionRequest(stamp=0.0, action="start", source="test"), Fitness(""), 0.0)
     st2.core.control.drove = True
@@ -249,7 +249,7 @@ def test_the_fleet_loop_ticks_each_robot_on_its_own_phase(tmp_path, session, clo
 def test_the_fleet_loop_answers_a_woken_robot_at_once_between_its_deadlines(tmp_path, session,
                                                                             clock: FakeClock) -> None:
     robots = [_station(tmp_path, f"w{i}", session, clock) for i in range(2)]
-    queryables = [session.declare_queryable(st.keys.pairs, st.on_pairs_query) for st in robots]
+    queryables = [session.declare_queryable(st.keys.pairs, st.rx.on_pairs_query) for st in robots]
     answers: list[M.Pairs] = []
     got = threading.Event()
     t0 = clock.t
@@ -262,9 +262,9 @@ def test_the_fleet_loop_answers_a_woken_robot_at_once_between_its_deadlines(tmp_
 
         session.get(robots[1].keys.pairs, on_reply, timeout=10.0)
         end = time.monotonic() + 10  # the query reaches the station on Zenoh's thread: wait for it to be there
-        while not robots[1].inbox.queries and time.monotonic() < end:
+        while not robots[1].rx.inbox.queries and time.monotonic() < end:
             time.sleep(0.002)
-        assert robots[1].inbox.queries
+        assert robots[1].rx.inbox.queries
 
     clock.at(t0 + 0.23, ask)
     heard = Heard(session, robots[1].keys.cmd, M.Command)

@@ -118,11 +118,11 @@ def test_another_sender_on_the_robots_commands_or_implausible_telemetry_make_the
     from bridge.nodes.station_status import INTEGRITY_WINDOW_S
 
     st = StationCore(StationConfig(), "r1", 10.0, tmp_path / "p.bin", load_mission())
-    st.why, st.reason = "driving", "ok"  # as after a tick that drove
+    st.verdict.why, st.verdict.reason = "driving", "ok"  # as after a tick that drove
     assert st.status(1.0).ok
-    st.heard_command(M.Command(stamp=1.0, seq=1, v=0.1, omega=0.0, method="scm", epoch=st.epoch), 1.0)
+    st.heard_command(M.Command(stamp=1.0, seq=1, v=0.1, omega=0.0, method="scm", epoch=st.outbox.epoch), 1.0)
     assert st.status(1.1).ok  # its own command, heard back
-    st.heard_command(M.Command(stamp=1.0, seq=1, v=0.1, omega=0.0, method="scm", epoch=st.epoch ^ 1), 1.2)
+    st.heard_command(M.Command(stamp=1.0, seq=1, v=0.1, omega=0.0, method="scm", epoch=st.outbox.epoch ^ 1), 1.2)
     s = st.status(1.3)
     assert not s.ok and "another sender publishes commands" in s.text
     assert st.status(1.2 + INTEGRITY_WINDOW_S + 0.1).ok

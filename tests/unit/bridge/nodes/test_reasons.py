@@ -104,7 +104,7 @@ def test_the_station_sees_an_estop_by_the_driver_hosts_reason_whatever_its_words
     for k, (driver, estop) in enumerate(cases):
         core = StationCore(StationConfig(), "r1", 10.0, tmp_path / f"{k}.bin", load_mission())
         core.tick(TickInputs(telemetry=((pose, 1.0),), driver=(driver, 1.0)), 1.0)
-        assert core.fitness.estop is estop, (driver, estop)
+        assert core.verdict.fitness.estop is estop, (driver, estop)
         ans = core.request(M.MissionRequest(stamp=1.0, action="start", source="test"), 1.0)
         assert ans.accepted is not estop and core.control.phase == ("idle" if estop else "running"), ans
 
@@ -137,7 +137,7 @@ def test_the_stations_ok_and_state_come_from_its_typed_reason_whatever_its_words
         core = StationCore(StationConfig(), "r1", 10.0, tmp_path / f"{k}.bin", load_mission(), source=_Says(why))
         core.request(M.MissionRequest(stamp=0.0, action="start", source="test"), 0.0)
         first = core.tick(TickInputs(telemetry=((pose, 1.0),), driver=(fit, 1.0)), 1.0)
-        assert first.command.method != "stop" and core.reason == "ok" and core.status(1.0).state == "driving"
+        assert first.command.method != "stop" and core.verdict.reason == "ok" and core.status(1.0).state == "driving"
         core.tick(TickInputs(telemetry=((pose, 1.1),), driver=(fit, 1.1)), 1.1)
         st = core.status(1.1)
         assert (st.ok, st.reason, st.text) == (ok, why.reason, text), st
@@ -158,7 +158,7 @@ def test_a_paused_mission_whose_reason_is_empty_still_stops(tmp_path) -> None:
         now = 1.0 + 0.1 * k
         out = core.tick(TickInputs(telemetry=((pose, now),), driver=(_driver(True, "driving", "ok", "", k), now)),
                         now)
-        assert out.command.method == "stop" and core.reason == "paused" and control.phase == "paused"
+        assert out.command.method == "stop" and core.verdict.reason == "paused" and control.phase == "paused"
     st = core.status(1.3)
     assert (st.ok, st.state, st.reason) == (False, "paused", "paused")
 

@@ -72,18 +72,18 @@ def test_a_core_drives_a_robot_by_ticks_alone_and_reports_todays_counters(tmp_pa
         pending = [(robot.apply(out.command, now, dt), now + 2e-3)]
         if out.command.method != "stop":
             assert out.teacher is not None and out.teacher.seq == out.command.seq
-            assert out.teacher.epoch == out.command.epoch == core.epoch
-    assert "stop" not in methods and core.why == "driving"
+            assert out.teacher.epoch == out.command.epoch == core.outbox.epoch
+    assert "stop" not in methods and core.verdict.why == "driving"
     # nobody subscribes to the teacher topic (the station follows Zenoh's matching status): no teacher message is
     # built, and the command is the same as ever
-    core.teacher_heard = False
+    core.latest.teacher_heard = False
     for k in range(40, 43):
         now = k * 0.1
         out = core.tick(TickInputs(telemetry=((robot.state(now), now), *pending), driver=(_driver(k), now),
                                    input_counts={"malformed_state": 2}), now)
         pending = [(robot.apply(out.command, now, dt), now + 2e-3)]
         assert out.command.method != "stop" and out.teacher is None
-    core.teacher_heard = True
+    core.latest.teacher_heard = True
     status = core.status(4.0)
     assert status.ok and status.state == "driving"
     assert set(status.counters) == MPC_KEYS | {"malformed_state"}
@@ -124,7 +124,7 @@ def test_an_external_teachers_command_is_mapped_once_and_a_silent_teacher_stops_
     _start(core)
     pose = M.LearnerState(stamp=1.0, seq=1, x=0.0, y=-1.0, theta=0.0)
     first = core.tick(TickInputs(telemetry=((pose, 1.0),), driver=(_driver(), 1.0)), 1.0)
-    assert first.command.method == "stop" and core.why == "waiting for the external teacher"
+    assert first.command.method == "stop" and core.verdict.why == "waiting for the external teacher"
     t = M.TeacherCommand(stamp=1.0, seq=1, v=0.3, omega=0.1, solver="lab", ok=True)
     woken = core.tick(TickInputs(teacher=(t, 1.05), periodic=False), 1.05)
     assert woken.command is not None and woken.command.method != "stop"
@@ -132,7 +132,7 @@ def test_an_external_teachers_command_is_mapped_once_and_a_silent_teacher_stops_
     again = core.tick(TickInputs(telemetry=((pose, 1.1),)), 1.1)
     assert again.command is None  # mapped once: nothing new to send
     silent = core.tick(TickInputs(telemetry=((pose, 1.7),), driver=(_driver(2), 1.7)), 1.7)
-    assert silent.command.method == "stop" and core.why.startswith("no teacher command for")
+    assert silent.command.method == "stop" and core.verdict.why.startswith("no teacher command for")
 
 
 def test_a_new_teacher_is_one_class_and_cores_share_nothing(tmp_path) -> None:
@@ -158,7 +158,7 @@ def test_a_new_teacher_is_one_class_and_cores_share_nothing(tmp_path) -> None:
     mission = load_mission()
     a = StationCore(StationConfig(), "a", 10.0, tmp_path / "a.bin", mission, source=Constant())
     b = StationCore(StationConfig(), "b", 10.0, tmp_path / "b.bin", mission, source=Constant())
-    assert a.epoch != b.epoch and a.store is not b.store and a.counters is not b.counters
+    assert a.outbox.epoch != b.outbox.epoch and a.store is not b.store and a.counters is not b.counters
     _start(a)
     near = M.LearnerState(stamp=1.0, seq=1, x=0.9, y=-1.0, theta=0.0)
     far = M.LearnerState(stamp=1.1, seq=2, x=1.05, y=-1.0, theta=0.0)
@@ -166,7 +166,7 @@ def test_a_new_teacher_is_one_class_and_cores_share_nothing(tmp_path) -> None:
     out_b = b.tick(TickInputs(telemetry=((near, 1.0),), driver=(_driver(), 1.0)), 1.0)
     assert out_a.command.method != "stop" and out_a.teacher is None  # not the station's own solver: no teacher
     assert out_b.command.method == "stop" and b.counters.method_stop == 1 and a.counters.method_stop == 0
-    assert a.tick(TickInputs(telemetry=((far, 1.1),)), 1.1).command.method == "stop" and a.why == "far enough"
+    assert a.tick(TickInputs(telemetry=((far, 1.1),)), 1.1).command.method == "stop" and a.verdict.why == "far enough"
     spec = M.MissionSpec(name="other", path=[[0.0, 0.0], [1.0, 0.0]])
     from bridge.core.config import mission_from_spec
 

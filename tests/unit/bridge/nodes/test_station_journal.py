@@ -73,7 +73,7 @@ def test_events_are_numbered_from_the_start_and_published_while_heard(tmp_path: 
     first, tick, noted, asked = heard  # the one kept from before the subscriber came, first
     assert [j.seq for j in heard] == [0, 1, 2, 3] and [j.event for j in heard] == ["tick", "tick", "driver", "request"]
     assert first.stamp == 1.0 and first.control == journal.control and not first.telemetry
-    assert tick.stamp == 1.1 and tick.compiled and tick.epoch == core.epoch and tick.robot == "jr"
+    assert tick.stamp == 1.1 and tick.compiled and tick.epoch == core.outbox.epoch and tick.robot == "jr"
     back = tick_inputs(tick)  # the very inputs, with their receipt times
     assert dataclasses.replace(back, mission=None) == dataclasses.replace(inputs, mission=None)
     assert back.mission is not None and back.mission[0] == spec
@@ -81,7 +81,7 @@ def test_events_are_numbered_from_the_start_and_published_while_heard(tmp_path: 
     assert M.decode(noted.driver, M.Status) == driver and noted.driver_at == 1.013
     assert M.decode(asked.request, M.MissionRequest).action == "pause"
     assert tick.config == config_digest(StationConfig()) and tick.store == NO_STORE == store_digest(tmp_path / "none")
-    assert tick.wall_offset == core.wall_offset == clock.wall_offset
+    assert tick.wall_offset == core.time.wall_offset == clock.wall_offset
     assert not tick.control  # only the first event carries the mission state
 
 
