@@ -227,6 +227,10 @@ class TeacherSection(Cfg):
         "yaw-rate limit cannot turn at the top speed, using this share of the limit (0.9 leaves a tenth for the "
         "correction); until then, and with 0 always, the paper's MPC at its top speed everywhere (docs/PAPER.md, "
         "'a learner that changes')", ge=0.0, le=1.0)] = 0.9
+    slow_for_bends: Annotated[Literal["changed", "always"], meta(
+        "mpc: when curve_margin slows for bends: changed, once the learner changed or lost yaw-rate reach (the "
+        "paper's MPC until then); always, from the first tick wherever the learned yaw-rate limit cannot turn a bend "
+        "at the top speed (a learner that turns too little from the start, e.g. a weak steering loop)")] = "changed"
 
 
 class CalibrationSection(Cfg):

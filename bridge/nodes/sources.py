@@ -149,15 +149,18 @@ class MpcSource:
     follows_mission = True
     external = False
 
-    def __init__(self, teacher, clock: Clock = SYSTEM) -> None:
+    def __init__(self, teacher, clock: Clock = SYSTEM, slow_always: bool = False) -> None:
         self.teacher = teacher  # transfer.teacher.mpc.MpcTeacher (imported lazily: casadi)
         self.clock = clock  # its perf counter measures the solve
+        #: ``[teacher] slow_for_bends = "always"``: the MPC slows for bends from the first tick, not only once the
+        #: store says its learner changed
+        self.slow_always = slow_always
 
     def propose(self, now: float, pose: M.LearnerState, ctx: SourceContext) -> Proposal:
         x = _pose(pose)
         t0 = self.clock.perf()
         res = self.teacher.solve(x, ctx.mission.path, ctx.box(), ctx.mission.obstacles, curvature=ctx.curvature(),
-                                 slow_for_bends=ctx.store.slows_for_bends())  # curve_margin where needed
+                                 slow_for_bends=self.slow_always or ctx.store.slows_for_bends())
         solve_ms = (self.clock.perf() - t0) * 1e3
         ctx.counters.obstacles_dropped += res.obstacles_dropped
         return Proposal(np.asarray(res.u, dtype=float), x, res.predicted, solver=res.solver, ok=res.ok,
@@ -276,7 +279,8 @@ def make_source(cfg: StationConfig, period: float, calibration: CalibrationPlan 
         # compiled in the background by the Zenoh side (station.KernelBuild), never here: a core is built at once
         return MpcSource(build_mpc(MpcConfig(N=cfg.station.horizon, dt=period, max_obstacles=t.obstacle_slots,
                                              solver=t.mpc_solver, curve_margin=t.curve_margin,
-                                             turn_needs_speed=cfg.transfer.turn == "needs-speed")))
+                                             turn_needs_speed=cfg.transfer.turn == "needs-speed")),
+                         slow_always=t.slow_for_bends == "always")
     if t.kind == "primitives":
         lib = PrimitiveLibrary(cfg.teacher_bounds.bounds(), t.primitives_grid, duration=t.primitive_s, dt=period)
         return PrimitivesSource(PrimitiveFollower(PrimitivePlanner(lib, k_d=1.0, k_theta=2.0, horizon=2)))

@@ -50,8 +50,11 @@ def transfer_table(transfer: str, limits: str | None) -> str:
 
 
 def teacher_table(args: argparse.Namespace) -> str:
-    """The station's ``[teacher]`` lines for ``--curve-margin`` (none without it: the station's default)."""
-    return f"\n[teacher]\ncurve_margin = {args.curve_margin!r}\n" if args.curve_margin is not None else ""
+    """The station's ``[teacher]`` lines for ``--curve-margin`` (none without it: the station's default): a margin
+    given slows the MPC for bends from the first tick (``slow_for_bends = "always"``)."""
+    if args.curve_margin is None:
+        return ""
+    return f'\n[teacher]\ncurve_margin = {args.curve_margin!r}\nslow_for_bends = "always"\n'
 
 
 def inprocess(args: argparse.Namespace) -> int:
@@ -592,9 +595,10 @@ def arguments(ap: argparse.ArgumentParser) -> None:
                          "path's first point facing along it, as a car-like vehicle is placed (default with --turn "
                          "needs-speed)")
     ap.add_argument("--curve-margin", type=float, default=None, metavar="SHARE",
-                    help="(one robot) the station's [teacher] curve_margin: once the learned limits lost yaw-rate "
-                         "reach, the MPC slows for a bend the learned yaw-rate limit cannot turn at its top speed, "
-                         "using this share of the limit (default: the station's; 0: the paper's MPC always)")
+                    help="(one robot) the station's [teacher] curve_margin, from the first tick (slow_for_bends = "
+                         "always): the MPC slows for a bend the learned yaw-rate limit cannot turn at its top speed, "
+                         "using this share of the limit (default: the station's, once the learner changed; 0: the "
+                         "paper's MPC always)")
     ap.add_argument("--calibrate", type=grid, default=None, metavar="NVxNW",
                     help="(one robot) the paper's calibrated start: scmbridge calibrate's grid of learner commands "
                          "(e.g. 5x5) on the learner first, then the mission from that pair store")

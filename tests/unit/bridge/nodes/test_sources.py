@@ -199,3 +199,32 @@ def test_learned_limits_under_commands_sent_as_they_are_end_at_the_learners_rang
     own = SourceContext(mission=load_mission(), store=store, counters=StationCounters(), limits="teacher",
                         direct_within=LEARNER)
     assert own.box() == TEACHER  # the paper's baseline: the teacher's own range, as before
+
+
+class _RecordingMpc:
+    """An MPC teacher's stand-in that records whether each solve was asked to slow for bends."""
+
+    def __init__(self) -> None:
+        self.slow: list[bool] = []
+
+    def solve(self, x, path, box, obstacles, curvature=None, slow_for_bends=True):
+        from types import SimpleNamespace
+
+        self.slow.append(slow_for_bends)
+        return SimpleNamespace(u=[0.1, 0.0], predicted=None, solver="fake", ok=True, obstacles_dropped=0)
+
+
+def test_the_mpc_slows_for_bends_once_the_learner_changed_or_always_where_the_station_says_so() -> None:
+    """``[teacher] slow_for_bends``: "changed" (the default) asks the MPC to slow only once the store says its
+    learner changed (an unchanged store: the paper's MPC); "always" from the first tick, for a learner that turns
+    too little from the start (the SITL weak-turn rover: docs/BENCHMARKS.md, "The transfer on SITL")."""
+    from bridge.nodes.sources import MpcSource
+
+    changed, always = _RecordingMpc(), _RecordingMpc()
+    ctx = _ctx()
+    assert not ctx.store.slows_for_bends()
+    MpcSource(changed).propose(1.0, POSE, ctx)
+    MpcSource(always, slow_always=True).propose(1.0, POSE, ctx)
+    assert changed.slow == [False] and always.slow == [True]
+    cfg = msgspec.convert({"teacher": {"slow_for_bends": "always"}}, StationConfig)
+    assert make_source(cfg, 0.1).slow_always and not make_source(StationConfig(), 0.1).slow_always

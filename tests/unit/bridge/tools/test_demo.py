@@ -183,6 +183,7 @@ def test_the_curve_margin_is_the_stations_teacher_table_and_sets_one_robots_stat
     cfg = decode_toml(transfer_table("on", None) + "adapt = true\n" + teacher_table(ap.parse_args(
         ["--curve-margin", "0.9"])), StationConfig)
     assert cfg.teacher.curve_margin == 0.9 and cfg.transfer.adapt
+    assert cfg.teacher.slow_for_bends == "always" and StationConfig().teacher.slow_for_bends == "changed"
     assert teacher_table(ap.parse_args([])) == "" and StationConfig().teacher.curve_margin == 0.9
     assert decode_toml(teacher_table(ap.parse_args(["--curve-margin", "0"])), StationConfig).teacher.curve_margin == 0.0
     with pytest.raises(UsageError, match="one robot"):
