@@ -22,10 +22,12 @@ read in one batch, a busy radio), restart the estimate from them, within a few s
 from __future__ import annotations
 
 import functools
-import time
 from collections import deque
 from pathlib import Path
 from typing import Protocol
+
+from bridge.core import timebase
+from bridge.core.timebase import Event
 
 #: a sample whose offset differs from the estimate by more than this is odd (delivery jitter is a few ms), s
 STEP = 0.05
@@ -112,15 +114,6 @@ def machine() -> str:
 
 
 
-class Event(Protocol):
-    """What a clock waits on: a ``threading.Event`` (named by its methods: the pure station core imports no
-    threading)."""
-
-    def wait(self, timeout: float | None = None) -> bool: ...
-
-    def is_set(self) -> bool: ...
-
-
 class Clock(Protocol):
     """What a loop of bridge/nodes/ is given to tell the time and to wait (docs/ARCHITECTURE.md, "Threads and
     clocks"): call it for the monotonic time, s; :meth:`wall` the wall clock (a date, for people and files);
@@ -138,15 +131,13 @@ class Clock(Protocol):
 
 
 class SystemClock:
-    """The host's clocks (:class:`Clock`): the one module of the nodes that reads ``time``."""
+    """The host's clocks (:class:`Clock`), read through :mod:`bridge.core.timebase`: the one module of the control
+    path that reads ``time``, the driver side's clock and wait too."""
 
-    __call__ = staticmethod(time.monotonic)
-    wall = staticmethod(time.time)
-    perf = staticmethod(time.perf_counter)
-
-    @staticmethod
-    def wait(event: Event, timeout: float | None) -> bool:
-        return event.wait(timeout)
+    __call__ = staticmethod(timebase.monotonic)
+    wall = staticmethod(timebase.wall)
+    perf = staticmethod(timebase.perf)
+    wait = staticmethod(timebase.wait)
 
 
 #: the host's clocks: every node's default

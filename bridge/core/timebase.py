@@ -11,14 +11,24 @@ load.
 
 from __future__ import annotations
 
-import threading
 import time
 from collections.abc import Callable
+from typing import Protocol
+
+
+class Event(Protocol):
+    """What a clock waits on: a ``threading.Event`` (named by its methods: the pure station core, which reaches
+    this module through :mod:`bridge.core.clock`, imports no threading)."""
+
+    def wait(self, timeout: float | None = None) -> bool: ...
+
+    def is_set(self) -> bool: ...
+
 
 #: a monotonic clock in seconds (:func:`monotonic`, or a test's fake)
 Clock = Callable[[], float]
 #: wait on ``event`` at most ``timeout`` seconds of that clock; True if the event was set (``event.wait``'s contract)
-Wait = Callable[[threading.Event, float], bool]
+Wait = Callable[[Event, float], bool]
 #: a wait of so many seconds on that clock, with nothing to wake it (``time.sleep``'s contract)
 Sleep = Callable[[float], None]
 
@@ -39,6 +49,12 @@ def sleep(dt: float) -> None:
     time.sleep(dt)
 
 
-def wait(event: threading.Event, timeout: float) -> bool:
-    """Block until ``event`` is set or ``timeout`` seconds have passed (a negative timeout does not wait)."""
-    return event.wait(max(0.0, timeout))
+def perf() -> float:
+    """A high-resolution counter, for a duration's measurement only."""
+    return time.perf_counter()
+
+
+def wait(event: Event, timeout: float | None) -> bool:
+    """Block until ``event`` is set or ``timeout`` seconds have passed (a negative timeout does not wait; None waits
+    until it is set)."""
+    return event.wait(None if timeout is None else max(0.0, timeout))
