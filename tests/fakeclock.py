@@ -73,8 +73,3 @@ class FakeClock:
                 return True
         self.sleep(end - self.t)
         return event.is_set()
-
-    def call_at(self, t: float, fn: Callable[[], None]) -> None:
-        """:meth:`at` by the name the driver side's tests use: ``fn`` runs when a :meth:`wait` reaches ``t``, with
-        ``clock.t`` at exactly ``t`` (a command received, a link that goes silent)."""
-        self.at(t, fn)

@@ -31,9 +31,9 @@ def test_a_wait_returns_true_at_once_on_a_set_event_and_false_after_its_timeout(
 
 def test_the_fake_wait_moves_the_clock_to_what_is_due_and_ends_when_the_event_is_set() -> None:
     clock, ev = FakeClock(t=10.0), threading.Event()
-    clock.call_at(10.3, ev.set)
+    clock.at(10.3, ev.set)
     assert clock.wait(ev, 1.0) is True and clock.t == 10.3  # woken at the moment the input came
     ev.clear()
     assert clock.wait(ev, 0.5) is False and clock.t == pytest.approx(10.8)
-    clock.call_at(20.0, ev.set)  # beyond the timeout: not yet
+    clock.at(20.0, ev.set)  # beyond the timeout: not yet
     assert clock.wait(ev, 1.0) is False and clock.t == pytest.approx(11.8) and not ev.is_set()

@@ -59,7 +59,7 @@ class HostRig:
             self.seq += 1
             self.host.on_cmd(M.Command(stamp=self.clock.t, seq=self.seq, v=v, omega=0.0, method="scm",
                                        valid_ms=300, sender="station", epoch=7), self.clock.t)
-        self.clock.call_at(t, deliver)
+        self.clock.at(t, deliver)
 
     def run(self, duration: float) -> None:
         self.host.loop(self.stop, duration)
@@ -103,7 +103,7 @@ def test_a_lost_link_stops_the_vehicle_within_its_heartbeat_timeout(rig: HostRig
     for k in range(20):
         rig.command_at(t0 + 0.05 + 0.1 * k)
     lost = t0 + 0.5
-    rig.clock.call_at(lost, lambda: rig.controllers.muted.update({0, 1}))  # the bus goes silent
+    rig.clock.at(lost, lambda: rig.controllers.muted.update({0, 1}))  # the bus goes silent
     rig.run(1.5)
     stops = [t for t, a in rig.applied.got if t > lost and a.v == 0.0]
     assert stops, "the host never stopped"
@@ -137,7 +137,7 @@ def test_status_goes_out_each_second_and_at_once_on_a_change(rig: HostRig) -> No
     for k in range(40):
         rig.command_at(t0 + 0.05 + 0.1 * k)
     estop_at = t0 + 2.5
-    rig.clock.call_at(estop_at, lambda: rig.host.on_estop(
+    rig.clock.at(estop_at, lambda: rig.host.on_estop(
         M.Estop(stamp=0.0, engaged=True, source="operator", reason="test"), rig.clock.t))
     rig.run(4.0)
     times = [t for t, _ in rig.status.got]
