@@ -9,7 +9,10 @@ from __future__ import annotations
 
 import tempfile
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
+from typing import Any
 
 from bench.attack_rigs import (
     Result,
@@ -108,14 +111,11 @@ def rover_ready(rover) -> bool:
     return rover.has_origin(time.monotonic()) and rover.mode_name == "MANUAL"
 
 
-def mavlink_forged_timestamp_at_driver(short: bool) -> Result:
-    """One packet signed with a wrong key and a timestamp ten years ahead, sent to the driver's MAVLink client on a
-    signed link to the emulated rover: the driver must keep hearing the rover (pymavlink records a stream's
-    timestamp before it checks the signature; drivers/mavlink/client.verify_before_recording puts it back).
-    before (the wrapper off, --short): no pose heard after it, the link down ("no heartbeat for 1.4 s"), 52
-    genuine messages refused as bad signatures."""
-    import socket
-
+@contextmanager
+def _signed_rover_and_driver(**link: float) -> Iterator[tuple[Any, Any, Any]]:
+    """The emulated rover and the MAVLink driver on one signed link (a fresh key in a temporary directory), the
+    driver opened and engaged: ``(vehicle, rover, driver)``; the driver closed and the rover stopped on the way
+    out. ``link``: more of the driver's :class:`drivers.mavlink.MavlinkLinkConfig` (e.g. ``heartbeat_timeout``)."""
     from bridge.core.auth import make_key
     from drivers import open_driver
     from drivers.mavlink import MavlinkLinkConfig
@@ -129,25 +129,36 @@ def mavlink_forged_timestamp_at_driver(short: bool) -> Result:
         vehicle = SimVehicle(mpc_learner(), (0.0, 0.0, 0.0), now=time.monotonic())
         with MavlinkRover(vehicle, init_s=0.1, ekf_position_s=0.2, signing_key=key) as rover:
             driver = open_driver("mavlink", MavlinkLinkConfig(url=f"udpout:127.0.0.1:{rover.port}", open_timeout=10.0,
-                                                              heartbeat_timeout=1.0,
-                                                              signing_key_file=str(key_file)))
+                                                              signing_key_file=str(key_file), **link))
             try:
                 driver.open(time.monotonic())
                 driver.engage(time.monotonic())
-                forged = forged_heartbeat(rover.sysid, rover.compid)
-                before = driver.health(time.monotonic()).detail.bad_signatures
-                with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:  # udpout reads from any source
-                    s.sendto(forged, driver.client.conn.port.getsockname())
-                until(lambda: driver.health(time.monotonic()).detail.bad_signatures > before, 2.0,
-                       lambda: driver.poll(time.monotonic()))
-                poses = 0
-                t_end = time.monotonic() + (1.3 if short else 2.5)  # past the 1 s heartbeat timeout
-                while time.monotonic() < t_end:
-                    poses += len(driver.poll(time.monotonic()))
-                    time.sleep(0.02)
-                h = driver.health(time.monotonic())
+                yield vehicle, rover, driver
             finally:
                 driver.close()
+
+
+def mavlink_forged_timestamp_at_driver(short: bool) -> Result:
+    """One packet signed with a wrong key and a timestamp ten years ahead, sent to the driver's MAVLink client on a
+    signed link to the emulated rover: the driver must keep hearing the rover (pymavlink records a stream's
+    timestamp before it checks the signature; drivers/mavlink/client.verify_before_recording puts it back).
+    before (the wrapper off, --short): no pose heard after it, the link down ("no heartbeat for 1.4 s"), 52
+    genuine messages refused as bad signatures."""
+    import socket
+
+    with _signed_rover_and_driver(heartbeat_timeout=1.0) as (_vehicle, rover, driver):
+        forged = forged_heartbeat(rover.sysid, rover.compid)
+        before = driver.health(time.monotonic()).detail.bad_signatures
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:  # udpout reads from any source
+            s.sendto(forged, driver.client.conn.port.getsockname())
+        until(lambda: driver.health(time.monotonic()).detail.bad_signatures > before, 2.0,
+              lambda: driver.poll(time.monotonic()))
+        poses = 0
+        t_end = time.monotonic() + (1.3 if short else 2.5)  # past the 1 s heartbeat timeout
+        while time.monotonic() < t_end:
+            poses += len(driver.poll(time.monotonic()))
+            time.sleep(0.02)
+        h = driver.health(time.monotonic())
     return {"reached_vehicle": None, "learned": None,
             "link": {"ok": h.ok, "text": h.text, "poses_after_forgery": poses,
                      "bad_signatures": h.detail.bad_signatures - before},
@@ -160,41 +171,23 @@ def mavlink_forged_timestamp_at_rover(short: bool) -> Result:
     promptly (the rover checks in the C library's order: signature, then timestamp). before (pymavlink's order in
     the rover, --short): the rover stood after 3.05 s (it refused the driver's stream; its GUIDED timeout stopped
     it), after: 0.17 s."""
-    from bridge.core.auth import make_key
-    from drivers import open_driver
-    from drivers.mavlink import MavlinkLinkConfig
-    from sim_learner.dynamics import mpc_learner
-    from sim_learner.mavlink_rover import MavlinkRover
-    from sim_learner.vehicle import SimVehicle
-
-    with tempfile.TemporaryDirectory() as d:
-        key_file = Path(d) / "mav.key"
-        key = make_key(key_file)
-        vehicle = SimVehicle(mpc_learner(), (0.0, 0.0, 0.0), now=time.monotonic())
-        with MavlinkRover(vehicle, init_s=0.1, ekf_position_s=0.2, signing_key=key) as rover:
-            driver = open_driver("mavlink", MavlinkLinkConfig(url=f"udpout:127.0.0.1:{rover.port}", open_timeout=10.0,
-                                                              signing_key_file=str(key_file)))
-            try:
-                driver.open(time.monotonic())
-                driver.engage(time.monotonic())
-                conn = driver.client.conn
-                forged = forged_heartbeat(driver.config.source_system, conn.mav.srcComponent,
-                                          conn.mav.signing.link_id, gcs=True)
-                t_end = time.monotonic() + 0.5
-                while time.monotonic() < t_end:  # the genuine station drives it
-                    driver.send(0.4, 0.0, time.monotonic())
-                    driver.poll(time.monotonic())
-                    time.sleep(0.02)
-                speed = round(vehicle.advance(time.monotonic()).v, 3)
-                bad = rover.bad_signatures
-                conn.port.sendto(forged, ("127.0.0.1", rover.port))  # from the driver's own address
-                until(lambda: rover.bad_signatures > bad, 2.0)
-                t0 = time.monotonic()  # the genuine stop, sent each poll until the rover stands
-                stopped = until(lambda: vehicle.advance(time.monotonic()).v == 0.0, 4.0,
-                                 lambda: (driver.stop(time.monotonic()), driver.poll(time.monotonic())))
-                stop_s = round(time.monotonic() - t0, 2)
-            finally:
-                driver.close()
+    with _signed_rover_and_driver() as (vehicle, rover, driver):
+        conn = driver.client.conn
+        forged = forged_heartbeat(driver.config.source_system, conn.mav.srcComponent,
+                                  conn.mav.signing.link_id, gcs=True)
+        t_end = time.monotonic() + 0.5
+        while time.monotonic() < t_end:  # the genuine station drives it
+            driver.send(0.4, 0.0, time.monotonic())
+            driver.poll(time.monotonic())
+            time.sleep(0.02)
+        speed = round(vehicle.advance(time.monotonic()).v, 3)
+        bad = rover.bad_signatures
+        conn.port.sendto(forged, ("127.0.0.1", rover.port))  # from the driver's own address
+        until(lambda: rover.bad_signatures > bad, 2.0)
+        t0 = time.monotonic()  # the genuine stop, sent each poll until the rover stands
+        stopped = until(lambda: vehicle.advance(time.monotonic()).v == 0.0, 4.0,
+                         lambda: (driver.stop(time.monotonic()), driver.poll(time.monotonic())))
+        stop_s = round(time.monotonic() - t0, 2)
     return {"reached_vehicle": {"speed_before_stop": speed, "stop_s": stop_s, "stopped": stopped}, "learned": None,
             "ok": stopped and stop_s < 1.0 and speed > 0.1}
 
