@@ -3,21 +3,30 @@ transfer's choice of map").
 
 On the refined pairs a mission leaves (docs/PAPER.md, ``sim grid``) neither map is better everywhere: linear
 interpolation on the triangle of pairs holding the command (:class:`transfer.mappers.BarycentricMapper`'s) is exact
-where the learner's response is nearly affine across the triangle, which is where the pairs are dense and the triangles
-small, and the SC map's conformal distortion is its error there (the map through two rectangles of different moduli is
-not affine even where the pairs are); the SC map (:class:`transfer.mappers.ScmMapper`, paper Section 4) is the better
-guess across a hole of the map, a big triangle whose three pairs say nothing of the response inside it and whose
-quadrilateral bends the map by a fourth pair. :class:`MapChoice` decides per command from the pairs' geometry alone,
-with no knowledge of the learner and no second map:
+where the learner's response is nearly affine across the triangle, and the SC map's conformal distortion is its error
+there (the map through two rectangles of different moduli is not affine even where the pairs are); the SC map
+(:class:`transfer.mappers.ScmMapper`, paper Section 4) is the better guess where the response bends across a big
+triangle, whose quadrilateral bends the map by a fourth pair. :class:`MapChoice` decides per triangle from the pairs
+alone, with no knowledge of the learner and no second map. The SC map (``scm``) serves a command when the triangle of
+the SC mapper's own Delaunay triangulation holding it (teacher domain, normalised) passes all three tests:
 
-- the triangle of the SC mapper's own Delaunay triangulation holding the command (teacher domain, normalised);
-- its longest side above :data:`HOLE`: it spans a hole: the SC map (``scm``), as the paper's mapper answers there
-  (its best-shaped valid quadrilateral around the triangle), or no answer where the SC mapper has none (the policy
-  then falls back as without the choice: the same line);
-- else the line of that triangle (``barycentric``).
+- *it spans a hole*: its longest teacher side exceeds :data:`HOLE` (in a small one the pairs are dense and the line
+  is as good as the response is smooth);
+- *the response is flat across it*: its longest learner side is at least :data:`GAIN` times its longest teacher side
+  (a wide range of learner commands answers with a narrow range of teacher-equivalent ones: where the learner's
+  response saturates, which a line misses; where the two sides are alike the response is near affine and the SC map
+  of the long, thin quadrilaterals there only adds its distortion);
+- *the line fails its own check*: the triangle's line, carried to the far pair of each neighbouring triangle (the
+  fourth pair of each quadrilateral the SC mapper can build around it, a pair the line did not use), misses it by
+  more than :data:`BEND` on average (normalised learner units): the response bends across the triangle.
 
-Pure: no I/O, no clock. Each triangle's size is computed once per triangulation, with the barycentric transforms the
-mapper keeps; a command in a small triangle costs one dot product, one in a big triangle the SC map alone.
+Every other command in the triangulation gets the triangle's line (``barycentric``). Where the SC mapper has no
+region in a triangle the rule gives to it, there is no answer (the policy then falls back as without the choice: the
+same line).
+
+Pure: no I/O, no clock. The three tests are computed for all triangles at once, once per triangulation, with the
+barycentric transforms the mapper keeps; a command in a line triangle costs one dot product, one in an SC triangle the
+SC map alone.
 """
 
 from __future__ import annotations
@@ -28,8 +37,14 @@ from numpy.typing import NDArray
 from transfer.mappers import Region, ScmMapper
 
 #: a triangle whose longest teacher side exceeds this (normalised teacher units: about three cells of the default
-#: 11 x 11 store) spans a hole of the map: the SC map serves it, the line every smaller one
+#: 11 x 11 store) spans a hole of the map; the line serves every smaller one
 HOLE = 0.28
+#: the SC map only where a triangle's longest learner side is at least this many times its longest teacher side
+#: (both normalised): the learner's response is flat across it
+GAIN = 1.5
+#: the SC map only where the triangle's line misses the far pairs of its neighbouring triangles by more than this on
+#: average (normalised learner units): the response bends across it
+BEND = 0.1
 
 
 class MapChoice:
@@ -44,18 +59,36 @@ class MapChoice:
         self._holes: NDArray[np.bool_] = np.zeros(0, dtype=bool)
 
     def holes(self) -> NDArray[np.bool_]:
-        """Per triangle of the SC mapper's current triangulation: whether its longest teacher side exceeds
-        :data:`HOLE` (computed for all at once, once per triangulation)."""
+        """Per triangle of the SC mapper's current triangulation: whether the SC map serves it, all three tests of
+        the module docstring (computed for all at once, once per triangulation)."""
         m = self.scm
         if self._holes_of is not m.tri:
             if m.tri is None:
                 self._holes = np.zeros(0, dtype=bool)
             else:
-                P = m.T[m.tri.simplices]  # (n, 3, 2)
-                d = P - P[:, [2, 0, 1]]
-                self._holes = np.hypot(d[..., 0], d[..., 1]).max(axis=1) > HOLE
+                S = m.tri.simplices
+                t_side, l_side = _longest_side(m.T[S]), _longest_side(m.L[S])
+                self._holes = (t_side > HOLE) & (l_side >= GAIN * t_side) & (self.line_check() > BEND)
             self._holes_of = m.tri
         return self._holes
+
+    def line_check(self) -> NDArray[np.float64]:
+        """Per triangle: the mean distance (normalised learner units) by which its line, carried to the far pair of
+        each neighbouring triangle, misses that pair's learner command (0 for a triangle without neighbours, NaN for
+        a degenerate one)."""
+        m = self.scm
+        assert m.tri is not None
+        S, N = m.tri.simplices, m.tri.neighbors
+        tr = m._transforms()
+        k, j = np.nonzero(N >= 0)  # each (triangle, neighbour) pair
+        nb = N[k, j]
+        far = S[nb, np.argmax(N[nb] == k[:, None], axis=1)]  # the neighbour's vertex across the shared edge
+        lam = np.einsum("nij,nj->ni", tr[k, :2], m.T[far] - tr[k, 2])
+        guess = np.einsum("nk,nkj->nj", np.column_stack([lam, 1.0 - lam.sum(axis=1)]), m.L[S[k]])
+        miss = np.hypot(*(guess - m.L[far]).T)
+        total = np.bincount(k, weights=miss, minlength=len(S))
+        count = np.bincount(k, minlength=len(S))
+        return np.where(count > 0, total / np.maximum(count, 1), 0.0)
 
     def _line(self, t: NDArray[np.float64], k: int) -> tuple[NDArray[np.float64], Region]:
         """Linear interpolation of ``t`` on triangle ``k`` of the SC mapper's own triangulation (the barycentric
@@ -108,3 +141,9 @@ class MapChoice:
             for i, got in zip(big, m.map_many(P[big])):
                 res[i] = None if got is None else (got[0], "scm", got[1])
         return res
+
+
+def _longest_side(P: NDArray[np.float64]) -> NDArray[np.float64]:
+    """The longest side of each triangle of ``P`` ``(n, 3, 2)``."""
+    d = P - P[:, [2, 0, 1]]
+    return np.hypot(d[..., 0], d[..., 1]).max(axis=1)

@@ -163,8 +163,8 @@ class TransferSection(Cfg):
         "forward only (teacher_bounds v >= 0)")] = "in-place"
     map_choice: Annotated[bool, meta(
         "with mapper = \"scm\": choose per command between the SC map and the triangle's linear interpolation: "
-        "the SC map in a triangle that spans a hole of the pairs, the line in a smaller one (docs/PAPER.md, 'The "
-        "transfer's choice of map'); false, the paper's SC map wherever it has a region. Off by default: it does "
+        "the SC map in a triangle that spans a hole of the pairs where the response is flat and the triangle's line "
+        "misses its neighbours' pairs, the line elsewhere (docs/PAPER.md, 'The transfer's choice of map'); false, the paper's SC map wherever it has a region. Off by default: it does "
         "not beat interpolation's median on every store, changes little in the closed loop, and on a calibrated "
         "store takes the line everywhere")] = False
     at_limit: Annotated[Literal["row", "region"], meta(
