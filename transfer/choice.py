@@ -67,27 +67,39 @@ class MapChoice:
                 self._holes = np.zeros(0, dtype=bool)
             else:
                 S = m.tri.simplices
-                t_side, l_side = _longest_side(m.T[S]), _longest_side(m.L[S])
-                self._holes = (t_side > HOLE) & (l_side >= GAIN * t_side) & (self.line_check() > BEND)
+                t_side = _longest_side(m.T[S])
+                holes = t_side > HOLE
+                big = np.flatnonzero(holes)  # the other two tests only where the size leaves them to decide (a
+                if big.size:  # dense store has no big triangle: no test at all)
+                    flat = _longest_side(m.L[S[big]]) >= GAIN * t_side[big]
+                    holes[big[~flat]] = False
+                    big = big[flat]
+                    holes[big] = self.line_check(big) > BEND
+                self._holes = holes
             self._holes_of = m.tri
         return self._holes
 
-    def line_check(self) -> NDArray[np.float64]:
-        """Per triangle: the mean distance (normalised learner units) by which its line, carried to the far pair of
-        each neighbouring triangle, misses that pair's learner command (0 for a triangle without neighbours, NaN for
-        a degenerate one)."""
+    def line_check(self, ks: NDArray[np.intp] | None = None) -> NDArray[np.float64]:
+        """Per triangle (of ``ks``, default all): the mean distance (normalised learner units) by which its line,
+        carried to the far pair of each neighbouring triangle, misses that pair's learner command (0 for a triangle
+        without neighbours, NaN for a degenerate one)."""
         m = self.scm
         assert m.tri is not None
         S, N = m.tri.simplices, m.tri.neighbors
+        ks = np.arange(len(S)) if ks is None else np.asarray(ks, dtype=np.intp)
         tr = m._transforms()
-        k, j = np.nonzero(N >= 0)  # each (triangle, neighbour) pair
+        row, j = np.nonzero(N[ks] >= 0)  # each (triangle, neighbour) pair
+        k = ks[row]
         nb = N[k, j]
         far = S[nb, np.argmax(N[nb] == k[:, None], axis=1)]  # the neighbour's vertex across the shared edge
-        lam = np.einsum("nij,nj->ni", tr[k, :2], m.T[far] - tr[k, 2])
-        guess = np.einsum("nk,nkj->nj", np.column_stack([lam, 1.0 - lam.sum(axis=1)]), m.L[S[k]])
+        T, d = tr[k], m.T[far] - tr[k, 2]
+        l0 = T[:, 0, 0] * d[:, 0] + T[:, 0, 1] * d[:, 1]  # the far pair's barycentric coordinates in triangle k
+        l1 = T[:, 1, 0] * d[:, 0] + T[:, 1, 1] * d[:, 1]
+        V = m.L[S[k]]
+        guess = l0[:, None] * V[:, 0] + l1[:, None] * V[:, 1] + (1.0 - l0 - l1)[:, None] * V[:, 2]
         miss = np.hypot(*(guess - m.L[far]).T)
-        total = np.bincount(k, weights=miss, minlength=len(S))
-        count = np.bincount(k, minlength=len(S))
+        total = np.bincount(row, weights=miss, minlength=len(ks))
+        count = np.bincount(row, minlength=len(ks))
         return np.where(count > 0, total / np.maximum(count, 1), 0.0)
 
     def _line(self, t: NDArray[np.float64], k: int) -> tuple[NDArray[np.float64], Region]:
