@@ -164,9 +164,9 @@ class TransferSection(Cfg):
     map_choice: Annotated[bool, meta(
         "with mapper = \"scm\": choose per command between the SC map and the triangle's linear interpolation: "
         "the SC map in a triangle that spans a hole of the pairs where the response is flat and the triangle's line "
-        "misses its neighbours' pairs, the line elsewhere (docs/PAPER.md, 'The transfer's choice of map'); false, the paper's SC map wherever it has a region. Off by default: it does "
-        "not beat interpolation's median on every store, changes little in the closed loop, and on a calibrated "
-        "store takes the line everywhere")] = False
+        "misses its neighbours' pairs, the line elsewhere (docs/PAPER.md, 'The transfer's choice of map'); false, "
+        "the paper's SC map wherever it has a region. Off by default: it does not beat interpolation's median on "
+        "every store, changes little in the closed loop, and on a calibrated store takes the line everywhere")] = False
     at_limit: Annotated[Literal["row", "region"], meta(
         "how a command at a driven learned limit is mapped: row, interpolated along the limit's row of pairs (a "
         "mission's own pairs there are nearly collinear, so its mapping regions are slivers); region, by the mapping "

@@ -223,6 +223,7 @@ class Monitor:
         All times are the driver host's stamps (poses and applied echoes: one clock, whatever the machines).
         ``reached_goal`` is false for a run that left its corridor (any pose of it more than ``corridor_m``, default
         :data:`bridge.tools.sitl_verdict.CORRIDOR_M`, from the path), whatever the goal rule said."""
+        from bridge.tools.demo_calibrate import deviations
         from bridge.tools.sitl_verdict import CORRIDOR_M, corridor
 
         with self.lock:
@@ -237,7 +238,6 @@ class Monitor:
         t1 = goal if goal is not None else (driving[-1][0] if driving else states[-1][0])
         run = [s for s in states if t0 <= s[0] <= t1] or states
         traj = np.array([s[1:] for s in run])
-        devs = np.array([world.path.project(p[:2])[1] for p in traj])
         collided = touched_an_obstacle(world, traj[:, :2])
         lane = corridor(world.path.points, traj[:, :2], CORRIDOR_M if corridor_m is None else corridor_m)
         c = st.counters
@@ -254,7 +254,7 @@ class Monitor:
                 "driving_s": round(driving_s, 1), "paused_s": round(max(0.0, t1 - t0 - driving_s), 1),
                 "parked_before_s": round(max(0.0, t0 - states[0][0]), 1),
                 "parked_after_s": round(max(0.0, states[-1][0] - t1), 1),
-                "mean_dev_m": round(float(devs.mean()), 4), "max_dev_m": round(float(devs.max()), 4),
+                **deviations(world.path, traj),  # mean and max over the run, mean over the path's last half
                 "collided": collided,  # a disc of the paper's vehicle radius touched an obstacle
                 # how far from the goal point it stopped (the station's goal flag alone could be a pose far away)
                 "goal_dist_m": round(float(np.hypot(*(traj[-1, :2] - np.asarray(world.goal)))), 3),

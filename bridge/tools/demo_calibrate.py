@@ -117,6 +117,19 @@ def place_after_calibration(mon: Any, mission: str | None, out: Path, frame: str
     return mission_from_spec(placed), str(path)
 
 
+def deviations(path: Any, traj: Any) -> dict[str, float | None]:
+    """The run's distance from the path (``path``: :class:`transfer.teacher.path.Polyline`; ``traj``: poses
+    ``(n, >= 2)``): its mean and maximum over the run (``mean_dev_m``, ``max_dev_m``: with the approach from the start
+    pose, beside the path, in both), and the mean over the last half of the path (``dev_last_half_m``: the paper's
+    reading, as ``sim mpc`` and the SITL verdicts measure it; docs/PAPER.md), None before the robot got there."""
+    import numpy as np
+
+    proj = np.array([path.project(p[:2]) for p in traj])  # (along the path, distance from it) per pose
+    devs, half = proj[:, 1], proj[:, 0] >= 0.5 * path.length
+    return {"mean_dev_m": round(float(devs.mean()), 4), "max_dev_m": round(float(devs.max()), 4),
+            "dev_last_half_m": round(float(devs[half].mean()), 4) if half.any() else None}
+
+
 def method_shares(methods: dict[str, int]) -> dict[str, float]:
     """Each method's share of the driving commands (``stop`` left out: it drives nothing), rounded to 0.001."""
     driving = {m: n for m, n in methods.items() if m != "stop"}

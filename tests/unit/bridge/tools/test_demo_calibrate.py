@@ -1,14 +1,17 @@
 """bridge/tools/demo_calibrate.py: ``scmbridge demo --calibrate``'s argument and checks, its bound on time and the
-method shares of a summary (the calibrated start end to end: tests/integration/test_demo_calibrate.py)."""
+method shares and deviations of a summary (the calibrated start end to end:
+tests/integration/test_demo_calibrate.py)."""
 
 from __future__ import annotations
 
 import argparse
 
+import numpy as np
 import pytest
 
 from bridge.core.errors import UsageError
-from bridge.tools.demo_calibrate import calibration_budget, method_shares
+from bridge.tools.demo_calibrate import calibration_budget, deviations, method_shares
+from transfer.teacher.path import Polyline
 
 
 def test_method_shares_leave_stop_out_and_sum_to_one() -> None:
@@ -54,3 +57,15 @@ def test_on_sitl_each_calibration_command_is_held_past_the_pairs_settling(tmp_pa
     assert cfg.calibration.hold_s - cfg.station.pair_settle_s >= 5 * 0.1  # k_min control intervals after settling
     assert cfg.transfer.at_limit == "region"
     assert calibration_budget((5, 5), cfg.calibration.hold_s) > calibration_budget((5, 5))
+
+
+def test_the_deviations_of_a_run_and_of_its_last_half() -> None:
+    # a straight 10 m path; the robot starts 0.3 m beside it and drives 0.1 m beside it from 2 m on: the mean over
+    # the run counts the start, the last half's does not (the paper's reading), the maximum is the start's
+    path = Polyline(np.array([[0.0, 0.0], [10.0, 0.0]]))
+    x = np.linspace(0.0, 10.0, 101)
+    y = np.where(x < 2.0, 0.3, 0.1)
+    got = deviations(path, np.column_stack([x, y, np.zeros_like(x)]))
+    assert got["max_dev_m"] == 0.3 and got["dev_last_half_m"] == 0.1
+    assert got["mean_dev_m"] == round(float(np.mean(y)), 4) and got["mean_dev_m"] > 0.1
+    assert deviations(path, np.array([[1.0, 0.2, 0.0]]))["dev_last_half_m"] is None  # not half-way yet
