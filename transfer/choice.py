@@ -69,8 +69,8 @@ class MapChoice:
                 S = m.tri.simplices
                 t_side = _longest_side(m.T[S])
                 holes = t_side > HOLE
-                big = np.flatnonzero(holes)  # the other two tests only where the size leaves them to decide (a
-                if big.size:  # dense store has no big triangle: no test at all)
+                big = np.flatnonzero(holes)  # the other two tests only where the size leaves them to decide
+                if big.size:
                     flat = _longest_side(m.L[S[big]]) >= GAIN * t_side[big]
                     holes[big[~flat]] = False
                     big = big[flat]
