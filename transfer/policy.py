@@ -455,13 +455,12 @@ class GuidedPolicy(_PolicyBase):
 
     def _explore(self, t: NDArray[np.float64], t_n: NDArray[np.float64], plan: Plan) -> Mapped:
         lb = self.store.learner_bounds
-        built = getattr(self.mapper, "builds", 0)
         u, method, ids, gap = self._unperturbed(t, t_n)
         probe = self._probe_limits(t_n, u)
         if probe is not None:
             return Mapped(probe, "perturb")
-        if gap <= self.saturate:  # a command whose own map built an SC map does not step a hole search too
-            fill = self._fill(t, step=getattr(self.mapper, "builds", 0) == built)
+        if gap <= self.saturate:
+            fill = self._fill(t)
             if fill is not None:
                 return Mapped(fill, "perturb")
             return Mapped(u, method, ids)
@@ -502,10 +501,8 @@ class GuidedPolicy(_PolicyBase):
         self._search: Search | None = None  # the hole search under way, a step per command (transfer/holes.py)
         self.searches = 0  # hole searches begun
 
-    def _fill(self, t: NDArray[np.float64], step: bool = True) -> NDArray[np.float64] | None:
-        """The fill of a hole of the map (module docstring), or None: no budget, no hole, or a paused burst.
-        ``step`` False: no step of a hole search with this command (its own map was costly: it built an SC map),
-        which waits for the next one; a burst under way goes on."""
+    def _fill(self, t: NDArray[np.float64]) -> NDArray[np.float64] | None:
+        """The fill of a hole of the map (module docstring), or None: no budget, no hole, or a paused burst."""
         store = self.store
         if self.fill_budget <= 0.0 or not t[0] > 0.0:
             return None
@@ -527,7 +524,7 @@ class GuidedPolicy(_PolicyBase):
             self._fill_cell = store.cell_of(u)
             self._fill_tokens -= 1.0
             return u
-        if self._fill_tokens < store.k_min or not step:  # a new burst starts with one whole cell's budget
+        if self._fill_tokens < store.k_min:  # a new burst starts with one whole cell's budget
             return None
         if self._search is None:
             if self._served < self._search_after or store.n_configured() == store.count.size:

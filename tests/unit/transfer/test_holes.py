@@ -94,36 +94,3 @@ def test_prepare_builds_the_sc_map_a_map_needs_and_the_map_then_builds_nothing()
             assert got[1] == alone[1]
             mapped += 1
     assert mapped >= 3
-
-
-def test_a_command_whose_own_map_builds_an_sc_map_steps_no_search_that_command() -> None:
-    """The teacher's yaw rate wanders, so commands' own maps build SC maps now and then while searches run: such a
-    command leaves the search's step to the next one (a tick's tail: its own builds, never a search's beside them),
-    and the fills come."""
-    case, store = _top_speed_store()
-    p = make_policy(store, "scm", seed=0)
-    rng = np.random.default_rng(3)
-    v, w = case.true_box.v[1], 0.0
-    builds, own_builds, methods = [], 0, []
-    inner = p._unperturbed
-
-    def counted(*a):  # the command's own map: the SC maps it builds
-        nonlocal own_builds
-        b0 = p.mapper.builds
-        out = inner(*a)
-        own_builds += p.mapper.builds - b0
-        return out
-
-    p._unperturbed = counted
-    both = 0
-    for _ in range(600):
-        b0, o0 = p.mapper.builds, own_builds
-        w = float(np.clip(w + rng.normal(0.0, 0.05), -0.4, 0.4))  # a random walk of the yaw rate
-        t = np.array([v * rng.uniform(0.6, 1.0), w])
-        m = p.map(t)
-        builds.append(p.mapper.builds - b0)
-        both += own_builds > o0 and p.mapper.builds - b0 > own_builds - o0
-        methods.append(m.method)
-        store.add(case.learner.response(m.u_L), m.u_L)
-    assert sum(builds) >= 50 and p.searches >= 5 and methods.count("perturb") >= store.k_min
-    assert both == 0, both  # (its own map may build more than one: the chain tries its candidates)
