@@ -27,14 +27,14 @@ from bridge.core.paths import save_atomic
 from bridge.nodes.mission_control import MissionControl
 from bridge.nodes.station_status import StationCounters
 from bridge.nodes.station_tags import FileTags
-from bridge.nodes.writer import Payload
 from transfer.store import PairStore
 
 log = logging.getLogger("scmbridge.station")
 
 #: a writer of saves off the tick: ``(what, path, data)``, ``what`` "store" or "control", ``data`` a function that
-#: gives the tagged bytes of a snapshot (called once, on the writer's thread)
-Writer = Callable[[str, Path, Payload], None]
+#: gives the tagged bytes of a snapshot (called once, on the writer's thread; :data:`bridge.nodes.writer.Payload`,
+#: not imported: the core imports no threading)
+Writer = Callable[[str, Path, bytes | Callable[[], bytes]], None]
 
 T = TypeVar("T")
 
