@@ -23,6 +23,7 @@ from typing import TypeVar
 import numpy as np
 
 from bridge.core import wire as M
+from bridge.core.auth import KeyFileError
 from bridge.core.paths import save_atomic
 from bridge.nodes.mission_control import MissionControl
 from bridge.nodes.station_status import StationCounters
@@ -84,6 +85,7 @@ class StationSaves:
         #: tags each file as this station's (bridge/nodes/station_tags.py); None: saved as they are
         self.tags: FileTags | None = None
         self.next_at: float | None = None  # the store's next save is due then (None: at the first periodic tick)
+        self._keyed: set[Path] = set()  # the files whose key :meth:`save` has made or read on this thread
 
     def periodic(self, now: float) -> None:
         """The pair store's save when it is due (at the first periodic tick, then as :meth:`__init__` says)."""
@@ -99,10 +101,25 @@ class StationSaves:
             self.persist() if what == "store" else self.save_control()
         elif what == "store":
             store, path = snapshot(self.store), self.store_path
+            self._key_ready(path)
             self.writer("store", path, lambda: self._sealed("store", path, store.to_bytes()))
         elif self.control_path is not None:
             saved, path = self.control.saved(), self.control_path  # a new message (a snapshot of its own)
+            self._key_ready(path)
             self.writer("control", path, lambda: self._sealed("control", path, M.encode(saved)))
+
+    def _key_ready(self, path: Path) -> None:
+        """The key that tags ``path`` made (or read) here at the file's first save, on the loop's thread: the
+        writer threads of a process's stations, whose files share a directory and so a key, would otherwise race to
+        make it (one station's file then tagged with a key another replaced). A key that cannot be had is left to
+        the writer, whose seal fails again and is reported as a failed save."""
+        if self.tags is None or path in self._keyed:
+            return
+        self._keyed.add(path)
+        try:
+            self.tags.key(path)
+        except KeyFileError:
+            pass
 
     def _sealed(self, kind: str, path: Path, data: bytes) -> bytes:
         return self.tags.seal(kind, path, data) if self.tags is not None else data

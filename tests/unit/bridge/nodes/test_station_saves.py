@@ -135,3 +135,25 @@ def test_a_snapshot_owns_its_arrays_down_to_the_limits_and_encodes_as_the_store_
     store.limits.hull_sum += 1.0
     store.count += 1
     assert snap.to_bytes() != store.to_bytes() and PairStore.from_bytes(snap.to_bytes()).raw_count == 1
+
+
+def test_a_files_key_is_made_on_the_loops_thread_at_its_first_save_not_by_the_writer(tmp_path) -> None:
+    """The stations of one process share a directory, so a key: made by the loop's thread at the first save (as
+    the stations take turns there), never by several writer threads at once, one replacing another's."""
+    from bridge.nodes.station_tags import FileTags, key_file
+
+    s = _saves(tmp_path / "state", control_path=tmp_path / "state" / "mission.bin")
+    s.tags = FileTags()
+    handed: list = []
+    s.writer = lambda what, path, data: handed.append(data)  # nothing encoded, sealed or written yet
+    assert not key_file(s.store_path).exists()
+    s.save("store")
+    assert key_file(s.store_path).exists() and handed
+    other = _saves(tmp_path / "state")  # a second station of the process, same directory: reads that key
+    other.tags = FileTags()
+    other.writer = lambda what, path, data: handed.append(data)
+    other.save("store")
+    key = key_file(s.store_path).read_bytes()
+    blobs = [d() for d in handed]
+    assert key_file(s.store_path).read_bytes() == key
+    assert all(FileTags().open("store", s.store_path, b)[1] == "" for b in blobs)
