@@ -128,8 +128,8 @@ class _Rig:
         core.transfer.map = clock.wrap("transfer", core.transfer.map)
         for owner, what in ((core, "status"), (core.limits_report, "message"), (core.saves, "save")):
             setattr(owner, what, clock.wrap("publications", getattr(owner, what)))
-        # the saves are encoded in the tick and written by a writer thread, as the station's
-        # (bridge.nodes.station.Station): the writing is in the process's CPU, not in the tick's
+        # the saves are snapshots taken in the tick, encoded and written by a writer thread, as the station's
+        # (bridge.nodes.station.Station): the encoding and the writing are in the process's CPU, not in the tick's
         from bridge.nodes.writer import SaveWriter
 
         self.writer = core.saves.writer = SaveWriter(name=f"bench-save-{name}")

@@ -127,8 +127,8 @@ class Station:
     latest status (one sent on an engage or a release a moment before is heard), as one tick's decision is never
     split by it, and ``pairs`` reads a store no tick is updating. Before the loop starts and
     after it ends a query is answered in its callback. An external teacher's command also wakes the loop, so it is
-    mapped as it arrives. The tick's saves go to a :class:`~bridge.nodes.writer.SaveWriter` (the bytes encoded in
-    the tick, written by its thread; a failure comes back to the core at the next tick, reported as before)."""
+    mapped as it arrives. The tick's saves go to a :class:`~bridge.nodes.writer.SaveWriter` (a snapshot taken in
+    the tick, encoded and written by its thread; a failure comes back to the core at the next tick, as before)."""
 
     def __init__(self, cfg: StationConfig, robot: str, rate_hz: float, store_path: Path, mission: Mission,
                  control: MissionControl | None = None, control_path: Path | None = None,

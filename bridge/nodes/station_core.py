@@ -24,7 +24,7 @@ reported on status and retried, and never stops the loop).
 :class:`TickOutputs` is what to publish; the Zenoh adapter (:mod:`bridge.nodes.station`) puts it on the wire. The
 core has no threads, no module-level state and no session: a process may run many, one per robot. It is not
 thread-safe: the adapter calls it (ticks and the control and pairs queries) from its loop's thread only. Its saves are
-encoded in the tick and written by the writer the adapter gives :attr:`StationCore.saves`
+snapshots taken in the tick, encoded, tagged and written by the writer the adapter gives :attr:`StationCore.saves`
 (:class:`bridge.nodes.station_saves.StationSaves`: off the tick, on the writer's thread; the outcome comes back
 through its ``saved``), else at once.
 

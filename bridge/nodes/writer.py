@@ -1,6 +1,7 @@
-"""Saves written off a real-time loop: the loop hands over bytes it encoded (a snapshot), a thread of their own writes
-them (atomically: write, fsync, rename, fsync the directory; :func:`bridge.core.paths.save_atomic`), and the loop
-collects each outcome at its next tick.
+"""Saves written off a real-time loop: the loop hands over bytes it encoded, or a function that encodes a snapshot it
+took (a :data:`Payload`: the encoding, the tag with it, then runs on the writer's thread too), a thread of their own
+writes them (atomically: write, fsync, rename, fsync the directory; :func:`bridge.core.paths.save_atomic`), and the
+loop collects each outcome at its next tick.
 
 A slow or stalled disk then delays the file, never the loop's ticks: the station's commands go out on their
 deadlines while a save waits for its fsync (docs/ARCHITECTURE.md, "Threads and clocks"). Per file the latest bytes
@@ -21,6 +22,9 @@ log = logging.getLogger("scmbridge.station")
 
 #: a save: write ``data`` to ``path`` atomically, raising OSError on failure
 Save = Callable[[Path, bytes], None]
+#: what is handed over: the bytes, or a function that gives them (called once, on the writer's thread; it must read
+#: only a snapshot the loop no longer changes)
+Payload = bytes | Callable[[], bytes]
 
 
 class SaveWriter:
@@ -32,14 +36,15 @@ class SaveWriter:
     def __init__(self, save: Save = save_atomic, name: str = "station-writer") -> None:
         self.save, self.name = save, name
         self.cond = threading.Condition()
-        self.waiting: dict[Path, tuple[str, bytes]] = {}  # per file the latest bytes not yet being written
+        self.waiting: dict[Path, tuple[str, Payload]] = {}  # per file the latest bytes not yet being written
         self.done: list[tuple[str, OSError | None]] = []
         self.closed = False
         self.replaced = 0  # saves replaced by a later one of the same file before they were written
         self.thread: threading.Thread | None = None
 
-    def __call__(self, what: str, path: Path, data: bytes) -> None:
-        """Hand a save over (returns at once). After :meth:`close` it is written here, at once."""
+    def __call__(self, what: str, path: Path, data: Payload) -> None:
+        """Hand a save over (returns at once; a function is called on the writer's thread, or never when a later save
+        of the same file replaced it first). After :meth:`close` it is written here, at once."""
         with self.cond:
             if not self.closed:
                 if path in self.waiting:
@@ -78,17 +83,17 @@ class SaveWriter:
                 what, data = self.waiting.pop(path)
             self._write(what, path, data)
 
-    def _write(self, what: str, path: Path, data: bytes) -> None:
+    def _write(self, what: str, path: Path, data: Payload) -> None:
         error: OSError | None = None
         try:
-            self.save(path, data)
+            self.save(path, data if isinstance(data, bytes) else data())
         except OSError as exc:
             error = exc
         except Exception as exc:  # a bug must not end the thread silently: reported as a failed save
-            log.exception("saving %s to %s failed", what, path)
+            log.exception("saving %s to %s failed", what, path)  # (an encoding's bug too)
             error = OSError(f"{type(exc).__name__}: {exc}")
         with self.cond:
             self.done.append((what, error))
 
 
-__all__ = ["Save", "SaveWriter"]
+__all__ = ["Payload", "Save", "SaveWriter"]
