@@ -79,9 +79,9 @@ def _time_rebuilds(policy, store, command, n: int) -> list[float]:
         if not m.region:
             continue
         cell = divmod(m.region[0], 11)
-        tN = store.pub_T[cell] + 0.01
+        tN = store.cells.pub_T[cell] + 0.01
         for _k in range(store.k_min * 2):
-            store.add(TB.denormalise(tN), LB.denormalise(store.pub_L[cell]))
+            store.add(TB.denormalise(tN), LB.denormalise(store.cells.pub_L[cell]))
         t = time.perf_counter()
         policy.map(u)
         out.append(time.perf_counter() - t)

@@ -6,9 +6,10 @@ into the link's own frames and turns the vehicle's telemetry back into poses.
 
 All times are the driver host's monotonic seconds, so that the pose stamps and the applied-command echo the station
 pairs with each other come from one clock: passed in (``now``) where the protocol has them, and otherwise read from
-the clock the driver was built with (a :data:`Clock`, :data:`bridge.core.timebase.monotonic` by default: no driver
-uses the time module itself). A driver that waits (its ``open``, ``engage``, ``close``) sets its deadlines on that
-clock and sleeps with the :data:`Sleep` it was given, so a test on a fake clock drives it without real time.
+the clock the driver was built with (a :class:`bridge.core.clock.Clock`, the station's kind: :data:`SYSTEM`, the
+host's, by default: no driver uses the time module itself). A driver that waits (its ``open``, ``engage``, ``close``)
+sets its deadlines on that clock and waits with its :meth:`~bridge.core.clock.Clock.wait`, so a test on a fake clock
+(tests/fakeclock.py) drives it without real time. ``close`` is given the host's ``now`` where the host has it.
 
 :class:`LinkBase` is the frame every built-in link shares: the health it reports, its counters (one dataclass names
 them: the counts kept and the detail reported cannot disagree), its waits (``open``, ``engage``, ``close`` step the
@@ -19,16 +20,14 @@ and ``send`` at one ``now`` judge the link once).
 
 from __future__ import annotations
 
+import threading
 from collections.abc import Callable
 from dataclasses import MISSING, dataclass, field, fields
 from typing import Any, Literal, Protocol, runtime_checkable
 
-from bridge.core import timebase
+from bridge.core.clock import SYSTEM, Clock
 
-#: a monotonic clock in seconds (:data:`bridge.core.timebase.monotonic`, or a test's fake)
-Clock = timebase.Clock
-#: a wait of so many seconds on that clock (:data:`bridge.core.timebase.sleep`, or a test's fake that advances it)
-Sleep = timebase.Sleep
+__all__ = ["SYSTEM", "Clock"]
 
 
 class DriverError(RuntimeError):
@@ -156,9 +155,11 @@ class Driver(Protocol):
         controllers latched (axis errors) and bring them back to accepting commands. Never called automatically;
         a link with nothing to clear (MAVLink: the operator changes the mode) does nothing."""
 
-    def close(self, disarm: bool = True, stop_speed: float = 0.05, stop_timeout: float = 3.0) -> None:
+    def close(self, disarm: bool = True, stop_speed: float = 0.05, stop_timeout: float = 3.0,
+              now: float | None = None) -> None:
         """Stop the vehicle, wait (at most ``stop_timeout``) until it reports less than ``stop_speed``, then (if
-        ``disarm``: it was engaged by this host) disarm it or idle its axes, and release the link. Idempotent."""
+        ``disarm``: it was engaged by this host) disarm it or idle its axes, and release the link. Idempotent.
+        ``now``: the host's time (None: the link reads its clock once, a caller without a tick)."""
 
 
 def link_unauthenticated(config: object) -> str:
@@ -201,8 +202,9 @@ class LinkBase:
     #: counts of COUNTERS kept by another piece (and merged in :meth:`counters`)
     COUNTED_ELSEWHERE: tuple[str, ...] = ()
 
-    def __init__(self, clock: Clock = timebase.monotonic, sleep: Sleep = timebase.sleep) -> None:
-        self.clock, self.sleep = clock, sleep
+    def __init__(self, clock: Clock = SYSTEM) -> None:
+        self.clock = clock
+        self._idle = threading.Event()  # never set: what a bounded wait with nothing to wake it waits on
         self._health = LinkHealth()
         self.counts: dict[str, int] = dict.fromkeys(counter_names(self.COUNTERS, besides=self.COUNTED_ELSEWHERE), 0)
         self._judged_at: tuple[float, Verdict] | None = None
@@ -212,7 +214,7 @@ class LinkBase:
     def _pause(self, dt: float) -> float:
         """Wait ``dt`` s on the link's clock (a bounded wait of ``open``, ``engage`` or ``close``) and return the time
         after it: the only way such a wait learns the time moved."""
-        self.sleep(dt)
+        self.clock.wait(self._idle, dt)
         return self.clock()
 
     # ------------------------------------------------------------------------------------------- health

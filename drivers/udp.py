@@ -76,13 +76,12 @@ import socket
 from dataclasses import dataclass, replace
 from typing import Annotated
 
-from bridge.core import timebase
 from bridge.core import wire as M
 from bridge.core.auth import KeyFileError, load_key, open_sealed, seal_session
 from bridge.core.clock import ClockOffset
 from bridge.core.config import Cfg, Port, Rule, meta
 from bridge.core.gate import SeqGate
-from drivers.base import Clock, DriverError, FailsafeReport, LinkBase, LinkHealth, Pose, Sleep, Verdict, whole_numbers
+from drivers.base import SYSTEM, Clock, DriverError, FailsafeReport, LinkBase, LinkHealth, Pose, Verdict, whole_numbers
 
 log = logging.getLogger("scmbridge.driver.udp")
 
@@ -185,14 +184,13 @@ def resolve_ipv4(host: str, port: int) -> tuple[str, int]:
 class UdpDriver(LinkBase):
     """The UDP shim behind the :class:`drivers.base.Driver` protocol (see the module docstring), on
     :class:`drivers.base.LinkBase`: a datagram read by a ``poll`` was received by its ``now``; ``open`` and ``close``
-    wait between their stops with ``sleep`` (a test on a fake clock runs them without real time)."""
+    wait between their stops with the clock's ``wait`` (a test on a fake clock runs them without real time)."""
 
     name = "udp"
     COUNTERS = UdpHealthDetail
 
-    def __init__(self, config: UdpLinkConfig, *, clock: Clock = timebase.monotonic,
-                 sleep: Sleep = timebase.sleep) -> None:
-        super().__init__(clock, sleep)
+    def __init__(self, config: UdpLinkConfig, *, clock: Clock = SYSTEM) -> None:
+        super().__init__(clock)
         self.config = config
         self.bind = (config.bind_host, config.bind_port)
         self.open_timeout = config.open_timeout
@@ -366,11 +364,13 @@ class UdpDriver(LinkBase):
         return FailsafeReport(drive_on_s=s, text=f"if the host dies the robot drives on for up to {s:g} s (each "
                               "command is valid that long on the robot)")
 
-    def close(self, disarm: bool = True, stop_speed: float = 0.05, stop_timeout: float = 3.0) -> None:
+    def close(self, disarm: bool = True, stop_speed: float = 0.05, stop_timeout: float = 3.0,
+              now: float | None = None) -> None:
         if self.sock is None:
             return
-        try:  # stops until the robot says it has stopped (close is given no time: read once, then moved by the waits)
-            self._stop_until_still(self.clock(), stop_speed, stop_timeout, GREET_PERIOD_S, self._reported_speed)
+        try:  # stops until the robot says it has stopped (from the host's now, else read once; then the waits move it)
+            start = self.clock() if now is None else now
+            self._stop_until_still(start, stop_speed, stop_timeout, GREET_PERIOD_S, self._reported_speed)
         finally:
             self.sock.close()
             self.sock = None

@@ -206,7 +206,7 @@ def drive(scenario: str, seed: int, adapt: bool, tiles: int = TILES, solver: str
     else:  # as a station reloads it: its configuration decides whether it adapts
         store = PairStore.from_bytes(reloaded.to_bytes())
         store.set_adapt(adapt)
-        store.change_tol = change_tol
+        store.change.change_tol = change_tol
     step = TransferStep(make_policy(store, "scm", np.random.default_rng(seed)), dt=DT)
     mpc = _mpc_teacher(solver, curve_margin)
     mpc.reset()

@@ -84,7 +84,7 @@ def hole_search(policy: Searcher, t: NDArray[np.float64]) -> Search:
         rows_l = policy._unperturbed_many(slowed[a:min(a + RANK_ROWS, n)], linear=True)[0]
         v_n[a:a + RANK_ROWS] = lb.normalise(rows_l)[:, 0]
     rows = np.minimum((v_n * gv).astype(int), gv - 1)
-    open_ = [i for i in range(n) if not store.pub_version[rows[i]].all()]
+    open_ = [i for i in range(n) if not store.cells.pub_version[rows[i]].all()]
     cost = n + len(open_)
     ranked: list[tuple[tuple[bool, float], int]] = []
     if open_:
@@ -103,7 +103,7 @@ def hole_search(policy: Searcher, t: NDArray[np.float64]) -> Search:
             if store.is_configured(cell):
                 continue
             ts_n = tb.normalise(slowed[i])
-            ranked.append(((bool(store.count[cell] > 0),
+            ranked.append(((bool(store.cells.count[cell] > 0),
                             float(np.min(np.hypot(*(T - ts_n).T))) if len(T) else 0.0), i))
     ranked.sort(key=lambda e: e[0], reverse=True)  # stable: of equal keys the fastest first
     best: tuple[tuple[bool, float], tuple[int, int], NDArray[np.float64]] | None = None
@@ -116,7 +116,7 @@ def hole_search(policy: Searcher, t: NDArray[np.float64]) -> Search:
         u = policy._at_speed(t, v, float(speeds[i]))
         if u is None or store.is_configured(cell := store.cell_of(u)):
             continue
-        key = (bool(store.count[cell] > 0), key[1])
+        key = (bool(store.cells.count[cell] > 0), key[1])
         if best is None or key > best[0]:
             best = (key, cell, u)
     if best is None:

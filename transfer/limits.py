@@ -63,6 +63,7 @@ from __future__ import annotations
 import math
 import statistics
 from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -388,10 +389,40 @@ class LearnerLimits:
         self._box_cache = None
         self._hull_cache = None
 
-    def turn_state(self) -> dict[str, list]:
-        """The curvatures' sums as the store saves them (``turn_prop`` None: none extrapolated on that side)."""
-        return {"turn_vw": self.turn_vw.tolist(), "turn_vv": self.turn_vv.tolist(), "turn_n": self.turn_n.tolist(),
+    def saved(self) -> dict[str, Any]:
+        """The limits as a saved store holds them (the fields of ``transfer/store_blob.py``'s ``LimitsBlob``; a side's
+        ``turn_prop`` None: none extrapolated on it)."""
+        return {"lo": self.lo.tolist(), "hi": self.hi.tolist(), "ext_lo": self.ext_lo.tolist(),
+                "ext_hi": self.ext_hi.tolist(), "bsum_lo": self.bsum_lo.tolist(), "bsum_hi": self.bsum_hi.tolist(),
+                "bcnt_lo": self.bcnt_lo.tolist(), "bcnt_hi": self.bcnt_hi.tolist(),
+                "hull_sum": self.hull_sum.ravel().tolist(), "hull_cnt": self.hull_cnt.ravel().tolist(),
+                "version": self.version, "turn_vw": self.turn_vw.tolist(), "turn_vv": self.turn_vv.tolist(),
+                "turn_n": self.turn_n.tolist(),
                 "turn_prop": [None if math.isnan(k) else float(k) for k in self.turn_prop]}
+
+    def restore(self, s: dict[str, Any]) -> None:
+        """Load what :meth:`saved` gave (or an older store's, without the curvatures: none learned yet); ValueError
+        for anything a saved store cannot hold, and then nothing is changed."""
+        gv, gw = self.grid
+        for name in ("lo", "hi", "ext_lo", "ext_hi", "bsum_lo", "bsum_hi", "bcnt_lo", "bcnt_hi"):
+            if len(s[name]) != 2:
+                raise ValueError(f"pair-store limits field {name} must have 2 values")
+        for name, want in (("hull_sum", 2 * gv * gw), ("hull_cnt", gv * gw)):
+            if len(s[name]) != want:
+                raise ValueError(f"pair-store field {name} has {len(s[name])} values, expected {want}")
+        f = {k: np.array(s[k], dtype=float) for k in ("lo", "hi", "ext_lo", "ext_hi", "bsum_lo", "bsum_hi")}
+        hull_sum = np.array(s["hull_sum"], dtype=float).reshape(gv, gw, 2)
+        if not all(np.all(np.isfinite(f[k])) for k in ("lo", "hi", "bsum_lo", "bsum_hi")) or not np.all(
+                np.isfinite(hull_sum)):
+            raise ValueError("pair-store blob holds non-finite or negative values (the limits)")
+        if s.get("turn_vw") is not None:  # (else none learned yet)
+            self.set_turn_state(s["turn_vw"], s.get("turn_vv"), s.get("turn_n"), s.get("turn_prop"))
+        self.lo, self.hi, self.ext_lo, self.ext_hi = f["lo"], f["hi"], f["ext_lo"], f["ext_hi"]
+        self.bsum_lo, self.bsum_hi = f["bsum_lo"], f["bsum_hi"]
+        self.bcnt_lo, self.bcnt_hi = np.array(s["bcnt_lo"], dtype=np.int64), np.array(s["bcnt_hi"], dtype=np.int64)
+        self.hull_sum, self.hull_cnt = hull_sum, np.array(s["hull_cnt"], dtype=np.int64).reshape(gv, gw)
+        self.version = int(s["version"])
+        self._box_cache = self._hull_cache = None
 
     def set_turn_state(self, vw: list, vv: list | None, n: list | None, prop: list | None) -> None:
         """Load what :meth:`turn_state` gave; ValueError for anything a saved store cannot hold."""

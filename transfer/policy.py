@@ -511,7 +511,7 @@ class GuidedPolicy(_PolicyBase):
         c = self._fill_cell
         if c is not None and (store.is_configured(c) or self._fill_tokens < 1.0):
             c = self._fill_cell = None  # the burst is over: its hole is configured, or its budget spent
-        if c is not None and store.count[c] > 0:
+        if c is not None and store.cells.count[c] > 0:
             # the burst goes on at the learner speed of its pairs so far, turning for the teacher's curvature at the
             # speed those pairs measured (in its cell, or in that yaw rate's own cell: _in_burst)
             mean_T, mean_L = store.cluster_mean(c)
@@ -527,7 +527,7 @@ class GuidedPolicy(_PolicyBase):
         if self._fill_tokens < store.k_min:  # a new burst starts with one whole cell's budget
             return None
         if self._search is None:
-            if self._served < self._search_after or store.n_configured() == store.count.size:
+            if self._served < self._search_after or store.n_configured() == store.cells.count.size:
                 return None  # a search found no hole lately, or the store has none left
             self._search = hole_search(self, t)
             self.searches += 1

@@ -41,6 +41,7 @@ from bridge.core import timebase
 from bridge.core import wire as M
 from bridge.core.args import pose_arg, positive_float, robot_arg
 from bridge.core.auth import load_key
+from bridge.core.clock import SYSTEM
 from bridge.core.config import load_fence
 from bridge.core.errors import UsageError
 from bridge.nodes.driver_config import load_driver
@@ -129,10 +130,10 @@ def run(args: argparse.Namespace) -> int:
     for name in ("key_file", "signing_key_file"):  # a missing or unsafe key is one line now, not a retry loop later
         if getattr(link_cfg, name, ""):
             load_key(getattr(link_cfg, name), args.link)
-    # the host's one clock and its waits (the link's driver stamps on the same monotonic clock by default)
-    clock, wait = timebase.monotonic, timebase.wait
+    # the host's one clock, with its waits (the link's driver is built on the same one, the host's, by default)
+    clock = SYSTEM
     host = DriverHost(cfg, args.link, open_driver(args.link, link_cfg), robot, args.rate or cfg.driver.rate_hz,
-                      dry_run=args.dry_run, latch_path=latch_file(robot), clock=clock, wait=wait)
+                      dry_run=args.dry_run, latch_path=latch_file(robot), clock=clock)
     host.options.engage_on_start = host.options.engage_on_start or args.engage
     host.options.fence = fence
     stop = stop_on_signals()

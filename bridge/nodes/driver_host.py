@@ -19,10 +19,10 @@ from typing import Any
 import msgspec
 import zenoh
 
-from bridge.core import timebase
 from bridge.core import wire as M
 from bridge.core.acts import ActGuard, Refusal
 from bridge.core.backoff import Backoff
+from bridge.core.clock import SYSTEM, Clock
 from bridge.core.errors import UsageError
 from bridge.core.gate import CommandGate, Decision
 from bridge.core.paths import save_atomic
@@ -74,21 +74,20 @@ class DriverHost:
 
     def __init__(self, cfg: DriverConfig, link: str, driver: Driver, robot: str, rate_hz: float, *,
                  dry_run: bool = False, latch_path: Path | None = None,
-                 latch_saver: Callable[[Path, bytes], None] = save_atomic, clock: timebase.Clock = timebase.monotonic,
-                 wait: timebase.Wait = timebase.wait) -> None:
+                 latch_saver: Callable[[Path, bytes], None] = save_atomic, clock: Clock = SYSTEM) -> None:
         """``dry_run``: run the whole loop and publish what would be applied, sending nothing to the vehicle;
         ``latch_path``: where the estop latch is kept (None: in memory only; its install marker beside it,
         :func:`bridge.nodes.latch_store.latch_marker`; both kept in :attr:`options`); ``latch_saver``: how the writer
         saves it (atomically; a test slows it down or has it fail as a full disk does). The first start's marker and
-        released latch are written with :func:`save_atomic` (:meth:`LatchStore.open`). ``clock`` and ``wait``: the
-        host's time (:mod:`bridge.core.timebase`, kept in :attr:`timing`): the loop reads ``clock`` once a tick and
-        hands that ``now`` to the link and the pieces; every wait (the loop's, the link's open retries) is ``wait``,
-        so a test drives the loop on a fake clock."""
+        released latch are written with :func:`save_atomic` (:meth:`LatchStore.open`). ``clock``: the host's time, the
+        station's kind of clock (:class:`bridge.core.clock.Clock`, kept in :attr:`timing`; the link is built on the
+        same one): the loop reads it once a tick and hands that ``now`` to the link and the pieces; every wait (the
+        loop's, the link's open retries) is its ``wait``, so a test drives the loop on a fake clock."""
         d = cfg.driver
         self.link, self.driver, self.robot = link, driver, robot
         self.keys = M.Keys(robot)
         self.settings = d  # the [driver] section: telemetry age, stop speed and timeout, max_drive_on_s
-        self.timing = HostTiming(rate_hz, d.max_send_hz, clock, wait)
+        self.timing = HostTiming(rate_hz, d.max_send_hz, clock)
         self.options = HostOptions(dry_run=dry_run, engage_on_start=d.engage_on_start, latch_path=latch_path)
         self.gate = CommandGate(d.hard_limits.bounds(), d.cmd_timeout, tuple(d.estop_release_sources))
         #: acceleration and jerk limits on what the vehicle gets (the loop thread's; bridge.core.limiter): a stalled
@@ -471,7 +470,7 @@ class DriverHost:
                     said = text
                 systemd.status(text[:200])
                 self._put("status", self.reporter.starting(self.timing.clock(), "link_down", text))
-                self.driver.close(disarm=False, stop_timeout=0.0)  # a half-open link is let go before the retry
+                self.driver.close(disarm=False, stop_timeout=0.0, now=self.timing.clock())  # let go before the retry
                 self.timing.wait(stop, backoff.delay)
                 backoff.grow()
         return False
@@ -482,10 +481,12 @@ class DriverHost:
         systemd.stopping()
         try:
             if self.options.dry_run:
-                self.driver.close(disarm=False, stop_speed=self.settings.stop_speed, stop_timeout=0.0)
+                self.driver.close(disarm=False, stop_speed=self.settings.stop_speed, stop_timeout=0.0,
+                                  now=self.timing.clock())
                 return
             cfg = self.settings
-            self.driver.close(disarm=self.engaged, stop_speed=cfg.stop_speed, stop_timeout=cfg.stop_timeout)
+            self.driver.close(disarm=self.engaged, stop_speed=cfg.stop_speed, stop_timeout=cfg.stop_timeout,
+                              now=self.timing.clock())
         finally:
             if not self.latch.close(LATCH_FLUSH_S):
                 log.error("estop latch: the save to %s did not finish within %.0f s of closing",

@@ -11,7 +11,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from bridge.core import timebase
+from bridge.core.clock import SYSTEM, Clock
 from bridge.core.gate import Decision
 from bridge.nodes.node import FixedRate, StallWatch
 
@@ -26,9 +26,8 @@ class HostTiming:
     retries), the loop's period and send budget, its scheduler once running (:class:`FixedRate`), the stall watch,
     and the start and lateness of the recent periodic ticks."""
 
-    def __init__(self, rate_hz: float, max_send_hz: float, clock: timebase.Clock = timebase.monotonic,
-                 wait: timebase.Wait = timebase.wait) -> None:
-        self.clock, self.wait = clock, wait
+    def __init__(self, rate_hz: float, max_send_hz: float, clock: Clock = SYSTEM) -> None:
+        self.clock, self.wait = clock, clock.wait
         self.period = 1.0 / rate_hz
         self.max_send_hz = max_send_hz
         self.ticker: FixedRate | None = None  # the loop's scheduler (deadlines, wake-ups, the send budget)

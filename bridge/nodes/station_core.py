@@ -204,7 +204,7 @@ class StationCore:
         # a store learned on another day (or before a restart) is then checked against the run's pairs, cell by cell
         adapt = tcfg.adapts(reloaded=self.store.n_configured() > 0)
         self.store.set_adapt(adapt)
-        self.store.change_tol = tcfg.change_tol
+        self.store.change.change_tol = tcfg.change_tol
         log.info("%s%s", how, "; cells whose learner changed are re-learned" if adapt else "")
         # this robot's own phase of the periodic work (the hole searches' budget, the store's saves): the robots of
         # a fleet that start together each do it at their own tick, not all in one period of the process's loop

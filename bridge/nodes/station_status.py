@@ -171,7 +171,7 @@ class StationCounters:
         """Take the counts the pairer, the store and the mission keep themselves (before a status)."""
         self.refined_pairs, self.raw_pairs, self.cells_relearned = (len(store.refined()), store.raw_count,
                                                                     store.relearned)
-        self.shared_changes, self.limits_relearned = store.shared, store.limits.relearned
+        self.shared_changes, self.limits_relearned = store.shifts.shared, store.limits.relearned
         for name, attr in _PAIRER_COUNTS:
             setattr(self, name, getattr(pairer, attr))
         self.goal_reached = int(control.phase == "finished")

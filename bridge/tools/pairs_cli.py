@@ -181,7 +181,8 @@ def from_store(store: PairStore, source: str) -> Learned:
     ids, versions, T, L = store.refined_arrays()
     return Learned(
         source=source, ids=ids.astype(np.int64), versions=versions.astype(np.int64),
-        counts=store.count.ravel()[ids].astype(np.int64), teacher=store.teacher_bounds.denormalise(T).reshape(-1, 2),
+        counts=store.cells.count.ravel()[ids].astype(np.int64),
+        teacher=store.teacher_bounds.denormalise(T).reshape(-1, 2),
         learner=store.learner_bounds.denormalise(L).reshape(-1, 2), teacher_bounds=store.teacher_bounds,
         learner_bounds=store.learner_bounds, grid=store.grid, limits_box=store.limits.box,
         hull=np.asarray(store.limits.hull, dtype=float).reshape(-1, 2), bounds_from="the store",

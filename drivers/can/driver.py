@@ -2,8 +2,8 @@
 :class:`drivers.base.Driver` protocol. It owns the python-can bus (opened, failed, reopened with a backoff), turns
 frames into the axis state machine's inputs (:mod:`.axis`, pure) and the odometry's (:mod:`.odometry`, pure), and puts
 on the bus the frames they ask for, encoded by :mod:`.codec`. Its frame is :class:`drivers.base.LinkBase`: the tick's
-methods work at the ``now`` they are given, its bounded waits move the time by the ``sleep`` it is given, and two
-measurements read its clock (see :class:`CanDriver`), so its tests run on a fake clock."""
+methods work at the ``now`` they are given, its bounded waits move the time by its clock's ``wait``, and two
+measurements read that clock (see :class:`CanDriver`), so its tests run on a fake clock."""
 
 from __future__ import annotations
 
@@ -13,9 +13,8 @@ from collections.abc import Callable
 from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING, Any
 
-from bridge.core import timebase
 from bridge.core.backoff import Backoff
-from drivers.base import Clock, DriverError, FailsafeReport, LinkBase, LinkHealth, Pose, Sleep, Verdict, whole_numbers
+from drivers.base import SYSTEM, Clock, DriverError, FailsafeReport, LinkBase, LinkHealth, Pose, Verdict, whole_numbers
 from drivers.can.axis import Axes, Axis, AxisHealth, Frame, Reason, verdict
 from drivers.can.codec import decode, encode
 from drivers.can.config import CanLinkConfig
@@ -110,14 +109,15 @@ class CanDriver(LinkBase):
     **Time stamps.** A pose carries the time its encoder frames were received on the bus (``msg.timestamp``, which
     python-can fills on receive with the wall clock (Python's ``time`` function) for ``virtual`` and
     ``udp_multicast``, the kernel's receive time for ``socketcan``), mapped by each ``poll`` onto the driver host's
-    clock (``clock``) with the offset ``clock() - wall_clock()``. A stamp that is missing, in the future of its
+    clock (``clock``) with the offset ``clock() - clock.wall()``. A stamp that is missing, in the future of its
     receipt (beyond :data:`STAMP_SLACK`) or older than :data:`STAMP_MAX_AGE` (a wall-clock step, NTP) is replaced
     by the receive time and counted (``stamp_fallbacks``). Frames read by a ``poll`` were received by its ``now``.
 
     **Time.** ``poll``, ``send``, ``stop``, ``health``, ``open`` and ``engage`` work at the ``now`` they are given;
-    ``open``, ``engage`` and ``close`` wait between two reads of the bus with ``sleep`` (:meth:`LinkBase._pause`). The
+    ``open``, ``engage`` and ``close`` wait between two reads of the bus with the clock's ``wait``
+    (:meth:`LinkBase._pause`); ``close`` starts at the host's ``now`` where it is given one. The
     clock is read for two measurements a tick's ``now`` cannot give: the moment frames left (a host preempted after
-    ``now`` wrote them later: the odometry counts the old command in force until then) and, with ``wall_clock`` at
+    ``now`` wrote them later: the odometry counts the old command in force until then) and, with ``clock.wall`` at
     once, the offset that maps python-can's wall-clock stamps onto it.
 
     ``open_bus`` (default: ``can.Bus`` from the configuration) builds the bus at open and at each reopen: a test hands
@@ -128,11 +128,10 @@ class CanDriver(LinkBase):
     COUNTERS = CanCounters
     COUNTED_ELSEWHERE = ("faults", "heartbeat_losses")  # the axes' (drivers.can.axis.Axes)
 
-    def __init__(self, config: CanLinkConfig, *, clock: Clock = timebase.monotonic, wall_clock: Clock = timebase.wall,
-                 open_bus: Callable[[], can.BusABC] | None = None, sleep: Sleep = timebase.sleep) -> None:
-        super().__init__(clock, sleep)
+    def __init__(self, config: CanLinkConfig, *, clock: Clock = SYSTEM,
+                 open_bus: Callable[[], can.BusABC] | None = None) -> None:
+        super().__init__(clock)
         self.config = config
-        self.wall_clock = wall_clock
         self.interface, self.channel = config.interface, config.channel  # the bus it opens, for people to read
         self.left = Axis("left", config.left_node, Wheel(config.left_sign))
         self.right = Axis("right", config.right_node, Wheel(config.right_sign))
@@ -256,7 +255,7 @@ class CanDriver(LinkBase):
             self._reopen(now)
         if self.bus is not None:
             # a measurement: the two clocks read together map python-can's wall stamps onto the host's clock
-            offset = self.clock() - self.wall_clock()
+            offset = self.clock() - self.clock.wall()
             read = False
             for _ in range(MAX_FRAMES_PER_POLL):
                 try:
@@ -430,13 +429,14 @@ class CanDriver(LinkBase):
         self._changed()
         self._evaluate(now)
 
-    def close(self, disarm: bool = True, stop_speed: float = 0.05, stop_timeout: float = 3.0) -> None:
+    def close(self, disarm: bool = True, stop_speed: float = 0.05, stop_timeout: float = 3.0,
+              now: float | None = None) -> None:
         try:
             # a link that never armed the axes (not engaged, a dry run, a half-open link let go) sends nothing: the
             # controllers are someone else's to command; one that did stops them, waits until the wheels have
             # stopped, and only with ``disarm`` puts them in IDLE
             if self.bus is not None and self.axes.phase == "running":
-                now = self.clock()  # close is given no time: read once, then moved by the waits
+                now = self.clock() if now is None else now  # (a caller without a tick: read once), then the waits
                 self._stop_until_still(now, stop_speed, stop_timeout, WAIT_READ_S, self._wheel_speed)
                 if disarm:
                     self._put(self.axes.idle(), now)

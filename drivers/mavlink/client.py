@@ -12,14 +12,14 @@ from __future__ import annotations
 
 import logging
 import math
+import threading
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
-from bridge.core import timebase
 from bridge.core.backoff import Backoff
-from drivers.base import Clock, LinkHealth, Sleep
+from drivers.base import SYSTEM, Clock, LinkHealth
 from drivers.mavlink.config import MavlinkLinkConfig
 from drivers.mavlink.dialect import Dialect, load_pymavlink
 
@@ -82,13 +82,13 @@ class MavlinkClient:
     HEARTBEAT, reconnects) are at the ``now`` it is given; only its waits (:meth:`wait`, :meth:`run`, a blocking
     :meth:`receive`) read ``clock``, and :attr:`now` is the time the last of them returned at (what the message
     just read arrived at). Reads block on the connection in real time, and with no connection :meth:`receive` waits
-    with ``sleep`` (:mod:`drivers.base`)."""
+    with the clock's ``wait`` (:mod:`drivers.base`)."""
 
     def __init__(self, config: MavlinkLinkConfig, dialect: Dialect, health: LinkHealth, counts: dict[str, int],
-                 on_message: Callable[[Any], None], *, clock: Clock = timebase.monotonic,
-                 sleep: Sleep = timebase.sleep) -> None:
+                 on_message: Callable[[Any], None], *, clock: Clock = SYSTEM) -> None:
         self.config = config
-        self.clock, self.sleep = clock, sleep
+        self.clock = clock
+        self._idle = threading.Event()  # never set: what a wait with no connection to read waits on
         self.dialect = dialect
         self.url, self.baud = config.url, config.baud
         self.target = (config.target_system, config.target_component)
@@ -210,7 +210,7 @@ class MavlinkClient:
         one, then what is already there."""
         if self.conn is None:
             if block > 0:
-                self.sleep(block)
+                self.clock.wait(self._idle, block)
                 self.now = self.clock()
             return
         timeout = block

@@ -12,10 +12,9 @@ from collections import deque
 from dataclasses import dataclass, replace
 from typing import Any
 
-from bridge.core import timebase
 from bridge.core.auth import load_key
 from bridge.core.clock import ClockOffset
-from drivers.base import Clock, DriverError, FailsafeReport, LinkBase, LinkHealth, Pose, Sleep, whole_numbers
+from drivers.base import SYSTEM, Clock, DriverError, FailsafeReport, LinkBase, LinkHealth, Pose, whole_numbers
 from drivers.mavlink.client import NO_ACK, Command, MavlinkClient, result_name
 from drivers.mavlink.config import MavlinkLinkConfig
 from drivers.mavlink.dialect import load_pymavlink
@@ -97,8 +96,8 @@ class MavlinkDriver(LinkBase):
     Time (:class:`drivers.base.LinkBase`): ``poll``, ``send``, ``stop``, ``health``, ``open`` and ``engage`` work at
     the ``now`` they are given; the bounded waits of ``open``, ``engage`` and ``close`` go through the client
     (:meth:`drivers.mavlink.client.MavlinkClient.wait`: reads block on the connection in real time, its ``clock``
-    says when they returned) and, without a connection, ``sleep``. The vehicle is judged once per moment and change
-    (:meth:`LinkBase._verdict`).
+    says when they returned) and, without a connection, the clock's ``wait``. The vehicle is judged once per moment
+    and change (:meth:`LinkBase._verdict`).
 
     Supervision: no HEARTBEAT for ``heartbeat_timeout`` -> ``connected`` and ``ok`` False, ``"no heartbeat for 3.2
     s"``; a connection that failed (TCP EOF, a serial error) is re-opened with backoff, UDP just keeps listening.
@@ -113,9 +112,8 @@ class MavlinkDriver(LinkBase):
     #: the operator putting the vehicle in GUIDED and arming it, seen while the host runs, is a person's engage
     operator_engages = True
 
-    def __init__(self, config: MavlinkLinkConfig, *, clock: Clock = timebase.monotonic,
-                 sleep: Sleep = timebase.sleep) -> None:
-        super().__init__(clock, sleep)
+    def __init__(self, config: MavlinkLinkConfig, *, clock: Clock = SYSTEM) -> None:
+        super().__init__(clock)
         self.dialect = load_pymavlink()
         self.config = config
         self.target = (config.target_system, config.target_component)
@@ -124,7 +122,7 @@ class MavlinkDriver(LinkBase):
         self.fence_sink: Any = None  # while a fence is uploaded: where its messages go (drivers.mavlink.fence)
         self.client = MavlinkClient(config, self.dialect, self._health, self.counts,
                                     on_message=lambda msg: self._handle(msg, [], self.client.now),
-                                    clock=clock, sleep=sleep)
+                                    clock=clock)
         self._t0 = clock()
         self._opened = False  # open() succeeded: from now on the mode and arming are the operator's
         self._closed = False
@@ -498,23 +496,24 @@ class MavlinkDriver(LinkBase):
     def clear_faults(self, now: float) -> None:
         """Nothing to clear on this link: the operator puts the vehicle back in GUIDED and arms it himself."""
 
-    def close(self, disarm: bool = True, stop_speed: float = 0.05, stop_timeout: float = 3.0) -> None:
+    def close(self, disarm: bool = True, stop_speed: float = 0.05, stop_timeout: float = 3.0,
+              now: float | None = None) -> None:
         """Stop a vehicle that is still ours (GUIDED): zero set-points until it reports (LOCAL_POSITION_NED) a speed
         below ``stop_speed`` (at most ``stop_timeout``: a rover disarmed while moving coasts), then disarm it
         (``disarm``: it was engaged by us) and wait (``close_timeout``) for the ACK or the HEARTBEAT's armed flag,
         then close: ArduPilot's TCP port drops a command that arrives just before its peer closes
         (libraries/AP_HAL_SITL/UARTDriver.cpp), so closing at once would leave the vehicle armed. A vehicle the
-        operator has taken over is left alone."""
+        operator has taken over is left alone. ``now``: the host's time (None: read once)."""
         if self._closed:
             return
         if self.client.conn is None:
             self._closed = True
             self._changed()
-            self._update_state(self.clock())
+            self._update_state(self.clock() if now is None else now)
             return
         mav, guided = self.dialect.mav, self._modes.guided
         try:
-            now = self.client.now = max(self.client.now, self.clock())  # close is given no time: read once
+            now = self.client.now = max(self.client.now, self.clock() if now is None else now)
             self._pump(now)
             v = self.vehicle
             if v.custom_mode == guided:

@@ -9,18 +9,17 @@ import math
 from collections.abc import Callable, Iterable
 from typing import Any
 
-from bridge.core import timebase
-from drivers.base import Clock
+from drivers.base import SYSTEM, Clock
 from drivers.mavlink.config import MavlinkLinkConfig
 from drivers.mavlink.dialect import load_pymavlink
 
 
 class Probe:
     """The connection and what the vehicle (``target_system``/``target_component``) said on it. Its deadlines and
-    the stamps of the ACKs are on ``clock`` (:mod:`bridge.core.timebase`); its reads block on the connection, at
+    the stamps of the ACKs are on ``clock`` (:class:`bridge.core.clock.Clock`); its reads block on the connection, at
     most 0.1 s each."""
 
-    def __init__(self, config: MavlinkLinkConfig, *, clock: Clock = timebase.monotonic) -> None:
+    def __init__(self, config: MavlinkLinkConfig, *, clock: Clock = SYSTEM) -> None:
         self.clock = clock
         self.d = load_pymavlink()
         self.config = config

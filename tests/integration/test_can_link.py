@@ -333,7 +333,7 @@ def test_reopen_attempts_wait_a_backoff_that_doubles_up_to_its_bound() -> None:
         return bus
 
     d = CanDriver(CanLinkConfig(interface="virtual", channel=channel, reopen_backoff=0.05, reopen_backoff_max=0.2),
-                  clock=clock, wall_clock=clock.wall, open_bus=open_bus)
+                  clock=clock, open_bus=open_bus)
     try:
         d.open(clock.t)
         failing = True
@@ -487,7 +487,7 @@ def test_many_small_crafted_encoder_steps_cannot_add_up_to_more_than_the_wheel_c
     """Finding: crafted encoder frames, each a small plausible step, gave 101 m of odometry error in 2 s (status
     ok). Each wheel's travel now has a budget refilled at what it can really turn; the link says so when tampered."""
     clock = FakeClock()
-    d = CanDriver(CanLinkConfig(max_wheel_speed=10.0), clock=clock, wall_clock=clock.wall)
+    d = CanDriver(CanLinkConfig(max_wheel_speed=10.0), clock=clock)
     d.axes.phase = "running"
     t = 0.0
     d._encoder(d.left, 0.0, 0.0, t, clock.t)  # (stamped t, read by the poll at the driver's clock.t)

@@ -23,6 +23,7 @@ from bench.fleet import STATION_ENV, SimRobot, sweep, write_mission
 from bridge.core import wire as M
 from bridge.nodes.zsession import free_port, make_config, open_session, tcp
 from bridge.tools.procs import Children, emulated_link
+from tests.missions import first_bend_file
 
 ROOT = Path(__file__).resolve().parents[2]
 SYSTEMD = ROOT / "deploy" / "systemd"
@@ -311,9 +312,12 @@ def test_template_units_run_as_systemd_would_for_two_robots(tmp_path) -> None:
 @pytest.mark.slow
 @pytest.mark.timeout(480)
 def test_the_fleet_demo_brings_three_robots_to_their_goals_and_leaves_no_process(tmp_path) -> None:
+    """Three robots, each its own driver host and station behind one hub, on the S-path's first bend
+    (tests/missions.py: what is claimed is the fleet's plumbing, not the whole path)."""
     out = tmp_path / "fleet"
     res = subprocess.run([sys.executable, "-m", "bridge", "demo", "--count", "3", "--out", str(out),
-                          "--duration", "300"], capture_output=True, text=True, timeout=420)
+                          "--mission", str(first_bend_file(tmp_path)), "--duration", "300"],
+                         capture_output=True, text=True, timeout=420)
     assert res.returncode == 0, res.stdout[-3000:] + res.stderr[-2000:]
     fleet = json.loads(next(ln for ln in res.stdout.splitlines() if ln.startswith("fleet:"))[len("fleet:"):])
     assert fleet["reached_goal"] == ["demo1", "demo2", "demo3"] and fleet["not_at_goal"] == []

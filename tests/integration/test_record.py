@@ -41,6 +41,7 @@ from bridge.tools.mcap_format import (
 )
 from bridge.tools.mcap_sink import McapSink
 from bridge.tools.procs import Children, stop_group
+from tests.missions import first_bend_file
 
 ROBOT = "rec1"
 MISSION = M.MissionSpec(name="test-bend", path=[[0.0, 0.0], [2.0, 0.0], [3.0, 1.0]], goal_tolerance=0.2)
@@ -441,10 +442,13 @@ def _cmdline(pid: int) -> list[str]:
 def test_a_recorded_demo_reports_the_live_demos_figures(tmp_path: Path) -> None:
     """`scmbridge demo` with `scmbridge record --all` attached: the report of the recording prints the summary the
     demo printed. The demo does not say its port, so this finds it on the command lines of the demo's children,
-    and holds them (SIGSTOP) until the recorder is subscribed so it misses nothing of the run."""
+    and holds them (SIGSTOP) until the recorder is subscribed so it misses nothing of the run. The mission is the
+    S-path's first bend (tests/missions.py): the recording's figures are the claim, not the whole path's."""
     demo_out, out = tmp_path / "demo", tmp_path / "demo.mcap"
+    mission = first_bend_file(tmp_path)
     with Children() as kids:
-        demo = kids.spawn(["demo", "--out", str(demo_out), "--duration", "150"], subprocess.PIPE)
+        demo = kids.spawn(["demo", "--out", str(demo_out), "--mission", str(mission), "--duration", "150"],
+                          subprocess.PIPE)
         held: dict[int, list[str]] = {}
         demo_done = False
         try:
@@ -484,7 +488,8 @@ def test_a_recorded_demo_reports_the_live_demos_figures(tmp_path: Path) -> None:
     left = subprocess.run(["pgrep", "-f", f"--store {demo_out}"], capture_output=True, text=True)
     assert left.stdout.strip() == "", "the demo left a process behind"
     assert "stopped: signal" in text, text
-    proc = subprocess.run([sys.executable, "-m", "bridge", "report", str(out), "--out", str(tmp_path / "rep")],
+    proc = subprocess.run([sys.executable, "-m", "bridge", "report", str(out), "--out", str(tmp_path / "rep"),
+                           "--mission", str(mission)],  # the demo's station read it from its file: not recorded
                           capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stderr + proc.stdout
     got = json.loads(next(x for x in proc.stdout.splitlines() if x.startswith("summary: "))[len("summary: "):])

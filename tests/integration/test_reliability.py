@@ -125,7 +125,7 @@ def _line_of(text: str) -> int:
 @pytest.mark.slow
 def test_a_short_soak_runs_and_reports(tmp_path) -> None:
     """With the station traced (tracemalloc), it answers SIGUSR1 with its memory report."""
-    res = soak.soak(0.2, "can", tmp_path, sample_s=2.0, warmup_s=0.0, trace_memory=("station",))
+    res = soak.soak(0.1, "can", tmp_path, sample_s=1.0, warmup_s=0.0, trace_memory=("station",))  # 6 s: its plumbing
     assert res["nodes_up"], res  # both nodes spoke before the soak asked for reports
     reports = res["memory_reports"]["station"]
     assert len(reports) == 2 and reports[0]["baseline"] and "growth" in reports[1], reports

@@ -36,11 +36,12 @@ CONTROL_PATH = (
     "bridge.nodes.station:Station",
     "bridge.nodes.station_core:StationCore",
     "transfer.store:PairStore",
+    "transfer.store_cells:CellSums",
+    "transfer.store_adapt:CellChanges",
+    "transfer.store_adapt:Shifts",
 )
 #: classes over a limit today: (public members, attributes) as measured; they may not grow (tighten as they shrink)
-KNOWN_EXCESS = {
-    "transfer.store:PairStore": (14, 41),
-}
+KNOWN_EXCESS: dict[str, tuple[int, int]] = {}
 #: the modules that may use the time module on the driver host's side: the clock's own
 CLOCK_MODULE = "bridge/core/timebase.py"
 #: where no other module may: the drivers and the driver host's own modules

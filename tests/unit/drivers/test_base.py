@@ -154,7 +154,7 @@ class _Link(LinkBase):
     COUNTED_ELSEWHERE = ("faults",)
 
     def __init__(self, clock, speed: float = 1.0, slows: float = 0.25) -> None:
-        super().__init__(clock, clock.sleep)
+        super().__init__(clock)
         self.speed, self.slows = speed, slows
         self.stops: list[float] = []
         self.fit = True

@@ -93,7 +93,8 @@ LOOPBACK = textwrap.dedent('''
         def clear_faults(self, now: float) -> None:
             pass
 
-        def close(self, disarm: bool = True, stop_speed: float = 0.05, stop_timeout: float = 3.0) -> None:
+        def close(self, disarm: bool = True, stop_speed: float = 0.05, stop_timeout: float = 3.0,
+                  now: float | None = None) -> None:
             self.opened = False
 
 

@@ -64,7 +64,7 @@ def robot(clock: FakeClock) -> Iterator[Robot]:
 
 def driver(clock: FakeClock, robot: Robot, **cfg: object) -> UdpDriver:
     return UdpDriver(UdpLinkConfig(robot_port=robot.port, bind_port=0, insecure=True, **cfg),  # type: ignore[arg-type]
-                     clock=clock, sleep=clock.sleep)
+                     clock=clock)
 
 
 def test_open_greets_with_a_stop_until_the_first_state_and_health_follows_the_fake_clock(clock: FakeClock,

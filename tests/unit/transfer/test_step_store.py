@@ -162,9 +162,9 @@ def test_scm_regions_are_cached_and_rebuilt_when_a_pair_moves() -> None:
     # move one of the region's pairs: its version changes and the region is rebuilt
     pid = m1.region[0]
     cell = divmod(pid, 11)
-    uL_cell = s.learner_bounds.denormalise(s.pub_L[cell])
+    uL_cell = s.learner_bounds.denormalise(s.cells.pub_L[cell])
     for _ in range(200):
-        s.add(s.teacher_bounds.denormalise(s.pub_T[cell]) + np.array([0.01, 0.0]), uL_cell)
+        s.add(s.teacher_bounds.denormalise(s.cells.pub_T[cell]) + np.array([0.01, 0.0]), uL_cell)
     m2 = p.map(uT)
     assert p.mapper.builds > builds
     assert np.all(np.isfinite(m2.u_L))

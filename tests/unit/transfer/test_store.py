@@ -45,7 +45,8 @@ def _visit(store: PairStore, rng: np.random.Generator, visits: int, noise: float
 def _relation_error(store: PairStore, cells, shift: float = 0.0) -> NDArray[np.float64]:
     """Per cell, how far its refined pair's teacher yaw rate is from what the learner (its yaw rate moved by
     ``shift``, normalised teacher units) does at the refined pair's learner part."""
-    return np.array([abs(store.pub_T[c][1] - TB.normalise(LEARNER.response(LB.denormalise(store.pub_L[c])))[1] - shift)
+    pub_T, pub_L = store.cells.pub_T, store.cells.pub_L
+    return np.array([abs(pub_T[c][1] - TB.normalise(LEARNER.response(LB.denormalise(pub_L[c])))[1] - shift)
                      for c in cells])
 
 
@@ -58,7 +59,7 @@ def test_noise_alone_never_relearns_a_cell(noise: float) -> None:
     _visit(store, rng, 30, noise)
     assert store.relearned == 0
     assert store.raw_count == 121 * 30
-    assert np.all(np.isnan(store.changed_at))
+    assert np.all(np.isnan(store.change.changed_at))
 
 
 def test_a_changed_learner_relearns_the_cells_it_drives_in_and_the_paper_store_does_not() -> None:
@@ -71,20 +72,20 @@ def test_a_changed_learner_relearns_the_cells_it_drives_in_and_the_paper_store_d
         rng = np.random.default_rng(3)
         store = PairStore(LB, TB, adapt=adapt)
         _visit(store, rng, 40, noise=0.005)  # a well-learned store: 40 pairs a cell
-        before = store.pub_T.copy()
+        before = store.cells.pub_T.copy()
         _visit(store, rng, 10, noise=0.005, bias=(0.0, bias), cells=driven)
         stores[adapt] = (store, before)
     store, before = stores[True]
     assert store.relearned == len(driven)  # each once: a re-learned cell holds only the new relation
     # its refined pair holds the changed relation (it may sit elsewhere in the cell: it follows the recent pairs)
     assert np.all(_relation_error(store, driven, shift) < 0.006), (_relation_error(store, driven, shift), shift)
-    assert all(not np.isnan(store.changed_at[c]) for c in driven)
+    assert all(not np.isnan(store.change.changed_at[c]) for c in driven)
     untouched = np.ones(store.grid, dtype=bool)
     for c in driven:
         untouched[c] = False
-    assert np.all(np.isnan(store.changed_at[untouched]))
+    assert np.all(np.isnan(store.change.changed_at[untouched]))
     paper, before = stores[False]
-    moved_paper = np.array([paper.pub_T[c][1] - before[c][1] for c in driven])
+    moved_paper = np.array([paper.cells.pub_T[c][1] - before[c][1] for c in driven])
     assert paper.relearned == 0 and np.all(moved_paper < 0.3 * shift)  # 10 new pairs against 40 old ones
 
 
@@ -119,7 +120,7 @@ def test_with_no_change_the_refined_pairs_that_follow_the_recent_pairs_are_as_ne
     for adapt in (True, False):
         store = PairStore(LB, TB, adapt=adapt)
         _visit(store, np.random.default_rng(5), 60, noise=noise)
-        cells = list(zip(*np.nonzero(store.pub_version > 0)))
+        cells = list(zip(*np.nonzero(store.cells.pub_version > 0)))
         assert len(cells) == 121
         err[adapt], revision[adapt] = _relation_error(store, cells), store.revision
     assert np.median(err[True]) <= 1.25 * np.median(err[False]) + 0.0005, err
@@ -141,8 +142,8 @@ def test_a_refined_pair_that_follows_its_recent_pairs_keeps_the_learner_part_of_
         for _ in range(10):
             u = LB.denormalise((np.array(c) + rng.uniform(0.05, 0.2, 2)) / 11)
             store.add(LEARNER.response(u) + noise * TB.span * rng.standard_normal(2), u)
-    mean_L = store.sum_L / store.count[..., None]
-    assert np.max(np.abs(store.pub_L - mean_L)) <= store.move_tol
+    mean_L = store.cells.sum_L / store.cells.count[..., None]
+    assert np.max(np.abs(store.cells.pub_L - mean_L)) <= store.move_tol
 
 
 def test_a_change_two_cells_share_moves_the_cells_not_yet_driven_until_their_own_pairs_decide() -> None:
@@ -155,24 +156,24 @@ def test_a_change_two_cells_share_moves_the_cells_not_yet_driven_until_their_own
     rng = np.random.default_rng(3)
     store = PairStore(LB, TB, adapt=True)
     _visit(store, rng, 40, noise=0.005)
-    before = store.pub_T.copy()
+    before = store.cells.pub_T.copy()
     first = [(10, 1), (10, 0)]
     for c in first:
         _visit(store, rng, 10, noise=0.005, bias=(0.0, bias), cells=[c])
-    assert store.relearned == 2 and store.shared == 1
+    assert store.relearned == 2 and store.shifts.shared == 1
     others = [(i, j) for i in range(11) for j in range(11) if (i, j) not in first]
-    moved = np.array([store.pub_T[c][1] - before[c][1] for c in others])
+    moved = np.array([store.cells.pub_T[c][1] - before[c][1] for c in others])
     assert np.all(np.abs(moved - shift) < 0.006), moved
-    assert np.all(np.isnan([store.changed_at[c] for c in others]))  # provisional: not a re-learning
+    assert np.all(np.isnan([store.change.changed_at[c] for c in others]))  # provisional: not a re-learning
     saved = PairStore.from_bytes(store.to_bytes())
-    np.testing.assert_allclose(saved.pub_T[5, 5], before[5, 5], atol=1e-12)
+    np.testing.assert_allclose(saved.cells.pub_T[5, 5], before[5, 5], atol=1e-12)
     # the wheel still drags where the robot drives next: the cell re-learns from its own pairs, near the shift
     _visit(store, rng, 10, noise=0.005, bias=(0.0, bias), cells=[(6, 5)])
-    assert store.changes[6, 5] == 1 and abs(store.pub_T[6, 5][1] - before[6, 5][1] - shift) < 0.006
+    assert store.change.changes[6, 5] == 1 and abs(store.cells.pub_T[6, 5][1] - before[6, 5][1] - shift) < 0.006
     # mended: a cell driven without the bias revokes the shift (its mean again) and is not re-learned
     _visit(store, rng, 10, noise=0.005, cells=[(3, 5)])
-    assert store.changes[3, 5] == 0 and not store.prov[3, 5].any()
-    assert abs(store.pub_T[3, 5][1] - before[3, 5][1]) < 0.006
+    assert store.change.changes[3, 5] == 0 and not store.shifts.prov[3, 5].any()
+    assert abs(store.cells.pub_T[3, 5][1] - before[3, 5][1]) < 0.006
 
 
 def test_a_sagging_battery_shrinks_the_learned_top_speed() -> None:
@@ -194,7 +195,8 @@ def test_a_sagging_battery_shrinks_the_learned_top_speed() -> None:
             store.add(np.array([min(r[0], cap), r[1]]), u)
     assert store.relearned >= 1
     assert store.limits.box.v[1] == pytest.approx(cap, abs=1e-6)  # the limit shrank to what the learner now does
-    assert all(store.pub_T[c][0] < (cap - TB.v[0]) / TB.span[0] + 1e-6 for c in top if store.changed_at[c] >= 0)
+    assert all(store.cells.pub_T[c][0] < (cap - TB.v[0]) / TB.span[0] + 1e-6
+               for c in top if store.change.changed_at[c] >= 0)
 
 
 def test_the_change_detection_survives_a_save_and_a_version_1_store_loads() -> None:
@@ -204,9 +206,11 @@ def test_the_change_detection_survives_a_save_and_a_version_1_store_loads() -> N
     _visit(store, rng, 8, bias=(0.0, 0.07), cells=[(10, 5)])
     again = PairStore.from_bytes(store.to_bytes())
     assert again.adapt and again.relearned == store.relearned == 1 and again.raw_count == store.raw_count
-    for name in ("sum_LL", "sum_TL", "resid", "noise2", "recent_T", "recent_L", "recent_n", "pub_T", "count"):
-        np.testing.assert_array_equal(getattr(again, name), getattr(store, name), err_msg=name)
-    np.testing.assert_array_equal(np.isnan(again.changed_at), np.isnan(store.changed_at))
+    for name in ("sum_LL", "sum_TL", "recent_T", "recent_L", "recent_n", "pub_T", "count"):
+        np.testing.assert_array_equal(getattr(again.cells, name), getattr(store.cells, name), err_msg=name)
+    for name in ("resid", "noise2"):
+        np.testing.assert_array_equal(getattr(again.change, name), getattr(store.change, name), err_msg=name)
+    np.testing.assert_array_equal(np.isnan(again.change.changed_at), np.isnan(store.change.changed_at))
     # a store written before change detection (schema 1): loads, with the same refined pairs and no history
     raw = msgspec.msgpack.decode(store.to_bytes()[12:])
     for k in ("sum_LL", "sum_TL", "adapt", "relearned", "added", "changed_at", "resid", "noise2", "recent_T",
@@ -215,8 +219,8 @@ def test_the_change_detection_survives_a_save_and_a_version_1_store_loads() -> N
     raw["schema_version"] = 1
     payload = msgspec.msgpack.encode(raw)
     old = PairStore.from_bytes(b"SCMPAIRS" + zlib.crc32(payload).to_bytes(4, "little") + payload)
-    np.testing.assert_array_equal(old.pub_T, store.pub_T)
-    assert not old.adapt and old.raw_count == int(store.count.sum()) and old.relearned == 0
+    np.testing.assert_array_equal(old.cells.pub_T, store.cells.pub_T)
+    assert not old.adapt and old.raw_count == int(store.cells.count.sum()) and old.relearned == 0
 
 
 def test_each_cells_change_count_and_time_survive_a_save_and_a_version_2_store_loads_with_them() -> None:
@@ -227,11 +231,11 @@ def test_each_cells_change_count_and_time_survive_a_save_and_a_version_2_store_l
     _visit(store, rng, 12, noise=0.01)
     _visit(store, rng, 8, bias=(0.0, 0.07), cells=[(10, 5)])
     _visit(store, rng, 8, bias=(0.0, 0.0), cells=[(10, 5)])  # and back: the cell changed twice
-    assert store.changes[10, 5] == 2 and store.changes.sum() == 2 == store.relearned
+    assert store.change.changes[10, 5] == 2 and store.change.changes.sum() == 2 == store.relearned
     (c,) = store.changed_cells()
-    assert (c.id, c.count, c.at) == (115, 2, store.changed_at[10, 5])
+    assert (c.id, c.count, c.at) == (115, 2, store.change.changed_at[10, 5])
     again = PairStore.from_bytes(store.to_bytes())
-    np.testing.assert_array_equal(again.changes, store.changes)
+    np.testing.assert_array_equal(again.change.changes, store.change.changes)
     assert again.changed_cells() == store.changed_cells()
     raw = msgspec.msgpack.decode(store.to_bytes()[12:])
     raw.pop("changes")
@@ -259,11 +263,11 @@ def test_a_cell_whose_pairs_scatter_is_not_relearned_over_and_over_and_still_see
             store.add(LEARNER.response(u) + (lag + np.array([0.0, shift])) * TB.span, u)
 
     scattered(300)
-    assert store.changes[cell] <= 2, store.changes[cell]
-    assert store.relearned == store.changes[cell]  # no other cell
-    before = store.changes[cell]
+    assert store.change.changes[cell] <= 2, store.change.changes[cell]
+    assert store.relearned == store.change.changes[cell]  # no other cell
+    before = store.change.changes[cell]
     scattered(20, shift=0.15)
-    assert store.changes[cell] == before + 1
+    assert store.change.changes[cell] == before + 1
 
 
 def test_the_learned_curvatures_survive_a_save_and_a_version_3_store_loads_without_them() -> None:

@@ -6,11 +6,13 @@ from __future__ import annotations
 import numpy as np
 
 from transfer.domain import Bounds
+from transfer.limits import grid_cell
 from transfer.store import PairStore
+from transfer.store_adapt import CellChanges
 from transfer.store_change import CELL_NOISE_PER_K, NOISE_WEIGHT, YOUNG_K
 
 
-def _array_form(store: PairStore, cell, t_n, l_n) -> bool:
+def _array_form(store: CellChanges, cell, t_n, l_n) -> bool:
     """The change test as it was written on numpy arrays (the reference)."""
     n = store.count[cell]
     slope = np.array(store._slope_list(cell))
@@ -51,13 +53,14 @@ def test_the_scalar_change_test_is_the_array_form_bit_for_bit() -> None:
         for k, store in enumerate(stores):
             t_n = store.teacher_bounds.normalise(t)
             l_n = np.clip(store.learner_bounds.normalise(l), 0.0, 1.0)
-            cell = store._cell_n(l_n)
-            if store.pub_version[cell] > 0:
-                got.append(store._changed(cell, t_n, l_n) if k == 0 else _array_form(store, cell, t_n, l_n))
+            cell = grid_cell(l_n, store.grid)
+            if store.cells.pub_version[cell] > 0:
+                ch = store.change
+                got.append(ch._changed(cell, t_n, l_n) if k == 0 else _array_form(ch, cell, t_n, l_n))
             store.add(t, l)
         assert got[:1] == got[1:]
         decisions[0] += sum(got[:1])
     a, b = stores
     assert decisions[0] > 0  # the change is seen, so both branches ran
     for name in ("resid", "last_resid", "noise2", "cell_noise2", "cell_noise_n", "count", "pub_T", "pub_L"):
-        assert np.array_equal(getattr(a, name), getattr(b, name), equal_nan=True), name
+        assert np.array_equal(getattr(a.change, name), getattr(b.change, name), equal_nan=True), name

@@ -39,10 +39,9 @@ class HostRig:
         self.controllers = Controllers(channel, clock, encoders=True)
         clock.on_read.append(self.controllers.step)
         self.link = CanDriver(CanLinkConfig(interface="virtual", channel=channel, heartbeat_timeout=0.3,
-                                            open_timeout=1.0), clock=clock, wall_clock=clock.wall,
-                                sleep=clock.sleep)
+                                            open_timeout=1.0), clock=clock)
         cfg = DriverConfig(driver=DriverSection(**driver))  # type: ignore[arg-type]
-        self.host = DriverHost(cfg, "can", self.link, "r1", RATE, clock=clock, wait=clock.wait)
+        self.host = DriverHost(cfg, "can", self.link, "r1", RATE, clock=clock)
         self.applied, self.status = Out(clock, M.Applied), Out(clock, M.Status)
         self.host.pubs = {"applied": self.applied, "state": Out(clock, M.LearnerState), "status": self.status}
         self.stop = threading.Event()

@@ -12,7 +12,7 @@ from tests.fakeclock import FakeClock
 
 def test_timing_keeps_the_hosts_clock_and_wait_and_counts_the_schedulers_missed_deadlines() -> None:
     clock = FakeClock()
-    t = HostTiming(50.0, 100.0, clock, clock.wait)
+    t = HostTiming(50.0, 100.0, clock)
     assert t.period == 0.02 and t.max_send_hz == 100.0 and t.missed == 0
     assert t.stall_report_s == STALL_REPORT_S  # two periods at 50 Hz are less than the floor
     assert HostTiming(2.0, 100.0).stall_report_s == 1.0  # two periods at a slow rate

@@ -205,7 +205,7 @@ def test_a_store_learned_on_another_day_is_checked_against_todays_pairs_by_defau
                 yesterday.add(learner.response(u), u)
     (tmp_path / "p.bin").write_bytes(yesterday.to_bytes())
     core = StationCore(cfg, "r1", 10.0, tmp_path / "p.bin", load_mission())
-    assert core.store.adapt and core.store.change_tol == cfg.transfer.change_tol
+    assert core.store.adapt and core.store.change.change_tol == cfg.transfer.change_tol
     assert core.store.limits.memory == PairStore(lb, tb, adapt=True).limits.memory > 0  # its limits follow too
     assert core.store.n_configured() == 121 and core.store.relearned == 0  # loaded as it was
     bias = np.array([0.0, 0.15 * (lb.w[1] - lb.w[0])])
@@ -213,12 +213,12 @@ def test_a_store_learned_on_another_day_is_checked_against_todays_pairs_by_defau
         for j in range(11):
             u = lb.denormalise(np.array([(10 + rng.uniform(0.1, 0.9)) / 11, (j + rng.uniform(0.1, 0.9)) / 11]))
             core.store.add(learner.response(u) + bias, u, stamp=5.0)
-    assert core.store.relearned == 11 and np.all(core.store.changed_at[10] == 5.0)
-    assert np.all(np.isnan(core.store.changed_at[:10]))  # the cells not driven today are not touched
+    assert core.store.relearned == 11 and np.all(core.store.change.changed_at[10] == 5.0)
+    assert np.all(np.isnan(core.store.change.changed_at[:10]))  # the cells not driven today are not touched
     out = core.tick(TickInputs(), 6.0)
     assert out.status is not None and out.status.counters["cells_relearned"] == 11
     # the cells not driven moved provisionally by the change the top row agreed on: counted on the status
-    assert core.store.shared > 0 and out.status.counters["shared_changes"] == core.store.shared
+    assert core.store.shifts.shared > 0 and out.status.counters["shared_changes"] == core.store.shifts.shared
     assert out.status.changed_cells == list(range(110, 121))  # named on the status (scmbridge status prints them)
     assert [c.id for c in core.pairs(6.0).changed] == list(range(110, 121))  # and in the pairs reply, with when
     never = msgspec.convert({"transfer": {"adapt": False}}, StationConfig)

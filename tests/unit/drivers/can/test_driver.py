@@ -28,7 +28,7 @@ class Rig:
         self.opened_at: list[float] = []  # fake times the driver built its bus
         self.driver = CanDriver(CanLinkConfig(interface="virtual", channel=self.channel, heartbeat_timeout=0.3,
                                               reopen_backoff=0.05, reopen_backoff_max=0.2, open_timeout=1.0),
-                                clock=clock, wall_clock=clock.wall, open_bus=self.open_bus, sleep=clock.sleep)
+                                clock=clock, open_bus=self.open_bus)
         clock.on_read.append(self.controllers.step)
 
     def open_bus(self) -> can.BusABC:
@@ -196,3 +196,17 @@ def test_close_stops_the_wheels_and_idles_the_axes_only_when_told(rig: Rig) -> N
     rig.controllers.step()
     assert rig.controllers.state == {0: IDLE, 1: IDLE}
     assert d.health(rig.clock.t).reason == "closed"
+
+
+def test_close_stops_at_the_hosts_now(rig: Rig) -> None:
+    """The driver host gives ``close`` its tick's ``now``: the zero set-points of closing are decided at it (the
+    odometry counts the stop from then), not at a time the link read itself."""
+    d = engaged(rig)
+    rig.tick(v=0.3)
+    given = rig.clock.t - 0.3  # a time the link's own clock does not read now
+    d.close(disarm=True, stop_timeout=0.0, now=given)
+    assert given in [at for at, _ in d.left.wheel.history] and given in [at for at, _ in d.right.wheel.history]
+    assert rig.controllers.sent("Set_Input_Vel")[-2:] == [(0, {"Input_Vel": 0.0, "Input_Torque_FF": 0.0}),
+                                                         (1, {"Input_Vel": 0.0, "Input_Torque_FF": 0.0})]
+    rig.controllers.step()
+    assert rig.controllers.state == {0: IDLE, 1: IDLE}

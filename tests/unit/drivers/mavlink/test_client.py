@@ -88,7 +88,7 @@ class Sender:
 
 
 def test_messages_are_timed_on_the_drivers_clock_and_poses_at_the_vehicles_own_time(clock: FakeClock) -> None:
-    drv = MavlinkDriver(MavlinkLinkConfig(), clock=clock, sleep=clock.sleep)
+    drv = MavlinkDriver(MavlinkLinkConfig(), clock=clock)
     send, enc = Sender(), Sender().enc
     send(drv, enc.heartbeat_encode(MAV.MAV_TYPE_GROUND_ROVER, MAV.MAV_AUTOPILOT_ARDUPILOTMEGA,
                                    MAV.MAV_MODE_FLAG_SAFETY_ARMED | MAV.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, GUIDED, 0))
@@ -110,7 +110,7 @@ def test_messages_are_timed_on_the_drivers_clock_and_poses_at_the_vehicles_own_t
 
 
 def test_statustexts_are_kept_with_their_receipt_on_the_fake_clock(clock: FakeClock) -> None:
-    drv = MavlinkDriver(MavlinkLinkConfig(statustext_keep=2), clock=clock, sleep=clock.sleep)
+    drv = MavlinkDriver(MavlinkLinkConfig(statustext_keep=2), clock=clock)
     send, enc = Sender(), Sender().enc
     for k, text in enumerate((b"PreArm: one", b"PreArm: two", b"PreArm: three")):
         clock.t = 1000.0 + k
@@ -127,8 +127,7 @@ def link(clock: FakeClock) -> Iterator[tuple[MavlinkClient, Any]]:
     port = vehicle.port.getsockname()[1]
     cfg = MavlinkLinkConfig(url=f"udpout:127.0.0.1:{port}", ack_timeout=1.0, command_retries=2)
     counts = {"stray_acks": 0, "reconnects": 0}
-    client = MavlinkClient(cfg, load_pymavlink(), LinkHealth(), counts, on_message=lambda m: None, clock=clock,
-                           sleep=clock.sleep)
+    client = MavlinkClient(cfg, load_pymavlink(), LinkHealth(), counts, on_message=lambda m: None, clock=clock)
     client.on_message = lambda m: client.ack(m) if m.get_type() == "COMMAND_ACK" else None
     client.connect(clock.t)
     try:

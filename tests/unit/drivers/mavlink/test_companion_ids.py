@@ -39,7 +39,7 @@ def test_a_companion_speaks_with_its_ids_says_it_is_one_and_takes_acks_addressed
     cfg = MavlinkLinkConfig(url=f"udpout:127.0.0.1:{vehicle.port.getsockname()[1]}", source_system=1,
                             source_component=191)
     client = MavlinkClient(cfg, load_pymavlink(), LinkHealth(), {"stray_acks": 0}, on_message=lambda m: None,
-                           clock=clock, sleep=clock.sleep)
+                           clock=clock)
     client.on_message = lambda m: client.ack(m) if m.get_type() == "COMMAND_ACK" else None
     client.connect(clock.t)
     try:
