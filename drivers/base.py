@@ -20,6 +20,7 @@ and ``send`` at one ``now`` judge the link once).
 
 from __future__ import annotations
 
+import inspect
 import threading
 from collections.abc import Callable
 from dataclasses import MISSING, dataclass, field, fields
@@ -160,6 +161,18 @@ class Driver(Protocol):
         """Stop the vehicle, wait (at most ``stop_timeout``) until it reports less than ``stop_speed``, then (if
         ``disarm``: it was engaged by this host) disarm it or idle its axes, and release the link. Idempotent.
         ``now``: the host's time (None: the link reads its clock once, a caller without a tick)."""
+
+
+def close_link(driver: Driver, now: float, **kw: Any) -> None:
+    """``driver.close(**kw)`` with the host's ``now`` where the link takes one: the project's links do, a lab's own
+    link written against the earlier protocol (``close`` without ``now``) is still closed, so it still stops the
+    vehicle at shutdown rather than failing there with a TypeError."""
+    params = inspect.signature(driver.close).parameters
+    takes_now = "now" in params or any(p.kind is inspect.Parameter.VAR_KEYWORD for p in params.values())
+    if takes_now:
+        driver.close(**kw, now=now)
+    else:
+        driver.close(**kw)
 
 
 def link_unauthenticated(config: object) -> str:

@@ -40,7 +40,7 @@ from bridge.nodes.node import (
     Usage,
 )
 from bridge.nodes.pose_feed import PoseFeed
-from drivers.base import Driver, DriverError, LinkHealth, link_unauthenticated
+from drivers.base import Driver, DriverError, LinkHealth, close_link, link_unauthenticated
 
 log = logging.getLogger("scmbridge.driver")
 
@@ -470,7 +470,7 @@ class DriverHost:
                     said = text
                 systemd.status(text[:200])
                 self._put("status", self.reporter.starting(self.timing.clock(), "link_down", text))
-                self.driver.close(disarm=False, stop_timeout=0.0, now=self.timing.clock())  # let go before the retry
+                close_link(self.driver, self.timing.clock(), disarm=False, stop_timeout=0.0)  # let go before the retry
                 self.timing.wait(stop, backoff.delay)
                 backoff.grow()
         return False
@@ -481,12 +481,12 @@ class DriverHost:
         systemd.stopping()
         try:
             if self.options.dry_run:
-                self.driver.close(disarm=False, stop_speed=self.settings.stop_speed, stop_timeout=0.0,
-                                  now=self.timing.clock())
+                close_link(self.driver, self.timing.clock(), disarm=False, stop_speed=self.settings.stop_speed,
+                           stop_timeout=0.0)
                 return
             cfg = self.settings
-            self.driver.close(disarm=self.engaged, stop_speed=cfg.stop_speed, stop_timeout=cfg.stop_timeout,
-                              now=self.timing.clock())
+            close_link(self.driver, self.timing.clock(), disarm=self.engaged, stop_speed=cfg.stop_speed,
+                       stop_timeout=cfg.stop_timeout)
         finally:
             if not self.latch.close(LATCH_FLUSH_S):
                 log.error("estop latch: the save to %s did not finish within %.0f s of closing",

@@ -207,3 +207,29 @@ def test_closing_gives_up_after_stop_timeout_and_still_stops(clock) -> None:
     unknown = _Link(clock)
     assert not unknown._stop_until_still(clock.t, 0.05, 0.0, 0.02, lambda now: None)  # no time: one stop only
     assert len(unknown.stops) == 1
+
+
+def test_a_link_whose_close_takes_no_now_is_still_closed_and_one_that_takes_it_gets_the_hosts() -> None:
+    """A lab's own link written before ``close`` took the host's ``now`` still stops its vehicle at shutdown."""
+    from drivers.base import close_link
+
+    calls: list[dict] = []
+
+    class Old:
+        def close(self, disarm: bool = True, stop_speed: float = 0.05, stop_timeout: float = 3.0) -> None:
+            calls.append({"disarm": disarm, "stop_timeout": stop_timeout})
+
+    class New:
+        def close(self, disarm: bool = True, stop_speed: float = 0.05, stop_timeout: float = 3.0,
+                  now: float | None = None) -> None:
+            calls.append({"disarm": disarm, "now": now})
+
+    class Kw:
+        def close(self, **kw: object) -> None:
+            calls.append(dict(kw))
+
+    close_link(Old(), 12.5, disarm=False, stop_timeout=0.0)
+    close_link(New(), 12.5, disarm=True)
+    close_link(Kw(), 3.0, disarm=False)
+    assert calls == [{"disarm": False, "stop_timeout": 0.0}, {"disarm": True, "now": 12.5},
+                     {"disarm": False, "now": 3.0}]
