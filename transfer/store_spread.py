@@ -22,10 +22,12 @@ weight 1 / d^2 by grid distance d, the slope pulled towards none by ``SLOPE_PRIO
 observed (never beyond what a near cell saw: two cells' noise makes a steep slope). The change is assumed smooth in the
 learner's command, as a response curve that changed shape is.
 
-That *spread* moves the cell's refined pair provisionally and replaces a shared change's provisional shift there (the
-near cells say more than the mean of all); one within ``move_tol`` of the spread it has is not applied (the SC maps are
-not rebuilt for it). Once the cell has taken k_min raw pairs since its spread was set, its own pairs decide and the
-spread is dropped. A spread is neither a re-learning nor saved (``to_bytes`` writes the refined pairs without it).
+That *spread* moves the cell's refined pair provisionally. A cell holding a shared change's provisional shift
+(:meth:`transfer.store.PairStore._share`: changes that agree, as a change that is the same everywhere makes) keeps it
+and takes no spread (spreading over it cost the dragging wheel's runs). A spread within ``move_tol`` of the one the
+cell has is not applied (the SC maps are not rebuilt for it). Once the cell has taken k_min raw pairs since its spread
+was set, its own pairs decide and the spread is dropped. A spread is neither a re-learning nor saved (``to_bytes``
+writes the refined pairs without it).
 Nothing happens while no cell is re-learned: where nothing changes the store is the one without it.
 
 Pure: no I/O, no clock.
@@ -144,14 +146,15 @@ class SpreadChange:
         self._sp_n[cell] += 1
         if self._sp_had[cell] and (self._sp_n[cell] >= self.k_min or self.changes[cell] > self._sp_changes[cell]):
             moved = self._spread_all() or moved
-        if self._sp_live and self.relearned != self._sp_prov_seen:  # a shared change since: the spread wins
+        if self._sp_live and self.relearned != self._sp_prov_seen:  # a shared change since: it wins where it moved
             self._sp_prov_seen = self.relearned
             both = np.argwhere(self.prov.any(axis=2) & self.spread.any(axis=2))
             for i, j in both:
-                self.pub_T[i, j] -= self.prov[i, j]
-                self.prov[i, j], self.prov_n[i, j] = 0.0, 0
+                self.pub_T[i, j] -= self.spread[i, j]
+                self.spread[i, j] = 0.0
                 self.pub_version[i, j] += 1
             if len(both):
+                self._sp_live = int(np.count_nonzero(self.spread.any(axis=2)))
                 self._refined_set_changed()
                 moved = True
         return moved
@@ -174,7 +177,7 @@ class SpreadChange:
         if len(where) < MIN_OBSERVED:
             return False
         moved = False
-        for i, j in np.argwhere((self.pub_version > 0) & self._sp_had & ~obs):
+        for i, j in np.argwhere((self.pub_version > 0) & self._sp_had & ~obs & ~self.prov.any(axis=2)):
             d = where - np.array([i, j], dtype=float)
             d2 = (d * d).sum(axis=1)
             near = d2 <= RADIUS * RADIUS
@@ -185,10 +188,6 @@ class SpreadChange:
             cell = (int(i), int(j))
             if max(abs(x) for x in (est - self.spread[cell]).tolist()) <= self.move_tol:
                 continue
-            if self.prov[cell].any():  # the nearer cells replace a shared change's mean
-                self.pub_T[cell] -= self.prov[cell]
-                self.prov[cell] = 0.0
-                self.prov_n[cell] = 0
             self.pub_T[cell] += est - self.spread[cell]
             self.spread[cell] = est
             self.spread_n[cell] = 0
