@@ -99,9 +99,9 @@ def test_a_dragging_left_wheel_yaws_the_robot_left() -> None:
 
 
 #: where the drift tests' mission ends (m along x): the paper's S-path to just past its second bend's apex (7.2 of
-#: its 9.6 m), from its own start. The change comes 15 s after the wheels first turn, past the first bend; what is
-#: asserted is re-learned by 30 s (measured: 16-30 s), the goal is at about 45 s of driving where the whole path
-#: took 52-55 s.
+#: its 9.6 m), from its own start. The changes come 15-20 s after the wheels first turn, past the first bend; what is
+#: asserted is re-learned by 30 s (measured: 16-30 s); the goal is at 36-45 s of driving where the whole path took
+#: 52-55 s.
 MISSION_TO_X = 6.0
 
 
@@ -150,13 +150,13 @@ def _demo(tmp_path: Path, drift: str, duration: float, timeout: float) -> tuple[
 @pytest.mark.slow
 @pytest.mark.timeout(300)
 def test_the_hil_loop_relearns_the_cells_a_sagging_battery_changed_and_reaches_the_goal(tmp_path: Path) -> None:
-    """``scmbridge demo --link can --drift battery:15:5``: the motors' top speed falls 30 % over 5 s, 15 s after
-    the wheels first turn (from no pairs: the first bend's cells are learned by then), on the S-path to just past its
+    """``scmbridge demo --link can --drift battery``: the motors' top speed falls 30 % over 10 s, 20 s after the
+    wheels first turn (from no pairs: the first bend's cells are learned by then), on the S-path to just past its
     second bend (:func:`_mission`); the station runs with ``[transfer] adapt``. The demo's summary, the station's log
-    and its saved store agree on the cells re-learned. The sag is a ramp, not a step: a step of the whole 30 % in the
-    first bend took the robot out of the corridor there (one run of one, at 12 s), which is not what this test is
-    about; with the 5 s ramp 8 re-learnings in the one run measured."""
-    _demo(tmp_path, "battery:15:5", 100, 240)
+    and its saved store agree on the cells re-learned. The sag stays where the whole path's test had it: a sag of 5 s
+    from 15 s, in the first bend, took the robot out of the corridor there in 2 runs of 3 (one on the code before the
+    spread of a change), which is not what this test is about."""
+    _demo(tmp_path, "battery", 100, 240)
 
 
 def _response(u_L: np.ndarray, drag: float = 0.0) -> np.ndarray:
