@@ -42,9 +42,10 @@ def _drive(store: PairStore, rng: np.random.Generator, cells, visits: int, chang
         store.add(TB.denormalise(t_n), u, stamp=float(store.raw_count))
 
 
-def _learned(seed: int) -> tuple[PairStore, np.random.Generator]:
+def _learned(seed: int, spread: bool = True) -> tuple[PairStore, np.random.Generator]:
     rng = np.random.default_rng(seed)
     store = PairStore(LB, TB, adapt=True)
+    store.set_spread(spread)
     _drive(store, rng, [(i, j) for i in range(11) for j in range(11)], 30, changed=False)
     return store, rng
 
@@ -79,3 +80,23 @@ def test_nothing_is_spread_where_no_cell_is_re_learned() -> None:
         cells = [(10, j) for j in range(4, 7)]  # the change there is within change_tol
         _drive(store, rng, cells, 20, changed=changed)
         assert store.relearned == 0 and store.spreads == 0 and not store.spread.any(), changed
+
+
+def test_the_spread_is_off_by_default_and_turning_it_off_takes_the_spreads_back() -> None:
+    """A store as the station makes it (``adapt`` alone) spreads nothing: the cell between the two re-driven ones
+    stays where it stood. A store that spread and turns it off holds its refined pairs without the spreads."""
+    store, rng = _learned(1, spread=False)
+    assert not store.spread_on
+    before = store.pub_T.copy()
+    for c in [(10, 0), (10, 2)]:
+        _drive(store, rng, [c], 12, changed=True)
+    assert store.relearned == 2 and store.spreads == 0 and not store.spread.any()
+    np.testing.assert_array_equal(store.pub_T[10, 1], before[10, 1])
+    store, rng = _learned(1)
+    for c in [(10, 0), (10, 2)]:
+        _drive(store, rng, [c], 12, changed=True)
+    assert store.spread[10, 1].any()
+    own = store.pub_T - store.prov - store.spread
+    store.set_spread(False)
+    assert not store.spread.any()
+    np.testing.assert_allclose(store.pub_T, own + store.prov, atol=1e-12)
