@@ -31,10 +31,10 @@ rebuilt for it). Once the cell has taken k_min raw pairs since its spread was se
 is dropped. A spread is neither a re-learning nor saved (``to_bytes`` writes the refined pairs without it).
 Nothing happens while no cell is re-learned: where nothing changes the store is the one without it.
 
-*Measured* (docs/PAPER.md, "A change spread to the cells not driven since"): on the new floor it lowers the deviation
-after the change but does not bring the recovery within 15 s, and it costs the dragging wheel (one seed of six above
-1.2x its deviation before the change where the store without it has none). It is therefore off by default
-(:meth:`set_spread`; ``scmbridge sim drift --spread``): a store without it is the store it was.
+*Off by default* (:meth:`set_spread`; ``scmbridge sim drift --spread``): on the new floor it lowers the deviation after
+the change but does not bring the recovery within its goal, and it costs a change that is the same everywhere (the
+dragging wheel); docs/PAPER.md, "A change spread to the cells not driven since", has what was measured. A store
+without it is the store it was.
 
 Pure: no I/O, no clock.
 """
@@ -92,7 +92,7 @@ class SpreadChange:
 
     def _spread_init(self) -> None:
         gv, gw = self.grid
-        self.spread_on = False  # off by default (module docstring, "Measured"); :meth:`set_spread`
+        self.spread_on = False  # off by default (module docstring); :meth:`set_spread`
         self.spread = np.zeros((gv, gw, 2))  # per cell: the spread its refined pair holds (normalised teacher units)
         self.spread_n = np.zeros((gv, gw), dtype=np.int64)  # raw pairs it took since its spread was set
         self.spreads = 0  # spreads applied (cells moved)
