@@ -208,7 +208,7 @@ def drive(scenario: str, seed: int, adapt: bool, tiles: int = TILES, solver: str
         store = PairStore.from_bytes(reloaded.to_bytes())
         store.set_adapt(adapt)
         store.change_tol = change_tol
-    store.set_spread(spread and adapt)
+    store.spreading.set(spread and adapt)
     step = TransferStep(make_policy(store, "scm", np.random.default_rng(seed)), dt=DT)
     mpc = _mpc_teacher(solver, curve_margin)
     mpc.reset()

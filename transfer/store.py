@@ -73,7 +73,7 @@ from transfer.domain import Bounds
 from transfer.limits import LearnerLimits, grid_cell
 from transfer.store_blob import LimitsBlob, StoreBlob
 from transfer.store_change import ChangeTest
-from transfer.store_spread import SpreadChange
+from transfer.store_spread import ChangeSpread
 
 SCHEMA = "scmbridge.pairstore"
 SCHEMA_VERSION = 4
@@ -131,7 +131,7 @@ class CellChange:
     at: float | None
 
 
-class PairStore(ChangeTest, SpreadChange):
+class PairStore(ChangeTest):
     """Clusters raw pairs into refined pairs and keeps the learner's limits on the teacher domain up to date."""
 
     def __init__(
@@ -200,7 +200,7 @@ class PairStore(ChangeTest, SpreadChange):
         # parts). Not persisted: after a load it starts again (the saved refined pairs hold the offset).
         self.track_T, self.track_L, self.follow = np.zeros((gv, gw, 2)), np.zeros((gv, gw, 2)), np.zeros((gv, gw, 2))
         self.track_n = np.zeros((gv, gw), dtype=np.int64)
-        self._spread_init()  # a change spread to the cells not driven since (transfer/store_spread.py)
+        self.spreading = ChangeSpread(self)  # a change spread to the cells not driven since (off by default)
 
     # ------------------------------------------------------------------------------------------ clustering
     def cell_of(self, u_L: ArrayLike) -> tuple[int, int]:
@@ -226,7 +226,7 @@ class PairStore(ChangeTest, SpreadChange):
         self.added += 1
         refined_changed = False
         if self.adapt:
-            self._spread_before(cell)
+            self.spreading.before(cell)
             if self.pub_version[cell] > 0 and self._changed(cell, t_n, l_n):
                 self._relearn(cell, t_n, l_n, stamp)
                 refined_changed = True
@@ -242,7 +242,7 @@ class PairStore(ChangeTest, SpreadChange):
             self._track(cell, t_n, l_n)
         if self.count[cell] >= self.k_min:
             mT, mL = self.cluster_mean(cell)
-            mT = mT + self.prov[cell] + self.follow[cell] + self.spread[cell]  # provisional shifts, a small change
+            mT = mT + self.prov[cell] + self.follow[cell] + self.spreading.shift[cell]  # provisional, small change
             moved = max(abs(d) for d in (*(mT - self.pub_T[cell]).tolist(), *(mL - self.pub_L[cell]).tolist()))
             if self.pub_version[cell] == 0 or moved > self.move_tol:
                 self.pub_T[cell], self.pub_L[cell] = mT, mL
@@ -250,7 +250,7 @@ class PairStore(ChangeTest, SpreadChange):
                 self._refined_set_changed()
                 refined_changed = True
         if self.adapt:
-            refined_changed = self._spread_add(cell) or refined_changed
+            refined_changed = self.spreading.after(cell) or refined_changed
         prev = None if prev_u_L is None else np.clip(
             self.learner_bounds.normalise(np.asarray(prev_u_L, dtype=float).reshape(2)), 0.0, 1.0)
         limits_changed = self.limits.update(t_n, l_n, cell, prev)
@@ -312,8 +312,8 @@ class PairStore(ChangeTest, SpreadChange):
         self.recent_n[cell] = 0
         for a, b in zip(T[post], L[post]):
             self._remember(cell, a, b)
-        self.pub_T[cell] = self.pub_T[cell] - self.prov[cell] - self.follow[cell] - self.spread[cell] + shift
-        self.prov[cell], self.spread[cell] = 0.0, 0.0
+        self.pub_T[cell] = self.pub_T[cell] - self.prov[cell] - self.follow[cell] - self.spreading.shift[cell] + shift
+        self.prov[cell], self.spreading.shift[cell] = 0.0, 0.0
         self.pub_version[cell] += 1
         self._refined_set_changed()
         self._share(cell, shift)
@@ -454,7 +454,7 @@ class PairStore(ChangeTest, SpreadChange):
             count=self.count.ravel().tolist(),
             sum_T=self.sum_T.ravel().tolist(),
             sum_L=self.sum_L.ravel().tolist(),
-            pub_T=(self.pub_T - self.prov - self.spread).ravel().tolist(),
+            pub_T=(self.pub_T - self.prov - self.spreading.shift).ravel().tolist(),
             pub_L=self.pub_L.ravel().tolist(),
             pub_version=self.pub_version.ravel().tolist(),
             revision=self.revision,

@@ -31,10 +31,10 @@ rebuilt for it). Once the cell has taken k_min raw pairs since its spread was se
 is dropped. A spread is neither a re-learning nor saved (``to_bytes`` writes the refined pairs without it).
 Nothing happens while no cell is re-learned: where nothing changes the store is the one without it.
 
-*Off by default* (:meth:`set_spread`; ``scmbridge sim drift --spread``): on the new floor it lowers the deviation after
-the change but does not bring the recovery within its goal, and it costs a change that is the same everywhere (the
-dragging wheel); docs/PAPER.md, "A change spread to the cells not driven since", has what was measured. A store
-without it is the store it was.
+*Off by default* (:meth:`ChangeSpread.set`, a store's ``spreading``; ``scmbridge sim drift --spread``): on the new
+floor it lowers the deviation after the change but does not bring the recovery within its goal, and it costs a change
+that is the same everywhere (the dragging wheel); docs/PAPER.md, "A change spread to the cells not driven since", has
+what was measured. A store without it is the store it was.
 
 Pure: no I/O, no clock.
 """
@@ -67,147 +67,135 @@ AGREE = 0.5
 SLOPE_PRIOR = 0.05
 
 
-class SpreadChange:
-    """The spread of a change (module docstring) on :class:`transfer.store.PairStore`'s arrays: a mixin, the store
-    holds the state (:meth:`_spread_init`)."""
+class ChangeSpread:
+    """The spread of a change (module docstring) on a :class:`transfer.store.PairStore`'s arrays: the store holds one
+    (``spreading``) and calls :meth:`before` and :meth:`after` around each raw pair it takes; the refined pairs' spreads
+    are :attr:`shift` (normalised teacher units per cell), which the store adds to and saves without."""
 
-    grid: tuple[int, int]
-    k_min: int
-    move_tol: float
-    change_tol: float
-    relearned: int
-    added: int
-    pub_T: Any
-    pub_L: Any
-    pub_version: Any
-    prov: Any
-    prov_n: Any
-    changes: Any
-    follow: Any
-    resid: Any
+    def __init__(self, store: Any) -> None:
+        self.st = store  # the PairStore whose arrays this reads and moves
+        gv, gw = store.grid
+        self.on = False  # off by default (module docstring); :meth:`set`
+        self.shift = np.zeros((gv, gw, 2))  # per cell: the spread its refined pair holds (normalised teacher units)
+        self.shift_n = np.zeros((gv, gw), dtype=np.int64)  # raw pairs it took since its spread was set
+        self.count = 0  # spreads applied (cells moved)
+        self._seen = 0  # ``relearned`` when last looked at
+        self._start = -1  # ``added`` when the episode began (-1: none yet)
+        self._base = np.zeros((gv, gw, 2))  # the refined pairs then, without provisional shifts nor a small change
+        self._base_L = np.zeros((gv, gw, 2))  # their learner parts then
+        self._based = np.zeros((gv, gw), dtype=bool)  # a cell's base was taken (it was driven configured)
+        self._last = np.full((gv, gw), -(10**9), dtype=np.int64)  # ``added`` at each cell's last raw pair
+        self._had = np.zeros((gv, gw), dtype=bool)  # configured then
+        self._n = np.zeros((gv, gw), dtype=np.int64)  # raw pairs each took since then
+        self._changes = np.zeros((gv, gw), dtype=np.int64)  # each cell's re-learnings then
+        self._pre = np.zeros((gv, gw), dtype=bool)  # driven in the PRE_K k_min pairs before it began
+        self._rev = -1  # the observed changes' state when the spreads were last computed
+        self._live = 0  # cells holding a spread
+        self._prov_seen = 0  # ``relearned`` when the spreads last replaced a shared change's shifts
 
-    def _slope_list(self, cell: tuple[int, int]) -> list[float]: ...  # pragma: no cover - the store's
-
-    def _refined_set_changed(self) -> None: ...  # pragma: no cover - the store's
-
-    def _spread_init(self) -> None:
-        gv, gw = self.grid
-        self.spread_on = False  # off by default (module docstring); :meth:`set_spread`
-        self.spread = np.zeros((gv, gw, 2))  # per cell: the spread its refined pair holds (normalised teacher units)
-        self.spread_n = np.zeros((gv, gw), dtype=np.int64)  # raw pairs it took since its spread was set
-        self.spreads = 0  # spreads applied (cells moved)
-        self._sp_seen = 0  # ``relearned`` when last looked at
-        self._sp_start = -1  # ``added`` when the episode began (-1: none yet)
-        self._sp_base = np.zeros((gv, gw, 2))  # the refined pairs then, without provisional shifts nor a small change
-        self._sp_base_L = np.zeros((gv, gw, 2))  # their learner parts then
-        self._sp_based = np.zeros((gv, gw), dtype=bool)  # a cell's base was taken (it was driven configured)
-        self._sp_last = np.full((gv, gw), -(10**9), dtype=np.int64)  # ``added`` at each cell's last raw pair
-        self._sp_had = np.zeros((gv, gw), dtype=bool)  # configured then
-        self._sp_n = np.zeros((gv, gw), dtype=np.int64)  # raw pairs each took since then
-        self._sp_changes = np.zeros((gv, gw), dtype=np.int64)  # each cell's re-learnings then
-        self._sp_pre = np.zeros((gv, gw), dtype=bool)  # driven in the PRE_K k_min pairs before it began
-        self._sp_rev = -1  # the observed changes' state when the spreads were last computed
-        self._sp_live = 0  # cells holding a spread
-        self._sp_prov_seen = 0  # ``relearned`` when the spreads last replaced a shared change's shifts
-
-    def set_spread(self, on: bool) -> None:
+    def set(self, on: bool) -> None:
         """The spread of a change on or off from now on (with change detection, ``adapt``); off clears the spreads
         the refined pairs hold."""
-        self.spread_on = bool(on)
-        if not on and self.spread.any():
-            for i, j in np.argwhere(self.spread.any(axis=2)):
-                self.pub_T[i, j] -= self.spread[i, j]
-                self.pub_version[i, j] += 1
-            self.spread[:] = 0.0
-            self._sp_live = 0
-            self._refined_set_changed()
-        self._sp_start = -1
+        st = self.st
+        self.on = bool(on)
+        if not on and self.shift.any():
+            for i, j in np.argwhere(self.shift.any(axis=2)):
+                st.pub_T[i, j] -= self.shift[i, j]
+                st.pub_version[i, j] += 1
+            self.shift[:] = 0.0
+            self._live = 0
+            st._refined_set_changed()
+        self._start = -1
 
-    def _spread_before(self, cell: tuple[int, int]) -> None:
+    def before(self, cell: tuple[int, int]) -> None:
         """A raw pair is about to go into ``cell``: while no episode is under way, the cell's base is what its refined
         pair says before it (so that a re-learning that begins an episode is measured from before itself)."""
-        if self.spread_on and self._sp_start < 0 and self.pub_version[cell] > 0:
-            self._sp_based[cell] = True
-            self._sp_base[cell] = self.pub_T[cell] - self.prov[cell] - self.spread[cell]
-            self._sp_base_L[cell] = self.pub_L[cell]
+        st = self.st
+        if self.on and self._start < 0 and st.pub_version[cell] > 0:
+            self._based[cell] = True
+            self._base[cell] = st.pub_T[cell] - st.prov[cell] - self.shift[cell]
+            self._base_L[cell] = st.pub_L[cell]
 
     def _own_T(self) -> NDArray[np.float64]:
-        return self.pub_T - self.prov - self.spread
+        st = self.st
+        return st.pub_T - st.prov - self.shift
 
-    def _spread_add(self, cell: tuple[int, int]) -> bool:
+    def after(self, cell: tuple[int, int]) -> bool:
         """A raw pair went into ``cell`` (after the store's own update): an episode begun, carried on or ended, the
         spreads computed again where an observed change moved, a cell's own spread dropped once it is driven again.
         Returns whether a refined pair moved."""
-        if not self.spread_on:
+        st = self.st
+        if not self.on:
             return False
-        self._sp_last[cell] = self.added
-        if self._sp_start < 0 and self.relearned == self._sp_seen and not self._sp_live:
+        self._last[cell] = st.added
+        if self._start < 0 and st.relearned == self._seen and not self._live:
             return False  # the common case where nothing changed: nothing to do
         moved = False
-        if self.spread[cell].any():
-            self.spread_n[cell] += 1
-            if self.spread_n[cell] >= self.k_min:  # driven again: its own pairs decide
-                self.pub_T[cell] -= self.spread[cell]
-                self.spread[cell] = 0.0
-                self._sp_live = int(np.count_nonzero(self.spread.any(axis=2)))
-                self.pub_version[cell] += 1
-                self._refined_set_changed()
+        if self.shift[cell].any():
+            self.shift_n[cell] += 1
+            if self.shift_n[cell] >= st.k_min:  # driven again: its own pairs decide
+                st.pub_T[cell] -= self.shift[cell]
+                self.shift[cell] = 0.0
+                self._live = int(np.count_nonzero(self.shift.any(axis=2)))
+                st.pub_version[cell] += 1
+                st._refined_set_changed()
                 moved = True
-        if self.relearned != self._sp_seen:
-            self._sp_seen = self.relearned
-            if self._sp_start < 0:
-                self._sp_start = self.added
-                self._sp_had = (self.pub_version > 0) & self._sp_based
-                self._sp_pre = self.added - self._sp_last <= PRE_K * self.k_min
-                self._sp_n[:] = np.where(self._sp_pre, self.k_min, 0)
-                self._sp_changes = self.changes.copy()
-                self._sp_rev = -1
-        if self._sp_start < 0:
+        if st.relearned != self._seen:
+            self._seen = st.relearned
+            if self._start < 0:
+                self._start = st.added
+                self._had = (st.pub_version > 0) & self._based
+                self._pre = st.added - self._last <= PRE_K * st.k_min
+                self._n[:] = np.where(self._pre, st.k_min, 0)
+                self._changes = st.changes.copy()
+                self._rev = -1
+        if self._start < 0:
             return moved
-        if self.added - self._sp_start > EPISODE_K * self.k_min:  # over: the cells' own pairs carry on
-            self._sp_start = -1
-            self._sp_live = int(np.count_nonzero(self.spread.any(axis=2)))  # (a re-learning clears a cell's)
+        if st.added - self._start > EPISODE_K * st.k_min:  # over: the cells' own pairs carry on
+            self._start = -1
+            self._live = int(np.count_nonzero(self.shift.any(axis=2)))  # (a re-learning clears a cell's)
             return moved
-        self._sp_n[cell] += 1
-        if self._sp_had[cell] and (self._sp_n[cell] >= self.k_min or self.changes[cell] > self._sp_changes[cell]):
-            moved = self._spread_all() or moved
-        if self._sp_live and self.relearned != self._sp_prov_seen:  # a shared change since: it wins where it moved
-            self._sp_prov_seen = self.relearned
-            both = [(i, j) for i, j in np.argwhere(self.prov.any(axis=2) & self.spread.any(axis=2))]
+        self._n[cell] += 1
+        if self._had[cell] and (self._n[cell] >= st.k_min or st.changes[cell] > self._changes[cell]):
+            moved = self._all() or moved
+        if self._live and st.relearned != self._prov_seen:  # a shared change since: it wins where it moved
+            self._prov_seen = st.relearned
+            both = [(i, j) for i, j in np.argwhere(st.prov.any(axis=2) & self.shift.any(axis=2))]
             for i, j in both:  # the shift that agrees with the near cells stays; else the spread does
-                if max(abs(x) for x in (self.spread[i, j] - self.prov[i, j]).tolist()) <= AGREE * self.change_tol:
-                    self.pub_T[i, j] -= self.spread[i, j]
-                    self.spread[i, j] = 0.0
+                if max(abs(x) for x in (self.shift[i, j] - st.prov[i, j]).tolist()) <= AGREE * st.change_tol:
+                    st.pub_T[i, j] -= self.shift[i, j]
+                    self.shift[i, j] = 0.0
                 else:
-                    self.pub_T[i, j] -= self.prov[i, j]
-                    self.prov[i, j], self.prov_n[i, j] = 0.0, 0
-                self.pub_version[i, j] += 1
+                    st.pub_T[i, j] -= st.prov[i, j]
+                    st.prov[i, j], st.prov_n[i, j] = 0.0, 0
+                st.pub_version[i, j] += 1
             if len(both):
-                self._sp_live = int(np.count_nonzero(self.spread.any(axis=2)))
-                self._refined_set_changed()
+                self._live = int(np.count_nonzero(self.shift.any(axis=2)))
+                st._refined_set_changed()
                 moved = True
         return moved
 
-    def _spread_all(self) -> bool:
+    def _all(self) -> bool:
         """Every configured cell not re-driven: the spread of the observed changes near it (module docstring)."""
-        obs = self._sp_had & ((self._sp_n >= self.k_min) | (self.changes > self._sp_changes))
+        st = self.st
+        obs = self._had & ((self._n >= st.k_min) | (st.changes > self._changes))
         change = np.array([self._observed((int(i), int(j))) for i, j in np.argwhere(obs)]).reshape(-1, 2)
         # a cell driven just before the episode began may have been driven before the change: it counts only where it
         # shows one, or once it has taken k_min pairs of its own since
-        pre = (self._sp_pre & (self._sp_n < 2 * self.k_min) & (self.changes == self._sp_changes))[obs]
-        keep = ~pre | (np.abs(change).max(axis=1) > PRE_SHOWS * self.change_tol)
+        pre = (self._pre & (self._n < 2 * st.k_min) & (st.changes == self._changes))[obs]
+        keep = ~pre | (np.abs(change).max(axis=1) > PRE_SHOWS * st.change_tol)
         obs[obs] = keep
         change = change[keep]
-        key = hash((obs.tobytes(), np.round(change / self.move_tol).tobytes()))
-        if key == self._sp_rev:
+        key = hash((obs.tobytes(), np.round(change / st.move_tol).tobytes()))
+        if key == self._rev:
             return False
-        self._sp_rev = key
+        self._rev = key
         where = np.argwhere(obs).astype(float)
         if len(where) < MIN_OBSERVED:
             return False
         moved = False
-        agree = AGREE * self.change_tol
-        for i, j in np.argwhere((self.pub_version > 0) & self._sp_had & ~obs):
+        agree = AGREE * st.change_tol
+        for i, j in np.argwhere((st.pub_version > 0) & self._had & ~obs):
             d = where - np.array([i, j], dtype=float)
             d2 = (d * d).sum(axis=1)
             near = d2 <= RADIUS * RADIUS
@@ -216,31 +204,32 @@ class SpreadChange:
             y = change[near]
             est = np.clip(self._affine(d[near], 1.0 / d2[near], y), y.min(axis=0), y.max(axis=0))
             cell = (int(i), int(j))
-            if self.prov[cell].any():  # a shared change's shift: kept where the near cells agree with it
-                if max(abs(x) for x in (est - self.prov[cell]).tolist()) <= agree:
+            if st.prov[cell].any():  # a shared change's shift: kept where the near cells agree with it
+                if max(abs(x) for x in (est - st.prov[cell]).tolist()) <= agree:
                     continue
-                self.pub_T[cell] -= self.prov[cell]
-                self.prov[cell], self.prov_n[cell] = 0.0, 0
-            elif max(abs(x) for x in (est - self.spread[cell]).tolist()) <= self.move_tol:
+                st.pub_T[cell] -= st.prov[cell]
+                st.prov[cell], st.prov_n[cell] = 0.0, 0
+            elif max(abs(x) for x in (est - self.shift[cell]).tolist()) <= st.move_tol:
                 continue
-            self.pub_T[cell] += est - self.spread[cell]
-            self.spread[cell] = est
-            self.spread_n[cell] = 0
-            self.pub_version[cell] += 1
-            self.spreads += 1
+            st.pub_T[cell] += est - self.shift[cell]
+            self.shift[cell] = est
+            self.shift_n[cell] = 0
+            st.pub_version[cell] += 1
+            self.count += 1
             moved = True
         if moved:
-            self._sp_live = int(np.count_nonzero(self.spread.any(axis=2)))
-            self._refined_set_changed()
+            self._live = int(np.count_nonzero(self.shift.any(axis=2)))
+            st._refined_set_changed()
         return moved
 
     def _observed(self, cell: tuple[int, int]) -> list[float]:
         """A re-driven cell's observed change (normalised teacher units): its refined pair's move since the episode
         began (less the move its learner part made, along the cell's slope) and its residual not taken in yet."""
-        sl = self._slope_list(cell)
-        dT = (self._own_T()[cell] - self._sp_base[cell]).tolist()
-        dL = (self.pub_L[cell] - self._sp_base_L[cell]).tolist()
-        r = self.resid[cell].tolist()
+        st = self.st
+        sl = st._slope_list(cell)
+        dT = (self._own_T()[cell] - self._base[cell]).tolist()
+        dL = (st.pub_L[cell] - self._base_L[cell]).tolist()
+        r = st.resid[cell].tolist()
         return [dT[a] - sl[a] * dL[a] + r[a] for a in (0, 1)]
 
     @staticmethod

@@ -45,7 +45,7 @@ def _drive(store: PairStore, rng: np.random.Generator, cells, visits: int, chang
 def _learned(seed: int, spread: bool = True) -> tuple[PairStore, np.random.Generator]:
     rng = np.random.default_rng(seed)
     store = PairStore(LB, TB, adapt=True)
-    store.set_spread(spread)
+    store.spreading.set(spread)
     _drive(store, rng, [(i, j) for i in range(11) for j in range(11)], 30, changed=False)
     return store, rng
 
@@ -61,15 +61,16 @@ def test_a_cell_between_re_driven_ones_takes_its_own_change_before_the_robot_dri
         before = store.pub_T.copy()
         for c in [(10, 0), (10, 2)]:  # one after the other, as a bend is driven
             _drive(store, rng, [c], 12, changed=True)
-        assert store.relearned == 2 and store.shared == 0 and store.spreads > 0, (seed, store.relearned)
+        assert store.relearned == 2 and store.shared == 0 and store.spreading.count > 0, (seed, store.relearned)
         mid = (10, 1)
         err = abs(store.pub_T[mid][1] - before[mid][1] - _change(1.0))
         assert err < 2 * store.move_tol < abs(_change(1.0)), (seed, err)  # where it stood: its whole change off
-        assert not store.spread[10, 8].any() and not store.spread[2, 5].any()  # far: none of it
+        assert not store.spreading.shift[10, 8].any() and not store.spreading.shift[2, 5].any()  # far: none of it
         saved = PairStore.from_bytes(store.to_bytes())
-        np.testing.assert_allclose(saved.pub_T[mid], (store.pub_T - store.prov - store.spread)[mid], atol=1e-12)
+        own = store.pub_T - store.prov - store.spreading.shift
+        np.testing.assert_allclose(saved.pub_T[mid], own[mid], atol=1e-12)
         _drive(store, rng, [mid], store.k_min, changed=True)
-        assert not store.spread[mid].any(), seed
+        assert not store.spreading.shift[mid].any(), seed
 
 
 def test_nothing_is_spread_where_no_cell_is_re_learned() -> None:
@@ -79,24 +80,24 @@ def test_nothing_is_spread_where_no_cell_is_re_learned() -> None:
         store, rng = _learned(4)
         cells = [(10, j) for j in range(4, 7)]  # the change there is within change_tol
         _drive(store, rng, cells, 20, changed=changed)
-        assert store.relearned == 0 and store.spreads == 0 and not store.spread.any(), changed
+        assert store.relearned == 0 and store.spreading.count == 0 and not store.spreading.shift.any(), changed
 
 
 def test_the_spread_is_off_by_default_and_turning_it_off_takes_the_spreads_back() -> None:
     """A store as the station makes it (``adapt`` alone) spreads nothing: the cell between the two re-driven ones
     stays where it stood. A store that spread and turns it off holds its refined pairs without the spreads."""
     store, rng = _learned(1, spread=False)
-    assert not store.spread_on
+    assert not store.spreading.on
     before = store.pub_T.copy()
     for c in [(10, 0), (10, 2)]:
         _drive(store, rng, [c], 12, changed=True)
-    assert store.relearned == 2 and store.spreads == 0 and not store.spread.any()
+    assert store.relearned == 2 and store.spreading.count == 0 and not store.spreading.shift.any()
     np.testing.assert_array_equal(store.pub_T[10, 1], before[10, 1])
     store, rng = _learned(1)
     for c in [(10, 0), (10, 2)]:
         _drive(store, rng, [c], 12, changed=True)
-    assert store.spread[10, 1].any()
-    own = store.pub_T - store.prov - store.spread
-    store.set_spread(False)
-    assert not store.spread.any()
+    assert store.spreading.shift[10, 1].any()
+    own = store.pub_T - store.prov - store.spreading.shift
+    store.spreading.set(False)
+    assert not store.spreading.shift.any()
     np.testing.assert_allclose(store.pub_T, own + store.prov, atol=1e-12)
