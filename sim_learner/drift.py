@@ -193,10 +193,11 @@ class DriftRun:
 
 def drive(scenario: str, seed: int, adapt: bool, tiles: int = TILES, solver: str = "ipopt",
           change_tol: float = CHANGE_TOL, curve_margin: float = CURVE_MARGIN,
-          reloaded: PairStore | None = None) -> tuple[DriftRun, ChangingLearner]:
+          reloaded: PairStore | None = None, spread: bool = False) -> tuple[DriftRun, ChangingLearner]:
     """The SCM learner from no pairs on the tiled world under ``scenario``, the store adapting (with ``change_tol``)
     or not, the teacher's MPC slowing for bends at ``curve_margin`` (0: the paper's MPC). ``reloaded``: from a copy
-    of that store instead, the learner changed before the run began (``--reloaded``)."""
+    of that store instead, the learner changed before the run began (``--reloaded``). ``spread``: the adapting store
+    spreads a change to the cells not driven since (``transfer/store_spread.py``; off by default)."""
     world = tiled(mpc_world(), tiles)
     learner = ChangingLearner(scenario, changed=reloaded is not None)
     m = learner.model
@@ -207,6 +208,7 @@ def drive(scenario: str, seed: int, adapt: bool, tiles: int = TILES, solver: str
         store = PairStore.from_bytes(reloaded.to_bytes())
         store.set_adapt(adapt)
         store.change.change_tol = change_tol
+    store.spreading.set(spread and adapt)
     step = TransferStep(make_policy(store, "scm", np.random.default_rng(seed)), dt=DT)
     mpc = _mpc_teacher(solver, curve_margin)
     mpc.reset()
@@ -271,13 +273,13 @@ def figures(run: DriftRun, change: tuple[float | None, float | None]) -> dict:
 
 
 def drift_summary(scenario: str, seed: int, tiles: int = TILES, solver: str = "ipopt", change_tol: float = CHANGE_TOL,
-                  baseline: bool = True, curve_margin: float = CURVE_MARGIN) -> dict:
+                  baseline: bool = True, curve_margin: float = CURVE_MARGIN, spread: bool = False) -> dict:
     """One scenario on one seed: the adapting store's figures and the never-forgetting baseline's on the same run
     (``baseline=False``: the adapting store's alone, e.g. for the false-alarm rate of ``none``)."""
     run, learner = drive(scenario, seed, adapt=True, tiles=tiles, solver=solver, change_tol=change_tol,
-                         curve_margin=curve_margin)
+                         curve_margin=curve_margin, spread=spread)
     out = {"experiment": "drift", "scenario": scenario, "seed": seed, "tiles": tiles, "change_tol": change_tol,
-           "curve_margin": curve_margin, **figures(run, learner.change())}
+           "curve_margin": curve_margin, **({"spread": True} if spread else {}), **figures(run, learner.change())}
     if baseline:
         base, base_learner = drive(scenario, seed, adapt=False, tiles=tiles, solver=solver, curve_margin=curve_margin)
         out["baseline"] = figures(base, base_learner.change())
@@ -327,7 +329,7 @@ def reloaded_stats(rows: list[dict]) -> dict:
     return out
 
 
-def _task(args: tuple[str, int, int, str, float, bool, float]) -> dict:
+def _task(args: tuple[str, int, int, str, float, bool, float, bool]) -> dict:
     return drift_summary(*args)
 
 
@@ -336,10 +338,11 @@ def _reloaded_task(args: tuple[str, int, int, str, float, float]) -> dict:
 
 
 def sweep(scenarios: Sequence[str], seeds: Sequence[int], tiles: int = TILES, workers: int = 2,
-          change_tol: float = CHANGE_TOL, baseline: bool = True, curve_margin: float = CURVE_MARGIN) -> list[dict]:
+          change_tol: float = CHANGE_TOL, baseline: bool = True, curve_margin: float = CURVE_MARGIN,
+          spread: bool = False) -> list[dict]:
     """Every scenario on every seed (at most ``workers`` processes); the baseline runs only where a change is (the
     never-forgetting store has nothing to compare with on ``none``)."""
-    return _run(_task, [(sc, s, tiles, "ipopt", change_tol, baseline and sc != CONTROL, curve_margin)
+    return _run(_task, [(sc, s, tiles, "ipopt", change_tol, baseline and sc != CONTROL, curve_margin, spread)
                         for sc in scenarios for s in seeds], workers)
 
 
@@ -430,6 +433,9 @@ def arguments(ap: argparse.ArgumentParser) -> None:
                     help="the teacher MPC slows for a bend the learned yaw-rate limit cannot turn at its top speed, "
                          f"using this share of the limit (default {CURVE_MARGIN}; 0: the paper's MPC; "
                          "[teacher] curve_margin)")
+    ap.add_argument("--spread", action="store_true",
+                    help="the adapting store spreads a change to the cells not driven since (transfer/store_spread.py; "
+                         "off by default: docs/PAPER.md has what it gains and costs)")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -438,13 +444,15 @@ def run(args: argparse.Namespace) -> int:
     seeds = args.seeds if args.seeds is not None else [args.seed]
     if not 0.0 <= args.curve_margin <= 1.0:
         raise SystemExit(f"--curve-margin must be in [0, 1], got {args.curve_margin}")
+    if args.reloaded and args.spread:
+        raise SystemExit("--spread is for a run from no pairs, not --reloaded")
     if args.reloaded:
         rows = sweep_reloaded(scenarios, seeds, args.tiles, workers=args.workers, change_tol=args.change_tol,
                               curve_margin=args.curve_margin)
         stats, kind = (reloaded_stats(rows) if len(rows) > 1 else None), "drift-reloaded-sweep"
     else:
         rows = sweep(scenarios, seeds, args.tiles, workers=args.workers, change_tol=args.change_tol,
-                     curve_margin=args.curve_margin)
+                     curve_margin=args.curve_margin, spread=args.spread)
         stats, kind = (sweep_stats(rows) if len(rows) > 1 else None), "drift-sweep"
     for r in rows:
         print(json.dumps(r), flush=True)

@@ -73,6 +73,7 @@ from transfer.limits import LearnerLimits, grid_cell
 from transfer.store_adapt import CellChanges, Shifts
 from transfer.store_cells import CellSums
 from transfer.store_io import READS_VERSIONS, SCHEMA, SCHEMA_VERSION
+from transfer.store_spread import ChangeSpread
 
 __all__ = ["READS_VERSIONS", "SCHEMA", "SCHEMA_VERSION", "AddResult", "CellChange", "PairStore", "RefinedPair"]
 #: a cell's learner has changed when the recency-weighted mean of its residuals is beyond this (normalised teacher
@@ -164,6 +165,7 @@ class PairStore:
         self.change = CellChanges(self.cells, self.limits, prior, self.move_tol, change_tol, change_sigmas)
         self.shifts = Shifts(self.cells, self.change, self.move_tol, SHARED_WINDOW_K * self.k_min, SHARED_AGREE,
                              TRACK_SIGMAS)
+        self.spreading = ChangeSpread(self)  # a change spread to the cells not driven since (off by default)
         self.added = 0  # raw pairs taken
         self.set_adapt(adapt)
 
@@ -188,6 +190,7 @@ class PairStore:
         self.added += 1
         refined_changed = False
         if self.adapt:
+            self.spreading.before(cell)
             if cells.pub_version[cell] > 0 and self.change._changed(cell, t_n, l_n):
                 self._relearn(cell, t_n, l_n, stamp)
                 refined_changed = True
@@ -200,13 +203,15 @@ class PairStore:
             shifts.track(cell, t_n, l_n)
         if n >= self.k_min:
             mT, mL = cells.mean(cell)
-            mT = mT + shifts.prov[cell] + shifts.follow[cell]  # a shared change's provisional shift, a small change
+            mT = mT + shifts.prov[cell] + shifts.follow[cell] + self.spreading.shift[cell]  # provisional, small change
             moved = max(abs(d) for d in (*(mT - cells.pub_T[cell]).tolist(), *(mL - cells.pub_L[cell]).tolist()))
             if cells.pub_version[cell] == 0 or moved > self.move_tol:
                 cells.pub_T[cell], cells.pub_L[cell] = mT, mL
                 cells.pub_version[cell] += 1
                 self._refined_set_changed()
                 refined_changed = True
+        if self.adapt:
+            refined_changed = self.spreading.after(cell) or refined_changed
         prev = None if prev_u_L is None else np.clip(
             self.learner_bounds.normalise(np.asarray(prev_u_L, dtype=float).reshape(2)), 0.0, 1.0)
         limits_changed = self.limits.update(t_n, l_n, cell, prev)
@@ -223,8 +228,10 @@ class PairStore:
         post, shift = self.change.agreeing(cell, T, L, t_n, l_n)
         cells.restart(cell, T[post], L[post])
         self.limits.forget(cell, T[~post], L[~post], T[post], L[post])
-        cells.pub_T[cell] = cells.pub_T[cell] - shifts.prov[cell] - shifts.follow[cell] + shift
+        spread = self.spreading.shift[cell]
+        cells.pub_T[cell] = cells.pub_T[cell] - shifts.prov[cell] - shifts.follow[cell] - spread + shift
         shifts.cleared(cell)
+        self.spreading.shift[cell] = 0.0
         cells.pub_version[cell] += 1
         self._refined_set_changed()
         if shifts.share(cell, shift, self.added):

@@ -47,7 +47,7 @@ def to_bytes(store: PairStore) -> bytes:
         count=c.count.ravel().tolist(),
         sum_T=c.sum_T.ravel().tolist(),
         sum_L=c.sum_L.ravel().tolist(),
-        pub_T=(c.pub_T - store.shifts.prov).ravel().tolist(),
+        pub_T=(c.pub_T - store.shifts.prov - store.spreading.shift).ravel().tolist(),
         pub_L=c.pub_L.ravel().tolist(),
         pub_version=c.pub_version.ravel().tolist(),
         revision=store.revision,

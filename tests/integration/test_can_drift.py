@@ -13,11 +13,13 @@ import struct
 import subprocess
 import time
 import uuid
+from importlib import resources
 from pathlib import Path
 
 import can
 import numpy as np
 import pytest
+import tomllib
 
 from bridge.nodes.station_tags import read_store
 from bridge.tools.procs import Children
@@ -96,15 +98,36 @@ def test_a_dragging_left_wheel_yaws_the_robot_left() -> None:
         assert v == pytest.approx(0.3 * 0.95, rel=1e-5) and omega == pytest.approx(0.03 / 0.4, rel=1e-4)
 
 
+#: where the drift tests' mission ends (m along x): the paper's S-path to just past its second bend's apex (7.2 of
+#: its 9.6 m), from its own start. The changes come 15-20 s after the wheels first turn, past the first bend; what is
+#: asserted is re-learned by 30 s (measured: 16-30 s); the goal is at 36-45 s of driving where the whole path took
+#: 52-55 s.
+MISSION_TO_X = 6.0
+
+
+def _mission(tmp_path: Path) -> Path:
+    """The paper's S-path (the shipped mission ``paper-s-path``) up to ``MISSION_TO_X``, its obstacles and start, as
+    a mission file: the goal is its last waypoint kept."""
+    text = resources.files("bridge").joinpath("missions", "paper_s_path.toml").read_text()
+    d = tomllib.loads(text)
+    path = [p for p in d["path"] if p[0] <= MISSION_TO_X]
+    obstacles = [o for o in d["obstacles"] if o[0] - o[2] <= MISSION_TO_X]
+    f = tmp_path / "mission.toml"
+    f.write_text("\n".join([f'name = "paper-s-path-to-{MISSION_TO_X:g}"', f'frame = "{d["frame"]}"',
+                            f"goal_tolerance = {d['goal_tolerance']}", f"start = {d['start']}",
+                            f"obstacles = {obstacles}", f"path = {path}", ""]))
+    return f
+
+
 def _demo(tmp_path: Path, drift: str, duration: float, timeout: float) -> tuple[dict, PairStore, str]:
-    """``scmbridge demo --link can --drift DRIFT`` (the station with ``[transfer] adapt``) run to its end: its
-    summary, its saved pair store and the station's log; the demo must have reached the goal and re-learned cells,
-    and its summary, log and saved store agree on them (the cells named, how many re-learnings, when: the station's
-    wall clock)."""
+    """``scmbridge demo --link can --drift DRIFT`` (the station with ``[transfer] adapt``) on the S-path up to
+    ``MISSION_TO_X`` (:func:`_mission`) run to its end: its summary, its saved pair store and the station's log; the
+    demo must have reached the goal and re-learned cells, and its summary, log and saved store agree on them (the
+    cells named, how many re-learnings, when: the station's wall clock)."""
     out = tmp_path / "demo"
     with Children() as kids:
-        demo = kids.spawn(["demo", "--link", "can", "--drift", drift, "--duration", str(duration), "--out", str(out)],
-                          subprocess.PIPE)
+        demo = kids.spawn(["demo", "--link", "can", "--mission", str(_mission(tmp_path)), "--drift", drift,
+                           "--duration", str(duration), "--out", str(out)], subprocess.PIPE)
         try:
             stdout, _ = demo.communicate(timeout=timeout)
         except subprocess.TimeoutExpired:
@@ -125,12 +148,15 @@ def _demo(tmp_path: Path, drift: str, duration: float, timeout: float) -> tuple[
 
 
 @pytest.mark.slow
-@pytest.mark.timeout(420)
+@pytest.mark.timeout(300)
 def test_the_hil_loop_relearns_the_cells_a_sagging_battery_changed_and_reaches_the_goal(tmp_path: Path) -> None:
     """``scmbridge demo --link can --drift battery``: the motors' top speed falls 30 % over 10 s, 20 s after the
-    wheels first turn (from no pairs: the S-path's cells are learned by then); the station runs with
-    ``[transfer] adapt``. The demo's summary, the station's log and its saved store agree on the cells re-learned."""
-    _demo(tmp_path, "battery", 150, 360)
+    wheels first turn (from no pairs: the first bend's cells are learned by then), on the S-path to just past its
+    second bend (:func:`_mission`); the station runs with ``[transfer] adapt``. The demo's summary, the station's log
+    and its saved store agree on the cells re-learned. The sag stays where the whole path's test had it: a sag of 5 s
+    from 15 s, in the first bend, took the robot out of the corridor there in 2 runs of 3 (one on the code before the
+    spread of a change), which is not what this test is about."""
+    _demo(tmp_path, "battery", 100, 240)
 
 
 def _response(u_L: np.ndarray, drag: float = 0.0) -> np.ndarray:
@@ -159,12 +185,13 @@ def test_the_hil_loop_relearns_the_cells_a_dragging_wheel_changed_in_the_directi
     third of its effect. Where the drag yaws the command, its teacher part turns left by at least a third of what the
     drag adds: the map now asks the learner for a command turning further right (an opposite omega offset) for the
     same teacher command. Measured on the 9 cells re-learned in 3 runs: 99-143 % of the drag's effect (with the
-    ramp, the cells the slowing MPC drives during it: 34-62 %). About 50 s of wall time (46 s of driving).
+    ramp, the cells the slowing MPC drives during it: 34-62 %). The mission is the S-path to just past its second
+    bend's apex (:func:`_mission`): about 45 s of driving (the whole path: 52).
 
     What does not hold, and is not asserted (docs/PAPER.md, "Beyond the paper"): the learner cannot follow a right
     turn after the change (at its right-most command it turns an eighth to a quarter as fast as before, whatever the
     map), and the learned right-turn limit follows it down only where pairs come at that command after the change."""
-    summary, store, _ = _demo(tmp_path, "wheel:15:0", 120, 200)
+    summary, store, _ = _demo(tmp_path, "wheel:15:0", 100, 200)
     assert summary["collided"] is False, summary
     refined = {r.id: r for r in store.refined()}
     relearned = [refined[c.id] for c in store.changed_cells() if c.id in refined]

@@ -131,7 +131,8 @@ def test_a_snapshot_owns_its_arrays_down_to_the_limits_and_encodes_as_the_store_
     store.add(np.array([0.1, 0.1]), np.array([0.1, 0.1]))
     snap = snapshot(store)
     assert snap.to_bytes() == store.to_bytes()
-    assert snap.cells.count is not store.cells.count and snap.limits is not store.limits and snap.limits.lo is not store.limits.lo
+    assert snap.cells.count is not store.cells.count and snap.limits is not store.limits
+    assert snap.limits.lo is not store.limits.lo
     store.limits.hull_sum += 1.0
     store.cells.count += 1
     assert snap.to_bytes() != store.to_bytes() and PairStore.from_bytes(snap.to_bytes()).raw_count == 1
