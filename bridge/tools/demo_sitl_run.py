@@ -339,6 +339,10 @@ def sitl_once(demo: ModuleType, args: argparse.Namespace, binary: Path, out: Pat
     with mon.lock:
         states = list(mon.states)
         applied = list(mon.applied)
+        cmds = dict(mon.cmds)
+    from bridge.tools.sitl_trace import deviation_sources, write_trace
+
+    trace = write_trace(out / "trace.json", states, applied, cmds, world)
     driving = [a[0] for a in applied if a[1] in ("cmd", "clamped")]
     t0 = driving[0] if driving else states[0][0]
     in_run = [s for s in states if t0 <= s[0] <= t0 + run["time_s"] + 1e-6]
@@ -387,6 +391,7 @@ def sitl_once(demo: ModuleType, args: argparse.Namespace, binary: Path, out: Pat
         "curve_margin": load_station(out / "station.toml").teacher.curve_margin, "turn": turn, "start": start,
         "turn_probe": load_station(out / "station.toml").transfer.probe_turns(),  # what the station does
         "cells_relearned": relearned, "limits_relearned": edges, "param_changes": changed,
+        "dev_sources": deviation_sources(trace, t0, t0 + run["time_s"] + 1e-6),
         "goal_dist_m": run["goal_dist_m"], "driving_s": run["driving_s"], "guard_stops": run["guard_stops"],
         "learner_bounds": [list(v_range), list(w_range)], "accepted_bounds": [list(accepted[0]), list(accepted[1])],
         "range": "measured" if ident is not None else "parameters",
