@@ -129,9 +129,9 @@ def table(text: str) -> dict[str, str]:
 
 def numbers(value: str, figure: str) -> list[float]:
     """The table's value as numbers: a median and its range's ends, or the SC-mapped count of the method mix."""
-    if figure == "demo_methods":
+    if figure == "demo_methods":  # the mix lists only the methods that mapped a command: none named, none SC-mapped
         m = re.search(r"\bscm=(\d+)", value)
-        return [float(m.group(1))] if m else []
+        return [float(m.group(1))] if m else ([0.0] if "=" in value else [])
     return [float(x) for x in re.findall(r"-?\d+(?:\.\d+)?(?:e-?\d+)?", value)]
 
 
