@@ -6,19 +6,12 @@ from __future__ import annotations
 
 import numpy as np
 
-from transfer.domain import Bounds
+from tests.stores import LB, TB, filled
 from transfer.store import PairStore
-
-LB = Bounds((0.05, 0.3), (-0.2, 0.26))
-TB = Bounds((0.05, 0.6), (-0.8, 0.8))
 
 
 def test_the_change_test_reads_the_cells_own_arrays_also_after_a_load() -> None:
-    store = PairStore(LB, TB, adapt=True)
-    rng = np.random.default_rng(3)
-    for _ in range(300):
-        u = LB.denormalise(rng.uniform(0, 1, 2))
-        store.add(u * 1.2, u)
+    store = filled(300, seed=3, gain=1.2)
     again = PairStore.from_bytes(store.to_bytes())
     for s in (store, again):
         for name in ("count", "sum_T", "sum_L", "sum_LL", "sum_TL", "pub_T", "pub_L", "pub_version"):

@@ -4,15 +4,11 @@ version's blob (fewer fields) is read with their defaults, and a field the schem
 from __future__ import annotations
 
 import msgspec
-import numpy as np
 import pytest
 
-from transfer.domain import Bounds
+from tests.stores import LB, TB, filled
 from transfer.store import SCHEMA_VERSION, PairStore
 from transfer.store_blob import StoreBlob
-
-LB = Bounds((0.05, 0.3), (-0.2, 0.26))
-TB = Bounds((0.05, 0.6), (-0.8, 0.8))
 
 
 def _payload(store: PairStore) -> dict:
@@ -20,12 +16,7 @@ def _payload(store: PairStore) -> dict:
 
 
 def test_a_blob_written_now_fills_every_field_of_its_schema() -> None:
-    store = PairStore(LB, TB, adapt=True)
-    rng = np.random.default_rng(1)
-    for _ in range(200):
-        u = LB.denormalise(rng.uniform(0, 1, 2))
-        store.add(u * 1.1, u)
-    raw = _payload(store)
+    raw = _payload(filled(200, seed=1, gain=1.1))
     blob = msgspec.convert(raw, StoreBlob)
     assert blob.schema_version == SCHEMA_VERSION
     assert set(raw) == set(StoreBlob.__struct_fields__)  # nothing left to a default

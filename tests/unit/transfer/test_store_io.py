@@ -10,22 +10,14 @@ import msgspec
 import numpy as np
 import pytest
 
-from transfer.domain import Bounds
+from tests.stores import LB, TB, filled
 from transfer.limits import LearnerLimits
 from transfer.store import PairStore
 from transfer.store_io import from_bytes, to_bytes
 
-LB = Bounds((0.05, 0.3), (-0.2, 0.26))
-TB = Bounds((0.05, 0.6), (-0.8, 0.8))
-
 
 def _filled() -> PairStore:
-    store = PairStore(LB, TB, adapt=True)
-    rng = np.random.default_rng(5)
-    for _ in range(400):
-        u = LB.denormalise(rng.uniform(0, 1, 2))
-        store.add(u * 1.3, u)
-    return store
+    return filled(400, seed=5, gain=1.3)
 
 
 def test_a_store_comes_back_as_it_was() -> None:
