@@ -238,6 +238,11 @@ class _PolicyBase:
         ids, _, T, L = arrays
         if ids.size < 2:
             return None
+        if self.at_limit == "region" and not linear:
+            sides = self._driven_limits(t_n)
+            inside = self._inside_limit(t_n, sides) if any(sides) else None
+            if inside is not None:
+                return inside
         lim, grid = self.store.limits, self.store.grid
         for a, b in ((0, 1), (1, 0)):
             lo, hi = (lim.lo[a], lim.hi[a]) if a == 0 or not lim.needs_speed else lim.turn_edges_at(float(t_n[0]))
@@ -246,10 +251,6 @@ class _PolicyBase:
                     (lim.bcnt_lo[a] > 0 and t_n[a] <= lo + ALONG_LIMIT_TOL, 0, 0.0)):
                 if not at_limit:
                     continue
-                inside = self._inside_limit(t_n, a, extreme, hi if extreme else lo) if self.at_limit == "region" \
-                    and not linear else None
-                if inside is not None:
-                    return inside
                 on_row, xs = self._limit_row(arrays, a, row)
                 if on_row.size < 2:
                     continue
@@ -268,13 +269,34 @@ class _PolicyBase:
                 return l_n, "barycentric", (int(ids[i0]), int(ids[i1]))
         return None
 
-    def _inside_limit(self, t_n: NDArray[np.float64], a: int, extreme: float, limit: float) -> tuple | None:
+    def _driven_limits(self, t_n: NDArray[np.float64]) -> list[tuple[float, float] | None]:
+        """Per axis, ``(extreme, limit)`` of the driven learned limit ``t_n`` sits at (within ``ALONG_LIMIT_TOL``):
+        ``extreme`` 1.0 at the top, 0.0 at the bottom, ``limit`` the normalised teacher limit; None where it is at
+        no driven limit. A command at a corner of the learned limits (a bounded MPC turning in place at the slowest
+        speed, or turning hardest at the top speed) is at two."""
+        lim = self.store.limits
+        sides: list[tuple[float, float] | None] = [None, None]
+        for a in (0, 1):
+            lo, hi = (lim.lo[a], lim.hi[a]) if a == 0 or not lim.needs_speed else lim.turn_edges_at(float(t_n[0]))
+            if lim.bcnt_hi[a] > 0 and t_n[a] >= hi - ALONG_LIMIT_TOL:
+                sides[a] = (1.0, float(hi))
+            elif lim.bcnt_lo[a] > 0 and t_n[a] <= lo + ALONG_LIMIT_TOL:
+                sides[a] = (0.0, float(lo))
+        return sides
+
+    def _inside_limit(self, t_n: NDArray[np.float64], sides: list[tuple[float, float] | None]) -> tuple | None:
         """``at_limit = "region"``: the mapper's answer (with ``choice``, the chosen map's) a quarter of a cell inside
-        the limit on axis ``a``, with the learner's ``extreme`` on that axis (as along the row), or None where the
-        mapper has no region there (the row decides)."""
+        every driven limit ``t_n`` sits at (``sides``, :meth:`_driven_limits`), with the learner's extreme on each
+        such axis (as along the row), or None where the mapper has no region there (the row decides). At a corner
+        both axes move inside: the learned limits are the envelope of the boundary responses, and the refined pairs
+        at the learner's corners (cell means) sit a little inside it, so the corner itself lies just outside their
+        region."""
         t_in = np.array(t_n, dtype=float)
-        inset = 0.25 / self.store.grid[a]
-        t_in[a] = min(t_in[a], limit) - inset if extreme else max(t_in[a], limit) + inset
+        for a, side in enumerate(sides):
+            if side is not None:
+                extreme, limit = side
+                inset = 0.25 / self.store.grid[a]
+                t_in[a] = min(t_in[a], limit) - inset if extreme else max(t_in[a], limit) + inset
         if self._choice is not None:
             got = self._choice.map_normalised(t_in)
         elif (res := self.mapper.map_normalised(t_in)) is not None:
@@ -284,7 +306,9 @@ class _PolicyBase:
         if got is None or not np.all(np.isfinite(got[0])):  # no mapping region there (the fallback's slivers)
             return None
         l_n = np.array(got[0], dtype=float)
-        l_n[a] = extreme
+        for a, side in enumerate(sides):
+            if side is not None:
+                l_n[a] = side[0]
         return l_n, got[1], got[2]
 
     def _limit_row(self, arrays: tuple, a: int, row: int) -> tuple[NDArray[np.int64], NDArray[np.float64]]:

@@ -82,6 +82,29 @@ def test_without_a_region_inside_the_limit_the_row_decides() -> None:
         assert a.method == b.method and np.array_equal(a.u_L, b.u_L) and a.region == b.region
 
 
+def test_at_a_corner_of_the_limits_the_region_maps_to_the_learners_corner() -> None:
+    # a bounded MPC turning in place at the slowest speed, or hardest at the top speed, sits at two limits at once.
+    # The limits are the envelope of the boundary responses; a corner cell's refined pair is the mean of its
+    # responses (here two, 0.3 % apart), so the corner itself lies just outside the calibrated region: it is still
+    # the region's (both axes moved inside), at the learner's extreme on both
+    from sim_learner.experiments import mpc_case
+
+    case = mpc_case(False)
+    lb = case.learner_bounds
+    store = PairStore(lb, case.teacher_bounds, k_min=1)
+    for u in calibration_commands(lb, 5):
+        r = case.learner.response(u)
+        for s in (1.003, 0.997) if np.all((u == lb.lo) | (u == lb.hi)) else (1.0,):
+            store.add(r * s, u)
+    lim, tb = store.limits, store.teacher_bounds
+    policy = make_policy(store, "scm", seed=0, at_limit="region")
+    for iv, iw in ((0, 0), (0, 1), (1, 0), (1, 1)):
+        corner = np.array([(lim.lo, lim.hi)[iv][0], (lim.lo, lim.hi)[iw][1]])
+        got = policy.map(tb.denormalise(corner), explore=False)
+        assert got.method == "scm" and len(got.region) == 4, (corner, got)
+        assert np.array_equal(got.u_L, [(lb.lo, lb.hi)[iv][0], (lb.lo, lb.hi)[iw][1]]), (corner, got)
+
+
 def test_an_unknown_at_limit_is_refused() -> None:
     _, store = _calibrated()
     with pytest.raises(ValueError, match="at_limit"):
