@@ -9,7 +9,9 @@ liveliness token is present (a stalled host keeps it until its session expires) 
 found is sent a stop too. ``--fleet FILE`` (a TOML file with ``[fleet] robots = [...]`` and/or the ``[fleet.shards]``
 of deploy/README.md) names the lab's robots: one that never answers is named and fails the exit status, while names
 seen on the network that are not in the fleet and never answer (a stale or fake liveliness token) are counted in one
-line. Output is bounded: at most a few names per line.
+line. Output is bounded: at most a few names per line. When the network was still listing its liveliness tokens at
+the end of the discovery window (thousands of them on a loaded machine), the tool says so and counts the names it saw
+as a lower bound.
 
 ``--release`` releases the latch; a driver host honours it only from a source its configuration names
 (``estop_release_sources``), so ``--source`` must be one of them, and only addressed to its current start (its epoch
@@ -48,6 +50,8 @@ from bridge.tools.identity import denial
 TRY_TIMEOUT_S = 0.5
 #: seconds ``--all`` listens for status and liveliness to find robots that do not answer at once
 DISCOVER_S = 1.2
+#: a liveliness query that took at least this share of its bound is taken as cut by it (answers may be missing)
+CUT_SHARE = 0.95
 #: names printed in one line at most (the rest counted)
 SHOWN = 12
 #: names that never answered sent a stop of their own at each try of ``--all`` at most (the wildcard reaches all)
@@ -89,8 +93,10 @@ def ask_all(session: zenoh.Session, robots: list[str], timeout: float, wildcard:
     return out
 
 
-def known_robots(session: zenoh.Session, wait: float) -> set[str]:
-    """Every robot something on the network speaks for: estop answers, liveliness tokens, status publishers."""
+def known_robots(session: zenoh.Session, wait: float) -> tuple[set[str], bool]:
+    """Every robot something on the network speaks for (estop answers, liveliness tokens, status publishers), and
+    whether that list is complete: False when the liveliness query was still being answered when its share of the
+    window ran out (thousands of tokens on a loaded machine), so that names may be missing."""
     robots: set[str] = set()
     lock = threading.Lock()
 
@@ -104,15 +110,17 @@ def known_robots(session: zenoh.Session, wait: float) -> set[str]:
         found = {k.split("/")[0] for k in latch_states(session, ALL, TRY_TIMEOUT_S)}
         # the tokens' replies may take the rest of the window (thousands of them on a loaded machine): the query
         # ends as soon as the router has answered, so a longer bound costs nothing where they come at once
-        for reply in session.liveliness().get(f"{M.PREFIX}/*/alive/**", timeout=max(TRY_TIMEOUT_S,
-                                                                                    wait - TRY_TIMEOUT_S)):
+        bound = max(TRY_TIMEOUT_S, wait - TRY_TIMEOUT_S)
+        asked = time.monotonic()
+        for reply in session.liveliness().get(f"{M.PREFIX}/*/alive/**", timeout=bound):
             if reply.ok is not None:
                 found.add(str(reply.ok.key_expr).split("/")[1])
+        complete = time.monotonic() - asked < CUT_SHARE * bound  # it ended on the router's last answer, not its bound
         time.sleep(max(0.0, wait - (time.monotonic() - start)))  # nodes publish status each second
     finally:
         sub.undeclare()
     with lock:
-        return found | robots
+        return found | robots, complete
 
 
 def send(session: zenoh.Session, robots: list[str], msg: M.Estop, wildcard: bool = False) -> None:
@@ -217,9 +225,10 @@ def run(args: argparse.Namespace) -> int:
         named = sorted(set(fleet) | ({args.robot} if args.robot else set(args.robots or ())))
         if engaged:  # stop first: before anything is looked for or waited on
             send(session, named, msg_for(None), wildcard=args.all)
-        robots, strangers = named, []
+        robots, strangers, complete = named, [], True
         if args.all:
-            found = sorted(known_robots(session, DISCOVER_S) - set(named))
+            seen, complete = known_robots(session, DISCOVER_S)
+            found = sorted(seen - set(named))
             robots = sorted(set(named) | set(found))
             if not robots:
                 print(f"scmbridge estop: no robot found (no answer on {ALL}, no liveliness token, no status)",
@@ -230,12 +239,14 @@ def run(args: argparse.Namespace) -> int:
         if fleet:  # names the fleet does not list, which never answered: not the lab's robots
             strangers = [r for r in robots if r not in fleet and not answers[r]]
             robots = [r for r in robots if r not in strangers]
-    return report(args, conf, robots, strangers, answers, engaged)
+    return report(args, conf, robots, strangers, answers, engaged, complete)
 
 
 def report(args: argparse.Namespace, conf, robots: list[str], strangers: list[str],
-           answers: dict[str, dict[str, M.EstopState]], engaged: bool) -> int:
-    """Print what was confirmed and who was not; the exit status (see the module docstring)."""
+           answers: dict[str, dict[str, M.EstopState]], engaged: bool, complete: bool = True) -> int:
+    """Print what was confirmed and who was not; the exit status (see the module docstring). ``complete`` False:
+    the network was still listing its liveliness tokens when the discovery window ended, which is said, and the
+    count of names seen is a lower bound."""
     failed, denied, silent = [], [], []
     for robot in robots:
         states = answers[robot]
@@ -269,11 +280,16 @@ def report(args: argparse.Namespace, conf, robots: list[str], strangers: list[st
                   f"estop_release_sources (driver configuration), and --source {args.source!r} is not one of them "
                   "(or a new estop latched it again, or the host could not save the release: its reason above)",
                   file=sys.stderr)
+    if not complete:
+        sent = f" (the stop on {ALL} went to every driver host that listens)" if engaged else ""
+        print(f"the network was still listing its liveliness tokens when the {DISCOVER_S:g} s discovery window "
+              f"ended: names may be missing below{sent}", file=sys.stderr)
     if silent:
         print(f"no driver host confirmed within {args.timeout:g} s: {shown(silent)}", file=sys.stderr)
     if strangers:
-        print(f"{len(strangers)} name(s) seen on the network, not in the fleet list, never answered (a stale or fake "
-              f"liveliness token, or another lab's): {shown(strangers)}", file=sys.stderr)
+        at_least = "" if complete else "at least "
+        print(f"{at_least}{len(strangers)} name(s) seen on the network, not in the fleet list, never answered (a "
+              f"stale or fake liveliness token, or another lab's): {shown(strangers)}", file=sys.stderr)
     if failed:
         print(f"scmbridge estop: not confirmed by {shown(failed)}", file=sys.stderr)
     if denied and len(denied) == len(failed):

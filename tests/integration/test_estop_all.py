@@ -7,6 +7,7 @@ the missed robot received 240 non-zero commands when it came back."""
 from __future__ import annotations
 
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -104,6 +105,18 @@ def test_estop_all_retries_a_stalled_robot_until_it_confirms(two_hosts) -> None:
     assert all(st.latched for st in latch_states(session, M.key(b, "estop"), 1.0).values())
 
 
+def _counted(err: str, what: str, n: int) -> None:
+    """``err`` counts ``n`` of ``what``, or, where it says the network was still listing its liveliness tokens when
+    the discovery window ended (a loaded machine: the tool's window is bounded, the count is then a lower bound),
+    between 1 and ``n``."""
+    m = re.search(rf"(\d+) {re.escape(what)}", err)
+    assert m, err
+    if "still listing its liveliness tokens" in err:
+        assert 0 < int(m.group(1)) <= n, err
+    else:
+        assert int(m.group(1)) == n, err
+
+
 def test_estop_all_among_fake_liveliness_tokens_names_the_fleets_silent_robot_in_bounded_output(two_hosts,
                                                                                                 tmp_path) -> None:
     """Finding: with 2000 liveliness tokens declared by another client, `estop --all` sent each robot's estop one
@@ -128,7 +141,7 @@ def test_estop_all_among_fake_liveliness_tokens_names_the_fleets_silent_robot_in
     assert res.returncode == 1, (out, err)
     assert f"{a}/driver-can: LATCHED by operator" in out and f"{b}/driver-can: LATCHED by operator" in out, err
     assert "not confirmed by gone1" in err and "fake" not in err.split("not confirmed by")[1], err
-    assert "2000 name(s) seen on the network, not in the fleet list" in err, err
+    _counted(err, "name(s) seen on the network, not in the fleet list", 2000)
     assert len((out + err).splitlines()) < 12, out + err
     # without the fleet file every name must answer: the fake ones fail it, in bounded output too
     seen = _TokensSeen(session)
@@ -142,4 +155,5 @@ def test_estop_all_among_fake_liveliness_tokens_names_the_fleets_silent_robot_in
             for t in tokens:
                 t.undeclare()
             seen.sub.undeclare()
-    assert res.returncode == 1 and "and 38 more" in err and len((out + err).splitlines()) < 12, out + err
+    assert res.returncode == 1 and len((out + err).splitlines()) < 12, out + err
+    _counted(err, "more", 38)  # the 50 silent names: 12 shown, the rest counted

@@ -107,3 +107,24 @@ def test_two_driver_hosts_of_one_robot_are_each_heard() -> None:
         while len(got) < 2 and time.monotonic() < t_end:  # until the router knows both queryables (bounded)
             got = estop.latch_states(tool, M.key("r1", "estop"), 1.0)
     assert {k: st.latched for k, st in got.items()} == {"r1/driver": True, "r1/driver2": False}
+
+
+def test_known_robots_finds_the_liveliness_tokens_and_says_when_the_list_was_complete() -> None:
+    with zenoh.open(make_config()) as s:
+        tokens = [s.liveliness().declare_token(M.alive_key(f"r{i}", "driver")) for i in range(5)]
+        Host(s, "answering")
+        robots, complete = estop.known_robots(s, 1.0)
+        for t in tokens:
+            t.undeclare()
+    assert robots == {"answering", "r0", "r1", "r2", "r3", "r4"}
+    assert complete  # five tokens in one session: the query ends on its last answer, long before its bound
+
+
+def test_a_cut_discovery_is_said_and_its_count_is_a_lower_bound(capsys) -> None:
+    args = _args("--all", "--timeout", "1")
+    for complete in (True, False):
+        code = estop.report(args, None, ["a"], ["fake1", "fake2"], {"a": {}}, True, complete)
+        err = capsys.readouterr().err
+        assert code == 1 and "not confirmed by a" in err
+        assert ("still listing its liveliness tokens" in err) is not complete
+        assert ("at least 2 name(s) seen" if not complete else "\n2 name(s) seen") in "\n" + err, err
