@@ -104,6 +104,7 @@ from typing import Protocol
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from transfer.at_limit import ALONG_LIMIT_TOL, AT_LIMIT, LimitMap  # noqa: F401 (the policy's names for its callers)
 from transfer.choice import MapChoice
 from transfer.holes import FILL_CHECKS, Search, hole_search, run_search  # noqa: F401 (FILL_CHECKS: the policy's)
 from transfer.mappers import AffineMapper, BarycentricMapper, IdentityMapper, Mapper, Region, ScmMapper, make_mapper
@@ -111,14 +112,6 @@ from transfer.pairs import planned_commands  # noqa: F401 (the policy's helper f
 from transfer.store import PairStore
 
 EXPLORATIONS = ("paper", "guided")
-#: normalised teacher distance to a learned limit within which a command is mapped along it (a hundredth of a cell
-#: of the 11 x 11 grid: an interior-point MPC stops about 1e-4 short of its bounds)
-ALONG_LIMIT_TOL = 1e-3
-#: how a command at a driven limit is mapped: ``row``, interpolated along the limit's row of pairs (a mission's own
-#: pairs there are nearly collinear: slivers); ``region``, the mapper's region just inside the limit (a quarter of a
-#: cell), the learner's extreme on the limit's axis: the paper's calibrated start, whose pairs at the learner's
-#: extremes form well-shaped quadrilaterals (docs/PAPER.md, "The calibrated start"); the row where it has none
-AT_LIMIT = ("row", "region")
 #: the guided policy's default share of region-served commands that may fill holes of the map (module docstring)
 FILL_BUDGET = 0.08
 #: at which learner speed the probe of a never-driven yaw-rate limit is sent: ``at-command`` (the default, the
@@ -176,8 +169,6 @@ class _PolicyBase:
         command inside the learned region is mapped by the SC map or linear interpolation as
         :class:`transfer.choice.MapChoice` decides (False: the paper's SC map wherever it has a region); ``at_limit``:
         how a command at a driven limit is mapped (:data:`AT_LIMIT`)."""
-        if at_limit not in AT_LIMIT:
-            raise ValueError(f"unknown at_limit {at_limit!r}; known: {', '.join(AT_LIMIT)}")
         self.at_limit = at_limit
         if not 0.0 <= inset < 0.5:
             raise ValueError(f"inset must be in [0, 0.5), got {inset}")
@@ -193,8 +184,7 @@ class _PolicyBase:
                           if not identity and not isinstance(self.mapper, BarycentricMapper) else None)
         self._choice = MapChoice(self.mapper) if choice and isinstance(self.mapper, ScmMapper) else None
         self.rng = rng if rng is not None else np.random.default_rng(seed)
-        self._rows_of: tuple | None = None  # the refined arrays the cached rows of _limit_row belong to
-        self._rows: dict[tuple[int, int], tuple[NDArray[np.int64], NDArray[np.float64]]] = {}
+        self._limits = LimitMap(store, at_limit, self._region_map, self._beyond_row)
 
     def map(self, u_T: ArrayLike, *, plan: Plan = None, explore: bool = True) -> Mapped:
         """The learner command for teacher command ``u_T`` (see the module docstring for every case)."""
@@ -225,106 +215,19 @@ class _PolicyBase:
         return lb.clip(lb.denormalise(l_n)), method, ids, gap
 
     def _along_limit(self, t_n: NDArray[np.float64], linear: bool = False) -> tuple | None:
-        """A command saturated at a learned limit whose boundary has been driven (a bounded controller's commands
-        sit exactly there): the learner's extreme on that axis, and on the other the linear interpolation between
-        the two neighbouring refined pairs of the boundary row of cells on that side. Those pairs are (nearly)
-        collinear in the teacher domain, so the 2-D regions along the limit are slivers whose maps are
-        ill-conditioned; along the row the map is one-dimensional (with ``at_limit = "region"``, the mapper's region
-        just inside the limit first: :meth:`_inside_limit`). None when ``t_n`` is not at such a limit, or lies
-        beyond the row's pairs (with ``adapt``: the extreme, the other axis mapped, and that map's gap, explored as
-        without: the limit keeps its boundary pairs coming). A learner that cannot turn in place has its curvature at
-        ``t_n``'s speed as its yaw-rate limit (``turn_edges_at``): commands there go to the full lock."""
-        arrays = self.store.refined_arrays()
-        ids, _, T, L = arrays
-        if ids.size < 2:
-            return None
-        if self.at_limit == "region" and not linear:
-            sides = self._driven_limits(t_n)
-            inside = self._inside_limit(t_n, sides) if any(sides) else None
-            if inside is not None:
-                return inside
-        lim, grid = self.store.limits, self.store.grid
-        for a, b in ((0, 1), (1, 0)):
-            lo, hi = (lim.lo[a], lim.hi[a]) if a == 0 or not lim.needs_speed else lim.turn_edges_at(float(t_n[0]))
-            for at_limit, row, extreme in (
-                    (lim.bcnt_hi[a] > 0 and t_n[a] >= hi - ALONG_LIMIT_TOL, grid[a] - 1, 1.0),
-                    (lim.bcnt_lo[a] > 0 and t_n[a] <= lo + ALONG_LIMIT_TOL, 0, 0.0)):
-                if not at_limit:
-                    continue
-                on_row, xs = self._limit_row(arrays, a, row)
-                if on_row.size < 2:
-                    continue
-                x = float(t_n[b])
-                if not xs[0] <= x <= xs[-1]:
-                    if not self.store.adapt:
-                        continue
-                    got = self._map_chain(t_n) or self._estimate(self.store.teacher_bounds.denormalise(t_n), t_n)
-                    return np.where(np.arange(2) == a, extreme, got[0]), got[1], got[2], *got[3:]  # explored as ever
-                k = min(max(int(np.searchsorted(xs, x, side="right")), 1), on_row.size - 1)
-                i0, i1 = on_row[k - 1], on_row[k]
-                span = T[i1, b] - T[i0, b]
-                w = (x - T[i0, b]) / span if span > 0 else 0.5
-                l_n = np.empty(2)
-                l_n[a], l_n[b] = extreme, L[i0, b] + w * (L[i1, b] - L[i0, b])
-                return l_n, "barycentric", (int(ids[i0]), int(ids[i1]))
-        return None
+        """A command at a driven learned limit, mapped (:meth:`transfer.at_limit.LimitMap.map`), or None."""
+        return self._limits.map(t_n, linear)
 
-    def _driven_limits(self, t_n: NDArray[np.float64]) -> list[tuple[float, float] | None]:
-        """Per axis, ``(extreme, limit)`` of the driven learned limit ``t_n`` sits at (within ``ALONG_LIMIT_TOL``):
-        ``extreme`` 1.0 at the top, 0.0 at the bottom, ``limit`` the normalised teacher limit; None where it is at
-        no driven limit. A command at a corner of the learned limits (a bounded MPC turning in place at the slowest
-        speed, or turning hardest at the top speed) is at two."""
-        lim = self.store.limits
-        sides: list[tuple[float, float] | None] = [None, None]
-        for a in (0, 1):
-            lo, hi = (lim.lo[a], lim.hi[a]) if a == 0 or not lim.needs_speed else lim.turn_edges_at(float(t_n[0]))
-            if lim.bcnt_hi[a] > 0 and t_n[a] >= hi - ALONG_LIMIT_TOL:
-                sides[a] = (1.0, float(hi))
-            elif lim.bcnt_lo[a] > 0 and t_n[a] <= lo + ALONG_LIMIT_TOL:
-                sides[a] = (0.0, float(lo))
-        return sides
-
-    def _inside_limit(self, t_n: NDArray[np.float64], sides: list[tuple[float, float] | None]) -> tuple | None:
-        """``at_limit = "region"``: the mapper's answer (with ``choice``, the chosen map's) a quarter of a cell inside
-        every driven limit ``t_n`` sits at (``sides``, :meth:`_driven_limits`), with the learner's extreme on each
-        such axis (as along the row), or None where the mapper has no region there (the row decides). At a corner
-        both axes move inside: the learned limits are the envelope of the boundary responses, and the refined pairs
-        at the learner's corners (cell means) sit a little inside it, so the corner itself lies just outside their
-        region."""
-        t_in = np.array(t_n, dtype=float)
-        for a, side in enumerate(sides):
-            if side is not None:
-                extreme, limit = side
-                inset = 0.25 / self.store.grid[a]
-                t_in[a] = min(t_in[a], limit) - inset if extreme else max(t_in[a], limit) + inset
+    def _region_map(self, t_n: NDArray[np.float64]) -> tuple | None:
+        """The mapper's region (with ``choice``, the chosen map) at ``t_n``: (l_n, method, region) or None."""
         if self._choice is not None:
-            got = self._choice.map_normalised(t_in)
-        elif (res := self.mapper.map_normalised(t_in)) is not None:
-            got = (res[0], self.mapper.name, res[1])
-        else:
-            got = None
-        if got is None or not np.all(np.isfinite(got[0])):  # no mapping region there (the fallback's slivers)
-            return None
-        l_n = np.array(got[0], dtype=float)
-        for a, side in enumerate(sides):
-            if side is not None:
-                l_n[a] = side[0]
-        return l_n, got[1], got[2]
+            return self._choice.map_normalised(t_n)
+        res = self.mapper.map_normalised(t_n)
+        return None if res is None else (res[0], self.mapper.name, res[1])
 
-    def _limit_row(self, arrays: tuple, a: int, row: int) -> tuple[NDArray[np.int64], NDArray[np.float64]]:
-        """The refined pairs of the cells on ``row`` of axis ``a`` (indices into ``arrays``, the store's
-        :meth:`~transfer.store.PairStore.refined_arrays`) sorted along the other axis, and their teacher parts on
-        it; computed once per set of refined pairs (every command at a limit reads them)."""
-        if self._rows_of is not arrays:
-            self._rows_of, self._rows = arrays, {}
-        got = self._rows.get((a, row))
-        if got is None:
-            ids, _, T, _ = arrays
-            b = 1 - a
-            on_row = np.flatnonzero(np.unravel_index(ids, self.store.grid)[a] == row)  # the pairs on that row
-            on_row = on_row[np.argsort(T[on_row, b], kind="stable")]
-            got = self._rows[(a, row)] = (on_row, T[on_row, b])
-        return got
+    def _beyond_row(self, t_n: NDArray[np.float64]) -> tuple:
+        """The unperturbed chain for a command at a limit but beyond its row's pairs (``adapt``)."""
+        return self._map_chain(t_n) or self._estimate(self.store.teacher_bounds.denormalise(t_n), t_n)
 
     def _unperturbed_many(self, ts: NDArray[np.float64], *, linear: bool = False) -> tuple[NDArray[np.float64],
                                                                                            list[str]]:
