@@ -154,3 +154,19 @@ def test_a_remote_request_for_the_encoder_estimates_is_answered_on_the_bus() -> 
     finally:
         ecus._close()
         spy.shutdown()
+
+
+def test_a_stall_of_the_emulator_itself_is_not_counted_by_the_watchdog() -> None:
+    # the process hosting the emulated controllers was not scheduled for 0.7 s (a loaded test machine): the driver
+    # host beside them could not feed them either, so the watchdog counts from when they run again; a master that
+    # hangs while they run still trips it at its time
+    ecus, _ = _ecus(watchdog=0.5)
+    _arm(ecus, 0.0)
+    _vel(ecus, 0, 1.0, 0.0)
+    _vel(ecus, 1, -1.0, 0.0)
+    ecus._stalled(0.05)  # a late turn of the loop, not a stall: nothing moves
+    ecus._stalled(0.7)
+    ecus._watchdog(0.75)
+    assert ecus.axis(0).state == ecus.axis(1).state == E.CLOSED_LOOP_CONTROL
+    ecus._watchdog(0.76 + 0.5)  # no feed for the watchdog's time after the stall: tripped, as without one
+    assert ecus.axis(0).state == E.IDLE and ecus.axis(0).error == E.WATCHDOG_TIMER_EXPIRED
