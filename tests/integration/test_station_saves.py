@@ -25,7 +25,11 @@ from bridge.tools.mission import ask
 from tests.collect import Collector
 
 #: what the slow disk costs each save, s
-STALL_S = 0.5
+#: the slow disk's stall: long against a loaded machine's scheduling delays (a test worker beside busy loops saw
+#: answers take 0.42 s with nothing waiting on a save), so that waiting for a save stands out from them
+STALL_S = 1.0
+#: what an answer or a gap between commands may take without having waited for a save (STALL_S stands out above it)
+PROMPT_S = 0.6
 
 
 def _station(tmp_path: Path, robot: str, save: Callable[[Path, bytes], None], control: bool) -> Station:
@@ -81,21 +85,21 @@ def test_a_slow_disk_delays_neither_the_commands_nor_the_answers(tmp_path) -> No
         t = time.monotonic()
         replies = list(client.get(M.key(robot, "pairs"), timeout=5.0))
         pairs_s = time.monotonic() - t
-        time.sleep(max(0.0, t0 + 3.0 - time.monotonic()))
+        time.sleep(max(0.0, t0 + 5.0 - time.monotonic()))
         with col.lock:
             window = [x for x in times if x >= t0]
         saves = [x for x in entered if x >= t0]
-    # commands: one a period (0.1 s), on a machine shared with other work; a 0.5 s stall breaks both bounds
+    # commands: one a period (0.1 s), on a machine shared with other work; a tick that waited for a save breaks both
     gaps = np.diff(window)
-    assert len(window) >= 20, (len(window), gaps.round(3).tolist())
-    assert gaps.max() < 0.45, gaps.round(3).tolist()
+    assert len(window) >= 30, (len(window), gaps.round(3).tolist())
+    assert gaps.max() < PROMPT_S, gaps.round(3).tolist()
     assert len(saves) >= 4 and st.writer.replaced > 0  # the disk was slow all along; the latest save won
     # answers: at once (a save under way is not waited for), and true
     for action, took, ans in asked:
-        assert ans is not None and took < 0.3, (action, took)
+        assert ans is not None and took < PROMPT_S, (action, took)
     assert [a.phase for _, _, a in asked] == ["idle", "running", "running", "paused", "paused"]
     assert all(a.accepted for _, _, a in asked)
-    assert len(replies) == 1 and pairs_s < 0.3, pairs_s
+    assert len(replies) == 1 and pairs_s < PROMPT_S, pairs_s
     pairs = M.decode(replies[0].ok.payload.to_bytes(), M.Pairs)
     assert pairs.robot == robot
     # the exit's save is synchronous and final: the store and the mission (paused) are on disk
