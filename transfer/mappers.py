@@ -124,7 +124,7 @@ class _Triangulated:
         l0 = tr[:, 0, 0] * d0 + tr[:, 0, 1] * d1
         l1 = tr[:, 1, 0] * d0 + tr[:, 1, 1] * d1
         depth = np.fmin(np.fmin(l0, l1), 1.0 - l0 - l1)  # fmin: a degenerate triangle's NaN never wins
-        i = int(np.argmax(np.nan_to_num(depth, nan=-np.inf)))
+        i = int(np.argmax(np.where(np.isnan(depth), -np.inf, depth)))  # = nan_to_num(nan=-inf) for argmax
         return i if depth[i] >= -SIMPLEX_EPS else -1
 
     def _simplices(self, P: NDArray[np.float64]) -> NDArray[np.int64]:
@@ -137,7 +137,7 @@ class _Triangulated:
         l0 = tr[:, 0, 0] * d0 + tr[:, 0, 1] * d1
         l1 = tr[:, 1, 0] * d0 + tr[:, 1, 1] * d1
         depth = np.fmin(np.fmin(l0, l1), 1.0 - l0 - l1)
-        i = np.argmax(np.nan_to_num(depth, nan=-np.inf), axis=1)
+        i = np.argmax(np.where(np.isnan(depth), -np.inf, depth), axis=1)
         return np.where(depth[np.arange(len(P)), i] >= -SIMPLEX_EPS, i, -1)
 
     def map_normalised(self, t: NDArray[np.float64]) -> tuple[NDArray[np.float64], Region] | None:

@@ -97,6 +97,7 @@ it only steers which cell is explored. The method names are those of the bridge'
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Protocol
@@ -199,7 +200,7 @@ class _PolicyBase:
     def map(self, u_T: ArrayLike, *, plan: Plan = None, explore: bool = True) -> Mapped:
         """The learner command for teacher command ``u_T`` (see the module docstring for every case)."""
         t = np.asarray(u_T, dtype=float).reshape(2)
-        if not np.all(np.isfinite(t)):
+        if not all(map(math.isfinite, t.tolist())):
             raise ValueError(f"teacher command must be finite, got {t}")
         if isinstance(self.mapper, IdentityMapper):
             return Mapped(self.store.learner_bounds.clip(t), "direct")

@@ -264,8 +264,8 @@ class PairStore:
         return bool(self.cells.pub_version[cell] > 0)
 
     def n_configured(self) -> int:
-        """How many cells are configured."""
-        return int(np.count_nonzero(self.cells.pub_version))
+        """How many cells are configured (the refined pairs' cached ids: asked every tick)."""
+        return int(self.refined_arrays()[0].size)
 
     def configured(self) -> NDArray[np.bool_]:
         """Which cells are configured, as a (n_v, n_omega) mask (a copy: the caller cannot change the store)."""

@@ -423,7 +423,8 @@ class StationCore:
         one (:func:`command_extent`) before any cell is learned."""
         if self.store.n_configured() == 0:
             return self.top_v
-        return float(max(abs(x) for x in self.store.limits.box.v))
+        v_lo, v_hi = self.store.limits.box.v
+        return float(max(abs(v_lo), abs(v_hi)))
 
     def _jumped(self, st: M.LearnerState, jump: float, top: float, at: float) -> None:
         """A pose jumped ``jump`` m (received at ``at``): never progress; a running mission pauses (``pose_jump``)."""
