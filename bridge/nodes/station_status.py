@@ -169,7 +169,8 @@ class StationCounters:
 
     def observe(self, pairer: IntervalPairer, store: PairStore, control: MissionControl) -> None:
         """Take the counts the pairer, the store and the mission keep themselves (before a status)."""
-        self.refined_pairs, self.raw_pairs, self.cells_relearned = (len(store.refined()), store.raw_count,
+        # the refined pairs counted, not made (the store's cached ids: one per configured cell)
+        self.refined_pairs, self.raw_pairs, self.cells_relearned = (store.n_configured(), store.raw_count,
                                                                     store.relearned)
         self.shared_changes, self.limits_relearned = store.shifts.shared, store.limits.relearned
         for name, attr in _PAIRER_COUNTS:
