@@ -159,7 +159,7 @@ class _Triangulated:
             d = P[e[:, 1]] - a
             self._edges = (a, d, np.maximum((d * d).sum(axis=1), 1e-300), P.mean(axis=0))
         a, d, dd, centre = self._edges
-        tt = np.clip(((t - a) * d).sum(axis=1) / dd, 0.0, 1.0)
+        tt = np.minimum(np.maximum(((t - a) * d).sum(axis=1) / dd, 0.0), 1.0)  # = np.clip, without its wrapper
         q = a + tt[:, None] * d
         dist = np.hypot(*(q - t).T)
         i = int(np.argmin(dist))

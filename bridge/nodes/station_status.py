@@ -309,7 +309,7 @@ class LimitsReport:
             if (all(abs(a - b) <= LIMITS_MOVE_TOL * t for a, b, t in zip(box, sent[0], tol))
                     and (curvature is None or not _curvature_moved(curvature, sent[2]))):
                 return None
-        hull = [[float(a), float(b)] for a, b in self.store.limits.hull]
+        hull = self.store.limits.hull.tolist()  # (K, 2) floats: the rows as lists of two Python floats
         key = (box, len(hull), curvature)
         if sent != key:
             self.version += 1
