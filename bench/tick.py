@@ -22,7 +22,9 @@ took right before and right after the run, as a multiple of its time on the mach
 reader scales the figures by it to compare machines or loads).
 
 What a tick costs depends on how warm the caches are, so the figures of one run are only comparable with another
-run of the same options: back to back (the default) every cache is warm; ``--paced`` sleeps to each tick's
+run of the same options. The start-up heap is frozen before the first tick, as the station freezes its own
+(``--no-gc-freeze``: not, so a full collection also scans the numerical stack's start-up objects, a pause the
+station does not have). Back to back (the default) every cache is warm; ``--paced`` sleeps to each tick's
 deadline in real time, so code and data go cold between ticks as in a station serving a few robots on a busy
 machine; ``--count N`` ticks N robots one after the other each period (a many-robot station: code warm, each
 robot's data cold); ``--threads`` runs each robot's loop in its own thread on its own deadlines, phases spread over
@@ -66,8 +68,10 @@ def arguments(ap: argparse.ArgumentParser) -> None:
                     "phases")
     ap.add_argument("--switch-interval", type=float, default=None, metavar="S",
                     help="sys.setswitchinterval for --threads (default: the station's FLEET_SWITCH_INTERVAL_S)")
-    ap.add_argument("--gc-freeze", action="store_true", help="gc.freeze() once the cores are built (start-up's objects "
-                    "out of every later collection)")
+    ap.add_argument("--gc-freeze", action=argparse.BooleanOptionalAction, default=True,
+                    help="freeze the start-up heap once the cores are built, as the station does before its loop "
+                    "(bridge.nodes.node.freeze_startup_heap; --no-gc-freeze: every full collection also scans "
+                    "start-up's objects)")
     ap.add_argument("--tiles", type=int, default=5, help="the mission: the paper's S-path laid end to end this often")
     ap.add_argument("--no-compile", action="store_true", help="the MPC's functions interpreted, not compiled")
     ap.add_argument("--zenoh", action="store_true", help="telemetry and outputs through a real Zenoh session")
@@ -194,10 +198,13 @@ class _Rig:
             for q in self.queues:
                 tel += q.drain(now)
             clock.now["decode"] += time.thread_time_ns() - c0
-        else:
-            tel = [(decode(data, kind), now) for data, kind in self.wire]
+        else:  # timed as one block: a timer read per message cost more than a message's decoding
+            dec = self.M.decode
+            tel = [(dec(data, kind), now) for data, kind in self.wire]
             self.wire.clear()
         c1 = time.thread_time_ns()
+        if self.session is None:
+            clock.now["decode"] += c1 - c0
         self.drain_saves()
         out = self.core.tick(self.inputs(tel), now)
         c2 = time.thread_time_ns()
@@ -273,11 +280,10 @@ def _run(args: argparse.Namespace, tmp: Path) -> dict:
     clock = _Clock()
     rigs = [_Rig(f"tick{i + 1}", cfg, mission, tmp, clock, fns, session, t0) for i in range(args.count)]
     period = rigs[0].core.time.period
-    if args.gc_freeze:
-        import gc
+    if args.gc_freeze:  # as the station before its loop: start-up's objects out of every later collection
+        from bridge.nodes.node import freeze_startup_heap
 
-        gc.collect()
-        gc.freeze()
+        freeze_startup_heap()
     decode = clock.wrap("decode", M.decode)
     encode = clock.wrap("encode", M.encode)
     if args.threads:

@@ -6,6 +6,7 @@ v (m/s) and omega (rad/s) have different scales, and the paper draws and cluster
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -21,7 +22,7 @@ class Bounds:
 
     def __post_init__(self) -> None:
         for name, (lo, hi) in (("v", self.v), ("w", self.w)):
-            if not (np.isfinite(lo) and np.isfinite(hi)):
+            if not (math.isfinite(lo) and math.isfinite(hi)):  # scalars: math, not numpy (a box is made per tick)
                 raise ValueError(f"bounds {name}=({lo}, {hi}) must be finite")
             if not lo < hi:
                 raise ValueError(f"bounds {name}=({lo}, {hi}) must have min < max")
@@ -54,7 +55,8 @@ class Bounds:
         return self.lo + np.asarray(n, dtype=float) * self.span
 
     def clip(self, u: ArrayLike) -> NDArray[np.float64]:
-        return np.clip(np.asarray(u, dtype=float), self.lo, self.hi)
+        # = np.clip (NaN stays NaN), without its Python wrapper: several commands a tick go through here
+        return np.minimum(np.maximum(np.asarray(u, dtype=float), self.lo), self.hi)
 
     def contains(self, u: ArrayLike, tol: float = 1e-12) -> bool | NDArray[np.bool_]:
         a = np.asarray(u, dtype=float)

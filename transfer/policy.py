@@ -97,6 +97,7 @@ it only steers which cell is explored. The method names are those of the bridge'
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Protocol
@@ -189,7 +190,7 @@ class _PolicyBase:
     def map(self, u_T: ArrayLike, *, plan: Plan = None, explore: bool = True) -> Mapped:
         """The learner command for teacher command ``u_T`` (see the module docstring for every case)."""
         t = np.asarray(u_T, dtype=float).reshape(2)
-        if not np.all(np.isfinite(t)):
+        if not all(map(math.isfinite, t.tolist())):
             raise ValueError(f"teacher command must be finite, got {t}")
         if isinstance(self.mapper, IdentityMapper):
             return Mapped(self.store.learner_bounds.clip(t), "direct")
@@ -312,7 +313,7 @@ class _PolicyBase:
             res = linear.map_normalised(near[0])
             if res is not None and np.all(np.isfinite(res[0])):
                 offset = (t_n - near[0]) * tb.span / lb.span  # normalised teacher step -> normalised learner step
-                return np.clip(res[0] + offset, 0.0, 1.0), "direct", res[1], float(near[1])
+                return np.minimum(np.maximum(res[0] + offset, 0.0), 1.0), "direct", res[1], float(near[1])
         return lb.normalise(lb.clip(t)), "direct", (), float("inf")
 
 
@@ -353,7 +354,7 @@ class PaperPolicy(_PolicyBase):
         guess = self._affine.extrapolate(t_n) if self._affine is not None else None
         if guess is None:
             return self.store.learner_bounds.normalise(direct)
-        return np.clip(guess, 0.0, 1.0)
+        return np.minimum(np.maximum(guess, 0.0), 1.0)
 
     def _nearest_unconfigured(self, cell: tuple[int, int], towards: NDArray[np.float64]) -> tuple[int, int] | None:
         """The unconfigured cell of the nearest ring around ``cell`` closest to ``towards`` (normalised learner
@@ -509,14 +510,14 @@ class GuidedPolicy(_PolicyBase):
         g = np.array(self.store.grid, dtype=float)
         lo = np.array(cell, dtype=float) / g
         hi = lo + 1.0 / g
-        return float(np.hypot(*(np.clip(p, lo, hi) - p)))
+        return float(np.hypot(*(np.minimum(np.maximum(p, lo), hi) - p)))  # = np.clip, without its wrapper
 
     def _nearest_in_cell(self, cell: tuple[int, int], p: NDArray[np.float64]) -> NDArray[np.float64]:
         """The point of a cell nearest to p, ``inset`` of a cell inside its edges (so it falls in that cell)."""
         g = np.array(self.store.grid, dtype=float)
         lo = np.array(cell, dtype=float) / g
         margin = max(self.inset, 1e-6) / g
-        return np.clip(p, lo + margin, lo + 1.0 / g - margin)
+        return np.minimum(np.maximum(p, lo + margin), lo + 1.0 / g - margin)
 
     def _guided_target(self, cell: tuple[int, int], est_n: NDArray[np.float64],
                        plan: Plan) -> tuple[int, int] | None:

@@ -125,6 +125,11 @@ class CellChange:
     at: float | None
 
 
+def _unit(a: NDArray[np.float64]) -> NDArray[np.float64]:
+    """``a`` clipped to [0, 1]: ``np.clip`` (NaN stays NaN) without its Python-level wrapper (every pair added)."""
+    return np.minimum(np.maximum(a, 0.0), 1.0)
+
+
 class PairStore:
     """Clusters raw pairs into refined pairs and keeps the learner's limits on the teacher domain up to date. Its parts,
     one job each: :attr:`cells` (the pairs and their grid, ``transfer/store_cells.py``), :attr:`limits` (the learned
@@ -172,7 +177,7 @@ class PairStore:
     # ------------------------------------------------------------------------------------------ clustering
     def cell_of(self, u_L: ArrayLike) -> tuple[int, int]:
         """Grid cell of a learner command (clipped into the learner's box first)."""
-        return grid_cell(np.clip(self.learner_bounds.normalise(u_L), 0.0, 1.0), self.grid)
+        return grid_cell(_unit(self.learner_bounds.normalise(u_L)), self.grid)
 
     def add(self, u_T_bar: ArrayLike, u_L: ArrayLike, stamp: float | None = None,
             prev_u_L: ArrayLike | None = None) -> AddResult:
@@ -184,7 +189,7 @@ class PairStore:
         if not all(map(math.isfinite, (*t.tolist(), *lcmd.tolist()))):
             raise ValueError(f"command pair must be finite, got u_T={t}, u_L={lcmd}")
         t_n = self.teacher_bounds.normalise(t)
-        l_n = np.clip(self.learner_bounds.normalise(lcmd), 0.0, 1.0)
+        l_n = _unit(self.learner_bounds.normalise(lcmd))
         cell = grid_cell(l_n, self.grid)
         cells, shifts = self.cells, self.shifts
         self.added += 1
@@ -212,8 +217,8 @@ class PairStore:
                 refined_changed = True
         if self.adapt:
             refined_changed = self.spreading.after(cell) or refined_changed
-        prev = None if prev_u_L is None else np.clip(
-            self.learner_bounds.normalise(np.asarray(prev_u_L, dtype=float).reshape(2)), 0.0, 1.0)
+        prev = None if prev_u_L is None else _unit(
+            self.learner_bounds.normalise(np.asarray(prev_u_L, dtype=float).reshape(2)))
         limits_changed = self.limits.update(t_n, l_n, cell, prev)
         return AddResult(cell, refined_changed, limits_changed)
 
@@ -264,8 +269,8 @@ class PairStore:
         return bool(self.cells.pub_version[cell] > 0)
 
     def n_configured(self) -> int:
-        """How many cells are configured."""
-        return int(np.count_nonzero(self.cells.pub_version))
+        """How many cells are configured (the refined pairs' cached ids: asked every tick)."""
+        return int(self.refined_arrays()[0].size)
 
     def configured(self) -> NDArray[np.bool_]:
         """Which cells are configured, as a (n_v, n_omega) mask (a copy: the caller cannot change the store)."""

@@ -122,6 +122,7 @@ def from_bytes(data: bytes, cls: Any) -> PairStore:
     c.pub_T[...] = np.array(b.pub_T, dtype=float).reshape(gv, gw, 2)
     c.pub_L[...] = np.array(b.pub_L, dtype=float).reshape(gv, gw, 2)
     c.pub_version[...] = np.array(b.pub_version, dtype=np.int64).reshape(gv, gw)
+    store._arrays = None  # the refined pairs' cache (set in place above: whatever was asked before is stale)
     store.revision = b.revision
     ch.relearned = b.relearned
     store.added = int(c.count.sum()) if b.added is None else b.added

@@ -72,7 +72,7 @@ from transfer.mission import Mission
 from transfer.policy import make_policy
 from transfer.step import TransferStep
 from transfer.store import PairStore
-from transfer.teacher._refs import closest
+from transfer.teacher._refs import closest, closest_near
 
 log = logging.getLogger("scmbridge.station")
 
@@ -250,6 +250,7 @@ class StationCore:
         #: the commands it sends: this run's epoch, their seq, their checked bytes
         self.outbox = Outbox(M.new_epoch(), period)
         self.mission_version = self.control.version
+        self._near = 0  # the mission path's segment closest to the last pose (where the next search starts)
         #: what it says and why: the one reason it does (not) drive, the robot's fitness, where it stands
         self.verdict = Verdict(log)
 
@@ -423,7 +424,8 @@ class StationCore:
         one (:func:`command_extent`) before any cell is learned."""
         if self.store.n_configured() == 0:
             return self.top_v
-        return float(max(abs(x) for x in self.store.limits.box.v))
+        v_lo, v_hi = self.store.limits.box.v
+        return float(max(abs(v_lo), abs(v_hi)))
 
     def _jumped(self, st: M.LearnerState, jump: float, top: float, at: float) -> None:
         """A pose jumped ``jump`` m (received at ``at``): never progress; a running mission pauses (``pose_jump``)."""
@@ -459,7 +461,8 @@ class StationCore:
         c = self.control
         if self.source.follows_mission and state is not None:
             path = self.mission.path  # the closest point in one compiled loop: a mission path has thousands of segments
-            s, verdict.off_path = closest(path.points, path.s, path.seg_len, state.x, state.y)
+            s, verdict.off_path, self._near = closest_near(path.points, path.s, path.seg_len, state.x, state.y,
+                                                           self._near)  # = closest(...), from the last one's segment
             if c.phase == "running" and self.guards.anchor_pending:
                 self.guards.begin(s)
             if c.phase != "running" or unfit is not None:

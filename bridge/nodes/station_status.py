@@ -169,7 +169,8 @@ class StationCounters:
 
     def observe(self, pairer: IntervalPairer, store: PairStore, control: MissionControl) -> None:
         """Take the counts the pairer, the store and the mission keep themselves (before a status)."""
-        self.refined_pairs, self.raw_pairs, self.cells_relearned = (len(store.refined()), store.raw_count,
+        # the refined pairs counted, not made (the store's cached ids: one per configured cell)
+        self.refined_pairs, self.raw_pairs, self.cells_relearned = (store.n_configured(), store.raw_count,
                                                                     store.relearned)
         self.shared_changes, self.limits_relearned = store.shifts.shared, store.limits.relearned
         for name, attr in _PAIRER_COUNTS:
@@ -308,7 +309,7 @@ class LimitsReport:
             if (all(abs(a - b) <= LIMITS_MOVE_TOL * t for a, b, t in zip(box, sent[0], tol))
                     and (curvature is None or not _curvature_moved(curvature, sent[2]))):
                 return None
-        hull = [[float(a), float(b)] for a, b in self.store.limits.hull]
+        hull = self.store.limits.hull.tolist()  # (K, 2) floats: the rows as lists of two Python floats
         key = (box, len(hull), curvature)
         if sent != key:
             self.version += 1

@@ -26,6 +26,7 @@ Numerical choices (each re-derived and tested, see tests/unit/transfer/scm/test_
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Sequence
 
@@ -43,6 +44,20 @@ _ROT = np.array([1.0, 1.0j, -1.0, -1.0j], dtype=np.complex128)  # i**r
 _NEAR_CORNER = 0.2  # unit-square distance below which a point is carried relative to its corner
 _SIG4 = np.array([1.0, 1.0, -1.0, -1.0])
 _CROWDING = 1e-7  # smallest prevertex separation that float64 strip coordinates resolve well enough
+
+
+def _min_separation(z: NDArray[np.complex128]) -> float:
+    """The least distance between two of the prevertices ``z`` (NaN if any is NaN), numpy's same arithmetic over
+    the upper triangle's indices made once per polygon size (``np.triu_indices`` cost more than the distances)."""
+    return np.abs(z[:, None] - z[None, :])[_upper(z.size)].min()
+
+
+@functools.lru_cache(maxsize=16)
+def _upper(n: int) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+    """``np.triu_indices(n, 1)``, read-only."""
+    i, j = np.triu_indices(n, 1)
+    i.flags.writeable = j.flags.writeable = False
+    return i, j
 
 
 class RectangleMap:
@@ -130,7 +145,7 @@ class RectangleMap:
 
             y = self._solve(residual, self._initial_guess(L0, True))
         z, sig = self._prevertices(y)
-        sep = np.abs(z[:, None] - z[None, :])[np.triu_indices(n, 1)].min()
+        sep = _min_separation(z)
         if sep < _CROWDING:
             # prevertices this close cannot be told apart in float64 strip coordinates: the map would be
             # wrong at the 1e-9 level near them. The SC Toolbox shares this limit; re-choose the region instead.
@@ -245,7 +260,7 @@ class RectangleMap:
             if best_err <= 1e-8:
                 return best
         z, _ = self._prevertices(best)
-        sep = np.abs(z[:, None] - z[None, :])[np.triu_indices(z.size, 1)].min()
+        sep = _min_separation(z)
         if sep < 1e3 * _CROWDING:  # the usual reason: crowding makes the side integrals too inaccurate to solve
             raise ValueError(f"SC prevertices crowd (separation {sep:.1e}): polygon too elongated between its "
                              f"corners for an accurate rectangle map (parameter residual {best_err:.1e})")
@@ -415,8 +430,18 @@ class QuadTransfer:
     def __init__(
         self, teacher_vertices: ArrayLike, learner_vertices: ArrayLike, corners: Sequence[int] = (0, 1, 2, 3)
     ) -> None:
-        self.teacher = RectangleMap(teacher_vertices, corners)  # each validates its polygon
-        self.learner = RectangleMap(learner_vertices, corners)
+        self._join(RectangleMap(teacher_vertices, corners), RectangleMap(learner_vertices, corners))  # each validates
+
+    @classmethod
+    def of_maps(cls, teacher: RectangleMap, learner: RectangleMap) -> QuadTransfer:
+        """The transfer between two rectangle maps built already (each in a step of its own: the same transfer as
+        the one built from their vertices and corners at once)."""
+        qt = cls.__new__(cls)
+        qt._join(teacher, learner)
+        return qt
+
+    def _join(self, teacher: RectangleMap, learner: RectangleMap) -> None:
+        self.teacher, self.learner = teacher, learner
         nt, nl = self.teacher.vertices.size, self.learner.vertices.size
         if nt != nl:
             raise ValueError(f"teacher and learner polygons need the same number of vertices ({nt} != {nl})")

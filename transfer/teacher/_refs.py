@@ -14,7 +14,38 @@ from numba import njit
 @njit(cache=True, error_model="numpy")
 def closest(points: np.ndarray, s_cum: np.ndarray, seg_len: np.ndarray, x: float, y: float) -> tuple[float, float]:
     """(arc length, distance) of the point of the polyline closest to (x, y); the first segment wins a tie."""
-    best, s0 = np.inf, 0.0
+    s0, best, _ = _scan(points, s_cum, seg_len, x, y, np.inf)
+    return s0, best
+
+
+@njit(cache=True, error_model="numpy")
+def closest_near(points: np.ndarray, s_cum: np.ndarray, seg_len: np.ndarray, x: float, y: float,
+                 hint: int) -> tuple[float, float, int]:
+    """:func:`closest`, bit for bit, and its segment's index, found faster near segment ``hint`` (the last answer
+    for a vehicle that moved a little since): that segment's distance, a hair above, bounds the scan from its
+    start, so nearly every other segment is passed over by the cheap test. A bound above the least distance
+    changes nothing the scan finds (the first segment of the least distance still wins); only its cost."""
+    m = points.shape[0] - 1
+    i = min(max(hint, 0), m - 1)
+    _, d = _segment(points, seg_len, i, x, y)
+    return _scan(points, s_cum, seg_len, x, y, d + d * 1e-9 + 1e-12)
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _segment(points: np.ndarray, seg_len: np.ndarray, i: int, x: float, y: float) -> tuple[float, float]:
+    """(t along segment ``i``, distance) of the point of segment ``i`` closest to (x, y)."""
+    ax, ay = points[i, 0], points[i, 1]
+    dx, dy = points[i + 1, 0] - ax, points[i + 1, 1] - ay
+    t = ((x - ax) * dx + (y - ay) * dy) / max(seg_len[i] ** 2, 1e-18)
+    t = min(max(t, 0.0), 1.0)
+    return t, math.hypot(ax + t * dx - x, ay + t * dy - y)
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _scan(points: np.ndarray, s_cum: np.ndarray, seg_len: np.ndarray, x: float, y: float,
+          bound: float) -> tuple[float, float, int]:
+    """The closest point's (arc length, distance, segment) among the segments closer than ``bound`` (inf: all)."""
+    best, s0, at = bound, 0.0, 0
     for i in range(points.shape[0] - 1):
         ax, ay = points[i, 0], points[i, 1]
         # a segment starting further than (best + its length) away holds no closer point: skipped without the
@@ -22,13 +53,10 @@ def closest(points: np.ndarray, s_cum: np.ndarray, seg_len: np.ndarray, x: float
         ex, ey, reach = ax - x, ay - y, best + seg_len[i]
         if ex * ex + ey * ey > reach * reach * (1.0 + 1e-9) + 1e-12:
             continue
-        dx, dy = points[i + 1, 0] - ax, points[i + 1, 1] - ay
-        t = ((x - ax) * dx + (y - ay) * dy) / max(seg_len[i] ** 2, 1e-18)
-        t = min(max(t, 0.0), 1.0)
-        d = math.hypot(ax + t * dx - x, ay + t * dy - y)
+        t, d = _segment(points, seg_len, i, x, y)
         if d < best:
-            best, s0 = d, s_cum[i] + t * seg_len[i]
-    return s0, best
+            best, s0, at = d, s_cum[i] + t * seg_len[i], i
+    return s0, best, at
 
 
 @njit(cache=True, error_model="numpy")
@@ -36,8 +64,15 @@ def references(points: np.ndarray, s_cum: np.ndarray, seg_len: np.ndarray, headi
                y: float, theta: float, spacing: float, n: int) -> np.ndarray:
     """``n`` poses (x, y, heading) from the point of the path closest to (x, y), ``spacing`` metres apart (clipped
     to the path); the first heading within pi of ``theta``, each next within pi of the one before."""
-    m = points.shape[0] - 1
     s0, _ = closest(points, s_cum, seg_len, x, y)
+    return references_from(points, s_cum, seg_len, heading, s0, theta, spacing, n)
+
+
+@njit(cache=True, error_model="numpy")
+def references_from(points: np.ndarray, s_cum: np.ndarray, seg_len: np.ndarray, heading: np.ndarray, s0: float,
+                    theta: float, spacing: float, n: int) -> np.ndarray:
+    """:func:`references` from the path's point at arc length ``s0`` (the closest point, found by the caller)."""
+    m = points.shape[0] - 1
     two_pi = 2.0 * math.pi
     out = np.empty((n, 3))
     length = s_cum[-1]
@@ -68,6 +103,13 @@ def curve_speed(points: np.ndarray, s_cum: np.ndarray, seg_len: np.ndarray, curv
     (x, y) can be turned at ``margin`` of the yaw-rate bound on its side (``w_hi`` for a left bend, ``w_lo`` for a
     right one): ``v = margin * |w| / |curvature|``, never above ``v_max`` nor below ``v_min``."""
     s0, _ = closest(points, s_cum, seg_len, x, y)
+    return curve_speed_from(s_cum, curvature, s0, v_max, v_min, w_lo, w_hi, margin, horizon)
+
+
+@njit(cache=True, error_model="numpy")
+def curve_speed_from(s_cum: np.ndarray, curvature: np.ndarray, s0: float, v_max: float, v_min: float, w_lo: float,
+                     w_hi: float, margin: float, horizon: float) -> float:
+    """:func:`curve_speed` from the path's point at arc length ``s0`` (the closest point, found by the caller)."""
     s1 = s0 + v_max * horizon
     v = v_max
     i = np.searchsorted(s_cum, s0, side="left")

@@ -255,10 +255,17 @@ class MpcTeacher:
         # the references' compiled loop loaded (or compiled, once per machine) now, not in the first tick
         _refs.references(np.array([[0.0, 0.0], [1.0, 0.0]]), np.array([0.0, 1.0]), np.array([1.0]), np.zeros(1),
                          0.0, 0.0, 0.0, 0.1, 2)
+        _refs.references_from(np.array([[0.0, 0.0], [1.0, 0.0]]), np.array([0.0, 1.0]), np.array([1.0]),
+                              np.zeros(1), 0.0, 0.0, 0.1, 2)
+        _refs.closest_near(np.array([[0.0, 0.0], [1.0, 0.0]]), np.array([0.0, 1.0]), np.array([1.0]), 0.0, 0.0, 0)
         _refs.nearest_obstacles(np.zeros((1, 3)), 0.0, 0.0, 1.0, np.empty((1, 3)))  # likewise the obstacles' loop
         if cfg.curve_margin > 0.0:  # likewise the slowing for bends, where it is used
             _refs.curve_speed(np.array([[0.0, 0.0], [1.0, 0.0]]), np.array([0.0, 1.0]), np.array([1.0]), np.zeros(2),
                               0.0, 0.0, 1.0, 0.1, -1.0, 1.0, 0.9, 1.0)
+            _refs.curve_speed_from(np.array([0.0, 1.0]), np.zeros(2), 0.0, 1.0, 0.1, -1.0, 1.0, 0.9, 1.0)
+        #: the path's segment closest to the last solve's state: where the next solve's search for it starts
+        #: (:func:`transfer.teacher._refs.closest_near`: the same point, found in a few microseconds)
+        self._near = 0
         self._prev_pred: NDArray[np.float64] | None = None
         self._prev_u: NDArray[np.float64] | None = None
         self.u_last = np.zeros(2)
@@ -337,17 +344,19 @@ class MpcTeacher:
         xs = state.tolist() if state.shape == (3,) else None
         if xs is None or not (math.isfinite(xs[0]) and math.isfinite(xs[1]) and math.isfinite(xs[2])):
             raise ValueError(f"MPC state must be three finite numbers, got {state}")
+        # the closest point of the path once for the slowing and the references (each found it again before)
+        s0, _, self._near = _refs.closest_near(path.points, path.s, path.seg_len, xs[0], xs[1], self._near)
         if v_ref is not None:
             v = v_ref
         elif cfg.curve_margin > 0.0 and slow_for_bends:
             v_top = limits.v[1]
-            v = _refs.curve_speed(path.points, path.s, path.seg_len, path.curvature, xs[0], xs[1], v_top,
-                                  limits.v[0] if limits.v[0] > 0.0 else 0.25 * v_top, limits.w[0], limits.w[1],
-                                  cfg.curve_margin, N * cfg.dt)
+            v = _refs.curve_speed_from(path.s, path.curvature, s0, v_top,
+                                       limits.v[0] if limits.v[0] > 0.0 else 0.25 * v_top, limits.w[0], limits.w[1],
+                                       cfg.curve_margin, N * cfg.dt)
         else:
             v = limits.v[1]
-        refs = _refs.references(path.points, path.s, path.seg_len, path.heading, xs[0], xs[1], xs[2],
-                                float(v * cfg.dt), N + 1)  # = self.references(state, path, v)
+        refs = _refs.references_from(path.points, path.s, path.seg_len, path.heading, s0, xs[2], float(v * cfg.dt),
+                                     N + 1)  # = self.references(state, path, v)
         # p = [x0, refs, u_prev, obstacles], column-major as _build_nlp lays it out: refs and obstacles by rows
         p = self._p
         p[:3] = state

@@ -4,6 +4,7 @@ the same pose given as an array."""
 
 from __future__ import annotations
 
+import gc
 import json
 
 import numpy as np
@@ -17,7 +18,13 @@ from transfer.domain import Bounds
 
 
 def test_the_harness_drives_a_robot_and_splits_its_ticks_by_phase(capsys) -> None:
-    assert tick.main(["--ticks", "25", "--skip", "5", "--count", "2", "--no-compile", "--tiles", "1"]) == 0
+    frozen = gc.get_freeze_count()
+    try:
+        assert tick.main(["--ticks", "25", "--skip", "5", "--count", "2", "--no-compile", "--tiles", "1"]) == 0
+        # its start-up heap frozen before the first tick, as the station's (no full collection scans it in a tick)
+        assert gc.get_freeze_count() > frozen
+    finally:
+        gc.unfreeze()  # this test process's heap back as it was
     text = capsys.readouterr().out
     out = json.loads(text[text.index("{\n"):])  # past qpOASES's banner (CasADi prints it on Python's stdout)
     assert out["robots"] == 2 and out["ticks"] == 2 * 20 and out["why"] == "driving"

@@ -94,3 +94,40 @@ def test_prepare_builds_the_sc_map_a_map_needs_and_the_map_then_builds_nothing()
             assert got[1] == alone[1]
             mapped += 1
     assert mapped >= 3
+
+
+def test_a_prepare_step_builds_one_side_of_an_sc_map_and_the_two_make_the_map_built_at_once(monkeypatch) -> None:
+    """The search's longest step is one rectangle map (half a region's SC map): the teacher side in one step, the
+    learner side and the transfer in the next; the transfer made of the two maps as the one built at once."""
+    from transfer import mappers
+    from transfer.mappers import ScmMapper
+
+    _, store = _top_speed_store()
+    made = 0
+    real = mappers.RectangleMap
+
+    def counted(*a, **kw):
+        nonlocal made
+        made += 1
+        return real(*a, **kw)
+
+    monkeypatch.setattr(mappers, "RectangleMap", counted)
+    stepped_regions = 0
+    for t_n in np.stack(np.meshgrid(np.linspace(0.05, 0.95, 7), np.linspace(0.05, 0.95, 7)), -1).reshape(-1, 2):
+        alone = ScmMapper(store).map_normalised(t_n)
+        m, steps = ScmMapper(store), []
+        while True:
+            made = 0
+            if not m.prepare_step(t_n):
+                break
+            steps.append(made)
+        assert all(k == 1 for k in steps) and len(steps) <= 2, steps  # one rectangle map a step
+        made, builds = 0, m.builds
+        got = m.map_normalised(t_n)
+        assert (got is None) == (alone is None)
+        if got is not None and alone is not None:
+            assert len(steps) == 2 and made == 0 and m.builds == builds  # the map built nothing more
+            np.testing.assert_array_equal(got[0], alone[0])
+            assert got[1] == alone[1]
+            stepped_regions += 1
+    assert stepped_regions >= 3

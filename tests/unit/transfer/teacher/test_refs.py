@@ -11,7 +11,7 @@ import math
 import numpy as np
 import pytest
 
-from transfer.teacher._refs import closest, curve_speed, references
+from transfer.teacher._refs import closest, closest_near, curve_speed, curve_speed_from, references, references_from
 from transfer.teacher.path import Polyline
 
 
@@ -30,6 +30,30 @@ def test_closest_point_and_the_first_segment_winning_a_tie() -> None:
     v = Polyline(np.array([[-1.0, 1.0], [0.0, 0.0], [1.0, 1.0]]))
     s, d = closest(*_args(v), 0.0, 1.0)
     assert s == pytest.approx(math.sqrt(2) / 2) and d == pytest.approx(math.sqrt(2) / 2)
+
+
+def test_closest_near_a_hint_is_closest_bit_for_bit_whatever_the_hint() -> None:
+    """Started from any segment (the last answer, a wrong one, one out of range), the same point and distance, the
+    earlier leg still winning a tie; and the references and the bend's speed from that point are the ones found
+    from the pose."""
+    rng = np.random.default_rng(3)
+    t = np.linspace(0.0, 6 * math.pi, 700)
+    p = Polyline(np.stack([t, np.sin(t)], axis=1))  # a wave: far legs nearly as close as the nearest
+    back = Polyline(np.array([[0.0, 0.0], [2.0, 0.0], [0.0, 0.0]]))
+    for poly in (p, back):
+        n, hint = len(poly.points) - 1, 0
+        for _ in range(400):
+            x, y = rng.uniform(-1.0, 20.0), rng.normal(0.0, 1.5)
+            want = closest(*_args(poly), x, y)
+            for h in (hint, int(rng.integers(-3, n + 3)), 0, n - 1):
+                s, d, hint = closest_near(*_args(poly), x, y, h)
+                assert (s, d) == want  # exactly: the same segment, the same arithmetic
+    assert closest_near(*_args(back), 1.0, 0.0, 1)[:2] == (1.0, 0.0)  # the first leg, from a hint on the second
+    s0, _ = closest(*_args(p), 5.0, 0.3)
+    np.testing.assert_array_equal(references_from(*_args(p), p.heading, s0, 0.2, 0.05, 21),
+                                  references(*_args(p), p.heading, 5.0, 0.3, 0.2, 0.05, 21))
+    assert curve_speed_from(p.s, p.curvature, s0, 1.0, 0.1, -2.0, 2.0, 0.9, 2.0) == \
+        curve_speed(*_args(p), p.curvature, 5.0, 0.3, 1.0, 0.1, -2.0, 2.0, 0.9, 2.0)
 
 
 def test_references_are_spaced_along_the_path_and_stop_at_its_end() -> None:
