@@ -4,8 +4,8 @@ A hole search (:class:`transfer.policy.GuidedPolicy`, "Filling the map's holes")
 commands on the linear map and then checks its best ``FILL_CHECKS`` candidates on the SC map itself, each of which
 may build a quadrilateral's SC map: done at once it costs several commands' worth of CPU in one command, the tail
 of a station's tick. :func:`hole_search` is the same search cut into steps: a generator that yields after each
-stage (the ranking of the slowed speeds and of their yaw rates, ``RANK_ROWS`` commands a step, then each side of
-each SC map built and each map of each check), so that its
+stage (the ranking of the slowed speeds and of their yaw rates, ``RANK_ROWS`` commands a step, then each SC map
+built and each map of each check), so that its
 caller runs one step per command and uses the result on a later one (:meth:`transfer.policy.GuidedPolicy._fill`),
 or all of it at once (:func:`run_search`). The commands in between are served as if no search were running; the
 result names a cell, which the caller checks is still a hole when it is used.
@@ -126,11 +126,10 @@ def hole_search(policy: Searcher, t: NDArray[np.float64]) -> Search:
 
 
 def _prepared(policy: Searcher, t_n: NDArray[np.float64]) -> Generator[None, None, None]:
-    """Steps of their own for building the SC map the next map of ``t_n`` (normalised teacher units) needs, when it
-    is not built yet: its teacher side, then its learner side (:meth:`transfer.mappers.ScmMapper.prepare_step`),
-    then the map."""
-    step = getattr(policy.mapper, "prepare_step", None)
-    while step is not None and step(t_n):
+    """A step of its own for building the SC map the next map of ``t_n`` (normalised teacher units) needs, when it
+    is not built yet (:meth:`transfer.mappers.ScmMapper.prepare`): the build and the map are then two steps."""
+    prepare = getattr(policy.mapper, "prepare", None)
+    if prepare is not None and prepare(t_n):
         yield
 
 

@@ -28,7 +28,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial import Delaunay, QhullError
 
-from transfer.scm import QuadTransfer, RectangleMap, is_simple_ccw
+from transfer.scm import QuadTransfer, is_simple_ccw
 from transfer.store import PairStore
 
 Region = tuple[int, ...]
@@ -186,13 +186,10 @@ class ScmMapper(_Triangulated):
         # pair ids of a quadrilateral (in ccw order) + their versions -> QuadTransfer (None: not usable)
         self._quads: OrderedDict[tuple, QuadTransfer | None] = OrderedDict()
         self._by_simplex: dict[int, list[tuple[Region, tuple]]] = {}
-        #: teacher sides built by :meth:`prepare_step` a step before their learner sides, by the quadrilateral's key
-        self._halves: dict[tuple, RectangleMap] = {}
         self.builds = 0  # QuadTransfers constructed (for benchmarks and tests)
 
     def _rebuilt(self) -> None:
         self._by_simplex = {}
-        self._halves = {}  # a half of a region whose pairs moved is never asked again (a half dropped: built again)
 
     def _candidates(self, s: int) -> list[tuple[Region, tuple]]:
         """Valid quadrilaterals around simplex s, best first: (local vertex indices, cache key)."""
@@ -235,16 +232,10 @@ class ScmMapper(_Triangulated):
             self._quads.move_to_end(key)
             return self._quads[key]
         try:
-            teacher = self._halves.pop(key, None)
-            if teacher is None:
-                teacher = RectangleMap(self.T[list(quad)])
-            qt: QuadTransfer | None = QuadTransfer.of_maps(teacher, RectangleMap(self.L[list(quad)]))
+            qt: QuadTransfer | None = QuadTransfer(self.T[list(quad)], self.L[list(quad)])
             self.builds += 1
         except ValueError:
             qt = None
-        return self._keep(key, qt)
-
-    def _keep(self, key: tuple, qt: QuadTransfer | None) -> QuadTransfer | None:
         self._quads[key] = qt
         if len(self._quads) > self.cache_size:
             self._quads.popitem(last=False)
@@ -268,30 +259,12 @@ class ScmMapper(_Triangulated):
         """Build the SC map :meth:`map_normalised` would try first for ``t`` if it is not cached yet, without mapping:
         True when one was built. A caller that cuts its work into short steps builds in one and maps in the next
         (:mod:`transfer.holes`); the map is the same either way."""
-        built = False
-        while self.prepare_step(t):
-            built = True
-        return built
-
-    def prepare_step(self, t: NDArray[np.float64]) -> bool:
-        """:meth:`prepare` cut in two: the first call builds the region's teacher side (one rectangle map), the next
-        its learner side and the transfer; True while it built something (a polygon that cannot be mapped ends it,
-        as a failed build does). Each side costs about half a transfer's build: a caller that steps gets the same
-        SC map with half the longest step."""
         self._sync()
         s = self._simplex(t)
         for quad, key in self._candidates_of(s) if s >= 0 else ():
             if key in self._quads:
                 return False
-            if key in self._halves:
-                self._transfer(quad, key)
-                return True
-            if len(self._halves) >= 8:  # searches abandoned mid-build: their halves are dropped, not hoarded
-                self._halves.clear()
-            try:
-                self._halves[key] = RectangleMap(self.T[list(quad)])
-            except ValueError:
-                self._keep(key, None)  # as a failed build: not usable
+            self._transfer(quad, key)
             return True
         return False
 

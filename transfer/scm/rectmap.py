@@ -430,18 +430,8 @@ class QuadTransfer:
     def __init__(
         self, teacher_vertices: ArrayLike, learner_vertices: ArrayLike, corners: Sequence[int] = (0, 1, 2, 3)
     ) -> None:
-        self._join(RectangleMap(teacher_vertices, corners), RectangleMap(learner_vertices, corners))  # each validates
-
-    @classmethod
-    def of_maps(cls, teacher: RectangleMap, learner: RectangleMap) -> QuadTransfer:
-        """The transfer between two rectangle maps built already (each in a step of its own: the same transfer as
-        the one built from their vertices and corners at once)."""
-        qt = cls.__new__(cls)
-        qt._join(teacher, learner)
-        return qt
-
-    def _join(self, teacher: RectangleMap, learner: RectangleMap) -> None:
-        self.teacher, self.learner = teacher, learner
+        self.teacher = RectangleMap(teacher_vertices, corners)  # each validates its polygon
+        self.learner = RectangleMap(learner_vertices, corners)
         nt, nl = self.teacher.vertices.size, self.learner.vertices.size
         if nt != nl:
             raise ValueError(f"teacher and learner polygons need the same number of vertices ({nt} != {nl})")
