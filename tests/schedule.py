@@ -30,7 +30,6 @@ LONGEST: dict[str, float] = {
     "tests/integration/test_record.py::test_a_recorded_demo_reports_the_live_demos_figures": 40.0,
     "tests/integration/test_fleet.py::test_the_fleet_demo_brings_three_robots_to_their_goals_and_leaves_no_process":
         35.0,
-    "tests/unit/bench/test_attack.py::test_no_attack_gets_through": 34.0,
     "tests/integration/test_reliability.py::test_a_short_soak_runs_and_reports": 32.0,
     "tests/integration/test_demo_calibrate.py::test_the_demo_calibrates_then_drives_its_mission_from_the_calibrated_"
     "store": 31.0,
