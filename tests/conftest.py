@@ -41,4 +41,13 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
             return LONGEST[it.nodeid]
         return SLOW_DEFAULT_S if it.get_closest_marker("slow") is not None else None
 
-    items[:] = order(items, workers, seconds)
+    def module(it: pytest.Item) -> str:
+        return it.nodeid.split("::", 1)[0]
+
+    def shares_a_fixture(it: pytest.Item) -> bool:  # one set up once for a module's (or a class's) tests
+        info = getattr(it, "_fixtureinfo", None)
+        defs = info.name2fixturedefs.values() if info is not None else ()
+        return any(str(d.scope).rsplit(".", 1)[-1].lower() in ("module", "class", "package") for ds in defs for d in ds)
+
+    kept = {module(it) for it in items if shares_a_fixture(it)}  # their runs of tests are not split
+    items[:] = order(items, workers, seconds, group=lambda it: module(it) if module(it) in kept else it.nodeid)

@@ -49,7 +49,6 @@ LONGEST: dict[str, float] = {
     "transfer_service": 20.0,
     "tests/repo/test_docs_commands.py::test_the_documented_offline_commands_run": 20.0,
     "tests/integration/test_tool_signals.py::test_a_tool_told_to_stop_leaves_no_process_behind[demo-SIGTERM]": 17.0,
-    "tests/unit/sim_learner/test_experiments.py::test_sweep_json_is_plain_data_with_median_spread_and_worst_seed": 17.0,
     "tests/integration/test_lab_in_a_box.py::test_the_operators_documented_commands_run_as_written_in_the_lab": 16.0,
     "tests/integration/test_tool_signals.py::test_a_tool_told_to_stop_leaves_no_process_behind[demo --robots-SIGTERM]":
         16.0,
@@ -75,9 +74,13 @@ def shares(n_items: int, workers: int) -> list[int]:
     return out
 
 
-def order(items: Sequence[T], workers: int, seconds: Callable[[T], float | None]) -> list[T]:
+def order(items: Sequence[T], workers: int, seconds: Callable[[T], float | None],
+          group: Callable[[T], str] | None = None) -> list[T]:
     """``items`` reordered for ``workers`` xdist workers (see the module docstring); ``seconds(item)`` is an item's
-    expected time if it is a long test, else None. Every item is kept, once."""
+    expected time if it is a long test, else None. A long test goes in only between two quick tests of different
+    ``group`` (tests/conftest.py: the module, for a module with a module- or class-scoped fixture): one inside such a
+    module's run of tests would end its fixtures there, and pytest would set them up again after it. Every item is
+    kept, once."""
     long = sorted((it for it in items if seconds(it) is not None), key=lambda it: -(seconds(it) or 0.0))
     quick = [it for it in items if seconds(it) is None]
     if not long:
@@ -96,9 +99,14 @@ def order(items: Sequence[T], workers: int, seconds: Callable[[T], float | None]
         n_quick = max(0, sizes[k] - len(bins[k]))
         mine, q = quick[q:q + n_quick], q + n_quick
         gap = int(len(mine) * LONG_SPAN) // max(1, len(bins[k]))  # quick tests after each long one
+        cut = 0
         for j, it in enumerate(bins[k]):
             out.append(it)
-            out.extend(mine[j * gap:(j + 1) * gap])
-        out.extend(mine[len(bins[k]) * gap:])
+            end = max(cut, min(len(mine), (j + 1) * gap))
+            while group is not None and 0 < end < len(mine) and group(mine[end]) == group(mine[end - 1]):
+                end += 1  # to the end of that module's run
+            out.extend(mine[cut:end])
+            cut = end
+        out.extend(mine[cut:])
     out.extend(quick[q:])  # only when the long tests outnumber a share's size
     return out

@@ -62,3 +62,21 @@ def test_every_listed_long_test_still_exists() -> None:
         func = re.sub(r"\[.*\]$", "", name)
         text = (ROOT / path).read_text()
         assert re.search(rf"^def {re.escape(func)}\(", text, re.M), nodeid
+
+
+def test_a_long_test_never_splits_a_modules_run_of_tests() -> None:
+    """A long test put inside another module's run would end that module's module-scoped fixtures there (pytest sets
+    them up again after it): the long ones go in only where the quick tests' module changes."""
+    items = [f"m{m}::t{t}" for m in range(40) for t in range(7)]
+    long_s = {f"L{k}::t": float(50 - k) for k in range(9)}
+    for j, name in enumerate(long_s):
+        items.insert(j * 30, name)
+    out = order(items, 4, long_s.get, group=lambda it: it.split("::")[0])
+    assert sorted(out) == sorted(items)
+    quick = [it for it in out if not it.startswith("L")]
+    assert quick == [it for it in items if not it.startswith("L")]
+    for i, it in enumerate(out[1:-1], 1):
+        if it in long_s:
+            before, after = out[i - 1], out[i + 1]
+            if before not in long_s and after not in long_s:
+                assert before.split("::")[0] != after.split("::")[0], (before, it, after)
