@@ -30,6 +30,10 @@ $(STAMP): $(PY) $(LOCK) pyproject.toml
 	@$(call check_python,$(PY))
 	$(PY) -m pip install --quiet --require-hashes --only-binary=:all: -r $(LOCK)
 	$(PY) -m pip install --quiet --no-deps --no-build-isolation -e .
+	@# the project's bytecode once (pip compiles the packages it installs, not an editable project): every process the
+	@# suite or a lab starts then loads it instead of compiling the sources again (none writes it with
+	@# PYTHONDONTWRITEBYTECODE set)
+	$(PY) -m compileall -q bridge transfer drivers sim_learner bench tests
 	@# the compiled kernels (SC map, MPC references) once, into numba's on-disk cache, instead of in every process
 	@# that first needs them (a station starting beside others, or a test's, would spend tens of seconds)
 	$(PY) -c '$(WARMUP)'

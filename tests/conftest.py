@@ -9,6 +9,8 @@ import os
 import pytest
 from hypothesis import settings
 
+from tests.schedule import LONGEST, SLOW_DEFAULT_S, order
+
 settings.register_profile("suite", derandomize=True, print_blob=True)
 settings.register_profile("explore", derandomize=False, print_blob=True)
 settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "suite"))
@@ -27,19 +29,25 @@ def _own_state_and_cache(tmp_path_factory, monkeypatch) -> None:
         monkeypatch.setenv("SCMBRIDGE_CACHE_DIR", str(tmp_path_factory.getbasetemp() / "cache"))
 
 
-def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
-    """The longest tests (``slow``: whole HIL loops, demos, soaks) spread evenly through the run: xdist hands each
-    worker a contiguous share of the tests to start with (``--dist worksteal`` then rebalances what is left), so
-    slow tests that sit together in one file's or one directory's stretch would run one after another on one worker
-    while the others finish early."""
-    slow = [it for it in items if it.get_closest_marker("slow") is not None]
-    if not slow:
-        return
-    rest = [it for it in items if it.get_closest_marker("slow") is None]
-    step = max(1, len(rest) // len(slow))
-    out: list[pytest.Item] = []
-    for i, it in enumerate(rest):
-        if i % step == 0 and slow:
-            out.append(slow.pop(0))
-        out.append(it)
-    items[:] = out + slow
+@pytest.hookimpl(trylast=True)  # after ``-m``/``-k`` deselected theirs: the shares are of the tests that run
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    """The long tests (tests/schedule.py: the listed ones and those marked ``slow``: whole HIL loops, demos, soaks)
+    start first, dealt out evenly over the xdist workers' first shares, so none starts late and ends the run alone
+    while the other workers wait; the quick tests keep their order around them."""
+    workers = int(getattr(config, "workerinput", {}).get("workercount", 1))
+
+    def seconds(it: pytest.Item) -> float | None:
+        if it.nodeid in LONGEST:
+            return LONGEST[it.nodeid]
+        return SLOW_DEFAULT_S if it.get_closest_marker("slow") is not None else None
+
+    def module(it: pytest.Item) -> str:
+        return it.nodeid.split("::", 1)[0]
+
+    def shares_a_fixture(it: pytest.Item) -> bool:  # one set up once for a module's (or a class's) tests
+        info = getattr(it, "_fixtureinfo", None)
+        defs = info.name2fixturedefs.values() if info is not None else ()
+        return any(str(d.scope).rsplit(".", 1)[-1].lower() in ("module", "class", "package") for ds in defs for d in ds)
+
+    kept = {module(it) for it in items if shares_a_fixture(it)}  # their runs of tests are not split
+    items[:] = order(items, workers, seconds, group=lambda it: module(it) if module(it) in kept else it.nodeid)

@@ -264,6 +264,10 @@ def test_a_request_right_after_an_engage_or_a_release_is_accepted_and_status_say
         assert col.wait(lambda: f"scmbridge mission resume --robot {robot}" in status[-1].text, 1.5), \
             status[-1].text
         assert time.monotonic() - t_rel < 1.0 and "estop" not in status[-1].text, status[-1].text
+        # `status` prints the driver host's last status too: wait until the host has said it was released (on a
+        # loaded machine its status after the release can come after the station's, and the CLI would read the one
+        # before)
+        assert col.wait(lambda: drv and "estop" not in drv[-1].text, 10), drv[-1].text
         res = subprocess.run([sys.executable, "-m", "bridge", "status", *client],
                              capture_output=True, text=True, timeout=60)
         assert res.returncode == 1 and "mission resume --robot" in res.stdout and "estop" not in res.stdout, res.stdout

@@ -6,6 +6,7 @@ what the repository contains."""
 from __future__ import annotations
 
 import ast
+import functools
 import re
 from pathlib import Path
 from typing import get_type_hints
@@ -52,13 +53,17 @@ def _imports(name: str) -> set[str]:
     return found
 
 
-GRAPH = {m: _imports(m) for m in MODULES}
+@functools.cache
+def _graph() -> dict[str, set[str]]:
+    """Every project module's project imports: parsed once, by the first test that needs it (not when the suite is
+    collected, which every xdist worker does)."""
+    return {m: _imports(m) for m in MODULES}
 
 
 def _reach(start: str) -> set[str]:
     seen, todo = set(), [start]
     while todo:
-        for n in GRAPH[todo.pop()]:
+        for n in _graph()[todo.pop()]:
             if n not in seen:
                 seen.add(n)
                 todo.append(n)
@@ -77,7 +82,7 @@ def test_every_module_has_a_layer() -> None:
 
 def test_packages_import_only_downwards() -> None:
     wrong = []
-    for m, deps in GRAPH.items():
+    for m, deps in _graph().items():
         pm = _package(m)
         for d in deps:
             pd = _package(d)
@@ -101,7 +106,7 @@ def test_no_module_imports_one_that_imports_it_back() -> None:
 def test_the_method_is_pure_and_depends_on_no_io_package() -> None:
     for m in MODULES:
         if m.startswith("transfer"):
-            assert not [n for n in GRAPH[m] if not n.startswith("transfer")], m
+            assert not [n for n in _graph()[m] if not n.startswith("transfer")], m
             text = MODULES[m].read_text()
             assert not re.search(r"^\s*(import|from)\s+(zenoh|socket|threading|time|can|pymavlink)\b", text, re.M), m
 
@@ -113,7 +118,7 @@ def test_no_module_of_the_method_exceeds_650_lines() -> None:
 
 
 def test_the_wire_schema_is_a_leaf() -> None:
-    assert GRAPH["bridge.core.wire"] == set()
+    assert _graph()["bridge.core.wire"] == set()
 
 
 def test_the_station_knows_no_simulator() -> None:
