@@ -19,6 +19,7 @@ from bridge.nodes.zsession import free_port, make_config, open_session, tcp
 from bridge.tools.procs import Children, said, stop_group
 from bridge.tools.replay_station import read_runs
 from sim_learner.dynamics import MPC_LEARNER_V, MPC_LEARNER_W, MPC_TEACHER_V, MPC_TEACHER_W
+from tests.collect import Collector
 from tests.wait import until
 from transfer.domain import Bounds
 from transfer.store import PairStore
@@ -47,10 +48,16 @@ def recorded(tmp_path_factory: pytest.TempPathFactory) -> Path:
 def _record(d: Path, out: Path, port: int) -> None:
     x0 = ",".join(f"{a:.6f}" for a in load_mission().start)
     client = ["--robot", ROBOT, "--mode", "client", "--connect", tcp(port)]
-    with open_session(make_config(mode="router", listen=[tcp(port)])), Children() as kids:
+    with open_session(make_config(mode="router", listen=[tcp(port)])) as router, Children() as kids:
         rec = kids.spawn(["record", "--robot", ROBOT, "--out", str(out), "--mode", "client", "--connect", tcp(port)])
         assert until(lambda: "recording scm/" in said(rec) or rec.poll() is not None, 60, 0.1), said(rec)
-        kids.spawn(["driver", "--engage", "--link", "can", "--emulate", "--x0", x0, *client, "--duration", "90"])
+        host = Collector(router).listen(M.status_key(ROBOT, "driver"), M.Status)
+        driver = kids.spawn(["driver", "--engage", "--link", "can", "--emulate", "--x0", x0, *client, "--duration",
+                             "90"])
+        # the station's six seconds are for driving: it starts once the driver host says its vehicle is engaged and
+        # fit (a loaded machine took longer than six seconds to start the driver host)
+        assert until(lambda: any(st.engaged and st.ok for st in list(host)) or driver.poll() is not None, 60, 0.1), (
+            said(driver))
         # the recorder came first: the station's journal from its first event (kept until the recorder is heard)
         station = kids.spawn(["station", *client, "--store", str(d / "pairs.bin"), "--start", "--duration", "6"])
         assert until(lambda: station.poll() is not None, 90, 0.2), said(station)
