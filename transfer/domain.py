@@ -13,6 +13,12 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 
+def clamp(a: ArrayLike, lo: ArrayLike, hi: ArrayLike) -> NDArray[np.float64]:
+    """``np.clip(a, lo, hi)`` (NaN stays NaN) without numpy's Python-level wrapper, which costs more than the clip on
+    the two-element arrays of the per-command path."""
+    return np.minimum(np.maximum(a, lo), hi)
+
+
 @dataclass(frozen=True)
 class Bounds:
     """Axis-aligned command box: ``v = (v_min, v_max)`` m/s, ``w = (omega_min, omega_max)`` rad/s."""
@@ -55,8 +61,7 @@ class Bounds:
         return self.lo + np.asarray(n, dtype=float) * self.span
 
     def clip(self, u: ArrayLike) -> NDArray[np.float64]:
-        # = np.clip (NaN stays NaN), without its Python wrapper: several commands a tick go through here
-        return np.minimum(np.maximum(np.asarray(u, dtype=float), self.lo), self.hi)
+        return clamp(np.asarray(u, dtype=float), self.lo, self.hi)  # several commands a tick go through here
 
     def contains(self, u: ArrayLike, tol: float = 1e-12) -> bool | NDArray[np.bool_]:
         a = np.asarray(u, dtype=float)

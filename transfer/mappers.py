@@ -28,6 +28,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial import Delaunay, QhullError
 
+from transfer.domain import clamp
 from transfer.scm import QuadTransfer, is_simple_ccw
 from transfer.store import PairStore
 
@@ -159,7 +160,7 @@ class _Triangulated:
             d = P[e[:, 1]] - a
             self._edges = (a, d, np.maximum((d * d).sum(axis=1), 1e-300), P.mean(axis=0))
         a, d, dd, centre = self._edges
-        tt = np.minimum(np.maximum(((t - a) * d).sum(axis=1) / dd, 0.0), 1.0)  # = np.clip, without its wrapper
+        tt = clamp(((t - a) * d).sum(axis=1) / dd, 0.0, 1.0)
         q = a + tt[:, None] * d
         dist = np.hypot(*(q - t).T)
         i = int(np.argmin(dist))

@@ -107,6 +107,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from transfer.at_limit import ALONG_LIMIT_TOL, AT_LIMIT, LimitMap  # noqa: F401 (the policy's names for its callers)
 from transfer.choice import MapChoice
+from transfer.domain import clamp
 from transfer.holes import FILL_CHECKS, Search, hole_search, run_search  # noqa: F401 (FILL_CHECKS: the policy's)
 from transfer.mappers import AffineMapper, BarycentricMapper, IdentityMapper, Mapper, Region, ScmMapper, make_mapper
 from transfer.pairs import planned_commands  # noqa: F401 (the policy's helper for its callers)
@@ -313,7 +314,7 @@ class _PolicyBase:
             res = linear.map_normalised(near[0])
             if res is not None and np.all(np.isfinite(res[0])):
                 offset = (t_n - near[0]) * tb.span / lb.span  # normalised teacher step -> normalised learner step
-                return np.minimum(np.maximum(res[0] + offset, 0.0), 1.0), "direct", res[1], float(near[1])
+                return clamp(res[0] + offset, 0.0, 1.0), "direct", res[1], float(near[1])
         return lb.normalise(lb.clip(t)), "direct", (), float("inf")
 
 
@@ -354,7 +355,7 @@ class PaperPolicy(_PolicyBase):
         guess = self._affine.extrapolate(t_n) if self._affine is not None else None
         if guess is None:
             return self.store.learner_bounds.normalise(direct)
-        return np.minimum(np.maximum(guess, 0.0), 1.0)
+        return clamp(guess, 0.0, 1.0)
 
     def _nearest_unconfigured(self, cell: tuple[int, int], towards: NDArray[np.float64]) -> tuple[int, int] | None:
         """The unconfigured cell of the nearest ring around ``cell`` closest to ``towards`` (normalised learner
@@ -510,14 +511,14 @@ class GuidedPolicy(_PolicyBase):
         g = np.array(self.store.grid, dtype=float)
         lo = np.array(cell, dtype=float) / g
         hi = lo + 1.0 / g
-        return float(np.hypot(*(np.minimum(np.maximum(p, lo), hi) - p)))  # = np.clip, without its wrapper
+        return float(np.hypot(*(clamp(p, lo, hi) - p)))
 
     def _nearest_in_cell(self, cell: tuple[int, int], p: NDArray[np.float64]) -> NDArray[np.float64]:
         """The point of a cell nearest to p, ``inset`` of a cell inside its edges (so it falls in that cell)."""
         g = np.array(self.store.grid, dtype=float)
         lo = np.array(cell, dtype=float) / g
         margin = max(self.inset, 1e-6) / g
-        return np.minimum(np.maximum(p, lo + margin), lo + 1.0 / g - margin)
+        return clamp(p, lo + margin, lo + 1.0 / g - margin)
 
     def _guided_target(self, cell: tuple[int, int], est_n: NDArray[np.float64],
                        plan: Plan) -> tuple[int, int] | None:

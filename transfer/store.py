@@ -68,7 +68,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from transfer import store_io
-from transfer.domain import Bounds
+from transfer.domain import Bounds, clamp
 from transfer.limits import LearnerLimits, grid_cell
 from transfer.store_adapt import CellChanges, Shifts
 from transfer.store_cells import CellSums
@@ -125,11 +125,6 @@ class CellChange:
     at: float | None
 
 
-def _unit(a: NDArray[np.float64]) -> NDArray[np.float64]:
-    """``a`` clipped to [0, 1]: ``np.clip`` (NaN stays NaN) without its Python-level wrapper (every pair added)."""
-    return np.minimum(np.maximum(a, 0.0), 1.0)
-
-
 class PairStore:
     """Clusters raw pairs into refined pairs and keeps the learner's limits on the teacher domain up to date. Its parts,
     one job each: :attr:`cells` (the pairs and their grid, ``transfer/store_cells.py``), :attr:`limits` (the learned
@@ -177,7 +172,7 @@ class PairStore:
     # ------------------------------------------------------------------------------------------ clustering
     def cell_of(self, u_L: ArrayLike) -> tuple[int, int]:
         """Grid cell of a learner command (clipped into the learner's box first)."""
-        return grid_cell(_unit(self.learner_bounds.normalise(u_L)), self.grid)
+        return grid_cell(clamp(self.learner_bounds.normalise(u_L), 0.0, 1.0), self.grid)
 
     def add(self, u_T_bar: ArrayLike, u_L: ArrayLike, stamp: float | None = None,
             prev_u_L: ArrayLike | None = None) -> AddResult:
@@ -189,7 +184,7 @@ class PairStore:
         if not all(map(math.isfinite, (*t.tolist(), *lcmd.tolist()))):
             raise ValueError(f"command pair must be finite, got u_T={t}, u_L={lcmd}")
         t_n = self.teacher_bounds.normalise(t)
-        l_n = _unit(self.learner_bounds.normalise(lcmd))
+        l_n = clamp(self.learner_bounds.normalise(lcmd), 0.0, 1.0)
         cell = grid_cell(l_n, self.grid)
         cells, shifts = self.cells, self.shifts
         self.added += 1
@@ -217,8 +212,8 @@ class PairStore:
                 refined_changed = True
         if self.adapt:
             refined_changed = self.spreading.after(cell) or refined_changed
-        prev = None if prev_u_L is None else _unit(
-            self.learner_bounds.normalise(np.asarray(prev_u_L, dtype=float).reshape(2)))
+        prev = None if prev_u_L is None else clamp(
+            self.learner_bounds.normalise(np.asarray(prev_u_L, dtype=float).reshape(2)), 0.0, 1.0)
         limits_changed = self.limits.update(t_n, l_n, cell, prev)
         return AddResult(cell, refined_changed, limits_changed)
 

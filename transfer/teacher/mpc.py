@@ -46,7 +46,7 @@ import casadi as ca
 import numpy as np
 from numpy.typing import NDArray
 
-from transfer.domain import Bounds
+from transfer.domain import Bounds, clamp
 from transfer.teacher import _refs
 from transfer.teacher.path import Polyline
 from transfer.teacher.rti import Compiler, _Rti, _turn_rows
@@ -371,7 +371,7 @@ class MpcTeacher:
         cold = self._prev_u is None
         ok, status, iters, U, Xp = self._backend.solve(p, state, self._warm(limits), limits, cold, kept)
         if ok:
-            u = np.minimum(np.maximum(U[0], limits.lo), limits.hi)
+            u = clamp(U[0], limits.lo, limits.hi)
             self._prev_u, self._prev_pred = U, Xp
             self.u_last = u
             return MpcResult(u, True, status, Xp, False, cfg.solver, iters, dropped, refs)
@@ -396,4 +396,4 @@ class MpcTeacher:
             U[:-1], U[-1] = self._prev_u[1:], self._prev_u[-1]
         else:
             U = np.tile([limits.v[1] * 0.5, 0.0], (self.cfg.N, 1))
-        return np.minimum(np.maximum(U, limits.lo), limits.hi)
+        return clamp(U, limits.lo, limits.hi)
