@@ -57,19 +57,13 @@ class LimitMap:
         ids, _, T, L = arrays
         if ids.size < 2:
             return None
-        if self.at_limit == "region" and not linear:
-            sides = self._driven_limits(t_n)
-            inside = self._inside_limit(t_n, sides) if any(sides) else None
+        sides = self._driven_limits(t_n)
+        if self.at_limit == "region" and not linear and any(sides):
+            inside = self._inside_limit(t_n, [at[0] if at else None for at in sides])
             if inside is not None:
                 return inside
-        lim, grid = self.store.limits, self.store.grid
-        for a, b in ((0, 1), (1, 0)):
-            lo, hi = (lim.lo[a], lim.hi[a]) if a == 0 or not lim.needs_speed else lim.turn_edges_at(float(t_n[0]))
-            for at_limit, row, extreme in (
-                    (lim.bcnt_hi[a] > 0 and t_n[a] >= hi - ALONG_LIMIT_TOL, grid[a] - 1, 1.0),
-                    (lim.bcnt_lo[a] > 0 and t_n[a] <= lo + ALONG_LIMIT_TOL, 0, 0.0)):
-                if not at_limit:
-                    continue
+        for (a, b), at in zip(((0, 1), (1, 0)), sides):
+            for extreme, _, row in at:
                 on_row, xs = self._limit_row(arrays, a, row)
                 if on_row.size < 2:
                     continue
@@ -88,32 +82,33 @@ class LimitMap:
                 return l_n, "barycentric", (int(ids[i0]), int(ids[i1]))
         return None
 
-    def _driven_limits(self, t_n: NDArray[np.float64]) -> list[tuple[float, float] | None]:
-        """Per axis, ``(extreme, limit)`` of the driven learned limit ``t_n`` sits at (within ``ALONG_LIMIT_TOL``):
-        ``extreme`` 1.0 at the top, 0.0 at the bottom, ``limit`` the normalised teacher limit; None where it is at
-        no driven limit. A command at a corner of the learned limits (a bounded MPC turning in place at the slowest
-        speed, or turning hardest at the top speed) is at two."""
-        lim = self.store.limits
-        sides: list[tuple[float, float] | None] = [None, None]
+    def _driven_limits(self, t_n: NDArray[np.float64]) -> list[list[tuple[float, float, int]]]:
+        """Per axis, the driven learned limits ``t_n`` sits at (within ``ALONG_LIMIT_TOL``), the top's first, each as
+        ``(extreme, limit, row)``: ``extreme`` 1.0 at the top, 0.0 at the bottom, ``limit`` the normalised teacher
+        limit, ``row`` the boundary row of cells on that side; empty where it is at no driven limit (both only where
+        the limits are closer than twice the tolerance). A command at a corner of the learned limits (a bounded MPC
+        turning in place at the slowest speed, or turning hardest at the top speed) is at a limit of each axis."""
+        lim, grid = self.store.limits, self.store.grid
+        sides: list[list[tuple[float, float, int]]] = [[], []]
         for a in (0, 1):
             lo, hi = (lim.lo[a], lim.hi[a]) if a == 0 or not lim.needs_speed else lim.turn_edges_at(float(t_n[0]))
             if lim.bcnt_hi[a] > 0 and t_n[a] >= hi - ALONG_LIMIT_TOL:
-                sides[a] = (1.0, float(hi))
-            elif lim.bcnt_lo[a] > 0 and t_n[a] <= lo + ALONG_LIMIT_TOL:
-                sides[a] = (0.0, float(lo))
+                sides[a].append((1.0, float(hi), grid[a] - 1))
+            if lim.bcnt_lo[a] > 0 and t_n[a] <= lo + ALONG_LIMIT_TOL:
+                sides[a].append((0.0, float(lo), 0))
         return sides
 
-    def _inside_limit(self, t_n: NDArray[np.float64], sides: list[tuple[float, float] | None]) -> tuple | None:
+    def _inside_limit(self, t_n: NDArray[np.float64], sides: list[tuple[float, float, int] | None]) -> tuple | None:
         """``at_limit = "region"``: the mapper's answer (with ``choice``, the chosen map's) a quarter of a cell inside
-        every driven limit ``t_n`` sits at (``sides``, :meth:`_driven_limits`), with the learner's extreme on each
-        such axis (as along the row), or None where the mapper has no region there (the row decides). At a corner
-        both axes move inside: the learned limits are the envelope of the boundary responses, and the refined pairs
-        at the learner's corners (cell means) sit a little inside it, so the corner itself lies just outside their
-        region."""
+        every driven limit ``t_n`` sits at (``sides``: per axis the first of :meth:`_driven_limits`, or None), with
+        the learner's extreme on each such axis (as along the row), or None where the mapper has no region there (the
+        row decides). At a corner both axes move inside: the learned limits are the envelope of the boundary
+        responses, and the refined pairs at the learner's corners (cell means) sit a little inside it, so the corner
+        itself lies just outside their region."""
         t_in = np.array(t_n, dtype=float)
         for a, side in enumerate(sides):
             if side is not None:
-                extreme, limit = side
+                extreme, limit, _ = side
                 inset = 0.25 / self.store.grid[a]
                 t_in[a] = min(t_in[a], limit) - inset if extreme else max(t_in[a], limit) + inset
         got = self.region_map(t_in)
