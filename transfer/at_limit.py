@@ -10,6 +10,7 @@ with the learner's extreme on the limit's axis either way. Used by :mod:`transfe
 
 from __future__ import annotations
 
+from bisect import bisect_right
 from collections.abc import Callable
 
 import numpy as np
@@ -41,7 +42,7 @@ class LimitMap:
             raise ValueError(f"unknown at_limit {at_limit!r}; known: {', '.join(AT_LIMIT)}")
         self.store, self.at_limit, self.region_map, self.beyond = store, at_limit, region_map, beyond
         self._rows_of: tuple | None = None  # the refined arrays the cached rows of _limit_row belong to
-        self._rows: dict[tuple[int, int], tuple[NDArray[np.int64], NDArray[np.float64]]] = {}
+        self._rows: dict[tuple[int, int], tuple[list[int], list[float], list[float]]] = {}
 
     def map(self, t_n: NDArray[np.float64], linear: bool = False) -> tuple | None:
         """A command saturated at a learned limit whose boundary has been driven (a bounded controller's commands
@@ -54,18 +55,19 @@ class LimitMap:
         without: the limit keeps its boundary pairs coming). A learner that cannot turn in place has its curvature at
         ``t_n``'s speed as its yaw-rate limit (``turn_edges_at``): commands there go to the full lock."""
         arrays = self.store.refined_arrays()
-        ids, _, T, L = arrays
-        if ids.size < 2:
+        if arrays[0].size < 2:
             return None
         sides = self._driven_limits(t_n)
-        if self.at_limit == "region" and not linear and any(sides):
+        if not (sides[0] or sides[1]):
+            return None
+        if self.at_limit == "region" and not linear:
             inside = self._inside_limit(t_n, [at[0] if at else None for at in sides])
             if inside is not None:
                 return inside
         for (a, b), at in zip(((0, 1), (1, 0)), sides):
             for extreme, _, row in at:
-                on_row, xs = self._limit_row(arrays, a, row)
-                if on_row.size < 2:
+                ids, xs, ls = self._limit_row(arrays, a, row)
+                if len(xs) < 2:
                     continue
                 x = float(t_n[b])
                 if not xs[0] <= x <= xs[-1]:
@@ -73,13 +75,12 @@ class LimitMap:
                         continue
                     got = self.beyond(t_n)
                     return np.where(np.arange(2) == a, extreme, got[0]), got[1], got[2], *got[3:]  # explored as ever
-                k = min(max(int(np.searchsorted(xs, x, side="right")), 1), on_row.size - 1)
-                i0, i1 = on_row[k - 1], on_row[k]
-                span = T[i1, b] - T[i0, b]
-                w = (x - T[i0, b]) / span if span > 0 else 0.5
+                k = min(max(bisect_right(xs, x), 1), len(xs) - 1)  # = np.searchsorted(xs, x, side="right")
+                span = xs[k] - xs[k - 1]
+                w = (x - xs[k - 1]) / span if span > 0 else 0.5
                 l_n = np.empty(2)
-                l_n[a], l_n[b] = extreme, L[i0, b] + w * (L[i1, b] - L[i0, b])
-                return l_n, "barycentric", (int(ids[i0]), int(ids[i1]))
+                l_n[a], l_n[b] = extreme, ls[k - 1] + w * (ls[k] - ls[k - 1])
+                return l_n, "barycentric", (ids[k - 1], ids[k])
         return None
 
     def _driven_limits(self, t_n: NDArray[np.float64]) -> list[list[tuple[float, float, int]]]:
@@ -90,11 +91,14 @@ class LimitMap:
         turning in place at the slowest speed, or turning hardest at the top speed) is at a limit of each axis."""
         lim, grid = self.store.limits, self.store.grid
         sides: list[list[tuple[float, float, int]]] = [[], []]
+        # Python floats and ints: the same comparisons as on the numpy scalars, without their cost per command
+        t, lims_lo, lims_hi = t_n.tolist(), lim.lo.tolist(), lim.hi.tolist()
+        bcnt_lo, bcnt_hi = lim.bcnt_lo.tolist(), lim.bcnt_hi.tolist()
         for a in (0, 1):
-            lo, hi = (lim.lo[a], lim.hi[a]) if a == 0 or not lim.needs_speed else lim.turn_edges_at(float(t_n[0]))
-            if lim.bcnt_hi[a] > 0 and t_n[a] >= hi - ALONG_LIMIT_TOL:
+            lo, hi = (lims_lo[a], lims_hi[a]) if a == 0 or not lim.needs_speed else lim.turn_edges_at(t[0])
+            if bcnt_hi[a] > 0 and t[a] >= hi - ALONG_LIMIT_TOL:
                 sides[a].append((1.0, float(hi), grid[a] - 1))
-            if lim.bcnt_lo[a] > 0 and t_n[a] <= lo + ALONG_LIMIT_TOL:
+            if bcnt_lo[a] > 0 and t[a] <= lo + ALONG_LIMIT_TOL:
                 sides[a].append((0.0, float(lo), 0))
         return sides
 
@@ -120,17 +124,18 @@ class LimitMap:
                 l_n[a] = side[0]
         return l_n, got[1], got[2]
 
-    def _limit_row(self, arrays: tuple, a: int, row: int) -> tuple[NDArray[np.int64], NDArray[np.float64]]:
-        """The refined pairs of the cells on ``row`` of axis ``a`` (indices into ``arrays``, the store's
-        :meth:`~transfer.store.PairStore.refined_arrays`) sorted along the other axis, and their teacher parts on
-        it; computed once per set of refined pairs (every command at a limit reads them)."""
+    def _limit_row(self, arrays: tuple, a: int, row: int) -> tuple[list[int], list[float], list[float]]:
+        """The refined pairs of the cells on ``row`` of axis ``a`` (of ``arrays``, the store's
+        :meth:`~transfer.store.PairStore.refined_arrays`) sorted along the other axis: their ids, their teacher parts
+        and their learner parts on it, as Python lists; computed once per set of refined pairs (every command at a
+        limit reads them, and a search of a sorted list costs less than numpy's on a small array)."""
         if self._rows_of is not arrays:
             self._rows_of, self._rows = arrays, {}
         got = self._rows.get((a, row))
         if got is None:
-            ids, _, T, _ = arrays
+            ids, _, T, L = arrays
             b = 1 - a
             on_row = np.flatnonzero(np.unravel_index(ids, self.store.grid)[a] == row)  # the pairs on that row
             on_row = on_row[np.argsort(T[on_row, b], kind="stable")]
-            got = self._rows[(a, row)] = (on_row, T[on_row, b])
+            got = self._rows[(a, row)] = (ids[on_row].tolist(), T[on_row, b].tolist(), L[on_row, b].tolist())
         return got

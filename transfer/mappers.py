@@ -76,9 +76,21 @@ class _Triangulated:
         #: every triangle's barycentric transform (scipy's ``Delaunay.transform`` layout: ``(n, 3, 2)``, the inverse
         #: of the edge matrix and the third vertex), computed once per triangulation (see :meth:`_transforms`)
         self._bary: NDArray[np.float64] | None = None
+        #: another mapper of the same store whose triangulation this one reads instead of building its own (the
+        #: same Delaunay triangulation of the same points: a policy's SC mapper and its barycentric fallback)
+        self.twin: _Triangulated | None = None
 
     def _sync(self) -> None:
         if self._rev == self.store.revision:
+            return
+        twin = self.twin
+        if twin is not None:  # the twin's triangulation of the same refined pairs, built once for both
+            twin._sync()
+            self._rev = twin._rev
+            self.ids, self.vers, self.T, self.L, self.tri = twin.ids, twin.vers, twin.T, twin.L, twin.tri
+            self._edges = None
+            self._bary = None
+            self._rebuilt()
             return
         self._rev = self.store.revision
         self.ids, self.vers, self.T, self.L = self.store.refined_arrays()
@@ -99,6 +111,8 @@ class _Triangulated:
         """The barycentric transforms of every triangle, vectorised. scipy computes the same array lazily on the
         first ``find_simplex`` after each triangulation, one LAPACK call per triangle: 0.5-3 ms on 121 pairs, paid
         on every command after the store's refined pairs moved (the station's steady state); this is ~20 us."""
+        if self._bary is None and self.twin is not None and self.twin.tri is self.tri:
+            self._bary = self.twin._transforms()  # the twin's triangles: the same transforms
         if self._bary is None:
             assert self.tri is not None
             S = self.tri.simplices
@@ -153,6 +167,8 @@ class _Triangulated:
         self._sync()
         if self.tri is None:
             return None
+        if self._edges is None and self.twin is not None and self.twin.tri is self.tri and self.twin._edges is not None:
+            self._edges = self.twin._edges  # the twin's hull of the same triangulation
         if self._edges is None:  # the hull's edges, once per triangulation (a hot path: every "direct" command)
             P = self.T
             e = self.tri.convex_hull

@@ -184,6 +184,10 @@ class _PolicyBase:
         # a triangle of refined pairs where the mapper has no usable region is interpolated linearly
         self._fallback = (BarycentricMapper(store)
                           if not identity and not isinstance(self.mapper, BarycentricMapper) else None)
+        if isinstance(self.mapper, ScmMapper):  # one Delaunay triangulation a store revision for the three of them
+            for linear in (self._fallback, self._affine):
+                if linear is not None:
+                    linear.twin = self.mapper
         self._choice = MapChoice(self.mapper) if choice and isinstance(self.mapper, ScmMapper) else None
         self.rng = rng if rng is not None else np.random.default_rng(seed)
         self._limits = LimitMap(store, at_limit, self._region_map, self._beyond_row)

@@ -76,6 +76,9 @@ class SourceContext:
     #: the commands are sent as they are (``[transfer] mapper = "identity"``): the learner's own range, which they
     #: are clipped to on the way, also bounds the learned limits
     direct_within: Bounds | None = None
+    #: the mission path's point closest to the pose proposed at, where the station found it already this tick
+    #: (arc length, segment: :func:`transfer.teacher._refs.closest_near`, bit for bit); None: not found yet
+    closest: tuple[float, int] | None = None
 
     def box(self) -> Bounds:
         """The box the teacher plans within: the learned limits' (the paper's method, Section 4.2), or with
@@ -160,7 +163,7 @@ class MpcSource:
         x = _pose(pose)
         t0 = self.clock.perf()
         res = self.teacher.solve(x, ctx.mission.path, ctx.box(), ctx.mission.obstacles, curvature=ctx.curvature(),
-                                 slow_for_bends=self.slow_always or ctx.store.slows_for_bends())
+                                 slow_for_bends=self.slow_always or ctx.store.slows_for_bends(), closest=ctx.closest)
         solve_ms = (self.clock.perf() - t0) * 1e3
         ctx.counters.obstacles_dropped += res.obstacles_dropped
         return Proposal(np.asarray(res.u, dtype=float), x, res.predicted, solver=res.solver, ok=res.ok,

@@ -251,6 +251,7 @@ class StationCore:
         self.outbox = Outbox(M.new_epoch(), period)
         self.mission_version = self.control.version
         self._near = 0  # the mission path's segment closest to the last pose (where the next search starts)
+        self._closest: tuple[float, int] | None = None  # this tick's closest point of the path (arc length, segment)
         #: what it says and why: the one reason it does (not) drive, the robot's fitness, where it stands
         self.verdict = Verdict(log)
 
@@ -459,10 +460,12 @@ class StationCore:
         verdict = self.verdict
         unfit = verdict.judged(*self.latest.fitness(now))
         c = self.control
+        self._closest = None
         if self.source.follows_mission and state is not None:
             path = self.mission.path  # the closest point in one compiled loop: a mission path has thousands of segments
             s, verdict.off_path, self._near = closest_near(path.points, path.s, path.seg_len, state.x, state.y,
                                                            self._near)  # = closest(...), from the last one's segment
+            self._closest = (s, self._near)  # the MPC's closest point too (this pose, this path): not searched again
             if c.phase == "running" and self.guards.anchor_pending:
                 self.guards.begin(s)
             if c.phase != "running" or unfit is not None:
@@ -505,7 +508,8 @@ class StationCore:
         """The source's proposal, mapped and made a command; or why not."""
         latest = self.latest
         ctx = SourceContext(self.mission, self.store, self.counters, self.verdict.why, latest.teacher,
-                            latest.teacher_at, latest.take_teacher(), self.teacher_limits, self.direct_within)
+                            latest.teacher_at, latest.take_teacher(), self.teacher_limits, self.direct_within,
+                            self._closest)
         prop = self.source.propose(now, state, ctx)
         if isinstance(prop, Why):
             return prop, None, None

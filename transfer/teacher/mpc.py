@@ -332,12 +332,15 @@ class MpcTeacher:
         v_ref: float | None = None,
         curvature: tuple[float, float] | None = None,
         slow_for_bends: bool = True,
+        closest: tuple[float, int] | None = None,
     ) -> MpcResult:
         """One MPC solve from ``state``; inputs bounded by ``limits`` (the learned limits) and, with
         ``turn_needs_speed``, by ``curvature`` (``(k_lo, k_hi)``, rad/m: ``k_lo v <= omega <= k_hi v``; an infinite
         side or None leaves that side to the box). ``slow_for_bends`` False: the references at the top speed this
         solve, whatever ``curve_margin`` (the caller's learned limits do not need the slowing:
-        :meth:`transfer.limits.LearnerLimits.turn_lost`)."""
+        :meth:`transfer.limits.LearnerLimits.turn_lost`). ``closest``: the path's point closest to ``state`` as
+        :func:`transfer.teacher._refs.closest_near` gives it (arc length, segment), where the caller found it
+        already for the same state and path (the station, for its off-path verdict): not searched again."""
         cfg = self.cfg
         N = cfg.N
         state = np.asarray(state, dtype=float)
@@ -345,7 +348,10 @@ class MpcTeacher:
         if xs is None or not (math.isfinite(xs[0]) and math.isfinite(xs[1]) and math.isfinite(xs[2])):
             raise ValueError(f"MPC state must be three finite numbers, got {state}")
         # the closest point of the path once for the slowing and the references (each found it again before)
-        s0, _, self._near = _refs.closest_near(path.points, path.s, path.seg_len, xs[0], xs[1], self._near)
+        if closest is not None:
+            s0, self._near = closest
+        else:
+            s0, _, self._near = _refs.closest_near(path.points, path.s, path.seg_len, xs[0], xs[1], self._near)
         if v_ref is not None:
             v = v_ref
         elif cfg.curve_margin > 0.0 and slow_for_bends:

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from transfer.domain import Bounds
-from transfer.mappers import BarycentricMapper
+from transfer.mappers import AffineMapper, BarycentricMapper
 from transfer.policy import (
     EXPLORATIONS,
     POLICIES,
@@ -167,3 +167,25 @@ def test_unperturbed_many_is_each_rows_own_unperturbed_mapping_and_its_linear_gu
     assert "scm" not in lin_methods and np.all(lb.contains(lin))
     inside = [k for k, m in enumerate(methods) if m == "scm"]
     assert np.max(np.abs(lb.normalise(lin[inside]) - lb.normalise(u[inside]))) < 0.05  # a guess, and a close one
+
+
+def test_the_linear_mappers_read_the_sc_mappers_triangulation_and_map_as_their_own_would() -> None:
+    """A policy's barycentric fallback and affine fit read its SC mapper's Delaunay triangulation (one build a store
+    revision for all three) and give exactly what mappers with a triangulation of their own give, also after the
+    store's refined pairs moved."""
+    rng = np.random.default_rng(5)
+    s = _store([(i, j) for i in range(1, 10, 2) for j in range(0, 11, 3)])
+    pol = make_policy(s, "scm", exploration="guided")
+    own, fit = BarycentricMapper(s), AffineMapper(s)
+    for k in range(3):
+        pts = rng.uniform(0.0, 1.0, (40, 2))
+        for p in pts:
+            a, b = pol._fallback.map_normalised(p), own.map_normalised(p)
+            assert (a is None) == (b is None) and (a is None or np.array_equal(a[0], b[0]))
+            a, b = pol._fallback.nearest_on_hull(p), own.nearest_on_hull(p)
+            assert np.array_equal(a[0], b[0]) and a[1] == b[1]
+            assert np.array_equal(pol._affine.extrapolate(p), fit.extrapolate(p))
+        assert pol._fallback.tri is pol.mapper.tri is not None and pol._affine.tri is pol.mapper.tri
+        assert pol._fallback._transforms() is pol.mapper._transforms()
+        n = (np.array([2 * k + 1, 4]) + 0.7) / 11  # a pair moves: a new revision, one new triangulation
+        s.add(n, n)

@@ -202,15 +202,18 @@ def test_learned_limits_under_commands_sent_as_they_are_end_at_the_learners_rang
 
 
 class _RecordingMpc:
-    """An MPC teacher's stand-in that records whether each solve was asked to slow for bends."""
+    """An MPC teacher's stand-in that records whether each solve was asked to slow for bends, and the closest point
+    of the path it was given."""
 
     def __init__(self) -> None:
         self.slow: list[bool] = []
+        self.closest: list[tuple[float, int] | None] = []
 
-    def solve(self, x, path, box, obstacles, curvature=None, slow_for_bends=True):
+    def solve(self, x, path, box, obstacles, curvature=None, slow_for_bends=True, closest=None):
         from types import SimpleNamespace
 
         self.slow.append(slow_for_bends)
+        self.closest.append(closest)
         return SimpleNamespace(u=[0.1, 0.0], predicted=None, solver="fake", ok=True, obstacles_dropped=0)
 
 
@@ -228,3 +231,14 @@ def test_the_mpc_slows_for_bends_once_the_learner_changed_or_always_where_the_st
     assert changed.slow == [False] and always.slow == [True]
     cfg = msgspec.convert({"teacher": {"slow_for_bends": "always"}}, StationConfig)
     assert make_source(cfg, 0.1).slow_always and not make_source(StationConfig(), 0.1).slow_always
+
+
+def test_the_mpc_is_given_the_closest_point_the_station_found_for_the_same_pose() -> None:
+    """The station finds the path's point closest to the pose for its off-path verdict; the MPC's solve is handed
+    it (``SourceContext.closest``) instead of searching the path again, and searches only where none was found."""
+    from bridge.nodes.sources import MpcSource
+
+    mpc = _RecordingMpc()
+    MpcSource(mpc).propose(1.0, POSE, _ctx(closest=(1.25, 3)))
+    MpcSource(mpc).propose(1.1, POSE, _ctx())
+    assert mpc.closest == [(1.25, 3), None]

@@ -151,6 +151,26 @@ def test_the_compiled_references_are_the_polylines_own_samples() -> None:
 
 
 
+def test_a_closest_point_given_by_the_caller_is_the_one_the_solve_uses_and_the_same_as_its_own() -> None:
+    """``solve(closest=...)``: the caller's closest point of the path (the station found it for its off-path
+    verdict) stands for the solve's own search: the very same solution where it is that point, and a different
+    one where it is not (it is used, not searched again)."""
+    from transfer.teacher._refs import closest_near
+
+    world = mpc_world()
+    p, limits = world.path, Bounds((0.05, 0.3), (-0.2, 0.26))
+    own, given = MpcTeacher(MpcConfig(N=15)), MpcTeacher(MpcConfig(N=15))
+    x, near = world.start.copy(), 0
+    for _ in range(40):
+        s0, _, near = closest_near(p.points, p.s, p.seg_len, float(x[0]), float(x[1]), near)
+        a = own.solve(x, p, limits, world.obstacles)
+        b = given.solve(x, p, limits, world.obstacles, closest=(s0, near))
+        assert np.array_equal(a.u, b.u) and np.array_equal(a.predicted, b.predicted)
+        x = step(x, a.u, 0.1)
+    off = given.solve(x, p, limits, world.obstacles, closest=(s0 + 1.0, near))
+    assert not np.allclose(off.refs, own.solve(x, p, limits, world.obstacles).refs)
+
+
 def _drive(cfg: MpcConfig, limits: Bounds) -> tuple[float, float]:
     """The full-size MPC world from a pose on its path, driven by a vehicle that does what the MPC asks: (time to the
     goal s, mean deviation m)."""
