@@ -73,7 +73,6 @@ from transfer.limits import LearnerLimits, grid_cell
 from transfer.store_adapt import CellChanges, Shifts
 from transfer.store_cells import CellSums
 from transfer.store_io import READS_VERSIONS, SCHEMA, SCHEMA_VERSION
-from transfer.store_settle import SettledPairs
 from transfer.store_spread import ChangeSpread
 
 __all__ = ["READS_VERSIONS", "SCHEMA", "SCHEMA_VERSION", "AddResult", "CellChange", "PairStore", "RefinedPair"]
@@ -167,7 +166,6 @@ class PairStore:
         self.shifts = Shifts(self.cells, self.change, self.move_tol, SHARED_WINDOW_K * self.k_min, SHARED_AGREE,
                              TRACK_SIGMAS)
         self.spreading = ChangeSpread(self)  # a change spread to the cells not driven since (off by default)
-        self.settling = SettledPairs(self.change._slope_list, self.grid)  # a pair counts once settled (with adapt)
         self.added = 0  # raw pairs taken
         self.set_adapt(adapt)
 
@@ -191,11 +189,6 @@ class PairStore:
         cells, shifts = self.cells, self.shifts
         self.added += 1
         refined_changed = False
-        prev = None if prev_u_L is None else clamp(
-            self.learner_bounds.normalise(np.asarray(prev_u_L, dtype=float).reshape(2)), 0.0, 1.0)
-        if not self.settling.settled(cell, t_n.tolist(), l_n.tolist(), None if prev is None else prev.tolist(),
-                                     self.change.change_tol):
-            return AddResult(cell, False, self.limits.update(t_n, l_n, cell, prev))
         if self.adapt:
             self.spreading.before(cell)
             if cells.pub_version[cell] > 0 and self.change._changed(cell, t_n, l_n):
@@ -219,6 +212,8 @@ class PairStore:
                 refined_changed = True
         if self.adapt:
             refined_changed = self.spreading.after(cell) or refined_changed
+        prev = None if prev_u_L is None else clamp(
+            self.learner_bounds.normalise(np.asarray(prev_u_L, dtype=float).reshape(2)), 0.0, 1.0)
         limits_changed = self.limits.update(t_n, l_n, cell, prev)
         return AddResult(cell, refined_changed, limits_changed)
 
@@ -310,7 +305,6 @@ class PairStore:
     def set_adapt(self, on: bool) -> None:
         """Change detection on or off from now on (a station's configuration), the limits' memory and test with it."""
         self.adapt, self.limits.memory = bool(on), (LIMIT_MEMORY_K * self.k_min if on else 0)
-        self.settling.on = self.adapt
         self.limits.set_change_test(max(self.k_min, 2) if on else 0, self.change.change_tol, self.change.change_sigmas)
 
     # ----------------------------------------------------------------------------------------- persistence
