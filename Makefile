@@ -28,15 +28,17 @@ $(PY):
 
 $(STAMP): $(PY) $(LOCK) pyproject.toml
 	@$(call check_python,$(PY))
-	$(PY) -m pip install --quiet --require-hashes --only-binary=:all: -r $(LOCK)
-	$(PY) -m pip install --quiet --no-deps --no-build-isolation -e .
-	@# the project's bytecode once (pip compiles the packages it installs, not an editable project): every process the
-	@# suite or a lab starts then loads it instead of compiling the sources again (none writes it with
-	@# PYTHONDONTWRITEBYTECODE set)
-	$(PY) -m compileall -q bridge transfer drivers sim_learner bench tests
-	@# the compiled kernels (SC map, MPC references) once, into numba's on-disk cache, instead of in every process
-	@# that first needs them (a station starting beside others, or a test's, would spend tens of seconds)
-	$(PY) -c '$(WARMUP)'
+	$(PY) -m pip install --quiet --no-compile --require-hashes --only-binary=:all: -r $(LOCK)
+	$(PY) -m pip install --quiet --no-compile --no-deps --no-build-isolation -e .
+	@# Two jobs at once, each on a core of its own (pip would compile the packages alone, one file after another):
+	@# - the bytecode of every installed package and of the project, once: every process the suite or a lab starts
+	@#   then loads it instead of compiling the sources again (none writes it with PYTHONDONTWRITEBYTECODE set); as
+	@#   with pip's own compiling, a file that is not valid Python 3 (a package's Python 2 examples) is left as it is;
+	@# - the compiled kernels (SC map, MPC references) once, into numba's on-disk cache, instead of in every process
+	@#   that first needs them (a station starting beside others, or a test's, would spend tens of seconds).
+	{ $(PY) -m compileall -q -j 0 $$($(PY) -c 'import sysconfig; print(sysconfig.get_paths()["purelib"])') \
+		bridge transfer drivers sim_learner bench tests >/dev/null 2>&1 || true; } & compiling=$$!; \
+	$(PY) -c '$(WARMUP)'; warmed=$$?; wait $$compiling; exit $$warmed
 	touch $(STAMP)
 
 # The shipped units (deploy/systemd/) run with NUMBA_CACHE_DIR=$(SERVICE_CACHE)/numba and their cache directory

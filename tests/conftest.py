@@ -9,11 +9,18 @@ import os
 import pytest
 from hypothesis import settings
 
+from tests.rewrite_share import share_rewriting
 from tests.schedule import LONGEST, SLOW_DEFAULT_S, order
 
 settings.register_profile("suite", derandomize=True, print_blob=True)
 settings.register_profile("explore", derandomize=False, print_blob=True)
 settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "suite"))
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    """An xdist worker writes its part of the suite's rewritten test modules before it collects, and loads the
+    others' (tests/rewrite_share.py): the suite is rewritten about once, not once per worker."""
+    share_rewriting(config)
 
 
 @pytest.fixture(autouse=True)
