@@ -4,7 +4,7 @@
 pytest rewrites the ``assert`` statements of every test module and conftest it imports (parse, rewrite, compile) and
 caches the result in ``__pycache__`` (a hash-checked ``.pyc`` tagged ``-pytest-``) unless bytecode writing is off.
 The suite runs with ``PYTHONDONTWRITEBYTECODE`` set (CI, and the shells the suite is developed in), so each worker
-rewrote the whole suite at every start: with four workers on two cores a large part of pytest's start-up. Here each
+rewrote the whole suite at every start: with several workers on two cores a large part of pytest's start-up. Here each
 worker writes those cached files itself, from its own part of the list of files onwards (the workers start at
 different places, so each file is rewritten about once in all), and skips a file whose cached copy is current (the
 source hash in its header matches). pytest then loads the cached copy when it imports the module; it checks the
