@@ -59,11 +59,11 @@ def _scan(points: np.ndarray, s_cum: np.ndarray, seg_len: np.ndarray, x: float, 
     return s0, best, at
 
 
-@njit(cache=True, error_model="numpy")
 def references(points: np.ndarray, s_cum: np.ndarray, seg_len: np.ndarray, heading: np.ndarray, x: float,
                y: float, theta: float, spacing: float, n: int) -> np.ndarray:
     """``n`` poses (x, y, heading) from the point of the path closest to (x, y), ``spacing`` metres apart (clipped
-    to the path); the first heading within pi of ``theta``, each next within pi of the one before."""
+    to the path); the first heading within pi of ``theta``, each next within pi of the one before. The two compiled
+    loops composed in Python (the MPC's solve finds the closest point once and calls :func:`references_from`)."""
     s0, _ = closest(points, s_cum, seg_len, x, y)
     return references_from(points, s_cum, seg_len, heading, s0, theta, spacing, n)
 
@@ -95,13 +95,13 @@ def references_from(points: np.ndarray, s_cum: np.ndarray, seg_len: np.ndarray, 
     return out
 
 
-@njit(cache=True, error_model="numpy")
 def curve_speed(points: np.ndarray, s_cum: np.ndarray, seg_len: np.ndarray, curvature: np.ndarray, x: float,
                 y: float, v_max: float, v_min: float, w_lo: float, w_hi: float, margin: float,
                 horizon: float) -> float:
     """The top speed at which every bend of the path within ``horizon`` s (at ``v_max``) of the point closest to
     (x, y) can be turned at ``margin`` of the yaw-rate bound on its side (``w_hi`` for a left bend, ``w_lo`` for a
-    right one): ``v = margin * |w| / |curvature|``, never above ``v_max`` nor below ``v_min``."""
+    right one): ``v = margin * |w| / |curvature|``, never above ``v_max`` nor below ``v_min``. The two compiled
+    loops composed in Python, as :func:`references`."""
     s0, _ = closest(points, s_cum, seg_len, x, y)
     return curve_speed_from(s_cum, curvature, s0, v_max, v_min, w_lo, w_hi, margin, horizon)
 
