@@ -133,14 +133,15 @@ _NEXT_DEADLINE = operator.attrgetter("ticker.t_next")
 class FleetLoop:
     """Every robot of a process ticked by one thread (``station --robots``, ``--shard``), or by a few
     (``threads``, ``station --loop-threads``), each robot always by the same one: each robot on its own deadlines
-    (:class:`Deadlines`, its first at its phase: the robots' ticks spread evenly over the period, and dealt to the
-    threads in phase order, so one thread's robots are spread over the period too), the one due first ticked first,
-    woken robots (a query, an external teacher's command) handled between two ticks as a robot's own loop handles
-    them. One thread instead of a thread per robot: the robots' loops no longer queue for the interpreter lock
-    against each other (and Zenoh's threads), which cost CPU on every hand-over and let a late tick progress slowly
-    through many frames (docs/FLEET.md). Zenoh's callbacks are unchanged: they fill each robot's inbox. A robot
-    whose tick raises is logged and left stopped (its driver host's deadman stops the vehicle); the others drive
-    on. ``clock``: the time and the waits (every reading and wait of the loop is the clock's)."""
+    (:class:`Deadlines`, its first at its phase: the robots' ticks spread evenly over the period, at most ``slots``
+    instants of it (:func:`phases`), and dealt to the threads in phase order, so one thread's robots are spread over
+    the period too), the one due first ticked first, woken robots (a query, an external teacher's command) handled
+    between two ticks as a robot's own loop handles them. One thread instead of a thread per robot: the robots' loops
+    no longer queue for the interpreter lock against each other (and Zenoh's threads), which cost CPU on every
+    hand-over and let a late tick progress slowly through many frames (docs/FLEET.md). Zenoh's callbacks are
+    unchanged: they fill each robot's inbox. A robot whose tick raises is logged and left stopped (its driver host's
+    deadman stops the vehicle); the others drive on. ``clock``: the time and the waits (every reading and wait of
+    the loop is the clock's); ``slots``: the instants of the period the robots are due at (:data:`FLEET_SLOTS`)."""
 
     def __init__(self, stations: list[Ticked], stop: threading.Event, duration: float | None,
                  exit_at_goal: bool, threads: int = 1, clock: Clock = SYSTEM, slots: int = FLEET_SLOTS) -> None:
