@@ -467,7 +467,9 @@ def tick_alone(count: int, ticks: int, level: dict, env: dict[str, str] | None, 
     """What the fleet's ticks cost alone: ``scmbridge bench tick --count`` (the station's whole tick in one process
     for ``count`` robots, one after the other each period, no Zenoh) run right after the level on the same machine,
     and the fleet's station CPU per robot-tick over it (``fleet_over_tick``: what serving them over Zenoh, the loop
-    and the status cost on top of the ticks). ``options``: more of ``bench tick``'s options."""
+    and the status cost on top of the ticks), with ``bench tick``'s ``reference_ratio`` (the machine's speed before and
+    after it, as a multiple of its quiet value: the load the tick alone was measured at). ``options``: more of
+    ``bench tick``'s options."""
     import json
     import subprocess
 
@@ -480,7 +482,8 @@ def tick_alone(count: int, ticks: int, level: dict, env: dict[str, str] | None, 
     except (subprocess.SubprocessError, ValueError) as exc:
         return {"tick_alone": {"failed": str(exc)[:300]}}
     alone = {"robots": count, "ticks": res["ticks"], "process_ms_per_tick": res["process_ms_per_tick"],
-             **{f"tick_{k}_ms": v for k, v in res["cpu_ms_per_tick"].items()}}
+             **{f"tick_{k}_ms": v for k, v in res["cpu_ms_per_tick"].items()},
+             "reference_ratio": res.get("reference_ratio")}
     fleet = level.get("station_cpu_ms_per_tick")
     ratio = _r(fleet / res["process_ms_per_tick"]) if fleet and res["process_ms_per_tick"] > 0 else None
     return {"tick_alone": alone, "fleet_over_tick": ratio}

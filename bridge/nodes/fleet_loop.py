@@ -46,6 +46,9 @@ log = logging.getLogger("scmbridge.station")
 FLEET_SWITCH_INTERVAL_S = 0.0005
 #: threads that tick a many-robot process's robots (:class:`FleetLoop`; ``station --loop-threads``)
 DEFAULT_LOOP_THREADS = 1
+#: instants of the period at which a many-robot process's robots are due (:func:`phases`): with more
+#: robots than this, the robots sharing an instant are ticked back to back on one wake-up of the loop
+FLEET_SLOTS = 10
 
 
 class Deadlines:
@@ -110,6 +113,19 @@ class FleetWake:
         return False
 
 
+def phases(n: int, slots: int = FLEET_SLOTS) -> list[float]:
+    """When each of a process's ``n`` robots (in their order) is first due, as a share of the period after the loop
+    starts: ``min(n, slots)`` instants spread evenly over the period, the robots dealt to them in order, as evenly
+    as they go. Up to ``slots`` robots each have an instant of their own (their ticks a ``1 / n`` period apart);
+    beyond, the robots of one instant are ticked back to back, so the loop wakes once for them instead of once
+    each, and their ticks run one after another on code the first one brought into the caches (each wake-up is a
+    switch of the thread and a cold start of the tick's code; docs/FLEET.md). The later robots of an instant start
+    their tick later by the ticks before them (a few milliseconds of a 100 ms period), which :class:`Deadlines`
+    does not count as missed unless the tick ends past the robot's next deadline."""
+    k = max(1, min(int(n), int(slots)))
+    return [(i * k // n) / k for i in range(n)]
+
+
 #: the key of the robot due first (C-implemented: called for every robot at every turn of the loop)
 _NEXT_DEADLINE = operator.attrgetter("ticker.t_next")
 
@@ -117,18 +133,19 @@ _NEXT_DEADLINE = operator.attrgetter("ticker.t_next")
 class FleetLoop:
     """Every robot of a process ticked by one thread (``station --robots``, ``--shard``), or by a few
     (``threads``, ``station --loop-threads``), each robot always by the same one: each robot on its own deadlines
-    (:class:`Deadlines`, its first at its phase: the robots' ticks spread evenly over the period, and dealt to the
-    threads in phase order, so one thread's robots are spread over the period too), the one due first ticked first,
-    woken robots (a query, an external teacher's command) handled between two ticks as a robot's own loop handles
-    them. One thread instead of a thread per robot: the robots' loops no longer queue for the interpreter lock
-    against each other (and Zenoh's threads), which cost CPU on every hand-over and let a late tick progress slowly
-    through many frames (docs/FLEET.md). Zenoh's callbacks are unchanged: they fill each robot's inbox. A robot
-    whose tick raises is logged and left stopped (its driver host's deadman stops the vehicle); the others drive
-    on. ``clock``: the time and the waits (every reading and wait of the loop is the clock's)."""
+    (:class:`Deadlines`, its first at its phase: the robots' ticks spread evenly over the period, at most ``slots``
+    instants of it (:func:`phases`), and dealt to the threads in phase order, so one thread's robots are spread over
+    the period too), the one due first ticked first, woken robots (a query, an external teacher's command) handled
+    between two ticks as a robot's own loop handles them. One thread instead of a thread per robot: the robots' loops
+    no longer queue for the interpreter lock against each other (and Zenoh's threads), which cost CPU on every
+    hand-over and let a late tick progress slowly through many frames (docs/FLEET.md). Zenoh's callbacks are
+    unchanged: they fill each robot's inbox. A robot whose tick raises is logged and left stopped (its driver host's
+    deadman stops the vehicle); the others drive on. ``clock``: the time and the waits (every reading and wait of
+    the loop is the clock's); ``slots``: the instants of the period the robots are due at (:data:`FLEET_SLOTS`)."""
 
     def __init__(self, stations: list[Ticked], stop: threading.Event, duration: float | None,
-                 exit_at_goal: bool, threads: int = 1, clock: Clock = SYSTEM) -> None:
-        self.stations, self.stop, self.clock = stations, stop, clock
+                 exit_at_goal: bool, threads: int = 1, clock: Clock = SYSTEM, slots: int = FLEET_SLOTS) -> None:
+        self.stations, self.stop, self.clock, self.slots = stations, stop, clock, slots
         self.duration, self.exit_at_goal = duration, exit_at_goal
         k = max(1, min(int(threads), len(stations)))
         self.groups = [stations[i::k] for i in range(k)]
@@ -140,10 +157,9 @@ class FleetLoop:
 
     def run(self) -> None:
         """Tick every robot until ``stop`` (or ``duration``, or, with ``exit_at_goal``, each robot's goal)."""
-        n = len(self.stations)
         t0 = self.clock()
-        for i, st in enumerate(self.stations):
-            st.ticker = Deadlines(st.period, t0 + i * st.period / n)
+        for st, phase in zip(self.stations, phases(len(self.stations), self.slots)):
+            st.ticker = Deadlines(st.period, t0 + phase * st.period)
             st.begin()
         if len(self.groups) == 1:
             self._run(self.groups[0], self.wakes[0])
@@ -237,4 +253,5 @@ class FleetLoop:
             st.undeclare()
 
 
-__all__ = ["DEFAULT_LOOP_THREADS", "FLEET_SWITCH_INTERVAL_S", "Deadlines", "FleetLoop", "FleetWake", "Ticked"]
+__all__ = ["DEFAULT_LOOP_THREADS", "FLEET_SLOTS", "FLEET_SWITCH_INTERVAL_S", "Deadlines", "FleetLoop", "FleetWake",
+           "Ticked", "phases"]

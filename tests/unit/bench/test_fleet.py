@@ -15,6 +15,7 @@ def test_the_tick_alone_is_measured_and_the_fleets_cost_put_over_it() -> None:
     assert "failed" not in alone, alone
     assert alone["robots"] == 2 and alone["ticks"] == 2 * 10
     assert alone["process_ms_per_tick"] > 0 and alone["tick_mean_ms"] > 0 and alone["tick_p99_ms"] > 0
+    assert len(alone["reference_ratio"]) == 2 and min(alone["reference_ratio"]) > 0  # the load it was measured at
     assert got["fleet_over_tick"] == round(3.0 / alone["process_ms_per_tick"], 2)
     assert tick_alone(2, 10, {}, dict(os.environ), ("--no-compile", "--tiles", "1"))["fleet_over_tick"] is None
 

@@ -8,7 +8,8 @@ import threading
 
 import pytest
 
-from bridge.nodes.fleet_loop import Deadlines, FleetWake
+from bridge.nodes.fleet_loop import Deadlines, FleetLoop, FleetWake, phases
+from tests.fakeclock import FakeClock
 
 PERIOD = 0.1
 
@@ -38,3 +39,53 @@ def test_a_wake_sets_the_shared_event_and_is_taken_once() -> None:
     assert shared.is_set() and w.is_set()
     assert w.take() and not w.is_set()
     assert not w.take()  # taken once
+
+
+def test_phases_spread_the_robots_over_the_period_and_share_instants_beyond_the_slots() -> None:
+    assert phases(3, slots=5) == pytest.approx([0, 1 / 3, 2 / 3])  # few robots: an instant each
+    assert phases(25, slots=5) == pytest.approx([k / 5 for k in range(5) for _ in range(5)])
+    seven = phases(7, slots=5)
+    assert seven == sorted(seven) and set(seven) == {k / 5 for k in range(5)}
+    assert max(seven.count(p) for p in seven) - min(seven.count(p) for p in seven) <= 1  # as evenly as they go
+    assert phases(1, slots=5) == [0.0] and phases(4, slots=1) == [0.0] * 4
+
+
+class _Robot:
+    """What the loop ticks (:class:`bridge.nodes.fleet_loop.Ticked`), recording when it was ticked."""
+
+    def __init__(self, name: str) -> None:
+        self.robot, self.period, self.ticker, self.wake = name, PERIOD, None, None
+        self.core = type("Core", (), {"finished": False})()
+        self.pubs: dict = {}
+        self.ticks: list[float] = []
+
+    def tick(self, now: float, periodic: bool = True) -> None:
+        self.ticks.append(now)
+
+    def between_ticks(self) -> bool:
+        return False
+
+    def begin(self) -> None: ...
+
+    def end(self) -> None: ...
+
+    def undeclare(self) -> int:
+        return 0
+
+
+def test_the_robots_of_one_instant_are_ticked_on_one_wake_up() -> None:
+    clock = FakeClock()
+    waits: list[float] = []
+    wait = clock.wait
+
+    def counted(event: threading.Event, timeout: float | None) -> bool:
+        waits.append(clock.t)
+        return wait(event, timeout)
+
+    clock.wait = counted  # type: ignore[method-assign]
+    robots = [_Robot(f"r{i}") for i in range(6)]
+    t0 = clock.t
+    FleetLoop(robots, threading.Event(), duration=5 * PERIOD - 1e-6, exit_at_goal=False, clock=clock, slots=2).run()
+    for i, r in enumerate(robots):  # two instants half a period apart, three robots each, every period
+        assert r.ticks == pytest.approx([t0 + (i // 3) * PERIOD / 2 + k * PERIOD for k in range(5)])
+    assert len(waits) <= 2 * 5 + 1  # one wake-up per instant (and the last one, to the end), not one per robot
