@@ -45,6 +45,7 @@ reloads as for one it learns from no pairs) and not (the paper's store). Its sum
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import time
 from collections.abc import Callable, Sequence
@@ -295,11 +296,19 @@ def reloaded_figures(run: DriftRun) -> dict:
             "dev_last_half_m": float(dev[half].mean())}
 
 
+@functools.lru_cache(maxsize=8)
+def _first_run(seed: int, tiles: int, solver: str, curve_margin: float) -> DriftRun:
+    """``--reloaded``'s first run (the unchanged learner from no pairs), the same for every scenario reloaded from it:
+    deterministic, so driven once per process and shared (each reloaded run drives a copy of its store)."""
+    first, _ = drive(CONTROL, seed, adapt=False, tiles=tiles, solver=solver, curve_margin=curve_margin)
+    return first
+
+
 def reloaded_summary(scenario: str, seed: int, tiles: int = TILES, solver: str = "ipopt",
                      change_tol: float = CHANGE_TOL, curve_margin: float = CURVE_MARGIN) -> dict:
     """``--reloaded`` (module docstring) on one seed: the first run's store, then the changed learner driven from it
     re-learning its changed cells (``adaptive``) and not (``baseline``)."""
-    first, _ = drive(CONTROL, seed, adapt=False, tiles=tiles, solver=solver, curve_margin=curve_margin)
+    first = _first_run(seed, tiles, solver, curve_margin)
     assert first.store is not None
     out = {"experiment": "drift-reloaded", "scenario": scenario, "seed": seed, "tiles": tiles, "change_tol": change_tol,
            "curve_margin": curve_margin, "learned": {"refined_pairs": first.store.n_configured(),

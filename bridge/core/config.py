@@ -25,7 +25,7 @@ else:  # pragma: no cover
     import tomli as tomllib
 from importlib import resources
 from pathlib import Path
-from typing import Annotated, Any, Literal, TypeVar, Union, get_args, get_origin, get_type_hints
+from typing import TYPE_CHECKING, Annotated, Any, Literal, TypeVar, Union, get_args, get_origin, get_type_hints
 
 import msgspec
 from msgspec import Meta, Struct, field
@@ -34,9 +34,10 @@ from bridge.core.errors import UsageError
 from bridge.core.paths import TEXT_FILE, NotAFile, read_bounded, state_dir
 from bridge.core.wire import MissionSpec
 from transfer import paper
-from transfer.domain import Bounds
-from transfer.mission import Mission
-from transfer.teacher.path import Polyline
+
+if TYPE_CHECKING:  # imported where first used: a tool that only reads a file never loads the numerical stack
+    from transfer.domain import Bounds
+    from transfer.mission import Mission
 
 
 class ConfigError(UsageError, ValueError):
@@ -81,6 +82,8 @@ class BoundsConfig(Cfg):
                 raise Rule(f"{name} = [{lo}, {hi}]: min must be < max")
 
     def bounds(self) -> Bounds:
+        from transfer.domain import Bounds
+
         return Bounds(tuple(self.v), tuple(self.w))
 
 
@@ -505,6 +508,9 @@ SHIPPED_MISSIONS = {"paper-s-path": "paper_s_path.toml", "paper-primitives-s-pat
 
 def mission_from_spec(spec: MissionSpec) -> Mission:
     """The method's :class:`transfer.mission.Mission` for a validated spec (file or message)."""
+    from transfer.mission import Mission
+    from transfer.teacher.path import Polyline
+
     return Mission(spec.name, Polyline(spec.path), spec.obstacles or [], spec.goal_tolerance, spec.start, spec.frame)
 
 

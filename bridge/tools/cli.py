@@ -21,7 +21,6 @@ import shlex
 import signal
 import sys
 from dataclasses import dataclass
-from importlib import metadata
 from pathlib import Path
 from typing import Any
 
@@ -152,6 +151,8 @@ class _Formatter(argparse.RawDescriptionHelpFormatter):
 
 
 def version() -> str:
+    from importlib import metadata  # here, not at the top: only --version asks, and every command starts here
+
     try:
         return metadata.version("scmbridge")
     except metadata.PackageNotFoundError:

@@ -119,3 +119,4 @@ def test_a_store_reloaded_on_a_changed_learner_is_relearned_and_on_an_unchanged_
     a, b = same["adaptive"], same["baseline"]
     assert a["reached_goal"] and not a["collisions"] and a["relearned"] == 0, same
     assert a["dev_last_half_m"] <= 1.25 * b["dev_last_half_m"], same
+    assert same["learned"] == wheel["learned"] and D._first_run.cache_info().hits >= 1  # one first run for both

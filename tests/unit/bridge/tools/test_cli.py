@@ -137,3 +137,18 @@ def test_ctrl_c_raises_keyboardinterrupt_also_where_the_parent_ignored_sigint() 
     assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
     with pytest.raises(KeyboardInterrupt):
         signal.raise_signal(signal.SIGINT)
+
+
+def test_a_tool_that_only_talks_over_zenoh_starts_without_the_numerical_stack() -> None:
+    """The operator's tools (mission, estop, engage, status) and the configuration they read load neither numpy nor
+    the package metadata (only ``--version`` asks for it): every start of one stays cheap. In a fresh interpreter,
+    since this one has both loaded."""
+    import subprocess
+    import sys
+
+    mods = ["bridge.tools.cli", "bridge.tools.mission", "bridge.tools.estop", "bridge.tools.engage",
+            "bridge.tools.status", "bridge.core.config"]
+    code = (f"import sys; import {', '.join(mods)}; "
+            "print(sorted(m for m in ('numpy', 'importlib.metadata') if m in sys.modules))")
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    assert done.returncode == 0 and done.stdout.strip() == "[]", done.stdout + done.stderr
