@@ -137,7 +137,9 @@ def test_commands_reach_the_bus_as_wheel_speeds_and_odometry_returns_the_pose(ri
 def _assert_held_while_sending(rig: Rig, seconds: float = 1.0) -> None:
     """Keep calling send(0.3, 0) for ``seconds``: the body must not move and no driving set-point may reach a
     wheel; the driver must not clear or re-arm anything by itself."""
-    rig.run(0.15, 0.3, 0.0)  # let the stop take effect
+    t_end = time.monotonic() + 10.0
+    while rig.body().v != 0.0 and time.monotonic() < t_end:  # the stop takes effect (braking): waited for
+        rig.run(0.02, 0.3, 0.0)
     t0 = time.monotonic()
     b0 = rig.body()
     x0, y0, th0 = b0.x, b0.y, b0.theta
