@@ -269,8 +269,7 @@ def test_a_driver_host_that_stalled_reads_the_heartbeats_waiting_on_the_bus_befo
         def put(self, data: bytes) -> None:
             pass
 
-    rig.ecus.watchdog = 5.0  # controllers whose watchdog outlasts the stall (else they fault, as they must), also
-    # when a loaded machine adds its own to the test's 0.6 s
+    rig.ecus.watchdog = 1.0  # controllers whose watchdog outlasts the stall (else they fault, as they must)
     host = DriverHost(DriverConfig(), "can", rig.driver, "r1", 50.0)
     host.pubs = {"state": Pub(), "applied": Pub()}
     host.engaged = True
