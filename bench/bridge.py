@@ -129,7 +129,7 @@ LIMITER_KEYS = "v_accel = 1.0\nomega_accel = 2.0\nv_jerk = 10.0\nomega_jerk = 20
 
 
 def run_link(link: str, seconds: float, workdir: str, random_phase: bool = False, beside: int = 0,
-             limiter: bool = False) -> dict:
+             limiter: bool = False, min_latencies: int = 0, min_beside_ticks: int = 0, overtime: float = 60.0) -> dict:
     """Commands at 50 Hz for ``seconds`` through the driver host on ``link``; latency, loop timing, memory.
 
     The host's loop ticks at 50 Hz too, and it sends at most ``max_send_hz`` (100 Hz): a command that arrives less
@@ -139,7 +139,10 @@ def run_link(link: str, seconds: float, workdir: str, random_phase: bool = False
     so every phase is sampled in every run: what ``bench perf`` judges, where a figure must not be a lottery.
     ``beside``: that many robots ticked by a real station process on the same router for the whole run
     (:class:`BesideStation`), which is up and driving before the first command is measured. ``limiter``: the
-    driver host limits acceleration and jerk (:data:`LIMITER_KEYS`, CAN only: its ``[driver.hard_limits]``)."""
+    driver host limits acceleration and jerk (:data:`LIMITER_KEYS`, CAN only: its ``[driver.hard_limits]``).
+    ``min_latencies`` / ``min_beside_ticks``: the commands go on past ``seconds`` (for at most ``overtime`` s more)
+    until that many latencies were measured and the station beside ticked that often, so a machine that stalls the
+    processes makes the run longer instead of its figures fewer (what a test that needs a count asks for)."""
     rng = np.random.default_rng(0)
 
     from bridge.core import wire as M
@@ -147,6 +150,7 @@ def run_link(link: str, seconds: float, workdir: str, random_phase: bool = False
     from bridge.nodes.zsession import free_port, make_config, open_session, tcp
 
     port = free_port()
+    life = seconds + (overtime if min_latencies or min_beside_ticks else 0.0)  # the longest the commands may go on
     robot = f"bench{link}"
     keys = Keys(robot)
     sent: dict[int, float] = {}
@@ -171,10 +175,10 @@ def run_link(link: str, seconds: float, workdir: str, random_phase: bool = False
         session.declare_subscriber(status_key(robot, "driver"), on_status)
         station = None
         if beside > 0:
-            station = BesideStation(kids, session, port, beside, Path(workdir), seconds + 120 + 10 * beside)
+            station = BesideStation(kids, session, port, beside, Path(workdir), life + 120 + 10 * beside)
             if not station.up(60.0 + 10.0 * beside):
                 raise RuntimeError(f"the station beside the link did not drive its {beside} robot(s) in time")
-        driver_args = emulated_link(kids, link, Path(workdir), "0,0,0", seconds + 40, rate_hz=50)
+        driver_args = emulated_link(kids, link, Path(workdir), "0,0,0", life + 40, rate_hz=50)
         if limiter:
             if link != "can":
                 raise ValueError("--speed-limiter is measured on the CAN link (its host takes a --config of its own)")
@@ -185,7 +189,7 @@ def run_link(link: str, seconds: float, workdir: str, random_phase: bool = False
         env = dict(os.environ, SCMBRIDGE_STATE_DIR=str(Path(workdir) / "state"),
                    SCMBRIDGE_RECORD_DIR=str(Path(workdir) / "records"))
         driver = kids.spawn(["driver", "--engage", *driver_args, "--robot", robot, "--mode", "client", "--connect",
-                             tcp(port), "--rate", "50", "--duration", str(seconds + 30)], subprocess.DEVNULL, env=env)
+                             tcp(port), "--rate", "50", "--duration", str(life + 30)], subprocess.DEVNULL, env=env)
         t_end = time.monotonic() + 30
         while time.monotonic() < t_end:
             with lock:
@@ -199,7 +203,13 @@ def run_link(link: str, seconds: float, workdir: str, random_phase: bool = False
         seq = 0
         t0 = time.monotonic()
         t_next = t0
-        while time.monotonic() - t0 < seconds:
+
+        def enough() -> bool:
+            with lock:
+                n = len(lat)
+            return n >= min_latencies and (station is None or station.figures()["ticks"] >= min_beside_ticks)
+
+        while time.monotonic() - t0 < seconds or (time.monotonic() - t0 < life and not enough()):
             seq += 1
             now = time.monotonic()
             with lock:
@@ -209,7 +219,8 @@ def run_link(link: str, seconds: float, workdir: str, random_phase: bool = False
             t_next += 0.02
             jitter = float(rng.uniform(0.0, 0.02)) if random_phase else 0.0
             time.sleep(max(0.0, t_next + jitter - time.monotonic()))
-        time.sleep(1.2)
+        span = time.monotonic() - t0
+        time.sleep(1.2)  # the last commands' echoes (a bench's settling, not a test's wait)
         rss1 = _rss_kb(driver.pid)
         beside_figures = station.figures() if station is not None else None
     with lock:
@@ -222,7 +233,7 @@ def run_link(link: str, seconds: float, workdir: str, random_phase: bool = False
         "commands_sent": seq,
         "loop_50hz": {"jitter_ms": dict(last.latencies_ms) if last else None,
                       "missed_deadlines": c.get("missed_deadlines"),
-                      "missed_fraction": c.get("missed_deadlines", 0) / (LOOP_HZ * (seconds + 1))},
+                      "missed_fraction": c.get("missed_deadlines", 0) / (LOOP_HZ * (span + 1))},
         "driver_rss_kb": {"start": rss0, "end": rss1},
         **({"beside_station": beside_figures} if beside_figures is not None else {}),
     }

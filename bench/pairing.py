@@ -82,19 +82,24 @@ def measure(link: str, seconds: float, seed: int = 0, command_period: float = 0.
     rng = np.random.default_rng(seed)
     (v0, v1), (w0, w1) = model.v_range, model.w_range
     events: list[tuple[float, int, Any, float]] = []  # (stamp, kind, payload, published)
-    per_command = max(1, round(command_period / TICK))
     with ExitStack() as stack:
         driver = LINKS[link](stack, SimVehicle(model, (0.0, 0.0, 0.0), now=time.monotonic()))
         u = (0.0, 0.0)
         k = commands = 0
-        t_next = t0 = time.monotonic()
+        t_next = t_cmd = t0 = time.monotonic()
         while time.monotonic() - t0 < seconds:
             now = time.monotonic()
             events += [(p.stamp, 1, np.array([p.x, p.y, p.theta]), now) for p in driver.poll(now)]
-            if k % per_command == 0:  # the middle of the learner's range: no clamping, no standstill
+            # a new command each command_period on the clock, as the station's tick sends them (not each
+            # per_command ticks: ticks caught up after a stall come in a burst, and commands changed within one
+            # would each be held for a moment no pair can span); periods missed in a stall are skipped
+            if now >= t_cmd:  # the middle of the learner's range: no clamping, no standstill
                 u = (float(rng.uniform(v0 + 0.25 * (v1 - v0), v1 - 0.25 * (v1 - v0))),
                      float(rng.uniform(w0 + 0.2 * (w1 - w0), w1 - 0.2 * (w1 - w0))))
                 commands += 1
+                t_cmd += command_period
+                if t_cmd <= now:  # behind after a stall: the next one a whole period from now
+                    t_cmd = now + command_period
             driver.send(*u, now)
             events.append((now, 0, u, now))  # the host's applied echo, stamped when sent
             k += 1

@@ -11,7 +11,6 @@ import json
 import math
 import struct
 import subprocess
-import time
 import uuid
 from importlib import resources
 from pathlib import Path
@@ -27,6 +26,7 @@ from drivers.can.config import CanLinkConfig
 from sim_learner.can_ecu import DRIFT_AMOUNT, DiffDriveEcus, Drift
 from sim_learner.dynamics import mpc_learner
 from sim_learner.vehicle import SimVehicle
+from tests.wait import until
 from transfer.pairs import teacher_equivalent
 from transfer.store import PairStore
 
@@ -58,10 +58,7 @@ def _drive(drift: Drift, times: list[float], v: float = 0.3) -> list[tuple[float
         master.send(can.Message(arbitration_id=(node << 5) | cmd, data=data, is_extended_id=False))
 
     def settle(pred) -> None:
-        t_end = time.monotonic() + 5.0
-        while not pred():
-            assert time.monotonic() < t_end, "the controllers did not take the frames within 5 s"
-            time.sleep(0.005)
+        assert until(pred, 20.0, 0.005), "the controllers did not take the frames within 20 s"
 
     with ecus:
         try:
@@ -156,7 +153,7 @@ def test_the_hil_loop_relearns_the_cells_a_sagging_battery_changed_and_reaches_t
     and its saved store agree on the cells re-learned. The sag stays where the whole path's test had it: a sag of 5 s
     from 15 s, in the first bend, took the robot out of the corridor there in 2 runs of 3 (one on the code before the
     spread of a change), which is not what this test is about."""
-    _demo(tmp_path, "battery", 100, 240)
+    _demo(tmp_path, "battery", 170, 280)  # (a deadline: the demo ends at the goal; its start-up counts in it)
 
 
 def _response(u_L: np.ndarray, drag: float = 0.0) -> np.ndarray:
@@ -191,7 +188,7 @@ def test_the_hil_loop_relearns_the_cells_a_dragging_wheel_changed_in_the_directi
     What does not hold, and is not asserted (docs/PAPER.md, "Beyond the paper"): the learner cannot follow a right
     turn after the change (at its right-most command it turns an eighth to a quarter as fast as before, whatever the
     map), and the learned right-turn limit follows it down only where pairs come at that command after the change."""
-    summary, store, _ = _demo(tmp_path, "wheel:15:0", 100, 200)
+    summary, store, _ = _demo(tmp_path, "wheel:15:0", 170, 230)  # (a deadline: it ends at the goal)
     assert summary["collided"] is False, summary
     refined = {r.id: r for r in store.refined()}
     relearned = [refined[c.id] for c in store.changed_cells() if c.id in refined]

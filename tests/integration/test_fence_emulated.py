@@ -14,6 +14,7 @@ from drivers.mavlink import MavlinkLinkConfig
 from sim_learner.dynamics import mpc_learner
 from sim_learner.mavlink_rover import MavlinkRover
 from sim_learner.vehicle import SimVehicle
+from tests.wait import until
 
 SQUARE = [(-1.0, -1.0), (1.0, -1.0), (1.0, 1.0), (-1.0, 1.0)]
 
@@ -41,12 +42,10 @@ def test_the_vehicles_own_fence_holds_the_rover_when_the_host_dies() -> None:
         while vehicle.advance(time.monotonic()).x < 0.5 and time.monotonic() < t_end:  # full ahead, east
             driver.send(0.5, 0.0, time.monotonic())
             driver.poll(time.monotonic())
-            time.sleep(0.02)
+            time.sleep(0.02)  # pacing: the host's 50 Hz, inside a deadline loop that ends on the event
         assert vehicle.advance(time.monotonic()).x >= 0.5
         # the host dies: nothing more is sent, no stop either; GUIDED would carry it 1.5 m on (3 s at 0.5 m/s)
-        t_died = time.monotonic()
-        while time.monotonic() < t_died + 4.0 and not (rover.mode_name == "HOLD" and vehicle.state.v == 0.0):
-            time.sleep(0.05)
+        until(lambda: rover.mode_name == "HOLD" and vehicle.state.v == 0.0, 20.0, 0.05)
         x = vehicle.advance(time.monotonic()).x
         assert rover.mode_name == "HOLD" and rover.fence.breaches == 1, (rover.mode_name, rover.statustexts[-3:])
         assert 1.0 <= x < 1.2, f"stopped at x = {x:.2f} (the fence at 1.0)"

@@ -24,6 +24,7 @@ from bridge.core import wire as M
 from bridge.nodes.zsession import free_port, make_config, open_session, tcp
 from bridge.tools.procs import Children, emulated_link
 from tests.missions import first_bend_file
+from tests.wait import until
 
 ROOT = Path(__file__).resolve().parents[2]
 SYSTEMD = ROOT / "deploy" / "systemd"
@@ -31,13 +32,11 @@ INSTALLED = "/opt/scmbridge/.venv/bin/scmbridge"
 
 
 def _wait(pred, timeout: float, lock: threading.Lock) -> bool:
-    t_end = time.monotonic() + timeout
-    while time.monotonic() < t_end:
+    def look() -> bool:
         with lock:
-            if pred():
-                return True
-        time.sleep(0.05)
-    return False
+            return bool(pred())
+
+    return bool(until(look, timeout, 0.05))
 
 
 # ------------------------------------------------------------------------------------------- the bench pieces
@@ -102,27 +101,37 @@ def test_the_simulated_robots_wait_for_every_station_then_follow_their_commands(
             assert all(not status[r][-1].ok and "waiting for 2" in status[r][-1].text for r in robots)
         station_status = {r: session.declare_publisher(M.status_key(r, "station")) for r in robots}
         station_status["fleetA"].put(M.encode(M.Status(stamp=1.0, seq=0, node="station")))
-        time.sleep(1.5)
+        assert _wait(lambda: "waiting for 1" in status["fleetA"][-1].text, 20, lock)  # fleetA's station was heard
+        # and fleetA stays held while fleetB's is not up: absence, watched over a window
         with lock:
+            n_held = len(status["fleetA"])
+        time.sleep(1.5)  # absence: fleetA stays held, watched over a window
+        with lock:
+            assert not any(st.ok for st in status["fleetA"][n_held:])
             assert "waiting for 1" in status["fleetA"][-1].text  # one station is not up: still held
         station_status["fleetB"].put(M.encode(M.Status(stamp=1.0, seq=0, node="station")))
-        assert _wait(lambda: all(status[r][-1].ok for r in robots), 5, lock)
-        # state at the driver host's rate: ~100 Hz per robot
+        assert _wait(lambda: all(status[r][-1].ok for r in robots), 20, lock)
+        # state at the driver host's rate: ~100 Hz per robot (over the time its next 100 states took)
         with lock:
             n0, t0 = len(states["fleetA"]), time.monotonic()
-        time.sleep(1.0)
+        assert _wait(lambda: len(states["fleetA"]) >= n0 + 100, 20, lock)
         with lock:
             rate = (len(states["fleetA"]) - n0) / (time.monotonic() - t0)
             before = states["fleetA"][-1]
         assert 60 < rate < 130
         pub = session.declare_publisher(M.Keys("fleetA").cmd)
         epoch = M.new_epoch()
-        t_drive = time.monotonic()
+        t_drive = t_next = time.monotonic()
         for seq in range(20):  # 2 s at 10 Hz, straight ahead at 0.2 m/s
             pub.put(M.encode(M.Command(stamp=time.monotonic(), seq=seq, v=0.2, omega=0.0, method="scm",
                                        epoch=epoch, sender="station")))
-            time.sleep(0.1)
-        time.sleep(0.5)  # the deadman stops it
+            t_next += 0.1
+            time.sleep(max(0.0, t_next - time.monotonic()))  # pacing: the station's 10 Hz, on a schedule
+        # the deadman stops it: its echo, then a state after it (the pose it stopped at)
+        assert _wait(lambda: applied["fleetA"] and applied["fleetA"][-1].reason == "deadman", 20, lock)
+        with lock:
+            n_stop = len(states["fleetA"])
+        assert _wait(lambda: len(states["fleetA"]) >= n_stop + 5, 20, lock)
         with lock:
             got = [a for a in applied["fleetA"] if a.reason == "cmd"]
             last = states["fleetA"][-1]
@@ -295,8 +304,11 @@ def test_template_units_run_as_systemd_would_for_two_robots(tmp_path) -> None:
             assert not any(a.reason in ("cmd", "clamped") for a in applied)
             assert seen["scm/rover7/status/station"][-1].state == "idle"
         for cmd in (["engage"], ["mission", "start"]):  # a person engages the vehicle, then starts the mission
+            # (waiting up to 30 s for the answer: a station that is up may answer its first query late on a loaded
+            # machine, and mission's own default is 3 s)
             res = subprocess.run([sys.executable, "-m", "bridge", *cmd, "--robot", "rover7", "--mode", "client",
-                                  "--connect", tcp(port)], capture_output=True, text=True, timeout=60)
+                                  "--connect", tcp(port), "--timeout", "30"], capture_output=True, text=True,
+                                 timeout=60)
             assert res.returncode == 0, res.stdout + res.stderr
         assert _wait(lambda: any(a.reason in ("cmd", "clamped") for a in applied), 30, lock), \
             "rover7's station did not drive rover7 through its driver host"

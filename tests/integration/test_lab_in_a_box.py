@@ -52,10 +52,10 @@ def test_a_secure_lab_on_loopback_is_driven_and_stopped_by_its_operator(tmp_path
             rows = {tuple(ln.split()[:3]) for ln in r.stdout.splitlines()}
             return r if (ROBOT, "station", "idle") in rows and any(x[:2] == (ROBOT, "driver") for x in rows) else None
 
-        seen = until(both, 60, 0.5)
+        seen = until(both, 120, 0.5)  # (a deadline: a loaded machine's station may take a minute to come up)
         assert seen and "waiting" in seen.stdout, seen and seen.stdout + seen.stderr
         for cmd in (["engage", "--robot", ROBOT], ["mission", "start", "--robot", ROBOT]):
-            res = _scm(*cmd, *z["operator"])
+            res = _scm(*cmd, "--timeout", "30", *z["operator"])  # a deadline on the answer, not a wait
             assert res.returncode == 0, res.stdout + res.stderr
         driving = until(lambda: (r := _scm("status", "--robot", ROBOT, *z["observer"])).returncode == 0 and r, 60,
                         0.5)
@@ -136,7 +136,7 @@ def test_the_operators_documented_commands_run_as_written_in_the_lab(tmp_path: P
                 code = watch.wait(timeout=30)
             except subprocess.TimeoutExpired:  # where it waits: every thread's stack (`kill -USR2`), then fail
                 watch.send_signal(signal.SIGUSR2)
-                time.sleep(2.0)
+                time.sleep(2.0)  # only on the way to a failure: the stack dumps SIGUSR2 asks for are written meanwhile
                 errors.seek(0)
                 pytest.fail(f"status --watch did not stop within 30 s of Ctrl-C:\n{errors.read().decode()[-6000:]}")
             errors.seek(0)

@@ -69,13 +69,16 @@ def test_one_forged_packet_does_not_take_the_drivers_link_down(keys) -> None:
             forged = forged_heartbeat(rover.sysid, rover.compid, 0, key=other)
             with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:  # any source: udpout reads them all
                 s.sendto(forged, driver.client.conn.port.getsockname())
-            assert until(lambda: driver.health(time.monotonic()).detail.bad_signatures > before, 2.0,
+            assert until(lambda: driver.health(time.monotonic()).detail.bad_signatures > before, 10.0,
                          lambda: driver.poll(time.monotonic()))
             poses: list = []
-            t_end = time.monotonic() + 2.0  # longer than heartbeat_timeout: the link would be down by then
-            while time.monotonic() < t_end:
+            # a window longer than heartbeat_timeout in which the link must NOT go down (it would be down by
+            # then), and until more than 10 poses came (counted, not timed: a stalled process takes longer)
+            t_next = t0 = time.monotonic()
+            while (time.monotonic() - t0 < 2.0 or len(poses) <= 10) and time.monotonic() - t0 < 20.0:
                 poses += driver.poll(time.monotonic())
-                time.sleep(0.02)
+                t_next += 0.02
+                time.sleep(max(0.0, t_next - time.monotonic()))  # pacing: the host's 50 Hz poll
             h = driver.health(time.monotonic())
             assert h.ok and len(poses) > 10, h
             assert h.detail.bad_signatures == before + 1  # the forged packet, and no genuine message after it
@@ -98,15 +101,12 @@ def test_one_forged_packet_does_not_block_the_rover_and_a_stop_is_prompt(keys) -
                                       key=other, gcs=True)
             before = rover.bad_signatures
             conn.port.sendto(forged, ("127.0.0.1", rover.port))  # from the driver's own address
-            assert until(lambda: rover.bad_signatures > before, 2.0)
-            t_end = time.monotonic() + 0.6
-            while time.monotonic() < t_end:
-                driver.send(0.4, 0.0, time.monotonic())
-                driver.poll(time.monotonic())
-                time.sleep(0.02)
+            assert until(lambda: rover.bad_signatures > before, 10.0)
+            until(lambda: vehicle.advance(time.monotonic()).v > 0.1, 10.0,
+                  lambda: (driver.send(0.4, 0.0, time.monotonic()), driver.poll(time.monotonic())))
             assert vehicle.advance(time.monotonic()).v > 0.1  # genuine set-points still drive it
             t0 = time.monotonic()
-            assert until(lambda: vehicle.advance(time.monotonic()).v == 0.0, 2.0,
+            assert until(lambda: vehicle.advance(time.monotonic()).v == 0.0, 10.0,
                          lambda: (driver.stop(time.monotonic()), driver.poll(time.monotonic())))
             assert time.monotonic() - t0 < 1.0  # braking at 2 m/s^2 from 0.4 m/s: 0.2 s, not seconds
             assert rover.bad_signatures == before + 2  # the forged packet (bad signature, then not accepted unsigned)
@@ -128,18 +128,18 @@ def test_signed_traffic_replayed_after_the_rovers_reboot_is_refused(keys, tmp_pa
     try:
         frames = takeover_frames(key, rover.sysid, rover.compid)  # GUIDED, arm, forward: signed now
         send_frames(frames, port)  # the genuine traffic, as the wire carried it: it takes the rover
-        assert until(lambda: rover.armed and vehicle.distance > 0.0, 2.0)
+        assert until(lambda: rover.armed and vehicle.distance > 0.0, 10.0)
         saves = rover.signing_saves
         assert rover.rc_arm(False)  # the person parks it: disarmed, the GPS's next time is saved at once
-        assert until(lambda: rover.signing_saves > saves, 3.0)
+        assert until(lambda: rover.signing_saves > saves, 10.0)
     finally:
         rover.stop()
     rover, vehicle = _boot(key, port, store)  # rebooted: the same storage
     try:
         before = rover.bad_signatures
         send_frames(frames, port)
-        assert until(lambda: rover.bad_signatures >= before + len(frames), 2.0)
-        time.sleep(0.2)
+        assert until(lambda: rover.bad_signatures >= before + len(frames), 10.0)
+        time.sleep(0.2)  # absence: refused frames must not take it later either (watched over a window)
         assert not rover.armed and rover.mode_name == "MANUAL" and vehicle.distance == 0.0
     finally:
         rover.stop()
@@ -155,7 +155,7 @@ def test_without_a_persisted_timestamp_the_same_replay_would_take_a_rebooted_rov
     rover, vehicle = _boot(key, port, None)
     try:
         send_frames(frames, port)
-        assert until(lambda: rover.armed, 2.0)
+        assert until(lambda: rover.armed, 10.0)
     finally:
         rover.stop()
 
@@ -182,14 +182,14 @@ def test_the_gps_time_is_saved_at_once_while_disarmed_and_not_while_armed(keys, 
     rover, _ = _boot(key, 0, store)
     try:
         saves = rover.signing_saves
-        assert until(lambda: rover.signing_saves > saves + 2, 2.0)  # disarmed: at the GPS's rate
+        assert until(lambda: rover.signing_saves > saves + 2, 10.0)  # disarmed: at the GPS's rate
         assert rover.rc_arm(True)
         armed_saves = rover.signing_saves
         time.sleep(1.0)  # five GPS times, none taken while armed (a wait for nothing to happen)
         assert rover.signing_saves <= armed_saves + 1  # (one GPS time may have been under way as it armed)
         armed_saves = rover.signing_saves
         assert rover.rc_arm(False)
-        assert until(lambda: rover.signing_saves > armed_saves, 2.0)
+        assert until(lambda: rover.signing_saves > armed_saves, 10.0)
         stored = json.loads(store.read_text())["timestamp"]
         assert abs(stored - signing_wall_clock()) < 2 * 100_000  # the GPS's time, as saved
     finally:

@@ -77,13 +77,15 @@ def test_commands_recorded_before_a_reboot_do_not_move_the_robot_after_it(key_fi
                     while driver is not None and not stopper_done.is_set():
                         driver.stop(time.monotonic())
                         driver.poll(time.monotonic())
-                        time.sleep(0.02)
+                        time.sleep(0.02)  # pacing: the host's 50 Hz stops
 
                 t = threading.Thread(target=stops, daemon=True)
                 t.start()
                 try:
+                    stale0 = robot.counters["stale_session"]
                     tap.replay(capture)
-                    time.sleep(0.3)
+                    # the robot has judged the whole recording (a stale session each; a few may be lost)
+                    until(lambda: robot.counters["stale_session"] >= stale0 + len(capture) - 5, 10.0)
                 finally:
                     stopper_done.set()
                     t.join(timeout=2.0)
@@ -108,11 +110,11 @@ def test_commands_held_back_and_released_later_are_refused_as_stale(key_file) ->
                 drive_udp(driver, 1.0, 0.3)
                 held = tap.recorded[n0:]
                 assert vehicle.distance == 0.0
-                time.sleep(SESSION_FRESH_S + 0.1)
+                time.sleep(SESSION_FRESH_S + 0.1)  # the attack itself: the commands held back past their freshness
                 start = position(vehicle)
                 stale = robot.counters["stale"]
                 tap.replay(held, paced=False)
-                assert until(lambda: robot.counters["stale"] >= stale + len(held), 2.0), robot.counters
+                assert until(lambda: robot.counters["stale"] >= stale + len(held), 10.0), robot.counters
                 assert distance_from(vehicle, start) < 0.01 and not robot.moving
                 tap.hold = False
         finally:
@@ -151,7 +153,7 @@ def test_a_command_sealed_the_old_way_or_for_no_session_is_refused(key_file) -> 
         with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
             s.bind((LOCAL, bind))
             s.sendto(seal(key, cmd), (LOCAL, robot.port))  # a valid tag of the old format: no session
-            assert until(lambda: robot.counters["unauthenticated"] == 1, 1.0)
+            assert until(lambda: robot.counters["unauthenticated"] == 1, 10.0)
             s.settimeout(1.0)
             data, _ = s.recvfrom(65536)  # the robot's state, sealed: no session datagram
             assert open_session(key, data) is None
