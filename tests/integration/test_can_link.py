@@ -57,7 +57,7 @@ class Rig:
             else:
                 self.driver.send(v, w, now)
             poses += self.driver.poll(now)
-            time.sleep(max(0.0, now + 0.02 - time.monotonic()))  # a 50 Hz tick, as the driver host's
+            time.sleep(max(0.0, now + 0.02 - time.monotonic()))  # pacing: a 50 Hz tick, as the driver host's
         return poses
 
     def wait(self, pred, timeout: float, v: float = 0.0, w: float = 0.0) -> bool:

@@ -136,7 +136,8 @@ def test_the_operators_documented_commands_run_as_written_in_the_lab(tmp_path: P
                 code = watch.wait(timeout=30)
             except subprocess.TimeoutExpired:  # where it waits: every thread's stack (`kill -USR2`), then fail
                 watch.send_signal(signal.SIGUSR2)
-                time.sleep(2.0)  # only on the way to a failure: the stack dumps SIGUSR2 asks for are written meanwhile
+                # a window, only on the way to a failure: the stack dumps SIGUSR2 asks for are written meanwhile
+                time.sleep(2.0)
                 errors.seek(0)
                 pytest.fail(f"status --watch did not stop within 30 s of Ctrl-C:\n{errors.read().decode()[-6000:]}")
             errors.seek(0)

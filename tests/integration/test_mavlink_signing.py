@@ -185,7 +185,7 @@ def test_the_gps_time_is_saved_at_once_while_disarmed_and_not_while_armed(keys, 
         assert until(lambda: rover.signing_saves > saves + 2, 10.0)  # disarmed: at the GPS's rate
         assert rover.rc_arm(True)
         armed_saves = rover.signing_saves
-        time.sleep(1.0)  # five GPS times, none taken while armed (a wait for nothing to happen)
+        time.sleep(1.0)  # window: five GPS times, none taken while armed (a wait for nothing to happen)
         assert rover.signing_saves <= armed_saves + 1  # (one GPS time may have been under way as it armed)
         armed_saves = rover.signing_saves
         assert rover.rc_arm(False)

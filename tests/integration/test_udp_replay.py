@@ -110,7 +110,8 @@ def test_commands_held_back_and_released_later_are_refused_as_stale(key_file) ->
                 drive_udp(driver, 1.0, 0.3)
                 held = tap.recorded[n0:]
                 assert vehicle.distance == 0.0
-                time.sleep(SESSION_FRESH_S + 0.1)  # the attack itself: the commands held back past their freshness
+                # a stall, the attack itself: the commands held back past their freshness
+                time.sleep(SESSION_FRESH_S + 0.1)
                 start = position(vehicle)
                 stale = robot.counters["stale"]
                 tap.replay(held, paced=False)
