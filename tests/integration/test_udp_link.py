@@ -148,7 +148,7 @@ def poll_until(driver, n_datagrams: int, timeout: float = 2.0) -> list:
         poses += driver.poll(time.monotonic())
         if health(driver).frames_received >= n_datagrams:
             break
-        time.sleep(0.002)
+        time.sleep(0.002)  # the poll step: until the datagrams counted have been read
     return poses
 
 
