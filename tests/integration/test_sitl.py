@@ -303,7 +303,9 @@ def test_sigint_while_driving_stops_the_vehicle_before_it_disarms(rig: Rig) -> N
     seen = pilot.samples(t_int)
     first_disarmed = next(x for x in seen if not x.armed)
     assert first_disarmed.speed < 0.1, f"disarmed at {first_disarmed.speed:.2f} m/s (it would coast)"
-    assert max(x.speed for x in seen if x.t <= t_int + 0.1) > 0.6  # it was driving when told to close
+    # it was driving when told to close: the samples of the half second before and any in the 0.1 s after (the
+    # pilot's thread may have taken none in those 0.1 s on a loaded machine: its samples are stamped on receipt)
+    assert max(x.speed for x in pilot.samples(t_int - 0.5) if x.t <= t_int + 0.1) > 0.6
     assert pilot.mode == "GUIDED"  # the mode is the person's: left as it was
 
 
