@@ -120,7 +120,8 @@ def test_stale_telemetry_stops_the_robot_and_a_killed_driver_host_leaves_it_to_i
         assert late and all(a.v == 0.0 and a.reason in ("no_telemetry", "fault") for a in late), \
             {a.reason for a in late}
         assert any("no state from the robot" in t or "no telemetry" in t for t in texts), texts
-        drive(1.0, lambda: applied[-1].reason == "cmd")  # telemetry is back: driving again
+        # telemetry is back: driving again (on until the robot took the commands: it moves)
+        drive(1.0, lambda: applied[-1].reason == "cmd" and vehicle.state.v > 0.0)
         with lock:
             assert applied[-1].reason == "cmd"
         moving_before = vehicle.state.v
