@@ -50,7 +50,9 @@ def ask(session: zenoh.Session, robot: str, req: M.MissionRequest, timeout: floa
                           t_end)
             to = address_of(status) if status is not None else None
         if to is not None or req.action == "status":
-            st = _get(session, robot, stamped(req, to), t_end)
+            # the station is there (it answered the status): its answer is awaited until the timeout, not asked for
+            # again (a slow station's answer to the first act would come after a second act it answered too)
+            st = _get(session, robot, stamped(req, to), t_end, whole=req.action != "status")
             if st is not None:
                 return st
         elif status is not None:  # an older station (no epoch): the act as it takes it
@@ -62,10 +64,13 @@ def ask(session: zenoh.Session, robot: str, req: M.MissionRequest, timeout: floa
         time.sleep(RETRY_S)
 
 
-def _get(session: zenoh.Session, robot: str, req: M.MissionRequest, t_end: float) -> M.MissionState | None:
-    """The station's answer to one query carrying ``req`` (None: none within a second or ``t_end``)."""
+def _get(session: zenoh.Session, robot: str, req: M.MissionRequest, t_end: float,
+         whole: bool = False) -> M.MissionState | None:
+    """The station's answer to one query carrying ``req`` (None: none within a second, or until ``t_end`` when
+    ``whole``, or no station)."""
     left = t_end - time.monotonic()
-    for reply in session.get(M.key(robot, "control"), payload=M.encode(req), timeout=max(0.05, min(1.0, left))):
+    wait = left if whole else min(1.0, left)
+    for reply in session.get(M.key(robot, "control"), payload=M.encode(req), timeout=max(0.05, wait)):
         if reply.ok is None:
             continue
         try:

@@ -42,12 +42,14 @@ def main() -> int:
             pub = s.declare_publisher(k.cmd)
             t_end = time.monotonic() + 20
             while not states and time.monotonic() < t_end:
-                time.sleep(0.1)
+                time.sleep(0.1)  # the poll step: until the first state
             x_start = states[-1].x if states else None
             for seq in range(1, 31):
                 pub.put(M.encode(M.Command(stamp=time.monotonic(), seq=seq, v=0.3, omega=0.0, method="scm")))
-                time.sleep(0.05)
-            time.sleep(0.6)
+                time.sleep(0.05)  # pacing: a station's 20 Hz
+            t_end = time.monotonic() + 20
+            while not any(a.reason == "deadman" for a in applied) and time.monotonic() < t_end:
+                time.sleep(0.05)  # the poll step: until the deadman stopped it (the commands stopped)
             moved = x_start is not None and states[-1].x > x_start + 0.1
             stopped = any(a.reason == "deadman" for a in applied)
             print(f"states={len(states)} moved={moved} deadman={stopped}", flush=True)

@@ -143,7 +143,9 @@ def test_a_replayed_or_unstamped_engage_or_release_does_nothing_and_says_so(host
         stale = M.EngageRequest(source="operator", **_stale(session, robot))
         ans = _get(session, key, M.encode(stale), M.EngageState)
         assert not ans.accepted and "s ago" in ans.text, ans
-        time.sleep(0.5)  # (what the replay would have driven within: 0.09 s)
+        # absence: the replay must not drive within 0.5 s (what it would have driven within: 0.09 s), watched while
+        # the host goes on publishing (so the look is not vacuous)
+        assert col.wait(lambda: any(t > t_off + 0.6 for t in col.times[M.key(robot, "applied")]), 10)
         after = _applied_since(col, robot, t_off + 0.1)
         assert after and all(a.reason == "disengaged" and a.v == 0.0 for a in after), {a.reason for a in after}
         assert col.wait(lambda: status[-1].counters.get("engage_refused_replayed") == 1
@@ -230,7 +232,10 @@ def test_a_forger_at_seq_plus_one_on_the_stations_epoch_stops_the_robot_and_stat
         assert first - t_forge < 0.5  # within a few ticks of the station's 10 Hz
         assert col.wait(lambda: status[-1].reason == "conflict" and not status[-1].ok, 5), status[-1]
         assert "two senders on one command epoch" in status[-1].text
-        time.sleep(3.0)  # the forger goes on: the robot stays stopped the whole time
+        # absence: the forger goes on and the robot stays stopped the whole time: watched for 3 s at least, and on
+        # until the host's stops and the forger's sends counted below have come (a stalled process takes longer)
+        assert col.wait(lambda: time.monotonic() > first + 3.0 and len(_since(col, robot, first + 0.05)) > 100
+                        and forger.sent > 30, 30)
         during = _applied_since(col, robot, first + 0.05)
         forged = [a for a in during if a.v == 0.45]
         assert not forged and all(a.v == 0.0 for a in during), {(a.reason, a.v) for a in during}

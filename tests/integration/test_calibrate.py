@@ -106,7 +106,7 @@ def test_the_motion_primitive_teacher_drives_from_calibrated_pairs(tmp_path) -> 
         kids.spawn(["station", "--start", "--config", str(cfg), *client, "--store", str(store), "--duration", "80"])
         t_end, progress = time.monotonic() + 70, 0.0
         while time.monotonic() < t_end and progress < 0.15:
-            time.sleep(0.5)
+            time.sleep(0.5)  # the poll step: until the robot is far enough along (the loop's deadline is the test)
             with lock:
                 last = states[-1]
             progress = max(progress, mission.progress([last.x, last.y]))

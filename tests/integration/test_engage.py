@@ -36,9 +36,15 @@ from sim_learner.mavlink_rover import MavlinkRover
 from sim_learner.udp_robot import UdpRobot
 from sim_learner.vehicle import SimVehicle
 from tests.collect import Collector
-from tests.wait import until
+from tests.wait import Pace, until
 
 TAKE_OVER = (MAV.MAV_CMD_DO_SET_MODE, MAV.MAV_CMD_COMPONENT_ARM_DISARM)
+
+
+def holds(col: Collector, pred) -> bool:
+    """``pred()`` now, under the collector's lock."""
+    with col.lock:
+        return bool(pred())
 
 
 def _cli(port: int, *args: str) -> subprocess.CompletedProcess:
@@ -82,7 +88,9 @@ def test_a_driver_host_never_takes_the_vehicle_from_the_operator_not_even_after_
         assert col.wait(lambda: status and status[-1].state == "waiting", 60), [s.text for s in status[-2:]]
         assert "waiting for the operator: mode HOLD, disarmed" in status[-1].text and not status[-1].ok
         assert status[-1].latencies_ms.get("failsafe_drive_on") == 3000.0  # stock Rover: 3 s after the host dies
-        time.sleep(1.0)
+        # absence: the waiting host must not take the rover; watched while it runs on (two more of its statuses)
+        n = len(status)
+        assert col.wait(lambda: len(status) >= n + 2, 30)
         assert not _takeovers(rover) and rover.mode_name == "HOLD" and not rover.armed
 
         res = _cli(port, "engage", "--robot", robot)  # the person's act
@@ -99,7 +107,9 @@ def test_a_driver_host_never_takes_the_vehicle_from_the_operator_not_even_after_
         n = len(status)
         kids.spawn(driver, out=subprocess.DEVNULL)  # as systemd's Restart=on-failure would
         assert col.wait(lambda: len(status) > n and status[-1].state == "waiting", 60)
-        time.sleep(1.5)
+        # absence: the restarted host must not take the rover back; watched while it runs on (two more statuses)
+        n = len(status)
+        assert col.wait(lambda: len(status) >= n + 2, 30)
         assert not _takeovers(rover, t_restart), _takeovers(rover, t_restart)
         assert rover.mode_name == "HOLD" and not rover.armed
 
@@ -127,13 +137,13 @@ def test_sigint_while_driving_disarms_only_once_the_rover_has_stopped(tmp_path) 
                                "--robot", robot, "--mode", "client", "--connect", tcp(port), "--duration", "90"])
             assert col.wait(lambda: status and status[-1].ok, 60), [s.text for s in status[-2:]]
             pub = session.declare_publisher(M.key(robot, "cmd"))
-            seq = 0
+            seq, pace = 0, Pace(0.05)
             t_end = time.monotonic() + 20
             while time.monotonic() < t_end and vehicle.advance(time.monotonic()).v < 0.3:
                 seq += 1
                 pub.put(M.encode(M.Command(stamp=time.monotonic(), seq=seq, v=0.5, omega=0.0, method="scm",
                                            valid_ms=300)))
-                time.sleep(0.05)
+                pace.wait()  # pacing: the station's 20 Hz
             speed = vehicle.advance(time.monotonic()).v
             assert speed >= 0.3, speed
             os.killpg(host.pid, signal.SIGINT)  # while the commands still come: the closing host stops it first
@@ -196,7 +206,7 @@ def test_no_axis_enters_closed_loop_before_engage_and_a_faulted_axis_needs_a_per
         for _ in range(50):  # the host's loop while nobody has engaged: stops only
             driver.stop(time.monotonic())
             driver.poll(time.monotonic())
-            time.sleep(0.01)
+            time.sleep(0.01)  # pacing the host's loop; absence: no closed loop without an engage (0.5 s of it)
         h = driver.health(time.monotonic())
         assert not closed_loop and not h.ok and "not engaged" in h.text
         assert all(ecus.axis(n).state == 1 for n in (0, 1))  # IDLE
@@ -235,21 +245,25 @@ def test_the_udp_robot_gets_no_motion_before_engage_and_none_at_all_in_a_dry_run
         pub = session.declare_publisher(M.key(robot, "cmd"))
         seq = [0]
 
-        def drive(seconds: float) -> None:
-            t_end = time.monotonic() + seconds
-            while time.monotonic() < t_end:
+        def drive(seconds: float, done) -> None:
+            """A station's commands for ``seconds``, and on until ``done()`` (a stalled host takes longer)."""
+            t0, pace = time.monotonic(), Pace(0.05)
+            while time.monotonic() - t0 < seconds or (time.monotonic() - t0 < 30 and not holds(col, done)):
                 seq[0] += 1
                 pub.put(M.encode(M.Command(stamp=time.monotonic(), seq=seq[0], v=0.3, omega=0.0, method="scm",
                                            valid_ms=300)))
-                time.sleep(0.05)
+                pace.wait()  # pacing: the station's 20 Hz
 
-        drive(1.5)
+        # absence: 1.5 s of commands before the engage move nothing; on until the host said why (it is live)
+        drive(1.5, lambda: applied and applied[-1].reason == "disengaged")
         assert vehicle.distance == 0.0 and applied and applied[-1].reason == "disengaged"
         assert _cli(port, "engage", "--robot", robot).returncode == 0
-        drive(1.5)
+        # in a dry run, absence again (on until the host applies the commands, on paper); else until it moved
+        drive(1.5, (lambda: applied[-1].reason == "cmd" and applied[-1].v == 0.3) if dry_run
+              else (lambda: vehicle.distance > 0.1))
         if dry_run:  # the whole loop runs and says what it would send; the robot gets nothing that moves it
             assert vehicle.distance == 0.0
-            assert col.wait(lambda: applied[-1].reason == "cmd" and applied[-1].v == 0.3, 2)
+            assert col.wait(lambda: applied[-1].reason == "cmd" and applied[-1].v == 0.3, 10)
             assert status[-1].state == "dry_run" and not status[-1].ok and "DRY RUN" in status[-1].text
         else:
             assert vehicle.distance > 0.1

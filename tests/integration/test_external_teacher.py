@@ -49,7 +49,7 @@ def test_the_example_external_teacher_drives_the_robot_through_the_transfer_serv
         t_end = time.monotonic() + 110
         progress = 0.0
         while time.monotonic() < t_end:
-            time.sleep(0.5)
+            time.sleep(0.5)  # the poll step: until the robot is far enough along (the loop's deadline is the test)
             with lock:
                 last = got["state"][-1] if got["state"] else None
             if last is not None:

@@ -24,6 +24,13 @@ from sim_learner.dynamics import mpc_learner
 from sim_learner.udp_robot import UdpRobot
 from sim_learner.vehicle import SimVehicle
 from tests.collect import Collector
+from tests.wait import Pace, until
+
+
+def holds(col: Collector, pred) -> bool:
+    """``pred()`` now, under the collector's lock."""
+    with col.lock:
+        return bool(pred())
 
 
 def _status(ok: bool = True, text: str = "link can: driving (cmd)") -> M.Status:
@@ -81,39 +88,47 @@ def test_stale_telemetry_stops_the_robot_and_a_killed_driver_host_leaves_it_to_i
         pub = session.declare_publisher(k.cmd)
         epoch, seq = M.new_epoch(), 0
 
-        def drive(seconds: float) -> None:
+        def drive(seconds: float, done=lambda: True, longest: float = 20.0) -> None:
+            """A station's commands for ``seconds``, and on until ``done()`` (a stalled host takes longer), at most
+            ``longest`` s."""
             nonlocal seq
-            t_end = time.monotonic() + seconds
-            while time.monotonic() < t_end:
+            t0, pace = time.monotonic(), Pace(0.05)
+            while time.monotonic() - t0 < seconds or (time.monotonic() - t0 < longest and not holds(col, done)):
                 pub.put(M.encode(M.Command(stamp=time.monotonic(), seq=seq, v=0.2, omega=0.0, method="scm",
                                            epoch=epoch)))
                 seq += 1
-                time.sleep(0.05)
+                pace.wait()  # pacing: the station's 20 Hz
 
-        t_end = time.monotonic() + 30
-        while time.monotonic() < t_end and not any(s.ok for s in list(status)):
-            time.sleep(0.1)
-        drive(1.0)
+        assert col.wait(lambda: any(s.ok for s in status), 30)
+        drive(1.0, lambda: any(a.reason == "cmd" for a in applied))
         with lock:
             assert any(a.reason == "cmd" for a in applied)
-        dev.pause_telemetry(1.5)
+        pause = 2.5  # long enough that a host the machine stalls still shows its stop before the telemetry is back
+        dev.pause_telemetry(pause)
         t_pause = time.monotonic()
-        drive(1.2)
+
+        def stopped() -> bool:
+            return (any(a.stamp > t_pause + 0.8 for a in applied)
+                    and any(s.stamp > t_pause + 0.5 and ("no state from the robot" in s.text
+                                                         or "no telemetry" in s.text) for s in status))
+
+        drive(1.2, stopped, longest=pause - 0.3)
+        assert time.monotonic() < t_pause + pause, "the host showed nothing of the pause before it ended"
         with lock:
             late = [a for a in applied if a.stamp > t_pause + 0.8]
             texts = [s.text for s in status if s.stamp > t_pause + 0.5]
         assert late and all(a.v == 0.0 and a.reason in ("no_telemetry", "fault") for a in late), \
             {a.reason for a in late}
         assert any("no state from the robot" in t or "no telemetry" in t for t in texts), texts
-        time.sleep(0.6)
-        drive(1.0)  # telemetry is back: driving again
+        # telemetry is back: driving again (on until the robot took the commands: it moves)
+        drive(1.0, lambda: applied[-1].reason == "cmd" and vehicle.state.v > 0.0)
         with lock:
             assert applied[-1].reason == "cmd"
         moving_before = vehicle.state.v
         os.killpg(host.pid, signal.SIGKILL)
         t_kill = time.monotonic()
         drive(0.3)  # the station keeps sending; nobody passes it on
-        time.sleep(0.6)
+        until(lambda: vehicle.state.v == 0.0 and not vehicle.moving, 10.0)  # the robot's watchdog
         assert moving_before > 0.0 and vehicle.state.v == 0.0 and not vehicle.moving
         assert time.monotonic() - t_kill < 2.0
 

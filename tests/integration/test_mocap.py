@@ -22,6 +22,7 @@ from sim_learner.dynamics import mpc_learner
 from sim_learner.udp_robot import UdpRobot
 from sim_learner.vehicle import SimVehicle
 from tests.collect import Collector
+from tests.wait import Pace
 
 MOCAP_CLOCK = 1000.0  # the mocap system's clock runs this far ahead of ours
 JITTER = 0.02  # s of random delivery delay on top of the network's
@@ -103,7 +104,27 @@ class MocapBridge:
                 t_next += 0.01
             while queue and queue[0][0] <= now:
                 self.pub.put(heapq.heappop(queue)[2])
-            time.sleep(0.001)
+            time.sleep(0.001)  # pacing: samples on their 100 Hz grid (t_next), delivered when their delay is up
+
+
+def pairs_of(states: list, applied: list) -> list:
+    """The pairs the station's IntervalPairer forms from these applied commands and poses."""
+    pairer = IntervalPairer(0.1)
+    pairs = []
+    for _, kind, e in sorted([(a.stamp, 0, a) for a in applied] + [(s.stamp, 1, s) for s in states],
+                             key=lambda t: t[:2]):
+        out = (pairer.applied(e.stamp, e.v, e.omega, e.reason) if kind == 0
+               else pairer.state(e.stamp, np.array([e.x, e.y, e.theta])))
+        if out is not None:
+            pairs.append(out)
+    return pairs
+
+
+def enough(col: Collector, states: list, applied: list) -> bool:
+    """Whether what came so far is what the test judges: over 200 poses (past the 50 it skips) and 20 pairs."""
+    with col.lock:
+        st, ap = list(states), list(applied)
+    return len(st) > 200 and len(pairs_of(st, ap)) > 20
 
 
 @pytest.mark.slow
@@ -126,20 +147,20 @@ def test_the_driver_host_publishes_mocap_poses_on_its_clock_and_they_pair_with_t
         kids.spawn(["driver", "--engage", "--link", "udp", "--config", str(cfg), "--robot", robot, "--mode", "client",
                     "--connect", tcp(port), "--duration", "60"])
         try:
-            t_end = time.monotonic() + 30
-            while time.monotonic() < t_end and not states:
-                time.sleep(0.05)
+            col.wait(lambda: bool(states), 30)
             pub = session.declare_publisher(k.cmd)
             epoch = M.new_epoch()
             cmds = [(0.2, 0.1), (0.3, -0.15), (0.12, 0.2)]
-            seq = 0
-            for v, w in cmds:  # each command held 1.5 s, sent at 20 Hz
-                t_hold = time.monotonic() + 1.5
-                while time.monotonic() < t_hold:
+            seq, pace = 0, Pace(0.05)
+            for i, (v, w) in enumerate(cmds):  # each command held 1.5 s, sent at 20 Hz; the last one on until the
+                t_hold = time.monotonic() + 1.5  # poses and pairs judged below have come (a stalled host takes
+                t_end = t_hold + 30.0  # longer, it does not fail the test)
+                while time.monotonic() < t_hold or (i == len(cmds) - 1 and time.monotonic() < t_end
+                                                    and not enough(col, states, applied)):
                     pub.put(M.encode(M.Command(stamp=time.monotonic(), seq=seq, v=v, omega=w, method="scm",
                                                sender="test", epoch=epoch)))
                     seq += 1
-                    time.sleep(0.05)
+                    pace.wait()  # pacing: the station's 20 Hz
         finally:
             mocap.stop.set()
             mocap.thread.join(timeout=2)
@@ -158,13 +179,7 @@ def test_the_driver_host_publishes_mocap_poses_on_its_clock_and_they_pair_with_t
     errs = np.array(errs[50:])
     assert np.percentile(np.abs(errs), 95) < 0.006, np.percentile(np.abs(errs), [50, 95, 100])
     # and pairs formed from applied + mocap state recover the learner's real response
-    pairer = IntervalPairer(0.1)
-    pairs = []
-    for _, kind, e in sorted([(a.stamp, 0, a) for a in ap] + [(s.stamp, 1, s) for s in st], key=lambda t: t[:2]):
-        out = (pairer.applied(e.stamp, e.v, e.omega, e.reason) if kind == 0
-               else pairer.state(e.stamp, np.array([e.x, e.y, e.theta])))
-        if out is not None:
-            pairs.append(out)
+    pairs = pairs_of(st, ap)
     assert len(pairs) > 20
     err = [np.abs(uT - learner.response(uL)) for uT, uL in pairs]
     assert np.median([e[0] for e in err]) < 0.01 and np.median([e[1] for e in err]) < 0.03

@@ -27,7 +27,7 @@ PARENT = textwrap.dedent("""
         host = kids.spawn(["driver", "--link", "can", "--emulate", "--x0", "0,0,0", "--robot", "orphan",
                            "--mode", "client", "--connect", f"tcp/127.0.0.1:{port}", "--duration", "300"])
         print(router.pid, host.pid, flush=True)
-        time.sleep(300)
+        time.sleep(300)  # the parent idles until the test kills it (-9): its children must not outlive it
 """)
 
 

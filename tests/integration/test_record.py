@@ -42,6 +42,7 @@ from bridge.tools.mcap_format import (
 from bridge.tools.mcap_sink import McapSink
 from bridge.tools.procs import Children, stop_group
 from tests.missions import first_bend_file
+from tests.wait import Pace, until
 
 ROBOT = "rec1"
 MISSION = M.MissionSpec(name="test-bend", path=[[0.0, 0.0], [2.0, 0.0], [3.0, 1.0]], goal_tolerance=0.2)
@@ -82,11 +83,34 @@ def start_recorder(kids: Children, port: int, out: Path, *extra: str) -> subproc
     return proc
 
 
-def wait_matching(pub: zenoh.Publisher, timeout: float = 10.0) -> None:
-    t_end = time.monotonic() + timeout
-    while not pub.matching_status.matching:
-        assert time.monotonic() < t_end, "the recorder's subscriber never reached the publisher"
-        time.sleep(0.01)
+def wait_matching(pub: zenoh.Publisher, timeout: float = 20.0) -> None:
+    assert until(lambda: pub.matching_status.matching, timeout, step=0.01), \
+        "the recorder's subscriber never reached the publisher"
+
+
+def recorded_seqs(paths: list[Path]) -> list:
+    """The wire messages the recorder's files hold so far: the chunks it has closed (it closes one each second, so
+    what it took is on disk within about a second); a file being written reads as truncated, not as an error."""
+    try:
+        entries, _ = read_recording(paths)
+    except Exception:  # noqa: BLE001 (a file just created: not even its header yet)
+        return []
+    return [e for e in entries if e.topic != NONCANONICAL]
+
+
+def settled(out: Path, timeout: float = 30.0) -> int:
+    """Once nothing more can arrive (the publishers are gone), wait until the recording has taken what it
+    received: the count on disk is unchanged over two of the sink's chunk closings. Returns the count."""
+    seen = [-1, time.monotonic()]
+
+    def still() -> bool:
+        n = len(recorded_seqs([out]))
+        if n != seen[0]:
+            seen[:] = [n, time.monotonic()]
+        return n > 0 and time.monotonic() - seen[1] > 2.5
+
+    until(still, timeout, step=0.1)
+    return seen[0]
 
 
 def finish(proc: subprocess.Popen) -> str:
@@ -113,7 +137,7 @@ class Run:
         self.sent.append((key, data))
 
     def drive(self, ticks: int = 240, period: float = 0.005) -> None:
-        k, mission = self.keys, mission_from_spec(MISSION)
+        k, mission, pace = self.keys, mission_from_spec(MISSION), Pace(period)
         self.put(k.mission, M.encode(MISSION))
         epoch_c, epoch_d = 11, 22
         methods = ["scm", "scm", "direct", "perturb", "scm", "stop"]
@@ -150,7 +174,7 @@ class Run:
                 # a valid Limits with its fields in another order than wire.encode writes them
                 self.put(k.limits, msgspec.msgpack.encode({"box": [0.0, 1.0, -1.0, 1.0], "version": 1,
                                                            "robot": k.robot, "stamp": now}))
-            time.sleep(period)
+            pace.wait()  # pacing: the run's ticks
 
 
 def _point_at(mission, s: float) -> tuple[float, float]:
@@ -242,7 +266,8 @@ def recorded(tmp_path_factory) -> dict:
             probe = pub_session.declare_publisher(M.key(ROBOT, "teacher"))  # only the recorder subscribes to it
             wait_matching(probe)
             run.drive()
-            time.sleep(0.5)
+            # the recorder has taken all of it: every message sent is in a chunk it closed
+            assert until(lambda: len(recorded_seqs([out])) >= len(run.sent), 30, step=0.1), "the recorder fell behind"
         text = finish(rec)
         live = mon.summary(mission_from_spec(MISSION))
     live.pop("_traj")
@@ -313,7 +338,7 @@ def test_replay_publishes_every_message_in_order(recorded: dict, with_commands: 
         proc = kids.spawn(args + (["--with-commands"] if with_commands else []), subprocess.PIPE)
         line = wait_line(proc, r"^replayed ", timeout=60)
         assert proc.wait(timeout=30) == 0
-        time.sleep(0.2)
+        until(lambda: len(got) >= len(expected), 20)  # the last ones are on their way
     assert f"replayed {len(expected)} messages" in line, line
     assert got == expected
 
@@ -338,12 +363,12 @@ def _steady(session: zenoh.Session, seconds: float, rate: float = 200.0, robot: 
     """Publish poses at ``rate`` for ``seconds``; returns how many."""
     pub = session.declare_publisher(M.key(robot, "state"), congestion_control=zenoh.CongestionControl.BLOCK)
     wait_matching(pub)
-    n, t_end = 0, time.monotonic() + seconds
+    n, t_end, pace = 0, time.monotonic() + seconds, Pace(1.0 / rate)
     while time.monotonic() < t_end:
         pub.put(M.encode(M.LearnerState(stamp=time.monotonic(), seq=n, x=0.001 * n, y=0.0, theta=0.0,
                                         source="steady", epoch=7)))
         n += 1
-        time.sleep(1.0 / rate)
+        pace.wait()  # pacing: a robot's poses at ``rate``
     return n
 
 
@@ -386,7 +411,7 @@ def test_max_bytes_stops_the_recording_within_the_limit(tmp_path: Path) -> None:
         while rec.poll() is None and time.monotonic() < t_end:
             pub.put(M.encode(M.LearnerState(stamp=time.monotonic(), seq=n, x=0.0, y=0.0, theta=0.0)))
             n += 1
-            time.sleep(0.002)
+            time.sleep(0.002)  # pacing: poses until the recorder stops (the loop's deadline is the test)
         assert rec.poll() == 0, "the recorder did not stop at its size limit"
         text = rec.stdout.read().decode()
     assert "stopped: size limit" in text, text
@@ -401,7 +426,10 @@ def test_rotation_keeps_the_last_files_each_within_its_size(tmp_path: Path) -> N
     with router() as (session, port), Children() as kids:
         rec = start_recorder(kids, port, out, "--rotate-bytes", "6k", "--keep", "3")
         n = _steady(session, 2.0, rate=300)
-        time.sleep(0.3)
+        # the last pose is on disk (in the newest file, or the one before if it just rotated)
+        assert until(lambda: any(e.message().seq == n - 1 for f in sorted(tmp_path.glob("run-*.mcap"), key=lambda f:
+                                                                           int(f.stem.split("-")[1]))[-2:]
+                                 for e in recorded_seqs([f])), 30, step=0.1), "the recorder fell behind"
         text = finish(rec)
     files = sorted(tmp_path.glob("run-*.mcap"))
     assert len(files) == 3, (files, text)
@@ -462,16 +490,18 @@ def test_a_recorded_demo_reports_the_live_demos_figures(tmp_path: Path) -> None:
                         os.killpg(pid, signal.SIGSTOP)
                         held[pid] = cmd
                         port = int(cmd[cmd.index("--connect") + 1].rsplit(":", 1)[1])
-                time.sleep(0.005)
+                time.sleep(0.005)  # the poll step: catch them before they publish
             assert len(held) == 2 and port, held
             rec = start_recorder(kids, port, out)
-            time.sleep(0.5)  # the subscription reaches the router
+            with open_session(make_config(mode="client", connect=[tcp(port)])) as probe_session:
+                # the recorder's subscription has reached the demo's router: a probe on a key only it subscribes to
+                wait_matching(probe_session.declare_publisher(M.key(f"probe{os.getpid()}", "teacher")))
             for pid in held:
                 os.killpg(pid, signal.SIGCONT)
             line = wait_line(demo, r"^summary: ", timeout=300)
             assert demo.wait(timeout=60) == 0
             demo_done = True
-            time.sleep(0.5)
+            settled(out)  # the demo's router is gone: the recorder has written what it took
             text = finish(rec)
         finally:  # held children sit in sessions of their own: stopping the demo's group would miss them
             if not demo_done:

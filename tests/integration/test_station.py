@@ -84,7 +84,7 @@ def _query_pairs(session, robot: str, timeout: float = 15.0) -> M.Pairs | None:
         for reply in session.get(Keys(robot).pairs, timeout=1.0):
             if reply.ok is not None:
                 return M.decode(reply.ok.payload.to_bytes(), M.Pairs)
-        time.sleep(0.2)
+        time.sleep(0.2)  # the poll step: the station is not up yet (no queryable, no reply)
     return None
 
 
@@ -148,7 +148,7 @@ def test_a_station_killed_and_restarted_comes_back_paused_and_drives_at_once_whe
                                  text=True, timeout=60)
             if res.returncode != 1 or "no driver host status" not in res.stderr or time.monotonic() > t_end:
                 break
-            time.sleep(0.2)
+            time.sleep(0.2)  # the poll step: until the new station has heard the driver host
         assert res.returncode == 0 and "resumed" in res.stdout, res.stdout + res.stderr
         assert wait(lambda: any(c.epoch != old_epoch and c.method != "stop" for c in commands), 30)
         with col.lock:

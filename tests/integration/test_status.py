@@ -79,7 +79,7 @@ def test_a_service_waits_for_the_router_and_a_tool_says_it_is_not_there_in_one_l
 
     t = th.Thread(target=service, daemon=True)
     t.start()
-    time.sleep(0.6)  # the router is not up yet: the service waits, it does not exit
+    time.sleep(0.6)  # absence: the router is not up yet, the service waits, it does not exit
     assert t.is_alive() and not out
     with open_session(make_config(mode="router", listen=[tcp(port)])):
         t.join(10)

@@ -12,11 +12,12 @@ import os
 import signal
 import subprocess
 import sys
-import time
 import uuid
 from pathlib import Path
 
 import pytest
+
+from tests.wait import until
 
 TAG = "SCMBRIDGE_TEST_TAG"
 
@@ -38,11 +39,17 @@ def _tagged(tag: str) -> list[int]:
 
 
 def _wait(pred, timeout: float, what: str) -> None:
-    end = time.monotonic() + timeout
-    while not pred():
-        if time.monotonic() > end:
-            raise AssertionError(f"timed out after {timeout:.0f} s waiting for {what}")
-        time.sleep(0.2)
+    if not until(pred, timeout, step=0.2):
+        raise AssertionError(f"timed out after {timeout:.0f} s waiting for {what}")
+
+
+def _has_socket(pid: int) -> bool:
+    """Whether ``pid`` holds a socket: a tool's process has opened its Zenoh session (it is past its start-up)."""
+    fds = Path("/proc") / str(pid) / "fd"
+    try:
+        return any(os.readlink(fd).startswith("socket:") for fd in fds.iterdir())
+    except OSError:
+        return False
 
 
 CASES = {
@@ -66,7 +73,9 @@ def test_a_tool_told_to_stop_leaves_no_process_behind(case: str, sig: signal.Sig
     try:
         _wait(lambda: len(_tagged(tag)) >= procs or tool.poll() is not None, 90, f"{procs} processes of {case}")
         assert tool.poll() is None, tool.communicate()[0].decode(errors="replace")[-3000:]
-        time.sleep(1.0)  # the children are past their start-up (a signal during an import is the same case)
+        # the children are past their start-up, each with its session open (a signal during an import is the same
+        # case: the tool stops them all the same; this is the one a person sends to a running tool)
+        _wait(lambda: all(_has_socket(p) for p in _tagged(tag)) or tool.poll() is not None, 90, f"{case}'s sessions")
         tool.send_signal(sig)
         said = tool.communicate(timeout=60)[0].decode(errors="replace")
         _wait(lambda: not _tagged(tag), 10, "no process left")

@@ -34,6 +34,7 @@ from drivers.udp import UdpLinkConfig
 from sim_learner.dynamics import mpc_learner
 from sim_learner.udp_robot import DEFAULT_PEER, UdpRobot
 from sim_learner.vehicle import SimVehicle
+from tests.wait import Pace, until
 
 
 def health(driver: Driver) -> LinkHealth:
@@ -58,12 +59,12 @@ def udp_socket(port: int = 0) -> socket.socket:
 
 
 def wait_for(pred, timeout: float, step: float = 0.01) -> bool:
-    t_end = time.monotonic() + timeout
-    while time.monotonic() < t_end:
-        if pred():
-            return True
-        time.sleep(step)
-    return pred()
+    return bool(until(pred, timeout, step))
+
+
+def poll_first(driver: Driver, timeout: float = 10.0) -> list:
+    """The poses of the driver's first poll that read any (the datagrams sent just before are on their way)."""
+    return until(lambda: driver.poll(time.monotonic()), timeout)
 
 
 # ============================================================================ the driver against a scripted robot
@@ -147,7 +148,7 @@ def poll_until(driver, n_datagrams: int, timeout: float = 2.0) -> list:
         poses += driver.poll(time.monotonic())
         if health(driver).frames_received >= n_datagrams:
             break
-        time.sleep(0.002)
+        time.sleep(0.002)  # the poll step: until the datagrams counted have been read
     return poses
 
 
@@ -161,7 +162,7 @@ def test_a_forged_huge_seq_does_not_lock_the_robots_telemetry_out(scripted) -> N
     robot.state(x=99.0, seq=2**63 - 1)
     robot.state(x=98.0, seq=robot.seq + 1, epoch=0xBAD)
     for i in range(5):
-        time.sleep(0.01)
+        time.sleep(0.01)  # pacing: the robot's states apart in time, as a robot publishes them
         robot.state(x=10.0 + i)
     poses = poll_until(driver, n0 + 10)
     assert [p.x for p in poses] == [1.0, 2.0, 3.0, 10.0, 11.0, 12.0, 13.0, 14.0]  # the real robot, every state
@@ -209,7 +210,7 @@ def test_a_robot_that_reboots_is_recognised_after_a_silence_and_its_old_epoch_re
     old_epoch = robot.epoch
     for i in range(5):
         robot.state(x=float(i))
-        time.sleep(0.01)
+        time.sleep(0.01)  # pacing: the robot's states apart in time, as a robot publishes them
     t_last_old = time.monotonic()
     assert len(poll_until(driver, 0, timeout=0.05)) == 5
     robot.epoch, robot.seq = 0xB007, -1  # rebooted: a new epoch, seq from 0, and it keeps publishing
@@ -217,7 +218,7 @@ def test_a_robot_that_reboots_is_recognised_after_a_silence_and_its_old_epoch_re
     t_end = time.monotonic() + 1.5
     while time.monotonic() < t_end and not poses:
         robot.state(x=100.0 + robot.seq + 1)
-        time.sleep(0.02)
+        time.sleep(0.02)  # pacing: the rebooted robot publishes at 50 Hz (the loop's deadline is the test)
         poses = driver.poll(time.monotonic())
     assert poses, "the rebooted robot's state was never taken"
     taken_after = time.monotonic() - t_last_old
@@ -227,8 +228,7 @@ def test_a_robot_that_reboots_is_recognised_after_a_silence_and_its_old_epoch_re
     # the old run's datagrams (a late one, a replay) are refused for good
     robot.state(x=-1.0, seq=1000, epoch=old_epoch)
     robot.state(x=200.0)
-    time.sleep(0.05)
-    assert [p.x for p in driver.poll(time.monotonic())] == [200.0]
+    assert [p.x for p in poll_first(driver)] == [200.0]  # the old run's, sent first, was read and refused
     assert health(driver).detail.state_old_epoch == 1
 
 
@@ -236,14 +236,13 @@ def test_health_is_ok_only_while_the_robots_state_is_fresh(scripted) -> None:
     driver, robot = scripted
     h = health(driver)
     assert h.ok and h.connected
-    time.sleep(0.45)
-    driver.poll(time.monotonic())
+    stale = r"no state from the robot for (0\.[4-9]|[1-9]\.\d) s"  # (its state_timeout_s is 0.3)
+    assert until(lambda: (driver.poll(time.monotonic()), re.fullmatch(stale, health(driver).text))[1], 10)
     h = health(driver)
     assert not h.ok and h.connected
-    assert re.fullmatch(r"no state from the robot for (0\.[4-9]|[1-9]\.\d) s", h.text), h.text
+    assert re.fullmatch(stale, h.text), h.text
     robot.state(x=1.0)
-    time.sleep(0.02)
-    driver.poll(time.monotonic())
+    assert poll_first(driver)
     assert health(driver).ok
 
 
@@ -265,14 +264,13 @@ def test_poses_are_stamped_at_the_robots_clock_or_at_receipt_when_its_stamp_is_n
     driver, robot = scripted
     for _ in range(3):  # the robot's clock (ours + 500 s) replaces the open's constant stamps: a step of the clock,
         robot.state(0.0, stamp=time.monotonic() + 500.0)  # followed once three in a row agree on it
-        time.sleep(0.005)  # read at once: these set the offset
-        assert len(driver.poll(time.monotonic())) == 1
+        assert len(poll_first(driver)) == 1  # read at once: these set the offset
     assert driver.counters["clock_restarts"] == 3  # two samples held back, then the restart
     stamps = []
     for k in range(5):  # then five that wait in the socket for one poll
         stamps.append(time.monotonic() + 500.0)
         robot.state(0.01 * k, stamp=stamps[-1])
-        time.sleep(0.02)
+        time.sleep(0.02)  # pacing: the robot's own spacing, which its stamps must keep
     poses = driver.poll(time.monotonic())  # all five at once, one receipt time
     assert len(poses) == 5 and driver.counters["stamp_fallbacks"] == 0, driver.counters
     assert [b.stamp - a.stamp for a, b in zip(poses, poses[1:])] == pytest.approx(
@@ -280,7 +278,7 @@ def test_poses_are_stamped_at_the_robots_clock_or_at_receipt_when_its_stamp_is_n
     assert stamps[-1] - 500.0 <= poses[-1].stamp <= time.monotonic()
     for _ in range(3):
         robot.state(0.1, stamp=500.0)  # the clock stopped
-        time.sleep(0.01)
+        time.sleep(0.01)  # pacing: apart in time, so their receipt stamps differ
     poses = driver.poll(time.monotonic())
     assert len(poses) == 3 and driver.counters["stamp_fallbacks"] == 3
     assert poses[0].stamp < poses[1].stamp < poses[2].stamp  # their receipts
@@ -332,15 +330,26 @@ def rig():
 
 def test_command_reaches_the_robot_and_state_comes_back(rig) -> None:
     driver, robot, vehicle = rig
-    poses = []
-    t0 = time.monotonic()
-    while time.monotonic() - t0 < 1.0:
+    poses: list = []
+    t0, pace = time.monotonic(), Pace(0.02)
+
+    def tracked():
+        """The vehicle now, if it has moved and the pose just read says where it is (a pose read before a stall of
+        this process is as old as the stall: the vehicle has driven on since; the next one is fresh)."""
+        body = vehicle.advance(time.monotonic())
+        return body if poses and body.x > 0.05 and abs(poses[-1].x - body.x) < 0.02 else None
+
+    # at least 1 s of commands, and on until the vehicle has moved and a fresh pose says where (a stalled robot
+    # thread or test process takes longer, it does not fail the test)
+    body = None
+    while time.monotonic() - t0 < 1.0 or (time.monotonic() - t0 < 20.0 and body is None):
         driver.send(0.25, 0.1, time.monotonic())
         poses += driver.poll(time.monotonic())
-        time.sleep(0.02)
+        body = tracked()
+        pace.wait()  # pacing: a driver host's 50 Hz
     assert robot.last_cmd is not None and (robot.last_cmd.v, robot.last_cmd.omega) == (0.25, 0.1)
     assert robot.last_cmd.seq == driver.seq and robot.last_cmd.epoch == driver.epoch
-    body = vehicle.advance(time.monotonic())
+    body = body or vehicle.advance(time.monotonic())
     assert poses and body.x > 0.05 and abs(poses[-1].x - body.x) < 0.02
     assert health(driver).ok
 
@@ -358,11 +367,15 @@ def test_poses_carry_the_robots_own_stamps_so_the_pairs_are_its_true_response() 
 
 def test_robot_watchdog_stops_it_when_commands_stop(rig) -> None:
     driver, robot, vehicle = rig
+    t_end, pace = time.monotonic() + 10.0, Pace(0.02)
     for _ in range(10):
         driver.send(0.3, 0.0, time.monotonic())
-        time.sleep(0.02)
+        pace.wait()  # pacing: a driver host's 50 Hz
+    while vehicle.advance(time.monotonic()).v <= 0 and time.monotonic() < t_end:  # until the robot took them
+        driver.send(0.3, 0.0, time.monotonic())
+        pace.wait()
     assert vehicle.advance(time.monotonic()).v > 0
-    time.sleep(0.6)
+    assert until(lambda: vehicle.advance(time.monotonic()).v == 0.0, 10.0)  # the commands stopped: its watchdog
     assert vehicle.advance(time.monotonic()).v == 0.0
     assert robot.counters["watchdog_stops"] >= 1
 
@@ -370,14 +383,14 @@ def test_robot_watchdog_stops_it_when_commands_stop(rig) -> None:
 def test_replayed_commands_and_garbage_are_dropped_and_counted(rig) -> None:
     driver, robot, vehicle = rig
     driver.send(0.2, 0.0, time.monotonic())
-    time.sleep(0.05)
+    assert wait_for(lambda: robot.last_cmd is not None and robot.last_cmd.v == 0.2, 10.0)
     to = (LOCAL, robot.port)
     old = M.Command(stamp=1.0, seq=1, v=0.3, omega=0.2, method="scm", epoch=driver.epoch)  # a replay
     driver.sock.sendto(M.encode(old), to)
     driver.sock.sendto(msgspec.msgpack.encode({"stamp": 1.0, "seq": 10**6, "v": float("nan"), "omega": 0.0,
                                                "method": "scm"}), to)
     driver.sock.sendto(b"\x00garbage", to)
-    assert wait_for(lambda: robot.counters["out_of_order"] >= 1 and robot.counters["malformed"] >= 2, 1.0)
+    assert wait_for(lambda: robot.counters["out_of_order"] >= 1 and robot.counters["malformed"] >= 2, 10.0)
     assert (robot.last_cmd.v, robot.last_cmd.omega) == (0.2, 0.0)
 
 
@@ -390,8 +403,8 @@ def test_the_robot_obeys_and_answers_only_its_configured_peer(rig) -> None:
                             (LOCAL, robot.port))
         stranger.sendto(M.encode(M.Command(stamp=1.0, seq=driver.seq + 1, v=0.3, omega=0.0, method="scm",
                                            epoch=driver.epoch)), (LOCAL, robot.port))
-        assert wait_for(lambda: robot.counters["foreign"] >= 6, 1.0)
-        time.sleep(0.1)
+        assert wait_for(lambda: robot.counters["foreign"] >= 6, 10.0)
+        time.sleep(0.1)  # absence: the stranger's commands, all counted, must not drive it meanwhile
         assert vehicle.advance(time.monotonic()).v == 0.0 and robot.last_cmd.v == 0.0
         stranger.settimeout(0.1)
         with pytest.raises(TimeoutError):  # the robot's telemetry goes to its peer only
@@ -406,12 +419,12 @@ def test_first_sender_mode_pins_the_first_valid_sender() -> None:
         try:
             with udp_socket() as stranger:
                 stranger.sendto(b"\x01not a command", (LOCAL, robot.port))  # garbage does not pin anyone
-                assert wait_for(lambda: robot.counters["malformed"] == 1, 1.0) and robot.peer is None
+                assert wait_for(lambda: robot.counters["malformed"] == 1, 10.0) and robot.peer is None
                 driver.open(time.monotonic())
                 assert robot.peer == driver.sock.getsockname()
                 stranger.sendto(M.encode(M.Command(stamp=1.0, seq=1, v=0.3, omega=0.0, method="scm", epoch=5)),
                                 (LOCAL, robot.port))
-                assert wait_for(lambda: robot.counters["foreign"] == 1, 1.0)
+                assert wait_for(lambda: robot.counters["foreign"] == 1, 10.0)
                 assert robot.last_cmd.epoch == driver.epoch
         finally:
             driver.close()
@@ -425,10 +438,10 @@ def test_the_robot_refuses_commands_beyond_its_own_limits_and_holds_still(rig) -
     vehicle.command = lambda v, w, now: (calls.append((v, w)), real(v, w, now))  # type: ignore[method-assign]
     for _ in range(5):
         driver.send(0.3, 0.0, time.monotonic())
-        time.sleep(0.01)
+        time.sleep(0.01)  # pacing: a stream of valid commands before the two beyond the limits
     driver.send(100.0, 0.0, time.monotonic())  # the link does not clamp (the driver host does): the robot must
     driver.send(0.5, -2.5, time.monotonic())
-    assert wait_for(lambda: robot.counters["over_limits"] == 2, 1.0)
+    assert wait_for(lambda: robot.counters["over_limits"] == 2, 10.0)
     assert all(abs(v) <= 1.0 and abs(w) <= 2.0 for v, w in calls) and (0.3, 0.0) in calls
     assert vehicle.advance(time.monotonic()).v == 0.0  # refused means stopped, not "keep the last one"
     assert robot.last_cmd.v == 0.3
@@ -443,7 +456,7 @@ def test_a_restarted_driver_host_is_recognised_after_a_silence_and_old_commands_
         first.open(time.monotonic())
         for _ in range(20):
             first.send(0.2, 0.0, time.monotonic())
-            time.sleep(0.01)
+            time.sleep(0.01)  # pacing: the first run's command stream
         replay = M.Command(stamp=1.0, seq=first.seq + 1, v=0.4, omega=0.0, method="scm", epoch=first.epoch)
         first.close()
         second = open_driver("udp", cfg)  # a restarted driver host: the same address, a new epoch, seq from 1
@@ -454,11 +467,11 @@ def test_a_restarted_driver_host_is_recognised_after_a_silence_and_old_commands_
             while time.monotonic() - t0 < 1.5 and not (robot.last_cmd and robot.last_cmd.epoch == second.epoch
                                                        and robot.last_cmd.v == 0.25):
                 second.send(0.25, 0.0, time.monotonic())
-                time.sleep(0.01)
+                time.sleep(0.01)  # pacing: the restarted host's stream (the loop's deadline is the test)
             assert robot.last_cmd.epoch == second.epoch and robot.last_cmd.v == 0.25
             assert time.monotonic() - t0 < 0.3 + 0.3  # the robot's silence (its watchdog), then at once
             second.sock.sendto(M.encode(replay), (LOCAL, robot.port))  # the old run's next command, replayed
-            assert wait_for(lambda: robot.counters["old_epoch"] == 1, 1.0)
+            assert wait_for(lambda: robot.counters["old_epoch"] == 1, 10.0)
             assert robot.last_cmd.epoch == second.epoch
         finally:
             second.close()
@@ -470,15 +483,12 @@ def test_a_robot_reboot_and_a_telemetry_pause_do_not_lock_the_link(rig) -> None:
     robot.pause_telemetry(0.8)  # the driver's state_timeout_s is 0.5
     assert wait_for(lambda: (driver.poll(time.monotonic()), not health(driver).ok)[1], 1.0)
     assert "no state from the robot" in health(driver).text
-    assert wait_for(lambda: len(driver.poll(time.monotonic())) > 0, 1.0) and health(driver).ok
+    assert wait_for(lambda: len(driver.poll(time.monotonic())) > 0, 10.0) and health(driver).ok
     robot.reboot()
     assert robot.epoch != old_epoch
-    t0 = time.monotonic()
-    while time.monotonic() - t0 < 2.0 and health(driver).detail.robot_restarts == 0:
-        driver.poll(time.monotonic())
-        time.sleep(0.01)
+    wait_for(lambda: (driver.poll(time.monotonic()), health(driver).detail.robot_restarts)[1] > 0, 10.0)
     assert health(driver).detail.robot_restarts == 1
-    assert wait_for(lambda: len(driver.poll(time.monotonic())) > 0, 0.5) and health(driver).ok
+    assert wait_for(lambda: len(driver.poll(time.monotonic())) > 0, 10.0) and health(driver).ok
 
 
 def test_the_learner_command_serves_its_peer_only_and_refuses_a_bad_peer(tmp_path) -> None:
@@ -578,7 +588,7 @@ def test_fuzzing_the_robot_with_2000_datagrams() -> None:
                     _mutations(rng, valid, M.Command)
                 (stranger if rng.random() < 0.2 else peer).sendto(data, to)
                 sent += 1
-            assert wait_for(lambda n=sent: robot.counters["received"] >= n, 2.0, step=0.002)
+            assert wait_for(lambda n=sent: robot.counters["received"] >= n, 10.0, step=0.002)
         c = dict(robot.counters)
     assert c["received"] == sent
     refused = sum(c[k] for k in ("malformed", "foreign", "out_of_order", "seq_jump", "old_epoch", "foreign_epoch",

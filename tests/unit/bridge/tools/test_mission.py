@@ -80,6 +80,26 @@ def test_send_checks_its_file_before_anything_is_sent(tmp_path) -> None:
     assert ap.parse_args(["paper-s-path", "--robot", "r1", "--reverse"]).reverse
 
 
+def test_a_slow_stations_answer_to_an_act_is_awaited_not_asked_for_again() -> None:
+    """A station that takes longer than a second to answer an act (a machine that stalls it) gets the act once: a
+    second try would be answered too ("already running") while the first one did the work."""
+    acts: list[str] = []
+
+    def station(q: zenoh.Query) -> None:
+        req = M.decode(q.payload.to_bytes(), M.MissionRequest)
+        if req.action == "status":
+            q.reply("scm/r1/control", M.encode(_state(epoch=7, stamp=4.5)))
+            return
+        acts.append(req.action)
+        time.sleep(1.5)  # a simulated stall: the station's tick
+        q.reply("scm/r1/control", M.encode(_state(text="resumed", phase="running", epoch=7, stamp=6.0)))
+
+    with zenoh.open(make_config()) as s:
+        s.declare_queryable("scm/r1/control", station)
+        got = T.ask(s, "r1", M.MissionRequest(stamp=0.0, action="resume", source="alice"), timeout=20.0)
+    assert got is not None and got.text == "resumed" and acts == ["resume"]
+
+
 def test_ask_stamps_each_try_and_returns_the_stations_answer() -> None:
     asked: list[M.MissionRequest] = []
 
