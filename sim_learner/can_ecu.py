@@ -157,7 +157,7 @@ class DiffDriveEcus(ThreadedDevice):
                  left_sign: float = 1.0, right_sign: float = -1.0, wheel_radius: float = 0.1,
                  track_width: float = 0.4, watchdog: float = 0.5, encoder_period: float = 0.01,
                  heartbeat_period: float = 0.1, control_mode: int = POSITION_CONTROL, vel_limit: float = 2.0,
-                 drift: Drift | None = None, clock=time.monotonic) -> None:
+                 drift: Drift | None = None, clock=time.monotonic, wall=None) -> None:
         super().__init__()
         self.bus_kwargs = dict(bus_kwargs)
         self.vehicle = vehicle
@@ -168,6 +168,9 @@ class DiffDriveEcus(ThreadedDevice):
         self.vel_limit = float(vel_limit)
         self.watchdog, self.encoder_period, self.heartbeat_period = watchdog, encoder_period, heartbeat_period
         self.clock = clock
+        #: the wall clock python-can stamps frames with, read with ``clock`` to map a stamp onto it; an injected
+        #: ``clock`` (a test's fake) without its ``wall`` cannot be mapped: frames are then applied when handled
+        self.wall = wall if wall is not None else (time.time if clock is time.monotonic else None)
         self.drift = drift
         self.driven_at: float | None = None  # when the wheels first turned (the drift's schedule counts from it)
         #: the wheel speed (m/s) of the learner's fastest command: what a sagging battery's top speed falls from
@@ -230,8 +233,8 @@ class DiffDriveEcus(ThreadedDevice):
         the ``virtual`` bus, the kernel's receipt on SocketCAN), never after ``now`` nor before the last moment the
         controllers were brought to (frames are applied in the bus's order; the wheels cannot be wound back)."""
         at = now
-        if frame.timestamp and math.isfinite(frame.timestamp):
-            at = now - max(0.0, time.time() - frame.timestamp)
+        if self.wall is not None and frame.timestamp and math.isfinite(frame.timestamp):
+            at = now - max(0.0, self.wall() - frame.timestamp)
         at = min(now, max(at, self._t_last))
         self._t_last = at
         return at
