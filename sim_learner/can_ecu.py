@@ -20,6 +20,8 @@ Each wheel is one ODrive with one axis (as an ODrive Pro / S1), answering on its
   INVALID_STATE); Set_Axis_State(IDLE) disarms. Both feed the watchdog.
 - Set_Controller_Mode sets the control and input mode at once. Power-on default: POSITION_CONTROL + PASSTHROUGH
   (the device's factory configuration), so a master that never sets velocity control does not drive the wheel.
+- every frame takes effect when it arrives (its bus stamp), as on the device, not when this emulator's thread gets
+  to it: a stop sent while that thread was not scheduled holds the wheels from the stop's arrival.
 - Set_Input_Vel stores ``input_vel`` and feeds the watchdog (the controller clamps what it drives to ``vel_limit``,
   turns/s: ODrive's ``controller.config.vel_limit``, default 2, with ``enable_vel_limit`` on by default, in
   ``Controller::update``); the wheel turns only in CLOSED_LOOP_CONTROL *and*
