@@ -268,7 +268,8 @@ def test_controllers_whose_thread_is_starved_apply_a_stop_when_it_arrives_not_wh
     rig.ecus._stop.set()  # the controllers' own thread is never scheduled again (their bus stays open)
     rig.ecus._thread.join(timeout=2.0)
     t_a = time.monotonic()
-    d0 = rig.vehicle.advance(t_a) and rig.vehicle.distance
+    rig.vehicle.advance(t_a)
+    d0 = rig.vehicle.distance
     rig.driver.send(0.0, 0.0, time.monotonic())  # the stop: on the bus now
     t_b = time.monotonic()
     time.sleep(0.3)  # a simulated stall: the host's thread too, after its write
