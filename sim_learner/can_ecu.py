@@ -20,6 +20,8 @@ Each wheel is one ODrive with one axis (as an ODrive Pro / S1), answering on its
   INVALID_STATE); Set_Axis_State(IDLE) disarms. Both feed the watchdog.
 - Set_Controller_Mode sets the control and input mode at once. Power-on default: POSITION_CONTROL + PASSTHROUGH
   (the device's factory configuration), so a master that never sets velocity control does not drive the wheel.
+- every frame takes effect when it arrives (its bus stamp), as on the device, not when this emulator's thread gets
+  to it: a stop sent while that thread was not scheduled holds the wheels from the stop's arrival.
 - Set_Input_Vel stores ``input_vel`` and feeds the watchdog (the controller clamps what it drives to ``vel_limit``,
   turns/s: ODrive's ``controller.config.vel_limit``, default 2, with ``enable_vel_limit`` on by default, in
   ``Controller::update``); the wheel turns only in CLOSED_LOOP_CONTROL *and*
@@ -85,6 +87,10 @@ DRIFT_AMOUNT = {"battery": 0.3, "wheel": 0.1}
 #: a gap of the emulator's own loop (a 2 ms period) longer than this is a stall of the process hosting it, not time
 #: the controllers lived through (:meth:`DiffDriveEcus._stalled`)
 STALL_S = 0.1
+#: s the emulator's loop waits between two looks at the bus (what arrived meanwhile is applied at its arrival)
+LOOP_S = 0.002
+#: frames handled in one look at most, so a flooded bus cannot hold the loop
+MAX_DRAIN = 1000
 
 
 @dataclass(frozen=True)
@@ -153,7 +159,7 @@ class DiffDriveEcus(ThreadedDevice):
                  left_sign: float = 1.0, right_sign: float = -1.0, wheel_radius: float = 0.1,
                  track_width: float = 0.4, watchdog: float = 0.5, encoder_period: float = 0.01,
                  heartbeat_period: float = 0.1, control_mode: int = POSITION_CONTROL, vel_limit: float = 2.0,
-                 drift: Drift | None = None, clock=time.monotonic) -> None:
+                 drift: Drift | None = None, clock=time.monotonic, wall=None) -> None:
         super().__init__()
         self.bus_kwargs = dict(bus_kwargs)
         self.vehicle = vehicle
@@ -164,6 +170,9 @@ class DiffDriveEcus(ThreadedDevice):
         self.vel_limit = float(vel_limit)
         self.watchdog, self.encoder_period, self.heartbeat_period = watchdog, encoder_period, heartbeat_period
         self.clock = clock
+        #: the wall clock python-can stamps frames with, read with ``clock`` to map a stamp onto it; an injected
+        #: ``clock`` (a test's fake) without its ``wall`` cannot be mapped: frames are then applied when handled
+        self.wall = wall if wall is not None else (time.time if clock is time.monotonic else None)
         self.drift = drift
         self.driven_at: float | None = None  # when the wheels first turned (the drift's schedule counts from it)
         #: the wheel speed (m/s) of the learner's fastest command: what a sagging battery's top speed falls from
@@ -174,6 +183,7 @@ class DiffDriveEcus(ThreadedDevice):
         self._lock = threading.RLock()
         self.bus: can.BusABC | None = None
         self._t_enc = self._t_hb = 0.0  # when the next encoder estimates and Heartbeat are due
+        self._t_last = -math.inf  # the latest moment the controllers were brought to (a frame applied, a measurement)
 
     def _open(self) -> None:
         kwargs = dict(self.bus_kwargs)
@@ -193,20 +203,43 @@ class DiffDriveEcus(ThreadedDevice):
         assert self.bus is not None
         ran = self.clock()
         while not self._stop.is_set():
-            frame = self.bus.recv(timeout=0.002)
+            # the frames are taken off the bus only under the lock (by this loop or by ``emit_due``), so no frame
+            # is held by one thread while the other moves the wheels on past its arrival
+            self._stop.wait(LOOP_S)
             with self._lock:
                 now = self.clock()
-                self._stalled(now - ran)
+                self._stalled(now - ran, now)
                 ran = now
                 # everything that arrived is handled before the watchdog looks: a device takes frames as they
                 # come, so a thread that was not scheduled for a while must not trip on feeds still queued
-                handled = 0
-                while frame is not None:
-                    self._handle(frame, now)
-                    handled += 1
-                    frame = self.bus.recv(timeout=0.0) if handled < 1000 else None
+                self._drain(now)
                 self._watchdog(now)
                 self.emit_due()
+
+    def _drain(self, now: float) -> None:
+        """Handle every frame waiting on the bus, each at the moment it arrived there (:meth:`_arrival`).
+
+        A real controller applies a Set_Input_Vel when the frame arrives, on its own hardware; these controllers
+        run on a thread of whatever process hosts them, which may take the frame much later. Applied at its
+        handling time, a stop sent during a stall of that thread would leave the wheels running on at the old
+        speed for the stall, and the encoder estimates would report travel no real wheel made after the stop."""
+        assert self.bus is not None
+        for _ in range(MAX_DRAIN):
+            frame = self.bus.recv(timeout=0.0)
+            if frame is None:
+                return
+            self._handle(frame, self._arrival(frame, now))
+
+    def _arrival(self, frame: can.Message, now: float) -> float:
+        """When ``frame`` reached the controller, on this emulator's clock: its bus stamp (the sender's write on
+        the ``virtual`` bus, the kernel's receipt on SocketCAN), never after ``now`` nor before the last moment the
+        controllers were brought to (frames are applied in the bus's order; the wheels cannot be wound back)."""
+        at = now
+        if self.wall is not None and frame.timestamp and math.isfinite(frame.timestamp):
+            at = now - max(0.0, self.wall() - frame.timestamp)
+        at = min(now, max(at, self._t_last))
+        self._t_last = at
+        return at
 
     def emit_due(self) -> None:
         """Send the encoder estimates and Heartbeats that are due now.
@@ -214,12 +247,14 @@ class DiffDriveEcus(ThreadedDevice):
         A real controller runs on its own hardware; these run on a thread of whatever process hosts them. A driver
         host that emulates them in its own process (``--emulate``) also calls this before it reads the bus, so a
         thread the interpreter did not schedule for a while cannot make the controllers fall silent where the real
-        device would have spoken on time. (Frames and the watchdog stay with the controllers' own thread: they are
-        handled in the bus's order.)"""
+        device would have spoken on time. The frames waiting on the bus are handled first, each at its arrival, so
+        the estimates measure the wheels as the commands already on the bus drive them. (The watchdog stays with
+        the controllers' own thread, which knows its own stalls: :meth:`_stalled`.)"""
         with self._lock:
             if self.bus is None:
                 return
             now = self.clock()
+            self._drain(now)  # what arrived meanwhile was applied when it arrived, before the wheels are measured
             if now >= self._t_enc:
                 self._integrate(now)
                 for ax in self.axes.values():
@@ -254,13 +289,13 @@ class DiffDriveEcus(ThreadedDevice):
                 self.malformed += 1
                 return
             ax.input_vel = vel
-            ax.last_feed = now
+            ax.last_feed = max(ax.last_feed, now)
         elif cmd == SET_AXIS_STATE:
             if len(data) < 4:
                 self.malformed += 1
                 return
             (req,) = struct.unpack_from("<I", data)
-            ax.last_feed = now
+            ax.last_feed = max(ax.last_feed, now)
             if req == CLOSED_LOOP_CONTROL:
                 if ax.error:
                     ax.procedure_result = RESULT_INVALID_STATE  # refused: stays where it is
@@ -288,17 +323,18 @@ class DiffDriveEcus(ThreadedDevice):
         if ax.state == CLOSED_LOOP_CONTROL:
             ax.state, ax.procedure_result = IDLE, RESULT_DISARMED
 
-    def _stalled(self, gap: float) -> None:
+    def _stalled(self, gap: float, now: float = math.inf) -> None:
         """The emulator's own loop (a 2 ms period) ran again ``gap`` s after its last turn: a gap over
         :data:`STALL_S` means the process hosting it was not scheduled, which a real controller, on its own
         hardware, never is. Its watchdog then counts from when it runs again, not through the stall: the driver host
         beside it in the same process (``--emulate``) or on the same loaded machine could not feed it meanwhile
         either, so a trip there would be the test machine's, not the driver's. A master that hangs while the
-        emulator runs (its own thread, process or machine) still trips it at the watchdog's time."""
+        emulator runs (its own thread, process or machine) still trips it at the watchdog's time. A feed the
+        driver host's thread applied meanwhile (``emit_due``) is not moved past ``now``."""
         if gap > STALL_S:
             for ax in self.axes.values():
                 if ax.state == CLOSED_LOOP_CONTROL:
-                    ax.last_feed += gap
+                    ax.last_feed = min(now, ax.last_feed + gap)
 
     def _watchdog(self, now: float) -> None:
         tripped = False
@@ -336,6 +372,7 @@ class DiffDriveEcus(ThreadedDevice):
     def _integrate(self, now: float) -> None:
         """Encoder counts follow the body's real motion (the learner's response, not the set-point): each wheel's
         travel is the body's path length -/+ its heading change times half the track."""
+        self._t_last = max(self._t_last, now)
         st = self.vehicle.advance(now)
         circ = 2.0 * math.pi * self.radius
         turn = (st.theta - self.vehicle.theta0) * self.track / 2.0

@@ -257,6 +257,38 @@ def test_controllers_emulated_in_the_hosts_process_speak_on_time_though_their_th
     assert rig.wait(lambda: health(rig.driver).detail.counters.heartbeat_losses >= 1, 10.0, 0.3)
 
 
+def test_controllers_whose_thread_is_starved_apply_a_stop_when_it_arrives_not_when_they_run_again(rig: Rig) -> None:
+    """Finding (the fleet demo under six test workers): the controllers emulated inside a driver host took a stop
+    off the bus only when their starved thread ran again, so the wheels ran on at the old speed after it; the host,
+    which sends estimates on their behalf before each read, then measured travel no real wheel makes after a stop
+    and its odometry rightly rejected it ("implausible encoder estimates"): the station paused the robot. A real
+    ODrive applies a Set_Input_Vel when the frame arrives; the emulator now applies each frame at its bus stamp."""
+    rig.ecus.watchdog = 2.0  # controllers whose watchdog outlasts this test's starvation of their thread
+    rig.run(0.5, 0.3, 0.26)  # a bend: the outer wheel at its fastest
+    rig.ecus._stop.set()  # the controllers' own thread is never scheduled again (their bus stays open)
+    rig.ecus._thread.join(timeout=2.0)
+    t_a = time.monotonic()
+    rig.vehicle.advance(t_a)
+    d0 = rig.vehicle.distance
+    rig.driver.send(0.0, 0.0, time.monotonic())  # the stop: on the bus now
+    t_b = time.monotonic()
+    time.sleep(0.3)  # a simulated stall: the host's thread too, after its write
+    rig.ecus.emit_due()  # the host lets the controllers speak before it reads
+    assert not rig.vehicle.moving
+    assert rig.vehicle.distance - d0 <= 0.3 * (t_b - t_a) + 1e-9  # held from the stop's arrival, not from now
+    t_next = time.monotonic()
+    t_end = t_next + 0.5
+    while time.monotonic() < t_end:
+        now = time.monotonic()
+        rig.ecus.emit_due()
+        rig.driver.send(0.0, 0.0, now)
+        rig.driver.poll(now)
+        t_next += 0.02
+        time.sleep(max(0.0, t_next - time.monotonic()))  # pacing: a 50 Hz tick, as the driver host's
+    h = health(rig.driver)
+    assert h.ok and h.detail.counters.rejected_estimates == 0, h.text
+
+
 def test_a_driver_host_that_stalled_reads_the_heartbeats_waiting_on_the_bus_before_it_judges_the_link(
         rig: Rig) -> None:
     """Finding (the shard test beside two busy loops): a driver host that was not scheduled for 0.6 s judged the
