@@ -96,10 +96,13 @@ def test_a_dragging_left_wheel_yaws_the_robot_left() -> None:
 
 
 #: where the drift tests' mission ends (m along x): the paper's S-path to just past its second bend's apex (7.2 of
-#: its 9.6 m), from its own start. The changes come 15-20 s after the wheels first turn, past the first bend; what is
-#: asserted is re-learned by 30 s (measured: 16-30 s); the goal is at 36-45 s of driving where the whole path took
-#: 52-55 s.
+#: its 9.6 m), from its own start. The changes come 15-18 s after the wheels first turn, past the first bend, on the
+#: straight between the bends; the goal comes well after the changes have ended, before the end of the whole path.
 MISSION_TO_X = 6.0
+
+#: the sagging battery of the battery test: ``--drift`` KIND:AT (the default ramp and amount), AT s after the wheels
+#: first turn (that test's docstring says why there)
+BATTERY_SAG = "battery:18"
 
 
 def _mission(tmp_path: Path) -> Path:
@@ -147,13 +150,21 @@ def _demo(tmp_path: Path, drift: str, duration: float, timeout: float) -> tuple[
 @pytest.mark.slow
 @pytest.mark.timeout(300)
 def test_the_hil_loop_relearns_the_cells_a_sagging_battery_changed_and_reaches_the_goal(tmp_path: Path) -> None:
-    """``scmbridge demo --link can --drift battery``: the motors' top speed falls 30 % over 10 s, 20 s after the
-    wheels first turn (from no pairs: the first bend's cells are learned by then), on the S-path to just past its
-    second bend (:func:`_mission`); the station runs with ``[transfer] adapt``. The demo's summary, the station's log
-    and its saved store agree on the cells re-learned. The sag stays where the whole path's test had it: a sag of 5 s
-    from 15 s, in the first bend, took the robot out of the corridor there in 2 runs of 3 (one on the code before the
-    spread of a change), which is not what this test is about."""
-    _demo(tmp_path, "battery", 170, 280)  # (a deadline: the demo ends at the goal; its start-up counts in it)
+    """``scmbridge demo --link can --drift battery:18`` (:data:`BATTERY_SAG`): the motors' top speed falls 30 % over
+    10 s, from 18 s after the wheels first turn (from no pairs: the first bend's cells are learned by then), on the
+    S-path to just past its second bend (:func:`_mission`); the station runs with ``[transfer] adapt``. The demo's
+    summary, the station's log and its saved store agree on the cells re-learned.
+
+    Where the sag falls is what the claim needs. The cells it changes are those driven near the top speed, and a cell
+    shows a change only against pairs it took before it: the cells of the straight between the two bends, learned
+    there before the sag and driven there during it. The sag starts so that its first re-learning falls in the
+    middle of that straight, not at its end: a loaded machine brings the pairs that show the change later, and the
+    robot's place when the sag comes shifts with its start. A sag whose change is first seen at the straight's end
+    meets the second bend's cells, driven only once before at the top speed (too few pairs to test), and the learned
+    top speed, re-learned from the boundary pairs meanwhile, then keeps the teacher below the top speed: nothing or
+    only a cell of the last approach is re-learned. Much earlier, the robot under the sag hit an obstacle on its way,
+    which is not what this test is about."""
+    _demo(tmp_path, BATTERY_SAG, 170, 280)  # (a deadline: the demo ends at the goal; its start-up counts in it)
 
 
 def _response(u_L: np.ndarray, drag: float = 0.0) -> np.ndarray:
