@@ -410,7 +410,9 @@ def run_level(n: int, seconds: float, warmup: float, mission: Path, workdir: Pat
                   "tick_max_ms": s1.latencies_ms.get("tick_max"),
                   "solve_ms_median": s1.latencies_ms.get("solve_median"),
                   "cmd_latency_p99_ms": float(np.percentile(lat, 99)) if lat.size else None,
-                  "driving": s1.reason == "ok", "refined_pairs": s1.counters.get("refined_pairs")}
+                  "driving": s1.reason == "ok", "refined_pairs": s1.counters.get("refined_pairs"),
+                  # why a robot was not driving at the window's end (its station's own words), else None
+                  "not_driving": None if s1.reason == "ok" else f"{s1.reason}: {s1.text}"}
     good = [v for v in per.values() if "failed" not in v]
     window = t_w1 - t_w0
     ticks = sum(v["ticks"] for v in good)

@@ -354,7 +354,8 @@ def test_the_fleet_bench_measures_one_station_and_says_how_many_it_held(tmp_path
     assert [lv["robots"] for lv in out["levels"]] == [1, 2]
     for lv in out["levels"]:
         assert "failed" not in lv, lv
-        assert lv["stations_driving"] == lv["robots"] and lv["ticks"] > 20 * lv["robots"]
+        assert lv["stations_driving"] == lv["robots"] and lv["ticks"] > 20 * lv["robots"], lv["per_robot"]
+        assert all(r["not_driving"] is None for r in lv["per_robot"].values() if r.get("driving"))
         assert lv["ticks_per_core_s"] > 0 and lv["tick_p99_ms_worst"] > 0
         assert lv["held"] == (lv["missed_fraction_worst"] < 0.01 and lv["tick_p99_ms_worst"] < 100.0)
     assert out["robots_held"] in (0, 1, 2) and out["scaling"]["robots_per_core_at_10hz"] > 0
