@@ -45,12 +45,17 @@ class Rig:
     def body(self):
         return self.vehicle.advance(time.monotonic())
 
-    def run(self, seconds: float, v: float = 0.0, w: float = 0.0, *, host: bool = False) -> list[Pose]:
+    def run(self, seconds: float, v: float = 0.0, w: float = 0.0, *, host: bool = False,
+            co_located: bool = False) -> list[Pose]:
         """Call the driver for ``seconds`` at ~50 Hz: ``send(v, w)`` every tick (``host=True``: as the driver host
-        does, ``send`` only while ``health().ok``, else ``stop``), then ``poll``."""
+        does, ``send`` only while ``health().ok``, else ``stop``), then ``poll``. ``co_located``: first let the
+        emulated controllers send what is due, as a driver host that emulates them in its own process does before
+        each read of the bus (``DriverHost.co_located``)."""
         poses: list[Pose] = []
         t_end = time.monotonic() + seconds
         while time.monotonic() < t_end:
+            if co_located:
+                self.ecus.emit_due()
             now = time.monotonic()
             if host and not health(self.driver).ok:
                 self.driver.stop(now)
@@ -242,15 +247,7 @@ def test_controllers_emulated_in_the_hosts_process_speak_on_time_though_their_th
     rig.ecus._stop.set()  # the controllers' own thread is never scheduled again (their bus stays open)
     rig.ecus._thread.join(timeout=2.0)
     # a window in which the link must NOT be lost (> 3 heartbeat_timeout): absence is watched over time
-    t_next = time.monotonic()
-    t_end = t_next + 1.0
-    while time.monotonic() < t_end:
-        now = time.monotonic()
-        rig.ecus.emit_due()  # what the driver host does before it polls
-        rig.driver.send(0.3, 0.0, now)
-        rig.driver.poll(now)
-        t_next += 0.02
-        time.sleep(max(0.0, t_next - time.monotonic()))  # pacing: a 50 Hz tick, as the driver host's
+    rig.run(1.0, 0.3, 0.0, co_located=True)
     h = health(rig.driver)
     assert h.ok and h.detail.counters.heartbeat_losses == 0, h.text
     # without it, as before: the link is lost (waited for, while the host keeps calling)
@@ -276,15 +273,7 @@ def test_controllers_whose_thread_is_starved_apply_a_stop_when_it_arrives_not_wh
     rig.ecus.emit_due()  # the host lets the controllers speak before it reads
     assert not rig.vehicle.moving
     assert rig.vehicle.distance - d0 <= 0.3 * (t_b - t_a) + 1e-9  # held from the stop's arrival, not from now
-    t_next = time.monotonic()
-    t_end = t_next + 0.5
-    while time.monotonic() < t_end:
-        now = time.monotonic()
-        rig.ecus.emit_due()
-        rig.driver.send(0.0, 0.0, now)
-        rig.driver.poll(now)
-        t_next += 0.02
-        time.sleep(max(0.0, t_next - time.monotonic()))  # pacing: a 50 Hz tick, as the driver host's
+    rig.run(0.5, co_located=True)  # the host ticks on, stopped: its odometry judges what the wheels reported
     h = health(rig.driver)
     assert h.ok and h.detail.counters.rejected_estimates == 0, h.text
 
