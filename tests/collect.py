@@ -8,6 +8,7 @@ from collections.abc import Callable
 from typing import Any
 
 from bridge.core import wire as M
+from tests.wait import until
 
 
 class Collector:
@@ -36,12 +37,12 @@ class Collector:
         with self.lock:
             return list(self.got[key])
 
+    def holds(self, pred: Callable[[], bool]) -> bool:
+        """``pred()`` now, called under the lock (what came so far, as the callbacks leave it)."""
+        with self.lock:
+            return bool(pred())
+
     def wait(self, pred: Callable[[], bool], timeout: float) -> bool:
-        """Poll ``pred`` (called under the lock) until it holds or ``timeout`` passes."""
-        t_end = time.monotonic() + timeout
-        while time.monotonic() < t_end:
-            with self.lock:
-                if pred():
-                    return True
-            time.sleep(0.02)
-        return False
+        """Poll ``pred`` (called under the lock) until it holds or ``timeout`` passes (looked at once more then, so
+        a zero ``timeout`` is a look now)."""
+        return bool(until(lambda: self.holds(pred), timeout))

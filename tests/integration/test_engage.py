@@ -41,12 +41,6 @@ from tests.wait import Pace, until
 TAKE_OVER = (MAV.MAV_CMD_DO_SET_MODE, MAV.MAV_CMD_COMPONENT_ARM_DISARM)
 
 
-def holds(col: Collector, pred) -> bool:
-    """``pred()`` now, under the collector's lock."""
-    with col.lock:
-        return bool(pred())
-
-
 def _cli(port: int, *args: str) -> subprocess.CompletedProcess:
     return subprocess.run([sys.executable, "-m", "bridge", *args, "--mode", "client", "--connect", tcp(port)],
                           capture_output=True, text=True, timeout=90)
@@ -248,7 +242,7 @@ def test_the_udp_robot_gets_no_motion_before_engage_and_none_at_all_in_a_dry_run
         def drive(seconds: float, done) -> None:
             """A station's commands for ``seconds``, and on until ``done()`` (a stalled host takes longer)."""
             t0, pace = time.monotonic(), Pace(0.05)
-            while time.monotonic() - t0 < seconds or (time.monotonic() - t0 < 30 and not holds(col, done)):
+            while time.monotonic() - t0 < seconds or (time.monotonic() - t0 < 30 and not col.holds(done)):
                 seq[0] += 1
                 pub.put(M.encode(M.Command(stamp=time.monotonic(), seq=seq[0], v=0.3, omega=0.0, method="scm",
                                            valid_ms=300)))

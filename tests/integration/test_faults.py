@@ -27,12 +27,6 @@ from tests.collect import Collector
 from tests.wait import Pace, until
 
 
-def holds(col: Collector, pred) -> bool:
-    """``pred()`` now, under the collector's lock."""
-    with col.lock:
-        return bool(pred())
-
-
 def _status(ok: bool = True, text: str = "link can: driving (cmd)") -> M.Status:
     return M.Status(stamp=1.0, seq=1, node="driver", ok=ok, text=text)
 
@@ -93,7 +87,7 @@ def test_stale_telemetry_stops_the_robot_and_a_killed_driver_host_leaves_it_to_i
             ``longest`` s."""
             nonlocal seq
             t0, pace = time.monotonic(), Pace(0.05)
-            while time.monotonic() - t0 < seconds or (time.monotonic() - t0 < longest and not holds(col, done)):
+            while time.monotonic() - t0 < seconds or (time.monotonic() - t0 < longest and not col.holds(done)):
                 pub.put(M.encode(M.Command(stamp=time.monotonic(), seq=seq, v=0.2, omega=0.0, method="scm",
                                            epoch=epoch)))
                 seq += 1
