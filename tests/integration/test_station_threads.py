@@ -23,7 +23,7 @@ from tests.wait import until
 
 ROBOTS = 12
 #: threads the declarations may add whatever the number of robots: the off-Zenoh thread, and Zenoh's own pools
-#: growing by a thread or two (a thread per callback would be seven per robot)
+#: growing by a thread or two (a thread per callback would be eight per robot)
 MORE_AT_MOST = 4
 
 
