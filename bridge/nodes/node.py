@@ -12,6 +12,7 @@ import gc
 import json
 import logging
 import os
+import queue
 import resource
 import signal
 import sys
@@ -47,6 +48,47 @@ def freeze_startup_heap() -> None:
     gc.freeze()
 
 
+def on_zenoh(fn: Callable[[Any], None]) -> zenoh.handlers.Callback:
+    """``fn`` as a Zenoh handler run on Zenoh's own receiving thread, the interpreter lock taken there
+    (``zenoh.handlers.Callback(fn, indirect=False)``). A plain function is run by zenoh-python on a Python thread
+    started for that one declaration: a many-robot station had several threads per robot, and each thread of a
+    process makes every read of its CPU clock slower (the kernel sums over them; the MPC's solver reads it several
+    times per solve). Only for a callback that hands over and returns: it never waits on a lock held longer than a
+    hand-over, does no I/O and builds nothing big (that goes to an :class:`OffThread`), since every sample Zenoh
+    receives waits behind it (docs/ARCHITECTURE.md, "Threads and clocks")."""
+    return zenoh.handlers.Callback(fn, indirect=False)
+
+
+class OffThread:
+    """One daemon thread for a process, started by the first job and then kept, running the jobs handed to it in the
+    order they were handed: the part of a callback run on Zenoh's thread (:func:`on_zenoh`) that must not run there
+    (a store encoded for a query answered while no loop runs, a mission built from its message). A job that raises
+    is logged; the thread goes on."""
+
+    def __init__(self, name: str) -> None:
+        self.name = name
+        self.jobs: queue.SimpleQueue[tuple[Callable[..., None], tuple[Any, ...]]] = queue.SimpleQueue()
+        self.lock = threading.Lock()
+        self.thread: threading.Thread | None = None
+
+    def __call__(self, fn: Callable[..., None], *args: Any) -> None:
+        """Run ``fn(*args)`` on the thread, after the jobs handed before it (returns at once)."""
+        self.jobs.put((fn, args))
+        if self.thread is None:
+            with self.lock:
+                if self.thread is None:
+                    self.thread = threading.Thread(target=self._run, name=self.name, daemon=True)
+                    self.thread.start()
+
+    def _run(self) -> None:
+        while True:
+            fn, args = self.jobs.get()
+            try:
+                fn(*args)
+            except Exception:
+                log.exception("%s: %s failed", self.name, getattr(fn, "__qualname__", fn))
+
+
 class Inputs:
     """Thread-safe counters of a node's inputs (``malformed_<name>``, ...), shared by its callbacks and its loop, and
     what the node declared (:attr:`declared`: its subscribers, and whatever else it keeps there), which the node
@@ -69,11 +111,13 @@ class Inputs:
             return dict(self.counts)
 
     def subscribe(self, session: zenoh.Session, key: str, kind: type[S], name: str,
-                  handler: Callable[[S, float], None], remote_only: bool = False) -> Any:
+                  handler: Callable[[S, float], None], remote_only: bool = False, direct: bool = False) -> Any:
         """Declare a subscriber on ``key`` that decodes (and so validates) each sample as ``kind``; a sample that
         does not decode is counted as ``malformed_<name>`` and dropped; ``handler(msg, receive_time)`` gets the rest.
         ``remote_only``: what this session itself publishes on ``key`` is not delivered (Zenoh's
-        ``Locality.REMOTE``): a node that listens on a key it publishes on, for other senders only.
+        ``Locality.REMOTE``): a node that listens on a key it publishes on, for other senders only. ``direct``:
+        run on Zenoh's receiving thread (:func:`on_zenoh`), for a ``handler`` that only hands over; else on a
+        thread of its own.
         """
 
         clock = self.clock
@@ -84,9 +128,10 @@ class Inputs:
             if msg is not None:
                 handler(msg, now)
 
+        cb = on_zenoh(on_sample) if direct else on_sample
         if remote_only:
-            return self.declared.keep(session.declare_subscriber(key, on_sample, allowed_origin=zenoh.Locality.REMOTE))
-        return self.declared.keep(session.declare_subscriber(key, on_sample))
+            return self.declared.keep(session.declare_subscriber(key, cb, allowed_origin=zenoh.Locality.REMOTE))
+        return self.declared.keep(session.declare_subscriber(key, cb))
 
     def decode(self, sample: zenoh.Sample, kind: type[S], name: str, key: str) -> S | None:
         """``sample`` decoded (and so validated) as ``kind``; None, counted as ``malformed_<name>``, if it is not."""
@@ -139,7 +184,7 @@ class StatusOut:
         self.last: bytes | None = None
         self.lock = threading.Lock()
         self.publisher = session.declare_publisher(key)
-        self.queryable = session.declare_queryable(key, self._on_query)
+        self.queryable = session.declare_queryable(key, on_zenoh(self._on_query))  # a copy under a lock, a reply
 
     def put(self, payload: bytes) -> None:
         with self.lock:

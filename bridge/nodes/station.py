@@ -51,10 +51,12 @@ from bridge.nodes.mission_control import Fitness, MissionControl, Saved
 from bridge.nodes.node import (
     FixedRate,
     Inputs,
+    OffThread,
     Queued,
     StatusOut,
     add_zenoh_args,
     freeze_startup_heap,
+    on_zenoh,
     stop_on_signals,
     stopped_because,
     zenoh_config,
@@ -75,6 +77,9 @@ log = logging.getLogger("scmbridge.station")
 #: a mission request that waited this long for the loop is dropped unanswered, s: its asker (``scmbridge mission``
 #: waits at most 1 s for one reply) has given up and asks again; acting on it now would act on a stale request
 CONTROL_MAX_WAIT_S = 0.9
+#: the process's one thread for what a station's callbacks (run on Zenoh's thread) must not do there: a mission
+#: built from its message, a query answered while no loop runs (docs/ARCHITECTURE.md, "Threads and clocks")
+OFF_ZENOH = OffThread("station-off-zenoh")
 #: a start or resume that the robot's fitness alone would refuse waits up to this long for a driver host status that
 #: arrives after it, s: one sent on an engage or an estop release confirmed just before the request may still be on
 #: its way (the host publishes it within a tick or two of the change; its answer to the person can come first)
@@ -299,23 +304,30 @@ class Station:
         # poses (100 Hz) and echoes (50 Hz) wait in Zenoh's ring until the tick reads them: no callback per sample
         self.telemetry = [self.inputs.queue(session, k.applied, M.Applied, "applied"),
                           self.inputs.queue(session, k.state, M.LearnerState, "state")]
+        # every callback runs on Zenoh's own thread (on_zenoh), none on a thread per declaration: each decodes,
+        # counts and hands over under the inbox's lock; a mission is built, and a query answered while no loop runs,
+        # on the process's OFF_ZENOH thread
+        rx = self.rx
+        rx.off = OFF_ZENOH
         self.inputs.subscribe(session, M.status_key(self.robot, "driver"), M.Status, "driver_status",
-                              self.rx.on_driver_status)
-        self.inputs.subscribe(session, k.mission, M.MissionSpec, "mission", self.rx.on_mission)
+                              rx.on_driver_status, direct=True)
+        self.inputs.subscribe(session, k.mission, M.MissionSpec, "mission",
+                              lambda spec, now: OFF_ZENOH(rx.on_mission, spec, now), direct=True)
         # another sender's commands on this robot's key; this session's own (every command it publishes) never
         # reach the callback: Zenoh drops them at the source (a decode and a GIL handover per command saved)
-        self.inputs.subscribe(session, k.cmd, M.Command, "own_cmd", self.rx.on_own_cmd, remote_only=True)
+        self.inputs.subscribe(session, k.cmd, M.Command, "own_cmd", rx.on_own_cmd, remote_only=True,
+                              direct=True)
         if external:
-            self.inputs.subscribe(session, k.teacher, M.TeacherCommand, "teacher", self.rx.on_teacher)
+            self.inputs.subscribe(session, k.teacher, M.TeacherCommand, "teacher", rx.on_teacher, direct=True)
         keep = self.inputs.declared.keep  # all undeclared by undeclare(): a fleet's failed robot lets go of its keys
-        keep(session.declare_queryable(k.pairs, self.rx.on_pairs_query))
-        keep(session.declare_queryable(k.control, self.rx.on_control_query))
+        keep(session.declare_queryable(k.pairs, on_zenoh(rx.on_pairs_query)))
+        keep(session.declare_queryable(k.control, on_zenoh(rx.on_control_query)))
         self.pubs = {t: keep(session.declare_publisher(getattr(k, t))) for t in ("cmd", "limits")}
         if not external:
             # the teacher message (the MPC's command and plan, for a person's viewer or a recorder) is built and
             # sent only while someone subscribes to it: a fleet's robots mostly have no viewer
             pub = self.pubs["teacher"] = keep(session.declare_publisher(k.teacher))
-            self.teacher_listener = keep(pub.declare_matching_listener(self._on_teacher_matching))
+            self.teacher_listener = keep(pub.declare_matching_listener(on_zenoh(self._on_teacher_matching)))
             self.core.latest.teacher_heard = bool(pub.matching_status.matching)
         self.pubs["status"] = keep(StatusOut(session, M.status_key(self.robot, "station")))  # asked by status
         self.journal.declare(session, keep)

@@ -64,8 +64,12 @@ class Receiver:
     ``answer``: answers queries at once when no loop runs (:attr:`looping` False: nothing else calls the core)."""
 
     def __init__(self, epoch: int, inputs: Inputs, clock: Clock, wake: Callable[[], None],
-                 answer: Callable[[list[Asked], float], None]) -> None:
+                 answer: Callable[[list[Asked], float], None], off: Callable[..., None] | None = None) -> None:
         self.inputs, self.clock, self.wake, self.answer = inputs, clock, wake, answer
+        #: runs ``off(fn, *args)`` what a callback must not do on its own thread (a query answered while no loop
+        #: runs): the station's callbacks run on Zenoh's thread and give it an :class:`~bridge.nodes.node.OffThread`;
+        #: None: at once, in the callback
+        self.off = off if off is not None else _now
         self.lock = threading.Lock()
         self.inbox = Inbox()
         self.looping = False  # the loop runs: only its thread calls the core
@@ -158,14 +162,29 @@ class Receiver:
         self._ask(Asked("pairs", query, None, self.clock()))
 
     def _ask(self, asked: Asked) -> None:
-        """Hand a query to the loop and wake it; answer it here when no loop runs (nothing else calls the core)."""
+        """Hand a query to the loop and wake it; when no loop runs, answer it by :attr:`off` (nothing else calls
+        the core)."""
         with self.lock:
-            if self.looping:
+            queued = self.looping
+            if queued:
                 self.inbox.queries.append(asked)
-            else:
+        if queued:
+            self.wake()
+        else:
+            self.off(self._answer_unless_looping, asked)
+
+    def _answer_unless_looping(self, asked: Asked) -> None:
+        """Answer ``asked`` now if no loop runs yet (or any more); else hand it to the loop."""
+        with self.lock:
+            if not self.looping:
                 self.answer([asked], asked.at)
                 return
+            self.inbox.queries.append(asked)
         self.wake()
+
+
+def _now(fn: Callable[..., None], *args: object) -> None:
+    fn(*args)
 
 
 __all__ = ["Asked", "Inbox", "Receiver"]

@@ -26,6 +26,7 @@ import zenoh
 from bridge.core import wire as M
 from bridge.core.config import StationConfig
 from bridge.nodes.mission_control import MissionControl, Saved
+from bridge.nodes.node import on_zenoh
 from bridge.nodes.station_core import StationCore, TickInputs
 
 #: the digest of no file: the station started from an empty pair store
@@ -99,7 +100,7 @@ class Journal:
         whether anyone subscribes."""
         self.pub = keep(session.declare_publisher(M.key(self.core.robot, "journal")))
         if not self.always:
-            keep(self.pub.declare_matching_listener(self._on_matching))
+            keep(self.pub.declare_matching_listener(on_zenoh(self._on_matching)))  # sets a flag
             self.heard = bool(self.pub.matching_status.matching)
 
     def _on_matching(self, status: zenoh.MatchingStatus) -> None:  # Zenoh's thread

@@ -1,12 +1,13 @@
 """A station's callbacks (:mod:`bridge.nodes.station_inbox`): what arrives waits in the inbox for the loop, wakes
-it when it must be handled now, and is answered at once while no loop runs."""
+it when it must be handled now, and is answered at once while no loop runs (in the callback, or on the thread
+``off`` gives)."""
 
 from __future__ import annotations
 
 import threading
 
 from bridge.core import wire as M
-from bridge.nodes.node import Inputs
+from bridge.nodes.node import Inputs, OffThread
 from bridge.nodes.station_inbox import Asked, Receiver
 from tests.fakeclock import FakeClock
 
@@ -61,3 +62,35 @@ def test_a_query_is_answered_at_once_without_a_loop_and_waits_for_it_while_it_ru
     rx.requeue(queries)  # waits for a driver host status
     rx.end(7.0)  # the loop ended: what waited is answered now
     assert not rx.looping and [q.kind for q in rig.answered[1][0]] == ["pairs"] and rig.answered[1][1] == 7.0
+
+
+def test_with_an_off_thread_a_query_without_a_loop_is_answered_there_in_order_or_handed_to_a_loop_begun_since(
+        caplog) -> None:
+    """The station's callbacks run on Zenoh's thread: a query while no loop runs is answered on the process's
+    OffThread, the jobs in the order they were handed; one that finds the loop begun meanwhile waits in the inbox."""
+    rig, off = _Rig(), OffThread("test-off")
+    rx, done = rig.rx, threading.Event()
+    rx.off = off
+    gate = threading.Event()
+    off(gate.wait, 10)  # holds the thread: what follows waits behind it
+    rx.on_pairs_query("first")
+    rx.on_pairs_query("second")
+    assert rig.answered == []  # not answered in the callback
+    off(done.set)
+    gate.set()
+    assert done.wait(10)
+    assert [q.query for qs, _ in rig.answered for q in qs] == ["first", "second"]
+    assert off.thread is not None and off.thread.name == "test-off" and off.thread.daemon
+    gate.clear()
+    done.clear()
+    off(gate.wait, 10)
+    rx.on_pairs_query("third")
+    rx.begin()  # the loop begins before the thread gets to it: the loop answers it
+    off(lambda: 1 / 0)  # a job that raises is logged; the thread goes on
+    off(done.set)
+    gate.set()
+    assert done.wait(10)
+    assert len(rig.answered) == 2 and rig.woken.is_set()
+    queries, _, _ = rx.take_queries()
+    assert [q.query for q in queries] == ["third"]
+    assert "test-off" in caplog.text and "ZeroDivisionError" in caplog.text
