@@ -84,10 +84,11 @@ WATCHDOG_TIMER_EXPIRED, ESTOP_REQUESTED = 0x01000000, 0x02000000
 DRIFTS = ("battery", "wheel")
 DRIFT_AT, DRIFT_OVER = 20.0, 10.0
 DRIFT_AMOUNT = {"battery": 0.3, "wheel": 0.1}
-#: a gap of the emulator's own loop (a 2 ms period) longer than this is a stall of the process hosting it, not time
-#: the controllers lived through (:meth:`DiffDriveEcus._stalled`)
+#: a gap of the emulator's own loop (a turn every 2-10 ms) longer than this is a stall of the process hosting it,
+#: not time the controllers lived through (:meth:`DiffDriveEcus._stalled`)
 STALL_S = 0.1
-#: s the emulator's loop waits between two looks at the bus (what arrived meanwhile is applied at its arrival)
+#: s the emulator's loop waits at least between two looks at the bus; it waits on until the next frame it sends or
+#: the next watchdog deadline is due, at most ``encoder_period`` (what arrived meanwhile is applied at its arrival)
 LOOP_S = 0.002
 #: frames handled in one look at most, so a flooded bus cannot hold the loop
 MAX_DRAIN = 1000
@@ -205,7 +206,7 @@ class DiffDriveEcus(ThreadedDevice):
         while not self._stop.is_set():
             # the frames are taken off the bus only under the lock (by this loop or by ``emit_due``), so no frame
             # is held by one thread while the other moves the wheels on past its arrival
-            self._stop.wait(LOOP_S)
+            self._stop.wait(self._idle())
             with self._lock:
                 now = self.clock()
                 self._stalled(now - ran, now)
@@ -215,6 +216,16 @@ class DiffDriveEcus(ThreadedDevice):
                 self._drain(now)
                 self._watchdog(now)
                 self.emit_due()
+
+    def _idle(self) -> float:
+        """How long the loop may wait before its next look: until the next encoder estimates, Heartbeat or watchdog
+        deadline is due, within [``LOOP_S``, ``encoder_period``]. Waking only for what is due sends each frame on
+        time without polling a quiet bus; a frame arriving meanwhile is applied at its arrival all the same
+        (:meth:`_drain`)."""
+        with self._lock:
+            due = min([self._t_enc, self._t_hb] + [ax.last_feed + self.watchdog for ax in self.axes.values()
+                                                   if ax.state == CLOSED_LOOP_CONTROL])
+            return min(max(due - self.clock(), LOOP_S), self.encoder_period)
 
     def _drain(self, now: float) -> None:
         """Handle every frame waiting on the bus, each at the moment it arrived there (:meth:`_arrival`).
@@ -324,7 +335,7 @@ class DiffDriveEcus(ThreadedDevice):
             ax.state, ax.procedure_result = IDLE, RESULT_DISARMED
 
     def _stalled(self, gap: float, now: float = math.inf) -> None:
-        """The emulator's own loop (a 2 ms period) ran again ``gap`` s after its last turn: a gap over
+        """The emulator's own loop (a turn every 2-10 ms) ran again ``gap`` s after its last turn: a gap over
         :data:`STALL_S` means the process hosting it was not scheduled, which a real controller, on its own
         hardware, never is. Its watchdog then counts from when it runs again, not through the stall: the driver host
         beside it in the same process (``--emulate``) or on the same loaded machine could not feed it meanwhile

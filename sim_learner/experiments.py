@@ -390,16 +390,17 @@ class SweepOutcome:
 
 
 def sweep_mpc(seeds: Sequence[int], quick: bool = True, explorations: Sequence[str] = EXPLORATIONS,
-              workers: int = 2, progress: bool = True, solver: str = "ipopt", adapt: bool = False) -> SweepOutcome:
+              workers: int = 2, progress: bool = True, solver: str = "ipopt", adapt: bool = False,
+              references: bool = True) -> SweepOutcome:
     """The MPC case for every seed and exploration policy: per-seed figures, their median, spread and worst seed,
-    and the seed-independent references (ideal teacher, both baselines). ``workers`` > 1 uses a process pool
-    (spawned, at most 2 workers; a script calling this needs the ``if __name__ == "__main__"`` guard); 1 runs
-    in this process."""
+    and the seed-independent references (ideal teacher, both baselines; ``references=False``: the stores alone, the
+    summary empty). ``workers`` > 1: a process pool (spawned, at most 2; a script calling this needs the ``if
+    __name__ == "__main__"`` guard); 1 runs in this process."""
     for e in explorations:
         if e not in EXPLORATIONS:
             raise ValueError(f"unknown exploration {e!r}; known: {', '.join(EXPLORATIONS)}")
-    tasks: list[tuple] = [("refs", quick, solver)] + [("scm", s, quick, e, solver, adapt) for e in explorations
-                                                     for s in seeds]
+    tasks: list[tuple] = ([("refs", quick, solver)] if references else []) + [
+        ("scm", s, quick, e, solver, adapt) for e in explorations for s in seeds]
     workers = max(1, min(int(workers), 2))
     bar = Progress("sweep") if progress else None
     results: list[tuple[dict, bytes | None]] = []
@@ -417,8 +418,10 @@ def sweep_mpc(seeds: Sequence[int], quick: bool = True, explorations: Sequence[s
                     bar((i + 1) / len(tasks), str(tasks[i][1:]))
     if bar:
         bar.done()
-    refs = results[0][0]
-    policies = {}
+    stores = {(t[3], t[1]): PairStore.from_bytes(r[1]) for t, r in zip(tasks, results) if r[1] is not None}
+    if not references:
+        return SweepOutcome({}, stores)
+    refs, policies = results[0][0], {}
     for e in explorations:
         per = [mpc_summary(t[1], quick, e, r[0], refs) for t, r in zip(tasks[1:], results[1:]) if t[3] == e]
         policies[e] = {"stats": summarise_sweep(per), "per_seed": [_compact(s) for s in per]}
@@ -431,7 +434,6 @@ def sweep_mpc(seeds: Sequence[int], quick: bool = True, explorations: Sequence[s
         "references": {**refs, "note": "deterministic and seed-independent: the same for every seed"},
         "policies": policies,
     }
-    stores = {(t[3], t[1]): PairStore.from_bytes(r[1]) for t, r in zip(tasks[1:], results[1:]) if r[1] is not None}
     return SweepOutcome(summary, stores)
 
 
@@ -443,8 +445,10 @@ def grid_experiment(seed: int = 0, quick: bool = False, out: Path | None = None,
     map (the ``scm`` mapper without the transfer's choice of map) has a region; every mapper is compared on that
     region, and ``transfer`` is what the station runs: the SC map or linear interpolation per command
     (:class:`transfer.choice.MapChoice`), with its own method counts."""
-    if store is None:
-        store = mpc_experiment(seed, quick, None, progress, exploration).store
+    if store is None:  # the seed's run alone: the grid needs its pairs, not the references (teacher, baselines)
+        store = run_scm(seed, quick, exploration, bar := Progress("mpc") if progress else None)[1]
+        if bar:
+            bar.done()
     learner = mpc_learner()
     box = store.limits.box
     n = 25 if quick else 60
@@ -536,7 +540,7 @@ def sweep_grid(seeds: Sequence[int], quick: bool = False, exploration: str = "gu
                progress: bool = True) -> dict:
     """The grid test on the pairs each seed's MPC run learned (the runs in at most two worker processes): per-seed
     figures and their median, spread and worst seed (``figure_stats``)."""
-    outcome = sweep_mpc(seeds, quick, [exploration], workers, progress)
+    outcome = sweep_mpc(seeds, quick, [exploration], workers, progress, references=False)
     per_seed = []
     for seed in seeds:
         g = grid_experiment(seed, quick, None, False, outcome.stores[(exploration, seed)], exploration)
@@ -641,7 +645,6 @@ def run_primitives(args: argparse.Namespace) -> int:
 
     t0 = time.perf_counter()
     return _emit(primitives_experiment(args.seed, args.quick, args.out, exploration=args.policy or "guided"), t0)
-
 
 
 __all__ = ["MpcOutcome", "SweepOutcome", "grid_experiment", "mpc_experiment", "sweep_grid", "sweep_mpc"]

@@ -1,0 +1,87 @@
+"""Where the suite's CPU goes, test by test: an opt-in pytest plugin and its report (docs/BENCHMARKS.md, "The test
+suite").
+
+``SCMBRIDGE_CPU_REPORT=DIR python -m pytest -p tests.cpu_report ...`` writes one JSON line per test to
+``DIR/<worker>.jsonl``: the CPU its worker spent on it (``self``) and that of the processes the test started and
+reaped (``children``), both user + system from ``resource.getrusage`` around the test's setup, call and teardown, and
+its wall time; each worker's last line is its whole session (``__total__``). A process reaped later (by another test's
+``subprocess.Popen``, which reaps the finished children it finds) counts there, and one never reaped not at all.
+``python -m tests.cpu_report DIR [N]`` prints the totals, the CPU by group and module and the N costliest tests."""
+
+from __future__ import annotations
+
+import collections
+import json
+import os
+import resource
+import sys
+import time
+from pathlib import Path
+from typing import IO
+
+import pytest
+
+ENV = "SCMBRIDGE_CPU_REPORT"
+_out: IO[str] | None = None
+
+
+def _cpu() -> tuple[float, float]:
+    s, c = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
+    return s.ru_utime + s.ru_stime, c.ru_utime + c.ru_stime
+
+
+def _write(row: dict) -> None:
+    global _out
+    if not os.environ.get(ENV):
+        return
+    if _out is None:
+        Path(os.environ[ENV]).mkdir(parents=True, exist_ok=True)
+        worker = os.environ.get("PYTEST_XDIST_WORKER", "main")
+        _out = open(Path(os.environ[ENV]) / f"{worker}.jsonl", "a", buffering=1)  # noqa: SIM115 (the session's)
+    _out.write(json.dumps(row) + "\n")
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_runtest_protocol(item: pytest.Item, nextitem: pytest.Item | None):
+    (s0, c0), w0 = _cpu(), time.monotonic()
+    yield
+    (s1, c1), w1 = _cpu(), time.monotonic()
+    _write({"id": item.nodeid, "self": round(s1 - s0, 3), "children": round(c1 - c0, 3), "wall": round(w1 - w0, 3)})
+
+
+def pytest_sessionfinish(session: pytest.Session) -> None:
+    if os.environ.get("PYTEST_XDIST_WORKER"):  # the controller's children are the workers: counted already
+        s, c = _cpu()
+        _write({"id": "__total__", "self": round(s, 3), "children": round(c, 3)})
+
+
+def report(directory: Path, n: int = 30) -> str:
+    rows, total = [], [0.0, 0.0]
+    for f in sorted(directory.glob("*.jsonl")):
+        for line in f.read_text().splitlines():
+            r = json.loads(line)
+            if r["id"] == "__total__":
+                total[0], total[1] = total[0] + r["self"], total[1] + r["children"]
+            else:
+                rows.append(r)
+
+    def cpu(r: dict) -> float:
+        return r["self"] + r["children"]
+
+    groups: collections.Counter[str] = collections.Counter()
+    modules: collections.Counter[str] = collections.Counter()
+    for r in rows:
+        path = r["id"].split("::")[0]
+        groups["/".join(path.split("/")[1:3 if path.startswith("tests/unit/sim_learner") else 2])] += cpu(r)
+        modules[path] += cpu(r)
+    out = [f"workers: {total[0]:.1f} CPU-s own + {total[1]:.1f} of their children; {len(rows)} tests: "
+           f"{sum(map(cpu, rows)):.1f} CPU-s, {sum(r['wall'] for r in rows):.1f} s of wall time summed",
+           "by group: " + ", ".join(f"{k} {v:.1f}" for k, v in groups.most_common())]
+    out += [f"{v:7.1f}  {k}" for k, v in modules.most_common(n)]
+    out += [f"{cpu(r):7.1f}  (own {r['self']:.1f}, children {r['children']:.1f}, wall {r['wall']:.1f})  {r['id']}"
+            for r in sorted(rows, key=cpu, reverse=True)[:n]]
+    return "\n".join(out)
+
+
+if __name__ == "__main__":
+    print(report(Path(sys.argv[1]), int(sys.argv[2]) if len(sys.argv) > 2 else 30))
