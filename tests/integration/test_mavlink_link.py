@@ -104,9 +104,20 @@ def test_velocity_set_points_follow_ardupilot_semantics_and_the_pose_comes_back_
         assert sp["frame"] == MAV.MAV_FRAME_BODY_NED and sp["type_mask"] == TYPE_MASK_VEL_YAWRATE == 0x05E7
         assert sp["vx"] == pytest.approx(0.25) and sp["yaw_rate"] == pytest.approx(-0.1)  # NED is clockwise
         body = vehicle.advance(time.monotonic())
-        last = poses[-1]
+        moving = poses[-1]  # at a steady speed: the pose's speed is the vehicle's whenever the pose was sent
+        assert body.x > 1.1 and moving.v == pytest.approx(body.v, abs=1e-3) and moving.v > 0.1
+        # where it is, in ENU: compared at rest, where a pose read late (a loaded machine) is still where it is
+        rest: list = []
+
+        def stopped() -> bool:
+            driver.send(0.0, 0.0, time.monotonic())
+            rest.extend(driver.poll(time.monotonic()))
+            st = vehicle.advance(time.monotonic())
+            return st.v == 0.0 and st.omega == 0.0 and bool(rest) and rest[-1].v == 0.0 and rest[-1].omega == 0.0
+
+        assert until(stopped, 5.0), rest[-1:]
+        body, last = vehicle.advance(time.monotonic()), rest[-1]
         assert math.hypot(last.x - body.x, last.y - body.y) < 0.03 and abs(last.theta - body.theta) < 0.02
-        assert body.x > 1.1 and last.v == pytest.approx(body.v, abs=1e-3)
 
 
 def test_reverse_speed_keeps_its_sign() -> None:
