@@ -421,8 +421,8 @@ class DriverHost:
         k, keep = self.keys, self.inputs.declared.keep
         self.inputs.subscribe(session, k.cmd, M.Command, "cmd", self.on_cmd)
         self.inputs.subscribe(session, k.estop, M.Estop, "estop", self.on_estop)
-        keep(session.declare_queryable(k.estop, self.on_estop_query))
-        keep(session.declare_queryable(k.engage, self.on_engage_query))
+        self.inputs.answer(session, k.estop, "estop", self.on_estop_query)  # a flood of queries delays no sample
+        self.inputs.answer(session, k.engage, "engage", self.on_engage_query)
         keep(session.liveliness().declare_token(M.alive_key(self.robot, "driver")))
         if self.poses.mocap_source:
             self.inputs.subscribe(session, k.mocap, M.LearnerState, "mocap", self.on_mocap)

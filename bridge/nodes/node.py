@@ -142,6 +142,35 @@ class Inputs:
             log.debug("dropped %s on %s: %s", kind.__name__, key, exc)
             return None
 
+    def answer(self, session: zenoh.Session, key: str, name: str, handler: Callable[[zenoh.Query], None],
+               capacity: int = QUEUE_CAPACITY) -> Any:
+        """Declare a queryable on ``key`` whose queries wait in Zenoh's own ring buffer and are answered by
+        ``handler(query)`` on a thread of this declaration's own (ended when the queryable is undeclared). With a
+        plain function zenoh-python runs it on a thread of its own too, but Zenoh's receiving thread takes the
+        interpreter lock to hand each query over: under a flood of queries everything behind them on the same link
+        (a person's estop, the station's commands) waited until the whole flood had been handed over
+        (docs/SECURITY.md, ``acts_flood_one_identity``). A ring takes a query without Python; past ``capacity``
+        waiting, the oldest are dropped (Zenoh ends a dropped query without an answer)."""
+        queryable = self.declared.keep(session.declare_queryable(key, zenoh.handlers.RingChannel(capacity)))
+        queries = queryable.handler  # (read from the handler: a thread blocked on the queryable's own recv would
+        # keep it borrowed, and undeclaring it would fail)
+
+        def run() -> None:
+            while True:
+                try:
+                    query = queries.recv()
+                except zenoh.ZError:  # undeclared: the channel closed
+                    return
+                try:
+                    handler(query)
+                except Exception:
+                    log.exception("query on %s failed", key)
+                del query  # a query ends (its asker's get returns) when the last reference to it goes, as after a
+                # callback; one the handler keeps to answer later it ends itself (``query.drop()``)
+
+        threading.Thread(target=run, name=f"queries-{name}", daemon=True).start()
+        return queryable
+
     def queue(self, session: zenoh.Session, key: str, kind: type[S], name: str,
               capacity: int = QUEUE_CAPACITY) -> Queued[S]:
         """Declare a subscriber on ``key`` whose samples wait in Zenoh's own ring buffer until the node's loop
