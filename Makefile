@@ -49,12 +49,16 @@ $(STAMP): $(PY) $(LOCK) pyproject.toml
 SERVICE_CACHE ?= /var/cache/scmbridge
 SERVICE_USER ?= scmbridge
 WARMUP := from transfer.scm import warmup; from transfer.teacher.mpc import MpcTeacher; warmup(); MpcTeacher()
+# The station's MPC compiled (about a minute of a core each): install only, not the bootstrap (the suite's stations
+# run it interpreted, SCMBRIDGE_NO_COMPILE=1; a lab's first station builds it in the background)
+MPC_WARMUP := from bridge.nodes.sources import warm_kernels; warm_kernels()
 
 install: $(STAMP)
 	@if [ "$$(id -u)" = 0 ]; then \
 		echo "make install: filling the services' cache $(SERVICE_CACHE) (numba's SC kernels, the MPC's code)"; \
 		mkdir -p $(SERVICE_CACHE)/numba && \
 		SCMBRIDGE_CACHE_DIR=$(SERVICE_CACHE) NUMBA_CACHE_DIR=$(SERVICE_CACHE)/numba $(PY) -c '$(WARMUP)' && \
+		SCMBRIDGE_CACHE_DIR=$(SERVICE_CACHE) NUMBA_CACHE_DIR=$(SERVICE_CACHE)/numba $(PY) -c '$(MPC_WARMUP)' && \
 		if id -u $(SERVICE_USER) >/dev/null 2>&1; then chown -R $(SERVICE_USER): $(SERVICE_CACHE); \
 		else echo "make install: no user $(SERVICE_USER) yet: systemd gives it $(SERVICE_CACHE) at the first start"; fi; \
 	fi

@@ -292,5 +292,34 @@ def make_source(cfg: StationConfig, period: float, calibration: CalibrationPlan 
     raise ValueError(f"unknown teacher kind {t.kind!r}")
 
 
+def station_kernels(cfg: StationConfig) -> list:
+    """The functions a station on ``cfg`` at its configured rate compiles in the background
+    (:class:`~bridge.nodes.station.KernelBuild`): its MPC's real-time iteration; none for another teacher or IPOPT."""
+    source = make_source(cfg, 1.0 / cfg.station.rate_hz)
+    return source.teacher.kernels() if isinstance(source, MpcSource) else []
+
+
+def warm_kernels(compiler: Any = None) -> int:
+    """The MPC's compiled code of a station on the default configuration built into the cache (or found there), for
+    a learner that turns in place and for one that needs speed to turn (``[transfer] turn``: an Ackermann rover's
+    MPC has rows of its own): ``make install`` runs it into the services' cache, so a service's first start loads
+    the library instead of building it (a build takes about a minute of a core, and a station that stops before its
+    build ends never caches it). ``compiler``: :func:`bridge.teacher.codegen.compile_functions` unless given.
+    Returns how many of the two are in the cache."""
+    from msgspec.structs import replace
+
+    from bridge.core.config import load_station
+    from bridge.teacher.codegen import compile_functions
+
+    build = compiler or compile_functions
+    base = load_station(None)
+    cached = 0
+    for turn in ("in-place", "needs-speed"):
+        cfg = replace(base, transfer=replace(base.transfer, turn=turn))
+        if build(station_kernels(cfg)) is not None:
+            cached += 1
+    return cached
+
+
 __all__ = ["CalibrationSource", "CommandSource", "ExternalSource", "MpcSource", "PrimitivesSource", "Proposal",
-           "SourceContext", "Why", "make_source"]
+           "SourceContext", "Why", "make_source", "station_kernels", "warm_kernels"]

@@ -242,3 +242,45 @@ def test_the_mpc_is_given_the_closest_point_the_station_found_for_the_same_pose(
     MpcSource(mpc).propose(1.0, POSE, _ctx(closest=(1.25, 3)))
     MpcSource(mpc).propose(1.1, POSE, _ctx())
     assert mpc.closest == [(1.25, 3), None]
+
+
+def test_the_install_warms_the_kernels_a_default_station_builds_for_both_kinds_of_turn(tmp_path) -> None:
+    """`make install` said it filled the services' cache with the MPC's code, but it built none (its warm-up made an
+    IPOPT teacher, which has no kernels), so each service built them at its first start, and a station stopped before
+    its build ended never cached them. ``warm_kernels`` (which `make install` runs) asks for exactly the code a
+    station on the default configuration builds, for a learner that turns in place and one that needs speed."""
+    import casadi as ca
+    from msgspec.structs import replace
+
+    from bridge.nodes.sources import warm_kernels
+    from bridge.nodes.station_core import StationCore
+
+    def code(functions: list) -> str:
+        gen = ca.CodeGenerator("k.c", {"with_header": False})
+        for fn in functions:
+            gen.add(fn)
+        return gen.dump()
+
+    asked: list[str] = []
+    assert warm_kernels(lambda fns: asked.append(code(fns)) or fns) == 2
+    base = StationConfig()
+    built = []
+    for turn in ("in-place", "needs-speed"):
+        cfg = replace(base, transfer=replace(base.transfer, turn=turn))
+        core = StationCore(cfg, "r1", cfg.station.rate_hz, tmp_path / f"{turn}.bin", load_mission())
+        built.append(code(core.source.teacher.kernels()))
+    assert asked == built and built[0] != built[1] and all("mpc_rti" in c for c in built)
+
+
+def test_make_install_runs_the_kernels_warm_up_into_the_services_cache() -> None:
+    import shutil
+    import subprocess
+    from pathlib import Path
+
+    if shutil.which("make") is None:
+        pytest.skip("make is not installed")
+    root = Path(__file__).resolve().parents[4]
+    plan = subprocess.run(["make", "-n", "install"], cwd=root, capture_output=True, text=True, timeout=60)
+    assert plan.returncode == 0, plan.stderr
+    after = plan.stdout.split("SCMBRIDGE_CACHE_DIR=/var/cache/scmbridge", 2)
+    assert len(after) == 3 and "warm_kernels()" in after[2], plan.stdout
