@@ -151,7 +151,8 @@ class Station:
         self.inputs = Inputs(clock)
         self.wake = threading.Event()  # a query, or an external teacher's command: the loop handles it now
         #: the callbacks: what arrives waits in its inbox, under its lock, for the loop (bridge.nodes.station_inbox)
-        self.rx = Receiver(self.core.outbox.epoch, self.inputs, clock, lambda: self.wake.set(), self._answer)
+        self.rx = Receiver(self.core.outbox.epoch, self.inputs, clock, lambda: self.wake.set(), self._answer,
+                           off=OFF_ZENOH)
         self.writer = SaveWriter(save, name=f"station-save-{robot}")
         self.core.saves.writer = self.writer
         self.telemetry: list[Queued] = []  # the echoes' and the poses' queues, read at each tick (serve declares them)
@@ -308,7 +309,6 @@ class Station:
         # counts and hands over under the inbox's lock; a mission is built, and a query answered while no loop runs,
         # on the process's OFF_ZENOH thread
         rx = self.rx
-        rx.off = OFF_ZENOH
         self.inputs.subscribe(session, M.status_key(self.robot, "driver"), M.Status, "driver_status",
                               rx.on_driver_status, direct=True)
         self.inputs.subscribe(session, k.mission, M.MissionSpec, "mission",

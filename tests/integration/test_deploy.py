@@ -175,6 +175,9 @@ def test_a_root_install_fills_the_cache_the_units_compile_into() -> None:
     assert plan.returncode == 0, plan.stderr
     assert f"NUMBA_CACHE_DIR={numba_dir} " in plan.stdout and 'if [ "$(id -u)" = 0 ]' in plan.stdout, plan.stdout
     assert "warmup()" in plan.stdout.split(f"NUMBA_CACHE_DIR={numba_dir}", 1)[1]
+    # and the MPC's compiled code of a default station (bridge.nodes.sources.warm_kernels), into the same cache
+    after = plan.stdout.split(f"SCMBRIDGE_CACHE_DIR={Path(numba_dir).parent}", 2)
+    assert len(after) == 3 and "warm_kernels()" in after[2], plan.stdout
 
 
 def test_the_units_keep_the_latch_record_and_station_keys_outside_the_state_directory(monkeypatch) -> None:

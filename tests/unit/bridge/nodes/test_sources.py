@@ -271,16 +271,3 @@ def test_the_install_warms_the_kernels_a_default_station_builds_for_both_kinds_o
         built.append(code(core.source.teacher.kernels()))
     assert asked == built and built[0] != built[1] and all("mpc_rti" in c for c in built)
 
-
-def test_make_install_runs_the_kernels_warm_up_into_the_services_cache() -> None:
-    import shutil
-    import subprocess
-    from pathlib import Path
-
-    if shutil.which("make") is None:
-        pytest.skip("make is not installed")
-    root = Path(__file__).resolve().parents[4]
-    plan = subprocess.run(["make", "-n", "install"], cwd=root, capture_output=True, text=True, timeout=60)
-    assert plan.returncode == 0, plan.stderr
-    after = plan.stdout.split("SCMBRIDGE_CACHE_DIR=/var/cache/scmbridge", 2)
-    assert len(after) == 3 and "warm_kernels()" in after[2], plan.stdout
