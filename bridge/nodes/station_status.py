@@ -195,6 +195,13 @@ _PAIRER_COUNTS = tuple((f.name, f.metadata["pairer"]) for f in dataclasses.field
                        if "pairer" in f.metadata)
 
 
+def pairing_figures(counters: dict[str, int]) -> dict[str, object]:
+    """A run's pairs from its station's last status ``counters``: the refined and raw pairs, and under ``pairing``
+    the pairer's own counts, which say why intervals made no pair (unsettled commands, telemetry gaps, order)."""
+    return {"refined_pairs": counters.get("refined_pairs"), "raw_pairs": counters.get("raw_pairs"),
+            "pairing": {name: counters[name] for name, _ in _PAIRER_COUNTS if name in counters}}
+
+
 def status_key(reason: M.Reason, phase: M.MissionPhase, unfit_reason: M.Reason | None,
                driver_reason: M.Reason | None, persist_failing: bool) -> tuple:
     """What a person reads the status for, typed: the station's reason and phase, why the robot is (not) fit and the

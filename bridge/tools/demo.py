@@ -27,6 +27,7 @@ import numpy as np
 from bridge.core.args import positive_float, robots_arg
 from bridge.core.errors import UsageError
 from bridge.nodes.node import Inputs
+from bridge.nodes.station_status import pairing_figures
 from bridge.tools.demo_calibrate import calibrate_first, calibration_budget, check_calibrate, grid, method_shares
 from bridge.tools.guard_log import GuardLog
 from drivers import link_names
@@ -259,7 +260,7 @@ class Monitor:
                 # how far from the goal point it stopped (the station's goal flag alone could be a pose far away)
                 "goal_dist_m": round(float(np.hypot(*(traj[-1, :2] - np.asarray(world.goal)))), 3),
                 "methods": methods,
-                "refined_pairs": c.get("refined_pairs"), "raw_pairs": c.get("raw_pairs"),
+                **pairing_figures(c),  # the refined and raw pairs, and why intervals made no pair
                 "missed_deadlines": c.get("missed_deadlines"), "solve_ms_median": st.latencies_ms.get("solve_median"),
                 "cells_relearned": c.get("cells_relearned"), "changed_cells": list(st.changed_cells),
                 "guard_stops": self.guards.summary(t0),

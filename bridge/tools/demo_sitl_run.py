@@ -384,7 +384,7 @@ def sitl_once(demo: ModuleType, args: argparse.Namespace, binary: Path, out: Pat
         **V.role_fields(role, figures),
         "sim_teacher_time_s": sim["time_s"], "sim_teacher_dev_last_half_m": sim["dev_last_half_m"],
         "method_counts": run["methods"], "method_shares": method_shares(run["methods"]), "calibration": cal,
-        "refined_pairs": run["refined_pairs"], "raw_pairs": run["raw_pairs"],
+        "refined_pairs": run["refined_pairs"], "raw_pairs": run["raw_pairs"], "pairing": run["pairing"],
         "pair_settle_s": settle, "pair_settle_edge_s": max(settle_edge, settle),
         "learned_limits": learned_limits(store),
         "adapt": load_station(out / "station.toml").transfer.adapt,  # what the station does (true by default)
