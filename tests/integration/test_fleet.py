@@ -337,6 +337,8 @@ def test_the_fleet_demo_brings_three_robots_to_their_goals_and_leaves_no_process
         line = next(ln for ln in res.stdout.splitlines() if ln.startswith(f"summary {r}:"))
         s = json.loads(line.split(":", 1)[1])
         assert s["reached_goal"] and s["raw_pairs"] > 50 and s["max_dev_m"] < 1.0
+        # the pairer's counts say what became of the intervals: every raw pair was one it formed
+        assert s["pairing"]["pairs_formed"] >= s["raw_pairs"] and "pairs_rejected" in s["pairing"], s["pairing"]
     assert (out / "demo_fleet.png").stat().st_size > 10_000
     left = subprocess.run(["pgrep", "-f", f"--store {out}"], capture_output=True, text=True)
     assert left.stdout.strip() == ""
