@@ -275,6 +275,10 @@ def drive(scenario: str, seed: int, adapt: bool, tiles: int = TILES, solver: str
 #: the scenarios whose learner is the unchanged one until its change begins (the battery's caps and the payload's
 #: acceleration limit act from the start): their runs on one seed and store drive the same ticks until then
 UNCHANGED_UNTIL_CHANGE = ("wheel", "floor", CONTROL)
+#: :func:`drive_shared` parts the runs from this long before the first change begins on (s, and the share of the path
+#: the floor's is at): a tick at which no hole search is under way (a search is a generator, a step per command, and
+#: a copy cannot carry it on)
+FORK_LEAD_S, FORK_LEAD_PROGRESS = 3.0, 0.03
 
 
 def _begins(scenario: str, t: float, progress: float) -> bool:
@@ -285,26 +289,41 @@ def _begins(scenario: str, t: float, progress: float) -> bool:
 def drive_shared(scenarios: Sequence[str], seed: int, adapt: bool, tiles: int = TILES, solver: str = "ipopt",
                  change_tol: float = CHANGE_TOL, curve_margin: float = CURVE_MARGIN,
                  spread: bool = False) -> list[tuple[DriftRun, ChangingLearner]]:
-    """:func:`drive` of each of ``scenarios`` on one seed and store, the same runs: the ticks they share (up to the
-    first tick at which one of their changes begins) driven once, then each scenario's run from a copy of that loop
-    and the MPC's warm start. Scenarios outside :data:`UNCHANGED_UNTIL_CHANGE`, or another solver than IPOPT (whose
-    warm start cannot be taken whole), are driven each from the start."""
-    if solver != "ipopt" or len(scenarios) < 2 or not set(scenarios) <= set(UNCHANGED_UNTIL_CHANGE):
+    """:func:`drive` of each of ``scenarios`` on one seed and store, the same runs: the ticks they share driven once,
+    up to a tick shortly before the first of their changes begins (:data:`FORK_LEAD_S`) at which the loop can be
+    copied, then each scenario's run from a copy of that loop and the MPC's warm start. Scenarios outside
+    :data:`UNCHANGED_UNTIL_CHANGE`, another solver than IPOPT (whose warm start cannot be taken whole), or a loop
+    that cannot be copied before a change begins: each run driven from the start."""
+    def alone() -> list[tuple[DriftRun, ChangingLearner]]:
         return [drive(sc, seed, adapt, tiles, solver, change_tol, curve_margin, spread=spread) for sc in scenarios]
+
+    if solver != "ipopt" or len(scenarios) < 2 or not set(scenarios) <= set(UNCHANGED_UNTIL_CHANGE):
+        return alone()
+
+    def begins(t: float, progress: float) -> bool:
+        return any(_begins(sc, t, progress) for sc in scenarios)
+
     shared = _start(CONTROL, seed, adapt, tiles, change_tol, None, spread)
     mpc = _mpc_teacher(solver, curve_margin)
     mpc.reset()
-    _go(shared, mpc, tiles, until=lambda t, progress: any(_begins(sc, t, progress) for sc in scenarios))
+    _go(shared, mpc, tiles, until=lambda t, progress: begins(t + FORK_LEAD_S, progress + FORK_LEAD_PROGRESS))
+    while True:
+        try:
+            loops = [copy.deepcopy(shared, memo={id(shared.world): shared.world}) for _ in scenarios]
+            break
+        except TypeError:  # a hole search under way: one tick more, if no change begins at it
+            k = shared.k
+            if not shared.ended:
+                _go(shared, mpc, tiles, until=lambda t, progress, k=k: t > (k + 0.5) * DT or begins(t, progress))
+            if shared.ended or shared.k == k:
+                return alone()
     warm = mpc.warm_start()
-    out = []
-    for sc in scenarios:
-        loop = copy.deepcopy(shared, memo={id(shared.world): shared.world})
+    for sc, loop in zip(scenarios, loops):
         loop.learner.scenario = sc
         if not loop.ended:
             mpc.set_warm_start(warm)
             _go(loop, mpc, tiles)
-        out.append((loop.run, loop.learner))
-    return out
+    return [(loop.run, loop.learner) for loop in loops]
 
 
 def figures(run: DriftRun, change: tuple[float | None, float | None]) -> dict:
