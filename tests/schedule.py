@@ -38,6 +38,7 @@ LONGEST: dict[str, float] = {
     "driver_restart_leaves_it_paused": 30.0,
     "tests/repo/test_install.py::test_a_robot_installs_from_its_lock_and_the_project_offline": 27.0,
     "tests/integration/test_calibrate.py::test_the_motion_primitive_teacher_drives_from_calibrated_pairs": 24.0,
+    # the wheel's and the floor's sweeps share their module's fixture (both listed: they go to one worker together)
     "tests/unit/sim_learner/test_drift.py::test_after_a_dragging_wheel_the_adapting_store_tracks_far_closer_than_the_"
     "papers": 24.0,
     "tests/integration/test_corridor.py::test_a_robot_that_runs_away_stops_within_the_corridor_and_waits_for_a_person":
