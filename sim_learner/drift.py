@@ -45,6 +45,7 @@ reloads as for one it learns from no pairs) and not (the paper's store). Its sum
 from __future__ import annotations
 
 import argparse
+import copy
 import functools
 import json
 import time
@@ -68,6 +69,7 @@ from transfer.paper import MPC_TEACHER_V, MPC_TEACHER_W
 from transfer.policy import make_policy
 from transfer.step import TransferStep
 from transfer.store import CHANGE_TOL, PairStore
+from transfer.teacher.mpc import MpcTeacher
 from transfer.teacher.unicycle import step as unicycle_step
 
 SCENARIOS = ("battery", "payload", "wheel", "floor")
@@ -192,13 +194,23 @@ class DriftRun:
     store: PairStore | None = None  # what the run's store learned
 
 
-def drive(scenario: str, seed: int, adapt: bool, tiles: int = TILES, solver: str = "ipopt",
-          change_tol: float = CHANGE_TOL, curve_margin: float = CURVE_MARGIN,
-          reloaded: PairStore | None = None, spread: bool = False) -> tuple[DriftRun, ChangingLearner]:
-    """The SCM learner from no pairs on the tiled world under ``scenario``, the store adapting (with ``change_tol``)
-    or not, the teacher's MPC slowing for bends at ``curve_margin`` (0: the paper's MPC). ``reloaded``: from a copy
-    of that store instead, the learner changed before the run began (``--reloaded``). ``spread``: the adapting store
-    spreads a change to the cells not driven since (``transfer/store_spread.py``; off by default)."""
+@dataclass
+class _Loop:
+    """A run's closed loop between two ticks (the MPC's warm start aside): what a copy needs to go on alike."""
+
+    world: Mission
+    learner: ChangingLearner
+    store: PairStore
+    step: TransferStep
+    run: DriftRun
+    x: NDArray[np.float64]
+    prev: NDArray[np.float64] | None = None  # the learner command before this tick's (transfer/limits_watch.py)
+    k: int = 0
+    ended: bool = False
+
+
+def _start(scenario: str, seed: int, adapt: bool, tiles: int, change_tol: float, reloaded: PairStore | None,
+           spread: bool) -> _Loop:
     world = tiled(mpc_world(), tiles)
     learner = ChangingLearner(scenario, changed=reloaded is not None)
     m = learner.model
@@ -211,16 +223,20 @@ def drive(scenario: str, seed: int, adapt: bool, tiles: int = TILES, solver: str
         store.change.change_tol = change_tol
     store.spreading.set(spread and adapt)
     step = TransferStep(make_policy(store, "scm", np.random.default_rng(seed)), dt=DT)
-    mpc = _mpc_teacher(solver, curve_margin)
-    mpc.reset()
-    run = DriftRun()
-    x = scm_start(world, seed)
-    prev = None  # the learner command before this tick's (a settled edge: transfer/limits_watch.py)
-    t_max = 120.0 * tiles
-    for k in range(int(round(t_max / DT))):
+    return _Loop(world, learner, store, step, DriftRun(), scm_start(world, seed))
+
+
+def _go(loop: _Loop, mpc: MpcTeacher, tiles: int, until: Callable[[float, float], bool] | None = None) -> None:
+    """Tick ``loop`` to its run's end, or to the first tick at whose start ``until(t, progress)`` holds (not driven)."""
+    world, learner, store, step, run = loop.world, loop.learner, loop.store, loop.step, loop.run
+    x, prev = loop.x, loop.prev
+    for k in range(loop.k, int(round(120.0 * tiles / DT))):
         t = k * DT
         s, d = world.path.project(x[:2])
         prog = s / world.path.length
+        if until is not None and until(t, prog):
+            loop.x, loop.prev, loop.k = x, prev, k
+            return
         run.t.append(t)
         run.dev.append(float(d))
         run.progress.append(float(prog))
@@ -238,8 +254,76 @@ def drive(scenario: str, seed: int, adapt: bool, tiles: int = TILES, solver: str
         if world.reached(x):
             run.reached, run.time_s = True, (k + 1) * DT
             break
+    loop.x, loop.prev, loop.ended = x, prev, True
     run.relearned, run.edges_relearned, run.store = store.relearned, store.limits.relearned, store
-    return run, learner
+
+
+def drive(scenario: str, seed: int, adapt: bool, tiles: int = TILES, solver: str = "ipopt",
+          change_tol: float = CHANGE_TOL, curve_margin: float = CURVE_MARGIN,
+          reloaded: PairStore | None = None, spread: bool = False) -> tuple[DriftRun, ChangingLearner]:
+    """The SCM learner from no pairs on the tiled world under ``scenario``, the store adapting (with ``change_tol``)
+    or not, the teacher's MPC slowing for bends at ``curve_margin`` (0: the paper's MPC). ``reloaded``: from a copy
+    of that store instead, the learner changed before the run began (``--reloaded``). ``spread``: the adapting store
+    spreads a change to the cells not driven since (``transfer/store_spread.py``; off by default)."""
+    loop = _start(scenario, seed, adapt, tiles, change_tol, reloaded, spread)
+    mpc = _mpc_teacher(solver, curve_margin)
+    mpc.reset()
+    _go(loop, mpc, tiles)
+    return loop.run, loop.learner
+
+
+#: the scenarios whose learner is the unchanged one until its change begins (the battery's caps and the payload's
+#: acceleration limit act from the start): their runs on one seed and store drive the same ticks until then
+UNCHANGED_UNTIL_CHANGE = ("wheel", "floor", CONTROL)
+#: :func:`drive_shared` parts the runs from this long before the first change begins on (s, and the share of the path
+#: the floor's is at): a tick at which no hole search is under way (a search is a generator, a step per command, and
+#: a copy cannot carry it on)
+FORK_LEAD_S, FORK_LEAD_PROGRESS = 3.0, 0.03
+
+
+def _begins(scenario: str, t: float, progress: float) -> bool:
+    """Whether ``scenario``'s learner may answer unlike the unchanged one from the tick at (``t``, ``progress``) on."""
+    return (scenario == "wheel" and t >= T_CHANGE) or (scenario == "floor" and progress >= FLOOR_AT)
+
+
+def drive_shared(scenarios: Sequence[str], seed: int, adapt: bool, tiles: int = TILES, solver: str = "ipopt",
+                 change_tol: float = CHANGE_TOL, curve_margin: float = CURVE_MARGIN,
+                 spread: bool = False) -> list[tuple[DriftRun, ChangingLearner]]:
+    """:func:`drive` of each of ``scenarios`` on one seed and store, the same runs: the ticks they share driven once,
+    up to a tick shortly before the first of their changes begins (:data:`FORK_LEAD_S`) at which the loop can be
+    copied, then each scenario's run from a copy of that loop and the MPC's warm start. Scenarios outside
+    :data:`UNCHANGED_UNTIL_CHANGE`, another solver than IPOPT (whose warm start cannot be taken whole), or a loop
+    that cannot be copied before a change begins: each run driven from the start."""
+    def alone() -> list[tuple[DriftRun, ChangingLearner]]:
+        return [drive(sc, seed, adapt, tiles, solver, change_tol, curve_margin, spread=spread) for sc in scenarios]
+
+    if solver != "ipopt" or len(scenarios) < 2 or not set(scenarios) <= set(UNCHANGED_UNTIL_CHANGE):
+        return alone()
+
+    def begins(t: float, progress: float) -> bool:
+        return any(_begins(sc, t, progress) for sc in scenarios)
+
+    shared = _start(CONTROL, seed, adapt, tiles, change_tol, None, spread)
+    mpc = _mpc_teacher(solver, curve_margin)
+    mpc.reset()
+    _go(shared, mpc, tiles, until=lambda t, progress: begins(t + FORK_LEAD_S, progress + FORK_LEAD_PROGRESS))
+    while True:
+        try:
+            loops = [copy.deepcopy(shared, memo={id(shared.world): shared.world}) for _ in scenarios]
+            break
+        except TypeError:  # a hole search under way: one tick more, if no change begins at it
+            k = shared.k
+            if not shared.ended:
+                _go(shared, mpc, tiles, until=lambda t, progress, k=k: t > (k + 0.5) * DT or begins(t, progress))
+            if shared.ended or shared.k == k:
+                return alone()
+    warm = mpc.warm_start()
+    for sc, loop in zip(scenarios, loops):
+        loop.learner.scenario = sc
+        if not loop.ended:
+            mpc.set_warm_start(warm)
+            _go(loop, mpc, tiles)
+    return [(loop.run, loop.learner) for loop in loops]
 
 
 def figures(run: DriftRun, change: tuple[float | None, float | None]) -> dict:
@@ -277,13 +361,24 @@ def drift_summary(scenario: str, seed: int, tiles: int = TILES, solver: str = "i
                   baseline: bool = True, curve_margin: float = CURVE_MARGIN, spread: bool = False) -> dict:
     """One scenario on one seed: the adapting store's figures and the never-forgetting baseline's on the same run
     (``baseline=False``: the adapting store's alone, e.g. for the false-alarm rate of ``none``)."""
-    run, learner = drive(scenario, seed, adapt=True, tiles=tiles, solver=solver, change_tol=change_tol,
-                         curve_margin=curve_margin, spread=spread)
-    out = {"experiment": "drift", "scenario": scenario, "seed": seed, "tiles": tiles, "change_tol": change_tol,
-           "curve_margin": curve_margin, **({"spread": True} if spread else {}), **figures(run, learner.change())}
-    if baseline:
-        base, base_learner = drive(scenario, seed, adapt=False, tiles=tiles, solver=solver, curve_margin=curve_margin)
-        out["baseline"] = figures(base, base_learner.change())
+    return drift_summaries([scenario], seed, tiles, solver, change_tol, baseline, curve_margin, spread)[0]
+
+
+def drift_summaries(scenarios: Sequence[str], seed: int, tiles: int = TILES, solver: str = "ipopt",
+                    change_tol: float = CHANGE_TOL, baseline: bool = True, curve_margin: float = CURVE_MARGIN,
+                    spread: bool = False) -> list[dict]:
+    """:func:`drift_summary` of each of ``scenarios`` on one seed, the ticks their runs share driven once
+    (:func:`drive_shared`)."""
+    runs = drive_shared(scenarios, seed, True, tiles, solver, change_tol, curve_margin, spread)
+    bases = drive_shared(scenarios, seed, False, tiles, solver, curve_margin=curve_margin) if baseline else None
+    out = []
+    for i, (sc, (run, learner)) in enumerate(zip(scenarios, runs)):
+        row = {"experiment": "drift", "scenario": sc, "seed": seed, "tiles": tiles, "change_tol": change_tol,
+               "curve_margin": curve_margin, **({"spread": True} if spread else {}), **figures(run, learner.change())}
+        if bases is not None:
+            base, base_learner = bases[i]
+            row["baseline"] = figures(base, base_learner.change())
+        out.append(row)
     return out
 
 

@@ -38,6 +38,7 @@ LONGEST: dict[str, float] = {
     "driver_restart_leaves_it_paused": 30.0,
     "tests/repo/test_install.py::test_a_robot_installs_from_its_lock_and_the_project_offline": 27.0,
     "tests/integration/test_calibrate.py::test_the_motion_primitive_teacher_drives_from_calibrated_pairs": 24.0,
+    # the wheel's and the floor's sweeps share their module's fixture (both listed: they go to one worker together)
     "tests/unit/sim_learner/test_drift.py::test_after_a_dragging_wheel_the_adapting_store_tracks_far_closer_than_the_"
     "papers": 24.0,
     "tests/integration/test_corridor.py::test_a_robot_that_runs_away_stops_within_the_corridor_and_waits_for_a_person":
@@ -79,29 +80,39 @@ def order(items: Sequence[T], workers: int, seconds: Callable[[T], float | None]
     """``items`` reordered for ``workers`` xdist workers (see the module docstring); ``seconds(item)`` is an item's
     expected time if it is a long test, else None. A long test goes in only between two quick tests of different
     ``group`` (tests/conftest.py: the module, for a module with a module- or class-scoped fixture): one inside such a
-    module's run of tests would end its fixtures there, and pytest would set them up again after it. Every item is
-    kept, once."""
-    long = sorted((it for it in items if seconds(it) is not None), key=lambda it: -(seconds(it) or 0.0))
+    module's run of tests would end its fixtures there, and pytest would set them up again after it; and the long
+    tests of one such group go one after another to one share (dealt apart, each worker would set up the fixture they
+    share). Every item is kept, once."""
     quick = [it for it in items if seconds(it) is None]
-    if not long:
+    units: dict[object, list[T]] = {}  # a module's long tests that share its fixtures go together, in their order
+    for i, it in enumerate(items):
+        if seconds(it) is not None:
+            units.setdefault(group(it) if group is not None else i, []).append(it)
+    if not units:
         return list(items)
+
+    def unit_s(unit: list[T]) -> float:
+        return sum(seconds(it) or 0.0 for it in unit)
+
     workers = max(1, workers)
     sizes = shares(len(items), workers)
-    bins: list[list[T]] = [[] for _ in range(workers)]
+    bins: list[list[list[T]]] = [[] for _ in range(workers)]
     load = [0.0] * workers
-    for it in long:  # the longest first, each to the share with the least long-test time (ties: the larger share)
-        k = min(range(workers), key=lambda i: (load[i], len(bins[i]) - sizes[i]))
-        bins[k].append(it)
-        load[k] += seconds(it) or 0.0
+    counts = [0] * workers
+    for unit in sorted(units.values(), key=lambda u: -unit_s(u)):  # the longest first, each to the share with the
+        k = min(range(workers), key=lambda i: (load[i], counts[i] - sizes[i]))  # least long-test time (ties: larger)
+        bins[k].append(unit)
+        load[k] += unit_s(unit)
+        counts[k] += len(unit)
     out: list[T] = []
     q = 0
     for k in range(workers):
-        n_quick = max(0, sizes[k] - len(bins[k]))
+        n_quick = max(0, sizes[k] - counts[k])
         mine, q = quick[q:q + n_quick], q + n_quick
         gap = int(len(mine) * LONG_SPAN) // max(1, len(bins[k]))  # quick tests after each long one
         cut = 0
-        for j, it in enumerate(bins[k]):
-            out.append(it)
+        for j, unit in enumerate(bins[k]):
+            out.extend(unit)
             end = max(cut, min(len(mine), (j + 1) * gap))
             while group is not None and 0 < end < len(mine) and group(mine[end]) == group(mine[end - 1]):
                 end += 1  # to the end of that module's run

@@ -123,6 +123,9 @@ def _line_of(text: str) -> int:
 
 
 @pytest.mark.slow
+# bounded by the soak's own deadlines (its nodes' start-up 180 s, the traced station's last report 120 s), not by
+# pytest's default 120 s, most of which it took in a six-worker suite beside other work
+@pytest.mark.timeout(360)
 def test_a_short_soak_runs_and_reports(tmp_path) -> None:
     """With the station traced (tracemalloc), it answers SIGUSR1 with its memory report."""
     res = soak.soak(0.1, "can", tmp_path, sample_s=1.0, warmup_s=0.0, trace_memory=("station",))  # 6 s: its plumbing

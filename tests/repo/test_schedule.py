@@ -80,3 +80,17 @@ def test_a_long_test_never_splits_a_modules_run_of_tests() -> None:
             before, after = out[i - 1], out[i + 1]
             if before not in long_s and after not in long_s:
                 assert before.split("::")[0] != after.split("::")[0], (before, it, after)
+
+
+def test_the_long_tests_of_a_module_that_shares_a_fixture_run_one_after_another_on_one_worker() -> None:
+    """Dealt apart, two workers would each set up the module-scoped fixture the long tests share (test_drift.py's
+    seed sweeps): they go together, in their order, as one long unit of their summed seconds."""
+    items = [f"m{m}::t{t}" for m in range(40) for t in range(7)]
+    long_s = {"drift::wheel": 24.0, "drift::floor": 23.0, **{f"L{k}::t": float(30 - k) for k in range(6)}}
+    for j, name in enumerate(long_s):
+        items.insert(j * 30, name)
+    out = order(items, 4, long_s.get, group=lambda it: it.split("::")[0])
+    assert sorted(out) == sorted(items)
+    i = out.index("drift::wheel")
+    assert out[i + 1] == "drift::floor"
+    assert i == 0  # the longest unit (47 s) first

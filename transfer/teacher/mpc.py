@@ -212,6 +212,13 @@ class _Ipopt:
     def reset(self) -> None:
         self.lam_g = None
 
+    def warm_start(self) -> NDArray[np.float64] | None:
+        """The multipliers the next solve starts from (None: from none)."""
+        return None if self.lam_g is None else self.lam_g.copy()
+
+    def set_warm_start(self, lam_g: NDArray[np.float64] | None) -> None:
+        self.lam_g = None if lam_g is None else lam_g.copy()
+
     def solve(self, p: NDArray[np.float64], state: NDArray[np.float64], U0: NDArray[np.float64], limits: Bounds,
               cold: bool, slots: int | None = None) -> tuple[bool, str, int, NDArray[np.float64], NDArray[np.float64]]:
         """The NLP from ``U0`` (``slots``, the obstacle slots in use, is the real-time iteration's concern: every
@@ -243,6 +250,10 @@ class _Ipopt:
         if ok:
             self.lam_g = np.asarray(sol["lam_g"]).ravel()
         return ok, str(stats.get("return_status", "")), int(stats.get("iter_count", 0)), xopt[self.iu], xopt[self.ix]
+
+
+def _copy(a: NDArray[np.float64] | None) -> NDArray[np.float64] | None:
+    return None if a is None else a.copy()
 
 
 class MpcTeacher:
@@ -296,6 +307,24 @@ class MpcTeacher:
         self._prev_pred = self._prev_u = None
         self._backend.reset()
         self.u_last = np.zeros(2)
+
+    def warm_start(self) -> tuple:
+        """All the next solve starts from (the last plan and its prediction, the last command, the path segment the
+        search for the closest point starts at, the NLP's multipliers): :meth:`set_warm_start` with it later, and the
+        next solve is the one that would have come now. IPOPT only (the real-time iteration's QP solvers keep working
+        sets of their own)."""
+        if not isinstance(self._backend, _Ipopt):
+            raise ValueError("only IPOPT's warm start can be taken and given back")
+        return (self._near, _copy(self._prev_pred), _copy(self._prev_u), self.u_last.copy(),
+                self._backend.warm_start())
+
+    def set_warm_start(self, warm: tuple) -> None:
+        """Start the next solve from ``warm`` (:meth:`warm_start` of this MPC)."""
+        if not isinstance(self._backend, _Ipopt):
+            raise ValueError("only IPOPT's warm start can be taken and given back")
+        self._near, pred, u, last, lam_g = warm
+        self._prev_pred, self._prev_u, self.u_last = _copy(pred), _copy(u), last.copy()
+        self._backend.set_warm_start(lam_g)
 
     def references(self, state: NDArray[np.float64], path: Polyline, v_ref: float) -> NDArray[np.float64]:
         """N + 1 references from the closest path point, spaced by ``v_ref * dt`` (headings unwrapped)."""

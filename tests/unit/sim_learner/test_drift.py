@@ -14,10 +14,19 @@ M = mpc_learner()
 TOP = np.array([M.v_range[1], M.w_range[1]])
 
 
-#: pytest-timeout's bound for the seed sweeps below: in-process computation only (six closed-loop runs, about 25 s on
-#: a quiet machine), so the bound is a guard against a hang, not a speed check, and leaves room for a machine running
-#: four test workers beside two busy loops on two cores
-HANG_S = 400
+#: pytest-timeout's bound for the seed sweeps below: in-process computation only (the wheel's and the floor's runs on
+#: three seeds, set up by the first test that uses them, and the reloaded runs), so the bound is a guard against a hang,
+#: not a speed check, and leaves room for a machine running six test workers beside two busy loops on two cores
+HANG_S = 600
+
+
+@pytest.fixture(scope="module")
+def wheel_and_floor() -> dict[str, list[dict]]:
+    """The wheel and the floor scenario on two S-paths, seeds 0-2 (the claims do not use them), each store's runs of a
+    seed driven together up to the floor's change, where their learners first differ
+    (:func:`sim_learner.drift.drive_shared`): the same runs as each scenario's own."""
+    rows = [D.drift_summaries(["wheel", "floor"], seed, tiles=2) for seed in (0, 1, 2)]
+    return {"wheel": [r[0] for r in rows], "floor": [r[1] for r in rows]}
 
 
 def test_the_battery_caps_speed_and_yaw_rate_30_percent_over_60_s() -> None:
@@ -69,14 +78,15 @@ def test_the_figures_are_read_off_a_run_as_defined() -> None:
 
 
 @pytest.mark.timeout(HANG_S)
-def test_after_a_dragging_wheel_the_adapting_store_tracks_far_closer_than_the_papers() -> None:
+def test_after_a_dragging_wheel_the_adapting_store_tracks_far_closer_than_the_papers(wheel_and_floor) -> None:
     """The wheel scenario on two S-paths (the change 40 s in, about 35 s of driving after it), seeds the claims do
     not use, judged on the median: every run reaches the goal without a collision, and the adapting store's
     deviation after the change, over its deviation before, is under half the never-forgetting store's. Measured
     (tiles 2, seeds 0-2): 2.0-2.8 against 8.8-10.0; with the paper's MPC (``curve_margin`` 0) 12-23 against 14-18:
     without slowing for the right bends the wheel takes away, neither store tracks them (docs/PAPER.md, "Beyond the
     paper")."""
-    rows = [D.drift_summary("wheel", seed, tiles=2) for seed in (0, 1, 2)]
+    rows = wheel_and_floor["wheel"]
+    assert [r["scenario"] for r in rows] == ["wheel"] * 3 and [r["seed"] for r in rows] == [0, 1, 2]
     for r in rows:
         assert r["curve_margin"] == D.CURVE_MARGIN == 0.9
         for s in (r, r["baseline"]):
@@ -89,14 +99,15 @@ def test_after_a_dragging_wheel_the_adapting_store_tracks_far_closer_than_the_pa
 
 @pytest.mark.timeout(HANG_S)
 def test_on_a_new_floor_the_adapting_store_drives_closer_than_the_papers_though_no_cell_changed_past_the_tolerance(
-        ) -> None:
+        wheel_and_floor) -> None:
     """The floor scenario on two S-paths (the floor 28.6 s in, about 40 s of driving after it), seeds the claims do not
     use, judged on the median: the new floor differs by less than ``change_tol`` on the cells the mission drives, so
     the refined pairs follow it by their recent pairs (transfer/store.py, "A small change"). Every run reaches the goal
     without a collision, and the adapting store's deviation from 15 s after the change to the end is under 0.7x the
     never-forgetting store's. Measured (seeds 0-2): 1.0-1.5 mm against 2.3-2.7 mm; before the refined pairs followed
     the recent pairs, 2.1-2.5 mm (docs/PAPER.md, "Beyond the paper")."""
-    rows = [D.drift_summary("floor", seed, tiles=2) for seed in (0, 1, 2)]
+    rows = wheel_and_floor["floor"]
+    assert [r["scenario"] for r in rows] == ["floor"] * 3 and [r["seed"] for r in rows] == [0, 1, 2]
     for r in rows:
         for s in (r, r["baseline"]):
             assert s["reached_goal"] and not s["collisions"]
@@ -105,6 +116,7 @@ def test_on_a_new_floor_the_adapting_store_drives_closer_than_the_papers_though_
     assert adaptive < 0.7 * baseline, (adaptive, baseline)
 
 
+@pytest.mark.timeout(HANG_S)
 def test_a_store_reloaded_on_a_changed_learner_is_relearned_and_on_an_unchanged_one_costs_nothing() -> None:
     """``sim drift --reloaded`` on one S-path (seeds the claims do not use): yesterday's store on today's dragging
     wheel drives the second half within 2 mm once its changed cells are re-learned, where the paper's store stays

@@ -25,6 +25,13 @@ from sim_learner.experiments import grid_experiment, mpc_case, run_scm, scm_figu
 
 SEEDS = (0, 1, 2, 3, 4)
 
+#: pytest-timeout's bound for every test here: in-process computation and the sweep's two worker processes (the sweep
+#: fixture is set up within its first test's bound), so the bound is a guard against a hang, not a speed check. The
+#: default 120 s was one: a machine running six test workers beside two busy loops gives each a fraction of a core, and
+#: after such a cut the module's later tests failed too.
+HANG_S = 400
+pytestmark = pytest.mark.timeout(HANG_S)
+
 
 @pytest.fixture(scope="module")
 def sweep(tmp_path_factory) -> dict:

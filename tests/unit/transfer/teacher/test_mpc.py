@@ -240,3 +240,28 @@ def test_a_learner_that_cannot_turn_in_place_is_planned_within_its_curvature(sol
     assert turned > 0.1  # the left side, not learned yet, is the box's
     with pytest.raises(ValueError, match="curvature"):
         bound.solve(np.zeros(3), path, box, curvature=(0.2, 0.5))
+
+
+def test_a_warm_start_given_back_makes_the_solves_that_would_have_come_only_ipopts(mpc: MpcTeacher) -> None:
+    """``sim drift`` drives the ticks its scenarios share once and goes on from there once per scenario: the warm start
+    taken at a tick and given back (after other solves) continues bit for bit as the MPC would have."""
+    world, limits = mpc_world(0.6), Bounds((0.05, 0.3), (-0.2, 0.26))
+
+    def drive(x: np.ndarray, ticks: int) -> tuple[np.ndarray, list[np.ndarray]]:
+        us = []
+        for _ in range(ticks):
+            us.append(mpc.solve(x, world.path, limits, world.obstacles).u)
+            x = step(x, us[-1], 0.1)
+        return x, us
+
+    mpc.reset()
+    x, _ = drive(world.start.copy(), 10)
+    warm = mpc.warm_start()
+    _, straight_on = drive(x, 10)
+    mpc.reset()
+    drive(world.start.copy() + 0.05, 5)  # something else in between
+    mpc.set_warm_start(warm)
+    _, resumed = drive(x, 10)
+    assert all(np.array_equal(a, b) for a, b in zip(straight_on, resumed, strict=True))
+    with pytest.raises(ValueError, match="IPOPT"):
+        MpcTeacher(MpcConfig(N=10, solver="rti-qpoases")).warm_start()
