@@ -10,6 +10,7 @@ tool after the attack does drive), so a row's "0.0 m" is the guard's doing and n
 from __future__ import annotations
 
 import contextlib
+import math
 import os
 import subprocess
 import sys
@@ -204,23 +205,36 @@ def estop_all_fake_peers(short: bool) -> Result:
     with _ZenohHost() as rig, _Station(rig, 0.3), rig.client() as faker, tempfile.TemporaryDirectory() as d:
         fleet = Path(d) / "fleet.toml"
         fleet.write_text(f'[fleet]\nrobots = ["{rig.robot}", "absent1"]\n')
-        base = _estop_all(rig, fleet)
+        base = _fastest([_estop_all(rig, fleet) for _ in range(RUNS)])
         tokens = [faker.liveliness().declare_token(M.alive_key(f"fake{i}", "driver")) for i in range(n_fake)]
         try:
             seen = until(lambda: sum(1 for r in rig.attacker.liveliness().get(f"{M.PREFIX}/*/alive/**", timeout=2.0)
                                      if r.ok is not None and "/fake" in str(r.ok.key_expr)) >= n_fake, 30.0)
-            fake = _estop_all(rig, fleet)
+            fakes = [_estop_all(rig, fleet) for _ in range(RUNS)]
         finally:
             for tok in tokens:
                 tok.undeclare()
+    fake = _fastest(fakes)
     # within 0.5 s of the same CLI's start without them; a loaded machine stretches the start itself (seen: 2.9 s at
-    # load 15), and the fakes' share with it, so a quarter of the baseline is allowed on top
-    ok = (fake["driving_before"] and base["first_stop_s"] is not None and fake["first_stop_s"] is not None
-          and fake["first_stop_s"] < 1.25 * base["first_stop_s"] + 0.5 and fake["exit"] == 1
-          and fake["names_absent"] and fake["lines"] <= 12 and seen)
+    # load 15), and the fakes' share with it, so a quarter of the baseline is allowed on top. Each side's fastest of
+    # RUNS runs: one run's start-up swings by more than that beside other work, and fake peers that slowed the estop
+    # would slow every run of it
+    ok = (all(f["driving_before"] and f["exit"] == 1 and f["names_absent"] and f["lines"] <= 12 for f in fakes)
+          and base["first_stop_s"] is not None and fake["first_stop_s"] is not None
+          and fake["first_stop_s"] < 1.25 * base["first_stop_s"] + 0.5 and seen)
     return {"reached_vehicle": {"first_stop_s": fake["first_stop_s"], "first_stop_without_fakes_s":
-                                base["first_stop_s"]}, "learned": None, "fake_tokens": n_fake, "with_fakes": fake,
+                                base["first_stop_s"], "first_stops_s": [f["first_stop_s"] for f in fakes]},
+            "learned": None, "fake_tokens": n_fake, "with_fakes": fake,
             "without_fakes": base, "tokens_seen_by_the_router": seen, "ok": ok}
+
+
+#: ``scmbridge estop --all`` runs on each side of :func:`estop_all_fake_peers`'s comparison
+RUNS = 2
+
+
+def _fastest(runs: list[dict]) -> dict:
+    """The run whose first stop came soonest (a run with none counts as slowest)."""
+    return min(runs, key=lambda r: math.inf if r["first_stop_s"] is None else r["first_stop_s"])
 
 
 def _estop_all(rig: _ZenohHost, fleet: Path) -> dict:
