@@ -59,6 +59,7 @@ CASES = {
 }
 
 
+@pytest.mark.timeout(300)  # a hang guard over its own waits (90 + 90 + 60 + 10 s), not pytest's default 120 s
 @pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGHUP, signal.SIGINT], ids=lambda s: s.name)
 @pytest.mark.parametrize("case", list(CASES))
 def test_a_tool_told_to_stop_leaves_no_process_behind(case: str, sig: signal.Signals, tmp_path: Path) -> None:

@@ -125,6 +125,7 @@ def _files_the_docs_read(where: Path) -> None:
     sink.close("done")
 
 
+@pytest.mark.timeout(600)  # a hang guard: a few dozen tools one after another, each bounded by 120 s itself
 def test_the_documented_offline_commands_run(tmp_path: Path) -> None:
     """Run what needs no robot and no lab, with /etc/scmbridge, /var/lib/scmbridge and DIR moved under tmp."""
     ran, names = 0, set()
