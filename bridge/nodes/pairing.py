@@ -60,6 +60,10 @@ RESYNC_AFTER = 3
 STAMP_TOLERANCE = 0.25
 #: how long an event waits for earlier-stamped ones still on their way before it is fed to the pairer, s
 REORDER_WINDOW = 0.2
+#: a span this much short of ``min_span`` is still at least it, s: stamps put onto this host's clock carry float
+#: rounding, and poses are often exactly ``min_span`` apart (ArduPilot sends its 20 Hz positions from a 50 Hz loop:
+#: 40 and 60 ms apart), which the last digit must not reject
+SPAN_ROUNDING = 1e-6
 
 
 class Reorder:
@@ -359,7 +363,7 @@ class IntervalPairer:
         if self.segment is None or self.first is None or self.last is None:
             return None
         (t1, x1), (t2, x2) = self.first, self.last
-        if t2 - t1 < self.min_span:
+        if t2 - t1 < self.min_span - SPAN_ROUNDING:
             self.rejected += 1
             return None
         if not self.settling.keeps(self.segment, t1):

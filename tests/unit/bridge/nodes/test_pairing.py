@@ -179,3 +179,24 @@ def test_a_forged_stamp_holds_the_reorder_buffer_for_at_most_its_window() -> Non
     assert r.ready(1.1) == ["nan"] and len(r) == 3  # the old stamp is on top and waits for its own window only
     assert r.ready(1.21) == ["forged, far in the past"]
     assert r.ready(1.27) == ["pose", "echo"] and len(r) == 0  # stamp order, though received the other way round
+
+
+def test_poses_exactly_the_minimum_span_apart_pair_whatever_the_last_digit_of_their_stamps() -> None:
+    """ArduPilot sends its 20 Hz positions from a 50 Hz loop, 40 and 60 ms apart, and the driver host puts each on its
+    own clock (its ``time_boot_ms`` plus an offset): inside a 100 ms command two poses 40 ms apart span exactly
+    ``min_span`` (0.4 ``dt``), and the sum's float rounding made about half of such spans fall a hair short of it, so
+    those intervals were rejected. Every one of them pairs."""
+    p = _pairer()
+    x, u = np.zeros(3), np.array([0.2, 0.1])
+    offset = 10544.958  # the host's clock minus the vehicle's boot time, as it came in a SITL run
+    pairs, tried = 0, 0
+    for k in range(200):  # a new command every 100 ms; its poses at 30 and 70 ms of the vehicle's clock
+        boot = 12.3 + 0.1 * k
+        u_k = u * (1.0 + 0.01 * (k % 2))  # commands that change every tick, as an MPC's do
+        p.applied(boot + offset, *u_k, "cmd", received=boot + offset + 0.003)
+        for t_boot in (round(boot + 0.03, 3), round(boot + 0.07, 3)):
+            x = step(x, u_k, 0.04)
+            p.state(t_boot + offset, x, received=t_boot + offset + 0.003)
+        tried += 1
+        pairs = p.formed
+    assert tried == 200 and pairs >= 199 and p.rejected == 0, (pairs, p.rejected)
