@@ -73,8 +73,9 @@ demo: $(STAMP)
 # tests/schedule.py starts the long tests first. The suite's time on a fresh clone: docs/BENCHMARKS.md.
 TEST_WORKERS ?= 4
 # The tests against ArduPilot's Rover SITL are `make test-sitl` (several minutes: each boots its own SITL and the
-# generated profiles drive whole missions).
-SITL_WORKERS ?= 3
+# generated profiles drive whole missions). Two at a time on a 2-core machine: each is a vehicle, its driver host and
+# a station in real time, and three at once starved them (docs/BENCHMARKS.md, "The SITL tests").
+SITL_WORKERS ?= 2
 test: $(STAMP)
 	$(VENV)/bin/ruff check .
 	$(PY) -m pytest -q -n $(TEST_WORKERS) --dist worksteal -m "not sitl" $(PYTEST_ARGS)
