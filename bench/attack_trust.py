@@ -70,18 +70,11 @@ class _Restartable(_ZenohHost):
             self.host_session.close()
 
     def address(self, timeout: float = 10.0):
-        """The host's address as its latch answer gives it to anyone (the person's tool, or the attacker): asked again
-        until it answers, for up to ``timeout`` s, as the person's tool asks again (``bridge.tools.estop.confirm``). A
-        loaded machine, or a flood of queries ahead of the ask in the host's ring, can hold one answer past its ask's
-        2 s; an act sent without the address is refused ``unaddressed``."""
-        from bridge.core.acts import address_of
-        from bridge.tools.estop import latch_states
-
-        t_end = time.monotonic() + timeout
-        while True:
-            states = latch_states(self.attacker, self.keys.estop, 2.0)
-            if states or time.monotonic() >= t_end:
-                return address_of(next(iter(states.values()))) if states else None
+        """:func:`_address`, asked again until it answers for up to ``timeout`` s, as the person's tool asks again
+        (``bridge.tools.estop.confirm``): a loaded machine, or a flood of queries ahead of the ask in the host's
+        ring, can hold one answer past its ask's 2 s, and an act sent without the address is refused
+        ``unaddressed``."""
+        return _address(self, timeout)
 
 
 def acts_replayed_after_restart(short: bool) -> Result:
@@ -264,12 +257,17 @@ def _estop_all(rig: _ZenohHost, fleet: Path) -> dict:
             "names_absent": "absent1" in proc.stderr.split("not confirmed by")[-1]}
 
 
-def _address(rig: _ZenohHost):
+def _address(rig: _ZenohHost, timeout: float = 0.0):
+    """The host's address as its latch answer gives it to anyone (the person's tool, or the attacker): one ask of
+    2 s, and more until ``timeout`` s have passed while none answered."""
     from bridge.core.acts import address_of
     from bridge.tools.estop import latch_states
 
-    states = latch_states(rig.attacker, rig.keys.estop, 2.0)
-    return address_of(next(iter(states.values()))) if states else None
+    t_end = time.monotonic() + timeout
+    while True:
+        states = latch_states(rig.attacker, rig.keys.estop, 2.0)
+        if states or time.monotonic() >= t_end:
+            return address_of(next(iter(states.values()))) if states else None
 
 
 
