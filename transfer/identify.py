@@ -10,7 +10,12 @@ what they measured; the accepted range only bounds it:
 1. ``straight``: the teacher's top speed (never more than the vehicle accepts) from rest: the speed reached and
    how long it took to settle (what the station's pairing waits for, ``pair_settle_s``);
 2. ``creep+`` / ``creep-``: the lowest forward speed with the top turn command each way: a vehicle that turns as
-   much at a crawl as at ``v_low`` turns in place; one whose turn falls with its speed needs speed (``turn``);
+   much at a crawl as at ``v_low``, and so more sharply (its turn rate over its speed), turns in place; one whose
+   turn falls with its speed needs speed (``turn``): a car's tightest curvature is the same at every speed, so its
+   creep probes turn as sharply as its turn probes whatever speed each probe happened to reach (one slowed by a
+   stall, a throttle that creeps as fast as ``v_low``), where the turn rates alone would read it as turning in place
+   (a vehicle that turns in place but cannot creep slower than ``v_low`` reads as needing speed: the safer mistake,
+   its turns bounded by a curvature it can exceed, where a car read as turning in place is asked to turn on the spot);
 3. ``turn+`` / ``turn-``: ``v_low`` with the top turn command each way from rest: the turn rate reached on each
    side, and how long it took to settle (a car's turn waits for its speed and its steering).
 
@@ -41,6 +46,10 @@ from transfer.feasibility import Reach
 #: the measured range never ends below these (m/s, rad/s): a vehicle that overshoots its commands many times over
 #: keeps a range the station can still probe
 V_FLOOR, W_FLOOR = 0.1, 0.1
+#: a vehicle turns in place when its creep probes turn at least this share of its turn probes' rate ...
+CREEP_RATE = 0.6
+#: ... and at least this many times as sharply (turn rate over speed): a car's ratio is about 1 at any speed
+CREEP_CURVATURE = 1.5
 
 
 @dataclass(frozen=True)
@@ -73,6 +82,17 @@ class Identified:
                 "turns_in_place": self.turns_in_place, "settle_s": round(self.settle_s, 2),
                 "settle_top_s": round(self.settle_top_s, 2),
                 "reached": {k: [round(a, 4), round(b, 4)] for k, (a, b) in self.reached.items()}, "why": self.why}
+
+
+def _turns_in_place(creep: list[tuple[float, float]], turn: list[tuple[float, float]]) -> bool:
+    """Whether the creep probes' (speed, turn rate) pairs show a vehicle that turns in place, against the turn
+    probes' (module docstring, ``creep+`` / ``creep-``): as fast a turn at a crawl (:data:`CREEP_RATE`), and so a
+    sharper one (:data:`CREEP_CURVATURE`; a creep that did not move forward turns infinitely sharply)."""
+    w_creep, w_turn = (sum(abs(w) for _, w in probes) for probes in (creep, turn))
+    if w_turn <= 0.02 or w_creep < CREEP_RATE * w_turn:
+        return False
+    v_creep, v_turn = (sum(abs(v) for v, _ in probes) for probes in (creep, turn))
+    return w_creep * v_turn >= CREEP_CURVATURE * w_turn * max(v_creep, 1e-6)
 
 
 class IdentifyPlan:
@@ -190,9 +210,8 @@ class IdentifyPlan:
             v_max = float(np.clip(self.v_probe * self.v_top_teacher / v_st, min(self.v_probe, V_FLOOR), v1))
         else:
             v_max, _ = float(v1), why.append("the straight probe did not move: the accepted top speed kept")
-        creep = [abs(reached.get(k, (0.0, 0.0))[1]) for k in ("creep+", "creep-")]
-        turn = [abs(reached.get(k, (0.0, 0.0))[1]) for k in ("turn+", "turn-")]
-        turns_in_place = bool(sum(turn) > 0.02 and sum(creep) >= 0.6 * sum(turn))
+        turns_in_place = _turns_in_place([reached.get(k, (0.0, 0.0)) for k in ("creep+", "creep-")],
+                                         [reached.get(k, (0.0, 0.0)) for k in ("turn+", "turn-")])
         w_lo, w_hi = float(w0), float(w1)
         if turns_in_place:  # the command that reaches the teacher's top rate on each side, within what is accepted
             up, down = reached.get("turn+", (0.0, 0.0))[1], reached.get("turn-", (0.0, 0.0))[1]

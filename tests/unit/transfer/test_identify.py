@@ -16,10 +16,10 @@ TEACHER_TOP = (0.6, math.pi / 4)
 
 
 def drive(plan: IdentifyPlan, gain_v: float, gain_w: float, lag_s: float, max_curvature: float | None = None,
-          dt: float = 0.1, limit_s: float = 60.0) -> list[float]:
+          dt: float = 0.1, limit_s: float = 60.0, creep_cmd: float = 0.0) -> list[float]:
     """Run ``plan`` against a vehicle reaching ``gain_v`` of its speed command through a first-order lag and
-    ``gain_w`` of its turn command (a car-like one at most ``max_curvature`` times its speed); returns the
-    distances from the start."""
+    ``gain_w`` of its turn command (a car-like one at most ``max_curvature`` times its speed; one whose throttle
+    creeps no slower than a forward command of ``creep_cmd``); returns the distances from the start."""
     x = np.zeros(3)
     v = w = 0.0
     dists = []
@@ -27,7 +27,8 @@ def drive(plan: IdentifyPlan, gain_v: float, gain_w: float, lag_s: float, max_cu
     while plan.finished is None and t < limit_s:
         step = plan.step(t, x)
         a = 1.0 - math.exp(-dt / lag_s)
-        v += a * (gain_v * float(step.u_L[0]) - v)
+        v_cmd = float(step.u_L[0])
+        v += a * (gain_v * (max(v_cmd, creep_cmd) if v_cmd > 0 else v_cmd) - v)
         w_cmd = gain_w * float(step.u_L[1])
         if max_curvature is not None:
             w_cmd = float(np.clip(w_cmd, -max_curvature * abs(v), max_curvature * abs(v)))
@@ -74,6 +75,30 @@ def test_a_car_like_vehicle_needs_speed_to_turn_and_keeps_its_accepted_turn_comm
     assert got.v_max == pytest.approx(1.0, rel=0.1)
     assert 0.5 < got.settle_s < 1.6 and got.settle_top_s > 1.5  # the slow body (its turn follows its speed)
     assert max(dists) <= 2 * plan.max_distance + 0.1
+
+
+def test_a_car_whose_creep_is_as_fast_as_its_turn_probes_still_needs_speed() -> None:
+    """Its turn rates at a crawl and at ``v_low`` are alike (its throttle creeps at ``v_low``, as a stalled probe or
+    a dead band can make them), but it turns no more sharply at a crawl: a car, not a vehicle that turns in place
+    (the turn rates alone read it as one, and the station would ask it to turn on the spot)."""
+    plan = IdentifyPlan(Bounds((0.05, 5.0), (-0.52, 0.52)), TEACHER_TOP)
+    drive(plan, gain_v=0.6, gain_w=0.6, lag_s=0.8, max_curvature=1.1, creep_cmd=plan.v_low)
+    got = plan.result()
+    creep, turn = got.reached["creep+"], got.reached["turn+"]
+    assert creep[1] >= 0.9 * turn[1] > 0.05, got.reached  # as fast a turn at its crawl as at v_low ...
+    assert not got.turns_in_place and got.w_range == (-0.52, 0.52)  # ... and still a car
+    reach = got.reach()
+    assert reach is not None and 0.85 * 1.1 < reach.left <= 1.1  # its lag: the turn still settling at the end
+
+
+def test_a_vehicle_that_turns_in_place_is_read_so_however_its_creep_turns_against_its_turn_probes() -> None:
+    """Turning in place, its creep probes' turn rate over their speed is many times its turn probes'."""
+    plan = IdentifyPlan(Bounds((0.05, 3.0), (-2.0, 2.0)), TEACHER_TOP)
+    drive(plan, gain_v=1.0, gain_w=0.7, lag_s=0.3)
+    got = plan.result()
+    (vc, wc), (vt, wt) = got.reached["creep+"], got.reached["turn+"]
+    assert wc / vc >= 2.5 * wt / vt, got.reached
+    assert got.turns_in_place and got.reach() is None
 
 
 def test_the_probes_stop_at_the_distance_bound_and_a_vehicle_that_never_moves_keeps_what_it_accepts() -> None:
