@@ -29,7 +29,8 @@ from numpy.typing import NDArray
 from scipy.spatial import Delaunay, QhullError
 
 from transfer.domain import clamp
-from transfer.scm import QuadTransfer, is_simple_ccw
+from transfer.scm import QuadTransfer
+from transfer.scm._polygon import _smallest_angle, quad_pair_score
 from transfer.store import PairStore
 
 Region = tuple[int, ...]
@@ -185,11 +186,9 @@ class _Triangulated:
 
 
 def _min_angle(q: NDArray[np.float64]) -> float:
-    """Smallest interior angle (radians) of a counter-clockwise polygon."""
-    nxt = np.concatenate((q[1:], q[:1])) - q  # np.roll's result without its cost (a hot path)
-    prev = np.concatenate((nxt[-1:], nxt[:-1]))
-    turn = np.arctan2(prev[:, 0] * nxt[:, 1] - prev[:, 1] * nxt[:, 0], (prev * nxt).sum(axis=1))
-    return float(np.min(np.pi - turn))
+    """Smallest interior angle (radians) of a counter-clockwise polygon ((n, 2) floats; the compiled kernel the
+    regions' shape score uses)."""
+    return float(_smallest_angle(np.ascontiguousarray(q, dtype=float)))
 
 
 class ScmMapper(_Triangulated):
@@ -226,10 +225,8 @@ class ScmMapper(_Triangulated):
             x, y, z = verts[i], verts[(i + 1) % 3], verts[(i + 2) % 3]  # shared edge is (y, z)
             d = next(int(v) for v in tri.simplices[nb] if int(v) not in (y, z))
             quad = (x, y, d, z)
-            qt, ql = self.T[list(quad)], self.L[list(quad)]
-            if not (is_simple_ccw(qt) and is_simple_ccw(ql)):
-                continue
-            score = min(_min_angle(qt), _min_angle(ql))
+            idx = list(quad)
+            score = quad_pair_score(self.T[idx], self.L[idx])  # -1 where either polygon is not valid
             if score < MIN_QUAD_ANGLE:
                 continue
             key = tuple((int(self.ids[v]), int(self.vers[v])) for v in quad)

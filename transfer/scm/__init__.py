@@ -12,6 +12,8 @@ that out of a control loop.
 
 from __future__ import annotations
 
+import numpy as np
+
 from transfer.scm import _ellipj, _evaluate, _parameters, _polygon, _quadrature, _scalar
 from transfer.scm._cache import share_source_stamp
 from transfer.scm.geometry import as_complex, check_corners, check_polygon, is_simple_ccw, turning_exponents
@@ -27,6 +29,8 @@ def warmup() -> None:
     t = QuadTransfer([0, 1, 1 + 1j, 1j], [0, 2, 2 + 1j, 1j])
     t([0.5 + 0.5j, 0.01 + 0.01j])
     RectangleMap([0, 2, 3 + 1j, 1 + 1.5j, -0.5 + 1j], (0, 1, 2, 3)).from_unit_square([0.3 + 0.2j])
+    square = np.array([[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]])
+    _polygon.quad_pair_score(square, square)
 
 
 __all__ = [

@@ -77,6 +77,33 @@ def polygon_defect(w: np.ndarray) -> tuple[int, int, int]:
 
 
 @njit(cache=True, error_model="numpy")
+def _smallest_angle(q: np.ndarray) -> float:
+    """Smallest interior angle (radians) of a counter-clockwise polygon given as (n, 2) floats: pi less each
+    vertex's turn, the turn from the dot and cross products of its edges."""
+    n = q.shape[0]
+    best = math.inf
+    for k in range(n):
+        px, py = q[k, 0] - q[k - 1, 0], q[k, 1] - q[k - 1, 1]  # the edge into vertex k
+        nx, ny = q[(k + 1) % n, 0] - q[k, 0], q[(k + 1) % n, 1] - q[k, 1]  # the edge out of it
+        best = min(best, PI - math.atan2(px * ny - py * nx, px * nx + py * ny))
+    return best
+
+
+@njit(cache=True, error_model="numpy")
+def quad_pair_score(t: np.ndarray, lrn: np.ndarray) -> float:
+    """The shape score of a mapping region: the smaller of the smallest interior angles of its teacher and its
+    learner polygon ((n, 2) floats each), or -1.0 when either is not a valid polygon (:func:`polygon_defect`)."""
+    n = t.shape[0]
+    w = np.empty(n, dtype=np.complex128)
+    for q in (t, lrn):
+        for k in range(n):
+            w[k] = complex(q[k, 0], q[k, 1])
+        if n < 4 or polygon_defect(w)[0] != 0:
+            return -1.0
+    return min(_smallest_angle(t), _smallest_angle(lrn))
+
+
+@njit(cache=True, error_model="numpy")
 def points_in_polygon(p: np.ndarray, w: np.ndarray, tol: float) -> np.ndarray:
     """True where p is inside the closed polygon w (points within tol of an edge count as inside)."""
     n = w.shape[0]

@@ -23,6 +23,8 @@ from transfer.mappers import (
     _min_angle,
     make_mapper,
 )
+from transfer.scm import is_simple_ccw
+from transfer.scm._polygon import quad_pair_score
 from transfer.store import PairStore
 
 UNIT = Bounds((0.0, 1.0), (0.0, 1.0))  # normalised = physical: the pairs below read directly
@@ -143,6 +145,31 @@ def test_min_angle_of_simple_shapes() -> None:
     assert _min_angle(sq) == pytest.approx(math.pi / 2)
     kite = np.array([[0.0, 0.0], [2.0, -0.2], [4.0, 0.0], [2.0, 0.2]])
     assert _min_angle(kite) == pytest.approx(2 * math.atan2(0.2, 2.0))
+
+
+def test_a_regions_shape_score_is_its_polygons_smallest_angle_or_refused_where_either_is_not_valid() -> None:
+    """The compiled score the SC mapper ranks its candidate quadrilaterals by (``quad_pair_score``) is, number for
+    number, the smaller of the two polygons' smallest angles (numpy's arithmetic on the same edges), and -1 exactly
+    where the polygon check refuses either (crossed, clockwise, repeated or flat vertices)."""
+    def smallest(q: np.ndarray) -> float:
+        nxt = np.concatenate((q[1:], q[:1])) - q
+        prev = np.concatenate((nxt[-1:], nxt[:-1]))
+        return float(np.min(np.pi - np.arctan2(prev[:, 0] * nxt[:, 1] - prev[:, 1] * nxt[:, 0],
+                                               (prev * nxt).sum(axis=1))))
+
+    rng = np.random.default_rng(7)
+    valid = 0
+    for i in range(3000):
+        t, lrn = rng.random((4, 2)), rng.random((4, 2))
+        if i % 5 == 0:
+            lrn = t[::-1].copy()  # clockwise
+        elif i % 5 == 1:
+            lrn = t.copy()
+            lrn[2] = lrn[1]  # a repeated vertex
+        ok = is_simple_ccw(t) and is_simple_ccw(lrn)
+        valid += ok
+        assert quad_pair_score(t, lrn) == (min(smallest(t), smallest(lrn)) if ok else -1.0)
+    assert valid > 50  # valid ones were checked too (two in five are refused by construction)
 
 
 @pytest.mark.parametrize("cls", [ScmMapper, BarycentricMapper, AffineMapper, IdentityMapper])
