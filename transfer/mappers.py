@@ -30,7 +30,7 @@ from scipy.spatial import Delaunay, QhullError
 
 from transfer.domain import clamp
 from transfer.scm import QuadTransfer
-from transfer.scm._polygon import _smallest_angle, quad_pair_score
+from transfer.scm._polygon import quad_pair_score
 from transfer.store import PairStore
 
 Region = tuple[int, ...]
@@ -183,12 +183,6 @@ class _Triangulated:
         i = int(np.argmin(dist))
         inside = q[i] + 1e-9 * (centre - q[i])  # a hair inside, so the point location finds its triangle
         return inside, float(dist[i])
-
-
-def _min_angle(q: NDArray[np.float64]) -> float:
-    """Smallest interior angle (radians) of a counter-clockwise polygon ((n, 2) floats; the compiled kernel the
-    regions' shape score uses)."""
-    return float(_smallest_angle(np.ascontiguousarray(q, dtype=float)))
 
 
 class ScmMapper(_Triangulated):

@@ -20,11 +20,10 @@ from transfer.mappers import (
     BarycentricMapper,
     IdentityMapper,
     ScmMapper,
-    _min_angle,
     make_mapper,
 )
 from transfer.scm import is_simple_ccw
-from transfer.scm._polygon import quad_pair_score
+from transfer.scm._polygon import _smallest_angle, quad_pair_score
 from transfer.store import PairStore
 
 UNIT = Bounds((0.0, 1.0), (0.0, 1.0))  # normalised = physical: the pairs below read directly
@@ -140,11 +139,11 @@ def test_the_sc_cache_is_bounded_and_least_recently_used() -> None:
     assert small.builds == 3 and len(small._quads) == 1  # a was evicted by b, built again
 
 
-def test_min_angle_of_simple_shapes() -> None:
+def test_smallest_angle_of_simple_shapes() -> None:
     sq = np.array([[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]])
-    assert _min_angle(sq) == pytest.approx(math.pi / 2)
+    assert _smallest_angle(sq) == pytest.approx(math.pi / 2)
     kite = np.array([[0.0, 0.0], [2.0, -0.2], [4.0, 0.0], [2.0, 0.2]])
-    assert _min_angle(kite) == pytest.approx(2 * math.atan2(0.2, 2.0))
+    assert _smallest_angle(kite) == pytest.approx(2 * math.atan2(0.2, 2.0))
 
 
 def test_a_regions_shape_score_is_its_polygons_smallest_angle_or_refused_where_either_is_not_valid() -> None:

@@ -20,6 +20,7 @@ from hypothesis import strategies as st
 import transfer.scm as scm
 from transfer.scm import QuadTransfer, RectangleMap, _ellipj, _quadrature, is_simple_ccw
 from transfer.scm._cache import kernel_dispatchers
+from transfer.scm._polygon import _smallest_angle
 
 PROPS = settings(
     max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow, HealthCheck.filter_too_much]
@@ -338,7 +339,7 @@ def test_the_sc_mapper_never_builds_on_a_sliver(monkeypatch) -> None:
     def thin_triangle_query(m: TM.ScmMapper) -> np.ndarray:
         m._sync()
         assert m.tri is not None
-        s = min(range(len(m.tri.simplices)), key=lambda k: TM._min_angle(m.T[m.tri.simplices[k]]))
+        s = min(range(len(m.tri.simplices)), key=lambda k: _smallest_angle(m.T[m.tri.simplices[k]]))
         return m.T[m.tri.simplices[s]].mean(axis=0)
 
     m = TM.ScmMapper(store)
