@@ -198,6 +198,10 @@ def _ipopt(cfg: MpcConfig, nlp: dict):
     return ca.nlpsol("mpc", "ipopt", nlp, opts)
 
 
+def _copy(a: NDArray[np.float64] | None) -> NDArray[np.float64] | None:
+    return None if a is None else a.copy()
+
+
 class _Ipopt:
     """The reference: the stage-wise NLP solved to convergence, warm-started with the previous primal-dual point."""
 
@@ -214,10 +218,10 @@ class _Ipopt:
 
     def warm_start(self) -> NDArray[np.float64] | None:
         """The multipliers the next solve starts from (None: from none)."""
-        return None if self.lam_g is None else self.lam_g.copy()
+        return _copy(self.lam_g)
 
     def set_warm_start(self, lam_g: NDArray[np.float64] | None) -> None:
-        self.lam_g = None if lam_g is None else lam_g.copy()
+        self.lam_g = _copy(lam_g)
 
     def solve(self, p: NDArray[np.float64], state: NDArray[np.float64], U0: NDArray[np.float64], limits: Bounds,
               cold: bool, slots: int | None = None) -> tuple[bool, str, int, NDArray[np.float64], NDArray[np.float64]]:
@@ -250,10 +254,6 @@ class _Ipopt:
         if ok:
             self.lam_g = np.asarray(sol["lam_g"]).ravel()
         return ok, str(stats.get("return_status", "")), int(stats.get("iter_count", 0)), xopt[self.iu], xopt[self.ix]
-
-
-def _copy(a: NDArray[np.float64] | None) -> NDArray[np.float64] | None:
-    return None if a is None else a.copy()
 
 
 class MpcTeacher:
