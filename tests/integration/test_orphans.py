@@ -10,6 +10,7 @@ import subprocess
 import sys
 import textwrap
 import threading
+from pathlib import Path
 
 import pytest
 
@@ -87,6 +88,24 @@ def _children(pid: int) -> dict[int, str]:
     return out
 
 
+def _why_alive(alive: dict[int, str], out: Path) -> str:
+    """For a failure's message: each live child's command line, state, kernel wait channel and signal masks (a
+    SIGTERM pending but blocked shows in SigPnd/ShdPnd and SigBlk), then what the demo's children wrote last."""
+    lines = []
+    for pid, cmd in alive.items():
+        lines.append(f"pid {pid}: {cmd[:200]}")
+        try:
+            status = Path(f"/proc/{pid}/status").read_text().splitlines()
+            lines += [f"  {x}" for x in status if x.split(":")[0] in ("State", "Threads", "SigPnd", "ShdPnd", "SigBlk",
+                                                                    "SigIgn", "SigCgt")]
+            lines.append(f"  wchan: {Path(f'/proc/{pid}/wchan').read_text()}")
+        except OSError as exc:
+            lines.append(f"  ({exc})")
+    for log in sorted(out.glob("*.log")):
+        lines.append(f"--- {log.name} (last 2000 characters):\n{log.read_text(errors='replace')[-2000:]}")
+    return "\n".join(lines)
+
+
 @pytest.mark.timeout(240)
 def test_kill_9_of_the_demo_takes_its_station_and_driver_host_with_it(tmp_path) -> None:
     """The finding as it was met: ``kill -9`` of ``scmbridge demo`` left its station and driver host running."""
@@ -102,7 +121,7 @@ def test_kill_9_of_the_demo_takes_its_station_and_driver_host_with_it(tmp_path) 
         os.kill(demo.pid, signal.SIGKILL)
         demo.wait(timeout=10)
         gone = until(lambda: not any(_alive(p) for p in kids), 60, 0.2)
-        assert gone, {p: c for p, c in kids.items() if _alive(p)}
+        assert gone, _why_alive({p: c for p, c in kids.items() if _alive(p)}, tmp_path)
     finally:
         for p in kids:
             if _alive(p):
