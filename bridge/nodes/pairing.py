@@ -198,17 +198,22 @@ class Motion:
         self.pose: tuple[float, Pose] | None = None  # the last accepted pose
         self.odd_poses: list[tuple[float, Pose]] = []  # implausible poses in a row
         self.implausible_pose = 0
+        #: the last pose dropped as out of reach, in words (what it moved and turned in how long): a person
+        #: reading "implausible poses" on the status needs to know whether it was a jump or a stamp
+        self.last_dropped = ""
 
     def judge(self, stamp: float, p: Pose) -> str:
         """``ok`` (accepted), ``dropped``, or ``moved`` (dropped, but the run of poses that agree says the vehicle
         was relocated: it is its new place, no pair may span the jump)."""
         if not (math.isfinite(p[0]) and math.isfinite(p[1]) and math.isfinite(p[2])):
             self.implausible_pose += 1
+            self.last_dropped = "not finite"
             return "dropped"
         if self.pose is None or self._reachable(self.pose, (stamp, p)):
             self.pose, self.odd_poses = (stamp, p), []
             return "ok"
         self.implausible_pose += 1
+        self.last_dropped = self._describe(self.pose, (stamp, p))
         run = self.odd_poses
         if run and not self._reachable(run[-1], (stamp, p)):
             run.clear()
@@ -217,6 +222,12 @@ class Motion:
             self.pose, self.odd_poses = (stamp, p), []
             return "moved"
         return "dropped"
+
+    def _describe(self, a: tuple[float, Pose], b: tuple[float, Pose]) -> str:
+        """What pose ``b`` did after the accepted ``a``, against the bounds (for :attr:`last_dropped`)."""
+        (xa, ya, tha), (xb, yb, thb) = a[1], b[1]
+        return (f"{math.hypot(xb - xa, yb - ya):.3f} m and {abs(math.remainder(thb - tha, math.tau)):.3f} rad in "
+                f"{b[0] - a[0]:.3f} s (at most {self.max_speed:.2f} m/s, {self.max_turn:.2f} rad/s)")
 
     def _reachable(self, a: tuple[float, Pose], b: tuple[float, Pose]) -> bool:
         dt = max(b[0] - a[0], self.dt / 10)  # two poses in one instant: judge them over a tenth of a pair

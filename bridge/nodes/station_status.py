@@ -101,8 +101,9 @@ class Integrity:
         if bad > self.implausible_seen[0]:
             self.implausible_seen = (bad, now)
         if now - self.implausible_seen[1] < INTEGRITY_WINDOW_S:
+            last = f"; the last pose dropped: {p.motion.last_dropped}" if p.motion.last_dropped else ""
             out.append(f"implausible telemetry dropped before pairing ({p.implausible_stamp} stamps, "
-                       f"{p.implausible_pose} poses, {p.implausible_pair} pairs so far)")
+                       f"{p.implausible_pose} poses, {p.implausible_pair} pairs so far{last})")
         return out
 
 

@@ -118,6 +118,18 @@ def test_integrity_problems_last_the_window_after_they_were_last_seen() -> None:
     assert integrity.problems(100.1 + INTEGRITY_WINDOW_S, pairer) == []  # the count did not grow since
 
 
+def test_a_dropped_pose_is_named_by_what_it_moved_and_in_how_long() -> None:
+    """A person (or a failed test) reading "implausible poses" learns whether it was a jump or two stamps too close."""
+    integrity, pairer = Integrity(), IntervalPairer(dt=0.1, max_speed=1.0, max_turn=2.0)
+    pairer.state(10.0, np.zeros(3), received=10.0)
+    pairer.state(10.02, np.array([0.5, 0.0, 0.0]), received=10.02)  # 0.5 m in 20 ms at most 1 m/s: dropped
+    (problem,) = integrity.problems(10.1, pairer)
+    assert "1 poses" in problem and "the last pose dropped: 0.500 m and 0.000 rad in 0.020 s" in problem, problem
+    assert "(at most 1.00 m/s, 2.00 rad/s)" in problem, problem
+    pairer.state(10.03, np.array([0.0, 0.0, np.nan]), received=10.03)
+    assert integrity.problems(10.1, pairer)[0].endswith("the last pose dropped: not finite)")
+
+
 def test_counters_take_the_pairers_counts_under_their_status_names() -> None:
     pairer, store = IntervalPairer(dt=0.1), PairStore(Bounds(MPC_LEARNER_V, MPC_LEARNER_W),
                                                       Bounds(MPC_TEACHER_V, MPC_TEACHER_W), k_min=1)
