@@ -14,7 +14,6 @@ import argparse
 import faulthandler
 import importlib
 import inspect
-import logging
 import os
 import re
 import shlex
@@ -24,6 +23,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from bridge.core import logsink
 from bridge.core.errors import Denied, UsageError
 
 # The numerical work here is small matrices (a 20-step MPC, 2 x 2 maps): OpenBLAS's default worker threads only
@@ -217,8 +217,9 @@ def group_help(group: str) -> str:
 
 
 def setup_logging(level: str, name: str) -> None:
-    logging.basicConfig(level=getattr(logging, level.upper()),
-                        format=f"%(asctime)s {name.replace(' ', '-')} %(levelname)s %(message)s")
+    """The process's log at ``level``, written by a thread of its own so that no loop waits on stderr
+    (:mod:`bridge.core.logsink`)."""
+    logsink.setup(level, f"%(asctime)s {name.replace(' ', '-')} %(levelname)s %(message)s")
 
 
 class Terminated(KeyboardInterrupt):
@@ -284,24 +285,33 @@ def main(argv: list[str] | None = None) -> int:
         setup_logging(ns.log_level, name)
         return int(getattr(module, f"run{cmd.suffix(module)}")(ns) or 0)
     except Denied as exc:  # the lab's access control denies it: one line, its own exit status
-        print(f"scmbridge {name}: {exc}", file=sys.stderr)
+        _err(f"scmbridge {name}: {exc}")
         return Denied.EXIT
     except UsageError as exc:  # a person's mistake or an expected failure: one line, no traceback
-        print(f"scmbridge {name}: error: {exc}", file=sys.stderr)
+        _err(f"scmbridge {name}: error: {exc}")
         return 2
     except ModuleNotFoundError as exc:  # an install without this command's extra (a robot's base install)
         extra = EXTRA_OF.get((exc.name or "").split(".")[0])
         if extra is None:
             raise
-        print(f"scmbridge {name}: error: this command needs {exc.name}, in the '{extra}' extra, which a robot's "
-              f"install leaves out; it runs on a station computer, installed from the full lock: `{FULL_INSTALL}` "
-              "(README.md, Set-up)", file=sys.stderr)
+        _err(f"scmbridge {name}: error: this command needs {exc.name}, in the '{extra}' extra, which a robot's "
+             f"install leaves out; it runs on a station computer, installed from the full lock: `{FULL_INSTALL}` "
+             "(README.md, Set-up)")
         return 2
     except Terminated as exc:
-        print(f"scmbridge {name}: {exc}: stopped", file=sys.stderr)
+        _err(f"scmbridge {name}: {exc}: stopped")
         return 128 + exc.signum
     except KeyboardInterrupt:
         return 130
+    except BaseException:
+        logsink.flush()  # a traceback after the log lines written before it
+        raise
+
+
+def _err(text: str) -> None:
+    """The command's one-line error on stderr, after every log line before it (:func:`bridge.core.logsink.flush`)."""
+    logsink.flush()
+    print(text, file=sys.stderr)
 
 
 def reference() -> str:
