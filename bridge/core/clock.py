@@ -22,7 +22,9 @@ read in one batch, a busy radio), restart the estimate from them, within a few s
 from __future__ import annotations
 
 import functools
+import math
 from collections import deque
+from collections.abc import Callable
 from pathlib import Path
 from typing import Protocol
 
@@ -142,3 +144,28 @@ class SystemClock:
 
 #: the host's clocks: every node's default
 SYSTEM = SystemClock()
+
+
+#: s: a read of the wall clock's offset bracketed tighter than this is believed (:func:`wall_offset`)
+OFFSET_BRACKET_S = 1e-3
+#: tries at a tight bracket before the tightest is taken
+OFFSET_TRIES = 3
+
+
+def wall_offset(mono: Callable[[], float], wall: Callable[[], float]) -> tuple[float, float]:
+    """The ``wall`` clock minus the ``mono`` one (a :class:`Clock` and its ``wall``), and the bracket it was read in
+    (s; it is off by at most half of it). Two reads one after the other are off by however long the thread was
+    preempted between them (tens of milliseconds on a loaded machine); here the monotonic read sits between two wall
+    reads, and the tightest of up to :data:`OFFSET_TRIES` brackets is taken (the first under
+    :data:`OFFSET_BRACKET_S`)."""
+    best = (math.inf, 0.0)
+    for _ in range(OFFSET_TRIES):
+        w0 = wall()
+        m = mono()
+        w1 = wall()
+        if w1 - w0 < best[0]:
+            best = (w1 - w0, 0.5 * (w0 + w1) - m)
+        if best[0] < OFFSET_BRACKET_S:
+            break
+    return best[1], max(best[0], 0.0)
+

@@ -22,7 +22,7 @@ from collections import deque
 import numpy as np
 
 from bridge.core import wire as M
-from bridge.core.clock import Clock
+from bridge.core.clock import Clock, wall_offset
 from bridge.core.logs import ReasonLog
 from bridge.nodes.mission_control import Fitness
 from bridge.nodes.sources import Why
@@ -84,7 +84,7 @@ class TickTime:
         self.clock = clock
         self.period = period
         #: wall clock minus monotonic clock at start: a tick's date is its ``now`` plus it (:meth:`wall`)
-        self.wall_offset = clock.wall() - clock()
+        self.wall_offset = wall_offset(clock, clock.wall)[0]  # read in a bracket: a preemption does not move it
         self.t_status: float | None = None  # the next status is due then (None: at the first periodic tick)
         self.tick_ms: deque[float] = deque(maxlen=600)  # the last minute of periodic ticks' durations
         self.solve_ms: deque[float] = deque(maxlen=100)

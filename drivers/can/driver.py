@@ -14,6 +14,7 @@ from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING, Any
 
 from bridge.core.backoff import Backoff
+from bridge.core.clock import OFFSET_BRACKET_S, wall_offset
 from drivers.base import SYSTEM, Clock, DriverError, FailsafeReport, LinkBase, LinkHealth, Pose, Verdict, whole_numbers
 from drivers.can.axis import Axes, Axis, AxisHealth, Frame, Reason, verdict
 from drivers.can.codec import decode, encode
@@ -109,9 +110,10 @@ class CanDriver(LinkBase):
     **Time stamps.** A pose carries the time its encoder frames were received on the bus (``msg.timestamp``, which
     python-can fills on receive with the wall clock (Python's ``time`` function) for ``virtual`` and
     ``udp_multicast``, the kernel's receive time for ``socketcan``), mapped by each ``poll`` onto the driver host's
-    clock (``clock``) with the offset ``clock() - clock.wall()``. A stamp that is missing, in the future of its
-    receipt (beyond :data:`STAMP_SLACK`) or older than :data:`STAMP_MAX_AGE` (a wall-clock step, NTP) is replaced
-    by the receive time and counted (``stamp_fallbacks``). Frames read by a ``poll`` were received by its ``now``.
+    clock (``clock``) with the offset ``clock() - clock.wall()``, read in a bracket (:meth:`_offset`). A stamp that
+    is missing, in the future of its receipt (beyond :data:`STAMP_SLACK`) or older than :data:`STAMP_MAX_AGE` (a
+    wall-clock step, NTP) is replaced by the receive time and counted (``stamp_fallbacks``). Frames read by a
+    ``poll`` were received by its ``now``.
 
     **Time.** ``poll``, ``send``, ``stop``, ``health``, ``open`` and ``engage`` work at the ``now`` they are given;
     ``open``, ``engage`` and ``close`` wait between two reads of the bus with the clock's ``wait``
@@ -147,6 +149,8 @@ class CanDriver(LinkBase):
         self._send_failures = 0
         self.rejected_at = -math.inf  # when the last implausible estimate was rejected
         self.overrun_at = -math.inf  # when estimates last claimed more travel than the wheel can do
+        self._wall_to_host = 0.0  # host clock minus wall clock, as last read (:meth:`_offset`)
+        self._offset_tight = False  # ... in a tight bracket
 
     @property
     def counters(self) -> dict[str, int]:
@@ -254,8 +258,7 @@ class CanDriver(LinkBase):
         if self.bus is None and self.axes.phase != "closed" and now >= self._reopen_at:
             self._reopen(now)
         if self.bus is not None:
-            # a measurement: the two clocks read together map python-can's wall stamps onto the host's clock
-            offset = self.clock() - self.clock.wall()
+            offset = self._offset()
             read = False
             for _ in range(MAX_FRAMES_PER_POLL):
                 try:
@@ -275,6 +278,18 @@ class CanDriver(LinkBase):
                 self._changed()
         self._evaluate(now)
         return out
+
+    def _offset(self) -> float:
+        """A measurement: what maps python-can's wall-clock stamps onto the host's clock (host minus wall). Two
+        reads one after the other are off by however long the thread was preempted between them: a poll's poses
+        were then all stamped that much early, and one the vehicle seemed to reach too fast for its stamp was dropped
+        as implausible. So the reads are bracketed (:func:`bridge.core.clock.wall_offset`), and a poll whose bracket
+        stayed wide keeps the last tight one (the two clocks drift apart slowly; a step of the wall clock makes
+        stamps implausible, which fall back to the receipt time, until the next tight read)."""
+        off, bracket = wall_offset(self.clock, self.clock.wall)
+        if bracket < OFFSET_BRACKET_S or not self._offset_tight:
+            self._wall_to_host, self._offset_tight = -off, bracket < OFFSET_BRACKET_S
+        return self._wall_to_host
 
     def _frame(self, frame: can.Message, received: float, offset: float, now: float) -> Pose | None:
         self._health.frames_received += 1

@@ -14,7 +14,7 @@ import socket
 import pytest
 
 from bridge.core import clock
-from bridge.core.clock import BACK_STEP, CONFIRM, STEP, ClockOffset
+from bridge.core.clock import BACK_STEP, CONFIRM, OFFSET_BRACKET_S, STEP, ClockOffset, wall_offset
 
 AHEAD = 1000.0  # the source's clock runs this far ahead of ours
 
@@ -107,3 +107,30 @@ def test_machine_names_this_host_and_its_boot() -> None:
     assert re.fullmatch(r"[0-9a-f]{8}|noboot", boot)
     assert clock.machine() is name  # read once: the same for the whole boot
     assert len(name) <= 64  # fits Status.host (a Name)
+
+
+def test_the_wall_offset_is_read_in_a_bracket_a_preemption_cannot_widen_unseen() -> None:
+    """A read preempted between the monotonic and the wall clock's (80 ms) is off by the preemption; the bracket
+    says so, and the next, tight one is taken."""
+    t = [100.0]
+    gaps = [0.08]  # the thread loses the core once, between the first bracket's two wall reads
+
+    def mono() -> float:
+        return t[0]
+
+    def wall() -> float:
+        if gaps and reads[0] == 1:  # preempted just before this read
+            t[0] += gaps.pop()
+        reads[0] += 1
+        return t[0] + 1.7e9
+
+    reads = [0]
+    off, bracket = wall_offset(mono, wall)
+    assert off == pytest.approx(1.7e9, abs=1e-6) and bracket < OFFSET_BRACKET_S and reads[0] == 4
+
+    def slow_wall() -> float:  # every bracket wide: the tightest is taken, and said
+        t[0] += 0.01
+        return t[0] + 1.7e9
+
+    off, bracket = wall_offset(mono, slow_wall)
+    assert bracket == pytest.approx(0.01, abs=1e-6) and off == pytest.approx(1.7e9, abs=0.006)

@@ -174,6 +174,38 @@ def test_poses_carry_the_frames_own_stamp_on_the_drivers_clock(rig: Rig) -> None
     assert [p.stamp for p in poses] == [rig.clock.t, rig.clock.t] and d.counters["stamp_fallbacks"] == fallbacks + 4
 
 
+def test_a_preemption_between_the_clock_reads_does_not_move_a_polls_stamps(rig: Rig) -> None:
+    """The wall clock's offset read with the thread preempted between the two reads (80 ms, as on a loaded machine):
+    the poll's poses keep their frames' own stamps (read one after the other, they were stamped 80 ms early, and the
+    station dropped one as moving too fast for its stamp)."""
+    d = engaged(rig)
+    c = rig.controllers
+
+    def estimates(pos: float, wall: float) -> None:
+        for node, sign in ((0, 1.0), (1, -1.0)):
+            f = encode(node, "Get_Encoder_Estimates", {"Pos_Estimate": sign * pos, "Vel_Estimate": 0.0})
+            f.timestamp = wall
+            c.bus.send(f)
+
+    estimates(0.0, rig.clock.wall() - 0.02)  # the anchor
+    estimates(0.001, rig.clock.wall() - 0.01)
+    clock, real_wall = rig.clock, rig.clock.wall
+    preempted = []
+
+    def wall_after_a_preemption() -> float:
+        if not preempted:  # the thread loses the core just before its first wall read of this poll
+            preempted.append(clock.advance(0.08))
+        return real_wall()
+
+    clock.wall = wall_after_a_preemption  # type: ignore[method-assign]
+    try:
+        poses = d.poll(clock.t)
+    finally:
+        clock.wall = real_wall  # type: ignore[method-assign]
+    sent_at = preempted[0] - 0.08 - 0.01  # the frame's wall stamp on the driver's clock
+    assert preempted and len(poses) == 1 and poses[0].stamp == pytest.approx(sent_at, abs=1e-6)
+
+
 def test_health_reads_no_clock_and_changes_nothing(rig: Rig) -> None:
     d = engaged(rig)
     rig.tick()
