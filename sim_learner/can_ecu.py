@@ -424,7 +424,9 @@ class DiffDriveEcus(ThreadedDevice):
         given here)."""
         if self.bus is None or not ax.plugged:
             return
-        wall = time.time() - (self.clock() - at)
+        # the wall time of ``at`` through the bracketed offset (read one after the other, the clocks are off by a
+        # preemption between the reads, and the frame would be stamped that much off)
+        wall = at - self._wall_to_mono() if self.wall is not None else time.time() - (self.clock() - at)
         frame = can.Message(timestamp=wall, arbitration_id=(ax.node << 5) | cmd, data=data, is_extended_id=False)
         with contextlib.suppress(can.CanError):
             self.bus.send(frame, timeout=0.05)

@@ -170,3 +170,32 @@ def test_a_stall_of_the_emulator_itself_is_not_counted_by_the_watchdog() -> None
     assert ecus.axis(0).state == ecus.axis(1).state == E.CLOSED_LOOP_CONTROL
     ecus._watchdog(0.76 + 0.5)  # no feed for the watchdog's time after the stall: tripped, as without one
     assert ecus.axis(0).state == E.IDLE and ecus.axis(0).error == E.WATCHDOG_TIMER_EXPIRED
+
+
+def test_a_preemption_between_the_clock_reads_moves_no_frame_in_time() -> None:
+    """The controllers' own frames carry the moment they measured, and a command is applied at its bus stamp, even
+    when the thread lost the core (80 ms) between reading its clock and the wall clock: read one after the other, the
+    two clocks' offset was off by the preemption, and every frame of that turn with it."""
+    channel = f"ecu-{uuid.uuid4().hex[:8]}"
+    t = [1.0]
+    preempt = [0.08]
+
+    def wall() -> float:
+        if preempt:  # once: the thread loses the core just before this read
+            t[0] += preempt.pop()
+        return t[0] + 1000.0
+
+    ecus = E.DiffDriveEcus({"interface": "virtual", "channel": channel}, SimVehicle(LINEAR, now=0.0),
+                           clock=lambda: t[0], wall=wall)
+    spy = can.Bus(interface="virtual", channel=channel)
+    try:
+        ecus._open()
+        ecus._send_encoder(ecus.axis(0), 1.0)  # measured at 1.0 on the emulator's clock
+        f = spy.recv(timeout=2.0)
+        assert f is not None and f.timestamp == pytest.approx(1001.0, abs=1e-6)
+        preempt.append(0.08)
+        stop = _frame(0, E.SET_INPUT_VEL, struct.pack("<ff", 0.0, 0.0), timestamp=1000.95 + 0.08)  # at 1.03
+        assert ecus._arrival(stop, t[0], ecus._wall_to_mono()) == pytest.approx(1.03, abs=1e-6)
+    finally:
+        ecus._close()
+        spy.shutdown()
