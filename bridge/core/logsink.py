@@ -13,7 +13,9 @@ queue; only that thread writes to stderr.
   before its own one-line error, so that line comes after the log lines before it.
 - At exit the writer gets up to :data:`EXIT_FLUSH_S` to write what is queued (a node's last line, "stopped
   because ..."); a stderr that stays blocked does not keep the process from exiting. What is logged after that, and
-  in a child forked from the process (a worker pool, which has no writer thread), is written as it is logged.
+  in a child forked from the process (a worker pool, which has no writer thread), is written as it is logged. A
+  process killed with SIGKILL loses the lines still queued (the writer runs a line behind the loop, unless stderr is
+  blocked).
 """
 
 from __future__ import annotations
