@@ -168,4 +168,3 @@ def wall_offset(mono: Callable[[], float], wall: Callable[[], float]) -> tuple[f
         if best[0] < OFFSET_BRACKET_S:
             break
     return best[1], max(best[0], 0.0)
-
