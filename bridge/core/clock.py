@@ -154,9 +154,9 @@ OFFSET_TRIES = 3
 
 def wall_offset(mono: Callable[[], float], wall: Callable[[], float]) -> tuple[float, float]:
     """The ``wall`` clock minus the ``mono`` one (a :class:`Clock` and its ``wall``), and the bracket it was read in
-    (s; it is off by at most half of it). Two reads one after the other are off by however long the thread was
-    preempted between them (tens of milliseconds on a loaded machine); here the monotonic read sits between two wall
-    reads, and the tightest of up to :data:`OFFSET_TRIES` brackets is taken (the first under
+    (s; it is off by at most half of it). Two reads one after the other are off by however long the thread waited
+    between them (preempted, or waiting for the interpreter behind another thread); here the monotonic read sits
+    between two wall reads, and the tightest of up to :data:`OFFSET_TRIES` brackets is taken (the first under
     :data:`OFFSET_BRACKET_S`)."""
     best = (math.inf, 0.0)
     for _ in range(OFFSET_TRIES):

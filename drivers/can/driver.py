@@ -281,11 +281,11 @@ class CanDriver(LinkBase):
 
     def _offset(self) -> float:
         """A measurement: what maps python-can's wall-clock stamps onto the host's clock (host minus wall). Two
-        reads one after the other are off by however long the thread was preempted between them: a poll's poses
-        were then all stamped that much early, and one the vehicle seemed to reach too fast for its stamp was dropped
-        as implausible. So the reads are bracketed (:func:`bridge.core.clock.wall_offset`), and a poll whose bracket
-        stayed wide keeps the last tight one (the two clocks drift apart slowly; a step of the wall clock makes
-        stamps implausible, which fall back to the receipt time, until the next tight read)."""
+        reads one after the other are off by however long the thread waited between them: a poll's poses are then
+        all stamped that much early, and one the vehicle seems to reach too fast for its stamp is dropped by the
+        station as implausible. So the reads are bracketed (:func:`bridge.core.clock.wall_offset`), and a poll whose
+        bracket stayed wide keeps the last tight one (the two clocks drift apart slowly; a step of the wall clock
+        makes stamps implausible, which fall back to the receipt time, until the next tight read)."""
         off, bracket = wall_offset(self.clock, self.clock.wall)
         if bracket < OFFSET_BRACKET_S or not self._offset_tight:
             self._wall_to_host, self._offset_tight = -off, bracket < OFFSET_BRACKET_S
