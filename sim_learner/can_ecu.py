@@ -61,6 +61,7 @@ from typing import Any
 
 import can
 
+from bridge.core.clock import wall_offset
 from sim_learner.device import ThreadedDevice
 from sim_learner.vehicle import SimVehicle
 
@@ -245,21 +246,10 @@ class DiffDriveEcus(ThreadedDevice):
             self._handle(frame, self._arrival(frame, now, to_mono))
 
     def _wall_to_mono(self) -> float:
-        """This emulator's clock minus the wall clock the bus stamps its frames with, read with the clock between
-        two wall reads (the tightest of three brackets): two reads one after the other are off by however long the
-        thread was preempted between them, and every frame of the drain would be placed that much early."""
-        if self.wall is None:
-            return 0.0
-        best = (math.inf, 0.0)
-        for _ in range(3):
-            w0 = self.wall()
-            m = self.clock()
-            w1 = self.wall()
-            if w1 - w0 < best[0]:
-                best = (w1 - w0, m - 0.5 * (w0 + w1))
-            if best[0] < 1e-3:
-                break
-        return best[1]
+        """This emulator's clock minus the wall clock the bus stamps its frames with, read in a bracket
+        (:func:`bridge.core.clock.wall_offset`): two reads one after the other are off by however long the thread
+        waited between them, and every frame of the drain would be placed that much off."""
+        return 0.0 if self.wall is None else -wall_offset(self.clock, self.wall)[0]
 
     def _arrival(self, frame: can.Message, now: float, to_mono: float) -> float:
         """When ``frame`` reached the controller, on this emulator's clock: its bus stamp (the sender's write on

@@ -37,6 +37,13 @@ class Rig:
             raise can.CanInitializationError("interface gone")
         return can.Bus(interface="virtual", channel=self.channel)
 
+    def estimates(self, pos: float, wall: float) -> None:
+        """Both controllers' encoder estimates at ``pos`` turns (each wheel's sign), stamped ``wall`` on the bus."""
+        for node, sign in ((0, 1.0), (1, -1.0)):
+            f = encode(node, "Get_Encoder_Estimates", {"Pos_Estimate": sign * pos, "Vel_Estimate": 0.0})
+            f.timestamp = wall
+            self.controllers.bus.send(f)
+
     def tick(self, dt: float = 0.02, v: float = 0.0, w: float = 0.0) -> None:
         """One driver-host tick ``dt`` after the last: send (or stop while not ok), then poll."""
         now = self.clock.advance(dt)
@@ -155,13 +162,7 @@ def test_a_failed_bus_is_reopened_with_a_backoff_that_doubles_up_to_its_bound(ri
 
 def test_poses_carry_the_frames_own_stamp_on_the_drivers_clock(rig: Rig) -> None:
     d = engaged(rig)
-    c = rig.controllers
-
-    def estimates(pos: float, wall: float) -> None:
-        for node, sign in ((0, 1.0), (1, -1.0)):
-            f = encode(node, "Get_Encoder_Estimates", {"Pos_Estimate": sign * pos, "Vel_Estimate": 0.0})
-            f.timestamp = wall
-            c.bus.send(f)
+    estimates = rig.estimates
 
     estimates(0.0, rig.clock.wall() - 0.40)  # the anchor
     estimates(0.001, rig.clock.wall() - 0.30)  # received by the bus 0.3 s before this poll
@@ -175,17 +176,11 @@ def test_poses_carry_the_frames_own_stamp_on_the_drivers_clock(rig: Rig) -> None
 
 
 def test_a_preemption_between_the_clock_reads_does_not_move_a_polls_stamps(rig: Rig) -> None:
-    """The wall clock's offset read with the thread preempted between the two reads (80 ms, as on a loaded machine):
-    the poll's poses keep their frames' own stamps (read one after the other, they were stamped 80 ms early, and the
-    station dropped one as moving too fast for its stamp)."""
+    """The wall clock's offset read with the thread held up (80 ms) between the two reads: the poll's poses keep
+    their frames' own stamps (read one after the other, they were stamped 80 ms early, which a station can drop as
+    moving too fast for its stamp)."""
     d = engaged(rig)
-    c = rig.controllers
-
-    def estimates(pos: float, wall: float) -> None:
-        for node, sign in ((0, 1.0), (1, -1.0)):
-            f = encode(node, "Get_Encoder_Estimates", {"Pos_Estimate": sign * pos, "Vel_Estimate": 0.0})
-            f.timestamp = wall
-            c.bus.send(f)
+    estimates = rig.estimates
 
     estimates(0.0, rig.clock.wall() - 0.02)  # the anchor
     estimates(0.001, rig.clock.wall() - 0.01)
