@@ -3,10 +3,12 @@ suite").
 
 ``SCMBRIDGE_CPU_REPORT=DIR python -m pytest -p tests.cpu_report ...`` writes one JSON line per test to
 ``DIR/<worker>.jsonl``: the CPU its worker spent on it (``self``) and that of the processes the test started and
-reaped (``children``), both user + system from ``resource.getrusage`` around the test's setup, call and teardown, and
-its wall time; each worker's last line is its whole session (``__total__``). A process reaped later (by another test's
+reaped (``children``), both user + system from ``resource.getrusage`` around the test's setup, call and teardown, its
+wall time, when it started (the wall clock, shared by the workers) and its worker; each worker's last line is its whole
+session (``__total__``). A process reaped later (by another test's
 ``subprocess.Popen``, which reaps the finished children it finds) counts there, and one never reaped not at all.
-``python -m tests.cpu_report DIR [N]`` prints the totals, the CPU by group and module and the N costliest tests."""
+``python -m tests.cpu_report DIR [N]`` prints the totals, the CPU by group and module, the N costliest tests, and the
+run's tail: when each worker ran out of tests and which tests ended last."""
 
 from __future__ import annotations
 
@@ -43,10 +45,11 @@ def _write(row: dict) -> None:
 
 @pytest.hookimpl(hookwrapper=True)
 def pytest_runtest_protocol(item: pytest.Item, nextitem: pytest.Item | None):
-    (s0, c0), w0 = _cpu(), time.monotonic()
+    (s0, c0), w0, t0 = _cpu(), time.monotonic(), time.time()
     yield
     (s1, c1), w1 = _cpu(), time.monotonic()
-    _write({"id": item.nodeid, "self": round(s1 - s0, 3), "children": round(c1 - c0, 3), "wall": round(w1 - w0, 3)})
+    _write({"id": item.nodeid, "self": round(s1 - s0, 3), "children": round(c1 - c0, 3), "wall": round(w1 - w0, 3),
+            "start": round(t0, 3), "worker": os.environ.get("PYTEST_XDIST_WORKER", "main")})
 
 
 def pytest_sessionfinish(session: pytest.Session) -> None:
@@ -80,7 +83,27 @@ def report(directory: Path, n: int = 30) -> str:
     out += [f"{v:7.1f}  {k}" for k, v in modules.most_common(n)]
     out += [f"{cpu(r):7.1f}  (own {r['self']:.1f}, children {r['children']:.1f}, wall {r['wall']:.1f})  {r['id']}"
             for r in sorted(rows, key=cpu, reverse=True)[:n]]
-    return "\n".join(out)
+    return "\n".join(out + _tail(rows))
+
+
+def _tail(rows: list[dict]) -> list[str]:
+    """When each worker ran out of tests, relative to the first test's start, and the tests that ended last: the
+    run's tail, where fewer workers than cores are busy (rows without a start, from an older report, are left out)."""
+    timed = [r for r in rows if "start" in r]
+    if not timed:
+        return []
+    t0 = min(r["start"] for r in timed)
+    ends: dict[str, float] = {}
+    for r in timed:
+        ends[r["worker"]] = max(ends.get(r["worker"], 0.0), r["start"] + r["wall"] - t0)
+    last = max(ends.values())
+    out = [f"workers out of tests at (s after the first test's start; the last at {last:.0f}): "
+           + ", ".join(f"{w} {e:.0f}" for w, e in sorted(ends.items(), key=lambda kv: kv[1])),
+           f"idle worker-seconds before the last ended: {sum(last - e for e in ends.values()):.0f}",
+           "the tests that ended last (start, wall):"]
+    for r in sorted(timed, key=lambda r: r["start"] + r["wall"], reverse=True)[:8]:
+        out.append(f"  {r['start'] - t0:6.0f} {r['wall']:6.1f}  {r['worker']}  {r['id']}")
+    return out
 
 
 if __name__ == "__main__":
