@@ -25,7 +25,7 @@ import struct
 from pathlib import Path
 
 from bridge.core.errors import UsageError
-from bridge.core.paths import SMALL_FILE, NotAFile, read_bounded, save_atomic, state_dir
+from bridge.core.paths import SMALL_FILE, NotAFile, read_bounded, save_atomic, save_new, state_dir
 
 MAGIC = b"\xa5\x01"  # format and version of an authenticated datagram
 TAG_BYTES = 16
@@ -118,6 +118,20 @@ def make_key(path: Path, *, force: bool = False, key: bytes | None = None) -> by
     return key
 
 
+def create_key(path: Path, link: str = "station") -> tuple[bytes, bool]:
+    """The key at ``path``, made now if there is none: ``(key, made)``. Of the processes or threads making the same
+    key at once, one writes it and the others read what it wrote (:func:`bridge.core.paths.save_new`), so each of
+    them tags its files with the key that is on disk (two robots of one station host share their directory's key)."""
+    path = Path(path)
+    key = secrets.token_bytes(KEY_BYTES)
+    old = os.umask(0o077)
+    try:
+        made = save_new(path, key.hex().encode() + b"\n")
+    finally:
+        os.umask(old)
+    return (key, True) if made else (load_key(path, link), False)
+
+
 class KeyProblem(ValueError):
     """A key file that exists but is not a usable key: ``kind`` is ``"mode"`` (others may read it) or ``"format"``
     (not :data:`KEY_BYTES` bytes as hex, or not text)."""
@@ -172,5 +186,5 @@ def load_key(path: str | Path, link: str = "udp") -> bytes:
 
 
 __all__ = ["KEY_BYTES", "MAGIC", "OVERHEAD", "RECORD_MAGIC", "SESSION_MAGIC", "SESSION_OVERHEAD", "KeyFileError",
-           "KeyProblem", "key_path", "load_key", "make_key", "open_sealed", "open_session", "read_key_file",
-           "record_tag", "record_tag_ok", "seal", "seal_session"]
+           "KeyProblem", "create_key", "key_path", "load_key", "make_key", "open_sealed", "open_session",
+           "read_key_file", "record_tag", "record_tag_ok", "seal", "seal_session"]

@@ -9,6 +9,7 @@ working directory: two services started in one directory must not share a file b
 
 from __future__ import annotations
 
+import _thread  # only the calling thread's number (the station core starts no thread)
 import os
 import stat
 import time
@@ -55,6 +56,13 @@ def _make_private_dirs(directory: Path) -> None:
         os.chmod(d, 0o700)  # mkdir's mode goes through the umask
 
 
+def temporary_name(path: Path) -> Path:
+    """Where :func:`save_atomic` writes ``path``'s content before the rename: beside it, hidden, named by this process
+    and this thread, so two threads saving one file at once (two robots of one station host making their shared
+    key) never write into, or rename away, each other's temporary file."""
+    return path.with_name(f".{path.name}.{os.getpid()}.{_thread.get_ident()}.tmp")
+
+
 def save_atomic(path: Path, data: bytes) -> None:
     """Write ``data`` so that ``path`` holds either the old or the new content, never a torn file (write, fsync,
     rename, fsync the directory); on failure (a full disk) the temporary file is removed and the error raised.
@@ -64,7 +72,7 @@ def save_atomic(path: Path, data: bytes) -> None:
     set it (the shipped systemd units ask for ``StateDirectoryMode=0700``)."""
     path = Path(path)
     _make_private_dirs(path.parent)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    tmp = temporary_name(path)
     try:
         fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC | getattr(os, "O_CLOEXEC", 0), 0o600)
         with open(fd, "wb") as f:
@@ -81,6 +89,35 @@ def save_atomic(path: Path, data: bytes) -> None:
         os.fsync(dfd)
     finally:
         os.close(dfd)
+
+
+def save_new(path: Path, data: bytes) -> bool:
+    """Write ``data`` to ``path`` only if there is no file there yet, whole or not at all, as :func:`save_atomic`
+    writes (private, fsynced): True if this call wrote it, False if one was there already (left as it is). Of
+    several processes or threads creating one file at once exactly one writes it (the complete temporary file is
+    hard-linked into place, which fails if the name exists); the others then read what it wrote."""
+    path = Path(path)
+    _make_private_dirs(path.parent)
+    tmp = temporary_name(path)
+    try:
+        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC | getattr(os, "O_CLOEXEC", 0), 0o600)
+        with open(fd, "wb") as f:
+            os.fchmod(f.fileno(), 0o600)
+            f.write(data)
+            f.flush()
+            os.fsync(f.fileno())
+        try:
+            os.link(tmp, path)
+        except FileExistsError:
+            return False
+    finally:
+        tmp.unlink(missing_ok=True)
+    dfd = os.open(path.parent, os.O_DIRECTORY)
+    try:
+        os.fsync(dfd)
+    finally:
+        os.close(dfd)
+    return True
 
 
 def quarantine(path: Path) -> Path:

@@ -16,7 +16,7 @@ import hashlib
 import os
 from pathlib import Path
 
-from bridge.core.auth import KeyFileError, load_key, make_key, record_tag, record_tag_ok
+from bridge.core.auth import KeyFileError, create_key, load_key, record_tag, record_tag_ok
 from bridge.nodes.latch_record import record_dir
 
 FILE_MAGIC = b"\xa5\x04"  # a station file tagged by its station, version 1
@@ -48,8 +48,9 @@ class FileTags:
             except KeyFileError:
                 if os.path.lexists(kf):
                     raise
-                self.keys[kf] = make_key(kf)
-                self.fresh.add(kf)
+                self.keys[kf], made = create_key(kf, "station")
+                if made:
+                    self.fresh.add(kf)
         return self.keys[kf]
 
     def seal(self, kind: str, path: Path, data: bytes) -> bytes:

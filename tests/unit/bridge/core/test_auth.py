@@ -66,3 +66,14 @@ def test_state_files_are_private_whatever_the_umask(tmp_path) -> None:
     assert target.read_bytes() == b"two"
     assert oct(target.stat().st_mode & 0o777) == "0o600"
     assert {oct(d.stat().st_mode & 0o777) for d in (target.parent, target.parent.parent)} == {"0o700"}
+
+
+def test_a_key_created_once_is_read_back_by_the_next_maker_and_never_replaced(tmp_path) -> None:
+    f = tmp_path / "keys" / "station-x.key"
+    key, made = auth.create_key(f)
+    assert made and len(key) == auth.KEY_BYTES and auth.load_key(f, "station") == key
+    assert auth.create_key(f) == (key, False)
+    assert f.stat().st_mode & 0o777 == 0o600
+    f.chmod(0o644)  # a key others may read is refused, not taken
+    with pytest.raises(auth.KeyFileError, match="readable by others"):
+        auth.create_key(f)

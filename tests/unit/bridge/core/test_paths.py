@@ -6,14 +6,14 @@ tests/unit/bridge/core/test_auth.py; the stores and the latch that use it in the
 
 from __future__ import annotations
 
-import os
 import re
+import threading
 import time
 from pathlib import Path
 
 import pytest
 
-from bridge.core.paths import cache_dir, quarantine, save_atomic, state_dir
+from bridge.core.paths import cache_dir, quarantine, save_atomic, save_new, state_dir, temporary_name
 
 VARS = ("SCMBRIDGE_STATE_DIR", "STATE_DIRECTORY", "XDG_STATE_HOME", "SCMBRIDGE_CACHE_DIR", "CACHE_DIRECTORY",
         "XDG_CACHE_HOME")
@@ -76,17 +76,67 @@ def test_a_failed_save_leaves_the_old_content_and_removes_its_temporary_file(tmp
     with pytest.raises(OSError):
         save_atomic(target, b"new")
     assert (target / "keep").read_bytes() == b"old"
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["store.bin"]  # the .store.bin.<pid>.tmp is gone
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["store.bin"]  # the .store.bin.<pid>.<thread>.tmp is gone
 
 
 def test_a_stale_temporary_file_of_a_crash_is_overwritten_private(tmp_path) -> None:
     f = tmp_path / "key.bin"
-    stale = tmp_path / f".key.bin.{os.getpid()}.tmp"
+    stale = temporary_name(f)  # a crash's, of a process and thread with this one's numbers
     stale.write_bytes(b"half a key from a crash")
     stale.chmod(0o644)
     save_atomic(f, b"k")
     assert f.read_bytes() == b"k" and not stale.exists()
     assert f.stat().st_mode & 0o777 == 0o600
+
+
+def _together(n: int, fn) -> list:
+    """``fn(i)`` on ``n`` threads released at once; their results (an exception is a result)."""
+    gate, out = threading.Barrier(n), [None] * n
+
+    def run(i: int) -> None:
+        gate.wait()
+        try:
+            out[i] = fn(i)
+        except Exception as exc:  # noqa: BLE001 (the test looks at it)
+            out[i] = exc
+
+    threads = [threading.Thread(target=run, args=(i,)) for i in range(n)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(timeout=30)
+    return out
+
+
+def test_threads_saving_one_file_at_once_each_save_it_whole(tmp_path) -> None:
+    """Two robots of one station host once made their shared key at the same moment: their temporary files had one
+    name, so one thread's rename took the other's file away (FileNotFoundError) or its content mixed with the
+    other's."""
+    f = tmp_path / "station.key"
+    values = [bytes([65 + i]) * 4096 for i in range(8)]
+
+    def save(i: int) -> None:
+        for _ in range(40):
+            save_atomic(f, values[i])
+
+    assert _together(8, save) == [None] * 8
+    assert f.read_bytes() in values
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["station.key"]
+
+
+def test_a_new_file_is_written_once_and_never_replaced(tmp_path) -> None:
+    f = tmp_path / "station.key"
+    assert save_new(f, b"first") and not save_new(f, b"second")
+    assert f.read_bytes() == b"first" and f.stat().st_mode & 0o777 == 0o600
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["station.key"]
+
+
+def test_of_threads_creating_one_file_at_once_exactly_one_writes_it(tmp_path) -> None:
+    f = tmp_path / "d" / "station.key"
+    made = _together(8, lambda i: save_new(f, bytes([65 + i]) * 64))
+    assert sorted(made) == [False] * 7 + [True]
+    assert f.read_bytes() == bytes([65 + made.index(True)]) * 64
+    assert sorted(p.name for p in f.parent.iterdir()) == ["station.key"]
 
 
 def test_a_directory_that_exists_is_left_as_its_owner_set_it(tmp_path) -> None:

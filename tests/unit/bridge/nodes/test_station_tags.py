@@ -5,6 +5,7 @@ test's own (tests/conftest.py)."""
 
 from __future__ import annotations
 
+import threading
 from pathlib import Path
 
 import pytest
@@ -91,3 +92,28 @@ def test_the_reason_a_store_was_refused_is_logged(tmp_path, caplog) -> None:
         load_store(f, L, T, (11, 11), 3, FileTags())
     assert any("grid 7 x 7 is not this configuration's 11 x 11" in r.getMessage() for r in caplog.records)
     assert Path(f).exists() is False
+
+
+def test_robots_of_one_host_making_their_directorys_key_at_once_all_tag_with_the_key_on_disk(tmp_path) -> None:
+    """Two robots of one station host (a loop thread each) once made the key of their shared directory at the same
+    moment: each wrote its own random key, the last rename won, and the other robot's files were tagged with a key
+    no later start could read (or its loop failed on the rename). Now one makes it and the others read it."""
+    gate, out = threading.Barrier(8), [None] * 8
+
+    def seal(i: int) -> None:
+        gate.wait()
+        try:
+            out[i] = FileTags().seal("store", tmp_path / f"pairs-r{i}.bin", b"pairs %d" % i)
+        except Exception as exc:  # noqa: BLE001 (the test looks at it)
+            out[i] = exc
+
+    threads = [threading.Thread(target=seal, args=(i,)) for i in range(8)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(timeout=30)
+    assert all(isinstance(b, bytes) for b in out), out
+    reader = FileTags()  # a later start: the key on disk
+    assert [reader.open("store", tmp_path / f"pairs-r{i}.bin", b) for i, b in enumerate(out)] == [
+        (b"pairs %d" % i, "") for i in range(8)]
+    assert {station_tags.key_file(tmp_path / "x")} == station_tags._MADE
