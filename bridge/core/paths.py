@@ -10,6 +10,7 @@ working directory: two services started in one directory must not share a file b
 from __future__ import annotations
 
 import _thread  # only the calling thread's number (the station core starts no thread)
+import errno
 import os
 import stat
 import time
@@ -91,25 +92,43 @@ def save_atomic(path: Path, data: bytes) -> None:
         os.close(dfd)
 
 
+#: what ``link(2)`` says on a filesystem without hard links (FAT, some network and FUSE filesystems)
+_NO_LINKS = frozenset({errno.EPERM, errno.EOPNOTSUPP, errno.ENOTSUP, errno.ENOSYS, errno.EMLINK})
+
+
+def _write_private(path: Path, flag: int, data: bytes) -> None:
+    """Create ``path`` (``flag``: ``O_TRUNC`` or ``O_EXCL``) mode 0600 whatever the umask, write ``data``, fsync."""
+    fd = os.open(path, os.O_WRONLY | os.O_CREAT | flag | getattr(os, "O_CLOEXEC", 0), 0o600)
+    with open(fd, "wb") as f:
+        os.fchmod(f.fileno(), 0o600)
+        f.write(data)
+        f.flush()
+        os.fsync(f.fileno())
+
+
 def save_new(path: Path, data: bytes) -> bool:
     """Write ``data`` to ``path`` only if there is no file there yet, whole or not at all, as :func:`save_atomic`
     writes (private, fsynced): True if this call wrote it, False if one was there already (left as it is). Of
     several processes or threads creating one file at once exactly one writes it (the complete temporary file is
-    hard-linked into place, which fails if the name exists); the others then read what it wrote."""
+    hard-linked into place, which fails if the name exists); the others then read what it wrote. On a filesystem
+    without hard links the file is created exclusively and written in place: still one writer, but a reader at that
+    very moment may find it empty."""
     path = Path(path)
     _make_private_dirs(path.parent)
     tmp = temporary_name(path)
     try:
-        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC | getattr(os, "O_CLOEXEC", 0), 0o600)
-        with open(fd, "wb") as f:
-            os.fchmod(f.fileno(), 0o600)
-            f.write(data)
-            f.flush()
-            os.fsync(f.fileno())
+        _write_private(tmp, os.O_TRUNC, data)
         try:
             os.link(tmp, path)
         except FileExistsError:
             return False
+        except OSError as exc:
+            if exc.errno not in _NO_LINKS:
+                raise
+            try:
+                _write_private(path, os.O_EXCL, data)
+            except FileExistsError:
+                return False
     finally:
         tmp.unlink(missing_ok=True)
     dfd = os.open(path.parent, os.O_DIRECTORY)

@@ -46,11 +46,12 @@ class FileTags:
             try:
                 self.keys[kf] = load_key(kf, "station")
             except KeyFileError:
-                if os.path.lexists(kf):
-                    raise
-                self.keys[kf], made = create_key(kf, "station")
-                if made:
-                    self.fresh.add(kf)
+                if os.path.lexists(kf):  # a file that cannot be used (raises again), or one made since by another
+                    self.keys[kf] = load_key(kf, "station")  # robot of this host (read it)
+                else:
+                    self.keys[kf], made = create_key(kf, "station")
+                    if made:
+                        self.fresh.add(kf)
         return self.keys[kf]
 
     def seal(self, kind: str, path: Path, data: bytes) -> bytes:

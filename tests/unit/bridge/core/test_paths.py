@@ -6,6 +6,8 @@ tests/unit/bridge/core/test_auth.py; the stores and the latch that use it in the
 
 from __future__ import annotations
 
+import errno
+import os
 import re
 import threading
 import time
@@ -158,3 +160,15 @@ def test_quarantine_moves_the_file_aside_with_the_time_and_keeps_its_bytes(tmp_p
     assert m and before <= int(m.group(1)) <= after
     with pytest.raises(FileNotFoundError):
         quarantine(tmp_path / "absent.bin")
+
+
+def test_without_hard_links_a_new_file_is_still_written_once(tmp_path, monkeypatch) -> None:
+    """A filesystem without hard links (FAT, some network filesystems): the file is created exclusively instead."""
+    def no_links(src, dst) -> None:
+        raise PermissionError(errno.EPERM, "Operation not permitted")
+
+    monkeypatch.setattr(os, "link", no_links)
+    f = tmp_path / "station.key"
+    assert save_new(f, b"first") and not save_new(f, b"second")
+    assert f.read_bytes() == b"first" and f.stat().st_mode & 0o777 == 0o600
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["station.key"]
