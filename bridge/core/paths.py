@@ -75,17 +75,17 @@ def save_atomic(path: Path, data: bytes) -> None:
     _make_private_dirs(path.parent)
     tmp = temporary_name(path)
     try:
-        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC | getattr(os, "O_CLOEXEC", 0), 0o600)
-        with open(fd, "wb") as f:
-            os.fchmod(f.fileno(), 0o600)  # also a stale temporary file left by a crash with other bits
-            f.write(data)
-            f.flush()
-            os.fsync(f.fileno())
+        _write_private(tmp, os.O_TRUNC, data)
         os.replace(tmp, path)
     except BaseException:
         tmp.unlink(missing_ok=True)
         raise
-    dfd = os.open(path.parent, os.O_DIRECTORY)
+    fsync_dir(path.parent)
+
+
+def fsync_dir(directory: Path) -> None:
+    """Make a file's creation, rename or removal in ``directory`` durable (fsync the directory itself)."""
+    dfd = os.open(directory, os.O_DIRECTORY)
     try:
         os.fsync(dfd)
     finally:
@@ -100,7 +100,7 @@ def _write_private(path: Path, flag: int, data: bytes) -> None:
     """Create ``path`` (``flag``: ``O_TRUNC`` or ``O_EXCL``) mode 0600 whatever the umask, write ``data``, fsync."""
     fd = os.open(path, os.O_WRONLY | os.O_CREAT | flag | getattr(os, "O_CLOEXEC", 0), 0o600)
     with open(fd, "wb") as f:
-        os.fchmod(f.fileno(), 0o600)
+        os.fchmod(f.fileno(), 0o600)  # also a stale temporary file left by a crash with other bits
         f.write(data)
         f.flush()
         os.fsync(f.fileno())
@@ -131,11 +131,7 @@ def save_new(path: Path, data: bytes) -> bool:
                 return False
     finally:
         tmp.unlink(missing_ok=True)
-    dfd = os.open(path.parent, os.O_DIRECTORY)
-    try:
-        os.fsync(dfd)
-    finally:
-        os.close(dfd)
+    fsync_dir(path.parent)
     return True
 
 

@@ -29,7 +29,7 @@ import msgspec
 
 from bridge.core import wire as M
 from bridge.core.auth import KEY_BYTES, record_tag, record_tag_ok
-from bridge.core.paths import SMALL_FILE, read_bounded, save_atomic, state_dir
+from bridge.core.paths import SMALL_FILE, fsync_dir, read_bounded, save_atomic, state_dir
 from bridge.nodes.latch_record import (
     Record,
     fingerprint,
@@ -341,11 +341,7 @@ class LatchStore:
             return "no install marker on disk either: a restart would not know of this estop"
         try:
             path.unlink(missing_ok=True)
-            dfd = os.open(path.parent, os.O_DIRECTORY)
-            try:
-                os.fsync(dfd)
-            finally:
-                os.close(dfd)
+            fsync_dir(path.parent)
         except OSError as exc:
             return f"the old latch file could not be removed either ({exc.strerror or exc}): a restart may read it"
         return ""
