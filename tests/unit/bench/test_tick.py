@@ -30,9 +30,23 @@ def test_the_harness_drives_a_robot_and_splits_its_ticks_by_phase(capsys) -> Non
     assert out["robots"] == 2 and out["ticks"] == 2 * 20 and out["why"] == "driving"
     assert {"decode", "pairing", "mpc", "transfer", "encode", "core_rest"} <= set(out["phases_ms"])
     assert out["cpu_ms_per_tick"]["median"] > 0 and out["methods"].get("stop", 0) <= 2
+    # the phases come from a second pass over the same robots, which drove alike; its totals hold the timers' cost
+    assert out["passes_agree"] is True and out["timed_cpu_ms_per_tick"]["median"] > 0
+    assert "timers_ms_per_tick" in out
     assert sum(out["methods"].values()) == 2 * 26 and out["raw_pairs"] > 0
     # the saves are written by each robot's writer thread, off the tick, as the station's are
     assert out["saves_written"] >= 2
+
+
+def test_without_phases_the_robots_drive_once_and_no_phase_is_given(capsys) -> None:
+    try:
+        assert tick.main(["--ticks", "15", "--skip", "5", "--no-phases", "--no-compile", "--tiles", "1"]) == 0
+    finally:
+        gc.unfreeze()
+    text = capsys.readouterr().out
+    out = json.loads(text[text.index("{\n"):])
+    assert out["ticks"] == 10 and out["cpu_ms_per_tick"]["mean"] > 0 and out["process_ms_per_tick"] > 0
+    assert "phases_ms" not in out and "passes_agree" not in out
 
 
 def test_the_command_goes_out_as_the_bytes_the_core_checked(tmp_path) -> None:
