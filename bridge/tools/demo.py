@@ -509,4 +509,4 @@ def run(args: argparse.Namespace) -> int:
         return hil(args, robots[0])
     from bridge.tools.demo_fleet import fleet
 
-    return fleet(args, robots)
+    return fleet(args, robots, sys.modules[__name__])

@@ -1,6 +1,7 @@
 """``scmbridge demo --robots A,B,... | --count N``: several robots, each a driver host and a station process, behind one
 router hub (this process), with one line for the whole fleet and one figure; each robot's summary, then the fleet's.
-The one-robot demo and what both read of a robot (:class:`bridge.tools.demo.Monitor`) are in :mod:`bridge.tools.demo`.
+The one-robot demo and what both read of a robot (:class:`bridge.tools.demo.Monitor`) are in :mod:`bridge.tools.demo`,
+which hands itself to :func:`fleet` (as to its SITL runs: no module imports the other back).
 """
 
 from __future__ import annotations
@@ -10,16 +11,16 @@ import json
 import os
 import sys
 import time
+import types
 from contextlib import ExitStack
 from pathlib import Path
 
 import numpy as np
 
 from bridge.core.logsink import print_line
-from bridge.tools.demo import Monitor, _robot_summary
 
 
-def _fleet_line(mons: dict[str, Monitor], world, t: float) -> str:
+def _fleet_line(mons: dict, world, t: float) -> str:
     """One line for the whole fleet: how many are at the goal, each robot's progress (or the spread of them)."""
     parts, at_goal, missed, pairs = [], 0, 0, 0
     progress = []
@@ -68,8 +69,9 @@ def _fleet_figure(out, world, trajs: dict[str, np.ndarray], link: str) -> None:
     plt.close(fig)
 
 
-def fleet(args: argparse.Namespace, robots: list[str]) -> int:
-    """Several robots, each a driver host and a station process, behind this one router hub."""
+def fleet(args: argparse.Namespace, robots: list[str], demo: types.ModuleType) -> int:
+    """Several robots, each a driver host and a station process, behind this one router hub; ``demo``: the
+    :mod:`bridge.tools.demo` module (its ``Monitor`` reads each robot)."""
 
     from bridge.core.config import load_mission
     from bridge.nodes.zsession import free_port, make_config, open_session, tcp
@@ -83,7 +85,7 @@ def fleet(args: argparse.Namespace, robots: list[str]) -> int:
     timeout = args.duration
     port = free_port()
     x0 = ",".join(f"{a:.6f}" for a in world.start)  # every robot in its own namespace: the same start for all
-    mons: dict[str, Monitor] = {}
+    mons: dict = {}
     stations: dict[str, object] = {}
     stores = {r: out / f"pairs-{r}.bin" for r in robots}
     for store in stores.values():
@@ -100,7 +102,7 @@ def fleet(args: argparse.Namespace, robots: list[str]) -> int:
         try:
             for robot in robots:
                 logs = {n: stack.enter_context(open(out / f"{robot}-{n}.log", "w")) for n in ("driver", "station")}
-                mons[robot] = Monitor(session, robot)
+                mons[robot] = demo.Monitor(session, robot)
                 client = ["--robot", robot, "--mode", "client", "--connect", tcp(port)]
                 wd = out / robot
                 wd.mkdir(exist_ok=True)
@@ -128,7 +130,7 @@ def fleet(args: argparse.Namespace, robots: list[str]) -> int:
         except KeyboardInterrupt:
             interrupted = True
             print("\ninterrupted: stopping the demo's processes", file=sys.stderr)
-    summaries: dict[str, dict | None] = {r: _robot_summary(mons[r], world, args.corridor) if r in mons else None
+    summaries: dict[str, dict | None] = {r: demo._robot_summary(mons[r], world, args.corridor) if r in mons else None
                                         for r in robots}
     trajs = {}
     for robot in robots:
