@@ -10,21 +10,23 @@ once; the teacher is the configured default (the real-time-iteration MPC, from c
 build it: cached in the cache directory); the mission is the fleet bench's (the paper's S-path laid end to end
 ``--tiles`` times; ``--tiles 1`` is the shipped default mission); the pair store starts empty and fills as it drives.
 
-Every figure is this thread's CPU time (``time.thread_time_ns``), in milliseconds per tick. The robots drive twice,
-from empty stores on the same seeds: first as the station ticks them, this thread's clock read only at each tick's
-start and end (``cpu_ms_per_tick``: median, p99, mean over the ticks after ``--skip``); then again with a timer
-around each phase's calls (``phases_ms``), whose own cost is in that pass's totals (``timed_cpu_ms_per_tick``) and
-not in the first's: a thread's CPU clock is a system call, and a tick calls the phases' code some 25 times
-(``timers_ms_per_tick``: the difference of the two passes' means). ``passes_agree``: both passes drove alike (their
-methods and pairs). The phases: ``decode`` (the wire bytes to messages), ``pairing`` (the pairer's calls), ``store``
-(pairs added to the store, the learned limits with them), ``mpc`` (the command source's proposal: references,
-obstacles, the solve), ``transfer`` (the transfer step's mapping), ``publications`` (status, limits and the store's
-periodic save), ``encode`` (the outputs to bytes), ``core_rest`` (the rest of the core's tick: reordering, fitness,
-mission control, building the messages). ``process_ms_per_tick``: the whole process's CPU per tick over the first
-pass, less the simulated robots' share (with the writer threads' saves, which the station writes off the tick as
-here; ``saves_written``: how many they wrote). ``reference_ratio``: how long ``bench perf``'s reference workload
-took right before and right after the run, as a multiple of its time on the machine its targets were set on (a
-reader scales the figures by it to compare machines or loads).
+Every figure is this thread's CPU time (``time.thread_time_ns``), in milliseconds per tick. The robots drive twice, from
+empty stores on the same seeds: first as the station ticks them, this thread's clock read only at each tick's start and
+end (``cpu_ms_per_tick``: median, p99, mean over the ticks after ``--skip``); then again with a timer around each
+phase's calls (``phases_ms``), whose own cost is in that pass's totals (``timed_cpu_ms_per_tick``) and not in the
+first's: a thread's CPU clock is a system call, and a tick calls the phases' code some 25 times (``timers_ms_per_tick``:
+the difference of the two passes' means). ``passes_agree``: both passes drove alike (their methods and pairs). After
+each tick and its command, the work the command left for later (a step of the hole search) is done as the station's loop
+does it, off the command's way (:meth:`~bridge.nodes.station_core.StationCore.background`): ``background_ms_per_tick``,
+and ``robot_ms_per_tick`` the tick and it together (what a robot costs a period). The phases: ``decode`` (the wire bytes
+to messages), ``pairing`` (the pairer's calls), ``store`` (pairs added to the store, the learned limits with them),
+``mpc`` (the command source's proposal: references, obstacles, the solve), ``transfer`` (the transfer step's mapping),
+``publications`` (status, limits and the store's periodic save), ``encode`` (the outputs to bytes), ``core_rest`` (the
+rest of the core's tick: reordering, fitness, mission control, building the messages). ``process_ms_per_tick``: the
+whole process's CPU per tick over the first pass, less the simulated robots' share (with the writer threads' saves,
+which the station writes off the tick as here; ``saves_written``: how many they wrote). ``reference_ratio``: how long
+``bench perf``'s reference workload took right before and right after the run, as a multiple of its time on the machine
+its targets were set on (a reader scales the figures by it to compare machines or loads).
 
 What a tick costs depends on how warm the caches are, so the figures of one run are only comparable with another
 run of the same options. The start-up heap is frozen before the first tick, as the station freezes its own
@@ -132,7 +134,8 @@ class _Rig:
         from bridge.nodes.station_core import StationCore
 
         self.M = M
-        core = self.core = StationCore(cfg, name, cfg.station.rate_hz, tmp / f"pairs-{name}.bin", mission)
+        core = self.core = StationCore(cfg, name, cfg.station.rate_hz, tmp / f"pairs-{name}.bin", mission,
+                                       defer=True)
         if fns is not None and isinstance(core.source, MpcSource):
             core.source.teacher.use_compiled(fns)
         self.robot = SimRobot(name, tuple(mission.start), t0)
@@ -314,7 +317,8 @@ def _run(args: argparse.Namespace, tmp: Path) -> dict:
     plain = _pass(args, tmp / "plain", cfg, mission, fns, phases=False)
     res: dict = {"bench": "tick", "robots": args.count, "ticks": plain["ticks"], "paced": bool(args.paced),
                  "compiled_mpc": fns is not None, "zenoh": bool(args.zenoh), "mission": mission.name,
-                 "solver": cfg.teacher.mpc_solver, "cpu_ms_per_tick": plain["total"]}
+                 "solver": cfg.teacher.mpc_solver, "cpu_ms_per_tick": plain["total"],
+                 "background_ms_per_tick": plain["background"], "robot_ms_per_tick": plain["robot"]}
     if args.phases:
         timed = _pass(args, tmp / "timed", cfg, mission, fns, phases=True)
         res.update({"phases_ms": timed["phases"], "timed_cpu_ms_per_tick": timed["total"],
@@ -366,12 +370,15 @@ def _pass(args: argparse.Namespace, tmp: Path, cfg, mission, fns, phases: bool) 
             rig.robot_side(now, period, k == 0)
             sim_cpu += time.thread_time_ns() - s0
             out = rig.tick(now, clock, decode, encode)
-            clock.close_tick()
             s0 = time.thread_time_ns()
             if out.command is not None:
                 methods[out.command.method] += 1
             rig.take(out.command, now)
-            sim_cpu += time.thread_time_ns() - s0
+            s1 = time.thread_time_ns()
+            sim_cpu += s1 - s0
+            rig.core.background()  # as the station's loop, once the command is out
+            clock.now["background"] += time.thread_time_ns() - s1
+            clock.close_tick()
     for rig in rigs:  # what the writers still hold is written before the process's CPU is read
         rig.writer.close()
         rig.drain_saves()
@@ -387,7 +394,10 @@ def _pass(args: argparse.Namespace, tmp: Path, cfg, mission, fns, phases: bool) 
             s = io.StringIO()
             pstats.Stats(prof, stream=s).sort_stats(key).print_stats(args.profile)
             sys.stderr.write(s.getvalue())
-    return {"ticks": len(ticks), "total": _stats(np.array([t.get("total", 0) for t in ticks]) / 1e6),
+    total = np.array([t.get("total", 0) for t in ticks]) / 1e6
+    background = np.array([t.get("background", 0) for t in ticks]) / 1e6
+    return {"ticks": len(ticks), "total": _stats(total), "background": _stats(background),
+            "robot": _stats(total + background),
             "phases": {p: _stats(np.array([t.get(p, 0) for t in ticks]) / 1e6) for p in PHASES
                        if any(p in t for t in ticks)},
             "process_ms": round(proc_ms, 4), "methods": dict(methods), "refined_pairs": len(core.store.refined()),
@@ -422,9 +432,11 @@ def _threaded(args, rigs, period: float, t0: float, decode, encode, clock: _Cloc
             s2 = time.thread_time_ns()
             rig.take(out.command, now)
             s3 = time.thread_time_ns()
+            rig.core.background()
+            s4 = time.thread_time_ns()
             if measuring.is_set():
                 c[0] += 1
-                c[1] += s2 - s1
+                c[1] += (s2 - s1) + (s4 - s3)
                 c[2] += (s1 - s0) + (s3 - s2)
 
     threads = [threading.Thread(target=loop, args=(i,), daemon=True) for i in range(len(rigs))]
