@@ -85,8 +85,8 @@ command (:mod:`transfer.holes`: the ranking, then each map of each check), the c
 without it, and its burst begins at the command after its last step, if its cell is still a hole: no command
 pays a whole search. With ``defer_search`` (a station's) a command only asks for its step, which the caller runs
 after it (:meth:`GuidedPolicy.search_step`): no command pays any of it, and the burst begins one command later.
-Fills cost time, not path: the robot slows down along the curve the teacher asked for. Like every perturbation they never happen where ``explore`` is
-False (near obstacles).
+Fills cost time, not path: the robot slows down along the curve the teacher asked for. Like every perturbation
+they never happen where ``explore`` is False (near obstacles).
 
 ``explore=False`` (the caller's choice, e.g. near obstacles: :class:`transfer.step.TransferStep` decides it) means
 no perturbation of any kind, for both policies: the command is the guided policy's region map (with its barycentric
