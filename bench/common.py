@@ -3,13 +3,14 @@
 from __future__ import annotations
 
 import json
-import sys
 import time
 from collections.abc import Iterable
 from contextlib import ExitStack
 from typing import Any
 
 import numpy as np
+
+from bridge.core.logsink import print_line
 
 
 def summary_us(samples_s: Iterable[float], pcts: tuple[int, ...] = (95,)) -> dict[str, float]:
@@ -26,9 +27,7 @@ def summary_us(samples_s: Iterable[float], pcts: tuple[int, ...] = (95,)) -> dic
 
 def emit(result: dict) -> None:
     """Print the benchmark's single JSON object to stdout."""
-    json.dump(result, sys.stdout, indent=2, sort_keys=False)
-    sys.stdout.write("\n")
-    sys.stdout.flush()
+    print_line(json.dumps(result, indent=2, sort_keys=False))  # one write: no log line lands inside it
 
 
 def can_ecus(stack: ExitStack, channel: str, vehicle: Any, **ecu_kw: Any) -> Any:

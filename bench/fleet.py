@@ -476,7 +476,7 @@ def tick_alone(count: int, ticks: int, level: dict, env: dict[str, str] | None, 
     import subprocess
 
     cmd = [sys.executable, "-m", "bridge", "bench", "tick", "--count", str(count), "--ticks", str(ticks + 50),
-           "--skip", "50", *options]
+           "--skip", "50", "--no-phases", *options]
     try:
         out = subprocess.run(cmd, capture_output=True, text=True, timeout=120 + 0.05 * count * ticks, env=env,
                              check=True)

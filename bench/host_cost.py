@@ -17,6 +17,8 @@ import uuid
 
 import msgspec
 
+from bridge.core.logsink import print_line
+
 
 class _Sink:
     """A publisher that drops what it is given (the Zenoh put is not the host's own cost)."""
@@ -77,7 +79,7 @@ def measure(ticks: int) -> dict:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--ticks", type=int, default=1500, help="ticks at 50 Hz (default 1500: 30 s)")
-    print(json.dumps(measure(ap.parse_args().ticks)))
+    print_line(json.dumps(measure(ap.parse_args().ticks)))
 
 
 if __name__ == "__main__":

@@ -25,6 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from bridge.core import wire as M
+from bridge.core.logsink import print_line
 from bridge.nodes.zsession import free_port, make_config, open_session, tcp
 from bridge.tools.mission import ask
 
@@ -137,7 +138,7 @@ def main() -> int:
         runs = [one(Path(args.base), "base", args.seconds, int(args.stall_ms * 1e3), Path(tmp)),
                 one(ROOT, "after", args.seconds, int(args.stall_ms * 1e3), Path(tmp))]
     figure(runs, Path(args.out), args.stall_ms, load)
-    print(json.dumps({"stall_ms": args.stall_ms, "load_start": load, "runs": [
+    print_line(json.dumps({"stall_ms": args.stall_ms, "load_start": load, "runs": [
         {k: v for k, v in r.items() if not k.startswith("_")} for r in runs]}, indent=1))
     return 0
 

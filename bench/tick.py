@@ -10,16 +10,23 @@ once; the teacher is the configured default (the real-time-iteration MPC, from c
 build it: cached in the cache directory); the mission is the fleet bench's (the paper's S-path laid end to end
 ``--tiles`` times; ``--tiles 1`` is the shipped default mission); the pair store starts empty and fills as it drives.
 
-Every figure is this thread's CPU time (``time.thread_time_ns``), in milliseconds per tick: ``total`` (median, p99,
-mean over the ticks after ``--skip``) and the phases: ``decode`` (the wire bytes to messages), ``pairing`` (the
-pairer's calls), ``store`` (pairs added to the store, the learned limits with them), ``mpc`` (the command source's
-proposal: references, obstacles, the solve), ``transfer`` (the transfer step's mapping), ``publications`` (status,
-limits and the store's periodic save), ``encode`` (the outputs to bytes), ``core_rest`` (the rest of the core's
-tick: reordering, fitness, mission control, building the messages). ``process_ms_per_tick``: the whole process's
-CPU per tick, less the simulated robots' share (with the writer threads' saves, which the station writes off the tick
-as here; ``saves_written``: how many they wrote). ``reference_ratio``: how long ``bench perf``'s reference workload
-took right before and right after the run, as a multiple of its time on the machine its targets were set on (a
-reader scales the figures by it to compare machines or loads).
+Every figure is this thread's CPU time (``time.thread_time_ns``), in milliseconds per tick. The robots drive twice, from
+empty stores on the same seeds: first as the station ticks them, this thread's clock read only at each tick's start and
+end (``cpu_ms_per_tick``: median, p99, mean over the ticks after ``--skip``); then again with a timer around each
+phase's calls (``phases_ms``), whose own cost is in that pass's totals (``timed_cpu_ms_per_tick``) and not in the
+first's: a thread's CPU clock is a system call, and a tick calls the phases' code some 25 times (``timers_ms_per_tick``:
+the difference of the two passes' means). ``passes_agree``: both passes drove alike (their methods and pairs). After
+each tick and its command, the work the command left for later (a step of the hole search) is done as the station's loop
+does it, off the command's way (:meth:`~bridge.nodes.station_core.StationCore.background`): ``background_ms_per_tick``,
+and ``robot_ms_per_tick`` the tick and it together (what a robot costs a period). The phases: ``decode`` (the wire bytes
+to messages), ``pairing`` (the pairer's calls), ``store`` (pairs added to the store, the learned limits with them),
+``mpc`` (the command source's proposal: references, obstacles, the solve), ``transfer`` (the transfer step's mapping),
+``publications`` (status, limits and the store's periodic save), ``encode`` (the outputs to bytes), ``core_rest`` (the
+rest of the core's tick: reordering, fitness, mission control, building the messages). ``process_ms_per_tick``: the
+whole process's CPU per tick over the first pass, less the simulated robots' share (with the writer threads' saves,
+which the station writes off the tick as here; ``saves_written``: how many they wrote). ``reference_ratio``: how long
+``bench perf``'s reference workload took right before and right after the run, as a multiple of its time on the machine
+its targets were set on (a reader scales the figures by it to compare machines or loads).
 
 What a tick costs depends on how warm the caches are, so the figures of one run are only comparable with another
 run of the same options. The start-up heap is frozen before the first tick, as the station freezes its own
@@ -33,7 +40,7 @@ them all (the process's CPU per tick only). ``--zenoh``: the
 telemetry really crosses a Zenoh session (published by the simulated robot on its keys, drained from Zenoh's ring by
 the station's ``Inputs.queue`` as :meth:`bridge.nodes.station.Station.tick` does) and the outputs are put on their
 publishers: ``decode`` then includes taking the samples from the ring and ``publish`` the puts. ``--profile N``
-prints the N functions of the most own time (cProfile) to stderr.
+prints the N functions of the most own time (cProfile, over the first pass) to stderr.
 """
 
 from __future__ import annotations
@@ -77,17 +84,24 @@ def arguments(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--zenoh", action="store_true", help="telemetry and outputs through a real Zenoh session")
     ap.add_argument("--paced", action="store_true", help="sleep to each tick's deadline in real time (caches go cold "
                     "between ticks as in a station; the default runs the ticks back to back)")
+    ap.add_argument("--phases", action=argparse.BooleanOptionalAction, default=True,
+                    help="drive the robots a second time with a timer around each phase (--no-phases: the first "
+                    "pass only, without phases_ms)")
     ap.add_argument("--profile", type=int, default=0, metavar="N", help="print the top N functions (cProfile)")
 
 
 class _Clock:
-    """Per-tick CPU time by phase, and wrappers that charge a callable's time to a phase."""
+    """Per-tick CPU time, by phase when ``phases``: wrappers that charge a callable's time to a phase (without
+    phases a callable is left as it is, and a tick reads this thread's clock twice)."""
 
-    def __init__(self) -> None:
+    def __init__(self, phases: bool = True) -> None:
+        self.phases = phases
         self.now: dict[str, int] = defaultdict(int)
         self.ticks: list[dict[str, int]] = []
 
     def wrap(self, phase: str, fn):
+        if not self.phases:
+            return fn
         now = self.now
 
         def timed(*a, **kw):
@@ -120,7 +134,8 @@ class _Rig:
         from bridge.nodes.station_core import StationCore
 
         self.M = M
-        core = self.core = StationCore(cfg, name, cfg.station.rate_hz, tmp / f"pairs-{name}.bin", mission)
+        core = self.core = StationCore(cfg, name, cfg.station.rate_hz, tmp / f"pairs-{name}.bin", mission,
+                                       defer=True)
         if fns is not None and isinstance(core.source, MpcSource):
             core.source.teacher.use_compiled(fns)
         self.robot = SimRobot(name, tuple(mission.start), t0)
@@ -193,6 +208,8 @@ class _Rig:
         """The station's tick: the telemetry decoded (or drained from Zenoh), the core's tick, the outputs encoded
         (and put)."""
         c0 = time.thread_time_ns()
+        if not clock.phases:
+            return self._plain_tick(now, c0, clock, encode)
         if self.session is not None:
             tel = []
             for q in self.queues:
@@ -221,6 +238,29 @@ class _Rig:
         clock.now["total"] += time.thread_time_ns() - c0
         inner = sum(clock.now[p] for p in ("pairing", "store", "mpc", "transfer", "publications"))
         clock.now["core_rest"] += (c2 - c1) - inner
+        return out
+
+    def _plain_tick(self, now: float, c0: int, clock: _Clock, encode):
+        """:meth:`tick` without the phases' timers: this thread's clock read at its start and at its end only."""
+        if self.session is not None:
+            tel = []
+            for q in self.queues:
+                tel += q.drain(now)
+        else:
+            dec = self.M.decode
+            tel = [(dec(data, kind), now) for data, kind in self.wire]
+            self.wire.clear()
+        self.drain_saves()
+        out = self.core.tick(self.inputs(tel), now)
+        self.driver = None
+        for topic, msg in (("cmd", out.command), ("teacher", out.teacher), ("limits", out.limits),
+                           ("status", out.status)):
+            if msg is not None:
+                data = getattr(out, "command_bytes", None) if topic == "cmd" else None
+                data = data or encode(msg)
+                if self.session is not None:
+                    self.out_pubs[topic].put(data)
+        clock.now["total"] += time.thread_time_ns() - c0
         return out
 
     def drain_saves(self) -> None:
@@ -255,8 +295,9 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _run(args: argparse.Namespace, tmp: Path) -> dict:
+    """Two passes over the same robots (module docstring): the ticks as the station runs them, then the same ticks
+    again with the phases' timers (``--threads``: one pass, without them)."""
     from bench.fleet import write_mission
-    from bridge.core import wire as M
     from bridge.core.config import StationConfig, load_mission
     from transfer.scm import warmup
 
@@ -271,13 +312,37 @@ def _run(args: argparse.Namespace, tmp: Path) -> dict:
         probe = build_mpc(MpcConfig(N=cfg.station.horizon, dt=1.0 / cfg.station.rate_hz,
                                     max_obstacles=cfg.teacher.obstacle_slots, solver=cfg.teacher.mpc_solver))
         fns = compile_functions(probe.kernels()) if probe.kernels() else None
+    if args.threads:
+        return _pass(args, tmp / "threads", cfg, mission, fns, phases=False)
+    plain = _pass(args, tmp / "plain", cfg, mission, fns, phases=False)
+    res: dict = {"bench": "tick", "robots": args.count, "ticks": plain["ticks"], "paced": bool(args.paced),
+                 "compiled_mpc": fns is not None, "zenoh": bool(args.zenoh), "mission": mission.name,
+                 "solver": cfg.teacher.mpc_solver, "cpu_ms_per_tick": plain["total"],
+                 "background_ms_per_tick": plain["background"], "robot_ms_per_tick": plain["robot"]}
+    if args.phases:
+        timed = _pass(args, tmp / "timed", cfg, mission, fns, phases=True)
+        res.update({"phases_ms": timed["phases"], "timed_cpu_ms_per_tick": timed["total"],
+                    "timers_ms_per_tick": round(timed["total"]["mean"] - plain["total"]["mean"], 4),
+                    # the same robots on the same seeds: a pass that drove otherwise would not be comparable
+                    "passes_agree": all(plain[k] == timed[k] for k in ("methods", "raw_pairs", "refined_pairs"))})
+    res.update({k: plain[k] for k in ("methods", "refined_pairs", "raw_pairs", "why", "saves_written")})
+    res["process_ms_per_tick"] = plain["process_ms"]
+    return res
+
+
+def _pass(args: argparse.Namespace, tmp: Path, cfg, mission, fns, phases: bool) -> dict:
+    """``--count`` robots from empty stores, ticked ``--ticks`` times: each tick's CPU (by phase when ``phases``),
+    the process's, what they drove; ``--profile`` on the pass without phases (no timer in its frames)."""
+    from bridge.core import wire as M
+
+    tmp.mkdir()
     session = None
     if args.zenoh:
         from bridge.nodes.zsession import free_port, make_config, open_session, tcp
 
         session = open_session(make_config(listen=[tcp(free_port())]))
     t0 = 1000.0  # a monotonic clock's value
-    clock = _Clock()
+    clock = _Clock(phases)
     rigs = [_Rig(f"tick{i + 1}", cfg, mission, tmp, clock, fns, session, t0) for i in range(args.count)]
     period = rigs[0].core.time.period
     if args.gc_freeze:  # as the station before its loop: start-up's objects out of every later collection
@@ -288,7 +353,7 @@ def _run(args: argparse.Namespace, tmp: Path) -> dict:
     encode = clock.wrap("encode", M.encode)
     if args.threads:
         return _threaded(args, rigs, period, t0, decode, encode, clock, session)
-    prof = cProfile.Profile() if args.profile else None
+    prof = cProfile.Profile() if args.profile and not phases else None
     proc0 = sim_cpu = 0
     methods: dict[str, int] = defaultdict(int)
     wall0 = time.monotonic()
@@ -305,12 +370,15 @@ def _run(args: argparse.Namespace, tmp: Path) -> dict:
             rig.robot_side(now, period, k == 0)
             sim_cpu += time.thread_time_ns() - s0
             out = rig.tick(now, clock, decode, encode)
-            clock.close_tick()
             s0 = time.thread_time_ns()
             if out.command is not None:
                 methods[out.command.method] += 1
             rig.take(out.command, now)
-            sim_cpu += time.thread_time_ns() - s0
+            s1 = time.thread_time_ns()
+            sim_cpu += s1 - s0
+            rig.core.background()  # as the station's loop, once the command is out
+            clock.now["background"] += time.thread_time_ns() - s1
+            clock.close_tick()
     for rig in rigs:  # what the writers still hold is written before the process's CPU is read
         rig.writer.close()
         rig.drain_saves()
@@ -321,22 +389,20 @@ def _run(args: argparse.Namespace, tmp: Path) -> dict:
         session.close()
     ticks = clock.ticks[(args.skip + 1) * len(rigs):]
     core = rigs[0].core
-    res: dict = {"bench": "tick", "robots": len(rigs), "ticks": len(ticks), "paced": bool(args.paced),
-                 "compiled_mpc": fns is not None, "zenoh": bool(args.zenoh), "mission": mission.name,
-                 "solver": cfg.teacher.mpc_solver,
-                 "cpu_ms_per_tick": _stats(np.array([t.get("total", 0) for t in ticks]) / 1e6),
-                 "phases_ms": {p: _stats(np.array([t.get(p, 0) for t in ticks]) / 1e6) for p in PHASES
-                               if any(p in t for t in ticks)},
-                 "process_ms_per_tick": round(proc_ms, 4),
-                 "methods": dict(methods), "refined_pairs": len(core.store.refined()),
-                 "raw_pairs": core.store.raw_count, "why": core.verdict.why,
-                 "saves_written": sum(rig.saved for rig in rigs)}
     if prof is not None:
         for key in ("tottime", "cumulative"):
             s = io.StringIO()
             pstats.Stats(prof, stream=s).sort_stats(key).print_stats(args.profile)
             sys.stderr.write(s.getvalue())
-    return res
+    total = np.array([t.get("total", 0) for t in ticks]) / 1e6
+    background = np.array([t.get("background", 0) for t in ticks]) / 1e6
+    return {"ticks": len(ticks), "total": _stats(total), "background": _stats(background),
+            "robot": _stats(total + background),
+            "phases": {p: _stats(np.array([t.get(p, 0) for t in ticks]) / 1e6) for p in PHASES
+                       if any(p in t for t in ticks)},
+            "process_ms": round(proc_ms, 4), "methods": dict(methods), "refined_pairs": len(core.store.refined()),
+            "raw_pairs": core.store.raw_count, "why": core.verdict.why,
+            "saves_written": sum(rig.saved for rig in rigs)}
 
 
 def _threaded(args, rigs, period: float, t0: float, decode, encode, clock: _Clock, session) -> dict:
@@ -362,13 +428,15 @@ def _threaded(args, rigs, period: float, t0: float, decode, encode, clock: _Cloc
             s0 = time.thread_time_ns()
             rig.robot_side(now, period, k == 0)
             s1 = time.thread_time_ns()
-            out = rig.tick(now, _Clock(), decode, encode)
+            out = rig.tick(now, _Clock(phases=False), decode, encode)
             s2 = time.thread_time_ns()
             rig.take(out.command, now)
             s3 = time.thread_time_ns()
+            rig.core.background()
+            s4 = time.thread_time_ns()
             if measuring.is_set():
                 c[0] += 1
-                c[1] += s2 - s1
+                c[1] += (s2 - s1) + (s4 - s3)
                 c[2] += (s1 - s0) + (s3 - s2)
 
     threads = [threading.Thread(target=loop, args=(i,), daemon=True) for i in range(len(rigs))]

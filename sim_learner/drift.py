@@ -58,6 +58,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from bridge.core.logsink import print_line
 from sim_learner.dynamics import LearnerModel, mpc_learner
 from sim_learner.experiments import VEHICLE_RADIUS, _mpc_teacher, parse_seeds, scm_start
 from sim_learner.runs import DT
@@ -559,10 +560,10 @@ def run(args: argparse.Namespace) -> int:
                      curve_margin=args.curve_margin, spread=args.spread)
         stats, kind = (sweep_stats(rows) if len(rows) > 1 else None), "drift-sweep"
     for r in rows:
-        print(json.dumps(r), flush=True)
+        print_line(json.dumps(r))
     if stats is not None:
-        print(json.dumps({"experiment": kind, "seeds": list(seeds), "stats": stats,
-                          "wall_s": round(time.perf_counter() - t0, 1)}))
+        print_line(json.dumps({"experiment": kind, "seeds": list(seeds), "stats": stats,
+                               "wall_s": round(time.perf_counter() - t0, 1)}))
     if args.out:
         out = Path(args.out)
         out.mkdir(parents=True, exist_ok=True)

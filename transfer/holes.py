@@ -6,8 +6,9 @@ may build a quadrilateral's SC map: done at once it costs several commands' wort
 of a station's tick. :func:`hole_search` is the same search cut into steps: a generator that yields after each
 stage (the ranking of the slowed speeds and of their yaw rates, ``RANK_ROWS`` commands a step, then each SC map
 built and each map of each check), so that its
-caller runs one step per command and uses the result on a later one (:meth:`transfer.policy.GuidedPolicy._fill`),
-or all of it at once (:func:`run_search`). The commands in between are served as if no search were running; the
+caller runs one step per command and uses the result on a later one (:meth:`transfer.policy.GuidedPolicy._fill`;
+a station runs the step after the command, :meth:`transfer.policy.GuidedPolicy.search_step`), or all of it at once
+(:func:`run_search`). The commands in between are served as if no search were running; the
 result names a cell, which the caller checks is still a hole when it is used.
 
 The search works on the teacher command it began with and on the store as each step finds it: a step never holds

@@ -83,9 +83,10 @@ it cost maps (a learned store with no hole on the teacher's way is a station's s
 pay a search each), and a store with no unconfigured cell is never searched. A search runs a short step per
 command (:mod:`transfer.holes`: the ranking, then each map of each check), the commands meanwhile served as
 without it, and its burst begins at the command after its last step, if its cell is still a hole: no command
-pays a whole search. They cost time, not path: the robot
-slows down along the curve the teacher asked for. Like every perturbation they never happen where ``explore`` is
-False (near obstacles).
+pays a whole search. With ``defer_search`` (a station's) a command only asks for its step, which the caller runs
+after it (:meth:`GuidedPolicy.search_step`): no command pays any of it, and the burst begins one command later.
+Fills cost time, not path: the robot slows down along the curve the teacher asked for. Like every perturbation
+they never happen where ``explore`` is False (near obstacles).
 
 ``explore=False`` (the caller's choice, e.g. near obstacles: :class:`transfer.step.TransferStep` decides it) means
 no perturbation of any kind, for both policies: the command is the guided policy's region map (with its barycentric
@@ -108,7 +109,7 @@ from numpy.typing import ArrayLike, NDArray
 from transfer.at_limit import ALONG_LIMIT_TOL, AT_LIMIT, LimitMap  # noqa: F401 (the policy's names for its callers)
 from transfer.choice import MapChoice
 from transfer.domain import clamp
-from transfer.holes import FILL_CHECKS, Search, hole_search, run_search  # noqa: F401 (FILL_CHECKS: the policy's)
+from transfer.holes import FILL_CHECKS, Hole, Search, hole_search, run_search  # noqa: F401 (FILL_CHECKS: the policy's)
 from transfer.mappers import AffineMapper, BarycentricMapper, IdentityMapper, Mapper, Region, ScmMapper, make_mapper
 from transfer.pairs import planned_commands  # noqa: F401 (the policy's helper for its callers)
 from transfer.store import PairStore
@@ -433,6 +434,11 @@ class GuidedPolicy(_PolicyBase):
         self._search_after = 0
         self._search: Search | None = None  # the hole search under way, a step per command (transfer/holes.py)
         self.searches = 0  # hole searches begun
+        #: the search's step of a command runs after it, when its caller asks (:meth:`search_step`), instead of in
+        #: the command's own mapping: a station's tick then sends its command without waiting for the step
+        self.defer_search = False
+        self._search_due = False  # a command asked for a step of the search that :meth:`search_step` has not run
+        self._search_done: tuple[Hole] | None = None  # a deferred search's result, for the next command's fill
 
     def _fill(self, t: NDArray[np.float64]) -> NDArray[np.float64] | None:
         """The fill of a hole of the map (module docstring), or None: no budget, no hole, or a paused burst."""
@@ -459,21 +465,46 @@ class GuidedPolicy(_PolicyBase):
             return u
         if self._fill_tokens < store.k_min:  # a new burst starts with one whole cell's budget
             return None
-        if self._search is None:
-            if self._served < self._search_after or store.n_configured() == store.cells.count.size:
-                return None  # a search found no hole lately, or the store has none left
-            self._search = hole_search(self, t)
-            self.searches += 1
-        try:  # one step of the search per command (transfer/holes.py); its result used when it ends
-            next(self._search)
-            return None
-        except StopIteration as done:
-            self._search, hole = None, done.value
+        if self._search_done is not None:  # a deferred search ended after the command before
+            (hole,), self._search_done = self._search_done, None
+        else:
+            if self._search is None:
+                if self._served < self._search_after or store.n_configured() == store.cells.count.size:
+                    return None  # a search found no hole lately, or the store has none left
+                self._search = hole_search(self, t)
+                self.searches += 1
+            if self.defer_search:  # this command's step runs after it (search_step)
+                self._search_due = True
+                return None
+            try:  # one step of the search per command (transfer/holes.py); its result used when it ends
+                next(self._search)
+                return None
+            except StopIteration as done:
+                self._search, hole = None, done.value
         if hole is None or store.is_configured(hole[0]):
             return None
         self._fill_cell, u = hole
         self._fill_tokens -= 1.0
         return u
+
+    def search_step(self) -> bool:
+        """With :attr:`defer_search`: the step of the hole search the last command asked for, run now, between two
+        commands (its result, when the search ends, is the next fill's); True when there was one. It sees the store
+        as that command's step would have, if it runs before the next pair is added: a station runs it after its
+        command went out and before its next tick (:meth:`bridge.nodes.station_core.StationCore.background`), so
+        its commands are the same whenever in between it runs, and the search's whole cost is off the commands'
+        way. A search deferred so ends a command later than run in the command: its burst begins one command
+        later."""
+        if not self._search_due:
+            return False
+        self._search_due = False
+        if self._search is None:
+            return False
+        try:
+            next(self._search)
+        except StopIteration as done:
+            self._search, self._search_done = None, (done.value,)
+        return True
 
     def _in_burst(self, c: tuple[int, int], u: NDArray[np.float64]) -> NDArray[np.float64] | None:
         """Where a burst's next command goes: ``u`` moved (on the yaw-rate axis) into the burst's cell ``c`` when it

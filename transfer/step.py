@@ -41,10 +41,12 @@ class TransferStep:
     """Maps teacher commands with one policy under the one exploration rule (module docstring)."""
 
     def __init__(self, policy: Policy, *, dt: float, explore: bool = True, clearance: float = EXPLORE_CLEARANCE,
-                 plan_hint: int = PLAN_HINT) -> None:
+                 plan_hint: int = PLAN_HINT, defer: bool = False) -> None:
         """``policy``: the transfer policy; ``dt``: the teacher's control period (to read its plan); ``explore``:
         whether exploration is on at all; ``clearance``: no exploration closer than this to an obstacle's edge, m;
-        ``plan_hint``: how many planned commands steer the exploration."""
+        ``plan_hint``: how many planned commands steer the exploration; ``defer``: the work a command may leave for
+        later (the guided policy's hole search) is done by :meth:`background`, between commands, not in
+        :meth:`map`."""
         if not dt > 0:
             raise ValueError(f"dt must be positive, got {dt}")
         self.policy = policy
@@ -52,6 +54,15 @@ class TransferStep:
         self.explore = bool(explore)
         self.clearance = float(clearance)
         self.plan_hint = int(plan_hint)
+        self.defer = bool(defer) and hasattr(policy, "search_step")
+        if self.defer:
+            policy.defer_search = True  # type: ignore[attr-defined]
+
+    def background(self) -> bool:
+        """With ``defer``: the work the last command left for later, done now (before the next command: then the
+        commands are those of a step that did it in :meth:`map`, but for a hole's burst beginning a command
+        later; :meth:`transfer.policy.GuidedPolicy.search_step`); True when there was some."""
+        return self.defer and self.policy.search_step()  # type: ignore[attr-defined]
 
     @property
     def store(self):

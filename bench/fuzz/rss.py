@@ -20,6 +20,7 @@ import msgspec
 
 from bench.fuzz.harness import new_vehicle, wait_until
 from bench.fuzz.host import HostRig, fuzz_cmd_payloads
+from bridge.core.logsink import print_line
 from bridge.nodes.node import rss_mb, rss_parts
 
 
@@ -106,7 +107,7 @@ def probe_host(args: argparse.Namespace) -> int:
                 _libc().malloc_trim(0)
             if not first:
                 first.append(tracemalloc.take_snapshot())
-            print("PROBE " + json.dumps(heap_report(first[0])), flush=True)
+            print_line("PROBE " + json.dumps(heap_report(first[0])))
         stop.set()
 
     threading.Thread(target=control, name="probe-control", daemon=True).start()

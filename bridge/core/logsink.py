@@ -132,4 +132,17 @@ def flush(timeout: float = EXIT_FLUSH_S) -> bool:
     return True if _sink is None else _sink.flush_queued(timeout)
 
 
-__all__ = ["EXIT_FLUSH_S", "QUEUE_LINES", "flush", "setup"]
+def print_line(text: str, stream: TextIO | None = None) -> None:
+    """``text`` and its newline written in one call, then flushed (``stream``: ``sys.stdout`` as it is now).
+
+    A line a program prints for a reader (a JSON summary, a probe's answer) must not be split by the log writer's
+    lines: with stdout and stderr into one pipe (a child spawned with ``stderr=STDOUT``, a unit's journal) and Python
+    unbuffered (``PYTHONUNBUFFERED=1``, which pytest-xdist's workers pass on to their children), ``print`` writes its
+    parts (and the newline) one system call each, and a log line written meanwhile lands inside the line. One write
+    of a line shorter than the pipe's atomic size (4096 bytes on Linux) reaches the pipe whole."""
+    out = sys.stdout if stream is None else stream
+    out.write(text + "\n")
+    out.flush()
+
+
+__all__ = ["EXIT_FLUSH_S", "QUEUE_LINES", "flush", "print_line", "setup"]

@@ -33,6 +33,8 @@ class Ticked(Protocol):
 
     def between_ticks(self) -> bool: ...
 
+    def background(self) -> bool: ...
+
     def begin(self) -> None: ...
 
     def end(self) -> None: ...
@@ -42,6 +44,9 @@ class Ticked(Protocol):
 
 log = logging.getLogger("scmbridge.station")
 
+#: the loop does its robots' work left for later (a hole search's step: a few ms on a slow machine) only while the
+#: next deadline is at least this far, s; nearer, each robot's next tick does its own first
+BACKGROUND_LEAD_S = 0.004
 #: how often a many-robot station hands the GIL over, s (Python's default is 5 ms; see run_fleet)
 FLEET_SWITCH_INTERVAL_S = 0.0005
 #: threads that tick a many-robot process's robots (:class:`FleetLoop`; ``station --loop-threads``)
@@ -190,6 +195,8 @@ class FleetLoop:
                 now = clock()
                 delay = st.ticker.t_next - now
                 if delay > 0:
+                    if delay > BACKGROUND_LEAD_S and self._background(active, st.ticker.t_next):
+                        continue  # time went by: what is due now
                     clock.wait(wake, delay)
                     continue
                 if self.duration is not None and now - start[st.robot] >= self.duration:
@@ -225,6 +232,24 @@ class FleetLoop:
         st.ticker.ticked(self.clock(), periodic)
         return True
 
+    def _background(self, active: list[Ticked], deadline: float) -> bool:
+        """The work the robots' last commands left for later (``Station.background``), while no robot is due: one
+        robot's at a time, while the next ``deadline`` is at least :data:`BACKGROUND_LEAD_S` away; what is left when
+        time runs short is done by each robot's next tick. True when some was done. A robot whose work failed is
+        finished as one whose tick failed."""
+        done = False
+        for st in list(active):
+            if self.clock() > deadline - BACKGROUND_LEAD_S:
+                break
+            try:
+                done = st.background() or done
+            except Exception as exc:  # one robot's failure stops that robot only
+                log.exception("%s: station loop failed (%s); its robot stops by its deadman, the others drive on",
+                              st.robot, exc)
+                self._finish(st, active, failed=True)
+                done = True
+        return done
+
     def _woken(self, st: Ticked) -> bool:
         """A robot woken before its deadline: its queries answered, an external teacher's command mapped now;
         False when that failed (the robot is then stopped)."""
@@ -253,5 +278,5 @@ class FleetLoop:
             st.undeclare()
 
 
-__all__ = ["DEFAULT_LOOP_THREADS", "FLEET_SLOTS", "FLEET_SWITCH_INTERVAL_S", "Deadlines", "FleetLoop", "FleetWake",
-           "Ticked", "phases"]
+__all__ = ["BACKGROUND_LEAD_S", "DEFAULT_LOOP_THREADS", "FLEET_SLOTS", "FLEET_SWITCH_INTERVAL_S", "Deadlines",
+           "FleetLoop", "FleetWake", "Ticked", "phases"]

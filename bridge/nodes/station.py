@@ -145,7 +145,7 @@ class Station:
         core (a test's fake clock)."""
         self.clock = clock
         self.core = StationCore(cfg, robot, rate_hz, store_path, mission, control, control_path, calibration,
-                                clock=clock)
+                                clock=clock, defer=True)
         self.robot, self.keys = robot, M.Keys(robot)
         self.period = self.core.time.period
         self.inputs = Inputs(clock)
@@ -251,6 +251,11 @@ class Station:
                 self.core.note_driver(*driver)
             self._answer(queries, now, settle=True)
         return teacher and self.core.source.external
+
+    def background(self) -> bool:
+        """The work the last tick's command left for later, done now: the loop calls it once the tick's outputs are
+        out (:meth:`bridge.nodes.station_core.StationCore.background`); True when there was some."""
+        return self.core.background()
 
     def _publish(self, out: TickOutputs) -> None:
         for topic, msg in (("cmd", out.command), ("teacher", out.teacher), ("limits", out.limits),
@@ -361,6 +366,7 @@ class Station:
             if duration is not None and now - t_start >= duration:
                 break
             self.tick(now, periodic)
+            self.background()  # its command is out: what it left for later, before the wait
             if periodic and exit_at_goal and self.core.finished:
                 self.pubs["status"].put(M.encode(self.core.status(now)))
                 clock.wait(stop, 3 * self.period)  # the status reaches its subscribers

@@ -184,12 +184,14 @@ class StationCore:
     def __init__(self, cfg: StationConfig, robot: str, rate_hz: float, store_path: Path, mission: Mission,
                  control: MissionControl | None = None, control_path: Path | None = None,
                  calibration: CalibrationPlan | None = None, source: CommandSource | None = None,
-                 clock: Clock = SYSTEM) -> None:
+                 clock: Clock = SYSTEM, defer: bool = False) -> None:
         """``control``: the mission's phase machine (default: ``mission``, idle); ``control_path``: where it is
         kept across restarts (None: not kept); ``calibration``: run this calibration plan instead of a teacher;
         ``source``: a command source to use instead of the configured one; ``clock``: read here once for the wall
         clock's offset from the monotonic one (a tick's dates are its ``now`` plus it: one time per tick) and for
-        the ticks' durations (:meth:`Clock.perf`); a tick's time is the ``now`` it is given."""
+        the ticks' durations (:meth:`Clock.perf`); a tick's time is the ``now`` it is given. ``defer``: the work a
+        command may leave for later is done by :meth:`background`, after the command went out (the station's
+        loops), not in the tick."""
         scfg, tcfg = cfg.station, cfg.transfer
         #: the tick's timing and dates: the clock, the period, the wall clock's offset, the status's due time
         self.time = TickTime(clock, 1.0 / rate_hz)
@@ -216,7 +218,7 @@ class StationCore:
                              **({"exploration": "paper"} if tcfg.exploration == "paper"
                                 else {"exploration": "guided", "fill_budget": tcfg.fill_budget, "fill_phase": phase}))
         self.transfer = TransferStep(policy, dt=period, explore=tcfg.exploration != "off",
-                                     clearance=tcfg.explore_clearance_m)
+                                     clearance=tcfg.explore_clearance_m, defer=defer)
         self.source: CommandSource = source or make_source(cfg, period, calibration)
         # what bounds the teacher: the learned limits, or the teacher's own range (the paper's baseline)
         self.teacher_limits = tcfg.limits
@@ -349,6 +351,7 @@ class StationCore:
         """One tick at ``now`` (module docstring)."""
         time = self.time
         t0 = time.clock.perf()
+        self.transfer.background()  # what the last command left for later, if the loop has not done it meanwhile
         self._ingest(inputs, now)
         command, teacher = self._control_step(now)
         if not inputs.periodic:
@@ -368,6 +371,13 @@ class StationCore:
             limits = self.limits_report.message(now, force=False)
         self.saves.periodic(now)  # the pair store each persist_every_s
         return TickOutputs(command, teacher, limits, status, self.outbox.bytes_of(command))
+
+    def background(self) -> bool:
+        """With ``defer``: the work the last command left for later (a step of the transfer's hole search,
+        :meth:`transfer.step.TransferStep.background`), done now; True when there was some. A loop calls it after it
+        published the tick's outputs, when it has time before a deadline; a tick does it first if it is still left
+        (so the commands are the same whenever it runs, and replay through the station needs no record of it)."""
+        return self.transfer.background()
 
     def _ingest(self, inputs: TickInputs, now: float) -> None:
         """Pairs from the echoes and poses that arrived (put back in stamp order by :class:`Reorder`, so they reach

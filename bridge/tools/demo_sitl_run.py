@@ -20,6 +20,7 @@ from typing import Any
 import numpy as np
 
 from bridge.core.errors import UsageError
+from bridge.core.logsink import print_line
 from bridge.tools import sitl_verdict as V
 
 #: the longest the identification may take before the mission (``--identify``), s
@@ -130,7 +131,7 @@ def sitl_hil(args: argparse.Namespace, demo: ModuleType) -> int:
     summary["wall_s"] = round(sum(r["summary"]["wall_s"] for r in runs.values()), 1)
     for v in vs:
         print(V.verdict_text(v))
-    print("summary:", json.dumps(summary))
+    print_line("summary: " + json.dumps(summary))
     (out / "summary.json").write_text(json.dumps(summary, indent=1) + "\n")  # what --reference FILE reads
     pose0 = first["pose"]
     trajs = {r: V.into_frame(run["traj"], run["pose"], pose0) for r, run in runs.items()}
@@ -401,7 +402,7 @@ def sitl_once(demo: ModuleType, args: argparse.Namespace, binary: Path, out: Pat
         "identified": ident.as_dict() if ident is not None else None, "vehicle_params": params,
         "missed_deadlines": run["missed_deadlines"], "boot_s": round(sitl.boot_s, 1),
         "wall_s": round(time.monotonic() - t_wall, 1)}
-    print(f"run {role}:", json.dumps(summary), flush=True)
+    print_line(f"run {role}: " + json.dumps(summary))
     (out / "summary.json").write_text(json.dumps(summary, indent=1) + "\n")
     figure = out / "demo_trajectory.png"
     V.run_figure(figure, world, traj, role, args.sitl_model)

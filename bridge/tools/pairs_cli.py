@@ -43,6 +43,7 @@ from numpy.typing import NDArray
 from bridge.core import wire as M
 from bridge.core.args import positive_float, robot_arg
 from bridge.core.errors import UsageError
+from bridge.core.logsink import print_line
 from bridge.core.paths import STORE_FILE, read_bounded
 from bridge.nodes.node import add_zenoh_args, endpoints_tried, zenoh_config
 from bridge.nodes.station_tags import untagged
@@ -457,7 +458,7 @@ def run_show(args: argparse.Namespace) -> int:
     and learner commands), the learned limits, the configured cells and, live, how the latest command was
     obtained. --robot asks the running station over Zenoh; --store reads a pair store file offline."""
     view = gather(args)
-    print(json.dumps(view.as_json()) if args.json else table(view))
+    print_line(json.dumps(view.as_json()) if args.json else table(view))
     return 0
 
 

@@ -142,7 +142,9 @@ def replay(run: Run, cfg: StationConfig, store: Path | None, epoch: int | None =
         if store is not None:
             shutil.copyfile(store, path)  # the core saves its store as it learns: never over the given file
         control = control_from(run.robot, head.control)
-        core = StationCore(cfg, run.robot, head.rate_hz, path, control.mission, control, None, clock=clock)
+        # as the station's core: a command's left-over work done before the next tick (here, at its start)
+        core = StationCore(cfg, run.robot, head.rate_hz, path, control.mission, control, None, clock=clock,
+                           defer=True)
         core.outbox.epoch, core.time.wall_offset, core.latest.teacher_heard = epoch, head.wall_offset, False
         t0 = next((j.stamp for j in events if j.event == "tick"), head.stamp)
         for j in events:

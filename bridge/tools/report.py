@@ -42,6 +42,7 @@ import numpy as np
 from bridge.core import wire as M
 from bridge.core.args import robot_arg
 from bridge.core.errors import UsageError
+from bridge.core.logsink import print_line
 from bridge.tools.mcap_format import Entry, parse_key, read_recording, wire_bytes
 
 #: ``applied`` reasons that carry the seq of the command they executed (a stop command included)
@@ -357,7 +358,7 @@ def run(args: argparse.Namespace) -> int:
         return 1
     for t in result["truncated"]:
         print(f"note: {t} (read up to its last complete chunk)", file=sys.stderr)
-    print("summary:", json.dumps(result["summary"]))
+    print_line("summary: " + json.dumps(result["summary"]))
     for g in (result["summary"] or {}).get("guard_stops", []):  # when and where a guard of the station's stopped it
         where = f" at ({g['x']}, {g['y']})" if g["x"] is not None else ""
         print(f"stopped by the station's guard {g['reason']}" + (f" {g['t_s']} s into the run" if g["t_s"] is not None

@@ -30,9 +30,23 @@ def test_the_harness_drives_a_robot_and_splits_its_ticks_by_phase(capsys) -> Non
     assert out["robots"] == 2 and out["ticks"] == 2 * 20 and out["why"] == "driving"
     assert {"decode", "pairing", "mpc", "transfer", "encode", "core_rest"} <= set(out["phases_ms"])
     assert out["cpu_ms_per_tick"]["median"] > 0 and out["methods"].get("stop", 0) <= 2
+    # the phases come from a second pass over the same robots, which drove alike; its totals hold the timers' cost
+    assert out["passes_agree"] is True and out["timed_cpu_ms_per_tick"]["median"] > 0
+    assert "timers_ms_per_tick" in out
     assert sum(out["methods"].values()) == 2 * 26 and out["raw_pairs"] > 0
     # the saves are written by each robot's writer thread, off the tick, as the station's are
     assert out["saves_written"] >= 2
+
+
+def test_without_phases_the_robots_drive_once_and_no_phase_is_given(capsys) -> None:
+    try:
+        assert tick.main(["--ticks", "15", "--skip", "5", "--no-phases", "--no-compile", "--tiles", "1"]) == 0
+    finally:
+        gc.unfreeze()
+    text = capsys.readouterr().out
+    out = json.loads(text[text.index("{\n"):])
+    assert out["ticks"] == 10 and out["cpu_ms_per_tick"]["mean"] > 0 and out["process_ms_per_tick"] > 0
+    assert "phases_ms" not in out and "passes_agree" not in out
 
 
 def test_the_command_goes_out_as_the_bytes_the_core_checked(tmp_path) -> None:
@@ -67,3 +81,37 @@ def test_a_pose_as_three_floats_pairs_as_the_same_pose_as_an_array() -> None:
             assert np.array_equal(pa[0], pb[0]) and np.array_equal(pa[1], pb[1])
     assert got > 20 and a.implausible_pair > 0
     assert (a.formed, a.rejected, a.implausible_pair) == (b.formed, b.rejected, b.implausible_pair)
+
+
+def test_a_robots_commands_are_the_same_whether_its_left_over_work_ran_between_ticks_or_in_the_next(tmp_path) -> None:
+    """The station's core with ``defer``: the hole search's step a command leaves is done by the loop after the
+    command went out (``StationCore.background``) or, if the loop had no time, first thing in the next tick; the
+    commands are the same either way (so replay through the station needs no record of when it ran)."""
+    from bench.fleet import write_mission
+
+    cfg = StationConfig()
+    mission = load_mission(str(write_mission(tmp_path / "mission.toml", 1)))
+    rigs = []
+    for side in ("loop", "tick"):
+        (tmp_path / side).mkdir()
+        rigs.append(tick._Rig("r1", cfg, mission, tmp_path / side, tick._Clock(phases=False), None, None, 1000.0))
+    period = rigs[0].core.time.period
+    sent: dict[str, list] = {"loop": [], "tick": []}
+    done = 0
+    try:
+        for k in range(400):
+            now = 1000.0 + k * period
+            for side, rig in zip(("loop", "tick"), rigs):
+                rig.robot_side(now, period, k == 0)
+                out = rig.tick(now, tick._Clock(phases=False), M.decode, M.encode)
+                c = out.command
+                sent[side].append(None if c is None else (c.seq, c.v, c.omega, c.method))
+                rig.take(c, now)
+                if side == "loop":
+                    done += rig.core.background()
+    finally:
+        for rig in rigs:
+            rig.writer.close()
+    assert done >= 3 and rigs[0].core.transfer.policy.searches >= 1  # the loop did steps of hole searches
+    assert sum(c is not None and c[3] == "perturb" for c in sent["loop"]) > 0
+    assert sent["loop"] == sent["tick"]

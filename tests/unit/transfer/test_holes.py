@@ -94,3 +94,43 @@ def test_prepare_builds_the_sc_map_a_map_needs_and_the_map_then_builds_nothing()
             assert got[1] == alone[1]
             mapped += 1
     assert mapped >= 3
+
+
+def test_a_deferred_search_leaves_every_command_its_own_map_and_its_burst_comes_one_command_later() -> None:
+    """``defer_search``: a command only asks for its search's step, which ``search_step`` runs after it; the
+    commands are the inline policy's until a burst, which begins one command later."""
+    import copy
+
+    case, store = _top_speed_store()
+    t = np.array([case.true_box.v[1], 0.12])
+    inline, deferred = make_policy(store, "scm", seed=0), make_policy(copy.deepcopy(store), "scm", seed=0)
+    deferred.defer_search = True
+    maps = 0
+    inner = deferred._unperturbed
+
+    def counted(*a):
+        nonlocal maps
+        maps += 1
+        return inner(*a)
+
+    deferred._unperturbed = counted
+    a, b, steps, in_steps = [], [], 0, 0
+    for _ in range(400):
+        maps = 0
+        m = deferred.map(t)
+        assert maps <= (2 if m.method == "perturb" else 1)  # its own map (and a burst's yaw rate's), none of a search
+        b.append(m)
+        deferred.store.add(case.learner.response(m.u_L), m.u_L)
+        maps = 0
+        steps += deferred.search_step()
+        in_steps += maps
+        assert not deferred.search_step()  # one step per command that asked for one
+        m = inline.map(t)
+        a.append(m)
+        inline.store.add(case.learner.response(m.u_L), m.u_L)
+    assert deferred.searches >= 3 and steps >= 3 and in_steps > 0  # the search's maps were the steps'
+    assert [m.method for m in b].count("perturb") >= 3 * store.k_min  # the fills came all the same
+    k = next(k for k in range(len(a)) if a[k].method != b[k].method or not np.array_equal(a[k].u_L, b[k].u_L))
+    assert a[k].method == "perturb" and b[k].method != "perturb"  # the inline burst's first command
+    assert b[k + 1].method == "perturb"  # the deferred one's, a command later
+    np.testing.assert_array_equal(a[k].u_L, b[k + 1].u_L)  # at the hole the same search named

@@ -104,3 +104,33 @@ def test_a_forked_child_writes_its_lines_itself() -> None:
     with os.fdopen(r) as f:
         assert f.read() == "from the child\n"
     sink.close_for_exit(2.0)
+
+
+_SPLIT_CHILD = """
+import json, sys, threading
+from bridge.core import logsink
+logsink.setup("info", "%(message)s")
+log = __import__("logging").getLogger("spam")
+def spam():
+    while True:
+        log.warning("w" * 120)
+threading.Thread(target=spam, daemon=True).start()
+for i in range(3000):
+    logsink.print_line("PROBE " + json.dumps({"i": i, "pad": "x" * 700}))
+"""
+
+
+def test_a_printed_line_is_never_split_by_the_log_writers_lines() -> None:
+    """stdout and stderr into one pipe, Python unbuffered (as pytest-xdist's workers run their children): each line
+    ``print_line`` writes reaches the reader whole while the log's writer thread writes beside it."""
+    import json
+    import subprocess
+    import sys
+
+    env = dict(os.environ, PYTHONUNBUFFERED="1")
+    out = subprocess.run([sys.executable, "-c", _SPLIT_CHILD], stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                         env=env, timeout=120, check=True).stdout.decode()
+    lines = [line for line in out.splitlines() if line.startswith("PROBE ")]
+    assert len(lines) == 3000
+    assert [json.loads(line[6:])["i"] for line in lines] == list(range(3000))
+    assert sum(line.startswith("w") for line in out.splitlines()) > 0  # the log wrote meanwhile
