@@ -45,16 +45,19 @@ def test_two_station_hosts_in_namespaces_of_their_own_are_reached_by_status_all_
         with open_session(make_config(mode="router", listen=listen)) as session, Children() as kids:
             col = Collector(session)
             station = {r: col.listen(M.status_key(r, "station"), M.Status) for r in robots}
-            for r in robots:
-                kids.spawn(["driver", "--engage", "--link", "can", "--emulate", "--x0", x0, "--robot", r, "--mode",
-                            "client", "--connect", tcp(port), "--duration", "200"], out=subprocess.DEVNULL)
+            # each driver host's output kept (a temporary file): a robot that does not drive says why in the failure
+            drivers = {r: kids.spawn(["driver", "--engage", "--link", "can", "--emulate", "--x0", x0, "--robot", r,
+                                      "--mode", "client", "--connect", tcp(port), "--duration", "200"])
+                       for r in robots}
             procs = {h: kids.spawn(["station", "--config", str(cfg), "--shard", h, "--start", "--mode", "client",
                                     "--connect", tcp(port, host.router_addr), "--duration", "180"],
                                    prefix=host.prefix, env=dict(os.environ, SCMBRIDGE_STATE_DIR=str(tmp_path / h)))
                      for h, host in zip(shards, hosts)}
 
             def hosts_said() -> str:
-                return "".join(f"\n--- {h} (exit {procs[h].poll()}):\n" + said(procs[h], 1500) for h in shards)
+                return ("".join(f"\n--- {h} (exit {procs[h].poll()}):\n" + said(procs[h], 1500) for h in shards)
+                        + "".join(f"\n--- driver host {r} (exit {d.poll()}):\n" + said(d, 1500)
+                                  for r, d in drivers.items() if not (station[r] and station[r][-1].text == "driving")))
 
             assert col.wait(lambda: all(station[r] and station[r][-1].text == "driving" for r in robots), 120), (
                 str({r: station[r][-1].text if station[r] else None for r in robots}) + hosts_said())
