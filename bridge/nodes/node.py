@@ -475,21 +475,75 @@ class StopEvent(threading.Event):
     why = ""
 
 
+#: the signals that stop a service (:func:`stop_on_signals`)
+STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
+_signal_stops: list[StopEvent] = []  # every stop :func:`stop_on_signals` gave in this process
+_signal_lock = threading.Lock()  # (taken by callers and the watcher only, never in a signal handler)
+_signal_fd: int | None = None  # the pipe's read end the watcher reads; None until the first call
+
+
 def stop_on_signals() -> StopEvent:
     """An Event set by SIGINT, SIGTERM or SIGHUP (the loop polls it; Zenoh's ``recv`` would ignore SIGINT), the
     signal's name in its ``why`` (the service's last line says it, :func:`stopped_because`). SIGUSR1 writes a memory
-    report (:class:`MemoryReport`)."""
+    report (:class:`MemoryReport`).
+
+    The handler takes no lock. Python runs it in the main thread between two bytecodes, and that thread may be inside
+    ``stop.wait`` holding the event's own lock: a handler that set the event there waited for that lock forever (a
+    driver host outlived its killed demo that way, asleep on a futex, seen beside load). So the signal's number goes
+    through the interpreter's wake-up pipe (``signal.set_wakeup_fd``, written by its C handler) to a watcher thread,
+    which sets every stop of the process from its own thread. A process forked from this one does not inherit it."""
+    global _signal_fd
     stop = StopEvent()
-
-    def on_signal(sig: int, _frame: object) -> None:  # no logging in a handler: the loop's thread says it
-        stop.why = signal.Signals(sig).name
-        stop.set()
-
-    for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
-        signal.signal(sig, on_signal)
+    with _signal_lock:
+        _signal_stops.append(stop)
+        if _signal_fd is None:
+            r, w = os.pipe()
+            os.set_blocking(w, False)  # the C handler's write never blocks (a full pipe drops the byte, not the signal)
+            signal.set_wakeup_fd(w, warn_on_full_buffer=False)
+            _signal_fd = r
+            threading.Thread(target=_watch_signals, args=(r,), name="signals", daemon=True).start()
+            os.register_at_fork(after_in_child=_forget_signals)
+    for sig in STOP_SIGNALS:
+        signal.signal(sig, _on_stop_signal)
     report = MemoryReport(os.environ.get(MEMORY_REPORT_ENV))
     signal.signal(signal.SIGUSR1, lambda *_: report.write())
     return stop
+
+
+def _on_stop_signal(_sig: int, _frame: object) -> None:
+    """Nothing here (:func:`stop_on_signals`): the wake-up pipe carries the signal to the watcher. Installed so that
+    the signal's default action (ending the process at once, or KeyboardInterrupt) is not taken."""
+
+
+def _watch_signals(fd: int) -> None:
+    """The watcher thread: each stop signal read from the wake-up pipe sets every stop (the first signal names it)."""
+    while True:
+        try:
+            data = os.read(fd, 64)
+        except OSError:
+            return
+        if not data:
+            return
+        for sig in data:
+            if sig not in STOP_SIGNALS:  # (SIGUSR1's report and other handlers' signals come this way too)
+                continue
+            with _signal_lock:
+                stops = list(_signal_stops)
+            for stop in stops:
+                if not stop.is_set():
+                    stop.why = stop.why or signal.Signals(sig).name
+                    stop.set()
+
+
+def _forget_signals() -> None:
+    """In a child forked from a process with stops: its signals are its own (the parent's pipe and stops are not)."""
+    global _signal_fd, _signal_lock
+    signal.set_wakeup_fd(-1)
+    _signal_fd, _signal_lock = None, threading.Lock()  # (a thread of the parent may have held it at the fork)
+    _signal_stops.clear()
+    for sig in (signal.SIGTERM, signal.SIGHUP):
+        signal.signal(sig, signal.SIG_DFL)
+    signal.signal(signal.SIGINT, signal.default_int_handler)
 
 
 def stopped_because(stop: threading.Event) -> str:

@@ -85,3 +85,25 @@ def test_freezing_the_start_up_heap_leaves_a_full_collection_only_what_came_afte
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60, check=True)
     assert out.stdout.split() == ["True", "True"], out.stdout + out.stderr
+
+
+_HELD_WHEN_SIGNALLED = """
+import os, signal, sys, time
+from bridge.nodes.node import stop_on_signals, stopped_because
+stop, other = stop_on_signals(), stop_on_signals()
+with stop._cond:  # as the main thread is inside stop.wait, holding the event's lock, when the signal comes
+    os.kill(os.getpid(), signal.SIGTERM)
+    time.sleep(0.3)  # the handler runs here, between two bytecodes of this thread
+print("set", stop.wait(10), other.wait(10), stopped_because(stop), flush=True)
+"""
+
+
+def test_a_stop_signal_that_comes_while_the_main_thread_holds_the_stops_lock_still_stops_it() -> None:
+    """A handler that set the event itself waited for the lock its own thread held, forever (the process asleep on a
+    futex); the watcher thread sets it once the lock is free, every stop of the process, named by the signal."""
+    import subprocess
+    import sys
+
+    out = subprocess.run([sys.executable, "-c", _HELD_WHEN_SIGNALLED], capture_output=True, text=True, timeout=60)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.split() == ["set", "True", "True", "on", "SIGTERM"]
