@@ -243,7 +243,8 @@ def test_a_flood_of_commands_reaches_the_link_at_most_at_max_send_hz(driver_host
     # any n + 1 sends in a row span at least (n - 1) / max_send_hz (this said "never closer than 1 / max_send_hz"
     # before the budget allowed the burst)
     for n in (2, 10, 50):
-        assert (during[n:] - during[:-n]).min() >= (n - 1) / 100 - 1e-3, n
+        if during.size > n:  # (a host starved beside load may have sent fewer: no such run of sends to judge)
+            assert (during[n:] - during[:-n]).min() >= (n - 1) / 100 - 1e-3, n
 
 
 # -------------------------------------------------------------------------------- the real-time path
