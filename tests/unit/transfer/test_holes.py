@@ -24,24 +24,29 @@ def _top_speed_store():
     return case, store
 
 
+def _count_maps(p) -> list[int]:
+    """Count the policy's unperturbed maps (a one-element list the test resets and reads)."""
+    maps = [0]
+    inner = p._unperturbed
+
+    def counted(*a):
+        maps[0] += 1
+        return inner(*a)
+
+    p._unperturbed = counted
+    return maps
+
+
 def test_a_command_pays_at_most_one_step_of_a_hole_search_and_the_burst_follows_its_last_step() -> None:
     case, store = _top_speed_store()
     t = np.array([case.true_box.v[1], 0.12])  # a left curve at the learned top speed
     p = make_policy(store, "scm", seed=0)
-    maps = 0
-    inner = p._unperturbed
-
-    def counted(*a):
-        nonlocal maps
-        maps += 1
-        return inner(*a)
-
-    p._unperturbed = counted
+    maps = _count_maps(p)
     per_command, methods, builds = [], [], []
     for _ in range(400):
-        maps, b0 = 0, p.mapper.builds
+        maps[0], b0 = 0, p.mapper.builds
         m = p.map(t)
-        per_command.append(maps)
+        per_command.append(maps[0])
         builds.append(p.mapper.builds - b0)
         methods.append(m.method)
         store.add(case.learner.response(m.u_L), m.u_L)
@@ -105,25 +110,17 @@ def test_a_deferred_search_leaves_every_command_its_own_map_and_its_burst_comes_
     t = np.array([case.true_box.v[1], 0.12])
     inline, deferred = make_policy(store, "scm", seed=0), make_policy(copy.deepcopy(store), "scm", seed=0)
     deferred.defer_search = True
-    maps = 0
-    inner = deferred._unperturbed
-
-    def counted(*a):
-        nonlocal maps
-        maps += 1
-        return inner(*a)
-
-    deferred._unperturbed = counted
+    maps = _count_maps(deferred)
     a, b, steps, in_steps = [], [], 0, 0
     for _ in range(400):
-        maps = 0
+        maps[0] = 0
         m = deferred.map(t)
-        assert maps <= (2 if m.method == "perturb" else 1)  # its own map (and a burst's yaw rate's), none of a search
+        assert maps[0] <= (2 if m.method == "perturb" else 1)  # its own map (a burst's yaw rate's), no search's
         b.append(m)
         deferred.store.add(case.learner.response(m.u_L), m.u_L)
-        maps = 0
+        maps[0] = 0
         steps += deferred.search_step()
-        in_steps += maps
+        in_steps += maps[0]
         assert not deferred.search_step()  # one step per command that asked for one
         m = inline.map(t)
         a.append(m)
