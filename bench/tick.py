@@ -206,25 +206,21 @@ class _Rig:
 
     def tick(self, now: float, clock: _Clock, decode, encode):
         """The station's tick: the telemetry decoded (or drained from Zenoh), the core's tick, the outputs encoded
-        (and put)."""
+        (and put). Without the clock's phases this thread's clock is read at the tick's start and end only."""
+        timed = clock.phases
         c0 = time.thread_time_ns()
-        if not clock.phases:
-            return self._plain_tick(now, c0, clock, encode)
         if self.session is not None:
             tel = []
             for q in self.queues:
                 tel += q.drain(now)
-            clock.now["decode"] += time.thread_time_ns() - c0
         else:  # timed as one block: a timer read per message cost more than a message's decoding
             dec = self.M.decode
             tel = [(dec(data, kind), now) for data, kind in self.wire]
             self.wire.clear()
-        c1 = time.thread_time_ns()
-        if self.session is None:
-            clock.now["decode"] += c1 - c0
+        c1 = time.thread_time_ns() if timed else 0
         self.drain_saves()
         out = self.core.tick(self.inputs(tel), now)
-        c2 = time.thread_time_ns()
+        c2 = time.thread_time_ns() if timed else 0
         self.driver = None
         for topic, msg in (("cmd", out.command), ("teacher", out.teacher), ("limits", out.limits),
                            ("status", out.status)):
@@ -232,35 +228,15 @@ class _Rig:
                 data = getattr(out, "command_bytes", None) if topic == "cmd" else None
                 data = data or encode(msg)
                 if self.session is not None:
-                    p0 = time.thread_time_ns()
+                    p0 = time.thread_time_ns() if timed else 0
                     self.out_pubs[topic].put(data)
-                    clock.now["publish"] += time.thread_time_ns() - p0
+                    if timed:
+                        clock.now["publish"] += time.thread_time_ns() - p0
         clock.now["total"] += time.thread_time_ns() - c0
-        inner = sum(clock.now[p] for p in ("pairing", "store", "mpc", "transfer", "publications"))
-        clock.now["core_rest"] += (c2 - c1) - inner
-        return out
-
-    def _plain_tick(self, now: float, c0: int, clock: _Clock, encode):
-        """:meth:`tick` without the phases' timers: this thread's clock read at its start and at its end only."""
-        if self.session is not None:
-            tel = []
-            for q in self.queues:
-                tel += q.drain(now)
-        else:
-            dec = self.M.decode
-            tel = [(dec(data, kind), now) for data, kind in self.wire]
-            self.wire.clear()
-        self.drain_saves()
-        out = self.core.tick(self.inputs(tel), now)
-        self.driver = None
-        for topic, msg in (("cmd", out.command), ("teacher", out.teacher), ("limits", out.limits),
-                           ("status", out.status)):
-            if msg is not None:
-                data = getattr(out, "command_bytes", None) if topic == "cmd" else None
-                data = data or encode(msg)
-                if self.session is not None:
-                    self.out_pubs[topic].put(data)
-        clock.now["total"] += time.thread_time_ns() - c0
+        if timed:
+            clock.now["decode"] += c1 - c0
+            inner = sum(clock.now[p] for p in ("pairing", "store", "mpc", "transfer", "publications"))
+            clock.now["core_rest"] += (c2 - c1) - inner
         return out
 
     def drain_saves(self) -> None:
