@@ -202,10 +202,16 @@ def test_one_radio_shared_with_mavproxy_signing_set_by_it_and_its_mode_switch_ho
             assert sitl.pilot.wait(lambda s: s.mode == "GUIDED", 10), gcs.said[-20:]
             gcs.type("arm throttle")
             assert sitl.pilot.wait(lambda s: s.armed, 15), gcs.said[-20:]
-            assert rig.wait_state("driving", 10).ok
+            early = rig.wait_state("driving", 10)
+            assert early.ok
             assert _reach(sitl.pilot, 0.5, 10), sitl.pilot.speed
-            counters = rig.status[-1].counters
-            assert counters["link_bad_signatures"] == 0, counters  # the vehicle's messages came signed with the key
+            late = rig.wait_state("driving", 5, after=len(rig.status))
+            # The vehicle's messages come signed with the key: while it drives none is refused, and many arrive. The
+            # few it sent unsigned before it took MAVProxy's SETUP_SIGNING may still have been on their way to the host
+            # when it opened its port (they are refused, as they must be), hence the bound on the early count.
+            assert early.counters["link_bad_signatures"] <= 5, early.counters
+            assert late.counters["link_bad_signatures"] == early.counters["link_bad_signatures"], late.counters
+            assert late.counters["frames_received"] - early.counters["frames_received"] >= 10, late.counters
             gcs.type("mode HOLD")
             st = rig.wait_state("waiting", 5, after=len(rig.status))
             assert "operator took control: mode HOLD" in st.text, st.text
