@@ -61,7 +61,7 @@ from typing import Any
 
 import can
 
-from bridge.core.clock import wall_offset
+from bridge.core.clock import HeldOffset
 from sim_learner.device import ThreadedDevice
 from sim_learner.vehicle import SimVehicle
 
@@ -175,6 +175,7 @@ class DiffDriveEcus(ThreadedDevice):
         #: the wall clock python-can stamps frames with, read with ``clock`` to map a stamp onto it; an injected
         #: ``clock`` (a test's fake) without its ``wall`` cannot be mapped: frames are then applied when handled
         self.wall = wall if wall is not None else (time.time if clock is time.monotonic else None)
+        self._offset = HeldOffset()
         self.drift = drift
         self.driven_at: float | None = None  # when the wheels first turned (the drift's schedule counts from it)
         #: the wheel speed (m/s) of the learner's fastest command: what a sagging battery's top speed falls from
@@ -246,10 +247,12 @@ class DiffDriveEcus(ThreadedDevice):
             self._handle(frame, self._arrival(frame, now, to_mono))
 
     def _wall_to_mono(self) -> float:
-        """This emulator's clock minus the wall clock the bus stamps its frames with, read in a bracket
-        (:func:`bridge.core.clock.wall_offset`): two reads one after the other are off by however long the thread
-        waited between them, and every frame of the drain would be placed that much off."""
-        return 0.0 if self.wall is None else -wall_offset(self.clock, self.wall)[0]
+        """This emulator's clock minus the wall clock the bus stamps its frames with, read in a bracket and held
+        through reads whose bracket stayed wide (:class:`bridge.core.clock.HeldOffset`): two reads one after the other
+        are off by however long the thread waited between them, and a real controller's frames are stamped by the
+        hardware, not by a thread that waits for the interpreter; every frame of the drain, and the stamp of each
+        estimate sent, would be placed that much off."""
+        return 0.0 if self.wall is None else -self._offset.read(self.clock, self.wall)
 
     def _arrival(self, frame: can.Message, now: float, to_mono: float) -> float:
         """When ``frame`` reached the controller, on this emulator's clock: its bus stamp (the sender's write on

@@ -168,3 +168,22 @@ def wall_offset(mono: Callable[[], float], wall: Callable[[], float]) -> tuple[f
         if best[0] < OFFSET_BRACKET_S:
             break
     return best[1], max(best[0], 0.0)
+
+
+class HeldOffset:
+    """The ``wall`` clock minus the ``mono`` one, as :func:`wall_offset` reads it, held from read to read: a read whose
+    bracket stayed wide (the thread kept losing the core or the interpreter through every try) keeps the last tight
+    one, since the two clocks drift apart slowly; before the first tight read, the narrowest so far. Taking a wide
+    read as it came would move a stamp mapped through it by up to half the bracket, and with it the motion between
+    two stamps a check of plausibility judges. A step of the wall clock (NTP) is followed at the next tight read."""
+
+    def __init__(self) -> None:
+        self.value = 0.0
+        self.bracket = math.inf  # the held read's bracket (s)
+
+    def read(self, mono: Callable[[], float], wall: Callable[[], float]) -> float:
+        """Read the offset of ``wall`` to ``mono`` again and return the one held (the class docstring)."""
+        off, bracket = wall_offset(mono, wall)
+        if bracket < OFFSET_BRACKET_S or bracket < self.bracket:
+            self.value, self.bracket = off, bracket
+        return self.value

@@ -14,7 +14,7 @@ from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING, Any
 
 from bridge.core.backoff import Backoff
-from bridge.core.clock import OFFSET_BRACKET_S, wall_offset
+from bridge.core.clock import HeldOffset
 from drivers.base import SYSTEM, Clock, DriverError, FailsafeReport, LinkBase, LinkHealth, Pose, Verdict, whole_numbers
 from drivers.can.axis import Axes, Axis, AxisHealth, Frame, Reason, verdict
 from drivers.can.codec import decode, encode
@@ -149,8 +149,7 @@ class CanDriver(LinkBase):
         self._send_failures = 0
         self.rejected_at = -math.inf  # when the last implausible estimate was rejected
         self.overrun_at = -math.inf  # when estimates last claimed more travel than the wheel can do
-        self._wall_to_host = 0.0  # host clock minus wall clock, as last read (:meth:`_offset`)
-        self._offset_tight = False  # ... in a tight bracket
+        self._wall_offset = HeldOffset()  # wall clock minus host clock (:meth:`_offset`)
 
     @property
     def counters(self) -> dict[str, int]:
@@ -283,13 +282,10 @@ class CanDriver(LinkBase):
         """A measurement: what maps python-can's wall-clock stamps onto the host's clock (host minus wall). Two
         reads one after the other are off by however long the thread waited between them: a poll's poses are then
         all stamped that much early, and one the vehicle seems to reach too fast for its stamp is dropped by the
-        station as implausible. So the reads are bracketed (:func:`bridge.core.clock.wall_offset`), and a poll whose
-        bracket stayed wide keeps the last tight one (the two clocks drift apart slowly; a step of the wall clock
-        makes stamps implausible, which fall back to the receipt time, until the next tight read)."""
-        off, bracket = wall_offset(self.clock, self.clock.wall)
-        if bracket < OFFSET_BRACKET_S or not self._offset_tight:
-            self._wall_to_host, self._offset_tight = -off, bracket < OFFSET_BRACKET_S
-        return self._wall_to_host
+        station as implausible. So the reads are bracketed, and a poll whose bracket stayed wide keeps the last tight
+        one (:class:`bridge.core.clock.HeldOffset`; a step of the wall clock makes stamps implausible, which fall back
+        to the receipt time, until the next tight read)."""
+        return -self._wall_offset.read(self.clock, self.clock.wall)
 
     def _frame(self, frame: can.Message, received: float, offset: float, now: float) -> Pose | None:
         self._health.frames_received += 1

@@ -199,3 +199,34 @@ def test_a_preemption_between_the_clock_reads_moves_no_frame_in_time() -> None:
     finally:
         ecus._close()
         spy.shutdown()
+
+
+def test_frames_sent_while_every_clock_read_is_preempted_keep_the_last_tight_offset() -> None:
+    """Under sustained load every bracket of a read can be wide (here 30 ms, the thread preempted before each second
+    wall read): a frame stamped through such a read would claim its measurement 15 ms late, and the motion between
+    two estimates would look that much faster. The emulator keeps its last tight offset instead, as a controller's
+    hardware stamps its frames whatever a thread waits for."""
+    channel = f"ecu-{uuid.uuid4().hex[:8]}"
+    t, wide, reads = [1.0], [0.0], [0]
+
+    def wall() -> float:
+        reads[0] += 1
+        if wide[0] and reads[0] % 2 == 0:
+            t[0] += wide[0]
+        return t[0] + 1000.0
+
+    ecus = E.DiffDriveEcus({"interface": "virtual", "channel": channel}, SimVehicle(LINEAR, now=0.0),
+                           clock=lambda: t[0], wall=wall)
+    spy = can.Bus(interface="virtual", channel=channel)
+    try:
+        ecus._open()
+        ecus._send_encoder(ecus.axis(0), 1.0)  # a tight read first
+        wide[0] = 0.03
+        ecus._send_encoder(ecus.axis(0), 1.01)
+        stamps = [spy.recv(timeout=2.0), spy.recv(timeout=2.0)]
+        assert all(f is not None for f in stamps)
+        assert [f.timestamp for f in stamps] == pytest.approx([1001.0, 1001.01], abs=1e-6)
+    finally:
+        ecus._close()
+        spy.shutdown()
+

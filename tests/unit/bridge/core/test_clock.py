@@ -14,7 +14,7 @@ import socket
 import pytest
 
 from bridge.core import clock
-from bridge.core.clock import BACK_STEP, CONFIRM, OFFSET_BRACKET_S, STEP, ClockOffset, wall_offset
+from bridge.core.clock import BACK_STEP, CONFIRM, OFFSET_BRACKET_S, STEP, ClockOffset, HeldOffset, wall_offset
 
 AHEAD = 1000.0  # the source's clock runs this far ahead of ours
 
@@ -134,3 +134,34 @@ def test_the_wall_offset_is_read_in_a_bracket_a_preemption_cannot_widen_unseen()
 
     off, bracket = wall_offset(mono, slow_wall)
     assert bracket == pytest.approx(0.01, abs=1e-6) and off == pytest.approx(1.7e9, abs=0.006)
+
+
+def test_a_held_offset_keeps_its_tight_read_through_reads_that_stayed_wide() -> None:
+    """Reads whose every try was preempted at the second wall read (30 ms) are off by half of it: a held offset
+    keeps the tight read it had instead, follows a step of the wall clock at the next tight read, and before any
+    tight read holds the narrowest so far."""
+    t, step, wide = [100.0], [0.0], [0.0]
+
+    def mono() -> float:
+        return t[0]
+
+    def wall() -> float:
+        reads[0] += 1
+        if wide[0] and reads[0] % 2 == 0:  # the second read of each bracket comes after a preemption
+            t[0] += wide[0]
+        return t[0] + 1.7e9 + step[0]
+
+    reads = [0]
+    held = HeldOffset()
+    wide[0] = 0.04
+    assert held.read(mono, wall) == pytest.approx(1.7e9 + 0.02, abs=1e-6) and held.bracket == pytest.approx(0.04)
+    wide[0] = 0.03  # still wide, but narrower: better than what it holds
+    assert held.read(mono, wall) == pytest.approx(1.7e9 + 0.015, abs=1e-6)
+    wide[0] = 0.0
+    assert held.read(mono, wall) == pytest.approx(1.7e9, abs=1e-6) and held.bracket < OFFSET_BRACKET_S
+    wide[0] = 0.03
+    assert wall_offset(mono, wall)[0] == pytest.approx(1.7e9 + 0.015, abs=1e-6)  # what a read alone would say
+    assert held.read(mono, wall) == pytest.approx(1.7e9, abs=1e-6)
+    wide[0], step[0] = 0.0, 2.5  # the wall clock stepped (NTP): a tight read follows it
+    assert held.read(mono, wall) == pytest.approx(1.7e9 + 2.5, abs=1e-6)
+
