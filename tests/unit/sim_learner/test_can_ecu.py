@@ -229,4 +229,3 @@ def test_frames_sent_while_every_clock_read_is_preempted_keep_the_last_tight_off
     finally:
         ecus._close()
         spy.shutdown()
-

@@ -164,4 +164,3 @@ def test_a_held_offset_keeps_its_tight_read_through_reads_that_stayed_wide() -> 
     assert held.read(mono, wall) == pytest.approx(1.7e9, abs=1e-6)
     wide[0], step[0] = 0.0, 2.5  # the wall clock stepped (NTP): a tight read follows it
     assert held.read(mono, wall) == pytest.approx(1.7e9 + 2.5, abs=1e-6)
-
