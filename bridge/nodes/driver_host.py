@@ -32,14 +32,9 @@ from bridge.nodes.engagement import Engagement, OperatorEvent, Outcome, overrule
 from bridge.nodes.host_loop import Echo, HostOptions, HostTiming
 from bridge.nodes.host_status import Assessment, HostFacts, HostStatus, host_counters, node_state
 from bridge.nodes.latch_store import LatchStore, SaveResult
-from bridge.nodes.node import (
-    BlockedLoop,
-    FixedRate,
-    Inputs,
-    StatusOut,
-    Usage,
-)
+from bridge.nodes.node import FixedRate, Inputs, StatusOut
 from bridge.nodes.pose_feed import PoseFeed
+from bridge.nodes.stalls import BlockedLoop, Usage
 from drivers.base import Driver, DriverError, LinkHealth, close_link, link_unauthenticated
 
 log = logging.getLogger("scmbridge.driver")

@@ -1,4 +1,4 @@
-"""A loop that came back late says why: busy, not scheduled, or waiting (bridge.nodes.node.StallWatch). This is
+"""A loop that came back late says why: busy, not scheduled, or waiting (bridge.nodes.stalls.StallWatch). This is
 what tells a lab whether a robot whose controllers' watchdog tripped had a slow driver host or an overloaded
 machine."""
 
@@ -12,7 +12,7 @@ import sys
 import textwrap
 from pathlib import Path
 
-from bridge.nodes.node import StallWatch, Usage
+from bridge.nodes.stalls import StallWatch, Usage
 
 
 def test_on_time_iterations_say_nothing_and_a_late_one_says_why() -> None:
@@ -59,7 +59,7 @@ def test_a_process_the_kernel_does_not_run_is_told_apart_from_a_busy_one() -> No
     other tasks for longer, and then it says so)."""
     code = textwrap.dedent("""
         import sys, time
-        from bridge.nodes.node import StallWatch, Usage
+        from bridge.nodes.stalls import StallWatch, Usage
         w = StallWatch(0.25)
         w.check(time.monotonic(), Usage.now())
         print("ready", flush=True)
@@ -96,11 +96,11 @@ def test_a_process_the_kernel_does_not_run_is_told_apart_from_a_busy_one() -> No
 
 def test_a_blocked_loop_is_reported_while_it_is_blocked_with_where() -> None:
     """The watcher names the loop's innermost frame (here a lock it waits for) while the loop is still stuck, and
-    once per stall."""
+    once per stall, and where the process's other threads are (here the test's, waiting for the report)."""
     import logging
     import threading
 
-    from bridge.nodes.node import BlockedLoop
+    from bridge.nodes.stalls import BlockedLoop
 
     records: list[str] = []
     reported = threading.Event()
@@ -135,4 +135,6 @@ def test_a_blocked_loop_is_reported_while_it_is_blocked_with_where() -> None:
         held.release()
         t.join(10.0)
     assert len(records) == 1 and records[0].startswith("loop blocked for "), records
-    assert Path(__file__).name in records[0] and "stuck_on_the_lock" in records[0].split(" <- ")[0], records[0]
+    where, others = records[0].split("; the other threads: ")
+    assert Path(__file__).name in where and "stuck_on_the_lock" in where.split(" <- ")[0], records[0]
+    assert "MainThread threading.py:" in others and "blocked-loop" not in others, others  # the test, waiting
