@@ -56,8 +56,11 @@ def test_a_robot_that_runs_away_stops_within_the_corridor_and_waits_for_a_person
         kids.spawn(["driver", "--engage", "--link", "udp", "--config", str(cfg), *client, "--duration", "120"])
         kids.spawn(["station", "--start", "--config", str(scfg), *client, "--store", str(tmp_path / "p.bin"),
                     "--duration", "110"])
-        assert col.wait(lambda: bool(status) and status[-1].reason == "left_corridor", 60.0), (
-            f"never left the corridor: {status[-1] if status else None}")
+        if not col.wait(lambda: bool(status) and status[-1].reason == "left_corridor", 60.0):
+            said = [s.text for s in col.snapshot(M.status_key(robot, "station"))]
+            said = [t for i, t in enumerate(said) if i == 0 or t != said[i - 1]]  # what it said, each change once
+            pytest.fail(f"never left the corridor: {status[-1] if status else None}; the station said {said[-8:]}"
+                        + kids.said())
         paused = col.snapshot(M.status_key(robot, "station"))[-1]
         # the robot stops and stays stopped: a second of poses that do not move, well after the pause
         t_pause = time.monotonic()
