@@ -8,9 +8,11 @@ what is ignored or counted as malformed, the encoder counts following the body, 
 
 from __future__ import annotations
 
+import contextlib
 import math
 import struct
 import uuid
+from collections.abc import Callable, Iterator
 
 import can
 import pytest
@@ -29,6 +31,22 @@ def _frame(node: int, cmd: int, data: bytes = b"", **kw) -> can.Message:
 def _ecus(**kw) -> tuple[E.DiffDriveEcus, SimVehicle]:
     veh = SimVehicle(LINEAR, now=0.0)
     return E.DiffDriveEcus({"interface": "virtual", "channel": "unused"}, veh, clock=lambda: 0.0, **kw), veh
+
+
+@contextlib.contextmanager
+def _on_a_bus(t: list[float], wall: Callable[[], float]) -> Iterator[tuple[E.DiffDriveEcus, can.BusABC]]:
+    """Controllers open on a virtual bus of their own, on the clock ``t[0]`` and the wall clock ``wall`` (a test's
+    preemptions), and a spy on that bus; both closed after."""
+    channel = f"ecu-{uuid.uuid4().hex[:8]}"
+    ecus = E.DiffDriveEcus({"interface": "virtual", "channel": channel}, SimVehicle(LINEAR, now=0.0),
+                           clock=lambda: t[0], wall=wall)
+    spy = can.Bus(interface="virtual", channel=channel)
+    try:
+        ecus._open()
+        yield ecus, spy
+    finally:
+        ecus._close()
+        spy.shutdown()
 
 
 def _arm(ecus: E.DiffDriveEcus, now: float, mode: int = E.INPUT_PASSTHROUGH) -> None:
@@ -176,7 +194,6 @@ def test_a_preemption_between_the_clock_reads_moves_no_frame_in_time() -> None:
     """The controllers' own frames carry the moment they measured, and a command is applied at its bus stamp, even
     when the thread lost the core (80 ms) between reading its clock and the wall clock: read one after the other, the
     two clocks' offset was off by the preemption, and every frame of that turn with it."""
-    channel = f"ecu-{uuid.uuid4().hex[:8]}"
     t = [1.0]
     preempt = [0.08]
 
@@ -185,20 +202,13 @@ def test_a_preemption_between_the_clock_reads_moves_no_frame_in_time() -> None:
             t[0] += preempt.pop()
         return t[0] + 1000.0
 
-    ecus = E.DiffDriveEcus({"interface": "virtual", "channel": channel}, SimVehicle(LINEAR, now=0.0),
-                           clock=lambda: t[0], wall=wall)
-    spy = can.Bus(interface="virtual", channel=channel)
-    try:
-        ecus._open()
+    with _on_a_bus(t, wall) as (ecus, spy):
         ecus._send_encoder(ecus.axis(0), 1.0)  # measured at 1.0 on the emulator's clock
         f = spy.recv(timeout=2.0)
         assert f is not None and f.timestamp == pytest.approx(1001.0, abs=1e-6)
         preempt.append(0.08)
         stop = _frame(0, E.SET_INPUT_VEL, struct.pack("<ff", 0.0, 0.0), timestamp=1000.95 + 0.08)  # at 1.03
         assert ecus._arrival(stop, t[0], ecus._wall_to_mono()) == pytest.approx(1.03, abs=1e-6)
-    finally:
-        ecus._close()
-        spy.shutdown()
 
 
 def test_frames_sent_while_every_clock_read_is_preempted_keep_the_last_tight_offset() -> None:
@@ -206,7 +216,6 @@ def test_frames_sent_while_every_clock_read_is_preempted_keep_the_last_tight_off
     wall read): a frame stamped through such a read would claim its measurement 15 ms late, and the motion between
     two estimates would look that much faster. The emulator keeps its last tight offset instead, as a controller's
     hardware stamps its frames whatever a thread waits for."""
-    channel = f"ecu-{uuid.uuid4().hex[:8]}"
     t, wide, reads = [1.0], [0.0], [0]
 
     def wall() -> float:
@@ -215,17 +224,10 @@ def test_frames_sent_while_every_clock_read_is_preempted_keep_the_last_tight_off
             t[0] += wide[0]
         return t[0] + 1000.0
 
-    ecus = E.DiffDriveEcus({"interface": "virtual", "channel": channel}, SimVehicle(LINEAR, now=0.0),
-                           clock=lambda: t[0], wall=wall)
-    spy = can.Bus(interface="virtual", channel=channel)
-    try:
-        ecus._open()
+    with _on_a_bus(t, wall) as (ecus, spy):
         ecus._send_encoder(ecus.axis(0), 1.0)  # a tight read first
         wide[0] = 0.03
         ecus._send_encoder(ecus.axis(0), 1.01)
         stamps = [spy.recv(timeout=2.0), spy.recv(timeout=2.0)]
         assert all(f is not None for f in stamps)
         assert [f.timestamp for f in stamps] == pytest.approx([1001.0, 1001.01], abs=1e-6)
-    finally:
-        ecus._close()
-        spy.shutdown()
