@@ -67,9 +67,9 @@ from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-from scipy.spatial import ConvexHull, QhullError
 
 from transfer.domain import Bounds
+from transfer.hull import convex_hull
 from transfer.limits_watch import TURN_LOST, EdgeWatch, unsettled
 
 _MIN_PROPORTIONAL = 0.2  # below this normalised learner level a proportional extrapolation is too noisy to use
@@ -608,13 +608,7 @@ class LearnerLimits:
             pts = self.hull_sum[mask] / self.hull_cnt[mask][:, None]
             if self.refined_points is not None:
                 pts = np.vstack([pts, np.asarray(self.refined_points(), dtype=float).reshape(-1, 2)])
-            hull_n = None
-            if pts.shape[0] >= 3:
-                try:
-                    h = ConvexHull(pts)
-                    hull_n = pts[h.vertices]
-                except QhullError:
-                    hull_n = None
+            hull_n = convex_hull(pts)
             self._hull_cache = (
                 self.box.corners() if hull_n is None else self.teacher_bounds.denormalise(hull_n)
             )
