@@ -20,7 +20,8 @@ deadlines and its tick p99 is under the period. CPU seconds of the stations, the
 the window give the ticks per core-second; the machine's load and busy cores show what else was running. After each
 fleet size, ``bench tick`` runs as many robots as one station process serves, in one process without Zenoh
 (``tick_alone``, ``--tick-ticks``), and ``fleet_over_tick`` is the stations' CPU per robot-tick over that process's:
-what the fleet costs around its ticks (Zenoh, the loop, the callbacks). The
+what the fleet costs around its ticks (Zenoh, the loop, the callbacks); then once more paced in real time as a
+station's ticks are, their caches cold between periods (``tick_alone_paced``, ``fleet_over_paced_tick``). The
 sweep stops at the first N not held (``--keep-going`` runs them all). ``robots_held``: the largest N held with
 every smaller N of the sweep held too.
 
@@ -470,25 +471,43 @@ def tick_alone(count: int, ticks: int, level: dict, env: dict[str, str] | None, 
     for ``count`` robots, one after the other each period, no Zenoh) run right after the level on the same machine,
     and the fleet's station CPU per robot-tick over it (``fleet_over_tick``: what serving them over Zenoh, the loop
     and the status cost on top of the ticks), with ``bench tick``'s ``reference_ratio`` (the machine's speed before and
-    after it, as a multiple of its quiet value: the load the tick alone was measured at). ``options``: more of
-    ``bench tick``'s options."""
+    after it, as a multiple of its quiet value: the load the tick alone was measured at). Then the same ticks paced as
+    a station's are, each period's at its deadline in real time with the thread asleep between them
+    (``tick_alone_paced``, ``bench tick --paced``): their code and data go cold between periods as a station's do, so
+    ``fleet_over_paced_tick`` is what the fleet costs around ticks that cost what a station's cost. ``options``: more
+    of ``bench tick``'s options."""
+    alone = _bench_tick(count, ticks, env, options)
+    if "failed" in alone:
+        return {"tick_alone": alone}
+    paced = _bench_tick(count, ticks, env, (*options, "--paced"))
+    fleet = level.get("station_cpu_ms_per_tick")
+
+    def over(tick: dict) -> float | None:
+        ms = tick.get("process_ms_per_tick") or 0
+        return _r(fleet / ms) if fleet and ms > 0 else None
+
+    return {"tick_alone": alone, "fleet_over_tick": over(alone), "tick_alone_paced": paced,
+            "fleet_over_paced_tick": over(paced)}
+
+
+def _bench_tick(count: int, ticks: int, env: dict[str, str] | None, options: tuple[str, ...]) -> dict:
+    """One ``bench tick`` run of ``count`` robots for ``ticks`` ticks after 50 skipped: its CPU per tick and the
+    machine's speed around it, or ``{"failed": why}``."""
     import json
     import subprocess
 
     cmd = [sys.executable, "-m", "bridge", "bench", "tick", "--count", str(count), "--ticks", str(ticks + 50),
            "--skip", "50", "--no-phases", *options]
+    paced_s = (ticks + 50) * PERIOD_S if "--paced" in options else 0.0
     try:
-        out = subprocess.run(cmd, capture_output=True, text=True, timeout=120 + 0.05 * count * ticks, env=env,
-                             check=True)
+        out = subprocess.run(cmd, capture_output=True, text=True, timeout=120 + 0.05 * count * ticks + paced_s,
+                             env=env, check=True)
         res = json.loads(out.stdout[out.stdout.index("{\n"):])  # past qpOASES's banner (printed on stdout)
     except (subprocess.SubprocessError, ValueError) as exc:
-        return {"tick_alone": {"failed": str(exc)[:300]}}
-    alone = {"robots": count, "ticks": res["ticks"], "process_ms_per_tick": res["process_ms_per_tick"],
-             **{f"tick_{k}_ms": v for k, v in res["cpu_ms_per_tick"].items()},
-             "reference_ratio": res.get("reference_ratio")}
-    fleet = level.get("station_cpu_ms_per_tick")
-    ratio = _r(fleet / res["process_ms_per_tick"]) if fleet and res["process_ms_per_tick"] > 0 else None
-    return {"tick_alone": alone, "fleet_over_tick": ratio}
+        return {"failed": str(exc)[:300]}
+    return {"robots": count, "ticks": res["ticks"], "process_ms_per_tick": res["process_ms_per_tick"],
+            **{f"tick_{k}_ms": v for k, v in res["cpu_ms_per_tick"].items()},
+            "reference_ratio": res.get("reference_ratio")}
 
 
 def _r(x, nd: int = 2):
@@ -526,7 +545,8 @@ def arguments(ap: argparse.ArgumentParser) -> None:
                          "OMP_NUM_THREADS=1); inherit: OpenBLAS's default, one thread per core")
     ap.add_argument("--tick-ticks", type=int, default=200, metavar="N",
                     help="after each fleet size, `bench tick` of as many robots as one station process serves, for N "
-                         "ticks: the tick alone, and the fleet's cost over it (0: not measured)")
+                         "ticks, back to back and then paced: the tick alone, and the fleet's cost over it (0: not "
+                         "measured)")
     ap.add_argument("--simulate", default=None, help=argparse.SUPPRESS)  # the robots' process: fleet1,fleet2,...
     ap.add_argument("--connect", action="append", default=[], help=argparse.SUPPRESS)
     ap.add_argument("--mission", default=None, help=argparse.SUPPRESS)
@@ -569,7 +589,8 @@ def run(args: argparse.Namespace) -> int:
                 out["levels"].append(level)
                 brief = {k: level.get(k) for k in ("robots", "held", "missed_fraction_worst", "tick_p99_ms_worst",
                                                    "ticks_per_core_s", "station_cpu_ms_per_tick", "tick_alone",
-                                                   "fleet_over_tick", "cpu_cores", "failed")}
+                                                   "fleet_over_tick", "fleet_over_paced_tick", "cpu_cores",
+                                                   "failed")}
                 print(f"fleet of {n}: {brief}", file=sys.stderr, flush=True)
                 if level["held"] and held == sizes.index(n):
                     held = sizes.index(n) + 1

@@ -347,9 +347,11 @@ def test_the_fleet_demo_brings_three_robots_to_their_goals_and_leaves_no_process
 @pytest.mark.slow
 @pytest.mark.timeout(200)
 def test_the_fleet_bench_measures_one_station_and_says_how_many_it_held(tmp_path) -> None:
-    # the bench's working directory under this test's own: the check for leftovers below sees only this run's
+    # the bench's working directory under this test's own: the check for leftovers below sees only this run's; the
+    # tick alone after each level is tests/unit/bench/test_fleet.py's (paced, it would add half a minute a level)
     res = subprocess.run([sys.executable, "-m", "bridge", "bench", "fleet", "--sizes", "1,2", "--duration", "5",
-                          "--warmup", "2", "--keep-going"], capture_output=True, text=True, timeout=180,
+                          "--warmup", "2", "--keep-going", "--tick-ticks", "0"], capture_output=True, text=True,
+                         timeout=180,
                          env=dict(os.environ, TMPDIR=str(tmp_path)))
     assert res.returncode == 0, res.stderr[-3000:]
     out = json.loads(res.stdout)
