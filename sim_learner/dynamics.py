@@ -129,15 +129,23 @@ def scaled_learner(gain_v: float = 1.2, gain_w: float = 1.6) -> LearnerModel:
     )
 
 
+def miswired_learner() -> LearnerModel:
+    """A robot whose yaw answers the opposite way (a motor wired the wrong way round; v within +-0.5 m/s, omega
+    within +-1 rad/s, both linear): every correction the teacher makes drives it farther off its path, so it runs
+    away until the station's corridor stops it (docs/ARCHITECTURE.md, "The corridor, the fence and the pose jump")."""
+    return LearnerModel((-0.5, 0.5), (-1.0, 1.0), gain_w=-1.0, name="miswired")
+
+
 MODELS: dict[str, Callable[[], LearnerModel]] = {
     "mpc": mpc_learner,
     "experiment": experiment_learner,
     "scaled": scaled_learner,
+    "miswired": miswired_learner,
 }
 
 
 def model_by_name(name: str) -> LearnerModel:
-    """A learner model from its config name (``mpc``, ``experiment``, ``scaled``)."""
+    """A learner model from its config name (``mpc``, ``experiment``, ``scaled``, ``miswired``)."""
     try:
         return MODELS[name]()
     except KeyError:

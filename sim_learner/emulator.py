@@ -48,7 +48,8 @@ def arguments(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--host", default="127.0.0.1", help="(udp, mavlink) the address to listen on")
     ap.add_argument("--interface", default="udp_multicast")
     ap.add_argument("--channel", default="239.74.163.2")
-    ap.add_argument("--model", default="mpc", help="learner model: mpc, experiment, scaled")
+    ap.add_argument("--model", default="mpc",
+                    help="learner model: mpc, experiment, scaled, miswired (its yaw the wrong way round)")
     ap.add_argument("--x0", type=pose_arg, default=(0.0, 0.0, 0.0), help="start pose x,y,theta")
     ap.add_argument("--noise", type=float, default=0.0, help="position measurement noise std (m)")
     ap.add_argument("--seed", type=int, default=0)

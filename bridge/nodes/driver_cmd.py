@@ -62,7 +62,7 @@ def arguments(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--rate", type=positive_float, default=None, help="control loop rate, Hz (overrides the config)")
     ap.add_argument("--duration", type=positive_float, default=None, help="stop after this many seconds")
     ap.add_argument("--emulate", action="store_true", help="host emulated CAN motor controllers in-process")
-    ap.add_argument("--model", default="mpc", help="learner model for --emulate (mpc, experiment, scaled)")
+    ap.add_argument("--model", default="mpc", help="learner model for --emulate (mpc, experiment, scaled, miswired)")
     ap.add_argument("--x0", type=pose_arg, default=(0.0, 0.0, 0.0), help="start pose x,y,theta for --emulate")
     ap.add_argument("--drift", default=None, metavar="KIND[:AT[:OVER[:AMOUNT]]]",
                     help="for --emulate: the learner changes at run time, battery (the motors' top speed falls) or "

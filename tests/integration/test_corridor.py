@@ -1,7 +1,8 @@
 """The corridor on a real loop: a station process running the paper's baseline (the teacher's MPC commands applied as
 they are: ``mapper = "identity"``, no exploration, the teacher's own range), a driver host process on the UDP link,
-and an emulated robot that cannot follow (this test hosts it, as a device on loopback: its yaw rate answers the
-opposite way, a miswired motor), so the MPC's every correction drives it farther off the path. The station stops the
+and an emulated robot that cannot follow (``scmbridge learner --model miswired``, a process of its own on loopback as
+a lab's robot is: its yaw rate answers the opposite way, a miswired motor), so the MPC's every correction drives it
+farther off the path. The station stops the
 robot and pauses the mission (typed reason ``left_corridor``, the distance on its status), the robot stays within
 1.5 m of the path, and only a person's resume drives on (here into the same runaway, stopped again; a resume with the
 robot still out is refused without ``--override``: tests/unit/bridge/nodes/test_station_guards.py)."""
@@ -18,9 +19,6 @@ from bridge.core import wire as M
 from bridge.core.config import load_mission
 from bridge.nodes.zsession import free_port, make_config, open_session, tcp
 from bridge.tools.procs import Children, free_udp_port
-from sim_learner.dynamics import LearnerModel
-from sim_learner.udp_robot import UdpRobot
-from sim_learner.vehicle import SimVehicle
 from tests.collect import Collector
 
 BASELINE = ('[transfer]\nmapper = "identity"\nexploration = "off"\nlimits = "teacher"\n\n'
@@ -41,18 +39,18 @@ def _ask(session, robot: str, action: str, override: bool = False) -> M.MissionS
 def test_a_robot_that_runs_away_stops_within_the_corridor_and_waits_for_a_person(tmp_path) -> None:
     port, robot = free_port(), f"cor{os.getpid()}"
     mission = load_mission(None)  # the paper's S-path, its start 0.3 m beside the path facing 45 degrees away
-    miswired = LearnerModel((-0.5, 0.5), (-1.0, 1.0), gain_w=-1.0, name="miswired")
-    vehicle = SimVehicle(miswired, tuple(mission.start), now=time.monotonic())
-    bind = free_udp_port()
+    robot_port, bind = free_udp_port(), free_udp_port()
     cfg, scfg = tmp_path / "driver.toml", tmp_path / "station.toml"
     scfg.write_text(BASELINE)
+    cfg.write_text(f"[link.udp]\ninsecure = true\nrobot_port = {robot_port}\nbind_port = {bind}\n")
     client = ["--robot", robot, "--mode", "client", "--connect", tcp(port)]
-    with UdpRobot(vehicle, peer=("127.0.0.1", bind)) as device, \
-            open_session(make_config(mode="router", listen=[tcp(port)])) as session, Children() as kids:
-        cfg.write_text(f"[link.udp]\ninsecure = true\nrobot_port = {device.port}\nbind_port = {bind}\n")
+    with open_session(make_config(mode="router", listen=[tcp(port)])) as session, Children() as kids:
         k, col = M.Keys(robot), Collector(session)
         states = col.listen(k.state, M.LearnerState)
         status = col.listen(M.status_key(robot, "station"), M.Status)
+        kids.spawn(["learner", "--link", "udp", "--model", "miswired", "--port", str(robot_port),
+                    "--peer", f"127.0.0.1:{bind}", "--x0=" + ",".join(repr(float(a)) for a in mission.start),
+                    "--duration", "130"])
         kids.spawn(["driver", "--engage", "--link", "udp", "--config", str(cfg), *client, "--duration", "120"])
         kids.spawn(["station", "--start", "--config", str(scfg), *client, "--store", str(tmp_path / "p.bin"),
                     "--duration", "110"])

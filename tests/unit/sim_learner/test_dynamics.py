@@ -80,3 +80,9 @@ def test_sim_vehicle_integrates_holds_and_stops() -> None:
     assert (s.x, s.y) == before and s.v == 0.0
     with pytest.raises(ValueError, match="non-finite"):
         veh.command(math.nan, 0.0, now=5.0)
+
+
+def test_the_miswired_robot_turns_the_other_way_at_the_speed_it_was_asked() -> None:
+    m = model_by_name("miswired")
+    assert m.response(np.array([0.3, 0.5])) == pytest.approx([0.3, -0.5])
+    assert m.response(np.array([0.2, -1.0])) == pytest.approx([0.2, 1.0])
