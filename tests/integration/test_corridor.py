@@ -2,10 +2,10 @@
 they are: ``mapper = "identity"``, no exploration, the teacher's own range), a driver host process on the UDP link,
 and an emulated robot that cannot follow (``scmbridge learner --model miswired``, a process of its own on loopback as
 a lab's robot is: its yaw rate answers the opposite way, a miswired motor), so the MPC's every correction drives it
-farther off the path. The station stops the
-robot and pauses the mission (typed reason ``left_corridor``, the distance on its status), the robot stays within
-1.5 m of the path, and only a person's resume drives on (here into the same runaway, stopped again; a resume with the
-robot still out is refused without ``--override``: tests/unit/bridge/nodes/test_station_guards.py)."""
+farther off the path. The station stops the robot and pauses the mission (typed reason ``left_corridor``, the distance
+on its status), the robot stays within 1.5 m of the path, and only a person's resume drives on (here into the same
+runaway, stopped again; a resume with the robot still out is refused without ``--override``:
+tests/unit/bridge/nodes/test_station_guards.py)."""
 
 from __future__ import annotations
 
