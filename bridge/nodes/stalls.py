@@ -142,9 +142,9 @@ class BlockedLoop:
         return " <- ".join(f"{Path(f.filename).name}:{f.lineno} {f.name}" for f in reversed(stack))
 
     def others(self) -> str:
-        """The process's other threads, each at its innermost frame (the watcher's own left out). A loop that waits
-        with little CPU and a context switch each switch interval waits for the interpreter lock: the thread that held
-        it is among these, at its last frame."""
+        """The process's other threads, each at its innermost frame (the watcher's own left out): a thread that holds
+        what the loop waits for (a lock, or the interpreter lock) is among these, at its last frame. The stall line's
+        figures are the whole process's, so they alone do not say which of these the loop waited for."""
         names, me = {t.ident: t.name for t in threading.enumerate()}, threading.get_ident()
         return ", ".join(f"{names.get(i, i)} {Path(f.f_code.co_filename).name}:{f.f_lineno} {f.f_code.co_name}"
                          for i, f in sys._current_frames().items() if i not in (self.ident, me)) or "none"
