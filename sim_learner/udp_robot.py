@@ -43,6 +43,7 @@ It streams its pose at ``rate`` Hz with its own epoch (picked at boot) and seq. 
 
 from __future__ import annotations
 
+import logging
 import math
 import socket
 import threading
@@ -52,6 +53,7 @@ from typing import Literal
 from bridge.core import wire as M
 from bridge.core.auth import open_session, seal
 from bridge.core.gate import SeqGate
+from bridge.core.stalls import StallWatch, Usage
 from sim_learner.device import ThreadedDevice
 from sim_learner.vehicle import SimVehicle
 
@@ -59,6 +61,11 @@ from sim_learner.vehicle import SimVehicle
 DEFAULT_PEER: tuple[str, int] = ("127.0.0.1", 47801)
 
 Peer = tuple[str, int] | Literal["first"]
+log = logging.getLogger("scmbridge.learner")
+#: a gap between two of the robot's states longer than this, s, is a stall of the emulator (a microcontroller never
+#: has one): said in its log with why (:class:`bridge.core.stalls.StallWatch`), since the driver host, which sees
+#: only the silence, stops the robot for it
+STALL_S = 0.1
 #: how old the robot's clock reading a command echoes may be, s (the driver echoes the newest state it took; states
 #: stream at 50 Hz, so a live link echoes readings tens of milliseconds old)
 SESSION_FRESH_S = 0.5
@@ -115,6 +122,7 @@ class UdpRobot(ThreadedDevice):
         self._pause_until = -math.inf
         self._lock = threading.Lock()  # the loop's state against the test hooks
         self.sock: socket.socket | None = None
+        self.stalls = StallWatch(max(STALL_S, 2.0 * self.period))  # checked at each state sent (see _run)
 
     # ------------------------------------------------------------------------------------------- test hooks
     def pause_telemetry(self, seconds: float) -> None:
@@ -175,6 +183,9 @@ class UdpRobot(ThreadedDevice):
                 if now >= t_next:
                     self._send_state(now)
                     t_next = now + self.period
+                    stalled = self.stalls.check(now, Usage.now())
+                    if stalled:  # the silence the driver host saw is the emulator's own: said, with why
+                        log.warning("robot on port %d sent no state meanwhile: %s", self.port, stalled)
 
     # ---------------------------------------------------------------------------------------------- inside
     def _handle(self, data: bytes, src: tuple[str, int], now: float) -> None:

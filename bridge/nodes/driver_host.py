@@ -26,6 +26,7 @@ from bridge.core.clock import SYSTEM, Clock
 from bridge.core.errors import UsageError
 from bridge.core.gate import CommandGate, Decision
 from bridge.core.paths import save_atomic
+from bridge.core.stalls import BlockedLoop, Usage
 from bridge.nodes import systemd
 from bridge.nodes.driver_config import DriverConfig
 from bridge.nodes.engagement import Engagement, OperatorEvent, Outcome, overrule
@@ -34,7 +35,6 @@ from bridge.nodes.host_status import Assessment, HostFacts, HostStatus, host_cou
 from bridge.nodes.latch_store import LatchStore, SaveResult
 from bridge.nodes.node import FixedRate, Inputs, StatusOut
 from bridge.nodes.pose_feed import PoseFeed
-from bridge.nodes.stalls import BlockedLoop, Usage
 from drivers.base import Driver, DriverError, LinkHealth, close_link, link_unauthenticated
 
 log = logging.getLogger("scmbridge.driver")

@@ -13,10 +13,10 @@ from typing import Any
 
 from bridge.core.clock import SYSTEM, Clock
 from bridge.core.gate import Decision
+from bridge.core.stalls import StallWatch
 from bridge.nodes.node import FixedRate
-from bridge.nodes.stalls import StallWatch
 
-#: s between two loop iterations beyond which the log says why the loop was late (bridge.nodes.stalls.StallWatch)
+#: s between two loop iterations beyond which the log says why the loop was late (bridge.core.stalls.StallWatch)
 STALL_REPORT_S = 0.25
 #: periodic ticks whose start and lateness are kept (the status's jitter figures)
 KEPT_TICKS = 500

@@ -9,6 +9,7 @@ once as received and once as applied or refused."""
 from __future__ import annotations
 
 import math
+import socket
 import time
 
 import pytest
@@ -131,3 +132,32 @@ def test_reboot_holds_the_wheels_draws_a_new_nonce_and_forgets_the_stream() -> N
     assert r.counters["reboots"] == 1
     r._handle(_cmd(1), ("127.0.0.1", 3333), time.monotonic())  # the driver's epoch at a lower seq: a fresh gate
     assert r.counters["applied"] == 2 and r.peer == ("127.0.0.1", 3333)
+
+
+def test_a_stall_of_the_emulator_is_said_in_its_log_with_why(caplog) -> None:
+    """A real robot on loopback streaming states to a socket of the test's: held for 0.3 s (its loop waits for the
+    lock the test hooks take), it sends no state meanwhile, and its log says so with the stall watch's line (how long,
+    why, its CPU): the driver host beside it, which sees only the silence, stops the robot for it, and this line
+    tells the emulator's stall from the driver's fault. States at their rate say nothing."""
+    sink = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    sink.bind(("127.0.0.1", 0))
+    sink.settimeout(2.0)
+    try:
+        with caplog.at_level("WARNING", logger="scmbridge.learner"), \
+                UdpRobot(SimVehicle(LINEAR, now=time.monotonic()), peer=sink.getsockname()) as robot:
+            for _ in range(10):  # states at their rate: nothing said
+                sink.recvfrom(65536)
+            assert not [r for r in caplog.records if "sent no state" in r.getMessage()]
+            with robot._lock:
+                time.sleep(0.3)
+            for _ in range(3):
+                sink.recvfrom(65536)
+            deadline = time.monotonic() + 2.0
+            while time.monotonic() < deadline and not [r for r in caplog.records if "sent no state" in r.getMessage()]:
+                sink.recvfrom(65536)
+    finally:
+        sink.close()
+    said = [r.getMessage() for r in caplog.records if "sent no state" in r.getMessage()]
+    assert len(said) >= 1 and "loop stalled" in said[0] and "s CPU" in said[0], said
+    gap = float(said[0].split("loop stalled ")[1].split(" s")[0])
+    assert 0.25 <= gap < 2.0, said  # the 0.3 s it was held (a loaded machine may add to it)

@@ -23,8 +23,9 @@ class Usage:
     """What the process had used by a moment: CPU seconds, context switches it gave up (voluntary: it waited for
     something) and had taken from it (involuntary: the kernel ran another task), major page faults (it waited for
     a page from disk); and, machine-wide, the CPU seconds of steal summed over the CPUs (a virtual machine's CPUs its
-    hypervisor did not run; ``/proc/stat``) and the seconds some task was stalled on I/O (``/proc/pressure/io``:
-    unlike the CPUs' I/O wait it counts on a busy machine too); None where the kernel does not say."""
+    hypervisor did not run; ``/proc/stat``) and each CPU's own (``steal_cpus``: a hypervisor may hold one virtual
+    CPU while it runs the others), and the seconds some task was stalled on I/O (``/proc/pressure/io``: unlike the
+    CPUs' I/O wait it counts on a busy machine too); None where the kernel does not say."""
 
     cpu: float
     voluntary: int
@@ -32,20 +33,28 @@ class Usage:
     major_faults: int
     steal: float | None = None
     io_stall: float | None = None
+    steal_cpus: tuple[float, ...] | None = None
 
     @classmethod
     def now(cls) -> Usage:
         r = resource.getrusage(resource.RUSAGE_SELF)
-        return cls(r.ru_utime + r.ru_stime, r.ru_nvcsw, r.ru_nivcsw, r.ru_majflt, _steal(), _io_stall())
+        total, cpus = _steal()
+        return cls(r.ru_utime + r.ru_stime, r.ru_nvcsw, r.ru_nivcsw, r.ru_majflt, total, _io_stall(), cpus)
 
 
-def _steal() -> float | None:
-    """The machine's steal so far, CPU seconds summed over its CPUs (``/proc/stat``; Linux only)."""
+def _steal() -> tuple[float | None, tuple[float, ...] | None]:
+    """The machine's steal so far, CPU seconds summed over its CPUs, and each CPU's (``/proc/stat``; Linux only)."""
     try:
         with open("/proc/stat", "rb") as f:
-            return int(f.readline().split()[8]) / _CLK_TCK
+            total = int(f.readline().split()[8]) / _CLK_TCK
+            cpus = []
+            for line in f:
+                if not line.startswith(b"cpu"):
+                    break  # the CPUs' lines come first, each once
+                cpus.append(int(line.split()[8]) / _CLK_TCK)
+            return total, tuple(cpus) or None
     except (OSError, IndexError, ValueError):
-        return None
+        return None, None
 
 
 def _io_stall() -> float | None:
@@ -63,9 +72,11 @@ _CLK_TCK = os.sysconf("SC_CLK_TCK") if hasattr(os, "sysconf") else 100
 class StallWatch:
     """Says why a loop came back late: ``check(now, usage)`` each iteration returns, when more than ``threshold``
     seconds passed since the last one, a line for the log that tells apart a process that was busy (its own CPU
-    time covers the gap), a machine whose hypervisor did not run it (steal: every process on it stood still), one the
-    kernel did not run (involuntary switches, little CPU: the machine was too busy) and one that waited (on a lock,
-    the disk, a page). A robot whose controllers' watchdog tripped is explained by it."""
+    time covers the gap), a machine whose hypervisor did not run it (steal: every process on it stood still), one
+    virtual CPU its hypervisor held (a thread on it stood still while the others ran: the loop's, or one the loop
+    waited for; the line gives the most of one CPU beside the mean), one the kernel did not run (involuntary
+    switches, little CPU: the machine was too busy) and one that waited (on a lock, the disk, a page). A robot whose
+    controllers' watchdog tripped is explained by it."""
 
     def __init__(self, threshold: float) -> None:
         self.threshold = float(threshold)
@@ -81,10 +92,14 @@ class StallWatch:
         cpu = usage.cpu - before.cpu
         inv, vol = usage.involuntary - before.involuntary, usage.voluntary - before.voluntary
         faults = usage.major_faults - before.major_faults
-        steal, figures = None, []
+        steal, most, figures = None, None, []
         if usage.steal is not None and before.steal is not None:
             steal = (usage.steal - before.steal) / (os.cpu_count() or 1)
             figures.append(f"{steal:.2f} s steal per CPU")
+        if usage.steal_cpus is not None and before.steal_cpus is not None \
+                and len(usage.steal_cpus) == len(before.steal_cpus) > 1:
+            most = max(a - b for a, b in zip(usage.steal_cpus, before.steal_cpus))
+            figures.append(f"{most:.2f} s the most of one CPU")
         if usage.io_stall is not None and before.io_stall is not None:
             figures.append(f"{usage.io_stall - before.io_stall:.2f} s I/O stall")
         machine = f"; the machine: {', '.join(figures)}" if figures else ""
@@ -92,6 +107,8 @@ class StallWatch:
             why = "busy: this process computed for most of it"
         elif steal is not None and steal >= 0.5 * gap:
             why = "the machine was not run: its hypervisor held the virtual CPUs"
+        elif most is not None and most >= 0.5 * gap:
+            why = "one of the machine's virtual CPUs was not run by its hypervisor: a thread on it stood still"
         elif faults:
             why = "waiting for memory pages from disk"
         elif inv > vol:

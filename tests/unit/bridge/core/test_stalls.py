@@ -1,4 +1,4 @@
-"""A loop that came back late says why: busy, not scheduled, or waiting (bridge.nodes.stalls.StallWatch). This is
+"""A loop that came back late says why: busy, not scheduled, or waiting (bridge.core.stalls.StallWatch). This is
 what tells a lab whether a robot whose controllers' watchdog tripped had a slow driver host or an overloaded
 machine."""
 
@@ -12,7 +12,7 @@ import sys
 import textwrap
 from pathlib import Path
 
-from bridge.nodes.stalls import StallWatch, Usage
+from bridge.core.stalls import StallWatch, Usage
 
 
 def test_on_time_iterations_say_nothing_and_a_late_one_says_why() -> None:
@@ -50,6 +50,27 @@ def test_a_machine_its_hypervisor_did_not_run_is_named(monkeypatch) -> None:
     real = Usage.now()  # where the kernel gives them, the machine's figures are read
     assert (real.steal is not None) == readable("/proc/stat")
     assert (real.io_stall is not None) == readable("/proc/pressure/io")
+    if real.steal is not None:  # each CPU's own, one per CPU the kernel counts, summing to the machine's
+        assert real.steal_cpus is not None and len(real.steal_cpus) == os.cpu_count()
+        assert abs(sum(real.steal_cpus) - real.steal) < 0.1 * len(real.steal_cpus) + 1e-9
+
+
+def test_one_virtual_cpu_its_hypervisor_held_is_named(monkeypatch) -> None:
+    """A hypervisor may hold one virtual CPU while it runs the others: a thread on it stands still (the loop's, or
+    one the loop waits for) while the process's other threads run on. Over the machine's mean that is only half of
+    it on two CPUs, so the line gives the most of one CPU too, and names it where it covers most of the gap."""
+    monkeypatch.setattr("os.cpu_count", lambda: 2)
+    w = StallWatch(0.25)
+    w.check(0.0, Usage(1.0, 10, 10, 0, steal=5.0, steal_cpus=(2.0, 3.0)))
+    held = w.check(0.66, Usage(1.027, 142, 30, 0, steal=5.62, steal_cpus=(2.01, 3.61)))
+    assert held is not None and "one of the machine's virtual CPUs" in held, held
+    assert "0.31 s steal per CPU, 0.61 s the most of one CPU" in held, held
+    # the same gap with the steal spread over both CPUs and short of half of it: waiting, as before
+    spread = w.check(1.32, Usage(1.05, 270, 31, 0, steal=5.92, steal_cpus=(2.16, 3.76)))
+    assert spread is not None and spread.startswith("loop stalled 0.66 s (waiting"), spread
+    # a CPU the kernel brought online meanwhile (another count of CPUs): no per-CPU figure, the mean as before
+    other = w.check(2.0, Usage(1.06, 280, 32, 0, steal=5.92, steal_cpus=(2.16, 3.76, 0.0)))
+    assert other is not None and "the most of one CPU" not in other and "steal per CPU" in other, other
 
 
 def test_a_process_the_kernel_does_not_run_is_told_apart_from_a_busy_one() -> None:
@@ -59,7 +80,7 @@ def test_a_process_the_kernel_does_not_run_is_told_apart_from_a_busy_one() -> No
     other tasks for longer, and then it says so)."""
     code = textwrap.dedent("""
         import sys, time
-        from bridge.nodes.stalls import StallWatch, Usage
+        from bridge.core.stalls import StallWatch, Usage
         w = StallWatch(0.25)
         w.check(time.monotonic(), Usage.now())
         print("ready", flush=True)
@@ -100,7 +121,7 @@ def test_a_blocked_loop_is_reported_while_it_is_blocked_with_where() -> None:
     import logging
     import threading
 
-    from bridge.nodes.stalls import BlockedLoop
+    from bridge.core.stalls import BlockedLoop
 
     records: list[str] = []
     reported = threading.Event()
