@@ -331,7 +331,9 @@ def acts_flood_one_identity(short: bool) -> Result:
     second) while a station drives; then the person estops, releases and engages. bridge/core/acts.py keeps a budget
     per source and always admits the configured persons, so the flood refuses only the flooder. before (one nonce
     table for every source): the person's release and engage were refused as "flooded" (docs/SECURITY.md).
-    The estop's first stop under the bad queries is reported beside it (``first_stop_ms``)."""
+    The estop's first stop under the bad queries is reported beside it (``first_stop_ms``), and how the person's tool
+    fared asking for the host's address before its release (``release_address``: found, how long it asked, whether
+    the latch still waited for its save when the ask began and ended)."""
     from bridge.core import wire as M
     from bridge.core.acts import stamped
 
@@ -367,8 +369,12 @@ def acts_flood_one_identity(short: bool) -> Result:
             first_stop_ms = round((first - t0) * 1000.0, 1) if first is not None else None
             until(lambda: rig.host.gate.estopped, 2.0)
             rate = bad[0] / max(time.monotonic() - t0 + 0.3, 1e-3)
+            t_ask, saving = time.monotonic(), _save_pending(rig)
+            addr = rig.address()  # the person's tool asks the latch for the host's address first
+            asked = {"found": addr is not None, "asked_s": round(time.monotonic() - t_ask, 2),
+                     "latch_save_pending": [saving, _save_pending(rig)]}  # when the ask began, when it ended
             rig.attacker.put(rig.keys.estop, M.encode(stamped(M.Estop(stamp=1.0, engaged=False, source="operator"),
-                                                              rig.address())))
+                                                              addr)))
             released = until(lambda: not rig.host.gate.estopped, 2.0)
             ans = rig.engage(M.encode(stamped(M.EngageRequest(stamp=1.0, source="operator"), rig.address())))
         finally:
@@ -383,8 +389,19 @@ def acts_flood_one_identity(short: bool) -> Result:
     return {"reached_vehicle": None, "learned": None,
             "person": {"released": released, "engaged": engaged, "said": (ans.text if ans is not None else "")[:100]},
             "estop": {"stopped": stopped, "first_stop_ms": first_stop_ms, "bad_queries_per_s": round(rate)},
-            "flood": n, "refused": refused, "control_drove_before": driving,
+            "release_address": asked, "flood": n, "refused": refused, "control_drove_before": driving,
             "ok": driving and stopped and released and engaged and first_stop_ms is not None and first_stop_ms < 500.0}
+
+
+def _save_pending(rig: _ZenohHost) -> bool:
+    """Whether the host's latch writer still had a latch to save after the address was asked for: the estop's latch
+    state is answered only once the latch is saved (``DriverHost.on_estop_query``), so an address not found while a
+    save waited points at the disk, not at the flood."""
+    writer = rig.host.latch.writer
+    if writer is None:
+        return False
+    with writer.cond:
+        return writer.saved < writer.submitted
 
 
 TRUST_ATTACKS: dict[str, Callable[[bool], Result]] = {
