@@ -17,7 +17,7 @@ import pytest
 from bridge.core import wire as M
 from bridge.core.auth import seal, seal_session
 from sim_learner.dynamics import LearnerModel
-from sim_learner.udp_robot import DEFAULT_PEER, SESSION_FRESH_S, UdpRobot
+from sim_learner.udp_robot import DEFAULT_PEER, SESSION_FRESH_S, STALL_S, UdpRobot
 from sim_learner.vehicle import SimVehicle
 
 LINEAR = LearnerModel((-2.0, 2.0), (-4.0, 4.0), name="linear")
@@ -138,26 +138,34 @@ def test_a_stall_of_the_emulator_is_said_in_its_log_with_why(caplog) -> None:
     """A real robot on loopback streaming states to a socket of the test's: held for 0.3 s (its loop waits for the
     lock the test hooks take), it sends no state meanwhile, and its log says so with the stall watch's line (how long,
     why, its CPU): the driver host beside it, which sees only the silence, stops the robot for it, and this line
-    tells the emulator's stall from the driver's fault. States at their rate say nothing."""
+    tells the emulator's stall from the driver's fault. Only a gap over the threshold is said (a loaded machine may
+    add a stall of its own before the hold; it is said the same way)."""
     sink = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     sink.bind(("127.0.0.1", 0))
     sink.settimeout(2.0)
     try:
         with caplog.at_level("WARNING", logger="scmbridge.learner"), \
                 UdpRobot(SimVehicle(LINEAR, now=time.monotonic()), peer=sink.getsockname()) as robot:
-            for _ in range(10):  # states at their rate: nothing said
+            for _ in range(10):  # states at their rate
                 sink.recvfrom(65536)
-            assert not [r for r in caplog.records if "sent no state" in r.getMessage()]
             with robot._lock:
                 time.sleep(0.3)
-            for _ in range(3):
-                sink.recvfrom(65536)
             deadline = time.monotonic() + 2.0
-            while time.monotonic() < deadline and not [r for r in caplog.records if "sent no state" in r.getMessage()]:
+            while time.monotonic() < deadline and not [g for g in _stalls_said(caplog) if g >= 0.25]:
                 sink.recvfrom(65536)
     finally:
         sink.close()
-    said = [r.getMessage() for r in caplog.records if "sent no state" in r.getMessage()]
-    assert len(said) >= 1 and "loop stalled" in said[0] and "s CPU" in said[0], said
-    gap = float(said[0].split("loop stalled ")[1].split(" s")[0])
-    assert 0.25 <= gap < 2.0, said  # the 0.3 s it was held (a loaded machine may add to it)
+    gaps = _stalls_said(caplog)
+    assert [g for g in gaps if 0.25 <= g < 2.0], gaps  # the 0.3 s it was held (a loaded machine may add to it)
+    assert all(g > STALL_S for g in gaps), gaps  # nothing shorter than the threshold is said
+
+
+def _stalls_said(caplog) -> list[float]:
+    """The gaps the robot's log said it sent no state for, s (each line also says why and its CPU)."""
+    out = []
+    for r in caplog.records:
+        text = r.getMessage()
+        if "sent no state" in text:
+            assert "loop stalled" in text and "s CPU" in text, text
+            out.append(float(text.split("loop stalled ")[1].split(" s")[0]))
+    return out
