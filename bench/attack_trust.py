@@ -369,10 +369,12 @@ def acts_flood_one_identity(short: bool) -> Result:
             first_stop_ms = round((first - t0) * 1000.0, 1) if first is not None else None
             until(lambda: rig.host.gate.estopped, 2.0)
             rate = bad[0] / max(time.monotonic() - t0 + 0.3, 1e-3)
-            t_ask, saving = time.monotonic(), _save_pending(rig)
+            # the latch state (the address) is answered only once the latch is saved: a save still waiting when the
+            # ask began and ended points at the disk, not at the flood
+            t_ask, saving = time.monotonic(), rig.host.latch.saving()
             addr = rig.address()  # the person's tool asks the latch for the host's address first
             asked = {"found": addr is not None, "asked_s": round(time.monotonic() - t_ask, 2),
-                     "latch_save_pending": [saving, _save_pending(rig)]}  # when the ask began, when it ended
+                     "latch_save_pending": [saving, rig.host.latch.saving()]}  # when the ask began, when it ended
             rig.attacker.put(rig.keys.estop, M.encode(stamped(M.Estop(stamp=1.0, engaged=False, source="operator"),
                                                               addr)))
             released = until(lambda: not rig.host.gate.estopped, 2.0)
@@ -391,17 +393,6 @@ def acts_flood_one_identity(short: bool) -> Result:
             "estop": {"stopped": stopped, "first_stop_ms": first_stop_ms, "bad_queries_per_s": round(rate)},
             "release_address": asked, "flood": n, "refused": refused, "control_drove_before": driving,
             "ok": driving and stopped and released and engaged and first_stop_ms is not None and first_stop_ms < 500.0}
-
-
-def _save_pending(rig: _ZenohHost) -> bool:
-    """Whether the host's latch writer still had a latch to save after the address was asked for: the estop's latch
-    state is answered only once the latch is saved (``DriverHost.on_estop_query``), so an address not found while a
-    save waited points at the disk, not at the flood."""
-    writer = rig.host.latch.writer
-    if writer is None:
-        return False
-    with writer.cond:
-        return writer.saved < writer.submitted
 
 
 TRUST_ATTACKS: dict[str, Callable[[bool], Result]] = {

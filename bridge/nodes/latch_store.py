@@ -184,10 +184,15 @@ class LatchWriter:
         """True: ``fn`` runs in the writer's thread once every latch submitted so far has been saved (or its save
         failed); False: nothing is waiting to be saved (``fn`` is not called: the caller goes on at once)."""
         with self.cond:
-            if self.saved >= self.submitted:
+            if not self.saving():
                 return False
             self.waiters.append((self.submitted, fn))
             return True
+
+    def saving(self) -> bool:
+        """Whether a latch submitted so far still waits for its save (or is being saved)."""
+        with self.cond:  # (a re-entrant lock: :meth:`defer` asks under it)
+            return self.saved < self.submitted
 
     def _run(self) -> None:
         while True:
@@ -325,6 +330,10 @@ class LatchStore:
         """:meth:`LatchWriter.defer`: True when ``fn`` will run once every latch submitted so far is saved (or its
         save failed); False when nothing is waiting (``fn`` is not called)."""
         return self.writer is not None and self.writer.defer(fn)
+
+    def saving(self) -> bool:
+        """:meth:`LatchWriter.saving`: whether a latch submitted so far still waits for its save."""
+        return self.writer is not None and self.writer.saving()
 
     def close(self, timeout: float) -> bool:
         """Let a save still under way finish (bounded by ``timeout`` s); False if it did not."""

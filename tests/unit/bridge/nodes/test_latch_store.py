@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import errno
 import os
+import threading
 from pathlib import Path
 
 from bridge.core import wire as M
@@ -48,6 +49,32 @@ def test_a_latch_submitted_is_saved_signed_and_the_latest_wins(tmp_path) -> None
     assert inspect_latch(path) == (Latch(latched=False, source="operator", reason="released"), "")
     assert not store.defer(lambda: None)  # nothing waiting: the caller goes on at once
     assert store.close(5.0)
+
+
+def test_a_save_under_way_is_said_until_it_is_written(tmp_path) -> None:
+    """``saving()`` is true from a latch's submission until its save is written: what the estop's latch state waits
+    for before it answers. The disk is held by the test's saver until it lets it go."""
+    let_go, started = threading.Event(), threading.Event()
+
+    def slow_disk(path: Path, data: bytes) -> None:
+        started.set()
+        assert let_go.wait(10.0)
+        save_atomic(path, data)
+
+    store, _ = _store(tmp_path / "estop-r1.bin", slow_disk)
+    let_go.set()  # the start's own saves go through
+    store.open()
+    wait_saved(store)
+    assert not store.saving()
+    let_go.clear()
+    started.clear()
+    store.submit(True, "operator", "held")
+    assert started.wait(10.0) and store.saving()  # being written
+    let_go.set()
+    wait_saved(store)
+    assert not store.saving() and read_latch(store.path).reason == "held"
+    assert store.close(5.0)
+    assert not LatchStore(None, lambda r: None).saving()  # no file, no writer: nothing ever waits
 
 
 def test_a_latched_save_that_fails_removes_the_old_file_so_a_restart_starts_latched(tmp_path) -> None:
