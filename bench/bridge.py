@@ -29,7 +29,7 @@ import numpy as np
 
 from bench.common import emit
 from bridge.nodes.driver_config import DriverSection
-from bridge.tools.procs import Children, emulated_link
+from bridge.tools.procs import Children, emulated_link, said
 
 #: the driver host's loop rate (its default): what its missed deadlines are a fraction of
 LOOP_HZ = DriverSection().rate_hz
@@ -155,11 +155,14 @@ def run_link(link: str, seconds: float, workdir: str, random_phase: bool = False
     keys = Keys(robot)
     sent: dict[int, float] = {}
     lat: list[float] = []
+    reasons: dict[str, int] = {}  # the echoes by reason: why no latency was measured, when none was
     status: list = []
     lock = threading.Lock()
     with open_session(make_config(mode="router", listen=[tcp(port)])) as session, Children() as kids:
         def on_applied(sample) -> None:
             a = M.decode(sample.payload.to_bytes(), M.Applied)
+            with lock:
+                reasons[a.reason] = reasons.get(a.reason, 0) + 1
             if a.cmd_seq is not None and a.reason in ("cmd", "clamped"):
                 with lock:
                     t = sent.pop(a.cmd_seq, None)
@@ -189,7 +192,7 @@ def run_link(link: str, seconds: float, workdir: str, random_phase: bool = False
         env = dict(os.environ, SCMBRIDGE_STATE_DIR=str(Path(workdir) / "state"),
                    SCMBRIDGE_RECORD_DIR=str(Path(workdir) / "records"))
         driver = kids.spawn(["driver", "--engage", *driver_args, "--robot", robot, "--mode", "client", "--connect",
-                             tcp(port), "--rate", "50", "--duration", str(life + 30)], subprocess.DEVNULL, env=env)
+                             tcp(port), "--rate", "50", "--duration", str(life + 30)], env=env)
         t_end = time.monotonic() + 30
         while time.monotonic() < t_end:
             with lock:
@@ -223,6 +226,7 @@ def run_link(link: str, seconds: float, workdir: str, random_phase: bool = False
         time.sleep(1.2)  # the last commands' echoes (a bench's settling, not a test's wait)
         rss1 = _rss_kb(driver.pid)
         beside_figures = station.figures() if station is not None else None
+        driver_said = said(driver, 2000)
     with lock:
         ms = np.array(lat) * 1e3
         last = status[-1] if status else None
@@ -236,6 +240,11 @@ def run_link(link: str, seconds: float, workdir: str, random_phase: bool = False
                       "missed_fraction": c.get("missed_deadlines", 0) / (LOOP_HZ * (span + 1))},
         "driver_rss_kb": {"start": rss0, "end": rss1},
         **({"beside_station": beside_figures} if beside_figures is not None else {}),
+        # what a run that measured fewer latencies than asked needs to say why: the echoes' reasons, the host's last
+        # word, counters and log
+        **({} if ms.size >= max(1, min_latencies) else {"echo_reasons": dict(reasons), "driver_status": last and {
+            "state": last.state, "reason": last.reason, "text": last.text, "engaged": last.engaged, "counters": c},
+            "driver_said": driver_said}),
     }
 
 
