@@ -52,10 +52,12 @@ real base would. The encoder counts follow the body's real motion (the learner's
 from __future__ import annotations
 
 import contextlib
+import logging
 import math
 import struct
 import threading
 import time
+from collections import deque
 from dataclasses import dataclass
 from typing import Any
 
@@ -64,6 +66,8 @@ import can
 from bridge.core.clock import HeldOffset
 from sim_learner.device import ThreadedDevice
 from sim_learner.vehicle import SimVehicle
+
+log = logging.getLogger("scmbridge.learner")
 
 # CANSimple command ids (cmd_id, the low 5 bits of the 11-bit arbitration id; node_id is the upper 6)
 HEARTBEAT, ESTOP, SET_AXIS_STATE, GET_ENCODER_ESTIMATES = 0x01, 0x02, 0x07, 0x09
@@ -183,6 +187,7 @@ class DiffDriveEcus(ThreadedDevice):
         self.top_speed = m.v_range[1] + max(abs(m.w_range[0]), abs(m.w_range[1])) * self.track / 2.0
         self.malformed = 0
         self.received: list[tuple[float, int, int, bytes]] = []  # (time, node, cmd_id, data), the last 1000
+        self._turns: deque[tuple[float, float]] = deque(maxlen=200)  # (when, gap since the last) of the last turns
         self._lock = threading.RLock()
         self.bus: can.BusABC | None = None
         self._t_enc = self._t_hb = 0.0  # when the next encoder estimates and Heartbeat are due
@@ -212,6 +217,7 @@ class DiffDriveEcus(ThreadedDevice):
             with self._lock:
                 now = self.clock()
                 self._stalled(now - ran, now)
+                self._turns.append((now, now - ran))
                 ran = now
                 # everything that arrived is handled before the watchdog looks: a device takes frames as they
                 # come, so a thread that was not scheduled for a while must not trip on feeds still queued
@@ -367,8 +373,20 @@ class DiffDriveEcus(ThreadedDevice):
             if ax.state == CLOSED_LOOP_CONTROL and now - ax.last_feed > self.watchdog:
                 self._disarm(ax, WATCHDOG_TIMER_EXPIRED)
                 tripped = True
+                log.warning("emulated ODrive node %d: watchdog tripped, no feed for %.3f s (limit %.3f s); %s",
+                            ax.node, now - ax.last_feed, self.watchdog, self._trip_context(now))
         if tripped:
             self._apply(now)
+
+    def _trip_context(self, now: float) -> str:
+        """What a watchdog trip report needs to tell a master that stopped feeding from frames this emulator took
+        late or placed wrong (no real controller says it): the frames received over the last second, by how long
+        before ``now`` they were placed, and the longest gaps between this loop's turns over that second."""
+        recent = [(t, node, cmd) for t, node, cmd, _ in self.received if now - t <= 1.0]
+        feeds = [round(now - t, 3) for t, _, cmd in recent if cmd in (SET_INPUT_VEL, SET_AXIS_STATE)][-8:]
+        gaps = sorted((round(g, 3) for t, g in self._turns if now - t <= 1.0), reverse=True)[:3]
+        return (f"{len(recent)} frames received in the last second, the last feeds placed {feeds} s ago; the "
+                f"longest gaps between this emulator's turns {gaps} s")
 
     def _apply(self, now: float) -> None:
         """Driven wheel speeds -> body command of the learner (both held: the body stops)."""

@@ -5,6 +5,8 @@ every process is the bench's child and goes away with it."""
 
 from __future__ import annotations
 
+import json
+
 import pytest
 
 from bench.bridge import run_link
@@ -17,7 +19,7 @@ def test_the_bridge_bench_runs_beside_a_ticking_station(tmp_path) -> None:
     # than it was sent, and a fixed window then fell short of the count; counted, it takes longer instead
     res = run_link("can", 2.0, str(tmp_path), beside=1, min_latencies=100, min_beside_ticks=20)
     lat = res["publish_to_driver_send_ms"]
-    assert lat is not None and lat["n"] >= 100 and lat["median"] > 0.0, res
+    assert lat is not None and lat["n"] >= 100 and lat["median"] > 0.0, json.dumps(res, indent=1, default=str)
     beside = res["beside_station"]
     # the station drove its robot for the whole run: about 10 ticks a second, reported with its own figures
     assert beside["robots"] == 1 and beside["ticks"] >= 20, beside

@@ -9,6 +9,7 @@ what is ignored or counted as malformed, the encoder counts following the body, 
 from __future__ import annotations
 
 import contextlib
+import logging
 import math
 import struct
 import uuid
@@ -103,15 +104,20 @@ def test_idle_disarms_and_input_vel_survives_the_disarm() -> None:
     assert ecus.axis(0).procedure_result == E.RESULT_BUSY and veh.cmd[0] > 0  # re-armed: it drives the old set-point
 
 
-def test_the_watchdog_trips_only_after_its_time_without_a_feed() -> None:
+def test_the_watchdog_trips_only_after_its_time_without_a_feed(caplog) -> None:
     ecus, veh = _ecus(watchdog=0.5)
     _arm(ecus, 0.0)
     _vel(ecus, 0, 1.0, 0.0)
     _vel(ecus, 1, -1.0, 0.2)
     ecus._watchdog(0.5)  # exactly the watchdog's time since the left's feed: not yet
     assert ecus.axis(0).state == E.CLOSED_LOOP_CONTROL
-    ecus._watchdog(0.51)
+    with caplog.at_level(logging.WARNING, logger="scmbridge.learner"):
+        ecus._watchdog(0.51)
     assert ecus.axis(0).state == E.IDLE and ecus.axis(0).error == E.WATCHDOG_TIMER_EXPIRED
+    # the trip says what the emulator saw: how long without a feed, and when the last feeds were placed
+    said = [r.getMessage() for r in caplog.records if "watchdog tripped" in r.getMessage()]
+    assert len(said) == 1 and "node 0" in said[0] and "no feed for 0.510 s" in said[0], said
+    assert "the last feeds placed [" in said[0] and "0.31" in said[0], said  # the right's feed at 0.2
     assert ecus.axis(1).state == E.CLOSED_LOOP_CONTROL  # fed later: still armed, now pivoting the body alone
     assert veh.cmd[1] > 0
 
