@@ -66,12 +66,12 @@ install: $(STAMP)
 demo: $(STAMP)
 	$(VENV)/bin/scmbridge demo $(ARGS)
 
-# The suite mostly waits on real time (stations at 10 Hz, links, deadmen): four workers share two cores well (the
-# tests use about 0.8 of a core between them). Six were quicker (docs/BENCHMARKS.md, "The test suite") but tripped
-# tests that count what a stalled process still did in a fixed window. worksteal: xdist first hands each worker a
-# contiguous share of the tests, and a worker whose share ends early takes over half of the busiest one's;
+# Much of the suite waits on real time (stations at 10 Hz, links, deadmen): with four workers two cores stayed about a
+# quarter idle, with six they are nearly full (docs/BENCHMARKS.md, "The test suite"). The tests that counted what a
+# stalled process did in a fixed window now wait on the count, with a deadline. worksteal: xdist first hands each
+# worker a contiguous share of the tests, and a worker whose share ends early takes over half of the busiest one's;
 # tests/schedule.py starts the long tests first. The suite's time on a fresh clone: docs/BENCHMARKS.md.
-TEST_WORKERS ?= 4
+TEST_WORKERS ?= 6
 # The tests against ArduPilot's Rover SITL are `make test-sitl` (several minutes: each boots its own SITL and the
 # generated profiles drive whole missions). Two at a time on a 2-core machine: each is a vehicle, its driver host and
 # a station in real time, and three at once starved them (docs/BENCHMARKS.md, "The SITL tests").
