@@ -67,7 +67,8 @@ demo: $(STAMP)
 	$(VENV)/bin/scmbridge demo $(ARGS)
 
 # Much of the suite waits on real time (stations at 10 Hz, links, deadmen): with four workers two cores stayed about a
-# quarter idle, with six they are nearly full (docs/BENCHMARKS.md, "The test suite"). The tests that counted what a
+# quarter idle, with six they are nearly full: a tenth quicker, for a seventh more CPU (docs/BENCHMARKS.md, "The test
+# suite"; on a slower machine that four already fill, TEST_WORKERS=4 may be quicker). The tests that counted what a
 # stalled process did in a fixed window now wait on the count, with a deadline. worksteal: xdist first hands each
 # worker a contiguous share of the tests, and a worker whose share ends early takes over half of the busiest one's;
 # tests/schedule.py starts the long tests first. The suite's time on a fresh clone: docs/BENCHMARKS.md.
