@@ -443,12 +443,18 @@ class DriverHost:
                 log.warning("%s", self.driver.upload_fence(self.options.fence))  # type: ignore[attr-defined]
             except DriverError as exc:
                 raise UsageError(f"--fence: the vehicle did not take the fence: {exc}") from None
-        if self.options.engage_on_start:
-            ans = self.handle_engage(M.EngageRequest(stamp=0.0, source="engage_on_start"), self.timing.clock())
-            if not ans.engaged:
-                log.error("engage_on_start: %s", ans.text)
-        systemd.ready(f"{self.robot}: link {self.link} open, " + ("engaged" if self.engaged else "waiting for engage"))
+        systemd.ready(f"{self.robot}: link {self.link} open, "
+                      + ("engaging (engage_on_start)" if self.options.engage_on_start else "waiting for engage"))
         self.loop(stop, duration)
+
+    def _engage_on_start(self) -> None:
+        """``engage_on_start`` (a person's act at start-up), done by the running loop right before its first tick, as
+        an engage request is: the controllers it arms are fed by that tick at once, and a stall after the arming is
+        watched and reported like any other. Armed before the loop runs, the controllers would go unfed while the
+        loop is set up (its watcher thread started), where no stall is watched."""
+        ans = self.handle_engage(M.EngageRequest(stamp=0.0, source="engage_on_start"), self.timing.clock())
+        if not ans.engaged:
+            log.error("engage_on_start: %s", ans.text)
 
     def _open_link(self, stop: threading.Event) -> bool:
         """Open the link, retrying with a backoff while the vehicle (or the CAN interface) is not there, saying what
@@ -503,6 +509,8 @@ class DriverHost:
         periodic = True
         blocked = BlockedLoop(self.timing.stall_report_s, stop, log).start()
         try:
+            if self.options.engage_on_start and not stop.is_set():
+                self._engage_on_start()
             while not stop.is_set():
                 blocked.beat()
                 now = self.timing.clock()
