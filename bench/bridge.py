@@ -163,8 +163,7 @@ def run_link(link: str, seconds: float, workdir: str, random_phase: bool = False
             a = M.decode(sample.payload.to_bytes(), M.Applied)
             with lock:
                 reasons[a.reason] = reasons.get(a.reason, 0) + 1
-            if a.cmd_seq is not None and a.reason in ("cmd", "clamped"):
-                with lock:
+                if a.cmd_seq is not None and a.reason in ("cmd", "clamped"):
                     t = sent.pop(a.cmd_seq, None)
                     if t is not None:
                         lat.append(a.stamp - t)

@@ -368,14 +368,14 @@ class DiffDriveEcus(ThreadedDevice):
                     ax.last_feed = min(now, ax.last_feed + gap)
 
     def _watchdog(self, now: float) -> None:
-        tripped = False
+        context = ""  # what the emulator saw, the same for every axis that trips now: read once
         for ax in self.axes.values():
             if ax.state == CLOSED_LOOP_CONTROL and now - ax.last_feed > self.watchdog:
                 self._disarm(ax, WATCHDOG_TIMER_EXPIRED)
-                tripped = True
+                context = context or self._trip_context(now)
                 log.warning("emulated ODrive node %d: watchdog tripped, no feed for %.3f s (limit %.3f s); %s",
-                            ax.node, now - ax.last_feed, self.watchdog, self._trip_context(now))
-        if tripped:
+                            ax.node, now - ax.last_feed, self.watchdog, context)
+        if context:
             self._apply(now)
 
     def _trip_context(self, now: float) -> str:
