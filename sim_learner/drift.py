@@ -31,6 +31,8 @@ once a yaw-rate edge has come inside the widest it held (:meth:`transfer.limits.
 either store. A dragging wheel takes part of
 the learner's right turn away: under the paper's MPC (``--curve-margin 0``), whose references keep the top speed, the
 S's right bends are driven wide whatever the map and the store (docs/PAPER.md, "Beyond the paper", has the figures).
+The MPC is the paper's, solved to convergence by IPOPT, unless ``--solver`` names the real-time iteration a station runs
+(``[teacher] mpc_solver``; docs/ARCHITECTURE.md, "The teacher's MPC"); each summary names it (``mpc_solver``).
 
 ``--reloaded``: the other case a station meets, a store learned on another day. A first run learns a store from no pairs
 on the unchanged learner (the paper's store); the next day's learner has changed meanwhile (the scenario's change, whole
@@ -60,8 +62,8 @@ from numpy.typing import NDArray
 
 from bridge.core.logsink import print_line
 from sim_learner.dynamics import LearnerModel, mpc_learner
-from sim_learner.experiments import VEHICLE_RADIUS, _mpc_teacher, parse_seeds, scm_start
-from sim_learner.runs import DT
+from sim_learner.experiments import VEHICLE_RADIUS, parse_seeds, scm_start
+from sim_learner.runs import DT, mpc_teacher
 from sim_learner.worlds import mpc_world
 from transfer.domain import Bounds
 from transfer.mission import Mission
@@ -70,7 +72,7 @@ from transfer.paper import MPC_TEACHER_V, MPC_TEACHER_W
 from transfer.policy import make_policy
 from transfer.step import TransferStep
 from transfer.store import CHANGE_TOL, PairStore
-from transfer.teacher.mpc import MpcTeacher
+from transfer.teacher.mpc import SOLVERS, MpcTeacher
 from transfer.teacher.unicycle import step as unicycle_step
 
 SCENARIOS = ("battery", "payload", "wheel", "floor")
@@ -267,7 +269,7 @@ def drive(scenario: str, seed: int, adapt: bool, tiles: int = TILES, solver: str
     of that store instead, the learner changed before the run began (``--reloaded``). ``spread``: the adapting store
     spreads a change to the cells not driven since (``transfer/store_spread.py``; off by default)."""
     loop = _start(scenario, seed, adapt, tiles, change_tol, reloaded, spread)
-    mpc = _mpc_teacher(solver, curve_margin)
+    mpc = mpc_teacher(solver, curve_margin)
     mpc.reset()
     _go(loop, mpc, tiles)
     return loop.run, loop.learner
@@ -305,7 +307,7 @@ def drive_shared(scenarios: Sequence[str], seed: int, adapt: bool, tiles: int = 
         return any(_begins(sc, t, progress) for sc in scenarios)
 
     shared = _start(CONTROL, seed, adapt, tiles, change_tol, None, spread)
-    mpc = _mpc_teacher(solver, curve_margin)
+    mpc = mpc_teacher(solver, curve_margin)
     mpc.reset()
     _go(shared, mpc, tiles, until=lambda t, progress: begins(t + FORK_LEAD_S, progress + FORK_LEAD_PROGRESS))
     while True:
@@ -375,7 +377,8 @@ def drift_summaries(scenarios: Sequence[str], seed: int, tiles: int = TILES, sol
     out = []
     for i, (sc, (run, learner)) in enumerate(zip(scenarios, runs)):
         row = {"experiment": "drift", "scenario": sc, "seed": seed, "tiles": tiles, "change_tol": change_tol,
-               "curve_margin": curve_margin, **({"spread": True} if spread else {}), **figures(run, learner.change())}
+               "curve_margin": curve_margin, "mpc_solver": solver, **({"spread": True} if spread else {}),
+               **figures(run, learner.change())}
         if bases is not None:
             base, base_learner = bases[i]
             row["baseline"] = figures(base, base_learner.change())
@@ -407,7 +410,7 @@ def reloaded_summary(scenario: str, seed: int, tiles: int = TILES, solver: str =
     first = _first_run(seed, tiles, solver, curve_margin)
     assert first.store is not None
     out = {"experiment": "drift-reloaded", "scenario": scenario, "seed": seed, "tiles": tiles, "change_tol": change_tol,
-           "curve_margin": curve_margin, "learned": {"refined_pairs": first.store.n_configured(),
+           "curve_margin": curve_margin, "mpc_solver": solver, "learned": {"refined_pairs": first.store.n_configured(),
                                                      **reloaded_figures(first)}}
     for name, adapt in (("adaptive", True), ("baseline", False)):
         run, _ = drive(scenario, seed, adapt=adapt, tiles=tiles, solver=solver, change_tol=change_tol,
@@ -444,17 +447,18 @@ def _reloaded_task(args: tuple[str, int, int, str, float, float]) -> dict:
 
 def sweep(scenarios: Sequence[str], seeds: Sequence[int], tiles: int = TILES, workers: int = 2,
           change_tol: float = CHANGE_TOL, baseline: bool = True, curve_margin: float = CURVE_MARGIN,
-          spread: bool = False) -> list[dict]:
+          spread: bool = False, solver: str = "ipopt") -> list[dict]:
     """Every scenario on every seed (at most ``workers`` processes); the baseline runs only where a change is (the
     never-forgetting store has nothing to compare with on ``none``)."""
-    return _run(_task, [(sc, s, tiles, "ipopt", change_tol, baseline and sc != CONTROL, curve_margin, spread)
+    return _run(_task, [(sc, s, tiles, solver, change_tol, baseline and sc != CONTROL, curve_margin, spread)
                         for sc in scenarios for s in seeds], workers)
 
 
 def sweep_reloaded(scenarios: Sequence[str], seeds: Sequence[int], tiles: int = TILES, workers: int = 2,
-                   change_tol: float = CHANGE_TOL, curve_margin: float = CURVE_MARGIN) -> list[dict]:
+                   change_tol: float = CHANGE_TOL, curve_margin: float = CURVE_MARGIN,
+                   solver: str = "ipopt") -> list[dict]:
     """``--reloaded`` for every scenario and seed (at most ``workers`` processes)."""
-    return _run(_reloaded_task, [(sc, s, tiles, "ipopt", change_tol, curve_margin) for sc in scenarios for s in seeds],
+    return _run(_reloaded_task, [(sc, s, tiles, solver, change_tol, curve_margin) for sc in scenarios for s in seeds],
                 workers)
 
 
@@ -538,6 +542,9 @@ def arguments(ap: argparse.ArgumentParser) -> None:
                     help="the teacher MPC slows for a bend the learned yaw-rate limit cannot turn at its top speed, "
                          f"using this share of the limit (default {CURVE_MARGIN}; 0: the paper's MPC; "
                          "[teacher] curve_margin)")
+    ap.add_argument("--solver", choices=SOLVERS, default="ipopt",
+                    help="how the teacher's MPC is solved: ipopt, the paper's MPC (default); rti-qpoases / rti-daqp, "
+                         "the real-time iteration a station runs ([teacher] mpc_solver)")
     ap.add_argument("--spread", action="store_true",
                     help="the adapting store spreads a change to the cells not driven since (transfer/store_spread.py; "
                          "off by default: docs/PAPER.md has what it gains and costs)")
@@ -553,11 +560,11 @@ def run(args: argparse.Namespace) -> int:
         raise SystemExit("--spread is for a run from no pairs, not --reloaded")
     if args.reloaded:
         rows = sweep_reloaded(scenarios, seeds, args.tiles, workers=args.workers, change_tol=args.change_tol,
-                              curve_margin=args.curve_margin)
+                              curve_margin=args.curve_margin, solver=args.solver)
         stats, kind = (reloaded_stats(rows) if len(rows) > 1 else None), "drift-reloaded-sweep"
     else:
         rows = sweep(scenarios, seeds, args.tiles, workers=args.workers, change_tol=args.change_tol,
-                     curve_margin=args.curve_margin, spread=args.spread)
+                     curve_margin=args.curve_margin, spread=args.spread, solver=args.solver)
         stats, kind = (sweep_stats(rows) if len(rows) > 1 else None), "drift-sweep"
     for r in rows:
         print_line(json.dumps(r))

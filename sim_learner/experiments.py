@@ -26,7 +26,6 @@ start at the world's start, are deterministic and are computed once per process.
 from __future__ import annotations
 
 import argparse
-import functools
 import hashlib
 import json
 import math
@@ -44,14 +43,14 @@ from numpy.typing import NDArray
 
 from bridge.core.errors import UsageError
 from sim_learner.dynamics import MPC_TEACHER_V, MPC_TEACHER_W, LearnerModel, mpc_learner
-from sim_learner.runs import DT, Progress, Run, mean_dev_last_half
+from sim_learner.runs import DT, Progress, Run, mean_dev_last_half, mpc_teacher
 from sim_learner.worlds import World, mpc_world
 from transfer.domain import Bounds
 from transfer.pairs import teacher_equivalent
 from transfer.policy import EXPLORATIONS, make_policy
 from transfer.step import TransferStep
 from transfer.store import PairStore
-from transfer.teacher.mpc import MpcConfig, MpcResult, MpcTeacher
+from transfer.teacher.mpc import MpcResult, MpcTeacher
 from transfer.teacher.unicycle import step as teacher_step
 
 VEHICLE_RADIUS = 0.1  # m, for collision checks
@@ -83,16 +82,6 @@ def mpc_case(quick: bool) -> MpcCase:
     true_box = Bounds((float(lo[0]), float(hi[0])), (float(lo[1]), float(hi[1])))
     return MpcCase(mpc_world(0.6 if quick else 1.0), learner, Bounds(MPC_TEACHER_V, MPC_TEACHER_W), LB, true_box,
                    60.0 if quick else 120.0)
-
-
-@functools.lru_cache(maxsize=4)
-def _mpc_teacher(solver: str = "ipopt", curve_margin: float = 0.0) -> MpcTeacher:
-    """One MPC per process, solver and ``curve_margin`` (built once; ``reset`` before every run clears its warm
-    start); the real-time iteration runs compiled code where the machine can build it
-    (:mod:`bridge.teacher.codegen`)."""
-    from bridge.teacher.codegen import build_mpc
-
-    return build_mpc(MpcConfig(N=20, dt=DT, solver=solver, curve_margin=curve_margin), compile=True)
 
 
 def closed_loop_mpc(name: str, world: World, mpc: MpcTeacher, bounds_fn: Callable[[], Bounds], apply_fn: ApplyFn,
@@ -150,7 +139,7 @@ def mpc_references(quick: bool, progress: bool = False, solver: str = "ipopt") -
 def _compute_references(quick: bool, progress: bool, solver: str = "ipopt") -> References:
     case = mpc_case(quick)
     world, learner = case.world, case.learner
-    mpc = _mpc_teacher(solver)
+    mpc = mpc_teacher(solver)
     bar = Progress("refs") if progress else None
 
     def ideal(x, res):
@@ -205,7 +194,7 @@ def run_scm(seed: int, quick: bool, exploration: str = "guided",
         regions.append(m.region)
         return x1, m.u_L, m.method
 
-    run = closed_loop_mpc("scm", world, _mpc_teacher(solver), lambda: store.limits.box, scm, case.t_max, progress,
+    run = closed_loop_mpc("scm", world, mpc_teacher(solver), lambda: store.limits.box, scm, case.t_max, progress,
                           scm_start(world, seed))
     run.regions = regions
     return run, store

@@ -1,4 +1,5 @@
-"""What the paper's simulations share: the control interval, a progress bar, one closed-loop run and its deviation.
+"""What the paper's simulations share: the control interval, a progress bar, the teacher's MPC of a run, one
+closed-loop run and its deviation.
 
 Both :mod:`sim_learner.experiments` (the MPC case, the grid test, the seed sweep) and
 :mod:`sim_learner.primitives_sim` (the motion-primitive case) import from here; neither imports the other.
@@ -6,15 +7,51 @@ Both :mod:`sim_learner.experiments` (the MPC case, the grid test, the seed sweep
 
 from __future__ import annotations
 
+import functools
 import sys
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import NDArray
 
 from sim_learner.worlds import World
 
+if TYPE_CHECKING:
+    from transfer.teacher.mpc import MpcTeacher
+
 DT = 0.1  # s, the control interval of every simulation (and the pairing interval)
+
+
+@functools.lru_cache(maxsize=4)
+def _mpc_build(solver: str, curve_margin: float) -> tuple[MpcTeacher, list | None]:
+    """One MPC per process, solver and ``curve_margin``, and the compiled code of its real-time iteration where the
+    machine can build it (:mod:`bridge.teacher.codegen`; None for IPOPT or without a compiler)."""
+    from bridge.teacher.codegen import build_mpc, compile_functions
+    from transfer.teacher.mpc import MpcConfig
+
+    mpc = build_mpc(MpcConfig(N=20, dt=DT, solver=solver, curve_margin=curve_margin))
+    compiled = compile_functions(mpc.kernels()) if solver != "ipopt" else None
+    if compiled is not None:
+        mpc.use_compiled(compiled)
+    return mpc, compiled
+
+
+def mpc_teacher(solver: str = "ipopt", curve_margin: float = 0.0) -> MpcTeacher:
+    """The MPC of one run. IPOPT's is the process's one (``reset`` before every run clears its warm start). The
+    real-time iteration's QP solvers keep their working sets from solve to solve, and a working set, though only a
+    starting guess, moves a solution in its last bits, which a closed loop carries on: each run gets solvers of its own
+    (sharing the process's build and compiled code), so that a run does not depend on the runs the
+    process made before it."""
+    mpc, compiled = _mpc_build(solver, curve_margin)
+    if solver == "ipopt":
+        return mpc
+    from bridge.teacher.codegen import build_mpc
+
+    fresh = build_mpc(mpc.cfg)
+    if compiled is not None:
+        fresh.use_compiled(compiled)
+    return fresh
 
 
 class Progress:

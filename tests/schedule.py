@@ -38,13 +38,8 @@ LONGEST: dict[str, float] = {
     "driver_restart_leaves_it_paused": 30.0,
     "tests/repo/test_install.py::test_a_robot_installs_from_its_lock_and_the_project_offline": 27.0,
     "tests/integration/test_calibrate.py::test_the_motion_primitive_teacher_drives_from_calibrated_pairs": 24.0,
-    # the wheel's and the floor's sweeps share their module's fixture (both listed: they go to one worker together)
-    "tests/unit/sim_learner/test_drift.py::test_after_a_dragging_wheel_the_adapting_store_tracks_far_closer_than_the_"
-    "papers": 24.0,
     "tests/integration/test_corridor.py::test_a_robot_that_runs_away_stops_within_the_corridor_and_waits_for_a_person":
         24.0,
-    "tests/unit/sim_learner/test_drift.py::test_on_a_new_floor_the_adapting_store_drives_closer_than_the_papers_though_"
-    "no_cell_changed_past_the_tolerance": 23.0,
     "tests/integration/test_lab_in_a_box.py::test_a_secure_lab_on_loopback_is_driven_and_stopped_by_its_operator": 22.0,
     "tests/integration/test_external_teacher.py::test_the_example_external_teacher_drives_the_robot_through_the_"
     "transfer_service": 20.0,
@@ -54,8 +49,6 @@ LONGEST: dict[str, float] = {
     "tests/integration/test_tool_signals.py::test_a_tool_told_to_stop_leaves_no_process_behind[demo --robots-SIGTERM]":
         16.0,
     "tests/unit/sim_learner/test_experiments.py::test_cli_grid_over_seeds_runs_each_seeds_mpc_and_summarises": 15.0,
-    "tests/unit/sim_learner/test_drift.py::test_a_store_reloaded_on_a_changed_learner_is_relearned_and_on_an_unchanged_"
-    "one_costs_nothing": 14.0,
     "tests/unit/sim_learner/test_experiments.py::test_primitives_scm_learner_reaches_the_goal_and_the_baseline_"
     "deviates_3x_more": 14.0,
 }

@@ -1,16 +1,24 @@
 """``scmbridge sim drift``'s learners change as its docstring says (sim_learner/drift.py), and its figures are read
 off a run as defined there; and one scenario whole, shortened, on seeds the claims do not use (docs/PAPER.md has the
-claims on ``sim drift --seeds 100-109``)."""
+claims on ``sim drift --seeds 100-109``, with the paper's MPC). The whole runs here drive the MPC a station runs, the
+real-time iteration of its default ``[teacher] mpc_solver`` (``sim drift --solver``): what a lab's station does when
+its learner changes, at a sixth of the paper's MPC's CPU (the claims are the store's, not the solver's)."""
 
 from __future__ import annotations
+
+import json
 
 import numpy as np
 import pytest
 
+from bridge.core.config import load_station
+from bridge.tools.cli import main
 from sim_learner import drift as D
 from sim_learner.dynamics import mpc_learner
 
 M = mpc_learner()
+#: the MPC solver of a station on the default configuration
+SOLVER = load_station(None).teacher.mpc_solver
 TOP = np.array([M.v_range[1], M.w_range[1]])
 
 
@@ -25,7 +33,7 @@ def wheel_and_floor() -> dict[str, list[dict]]:
     """The wheel and the floor scenario on two S-paths, seeds 0-2 (the claims do not use them), each store's runs of a
     seed driven together up to the floor's change, where their learners first differ
     (:func:`sim_learner.drift.drive_shared`): the same runs as each scenario's own."""
-    rows = [D.drift_summaries(["wheel", "floor"], seed, tiles=2) for seed in (0, 1, 2)]
+    rows = [D.drift_summaries(["wheel", "floor"], seed, tiles=2, solver=SOLVER) for seed in (0, 1, 2)]
     return {"wheel": [r[0] for r in rows], "floor": [r[1] for r in rows]}
 
 
@@ -82,13 +90,13 @@ def test_after_a_dragging_wheel_the_adapting_store_tracks_far_closer_than_the_pa
     """The wheel scenario on two S-paths (the change 40 s in, about 35 s of driving after it), seeds the claims do
     not use, judged on the median: every run reaches the goal without a collision, and the adapting store's
     deviation after the change, over its deviation before, is under half the never-forgetting store's. Measured
-    (tiles 2, seeds 0-2): 2.0-2.8 against 8.8-10.0; with the paper's MPC (``curve_margin`` 0) 12-23 against 14-18:
-    without slowing for the right bends the wheel takes away, neither store tracks them (docs/PAPER.md, "Beyond the
-    paper")."""
+    with the station's MPC (tiles 2, seeds 0-2): 0.53-0.81 against 12.3-15.7 (seeds 3-10: 0.76-1.33 against
+    13.5-22.3). Without slowing for the right bends the wheel takes away (``curve_margin`` 0) neither store tracks them
+    (docs/PAPER.md, "Beyond the paper")."""
     rows = wheel_and_floor["wheel"]
     assert [r["scenario"] for r in rows] == ["wheel"] * 3 and [r["seed"] for r in rows] == [0, 1, 2]
     for r in rows:
-        assert r["curve_margin"] == D.CURVE_MARGIN == 0.9
+        assert r["curve_margin"] == D.CURVE_MARGIN == 0.9 and r["mpc_solver"] == SOLVER
         for s in (r, r["baseline"]):
             assert s["reached_goal"] and not s["collisions"]
         assert r["relearned"] > 0 and r["baseline"]["relearned"] == 0
@@ -104,8 +112,8 @@ def test_on_a_new_floor_the_adapting_store_drives_closer_than_the_papers_though_
     use, judged on the median: the new floor differs by less than ``change_tol`` on the cells the mission drives, so
     the refined pairs follow it by their recent pairs (transfer/store.py, "A small change"). Every run reaches the goal
     without a collision, and the adapting store's deviation from 15 s after the change to the end is under 0.7x the
-    never-forgetting store's. Measured (seeds 0-2): 1.0-1.5 mm against 2.3-2.7 mm; before the refined pairs followed
-    the recent pairs, 2.1-2.5 mm (docs/PAPER.md, "Beyond the paper")."""
+    never-forgetting store's. Measured with the station's MPC (seeds 0-2): 1.12-1.22 mm against 3.14-3.18 mm (seeds
+    3-10: 1.10-1.38 against 3.18-3.79; docs/PAPER.md, "Beyond the paper", has the paper's MPC's)."""
     rows = wheel_and_floor["floor"]
     assert [r["scenario"] for r in rows] == ["floor"] * 3 and [r["seed"] for r in rows] == [0, 1, 2]
     for r in rows:
@@ -120,15 +128,28 @@ def test_on_a_new_floor_the_adapting_store_drives_closer_than_the_papers_though_
 def test_a_store_reloaded_on_a_changed_learner_is_relearned_and_on_an_unchanged_one_costs_nothing() -> None:
     """``sim drift --reloaded`` on one S-path (seeds the claims do not use): yesterday's store on today's dragging
     wheel drives the second half within 2 mm once its changed cells are re-learned, where the paper's store stays
-    about 10 mm off (measured 1.5-1.8 against 9.5-11.3 mm, seeds 0-2); on an unchanged learner nothing is re-learned
-    and the deviation is the paper's store's (0.99-1.05x), here within 1.25x."""
+    about 10 mm off (measured with the station's MPC 1.08-1.65 against 10.7-11.2 mm, seeds 0-2); on an unchanged
+    learner nothing is re-learned and the deviation is the paper's store's (1.00x), here within 1.25x."""
     seed = 0
-    wheel = D.reloaded_summary("wheel", seed, tiles=1)
+    wheel = D.reloaded_summary("wheel", seed, tiles=1, solver=SOLVER)
     a, b = wheel["adaptive"], wheel["baseline"]
     assert a["reached_goal"] and b["reached_goal"] and not (a["collisions"] or b["collisions"]), wheel
     assert a["relearned"] >= 5 and a["dev_last_half_m"] < 0.4 * b["dev_last_half_m"], wheel
-    same = D.reloaded_summary(D.CONTROL, seed, tiles=1)
+    same = D.reloaded_summary(D.CONTROL, seed, tiles=1, solver=SOLVER)
     a, b = same["adaptive"], same["baseline"]
     assert a["reached_goal"] and not a["collisions"] and a["relearned"] == 0, same
     assert a["dev_last_half_m"] <= 1.25 * b["dev_last_half_m"], same
     assert same["learned"] == wheel["learned"] and D._first_run.cache_info().hits >= 1  # one first run for both
+
+
+@pytest.mark.timeout(HANG_S)
+def test_the_cli_sweeps_on_the_solver_it_is_given_and_says_which(capsys) -> None:
+    """``sim drift --solver``: the sweep's workers drive the MPC named, each row says which, and on a learner that
+    does not change (``none``) the adapting store re-learns nothing."""
+    assert main(["sim", "drift", "--scenario", "none", "--seeds", "0,1", "--tiles", "1", "--solver", SOLVER,
+                 "--workers", "2"]) == 0
+    lines = [json.loads(line) for line in capsys.readouterr().out.splitlines() if line.strip()]
+    rows, stats = lines[:-1], lines[-1]
+    assert [(r["scenario"], r["seed"], r["mpc_solver"]) for r in rows] == [("none", 0, SOLVER), ("none", 1, SOLVER)]
+    assert all(r["reached_goal"] and not r["collisions"] and r["relearned"] == 0 for r in rows)
+    assert stats["experiment"] == "drift-sweep" and stats["stats"]["none"]["relearned"] == 0
