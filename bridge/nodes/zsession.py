@@ -19,6 +19,7 @@ from typing import Any, TypeVar
 
 import zenoh
 
+from bridge.core import ports
 from bridge.core.backoff import Backoff
 from bridge.core.clock import SYSTEM, Clock
 from bridge.core.errors import UsageError
@@ -30,10 +31,9 @@ H = TypeVar("H")
 
 
 def free_port(host: str = "127.0.0.1") -> int:
-    """A TCP port the OS says is free right now on ``host`` (for tests and the demo; never a fixed port)."""
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-        s.bind((host, 0))
-        return int(s.getsockname()[1])
+    """A TCP port free right now on ``host`` for a Zenoh endpoint (for tests and the demo; never a fixed port), drawn
+    where no outgoing connection takes it meanwhile (:func:`bridge.core.ports.free_port`)."""
+    return ports.free_port(host, socket.SOCK_STREAM)
 
 
 def tcp(port: int, host: str = "127.0.0.1") -> str:

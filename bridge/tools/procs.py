@@ -11,6 +11,7 @@ import tempfile
 from pathlib import Path
 from typing import Any
 
+from bridge.core import ports
 from bridge.core.auth import make_key
 from bridge.core.lifeline import child_env
 
@@ -95,10 +96,9 @@ class Children:
 
 
 def free_udp_port(host: str = "127.0.0.1") -> int:
-    """A UDP port the OS says is free right now on ``host`` (never a fixed port)."""
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-        s.bind((host, 0))
-        return int(s.getsockname()[1])
+    """A UDP port free right now on ``host`` (never a fixed port), drawn where no other socket's port 0 takes it
+    meanwhile (:func:`bridge.core.ports.free_port`)."""
+    return ports.free_port(host, socket.SOCK_DGRAM)
 
 
 def emulated_link(kids: Children, link: str, workdir: Path, x0: str, duration: float, out: Any = subprocess.DEVNULL,

@@ -26,6 +26,7 @@ from collections.abc import Iterator
 import msgspec
 import pytest
 
+from bridge.core import ports
 from bridge.core import wire as M
 from bridge.tools.procs import stop_group
 from drivers import open_driver
@@ -45,10 +46,8 @@ LOCAL = "127.0.0.1"
 
 
 def free_udp_port() -> int:
-    """A UDP port the OS says is free right now (the robot must know the driver's port before the driver binds)."""
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-        s.bind((LOCAL, 0))
-        return int(s.getsockname()[1])
+    """A UDP port free right now (the robot must know the driver's port before the driver binds)."""
+    return ports.free_port(LOCAL, socket.SOCK_DGRAM)
 
 
 def udp_socket(port: int = 0) -> socket.socket:
