@@ -1,7 +1,8 @@
 # Two entry points for a fresh clone: `make demo` and `make test`.
 # Both create .venv when it is missing and install exactly the lock into it: requirements/dev.txt, pinned with
-# hashes (pip --require-hashes), then the project itself with --no-deps --no-build-isolation (setuptools comes
-# from the lock, so nothing unpinned or unhashed is fetched). `make lock` regenerates the locks from pyproject.toml.
+# hashes (pip --require-hashes; the lock is complete, so each pip is told --no-deps and `pip check` confirms it),
+# then the project itself with --no-build-isolation (setuptools comes from the lock, so nothing unpinned or unhashed
+# is fetched). `make lock` regenerates the locks from pyproject.toml.
 # The locks are for CPython 3.11 on Linux x86_64: the bootstrap refuses any other Python in one line.
 LOCKED_PY := 3.11
 PYTHON ?= $(shell command -v python$(LOCKED_PY) 2>/dev/null || echo python3)
@@ -26,19 +27,14 @@ $(PY):
 	@$(call check_python,$(PYTHON))
 	$(PYTHON) -m venv $(VENV)
 
-$(STAMP): $(PY) $(LOCK) pyproject.toml
+$(STAMP): $(PY) $(LOCK) pyproject.toml requirements/bootstrap.py
 	@$(call check_python,$(PY))
-	$(PY) -m pip install --quiet --no-compile --require-hashes --only-binary=:all: -r $(LOCK)
-	$(PY) -m pip install --quiet --no-compile --no-deps --no-build-isolation -e .
-	@# Two jobs at once, each on a core of its own (pip would compile the packages alone, one file after another):
-	@# - the bytecode of every installed package and of the project, once: every process the suite or a lab starts
-	@#   then loads it instead of compiling the sources again (none writes it with PYTHONDONTWRITEBYTECODE set); as
-	@#   with pip's own compiling, a file that is not valid Python 3 (a package's Python 2 examples) is left as it is;
-	@# - the compiled kernels (SC map, MPC references) once, into numba's on-disk cache, instead of in every process
-	@#   that first needs them (a station starting beside others, or a test's, would spend tens of seconds).
-	{ $(PY) -m compileall -q -j 0 $$($(PY) -c 'import sysconfig; print(sysconfig.get_paths()["purelib"])') \
-		bridge transfer drivers sim_learner bench tests >/dev/null 2>&1 || true; } & compiling=$$!; \
-	$(PY) -c '$(WARMUP)'; warmed=$$?; wait $$compiling; exit $$warmed
+	@# requirements/bootstrap.py: the lock (pip --require-hashes), the project (editable, no build isolation), the
+	@# SC kernels compiled into numba's on-disk cache, the MPC's, and the bytecode of the installed packages and of the
+	@# project, on both cores: the packages the SC warm-up needs first, then that warm-up beside the rest of the lock
+	@# (pip works on one core), then the bytecode beside the MPC's warm-up. Compiled once here, a kernel is loaded by
+	@# every process that needs it (a station starting beside others, or a test's, would spend tens of seconds).
+	$(PY) requirements/bootstrap.py $(LOCK) --first $(WARMUP_NEEDS) --warm-first '$(WARMUP_SC)' --warm-last '$(WARMUP_MPC)'
 	touch $(STAMP)
 
 # The shipped units (deploy/systemd/) run with NUMBA_CACHE_DIR=$(SERVICE_CACHE)/numba and their cache directory
@@ -48,7 +44,10 @@ $(STAMP): $(PY) $(LOCK) pyproject.toml
 # compiling them (tens of seconds). Run again after an update (it only loads what is still current).
 SERVICE_CACHE ?= /var/cache/scmbridge
 SERVICE_USER ?= scmbridge
-WARMUP := from transfer.scm import warmup; from transfer.teacher.mpc import MpcTeacher; warmup(); MpcTeacher()
+WARMUP_SC := from transfer.scm import warmup; warmup()
+WARMUP_NEEDS := numpy,scipy,numba,llvmlite
+WARMUP_MPC := from transfer.teacher.mpc import MpcTeacher; MpcTeacher()
+WARMUP := $(WARMUP_SC); $(WARMUP_MPC)
 # The station's MPC compiled (about a minute of a core each): install only, not the bootstrap (the suite's stations
 # run it interpreted, SCMBRIDGE_NO_COMPILE=1; a lab's first station builds it in the background)
 MPC_WARMUP := from bridge.nodes.sources import warm_kernels; warm_kernels()
