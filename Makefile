@@ -46,7 +46,7 @@ SERVICE_CACHE ?= /var/cache/scmbridge
 SERVICE_USER ?= scmbridge
 WARMUP_SC := from transfer.scm import warmup; warmup()
 WARMUP_NEEDS := numpy,scipy,numba,llvmlite
-WARMUP_MPC := from transfer.teacher.mpc import MpcTeacher; MpcTeacher()
+WARMUP_MPC := from transfer.teacher.mpc import MpcConfig, MpcTeacher; MpcTeacher(MpcConfig(curve_margin=0.9))
 WARMUP := $(WARMUP_SC); $(WARMUP_MPC)
 # The station's MPC compiled (about a minute of a core each): install only, not the bootstrap (the suite's stations
 # run it interpreted, SCMBRIDGE_NO_COMPILE=1; a lab's first station builds it in the background)

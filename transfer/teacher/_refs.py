@@ -148,3 +148,16 @@ def nearest_obstacles(obstacles: np.ndarray, x: float, y: float, reach: float, s
         else:
             slots[j, 0], slots[j, 1], slots[j, 2] = 0.0, 0.0, -1.0
     return k, m - k
+
+
+def warm(curve: bool = True) -> None:
+    """Every compiled loop here loaded from numba's on-disk cache (compiled into it once per machine) now, not in a
+    solve: the closest point (found anew and near the last one), the references from it, the obstacles, and, with
+    ``curve``, the slowing for bends. The MPC calls it when it is made; the install runs it with everything."""
+    pts, s_cum, seg = np.array([[0.0, 0.0], [1.0, 0.0]]), np.array([0.0, 1.0]), np.array([1.0])
+    closest(pts, s_cum, seg, 0.0, 0.0)
+    closest_near(pts, s_cum, seg, 0.0, 0.0, 0)
+    references_from(pts, s_cum, seg, np.zeros(1), 0.0, 0.0, 0.1, 2)
+    nearest_obstacles(np.zeros((1, 3)), 0.0, 0.0, 1.0, np.empty((1, 3)))
+    if curve:
+        curve_speed_from(s_cum, np.zeros(2), 0.0, 1.0, 0.1, -1.0, 1.0, 0.9, 1.0)

@@ -263,14 +263,8 @@ class MpcTeacher:
     def __init__(self, config: MpcConfig | None = None, compiler: Compiler | None = None) -> None:
         self.cfg = cfg = config or MpcConfig()
         self._backend: _Ipopt | _Rti = _Ipopt(cfg) if cfg.solver == "ipopt" else _Rti(cfg, compiler)
-        # the compiled loops a solve calls loaded (or compiled, once per machine) now, not in the first tick: the
-        # closest point, the references from it, the obstacles, and the slowing for bends where it is used
-        pts, s_cum, seg = np.array([[0.0, 0.0], [1.0, 0.0]]), np.array([0.0, 1.0]), np.array([1.0])
-        _refs.closest_near(pts, s_cum, seg, 0.0, 0.0, 0)
-        _refs.references_from(pts, s_cum, seg, np.zeros(1), 0.0, 0.0, 0.1, 2)
-        _refs.nearest_obstacles(np.zeros((1, 3)), 0.0, 0.0, 1.0, np.empty((1, 3)))
-        if cfg.curve_margin > 0.0:
-            _refs.curve_speed_from(s_cum, np.zeros(2), 0.0, 1.0, 0.1, -1.0, 1.0, 0.9, 1.0)
+        # the compiled loops a solve calls loaded (or compiled, once per machine) now, not in the first tick
+        _refs.warm(curve=cfg.curve_margin > 0.0)
         #: the path's segment closest to the last solve's state: where the next solve's search for it starts
         #: (:func:`transfer.teacher._refs.closest_near`: the same point, found in a few microseconds)
         self._near = 0
