@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import importlib.util
+import json
+import os
 import re
 import subprocess
 import sys
@@ -59,3 +61,29 @@ def test_pip_reads_both_parts(tmp_path: Path) -> None:
                              timeout=60)
         assert out.returncode == 0, out.stderr[-2000:]
         assert int(out.stdout) == len(_pins(part))
+
+
+#: what the station, the driver host with each link, the emulated devices and the tools import
+NODE_IMPORTS = ("bridge.tools.cli", "bridge.nodes.station", "bridge.nodes.driver_host", "drivers.can",
+                "drivers.mavlink", "drivers.udp", "sim_learner.emulator", "sim_learner.mavlink_rover",
+                "sim_learner.can_ecu", "sim_learner.experiments", "bridge.tools.demo", "pymavlink.mavutil",
+                "MAVProxy.mavproxy")
+
+
+def test_what_the_nodes_import_was_byte_compiled_by_the_install() -> None:
+    """The bootstrap leaves some installed files uncompiled (requirements/bootstrap.py); none that a node imports,
+    or every process that imports it, the suite's hundreds, compiles it from its source again (the suite runs with
+    ``PYTHONDONTWRITEBYTECODE``). Only for an environment the bootstrap made (its stamp)."""
+    if not (Path(sys.prefix) / ".installed").exists():
+        pytest.skip("not the Makefile's environment (no .installed stamp)")
+    code = ("import importlib, importlib.util, json, os, sys, sysconfig\n"
+            f"for name in {NODE_IMPORTS!r}:\n"
+            "    importlib.import_module(name)\n"
+            "lib = sysconfig.get_paths()['purelib']\n"
+            "print(json.dumps(sorted(m.__file__ for m in list(sys.modules.values())\n"
+            "    if (getattr(m, '__file__', None) or '').endswith('.py') and m.__file__.startswith(lib)\n"
+            "    and not os.path.exists(importlib.util.cache_from_source(m.__file__)))))\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, cwd=ROOT,
+                         env={**os.environ, "PYTHONDONTWRITEBYTECODE": "1"})
+    assert out.returncode == 0, out.stderr[-3000:]
+    assert json.loads(out.stdout.splitlines()[-1]) == []
