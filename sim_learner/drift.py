@@ -410,8 +410,8 @@ def reloaded_summary(scenario: str, seed: int, tiles: int = TILES, solver: str =
     first = _first_run(seed, tiles, solver, curve_margin)
     assert first.store is not None
     out = {"experiment": "drift-reloaded", "scenario": scenario, "seed": seed, "tiles": tiles, "change_tol": change_tol,
-           "curve_margin": curve_margin, "mpc_solver": solver, "learned": {"refined_pairs": first.store.n_configured(),
-                                                     **reloaded_figures(first)}}
+           "curve_margin": curve_margin, "mpc_solver": solver,
+           "learned": {"refined_pairs": first.store.n_configured(), **reloaded_figures(first)}}
     for name, adapt in (("adaptive", True), ("baseline", False)):
         run, _ = drive(scenario, seed, adapt=adapt, tiles=tiles, solver=solver, change_tol=change_tol,
                        curve_margin=curve_margin, reloaded=first.store)
