@@ -4,6 +4,7 @@ left its station and driver host running under PID 1 until their ``--duration``,
 
 from __future__ import annotations
 
+import contextlib
 import os
 import signal
 import subprocess
@@ -90,8 +91,15 @@ def _children(pid: int) -> dict[int, str]:
 
 def _why_alive(alive: dict[int, str], out: Path) -> str:
     """For a failure's message: each live child's command line, state, kernel wait channel and signal masks (a
-    SIGTERM pending but blocked shows in SigPnd/ShdPnd and SigBlk), then what the demo's children wrote last."""
+    SIGTERM pending but blocked shows in SigPnd/ShdPnd and SigBlk), then what the demo's children wrote last, with
+    the Python stack of each of their threads: SIGUSR2 makes every ``scmbridge`` process write them to its stderr
+    (``faulthandler``, from its C handler: also where the main thread is stuck in native code)."""
     lines = []
+    for pid in alive:
+        with contextlib.suppress(OSError):
+            os.kill(pid, signal.SIGUSR2)
+    until(lambda: sum("(most recent call first)" in p.read_text(errors="replace") for p in out.glob("*.log"))
+          >= len(alive), 2.0, 0.05)
     for pid, cmd in alive.items():
         lines.append(f"pid {pid}: {cmd[:200]}")
         try:
@@ -102,7 +110,7 @@ def _why_alive(alive: dict[int, str], out: Path) -> str:
         except OSError as exc:
             lines.append(f"  ({exc})")
     for log in sorted(out.glob("*.log")):
-        lines.append(f"--- {log.name} (last 2000 characters):\n{log.read_text(errors='replace')[-2000:]}")
+        lines.append(f"--- {log.name} (last 6000 characters):\n{log.read_text(errors='replace')[-6000:]}")
     return "\n".join(lines)
 
 
