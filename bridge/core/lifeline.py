@@ -23,6 +23,8 @@ from collections.abc import Mapping
 PARENT_ENV = "SCMBRIDGE_PARENT_PID"
 #: prctl(2): the signal the calling process gets when its parent dies
 PR_SET_PDEATHSIG = 1
+#: the parent :func:`hold` was named (None: none was)
+_held_parent: int | None = None
 
 
 def child_env(env: Mapping[str, str] | None = None, parent: int | None = None) -> dict[str, str]:
@@ -54,10 +56,20 @@ def hold(environ: dict[str, str] | None = None) -> bool:
         parent = int(named)
     except ValueError:
         return False
+    global _held_parent
+    _held_parent = parent
     armed = _pdeathsig(signal.SIGTERM)
     if os.getppid() != parent:  # the parent died before the kernel was asked: nobody would signal us
         os._exit(128 + signal.SIGTERM)
     return armed
 
 
-__all__ = ["PARENT_ENV", "child_env", "hold"]
+def orphaned() -> bool:
+    """Whether the parent :func:`hold` was named has died since (this process was handed to another). Its SIGTERM
+    came then, but a process still starting may not have acted on it: the start-up's handler raises it in the main
+    thread, and an exception raised in a finaliser (a collection runs them anywhere) is printed and dropped. A node
+    asks this once its own stop handler is in place (:func:`bridge.nodes.node.stop_on_signals`)."""
+    return _held_parent is not None and os.getppid() != _held_parent
+
+
+__all__ = ["PARENT_ENV", "child_env", "hold", "orphaned"]

@@ -23,7 +23,7 @@ from typing import Any, Generic, TypeVar
 import zenoh
 from msgspec import Struct
 
-from bridge.core import timebase
+from bridge.core import lifeline, timebase
 from bridge.core import wire as M
 from bridge.core.clock import SYSTEM, Clock
 from bridge.nodes.zsession import Declared, make_config
@@ -355,7 +355,9 @@ def stop_on_signals() -> StopEvent:
     ``stop.wait`` holding the event's own lock: a handler that set the event there waited for that lock forever (a
     driver host outlived its killed demo that way, asleep on a futex, seen beside load). So the signal's number goes
     through the interpreter's wake-up pipe (``signal.set_wakeup_fd``, written by its C handler) to a watcher thread,
-    which sets every stop of the process from its own thread. A process forked from this one does not inherit it."""
+    which sets every stop of the process from its own thread. A process forked from this one does not inherit it.
+    A process tied to its parent (:mod:`bridge.core.lifeline`) whose parent died while it started gets its stop set
+    at once: the SIGTERM the kernel sent it then went to the start-up's handler, which may not have stopped it."""
     global _signal_fd
     stop = StopEvent()
     with _signal_lock:
@@ -371,6 +373,9 @@ def stop_on_signals() -> StopEvent:
         signal.signal(sig, _on_stop_signal)
     report = MemoryReport(os.environ.get(MEMORY_REPORT_ENV))
     signal.signal(signal.SIGUSR1, lambda *_: report.write())
+    if lifeline.orphaned():  # the parent died while this process started: its SIGTERM may have been lost meanwhile
+        stop.why = stop.why or "SIGTERM (its parent had died)"
+        stop.set()
     return stop
 
 

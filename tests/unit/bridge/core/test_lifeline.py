@@ -24,3 +24,15 @@ def test_the_variable_is_read_once_and_not_handed_on() -> None:
     env = child_env({"A": "1"}, parent=os.getppid())
     assert env[PARENT_ENV] == str(os.getppid()) and env["A"] == "1"
     assert hold(env) in (True, False) and PARENT_ENV not in env  # armed where the kernel can; removed either way
+
+
+def test_orphaned_says_whether_the_parent_named_has_died_since() -> None:
+    """No parent named: never orphaned. Named and alive: not. Handed to another parent since (the kernel's
+    reparenting, simulated in a child of this test): orphaned."""
+    code = ("import os\nfrom bridge.core import lifeline\n"
+            "before = lifeline.orphaned()\n"
+            "os.environ[lifeline.PARENT_ENV] = str(os.getppid())\nlifeline.hold()\n"
+            "alive = lifeline.orphaned()\nos.getppid = lambda: 1\n"
+            "print(before, alive, lifeline.orphaned())\n")
+    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    assert res.returncode == 0 and res.stdout.split() == ["False", "False", "True"], res

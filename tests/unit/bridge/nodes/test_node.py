@@ -98,6 +98,31 @@ print("set", stop.wait(10), other.wait(10), stopped_because(stop), flush=True)
 """
 
 
+_ORPHANED_WHILE_STARTING = """
+import os, signal
+from bridge.core import lifeline
+os.environ[lifeline.PARENT_ENV] = str(os.getppid())
+lifeline.hold()
+signal.signal(signal.SIGTERM, signal.SIG_IGN)  # as a SIGTERM lost during the start-up
+os.getppid = lambda: 1  # the parent died meanwhile: the kernel handed this process to another
+from bridge.nodes.node import stop_on_signals, stopped_because
+stop = stop_on_signals()
+print("set", stop.is_set(), stopped_because(stop), flush=True)
+"""
+
+
+def test_a_process_whose_parent_died_while_it_started_is_stopped_as_soon_as_it_can_stop() -> None:
+    """The kernel's SIGTERM for a dead parent may come while the process is still starting, before its stop exists:
+    once the stop is made it is set if the parent named in the environment is gone."""
+    import subprocess
+    import sys
+
+    out = subprocess.run([sys.executable, "-c", _ORPHANED_WHILE_STARTING], capture_output=True, text=True,
+                         timeout=60)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.split() == ["set", "True", "on", "SIGTERM", "(its", "parent", "had", "died)"]
+
+
 def test_a_stop_signal_that_comes_while_the_main_thread_holds_the_stops_lock_still_stops_it() -> None:
     """A handler that set the event itself waited for the lock its own thread held, forever (the process asleep on a
     futex); the watcher thread sets it once the lock is free, every stop of the process, named by the signal."""
