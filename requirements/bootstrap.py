@@ -10,17 +10,17 @@ that every installed package's requirements are met.
 
 What takes the time is done side by side on two cores instead of one after another:
 
-1. the packages named by ``--first`` (those ``--warm-first`` imports), alone: a few seconds;
-2. ``--warm-first`` (compiling the SC kernels into numba's on-disk cache, a core for a quarter of a minute) beside
-   the rest of the lock and the project (pip works on one core);
+1. the packages named by ``--first`` (those ``--warm-first`` imports), alone;
+2. ``--warm-first`` (compiling the SC kernels into numba's on-disk cache: one core's work) beside the rest of the
+   lock and the project (pip works on one core);
 3. ``--warm-last`` (what needs the rest: the MPC's kernels) beside the bytecode of the installed packages and of the
    project (``compileall -j 0``). Every process the suite or a lab starts then loads that bytecode instead of
    compiling the sources again (none writes it with ``PYTHONDONTWRITEBYTECODE`` set). Not compiled: the packages'
    own test suites and the MAVLink dialects nothing here imports (pymavlink ships one module of megabytes per
-   dialect; the project speaks ardupilotmega, and pymavlink's ``mavutil`` imports ``all``: a process that compiles
-   it from its source spends a second on it); a file that is not valid Python 3 (a package's Python 2 examples) is
-   left as it is, as pip's own compiling leaves it. ``tests/repo/test_bootstrap.py`` checks that what the nodes
-   import has its bytecode.
+   dialect; the project speaks ardupilotmega, and pymavlink's ``mavutil`` imports ``all``, which every process that
+   imports ``mavutil`` would otherwise compile from its source again); a file that is not valid Python 3 (a
+   package's Python 2 examples) is left as it is, as pip's own compiling leaves it. ``tests/repo/test_bootstrap.py``
+   checks that what the nodes import has its bytecode.
 
 Exit status 1, with the step that failed, if a pip, a warm-up or the check fails.
 """
