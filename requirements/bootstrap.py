@@ -52,10 +52,12 @@ def split_lock(text: str, first: set[str]) -> tuple[str, str]:
         elif blocks and line.strip().startswith("--hash="):
             blocks[-1].append(line)
     parts: tuple[list[str], list[str]] = ([], [])
+    pinned: set[str] = set()
     for block in blocks:
-        name = re.split(r"[=<>!~\[; ]", block[0], maxsplit=1)[0]
-        parts[0 if _norm(name) in first else 1].append("\n".join(block).rstrip(" \\"))
-    missing = first - {_norm(re.split(r"[=<>!~\[; ]", b, maxsplit=1)[0]) for b in parts[0]}
+        name = _norm(re.split(r"[=<>!~\[; ]", block[0], maxsplit=1)[0])
+        pinned.add(name)
+        parts[0 if name in first else 1].append("\n".join(block).rstrip(" \\"))
+    missing = first - pinned
     if missing:
         raise SystemExit(f"bootstrap: {', '.join(sorted(missing))} not pinned in the lock")
     return "\n".join(parts[0]) + "\n", "\n".join(parts[1]) + "\n"

@@ -26,9 +26,8 @@ from collections.abc import Iterator
 import msgspec
 import pytest
 
-from bridge.core import ports
 from bridge.core import wire as M
-from bridge.tools.procs import stop_group
+from bridge.tools.procs import free_udp_port, stop_group
 from drivers import open_driver
 from drivers.base import Driver, DriverError, LinkHealth
 from drivers.udp import UdpLinkConfig
@@ -43,11 +42,6 @@ def health(driver: Driver) -> LinkHealth:
     return driver.health(time.monotonic())
 
 LOCAL = "127.0.0.1"
-
-
-def free_udp_port() -> int:
-    """A UDP port free right now (the robot must know the driver's port before the driver binds)."""
-    return ports.free_port(LOCAL, socket.SOCK_DGRAM)
 
 
 def udp_socket(port: int = 0) -> socket.socket:

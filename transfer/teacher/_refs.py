@@ -151,11 +151,11 @@ def nearest_obstacles(obstacles: np.ndarray, x: float, y: float, reach: float, s
 
 
 def warm(curve: bool = True) -> None:
-    """Every compiled loop here loaded from numba's on-disk cache (compiled into it once per machine) now, not in a
-    solve: the closest point (found anew and near the last one), the references from it, the obstacles, and, with
-    ``curve``, the slowing for bends. The MPC calls it when it is made; the install runs it with everything."""
+    """The compiled loops a solve calls loaded from numba's on-disk cache (compiled into it once per machine) now, not
+    in a solve: the closest point near the last one, the references from it, the obstacles, and, with ``curve``, the
+    slowing for bends. The MPC calls it when it is made (the install makes one that slows for bends). Not
+    :func:`closest`: only :func:`references` searches the whole path, and no solve calls it."""
     pts, s_cum, seg = np.array([[0.0, 0.0], [1.0, 0.0]]), np.array([0.0, 1.0]), np.array([1.0])
-    closest(pts, s_cum, seg, 0.0, 0.0)
     closest_near(pts, s_cum, seg, 0.0, 0.0, 0)
     references_from(pts, s_cum, seg, np.zeros(1), 0.0, 0.0, 0.1, 2)
     nearest_obstacles(np.zeros((1, 3)), 0.0, 0.0, 1.0, np.empty((1, 3)))
