@@ -21,8 +21,8 @@ control only the operator's certificate may publish it (``scmbridge deploy``).
 from __future__ import annotations
 
 import logging
-import time
 from dataclasses import dataclass
+from datetime import datetime
 
 import msgspec
 import numpy as np
@@ -159,7 +159,7 @@ class MissionControl:
         self.version += 1
         by = by or f"a publisher on scm/{self.robot}/mission"
         self.replaced_by, self.replaced_at = by, at
-        when = time.strftime("%H:%M:%S", time.localtime(at)) if at > 0 else "an unknown time"
+        when = datetime.fromtimestamp(at).strftime("%H:%M:%S") if at > 0 else "an unknown time"
         if self.phase == "running":
             log.warning("mission %r: path replaced in place while running, from %s at %s", spec.name, by, when)
         else:

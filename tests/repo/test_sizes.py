@@ -5,8 +5,8 @@ project bases'); no Python file of the repository (product, bench, tests) is lon
 grows by getting a collaborator with a job of its own, not a longer list.
 
 :data:`KNOWN_EXCESS` holds the classes over a limit today with their measured size: such a class may not grow, the
-test reports them every run (a warning), and says when one has shrunk so the figure can be tightened. The drivers'
-host side also reads no clock of its own: ``time`` is used only by ``bridge/core/timebase.py``."""
+test reports them every run (a warning), and says when one has shrunk so the figure can be tightened. The drivers and
+the nodes also read no clock of their own: ``time`` is used only by ``bridge/core/timebase.py``."""
 
 from __future__ import annotations
 
@@ -42,12 +42,10 @@ CONTROL_PATH = (
 )
 #: classes over a limit today: (public members, attributes) as measured; they may not grow (tighten as they shrink)
 KNOWN_EXCESS: dict[str, tuple[int, int]] = {}
-#: the modules that may use the time module on the driver host's side: the clock's own
+#: the module that may use the time module for the nodes and the drivers: the clock's own
 CLOCK_MODULE = "bridge/core/timebase.py"
-#: where no other module may: the drivers and the driver host's own modules
-NO_TIME = ("drivers", "bridge/nodes/driver_host.py", "bridge/nodes/driver_cmd.py", "bridge/nodes/host_loop.py",
-           "bridge/nodes/host_status.py", "bridge/nodes/pairing.py", "bridge/nodes/pose_feed.py",
-           "bridge/nodes/engagement.py")
+#: where no other module may: the drivers and every node (the driver host, the station, the fleet loop)
+NO_TIME = ("drivers", "bridge/nodes")
 
 
 def _load(spec: str) -> type:
@@ -151,7 +149,7 @@ def _uses_time(path: Path) -> list[str]:
     return found
 
 
-def test_the_drivers_and_the_driver_host_read_time_only_through_the_clock_module() -> None:
+def test_the_drivers_and_the_nodes_read_time_only_through_the_clock_module() -> None:
     offenders = {}
     for entry in NO_TIME:
         target = ROOT / entry
