@@ -8,7 +8,8 @@ wall time, when it started (the wall clock, shared by the workers) and its worke
 session (``__total__``). A process reaped later (by another test's
 ``subprocess.Popen``, which reaps the finished children it finds) counts there, and one never reaped not at all.
 ``python -m tests.cpu_report DIR [N]`` prints the totals, the CPU by group and module, the N costliest tests, and the
-run's tail: when each worker ran out of tests and which tests ended last."""
+run's tail: when each worker ran out of tests and which tests ended last. ``python -m tests.cpu_report DIR
+--durations > tests/durations.json`` writes the long tests the suite's order deals out first (tests/schedule.py)."""
 
 from __future__ import annotations
 
@@ -24,6 +25,8 @@ from typing import IO
 import pytest
 
 ENV = "SCMBRIDGE_CPU_REPORT"
+#: the wall time from which a test counts as long for the suite's order (:func:`durations`)
+MIN_LONG_S = 4.0
 _out: IO[str] | None = None
 
 
@@ -58,7 +61,8 @@ def pytest_sessionfinish(session: pytest.Session) -> None:
         _write({"id": "__total__", "self": round(s, 3), "children": round(c, 3)})
 
 
-def report(directory: Path, n: int = 30) -> str:
+def _read(directory: Path) -> tuple[list[dict], list[float]]:
+    """The report's rows, one per test, and the workers' own and children's CPU summed."""
     rows, total = [], [0.0, 0.0]
     for f in sorted(directory.glob("*.jsonl")):
         for line in f.read_text().splitlines():
@@ -67,6 +71,19 @@ def report(directory: Path, n: int = 30) -> str:
                 total[0], total[1] = total[0] + r["self"], total[1] + r["children"]
             else:
                 rows.append(r)
+    return rows, total
+
+
+def durations(directory: Path, min_s: float = MIN_LONG_S) -> dict[str, float]:
+    """The tests of a report that took at least ``min_s`` of wall time, longest first: what tests/durations.json
+    holds for the suite's order (tests/schedule.py), from a report of ``make test``'s own workers."""
+    rows, _ = _read(directory)
+    long = {r["id"]: round(r["wall"], 1) for r in rows if r["wall"] >= min_s}
+    return dict(sorted(long.items(), key=lambda kv: (-kv[1], kv[0])))
+
+
+def report(directory: Path, n: int = 30) -> str:
+    rows, total = _read(directory)
 
     def cpu(r: dict) -> float:
         return r["self"] + r["children"]
@@ -107,4 +124,7 @@ def _tail(rows: list[dict]) -> list[str]:
 
 
 if __name__ == "__main__":
-    print(report(Path(sys.argv[1]), int(sys.argv[2]) if len(sys.argv) > 2 else 30))
+    if len(sys.argv) > 2 and sys.argv[2] == "--durations":  # DIR --durations: the suite's order's long tests
+        print(json.dumps(durations(Path(sys.argv[1])), indent=1))
+    else:
+        print(report(Path(sys.argv[1]), int(sys.argv[2]) if len(sys.argv) > 2 else 30))

@@ -9,49 +9,27 @@ far (longest processing time first), and in each share they start early, each fo
 quick tests between them leave the cores to the loops). The quick tests keep their collected order (a file's tests
 stay together), so the late halves the stealing moves are quick tests.
 
-The long tests and their seconds are :data:`LONGEST` (``pytest --durations`` of a fresh clone's ``make test``, four
-workers on two cores); a test marked ``slow`` that is not listed counts :data:`SLOW_DEFAULT_S`. A name that no longer
-matches a collected test is simply not found: the order stays valid, only less balanced. How long the suite takes:
-docs/BENCHMARKS.md, "The test suite"."""
+The long tests and their seconds are :data:`LONGEST`: every test that took 4 s or more in a ``make test`` (six workers
+on two cores), measured by tests/cpu_report.py; a test marked ``slow`` that is not listed counts
+:data:`SLOW_DEFAULT_S`. Listed whole, not only the longest: a share's time is in its long tests, so a test of 5-20 s
+left among the quick ones sat wherever the collected order put it, and the run ended with such tests alone on a
+worker or two while the other cores idled. A group of tests that share a module's fixtures moves whole with its long
+tests. A name that no longer matches a collected test is simply not found: the order stays valid, only less
+balanced. How long the suite takes: docs/BENCHMARKS.md, "The test suite"."""
 
 from __future__ import annotations
 
+import json
 from collections.abc import Callable, Sequence
+from pathlib import Path
 from typing import TypeVar
 
 T = TypeVar("T")
 
-#: node id -> seconds, for the tests that take longer than a few seconds (the measure is only for their order)
-LONGEST: dict[str, float] = {
-    "tests/integration/test_can_drift.py::test_the_hil_loop_relearns_the_cells_a_dragging_wheel_changed_in_the_"
-    "direction_of_the_drag": 51.0,
-    "tests/integration/test_can_drift.py::test_the_hil_loop_relearns_the_cells_a_sagging_battery_changed_and_reaches_"
-    "the_goal": 45.0,
-    "tests/integration/test_record.py::test_a_recorded_demo_reports_the_live_demos_figures": 40.0,
-    "tests/integration/test_fleet.py::test_the_fleet_demo_brings_three_robots_to_their_goals_and_leaves_no_process":
-        35.0,
-    "tests/integration/test_reliability.py::test_a_short_soak_runs_and_reports": 32.0,
-    "tests/integration/test_demo_calibrate.py::test_the_demo_calibrates_then_drives_its_mission_from_the_calibrated_"
-    "store": 31.0,
-    "tests/integration/test_fleet.py::test_the_fleet_bench_measures_one_station_and_says_how_many_it_held": 30.0,
-    "tests/integration/test_mission_control.py::test_a_station_drives_only_after_a_person_and_an_estop_release_or_a_"
-    "driver_restart_leaves_it_paused": 30.0,
-    "tests/repo/test_install.py::test_a_robot_installs_from_its_lock_and_the_project_offline": 27.0,
-    "tests/integration/test_calibrate.py::test_the_motion_primitive_teacher_drives_from_calibrated_pairs": 24.0,
-    "tests/integration/test_corridor.py::test_a_robot_that_runs_away_stops_within_the_corridor_and_waits_for_a_person":
-        24.0,
-    "tests/integration/test_lab_in_a_box.py::test_a_secure_lab_on_loopback_is_driven_and_stopped_by_its_operator": 22.0,
-    "tests/integration/test_external_teacher.py::test_the_example_external_teacher_drives_the_robot_through_the_"
-    "transfer_service": 20.0,
-    "tests/repo/test_docs_commands.py::test_the_documented_offline_commands_run": 20.0,
-    "tests/integration/test_tool_signals.py::test_a_tool_told_to_stop_leaves_no_process_behind[demo-SIGTERM]": 17.0,
-    "tests/integration/test_lab_in_a_box.py::test_the_operators_documented_commands_run_as_written_in_the_lab": 16.0,
-    "tests/integration/test_tool_signals.py::test_a_tool_told_to_stop_leaves_no_process_behind[demo --robots-SIGTERM]":
-        16.0,
-    "tests/unit/sim_learner/test_experiments.py::test_cli_grid_over_seeds_runs_each_seeds_mpc_and_summarises": 15.0,
-    "tests/unit/sim_learner/test_experiments.py::test_primitives_scm_learner_reaches_the_goal_and_the_baseline_"
-    "deviates_3x_more": 14.0,
-}
+#: node id -> seconds of wall time, for the tests that take at least a few (tests/durations.json, written by
+#: ``python -m tests.cpu_report DIR --durations`` from a report of ``make test``'s own workers; the measure is only for
+#: their order)
+LONGEST: dict[str, float] = json.loads((Path(__file__).parent / "durations.json").read_text())
 #: the seconds counted for a test marked ``slow`` that :data:`LONGEST` does not list
 SLOW_DEFAULT_S = 10.0
 #: the long tests of a share start within this part of it (the rest, quick tests only, is what stealing moves)
@@ -76,11 +54,17 @@ def order(items: Sequence[T], workers: int, seconds: Callable[[T], float | None]
     module's run of tests would end its fixtures there, and pytest would set them up again after it; and the long
     tests of one such group go one after another to one share (dealt apart, each worker would set up the fixture they
     share). Every item is kept, once."""
-    quick = [it for it in items if seconds(it) is None]
-    units: dict[object, list[T]] = {}  # a module's long tests that share its fixtures go together, in their order
+    def key(i: int, it: T) -> object:
+        return group(it) if group is not None else i
+
+    # a group with a long test moves whole, in its order (a module whose tests share its fixtures: split, its
+    # fixtures would be set up again where its run resumes)
+    moving = {key(i, it) for i, it in enumerate(items) if seconds(it) is not None}
+    quick = [it for i, it in enumerate(items) if key(i, it) not in moving]
+    units: dict[object, list[T]] = {}
     for i, it in enumerate(items):
-        if seconds(it) is not None:
-            units.setdefault(group(it) if group is not None else i, []).append(it)
+        if key(i, it) in moving:
+            units.setdefault(key(i, it), []).append(it)
     if not units:
         return list(items)
 

@@ -94,3 +94,29 @@ def test_the_long_tests_of_a_module_that_shares_a_fixture_run_one_after_another_
     i = out.index("drift::wheel")
     assert out[i + 1] == "drift::floor"
     assert i == 0  # the longest unit (47 s) first
+
+
+def test_a_module_that_shares_a_fixture_moves_whole_with_its_long_test() -> None:
+    """test_experiments.py's sweep: one long test and the quick ones that read the same module-scoped fixture. Left
+    among the quick tests, those would set the fixture up a second time where the module's run resumes: the module
+    goes as one unit, in its order, dealt out early as its long test is."""
+    items = [f"m{m}::t{t}" for m in range(40) for t in range(7)]
+    sweep = ["sweep::json", "sweep::goal", "sweep::time", "sweep::dev"]
+    items[200:200] = sweep
+    long_s = {"sweep::goal": 20.0, **{f"L{k}::t": float(30 - k) for k in range(6)}}
+    for j, name in enumerate(n for n in long_s if not n.startswith("sweep")):
+        items.insert(j * 30, name)
+    out = order(items, 4, long_s.get, group=lambda it: it.split("::")[0])
+    assert sorted(out) == sorted(items)
+    i = out.index("sweep::json")
+    assert out[i:i + 4] == sweep  # together, in their collected order
+    share = next(s for s in _share_slices(len(out), 4) if s.start <= i < s.stop)
+    assert i - share.start <= LONG_SPAN * (share.stop - share.start)  # early in its share, not where it was collected
+
+
+def _share_slices(n: int, workers: int) -> list[slice]:
+    out, start = [], 0
+    for size in shares(n, workers):
+        out.append(slice(start, start + size))
+        start += size
+    return out
