@@ -109,9 +109,9 @@ def _memory_env(trace: bool, workdir: Path, name: str) -> dict[str, Any]:
     """Spawn keywords for a node whose Python heap is traced (:class:`bridge.nodes.node.MemoryReport`), or none."""
     if not trace:
         return {}
-    from bridge.nodes.node import MEMORY_REPORT_ENV
+    from bridge.nodes.node import MEMORY_REPORT_ENV, TRACE_MEMORY_ENV
 
-    return {"env": {**os.environ, "PYTHONTRACEMALLOC": "1", MEMORY_REPORT_ENV: str(workdir / f"memory-{name}.jsonl")}}
+    return {"env": {**os.environ, TRACE_MEMORY_ENV: "1", MEMORY_REPORT_ENV: str(workdir / f"memory-{name}.jsonl")}}
 
 
 def _ask_memory_reports(procs: dict[str, Any], names: tuple[str, ...]) -> None:

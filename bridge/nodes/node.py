@@ -372,6 +372,8 @@ def stop_on_signals() -> StopEvent:
     for sig in STOP_SIGNALS:
         signal.signal(sig, _on_stop_signal)
     report = MemoryReport(os.environ.get(MEMORY_REPORT_ENV))
+    if os.environ.get(TRACE_MEMORY_ENV) and not tracemalloc.is_tracing():
+        tracemalloc.start()  # from here: the node's own allocations, not every import's (MemoryReport)
     signal.signal(signal.SIGUSR1, lambda *_: report.write())
     if lifeline.orphaned():  # the parent died while this process started: its SIGTERM may have been lost meanwhile
         stop.why = stop.why or "SIGTERM (its parent had died)"
@@ -423,12 +425,16 @@ def stopped_because(stop: threading.Event) -> str:
 
 
 MEMORY_REPORT_ENV = "SCMBRIDGE_MEMORY_REPORT"
+#: set (to anything): a node traces its allocations from its start, once its modules are imported (MemoryReport)
+TRACE_MEMORY_ENV = "SCMBRIDGE_TRACE_MEMORY"
 
 
 class MemoryReport:
     """``kill -USR1 <pid>`` on a node: where its Python heap grew. The first report is the baseline; each later one
     lists the allocation sites (file:line) that grew most since it, after a garbage collection. It needs
-    ``tracemalloc`` on (start the node with ``PYTHONTRACEMALLOC=1``); without it the report says so and gives the
+    ``tracemalloc`` on: start the node with ``SCMBRIDGE_TRACE_MEMORY=1`` (tracing from the node's start, once its
+    modules are imported: what grows while it runs, at a fraction of the cost and with snapshots of its own heap only)
+    or ``PYTHONTRACEMALLOC=1`` (from the interpreter's first import on); without it the report says so and gives the
     RSS only. A report is one JSON line in the log (WARNING: it is asked for), and appended to the file named by
     ``$SCMBRIDGE_MEMORY_REPORT`` when set (``scmbridge bench soak --trace-memory`` reads it).
 
@@ -443,7 +449,8 @@ class MemoryReport:
     def build(self) -> dict[str, Any]:
         out: dict[str, Any] = {"pid": os.getpid(), "rss_mb": rss_mb(), "tracing": tracemalloc.is_tracing()}
         if not tracemalloc.is_tracing():
-            out["note"] = "start the node with PYTHONTRACEMALLOC=1 to see allocation sites"
+            out["note"] = (f"start the node with {TRACE_MEMORY_ENV}=1 (or PYTHONTRACEMALLOC=1) to see allocation "
+                           "sites")
             return out
         gc.collect()
         snap = tracemalloc.take_snapshot().filter_traces((tracemalloc.Filter(False, tracemalloc.__file__),))

@@ -132,3 +132,37 @@ def test_a_stop_signal_that_comes_while_the_main_thread_holds_the_stops_lock_sti
     out = subprocess.run([sys.executable, "-c", _HELD_WHEN_SIGNALLED], capture_output=True, text=True, timeout=60)
     assert out.returncode == 0, out.stderr
     assert out.stdout.split() == ["set", "True", "True", "on", "SIGTERM"]
+
+
+_TRACED_FROM_ITS_START = """
+import json, os, tracemalloc
+import numpy  # an import before the node starts: not traced
+from bridge.nodes.node import MemoryReport, stop_on_signals
+before = tracemalloc.is_tracing()
+stop_on_signals()
+first = MemoryReport(None).build()
+hoard = [bytearray(4096) for _ in range(300)]  # about 1.2 MB kept after the start
+print(json.dumps({"before": before, "first": first, "traced_mb": tracemalloc.get_traced_memory()[0] / 2**20}))
+"""
+
+
+def test_a_node_started_with_trace_memory_traces_from_its_start_not_its_imports() -> None:
+    """``SCMBRIDGE_TRACE_MEMORY=1``: the node traces what it allocates once started (its memory report names the
+    sites that grow while it runs), not the allocations of every module it imported first."""
+    import json
+    import os
+    import subprocess
+    import sys
+
+    from bridge.nodes.node import TRACE_MEMORY_ENV
+
+    env = {**os.environ, TRACE_MEMORY_ENV: "1"}
+    out = subprocess.run([sys.executable, "-c", _TRACED_FROM_ITS_START], capture_output=True, text=True, timeout=60,
+                         env=env)
+    assert out.returncode == 0, out.stderr
+    res = json.loads(out.stdout)
+    assert res["before"] is False and res["first"]["tracing"] is True and res["first"]["baseline"] is True
+    assert 1.0 < res["traced_mb"] < 5.0, res  # the hoard, not numpy's or the project's modules (tens of MB)
+    plain = subprocess.run([sys.executable, "-c", _TRACED_FROM_ITS_START], capture_output=True, text=True,
+                           timeout=60, env={k: v for k, v in env.items() if k != TRACE_MEMORY_ENV})
+    assert json.loads(plain.stdout)["first"]["tracing"] is False, plain.stderr
