@@ -42,15 +42,17 @@ def test_two_station_hosts_each_serve_half_the_fleet_and_one_dying_stops_only_it
         col = Collector(session)
         station = {r: col.listen(M.status_key(r, "station"), M.Status) for r in robots}
         applied = {r: col.listen(M.key(r, "applied"), M.Applied) for r in robots}
-        for r in robots:
-            kids.spawn(["driver", "--engage", "--link", "can", "--emulate", "--x0", x0, "--robot", r, "--mode",
-                        "client", "--connect", tcp(port), "--duration", "200"], out=subprocess.DEVNULL)
+        drivers = {r: kids.spawn(["driver", "--engage", "--link", "can", "--emulate", "--x0", x0, "--robot", r,
+                                  "--mode", "client", "--connect", tcp(port), "--duration", "200"]) for r in robots}
         hosts = {h: kids.spawn(["station", "--config", str(cfg), "--shard", h, "--start", "--mode", "client",
                                 "--connect", tcp(port), "--listen", tcp(free_port(), f"127.0.0.{2 + i}"),
                                 "--duration", "180"]) for i, h in enumerate(shards)}
 
-        def hosts_said() -> str:
-            return "".join(f"\n--- {h} (exit {hosts[h].poll()}):\n" + said(hosts[h], 1500) for h in shards)
+        def hosts_said() -> str:  # the station hosts, and the driver host of each robot not driving
+            idle = [r for r in robots if not (station[r] and station[r][-1].text == "driving")]
+            return ("".join(f"\n--- {h} (exit {hosts[h].poll()}):\n" + said(hosts[h], 1500) for h in shards)
+                    + "".join(f"\n--- driver {r} (exit {drivers[r].poll()}):\n" + said(drivers[r], 2500)
+                              for r in idle))
 
         def driving(rs: list[str]) -> bool:
             return all(station[r] and station[r][-1].text == "driving" for r in rs)
