@@ -54,17 +54,15 @@ def order(items: Sequence[T], workers: int, seconds: Callable[[T], float | None]
     module's run of tests would end its fixtures there, and pytest would set them up again after it; and the long
     tests of one such group go one after another to one share (dealt apart, each worker would set up the fixture they
     share). Every item is kept, once."""
-    def key(i: int, it: T) -> object:
-        return group(it) if group is not None else i
-
+    keys: list[object] = [group(it) if group is not None else i for i, it in enumerate(items)]
     # a group with a long test moves whole, in its order (a module whose tests share its fixtures: split, its
     # fixtures would be set up again where its run resumes)
-    moving = {key(i, it) for i, it in enumerate(items) if seconds(it) is not None}
-    quick = [it for i, it in enumerate(items) if key(i, it) not in moving]
+    moving = {k for k, it in zip(keys, items) if seconds(it) is not None}
+    quick = [it for k, it in zip(keys, items) if k not in moving]
     units: dict[object, list[T]] = {}
-    for i, it in enumerate(items):
-        if key(i, it) in moving:
-            units.setdefault(key(i, it), []).append(it)
+    for k, it in zip(keys, items):
+        if k in moving:
+            units.setdefault(k, []).append(it)
     if not units:
         return list(items)
 

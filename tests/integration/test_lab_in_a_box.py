@@ -14,6 +14,7 @@ import subprocess
 import sys
 import tempfile
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import pytest
@@ -29,6 +30,19 @@ ROBOT = "rover1"
 
 def _scm(*args: str, timeout: float = 90) -> subprocess.CompletedProcess:
     return subprocess.run([sys.executable, "-m", "bridge", *args], capture_output=True, text=True, timeout=timeout)
+
+
+def _first_ok(run: Callable[[], subprocess.CompletedProcess], timeout: float) -> subprocess.CompletedProcess:
+    """The first of ``run()``'s tool runs that exits 0 within ``timeout`` s (one every half second), or else the last
+    one: a failure shows what the tool said last."""
+    last: list[subprocess.CompletedProcess] = []
+
+    def ok() -> bool:
+        last.append(run())
+        return last[-1].returncode == 0
+
+    until(ok, timeout, 0.5)
+    return last[-1]
 
 
 @pytest.mark.skipif(shutil.which("openssl") is None, reason="openssl is not installed")
@@ -57,11 +71,8 @@ def test_a_secure_lab_on_loopback_is_driven_and_stopped_by_its_operator(tmp_path
         for cmd in (["engage", "--robot", ROBOT], ["mission", "start", "--robot", ROBOT]):
             res = _scm(*cmd, "--timeout", "30", *z["operator"])  # a deadline on the answer, not a wait
             assert res.returncode == 0, res.stdout + res.stderr
-        last: list[subprocess.CompletedProcess] = []
-        driving = until(lambda: (r := _scm("status", "--robot", ROBOT, *z["observer"])).returncode == 0 and r
-                        or last.append(r), 60, 0.5)
-        shown = driving or last[-1]
-        assert driving and "driving" in driving.stdout, shown.stdout + shown.stderr + kids.said()
+        driving = _first_ok(lambda: _scm("status", "--robot", ROBOT, *z["observer"]), 60)
+        assert driving.returncode == 0 and "driving" in driving.stdout, driving.stdout + driving.stderr + kids.said()
         # the observer can change nothing, and is told it is denied (exit 3), not that nobody answered (exit 2)
         for cmd in (["engage", "--robot", ROBOT, "--release"], ["mission", "pause", "--robot", ROBOT],
                     ["estop", "--robot", ROBOT]):
@@ -122,10 +133,8 @@ def test_the_operators_documented_commands_run_as_written_in_the_lab(tmp_path: P
             res = scm(_documented(name, "--robot"))
             assert res.returncode == 0, (name, res.stdout + res.stderr)
         once = _documented("status", "--robot")
-        last: list[subprocess.CompletedProcess] = []
-        driving = until(lambda: (r := scm(once)).returncode == 0 and r or last.append(r), 60, 0.5)
-        shown = driving or last[-1]
-        assert driving and "driving" in driving.stdout, shown.stdout + shown.stderr + kids.said()
+        driving = _first_ok(lambda: scm(once), 60)
+        assert driving.returncode == 0 and "driving" in driving.stdout, driving.stdout + driving.stderr + kids.said()
         # its stderr into a file: a pipe nobody reads blocks a child that logs 64 KB (Zenoh's warnings under load),
         # and a blocked child cannot obey its Ctrl-C
         errors = tempfile.TemporaryFile()  # noqa: SIM115 (closed below)

@@ -48,14 +48,13 @@ def test_two_station_hosts_each_serve_half_the_fleet_and_one_dying_stops_only_it
                                 "--connect", tcp(port), "--listen", tcp(free_port(), f"127.0.0.{2 + i}"),
                                 "--duration", "180"]) for i, h in enumerate(shards)}
 
-        def hosts_said() -> str:  # the station hosts, and the driver host of each robot not driving
-            idle = [r for r in robots if not (station[r] and station[r][-1].text == "driving")]
-            return ("".join(f"\n--- {h} (exit {hosts[h].poll()}):\n" + said(hosts[h], 1500) for h in shards)
-                    + "".join(f"\n--- driver {r} (exit {drivers[r].poll()}):\n" + said(drivers[r], 2500)
-                              for r in idle))
-
         def driving(rs: list[str]) -> bool:
             return all(station[r] and station[r][-1].text == "driving" for r in rs)
+
+        def hosts_said() -> str:  # the station hosts, and the driver host of each robot not driving
+            return ("".join(f"\n--- {h} (exit {hosts[h].poll()}):\n" + said(hosts[h], 1500) for h in shards)
+                    + "".join(f"\n--- driver {r} (exit {drivers[r].poll()}):\n" + said(drivers[r], 2500)
+                              for r in robots if not driving([r])))
 
         assert col.wait(lambda: driving(robots), 120), (
             str({r: station[r][-1].text if station[r] else None for r in robots}) + hosts_said())

@@ -2,10 +2,12 @@
 (:class:`bridge.core.clock.Clock`; docs/ARCHITECTURE.md, "Threads and clocks"), so their timing is tested on a fake
 clock (tests/fakeclock.py) and a recorded run replays on the recorded one. No module of bridge/nodes/ or drivers/
 calls ``time.monotonic``, ``time.time``, ``time.sleep`` or ``time.perf_counter`` itself (nor imports them by name),
-except those listed in :data:`NOT_YET`, which is empty and stays so."""
+except those listed in :data:`NOT_YET`, which is empty and stays so; none imports ``time`` at all (a date is
+formatted with ``datetime``): ``time`` is used only by the clock's own module, :data:`CLOCK_MODULE`."""
 
 from __future__ import annotations
 
+import ast
 import re
 from pathlib import Path
 
@@ -16,6 +18,8 @@ DIRECT = re.compile(r"\btime\.(monotonic|time|sleep|perf_counter)(_ns)?\b"
                     r"|\bfrom\s+time\s+import\s+[^\n]*\b(monotonic|time|sleep|perf_counter)\b")
 #: modules still allowed a direct read: none (the driver side went onto its injected clock, bridge/core/timebase.py)
 NOT_YET: set[str] = set()
+#: the module that may use the time module for the nodes and the drivers: the clock's own
+CLOCK_MODULE = "bridge/core/timebase.py"
 
 
 def _allowed(rel: str) -> bool:
@@ -44,3 +48,25 @@ def test_the_pattern_finds_what_it_is_for() -> None:
         assert DIRECT.search(line), line
     for line in ("t = self.clock()", "time.strftime('%H')", "clock.wait(stop, 1.0)", "uptime.monotonic_s"):
         assert not DIRECT.search(line), line
+
+
+def _uses_time(path: Path) -> list[str]:
+    tree = ast.parse(path.read_text(encoding="utf-8"))
+    found = []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import) and any(a.name == "time" for a in node.names):
+            found.append(f"line {node.lineno}: import time")
+        elif isinstance(node, ast.ImportFrom) and node.module == "time":
+            found.append(f"line {node.lineno}: from time import ...")
+    return found
+
+
+def test_the_drivers_and_the_nodes_read_time_only_through_the_clock_module() -> None:
+    offenders = {}
+    for top in SCANNED:
+        for p in sorted((ROOT / top).rglob("*.py")):
+            found = _uses_time(p)
+            if found:
+                offenders[p.relative_to(ROOT).as_posix()] = found
+    assert not offenders, offenders
+    assert _uses_time(ROOT / CLOCK_MODULE)  # (the check sees an import where there is one)

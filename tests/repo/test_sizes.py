@@ -5,8 +5,8 @@ project bases'); no Python file of the repository (product, bench, tests) is lon
 grows by getting a collaborator with a job of its own, not a longer list.
 
 :data:`KNOWN_EXCESS` holds the classes over a limit today with their measured size: such a class may not grow, the
-test reports them every run (a warning), and says when one has shrunk so the figure can be tightened. The drivers and
-the nodes also read no clock of their own: ``time`` is used only by ``bridge/core/timebase.py``."""
+test reports them every run (a warning), and says when one has shrunk so the figure can be tightened. (That the nodes
+and the drivers read no clock of their own is tests/repo/test_one_clock.py's.)"""
 
 from __future__ import annotations
 
@@ -42,10 +42,6 @@ CONTROL_PATH = (
 )
 #: classes over a limit today: (public members, attributes) as measured; they may not grow (tighten as they shrink)
 KNOWN_EXCESS: dict[str, tuple[int, int]] = {}
-#: the module that may use the time module for the nodes and the drivers: the clock's own
-CLOCK_MODULE = "bridge/core/timebase.py"
-#: where no other module may: the drivers and every node (the driver host, the station, the fleet loop)
-NO_TIME = ("drivers", "bridge/nodes")
 
 
 def _load(spec: str) -> type:
@@ -136,26 +132,3 @@ def test_no_python_file_is_longer_than_a_reader_holds() -> None:
         if n > MAX_LINES:
             long[rel] = n
     assert not long, f"files over {MAX_LINES} lines (add a module rather than growing one): {long}"
-
-
-def _uses_time(path: Path) -> list[str]:
-    tree = ast.parse(path.read_text(encoding="utf-8"))
-    found = []
-    for node in ast.walk(tree):
-        if isinstance(node, ast.Import) and any(a.name == "time" for a in node.names):
-            found.append(f"line {node.lineno}: import time")
-        elif isinstance(node, ast.ImportFrom) and node.module == "time":
-            found.append(f"line {node.lineno}: from time import ...")
-    return found
-
-
-def test_the_drivers_and_the_nodes_read_time_only_through_the_clock_module() -> None:
-    offenders = {}
-    for entry in NO_TIME:
-        target = ROOT / entry
-        for p in sorted(target.rglob("*.py")) if target.is_dir() else [target]:
-            found = _uses_time(p)
-            if found:
-                offenders[p.relative_to(ROOT).as_posix()] = found
-    assert not offenders, offenders
-    assert _uses_time(ROOT / CLOCK_MODULE)  # (the check sees an import where there is one)

@@ -135,7 +135,7 @@ def test_a_stop_signal_that_comes_while_the_main_thread_holds_the_stops_lock_sti
 
 
 _TRACED_FROM_ITS_START = """
-import json, os, tracemalloc
+import json, tracemalloc
 import numpy  # an import before the node starts: not traced
 from bridge.nodes.node import MemoryReport, stop_on_signals
 before = tracemalloc.is_tracing()
